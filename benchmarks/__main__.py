@@ -1,0 +1,48 @@
+"""Run benchmarks and print one JSON object of their figures (see ``benchmarks/__init__``)."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import importlib.util
+import json
+import sys
+import time
+from pathlib import Path
+
+from benchmarks import NAMES
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__)
+    parser.add_argument("names", nargs="*", metavar="NAME", help=f"benchmarks to run (default: all): {', '.join(NAMES)}")
+    parser.add_argument("--out", type=Path, help="also write the JSON to this file")
+    args = parser.parse_args(argv)
+    names = args.names or [n for n in NAMES if importlib.util.find_spec(f"benchmarks.{n}") is not None]
+    unknown = [n for n in names if n not in NAMES]
+    if unknown:
+        print(f"python -m benchmarks: error: unknown benchmark {', '.join(unknown)} (known: {', '.join(NAMES)})", file=sys.stderr)
+        return 2
+    results: dict[str, dict[str, float]] = {}
+    for name in names:
+        try:
+            module = importlib.import_module(f"benchmarks.{name}")
+        except ModuleNotFoundError as exc:
+            if exc.name == f"benchmarks.{name}":
+                print(f"python -m benchmarks: error: benchmark {name} is not built yet", file=sys.stderr)
+                return 2
+            raise
+        print(f"[benchmarks] {name} ...", file=sys.stderr, flush=True)
+        start = time.perf_counter()
+        results[name] = module.run()
+        print(f"[benchmarks] {name} done in {time.perf_counter() - start:.1f} s", file=sys.stderr, flush=True)
+    text = json.dumps(results, indent=2, sort_keys=True)
+    print(text)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,24 @@
+"""Shared test fixtures: paths to the real data in ../shared/data and the paper's rig."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+SHARED_DATA = (REPO / ".." / "shared" / "data").resolve()
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"shared data not found at {SHARED_DATA}")
+    return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def estec_rig():  # type: ignore[no-untyped-def]
+    from trackmeter.data.rigfile import load_rig
+
+    return load_rig(REPO / "config" / "rigs" / "estec_12mm.yaml")

@@ -1,0 +1,75 @@
+"""The ``trackmeter`` command: a thin layer over library functions.
+
+Each subcommand lives in its own module ``trackmeter.cli.<name>`` with two functions,
+``add_arguments(parser)`` and ``run(args) -> int``; heavy imports happen inside ``run`` so
+``--help`` stays fast. Any :class:`TrackmeterError` becomes one line on stderr and exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from typing import NoReturn, Sequence
+
+from trackmeter.errors import TrackmeterError
+
+#: name -> one-line help. The module ``trackmeter.cli.<name>`` implements it.
+COMMANDS: dict[str, str] = {
+    "console": "run the pipeline with the operator console in the browser (viser)",
+    "calibrate": "calibrate a stereo rig from chessboard image pairs",
+    "measure": "measure 3D points of a stereo pair at given left-image pixels",
+    "simulate": "render a tumbling-satellite scenario to a stereo sequence folder",
+    "track": "track targets and estimate pose and velocities, headless, into a run folder",
+    "evaluate": "compare an estimated trajectory with the ground truth",
+    "analyze": "error analysis: sigma versus range, sub-pixel accuracy, error density",
+}
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that reports a usage error as one line and exit code 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(
+        prog="trackmeter",
+        description="TV-Trackmeter: stereo tracking and motion estimation of a tumbling satellite.",
+    )
+    from trackmeter import __version__
+
+    parser.add_argument("--version", action="version", version=f"trackmeter {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    for name, help_text in COMMANDS.items():
+        module = _command_module(name)
+        p = sub.add_parser(name, help=help_text, description=(module.__doc__ or help_text).strip(),
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
+        p.add_argument("--config", metavar="FILE", help="YAML file layered over config/default.yaml")
+        module.add_arguments(p)
+    return parser
+
+
+def _command_module(name: str):  # type: ignore[no-untyped-def]
+    return importlib.import_module(f"trackmeter.cli.{name}")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 2
+    try:
+        return int(_command_module(args.command).run(args) or 0)
+    except TrackmeterError as exc:
+        print(f"trackmeter {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"trackmeter {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

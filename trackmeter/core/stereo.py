@@ -1,0 +1,380 @@
+"""Camera and stereo-rig geometry: projection, rectification, triangulation, error propagation.
+
+Frames: ``cam`` is the LEFT camera's optical frame (OpenCV: +x right, +y down, +z forward);
+``cam1`` the right camera's, with ``p_cam1 = R @ p_cam + T`` (OpenCV ``stereoCalibrate``).
+``rect`` is the rectified left frame, ``p_rect = R1 @ p_cam`` (OpenCV ``stereoRectify``).
+
+Pixels: (u, v) = (column, row) with the CENTRE of the top-left pixel at (0, 0), as OpenCV's
+projection functions and ``remap`` use it.
+
+Projection and distortion go through OpenCV (``projectPoints``, ``undistortPoints``,
+``stereoRectify``, ``initUndistortRectifyMap``); nothing here re-implements them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from trackmeter.errors import TrackmeterError
+
+FloatArray = NDArray[np.float64]
+
+
+_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
+
+
+def _undistort_points(
+    pts: FloatArray, K: FloatArray, dist: FloatArray, R: FloatArray | None = None, P: FloatArray | None = None
+) -> FloatArray:
+    """OpenCV's iterative undistortion run to convergence (~1e-6 px), (N,1,2) → (N,2).
+
+    The default 5 iterations of ``cv2.undistortPoints`` leave errors of a few hundredths of a
+    pixel with real lenses: too much for sub-pixel work. OpenCV 4 names the variant with
+    termination criteria ``undistortPointsIter``; OpenCV 5 takes them in ``undistortPoints``.
+    """
+    if hasattr(cv2, "undistortPointsIter"):
+        out = cv2.undistortPointsIter(pts, K, dist, R, P, _UNDISTORT_CRITERIA)
+    else:
+        out = cv2.undistortPoints(pts, K, dist, R=R, P=P, criteria=_UNDISTORT_CRITERIA)
+    return np.asarray(out, dtype=float).reshape(-1, 2)
+
+
+def _as_matrix(value: ArrayLike, shape: tuple[int, ...], name: str) -> FloatArray:
+    array = np.asarray(value, dtype=float)
+    if array.size != int(np.prod(shape)):
+        raise TrackmeterError(f"{name} must have shape {shape}, got {array.shape}")
+    array = array.reshape(shape)
+    if not np.all(np.isfinite(array)):
+        raise TrackmeterError(f"{name} has non-finite values")
+    return array
+
+
+@dataclass(frozen=True, eq=False)
+class Camera:
+    """A pinhole camera with OpenCV lens distortion.
+
+    Attributes:
+        width, height: image size, px.
+        K: (3,3) intrinsic matrix ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``, px.
+        dist: OpenCV distortion coefficients ``(k1, k2, p1, p2[, k3[, k4, k5, k6]])``.
+    """
+
+    width: int
+    height: int
+    K: FloatArray
+    dist: FloatArray = field(default_factory=lambda: np.zeros(5))
+
+    def __post_init__(self) -> None:
+        if int(self.width) <= 0 or int(self.height) <= 0:
+            raise TrackmeterError(f"image size must be positive, got {self.width}x{self.height}")
+        object.__setattr__(self, "width", int(self.width))
+        object.__setattr__(self, "height", int(self.height))
+        object.__setattr__(self, "K", _as_matrix(self.K, (3, 3), "K"))
+        dist = np.asarray(self.dist, dtype=float).ravel()
+        if dist.size not in (0, 4, 5, 8, 12, 14) or not np.all(np.isfinite(dist)):
+            raise TrackmeterError(f"distortion must have 4, 5, 8, 12 or 14 finite coefficients, got {dist.size}")
+        object.__setattr__(self, "dist", dist if dist.size else np.zeros(5))
+        if self.K[0, 0] <= 0 or self.K[1, 1] <= 0:
+            raise TrackmeterError("K must have positive focal lengths")
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """``(width, height)`` in px, the order OpenCV takes."""
+        return (self.width, self.height)
+
+    @property
+    def focal_px(self) -> float:
+        """Mean focal length ``(fx + fy) / 2``, px."""
+        return float(0.5 * (self.K[0, 0] + self.K[1, 1]))
+
+    def project(self, points_cam: ArrayLike) -> FloatArray:
+        """Project (N,3) points of this camera's frame (m) to distorted pixels (N,2)."""
+        p = np.asarray(points_cam, dtype=float).reshape(-1, 3)
+        if len(p) == 0:
+            return np.zeros((0, 2))
+        uv, _ = cv2.projectPoints(p, np.zeros(3), np.zeros(3), self.K, self.dist)
+        return uv.reshape(-1, 2)
+
+    def undistort(self, uv: ArrayLike) -> FloatArray:
+        """Normalised image coordinates (N,2) ``(x/z, y/z)`` of distorted pixels (N,2).
+
+        Iterated to convergence (see :func:`_undistort_points`).
+        """
+        pts = np.asarray(uv, dtype=float).reshape(-1, 1, 2)
+        if len(pts) == 0:
+            return np.zeros((0, 2))
+        return _undistort_points(pts, self.K, self.dist)
+
+    def contains(self, uv: ArrayLike, margin_px: float = 0.0) -> NDArray[np.bool_]:
+        """Whether pixels (N,2) lie inside the image, at least ``margin_px`` from its border."""
+        uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+        return (
+            (uv[:, 0] >= -0.5 + margin_px)
+            & (uv[:, 0] <= self.width - 0.5 - margin_px)
+            & (uv[:, 1] >= -0.5 + margin_px)
+            & (uv[:, 1] <= self.height - 0.5 - margin_px)
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class StereoRig:
+    """Two calibrated cameras and their extrinsics ``p_cam1 = R @ p_cam + T`` (T in m).
+
+    Attributes:
+        left, right: the cameras (``cam`` and ``cam1``).
+        R: (3,3) rotation from the left to the right camera frame.
+        T: (3,) translation, m. For a side-by-side rig with the right camera at +x,
+            ``T ≈ (-baseline_m, 0, 0)``.
+        rms_px: calibration RMS reprojection error when known, px.
+        name: a label for reports.
+    """
+
+    left: Camera
+    right: Camera
+    R: FloatArray
+    T: FloatArray
+    rms_px: float | None = None
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        R = _as_matrix(self.R, (3, 3), "R")
+        if abs(np.linalg.det(R) - 1.0) > 1e-6 or not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
+            raise TrackmeterError("R must be a rotation matrix (orthonormal, det +1)")
+        object.__setattr__(self, "R", R)
+        T = _as_matrix(self.T, (3,), "T")
+        if np.linalg.norm(T) <= 0:
+            raise TrackmeterError("T must be non-zero (the baseline)")
+        object.__setattr__(self, "T", T)
+        if self.left.image_size != self.right.image_size:
+            raise TrackmeterError(
+                f"left and right images differ in size: {self.left.image_size} and {self.right.image_size}"
+            )
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """``(width, height)`` of both images, px."""
+        return self.left.image_size
+
+    @property
+    def baseline_m(self) -> float:
+        """Distance between the two optical centres, m."""
+        return float(np.linalg.norm(self.T))
+
+    @property
+    def T_cam1_cam(self) -> FloatArray:
+        """4x4 transform from the left camera frame to the right camera frame."""
+        T = np.eye(4)
+        T[:3, :3] = self.R
+        T[:3, 3] = self.T
+        return T
+
+    def project(self, points_cam: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """Project (N,3) left-camera-frame points (m) into both images: ``(uv_left, uv_right)``."""
+        p = np.asarray(points_cam, dtype=float).reshape(-1, 3)
+        return self.left.project(p), self.right.project(p @ self.R.T + self.T)
+
+    @cached_property
+    def rectification(self) -> Rectification:
+        """The rig's rectification (computed once, then cached)."""
+        return Rectification.of(self)
+
+
+@dataclass(frozen=True, eq=False)
+class Rectification:
+    """Rectified stereo geometry of a rig (OpenCV ``stereoRectify`` with ``alpha``).
+
+    In the rectified images, a scene point has the same row in both images and its disparity
+    ``d = u_left - u_right`` gives depth ``z = f b / (d - (cx1 - cx2))``.
+
+    Attributes:
+        rig: the rig.
+        R1, R2: (3,3) rotations ``p_rect = R1 @ p_cam``, ``p_rect1 = R2 @ p_cam1``.
+        P1, P2: (3,4) projection matrices of the rectified cameras, px.
+        Q: (4,4) disparity-to-depth matrix, ``[X Y Z W] = Q [u v d 1]``.
+    """
+
+    rig: StereoRig
+    R1: FloatArray
+    R2: FloatArray
+    P1: FloatArray
+    P2: FloatArray
+    Q: FloatArray
+
+    @classmethod
+    def of(cls, rig: StereoRig, alpha: float = 0.0) -> Rectification:
+        """Rectify ``rig``; ``alpha`` = 0 keeps only valid pixels, 1 keeps all source pixels."""
+        R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(
+            rig.left.K,
+            rig.left.dist,
+            rig.right.K,
+            rig.right.dist,
+            rig.image_size,
+            rig.R,
+            rig.T.reshape(3, 1),
+            flags=cv2.CALIB_ZERO_DISPARITY,
+            alpha=alpha,
+        )
+        return cls(rig=rig, R1=R1, R2=R2, P1=P1, P2=P2, Q=Q)
+
+    # ----------------------------------------------------------------- rectified parameters
+
+    @property
+    def focal_px(self) -> float:
+        """Focal length of both rectified cameras, px."""
+        return float(self.P1[0, 0])
+
+    @property
+    def baseline_m(self) -> float:
+        """Baseline along the rectified x axis, m (positive)."""
+        return float(-self.P2[0, 3] / self.P2[0, 0])
+
+    @property
+    def cx_left(self) -> float:
+        return float(self.P1[0, 2])
+
+    @property
+    def cx_right(self) -> float:
+        return float(self.P2[0, 2])
+
+    @property
+    def cy(self) -> float:
+        return float(self.P1[1, 2])
+
+    @property
+    def disparity_offset_px(self) -> float:
+        """``cx1 - cx2``: the disparity of a point at infinity (0 with ``CALIB_ZERO_DISPARITY``)."""
+        return self.cx_left - self.cx_right
+
+    # ----------------------------------------------------------------- maps and images
+
+    @cached_property
+    def maps(self) -> tuple[tuple[NDArray[np.float32], NDArray[np.float32]], tuple[NDArray[np.float32], NDArray[np.float32]]]:
+        """``((map1x, map1y), (map2x, map2y))`` float32 remap tables, rectified → original."""
+        size = self.rig.image_size
+        left = cv2.initUndistortRectifyMap(self.rig.left.K, self.rig.left.dist, self.R1, self.P1, size, cv2.CV_32FC1)
+        right = cv2.initUndistortRectifyMap(self.rig.right.K, self.rig.right.dist, self.R2, self.P2, size, cv2.CV_32FC1)
+        return (left[0], left[1]), (right[0], right[1])
+
+    def rectify_images(self, left: NDArray[np.uint8], right: NDArray[np.uint8]) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
+        """Rectify a full stereo pair with bilinear interpolation."""
+        (lx, ly), (rx, ry) = self.maps
+        return (
+            cv2.remap(left, lx, ly, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT),
+            cv2.remap(right, rx, ry, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT),
+        )
+
+    # ----------------------------------------------------------------- pixel mappings
+
+    def rectify_points(self, uv: ArrayLike, side: int = 0) -> FloatArray:
+        """Original (distorted) pixels (N,2) of the left (side 0) or right (1) image → rectified."""
+        cam = self.rig.left if side == 0 else self.rig.right
+        Rr, P = (self.R1, self.P1) if side == 0 else (self.R2, self.P2)
+        pts = np.asarray(uv, dtype=float).reshape(-1, 1, 2)
+        if len(pts) == 0:
+            return np.zeros((0, 2))
+        return _undistort_points(pts, cam.K, cam.dist, Rr, P)
+
+    def unrectify_points(self, uv_rect: ArrayLike, side: int = 0) -> FloatArray:
+        """Rectified pixels (N,2) → original (distorted) pixels of the left (0) or right (1) image."""
+        cam = self.rig.left if side == 0 else self.rig.right
+        Rr, P = (self.R1, self.P1) if side == 0 else (self.R2, self.P2)
+        uv = np.asarray(uv_rect, dtype=float).reshape(-1, 2)
+        if len(uv) == 0:
+            return np.zeros((0, 2))
+        rays_rect = np.column_stack([uv, np.ones(len(uv))]) @ np.linalg.inv(P[:3, :3]).T
+        return cam.project(rays_rect @ Rr)  # p_cam = Rr^T p_rect, row form p @ Rr
+
+    # ----------------------------------------------------------------- triangulation
+
+    def triangulate(self, uv_rect_left: ArrayLike, disparity_px: ArrayLike) -> FloatArray:
+        """3D points in the LEFT CAMERA frame (N,3), m, from rectified left pixels and disparities.
+
+        ``Z_rect = f b / d'``, ``X_rect = (u - cx1) b / d'``, ``Y_rect = (v - cy) b / d'`` with
+        ``d' = d - (cx1 - cx2)`` (OpenCV's Q matrix), then ``p_cam = R1^T p_rect``.
+        Non-positive ``d'`` gives NaN rows.
+        """
+        uv = np.asarray(uv_rect_left, dtype=float).reshape(-1, 2)
+        d = np.asarray(disparity_px, dtype=float).reshape(-1) - self.disparity_offset_px
+        b, f = self.baseline_m, self.focal_px
+        with np.errstate(divide="ignore", invalid="ignore"):
+            scale = np.where(d > 0, b / d, np.nan)
+        p_rect = np.column_stack([(uv[:, 0] - self.cx_left) * scale, (uv[:, 1] - self.cy) * scale, f * scale])
+        return p_rect @ self.R1  # rows: (R1^T p)^T = p^T R1
+
+    def project_rectified(self, points_cam: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """Rectified left pixels (N,2) and disparities (N,) of left-camera-frame points (N,3), m."""
+        p_rect = np.asarray(points_cam, dtype=float).reshape(-1, 3) @ self.R1.T
+        z = p_rect[:, 2]
+        f, b = self.focal_px, self.baseline_m
+        uv = np.column_stack([f * p_rect[:, 0] / z + self.cx_left, f * p_rect[:, 1] / z + self.cy])
+        return uv, f * b / z + self.disparity_offset_px
+
+    def point_covariance(
+        self,
+        uv_rect_left: ArrayLike,
+        disparity_px: ArrayLike,
+        sigma_disparity_px: float | ArrayLike,
+        sigma_uv_px: float | ArrayLike = 0.0,
+    ) -> FloatArray:
+        """Covariance (N,3,3) of triangulated points in the left camera frame, m².
+
+        First-order error propagation of the paper's eqs. 1-2: with ``Z = f b / d'``,
+        ``X = (u - cx) Z / f``, ``Y = (v - cy) Z / f`` the Jacobian is
+
+            dZ/dd = -Z²/(f b)            (eq. 2: sigma_z = z² sigma_d / (f b))
+            dX/dd = -X Z/(f b),  dX/du = Z/f
+            dY/dd = -Y Z/(f b),  dY/dv = Z/f
+
+        and ``C_cam = R1^T J diag(su², sv², sd²) J^T R1``.
+
+        Args:
+            uv_rect_left: (N,2) rectified left pixel.
+            disparity_px: (N,) disparity.
+            sigma_disparity_px: standard deviation of the disparity (scalar or (N,)), px.
+            sigma_uv_px: standard deviation of the left pixel position per axis, px.
+        """
+        p_rect = self.triangulate(uv_rect_left, disparity_px) @ self.R1.T
+        n = len(p_rect)
+        f, b = self.focal_px, self.baseline_m
+        X, Y, Z = p_rect.T
+        J = np.zeros((n, 3, 3))
+        J[:, 0, 0] = Z / f
+        J[:, 1, 1] = Z / f
+        J[:, 0, 2] = -X * Z / (f * b)
+        J[:, 1, 2] = -Y * Z / (f * b)
+        J[:, 2, 2] = -Z * Z / (f * b)
+        s_uv = np.broadcast_to(np.asarray(sigma_uv_px, dtype=float), (n,))
+        s_d = np.broadcast_to(np.asarray(sigma_disparity_px, dtype=float), (n,))
+        S = np.zeros((n, 3, 3))
+        S[:, 0, 0] = s_uv**2
+        S[:, 1, 1] = s_uv**2
+        S[:, 2, 2] = s_d**2
+        C_rect = J @ S @ np.transpose(J, (0, 2, 1))
+        return self.R1.T @ C_rect @ self.R1
+
+    def point_sigma(
+        self,
+        uv_rect_left: ArrayLike,
+        disparity_px: ArrayLike,
+        sigma_disparity_px: float | ArrayLike,
+        sigma_uv_px: float | ArrayLike = 0.0,
+    ) -> FloatArray:
+        """Per-axis standard deviation (N,3) in the left camera frame, m (sqrt of the diagonal of
+        :meth:`point_covariance`)."""
+        C = self.point_covariance(uv_rect_left, disparity_px, sigma_disparity_px, sigma_uv_px)
+        return np.sqrt(np.diagonal(C, axis1=1, axis2=2))
+
+
+def depth_sigma(z_m: ArrayLike, focal_px: float, baseline_m: float, sigma_disparity_px: float) -> FloatArray:
+    """Depth standard deviation of a stereo point, paper eq. 2: ``sigma_z = z² sigma_d / (f b)``, m.
+
+    The parabola of the paper's Fig. 3; inverted, it gives the sub-pixel disparity accuracy
+    ``sigma_d = k f b`` from a fitted ``sigma_z = k z²``.
+    """
+    z = np.asarray(z_m, dtype=float)
+    return z * z * sigma_disparity_px / (focal_px * baseline_m)

@@ -1,0 +1,247 @@
+"""Rotations, rigid transforms and the paper's attitude equations.
+
+Conventions (see ``docs/conventions.md``):
+
+- ``T_a_b`` (4x4) or ``(R_a_b, t_a_b)`` maps points from frame b to frame a:
+  ``p_a = R_a_b @ p_b + t_a_b``, so chains cancel: ``T_a_c = T_a_b @ T_b_c``.
+- Quaternions are scalar-first ``wxyz`` and always pass through
+  :class:`scipy.spatial.transform.Rotation` with ``scalar_first=True``.
+- ``omega_body`` is the angular velocity expressed in the body frame (rad/s).
+
+Equation numbers refer to the TV-Trackmeter paper (section 3: rigid-body kinematics,
+section 4: error measures).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+from trackmeter.errors import TrackmeterError
+
+FloatArray = NDArray[np.float64]
+
+
+# --------------------------------------------------------------------------- quaternions
+
+
+def quat_wxyz_to_matrix(quat_wxyz: ArrayLike) -> FloatArray:
+    """Rotation matrix (3,3) or (N,3,3) from unit quaternion(s) ``wxyz`` (4,) or (N,4)."""
+    return Rotation.from_quat(np.asarray(quat_wxyz, dtype=float), scalar_first=True).as_matrix()
+
+
+def matrix_to_quat_wxyz(R: ArrayLike) -> FloatArray:
+    """Unit quaternion(s) ``wxyz`` with non-negative w from rotation matrix (3,3) or (N,3,3)."""
+    q = Rotation.from_matrix(np.asarray(R, dtype=float)).as_quat(scalar_first=True, canonical=True)
+    return np.asarray(q, dtype=float)
+
+
+def quat_multiply(q1_wxyz: ArrayLike, q2_wxyz: ArrayLike) -> FloatArray:
+    """Hamilton product ``q1 ⊗ q2`` of (possibly non-unit) quaternions, shapes (4,) or (N,4).
+
+    Needed for quaternion *rates* (eqs. 14-15), which are not rotations, so scipy's
+    :class:`Rotation` cannot hold them.
+    """
+    a = np.asarray(q1_wxyz, dtype=float)
+    b = np.asarray(q2_wxyz, dtype=float)
+    w1, x1, y1, z1 = np.moveaxis(a, -1, 0)
+    w2, x2, y2, z2 = np.moveaxis(b, -1, 0)
+    return np.stack(
+        [
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+        ],
+        axis=-1,
+    )
+
+
+def quat_conjugate(q_wxyz: ArrayLike) -> FloatArray:
+    """Conjugate ``(w, -x, -y, -z)``; the inverse of a unit quaternion."""
+    q = np.array(q_wxyz, dtype=float)
+    q[..., 1:] *= -1.0
+    return q
+
+
+def quat_derivative(quat_wxyz: ArrayLike, omega_body: ArrayLike) -> FloatArray:
+    """Quaternion kinematics, paper eq. 15: ``q_dot = 1/2 q ⊗ (0, omega_body)``.
+
+    Args:
+        quat_wxyz: (4,) or (N,4) attitude ``q_world_body`` (maps body to world).
+        omega_body: (3,) or (N,3) angular velocity in the body frame, rad/s.
+
+    Returns:
+        (4,) or (N,4) time derivative of the quaternion, 1/s.
+    """
+    w = np.asarray(omega_body, dtype=float)
+    omega_quat = np.concatenate([np.zeros(w.shape[:-1] + (1,)), w], axis=-1)
+    return 0.5 * quat_multiply(quat_wxyz, omega_quat)
+
+
+def omega_body_from_quat_rate(quat_wxyz: ArrayLike, quat_rate_wxyz: ArrayLike) -> FloatArray:
+    """Body-frame angular velocity from a quaternion and its rate, paper eq. 14.
+
+    ``(0, omega_body) = 2 q* ⊗ q_dot`` — the inverse of :func:`quat_derivative`.
+
+    Args:
+        quat_wxyz: (4,) or (N,4) unit attitude quaternion ``q_world_body``.
+        quat_rate_wxyz: (4,) or (N,4) its time derivative, 1/s.
+
+    Returns:
+        (3,) or (N,3) omega in the body frame, rad/s.
+    """
+    return 2.0 * quat_multiply(quat_conjugate(quat_wxyz), quat_rate_wxyz)[..., 1:]
+
+
+def omega_body_between(quat0_wxyz: ArrayLike, quat1_wxyz: ArrayLike, dt_s: float) -> FloatArray:
+    """Mean body-frame angular velocity taking attitude q0 to q1 in ``dt_s`` seconds.
+
+    The finite-difference form of eq. 14 done exactly on the rotation group:
+    ``omega_body = log(q0^-1 ⊗ q1) / dt`` (constant rate about a body-fixed axis).
+    Sign-flipped quaternions (q and -q) give the same answer.
+    """
+    if dt_s <= 0:
+        raise ValueError(f"dt_s must be positive, got {dt_s}")
+    r0 = Rotation.from_quat(np.asarray(quat0_wxyz, dtype=float), scalar_first=True)
+    r1 = Rotation.from_quat(np.asarray(quat1_wxyz, dtype=float), scalar_first=True)
+    return np.asarray((r0.inv() * r1).as_rotvec(), dtype=float) / dt_s
+
+
+# --------------------------------------------------------------------------- attitude errors
+
+
+def attitude_error_angle(quat_est_wxyz: ArrayLike, quat_true_wxyz: ArrayLike) -> FloatArray:
+    """Total attitude error angle, paper eq. 16: the angle of ``R_est R_true^T``, rad.
+
+    ``theta = 2 arccos |<q_est, q_true>|`` in [0, pi]; insensitive to the sign of either
+    quaternion. Computed through ``atan2`` of the relative rotation so it stays exact for
+    small angles, where ``arccos`` loses half the digits.
+    """
+    return np.linalg.norm(attitude_error_components(quat_est_wxyz, quat_true_wxyz), axis=-1)
+
+
+def attitude_error_components(quat_est_wxyz: ArrayLike, quat_true_wxyz: ArrayLike) -> FloatArray:
+    """Per-axis attitude error, paper eq. 17, in the camera (parent) frame, rad.
+
+    The rotation vector of the error rotation ``R_err = R_est @ R_true^T``: its x, y, z are
+    the small rotations about the camera's x, y and z (viewing) axes that take the true
+    attitude onto the estimate; its norm is eq. 16's total angle.
+
+    Args:
+        quat_est_wxyz, quat_true_wxyz: (4,) or (N,4) quaternions of ``T_cam_body``.
+
+    Returns:
+        (3,) or (N,3) rotation vector of the error, rad.
+    """
+    r_est = Rotation.from_quat(np.asarray(quat_est_wxyz, dtype=float), scalar_first=True)
+    r_true = Rotation.from_quat(np.asarray(quat_true_wxyz, dtype=float), scalar_first=True)
+    return np.asarray((r_est * r_true.inv()).as_rotvec(), dtype=float)
+
+
+# --------------------------------------------------------------------------- rigid transforms
+
+
+def make_transform(R_a_b: ArrayLike, t_a_b: ArrayLike) -> FloatArray:
+    """4x4 homogeneous ``T_a_b`` from a rotation (3,3) and a translation (3,)."""
+    T = np.eye(4)
+    T[:3, :3] = np.asarray(R_a_b, dtype=float)
+    T[:3, 3] = np.asarray(t_a_b, dtype=float)
+    return T
+
+
+def transform_from_pose(position: ArrayLike, quat_wxyz: ArrayLike) -> FloatArray:
+    """4x4 ``T_a_b`` from the position of b's origin in a (m) and b's attitude ``q_a_b``."""
+    return make_transform(quat_wxyz_to_matrix(quat_wxyz), position)
+
+
+def invert_transform(T_a_b: ArrayLike) -> FloatArray:
+    """``T_b_a`` from ``T_a_b`` using the rigid structure (no general matrix inverse)."""
+    T = np.asarray(T_a_b, dtype=float)
+    R = T[:3, :3]
+    return make_transform(R.T, -R.T @ T[:3, 3])
+
+
+def apply_transform(T_a_b: ArrayLike, points_b: ArrayLike) -> FloatArray:
+    """Map points (N,3) or (3,) from frame b to frame a: ``p_a = R_a_b p_b + t_a_b``."""
+    T = np.asarray(T_a_b, dtype=float)
+    p = np.asarray(points_b, dtype=float)
+    return p @ T[:3, :3].T + T[:3, 3]
+
+
+# --------------------------------------------------------------------------- absolute orientation
+
+
+def absolute_orientation(
+    points_a: ArrayLike,
+    points_b: ArrayLike,
+    weights: ArrayLike | None = None,
+) -> tuple[FloatArray, FloatArray]:
+    """Weighted least-squares rigid transform between two point sets (Kabsch / Umeyama).
+
+    Finds ``R_a_b`` (proper rotation, det +1) and ``t_a_b`` minimising
+    ``sum_i w_i |p_a_i - (R_a_b p_b_i + t_a_b)|^2`` in closed form: the weighted centroids
+    give t, the SVD of the weighted cross-covariance gives R with the reflection fix of
+    Umeyama (1991), "Least-squares estimation of transformation parameters between two point
+    patterns", IEEE PAMI 13(4), eq. 39-41 (scale fixed to 1).
+
+    Args:
+        points_a: (N,3) points in frame a, m.
+        points_b: (N,3) the same points in frame b, m.
+        weights: (N,) non-negative weights (e.g. 1/sigma^2), default all ones.
+
+    Returns:
+        ``(R_a_b, t_a_b)``: (3,3) and (3,).
+
+    Raises:
+        TrackmeterError: fewer than 3 points with positive weight, or the points are
+            collinear so the rotation is not determined.
+    """
+    a = np.asarray(points_a, dtype=float)
+    b = np.asarray(points_b, dtype=float)
+    if a.shape != b.shape or a.ndim != 2 or a.shape[1] != 3:
+        raise TrackmeterError(f"absolute orientation needs two (N,3) point sets, got {a.shape} and {b.shape}")
+    w = np.ones(len(a)) if weights is None else np.asarray(weights, dtype=float)
+    if w.shape != (len(a),) or np.any(w < 0) or not np.all(np.isfinite(w)):
+        raise TrackmeterError("absolute orientation weights must be (N,) finite and non-negative")
+    if np.count_nonzero(w > 0) < 3:
+        raise TrackmeterError(f"absolute orientation needs at least 3 weighted points, got {np.count_nonzero(w > 0)}")
+    w = w / w.sum()
+    centroid_a = w @ a
+    centroid_b = w @ b
+    da = a - centroid_a
+    db = b - centroid_b
+    cross_cov = (da * w[:, None]).T @ db  # sum_i w_i da_i db_i^T, (3,3)
+    U, S, Vt = np.linalg.svd(cross_cov)
+    if S[1] <= 1e-12 * max(S[0], 1e-300):
+        raise TrackmeterError("absolute orientation is undetermined: the points are collinear")
+    D = np.eye(3)
+    D[2, 2] = np.sign(np.linalg.det(U) * np.linalg.det(Vt)) or 1.0
+    R = U @ D @ Vt
+    t = centroid_a - R @ centroid_b
+    return R, t
+
+
+def frame_from_three_points(p1: ArrayLike, p2: ArrayLike, p3: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """The paper's case-(a) body frame from three points (section 2.C), as ``(R_a_body, origin_a)``.
+
+    Origin at ``p1``, x axis toward ``p2``, xy-plane through ``p3`` (y toward p3's side), z
+    completing a right-handed frame. Points are (3,) in any frame a; the columns of
+    ``R_a_body`` are the body axes expressed in a.
+
+    Raises:
+        TrackmeterError: the three points are (nearly) collinear or coincident.
+    """
+    p1 = np.asarray(p1, dtype=float)
+    x = np.asarray(p2, dtype=float) - p1
+    v = np.asarray(p3, dtype=float) - p1
+    nx = np.linalg.norm(x)
+    z = np.cross(x, v)
+    nz = np.linalg.norm(z)
+    if nx < 1e-12 or nz < 1e-9 * nx * max(np.linalg.norm(v), 1e-300):
+        raise TrackmeterError("three-point frame is undetermined: the points are collinear")
+    x = x / nx
+    z = z / nz
+    y = np.cross(z, x)
+    return np.column_stack([x, y, z]), p1

@@ -1,0 +1,225 @@
+"""Configuration: ``config/default.yaml`` layered with a user's YAML, into frozen dataclasses.
+
+``config/default.yaml`` holds every tunable with a comment. A user's file (``--config``)
+only needs the keys it changes; it is merged over the defaults key by key. Every value is
+checked against the field that declares it (:func:`trackmeter.core.params.param`): an unknown
+key, a wrong type or an out-of-range value raises :class:`TrackmeterError` naming the dotted
+key (``tracker.max_targets``) and what was expected.
+
+Adding a section: define a frozen ``XxxParams`` dataclass with :func:`param` fields in the
+core module that uses it, add it as a field of :class:`Config`, and add its keys with comments
+to ``config/default.yaml`` (a test checks the two agree).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Mapping, get_args, get_origin, get_type_hints
+
+import yaml
+
+from trackmeter.core.matching import MeasureParams
+from trackmeter.errors import TrackmeterError
+from trackmeter.paths import DEFAULT_CONFIG
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole configuration; one field per section of ``config/default.yaml``."""
+
+    measure: MeasureParams = field(default_factory=MeasureParams)
+
+
+def load_config(user_file: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> Config:
+    """Load ``config/default.yaml``, layer ``user_file`` and then ``overrides`` over it.
+
+    Args:
+        user_file: a YAML file with any subset of the default keys.
+        overrides: a nested mapping applied last (e.g. from command-line options).
+
+    Raises:
+        TrackmeterError: unreadable or malformed YAML, unknown key, wrong type, out of range.
+    """
+    merged = read_yaml_mapping(DEFAULT_CONFIG)
+    if user_file is not None:
+        merged = _merge(merged, read_yaml_mapping(Path(user_file)), str(user_file), "")
+    if overrides:
+        merged = _merge(merged, dict(overrides), "overrides", "")
+    return build_dataclass(Config, merged, source=str(user_file or DEFAULT_CONFIG))
+
+
+def config_to_dict(config: Any) -> dict[str, Any]:
+    """A plain nested dict of a config dataclass (tuples as lists), for YAML output."""
+
+    def plain(value: Any) -> Any:
+        if isinstance(value, dict):
+            return {k: plain(v) for k, v in value.items()}
+        if isinstance(value, (list, tuple)):
+            return [plain(v) for v in value]
+        return value
+
+    return plain(dataclasses.asdict(config))
+
+
+def read_yaml_mapping(path: Path) -> dict[str, Any]:
+    """Read a YAML file whose top level is a mapping (an empty file is an empty mapping)."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise TrackmeterError(f"{path}: no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise TrackmeterError(f"{path}: cannot read: {exc}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        raise TrackmeterError(f"{path}: malformed YAML{where}") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise TrackmeterError(f"{path}: expected a mapping of keys at the top level, got {type(data).__name__}")
+    return data
+
+
+def _merge(base: dict[str, Any], update: Mapping[str, Any], source: str, prefix: str) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in update.items():
+        dotted = f"{prefix}{key}"
+        if key not in base:
+            raise TrackmeterError(f"{source}: unknown key '{dotted}'")
+        if isinstance(base[key], dict):
+            if not isinstance(value, dict):
+                raise TrackmeterError(f"{source}: '{dotted}' must be a mapping of keys, got {value!r}")
+            out[key] = _merge(base[key], value, source, f"{dotted}.")
+        else:
+            out[key] = value
+    return out
+
+
+def build_dataclass(cls: type, data: Mapping[str, Any], source: str = "config", prefix: str = "") -> Any:
+    """Build the frozen dataclass ``cls`` from a nested mapping, validating every value.
+
+    Keys missing from ``data`` take the dataclass default. Generic over any dataclass whose
+    fields are numbers, bools, strings, ``Literal``s, tuples of those, optionals, or nested
+    dataclasses; scenario and model loaders use it too.
+    """
+    if not isinstance(data, Mapping):
+        raise TrackmeterError(f"{source}: '{prefix.rstrip('.') or 'top level'}' must be a mapping of keys")
+    hints = get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    for key in data:
+        if key not in fields:
+            known = ", ".join(sorted(fields))
+            raise TrackmeterError(f"{source}: unknown key '{prefix}{key}' (known here: {known})")
+    kwargs: dict[str, Any] = {}
+    for name, f in fields.items():
+        if name not in data:
+            continue
+        dotted = f"{prefix}{name}"
+        kwargs[name] = _convert(hints[name], data[name], f.metadata, source, dotted)
+    try:
+        return cls(**kwargs)
+    except TrackmeterError as exc:
+        raise TrackmeterError(f"{source}: '{prefix.rstrip('.') or cls.__name__}': {exc}") from None
+    except (TypeError, ValueError) as exc:
+        raise TrackmeterError(f"{source}: '{prefix.rstrip('.') or cls.__name__}': {exc}") from None
+
+
+def _describe(tp: Any) -> str:
+    origin = get_origin(tp)
+    if origin is Literal:
+        return "one of " + ", ".join(repr(a) for a in get_args(tp))
+    if origin in (tuple,):
+        args = get_args(tp)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return f"a list of {_describe(args[0])}"
+        return f"a list of {len(args)} values ({', '.join(_describe(a) for a in args)})"
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join(_describe(a) for a in get_args(tp))
+    if tp is type(None):
+        return "null"
+    if dataclasses.is_dataclass(tp):
+        return "a mapping of keys"
+    return {float: "a number", int: "an integer", bool: "true or false", str: "a string"}.get(tp, str(tp))
+
+
+def _convert(tp: Any, value: Any, meta: Mapping[str, Any], source: str, dotted: str) -> Any:
+    def fail(expected: str | None = None) -> typing.NoReturn:
+        raise TrackmeterError(f"{source}: '{dotted}': expected {expected or _describe(tp)}, got {value!r}")
+
+    origin = get_origin(tp)
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, Mapping):
+            fail()
+        return build_dataclass(tp, value, source, f"{dotted}.")  # type: ignore[arg-type]
+    if origin in (typing.Union, types.UnionType):
+        args = get_args(tp)
+        if value is None:
+            if type(None) in args:
+                return None
+            fail()
+        for arg in args:
+            if arg is type(None):
+                continue
+            try:
+                return _convert(arg, value, meta, source, dotted)
+            except TrackmeterError:
+                continue
+        fail()
+    if origin is Literal:
+        if value not in get_args(tp):
+            fail()
+        return value
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            fail()
+        args = get_args(tp)
+        if len(args) == 2 and args[1] is Ellipsis:
+            items = [_convert(args[0], v, meta, source, f"{dotted}[{i}]") for i, v in enumerate(value)]
+        else:
+            if len(value) != len(args):
+                fail()
+            items = [_convert(a, v, meta, source, f"{dotted}[{i}]") for i, (a, v) in enumerate(zip(args, value))]
+        return tuple(items)
+    if tp is bool:
+        if not isinstance(value, bool):
+            fail()
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            fail()
+        _check_range(value, meta, source, dotted)
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            fail()
+        value = float(value)
+        if value != value:  # NaN
+            fail()
+        _check_range(value, meta, source, dotted)
+        return value
+    if tp is str:
+        if not isinstance(value, str):
+            fail()
+        choices = meta.get("choices")
+        if choices is not None and value not in choices:
+            fail("one of " + ", ".join(repr(c) for c in choices))
+        return value
+    if tp is Any:
+        return value
+    fail()
+
+
+def _check_range(value: float, meta: Mapping[str, Any], source: str, dotted: str) -> None:
+    lo, hi = meta.get("min"), meta.get("max")
+    if lo is not None and value < lo or hi is not None and value > hi:
+        bounds = f"[{lo if lo is not None else '-inf'}, {hi if hi is not None else 'inf'}]"
+        raise TrackmeterError(f"{source}: '{dotted}': expected a value in {bounds}, got {value!r}")
+    choices = meta.get("choices")
+    if choices is not None and value not in choices:
+        raise TrackmeterError(f"{source}: '{dotted}': expected one of {', '.join(map(repr, choices))}, got {value!r}")

@@ -1,0 +1,139 @@
+"""Stereo rig files: OpenCV FileStorage YAML (DESIGN.md section 6).
+
+Keys: ``image_width``, ``image_height``, ``K1``, ``D1``, ``K2``, ``D2``, ``R``, ``T`` (metres),
+optional ``rms_px``, ``E``, ``F``. OpenCV's stereo sample pair ``intrinsics.yml`` (``M1 D1 M2
+D2``) + ``extrinsics.yml`` (``R T ...``) is read too: give either file and the other is found
+beside it; that pair carries no image size, so pass ``image_size``.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from trackmeter.core.stereo import Camera, StereoRig
+from trackmeter.errors import TrackmeterError
+
+
+def _open(path: Path) -> cv2.FileStorage:
+    if not path.is_file():
+        raise TrackmeterError(f"{path}: no such rig file")
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except cv2.error:
+        raise TrackmeterError(f"{path}: not an OpenCV FileStorage file (YAML/XML)") from None
+    if not fs.isOpened():
+        raise TrackmeterError(f"{path}: not an OpenCV FileStorage file (YAML/XML)")
+    return fs
+
+
+def _matrix(fs: cv2.FileStorage, key: str, path: Path, required: bool = True) -> np.ndarray | None:
+    node = fs.getNode(key)
+    if node.empty() or node.isNone():
+        if required:
+            raise TrackmeterError(f"{path}: missing key '{key}'")
+        return None
+    if node.isReal() or node.isInt():
+        return np.array([node.real()])
+    mat = node.mat()
+    if mat is None:
+        raise TrackmeterError(f"{path}: key '{key}' is not a matrix")
+    return np.asarray(mat, dtype=float)
+
+
+def _scalar(fs: cv2.FileStorage, key: str) -> float | None:
+    node = fs.getNode(key)
+    if node.empty() or node.isNone():
+        return None
+    if not (node.isReal() or node.isInt()):
+        return None
+    return float(node.real())
+
+
+def load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> StereoRig:
+    """Read a stereo rig from an OpenCV FileStorage file.
+
+    Args:
+        path: ``rig.yaml`` (DESIGN.md keys), or OpenCV's ``intrinsics.yml`` or
+            ``extrinsics.yml`` (the other is read from the same folder).
+        image_size: ``(width, height)``, px; required only when the file has no size.
+
+    Raises:
+        TrackmeterError: missing file, not FileStorage, a missing key or a malformed matrix.
+    """
+    path = Path(path)
+    fs = _open(path)
+    try:
+        if fs.getNode("K1").empty() and (not fs.getNode("M1").empty() or not fs.getNode("R").empty()):
+            return _load_opencv_pair(path, image_size)
+        width = _scalar(fs, "image_width")
+        height = _scalar(fs, "image_height")
+        if width is None or height is None:
+            if image_size is None:
+                raise TrackmeterError(f"{path}: missing key 'image_width'/'image_height'")
+            width, height = image_size
+        left = Camera(int(width), int(height), _matrix(fs, "K1", path), _matrix(fs, "D1", path))
+        right = Camera(int(width), int(height), _matrix(fs, "K2", path), _matrix(fs, "D2", path))
+        rms = _scalar(fs, "rms_px")
+        return StereoRig(left, right, _matrix(fs, "R", path), _matrix(fs, "T", path).ravel(), rms_px=rms, name=path.stem)
+    except TrackmeterError as exc:
+        if str(exc).startswith(str(path)):
+            raise
+        raise TrackmeterError(f"{path}: {exc}") from None
+    finally:
+        fs.release()
+
+
+def _load_opencv_pair(path: Path, image_size: tuple[int, int] | None) -> StereoRig:
+    folder = path.parent
+    intr, extr = folder / "intrinsics.yml", folder / "extrinsics.yml"
+    if path.name.startswith("extrinsics"):
+        extr = path
+    else:
+        intr = path
+    fi, fe = _open(intr), _open(extr)
+    try:
+        if image_size is None:
+            raise TrackmeterError(f"{path}: OpenCV's intrinsics/extrinsics pair has no image size; give it")
+        width, height = image_size
+        left = Camera(width, height, _matrix(fi, "M1", intr), _matrix(fi, "D1", intr))
+        right = Camera(width, height, _matrix(fi, "M2", intr), _matrix(fi, "D2", intr))
+        return StereoRig(left, right, _matrix(fe, "R", extr), _matrix(fe, "T", extr).ravel(), name=folder.name)
+    finally:
+        fi.release()
+        fe.release()
+
+
+def save_rig(rig: StereoRig, path: str | Path, extra: dict[str, np.ndarray | float] | None = None) -> Path:
+    """Write ``rig`` as OpenCV FileStorage YAML, atomically (temp file, then rename).
+
+    ``extra`` adds keys such as ``E``, ``F`` or per-parameter standard deviations.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(suffix=".yaml", dir=path.parent, prefix=f".{path.stem}.")
+    os.close(fd)
+    try:
+        fs = cv2.FileStorage(tmp_name, cv2.FILE_STORAGE_WRITE)
+        fs.write("image_width", int(rig.left.width))
+        fs.write("image_height", int(rig.left.height))
+        fs.write("K1", rig.left.K)
+        fs.write("D1", rig.left.dist.reshape(1, -1))
+        fs.write("K2", rig.right.K)
+        fs.write("D2", rig.right.dist.reshape(1, -1))
+        fs.write("R", rig.R)
+        fs.write("T", rig.T.reshape(3, 1))
+        if rig.rms_px is not None:
+            fs.write("rms_px", float(rig.rms_px))
+        for key, value in (extra or {}).items():
+            fs.write(key, np.asarray(value, dtype=float) if not np.isscalar(value) else float(value))
+        fs.release()
+        os.replace(tmp_name, path)
+    except BaseException:
+        Path(tmp_name).unlink(missing_ok=True)
+        raise
+    return path

@@ -1,0 +1,117 @@
+"""TUM trajectory files: one pose per line, ``t tx ty tz qx qy qz qw``.
+
+Seconds, metres, and a scalar-LAST quaternion because the TUM format says so (the only
+scalar-last place in the project); in memory quaternions are ``wxyz``. Poses are
+``T_cam_body``. Lines starting with ``#`` are comments.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from trackmeter.errors import TrackmeterError
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True, eq=False)
+class Trajectory:
+    """A timed sequence of poses ``T_cam_body``.
+
+    Attributes:
+        t_s: (N,) timestamps, s, strictly increasing.
+        position_m: (N,3) body origin in the camera frame, m.
+        quat_wxyz: (N,4) unit quaternions of ``R_cam_body``.
+    """
+
+    t_s: FloatArray
+    position_m: FloatArray
+    quat_wxyz: FloatArray
+
+    def __post_init__(self) -> None:
+        t = np.asarray(self.t_s, dtype=float).reshape(-1)
+        p = np.asarray(self.position_m, dtype=float).reshape(-1, 3)
+        q = np.asarray(self.quat_wxyz, dtype=float).reshape(-1, 4)
+        if not (len(t) == len(p) == len(q)):
+            raise TrackmeterError("trajectory arrays differ in length")
+        if not (np.all(np.isfinite(t)) and np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
+            raise TrackmeterError("trajectory has non-finite values")
+        norms = np.linalg.norm(q, axis=1)
+        if np.any(norms < 1e-9):
+            raise TrackmeterError("trajectory has a zero quaternion")
+        object.__setattr__(self, "t_s", t)
+        object.__setattr__(self, "position_m", p)
+        object.__setattr__(self, "quat_wxyz", q / norms[:, None])
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+
+def read_tum(path: str | Path) -> Trajectory:
+    """Read a TUM trajectory file; raises TrackmeterError naming the file and line on bad input."""
+    path = Path(path)
+    if not path.is_file():
+        raise TrackmeterError(f"{path}: no such file")
+    rows: list[list[float]] = []
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise TrackmeterError(f"{path}: cannot read as text: {exc.__class__.__name__}") from None
+    for number, line in enumerate(lines, 1):
+        text = line.strip()
+        if not text or text.startswith("#"):
+            continue
+        fields = text.replace(",", " ").split()
+        if len(fields) != 8:
+            raise TrackmeterError(f"{path}:{number}: expected 8 values 't tx ty tz qx qy qz qw', got {len(fields)}")
+        try:
+            rows.append([float(x) for x in fields])
+        except ValueError:
+            raise TrackmeterError(f"{path}:{number}: not a number in {text!r}") from None
+    if not rows:
+        raise TrackmeterError(f"{path}: no poses in the file")
+    data = np.array(rows)
+    order = np.argsort(data[:, 0], kind="stable")
+    data = data[order]
+    quat_wxyz = data[:, [7, 4, 5, 6]]
+    try:
+        return Trajectory(data[:, 0], data[:, 1:4], quat_wxyz)
+    except TrackmeterError as exc:
+        raise TrackmeterError(f"{path}: {exc}") from None
+
+
+def format_tum_line(t_s: float, position_m: FloatArray, quat_wxyz: FloatArray) -> str:
+    """One TUM line (no newline) for a pose."""
+    p = position_m
+    w, x, y, z = quat_wxyz
+    return f"{t_s:.9f} {p[0]:.9f} {p[1]:.9f} {p[2]:.9f} {x:.9f} {y:.9f} {z:.9f} {w:.9f}"
+
+
+def write_tum(path: str | Path, trajectory: Trajectory) -> Path:
+    """Write a TUM file atomically (temporary file in the same folder, then rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    text = "".join(
+        format_tum_line(t, p, q) + "\n" for t, p, q in zip(trajectory.t_s, trajectory.position_m, trajectory.quat_wxyz)
+    )
+    write_text_atomic(path, "# t tx ty tz qx qy qz qw  (T_cam_body)\n" + text)
+    return path
+
+
+def write_text_atomic(path: str | Path, text: str) -> None:
+    """Write ``text`` to ``path`` so that readers see either the old or the whole new file."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise

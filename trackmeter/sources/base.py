@@ -1,0 +1,81 @@
+"""The interface every stereo frame source implements, and the frame it yields.
+
+Sources: the simulator (``sim``), sequence folders (``seq``), video files and cameras. A
+source yields :class:`StereoFrame` objects until it ends; :func:`trackmeter.sources.open_source`
+turns a SPEC string (DESIGN.md section 6) into a source.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from trackmeter.core.stereo import StereoRig
+
+
+@dataclass(frozen=True, eq=False)
+class GroundTruth:
+    """What the frame really showed, when the source knows (simulator, sequences with truth).
+
+    Attributes:
+        T_cam_body: (4,4) pose of the body in the left camera frame.
+        velocity_cam_m_s: (3,) velocity of the body origin, camera frame, m/s.
+        omega_body_rad_s: (3,) angular velocity in the body frame, rad/s (paper eq. 14).
+    """
+
+    T_cam_body: NDArray[np.float64]
+    velocity_cam_m_s: NDArray[np.float64]
+    omega_body_rad_s: NDArray[np.float64]
+
+
+@dataclass(frozen=True, eq=False)
+class StereoFrame:
+    """One stereo pair.
+
+    Attributes:
+        index: frame number from the start of the source (0, 1, ...).
+        t_s: timestamp, s.
+        left, right: (H,W) uint8 grey images, unrectified, as the cameras delivered them.
+        truth: ground truth at ``t_s`` when the source has it.
+    """
+
+    index: int
+    t_s: float
+    left: NDArray[np.uint8]
+    right: NDArray[np.uint8]
+    truth: GroundTruth | None = None
+
+
+class Source(ABC):
+    """A stream of stereo frames.
+
+    Attributes:
+        rig: the stereo rig of the images when the source carries one (simulator scenario,
+            a sequence's ``rig.yaml``), else None.
+        rate_hz: nominal frame rate, Hz, or None when unknown.
+    """
+
+    rig: StereoRig | None = None
+    rate_hz: float | None = None
+
+    @abstractmethod
+    def read(self) -> StereoFrame | None:
+        """The next frame, or None at the end of the stream. Raises TrackmeterError on failure."""
+
+    def restart(self) -> None:
+        """Go back to the first frame (sources that cannot raise TrackmeterError)."""
+        from trackmeter.errors import TrackmeterError
+
+        raise TrackmeterError(f"{type(self).__name__} cannot restart")
+
+    def close(self) -> None:
+        """Release files and devices."""
+
+    def __enter__(self) -> Source:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
