@@ -1,0 +1,205 @@
+"""Immutable snapshots the tracking thread publishes, and the commands it accepts.
+
+The tracking thread owns all tracker state. Everything else (console callbacks, the CLI,
+recorders) talks to it by putting a :class:`Command` on its queue and reads the newest
+:class:`Snapshot`. A command that needs an answer (a click that may be refused) carries a
+:class:`concurrent.futures.Future` the tracking thread resolves with a :class:`CommandReply`.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from trackmeter.core.targets import TargetState
+from trackmeter.sources.base import StereoFrame
+
+ModelCase = Literal["a", "b", "c"]
+
+
+@dataclass(frozen=True, eq=False)
+class PoseEstimate:
+    """The motion estimate of one frame (paper section 2.C-2.E).
+
+    Attributes:
+        valid: False when no pose could be made (then ``reason`` says why; the arrays are NaN).
+        reason: why the pose is invalid, else None.
+        case: the model case used, ``"a"``, ``"b"`` or ``"c"``.
+        T_cam_body: (4,4) filtered pose of the body in the left camera frame.
+        cov_pose: (6,6) covariance of (position m, rotation vector rad) in the camera frame.
+        velocity_cam_m_s: (3,) velocity of the body origin in the camera frame, m/s.
+        omega_body_rad_s: (3,) angular velocity in the body frame, rad/s.
+        n_points: number of points used.
+        outlier_ids: targets rejected as outliers this frame.
+    """
+
+    valid: bool
+    reason: str | None
+    case: ModelCase
+    T_cam_body: NDArray[np.float64]
+    cov_pose: NDArray[np.float64]
+    velocity_cam_m_s: NDArray[np.float64]
+    omega_body_rad_s: NDArray[np.float64]
+    n_points: int = 0
+    outlier_ids: tuple[str, ...] = ()
+
+    @staticmethod
+    def invalid(reason: str, case: ModelCase = "a") -> PoseEstimate:
+        nan3 = np.full(3, np.nan)
+        return PoseEstimate(False, reason, case, np.full((4, 4), np.nan), np.full((6, 6), np.nan), nan3, nan3.copy())
+
+
+@dataclass(frozen=True)
+class Timings:
+    """Rates and latencies, measured by the pipeline.
+
+    Attributes:
+        acquisition_hz: frames read from the source per second (recent average).
+        tracking_hz: frames processed by the tracking thread per second.
+        latency_ms: from the frame leaving the source to its pose being published.
+        step_ms: time of the last tracking step.
+        frames_read, frames_processed, frames_dropped: counters since start.
+    """
+
+    acquisition_hz: float = 0.0
+    tracking_hz: float = 0.0
+    latency_ms: float = 0.0
+    step_ms: float = 0.0
+    frames_read: int = 0
+    frames_processed: int = 0
+    frames_dropped: int = 0
+
+
+@dataclass(frozen=True, eq=False)
+class Snapshot:
+    """Everything observers may know about one processed frame. Never mutated after publishing.
+
+    Attributes:
+        frame: the stereo frame (images, time, ground truth when the source has it).
+        targets: every target after this frame's step.
+        pose: the motion estimate.
+        errors: pose errors against ground truth when known: keys ``position_m`` (3,),
+            ``attitude_rad`` (3,) per axis (eq. 17), ``attitude_total_rad`` (eq. 16),
+            ``velocity_m_s`` (3,), ``omega_rad_s`` (3,); None without truth or without a pose.
+        timings: rates and latencies.
+        auto_enabled, auto_count, auto_method: automatic feature selection settings.
+        paused, recording: pipeline state.
+        source_status: None while the source delivers; else what went wrong or "ended".
+        sequence: increasing number of the snapshot.
+    """
+
+    frame: StereoFrame | None
+    targets: tuple[TargetState, ...]
+    pose: PoseEstimate
+    errors: dict[str, NDArray[np.float64] | float] | None
+    timings: Timings
+    auto_enabled: bool = False
+    auto_count: int = 0
+    auto_method: str = "gabor"
+    paused: bool = False
+    recording: bool = False
+    source_status: str | None = None
+    sequence: int = 0
+
+
+@dataclass(frozen=True)
+class CommandReply:
+    """The answer to a command: ``ok`` or not, and a one-line message for the operator."""
+
+    ok: bool
+    message: str = ""
+    target_id: str | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class Command:
+    """Base of all commands. ``reply`` (optional) is resolved with a :class:`CommandReply`."""
+
+    reply: Future[CommandReply] | None = field(default=None, kw_only=True)
+
+
+@dataclass(frozen=True, eq=False)
+class SelectPoint(Command):
+    """Create a target at a left-image pixel (original image), optionally named."""
+
+    u: float
+    v: float
+    target_id: str | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class RemoveTarget(Command):
+    target_id: str
+
+
+@dataclass(frozen=True, eq=False)
+class RemoveNearest(Command):
+    """Remove the target nearest to a left-image pixel."""
+
+    u: float
+    v: float
+
+
+@dataclass(frozen=True, eq=False)
+class ClearTargets(Command):
+    pass
+
+
+@dataclass(frozen=True, eq=False)
+class SetAuto(Command):
+    """Automatic feature selection on/off; ``count`` targets kept alive with ``method``."""
+
+    enabled: bool
+    count: int | None = None
+    method: str | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class SetCase(Command):
+    case: ModelCase
+
+
+@dataclass(frozen=True, eq=False)
+class AcquireModel(Command):
+    """Case (c): average the tracked points while the object is held still into a model."""
+
+
+@dataclass(frozen=True, eq=False)
+class LoadModel(Command):
+    path: str
+
+
+@dataclass(frozen=True, eq=False)
+class SetFilterCutoff(Command):
+    cutoff_hz: float
+
+
+@dataclass(frozen=True, eq=False)
+class SetPaused(Command):
+    paused: bool
+
+
+@dataclass(frozen=True, eq=False)
+class StepOnce(Command):
+    """While paused, process exactly one more frame."""
+
+
+@dataclass(frozen=True, eq=False)
+class RestartSource(Command):
+    pass
+
+
+@dataclass(frozen=True, eq=False)
+class ResetTracking(Command):
+    """Drop all targets, the model and the filters; keep the source running."""
+
+
+@dataclass(frozen=True, eq=False)
+class SetRecording(Command):
+    """Start recording the incoming stereo stream to ``directory`` (None stops it)."""
+
+    directory: str | None
