@@ -1,0 +1,96 @@
+"""groundtruth.csv / states.csv reader and writers (DESIGN.md section 6)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from trackmeter.data.motion_csv import (
+    GROUNDTRUTH_COLUMNS,
+    STATES_COLUMNS,
+    MotionCsvWriter,
+    MotionSeries,
+    read_motion_csv,
+    write_groundtruth_csv,
+    write_states_csv,
+)
+from trackmeter.errors import TrackmeterError
+
+
+def _series(n: int = 7, seed: int = 0) -> MotionSeries:
+    rng = np.random.default_rng(seed)
+    q = Rotation.random(n, random_state=seed).as_quat(scalar_first=True)
+    return MotionSeries(
+        np.arange(n) * 0.08 + 1.0, np.ones(n, bool), rng.normal(size=(n, 3)), q,
+        rng.normal(size=(n, 3)), rng.normal(size=(n, 3)),
+    )
+
+
+def test_groundtruth_round_trip_is_exact(tmp_path):
+    s = _series()
+    path = write_groundtruth_csv(tmp_path / "groundtruth.csv", s)
+    assert path.read_text().splitlines()[0] == ",".join(GROUNDTRUTH_COLUMNS)
+    r = read_motion_csv(path)
+    for name in ("t_s", "position_m", "velocity_cam_m_s", "omega_body_rad_s"):
+        np.testing.assert_array_equal(getattr(r, name), getattr(s, name))
+    np.testing.assert_allclose(r.quat_wxyz, s.quat_wxyz, atol=1e-15)
+    assert r.valid.all() and r.has_velocity and dict(r.extra) == {}
+
+
+def test_states_writer_streams_whole_rows_and_invalid_rows_read_as_nan(tmp_path):
+    path = tmp_path / "run" / "states.csv"
+    q = np.array([0.5, 0.5, -0.5, 0.5])
+    with MotionCsvWriter(path, STATES_COLUMNS) as w:
+        w.write(t=0.0, valid=True, position_m=[1, 2, 3], quat_wxyz=q, velocity_cam_m_s=[0.1, 0, 0],
+                omega_body_rad_s=[0, 0, 0.2], n_tracked=6, n_lost=0, latency_ms=12.5)
+        # Half-way through, the file already holds the header and one complete row.
+        assert read_motion_csv(path).t_s.tolist() == [0.0]
+        w.write(t=0.08, valid=False, n_tracked=2, n_lost=4, latency_ms=9.0)
+    lines = path.read_text().splitlines()
+    assert lines[0] == ",".join(STATES_COLUMNS)
+    assert lines[1].split(",")[1] == "1" and lines[1].split(",")[-3:] == ["6", "0", "12.5"]
+    r = read_motion_csv(path)
+    assert r.valid.tolist() == [True, False]
+    np.testing.assert_allclose(r.quat_wxyz[0], q)
+    assert np.isnan(r.position_m[1]).all()
+    assert r.extra["n_lost"].tolist() == [0.0, 4.0]
+    assert len(r.to_trajectory()) == 1
+    assert r.has_velocity
+
+
+def test_write_states_csv_round_trip(tmp_path):
+    s = _series()
+    extra = {"n_tracked": np.arange(7.0), "n_lost": np.zeros(7), "latency_ms": np.full(7, 3.25)}
+    s = MotionSeries(s.t_s, np.arange(7) % 3 != 0, s.position_m, s.quat_wxyz, s.velocity_cam_m_s, s.omega_body_rad_s, extra)
+    r = read_motion_csv(write_states_csv(tmp_path / "states.csv", s))
+    np.testing.assert_array_equal(r.valid, s.valid)
+    np.testing.assert_array_equal(r.extra["n_tracked"], extra["n_tracked"])
+    np.testing.assert_array_equal(r.position_m, s.position_m)
+
+
+def test_writer_refuses_unknown_column(tmp_path):
+    with MotionCsvWriter(tmp_path / "g.csv") as w:
+        with pytest.raises(TrackmeterError, match="no column"):
+            w.write(t=0.0, bogus=1.0)
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("", "empty file"),
+        ("t,x,y\n0,1,2\n", "header lacks"),
+        (",".join(GROUNDTRUTH_COLUMNS) + "\n", "no rows"),
+        (",".join(GROUNDTRUTH_COLUMNS) + "\n0,1,2,3,1,0,0,0,0,0,0,0,0\n", "expected 14 values"),
+        (",".join(GROUNDTRUTH_COLUMNS) + "\n0,1,2,3,1,0,0,zero,0,0,0,0,0,0\n", "not a number"),
+        (",".join(GROUNDTRUTH_COLUMNS) + "\n1,1,2,3,1,0,0,0,0,0,0,0,0,0\n0,1,2,3,1,0,0,0,0,0,0,0,0,0\n", "backwards"),
+        (",".join(GROUNDTRUTH_COLUMNS) + "\n0,1,2,3,0,0,0,0,0,0,0,0,0,0\n", "zero quaternion"),
+        ("1.0 0 0 0 0 0 0 1\n", "header lacks"),  # a TUM file is not a motion CSV
+    ],
+)
+def test_bad_files_raise_one_line(tmp_path, text, message):
+    path = tmp_path / "bad.csv"
+    path.write_text(text)
+    with pytest.raises(TrackmeterError, match=message) as info:
+        read_motion_csv(path)
+    assert "\n" not in str(info.value) and str(path) in str(info.value)

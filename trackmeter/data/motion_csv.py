@@ -1,0 +1,363 @@
+"""Motion CSV files: a sequence's ``groundtruth.csv`` and a run's ``states.csv`` (DESIGN.md 6).
+
+Both are comma-separated with a one-line header and one row per frame, sharing the meaning of
+their columns:
+
+- ``groundtruth.csv``: ``t,x,y,z,qw,qx,qy,qz,vx,vy,vz,wx,wy,wz``
+- ``states.csv``: ``t,valid,x,y,z,qw,qx,qy,qz,vx,vy,vz,wx,wy,wz,n_tracked,n_lost,latency_ms``
+
+``t`` in seconds; ``x,y,z`` the body origin in the left camera frame (m) and ``qw..qz`` the
+scalar-first attitude of ``T_cam_body``; ``vx,vy,vz`` the velocity of the body origin in the
+camera frame (m/s); ``wx,wy,wz`` the angular velocity in the BODY frame (rad/s, paper eq. 14);
+``valid`` 0/1 (a row with ``valid = 0`` may carry empty or ``nan`` fields). Any further column
+(``n_tracked``, ``latency_ms``, ...) is kept as a float array in :attr:`MotionSeries.extra`.
+
+One reader (:func:`read_motion_csv`) reads both; :func:`write_groundtruth_csv` and
+:func:`write_states_csv` write a whole series atomically; :class:`MotionCsvWriter` appends one
+complete, flushed row at a time for writers that run while frames arrive (a ``track`` run, a
+sequence being rendered), so a reader never sees half a row.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import MappingProxyType
+from typing import IO, Any, Mapping, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from trackmeter.data.trajectory import Trajectory, write_text_atomic
+from trackmeter.errors import TrackmeterError
+
+FloatArray = NDArray[np.float64]
+
+#: Columns every motion CSV must have: time and pose ``T_cam_body``.
+POSE_COLUMNS: tuple[str, ...] = ("t", "x", "y", "z", "qw", "qx", "qy", "qz")
+#: Velocity of the body origin in cam (m/s) and omega in the body frame (rad/s).
+RATE_COLUMNS: tuple[str, ...] = ("vx", "vy", "vz", "wx", "wy", "wz")
+#: Header of a sequence's ``groundtruth.csv`` (contract, DESIGN.md section 6).
+GROUNDTRUTH_COLUMNS: tuple[str, ...] = POSE_COLUMNS + RATE_COLUMNS
+#: Header of a run directory's ``states.csv`` (contract, DESIGN.md section 6).
+STATES_COLUMNS: tuple[str, ...] = (
+    ("t", "valid") + POSE_COLUMNS[1:] + RATE_COLUMNS + ("n_tracked", "n_lost", "latency_ms")
+)
+_KNOWN = set(GROUNDTRUTH_COLUMNS) | {"valid"}
+_INT_COLUMNS = {"valid", "n_tracked", "n_lost"}
+
+
+@dataclass(frozen=True, eq=False)
+class MotionSeries:
+    """Pose and velocities over time, as in ``groundtruth.csv`` / ``states.csv``.
+
+    Attributes:
+        t_s: (N,) timestamps, s, non-decreasing.
+        valid: (N,) bool; False rows carry no usable pose (their values may be NaN).
+        position_m: (N,3) body origin in the left camera frame, m.
+        quat_wxyz: (N,4) attitude of ``T_cam_body``, scalar first, unit norm on valid rows.
+        velocity_cam_m_s: (N,3) velocity of the body origin in the camera frame, m/s
+            (NaN when unknown).
+        omega_body_rad_s: (N,3) angular velocity in the body frame, rad/s (NaN when unknown).
+        extra: further columns by name, each (N,) float (e.g. ``n_tracked``, ``latency_ms``).
+    """
+
+    t_s: FloatArray
+    valid: NDArray[np.bool_]
+    position_m: FloatArray
+    quat_wxyz: FloatArray
+    velocity_cam_m_s: FloatArray
+    omega_body_rad_s: FloatArray
+    extra: Mapping[str, FloatArray] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        t = np.asarray(self.t_s, dtype=float).reshape(-1)
+        n = len(t)
+
+        def rows(value: Any, width: int, name: str) -> FloatArray:
+            a = np.asarray(value, dtype=float)
+            if a.size != n * width:
+                raise TrackmeterError(f"motion series: {name} has {a.size} values, expected {n}x{width}")
+            return a.reshape(n, width).copy()
+
+        valid = np.asarray(self.valid, dtype=bool).reshape(-1)
+        if valid.shape != (n,):
+            raise TrackmeterError(f"motion series: valid has {valid.size} values, expected {n}")
+        p = rows(self.position_m, 3, "position_m")
+        q = rows(self.quat_wxyz, 4, "quat_wxyz")
+        v = rows(self.velocity_cam_m_s, 3, "velocity_cam_m_s")
+        w = rows(self.omega_body_rad_s, 3, "omega_body_rad_s")
+        if not np.all(np.isfinite(t)):
+            raise TrackmeterError("motion series: non-finite timestamp")
+        if np.any(np.diff(t) < 0):
+            raise TrackmeterError("motion series: timestamps go backwards")
+        if not (np.all(np.isfinite(p[valid])) and np.all(np.isfinite(q[valid]))):
+            raise TrackmeterError("motion series: a valid row has a non-finite pose")
+        norms = np.linalg.norm(q[valid], axis=1)
+        if np.any(norms < 1e-9):
+            raise TrackmeterError("motion series: a valid row has a zero quaternion")
+        q[valid] /= norms[:, None]
+        extra = {str(k): rows(a, 1, str(k)).reshape(n) for k, a in dict(self.extra).items()}
+        for a in (t, valid, p, q, v, w, *extra.values()):
+            a.flags.writeable = False
+        object.__setattr__(self, "t_s", t)
+        object.__setattr__(self, "valid", valid)
+        object.__setattr__(self, "position_m", p)
+        object.__setattr__(self, "quat_wxyz", q)
+        object.__setattr__(self, "velocity_cam_m_s", v)
+        object.__setattr__(self, "omega_body_rad_s", w)
+        object.__setattr__(self, "extra", MappingProxyType(extra))
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+    @property
+    def has_velocity(self) -> bool:
+        """True when every valid row carries finite linear and angular velocities."""
+        v = self.valid
+        return bool(np.any(v)) and bool(
+            np.all(np.isfinite(self.velocity_cam_m_s[v])) and np.all(np.isfinite(self.omega_body_rad_s[v]))
+        )
+
+    def valid_only(self) -> MotionSeries:
+        """The same series restricted to its valid rows."""
+        m = self.valid
+        return MotionSeries(
+            self.t_s[m], m[m], self.position_m[m], self.quat_wxyz[m],
+            self.velocity_cam_m_s[m], self.omega_body_rad_s[m], {k: a[m] for k, a in self.extra.items()},
+        )
+
+    def to_trajectory(self) -> Trajectory:
+        """The valid poses as a :class:`Trajectory` (what ``trajectory.tum`` holds)."""
+        m = self.valid
+        if not np.any(m):
+            raise TrackmeterError("motion series has no valid pose")
+        return Trajectory(self.t_s[m], self.position_m[m], self.quat_wxyz[m])
+
+    @classmethod
+    def from_trajectory(
+        cls,
+        trajectory: Trajectory,
+        velocity_cam_m_s: FloatArray | None = None,
+        omega_body_rad_s: FloatArray | None = None,
+    ) -> MotionSeries:
+        """A series of valid poses from a trajectory; velocities NaN unless given."""
+        n = len(trajectory)
+        nan = np.full((n, 3), np.nan)
+        return cls(
+            trajectory.t_s, np.ones(n, dtype=bool), trajectory.position_m, trajectory.quat_wxyz,
+            nan if velocity_cam_m_s is None else velocity_cam_m_s,
+            nan if omega_body_rad_s is None else omega_body_rad_s,
+        )
+
+    def column(self, name: str) -> FloatArray:
+        """Values of one CSV column by its header name, (N,) float."""
+        index = {"x": 0, "y": 1, "z": 2}
+        if name == "t":
+            return self.t_s
+        if name == "valid":
+            return self.valid.astype(float)
+        if name in index:
+            return self.position_m[:, index[name]]
+        if name in ("qw", "qx", "qy", "qz"):
+            return self.quat_wxyz[:, "wxyz".index(name[1])]
+        if name in ("vx", "vy", "vz"):
+            return self.velocity_cam_m_s[:, index[name[1]]]
+        if name in ("wx", "wy", "wz"):
+            return self.omega_body_rad_s[:, index[name[1]]]
+        if name in self.extra:
+            return self.extra[name]
+        raise TrackmeterError(f"motion series has no column {name!r}")
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def read_motion_csv(path: str | Path) -> MotionSeries:
+    """Read a ``groundtruth.csv`` or ``states.csv`` (any column order; header required).
+
+    Columns ``t,x,y,z,qw,qx,qy,qz`` are required; missing velocity columns read as NaN,
+    a missing ``valid`` column as all valid. Empty fields and ``nan`` read as NaN. Rows are
+    kept in file order and must not go back in time.
+
+    Raises:
+        TrackmeterError: naming the file (and line) when it is missing, empty, has no header
+            with the required columns, a row of the wrong width, or a value that is not a number.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise TrackmeterError(f"{path}: no such file")
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise TrackmeterError(f"{path}: cannot read as text: {exc.__class__.__name__}") from None
+    numbered = [(i, line.strip()) for i, line in enumerate(lines, 1) if line.strip()]
+    if not numbered:
+        raise TrackmeterError(f"{path}: empty file")
+    header_line, header_text = numbered[0]
+    header = [h.strip().lstrip("#").strip() for h in header_text.split(",")]
+    missing = [c for c in POSE_COLUMNS if c not in header]
+    if missing:
+        raise TrackmeterError(
+            f"{path}:{header_line}: not a motion CSV: header lacks {','.join(missing)} "
+            f"(expected {','.join(GROUNDTRUTH_COLUMNS)})"
+        )
+    if len(set(header)) != len(header):
+        raise TrackmeterError(f"{path}:{header_line}: repeated column in the header")
+    values = np.empty((len(numbered) - 1, len(header)))
+    for r, (number, text) in enumerate(numbered[1:]):
+        fields = text.split(",")
+        if len(fields) != len(header):
+            raise TrackmeterError(f"{path}:{number}: expected {len(header)} values, got {len(fields)}")
+        for c, f in enumerate(fields):
+            f = f.strip()
+            try:
+                values[r, c] = float(f) if f else math.nan
+            except ValueError:
+                raise TrackmeterError(f"{path}:{number}: not a number in column {header[c]!r}: {f!r}") from None
+    if len(values) == 0:
+        raise TrackmeterError(f"{path}: no rows after the header")
+    col = {name: values[:, i] for i, name in enumerate(header)}
+    n = len(values)
+
+    def stack(names: Sequence[str]) -> FloatArray:
+        return np.column_stack([col.get(c, np.full(n, np.nan)) for c in names])
+
+    valid = col["valid"] if "valid" in col else np.ones(n)
+    if np.any(~np.isin(valid, (0.0, 1.0))):
+        raise TrackmeterError(f"{path}: column 'valid' must hold 0 or 1")
+    extra = {name: a for name, a in col.items() if name not in _KNOWN}
+    try:
+        return MotionSeries(
+            col["t"], valid.astype(bool), stack(("x", "y", "z")), stack(("qw", "qx", "qy", "qz")),
+            stack(("vx", "vy", "vz")), stack(("wx", "wy", "wz")), extra,
+        )
+    except TrackmeterError as exc:
+        raise TrackmeterError(f"{path}: {exc}") from None
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def format_csv_value(name: str, value: Any) -> str:
+    """One CSV field: integers for ``valid``/counts, shortest round-trip text for floats,
+    empty for NaN/None (so an invalid row reads back as NaN)."""
+    if value is None:
+        return ""
+    if isinstance(value, (bool, np.bool_)):
+        return "1" if value else "0"
+    v = float(value)
+    if math.isnan(v):
+        return ""
+    if name in _INT_COLUMNS and v.is_integer():
+        return str(int(v))
+    return repr(v)
+
+
+def _series_text(series: MotionSeries, columns: Sequence[str]) -> str:
+    data = [series.column(c) for c in columns]
+    out = [",".join(columns)]
+    for r in range(len(series)):
+        out.append(",".join(format_csv_value(c, a[r]) for c, a in zip(columns, data)))
+    return "\n".join(out) + "\n"
+
+
+def write_groundtruth_csv(path: str | Path, series: MotionSeries) -> Path:
+    """Write ``groundtruth.csv`` (header :data:`GROUNDTRUTH_COLUMNS`) atomically.
+
+    Raises:
+        TrackmeterError: the series has an invalid row (ground truth is always valid).
+    """
+    if not np.all(series.valid):
+        raise TrackmeterError("ground truth cannot have invalid rows")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(path, _series_text(series, GROUNDTRUTH_COLUMNS))
+    return path
+
+
+def write_states_csv(path: str | Path, series: MotionSeries, columns: Sequence[str] = STATES_COLUMNS) -> Path:
+    """Write a whole ``states.csv`` atomically (extra columns taken from ``series.extra``,
+    NaN -> empty when a series lacks one)."""
+    missing = [c for c in columns if c not in _KNOWN and c not in series.extra]
+    if missing:
+        n = len(series)
+        extra = dict(series.extra) | {c: np.full(n, np.nan) for c in missing}
+        series = MotionSeries(series.t_s, series.valid, series.position_m, series.quat_wxyz,
+                              series.velocity_cam_m_s, series.omega_body_rad_s, extra)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(path, _series_text(series, columns))
+    return path
+
+
+class MotionCsvWriter:
+    """Append rows to a motion CSV while it is being produced; every row is written whole and
+    flushed, so a concurrent reader (or a crash) leaves only complete rows.
+
+    Usage::
+
+        with MotionCsvWriter(run_dir / "states.csv", STATES_COLUMNS) as w:
+            w.write(t=0.1, valid=True, position_m=p, quat_wxyz=q, velocity_cam_m_s=v,
+                    omega_body_rad_s=w_body, n_tracked=6, n_lost=0, latency_ms=12.5)
+
+    ``write`` takes the column names directly (``x=..., qw=...``) or the grouped names
+    ``position_m`` (3,), ``quat_wxyz`` (4,), ``velocity_cam_m_s`` (3,), ``omega_body_rad_s`` (3,).
+    Columns not given are written empty (read back as NaN); unknown names are refused.
+    The file is created (truncated) with its header when the writer opens.
+    """
+
+    _GROUPS = {
+        "position_m": ("x", "y", "z"),
+        "quat_wxyz": ("qw", "qx", "qy", "qz"),
+        "velocity_cam_m_s": ("vx", "vy", "vz"),
+        "omega_body_rad_s": ("wx", "wy", "wz"),
+    }
+
+    def __init__(self, path: str | Path, columns: Sequence[str] = GROUNDTRUTH_COLUMNS) -> None:
+        self.path = Path(path)
+        self.columns = tuple(columns)
+        missing = [c for c in POSE_COLUMNS if c not in self.columns]
+        if missing:
+            raise TrackmeterError(f"motion CSV columns lack {','.join(missing)}")
+        if len(set(self.columns)) != len(self.columns):
+            raise TrackmeterError("motion CSV columns repeat a name")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._file: IO[str] | None = open(self.path, "w", encoding="utf-8", newline="\n")
+        self._file.write(",".join(self.columns) + "\n")
+        self._file.flush()
+        self.rows_written = 0
+
+    def write(self, **values: Any) -> None:
+        """Append one row (see the class docstring for the accepted names)."""
+        if self._file is None:
+            raise TrackmeterError(f"{self.path}: writer is closed")
+        flat: dict[str, Any] = {}
+        for name, value in values.items():
+            if name in self._GROUPS:
+                parts = np.asarray(value, dtype=float).reshape(-1)
+                names = self._GROUPS[name]
+                if len(parts) != len(names):
+                    raise TrackmeterError(f"{name} needs {len(names)} values, got {len(parts)}")
+                flat.update(zip(names, parts))
+            else:
+                flat[name] = value
+        unknown = [k for k in flat if k not in self.columns]
+        if unknown:
+            raise TrackmeterError(f"{self.path}: no column {', '.join(unknown)}")
+        line = ",".join(format_csv_value(c, flat.get(c)) for c in self.columns) + "\n"
+        self._file.write(line)  # one write per row, then flush: readers see whole rows
+        self._file.flush()
+        self.rows_written += 1
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    def __enter__(self) -> MotionCsvWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
