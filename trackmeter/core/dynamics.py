@@ -1,0 +1,293 @@
+"""Free (torque-free) rigid-body motion: Euler's equations and quaternion kinematics.
+
+Paper section 3. The attitude of a body with no external torque obeys Euler's equations in
+its principal axes (paper eq. 13, Goldstein, *Classical Mechanics*, 3rd ed., eq. 5.39')::
+
+    I1 dw1/dt = (I2 - I3) w2 w3
+    I2 dw2/dt = (I3 - I1) w3 w1
+    I3 dw3/dt = (I1 - I2) w1 w2
+
+and the attitude quaternion ``q_world_body`` follows the body-frame angular velocity through
+paper eq. 15, ``q_dot = 1/2 q ⊗ (0, omega_body)`` (:func:`trackmeter.core.transforms.quat_derivative`).
+
+The 7-dimensional system is integrated once with an adaptive 8th-order Dormand-Prince method
+(``scipy.integrate.solve_ivp``, ``DOP853``) at tight tolerances; its dense output gives the
+state at any time in the span, and the quaternion is renormalised on evaluation. Kinetic
+energy and the magnitude of the angular momentum are conserved to ~1e-12 relative over
+minutes of tumbling (see ``tests/test_dynamics.py``).
+
+An inertia tensor given in any body frame is reduced to principal axes
+(:func:`principal_axes`); the integration runs in principal axes and the state is reported
+back in the given body frame, so callers never see the principal frame unless they ask.
+
+Translation of the body origin (its centre of mass) is kinematic: a constant velocity, or a
+smooth approach from one position to another (:class:`Translation`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.integrate import solve_ivp
+from scipy.spatial.transform import Rotation
+
+from trackmeter.core.transforms import quat_derivative, quat_multiply
+from trackmeter.errors import TrackmeterError
+
+FloatArray = NDArray[np.float64]
+
+
+# --------------------------------------------------------------------------- inertia
+
+
+def inertia_tensor(values: ArrayLike) -> FloatArray:
+    """A (3,3) inertia tensor, kg m², from 3 principal moments, 6 components or a (3,3) matrix.
+
+    Args:
+        values: ``(I1, I2, I3)`` (diagonal), ``(Ixx, Iyy, Izz, Ixy, Ixz, Iyz)`` (the tensor's
+            off-diagonal *elements*, i.e. minus the products of inertia) or a (3,3) matrix.
+
+    Raises:
+        TrackmeterError: wrong size, not symmetric, not positive definite, or violating the
+            triangle inequality ``Ii + Ij >= Ik`` that every physical body satisfies.
+    """
+    v = np.asarray(values, dtype=float)
+    if v.shape == (3,):
+        J = np.diag(v)
+    elif v.shape == (6,):
+        xx, yy, zz, xy, xz, yz = v
+        J = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
+    elif v.shape == (3, 3):
+        J = v.copy()
+    else:
+        raise TrackmeterError(f"inertia must have 3, 6 or 3x3 values, got shape {v.shape}")
+    if not np.all(np.isfinite(J)) or not np.allclose(J, J.T, rtol=0, atol=1e-12 * max(1.0, np.abs(J).max())):
+        raise TrackmeterError("inertia tensor must be finite and symmetric")
+    moments = np.linalg.eigvalsh(J)
+    if moments[0] <= 0:
+        raise TrackmeterError(f"inertia tensor must be positive definite, got principal moments {moments}")
+    if moments[0] + moments[1] < moments[2] * (1 - 1e-12):
+        raise TrackmeterError(f"principal moments {moments} violate the triangle inequality I1 + I2 >= I3")
+    return J
+
+
+def principal_axes(inertia: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """Principal moments (ascending) and the rotation ``R_body_principal``.
+
+    ``inertia_body = R @ diag(moments) @ R.T`` with ``R`` a proper rotation (det +1) whose
+    columns are the principal axes expressed in the body frame. For an already diagonal
+    tensor with ascending moments, ``R`` is the identity.
+
+    Args:
+        inertia: anything :func:`inertia_tensor` accepts.
+
+    Returns:
+        ``(moments (3,), R_body_principal (3,3))``.
+    """
+    J = inertia_tensor(inertia)
+    moments, vecs = np.linalg.eigh(J)
+    # Sign each eigenvector so the diagonal case returns exactly the identity, then make it proper.
+    for k in range(3):
+        if vecs[np.argmax(np.abs(vecs[:, k])), k] < 0:
+            vecs[:, k] *= -1
+    if np.linalg.det(vecs) < 0:
+        vecs[:, 2] *= -1
+    return moments, vecs
+
+
+def euler_rates(omega_principal: ArrayLike, moments: ArrayLike) -> FloatArray:
+    """Torque-free Euler's equations in principal axes, paper eq. 13.
+
+    Args:
+        omega_principal: (3,) or (N,3) angular velocity in principal axes, rad/s.
+        moments: (3,) principal moments of inertia ``(I1, I2, I3)``, kg m².
+
+    Returns:
+        (3,) or (N,3) ``d omega / dt``, rad/s².
+    """
+    w = np.asarray(omega_principal, dtype=float)
+    I1, I2, I3 = np.asarray(moments, dtype=float)
+    w1, w2, w3 = np.moveaxis(w, -1, 0)
+    return np.stack([(I2 - I3) / I1 * w2 * w3, (I3 - I1) / I2 * w3 * w1, (I1 - I2) / I3 * w1 * w2], axis=-1)
+
+
+def kinetic_energy(omega_body: ArrayLike, inertia: ArrayLike) -> FloatArray:
+    """Rotational kinetic energy ``1/2 w·J w``, J, for (3,) or (N,3) body-frame omega."""
+    J = inertia_tensor(inertia)
+    w = np.asarray(omega_body, dtype=float)
+    return 0.5 * np.einsum("...i,ij,...j->...", w, J, w)
+
+
+def angular_momentum_world(quat_world_body_wxyz: ArrayLike, omega_body: ArrayLike, inertia: ArrayLike) -> FloatArray:
+    """Angular momentum ``L_world = R_world_body J omega_body``, kg m²/s, (3,) or (N,3).
+
+    Constant in time for a torque-free body: the invariant the precession cones around.
+    """
+    J = inertia_tensor(inertia)
+    L_body = np.asarray(omega_body, dtype=float) @ J.T
+    return Rotation.from_quat(np.asarray(quat_world_body_wxyz, dtype=float), scalar_first=True).apply(L_body)
+
+
+def symmetric_precession_rate(moments: ArrayLike, omega_symmetry_axis: float) -> float:
+    """Body-frame precession rate of omega about the symmetry axis of a symmetric top, rad/s.
+
+    For ``I1 = I2`` Euler's equations give ``(w1, w2)`` rotating at
+    ``Omega = (I3 - I1) / I1 * w3`` (Goldstein eq. 5.67), counter-clockwise seen from +axis 3.
+    """
+    I1, I2, I3 = np.asarray(moments, dtype=float)
+    if not np.isclose(I1, I2):
+        raise TrackmeterError(f"not a symmetric top about axis 3: I1={I1}, I2={I2}")
+    return float((I3 - I1) / I1 * omega_symmetry_axis)
+
+
+# --------------------------------------------------------------------------- attitude solution
+
+
+@dataclass(frozen=True, eq=False)
+class FreeRotation:
+    """The integrated attitude motion of a torque-free rigid body over ``[0, duration_s]``.
+
+    Create it with :func:`integrate_free_rotation`; evaluate with :meth:`state`.
+
+    Attributes:
+        inertia: (3,3) tensor in the body frame, kg m².
+        moments: (3,) principal moments, ascending, kg m².
+        R_body_principal: (3,3) principal axes (columns) in the body frame.
+        duration_s: end of the integrated span, s (the state is defined on [0, duration_s]).
+    """
+
+    inertia: FloatArray
+    moments: FloatArray
+    R_body_principal: FloatArray
+    duration_s: float
+    _solution: object = field(repr=False)
+
+    def state(self, t_s: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """Attitude and body-frame angular velocity at times ``t_s``.
+
+        Args:
+            t_s: scalar or (N,) times in ``[0, duration_s]``, s.
+
+        Returns:
+            ``(quat_world_body_wxyz, omega_body_rad_s)``: (4,), (3,) for a scalar time or
+            (N,4), (N,3) for an array. Quaternions are unit (renormalised dense output).
+        """
+        t = np.asarray(t_s, dtype=float)
+        scalar = t.ndim == 0
+        t = np.atleast_1d(t)
+        tol = 1e-9 * max(1.0, self.duration_s)
+        if np.any(t < -tol) or np.any(t > self.duration_s + tol):
+            raise TrackmeterError(f"time outside the integrated span [0, {self.duration_s}] s")
+        y = np.asarray(self._solution(np.clip(t, 0.0, self.duration_s)), dtype=float).T  # type: ignore[operator]
+        q_world_principal = y[:, :4] / np.linalg.norm(y[:, :4], axis=1, keepdims=True)
+        omega_principal = y[:, 4:]
+        # Back to the body frame: q_world_body = q_world_principal ⊗ q_principal_body. A product
+        # with a constant quaternion is linear, so the sign stays continuous in time as integrated.
+        q_principal_body = Rotation.from_matrix(self.R_body_principal.T).as_quat(scalar_first=True)
+        q = quat_multiply(q_world_principal, q_principal_body)
+        omega_body = omega_principal @ self.R_body_principal.T
+        if scalar:
+            return q[0], omega_body[0]
+        return q, omega_body
+
+
+def integrate_free_rotation(
+    inertia: ArrayLike,
+    quat0_world_body_wxyz: ArrayLike,
+    omega0_body_rad_s: ArrayLike,
+    duration_s: float,
+    rtol: float = 1e-12,
+    atol: float = 1e-14,
+) -> FreeRotation:
+    """Integrate Euler's equations (eq. 13) with quaternion kinematics (eq. 15) over ``[0, duration_s]``.
+
+    The state ``(q_world_principal, omega_principal)`` is integrated with DOP853 (adaptive,
+    8th order) and kept as dense output. ``rtol``/``atol`` apply to the quaternion
+    components (dimensionless) and to omega (rad/s).
+
+    Args:
+        inertia: body-frame inertia (see :func:`inertia_tensor`), kg m².
+        quat0_world_body_wxyz: (4,) initial attitude, maps body to world.
+        omega0_body_rad_s: (3,) initial angular velocity in the body frame, rad/s.
+        duration_s: length of the span, s (> 0).
+
+    Returns:
+        A :class:`FreeRotation` to evaluate at any time in the span.
+    """
+    if not duration_s > 0:
+        raise TrackmeterError(f"duration must be positive, got {duration_s}")
+    J = inertia_tensor(inertia)
+    moments, R_bp = principal_axes(J)
+    q0 = np.asarray(quat0_world_body_wxyz, dtype=float)
+    if q0.shape != (4,) or not np.all(np.isfinite(q0)) or np.linalg.norm(q0) < 1e-9:
+        raise TrackmeterError(f"initial attitude must be a non-zero quaternion wxyz, got {q0}")
+    w0 = np.asarray(omega0_body_rad_s, dtype=float)
+    if w0.shape != (3,) or not np.all(np.isfinite(w0)):
+        raise TrackmeterError(f"initial angular velocity must be 3 finite numbers, got {w0}")
+    r_world_body = Rotation.from_quat(q0 / np.linalg.norm(q0), scalar_first=True)
+    q0_wp = (r_world_body * Rotation.from_matrix(R_bp)).as_quat(scalar_first=True)
+    w0_p = R_bp.T @ w0
+
+    def rhs(_t: float, y: FloatArray) -> FloatArray:
+        q, w = y[:4], y[4:]
+        # The quaternion is renormalised in the kinematics so rounding cannot make it drift.
+        return np.concatenate([quat_derivative(q / np.linalg.norm(q), w), euler_rates(w, moments)])
+
+    sol = solve_ivp(rhs, (0.0, float(duration_s)), np.concatenate([q0_wp, w0_p]), method="DOP853",
+                    rtol=rtol, atol=atol, dense_output=True)
+    if not sol.success:  # pragma: no cover - DOP853 does not fail on this smooth system
+        raise TrackmeterError(f"rigid-body integration failed: {sol.message}")
+    return FreeRotation(J, moments, R_bp, float(duration_s), sol.sol)
+
+
+# --------------------------------------------------------------------------- translation
+
+
+@dataclass(frozen=True, eq=False)
+class Translation:
+    """Position of the body origin (centre of mass) in the camera frame over time.
+
+    Constant velocity ``p(t) = start + velocity t``, or, when ``end_m`` is given, a smooth
+    approach from ``start_m`` to ``end_m`` over ``approach_s`` seconds with a quintic
+    (minimum-jerk) profile ``s(x) = 10x³ - 15x⁴ + 6x⁵``: zero velocity and acceleration at
+    both ends, then holding ``end_m``. ``velocity_m_s`` is added in both cases.
+
+    Attributes:
+        start_m: (3,) position at t = 0, m.
+        velocity_m_s: (3,) constant drift velocity, m/s.
+        end_m: (3,) approach target, m, or None.
+        approach_s: duration of the approach, s.
+    """
+
+    start_m: FloatArray
+    velocity_m_s: FloatArray = field(default_factory=lambda: np.zeros(3))
+    end_m: FloatArray | None = None
+    approach_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "start_m", np.asarray(self.start_m, dtype=float).reshape(3))
+        object.__setattr__(self, "velocity_m_s", np.asarray(self.velocity_m_s, dtype=float).reshape(3))
+        if self.end_m is not None:
+            object.__setattr__(self, "end_m", np.asarray(self.end_m, dtype=float).reshape(3))
+            if not self.approach_s > 0:
+                raise TrackmeterError(f"an approach needs a positive duration, got {self.approach_s}")
+
+    def at(self, t_s: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """``(position_m, velocity_m_s)`` of the body origin at ``t_s``: (3,) each, or (N,3)."""
+        t = np.asarray(t_s, dtype=float)
+        scalar = t.ndim == 0
+        t = np.atleast_1d(t)[:, None]
+        p = self.start_m + self.velocity_m_s * t
+        v = np.broadcast_to(self.velocity_m_s, p.shape).copy()
+        if self.end_m is not None:
+            x = np.clip(t / self.approach_s, 0.0, 1.0)
+            s = x**3 * (10 - 15 * x + 6 * x**2)
+            ds = 30 * x**2 * (1 - x) ** 2 / self.approach_s
+            d = self.end_m - self.start_m
+            p = p + s * d
+            v = v + ds * d
+        if scalar:
+            return p[0], v[0]
+        return p, v
