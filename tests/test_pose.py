@@ -1,0 +1,201 @@
+"""Pose estimation (paper section 2.C): exact recovery, outliers, no jumps, covariance vs Monte Carlo.
+
+Synthetic points on a ~1 m satellite at 3.5 m measured through the paper's rig with the
+stereo error propagation (sigma_z = 4 mm at 3.5 m, as the paper measured).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from trackmeter.core.pose import (
+    PoseParams,
+    choose_frame_points,
+    fuse_point,
+    robust_pose,
+    solve_pose,
+    three_point_body_frame,
+    to_body,
+)
+from trackmeter.core.transforms import attitude_error_components, frame_from_three_points
+from trackmeter.errors import TrackmeterError
+
+SIGMA_D_PX = 0.004 * 1152 * 0.28 / 3.5**2  # disparity sigma giving sigma_z = 4 mm at 3.5 m (eq. 2)
+SIGMA_UV_PX = 0.07
+
+
+def satellite_points(n: int, seed: int = 1) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return rng.uniform(-0.5, 0.5, size=(n, 3)) * np.array([1.0, 1.0, 0.6])
+
+
+def true_pose(seed: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    R = Rotation.random(random_state=seed).as_matrix()
+    return R, np.array([0.05, -0.03, 3.5])
+
+
+def covariances(rig, points_cam: np.ndarray) -> np.ndarray:
+    rect = rig.rectification
+    uv, d = rect.project_rectified(points_cam)
+    return rect.point_covariance(uv, d, SIGMA_D_PX, SIGMA_UV_PX)
+
+
+def noisy(points_cam: np.ndarray, C: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    L = np.linalg.cholesky(C)
+    return points_cam + np.einsum("nij,nj->ni", L, rng.standard_normal(points_cam.shape))
+
+
+def test_depth_sigma_is_the_papers(estec_rig) -> None:
+    C = covariances(estec_rig, np.array([[0.0, 0.0, 3.5]]))
+    assert np.sqrt(C[0, 2, 2]) == pytest.approx(0.004, rel=0.02)
+
+
+@pytest.mark.parametrize("n", [3, 4, 16])
+def test_exact_recovery_case_b(estec_rig, n: int) -> None:
+    b = satellite_points(n)
+    R, t = true_pose()
+    p = b @ R.T + t
+    fit = robust_pose(b, p, covariances(estec_rig, p))
+    np.testing.assert_allclose(fit.R_cam_body, R, atol=1e-10)
+    np.testing.assert_allclose(fit.t_cam_body, t, atol=1e-10)
+    assert fit.inliers.all()
+
+
+def test_generalised_fit_beats_isotropic_kabsch(estec_rig) -> None:
+    """The full 3x3 weights use the precise lateral coordinates: attitude error shrinks."""
+    from trackmeter.core.transforms import absolute_orientation
+
+    b = satellite_points(16)
+    R, t = true_pose()
+    p = b @ R.T + t
+    C = covariances(estec_rig, p)
+    rng = np.random.default_rng(5)
+    err_gls, err_iso = [], []
+    for _ in range(200):
+        q = noisy(p, C, rng)
+        R1, _, _ = solve_pose(b, q, C)
+        R2, _ = absolute_orientation(q, b, 1.0 / np.trace(C, axis1=1, axis2=2))
+        err_gls.append(Rotation.from_matrix(R1 @ R.T).magnitude())
+        err_iso.append(Rotation.from_matrix(R2 @ R.T).magnitude())
+    assert np.sqrt(np.mean(np.square(err_gls))) < 0.6 * np.sqrt(np.mean(np.square(err_iso)))
+
+
+def test_covariance_matches_monte_carlo(estec_rig) -> None:
+    b = satellite_points(12)
+    R, t = true_pose()
+    p = b @ R.T + t
+    C = covariances(estec_rig, p)
+    rng = np.random.default_rng(7)
+    samples = []
+    for _ in range(1500):
+        Rk, tk, _ = solve_pose(b, noisy(p, C, rng), C)
+        samples.append(np.concatenate([tk - t, Rotation.from_matrix(Rk @ R.T).as_rotvec()]))
+    emp = np.cov(np.array(samples).T)
+    _, _, cov = solve_pose(b, p, C)
+    # Diagonal within 10 % (1500 samples: sampling error of a variance is ~3.7 %).
+    np.testing.assert_allclose(np.diag(emp), np.diag(cov), rtol=0.10)
+    # Whole matrix: whitened empirical covariance close to the identity.
+    L = np.linalg.cholesky(cov)
+    Li = np.linalg.inv(L)
+    np.testing.assert_allclose(Li @ emp @ Li.T, np.eye(6), atol=0.12)
+
+
+def test_outlier_rejected_and_does_not_bend_pose(estec_rig) -> None:
+    b = satellite_points(16)
+    R, t = true_pose()
+    p = b @ R.T + t
+    C = covariances(estec_rig, p)
+    rng = np.random.default_rng(3)
+    q = noisy(p, C, rng)
+    clean = robust_pose(b, q, C)
+    bad = q.copy()
+    bad[5] += np.array([0.0, 0.03, 0.08])  # slid onto another surface: 3 cm across, 8 cm deeper
+    fit = robust_pose(b, bad, C)
+    assert not fit.inliers[5]
+    assert fit.inliers.sum() >= 14
+    naive_R, naive_t, _ = solve_pose(b, bad, C)
+    err_fit = Rotation.from_matrix(fit.R_cam_body @ R.T).magnitude()
+    err_naive = Rotation.from_matrix(naive_R @ R.T).magnitude()
+    assert err_naive > 3 * err_fit
+    # The robust pose equals the clean fit without the bad point, to well inside its sigma.
+    sigma_t = np.sqrt(np.diag(clean.cov)[:3])
+    assert np.all(np.abs(fit.t_cam_body - clean.t_cam_body) < sigma_t)
+
+
+def test_several_outliers_among_many(estec_rig) -> None:
+    b = satellite_points(20, seed=4)
+    R, t = true_pose(seed=9)
+    p = b @ R.T + t
+    C = covariances(estec_rig, p)
+    q = noisy(p, C, np.random.default_rng(11))
+    q[[1, 7, 13]] += np.array([[0.05, 0, 0], [0, -0.04, 0.1], [0, 0, -0.06]])
+    fit = robust_pose(b, q, C)
+    assert set(np.flatnonzero(~fit.inliers)) == {1, 7, 13}
+    assert Rotation.from_matrix(fit.R_cam_body @ R.T).magnitude() < np.radians(0.2)
+
+
+def test_too_few_or_collinear_points_refused(estec_rig) -> None:
+    b = satellite_points(2)
+    with pytest.raises(TrackmeterError, match="at least 3"):
+        robust_pose(b, b + [0, 0, 3.5], np.broadcast_to(np.eye(3) * 1e-6, (2, 3, 3)))
+    line = np.outer(np.linspace(-0.5, 0.5, 4), [1.0, 0.2, 0.1])
+    with pytest.raises(TrackmeterError, match="collinear|undetermined"):
+        solve_pose(line, line + [0, 0, 3.5], np.broadcast_to(np.eye(3) * 1e-6, (4, 3, 3)))
+
+
+def test_case_a_three_point_frame_recovered_exactly() -> None:
+    b = satellite_points(8)
+    R, t = true_pose()
+    p = b @ R.T + t
+    i, j, k = choose_frame_points(p, 0.05)
+    R_frame, origin = three_point_body_frame(p[i], p[j], p[k])
+    np.testing.assert_allclose(R_frame, frame_from_three_points(p[i], p[j], p[k])[0])
+    np.testing.assert_allclose(origin, (p[i] + p[j] + p[k]) / 3)
+    model, _ = to_body(R_frame, origin, p)
+    # The model re-fitted to the points gives back the three-point frame exactly.
+    fit = robust_pose(model, p, np.broadcast_to(np.eye(3) * 1e-6, (8, 3, 3)))
+    np.testing.assert_allclose(fit.R_cam_body, R_frame, atol=1e-10)
+    np.testing.assert_allclose(fit.t_cam_body, origin, atol=1e-10)
+
+
+def test_choose_frame_points_skips_degenerate() -> None:
+    p = np.array([[0, 0, 3], [0.01, 0, 3], [0.3, 0, 3], [0.6, 0.0, 3], [0.2, 0.3, 3]], dtype=float)
+    assert choose_frame_points(p, 0.05) == (0, 2, 4)
+    assert choose_frame_points(p[:4], 0.05) is None
+
+
+def test_case_a_no_jump_when_a_frame_point_is_lost(estec_rig) -> None:
+    """Once the frame is established, losing point 1 changes the output by far less than its sigma."""
+    b_true = satellite_points(10)
+    R, t = true_pose()
+    p = b_true @ R.T + t
+    C = covariances(estec_rig, p)
+    rng = np.random.default_rng(21)
+    q0 = noisy(p, C, rng)
+    R_frame, origin = three_point_body_frame(q0[0], q0[1], q0[2])
+    model, model_cov = to_body(R_frame, origin, q0, C)
+    q1 = noisy(p, C, rng)
+    full = robust_pose(model, q1, C, model_cov)
+    lost = robust_pose(model[1:], q1[1:], C[1:], model_cov[1:])
+    jump = np.concatenate([lost.t_cam_body - full.t_cam_body,
+                           Rotation.from_matrix(lost.R_cam_body @ full.R_cam_body.T).as_rotvec()])
+    sigma = np.sqrt(np.diag(full.cov))
+    assert np.all(np.abs(jump) < 3 * sigma)
+    # ...whereas rebuilding the frame from three other points would jump by many sigma.
+    R_other, o_other = three_point_body_frame(q1[1], q1[2], q1[3])
+    assert np.degrees(np.max(np.abs(attitude_error_components(
+        Rotation.from_matrix(R_other).as_quat(scalar_first=True),
+        Rotation.from_matrix(full.R_cam_body).as_quat(scalar_first=True))))) > 5
+
+
+def test_fuse_point_is_information_weighted() -> None:
+    b, C = fuse_point(np.zeros(3), np.eye(3) * 4.0, np.ones(3), np.eye(3) * 1.0)
+    np.testing.assert_allclose(b, np.full(3, 0.8))
+    np.testing.assert_allclose(C, np.eye(3) * 0.8)
+
+
+def test_params_defaults_are_valid() -> None:
+    p = PoseParams()
+    assert p.min_points >= 3 and 0 < p.outlier_probability < 1

@@ -1,0 +1,360 @@
+"""Rigid-body pose from tracked 3D points: the paper's section 2.C, cases (a), (b) and (c).
+
+All three cases end in the same problem: body-frame coordinates ``b_i`` of the tracked points
+(a model) and their measurements ``p_i`` in the left camera frame, each with a covariance
+``C_i`` from the stereo error propagation (paper eqs. 1-2). The pose ``T_cam_body`` minimises
+the Mahalanobis sum (generalised least-squares absolute orientation)
+
+    sum_i r_i^T W_i r_i,     r_i = R b_i + t - p_i,     W_i = (C_i + R Cb_i R^T)^-1
+
+where ``Cb_i`` is the uncertainty of the model point (zero for an a-priori model). A stereo
+point is ~20 times less precise along its viewing ray than across it, so the full 3x3
+weights matter: the isotropic weighted Kabsch solution (:func:`absolute_orientation`) is only
+the starting point; a few Gauss-Newton steps on SE(3) with the perturbation
+``R <- exp([dtheta]x) R``, ``t <- t + dt`` (camera frame) finish it. The inverse of the
+Gauss-Newton normal matrix is the first-order covariance of ``(t, dtheta)`` — the 6x6 pose
+covariance, position in m and rotation vector in rad, both in the camera frame; ``dtheta`` is
+the rotation vector of ``R_est R_true^T``, the per-axis error of the paper's eq. 17.
+
+Robustness: a target that slides onto another surface is a gross outlier. With four or more
+points a least-median-of-squares consensus over minimal triples (Rousseeuw & Leroy 1987) picks
+a starting pose no single bad point can bend, then points whose Mahalanobis residual exceeds a
+chi-square gate (3 degrees of freedom) are rejected and the fit is repeated on the rest.
+
+Case (a) builds the body frame from three points with
+:func:`trackmeter.core.transforms.frame_from_three_points` (origin placed at the three points'
+centroid); case (c) averages the points tracked while the object is held still into a model
+whose frame is the camera frame at that time, origin at the points' centroid.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from itertools import combinations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
+
+from trackmeter.core.params import param
+from trackmeter.core.transforms import absolute_orientation, frame_from_three_points
+from trackmeter.errors import TrackmeterError
+
+FloatArray = NDArray[np.float64]
+
+#: Median of the chi-square distribution with 3 degrees of freedom (robust scale of d²).
+_CHI2_3_MEDIAN = float(chi2.median(3))
+
+
+@dataclass(frozen=True)
+class PoseParams:
+    """Tunables of the motion estimation (paper section 2.C) and of its model handling."""
+
+    min_points: int = param(3, "fewest measured model points for a pose (3 is the minimum that fixes it)", min=3)
+    outlier_probability: float = param(
+        0.999, "chi-square (3 dof) gate on a point's Mahalanobis residual; beyond it the point is an outlier",
+        min=0.9, max=0.9999999,
+    )
+    ransac_trials: int = param(80, "minimal triples tried by the least-median-of-squares consensus", min=1)
+    refine_iterations: int = param(3, "Gauss-Newton iterations of the weighted absolute orientation", min=1, max=20)
+    robust_scale: bool = param(
+        True, "inflate the point covariances by the robust residual scale when they are too optimistic"
+    )
+    min_triangle_m: float = param(
+        0.05, "case (a): the third frame point must lie at least this far off the line of the first two, m", min=0.0
+    )
+    model_refine: bool = param(
+        True, "average the body coordinates of measured (not a-priori) model points over time"
+    )
+    join_after_frames: int = param(
+        3, "a new target joins the model after this many consecutive consistent frames", min=1
+    )
+    still_time_s: float = param(2.0, "case (c): how long the object must be held still to acquire a model, s", min=0.0)
+    still_tolerance_m: float = param(
+        0.004, "case (c): largest RMS movement of a point's running mean still counted as 'still', m", min=0.0
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class PoseFit:
+    """A weighted least-squares pose and what it used.
+
+    Attributes:
+        R_cam_body: (3,3) rotation, body to camera.
+        t_cam_body: (3,) body origin in the camera frame, m.
+        cov: (6,6) covariance of (t m, rotation vector rad), camera frame.
+        inliers: (N,) bool, the points used in the final fit.
+        d2: (N,) squared Mahalanobis residual of every point against the final pose.
+        scale2: factor the point covariances were inflated by (>= 1; 1 when they were honest).
+    """
+
+    R_cam_body: FloatArray
+    t_cam_body: FloatArray
+    cov: FloatArray
+    inliers: NDArray[np.bool_]
+    d2: FloatArray
+    scale2: float = 1.0
+
+    @property
+    def T_cam_body(self) -> FloatArray:
+        T = np.eye(4)
+        T[:3, :3] = self.R_cam_body
+        T[:3, 3] = self.t_cam_body
+        return T
+
+
+def _skew(v: FloatArray) -> FloatArray:
+    """(N,3) -> (N,3,3) cross-product matrices ``[v]x``."""
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
+    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
+    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
+    return S
+
+
+def _weights(R: FloatArray, cov_cam: FloatArray, cov_body: FloatArray | None) -> FloatArray:
+    C = cov_cam if cov_body is None else cov_cam + R @ cov_body @ R.T
+    return np.linalg.inv(C)
+
+
+def mahalanobis_d2(
+    R_cam_body: FloatArray,
+    t_cam_body: FloatArray,
+    points_body: FloatArray,
+    points_cam: FloatArray,
+    cov_cam: FloatArray,
+    cov_body: FloatArray | None = None,
+) -> FloatArray:
+    """Squared Mahalanobis residual (N,) of each point against a pose: ``r^T (C + R Cb R^T)^-1 r``."""
+    r = points_body @ R_cam_body.T + t_cam_body - points_cam
+    W = _weights(R_cam_body, cov_cam, cov_body)
+    return np.einsum("ni,nij,nj->n", r, W, r)
+
+
+def solve_pose(
+    points_body: ArrayLike,
+    points_cam: ArrayLike,
+    cov_cam: ArrayLike,
+    cov_body: ArrayLike | None = None,
+    initial: tuple[FloatArray, FloatArray] | None = None,
+    iterations: int = 3,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Generalised least-squares absolute orientation with full 3x3 point covariances.
+
+    Minimises ``sum_i r_i^T W_i r_i`` (module docstring) by Gauss-Newton on SE(3), starting
+    from ``initial`` or from the isotropic weighted Kabsch solution (weights ``1/trace C_i``).
+
+    Args:
+        points_body: (N,3) model points, body frame, m.
+        points_cam: (N,3) measured points, camera frame, m.
+        cov_cam: (N,3,3) covariances of ``points_cam``, m².
+        cov_body: (N,3,3) covariances of the model points (body frame), m², or None (exact).
+        initial: ``(R_cam_body, t_cam_body)`` to start from.
+        iterations: Gauss-Newton steps.
+
+    Returns:
+        ``(R_cam_body (3,3), t_cam_body (3,), cov (6,6))`` with ``cov`` the first-order
+        covariance of (t, rotation vector), camera frame — the inverse normal matrix.
+
+    Raises:
+        TrackmeterError: fewer than 3 points or a degenerate (collinear) configuration.
+    """
+    b = np.asarray(points_body, dtype=float).reshape(-1, 3)
+    p = np.asarray(points_cam, dtype=float).reshape(-1, 3)
+    C = np.asarray(cov_cam, dtype=float).reshape(-1, 3, 3)
+    Cb = None if cov_body is None else np.asarray(cov_body, dtype=float).reshape(-1, 3, 3)
+    if len(b) < 3:
+        raise TrackmeterError(f"a pose needs at least 3 points, got {len(b)}")
+    if initial is None:
+        R, t = absolute_orientation(p, b, 1.0 / np.trace(C, axis1=1, axis2=2))
+    else:
+        R, t = np.array(initial[0], dtype=float), np.array(initial[1], dtype=float)
+    H = np.eye(6)
+    for _ in range(max(1, iterations)):
+        W = _weights(R, C, Cb)
+        Rb = b @ R.T
+        r = Rb + t - p
+        J = np.concatenate([np.broadcast_to(np.eye(3), (len(b), 3, 3)), -_skew(Rb)], axis=2)  # (N,3,6)
+        JtW = np.transpose(J, (0, 2, 1)) @ W
+        H = np.einsum("nij,njk->ik", JtW, J)
+        g = np.einsum("nij,nj->i", JtW, r)
+        if np.linalg.cond(H) > 1e12:
+            raise TrackmeterError("pose is undetermined: the points are (nearly) collinear")
+        delta = -np.linalg.solve(H, g)
+        t = t + delta[:3]
+        R = Rotation.from_rotvec(delta[3:]).as_matrix() @ R
+        if np.linalg.norm(delta) < 1e-12:
+            break
+    # Normal matrix at the solution, for the covariance.
+    W = _weights(R, C, Cb)
+    Rb = b @ R.T
+    J = np.concatenate([np.broadcast_to(np.eye(3), (len(b), 3, 3)), -_skew(Rb)], axis=2)
+    H = np.einsum("nji,njk,nkl->il", J, W, J)
+    cov = np.linalg.inv(H)
+    return R, t, 0.5 * (cov + cov.T)
+
+
+def _kabsch_batch(a: FloatArray, b: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Unweighted Kabsch for K triples at once: a, b (K,3,3) -> R (K,3,3), t (K,3), sigma2 (K,)."""
+    ca = a.mean(axis=1)
+    cb = b.mean(axis=1)
+    H = np.transpose(a - ca[:, None], (0, 2, 1)) @ (b - cb[:, None])
+    U, S, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
+    d[d == 0] = 1.0
+    D = np.zeros_like(H)
+    D[:, 0, 0] = 1.0
+    D[:, 1, 1] = 1.0
+    D[:, 2, 2] = d
+    R = U @ D @ Vt
+    t = ca - np.einsum("kij,kj->ki", R, cb)
+    return R, t, S[:, 1]
+
+
+def robust_pose(
+    points_body: ArrayLike,
+    points_cam: ArrayLike,
+    cov_cam: ArrayLike,
+    cov_body: ArrayLike | None = None,
+    params: PoseParams = PoseParams(),
+    initial: tuple[FloatArray, FloatArray] | None = None,
+    seed: int = 0,
+) -> PoseFit:
+    """Pose robust to gross outliers: LMedS consensus over minimal triples, then gated GLS.
+
+    1. With N >= 4 points, try up to ``params.ransac_trials`` triples (all of them when there
+       are fewer; deterministic for a given ``seed``) plus ``initial`` when given; keep the
+       pose whose median squared Mahalanobis residual over all points is smallest.
+    2. Robust scale ``s² = median(d²) / median(chi2_3)`` (only ever >= 1: honest covariances are
+       kept); points with ``d² > s² chi2_3(outlier_probability)`` are outliers.
+    3. :func:`solve_pose` on the inliers; re-gate against the refined pose; repeat once.
+
+    With exactly 3 points nothing can be checked: the fit is exact and all are inliers.
+
+    Args:
+        points_body, points_cam, cov_cam, cov_body: as :func:`solve_pose`.
+        params: thresholds.
+        initial: a pose hypothesis, e.g. the previous frame's.
+        seed: of the triple sampler.
+
+    Returns:
+        A :class:`PoseFit`; its covariance is scaled by ``scale2``.
+
+    Raises:
+        TrackmeterError: fewer than 3 points, or fewer than 3 inliers in a non-degenerate layout.
+    """
+    b = np.asarray(points_body, dtype=float).reshape(-1, 3)
+    p = np.asarray(points_cam, dtype=float).reshape(-1, 3)
+    C = np.asarray(cov_cam, dtype=float).reshape(-1, 3, 3)
+    Cb = None if cov_body is None else np.asarray(cov_body, dtype=float).reshape(-1, 3, 3)
+    n = len(b)
+    if n < 3:
+        raise TrackmeterError(f"a pose needs at least 3 points, got {n}")
+    gate = float(chi2.ppf(params.outlier_probability, 3))
+    inliers = np.ones(n, dtype=bool)
+    start = initial
+    if n >= 4:
+        all_triples = n * (n - 1) * (n - 2) // 6
+        if all_triples <= params.ransac_trials:
+            idx = np.array(list(combinations(range(n), 3)))
+        else:
+            rng = np.random.default_rng(seed)
+            idx = np.array([rng.choice(n, 3, replace=False) for _ in range(params.ransac_trials)])
+        R_k, t_k, s1 = _kabsch_batch(p[idx], b[idx])
+        ok = s1 > 1e-6  # collinear triples fix no rotation
+        R_k, t_k = R_k[ok], t_k[ok]
+        if initial is not None:
+            R_k = np.concatenate([R_k, np.asarray(initial[0], dtype=float)[None]])
+            t_k = np.concatenate([t_k, np.asarray(initial[1], dtype=float)[None]])
+        if len(R_k):
+            # Residuals of every point under every hypothesis, weighted by the measurement
+            # covariance alone (cheap; the model's own uncertainty is added in the refinement).
+            W = np.linalg.inv(C)
+            r = np.einsum("kij,nj->kni", R_k, b) + t_k[:, None, :] - p[None]
+            d2 = np.einsum("kni,nij,knj->kn", r, W, r)
+            best = int(np.argmin(np.median(d2, axis=1)))
+            start = (R_k[best], t_k[best])
+            med = float(np.median(d2[best]))
+            scale2 = max(1.0, med / _CHI2_3_MEDIAN)
+            inliers = d2[best] <= gate * scale2
+            if inliers.sum() < 3:
+                inliers = d2[best] <= np.sort(d2[best])[2]
+    scale2 = 1.0
+    R, t, cov = solve_pose(b[inliers], p[inliers], C[inliers], None if Cb is None else Cb[inliers],
+                           start, params.refine_iterations)
+    for _ in range(2):
+        d2 = mahalanobis_d2(R, t, b, p, C, Cb)
+        if n < 4:
+            break
+        scale2 = max(1.0, float(np.median(d2[inliers])) / _CHI2_3_MEDIAN) if params.robust_scale else 1.0
+        new_inliers = d2 <= gate * scale2
+        if new_inliers.sum() < 3:
+            break
+        if np.array_equal(new_inliers, inliers):
+            break
+        inliers = new_inliers
+        R, t, cov = solve_pose(b[inliers], p[inliers], C[inliers], None if Cb is None else Cb[inliers],
+                               (R, t), params.refine_iterations)
+    d2 = mahalanobis_d2(R, t, b, p, C, Cb)
+    return PoseFit(R, t, cov * scale2, inliers, d2, scale2)
+
+
+# --------------------------------------------------------------------------- model frames
+
+
+def three_point_body_frame(p1: ArrayLike, p2: ArrayLike, p3: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """Case (a) body frame ``(R_a_body, origin_a)``: axes of the paper's three-point frame
+    (x toward p2, xy-plane through p3; :func:`frame_from_three_points`), origin at the
+    centroid of the three points (the output the paper gives: centroid + quaternion)."""
+    R, _ = frame_from_three_points(p1, p2, p3)
+    origin = (np.asarray(p1, dtype=float) + np.asarray(p2, dtype=float) + np.asarray(p3, dtype=float)) / 3.0
+    return R, origin
+
+
+def to_body(R_a_body: FloatArray, origin_a: FloatArray, points_a: ArrayLike, cov_a: ArrayLike | None = None
+            ) -> tuple[FloatArray, FloatArray | None]:
+    """Express points (N,3) and covariances (N,3,3) of frame a in a body frame given by its
+    axes ``R_a_body`` and origin in a: ``b = R^T (p - o)``, ``Cb = R^T C R``."""
+    p = np.asarray(points_a, dtype=float).reshape(-1, 3)
+    b = (p - origin_a) @ R_a_body
+    if cov_a is None:
+        return b, None
+    C = np.asarray(cov_a, dtype=float).reshape(-1, 3, 3)
+    return b, R_a_body.T @ C @ R_a_body
+
+
+def choose_frame_points(points: ArrayLike, min_offset_m: float) -> tuple[int, int, int] | None:
+    """Case (a): indices of the three frame points, in the order given (selection order).
+
+    Point 1 is the first, point 2 the next one at least ``min_offset_m`` away, point 3 the next
+    one at least ``min_offset_m`` off the line through 1 and 2. None when no such triple exists
+    (all points (nearly) collinear or clustered).
+    """
+    p = np.asarray(points, dtype=float).reshape(-1, 3)
+    for i in range(len(p)):
+        for j in range(i + 1, len(p)):
+            x = p[j] - p[i]
+            nx = np.linalg.norm(x)
+            if nx < max(min_offset_m, 1e-9):
+                continue
+            for k in range(j + 1, len(p)):
+                off = np.linalg.norm(np.cross(x / nx, p[k] - p[i]))
+                if off >= max(min_offset_m, 1e-9):
+                    return i, j, k
+    return None
+
+
+def fuse_point(b_old: FloatArray, C_old: FloatArray, b_new: FloatArray, C_new: FloatArray
+               ) -> tuple[FloatArray, FloatArray]:
+    """Information-weighted mean of two estimates (3,) of one body point with covariances (3,3):
+    ``C = (C_old^-1 + C_new^-1)^-1``, ``b = C (C_old^-1 b_old + C_new^-1 b_new)``."""
+    W_old = np.linalg.inv(C_old)
+    W_new = np.linalg.inv(C_new)
+    C = np.linalg.inv(W_old + W_new)
+    return C @ (W_old @ b_old + W_new @ b_new), 0.5 * (C + C.T)
+
+
+def pose_between_models(model_from: FloatArray, model_to: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """``(R, t)`` with ``model_to ≈ R model_from + t`` (unweighted Kabsch), (N,3) each, N >= 3."""
+    return absolute_orientation(model_to, model_from)
