@@ -1,0 +1,89 @@
+"""Where stereo frames come from: the simulator, sequence folders, video files, cameras.
+
+:func:`open_source` turns a SPEC string (DESIGN.md section 6) into a :class:`Source`:
+
+=========================  ===========================================================
+``sim``                    the ``estec`` scenario rendered live (with ground truth)
+``sim:SCENARIO.yaml``      a scenario file, or a bare name of ``config/scenarios/``
+                           (``sim:harsh_light``)
+``seq:DIR`` or ``DIR``     a sequence folder (EuRoC layout, also ``DIR/mav0/...``)
+``video:LEFT,RIGHT``       two video files
+``camera:I,J``             two camera devices, left and right
+``camera:I``               one side-by-side stereo device (left half, right half)
+=========================  ===========================================================
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from trackmeter.core.stereo import StereoRig
+from trackmeter.errors import TrackmeterError
+from trackmeter.sources.base import GroundTruth, Source, StereoFrame
+
+__all__ = ["GroundTruth", "Source", "StereoFrame", "open_source", "DEFAULT_SCENARIO"]
+
+#: The scenario of a bare ``sim`` SPEC.
+DEFAULT_SCENARIO = "estec"
+
+
+def open_source(spec: str, rig_override: StereoRig | None = None, realtime: bool = False, loop: bool = False) -> Source:
+    """Open the source a SPEC string names.
+
+    Args:
+        spec: see the module docstring.
+        rig_override: use this rig instead of the one the source carries (``--rig``).
+        realtime: play recorded and simulated streams at their frame rate (else as fast as
+            possible). Cameras are always live.
+        loop: start recorded and simulated streams again at their end (else they end).
+
+    Raises:
+        TrackmeterError: a malformed SPEC, a missing file or folder, a camera that cannot be
+            opened; the message names the SPEC's part that failed.
+    """
+    text = (spec or "").strip()
+    if not text:
+        raise TrackmeterError("empty source SPEC (expected sim, sim:SCENARIO, seq:DIR, video:LEFT,RIGHT, camera:I[,J])")
+    kind, _, arg = text.partition(":")
+    if kind == "sim":
+        from trackmeter.sources.sim.scenario import load_scenario
+        from trackmeter.sources.sim.simulator import Simulator
+
+        scenario = load_scenario(arg or DEFAULT_SCENARIO)
+        return Simulator(scenario, rig_override=rig_override, realtime=realtime, loop=loop)
+    if kind == "seq":
+        if not arg:
+            raise TrackmeterError("seq: needs a folder, as seq:DIR")
+        return _open_sequence(arg, rig_override, realtime, loop)
+    if kind == "video":
+        parts = [p.strip() for p in arg.split(",")]
+        if len(parts) != 2 or not all(parts):
+            raise TrackmeterError(f"video: needs two files, as video:LEFT,RIGHT, got {spec!r}")
+        from trackmeter.sources.video import VideoSource
+
+        return VideoSource(parts[0], parts[1], rig=rig_override, realtime=realtime, loop=loop)
+    if kind == "camera":
+        parts = [p.strip() for p in arg.split(",")]
+        try:
+            if len(parts) not in (1, 2):
+                raise ValueError
+            devices = tuple(int(p) for p in parts)
+            if any(d < 0 for d in devices):
+                raise ValueError
+        except ValueError:
+            raise TrackmeterError(f"camera: needs one or two device numbers, as camera:0 or camera:0,1, got {spec!r}") from None
+        from trackmeter.sources.video import CameraSource
+
+        return CameraSource(devices, rig=rig_override)
+    # A bare folder (DESIGN.md: "seq:DIR or a bare DIR"). Windows drive letters never reach here.
+    if Path(text).is_dir():
+        return _open_sequence(text, rig_override, realtime, loop)
+    raise TrackmeterError(
+        f"unknown source {spec!r}: expected sim, sim:SCENARIO, seq:DIR, an existing folder, video:LEFT,RIGHT, camera:I[,J]"
+    )
+
+
+def _open_sequence(directory: str, rig: StereoRig | None, realtime: bool, loop: bool) -> Source:
+    from trackmeter.sources.sequence import SequenceSource
+
+    return SequenceSource(directory, rig=rig, realtime=realtime, loop=loop)

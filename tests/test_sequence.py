@@ -1,0 +1,328 @@
+"""Sequence folders (EuRoC layout), model files and the file/video/camera sources."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from trackmeter.data.model import Model, load_model, save_model
+from trackmeter.data.motion_csv import GROUNDTRUTH_COLUMNS
+from trackmeter.data.sequence import SequenceWriter, index_sequence, pair_by_nearest
+from trackmeter.errors import TrackmeterError
+from trackmeter.sources import open_source
+from trackmeter.sources.base import GroundTruth, StereoFrame
+from trackmeter.sources.pacing import Pacer
+from trackmeter.sources.sequence import SequenceSource
+
+
+def _frames(n: int = 6, rate: float = 25.0, truth: bool = True, seed: int = 0) -> list[StereoFrame]:
+    rng = np.random.default_rng(seed)
+    frames = []
+    for i in range(n):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec([0.01 * i, 0.2, -0.1]).as_matrix()
+        T[:3, 3] = [0.01 * i, -0.02, 3.5 - 0.001 * i]
+        gt = GroundTruth(T, np.array([0.25, 0.0, -0.025]), np.array([0.01, -0.02, 0.03])) if truth else None
+        frames.append(StereoFrame(i, i / rate, rng.integers(0, 256, (24, 32), dtype=np.uint8),
+                                  rng.integers(0, 256, (24, 32), dtype=np.uint8), gt))
+    return frames
+
+
+def _write(directory: Path, frames, **kwargs) -> Path:
+    with SequenceWriter(directory, **kwargs) as w:
+        for f in frames:
+            w.write(f)
+    return directory
+
+
+def _assert_same(a: StereoFrame, b: StereoFrame) -> None:
+    assert a.index == b.index
+    assert abs(a.t_s - b.t_s) < 1e-9
+    assert np.array_equal(a.left, b.left) and np.array_equal(a.right, b.right)
+    assert (a.truth is None) == (b.truth is None)
+    if a.truth is not None:
+        assert np.allclose(a.truth.T_cam_body, b.truth.T_cam_body, atol=1e-12)
+        assert np.allclose(a.truth.velocity_cam_m_s, b.truth.velocity_cam_m_s, atol=1e-12)
+        assert np.allclose(a.truth.omega_body_rad_s, b.truth.omega_body_rad_s, atol=1e-12)
+
+
+# --------------------------------------------------------------------------- round trips
+
+
+def test_write_then_read_frame_for_frame(tmp_path, estec_rig):
+    frames = _frames()
+    model = Model(("a", "b", "c"), np.array([[0, 0, 0], [1.0, 0, 0], [0, 0.5, 0.25]]))
+    d = _write(tmp_path / "seq", frames, rig=estec_rig, model_points=model)
+    # The files of DESIGN.md section 6, with the contract headers.
+    assert (d / "cam0" / "data.csv").read_text().splitlines()[0] == "#timestamp [ns],filename"
+    assert (d / "cam1" / "data.csv").read_text().splitlines()[1] == "0,0.png"
+    assert (d / "cam1" / "data.csv").read_text().splitlines()[2] == "40000000,40000000.png"
+    assert (d / "groundtruth.csv").read_text().splitlines()[0] == "t,x,y,z,qw,qx,qy,qz,vx,vy,vz,wx,wy,wz"
+    assert ",".join(GROUNDTRUTH_COLUMNS) == "t,x,y,z,qw,qx,qy,qz,vx,vy,vz,wx,wy,wz"
+    assert len([x for x in (d / "groundtruth.tum").read_text().splitlines() if not x.startswith("#")]) == len(frames)
+    assert not [p for p in d.rglob(".*")], "no temporary files left behind"
+    with open_source(f"seq:{d}") as src:
+        assert isinstance(src, SequenceSource)
+        assert src.skipped == 0 and src.warning is None
+        assert src.rate_hz == pytest.approx(25.0)
+        assert src.rig is not None and np.allclose(src.rig.left.K, estec_rig.left.K)
+        assert np.allclose(src.rig.R, estec_rig.R) and np.allclose(src.rig.T, estec_rig.T)
+        assert src.model is not None and src.model.ids == model.ids
+        assert np.array_equal(src.model.points_body, model.points_body)
+        read = []
+        while (f := src.read()) is not None:
+            read.append(f)
+    assert len(read) == len(frames)
+    for a, b in zip(frames, read):
+        _assert_same(a, b)
+    # A bare folder is a sequence SPEC too.
+    with open_source(str(d)) as src:
+        _assert_same(frames[0], src.read())
+
+
+def test_tum_only_truth_and_no_truth(tmp_path):
+    d = _write(tmp_path / "s", _frames(4))
+    (d / "groundtruth.csv").unlink()
+    src = SequenceSource(d)
+    f = src.read()
+    assert np.allclose(f.truth.T_cam_body, _frames(4)[0].truth.T_cam_body, atol=1e-8)
+    assert np.all(np.isnan(f.truth.velocity_cam_m_s))
+    d2 = _write(tmp_path / "n", _frames(3, truth=False))
+    assert not (d2 / "groundtruth.csv").exists()
+    assert SequenceSource(d2).read().truth is None
+
+
+def test_loop_and_restart_keep_time_increasing(tmp_path):
+    d = _write(tmp_path / "s", _frames(3))
+    src = SequenceSource(d, loop=True)
+    ts = [src.read().t_s for _ in range(7)]
+    assert np.all(np.diff(ts) > 0)
+    assert np.allclose(np.diff(ts), 0.04)
+    src.restart()
+    f = src.read()
+    assert f.index == 0 and f.t_s == 0.0
+    src2 = SequenceSource(d)
+    assert [src2.read() is not None for _ in range(4)] == [True, True, True, False]
+
+
+def test_euroc_mav0_layout_with_sensor_yaml(tmp_path):
+    """Real EuRoC: mav0/cam0, mav0/cam1, sensor.yaml, no rig.yaml, extra columns absent."""
+    root = tmp_path / "MH_01" / "mav0"
+    rng = np.random.default_rng(1)
+    t0 = 1403636579763555584  # EuRoC-style absolute nanoseconds
+    for cam in ("cam0", "cam1"):
+        (root / cam / "data").mkdir(parents=True)
+        (root / cam / "sensor.yaml").write_text("sensor_type: camera\nrate_hz: 20\n")
+        rows = ["#timestamp [ns],filename"]
+        for i in range(3):
+            ns = t0 + i * 50_000_000
+            colour = rng.integers(0, 256, (10, 12, 3), dtype=np.uint8)
+            cv2.imwrite(str(root / cam / "data" / f"{ns}.png"), colour)
+            rows.append(f"{ns},{ns}.png")
+        (root / cam / "data.csv").write_text("\r\n".join(rows) + "\r\n")
+    src = open_source(f"seq:{tmp_path / 'MH_01'}")
+    assert src.rig is None and src.skipped == 0
+    assert src.rate_hz == pytest.approx(20.0)
+    f = src.read()
+    assert f.left.dtype == np.uint8 and f.left.shape == (10, 12)
+    assert f.t_s == pytest.approx(t0 * 1e-9)
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+def test_missing_images_and_unpaired_timestamps_are_skipped_counted_and_reported(tmp_path):
+    frames = _frames(8)
+    d = _write(tmp_path / "s", frames)
+    # 1. A left image missing from disk.
+    (d / "cam0" / "data" / "80000000.png").unlink()
+    # 2. The right image of frame 5 recorded 15 ms late: pairs by nearest time (tolerance 10 ms).
+    late = 200_000_000 + 15_000_000
+    os.replace(d / "cam1" / "data" / "200000000.png", d / "cam1" / "data" / f"{late}.png")
+    # 3. A right image 3 ms off: still paired.
+    off = 280_000_000 - 3_000_000
+    os.replace(d / "cam1" / "data" / "280000000.png", d / "cam1" / "data" / f"{off}.png")
+    csv1 = (d / "cam1" / "data.csv").read_text()
+    csv1 = csv1.replace("200000000,200000000.png", f"{late},{late}.png").replace("280000000,280000000.png", f"{off},{off}.png")
+    (d / "cam1" / "data.csv").write_text(csv1 + "32000")  # 4. a row cut short by a crash
+    with pytest.warns(UserWarning, match="skipped"):
+        src = SequenceSource(d)
+    # Left 2 (missing) leaves right 2 alone; left 5 and right 5 (15 ms) both unpaired; one cut row.
+    assert len(src) == 6
+    assert src.skipped == 1 + 1 + 2 + 1
+    assert "missing" in src.warning and "without a partner" in src.warning and "cut-short" in src.warning
+    got = []
+    while (f := src.read()) is not None:
+        got.append(f)
+    kept = [0, 1, 3, 4, 6, 7]
+    assert [round(f.t_s * 25) for f in got] == kept
+    for f, k in zip(got, kept):
+        assert np.array_equal(f.left, frames[k].left)
+        assert np.array_equal(f.right, frames[k].right)
+        assert np.allclose(f.truth.T_cam_body, frames[k].truth.T_cam_body)
+
+
+def test_unreadable_image_skipped_at_read(tmp_path):
+    d = _write(tmp_path / "s", _frames(3))
+    (d / "cam1" / "data" / "40000000.png").write_bytes(b"not a png")
+    src = SequenceSource(d)
+    got = [f.t_s for f in iter(src.read, None)]
+    assert got == [0.0, 0.08]
+    assert src.skipped == 1 and "unreadable" in src.warning
+
+
+def test_writer_refuses_existing_sequence_and_bad_images(tmp_path):
+    d = _write(tmp_path / "s", _frames(2))
+    with pytest.raises(TrackmeterError, match="already holds a sequence"):
+        SequenceWriter(d)
+    w = SequenceWriter(tmp_path / "t")
+    with pytest.raises(TrackmeterError, match="uint8"):
+        w.write(StereoFrame(0, 0.0, np.zeros((4, 4), np.float32), np.zeros((4, 4), np.float32)))
+    w.write(_frames(1)[0])
+    with pytest.raises(TrackmeterError, match="does not come after"):
+        w.write(_frames(1)[0])
+    w.close()
+
+
+def test_crash_mid_recording_leaves_complete_files(tmp_path):
+    """Kill a writer process mid-stream: every listed image decodes, every row is whole."""
+    out = tmp_path / "rec"
+    code = f"""
+import numpy as np, sys
+from trackmeter.data.sequence import SequenceWriter
+from trackmeter.sources.base import StereoFrame, GroundTruth
+w = SequenceWriter({str(out)!r})
+rng = np.random.default_rng(0)
+i = 0
+while True:
+    img = rng.integers(0, 256, (240, 320), dtype=np.uint8)
+    w.write(StereoFrame(i, i / 25, img, img, GroundTruth(np.eye(4), np.zeros(3), np.zeros(3))))
+    if i == 5:
+        print("ready", flush=True)
+    i += 1
+"""
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+    finally:
+        proc.kill()
+        proc.wait()
+    index = index_sequence(out)
+    assert len(index) >= 5
+    src = SequenceSource(out)
+    n = sum(1 for _ in iter(src.read, None))
+    assert n == len(index) and src._skipped_on_read == 0
+    assert index.truth is not None and np.all(index.truth.valid[:-1])
+
+
+def test_not_a_sequence_and_bad_specs(tmp_path):
+    (tmp_path / "empty").mkdir()
+    for spec, match in [
+        (f"seq:{tmp_path / 'nothing'}", "no such sequence folder"),
+        (f"seq:{tmp_path / 'empty'}", "not a sequence folder"),
+        ("seq:", "needs a folder"),
+        ("", "empty source"),
+        ("bogus:1", "unknown source"),
+        ("video:only_one.avi", "two files"),
+        (f"video:{tmp_path / 'a.avi'},{tmp_path / 'b.avi'}", "no such video"),
+        ("camera:x", "device numbers"),
+        ("camera:1,2,3", "device numbers"),
+        ("camera:99", "camera 99 cannot be opened"),
+        ("camera:98,99", "cannot be opened"),
+    ]:
+        with pytest.raises(TrackmeterError, match=match):
+            open_source(spec)
+
+
+def test_pair_by_nearest_is_mutual_and_within_tolerance():
+    a = [0.0, 0.04, 0.08, 0.12]
+    b = [0.001, 0.05, 0.052, 0.2]
+    assert pair_by_nearest(a, b, 0.013) == [(0, 0), (1, 1)]
+    assert pair_by_nearest(a, [], 0.01) == []
+    assert pair_by_nearest([0.5], [0.5], 0.0) == [(0, 0)]
+
+
+# --------------------------------------------------------------------------- video
+
+
+def test_video_source_reads_two_files(tmp_path):
+    paths = [tmp_path / "left.avi", tmp_path / "right.avi"]
+    rng = np.random.default_rng(3)
+    frames = [rng.integers(0, 256, (48, 64), dtype=np.uint8) for _ in range(5)]
+    for k, p in enumerate(paths):
+        vw = cv2.VideoWriter(str(p), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (64, 48), isColor=True)
+        if not vw.isOpened():
+            pytest.skip("this OpenCV build cannot write MJPG")
+        for img in frames:
+            vw.write(cv2.cvtColor(np.roll(img, k, axis=1), cv2.COLOR_GRAY2BGR))
+        vw.release()
+    src = open_source(f"video:{paths[0]},{paths[1]}")
+    assert src.rate_hz == pytest.approx(10.0)
+    got = list(iter(src.read, None))
+    assert len(got) == 5
+    assert [f.t_s for f in got] == pytest.approx([0.0, 0.1, 0.2, 0.3, 0.4])
+    for f, img in zip(got, frames):
+        assert f.left.shape == (48, 64) and f.left.dtype == np.uint8
+        assert np.mean(np.abs(f.left.astype(float) - img)) < 12  # MJPG is lossy
+    src.restart()
+    assert src.read().index == 0
+    src.close()
+    looped = open_source(f"video:{paths[0]},{paths[1]}", loop=True)
+    ts = [looped.read().t_s for _ in range(8)]
+    assert np.all(np.diff(ts) > 0)
+
+
+def test_pacer_sleeps_to_media_time():
+    now = [0.0]
+    slept = []
+
+    def sleep(d):
+        slept.append(d)
+        now[0] += d
+
+    p = Pacer(clock=lambda: now[0], sleep=sleep)
+    p.wait(10.0)
+    p.wait(10.04)
+    now[0] += 0.01  # consumer took 10 ms
+    p.wait(10.08)
+    assert slept == pytest.approx([0.04, 0.03])
+
+
+# --------------------------------------------------------------------------- model files
+
+
+def test_model_round_trip(tmp_path):
+    m = Model.from_pairs([("c1", [0.5, 0.5, 0.5]), ("2", [-0.5, 0.5, 0.5]), ("tip", [0.0, 0.0, 1.2 + 1e-9])])
+    path = save_model(tmp_path / "model.yaml", m)
+    back = load_model(path)
+    assert back.ids == ("c1", "2", "tip")
+    assert np.array_equal(back.points_body, m.points_body)
+    assert np.array_equal(back.point("tip"), m.points_body[2])
+
+
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("points: [{id: a, xyz: [0, 0, 0]}, {id: b, xyz: [1, 0, 0]}]", "at least 3 points"),
+        ("points: [{id: a, xyz: [0,0,0]}, {id: a, xyz: [1,0,0]}, {id: c, xyz: [0,1,0]}]", "'a' appears twice"),
+        ("points: [{id: a, xyz: [0,0,0]}, {id: b, xyz: [1,zero,0]}, {id: c, xyz: [0,1,0]}]", r"points\[1\]\.xyz\[1\]"),
+        ("points: [{id: a, xyz: [0,0,0]}, {id: b, xyz: [1,0]}, {id: c, xyz: [0,1,0]}]", r"points\[1\]\.xyz"),
+        ("points: [{id: a, xyz: [0,0,0]}, {xyz: [1,0,0]}, {id: c, xyz: [0,1,0]}]", r"points\[1\]': missing key 'id'"),
+        ("pts: []", "missing key 'points'"),
+        ("points: [{id: a, xyz: [0,0,0], colour: red}]", "unknown key 'points\\[0\\].colour'"),
+        ("points: [{id: a, xyz: [0,0,0]", "malformed YAML"),
+    ],
+)
+def test_bad_model_files_name_the_problem(tmp_path, text, match):
+    path = tmp_path / "model.yaml"
+    path.write_text(text)
+    with pytest.raises(TrackmeterError, match=match):
+        load_model(path)

@@ -1,0 +1,136 @@
+"""Model files: named points of the target in its body frame (DESIGN.md section 6).
+
+YAML, metres, body frame::
+
+    points:
+      - {id: corner_1, xyz: [0.5, 0.5, 0.5]}
+      - {id: corner_2, xyz: [-0.5, 0.5, 0.5]}
+      - {id: antenna_tip, xyz: [0.0, 0.0, 1.2]}
+
+The a-priori model of pose case (b) (paper section 2.C) needs at least three points that are
+not collinear; ids are strings (numbers are read as their text) and must be unique.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+import yaml
+from numpy.typing import ArrayLike, NDArray
+
+from trackmeter.data.config import build_dataclass, read_yaml_mapping
+from trackmeter.data.trajectory import write_text_atomic
+from trackmeter.errors import TrackmeterError
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True, eq=False)
+class Model:
+    """Named points of a rigid target in its body frame.
+
+    Attributes:
+        ids: (N,) point names, unique.
+        points_body: (N,3) coordinates in the body frame, m (read-only array).
+    """
+
+    ids: tuple[str, ...]
+    points_body: FloatArray
+
+    def __post_init__(self) -> None:
+        ids = tuple(str(i) for i in self.ids)
+        p = np.array(self.points_body, dtype=float)
+        if p.ndim != 2 or p.shape[1] != 3 or len(p) != len(ids):
+            raise TrackmeterError(f"model needs one (x, y, z) per id: {len(ids)} ids, points of shape {p.shape}")
+        if not np.all(np.isfinite(p)):
+            raise TrackmeterError("model has a non-finite coordinate")
+        if len(ids) < 3:
+            raise TrackmeterError(f"a model needs at least 3 points, got {len(ids)}")
+        seen: set[str] = set()
+        for i in ids:
+            if i in seen:
+                raise TrackmeterError(f"model point id {i!r} appears twice")
+            seen.add(i)
+        p.flags.writeable = False
+        object.__setattr__(self, "ids", ids)
+        object.__setattr__(self, "points_body", p)
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    @classmethod
+    def from_pairs(cls, pairs: Iterable[tuple[str, ArrayLike]]) -> Model:
+        """From ``(name, xyz_body)`` pairs, e.g. a mock-up's ``salient_points``."""
+        items = list(pairs)
+        return cls(tuple(str(n) for n, _ in items), np.array([np.asarray(x, dtype=float).reshape(3) for _, x in items]).reshape(-1, 3))
+
+    def point(self, point_id: str) -> FloatArray:
+        """The (3,) body-frame coordinates of one point, m."""
+        try:
+            return self.points_body[self.ids.index(str(point_id))]
+        except ValueError:
+            raise TrackmeterError(f"model has no point {point_id!r}") from None
+
+
+@dataclass(frozen=True)
+class _PointEntry:
+    id: str | int
+    xyz: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class _ModelFile:
+    points: tuple[_PointEntry, ...]
+    name: str = ""
+
+
+def load_model(path: str | Path) -> Model:
+    """Read a model file.
+
+    Raises:
+        TrackmeterError: naming the file and the key: missing ``points``, an entry without
+            ``id`` or ``xyz``, a non-numeric coordinate, fewer than 3 points, a repeated id.
+    """
+    path = Path(path)
+    data = read_yaml_mapping(path)
+    if "points" not in data:
+        raise TrackmeterError(f"{path}: missing key 'points' (a list of {{id: NAME, xyz: [x, y, z]}})")
+    entries = data["points"]
+    if isinstance(entries, list):
+        for i, entry in enumerate(entries):
+            if isinstance(entry, dict):
+                for key in ("id", "xyz"):
+                    if key not in entry:
+                        raise TrackmeterError(f"{path}: 'points[{i}]': missing key '{key}'")
+    parsed = build_dataclass(_ModelFile, data, source=str(path))
+    try:
+        return Model(tuple(str(e.id) for e in parsed.points), np.array([e.xyz for e in parsed.points], dtype=float).reshape(-1, 3))
+    except TrackmeterError as exc:
+        raise TrackmeterError(f"{path}: {exc}") from None
+
+
+def model_to_yaml(model: Model, name: str = "") -> str:
+    """The model file text (flow-style point entries, shortest round-trip floats)."""
+    head = f"name: {yaml.safe_dump(name, default_style=None).strip().splitlines()[0]}\n" if name else ""
+    lines = [
+        f"  - {{id: {yaml.safe_dump(i, default_flow_style=True).strip().splitlines()[0]}, "
+        f"xyz: [{', '.join(repr(float(c)) for c in p)}]}}"
+        for i, p in zip(model.ids, model.points_body)
+    ]
+    return "# model points, body frame, metres\n" + head + "points:\n" + "\n".join(lines) + "\n"
+
+
+def save_model(path: str | Path, model: Model | Sequence[tuple[str, ArrayLike]], name: str = "") -> Path:
+    """Write a model file atomically (temp file, then rename). Accepts a Model or (name, xyz) pairs."""
+    if not isinstance(model, Model):
+        model = Model.from_pairs(model)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(path, model_to_yaml(model, name))
+    return path
+
+
+__all__ = ["Model", "load_model", "save_model", "model_to_yaml"]

@@ -1,0 +1,125 @@
+"""``seq:DIR``: play a stereo sequence folder (DESIGN.md section 6, EuRoC layout)."""
+
+from __future__ import annotations
+
+import warnings as _warnings
+from pathlib import Path
+
+
+from trackmeter.core.stereo import StereoRig
+from trackmeter.core.transforms import transform_from_pose
+from trackmeter.data.model import Model
+from trackmeter.data.sequence import SequenceIndex, index_sequence, read_grey_image
+from trackmeter.errors import TrackmeterError
+from trackmeter.sources.base import GroundTruth, Source, StereoFrame
+from trackmeter.sources.pacing import Pacer
+
+
+class SequenceSource(Source):
+    """Frames of a sequence folder, paired left/right by nearest timestamp.
+
+    Args:
+        directory: the folder (``DIR`` or an EuRoC ``DIR`` holding ``mav0/``).
+        rig: overrides the folder's ``rig.yaml`` (a real EuRoC folder has none: rig is None
+            unless given).
+        realtime: sleep so frames come at their recorded times; else as fast as read.
+        loop: start again after the last frame. Frame indices and timestamps keep increasing
+            across loops (each loop is shifted by the sequence's span plus one frame
+            interval), so downstream filters never see time go backwards.
+        tolerance_s: left/right pairing tolerance (default: a quarter frame interval).
+
+    Attributes:
+        index: the :class:`SequenceIndex` (paths, times, truth).
+        model: the folder's ``model.yaml`` as a :class:`Model`, or None.
+        skipped: images not played (missing, unpaired, unreadable rows or files), counted.
+        warning: one line saying what was skipped and why, or None when nothing was.
+    """
+
+    def __init__(
+        self,
+        directory: str | Path,
+        rig: StereoRig | None = None,
+        realtime: bool = False,
+        loop: bool = False,
+        tolerance_s: float | None = None,
+    ) -> None:
+        self.index: SequenceIndex = index_sequence(directory, tolerance_s)
+        self.rig = rig if rig is not None else self.index.rig
+        self.rate_hz = self.index.rate_hz
+        self.model: Model | None = self.index.model
+        self.realtime = realtime
+        self.loop = loop
+        self._skipped_on_read = 0
+        self._read_errors: list[str] = []
+        self._pacer = Pacer()
+        self._pos = 0
+        self._loops = 0
+        self._count = 0
+        n = len(self.index)
+        dt = 1.0 / self.rate_hz if self.rate_hz else 0.0
+        self._period_s = float(self.index.t_s[-1] - self.index.t_s[0]) + dt if n else 0.0
+        if self.warning:
+            _warnings.warn(f"{directory}: {self.warning}", stacklevel=2)
+
+    @property
+    def skipped(self) -> int:
+        return self.index.skipped + self._skipped_on_read
+
+    @property
+    def warning(self) -> str | None:
+        parts = list(self.index.warnings)
+        if self._skipped_on_read:
+            parts.append(f"{self._skipped_on_read} pair(s) with an unreadable image skipped ({self._read_errors[-1]})")
+        return ("skipped " + str(self.skipped) + ": " + "; ".join(parts)) if parts else None
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def truth_at(self, position: int) -> GroundTruth | None:
+        """Ground truth of the ``position``-th pair of the folder, or None."""
+        truth = self.index.truth
+        if truth is None or not truth.valid[position]:
+            return None
+        return GroundTruth(
+            T_cam_body=transform_from_pose(truth.position_m[position], truth.quat_wxyz[position]),
+            velocity_cam_m_s=truth.velocity_cam_m_s[position].copy(),
+            omega_body_rad_s=truth.omega_body_rad_s[position].copy(),
+        )
+
+    def read(self) -> StereoFrame | None:
+        while True:
+            if self._pos >= len(self.index):
+                if not self.loop:
+                    return None
+                self._pos = 0
+                self._loops += 1
+                self._pacer.reset()
+            pos = self._pos
+            self._pos += 1
+            try:
+                left = read_grey_image(self.index.left_paths[pos])
+                right = read_grey_image(self.index.right_paths[pos])
+            except TrackmeterError as exc:
+                if self._loops == 0:
+                    self._skipped_on_read += 1
+                    self._read_errors.append(str(exc))
+                continue
+            if left.shape != right.shape:
+                raise TrackmeterError(
+                    f"{self.index.left_paths[pos]}: left and right images differ in size ({left.shape} vs {right.shape})"
+                )
+            t = float(self.index.t_s[pos]) + self._loops * self._period_s
+            if self.realtime:
+                self._pacer.wait(t)
+            frame = StereoFrame(index=self._count, t_s=t, left=left, right=right, truth=self.truth_at(pos))
+            self._count += 1
+            return frame
+
+    def restart(self) -> None:
+        self._pos = 0
+        self._loops = 0
+        self._count = 0
+        self._pacer.reset()
+
+
+__all__ = ["SequenceSource"]

@@ -1,0 +1,182 @@
+"""``video:LEFT,RIGHT``, ``camera:I,J`` and ``camera:I``: stereo frames through OpenCV's VideoCapture.
+
+Two files or devices give the left and right images; one side-by-side stereo device
+(``camera:I``) delivers both in one frame, left half and right half. Colour is converted to
+8-bit grey. Video files carry their frame rate; timestamps are the file's own (``POS_MSEC``)
+when it reports them, else ``index / fps``. Cameras are stamped with the wall clock
+(monotonic, from the first frame).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from trackmeter.core.stereo import StereoRig
+from trackmeter.errors import TrackmeterError
+from trackmeter.sources.base import Source, StereoFrame
+from trackmeter.sources.pacing import Pacer
+
+
+def _grey(image: NDArray[np.uint8]) -> NDArray[np.uint8]:
+    if image.ndim == 3:
+        code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+        image = cv2.cvtColor(image, code) if image.shape[2] in (3, 4) else image[:, :, 0]
+    if image.dtype != np.uint8:
+        image = (image >> 8).astype(np.uint8) if image.dtype == np.uint16 else image.astype(np.uint8)
+    return np.ascontiguousarray(image)
+
+
+class VideoSource(Source):
+    """Stereo frames from two video files.
+
+    Args:
+        left, right: video files OpenCV can decode (same frame count and size).
+        rig: the rig of the cameras that recorded them (videos carry none).
+        realtime: play at the file's frame rate; else as fast as decoded.
+        loop: start again at the end (timestamps keep increasing).
+
+    Raises:
+        TrackmeterError: a file that is missing or that OpenCV cannot open.
+    """
+
+    def __init__(self, left: str | Path, right: str | Path, rig: StereoRig | None = None,
+                 realtime: bool = False, loop: bool = False) -> None:
+        self.paths = (Path(left), Path(right))
+        for p in self.paths:
+            if not p.is_file():
+                raise TrackmeterError(f"{p}: no such video file")
+        self.rig = rig
+        self.realtime = realtime
+        self.loop = loop
+        self._caps = [self._open(p) for p in self.paths]
+        fps = float(self._caps[0].get(cv2.CAP_PROP_FPS) or 0.0)
+        self.rate_hz = fps if fps > 0 else None
+        self._pacer = Pacer()
+        self._count = 0
+        self._pos = 0
+        self._t_offset = 0.0
+        self._last_t = -np.inf
+
+    @staticmethod
+    def _open(path: Path) -> cv2.VideoCapture:
+        cap = cv2.VideoCapture(str(path))
+        if not cap.isOpened():
+            cap.release()
+            raise TrackmeterError(f"{path}: OpenCV cannot open this video file")
+        return cap
+
+    def read(self) -> StereoFrame | None:
+        ok_l, left = self._caps[0].read()
+        ok_r, right = self._caps[1].read()
+        if not (ok_l and ok_r):
+            if not self.loop or self._pos == 0:
+                return None
+            self._t_offset = self._last_t + (1.0 / self.rate_hz if self.rate_hz else 0.04)
+            self._rewind()
+            self._pacer.reset()
+            return self.read()
+        t = self._pos / self.rate_hz if self.rate_hz else float(self._pos)
+        t += self._t_offset
+        self._pos += 1
+        self._last_t = t
+        left, right = _grey(left), _grey(right)
+        if left.shape != right.shape:
+            raise TrackmeterError(f"left and right videos differ in frame size: {left.shape} vs {right.shape}")
+        if self.realtime:
+            self._pacer.wait(t)
+        frame = StereoFrame(index=self._count, t_s=t, left=left, right=right)
+        self._count += 1
+        return frame
+
+    def _rewind(self) -> None:
+        for cap in self._caps:
+            cap.release()
+        self._caps = [self._open(p) for p in self.paths]
+        self._pos = 0
+
+    def restart(self) -> None:
+        self._rewind()
+        self._count = 0
+        self._t_offset = 0.0
+        self._last_t = -np.inf
+        self._pacer.reset()
+
+    def close(self) -> None:
+        for cap in self._caps:
+            cap.release()
+
+
+class CameraSource(Source):
+    """Live stereo frames from two devices (``camera:I,J``) or one side-by-side device (``camera:I``).
+
+    Args:
+        devices: one device index (side-by-side: left half, right half) or two (left, right).
+        rig: the calibrated rig of these cameras.
+
+    Raises:
+        TrackmeterError: a device that cannot be opened or delivers no frame.
+    """
+
+    def __init__(self, devices: tuple[int, ...], rig: StereoRig | None = None) -> None:
+        if len(devices) not in (1, 2):
+            raise TrackmeterError(f"camera: give one side-by-side device or two devices, got {len(devices)}")
+        self.devices = tuple(int(d) for d in devices)
+        self.rig = rig
+        self._caps: list[cv2.VideoCapture] = []
+        for d in self.devices:
+            cap = _open_device(d)
+            if cap is None:
+                self.close()
+                raise TrackmeterError(f"camera {d} cannot be opened (no such device, or it is busy)")
+            self._caps.append(cap)
+        fps = float(self._caps[0].get(cv2.CAP_PROP_FPS) or 0.0)
+        self.rate_hz = fps if fps > 0 else None
+        self._count = 0
+        self._t0: float | None = None
+
+    def read(self) -> StereoFrame | None:
+        for cap in self._caps:
+            cap.grab()  # grab both before decoding: the two exposures stay as close as possible
+        t_now = time.monotonic()
+        images = []
+        for d, cap in zip(self.devices, self._caps):
+            ok, img = cap.retrieve()
+            if not ok or img is None:
+                raise TrackmeterError(f"camera {d} delivered no frame")
+            images.append(_grey(img))
+        if len(images) == 1:
+            width = images[0].shape[1]
+            if width % 2:
+                raise TrackmeterError(f"camera {self.devices[0]}: side-by-side frame has an odd width {width}")
+            left, right = images[0][:, : width // 2].copy(), images[0][:, width // 2 :].copy()
+        else:
+            left, right = images
+            if left.shape != right.shape:
+                raise TrackmeterError(f"cameras {self.devices} deliver different sizes: {left.shape} vs {right.shape}")
+        if self._t0 is None:
+            self._t0 = t_now
+        frame = StereoFrame(index=self._count, t_s=t_now - self._t0, left=left, right=right)
+        self._count += 1
+        return frame
+
+    def close(self) -> None:
+        for cap in self._caps:
+            cap.release()
+        self._caps = []
+
+
+def _open_device(index: int) -> cv2.VideoCapture | None:
+    # A device node that does not exist makes OpenCV print backend warnings; check first on Linux.
+    if sys.platform.startswith("linux") and not Path(f"/dev/video{index}").exists():
+        return None
+    cap = cv2.VideoCapture(index)
+    if not cap.isOpened():
+        cap.release()
+        return None
+    return cap
