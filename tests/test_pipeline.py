@@ -1,0 +1,310 @@
+"""The pipeline's threads: latest frame wins, commands in order, immutable snapshots, shutdown,
+source failures and lossless recording (DESIGN.md section 4).
+
+The engine here is a recording test double (what the tracking thread called, with which
+frame); the real engine has its own tests. No timings are asserted: every check is an exact
+count or order, made deterministic with events rather than sleeps where order matters.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from trackmeter.core.targets import TargetState
+from trackmeter.errors import TrackmeterError
+from trackmeter.pipeline.pipeline import Pipeline, run_headless
+from trackmeter.pipeline.snapshot import (
+    ClearTargets,
+    CommandReply,
+    PoseEstimate,
+    RestartSource,
+    SelectPoint,
+    SetPaused,
+    SetRecording,
+    StepOnce,
+)
+from trackmeter.sources.base import Source, StereoFrame
+
+
+class CountingSource(Source):
+    """Frames 0..n-1 of tiny images whose pixels carry the index; optional failure."""
+
+    def __init__(self, n: int, fail_at: int | None = None, gate: threading.Event | None = None,
+                 gate_from: int = 0, delay_s: float = 0.0) -> None:
+        self.n = n
+        self.delay_s = delay_s
+        self.gate_from = gate_from
+        self.fail_at = fail_at
+        self.gate = gate
+        self.i = 0
+        self.closed = False
+        self.reads = 0
+
+    def read(self) -> StereoFrame | None:
+        if self.gate is not None and self.i >= self.gate_from:
+            self.gate.wait(5)
+        if self.fail_at is not None and self.i == self.fail_at:
+            self.fail_at = None  # fails once; a restart brings it back
+            raise TrackmeterError("camera unplugged")
+        if self.i >= self.n:
+            return None
+        if self.delay_s:
+            time.sleep(self.delay_s)  # a live source's pace
+        img = np.full((4, 6), self.i % 256, np.uint8)
+        frame = StereoFrame(self.i, self.i / 25.0, img, img.copy())
+        self.i += 1
+        self.reads += 1
+        return frame
+
+    def restart(self) -> None:
+        self.i = 0
+
+    def close(self) -> None:
+        self.closed = True
+
+
+class RecordingEngine:
+    """Test double of the tracker: remembers frames and commands; one target per SelectPoint."""
+
+    def __init__(self, block_first: threading.Event | None = None, fail_on: int | None = None) -> None:
+        self.processed: list[int] = []
+        self.commands: list[tuple[str, int | None]] = []
+        self.block_first = block_first
+        self.entered = threading.Event()
+        self.fail_on = fail_on
+        self.targets: list[TargetState] = []
+        self.thread_ids: set[int] = set()
+
+    def handle(self, command, frame):  # type: ignore[no-untyped-def]
+        self.thread_ids.add(threading.get_ident())
+        self.commands.append((type(command).__name__, None if frame is None else frame.index))
+        if isinstance(command, SelectPoint):
+            if command.u < 0:
+                return CommandReply(False, "outside the image")
+            nan2 = np.full(2, np.nan)
+            tid = f"t{len(self.targets)}"
+            self.targets.append(TargetState(tid, "operator", "tracking", np.array([command.u, command.v]), nan2,
+                                            np.zeros(3), np.eye(3), 1.0, nan2, (0, 0, 1, 1)))
+            return CommandReply(True, "ok", tid)
+        if isinstance(command, ClearTargets):
+            self.targets = []
+            return CommandReply(True, "cleared")
+        return CommandReply(False, "unknown")
+
+    def process(self, frame):  # type: ignore[no-untyped-def]
+        self.thread_ids.add(threading.get_ident())
+        self.entered.set()
+        if self.block_first is not None and not self.processed:
+            self.block_first.wait(5)
+        if self.fail_on is not None and frame.index == self.fail_on:
+            raise RuntimeError("boom")
+        self.processed.append(frame.index)
+        return list(self.targets), PoseEstimate.invalid("test double"), None
+
+
+class ListWriter:
+    def __init__(self, directory: Path, slow: threading.Event | None = None) -> None:
+        self.directory = directory
+        self.indices: list[int] = []
+        self.closed = False
+        self.slow = slow
+
+    def write(self, frame: StereoFrame) -> None:
+        if self.slow is not None:
+            self.slow.wait(5)
+        self.indices.append(frame.index)
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def test_latest_frame_wins_and_every_drop_is_counted() -> None:
+    release, go = threading.Event(), threading.Event()
+    engine = RecordingEngine(block_first=release)
+    source = CountingSource(60, gate=go, gate_from=1)
+    with Pipeline(source, engine) as pipe:
+        assert engine.entered.wait(5)
+        # The tracker is stuck in frame 0 while the source runs to its end: the slot keeps
+        # only the newest frame and never blocks the source.
+        go.set()
+        for _ in range(500):
+            if source.reads == 60:
+                break
+            threading.Event().wait(0.01)
+        assert source.reads == 60
+        release.set()
+        snap = pipe.run_until_end(10)
+    t = snap.timings
+    assert t.frames_read == 60
+    assert t.frames_processed + t.frames_dropped == t.frames_read
+    assert engine.processed[0] == 0 and engine.processed[-1] == 59  # the newest frame won
+    assert engine.processed == [0, 59] and t.frames_dropped == 58
+    assert engine.processed == sorted(engine.processed)
+    assert snap.source_status == "ended"
+
+
+def test_lossless_mode_tracks_every_frame_in_order() -> None:
+    engine = RecordingEngine()
+    seen: list[int] = []
+    snap, _ = run_headless(CountingSource(80), engine,
+                           on_snapshot=lambda s: seen.append(s.frame.index) if s.frame is not None else None)
+    assert engine.processed == list(range(80))
+    assert snap.timings.frames_dropped == 0 and snap.timings.frames_processed == 80
+    assert sorted(set(seen)) == list(range(80))
+
+
+def test_commands_applied_in_order_with_replies_on_the_tracking_thread() -> None:
+    engine = RecordingEngine()
+    source = CountingSource(10**6)
+    with Pipeline(source, engine) as pipe:
+        futures = [pipe.submit(SelectPoint(float(i), 1.0)) for i in range(20)]
+        bad = pipe.submit(SelectPoint(-1.0, 0.0))
+        replies = [f.result(5) for f in futures]
+        assert [r.target_id for r in replies] == [f"t{i}" for i in range(20)]
+        assert all(r.ok for r in replies)
+        refused = bad.result(5)
+        assert not refused.ok and refused.message == "outside the image"
+        # The operator's view: once the reply came, a later snapshot shows the targets.
+        snap = pipe.wait_snapshot(pipe.latest().sequence, 5)
+        assert snap is not None and [t.id for t in snap.targets][:20] == [f"t{i}" for i in range(20)]
+        # Engine commands act on an already processed frame (the one the operator saw).
+        frames = [f for name, f in engine.commands if name == "SelectPoint"]
+        assert all(f is not None and f in engine.processed for f in frames)
+        assert pipe.call(ClearTargets()).ok
+    assert len(engine.thread_ids) == 1 and threading.get_ident() not in engine.thread_ids
+
+
+def test_pause_and_step_read_exactly_one_frame() -> None:
+    engine = RecordingEngine()
+    source = CountingSource(10**6, delay_s=0.002)
+    with Pipeline(source, engine, paused=True) as pipe:
+        assert pipe.call(StepOnce()).ok
+        snap = pipe.wait_snapshot(0, 5)
+        while snap is not None and snap.frame is None:
+            snap = pipe.wait_snapshot(snap.sequence, 5)
+        assert snap is not None and snap.paused and snap.frame is not None and snap.frame.index == 0
+        assert pipe.call(StepOnce()).ok
+        for _ in range(200):
+            if engine.processed == [0, 1]:
+                break
+            threading.Event().wait(0.01)
+        assert engine.processed == [0, 1] and source.reads == 2
+        assert pipe.call(SetPaused(False)).ok
+        assert not pipe.call(StepOnce()).ok  # stepping only means something while paused
+        snap = pipe.wait_snapshot(pipe.latest().sequence, 5)
+        assert snap is not None and not snap.paused
+
+
+def test_snapshots_are_immutable_and_never_change_after_publishing() -> None:
+    engine = RecordingEngine()
+    with Pipeline(CountingSource(10**6), engine) as pipe:
+        assert pipe.call(SelectPoint(1.0, 2.0)).ok
+        first = pipe.wait_snapshot(0, 5)
+        while first is not None and not first.targets:
+            first = pipe.wait_snapshot(first.sequence, 5)
+        assert first is not None
+        seq, n_targets, frame = first.sequence, len(first.targets), first.frame
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            first.sequence = 0  # type: ignore[misc]
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            first.timings.frames_read = 0  # type: ignore[misc]
+        assert isinstance(first.targets, tuple)
+        assert pipe.call(SelectPoint(3.0, 4.0)).ok
+        later = pipe.wait_snapshot(seq + 3, 5)
+        assert later is not None and later is not first
+    assert first.sequence == seq and len(first.targets) == n_targets and first.frame is frame
+
+
+def test_stop_joins_threads_resolves_pending_commands_and_closes_source() -> None:
+    gate = threading.Event()
+    source = CountingSource(10, gate=gate)  # the source hangs until the gate opens
+    pipe = Pipeline(source, RecordingEngine()).start()
+    pending = pipe.submit(ClearTargets())  # no frame ever arrives, so it waits
+    gate.set()
+    pipe.close()
+    assert not pipe.running
+    assert pending.done()
+    assert source.closed
+    assert not any(t.name.startswith("trackmeter-") for t in threading.enumerate())
+    late = pipe.submit(ClearTargets()).result(1)
+    assert not late.ok and "stopped" in late.message
+
+
+def test_source_failure_is_reported_not_raised_and_restart_recovers() -> None:
+    engine = RecordingEngine()
+    source = CountingSource(30, fail_at=12)
+    with Pipeline(source, engine) as pipe:
+        snap = pipe.run_until_end(10)
+        assert snap.source_status == "source failed: camera unplugged"
+        assert pipe.running and snap.timings.frames_read == 12
+        assert pipe.call(RestartSource()).ok
+        snap = pipe.run_until_end(10)
+        assert snap.source_status == "ended" and snap.timings.frames_read == 12 + 30
+
+
+def test_tracker_exception_marks_the_pose_invalid_and_tracking_goes_on() -> None:
+    engine = RecordingEngine(fail_on=5)
+    snaps = []
+    last, _ = run_headless(CountingSource(20), engine, on_snapshot=snaps.append)
+    failed = [s for s in snaps if s.frame is not None and s.frame.index == 5]
+    assert failed and "tracking failed: RuntimeError: boom" in (failed[0].pose.reason or "")
+    assert engine.processed == [i for i in range(20) if i != 5]
+    assert last.timings.frames_processed == 20
+
+
+@pytest.mark.parametrize("drop_frames", [True, False])
+def test_recording_loses_no_frame(tmp_path: Path, drop_frames: bool) -> None:
+    release = threading.Event()
+    writers: list[ListWriter] = []
+
+    def factory(directory: Path) -> ListWriter:
+        writers.append(ListWriter(directory))
+        return writers[-1]
+
+    # A slow tracker drops frames from tracking, never from the recording.
+    engine = RecordingEngine(block_first=release)
+    pipe = Pipeline(CountingSource(150), engine, drop_frames=drop_frames, record_dir=tmp_path / "rec",
+                    writer_factory=factory)
+    with pipe:
+        assert engine.entered.wait(5)
+        release.set()
+        snap = pipe.run_until_end(20)
+        assert snap.recording
+    stats = pipe.recording_stats()
+    assert writers[0].closed and not stats.active
+    assert writers[0].indices == list(range(150))
+    assert stats.frames_written == snap.timings.frames_read == 150 and stats.frames_dropped == 0
+
+
+def test_recording_that_cannot_keep_up_counts_what_it_could_not_keep(tmp_path: Path) -> None:
+    slow = threading.Event()
+    writer = ListWriter(tmp_path, slow=slow)
+    pipe = Pipeline(CountingSource(40), RecordingEngine(), writer_factory=lambda d: writer, record_queue_frames=5,
+                    record_dir=tmp_path / "rec")
+    with pipe:
+        snap = pipe.run_until_end(10)
+        slow.set()
+        reply = pipe.call(SetRecording(None))
+    stats = pipe.recording_stats()
+    assert stats.frames_written + stats.frames_dropped == snap.timings.frames_read == 40
+    assert stats.frames_dropped > 0 and not reply.ok and "NOT recorded" in reply.message
+    assert writer.indices == sorted(writer.indices)
+
+
+def test_recording_toggled_by_command(tmp_path: Path) -> None:
+    writers: list[ListWriter] = []
+    pipe = Pipeline(CountingSource(10**6, delay_s=0.002), RecordingEngine(), writer_factory=lambda d: writers.append(ListWriter(d)) or writers[-1])
+    with pipe:
+        assert pipe.call(SetRecording(str(tmp_path / "a"))).ok
+        assert not pipe.call(SetRecording(str(tmp_path / "b"))).ok  # one recording at a time
+        snap = pipe.wait_snapshot(pipe.latest().sequence + 5, 5)
+        assert snap is not None and snap.recording
+        reply = pipe.call(SetRecording(None))
+        assert reply.ok, reply.message
+    assert len(writers) == 1 and writers[0].closed and len(writers[0].indices) == pipe.recording_stats().frames_written > 0

@@ -1,0 +1,703 @@
+"""The threaded pipeline of DESIGN.md section 4: acquisition, tracking, snapshots, recording.
+
+::
+
+    Source ──read()──> [acquisition thread] ──latest-frame slot──> [tracking thread] ──> Snapshot
+                              │                  commands queue ^          │
+                              └──> [recorder thread] (own queue)  └── console / CLI   v
+                                                                   newest-snapshot slot + subscribers
+
+- The acquisition thread calls ``source.read()`` at the source's own pace and puts each frame
+  into a one-frame slot. When the tracking thread has not taken the previous frame yet, the new
+  one replaces it (latest frame wins) and the old one is counted as dropped: the source is never
+  blocked and memory never grows. For offline runs (a recorded sequence read as fast as
+  possible), ``drop_frames=False`` makes the acquisition wait for the slot instead, so every
+  frame is tracked.
+- The tracking thread owns the :class:`Engine` (all tracker state). It takes the newest frame,
+  calls ``engine.process(frame)``, publishes an immutable :class:`Snapshot`, and between frames
+  applies the queued :class:`Command` objects in the order they were sent, resolving each
+  command's ``reply`` future. Pause, step, restart and recording are handled here; everything
+  else goes to ``engine.handle(command, frame)`` with the frame the operator saw.
+- The recorder writes every frame the acquisition read to a sequence folder from its own
+  bounded queue (``record_queue_frames`` deep). It never blocks the acquisition; if the disk
+  cannot keep up and the queue is full, the frame is counted in
+  :attr:`RecordingStats.frames_dropped` (never silently lost).
+- A source that raises mid-run is reported in ``Snapshot.source_status``; the pipeline stays
+  up (a restart may bring the source back).
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import logging
+import queue
+import threading
+import time
+from concurrent.futures import Future
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterable, Protocol, Sequence
+
+import numpy as np
+
+from trackmeter.core.stereo import StereoRig
+from trackmeter.core.targets import TargetState
+from trackmeter.errors import TrackmeterError
+from trackmeter.pipeline.snapshot import (
+    Command,
+    CommandReply,
+    PoseEstimate,
+    RestartSource,
+    SetPaused,
+    SetRecording,
+    Snapshot,
+    StepOnce,
+    Timings,
+)
+from trackmeter.sources.base import Source, StereoFrame
+
+log = logging.getLogger(__name__)
+
+ErrorsDict = dict[str, Any]
+
+
+class Engine(Protocol):
+    """What the tracking thread needs from the tracker (``trackmeter.pipeline.engine.Engine``).
+
+    No threads inside: the pipeline calls both methods from the tracking thread only.
+    """
+
+    def handle(self, command: Command, frame: StereoFrame | None) -> CommandReply:
+        """Apply one command; ``frame`` is the last processed frame (the one the operator saw)."""
+        ...
+
+    def process(self, frame: StereoFrame) -> tuple[Sequence[TargetState], PoseEstimate, ErrorsDict | None]:
+        """Track one frame: targets after the step, the pose estimate, errors against truth."""
+        ...
+
+
+class RecordWriter(Protocol):
+    """A sequence writer (``trackmeter.data.sequence.SequenceWriter``)."""
+
+    def write(self, frame: StereoFrame) -> None: ...
+
+    def close(self) -> None: ...
+
+
+WriterFactory = Callable[[Path], RecordWriter]
+
+
+@dataclass(frozen=True)
+class RecordingStats:
+    """Counters of one recording (or the last one, after it stopped).
+
+    Attributes:
+        directory: the sequence folder, or None when nothing was ever recorded.
+        active: True while recording.
+        frames_queued: frames handed to the recorder.
+        frames_written: frames on disk.
+        frames_dropped: frames that did not fit the recorder's queue (disk too slow); each
+            one is counted, never lost silently.
+        queue_depth: frames waiting to be written now.
+        error: why the recording failed, else None.
+    """
+
+    directory: str | None = None
+    active: bool = False
+    frames_queued: int = 0
+    frames_written: int = 0
+    frames_dropped: int = 0
+    queue_depth: int = 0
+    error: str | None = None
+
+
+def _default_writer_factory(rig: StereoRig | None) -> WriterFactory:
+    def make(directory: Path) -> RecordWriter:
+        from trackmeter.data.sequence import SequenceWriter  # sources layer, lands separately
+
+        if rig is None:
+            raise TrackmeterError("cannot record: the source has no stereo rig")
+        return SequenceWriter(directory, rig, None)
+
+    return make
+
+
+class _Recorder:
+    """Writes frames to a sequence folder on its own thread, from a bounded queue."""
+
+    _STOP = object()
+
+    def __init__(self, directory: Path, writer: RecordWriter, max_frames: int) -> None:
+        self.directory = directory
+        self._writer = writer
+        self._queue: queue.Queue[Any] = queue.Queue(maxsize=max_frames)
+        self._lock = threading.Lock()
+        self.frames_queued = 0
+        self.frames_written = 0
+        self.frames_dropped = 0
+        self.error: str | None = None
+        self._thread = threading.Thread(target=self._run, name="trackmeter-recorder", daemon=True)
+        self._thread.start()
+
+    def offer(self, frame: StereoFrame) -> None:
+        """Queue ``frame`` without ever blocking; count it as dropped when the queue is full."""
+        if self.error is not None:
+            with self._lock:
+                self.frames_dropped += 1
+            return
+        try:
+            self._queue.put_nowait(frame)
+            with self._lock:
+                self.frames_queued += 1
+        except queue.Full:
+            with self._lock:
+                self.frames_dropped += 1
+                first = self.frames_dropped == 1
+            if first:  # once per recording; the count is in the stats
+                log.warning("recorder queue full (disk too slow): frame %d and later ones not recorded", frame.index)
+
+    def _run(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is self._STOP:
+                break
+            if self.error is not None:
+                continue
+            try:
+                self._writer.write(item)
+                with self._lock:
+                    self.frames_written += 1
+            except Exception as exc:  # disk full, permissions: report, keep the pipeline up
+                self.error = f"recording failed: {exc}"
+                log.error("%s", self.error)
+        try:
+            self._writer.close()
+        except Exception as exc:
+            self.error = self.error or f"closing the recording failed: {exc}"
+            log.error("%s", self.error)
+
+    def close(self) -> None:
+        """Write everything queued, close the folder, join the thread."""
+        self._queue.put(self._STOP)
+        self._thread.join()
+
+    def stats(self, active: bool) -> RecordingStats:
+        with self._lock:
+            return RecordingStats(str(self.directory), active, self.frames_queued, self.frames_written,
+                                  self.frames_dropped, self._queue.qsize(), self.error)
+
+
+class _RateMeter:
+    """Events per second over the last ``window`` events (monotonic clock)."""
+
+    def __init__(self, window: int = 50) -> None:
+        self._times: collections.deque[float] = collections.deque(maxlen=window)
+
+    def tick(self, t: float) -> None:
+        self._times.append(t)
+
+    def reset(self) -> None:
+        self._times.clear()
+
+    def rate_hz(self, now: float | None = None) -> float:
+        if len(self._times) < 2:
+            return 0.0
+        span = self._times[-1] - self._times[0]
+        # A stalled stream reads as slowing down, not as its last good rate.
+        if now is not None:
+            span = max(span, now - self._times[0] - (span / (len(self._times) - 1)))
+        return (len(self._times) - 1) / span if span > 0 else 0.0
+
+
+class Pipeline:
+    """Acquisition and tracking threads around one source and one engine.
+
+    Use as a context manager or call :meth:`start` and :meth:`stop`::
+
+        with Pipeline(source, engine, rig=source.rig) as pipe:
+            reply = pipe.call(SelectPoint(320.0, 240.0))
+            snap = pipe.latest()
+
+    Args:
+        source: where frames come from; only the acquisition thread reads it.
+        engine: the tracker; only the tracking thread touches it.
+        rig: the stereo rig (for recordings); defaults to ``source.rig``.
+        drop_frames: True for live sources (latest frame wins, drops counted). False for
+            offline runs: the acquisition waits until the tracking thread took the frame.
+        record_dir: start recording to this folder at once.
+        record_queue_frames: frames the recorder may hold while the disk catches up.
+        writer_factory: makes the recording writer for a folder (default: SequenceWriter).
+        paused: start paused (no frame is read until play or step).
+    """
+
+    def __init__(
+        self,
+        source: Source,
+        engine: Engine,
+        *,
+        rig: StereoRig | None = None,
+        drop_frames: bool = True,
+        record_dir: str | Path | None = None,
+        record_queue_frames: int = 256,
+        writer_factory: WriterFactory | None = None,
+        paused: bool = False,
+    ) -> None:
+        self.source = source
+        self.engine = engine
+        self.rig = rig if rig is not None else source.rig
+        self.drop_frames = drop_frames
+        self._record_queue_frames = int(record_queue_frames)
+        self._writer_factory = writer_factory or _default_writer_factory(self.rig)
+        self._initial_record_dir = Path(record_dir) if record_dir is not None else None
+
+        # One condition guards the frame slot, the command queue and the run state, so the
+        # tracking thread wakes for either a frame or a command.
+        self._cond = threading.Condition()
+        self._slot: tuple[StereoFrame, float] | None = None
+        self._commands: collections.deque[Command] = collections.deque()
+        self._stop = False
+        self._paused = paused
+        self._steps = 0
+        self._source_status: str | None = None
+        self._source_done = False  # ended or failed: acquisition waits for a restart
+        self._source_lock = threading.Lock()
+        self._subscribers: list[Callable[[Snapshot], None]] = []
+
+        self._frames_read = 0
+        self._frames_processed = 0
+        self._frames_dropped = 0
+        self._acq_rate = _RateMeter()
+        self._trk_rate = _RateMeter()
+
+        self._recorder: _Recorder | None = None
+        self._last_recording = RecordingStats()
+        self._record_lock = threading.Lock()
+
+        self._last_frame: StereoFrame | None = None
+        self._last_targets: tuple[TargetState, ...] = ()
+        self._last_pose = PoseEstimate.invalid("no frame yet")
+        self._last_errors: ErrorsDict | None = None
+        self._last_latency_ms = 0.0
+        self._last_step_ms = 0.0
+        self._sequence = 0
+        self._snapshot = self._make_snapshot()
+        self._snap_cond = threading.Condition()
+        self.engine_errors = 0
+
+        self._acq_thread = threading.Thread(target=self._acquire_loop, name="trackmeter-acquisition", daemon=True)
+        self._trk_thread = threading.Thread(target=self._track_loop, name="trackmeter-tracking", daemon=True)
+        self._started = False
+
+    # ------------------------------------------------------------------ life cycle
+    def start(self) -> Pipeline:
+        """Start recording (if asked) and both threads. Returns self."""
+        if self._started:
+            raise RuntimeError("pipeline already started")
+        self._started = True
+        if self._initial_record_dir is not None:
+            self._start_recording(self._initial_record_dir)
+        self._trk_thread.start()
+        self._acq_thread.start()
+        return self
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        """Stop both threads, join them, close the recording (everything queued is written)."""
+        with self._cond:
+            self._stop = True
+            self._cond.notify_all()
+        for thread in (self._acq_thread, self._trk_thread):
+            if thread.is_alive():
+                thread.join(timeout_s)
+                if thread.is_alive():
+                    log.error("%s did not stop within %.1f s", thread.name, timeout_s)
+        self._stop_recording()
+        # Commands nobody will apply any more must not leave a caller waiting forever.
+        with self._cond:
+            pending, self._commands = list(self._commands), collections.deque()
+        for command in pending:
+            _resolve(command, CommandReply(False, "pipeline stopped"))
+
+    def close(self) -> None:
+        """Stop and close the source."""
+        self.stop()
+        try:
+            self.source.close()
+        except Exception as exc:
+            log.warning("closing the source failed: %s", exc)
+
+    def __enter__(self) -> Pipeline:
+        return self.start() if not self._started else self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def running(self) -> bool:
+        return self._trk_thread.is_alive()
+
+    # ------------------------------------------------------------------ observers
+    def latest(self) -> Snapshot:
+        """The newest published snapshot (never None: a placeholder before the first frame)."""
+        return self._snapshot
+
+    def subscribe(self, callback: Callable[[Snapshot], None]) -> Callable[[], None]:
+        """Call ``callback(snapshot)`` on the tracking thread for every published snapshot.
+
+        The callback must be quick (hand the snapshot to another thread if it does real
+        work). Returns a function that unsubscribes.
+        """
+        with self._cond:
+            self._subscribers = [*self._subscribers, callback]
+
+        def unsubscribe() -> None:
+            with self._cond:
+                self._subscribers = [s for s in self._subscribers if s is not callback]
+
+        return unsubscribe
+
+    def wait_snapshot(self, after_sequence: int, timeout_s: float | None = None) -> Snapshot | None:
+        """Block until a snapshot newer than ``after_sequence`` is published (None on timeout)."""
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        with self._snap_cond:
+            while self._snapshot.sequence <= after_sequence:
+                remaining = None if deadline is None else deadline - time.monotonic()
+                if remaining is not None and remaining <= 0:
+                    return None
+                self._snap_cond.wait(remaining)
+            return self._snapshot
+
+    def recording_stats(self) -> RecordingStats:
+        """Counters of the current (or last) recording."""
+        with self._record_lock:
+            if self._recorder is not None:
+                return self._recorder.stats(True)
+            return self._last_recording
+
+    # ------------------------------------------------------------------ commands
+    def submit(self, command: Command) -> Future[CommandReply]:
+        """Queue a command for the tracking thread; returns the future of its reply.
+
+        Safe from any thread (viser callbacks, signal handlers). Commands are applied in the
+        order they were submitted, between frames.
+        """
+        if command.reply is None:
+            command = dataclasses.replace(command, reply=Future())
+        assert command.reply is not None
+        with self._cond:
+            if self._stop:
+                _resolve(command, CommandReply(False, "pipeline stopped"))
+            else:
+                self._commands.append(command)
+                self._cond.notify_all()
+        return command.reply
+
+    def call(self, command: Command, timeout_s: float = 10.0) -> CommandReply:
+        """Submit ``command`` and wait for its reply."""
+        return self.submit(command).result(timeout_s)
+
+    # ------------------------------------------------------------------ acquisition thread
+    def _acquire_loop(self) -> None:
+        while True:
+            with self._cond:
+                while not self._stop and (self._source_done or (self._paused and self._steps == 0)):
+                    self._cond.wait()
+                if self._stop:
+                    return
+                if self._paused:
+                    self._steps -= 1
+            try:
+                with self._source_lock:
+                    frame = self.source.read()
+            except Exception as exc:  # a failing camera must not take the process down
+                message = str(exc) if isinstance(exc, TrackmeterError) else f"{type(exc).__name__}: {exc}"
+                log.error("source failed: %s", message)
+                self._source_finished(f"source failed: {message}")
+                continue
+            if frame is None:
+                self._source_finished("ended")
+                continue
+            t_read = time.monotonic()
+            with self._record_lock:
+                recorder = self._recorder
+            if recorder is not None:
+                recorder.offer(frame)
+            with self._cond:
+                self._frames_read += 1
+                self._acq_rate.tick(t_read)
+                if not self.drop_frames:
+                    while self._slot is not None and not self._stop:
+                        self._cond.wait()
+                if self._slot is not None:
+                    self._frames_dropped += 1
+                self._slot = (frame, t_read)
+                self._cond.notify_all()
+
+    def _source_finished(self, status: str) -> None:
+        with self._cond:
+            self._source_done = True
+            self._source_status = status
+            self._steps = 0
+            self._cond.notify_all()
+
+    # ------------------------------------------------------------------ tracking thread
+    def _track_loop(self) -> None:
+        published_status: str | None = None
+        while True:
+            with self._cond:
+                while (not self._stop and self._slot is None and not self._ready_commands()
+                       and self._source_status == published_status):
+                    self._cond.wait()
+                if self._stop:
+                    return
+                item, self._slot = self._slot, None
+                commands = self._take_commands()
+                status = self._source_status
+                self._cond.notify_all()  # a lossless acquisition waits for the slot to empty
+            changed = False
+            if item is not None:
+                self._process(*item)
+                changed = True
+            for command in commands:
+                self._apply(command)
+                changed = True
+            if status != published_status or changed:
+                published_status = status
+                self._publish()
+
+    def _ready_commands(self) -> bool:
+        if not self._commands:
+            return False
+        # Engine commands wait for the first frame: they act on the frame the operator saw.
+        return self._last_frame is not None or any(_is_pipeline_command(c) for c in self._commands)
+
+    def _take_commands(self) -> list[Command]:
+        if self._last_frame is not None:
+            taken, self._commands = list(self._commands), collections.deque()
+            return taken
+        taken = [c for c in self._commands if _is_pipeline_command(c)]
+        self._commands = collections.deque(c for c in self._commands if not _is_pipeline_command(c))
+        return taken
+
+    def _process(self, frame: StereoFrame, t_read: float) -> None:
+        start = time.monotonic()
+        try:
+            targets, pose, errors = self.engine.process(frame)
+            self._last_targets = tuple(targets)
+            self._last_pose = pose
+            self._last_errors = errors
+        except Exception as exc:  # a tracker bug must not stop the console: report and go on
+            self.engine_errors += 1
+            log.exception("tracking failed on frame %d", frame.index)
+            self._last_pose = PoseEstimate.invalid(f"tracking failed: {type(exc).__name__}: {exc}",
+                                                   self._last_pose.case)
+            self._last_errors = None
+        done = time.monotonic()
+        self._last_frame = frame
+        self._last_step_ms = (done - start) * 1e3
+        self._last_latency_ms = (done - t_read) * 1e3
+        with self._cond:
+            self._frames_processed += 1
+            self._trk_rate.tick(done)
+
+    def _apply(self, command: Command) -> None:
+        try:
+            reply = self._apply_unsafe(command)
+        except TrackmeterError as exc:
+            reply = CommandReply(False, str(exc))
+        except Exception as exc:
+            log.exception("command %s failed", type(command).__name__)
+            reply = CommandReply(False, f"{type(command).__name__} failed: {type(exc).__name__}: {exc}")
+        _resolve(command, reply)
+
+    def _apply_unsafe(self, command: Command) -> CommandReply:
+        if isinstance(command, SetPaused):
+            with self._cond:
+                self._paused = bool(command.paused)
+                if not self._paused:
+                    self._steps = 0
+                self._cond.notify_all()
+            return CommandReply(True, "paused" if command.paused else "playing")
+        if isinstance(command, StepOnce):
+            with self._cond:
+                if not self._paused:
+                    return CommandReply(False, "step works while paused")
+                if self._source_done:
+                    return CommandReply(False, f"source {self._source_status}")
+                self._steps += 1
+                self._cond.notify_all()
+            return CommandReply(True, "stepping one frame")
+        if isinstance(command, RestartSource):
+            with self._source_lock:
+                self.source.restart()
+            with self._cond:
+                self._slot = None
+                self._source_done = False
+                self._source_status = None
+                self._acq_rate.reset()
+                self._cond.notify_all()
+            return CommandReply(True, "source restarted")
+        if isinstance(command, SetRecording):
+            if command.directory is None:
+                stats = self._stop_recording()
+                if stats is None:
+                    return CommandReply(False, "not recording")
+                return CommandReply(stats.error is None and stats.frames_dropped == 0,
+                                    f"recorded {stats.frames_written} frames to {stats.directory}"
+                                    + (f", {stats.frames_dropped} NOT recorded (disk too slow)" if stats.frames_dropped else "")
+                                    + (f"; {stats.error}" if stats.error else ""))
+            self._start_recording(Path(command.directory))
+            return CommandReply(True, f"recording to {command.directory}")
+        return self.engine.handle(command, self._last_frame)
+
+    def _start_recording(self, directory: Path) -> None:
+        with self._record_lock:
+            if self._recorder is not None:
+                raise TrackmeterError(f"already recording to {self._recorder.directory}")
+        writer = self._writer_factory(directory)  # raises TrackmeterError on a bad folder
+        with self._record_lock:
+            self._recorder = _Recorder(directory, writer, self._record_queue_frames)
+
+    def _stop_recording(self) -> RecordingStats | None:
+        with self._record_lock:
+            recorder, self._recorder = self._recorder, None
+        if recorder is None:
+            return None
+        recorder.close()
+        stats = recorder.stats(False)
+        with self._record_lock:
+            self._last_recording = stats
+        return stats
+
+    def _publish(self) -> None:
+        snapshot = self._make_snapshot()
+        with self._snap_cond:
+            self._snapshot = snapshot
+            self._snap_cond.notify_all()
+        for callback in self._subscribers:
+            try:
+                callback(snapshot)
+            except Exception:
+                log.exception("snapshot subscriber failed")
+
+    def _make_snapshot(self) -> Snapshot:
+        now = time.monotonic()
+        with self._cond:
+            timings = Timings(
+                acquisition_hz=self._acq_rate.rate_hz(now),
+                tracking_hz=self._trk_rate.rate_hz(now),
+                latency_ms=self._last_latency_ms,
+                step_ms=self._last_step_ms,
+                frames_read=self._frames_read,
+                frames_processed=self._frames_processed,
+                frames_dropped=self._frames_dropped,
+            )
+            paused, status = self._paused, self._source_status
+        with self._record_lock:
+            recording = self._recorder is not None
+        self._sequence += 1
+        engine = self.engine
+        return Snapshot(
+            frame=self._last_frame,
+            targets=self._last_targets,
+            pose=self._last_pose,
+            errors=self._last_errors,
+            timings=timings,
+            auto_enabled=bool(getattr(engine, "auto_enabled", False)),
+            auto_count=int(getattr(engine, "auto_count", 0)),
+            auto_method=str(getattr(engine, "auto_method", "gabor")),
+            paused=paused,
+            recording=recording,
+            source_status=status,
+            sequence=self._sequence,
+        )
+
+    # ------------------------------------------------------------------ headless runs
+    def run_until_end(self, timeout_s: float | None = None) -> Snapshot:
+        """Block until the source ended or failed and its last frame is published.
+
+        Ctrl-C (KeyboardInterrupt) propagates to the caller; call :meth:`close` (or use the
+        context manager) so threads are joined and the recording is closed either way.
+        """
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        seq = 0
+        while True:
+            snap = self.wait_snapshot(seq, 0.2)
+            if snap is not None:
+                seq = snap.sequence
+                with self._cond:
+                    idle = self._slot is None and not self._commands
+                t = snap.timings
+                if snap.source_status is not None and idle and t.frames_processed + t.frames_dropped == t.frames_read:
+                    return snap
+            if deadline is not None and time.monotonic() > deadline:
+                return self.latest()
+            if not self.running:
+                return self.latest()
+
+
+_PIPELINE_COMMANDS = (SetPaused, StepOnce, RestartSource, SetRecording)
+
+
+def _is_pipeline_command(command: Command) -> bool:
+    return isinstance(command, _PIPELINE_COMMANDS)
+
+
+def _resolve(command: Command, reply: CommandReply) -> None:
+    future = command.reply
+    if future is not None and not future.done():
+        try:
+            future.set_result(reply)
+        except Exception:  # cancelled by the caller in between
+            pass
+
+
+def run_headless(
+    source: Source,
+    engine: Engine,
+    *,
+    on_snapshot: Callable[[Snapshot], None] | None = None,
+    commands: Iterable[Command] = (),
+    realtime: bool = False,
+    rig: StereoRig | None = None,
+    record_dir: str | Path | None = None,
+    timeout_s: float | None = None,
+) -> tuple[Snapshot, list[CommandReply]]:
+    """Run the pipeline without a console until the source ends (``trackmeter track``).
+
+    Args:
+        source: the frames; it is NOT closed here (the caller opened it).
+        engine: the tracker.
+        on_snapshot: called on the tracking thread with every published snapshot, in order.
+            With ``realtime=False`` no frame is dropped, so that is one snapshot per frame
+            (plus one per applied command and one at the end with ``source_status``).
+        commands: sent before the first frame; engine commands act on frame 0 after it is
+            processed (e.g. ``SelectPoint`` for ``--target``, ``SetAuto`` for ``--auto``).
+        realtime: True for live sources (latest frame wins, drops counted).
+        record_dir: also record the stream there.
+        timeout_s: give up waiting after this long (the snapshot so far is returned).
+
+    Returns:
+        The last snapshot and the replies to ``commands`` (in order).
+
+    Ctrl-C stops the threads cleanly (files closed) and re-raises KeyboardInterrupt.
+    """
+    pipe = Pipeline(source, engine, rig=rig, drop_frames=realtime, record_dir=record_dir)
+    if on_snapshot is not None:
+        pipe.subscribe(on_snapshot)
+    futures = [pipe.submit(c) for c in commands]
+    pipe.start()
+    try:
+        last = pipe.run_until_end(timeout_s)
+    finally:
+        pipe.stop()
+    replies = [f.result(0) if f.done() else CommandReply(False, "not applied") for f in futures]
+    return last, replies
+
+
+def snapshot_points(snapshot: Snapshot) -> tuple[np.ndarray, list[str]]:
+    """(N,3) camera-frame points of the measured targets of ``snapshot`` and their ids."""
+    measured = [t for t in snapshot.targets if t.measured and np.all(np.isfinite(t.point_cam))]
+    if not measured:
+        return np.zeros((0, 3)), []
+    return np.array([t.point_cam for t in measured], dtype=np.float64), [t.id for t in measured]
