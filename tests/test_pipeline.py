@@ -308,3 +308,19 @@ def test_recording_toggled_by_command(tmp_path: Path) -> None:
         reply = pipe.call(SetRecording(None))
         assert reply.ok, reply.message
     assert len(writers) == 1 and writers[0].closed and len(writers[0].indices) == pipe.recording_stats().frames_written > 0
+
+
+def test_recording_with_the_sequence_writer_reads_back_every_frame(tmp_path: Path, estec_rig) -> None:  # type: ignore[no-untyped-def]
+    from trackmeter.data.sequence import index_sequence
+
+    pipe = Pipeline(CountingSource(50), RecordingEngine(), rig=estec_rig, record_dir=tmp_path / "rec")
+    with pipe:
+        snap = pipe.run_until_end(20)
+    stats = pipe.recording_stats()
+    index = index_sequence(tmp_path / "rec")
+    assert len(index) == stats.frames_written == snap.timings.frames_read == 50
+    # A folder that already holds a sequence is refused, with the reason, and nothing starts.
+    with Pipeline(CountingSource(10**6, delay_s=0.002), RecordingEngine()) as pipe2:
+        reply = pipe2.call(SetRecording(str(tmp_path / "rec")))
+        assert not reply.ok and "already holds a sequence" in reply.message
+        assert not pipe2.latest().recording

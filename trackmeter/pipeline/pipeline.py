@@ -114,11 +114,9 @@ class RecordingStats:
 
 def _default_writer_factory(rig: StereoRig | None) -> WriterFactory:
     def make(directory: Path) -> RecordWriter:
-        from trackmeter.data.sequence import SequenceWriter  # sources layer, lands separately
+        from trackmeter.data.sequence import SequenceWriter
 
-        if rig is None:
-            raise TrackmeterError("cannot record: the source has no stereo rig")
-        return SequenceWriter(directory, rig, None)
+        return SequenceWriter(directory, rig, None)  # refuses a folder that holds a sequence
 
     return make
 
