@@ -1,15 +1,136 @@
-"""trackmeter calibrate (not built yet)."""
+"""trackmeter calibrate: chessboard stereo calibration, written as a rig file.
+
+Finds the chessboard's inner corners in every left/right pair (sub-pixel), calibrates each
+camera (linear initialisation, then Levenberg-Marquardt), refines both jointly, drops outlier
+views (and says which and why), and writes the rig (OpenCV FileStorage YAML with rms_px,
+E, F and the standard deviations of the parameters).
+
+Pairs match by the number in the file names (left07.png / right07.png) when every name has
+one, else by sorted order. Give --square in metres so the rig's T is in metres.
+
+example:
+  trackmeter calibrate --left 'calib/left*.png' --right 'calib/right*.png' \\
+      --pattern 9x6 --square 0.025 --out rig.yaml
+"""
 
 from __future__ import annotations
 
 import argparse
-
-from trackmeter.cli.common import not_built_yet
+import math
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    pass
+    parser.add_argument("--left", nargs="+", required=True, metavar="GLOB", help="left images: a glob (quoted) or files")
+    parser.add_argument("--right", nargs="+", required=True, metavar="GLOB", help="right images: a glob (quoted) or files")
+    parser.add_argument("--pattern", required=True, metavar="COLSxROWS", help="chessboard inner corners, e.g. 9x6")
+    parser.add_argument("--square", required=True, type=float, metavar="METRES", help="side of one chessboard square, m")
+    parser.add_argument("--out", default="rig.yaml", metavar="RIG", help="rig file to write (default: rig.yaml)")
 
 
 def run(args: argparse.Namespace) -> int:
-    return not_built_yet("calibrate")
+    import numpy as np
+
+    from trackmeter.cli.common import load_config_from_args, progress
+    from trackmeter.core.calibration import calibrate_stereo, detect_corners, parse_pattern
+    from trackmeter.data.images import expand_globs, pair_stereo_paths, read_grey
+    from trackmeter.data.rigfile import save_rig
+    from trackmeter.errors import TrackmeterError
+
+    params = load_config_from_args(args).calibrate
+    pattern = parse_pattern(args.pattern)
+    if not (math.isfinite(args.square) and args.square > 0):
+        raise TrackmeterError(f"--square must be a positive length in metres, got {args.square}")
+    pairs = pair_stereo_paths(expand_globs(args.left, "left images"), expand_globs(args.right, "right images"))
+
+    size: tuple[int, int] | None = None
+    uv_left: list = []
+    uv_right: list = []
+    for left_path, right_path in progress(pairs, len(pairs), "corners"):
+        for path, out in ((left_path, uv_left), (right_path, uv_right)):
+            image = read_grey(path)
+            image_size = (image.shape[1], image.shape[0])
+            if size is None:
+                size = image_size
+            elif image_size != size:
+                raise TrackmeterError(
+                    f"{path}: image is {image_size[0]}x{image_size[1]}, the first one was {size[0]}x{size[1]}"
+                )
+            out.append(detect_corners(image, pattern, params))
+    assert size is not None
+    if not any(u is not None for u in uv_left + uv_right):
+        raise TrackmeterError(
+            f"no {pattern[0]}x{pattern[1]} chessboard corners found in any of the {2 * len(pairs)} images "
+            "(check --pattern: inner corners, COLSxROWS)"
+        )
+
+    result = calibrate_stereo(uv_left, uv_right, pattern, args.square, size, params)
+    rig, std = result.rig, result.std
+    extra = {
+        "E": result.E,
+        "F": result.F,
+        "std_K1": np.array([std["fx1"], std["fy1"], std["cx1"], std["cy1"]]),
+        "std_K2": np.array([std["fx2"], std["fy2"], std["cx2"], std["cy2"]]),
+        "std_D1": np.array([v for k, v in std.items() if k.endswith("_1")]),
+        "std_D2": np.array([v for k, v in std.items() if k.endswith("_2")]),
+        "std_rvec": np.array([std["rx"], std["ry"], std["rz"]]),
+        "std_T": np.array([std["tx"], std["ty"], std["tz"]]),
+        "std_baseline": std["baseline"],
+        "rectification_vertical_rms_px": result.rectification.rms_px,
+    }
+    out_path = save_rig(rig, args.out, extra)
+    print(format_report(result, pairs, args.square, out_path))
+    return 0
+
+
+def format_report(result, pairs, square: float, out_path) -> str:  # type: ignore[no-untyped-def]
+    """The human-readable summary printed by the command."""
+    import numpy as np
+
+    rig, std = result.rig, result.std
+    lines = []
+    lines.append(f"views: {len(result.used_views)} used of {len(pairs)} pairs")
+    lines.append(f"RMS reprojection error: {result.rms_px:.4f} px (joint, both images)")
+    lines.append(
+        f"  per camera alone: left {result.left.rms_px:.4f} px, right {result.right.rms_px:.4f} px"
+    )
+    b = rig.baseline_m
+    lines.append(f"baseline: {b:.6g} ± {std['baseline']:.2g} m ({b / square:.4f} squares)")
+    lines.append("T: [" + ", ".join(f"{t:.6g}" for t in rig.T) + f"] m, ± [{std['tx']:.2g}, {std['ty']:.2g}, {std['tz']:.2g}]")
+    rvec_deg = np.degrees(_rodrigues(rig.R))
+    lines.append(
+        "R (rotation vector): [" + ", ".join(f"{r:.4f}" for r in rvec_deg) + "] deg, ± ["
+        + ", ".join(f"{math.degrees(std[k]):.2g}" for k in ("rx", "ry", "rz")) + "]"
+    )
+    for side, cam, idx in (("left", rig.left, 1), ("right", rig.right, 2)):
+        K = cam.K
+        lines.append(
+            f"{side}: fx {K[0, 0]:.3f} ± {std[f'fx{idx}']:.2g}, fy {K[1, 1]:.3f} ± {std[f'fy{idx}']:.2g}, "
+            f"cx {K[0, 2]:.3f} ± {std[f'cx{idx}']:.2g}, cy {K[1, 2]:.3f} ± {std[f'cy{idx}']:.2g} px"
+        )
+        dist = [f"{k.split('_')[0]} {cam.dist[i]:.5f} ± {v:.2g}" for i, (k, v) in enumerate((k, v) for k, v in std.items() if k.endswith(f"_{idx}"))]
+        lines.append(f"  distortion: {', '.join(dist)}")
+    rc = result.rectification
+    lines.append(
+        f"rectification check: vertical disparity of rectified corners RMS {rc.rms_px:.4f} px, max {rc.max_abs_px:.4f} px"
+    )
+    if result.rejected:
+        lines.append(f"rejected views: {len(result.rejected)}")
+        for rv in result.rejected:
+            left, right = pairs[rv.index]
+            lines.append(f"  {left.name} / {right.name}: {rv.reason}")
+    else:
+        lines.append("rejected views: none")
+    lines.append("per-view RMS, px (left, right, rectified vertical disparity):")
+    for k, i in enumerate(result.used_views):
+        left, right = pairs[i]
+        e = result.per_view_rms_px[k]
+        lines.append(f"  {left.name} / {right.name}: {e[0]:.4f} {e[1]:.4f} {rc.per_view_rms_px[k]:.4f}")
+    lines.append(f"wrote {out_path}")
+    return "\n".join(lines)
+
+
+def _rodrigues(R):  # type: ignore[no-untyped-def]
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(R).as_rotvec()
+

@@ -35,8 +35,14 @@ def parse_uv(text: str) -> tuple[float, float]:
         raise TrackmeterError(f"expected a pixel as U,V (two numbers), got {text!r}") from None
 
 
-def progress(items: Iterable[T], total: int | None, label: str, stream=sys.stderr) -> Iterator[T]:  # type: ignore[no-untyped-def]
-    """Yield ``items`` while drawing a one-line progress bar on a terminal (silent otherwise)."""
+def progress(items: Iterable[T], total: int | None, label: str, stream=None) -> Iterator[T]:  # type: ignore[no-untyped-def]
+    """Yield ``items`` while drawing a one-line progress bar on a terminal (silent otherwise).
+
+    ``stream`` defaults to the ``sys.stderr`` of the moment of the call (not of import), so
+    redirected or captured stderr is honoured.
+    """
+    if stream is None:
+        stream = sys.stderr
     if not stream.isatty():
         yield from items
         return

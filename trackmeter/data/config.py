@@ -22,6 +22,7 @@ from typing import Any, Literal, Mapping, get_args, get_origin, get_type_hints
 
 import yaml
 
+from trackmeter.core.calibration import CalibrationParams
 from trackmeter.core.matching import MeasureParams
 from trackmeter.errors import TrackmeterError
 from trackmeter.paths import DEFAULT_CONFIG
@@ -32,6 +33,7 @@ class Config:
     """The whole configuration; one field per section of ``config/default.yaml``."""
 
     measure: MeasureParams = field(default_factory=MeasureParams)
+    calibrate: CalibrationParams = field(default_factory=CalibrationParams)
 
 
 def load_config(user_file: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> Config:

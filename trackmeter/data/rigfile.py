@@ -24,7 +24,8 @@ def _open(path: Path) -> cv2.FileStorage:
         raise TrackmeterError(f"{path}: no such rig file")
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except cv2.error:
+    except (cv2.error, SystemError):
+        # OpenCV 5's binding wraps the parser's cv2.error in a SystemError.
         raise TrackmeterError(f"{path}: not an OpenCV FileStorage file (YAML/XML)") from None
     if not fs.isOpened():
         raise TrackmeterError(f"{path}: not an OpenCV FileStorage file (YAML/XML)")

@@ -1,0 +1,84 @@
+"""Image reading and stereo image-set pairing (trackmeter.data.images)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from trackmeter.data.images import expand_globs, pair_stereo_paths, read_grey
+from trackmeter.errors import TrackmeterError
+
+
+@pytest.fixture()
+def colour() -> np.ndarray:
+    rng = np.random.default_rng(0)
+    return rng.integers(0, 256, (20, 30, 3), dtype=np.uint8)
+
+
+def test_real_file_reads_as_grey(shared_data: Path) -> None:
+    path = shared_data / "middlebury_tsukuba" / "img_left.png"
+    img = read_grey(path)
+    assert img.dtype == np.uint8 and img.shape == (288, 384)
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    expected = raw if raw.ndim == 2 else cv2.cvtColor(raw, cv2.COLOR_BGR2GRAY)
+    np.testing.assert_array_equal(img, expected)
+
+
+def test_colour_is_converted_with_opencv_weights(tmp_path: Path, colour: np.ndarray) -> None:
+    cv2.imwrite(str(tmp_path / "c.png"), colour)
+    np.testing.assert_array_equal(read_grey(tmp_path / "c.png"), cv2.cvtColor(colour, cv2.COLOR_BGR2GRAY))
+    bgra = np.dstack([colour, np.full(colour.shape[:2], 7, np.uint8)])
+    cv2.imwrite(str(tmp_path / "a.png"), bgra)
+    np.testing.assert_array_equal(read_grey(tmp_path / "a.png"), cv2.cvtColor(colour, cv2.COLOR_BGR2GRAY))
+
+
+def test_sixteen_bit_keeps_the_high_byte(tmp_path: Path) -> None:
+    img16 = np.arange(0, 65536, 256, dtype=np.uint16).reshape(16, 16) + 255
+    cv2.imwrite(str(tmp_path / "d.png"), img16)
+    np.testing.assert_array_equal(read_grey(tmp_path / "d.png"), (img16 >> 8).astype(np.uint8))
+
+
+@pytest.mark.parametrize("content", [b"", b"hello", bytes(range(256))])
+def test_non_image_raises(tmp_path: Path, content: bytes) -> None:
+    path = tmp_path / "x.png"
+    path.write_bytes(content)
+    with pytest.raises(TrackmeterError, match="not an image"):
+        read_grey(path)
+
+
+def test_missing_file_raises(tmp_path: Path) -> None:
+    with pytest.raises(TrackmeterError, match="no such image"):
+        read_grey(tmp_path / "nope.png")
+
+
+def _touch(folder: Path, *names: str) -> list[Path]:
+    for n in names:
+        (folder / n).write_bytes(b"")
+    return [folder / n for n in names]
+
+
+def test_expand_globs_sorts_naturally(tmp_path: Path) -> None:
+    _touch(tmp_path, "img10.png", "img2.png", "img1.png")
+    assert [p.name for p in expand_globs(str(tmp_path / "img*.png"))] == ["img1.png", "img2.png", "img10.png"]
+    # a shell-expanded list works as well, without duplicates
+    files = [str(tmp_path / "img2.png"), str(tmp_path / "img*.png")]
+    assert len(expand_globs(files)) == 3
+    with pytest.raises(TrackmeterError, match="no images match"):
+        expand_globs(str(tmp_path / "none*.png"))
+
+
+def test_pairing_by_number_and_by_order(tmp_path: Path) -> None:
+    left = _touch(tmp_path, "left01.png", "left02.png", "left05.png")
+    right = _touch(tmp_path, "right02.png", "right05.png", "right07.png")
+    assert [(a.name, b.name) for a, b in pair_stereo_paths(left, right)] == [
+        ("left02.png", "right02.png"), ("left05.png", "right05.png")]
+    left = _touch(tmp_path, "a.png", "b.png")
+    right = _touch(tmp_path, "c.png", "d.png")
+    assert [(a.name, b.name) for a, b in pair_stereo_paths(left, right)] == [("a.png", "c.png"), ("b.png", "d.png")]
+    with pytest.raises(TrackmeterError, match="1 left and 2 right"):
+        pair_stereo_paths(left[:1], right)
+    with pytest.raises(TrackmeterError, match="share a frame number"):
+        pair_stereo_paths(_touch(tmp_path, "l1.png"), _touch(tmp_path, "r2.png"))

@@ -1,0 +1,110 @@
+"""Output filter: Butterworth low-pass on position and on the rotation group (paper 2.E)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import signal
+from scipy.spatial.transform import Rotation
+
+from trackmeter.core.output_filter import FilterParams, PoseFilter, dc_group_delay_s, design_lowpass
+
+RATE = 25.0
+AXIS = np.array([0.3, -0.8, 0.52]) / np.linalg.norm([0.3, -0.8, 0.52])
+R0 = Rotation.from_rotvec([1.0, 0.2, -0.4]).as_matrix()
+RATE_RAD_S = np.radians(10.0)
+
+
+def rotation_at(t: float) -> np.ndarray:
+    return R0 @ Rotation.from_rotvec(AXIS * RATE_RAD_S * t).as_matrix()
+
+
+def test_design_is_scipy_butterworth() -> None:
+    sos = design_lowpass(2.0, 2, RATE)
+    np.testing.assert_allclose(sos, signal.butter(2, 2.0, fs=RATE, output="sos"))
+    w, h = signal.sosfreqz(sos, worN=[2.0], fs=RATE)
+    assert abs(abs(h[0]) - 1 / np.sqrt(2)) < 1e-9
+
+
+def test_constant_rate_rotation_passes_with_the_group_delay_only() -> None:
+    f = PoseFilter(FilterParams(cutoff_hz=2.0, order=2, velocity_compensated=False), RATE)
+    tau = f.group_delay_s
+    assert 0.05 < tau < 0.2
+    t = np.arange(150) / RATE
+    out = [f.update(ti, rotation_at(ti), np.zeros(3))[0] for ti in t]
+    for ti, R in zip(t[100:], out[100:]):
+        err = Rotation.from_matrix(R @ rotation_at(ti - tau).T).magnitude()
+        assert err < 1e-6  # rotation about one axis: exactly the scalar filter on the angle
+        assert abs(np.linalg.det(R) - 1) < 1e-12
+
+
+def test_componentwise_quaternion_filter_would_be_wrong() -> None:
+    """Filtering q's components with the same IIR leaves the unit sphere and lags differently."""
+    sos = design_lowpass(2.0, 2, RATE)
+    t = np.arange(300) / RATE
+    fast = np.radians(90.0)  # a quick tumble makes the components' attenuation obvious
+    q = Rotation.from_matrix([R0 @ Rotation.from_rotvec(AXIS * fast * ti).as_matrix() for ti in t]).as_quat(
+        scalar_first=True)
+    qf = signal.sosfilt(sos, q, axis=0, zi=signal.sosfilt_zi(sos)[:, :, None] * q[0])[0]
+    norms = np.linalg.norm(qf[100:], axis=1)
+    assert np.max(np.abs(norms - 1)) > 1e-3
+    f = PoseFilter(FilterParams(cutoff_hz=2.0, order=2, velocity_compensated=False), RATE)
+    tau = f.group_delay_s
+    out = [f.update(ti, R0 @ Rotation.from_rotvec(AXIS * fast * ti).as_matrix(), np.zeros(3))[0] for ti in t]
+    ours = max(Rotation.from_matrix(R @ (R0 @ Rotation.from_rotvec(AXIS * fast * (ti - tau)).as_matrix()).T).magnitude()
+               for ti, R in zip(t[100:], out[100:]))
+    theirs = max(
+        (Rotation.from_quat(qi / np.linalg.norm(qi), scalar_first=True).inv()
+         * Rotation.from_matrix(R0 @ Rotation.from_rotvec(AXIS * fast * (ti - tau)).as_matrix())).magnitude()
+        for ti, qi in zip(t[100:], qf[100:]))
+    assert ours < 1e-6
+    assert theirs > 1e-3
+
+
+def test_velocity_compensated_filter_has_no_delay_on_constant_velocity() -> None:
+    f = PoseFilter(FilterParams(cutoff_hz=1.0, order=2, velocity_compensated=True), RATE)
+    t = np.arange(100) / RATE
+    v = np.array([0.01, -0.02, 0.005])
+    w = AXIS * RATE_RAD_S
+    # rotation_at is R0 exp(axis rate t): body-frame omega = axis * rate
+    for ti in t:
+        R, p = f.update(ti, rotation_at(ti), v * ti, v, w)
+        assert Rotation.from_matrix(R @ rotation_at(ti).T).magnitude() < 1e-9
+        np.testing.assert_allclose(p, v * ti, atol=1e-12)
+
+
+def test_noise_variance_reduced_as_the_filter_predicts() -> None:
+    """Small attitude and position noise about a fixed pose: output variance = input variance
+    times the impulse response energy sum(h²) of the IIR (white noise through an LTI filter)."""
+    rng = np.random.default_rng(1)
+    f = PoseFilter(FilterParams(cutoff_hz=2.0, order=2, velocity_compensated=False), RATE)
+    n = 6000
+    sigma_rad, sigma_m = np.radians(0.05), 0.001
+    out_rot, out_pos = [], []
+    for k in range(n):
+        R = Rotation.from_rotvec(rng.normal(0, sigma_rad, 3)).as_matrix() @ R0
+        p = np.array([0, 0, 3.5]) + rng.normal(0, sigma_m, 3)
+        Rf, pf = f.update(k / RATE, R, p)
+        out_rot.append(Rotation.from_matrix(Rf @ R0.T).as_rotvec())
+        out_pos.append(pf)
+    impulse = signal.sosfilt(f.sos, np.r_[1.0, np.zeros(500)])
+    gain = np.sum(impulse**2)
+    var_rot = np.var(np.array(out_rot[100:]), axis=0) / sigma_rad**2
+    var_pos = np.var(np.array(out_pos[100:]), axis=0) / sigma_m**2
+    np.testing.assert_allclose(var_rot, gain, rtol=0.15)
+    np.testing.assert_allclose(var_pos, gain, rtol=0.15)
+    assert gain < 0.3
+
+
+def test_disabled_filter_passes_through() -> None:
+    f = PoseFilter(FilterParams(enabled=False), RATE)
+    R, p = f.update(0.0, R0, np.ones(3))
+    R, p = f.update(0.04, rotation_at(1.0), np.zeros(3))
+    np.testing.assert_allclose(R, rotation_at(1.0))
+
+
+def test_dc_group_delay_of_first_order_filter() -> None:
+    sos = design_lowpass(1.0, 1, RATE)
+    b, a = signal.sos2tf(sos)
+    # single pole p: y = ... ; DC group delay = p/(1-p) - (zero term) computed by scipy
+    _, gd = signal.group_delay((b, a), w=[1e-6], fs=RATE)
+    assert abs(dc_group_delay_s(sos, RATE) - gd[0] / RATE) < 1e-12

@@ -1,0 +1,130 @@
+"""Reading images and image sets from disk.
+
+:func:`read_grey` reads any image OpenCV decodes (PNG, JPEG, PGM, TIFF, ...; 8 or 16 bit; grey,
+colour or with alpha) as an 8-bit grey ``(H, W)`` array, the layout every matcher and tracker of
+the project works on. :func:`expand_globs` and :func:`pair_stereo_paths` turn command-line
+globs into an ordered list of left/right pairs.
+"""
+
+from __future__ import annotations
+
+import glob
+import re
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from trackmeter.errors import TrackmeterError
+
+
+def read_grey(path: str | Path) -> NDArray[np.uint8]:
+    """Read an image file as 8-bit grey, (H, W) uint8.
+
+    Colour is converted with OpenCV's luminance weights (``cvtColor``, BGR→GRAY), an alpha
+    channel is dropped, 16-bit images are scaled by 1/256 and float images (e.g. EXR) are
+    clipped to [0, 1] and scaled to [0, 255].
+
+    The bytes are decoded with ``cv2.imdecode`` rather than ``cv2.imread`` because the latter
+    prints its own warning on stderr for unreadable files; here the caller gets one
+    :class:`TrackmeterError` instead.
+
+    Raises:
+        TrackmeterError: missing file, unreadable file, or a file that is not a decodable image.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise TrackmeterError(f"{path}: no such image file")
+    try:
+        data = np.fromfile(str(path), dtype=np.uint8)
+    except OSError as exc:
+        raise TrackmeterError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    if image is None:
+        raise TrackmeterError(f"{path}: not an image file OpenCV can decode")
+    return to_grey_u8(image, str(path))
+
+
+def to_grey_u8(image: NDArray[np.generic], name: str = "image") -> NDArray[np.uint8]:
+    """Convert a decoded image ((H,W), (H,W,1), (H,W,3) BGR or (H,W,4) BGRA; any depth) to 8-bit grey."""
+    img = np.asarray(image)
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[:, :, 0]
+    if img.dtype == np.uint16:
+        img = (img >> 8).astype(np.uint8)
+    elif img.dtype in (np.float32, np.float64):
+        img = np.clip(np.nan_to_num(img) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    elif img.dtype != np.uint8:
+        raise TrackmeterError(f"{name}: unsupported pixel type {img.dtype}")
+    if img.ndim == 3 and img.shape[2] == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    elif img.ndim == 3 and img.shape[2] == 4:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY)
+    elif img.ndim != 2:
+        raise TrackmeterError(f"{name}: unsupported image layout {img.shape}")
+    return np.ascontiguousarray(img)
+
+
+def _natural_key(path: Path) -> list[object]:
+    """Sort key that orders ``img2`` before ``img10``."""
+    return [int(tok) if tok.isdigit() else tok for tok in re.split(r"(\d+)", str(path))]
+
+
+def expand_globs(patterns: str | Iterable[str], what: str = "images") -> list[Path]:
+    """Files matching one or more glob patterns (or plain paths), naturally sorted, no duplicates.
+
+    A shell may already have expanded an unquoted glob into many paths; both forms work.
+
+    Raises:
+        TrackmeterError: a pattern matches no file.
+    """
+    if isinstance(patterns, str):
+        patterns = [patterns]
+    found: dict[Path, None] = {}
+    for pattern in patterns:
+        matches = [Path(p) for p in glob.glob(str(Path(pattern).expanduser()))]
+        matches = [p for p in matches if p.is_file()]
+        if not matches:
+            raise TrackmeterError(f"no {what} match {pattern!r}")
+        for p in matches:
+            found[p] = None
+    return sorted(found, key=_natural_key)
+
+
+def _frame_number(path: Path) -> int | None:
+    """The last run of digits in the file's stem (``left07.jpg`` → 7), or None."""
+    digits = re.findall(r"\d+", path.stem)
+    return int(digits[-1]) if digits else None
+
+
+def pair_stereo_paths(left: Sequence[Path], right: Sequence[Path]) -> list[tuple[Path, Path]]:
+    """Pair left and right image files.
+
+    When every file name carries a number (``left07.png`` / ``right07.png``) and the numbers
+    are unique on each side, files pair by number and unmatched files are left out; otherwise
+    they pair in sorted order, which requires equal counts.
+
+    Raises:
+        TrackmeterError: no pairs, or unequal counts without numbers to pair by.
+    """
+    left, right = list(left), list(right)
+    nl = [_frame_number(p) for p in left]
+    nr = [_frame_number(p) for p in right]
+    numbered = (
+        None not in nl and None not in nr and len(set(nl)) == len(nl) and len(set(nr)) == len(nr)
+    )
+    if numbered:
+        by_number = dict(zip(nr, right))
+        pairs = [(lp, by_number[n]) for lp, n in zip(left, nl) if n in by_number]
+        if not pairs:
+            raise TrackmeterError("no left and right image share a frame number to pair by")
+        return pairs
+    if len(left) != len(right):
+        raise TrackmeterError(
+            f"{len(left)} left and {len(right)} right images, and their names carry no frame numbers to pair by"
+        )
+    if not left:
+        raise TrackmeterError("no image pairs")
+    return list(zip(left, right))
