@@ -1,15 +1,72 @@
-"""trackmeter evaluate (not built yet)."""
+"""Compare an estimated trajectory with the ground truth (the paper's trial evaluation, section 4).
+
+Pairs poses by nearest timestamp (--tolerance), optionally fits the constant offset between the
+estimate's and the truth's body frames (--align body: cases a and c), skips a settle time, and
+reports position errors (camera frame; z = viewing axis), attitude errors (paper eq. 17 per axis,
+eq. 16 total), linear and angular velocity errors (body frame; only when the estimate is a run
+directory with states.csv and the truth has a groundtruth.csv) as RMS, max and 95th percentile,
+plus the SPEED challenge score.
+
+  --truth    TUM file, groundtruth.csv, or a sequence folder
+  --estimate TUM file, states.csv, or a `trackmeter track` run directory
+
+--json prints the summary in SI units; --out DIR also writes errors.csv, summary.json, PNG plots
+of the errors against time and report.md beside the paper's figures.
+"""
 
 from __future__ import annotations
 
 import argparse
+import json
+from dataclasses import replace
 
-from trackmeter.cli.common import not_built_yet
+from trackmeter.cli.common import load_config_from_args
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    pass
+    parser.add_argument("--truth", required=True, metavar="TUM", help="ground truth: TUM file, groundtruth.csv or sequence folder")
+    parser.add_argument("--estimate", required=True, metavar="TUM_OR_RUN_DIR", help="estimate: TUM file, states.csv or run directory")
+    parser.add_argument("--align", choices=("none", "body"), help="none: same body frame; body: fit a constant body-frame offset (default from config)")
+    parser.add_argument("--settle", type=float, metavar="S", help="seconds to skip after the first paired pose")
+    parser.add_argument("--tolerance", type=float, metavar="S", help="largest timestamp difference of a pair, s")
+    parser.add_argument("--json", action="store_true", help="print the summary as JSON (SI units)")
+    parser.add_argument("--out", metavar="DIR", help="write errors.csv, summary.json, plots and report.md here")
+
+
+def _params(args: argparse.Namespace):  # type: ignore[no-untyped-def]
+    from trackmeter.core.metrics import EvaluateParams
+    from trackmeter.errors import TrackmeterError
+
+    config = load_config_from_args(args)
+    params = getattr(config, "evaluate", EvaluateParams())
+    changes = {}
+    if args.align is not None:
+        changes["align"] = args.align
+    if args.settle is not None:
+        if not args.settle >= 0:
+            raise TrackmeterError(f"--settle must be >= 0 s, got {args.settle}")
+        changes["settle_s"] = args.settle
+    if args.tolerance is not None:
+        if not args.tolerance >= 0:
+            raise TrackmeterError(f"--tolerance must be >= 0 s, got {args.tolerance}")
+        changes["tolerance_s"] = args.tolerance
+    return replace(params, **changes)
 
 
 def run(args: argparse.Namespace) -> int:
-    return not_built_yet("evaluate")
+    from trackmeter.core.metrics import evaluate
+    from trackmeter.data.evaluation import format_summary, load_estimate, load_truth, write_evaluation
+
+    params = _params(args)
+    truth = load_truth(args.truth)
+    estimate = load_estimate(args.estimate)
+    result = evaluate(truth.series, estimate.series, params)
+    if args.out:
+        write_evaluation(result, args.out, truth.source, estimate.source, params.align, params.settle_s)
+    if args.json:
+        print(json.dumps(result.summary, indent=2))
+    else:
+        print(format_summary(result.summary, truth.source, estimate.source, params.align))
+        if args.out:
+            print(f"wrote {args.out}/report.md, errors.csv, summary.json and plots")
+    return 0

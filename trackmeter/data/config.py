@@ -24,6 +24,7 @@ import yaml
 
 from trackmeter.core.calibration import CalibrationParams
 from trackmeter.core.matching import MeasureParams
+from trackmeter.core.metrics import EvaluateParams
 from trackmeter.errors import TrackmeterError
 from trackmeter.paths import DEFAULT_CONFIG
 
@@ -34,6 +35,7 @@ class Config:
 
     measure: MeasureParams = field(default_factory=MeasureParams)
     calibrate: CalibrationParams = field(default_factory=CalibrationParams)
+    evaluate: EvaluateParams = field(default_factory=EvaluateParams)
 
 
 def load_config(user_file: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> Config:

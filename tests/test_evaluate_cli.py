@@ -1,0 +1,166 @@
+"""``trackmeter evaluate`` end to end: files in, exact figures out; bad input -> one line, exit 2."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from trackmeter.cli.main import main
+from trackmeter.data.motion_csv import STATES_COLUMNS, MotionSeries, write_groundtruth_csv, write_states_csv
+from trackmeter.data.trajectory import Trajectory, write_tum
+
+from tests.test_metrics import tumbling_truth
+
+
+# TUM files keep 9 decimals, so figures read through one are exact to ~1e-9.
+TUM_EPS = 1e-8
+
+
+def _tum(path, s: MotionSeries):
+    return write_tum(path, Trajectory(s.t_s, s.position_m, s.quat_wxyz))
+
+
+def _run(capsys, *argv):
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.fixture()
+def sequence_and_run(tmp_path):
+    """A sequence folder with groundtruth.tum/.csv and a run dir whose states.csv has a known
+    error: +2 mm in x, 0.5 deg about the viewing axis, +1 mm/s in z, and frame 10 invalid."""
+    truth = tumbling_truth()
+    seq = tmp_path / "seq"
+    _tum(seq / "groundtruth.tum", truth)
+    write_groundtruth_csv(seq / "groundtruth.csv", truth)
+    n = len(truth)
+    r = Rotation.from_rotvec([0, 0, math.radians(0.5)]) * Rotation.from_quat(truth.quat_wxyz, scalar_first=True)
+    valid = np.ones(n, bool)
+    valid[10] = False
+    extra = {"n_tracked": np.full(n, 6.0), "n_lost": np.zeros(n), "latency_ms": np.full(n, 10.0)}
+    est = MotionSeries(truth.t_s, valid, truth.position_m + [0.002, 0, 0], r.as_quat(scalar_first=True),
+                       truth.velocity_cam_m_s + [0, 0, 0.001], truth.omega_body_rad_s, extra)
+    run = tmp_path / "run"
+    write_states_csv(run / "states.csv", est)
+    return truth, seq, run
+
+
+def test_run_dir_against_sequence_json_is_exact(capsys, sequence_and_run, tmp_path):
+    truth, seq, run = sequence_and_run
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq / "groundtruth.tum"), "--estimate", str(run), "--json")
+    assert code == 0, err
+    s = json.loads(out)
+    assert list(s) == ["matched", "unmatched", "position_m", "attitude_rad", "velocity_m_s", "omega_rad_s", "speed_score"]
+    assert s["matched"] == 59 and s["unmatched"] == 1  # the invalid frame
+    assert s["position_m"]["x"] == pytest.approx({"rms": 0.002, "max": 0.002, "p95": 0.002}, abs=TUM_EPS)
+    assert s["position_m"]["y"]["max"] < TUM_EPS
+    assert s["attitude_rad"]["z"]["rms"] == pytest.approx(math.radians(0.5), abs=TUM_EPS)
+    assert s["attitude_rad"]["total"]["max"] == pytest.approx(math.radians(0.5), abs=TUM_EPS)
+    assert s["velocity_m_s"]["z"]["p95"] == pytest.approx(0.001, abs=TUM_EPS)
+    assert s["omega_rad_s"]["norm"]["max"] < TUM_EPS
+    keep = np.arange(60) != 10
+    expected = math.radians(0.5) + np.mean(0.002 / np.linalg.norm(truth.position_m[keep], axis=1))
+    assert s["speed_score"] == pytest.approx(expected, abs=TUM_EPS)
+    # The sequence folder as --truth (its exact groundtruth.csv) gives the same figures.
+    code, out2, _ = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
+    assert code == 0
+    assert _flat(json.loads(out2)) == pytest.approx(_flat(s), abs=TUM_EPS)
+
+
+def _flat(tree, prefix=""):
+    if isinstance(tree, dict):
+        return {k: v for key, sub in tree.items() for k, v in _flat(sub, f"{prefix}{key}.").items()}
+    return {prefix: tree}
+
+
+def test_bare_tum_files_give_pose_metrics_only_and_out_dir(capsys, tmp_path):
+    truth = tumbling_truth()
+    _tum(tmp_path / "a" / "truth.tum", truth)
+    _tum(tmp_path / "b" / "est.tum", MotionSeries.from_trajectory(
+        Trajectory(truth.t_s + 0.003, truth.position_m + [0, 0, -0.004], truth.quat_wxyz)))
+    out_dir = tmp_path / "report"
+    code, out, err = _run(capsys, "evaluate", "--truth", str(tmp_path / "a" / "truth.tum"),
+                          "--estimate", str(tmp_path / "b" / "est.tum"), "--out", str(out_dir))
+    assert code == 0, err
+    assert "position [mm]" in out and "4.000" in out  # human summary in mm
+    s = json.loads((out_dir / "summary.json").read_text())
+    assert "velocity_m_s" not in s and s["position_m"]["z"]["max"] == pytest.approx(0.004, abs=1e-9)
+    csv = np.loadtxt(out_dir / "errors.csv", delimiter=",", skiprows=1)
+    assert csv.shape == (60, 10)
+    np.testing.assert_allclose(csv[:, 3], -0.004, atol=1e-9)
+    report = (out_dir / "report.md").read_text()
+    assert "±5 mm" in report and "viewing" in report
+    assert (out_dir / "position_error.png").stat().st_size > 1000
+    assert (out_dir / "attitude_error.png").is_file()
+
+
+def test_align_body_recovers_offset_through_the_cli(capsys, tmp_path):
+    truth = tumbling_truth()
+    R_X = Rotation.from_rotvec([0.3, 2.5, -0.7])
+    t_X = np.array([0.1, -0.02, 0.3])
+    R = Rotation.from_quat(truth.quat_wxyz, scalar_first=True)
+    est = Trajectory(truth.t_s, truth.position_m + R.apply(t_X), (R * R_X).as_quat(scalar_first=True))
+    _tum(tmp_path / "t.tum", truth)
+    write_tum(tmp_path / "e.tum", est)
+    code, out, _ = _run(capsys, "evaluate", "--truth", str(tmp_path / "t.tum"), "--estimate", str(tmp_path / "e.tum"),
+                        "--align", "body", "--json")
+    s = json.loads(out)
+    assert code == 0
+    # TUM keeps 9 decimals, so the recovered offset is exact to ~1e-9.
+    assert s["position_m"]["norm"]["max"] < 1e-6 and s["attitude_rad"]["total"]["max"] < 1e-6
+    code, out, _ = _run(capsys, "evaluate", "--truth", str(tmp_path / "t.tum"), "--estimate", str(tmp_path / "e.tum"), "--json")
+    assert json.loads(out)["attitude_rad"]["total"]["max"] > 1.0
+
+
+def _write(path, text):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    return path
+
+
+@pytest.mark.parametrize(
+    "make, message",
+    [
+        (lambda d: (_write(d / "t.tum", ""), d / "t.tum"), "no poses"),
+        (lambda d: (_write(d / "t.tum", "0 1 2 3\n"), d / "t.tum"), "expected 8 values"),
+        (lambda d: (_write(d / "t.tum", "t,x,y\n0,1,2\n"), d / "t.tum"), "header lacks"),
+        (lambda d: (_write(d / "t.png", "\x89PNG\r\n\x1a\n\x00\x00garbage"), d / "t.png"), ""),
+        (lambda d: (_write(d / "t.tum", "5.0 0 0 3 0 0 0 1\n"), None), "no overlapping timestamps"),
+        (lambda d: (d / "missing.tum", None), "no such file"),
+        (lambda d: ((d / "emptydir").mkdir(), d / "emptydir"), "no groundtruth"),
+    ],
+)
+def test_bad_truth_is_one_line_and_exit_2(capsys, tmp_path, make, message):
+    good = _tum(tmp_path / "good.tum", tumbling_truth())
+    made = make(tmp_path)
+    truth = made[1] if made[1] is not None else made[0]
+    code, out, err = _run(capsys, "evaluate", "--truth", str(truth), "--estimate", str(good))
+    assert code == 2
+    assert err.count("\n") == 1 and err.startswith("trackmeter evaluate: error:") and message in err
+    assert "Traceback" not in err and out == ""
+
+
+def test_bad_estimate_run_dirs(capsys, tmp_path):
+    truth = _tum(tmp_path / "t.tum", tumbling_truth())
+    (tmp_path / "run").mkdir()
+    code, _, err = _run(capsys, "evaluate", "--truth", str(truth), "--estimate", str(tmp_path / "run"))
+    assert code == 2 and "not a run directory" in err
+    _write(tmp_path / "run" / "states.csv", ",".join(STATES_COLUMNS) + "\n0.0,0" + "," * (len(STATES_COLUMNS) - 2) + "\n")
+    code, _, err = _run(capsys, "evaluate", "--truth", str(truth), "--estimate", str(tmp_path / "run"))
+    assert code == 2 and "no valid pose" in err
+    code, _, err = _run(capsys, "evaluate", "--truth", str(truth), "--estimate", str(truth), "--tolerance", "-1")
+    assert code == 2 and "--tolerance" in err
+
+
+def test_console_script_exit_code(tmp_path):
+    """The installed entry point gives exit 2 and one line, not a traceback."""
+    proc = subprocess.run([sys.executable, "-m", "trackmeter.cli.main", "evaluate", "--truth", str(tmp_path / "x.tum"),
+                           "--estimate", str(tmp_path / "y.tum")], capture_output=True, text=True)
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "no such file" in proc.stderr

@@ -1,0 +1,299 @@
+"""Inputs and outputs of ``trackmeter evaluate``: find and read truth and estimate, write the
+error time series, the plots (paper Figs. 6-7 kind) and a report beside the paper's figures.
+
+Truth (``--truth``): a TUM file (velocities from a ``groundtruth.csv`` beside it, when its
+timestamps agree), a ``groundtruth.csv`` file, or a sequence folder (its ``groundtruth.csv``,
+else ``groundtruth.tum``; ``DIR`` or ``DIR/mav0``).
+Estimate (``--estimate``): a TUM file, a ``states.csv`` file, or a ``track`` run directory
+(its ``states.csv`` valid rows, else its ``trajectory.tum``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from trackmeter.core.metrics import Evaluation, associate
+from trackmeter.data.motion_csv import MotionSeries, read_motion_csv
+from trackmeter.data.trajectory import read_tum, write_text_atomic
+from trackmeter.errors import TrackmeterError
+
+
+@dataclass(frozen=True, eq=False)
+class LoadedMotion:
+    """A truth or estimate as read, with where it came from (for messages and reports)."""
+
+    series: MotionSeries  # valid rows only
+    source: str  # the file(s) read
+    has_velocity: bool
+
+
+def _looks_like_motion_csv(path: Path) -> bool:
+    try:
+        with open(path, encoding="utf-8") as f:
+            for line in f:
+                if line.strip():
+                    return line.lstrip().lstrip("#").strip().startswith("t,")
+    except (OSError, UnicodeDecodeError):
+        return False
+    return False
+
+
+def _read_pose_file(path: Path) -> MotionSeries:
+    """A TUM file or a motion CSV, by content (a header starting ``t,`` means CSV)."""
+    if _looks_like_motion_csv(path):
+        return read_motion_csv(path).valid_only()
+    return MotionSeries.from_trajectory(read_tum(path))
+
+
+def _with_rates_from(series: MotionSeries, csv_path: Path) -> MotionSeries | None:
+    """``series`` poses with the velocities of ``csv_path`` when every timestamp agrees
+    (within 1 µs), else None."""
+    try:
+        rates = read_motion_csv(csv_path).valid_only()
+    except TrackmeterError:
+        return None
+    a = associate(rates.t_s, series.t_s, 1e-6)
+    if a.matched != len(series) or not rates.has_velocity:
+        return None
+    order = np.argsort(a.index_est)
+    it = a.index_truth[order]
+    return MotionSeries(series.t_s, series.valid, series.position_m, series.quat_wxyz,
+                        rates.velocity_cam_m_s[it], rates.omega_body_rad_s[it])
+
+
+def load_truth(spec: str | Path) -> LoadedMotion:
+    """Read ``--truth`` (see the module docstring).
+
+    Raises:
+        TrackmeterError: nothing readable there, or a file in the wrong format.
+    """
+    path = Path(spec)
+    if path.is_dir():
+        for root in (path, path / "mav0"):
+            if (root / "groundtruth.csv").is_file():
+                s = read_motion_csv(root / "groundtruth.csv").valid_only()
+                return LoadedMotion(s, str(root / "groundtruth.csv"), s.has_velocity)
+            if (root / "groundtruth.tum").is_file():
+                s = MotionSeries.from_trajectory(read_tum(root / "groundtruth.tum"))
+                return LoadedMotion(s, str(root / "groundtruth.tum"), False)
+        raise TrackmeterError(f"{path}: folder has no groundtruth.csv or groundtruth.tum")
+    if not path.is_file():
+        raise TrackmeterError(f"{path}: no such file or folder")
+    series = _read_pose_file(path)
+    beside = path.parent / "groundtruth.csv"
+    if not series.has_velocity and beside.is_file() and beside.resolve() != path.resolve():
+        merged = _with_rates_from(series, beside)
+        if merged is not None:
+            return LoadedMotion(merged, f"{path} (+ velocities from {beside})", True)
+    return LoadedMotion(series, str(path), series.has_velocity)
+
+
+def load_estimate(spec: str | Path) -> LoadedMotion:
+    """Read ``--estimate``: a TUM file, a ``states.csv``, or a run directory.
+
+    Raises:
+        TrackmeterError: nothing readable there, a file in the wrong format, or no valid pose.
+    """
+    path = Path(spec)
+    if path.is_dir():
+        if (path / "states.csv").is_file():
+            s = read_motion_csv(path / "states.csv")
+            if not np.any(s.valid):
+                raise TrackmeterError(f"{path / 'states.csv'}: no valid pose in the run")
+            s = s.valid_only()
+            return LoadedMotion(s, str(path / "states.csv"), s.has_velocity)
+        if (path / "trajectory.tum").is_file():
+            s = MotionSeries.from_trajectory(read_tum(path / "trajectory.tum"))
+            return LoadedMotion(s, str(path / "trajectory.tum"), False)
+        raise TrackmeterError(f"{path}: not a run directory (no states.csv or trajectory.tum)")
+    if not path.is_file():
+        raise TrackmeterError(f"{path}: no such file or folder")
+    s = _read_pose_file(path)
+    if len(s) == 0:
+        raise TrackmeterError(f"{path}: no valid pose")
+    return LoadedMotion(s, str(path), s.has_velocity)
+
+
+# --------------------------------------------------------------------------- paper figures
+
+#: The paper's trial figures at 3.5 m (section 4), in OUR axes: x, y lateral, z the viewing
+#: axis (the paper's viewing axis was y). Bounds of the error plots (±), SI units.
+PAPER_BOUNDS: dict[str, dict[str, float]] = {
+    "position_m": {"x": 0.003, "y": 0.003, "z": 0.005},
+    "attitude_rad": {"x": math.radians(1.0), "y": math.radians(1.0), "z": math.radians(0.5)},
+    "velocity_m_s": {"x": 0.002, "y": 0.002, "z": 0.0035},
+    # "mostly within ±0.75 deg/s, peaks ±1 deg/s": compare p95 with 0.75 and max with 1.
+    "omega_rad_s": {"x": math.radians(1.0), "y": math.radians(1.0), "z": math.radians(1.0)},
+}
+PAPER_OMEGA_MOSTLY_RAD_S = math.radians(0.75)
+
+_DISPLAY = {  # group -> (title, unit, scale from SI)
+    "position_m": ("position", "mm", 1e3),
+    "attitude_rad": ("attitude", "deg", 180.0 / math.pi),
+    "velocity_m_s": ("linear velocity", "mm/s", 1e3),
+    "omega_rad_s": ("angular velocity (body frame)", "deg/s", 180.0 / math.pi),
+}
+
+
+def format_summary(summary: dict, truth: str = "", estimate: str = "", align: str = "none") -> str:
+    """Human-readable summary in mm and degrees (the display edge)."""
+    lines = []
+    if truth or estimate:
+        lines.append(f"truth:    {truth}\nestimate: {estimate}\nalign:    {align}")
+    lines.append(f"matched {summary['matched']} pose(s), unmatched {summary['unmatched']}")
+    lines.append(f"{'error':<32}{'axis':>6}{'rms':>10}{'p95':>10}{'max':>10}")
+    for group, (title, unit, scale) in _DISPLAY.items():
+        if group not in summary:
+            continue
+        for axis, st in summary[group].items():
+            lines.append(
+                f"{title + ' [' + unit + ']':<32}{axis:>6}"
+                f"{st['rms'] * scale:>10.3f}{st['p95'] * scale:>10.3f}{st['max'] * scale:>10.3f}"
+            )
+    lines.append(f"SPEED score (mean of angle [rad] + |dt|/|t|): {summary['speed_score']:.6f}")
+    if "velocity_m_s" not in summary:
+        lines.append("(no velocity errors: needs a run directory's states.csv and a groundtruth.csv)")
+    return "\n".join(lines)
+
+
+def paper_table(summary: dict) -> str:
+    """Markdown table: our max / p95 / RMS beside the paper's ± bounds, per axis."""
+    rows = [
+        "| error | axis (ours) | paper (3.5 m) | ours max | ours p95 | ours RMS | within paper |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    axis_note = {"x": "x lateral", "y": "y lateral", "z": "z viewing"}
+    for group, bounds in PAPER_BOUNDS.items():
+        if group not in summary:
+            continue
+        title, unit, scale = _DISPLAY[group]
+        for axis, bound in bounds.items():
+            st = summary[group][axis]
+            if group == "omega_rad_s":
+                paper = f"±{PAPER_OMEGA_MOSTLY_RAD_S * scale:.2f} mostly, ±{bound * scale:.1f} peaks {unit}"
+                ok = st["max"] <= bound and st["p95"] <= PAPER_OMEGA_MOSTLY_RAD_S
+            else:
+                paper = f"±{bound * scale:g} {unit}"
+                ok = st["max"] <= bound
+            rows.append(
+                f"| {title} | {axis_note[axis]} | {paper} | {st['max'] * scale:.3f} {unit} | "
+                f"{st['p95'] * scale:.3f} {unit} | {st['rms'] * scale:.3f} {unit} | {'yes' if ok else 'no'} |"
+            )
+    return "\n".join(rows)
+
+
+def error_table_csv(evaluation: Evaluation) -> str:
+    """The per-frame error time series as CSV text (SI units, camera frame; omega in the
+    true body frame): ``t,ex,ey,ez,e_norm,ax,ay,az,a_total,[evx..evz,ewx..ewz,]speed_score``."""
+    e = evaluation.errors
+    cols = ["t", "ex", "ey", "ez", "e_norm", "ax", "ay", "az", "a_total"]
+    data = [e.t_s[:, None], e.position_m, np.linalg.norm(e.position_m, axis=1)[:, None],
+            e.attitude_rad, e.attitude_total_rad[:, None]]
+    if e.velocity_m_s is not None and e.omega_rad_s is not None:
+        cols += ["evx", "evy", "evz", "ewx", "ewy", "ewz"]
+        data += [e.velocity_m_s, e.omega_rad_s]
+    cols.append("speed_score")
+    data.append(e.speed_score[:, None])
+    table = np.hstack(data)
+    return ",".join(cols) + "\n" + "".join(",".join(repr(float(v)) for v in row) + "\n" for row in table)
+
+
+def plot_errors(evaluation: Evaluation, out_dir: Path) -> list[Path]:
+    """PNG plots of the errors against time, one panel per axis (the paper's Figs. 6 and 7),
+    in mm, deg, mm/s and deg/s, with the paper's ± bounds dashed. Returns the files written."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    e = evaluation.errors
+    t = e.t_s - e.t_s[0]
+    groups = [("position_m", e.position_m), ("attitude_rad", e.attitude_rad)]
+    if e.velocity_m_s is not None and e.omega_rad_s is not None:
+        groups += [("velocity_m_s", e.velocity_m_s), ("omega_rad_s", e.omega_rad_s)]
+    written = []
+    for group, values in groups:
+        title, unit, scale = _DISPLAY[group]
+        fig, axes = plt.subplots(3, 1, figsize=(8, 6.5), sharex=True)
+        for i, (ax, axis) in enumerate(zip(axes, "xyz")):
+            ax.plot(t, values[:, i] * scale, lw=0.9)
+            bound = PAPER_BOUNDS[group][axis] * scale
+            ax.axhline(bound, ls="--", c="grey", lw=0.8)
+            ax.axhline(-bound, ls="--", c="grey", lw=0.8)
+            ax.set_ylabel(f"{axis} [{unit}]")
+            ax.grid(alpha=0.3)
+        axes[0].set_title(f"{title} error (estimate - truth); dashed: paper at 3.5 m (z = viewing axis)")
+        axes[-1].set_xlabel("time since first paired pose [s]")
+        fig.tight_layout()
+        path = out_dir / f"{group.split('_')[0]}_error.png"
+        _save_figure(fig, path)
+        plt.close(fig)
+        written.append(path)
+    return written
+
+
+def _save_figure(fig, path: Path) -> None:  # type: ignore[no-untyped-def]
+    """Save a matplotlib figure atomically (temporary name, then rename)."""
+    tmp = path.with_name(f".{path.stem}.tmp.png")
+    try:
+        fig.savefig(tmp, dpi=110)
+        tmp.replace(path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def write_evaluation(
+    evaluation: Evaluation, out_dir: str | Path, truth: str, estimate: str, align: str, settle_s: float
+) -> list[Path]:
+    """Write ``summary.json``, ``errors.csv``, the PNG plots and ``report.md`` into ``out_dir``."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    s = evaluation.summary
+    write_text_atomic(out / "summary.json", json.dumps(s, indent=2) + "\n")
+    write_text_atomic(out / "errors.csv", error_table_csv(evaluation))
+    plots = plot_errors(evaluation, out)
+    offset = ""
+    if evaluation.body_offset is not None:
+        from scipy.spatial.transform import Rotation
+
+        R, t = evaluation.body_offset
+        rv = Rotation.from_matrix(R).as_rotvec(degrees=True)
+        offset = (
+            f"\nBody-frame offset fitted (`--align body`, T_bodytrue_bodyest): rotation vector "
+            f"[{rv[0]:.3f}, {rv[1]:.3f}, {rv[2]:.3f}] deg, translation "
+            f"[{t[0] * 1e3:.2f}, {t[1] * 1e3:.2f}, {t[2] * 1e3:.2f}] mm.\n"
+        )
+    report = f"""# Trajectory evaluation
+
+- truth: `{truth}`
+- estimate: `{estimate}`
+- alignment: `{align}`; settle time skipped: {settle_s:g} s
+- matched poses: {s['matched']}; unmatched: {s['unmatched']}
+- SPEED score (mean orientation error [rad] + relative position error): {s['speed_score']:.6f}
+{offset}
+## Ours beside the paper
+
+The paper's figures are the bounds of its trial error plots at 3.5 m (section 4, Figs. 6-7).
+Its viewing axis was **y**; ours is **z** (x, y lateral), and the table maps the paper's
+figures onto our axes. Attitude errors are eq. 17 components in the camera frame (eq. 16 total
+below); angular velocity errors are in the body frame (eq. 14).
+
+{paper_table(s)}
+
+## All figures (SI units converted to mm, deg)
+
+```
+{format_summary(s)}
+```
+
+## Plots
+
+""" + "".join(f"![{p.stem}]({p.name})\n" for p in plots)
+    write_text_atomic(out / "report.md", report)
+    return [out / "summary.json", out / "errors.csv", *plots, out / "report.md"]
