@@ -24,6 +24,7 @@ import yaml
 
 from trackmeter.core.calibration import CalibrationParams
 from trackmeter.core.matching import MeasureParams
+from trackmeter.core.error_analysis import AnalyzeParams
 from trackmeter.core.metrics import EvaluateParams
 from trackmeter.errors import TrackmeterError
 from trackmeter.paths import DEFAULT_CONFIG
@@ -36,6 +37,7 @@ class Config:
     measure: MeasureParams = field(default_factory=MeasureParams)
     calibrate: CalibrationParams = field(default_factory=CalibrationParams)
     evaluate: EvaluateParams = field(default_factory=EvaluateParams)
+    analyze: AnalyzeParams = field(default_factory=AnalyzeParams)
 
 
 def load_config(user_file: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> Config:

@@ -1,0 +1,325 @@
+"""Error analysis of stereo point measurements (paper sections 2.F-2.G, Figs. 2-3).
+
+The paper explained its accuracy from repeated measurements of a still target at several
+ranges:
+
+- the standard deviation of a single-point measurement, per axis, grows with range; along the
+  viewing axis as ``sigma_z = k z^2`` (Fig. 3's parabola; 4 mm at 3.5 m);
+- eq. 2, ``sigma_z = z^2 sigma_d / (f b)``, turns the fitted k into the sub-pixel accuracy of
+  the disparity, ``sigma_d = k f b`` (paper: 0.07 px);
+- the error propagation (eq. 1-2, :meth:`trackmeter.core.stereo.Rectification.point_sigma`)
+  predicts sigma; we put the prediction beside the measurement;
+- the measurement error is Gaussian (Fig. 2: its probability density and the best normal fit).
+
+This module is the pure part: statistics of measurement stacks, the parabola fit, eq. 2
+inverted, and the error density. Frames: the left camera (z = the viewing axis; the paper's
+was y). Units: m, px.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy import stats
+
+from trackmeter.core.params import param
+from trackmeter.errors import TrackmeterError
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class AnalyzeParams:
+    """Tunables of ``trackmeter analyze``."""
+
+    points_per_range: int = param(30, "points selected on the target at each range (Shi-Tomasi corners)", min=3, max=1000)
+    corner_quality: float = param(0.01, "Shi-Tomasi quality level, relative to the best corner", min=1e-6, max=1.0)
+    corner_min_distance_px: float = param(12.0, "smallest distance between two selected points, px", min=1.0)
+    border_px: int = param(16, "points closer than this to the image border or the target's outline are skipped, px", min=0)
+    min_samples: int = param(5, "a point needs this many good measurements to count in the statistics", min=2)
+    histogram_bins: int = param(31, "bins of the error density histogram (Fig. 2)", min=5, max=1000)
+    max_abs_residual_sigmas: float = param(
+        8.0, "residuals beyond this many robust sigmas are mismatches, not noise: left out and counted", min=2.0
+    )
+
+
+# --------------------------------------------------------------------------- per range
+
+
+@dataclass(frozen=True, eq=False)
+class RangeStatistics:
+    """Repeated measurements of still points at one range.
+
+    Attributes:
+        range_m: mean depth z of the points, m.
+        n_points: points with at least ``min_samples`` good measurements.
+        n_samples: good measurements of those points in all.
+        n_outliers: measurements left out as mismatches (beyond the residual limit).
+        sigma_m: (3,) pooled standard deviation of a single measurement per camera axis, m.
+        predicted_sigma_m: (3,) mean error-propagation sigma of the same measurements, m
+            (NaN when not given).
+        residuals_m: (n_samples, 3) measurement minus its point's mean, m.
+    """
+
+    range_m: float
+    n_points: int
+    n_samples: int
+    n_outliers: int
+    sigma_m: FloatArray
+    predicted_sigma_m: FloatArray
+    residuals_m: FloatArray
+
+
+def range_statistics(
+    points_cam_m: ArrayLike,
+    predicted_sigma_m: ArrayLike | None = None,
+    min_samples: int = 5,
+    max_abs_residual_sigmas: float = np.inf,
+) -> RangeStatistics:
+    """Pooled single-measurement standard deviation of still points, per axis.
+
+    For each point p with n_p good samples, the residuals about its own mean give the pooled
+    (unbiased) variance ``sum_p sum_i (x_pi - mean_p)^2 / sum_p (n_p - 1)`` — the points'
+    true positions differ, their noise is what we want. Residuals beyond
+    ``max_abs_residual_sigmas`` robust sigmas (1.4826 MAD, per axis) are counted and dropped
+    first, because a wrong match is not measurement noise.
+
+    Args:
+        points_cam_m: (F, P, 3) measurements of P points over F frames, left camera frame, m;
+            NaN where a measurement failed.
+        predicted_sigma_m: (F, P, 3) error-propagation sigma of each measurement, m, or None.
+        min_samples: points with fewer good samples are ignored (at least 2).
+
+    Raises:
+        TrackmeterError: wrong shapes, or no point with enough samples.
+    """
+    X = np.asarray(points_cam_m, dtype=float)
+    if X.ndim != 3 or X.shape[2] != 3:
+        raise TrackmeterError(f"range statistics need (frames, points, 3) measurements, got {X.shape}")
+    good = np.all(np.isfinite(X), axis=2)  # (F, P)
+
+    def point_means(mask: NDArray[np.bool_]) -> FloatArray:
+        n = mask.sum(axis=0)[:, None]
+        total = np.where(mask[..., None], X, 0.0).sum(axis=0)
+        return np.divide(total, n, out=np.full(total.shape, np.nan), where=n > 0)
+
+    mean = point_means(good)
+    resid = X - mean[None]
+    n_outliers = 0
+    if np.isfinite(max_abs_residual_sigmas) and np.count_nonzero(good) > 2:
+        r = resid[good]
+        mad = 1.4826 * np.median(np.abs(r - np.median(r, axis=0)), axis=0)
+        bad = good & np.any(np.abs(resid) > max_abs_residual_sigmas * np.maximum(mad, 1e-300), axis=2)
+        n_outliers = int(np.count_nonzero(bad))
+        if n_outliers:
+            good &= ~bad
+            mean = point_means(good)
+            resid = X - mean[None]
+    counts = good.sum(axis=0)  # (P,)
+    use = counts >= max(int(min_samples), 2)
+    if not np.any(use):
+        raise TrackmeterError(f"no point has {max(int(min_samples), 2)} good measurements at this range")
+    sel = good & use[None, :]
+    R = resid[sel]  # (n, 3)
+    dof = float(np.sum(counts[use] - 1))
+    sigma = np.sqrt(np.sum(R * R, axis=0) / dof)
+    if predicted_sigma_m is None:
+        predicted = np.full(3, np.nan)
+    else:
+        S = np.asarray(predicted_sigma_m, dtype=float)
+        if S.shape != X.shape:
+            raise TrackmeterError(f"predicted sigma shape {S.shape} differs from the measurements' {X.shape}")
+        predicted = np.sqrt(np.mean(S[sel] ** 2, axis=0))  # RMS of the predicted sigmas
+    return RangeStatistics(
+        range_m=float(np.mean(X[sel][:, 2])),
+        n_points=int(np.count_nonzero(use)),
+        n_samples=int(len(R)),
+        n_outliers=n_outliers,
+        sigma_m=sigma,
+        predicted_sigma_m=predicted,
+        residuals_m=R,
+    )
+
+
+# --------------------------------------------------------------------------- the parabola
+
+
+@dataclass(frozen=True, eq=False)
+class ParabolaFit:
+    """Least-squares ``sigma = k z^2`` (paper Fig. 3).
+
+    Attributes:
+        k_per_m: the coefficient, 1/m (sigma in m for z in m).
+        k_std_per_m: its standard error from the fit residuals, 1/m (NaN with one range).
+        rms_residual_m: RMS of ``sigma_i - k z_i^2``, m.
+        r2: coefficient of determination of the through-origin fit, ``1 - SSR / sum sigma^2``.
+    """
+
+    k_per_m: float
+    k_std_per_m: float
+    rms_residual_m: float
+    r2: float
+
+
+def fit_parabola(range_m: ArrayLike, sigma_m: ArrayLike) -> ParabolaFit:
+    """Fit ``sigma = k z^2`` by linear least squares through the origin.
+
+    Minimising ``sum_i (sigma_i - k z_i^2)^2`` gives ``k = sum sigma_i z_i^2 / sum z_i^4``
+    (one regressor, no intercept: eq. 2 has none).
+    """
+    z = np.asarray(range_m, dtype=float).reshape(-1)
+    s = np.asarray(sigma_m, dtype=float).reshape(-1)
+    if len(z) != len(s) or len(z) == 0:
+        raise TrackmeterError("parabola fit needs as many ranges as sigmas, at least one")
+    if not (np.all(np.isfinite(z)) and np.all(np.isfinite(s))) or np.any(z <= 0):
+        raise TrackmeterError("parabola fit needs finite sigmas at positive ranges")
+    x = z * z
+    k = float(np.dot(x, s) / np.dot(x, x))
+    r = s - k * x
+    ssr = float(np.dot(r, r))
+    k_std = float(np.sqrt(ssr / (len(z) - 1) / np.dot(x, x))) if len(z) > 1 else float("nan")
+    total = float(np.dot(s, s))
+    return ParabolaFit(k, k_std, float(np.sqrt(ssr / len(z))), 1.0 - ssr / total if total > 0 else float("nan"))
+
+
+def subpixel_accuracy_px(k_per_m: float, focal_px: float, baseline_m: float) -> float:
+    """Disparity standard deviation implied by ``sigma_z = k z^2``: paper eq. 2 inverted,
+    ``sigma_d = k f b`` (px), the inverse of :func:`trackmeter.core.stereo.depth_sigma`."""
+    return float(k_per_m * focal_px * baseline_m)
+
+
+# --------------------------------------------------------------------------- error density
+
+
+@dataclass(frozen=True, eq=False)
+class DensityFit:
+    """Empirical probability density of errors with its best Gaussian (paper Fig. 2).
+
+    Attributes:
+        bin_edges: (B+1,) histogram edges (unit of the errors).
+        density: (B,) histogram normalised to unit area.
+        mu, sigma: maximum-likelihood normal fit (``scipy.stats.norm.fit``).
+        ks_statistic, ks_pvalue: Kolmogorov-Smirnov distance to the fitted normal (the p-value
+            is optimistic because mu, sigma come from the same data — Lilliefors).
+        k2_statistic, k2_pvalue: D'Agostino-Pearson omnibus normality test
+            (``scipy.stats.normaltest``; NaN below 8 samples).
+        n: number of errors.
+    """
+
+    bin_edges: FloatArray
+    density: FloatArray
+    mu: float
+    sigma: float
+    ks_statistic: float
+    ks_pvalue: float
+    k2_statistic: float
+    k2_pvalue: float
+    n: int
+
+
+def error_density(errors: ArrayLike, bins: int = 31) -> DensityFit:
+    """Histogram density of ``errors`` (1-D) and its best normal fit with normality statistics."""
+    e = np.asarray(errors, dtype=float).reshape(-1)
+    e = e[np.isfinite(e)]
+    if len(e) < 3:
+        raise TrackmeterError(f"error density needs at least 3 errors, got {len(e)}")
+    density, edges = np.histogram(e, bins=bins, density=True)
+    mu, sigma = stats.norm.fit(e)
+    if sigma > 0:
+        ks = stats.kstest(e, "norm", args=(mu, sigma))
+        ks_stat, ks_p = float(ks.statistic), float(ks.pvalue)
+    else:
+        ks_stat, ks_p = float("nan"), float("nan")
+    if len(e) >= 8 and sigma > 0:
+        k2 = stats.normaltest(e)
+        k2_stat, k2_p = float(k2.statistic), float(k2.pvalue)
+    else:
+        k2_stat = k2_p = float("nan")
+    return DensityFit(edges, density, float(mu), float(sigma), ks_stat, ks_p, k2_stat, k2_p, len(e))
+
+
+# --------------------------------------------------------------------------- the whole analysis
+
+
+@dataclass(frozen=True, eq=False)
+class ErrorAnalysis:
+    """The paper's error analysis over several ranges.
+
+    Attributes:
+        ranges: per-range statistics, by increasing range.
+        fits: ``sigma = k z^2`` per camera axis ``"x"``, ``"y"``, ``"z"``.
+        sigma_disparity_px: sub-pixel disparity accuracy from the z fit (eq. 2 inverted).
+        density: error density of the depth residuals normalised by each range's
+            measured sigma_z (dimensionless, so all ranges pool; Fig. 2).
+        density_range: error density of the depth residuals at the range nearest 3.5 m, m.
+        focal_px, baseline_m: the rig used in eq. 2.
+    """
+
+    ranges: tuple[RangeStatistics, ...]
+    fits: dict[str, ParabolaFit]
+    sigma_disparity_px: float
+    density: DensityFit
+    density_range: DensityFit
+    focal_px: float
+    baseline_m: float
+
+    def to_dict(self) -> dict[str, object]:
+        """A JSON-friendly summary (SI units, px)."""
+
+        def dens(d: DensityFit) -> dict[str, float]:
+            return {"n": d.n, "mu": d.mu, "sigma": d.sigma, "ks_statistic": d.ks_statistic,
+                    "ks_pvalue": d.ks_pvalue, "k2_statistic": d.k2_statistic, "k2_pvalue": d.k2_pvalue}
+
+        return {
+            "focal_px": self.focal_px,
+            "baseline_m": self.baseline_m,
+            "ranges": [
+                {
+                    "range_m": r.range_m, "n_points": r.n_points, "n_samples": r.n_samples,
+                    "n_outliers": r.n_outliers,
+                    "sigma_m": dict(zip("xyz", map(float, r.sigma_m))),
+                    "predicted_sigma_m": dict(zip("xyz", map(float, r.predicted_sigma_m))),
+                }
+                for r in self.ranges
+            ],
+            "fit": {
+                axis: {"k_per_m": f.k_per_m, "k_std_per_m": f.k_std_per_m, "rms_residual_m": f.rms_residual_m, "r2": f.r2}
+                for axis, f in self.fits.items()
+            },
+            "sigma_disparity_px": self.sigma_disparity_px,
+            "sigma_z_at_3p5_m": self.fits["z"].k_per_m * 3.5**2,
+            "density_normalised": dens(self.density),
+            "density_at_range": {"range_m": self.ranges[self._nearest_3p5()].range_m, **dens(self.density_range)},
+        }
+
+    def _nearest_3p5(self) -> int:
+        return int(np.argmin([abs(r.range_m - 3.5) for r in self.ranges]))
+
+
+def analyze_ranges(
+    ranges: list[RangeStatistics] | tuple[RangeStatistics, ...], focal_px: float, baseline_m: float, bins: int = 31
+) -> ErrorAnalysis:
+    """Fit the parabola per axis, infer the sub-pixel accuracy, fit the error densities.
+
+    Args:
+        ranges: statistics at (ideally) several ranges.
+        focal_px, baseline_m: the rectified rig's focal length (px) and baseline (m) of eq. 2.
+    """
+    if not ranges:
+        raise TrackmeterError("error analysis needs measurements at one range at least")
+    rs = tuple(sorted(ranges, key=lambda r: r.range_m))
+    z = np.array([r.range_m for r in rs])
+    fits = {axis: fit_parabola(z, [r.sigma_m[i] for r in rs]) for i, axis in enumerate("xyz")}
+    normalised = np.concatenate([r.residuals_m[:, 2] / r.sigma_m[2] for r in rs if r.sigma_m[2] > 0])
+    near = int(np.argmin(np.abs(z - 3.5)))
+    return ErrorAnalysis(
+        rs,
+        fits,
+        subpixel_accuracy_px(fits["z"].k_per_m, focal_px, baseline_m),
+        error_density(normalised, bins),
+        error_density(rs[near].residuals_m[:, 2], bins),
+        float(focal_px),
+        float(baseline_m),
+    )
