@@ -1,0 +1,230 @@
+"""Configuration (trackmeter.data.config): config/default.yaml agrees with the Params dataclasses,
+bad values are refused with their dotted key, and a user file layers over the defaults."""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+from pathlib import Path
+from typing import Any, Iterator
+
+import pytest
+import yaml
+
+from trackmeter.data.config import Config, build_dataclass, config_to_dict, load_config, read_yaml_mapping
+from trackmeter.errors import TrackmeterError
+from trackmeter.paths import DEFAULT_CONFIG
+
+
+def leaf_fields(cls: type, prefix: str = "") -> Iterator[tuple[str, dataclasses.Field, Any]]:  # type: ignore[type-arg]
+    """Every non-dataclass field of ``cls`` and nested dataclasses: (dotted key, field, default)."""
+    instance = cls()
+    for f in dataclasses.fields(cls):
+        value = getattr(instance, f.name)
+        if dataclasses.is_dataclass(value):
+            yield from leaf_fields(type(value), f"{prefix}{f.name}.")
+        else:
+            yield f"{prefix}{f.name}", f, value
+
+
+def yaml_keys_with_comment(path: Path) -> dict[str, bool]:
+    """Dotted key → whether the line just above it (blank lines excluded) is a comment."""
+    out: dict[str, bool] = {}
+    stack: list[tuple[int, str]] = []
+    previous = ""
+    for line in path.read_text().splitlines():
+        stripped = line.strip()
+        if not stripped:
+            continue
+        match = re.match(r"^(\s*)([A-Za-z_][A-Za-z0-9_]*)\s*:", line)
+        if match and not stripped.startswith("#"):
+            indent = len(match.group(1))
+            while stack and stack[-1][0] >= indent:
+                stack.pop()
+            dotted = ".".join([k for _, k in stack] + [match.group(2)])
+            out[dotted] = previous.startswith("#")
+            stack.append((indent, match.group(2)))
+        previous = stripped
+    return out
+
+
+def _get(data: dict[str, Any], dotted: str) -> Any:
+    for part in dotted.split("."):
+        data = data[part]
+    return data
+
+
+def _plain(value: Any) -> Any:
+    return [_plain(v) for v in value] if isinstance(value, (tuple, list)) else value
+
+
+def _same_kind(value: Any, default: Any) -> bool:
+    """YAML ``8`` for an int default, ``8`` or ``8.0`` for a float, ``true`` for a bool."""
+    if isinstance(default, bool) or isinstance(value, bool):
+        return type(value) is type(default)
+    if isinstance(default, int):
+        return isinstance(value, int)
+    if isinstance(default, float):
+        return isinstance(value, (int, float))
+    return True
+
+
+# --------------------------------------------------------------------------- default.yaml agrees
+
+
+def test_every_param_is_in_default_yaml_with_its_default() -> None:
+    data = read_yaml_mapping(DEFAULT_CONFIG)
+    missing, different = [], []
+    for dotted, _, default in leaf_fields(Config):
+        try:
+            value = _get(data, dotted)
+        except (KeyError, TypeError):
+            missing.append(dotted)
+            continue
+        if _plain(value) != _plain(default) or not _same_kind(value, default):
+            different.append(f"{dotted}: yaml {value!r} vs dataclass {default!r}")
+    assert not missing, f"missing from {DEFAULT_CONFIG.name}: {missing}"
+    assert not different, different
+
+
+def test_every_key_of_default_yaml_has_a_comment_above_it() -> None:
+    comments = yaml_keys_with_comment(DEFAULT_CONFIG)
+    leaves = [dotted for dotted, _, _ in leaf_fields(Config)]
+    assert leaves, "Config has no fields"
+    uncommented = [k for k in leaves if not comments.get(k, False)]
+    assert not uncommented, f"keys without a comment line above them: {uncommented}"
+
+
+def test_every_param_declares_a_doc_string() -> None:
+    for dotted, f, _ in leaf_fields(Config):
+        assert f.metadata.get("doc"), f"{dotted} is not declared with param(..., doc)"
+
+
+def test_default_yaml_has_no_key_the_dataclasses_lack() -> None:
+    """load_config() builds Config from the file: an extra key would be refused."""
+    config = load_config()
+    assert config == Config()
+    assert config_to_dict(config) == yaml.safe_load(yaml.safe_dump(config_to_dict(Config())))
+
+
+# --------------------------------------------------------------------------- refusals
+
+
+def _first_leaf(kind: type) -> tuple[str, dataclasses.Field, Any]:  # type: ignore[type-arg]
+    for dotted, f, default in leaf_fields(Config):
+        if type(default) is kind:
+            return dotted, f, default
+    pytest.skip(f"no {kind.__name__} parameter registered")
+
+
+def _nested(dotted: str, value: Any) -> dict[str, Any]:
+    out: Any = value
+    for part in reversed(dotted.split(".")):
+        out = {part: out}
+    return out
+
+
+def _write(tmp_path: Path, data: Any) -> Path:
+    path = tmp_path / "user.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def test_unknown_key_is_refused_with_its_dotted_path(tmp_path: Path) -> None:
+    section = dataclasses.fields(Config)[0].name
+    with pytest.raises(TrackmeterError, match=rf"'{section}\.no_such_key'"):
+        load_config(_write(tmp_path, {section: {"no_such_key": 1}}))
+    with pytest.raises(TrackmeterError, match=r"'no_such_section'"):
+        load_config(_write(tmp_path, {"no_such_section": {}}))
+
+
+def test_wrong_type_is_refused_with_its_dotted_path(tmp_path: Path) -> None:
+    dotted, _, _ = _first_leaf(int)
+    with pytest.raises(TrackmeterError, match=rf"'{re.escape(dotted)}'.*expected an integer") as info:
+        load_config(_write(tmp_path, _nested(dotted, "eight")))
+    assert "\n" not in str(info.value)
+    with pytest.raises(TrackmeterError, match=re.escape(dotted)):
+        load_config(_write(tmp_path, _nested(dotted, 8.5)))
+    with pytest.raises(TrackmeterError, match=re.escape(dotted)):
+        load_config(_write(tmp_path, _nested(dotted, True)))  # bool is not an int here
+    section = dotted.split(".")[0]
+    with pytest.raises(TrackmeterError, match=rf"'{section}' must be a mapping"):
+        load_config(_write(tmp_path, {section: 3}))
+
+
+def test_out_of_range_is_refused_with_its_dotted_path(tmp_path: Path) -> None:
+    for dotted, f, _ in leaf_fields(Config):
+        if "min" in f.metadata and isinstance(f.default, (int, float)) and not isinstance(f.default, bool):
+            low = f.metadata["min"] - 1
+            value = int(low) if isinstance(f.default, int) else float(low)
+            with pytest.raises(TrackmeterError, match=rf"'{re.escape(dotted)}': expected a value in \["):
+                load_config(_write(tmp_path, _nested(dotted, value)))
+        if "max" in f.metadata and isinstance(f.default, (int, float)) and not isinstance(f.default, bool):
+            high = f.metadata["max"] + 1
+            value = int(high) if isinstance(f.default, int) else float(high)
+            with pytest.raises(TrackmeterError, match=rf"'{re.escape(dotted)}'"):
+                load_config(_write(tmp_path, _nested(dotted, value)))
+
+
+def test_choice_outside_the_list_is_refused(tmp_path: Path) -> None:
+    with pytest.raises(TrackmeterError, match=r"'calibrate\.distortion_model': expected one of"):
+        load_config(_write(tmp_path, {"calibrate": {"distortion_model": "fisheye"}}))
+
+
+def test_malformed_yaml_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "bad.yaml"
+    path.write_text("measure:\n  patch_size: [8\n")
+    with pytest.raises(TrackmeterError, match=r"malformed YAML at line \d+") as info:
+        load_config(path)
+    assert str(path) in str(info.value)
+    path.write_text("- a list\n- not a mapping\n")
+    with pytest.raises(TrackmeterError, match="mapping"):
+        load_config(path)
+    with pytest.raises(TrackmeterError, match="no such file"):
+        load_config(tmp_path / "absent.yaml")
+
+
+# --------------------------------------------------------------------------- layering
+
+
+def test_user_file_layers_over_defaults(tmp_path: Path) -> None:
+    path = _write(tmp_path, {"calibrate": {"subpix_window_px": 11}})
+    config = load_config(path)
+    assert config.calibrate.subpix_window_px == 11
+    # untouched keys of the same section and other sections keep their defaults
+    assert config.calibrate.reject_ratio == Config().calibrate.reject_ratio
+    assert config.measure == Config().measure
+    # overrides apply last
+    config = load_config(path, overrides={"calibrate": {"subpix_window_px": 7}})
+    assert config.calibrate.subpix_window_px == 7
+    # an empty user file is the defaults
+    (tmp_path / "empty.yaml").write_text("")
+    assert load_config(tmp_path / "empty.yaml") == Config()
+
+
+def test_int_is_accepted_for_float_and_config_is_frozen(tmp_path: Path) -> None:
+    config = load_config(_write(tmp_path, {"calibrate": {"reject_ratio": 3}}))
+    assert config.calibrate.reject_ratio == 3.0 and isinstance(config.calibrate.reject_ratio, float)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        config.calibrate.reject_ratio = 1.0  # type: ignore[misc]
+
+
+@dataclasses.dataclass(frozen=True)
+class Inner:
+    n: int = 1
+
+
+@dataclasses.dataclass(frozen=True)
+class Outer:
+    name: str = "x"
+    values: tuple[float, ...] = (1.0,)
+    inner: Inner = dataclasses.field(default_factory=Inner)
+
+
+def test_build_dataclass_is_generic() -> None:
+    built = build_dataclass(Outer, {"values": [1, 2.5], "inner": {"n": 4}}, source="m.yaml")
+    assert built == Outer("x", (1.0, 2.5), Inner(4))
+    with pytest.raises(TrackmeterError, match=r"m\.yaml: 'inner\.n'"):
+        build_dataclass(Outer, {"inner": {"n": "four"}}, source="m.yaml")
+    with pytest.raises(TrackmeterError, match=r"'values\[1\]'"):
+        build_dataclass(Outer, {"values": [1, "b"]}, source="m.yaml")

@@ -1,0 +1,225 @@
+"""Camera and stereo geometry (trackmeter.core.stereo), pinned to OpenCV and closed forms."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from trackmeter.core.stereo import Camera, Rectification, StereoRig, depth_sigma
+from trackmeter.data.rigfile import load_rig
+from trackmeter.errors import TrackmeterError
+
+RIGS = Path(__file__).resolve().parent.parent / "config" / "rigs"
+
+
+@pytest.fixture(scope="module")
+def wide_rig() -> StereoRig:
+    """The 4.8 mm preset: the strongest distortion of the presets."""
+    return load_rig(RIGS / "estec_4p8mm.yaml")
+
+
+def points_in_view(rig: StereoRig, n: int, seed: int, z_range: tuple[float, float] = (1.5, 8.0)) -> np.ndarray:
+    """Left-camera points (n,3) that project inside both images."""
+    rng = np.random.default_rng(seed)
+    out = []
+    while len(out) < n:
+        z = rng.uniform(*z_range)
+        uv = rng.uniform([40, 40], [rig.image_size[0] - 40, rig.image_size[1] - 40])
+        ray = np.linalg.solve(rig.left.K, [uv[0], uv[1], 1.0])
+        p = ray * z
+        l, r = rig.project(p)
+        if rig.left.contains(l, 5)[0] and rig.right.contains(r, 5)[0]:
+            out.append(p)
+    return np.array(out)
+
+
+# --------------------------------------------------------------------------- projection
+
+
+def test_project_matches_cv2(estec_rig: StereoRig) -> None:
+    p = points_in_view(estec_rig, 30, 0)
+    l, r = estec_rig.project(p)
+    expected_l, _ = cv2.projectPoints(p, np.zeros(3), np.zeros(3), estec_rig.left.K, estec_rig.left.dist)
+    rvec, _ = cv2.Rodrigues(estec_rig.R)
+    expected_r, _ = cv2.projectPoints(p, rvec, estec_rig.T, estec_rig.right.K, estec_rig.right.dist)
+    np.testing.assert_allclose(l, expected_l.reshape(-1, 2), atol=1e-9)
+    np.testing.assert_allclose(r, expected_r.reshape(-1, 2), atol=1e-9)
+
+
+def test_principal_point_projects_to_itself(estec_rig: StereoRig) -> None:
+    uv = estec_rig.left.project([[0.0, 0.0, 3.5]])
+    np.testing.assert_allclose(uv, [[estec_rig.left.K[0, 2], estec_rig.left.K[1, 2]]], atol=1e-12)
+
+
+def test_undistort_inverts_project(wide_rig: StereoRig) -> None:
+    p = points_in_view(wide_rig, 50, 1)
+    xy = wide_rig.left.undistort(wide_rig.left.project(p))
+    np.testing.assert_allclose(xy, p[:, :2] / p[:, 2:], atol=1e-9)
+
+
+def test_contains_uses_pixel_centre_convention() -> None:
+    cam = Camera(10, 8, np.array([[10.0, 0, 4.5], [0, 10, 3.5], [0, 0, 1]]))
+    inside = cam.contains([[-0.5, -0.5], [9.5, 7.5], [-0.51, 0], [0, 7.51]])
+    assert inside.tolist() == [True, True, False, False]
+
+
+# --------------------------------------------------------------------------- rectification
+
+
+@pytest.mark.parametrize("rig_name", ["estec_12mm", "estec_8mm", "estec_4p8mm"])
+def test_rectify_unrectify_round_trip(rig_name: str) -> None:
+    rig = load_rig(RIGS / f"{rig_name}.yaml")
+    rect = rig.rectification
+    rng = np.random.default_rng(2)
+    uv = rng.uniform([20, 20], [rig.image_size[0] - 20, rig.image_size[1] - 20], (200, 2))
+    for side in (0, 1):
+        back = rect.unrectify_points(rect.rectify_points(uv, side), side)
+        np.testing.assert_allclose(back, uv, atol=1e-6)
+
+
+def test_rectify_points_match_cv2_remap_maps(estec_rig: StereoRig) -> None:
+    """The rectified maps send a rectified pixel to the original pixel that rectify_points
+    sends back: the image warp and the point mapping agree."""
+    rect = estec_rig.rectification
+    (mx, my), _ = rect.maps
+    rows, cols = np.mgrid[50:450:40, 50:650:60]
+    uv_rect = np.column_stack([cols.ravel(), rows.ravel()]).astype(float)
+    uv_orig = np.column_stack([mx[rows, cols].ravel(), my[rows, cols].ravel()])
+    np.testing.assert_allclose(rect.rectify_points(uv_orig, 0), uv_rect, atol=2e-3)  # float32 maps
+
+
+def test_rectified_rows_are_equal(wide_rig: StereoRig, estec_rig: StereoRig) -> None:
+    for rig in (estec_rig, wide_rig):
+        p = points_in_view(rig, 50, 3)
+        l, r = rig.project(p)
+        rect = rig.rectification
+        np.testing.assert_allclose(rect.rectify_points(l, 0)[:, 1], rect.rectify_points(r, 1)[:, 1], atol=1e-6)
+
+
+def test_rectification_parameters(estec_rig: StereoRig) -> None:
+    rect = estec_rig.rectification
+    assert rect.baseline_m == pytest.approx(estec_rig.baseline_m, rel=1e-9)
+    assert rect.disparity_offset_px == pytest.approx(0.0, abs=1e-9)  # CALIB_ZERO_DISPARITY
+    np.testing.assert_allclose(rect.R1 @ rect.R1.T, np.eye(3), atol=1e-12)
+    # OpenCV's Q agrees with the triangulation: [X Y Z W] = Q [u v d 1]
+    uv, d = np.array([[300.0, 200.0]]), np.array([90.0])
+    X = rect.Q @ np.array([300.0, 200.0, 90.0, 1.0])
+    np.testing.assert_allclose(rect.triangulate(uv, d)[0] @ rect.R1.T, X[:3] / X[3], rtol=1e-12)
+
+
+# --------------------------------------------------------------------------- triangulation
+
+_RIG_CACHE: dict[str, StereoRig] = {}
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    st.floats(-0.4, 0.4), st.floats(-0.3, 0.3), st.floats(0.5, 20.0),
+    st.sampled_from(["estec_12mm", "estec_4p8mm"]),
+)
+def test_property_triangulate_project_round_trip(x: float, y: float, z: float, rig_name: str) -> None:
+    rig = _RIG_CACHE.setdefault(rig_name, load_rig(RIGS / f"{rig_name}.yaml"))
+    p = np.array([[x * z, y * z, z]])
+    rect = rig.rectification
+    uv, d = rect.project_rectified(p)
+    np.testing.assert_allclose(rect.triangulate(uv, d), p, atol=1e-9)
+
+
+def test_triangulate_from_original_pixels(wide_rig: StereoRig, estec_rig: StereoRig) -> None:
+    """The full path a measurement takes: distorted pixels in both images → rectify → disparity
+    → 3D, back to the point that produced them."""
+    for rig in (estec_rig, wide_rig):
+        p = points_in_view(rig, 50, 4)
+        l, r = rig.project(p)
+        rect = rig.rectification
+        lr, rr = rect.rectify_points(l, 0), rect.rectify_points(r, 1)
+        xyz = rect.triangulate(lr, lr[:, 0] - rr[:, 0])
+        # 1e-6 px of undistortion residual is 1e-6 px * z^2 / (f b) in depth
+        np.testing.assert_allclose(xyz, p, atol=1e-6)
+
+
+def test_triangulate_refuses_non_positive_disparity(estec_rig: StereoRig) -> None:
+    xyz = estec_rig.rectification.triangulate([[300.0, 200.0], [300.0, 200.0]], [0.0, -3.0])
+    assert np.all(np.isnan(xyz))
+
+
+# --------------------------------------------------------------------------- error propagation
+
+
+def test_point_covariance_matches_numerical_jacobian(estec_rig: StereoRig) -> None:
+    rect = estec_rig.rectification
+    p = points_in_view(estec_rig, 5, 5)
+    uv, d = rect.project_rectified(p)
+    s_uv, s_d = 0.2, 0.07
+    C = rect.point_covariance(uv, d, s_d, s_uv)
+    h = 1e-4
+    for i in range(len(p)):
+        J = np.zeros((3, 3))
+        for k, delta in enumerate(np.eye(3) * h):
+            plus = rect.triangulate(uv[i] + delta[:2], d[i] + delta[2])[0]
+            minus = rect.triangulate(uv[i] - delta[:2], d[i] - delta[2])[0]
+            J[:, k] = (plus - minus) / (2 * h)
+        expected = J @ np.diag([s_uv**2, s_uv**2, s_d**2]) @ J.T
+        np.testing.assert_allclose(C[i], expected, rtol=1e-6, atol=1e-16)
+    np.testing.assert_allclose(rect.point_sigma(uv, d, s_d, s_uv), np.sqrt(np.diagonal(C, axis1=1, axis2=2)))
+
+
+def test_depth_sigma_closed_form(estec_rig: StereoRig) -> None:
+    """Eq. 2 on the optical axis of the rectified frame: sigma_z = z² sigma_d / (f b)."""
+    rect = estec_rig.rectification
+    f, b = rect.focal_px, rect.baseline_m
+    for z in (1.0, 3.5, 10.0):
+        p_cam = rect.R1.T @ np.array([0.0, 0.0, z])
+        uv, d = rect.project_rectified(p_cam[None])
+        C = rect.point_covariance(uv, d, 0.1)
+        sigma_along_axis = np.sqrt(rect.R1[2] @ C[0] @ rect.R1[2])
+        assert sigma_along_axis == pytest.approx(z * z * 0.1 / (f * b), rel=1e-9)
+        assert depth_sigma(z, f, b, 0.1) == pytest.approx(z * z * 0.1 / (f * b), rel=1e-12)
+    # a parabola: doubling the range quadruples sigma
+    assert depth_sigma(7.0, f, b, 0.1) == pytest.approx(4 * depth_sigma(3.5, f, b, 0.1))
+
+
+def test_paper_figure_at_3p5_m() -> None:
+    """The paper's rig (f = 1152 px, b = 0.28 m) at 3.5 m with 0.1 px disparity sigma:
+    z² sigma_d / (f b) = 3.8 mm, the paper's 'about 4 mm at 3.5 m'."""
+    assert depth_sigma(3.5, 1152.0, 0.28, 0.1) == pytest.approx(3.80e-3, abs=0.01e-3)
+
+
+def test_preset_rig_focal_and_baseline(estec_rig: StereoRig) -> None:
+    assert estec_rig.left.focal_px == pytest.approx(1152.0)
+    assert estec_rig.baseline_m == pytest.approx(0.28)
+    assert estec_rig.rectification.focal_px == pytest.approx(1152.0, rel=0.05)
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def test_camera_and_rig_refuse_bad_values() -> None:
+    K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    with pytest.raises(TrackmeterError):
+        Camera(0, 480, K)
+    with pytest.raises(TrackmeterError):
+        Camera(640, 480, K[:2])
+    with pytest.raises(TrackmeterError):
+        Camera(640, 480, K, np.zeros(3))
+    with pytest.raises(TrackmeterError):
+        Camera(640, 480, K * np.array([[-1], [1], [1]]))
+    cam = Camera(640, 480, K)
+    with pytest.raises(TrackmeterError, match="rotation"):
+        StereoRig(cam, cam, np.diag([1.0, 1.0, -1.0]), [-0.1, 0, 0])
+    with pytest.raises(TrackmeterError, match="baseline"):
+        StereoRig(cam, cam, np.eye(3), [0, 0, 0])
+    with pytest.raises(TrackmeterError, match="differ in size"):
+        StereoRig(cam, Camera(320, 240, K), np.eye(3), [-0.1, 0, 0])
+
+
+def test_rectification_of_alpha_one_keeps_geometry(estec_rig: StereoRig) -> None:
+    rect = Rectification.of(estec_rig, alpha=1.0)
+    p = points_in_view(estec_rig, 10, 6)
+    uv, d = rect.project_rectified(p)
+    np.testing.assert_allclose(rect.triangulate(uv, d), p, atol=1e-9)

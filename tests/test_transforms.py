@@ -1,0 +1,313 @@
+"""Rotations, rigid transforms and the paper's eqs. 14-17 (trackmeter.core.transforms).
+
+References: scipy's Rotation (scalar-first), numerical derivatives, closed forms.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+from scipy.spatial.transform import Rotation
+
+from trackmeter.core import transforms as tf
+from trackmeter.errors import TrackmeterError
+
+finite = st.floats(-1.0, 1.0, allow_nan=False, allow_infinity=False)
+quats = arrays(np.float64, 4, elements=finite).filter(lambda q: np.linalg.norm(q) > 0.1).map(lambda q: q / np.linalg.norm(q))
+rotvecs = arrays(np.float64, 3, elements=st.floats(-3.0, 3.0, allow_nan=False))
+vectors = arrays(np.float64, 3, elements=st.floats(-10.0, 10.0, allow_nan=False))
+
+
+def random_quats(n: int, seed: int = 0) -> np.ndarray:
+    return Rotation.random(n, rng=np.random.default_rng(seed)).as_quat(scalar_first=True)
+
+
+# --------------------------------------------------------------------------- quaternion <-> matrix
+
+
+def test_quat_matrix_match_scipy() -> None:
+    q = random_quats(50)
+    np.testing.assert_allclose(tf.quat_wxyz_to_matrix(q), Rotation.from_quat(q, scalar_first=True).as_matrix(), atol=1e-14)
+    # scalar-first: the quaternion (cos a/2, 0, 0, sin a/2) is a rotation about z
+    a = 0.3
+    Rz = tf.quat_wxyz_to_matrix([np.cos(a / 2), 0, 0, np.sin(a / 2)])
+    np.testing.assert_allclose(Rz, [[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]], atol=1e-15)
+
+
+def test_matrix_to_quat_is_canonical() -> None:
+    q = random_quats(50, 1)
+    back = tf.matrix_to_quat_wxyz(tf.quat_wxyz_to_matrix(q))
+    assert np.all(back[:, 0] >= 0)
+    np.testing.assert_allclose(back, q * np.sign(q[:, :1]), atol=1e-12)
+
+
+@settings(max_examples=100, deadline=None)
+@given(quats)
+def test_property_quat_matrix_round_trip(q: np.ndarray) -> None:
+    back = tf.matrix_to_quat_wxyz(tf.quat_wxyz_to_matrix(q))
+    assert abs(abs(back @ q) - 1.0) < 1e-9  # same attitude up to sign
+
+
+@settings(max_examples=100, deadline=None)
+@given(rotvecs)
+def test_property_exp_log_round_trip(rv: np.ndarray) -> None:
+    """exp (rotation vector → rotation) then log recovers the vector inside the ball |v| < pi."""
+    angle = np.linalg.norm(rv)
+    if angle > np.pi - 1e-6:
+        rv = rv * (np.pi - 1e-3) / angle
+    q = Rotation.from_rotvec(rv).as_quat(scalar_first=True)
+    R = tf.quat_wxyz_to_matrix(q)
+    back = Rotation.from_quat(tf.matrix_to_quat_wxyz(R), scalar_first=True).as_rotvec()
+    np.testing.assert_allclose(back, rv, atol=1e-9)
+
+
+def test_quat_multiply_matches_scipy_composition() -> None:
+    q1, q2 = random_quats(20, 2), random_quats(20, 3)
+    expected = (Rotation.from_quat(q1, scalar_first=True) * Rotation.from_quat(q2, scalar_first=True)).as_quat(
+        scalar_first=True
+    )
+    prod = tf.quat_multiply(q1, q2)
+    np.testing.assert_allclose(prod * np.sign(prod[:, :1] * expected[:, :1]), expected, atol=1e-12)
+    np.testing.assert_allclose(tf.quat_multiply(q1, tf.quat_conjugate(q1)), np.tile([1.0, 0, 0, 0], (20, 1)), atol=1e-12)
+
+
+# --------------------------------------------------------------------------- eqs. 14-15
+
+
+def _rotating(q0: np.ndarray, omega_body: np.ndarray, t: float) -> np.ndarray:
+    """Attitude at t under a constant body-frame rate: q(t) = q0 ⊗ exp(omega t)."""
+    r = Rotation.from_quat(q0, scalar_first=True) * Rotation.from_rotvec(omega_body * t)
+    return r.as_quat(scalar_first=True)
+
+
+def _continuous(q: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    return q if q @ ref >= 0 else -q
+
+
+def test_eq15_quat_derivative_matches_numerical_derivative() -> None:
+    rng = np.random.default_rng(4)
+    for q0 in random_quats(10, 5):
+        omega = rng.normal(0, 1.0, 3)
+        h = 1e-6
+        qp = _continuous(_rotating(q0, omega, h), q0)
+        qm = _continuous(_rotating(q0, omega, -h), q0)
+        numeric = (qp - qm) / (2 * h)
+        np.testing.assert_allclose(tf.quat_derivative(q0, omega), numeric, atol=1e-8)
+
+
+def test_eq14_is_the_inverse_of_eq15() -> None:
+    q = random_quats(30, 6)
+    omega = np.random.default_rng(7).normal(0, 2.0, (30, 3))
+    np.testing.assert_allclose(tf.omega_body_from_quat_rate(q, tf.quat_derivative(q, omega)), omega, atol=1e-12)
+    # the rate of a unit quaternion is orthogonal to it (|q| stays 1)
+    np.testing.assert_allclose(np.sum(q * tf.quat_derivative(q, omega), axis=1), 0.0, atol=1e-12)
+
+
+def test_eq14_from_numerical_rate() -> None:
+    q0 = random_quats(1, 8)[0]
+    omega = np.array([0.3, -0.7, 1.1])
+    h = 1e-6
+    rate = (_continuous(_rotating(q0, omega, h), q0) - _continuous(_rotating(q0, omega, -h), q0)) / (2 * h)
+    np.testing.assert_allclose(tf.omega_body_from_quat_rate(q0, rate), omega, atol=1e-7)
+
+
+def test_omega_body_between_constant_rate() -> None:
+    q0 = random_quats(1, 9)[0]
+    omega = np.array([0.2, -0.5, 0.9])
+    dt = 0.4
+    q1 = _rotating(q0, omega, dt)
+    np.testing.assert_allclose(tf.omega_body_between(q0, q1, dt), omega, atol=1e-12)
+    np.testing.assert_allclose(tf.omega_body_between(-q0, q1, dt), omega, atol=1e-12)
+    np.testing.assert_allclose(tf.omega_body_between(q0, -q1, dt), omega, atol=1e-12)
+    with pytest.raises(ValueError):
+        tf.omega_body_between(q0, q1, 0.0)
+
+
+def test_omega_body_is_in_the_body_frame() -> None:
+    """A rotation about the body's x axis, with the body turned 90 deg about world z,
+    is a rotation about world y: omega_body stays (w, 0, 0)."""
+    q0 = Rotation.from_euler("z", 90, degrees=True).as_quat(scalar_first=True)
+    q1 = (Rotation.from_quat(q0, scalar_first=True) * Rotation.from_euler("x", 10, degrees=True)).as_quat(scalar_first=True)
+    np.testing.assert_allclose(tf.omega_body_between(q0, q1, 1.0), [np.radians(10), 0, 0], atol=1e-12)
+    world = Rotation.from_quat(q1, scalar_first=True) * Rotation.from_quat(q0, scalar_first=True).inv()
+    np.testing.assert_allclose(world.as_rotvec(), [0, np.radians(10), 0], atol=1e-12)
+
+
+# --------------------------------------------------------------------------- eqs. 16-17
+
+
+def test_attitude_error_known_rotation() -> None:
+    q_true = random_quats(1, 10)[0]
+    err_cam = np.array([0.01, -0.02, 0.005])
+    q_est = (Rotation.from_rotvec(err_cam) * Rotation.from_quat(q_true, scalar_first=True)).as_quat(scalar_first=True)
+    np.testing.assert_allclose(tf.attitude_error_components(q_est, q_true), err_cam, atol=1e-14)
+    assert tf.attitude_error_angle(q_est, q_true) == pytest.approx(np.linalg.norm(err_cam), abs=1e-14)
+
+
+def test_attitude_error_closed_form_and_sign_insensitive() -> None:
+    q_est, q_true = random_quats(40, 11), random_quats(40, 12)
+    angle = tf.attitude_error_angle(q_est, q_true)
+    closed = 2 * np.arccos(np.clip(np.abs(np.sum(q_est * q_true, axis=1)), 0, 1))
+    np.testing.assert_allclose(angle, closed, atol=1e-7)
+    np.testing.assert_allclose(tf.attitude_error_angle(-q_est, q_true), angle, atol=1e-12)
+    np.testing.assert_allclose(tf.attitude_error_components(q_est, -q_true), tf.attitude_error_components(q_est, q_true), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(tf.attitude_error_components(q_est, q_true), axis=1), angle, atol=1e-15)
+
+
+def test_attitude_error_small_angles_keep_precision() -> None:
+    q_true = np.array([1.0, 0, 0, 0])
+    q_est = Rotation.from_rotvec([1e-9, 0, 0]).as_quat(scalar_first=True)
+    assert tf.attitude_error_angle(q_est, q_true) == pytest.approx(1e-9, rel=1e-6)
+
+
+def test_attitude_error_180_degrees() -> None:
+    q_true = random_quats(1, 13)[0]
+    q_est = (Rotation.from_rotvec([0, np.pi, 0]) * Rotation.from_quat(q_true, scalar_first=True)).as_quat(scalar_first=True)
+    assert tf.attitude_error_angle(q_est, q_true) == pytest.approx(np.pi, abs=1e-7)
+    comp = tf.attitude_error_components(q_est, q_true)
+    assert abs(abs(comp[1]) - np.pi) < 1e-7 and np.allclose(comp[[0, 2]], 0, atol=1e-7)
+    assert tf.attitude_error_angle(q_true, q_true) == pytest.approx(0.0, abs=1e-15)
+
+
+# --------------------------------------------------------------------------- rigid transforms
+
+
+@settings(max_examples=50, deadline=None)
+@given(quats, vectors, arrays(np.float64, (5, 3), elements=st.floats(-10, 10, allow_nan=False)))
+def test_property_invert_apply_round_trip(q: np.ndarray, t: np.ndarray, points: np.ndarray) -> None:
+    T = tf.transform_from_pose(t, q)
+    p_a = tf.apply_transform(T, points)
+    np.testing.assert_allclose(tf.apply_transform(tf.invert_transform(T), p_a), points, atol=1e-9)
+    np.testing.assert_allclose(tf.invert_transform(T), np.linalg.inv(T), atol=1e-9)
+
+
+def test_transform_chain_cancels() -> None:
+    q = random_quats(2, 14)
+    T_a_b = tf.transform_from_pose([1, 2, 3], q[0])
+    T_b_c = tf.transform_from_pose([-1, 0.5, 2], q[1])
+    p_c = np.array([[0.1, 0.2, 0.3]])
+    np.testing.assert_allclose(tf.apply_transform(T_a_b @ T_b_c, p_c), tf.apply_transform(T_a_b, tf.apply_transform(T_b_c, p_c)), atol=1e-12)
+    # position is the origin of b in a
+    np.testing.assert_allclose(tf.apply_transform(T_a_b, np.zeros(3)), [1, 2, 3])
+
+
+# --------------------------------------------------------------------------- absolute orientation
+
+
+def test_absolute_orientation_recovers_exact_transform() -> None:
+    rng = np.random.default_rng(15)
+    for seed in range(5):
+        R = Rotation.random(rng=rng).as_matrix()
+        t = rng.normal(0, 2, 3)
+        b = rng.normal(0, 1, (6, 3))
+        a = b @ R.T + t
+        R_est, t_est = tf.absolute_orientation(a, b)
+        np.testing.assert_allclose(R_est, R, atol=1e-12)
+        np.testing.assert_allclose(t_est, t, atol=1e-12)
+
+
+def test_weighted_absolute_orientation_matches_scipy_align_vectors() -> None:
+    rng = np.random.default_rng(16)
+    R = Rotation.random(rng=rng)
+    b = rng.normal(0, 1, (10, 3))
+    a = R.apply(b) + np.array([0.5, -1, 3]) + rng.normal(0, 0.05, (10, 3))
+    w = rng.uniform(0.1, 3.0, 10)
+    R_est, t_est = tf.absolute_orientation(a, b, w)
+    ca, cb = w @ a / w.sum(), w @ b / w.sum()
+    ref, _ = Rotation.align_vectors(a - ca, b - cb, weights=w)
+    np.testing.assert_allclose(R_est, ref.as_matrix(), atol=1e-10)
+    np.testing.assert_allclose(t_est, ca - ref.apply(cb), atol=1e-10)
+    # weights matter: unweighted differs on noisy data
+    R_unw, _ = tf.absolute_orientation(a, b)
+    assert not np.allclose(R_unw, R_est, atol=1e-6)
+
+
+def test_zero_weights_ignore_points() -> None:
+    rng = np.random.default_rng(17)
+    R = Rotation.random(rng=rng).as_matrix()
+    b = rng.normal(0, 1, (5, 3))
+    a = b @ R.T
+    a[4] += 100.0  # a wild outlier with zero weight
+    R_est, t_est = tf.absolute_orientation(a, b, np.array([1, 1, 1, 1, 0.0]))
+    np.testing.assert_allclose(R_est, R, atol=1e-12)
+    np.testing.assert_allclose(t_est, 0, atol=1e-12)
+
+
+def test_reflection_case_gives_a_proper_rotation() -> None:
+    """Point sets related by a mirror: the best proper rotation (Umeyama's fix), det +1."""
+    rng = np.random.default_rng(18)
+    b = rng.normal(0, 1, (8, 3))
+    a = b * np.array([1, 1, -1])
+    R_est, _ = tf.absolute_orientation(a, b)
+    assert np.linalg.det(R_est) == pytest.approx(1.0)
+    np.testing.assert_allclose(R_est @ R_est.T, np.eye(3), atol=1e-12)
+    ref, _ = Rotation.align_vectors(a - a.mean(0), b - b.mean(0))
+    np.testing.assert_allclose(R_est, ref.as_matrix(), atol=1e-9)
+
+
+def test_coplanar_points_are_enough() -> None:
+    rng = np.random.default_rng(19)
+    R = Rotation.random(rng=rng).as_matrix()
+    b = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0.0]])
+    R_est, _ = tf.absolute_orientation(b @ R.T, b)
+    np.testing.assert_allclose(R_est, R, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "points",
+    [np.zeros((2, 3)) + [[0, 0, 0], [1, 0, 0]], np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0.0]])],
+    ids=["two_points", "collinear"],
+)
+def test_absolute_orientation_refuses_degenerate_sets(points: np.ndarray) -> None:
+    with pytest.raises(TrackmeterError):
+        tf.absolute_orientation(points, points)
+
+
+def test_absolute_orientation_refuses_bad_shapes_and_weights() -> None:
+    a = np.random.default_rng(0).normal(size=(4, 3))
+    with pytest.raises(TrackmeterError):
+        tf.absolute_orientation(a, a[:3])
+    with pytest.raises(TrackmeterError):
+        tf.absolute_orientation(a, a, np.array([1, 1, -1, 1.0]))
+    with pytest.raises(TrackmeterError, match="at least 3"):
+        tf.absolute_orientation(a, a, np.array([1, 1, 0, 0.0]))
+
+
+# --------------------------------------------------------------------------- three-point frame
+
+
+def test_frame_from_three_points_definition() -> None:
+    p1, p2, p3 = np.array([1.0, 2, 3]), np.array([2.0, 2, 3]), np.array([1.5, 3, 3])
+    R, origin = tf.frame_from_three_points(p1, p2, p3)
+    np.testing.assert_allclose(origin, p1)
+    np.testing.assert_allclose(R, np.eye(3), atol=1e-15)  # x toward p2, p3 at +y, z = x × y
+
+
+def test_frame_from_three_points_properties() -> None:
+    rng = np.random.default_rng(20)
+    for _ in range(10):
+        p1, p2, p3 = rng.normal(0, 1, (3, 3))
+        R, origin = tf.frame_from_three_points(p1, p2, p3)
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(R) == pytest.approx(1.0)
+        # the points in the body frame: p1 at 0, p2 on +x, p3 in the xy-plane with y > 0
+        body = (np.array([p1, p2, p3]) - origin) @ R
+        np.testing.assert_allclose(body[0], 0, atol=1e-12)
+        assert body[1, 0] > 0 and abs(body[1, 1]) < 1e-12 and abs(body[1, 2]) < 1e-12
+        assert body[2, 1] > 0 and abs(body[2, 2]) < 1e-12
+        # invariant: moving all three points rigidly moves the frame with them
+        Q = Rotation.random(rng=rng).as_matrix()
+        t = rng.normal(0, 1, 3)
+        R2, o2 = tf.frame_from_three_points(Q @ p1 + t, Q @ p2 + t, Q @ p3 + t)
+        np.testing.assert_allclose(R2, Q @ R, atol=1e-12)
+        np.testing.assert_allclose(o2, Q @ p1 + t, atol=1e-12)
+
+
+def test_frame_from_three_points_refuses_collinear() -> None:
+    with pytest.raises(TrackmeterError):
+        tf.frame_from_three_points([0, 0, 0], [1, 0, 0], [2, 0, 0])
+    with pytest.raises(TrackmeterError):
+        tf.frame_from_three_points([0, 0, 0], [0, 0, 0], [0, 1, 0])
