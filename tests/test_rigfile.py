@@ -1,0 +1,150 @@
+"""Rig files (trackmeter.data.rigfile): our FileStorage YAML, OpenCV's stereo sample pair, presets."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from trackmeter.core.stereo import Camera, StereoRig
+from trackmeter.data.rigfile import load_rig, save_rig
+from trackmeter.errors import TrackmeterError
+from trackmeter.paths import RIGS_DIR
+
+
+def _rig(n_dist: int = 5, rms: float | None = 0.123) -> StereoRig:
+    rng = np.random.default_rng(0)
+    K1 = np.array([[801.5, 0, 330.25], [0, 799.75, 241.5], [0, 0, 1]])
+    K2 = np.array([[805.0, 0, 318.0], [0, 804.0, 236.0], [0, 0, 1]])
+    R = Rotation.from_rotvec([0.01, -0.02, 0.005]).as_matrix()
+    return StereoRig(
+        Camera(640, 480, K1, rng.normal(0, 0.05, n_dist)),
+        Camera(640, 480, K2, rng.normal(0, 0.05, n_dist)),
+        R,
+        np.array([-0.2801, 0.0012, -0.0034]),
+        rms_px=rms,
+    )
+
+
+@pytest.mark.parametrize("n_dist", [4, 5, 8, 14])
+def test_save_load_round_trip(tmp_path: Path, n_dist: int) -> None:
+    rig = _rig(n_dist)
+    path = save_rig(rig, tmp_path / "deep" / "rig.yaml")
+    back = load_rig(path)
+    for a, b in ((rig.left, back.left), (rig.right, back.right)):
+        assert (a.width, a.height) == (b.width, b.height)
+        np.testing.assert_array_equal(a.K, b.K)
+        np.testing.assert_array_equal(a.dist, b.dist)
+    np.testing.assert_array_equal(rig.R, back.R)
+    np.testing.assert_array_equal(rig.T, back.T)
+    assert back.rms_px == rig.rms_px
+    assert sorted(p.name for p in path.parent.iterdir()) == ["rig.yaml"]  # no temp file left
+
+
+def test_round_trip_without_rms_and_with_extras(tmp_path: Path) -> None:
+    rig = _rig(rms=None)
+    path = save_rig(rig, tmp_path / "rig.yaml", {"E": np.eye(3), "std_baseline": 0.001})
+    assert load_rig(path).rms_px is None
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    try:
+        np.testing.assert_array_equal(fs.getNode("E").mat(), np.eye(3))
+        assert fs.getNode("std_baseline").real() == 0.001
+        # the keys DESIGN.md names, readable by any OpenCV program
+        for key in ("image_width", "image_height", "K1", "D1", "K2", "D2", "R", "T"):
+            assert not fs.getNode(key).empty(), key
+        assert fs.getNode("T").mat().shape == (3, 1)
+    finally:
+        fs.release()
+
+
+def test_failed_save_leaves_old_file_intact(tmp_path: Path) -> None:
+    path = save_rig(_rig(), tmp_path / "rig.yaml")
+    before = path.read_bytes()
+    with pytest.raises(Exception):
+        save_rig(_rig(), path, {"bad": "not a number"})  # type: ignore[dict-item]
+    assert path.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rig.yaml"]
+
+
+# --------------------------------------------------------------------------- OpenCV's sample pair
+
+
+def _write_opencv_pair(folder: Path, rig: StereoRig) -> None:
+    """Write intrinsics.yml / extrinsics.yml as OpenCV's samples/cpp/stereo_calib.cpp does:
+    ``fs << "M1" << cameraMatrix[0] << "D1" << distCoeffs[0] << "M2" << ... << "D2" << ...``
+    then ``fs << "R" << R << "T" << T << "R1" << R1 << "R2" << R2 << "P1" << P1 << "P2" << P2 << "Q" << Q``.
+    """
+    R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(
+        rig.left.K, rig.left.dist, rig.right.K, rig.right.dist, rig.image_size, rig.R, rig.T.reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY, alpha=1
+    )
+    fs = cv2.FileStorage(str(folder / "intrinsics.yml"), cv2.FILE_STORAGE_WRITE)
+    fs.write("M1", rig.left.K)
+    fs.write("D1", rig.left.dist.reshape(1, -1))
+    fs.write("M2", rig.right.K)
+    fs.write("D2", rig.right.dist.reshape(1, -1))
+    fs.release()
+    fs = cv2.FileStorage(str(folder / "extrinsics.yml"), cv2.FILE_STORAGE_WRITE)
+    for key, value in (("R", rig.R), ("T", rig.T.reshape(3, 1)), ("R1", R1), ("R2", R2), ("P1", P1), ("P2", P2), ("Q", Q)):
+        fs.write(key, value)
+    fs.release()
+
+
+@pytest.mark.parametrize("which", ["intrinsics.yml", "extrinsics.yml"])
+def test_reads_opencv_stereo_sample_pair(tmp_path: Path, which: str) -> None:
+    rig = _rig(14, rms=None)  # stereo_calib.cpp's rational model: OpenCV writes 14 coefficients
+    _write_opencv_pair(tmp_path, rig)
+    back = load_rig(tmp_path / which, image_size=(640, 480))
+    np.testing.assert_array_equal(back.left.K, rig.left.K)
+    np.testing.assert_array_equal(back.right.dist, rig.right.dist)
+    np.testing.assert_array_equal(back.R, rig.R)
+    np.testing.assert_array_equal(back.T, rig.T)
+    assert back.image_size == (640, 480)
+
+
+def test_opencv_pair_needs_image_size_and_both_files(tmp_path: Path) -> None:
+    _write_opencv_pair(tmp_path, _rig())
+    with pytest.raises(TrackmeterError, match="image size"):
+        load_rig(tmp_path / "intrinsics.yml")
+    (tmp_path / "extrinsics.yml").unlink()
+    with pytest.raises(TrackmeterError, match="extrinsics.yml"):
+        load_rig(tmp_path / "intrinsics.yml", image_size=(640, 480))
+
+
+# --------------------------------------------------------------------------- presets
+
+
+PAPER_LENS_MM = {"estec_12mm": 12.0, "estec_8mm": 8.0, "estec_4p8mm": 4.8}
+
+
+@pytest.mark.parametrize("name", sorted(PAPER_LENS_MM))
+def test_presets_load_with_the_papers_geometry(name: str) -> None:
+    rig = load_rig(RIGS_DIR / f"{name}.yaml")
+    assert rig.image_size == (726, 512)
+    assert rig.baseline_m == pytest.approx(0.280, abs=1e-9)
+    assert rig.T[0] < 0  # right camera at +x of the left one
+    # the same sensor behind each lens: focal length in px scales with the lens's mm
+    assert rig.left.focal_px == pytest.approx(1152.0 * PAPER_LENS_MM[name] / 12.0, rel=1e-9)
+    assert rig.right.focal_px == pytest.approx(rig.left.focal_px)
+    # rectifies to usable geometry
+    assert rig.rectification.baseline_m == pytest.approx(0.280, rel=1e-9)
+
+
+def test_12mm_preset_has_35_by_25_degree_field_of_view() -> None:
+    rig = load_rig(RIGS_DIR / "estec_12mm.yaml")
+    fovx, fovy, *_ = cv2.calibrationMatrixValues(rig.left.K, rig.image_size, 0.0, 0.0)
+    assert fovx == pytest.approx(35.0, abs=0.5)
+    assert fovy == pytest.approx(25.0, abs=0.5)
+    # closed form 2 atan(w / 2f) (OpenCV splits the width at cx, half a pixel off centre)
+    assert 2 * np.degrees(np.arctan(726 / 2 / 1152.0)) == pytest.approx(fovx, abs=1e-3)
+
+
+def test_wider_lenses_have_wider_fields() -> None:
+    fov = {
+        name: cv2.calibrationMatrixValues(load_rig(RIGS_DIR / f"{name}.yaml").left.K, (726, 512), 0.0, 0.0)[0]
+        for name in PAPER_LENS_MM
+    }
+    assert fov["estec_12mm"] < fov["estec_8mm"] < fov["estec_4p8mm"]
+    assert fov["estec_8mm"] == pytest.approx(2 * np.degrees(np.arctan(363 / 768)), abs=1e-3)
