@@ -128,6 +128,14 @@ def test_view_without_corners_is_rejected_with_reason(corners: tuple[list, list]
     assert len(res.used_views) == 12
 
 
+def test_corners_reported_from_the_opposite_end_are_reordered(corners: tuple[list, list], result: cal.StereoCalibration) -> None:
+    right = list(corners[1])
+    right[3] = right[3][::-1].copy()
+    res = cal.calibrate_stereo(corners[0], right, PATTERN, 1.0, SIZE)
+    assert res.rejected == ()
+    assert res.rms_px == pytest.approx(result.rms_px, rel=1e-9)
+
+
 def test_too_few_views_is_an_error(corners: tuple[list, list]) -> None:
     left = [c if i < 4 else None for i, c in enumerate(corners[0])]
     with pytest.raises(TrackmeterError, match="only 4 of 13"):

@@ -17,6 +17,13 @@ from __future__ import annotations
 
 import argparse
 import math
+from pathlib import Path
+from typing import TYPE_CHECKING, Sequence
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from trackmeter.core.calibration import StereoCalibration
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -82,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def format_report(result, pairs, square: float, out_path) -> str:  # type: ignore[no-untyped-def]
+def format_report(result: StereoCalibration, pairs: Sequence[tuple[Path, Path]], square: float, out_path: Path) -> str:
     """The human-readable summary printed by the command."""
     import numpy as np
 
@@ -129,7 +136,7 @@ def format_report(result, pairs, square: float, out_path) -> str:  # type: ignor
     return "\n".join(lines)
 
 
-def _rodrigues(R):  # type: ignore[no-untyped-def]
+def _rodrigues(R: "np.ndarray") -> "np.ndarray":
     from scipy.spatial.transform import Rotation
 
     return Rotation.from_matrix(R).as_rotvec()

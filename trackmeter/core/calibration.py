@@ -249,6 +249,19 @@ class StereoCalibration:
     rectification: RectificationCheck
 
 
+def match_corner_order(uv_left: NDArray[np.float32], uv_right: NDArray[np.float32]) -> NDArray[np.float32]:
+    """The right image's corners in the left image's order.
+
+    ``findChessboardCorners`` may report a board's corners starting from the opposite corner
+    in the two images (a 180-degree ambiguity of the pattern). In a side-by-side rig the board
+    appears with about the same orientation in both images, so when the first-to-last corner
+    directions point opposite ways, the right list is reversed.
+    """
+    d_left = uv_left[-1] - uv_left[0]
+    d_right = uv_right[-1] - uv_right[0]
+    return uv_right[::-1].copy() if float(d_left @ d_right) < 0 else uv_right
+
+
 def find_outlier_view(per_view_rms_px: ArrayLike, params: CalibrationParams = CalibrationParams()) -> tuple[int, str] | None:
     """The worst view if it is an outlier, as ``(position, reason)``, else None.
 
@@ -368,7 +381,7 @@ def calibrate_stereo(
             f"{len(uv_left)} pairs; at least {params.min_views} are needed"
         )
     L = {i: np.asarray(uv_left[i], np.float32).reshape(-1, 2) for i in used}
-    Rr = {i: np.asarray(uv_right[i], np.float32).reshape(-1, 2) for i in used}
+    Rr = {i: match_corner_order(L[i], np.asarray(uv_right[i], np.float32).reshape(-1, 2)) for i in used}
 
     while True:
         obj = [board] * len(used)
