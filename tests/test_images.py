@@ -68,6 +68,8 @@ def test_expand_globs_sorts_naturally(tmp_path: Path) -> None:
     assert len(expand_globs(files)) == 3
     with pytest.raises(TrackmeterError, match="no images match"):
         expand_globs(str(tmp_path / "none*.png"))
+    (odd,) = _touch(tmp_path, "shot[1].png")
+    assert expand_globs(str(odd)) == [odd]
 
 
 def test_pairing_by_number_and_by_order(tmp_path: Path) -> None:

@@ -84,8 +84,11 @@ def expand_globs(patterns: str | Iterable[str], what: str = "images") -> list[Pa
         patterns = [patterns]
     found: dict[Path, None] = {}
     for pattern in patterns:
-        matches = [Path(p) for p in glob.glob(str(Path(pattern).expanduser()))]
+        literal = Path(pattern).expanduser()
+        matches = [Path(p) for p in glob.glob(str(literal))]
         matches = [p for p in matches if p.is_file()]
+        if not matches and literal.is_file():  # a file name with glob characters such as '['
+            matches = [literal]
         if not matches:
             raise TrackmeterError(f"no {what} match {pattern!r}")
         for p in matches:
