@@ -1,0 +1,542 @@
+"""The operator console: a viser server over a running :class:`~trackmeter.pipeline.pipeline.Pipeline`.
+
+Threads (DESIGN.md section 4 and 8):
+
+- viser's callbacks (a thread pool) only turn a click or a widget change into a pipeline
+  :class:`~trackmeter.pipeline.snapshot.Command` and remember its reply future;
+- the tracking thread calls :meth:`Console._on_snapshot` per snapshot, which only appends the
+  pose/error rows of the live plots (a deque append);
+- the publisher thread (:meth:`Console._publish_loop`) reads the newest snapshot at
+  ``publish_hz``, draws the overlays into the left image, JPEG-encodes it once for every
+  client, and pushes image, 3D scene, numbers and plots under ``server.atomic()``. It also
+  turns finished command replies into notifications for the browser that sent them.
+
+Everything the console shows lives in viser's shared scene and GUI state, so several browsers
+see the same thing and a browser that connects late gets the current state at once.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from concurrent.futures import Future
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import viser
+import viser.uplot
+from scipy.spatial.transform import Rotation
+
+from console.overlay import draw_overlays, nearest_target, ray_to_pixel, to_rgb
+from console.series import PLOTS, PlotData
+from trackmeter.core.stereo import StereoRig
+from trackmeter.pipeline.pipeline import Pipeline
+from trackmeter.pipeline.snapshot import (
+    AcquireModel,
+    ClearTargets,
+    Command,
+    CommandReply,
+    LoadModel,
+    RemoveNearest,
+    RestartSource,
+    SelectPoint,
+    SetAuto,
+    SetCase,
+    SetFilterCutoff,
+    SetPaused,
+    SetRecording,
+    Snapshot,
+    StepOnce,
+)
+
+log = logging.getLogger(__name__)
+
+#: Scene units per image pixel of the image planes (726 px → 7.26 units).
+UNITS_PER_PX = 0.01
+#: Where the 3D view (the left camera frame) sits in the scene, left of the image.
+SCENE3D_OFFSET = (-11.0, 0.0, 0.0)
+AUTO_METHODS = ("gabor", "centroid")
+SERIES_COLOURS = ("#e6194b", "#3cb44b", "#4363d8", "#111111")
+TRAIL_FRAMES = 12
+
+
+def _wxyz(R: np.ndarray) -> tuple[float, float, float, float]:
+    q = Rotation.from_matrix(R).as_quat(scalar_first=True)
+    return tuple(float(x) for x in q)  # type: ignore[return-value]
+
+
+class Console:
+    """Builds the scene and GUI on ``server`` and keeps them in step with ``pipeline``.
+
+    Args:
+        server: a started viser server.
+        pipeline: the running pipeline (the console only submits commands and reads snapshots).
+        rig: the stereo rig (frustums, image size); defaults to ``pipeline.rig``.
+        mockup_mesh: ``(vertices (V,3) body m, faces (F,3), colours (F,3) or (V,3) uint8)`` of the
+            mock-up, drawn at the estimated pose (and as a ghost at the true pose).
+        publish_hz: UI update rate (images, scene, numbers).
+        plot_every: update the plots every Nth publish (they carry ~1000 points each).
+        jpeg_quality: JPEG quality of the image planes.
+        record_root: default parent folder of recordings started from the UI.
+        patch_px: patch side drawn around each target, px.
+    """
+
+    def __init__(
+        self,
+        server: viser.ViserServer,
+        pipeline: Pipeline,
+        *,
+        rig: StereoRig | None = None,
+        mockup_mesh: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+        source_label: str = "",
+        publish_hz: float = 12.0,
+        plot_every: int = 3,
+        jpeg_quality: int = 85,
+        record_root: str | Path = "runs",
+        patch_px: int = 8,
+    ) -> None:
+        self.server = server
+        self.pipeline = pipeline
+        self.rig = rig if rig is not None else pipeline.rig
+        self.mockup_mesh = mockup_mesh
+        self.source_label = source_label
+        self.publish_hz = float(publish_hz)
+        self.plot_every = max(1, int(plot_every))
+        self.jpeg_quality = int(jpeg_quality)
+        self.record_root = Path(record_root)
+        self.patch_px = patch_px
+        self.plots = PlotData()
+        self._trails: dict[str, deque[tuple[float, float]]] = {}
+        self._pending: deque[tuple[Future[CommandReply], Any, str]] = deque()
+        self._pending_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._unsubscribe: Any = None
+        self._image_size: tuple[int, int] | None = self.rig.image_size if self.rig is not None else None
+        # Observability for tests and benchmarks (read-only from outside).
+        self.images_pushed = 0
+        self.last_pushed_sequence = 0
+        self.last_pushed_target_ids: tuple[str, ...] = ()
+        self.last_pushed_time = 0.0
+        self.notifications: deque[tuple[str, str]] = deque(maxlen=50)
+        self._last_frame_index: int | None = None
+        self._plot_version: dict[str, int] = {}
+        self._build_scene()
+        self._build_gui()
+        server.on_client_connect(self._on_connect)
+
+    # ------------------------------------------------------------------ life cycle
+    def start(self) -> Console:
+        self._unsubscribe = self.pipeline.subscribe(self._on_snapshot)
+        self._thread = threading.Thread(target=self._publish_loop, name="console-publisher", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5)
+        if self._unsubscribe is not None:
+            self._unsubscribe()
+
+    # ------------------------------------------------------------------ scene
+    @property
+    def render_size(self) -> tuple[float, float]:
+        w, h = self._image_size or (640, 480)
+        return w * UNITS_PER_PX, h * UNITS_PER_PX
+
+    def _build_scene(self) -> None:
+        scene = self.server.scene
+        scene.set_up_direction("-y")
+        w, h = self._image_size or (640, 480)
+        rw, rh = self.render_size
+        blank = np.zeros((h, w, 3), np.uint8)
+        self.left_image = scene.add_image("/left", blank, rw, rh, format="jpeg", jpeg_quality=self.jpeg_quality,
+                                          cast_shadow=False, receive_shadow=False)
+        self.right_image = scene.add_image("/right", blank, rw, rh, format="jpeg", jpeg_quality=self.jpeg_quality,
+                                           position=(rw + 0.2, 0.0, 0.0), visible=False,
+                                           cast_shadow=False, receive_shadow=False)
+        self.left_image.on_click(self._on_click)
+        for modifier in ("shift", "cmd/ctrl", "alt"):
+            self.left_image.on_click(modifier=modifier)(self._on_remove_click)
+
+        root = scene.add_frame("/scene3d", show_axes=False, position=SCENE3D_OFFSET)
+        self.scene3d = root
+        if self.rig is not None:
+            cam = self.rig.left
+            fov = 2.0 * np.arctan2(cam.height / 2.0, cam.K[1, 1])
+            aspect = cam.width / cam.height
+            scene.add_camera_frustum("/scene3d/cam0", fov, aspect, scale=0.15, color=(40, 120, 255))
+            R, T = np.asarray(self.rig.R), np.asarray(self.rig.T).reshape(3)
+            scene.add_camera_frustum("/scene3d/cam1", fov, aspect, scale=0.15, color=(255, 120, 40),
+                                     wxyz=_wxyz(R.T), position=tuple(-R.T @ T))
+        scene.add_frame("/scene3d/cam_axes", axes_length=0.2, axes_radius=0.008)
+        self.points = scene.add_point_cloud("/scene3d/points", np.zeros((1, 3), np.float32), (0, 255, 0),
+                                            point_size=0.03, precision="float32", visible=False)
+        self.body = scene.add_frame("/scene3d/body", axes_length=0.4, axes_radius=0.01, visible=False)
+        self.truth = scene.add_frame("/scene3d/truth", axes_length=0.3, axes_radius=0.005, visible=False,
+                                     origin_color=(180, 180, 180))
+        self.omega = scene.add_frame("/scene3d/omega_root", show_axes=False, visible=False)
+        if self.mockup_mesh is not None:
+            self._add_mesh("/scene3d/body/mockup", opacity=None)
+            self._add_mesh("/scene3d/truth/ghost", opacity=0.25)
+
+    def _add_mesh(self, name: str, opacity: float | None) -> None:
+        assert self.mockup_mesh is not None
+        vertices, faces, colours = self.mockup_mesh
+        vertices = np.asarray(vertices, np.float32)
+        faces = np.asarray(faces, np.int32)
+        colours = np.asarray(colours, np.uint8)
+        if colours.shape[0] != faces.shape[0]:  # per-vertex: colour each face by its first vertex
+            colours = colours[faces[:, 0]]
+        # add_mesh_simple has one colour per mesh: one mesh per colour.
+        keys, inverse = np.unique(colours.reshape(-1, 3), axis=0, return_inverse=True)
+        for k, rgb in enumerate(keys):
+            sel = faces[inverse.reshape(-1) == k]
+            self.server.scene.add_mesh_simple(f"{name}/part{k}", vertices, sel, color=tuple(int(c) for c in rgb),
+                                              opacity=opacity, side="double", flat_shading=True,
+                                              cast_shadow=False, receive_shadow=False)
+
+    def _update_scene3d(self, snap: Snapshot) -> None:
+        pts = [t for t in snap.targets if t.measured and np.all(np.isfinite(t.point_cam))]
+        if pts:
+            xyz = np.array([t.point_cam for t in pts], np.float32)
+            rgb = np.array([(60, 230, 60) if t.status == "tracking" else (255, 200, 0) for t in pts], np.uint8)
+            self.points = self.server.scene.add_point_cloud("/scene3d/points", xyz, rgb, point_size=0.03,
+                                                            precision="float32")
+        else:
+            self.points.visible = False
+        pose = snap.pose
+        if pose.valid:
+            T = np.asarray(pose.T_cam_body)
+            self.body.wxyz = _wxyz(T[:3, :3])
+            self.body.position = tuple(T[:3, 3])
+            self.body.visible = True
+            omega_cam = T[:3, :3] @ np.asarray(pose.omega_body_rad_s)
+            # 1 deg/s of spin is drawn 0.1 m long.
+            tip = T[:3, 3] + omega_cam * np.degrees(1.0) * 0.1
+            self.server.scene.add_arrows("/scene3d/omega", np.array([[T[:3, 3], tip]], np.float32), (255, 0, 200),
+                                         shaft_radius=0.01, head_radius=0.03, head_length=0.06)
+        else:
+            self.body.visible = False
+            self.server.scene.add_arrows("/scene3d/omega", np.zeros((1, 2, 3), np.float32), (255, 0, 200),
+                                         visible=False)
+        truth = snap.frame.truth if snap.frame is not None else None
+        if truth is not None:
+            T = np.asarray(truth.T_cam_body)
+            self.truth.wxyz = _wxyz(T[:3, :3])
+            self.truth.position = tuple(T[:3, 3])
+            self.truth.visible = True
+        else:
+            self.truth.visible = False
+
+    # ------------------------------------------------------------------ GUI
+    def _build_gui(self) -> None:
+        gui = self.server.gui
+        try:
+            gui.main_panel.dock_right()
+        except Exception:  # older viser: the panel floats, which is fine
+            pass
+        gui.configure_theme(dark_mode=False, show_logo=False)
+        self.status_md = gui.add_markdown("**TV-Trackmeter** — starting …")
+        with gui.add_folder("Source"):
+            self.pause_button = gui.add_button("Pause")
+            self.step_button = gui.add_button("Step")
+            self.restart_button = gui.add_button("Restart")
+        with gui.add_folder("Targets"):
+            self.auto_checkbox = gui.add_checkbox("Automatic selection", initial_value=False)
+            self.auto_count = gui.add_slider("Count", min=1, max=64, step=1, initial_value=16)
+            self.auto_method = gui.add_dropdown("Method", AUTO_METHODS, initial_value="gabor")
+            self.clear_button = gui.add_button("Clear targets")
+            gui.add_markdown("Click the left image to add a target; shift- or ctrl-click removes the nearest.")
+            self.targets_md = gui.add_markdown("")
+        with gui.add_folder("Model", expand_by_default=False):
+            self.case_dropdown = gui.add_dropdown("Case", ("a", "b", "c"), initial_value="a")
+            self.acquire_button = gui.add_button("Acquire model (object still)")
+            self.model_path = gui.add_text("Model file", initial_value="")
+            self.load_model_button = gui.add_button("Load model")
+        with gui.add_folder("Output", expand_by_default=False):
+            self.cutoff = gui.add_number("Filter cutoff (Hz)", initial_value=2.0, min=0.05, max=12.5, step=0.05)
+        with gui.add_folder("Recording", expand_by_default=False):
+            self.record_dir = gui.add_text("Folder", initial_value=str(self.record_root / "recording"))
+            self.record_checkbox = gui.add_checkbox("Record", initial_value=False)
+            self.record_md = gui.add_markdown("")
+        with gui.add_folder("View"):
+            self.view_buttons = gui.add_button_group("Preset", ("image", "3D", "both"))
+            self.right_checkbox = gui.add_checkbox("Show right image", initial_value=False)
+        with gui.add_folder("Plots", expand_by_default=True):
+            self.uplots = {}
+            for name, (title, labels) in PLOTS.items():
+                series = (viser.uplot.Series(label="t [s]"),) + tuple(
+                    viser.uplot.Series(label=lab, stroke=SERIES_COLOURS[i % len(SERIES_COLOURS)], width=1.5)
+                    for i, lab in enumerate(labels))
+                data = (np.array([0.0, 1e-3]),) + tuple(np.zeros(2) for _ in labels)
+                self.uplots[name] = gui.add_uplot(data, series, title=title, aspect=1.6,
+                                                  scales={"x": viser.uplot.Scale(time=False, auto=True)})
+        self.pause_button.on_click(self._cb(lambda e: SetPaused(not self.pipeline.latest().paused)))
+        self.step_button.on_click(self._cb(lambda e: StepOnce()))
+        self.restart_button.on_click(self._cb(lambda e: RestartSource()))
+        self.clear_button.on_click(self._cb(lambda e: ClearTargets()))
+        self.auto_checkbox.on_update(self._cb(lambda e: self._auto_command()))
+        self.auto_count.on_update(self._cb(lambda e: self._auto_command() if self.auto_checkbox.value else None))
+        self.auto_method.on_update(self._cb(lambda e: self._auto_command() if self.auto_checkbox.value else None))
+        self.case_dropdown.on_update(self._cb(lambda e: SetCase(self.case_dropdown.value)))  # type: ignore[arg-type]
+        self.acquire_button.on_click(self._cb(lambda e: AcquireModel()))
+        self.load_model_button.on_click(self._cb(lambda e: LoadModel(self.model_path.value.strip())))
+        self.cutoff.on_update(self._cb(lambda e: SetFilterCutoff(float(self.cutoff.value))))
+        self.record_checkbox.on_update(self._cb(lambda e: SetRecording(
+            self._fresh_record_dir() if self.record_checkbox.value else None)))
+        self.right_checkbox.on_update(lambda e: setattr(self.right_image, "visible", bool(self.right_checkbox.value)))
+        self.view_buttons.on_click(lambda e: self._apply_view(e.client, str(self.view_buttons.value)) if e.client else None)
+
+    def _auto_command(self) -> Command:
+        return SetAuto(bool(self.auto_checkbox.value), int(self.auto_count.value), str(self.auto_method.value))
+
+    def _fresh_record_dir(self) -> str:
+        base = Path(self.record_dir.value.strip() or str(self.record_root / "recording"))
+        # Never mix two recordings in one folder: add a suffix when it already holds one.
+        candidate, n = base, 1
+        while (candidate / "cam0" / "data.csv").exists():
+            n += 1
+            candidate = base.with_name(f"{base.name}-{n}")
+        return str(candidate)
+
+    def _cb(self, make: Any) -> Any:
+        """A viser callback that submits ``make(event)`` (if not None) and remembers the reply.
+
+        Programmatic value changes (``client is None``) are ignored: they come from the
+        publisher syncing a widget to the snapshot, not from an operator.
+        """
+
+        def callback(event: Any) -> None:
+            if getattr(event, "client", None) is None:
+                return
+            command = make(event)
+            if command is not None:
+                self.submit(command, event.client, type(command).__name__)
+
+        return callback
+
+    def submit(self, command: Command, client: Any = None, label: str = "") -> Future[CommandReply]:
+        """Send ``command`` to the pipeline; its reply becomes a notification for ``client``."""
+        future = self.pipeline.submit(command)
+        with self._pending_lock:
+            self._pending.append((future, client, label or type(command).__name__))
+        return future
+
+    def _on_click(self, event: Any) -> None:
+        uv = self._event_pixel(event)
+        if uv is None:
+            return
+        self.submit(SelectPoint(uv[0], uv[1]), event.client, f"Target at ({uv[0]:.0f}, {uv[1]:.0f})")
+
+    def _on_remove_click(self, event: Any) -> None:
+        uv = self._event_pixel(event)
+        if uv is None:
+            return
+        snap = self.pipeline.latest()
+        target = nearest_target(snap.targets, uv)
+        if target is None:
+            self._notify(event.client, "Nothing to remove", "there are no targets", ok=False)
+            return
+        self.submit(RemoveNearest(uv[0], uv[1]), event.client, f"Remove target near ({uv[0]:.0f}, {uv[1]:.0f})")
+
+    def _event_pixel(self, event: Any) -> tuple[float, float] | None:
+        if self._image_size is None:
+            return None
+        return ray_to_pixel(event.ray_origin, event.ray_direction, self.left_image.wxyz, self.left_image.position,
+                            self._image_size, self.render_size)
+
+    def _notify(self, client: Any, title: str, body: str, ok: bool) -> None:
+        self.notifications.append((title, body))
+        if client is None:
+            return
+        try:
+            client.add_notification(title, body, auto_close_seconds=4.0 if ok else 8.0,
+                                    color="green" if ok else "red")
+        except Exception as exc:  # the browser went away
+            log.debug("notification not sent: %s", exc)
+
+    # ------------------------------------------------------------------ clients and views
+    def _on_connect(self, client: viser.ClientHandle) -> None:
+        self._apply_view(client, "image")
+
+    def _apply_view(self, client: Any, preset: str) -> None:
+        rw, rh = self.render_size
+        with client.atomic():
+            client.camera.up_direction = (0.0, -1.0, 0.0)
+            client.camera.fov = np.radians(50.0)
+            if preset == "3D":
+                ox, oy, oz = SCENE3D_OFFSET
+                client.camera.position = (ox - 1.2, oy - 1.0, oz - 1.5)
+                client.camera.look_at = (ox, oy, oz + 3.5)
+            elif preset == "both":
+                mid = (SCENE3D_OFFSET[0] + rw / 2) / 2
+                client.camera.position = (mid, 0.0, -15.0)
+                client.camera.look_at = (mid, 0.0, 1.0)
+            else:
+                # Fit the image height in the vertical field of view, with a small margin.
+                d = 1.08 * (rh / 2) / np.tan(np.radians(50.0) / 2)
+                client.camera.position = (0.0, 0.0, -d)
+                client.camera.look_at = (0.0, 0.0, 0.0)
+
+    # ------------------------------------------------------------------ snapshots
+    def _on_snapshot(self, snap: Snapshot) -> None:
+        # Tracking thread: only cheap appends.
+        self.plots.add(snap)
+
+    def _publish_loop(self) -> None:
+        period = 1.0 / self.publish_hz
+        last_seq = -1
+        tick = 0
+        next_time = time.monotonic()
+        while not self._stop.is_set():
+            now = time.monotonic()
+            if now < next_time:
+                self._stop.wait(next_time - now)
+                continue
+            next_time = max(next_time + period, now)
+            try:
+                self._flush_replies()
+                snap = self.pipeline.latest()
+                if snap.sequence != last_seq:
+                    last_seq = snap.sequence
+                    self._push(snap, plots=(tick % self.plot_every == 0))
+                    tick += 1
+            except Exception:
+                log.exception("console publish failed")
+
+    def _flush_replies(self) -> None:
+        done = []
+        with self._pending_lock:
+            keep: deque[tuple[Future[CommandReply], Any, str]] = deque()
+            for item in self._pending:
+                (done if item[0].done() else keep).append(item)
+            self._pending = keep
+        for future, client, label in done:
+            try:
+                reply = future.result(0)
+            except Exception as exc:
+                reply = CommandReply(False, f"{type(exc).__name__}: {exc}")
+            if reply.ok and label.startswith(("SetAuto", "SetFilterCutoff", "SetPaused", "StepOnce")):
+                continue  # the UI shows the new state; no pop-up needed
+            title = label if reply.ok else f"{label}: refused"
+            self._notify(client, title, reply.message or ("ok" if reply.ok else "refused"), reply.ok)
+
+    def _push(self, snap: Snapshot, plots: bool) -> None:
+        frame = snap.frame
+        left_rgb = right_rgb = None
+        if frame is not None:
+            for t in snap.targets:
+                if t.status != "lost" and np.all(np.isfinite(t.uv)):
+                    trail = self._trails.setdefault(t.id, deque(maxlen=TRAIL_FRAMES))
+                    if frame.index != self._last_frame_index:
+                        trail.append((float(t.uv[0]), float(t.uv[1])))
+            alive = {t.id for t in snap.targets}
+            for tid in list(self._trails):
+                if tid not in alive:
+                    del self._trails[tid]
+            self._last_frame_index = frame.index
+            left_rgb = draw_overlays(to_rgb(frame.left), snap.targets, self._trails, self.patch_px)
+            if self.right_image.visible:
+                right_rgb = to_rgb(frame.right)
+                for t in snap.targets:
+                    if t.measured and np.all(np.isfinite(t.uv_right)):
+                        u, v = (int(round(x)) for x in t.uv_right)
+                        h = self.patch_px // 2
+                        right_rgb[max(v - h, 0):v + h + 1, [max(u - h, 0), min(u + h, right_rgb.shape[1] - 1)]] = (60, 230, 60)
+                        right_rgb[[max(v - h, 0), min(v + h, right_rgb.shape[0] - 1)], max(u - h, 0):u + h + 1] = (60, 230, 60)
+        status_text = self._status_markdown(snap)
+        targets_text = self._targets_markdown(snap)
+        rec = self.pipeline.recording_stats()
+        with self.server.atomic():
+            if left_rgb is not None:
+                if frame is not None and (frame.left.shape[1], frame.left.shape[0]) != self._image_size:
+                    self._image_size = (frame.left.shape[1], frame.left.shape[0])
+                    self.left_image.render_width, self.left_image.render_height = self.render_size
+                    self.right_image.render_width, self.right_image.render_height = self.render_size
+                self.left_image.image = left_rgb
+                if right_rgb is not None:
+                    self.right_image.image = right_rgb
+            self.status_md.content = status_text
+            self.targets_md.content = targets_text
+            self.record_md.content = (
+                f"{rec.directory}: {rec.frames_written} frames written, {rec.frames_dropped} not recorded"
+                + (f", {rec.error}" if rec.error else "") if rec.directory else "")
+            self._sync_widgets(snap)
+            self._update_scene3d(snap)
+            if plots:
+                for name, window in self.plots.windows.items():
+                    if self._plot_version.get(name) != window.version and len(window) >= 2:
+                        self._plot_version[name] = window.version
+                        self.uplots[name].data = window.arrays()
+        self.images_pushed += left_rgb is not None
+        self.last_pushed_sequence = snap.sequence
+        self.last_pushed_target_ids = tuple(t.id for t in snap.targets)
+        self.last_pushed_time = time.monotonic()
+
+    def _sync_widgets(self, snap: Snapshot) -> None:
+        # Reflect the tracker's state (several browsers; a refused toggle snaps back).
+        with self._pending_lock:
+            busy = bool(self._pending)
+        if busy:
+            return
+        self.pause_button.label = "Play" if snap.paused else "Pause"
+        if self.auto_checkbox.value != snap.auto_enabled:
+            self.auto_checkbox.value = snap.auto_enabled
+        if self.record_checkbox.value != snap.recording:
+            self.record_checkbox.value = snap.recording
+        if snap.pose.case != self.case_dropdown.value and snap.pose.case in ("a", "b", "c"):
+            self.case_dropdown.value = snap.pose.case
+
+    @staticmethod
+    def _status_markdown(snap: Snapshot) -> str:
+        t = snap.timings
+        n_track = sum(1 for x in snap.targets if x.measured)
+        n_lost = sum(1 for x in snap.targets if not x.measured)
+        dropped_pct = 100.0 * t.frames_dropped / t.frames_read if t.frames_read else 0.0
+        lines = []
+        if snap.source_status:
+            lines.append(f"**Source: {snap.source_status}**")
+        state = "paused" if snap.paused else "running"
+        lines.append(f"**{state}** · frame {snap.frame.index if snap.frame else '-'} · "
+                     f"read {t.acquisition_hz:.1f} Hz · tracking {t.tracking_hz:.1f} Hz")
+        lines.append(f"latency {t.latency_ms:.0f} ms · step {t.step_ms:.0f} ms · dropped {t.frames_dropped} "
+                     f"({dropped_pct:.1f} %)")
+        lines.append(f"targets: **{n_track} tracking**, {n_lost} lost · auto "
+                     f"{'on' if snap.auto_enabled else 'off'}" + (" · ● REC" if snap.recording else ""))
+        pose = snap.pose
+        if pose.valid:
+            T = np.asarray(pose.T_cam_body)
+            p = T[:3, 3]
+            rv = np.degrees(Rotation.from_matrix(T[:3, :3]).as_rotvec())
+            v = np.asarray(pose.velocity_cam_m_s) * 1e3
+            w = np.degrees(pose.omega_body_rad_s)
+            lines.append(f"pose **valid** (case {pose.case}, {pose.n_points} points)")
+            lines.append(f"p = ({p[0]:+.3f}, {p[1]:+.3f}, {p[2]:+.3f}) m · rotvec = ({rv[0]:+.1f}, {rv[1]:+.1f}, {rv[2]:+.1f})°")
+            lines.append(f"v = ({v[0]:+.1f}, {v[1]:+.1f}, {v[2]:+.1f}) mm/s · ω = ({w[0]:+.2f}, {w[1]:+.2f}, {w[2]:+.2f}) °/s")
+        else:
+            lines.append(f"pose **invalid**: {pose.reason}")
+        e = snap.errors
+        if e and "position_m" in e:
+            ep = np.asarray(e["position_m"]) * 1e3
+            lines.append(f"error: position ({ep[0]:+.1f}, {ep[1]:+.1f}, {ep[2]:+.1f}) mm · attitude "
+                         f"{np.degrees(float(e.get('attitude_total_rad', np.nan))):.2f}°")  # type: ignore[arg-type]
+        return "  \n".join(lines)
+
+    @staticmethod
+    def _targets_markdown(snap: Snapshot) -> str:
+        if not snap.targets:
+            return "_no targets_"
+        rows = ["| id | by | status | u, v | z [m] |", "|---|---|---|---|---|"]
+        for t in snap.targets[:40]:
+            z = f"{t.point_cam[2]:.3f}" if t.measured and np.isfinite(t.point_cam[2]) else "-"
+            status = t.status if t.status != "lost" else f"lost ({t.lost_reason or '?'})"
+            rows.append(f"| {t.id} | {t.origin} | {status} | {t.uv[0]:.1f}, {t.uv[1]:.1f} | {z} |")
+        if len(snap.targets) > 40:
+            rows.append(f"| … {len(snap.targets) - 40} more | | | | |")
+        return "\n".join(rows)
+

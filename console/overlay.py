@@ -1,0 +1,152 @@
+"""Pure helpers of the console: click ray → image pixel, overlays drawn into the image.
+
+No viser here, so the geometry is tested without a browser.
+
+The left image is a viser scene image: a plane of ``render_w`` x ``render_h`` scene units
+centred on its node, the image's top-left corner at local (-render_w/2, -render_h/2), local +x
+along image columns (u), local +y along image rows (v), seen from local -z (DESIGN.md
+section 8). With the pixel-centre convention ((0, 0) is the CENTRE of the top-left pixel, DESIGN.md
+section 3), a pixel (u, v) of a W x H image sits at local::
+
+    x = (u + 0.5) * render_w / W - render_w / 2,    y = (v + 0.5) * render_h / H - render_h / 2
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+from trackmeter.core.targets import TargetState
+
+#: RGB colour of each target status (drawn into an RGB image).
+STATUS_RGB: dict[str, tuple[int, int, int]] = {
+    "tracking": (60, 230, 60),
+    "lost": (255, 60, 60),
+    "recovered": (255, 200, 0),
+}
+SEARCH_RGB = (90, 140, 255)
+PREDICTED_RGB = (255, 80, 255)
+TRAIL_RGB = (0, 220, 255)
+
+
+def pixel_to_plane(uv: ArrayLike, image_size: tuple[int, int], render_size: tuple[float, float]) -> NDArray[np.float64]:
+    """(N,2) pixels (u, v) → (N,2) plane-local (x, y), scene units (see the module docstring)."""
+    w, h = image_size
+    rw, rh = render_size
+    uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+    return np.stack([(uv[:, 0] + 0.5) * rw / w - rw / 2, (uv[:, 1] + 0.5) * rh / h - rh / 2], axis=1)
+
+
+def ray_to_pixel(
+    ray_origin: ArrayLike,
+    ray_direction: ArrayLike,
+    plane_wxyz: ArrayLike,
+    plane_position: ArrayLike,
+    image_size: tuple[int, int],
+    render_size: tuple[float, float],
+) -> tuple[float, float] | None:
+    """The image pixel (u, v) a click ray hits, or None when it misses the image.
+
+    Args:
+        ray_origin, ray_direction: (3,) the click ray in the world frame (viser's click event).
+        plane_wxyz, plane_position: pose of the image node in the world frame, ``T_world_plane``.
+        image_size: (W, H) of the image, px.
+        render_size: (render_w, render_h) of the plane, scene units.
+
+    The ray is brought into the plane's frame (``p_plane = R^T (p_world - t)``), intersected
+    with z = 0, and the hit scaled to pixels by inverting :func:`pixel_to_plane`.
+    """
+    R = Rotation.from_quat(np.asarray(plane_wxyz, dtype=float), scalar_first=True).as_matrix()
+    t = np.asarray(plane_position, dtype=float)
+    o = R.T @ (np.asarray(ray_origin, dtype=float) - t)
+    d = R.T @ np.asarray(ray_direction, dtype=float)
+    if abs(d[2]) < 1e-12:
+        return None
+    s = -o[2] / d[2]
+    if s < 0:
+        return None
+    x, y = o[0] + s * d[0], o[1] + s * d[1]
+    w, h = image_size
+    rw, rh = render_size
+    u = (x + rw / 2) * w / rw - 0.5
+    v = (y + rh / 2) * h / rh - 0.5
+    if not (-0.5 <= u <= w - 0.5 and -0.5 <= v <= h - 0.5):
+        return None
+    return float(u), float(v)
+
+
+def to_rgb(grey: NDArray[np.uint8]) -> NDArray[np.uint8]:
+    """(H,W) grey → (H,W,3) RGB (viser refuses 2-D images)."""
+    return cv2.cvtColor(np.ascontiguousarray(grey), cv2.COLOR_GRAY2RGB)
+
+
+def _pt(uv: ArrayLike, scale: float) -> tuple[int, int]:
+    # cv2 draws at integer pixel centres; pixel centre (0,0) is cv2's (0,0) too.
+    u, v = np.asarray(uv, dtype=float)
+    return int(round(u * scale)), int(round(v * scale))
+
+
+def draw_overlays(
+    rgb: NDArray[np.uint8],
+    targets: Sequence[TargetState],
+    trails: Mapping[str, Iterable[tuple[float, float]]] | None = None,
+    patch_px: int = 8,
+    scale: float = 1.0,
+    show_search: bool = True,
+) -> NDArray[np.uint8]:
+    """Draw each target into ``rgb`` (modified in place and returned).
+
+    Operator targets get a thick box with a corner tick, automatic ones a thin box, model
+    re-locks a diamond; the colour says the status (:data:`STATUS_RGB`). Also the search
+    window (thin blue), the Kalman-predicted position (magenta cross) and a short trail.
+
+    Args:
+        rgb: (H*scale, W*scale, 3) uint8 image.
+        targets: the snapshot's targets; ``uv`` etc. in original-image pixels.
+        trails: id → recent (u, v) positions, oldest first.
+        patch_px: patch side drawn as the box, px.
+        scale: display scale of ``rgb`` relative to the original image.
+    """
+    half = max(patch_px / 2.0, 3.0)
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    for t in targets:
+        if not np.all(np.isfinite(t.uv)):
+            continue
+        colour = STATUS_RGB.get(t.status, (255, 255, 255))
+        if show_search and t.status != "lost" and np.all(np.isfinite(t.search_box)):
+            u0, v0, u1, v1 = t.search_box
+            cv2.rectangle(rgb, _pt((u0, v0), scale), _pt((u1, v1), scale), SEARCH_RGB, 1, cv2.LINE_AA)
+        if trails is not None and t.id in trails:
+            pts = np.array([_pt(p, scale) for p in trails[t.id] if np.all(np.isfinite(p))], np.int32)
+            if len(pts) >= 2:
+                cv2.polylines(rgb, [pts.reshape(-1, 1, 2)], False, TRAIL_RGB, 1, cv2.LINE_AA)
+        if np.all(np.isfinite(t.predicted_uv)):
+            pu, pv = _pt(t.predicted_uv, scale)
+            cv2.drawMarker(rgb, (pu, pv), PREDICTED_RGB, cv2.MARKER_CROSS, 7, 1, cv2.LINE_AA)
+        c = _pt(t.uv, scale)
+        h = int(round(half * scale))
+        if t.origin == "operator":
+            cv2.rectangle(rgb, (c[0] - h - 1, c[1] - h - 1), (c[0] + h + 1, c[1] + h + 1), colour, 2, cv2.LINE_8)
+        elif t.origin == "model":
+            diamond = np.array([(c[0], c[1] - h - 2), (c[0] + h + 2, c[1]), (c[0], c[1] + h + 2), (c[0] - h - 2, c[1])], np.int32)
+            cv2.polylines(rgb, [diamond.reshape(-1, 1, 2)], True, colour, 1, cv2.LINE_8)
+        else:
+            cv2.rectangle(rgb, (c[0] - h, c[1] - h), (c[0] + h, c[1] + h), colour, 1, cv2.LINE_8)
+        label = t.id if t.origin != "operator" else f"{t.id}*"
+        cv2.putText(rgb, label, (c[0] + h + 3, c[1] - h), font, 0.38 * max(scale, 1.0), colour, 1, cv2.LINE_AA)
+    return rgb
+
+
+def nearest_target(targets: Sequence[TargetState], uv: tuple[float, float]) -> TargetState | None:
+    """The target whose pixel is nearest to ``uv`` (None without targets)."""
+    best, best_d = None, np.inf
+    for t in targets:
+        if np.all(np.isfinite(t.uv)):
+            d = float(np.hypot(t.uv[0] - uv[0], t.uv[1] - uv[1]))
+            if d < best_d:
+                best, best_d = t, d
+    return best

@@ -1,0 +1,126 @@
+"""Starting the console: the viser server on an exact port, the pipeline, and a clean stop.
+
+viser silently moves to the next free port when the requested one is busy (DESIGN.md
+section 8); an operator told to open ``:8080`` would then watch somebody else's console. So
+the port is checked first and a busy port is a :class:`TrackmeterError` (exit code 2).
+"""
+
+from __future__ import annotations
+
+import errno
+import logging
+import socket
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import viser
+
+from console.app import Console
+from trackmeter.errors import TrackmeterError
+from trackmeter.pipeline.pipeline import Engine, Pipeline
+from trackmeter.sources.base import Source
+
+log = logging.getLogger(__name__)
+
+
+def check_port_free(host: str, port: int) -> None:
+    """Raise TrackmeterError when ``host:port`` cannot be bound (in use, or not our address)."""
+    if not 0 < port < 65536:
+        raise TrackmeterError(f"port must be 1-65535, got {port}")
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except socket.gaierror as exc:
+        raise TrackmeterError(f"cannot resolve host {host!r}: {exc.strerror}") from None
+    family, _, _, _, addr = infos[0]
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        # Like the web server will: a port in TIME_WAIT is free, one somebody listens on is not.
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(addr)
+        except OSError as exc:
+            if exc.errno == errno.EADDRINUSE:
+                raise TrackmeterError(f"port {port} on {host} is already in use; choose another with --port") from None
+            raise TrackmeterError(f"cannot listen on {host}:{port}: {exc.strerror}") from None
+
+
+def start_server(host: str = "127.0.0.1", port: int = 8080, label: str = "TV-Trackmeter") -> viser.ViserServer:
+    """A viser server on exactly ``host:port`` (TrackmeterError if that port is taken)."""
+    check_port_free(host, port)
+    server = viser.ViserServer(host=host, port=port, label=label, verbose=False)
+    if server.get_port() != port:  # lost a race with another process
+        server.stop()
+        raise TrackmeterError(f"port {port} on {host} is already in use; choose another with --port")
+    return server
+
+
+def mockup_mesh_of(source: Source) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The mock-up's triangle mesh when the source is the simulator (else None)."""
+    for holder in (source, getattr(source, "scenario", None)):
+        mockup = getattr(holder, "mockup", None)
+        if mockup is not None and hasattr(mockup, "to_trimesh_arrays"):
+            try:
+                return mockup.to_trimesh_arrays()
+            except Exception as exc:
+                log.warning("no mock-up mesh for the 3D view: %s", exc)
+    return None
+
+
+@dataclass
+class RunningConsole:
+    """A started console: the server, the pipeline and the console object; :meth:`stop` ends all."""
+
+    server: viser.ViserServer
+    pipeline: Pipeline
+    console: Console
+    url: str
+
+    def stop(self) -> None:
+        """Stop publishing, join the pipeline threads, close the recording and the source, stop the server."""
+        self.console.stop()
+        self.pipeline.close()
+        self.server.stop()
+
+
+def start_console(
+    source: Source,
+    engine: Engine,
+    *,
+    host: str = "127.0.0.1",
+    port: int = 8080,
+    record_dir: str | Path | None = None,
+    source_label: str = "",
+    **console_options: Any,
+) -> RunningConsole:
+    """Start the server (exact port), the pipeline (live: latest frame wins) and the console.
+
+    Raises:
+        TrackmeterError: the port is taken; a recording folder that cannot be used.
+    """
+    server = start_server(host, port)
+    pipeline = Pipeline(source, engine, drop_frames=True, record_dir=record_dir)
+    try:
+        console = Console(server, pipeline, mockup_mesh=mockup_mesh_of(source), source_label=source_label,
+                          **console_options)
+        pipeline.start()
+        console.start()
+    except BaseException:
+        pipeline.stop()
+        server.stop()
+        raise
+    shown_host = "127.0.0.1" if host in ("0.0.0.0", "") else host
+    return RunningConsole(server, pipeline, console, f"http://{shown_host}:{port}")
+
+
+def serve_forever(running: RunningConsole, stop: threading.Event | None = None) -> None:
+    """Block until Ctrl-C (or ``stop`` is set), then stop everything cleanly."""
+    stop = stop or threading.Event()
+    try:
+        while not stop.wait(0.5):
+            pass
+    except KeyboardInterrupt:
+        pass
+    finally:
+        running.stop()

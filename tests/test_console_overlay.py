@@ -1,0 +1,109 @@
+"""The console's pure helpers: click ray → pixel (DESIGN.md section 8), overlays, plot windows.
+
+The browser end (viser in Chromium) is tested in ``tests/browser``; here the geometry is
+pinned exactly: a ray built through the world position of pixel (u, v) must give (u, v) back.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+pytest.importorskip("viser")
+
+from console.overlay import STATUS_RGB, draw_overlays, nearest_target, pixel_to_plane, ray_to_pixel  # noqa: E402
+from console.series import PlotData, SeriesWindow  # noqa: E402
+from trackmeter.core.targets import TargetState  # noqa: E402
+from trackmeter.pipeline.snapshot import PoseEstimate, Snapshot, Timings  # noqa: E402
+from trackmeter.sources.base import GroundTruth, StereoFrame  # noqa: E402
+
+SIZE = (726, 512)
+RENDER = (7.26, 5.12)
+
+
+def _target(tid: str, uv: tuple[float, float], status: str = "tracking", origin: str = "operator") -> TargetState:
+    nan2 = np.full(2, np.nan)
+    return TargetState(tid, origin, status, np.array(uv, float), nan2, np.array([0.0, 0.0, 3.5]), np.eye(3) * 1e-6,  # type: ignore[arg-type]
+                       0.9, np.array(uv, float) + 6.0, (uv[0] - 20, uv[1] - 20, uv[0] + 20, uv[1] + 20))
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    u=st.floats(-0.49, SIZE[0] - 0.51),
+    v=st.floats(-0.49, SIZE[1] - 0.51),
+    rotvec=st.lists(st.floats(-3.0, 3.0), min_size=3, max_size=3),
+    position=st.lists(st.floats(-20.0, 20.0), min_size=3, max_size=3),
+    eye=st.lists(st.floats(-5.0, 5.0), min_size=2, max_size=2),
+    dist=st.floats(0.5, 30.0),
+)
+def test_ray_through_a_pixel_returns_that_pixel(u, v, rotvec, position, eye, dist) -> None:  # type: ignore[no-untyped-def]
+    R = Rotation.from_rotvec(rotvec)
+    wxyz = R.as_quat(scalar_first=True)
+    xy = pixel_to_plane([u, v], SIZE, RENDER)[0]
+    hit_world = R.apply([xy[0], xy[1], 0.0]) + position
+    # A camera on the viewing side (local -z) of the plane, anywhere in front of it.
+    origin = R.apply([eye[0], eye[1], -dist]) + position
+    direction = (hit_world - origin) / np.linalg.norm(hit_world - origin)
+    got = ray_to_pixel(origin, direction, wxyz, position, SIZE, RENDER)
+    assert got is not None
+    assert got == pytest.approx((u, v), abs=1e-6)
+
+
+def test_pixel_centre_convention_and_misses() -> None:
+    # The centre of the top-left pixel is (0, 0): half a pixel in from the plane's corner.
+    corner = pixel_to_plane([[-0.5, -0.5], [SIZE[0] - 0.5, SIZE[1] - 0.5]], SIZE, RENDER)
+    assert corner == pytest.approx(np.array([[-3.63, -2.56], [3.63, 2.56]]))
+    ident = (1.0, 0.0, 0.0, 0.0)
+    assert ray_to_pixel((0, 0, -5), (0, 0, 1), ident, (0, 0, 0), SIZE, RENDER) == pytest.approx((362.5, 255.5))
+    assert ray_to_pixel((10, 0, -5), (0, 0, 1), ident, (0, 0, 0), SIZE, RENDER) is None  # beside the image
+    assert ray_to_pixel((0, 0, -5), (0, 0, -1), ident, (0, 0, 0), SIZE, RENDER) is None  # pointing away
+    assert ray_to_pixel((0, 0, -5), (1, 0, 0), ident, (0, 0, 0), SIZE, RENDER) is None  # parallel
+
+
+def test_overlays_mark_each_target_in_its_status_colour_at_its_pixel() -> None:
+    img = np.zeros((SIZE[1], SIZE[0], 3), np.uint8)
+    targets = [_target("a1", (100.0, 120.0), "tracking", "auto"), _target("op", (400.0, 300.0), "lost"),
+               _target("m3", (600.0, 60.0), "recovered", "model")]
+    draw_overlays(img, targets, {"a1": [(90.0, 120.0), (95.0, 120.0), (100.0, 120.0)]}, patch_px=8)
+    for t in targets:
+        u, v = int(t.uv[0]), int(t.uv[1])
+        patch = img[v - 8:v + 9, u - 8:u + 9].reshape(-1, 3)
+        assert np.any(np.all(patch == STATUS_RGB[t.status], axis=1)), t.id
+        if t.id != "a1":  # (a1's trail ends at its pixel)
+            assert not np.any(img[v, u]), "the centre pixel itself stays visible"
+    assert nearest_target(targets, (590.0, 70.0)).id == "m3"  # type: ignore[union-attr]
+    assert nearest_target([], (0.0, 0.0)) is None
+
+
+def test_series_window_keeps_the_last_rows_skips_nan_and_restarts() -> None:
+    w = SeriesWindow(2, maxlen=5)
+    for i in range(8):
+        w.append(float(i), [i, -i])
+    w.append(8.0, [np.nan, 1.0])
+    t, a, b = w.arrays()
+    assert t.tolist() == [3.0, 4.0, 5.0, 6.0, 7.0] and a.tolist() == t.tolist() and b.tolist() == (-t).tolist()
+    w.append(0.5, [1.0, 1.0])  # time went back: the source restarted
+    assert w.arrays()[0].tolist() == [0.5]
+
+
+def test_plot_data_from_a_snapshot_in_display_units() -> None:
+    T = np.eye(4)
+    T[:3, 3] = (0.1, -0.2, 3.5)
+    T[:3, :3] = Rotation.from_rotvec([0.0, 0.0, np.radians(30.0)]).as_matrix()
+    pose = PoseEstimate(True, None, "a", T, np.eye(6), np.array([0.001, 0.0, -0.002]), np.radians([1.0, 2.0, 3.0]), 5)
+    img = np.zeros((4, 4), np.uint8)
+    frame = StereoFrame(3, 0.12, img, img, GroundTruth(T, np.zeros(3), np.zeros(3)))
+    errors = {"position_m": np.array([0.001, 0.002, 0.003]), "attitude_rad": np.radians([0.1, 0.2, 0.3]),
+              "attitude_total_rad": np.radians(0.4), "velocity_m_s": np.zeros(3), "omega_rad_s": np.zeros(3)}
+    data = PlotData()
+    data.add(Snapshot(frame, (), pose, errors, Timings()))  # type: ignore[arg-type]
+    data.add(Snapshot(frame, (), PoseEstimate.invalid("x"), None, Timings()))
+    assert [a[0] for a in data.windows["position"].arrays()] == pytest.approx([0.12, 0.1, -0.2, 3.5])
+    assert data.windows["attitude"].arrays()[3][0] == pytest.approx(30.0)
+    assert data.windows["velocity"].arrays()[3][0] == pytest.approx(-2.0)
+    assert data.windows["omega"].arrays()[2][0] == pytest.approx(2.0)
+    assert [a[0] for a in data.windows["err_attitude"].arrays()][1:] == pytest.approx([0.1, 0.2, 0.3, 0.4])
+    assert len(data.windows["position"]) == 1  # the invalid pose added no row
