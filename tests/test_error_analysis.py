@@ -136,3 +136,21 @@ def test_error_density_matches_scipy_and_rejects_non_gaussian():
     assert uniform.k2_pvalue < 1e-6 and uniform.ks_statistic > fit.ks_statistic
     with pytest.raises(TrackmeterError):
         error_density([1.0, np.nan])
+
+
+def test_truth_errors_separate_noise_bias_and_gross_mismatches():
+    from trackmeter.core.error_analysis import truth_errors
+
+    rng = np.random.default_rng(5)
+    P, F = 40, 50
+    true = np.column_stack([rng.uniform(-0.3, 0.3, P), rng.uniform(-0.3, 0.3, P), rng.uniform(3.0, 3.4, P)])
+    bias = np.array([0.0, 0.0, 0.002])  # every point 2 mm too far
+    X = true[None] + bias + rng.normal(scale=0.001, size=(F, P, 3))
+    X[:, 7, 2] += 0.8  # one point matched on the wrong texture, in every frame
+    X[3:, 9] = np.nan  # measured 3 times only
+    X[:, 11] = np.nan  # never measured
+    te = truth_errors(X, true)
+    assert te.n_points == P - 1 and te.n_gross == 1
+    np.testing.assert_allclose(te.rms_m, np.sqrt(bias**2 + 0.001**2), rtol=0.05)
+    assert te.bias_rms_m[2] == pytest.approx(0.002, rel=0.05) and te.bias_rms_m[0] < 0.0005
+    assert te.median_abs_m[2] == pytest.approx(0.002, abs=0.0005)

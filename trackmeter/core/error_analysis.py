@@ -143,6 +143,69 @@ def range_statistics(
     )
 
 
+@dataclass(frozen=True, eq=False)
+class TruthErrors:
+    """Errors of repeated measurements of still points against their true positions.
+
+    Attributes:
+        rms_m: (3,) RMS of all errors per axis, gross mismatches left out, m.
+        bias_rms_m: (3,) RMS over points of each point's mean error (the systematic part), m.
+        median_abs_m: (3,) median absolute error per axis (all points), m.
+        n_points: points compared (with a known true position and a good measurement).
+        n_gross: points whose mean error is a gross outlier (left out of the RMS figures).
+    """
+
+    rms_m: FloatArray
+    bias_rms_m: FloatArray
+    median_abs_m: FloatArray
+    n_points: int
+    n_gross: int
+
+
+def truth_errors(points_cam_m: ArrayLike, true_points_cam_m: ArrayLike, gross_sigmas: float = 8.0) -> TruthErrors:
+    """Errors of repeated measurements against the true points (when a simulator knows them).
+
+    The repeated-measurement sigma only sees what changes from frame to frame (sensor noise);
+    a still target's systematic matching error (texture, interpolation, foreshortening, a
+    wrong match) is the same in every frame and only shows against the truth. A point whose
+    mean error is more than ``gross_sigmas`` robust sigmas (1.4826 MAD over points, per axis,
+    with the noise its own mean still carries) from the median is a gross mismatch: counted, and left out of the RMS figures.
+
+    Args:
+        points_cam_m: (F, P, 3) measurements, m (NaN where refused).
+        true_points_cam_m: (P, 3) the true points, same frame, m (NaN where unknown).
+    """
+    X = np.asarray(points_cam_m, dtype=float)
+    T = np.asarray(true_points_cam_m, dtype=float).reshape(1, -1, 3)
+    if X.ndim != 3 or X.shape[1:] != T.shape[1:]:
+        raise TrackmeterError(f"truth errors need (F,P,3) measurements and (P,3) truth, got {X.shape}, {T.shape[1:]}")
+    E = X - T
+    good = np.all(np.isfinite(E), axis=2)
+    n = good.sum(axis=0)
+    has = n > 0
+    if not np.any(has):
+        nan = np.full(3, np.nan)
+        return TruthErrors(nan, nan, nan, 0, 0)
+    bias = np.where(good[..., None], E, 0.0).sum(axis=0)[has] / n[has][:, None]  # (Q,3)
+    # Spread of the point means: their systematic scatter (MAD over points) plus, for a point
+    # measured n times, the frame-to-frame noise s_w / sqrt(n) its mean still carries.
+    mad = 1.4826 * np.median(np.abs(bias - np.median(bias, axis=0)), axis=0)
+    resid = np.where(good[..., None], E - np.where(has[:, None], np.where(good[..., None], E, 0.0).sum(axis=0) / np.maximum(n, 1)[:, None], 0.0), 0.0)
+    s_w = np.sqrt(np.sum(resid**2, axis=(0, 1)) / max(float(np.sum(n[has] - 1)), 1.0))
+    spread = np.sqrt(mad[None, :] ** 2 + s_w[None, :] ** 2 / n[has][:, None])
+    gross = np.any(np.abs(bias - np.median(bias, axis=0)) > gross_sigmas * np.maximum(spread, 1e-12), axis=1)
+    keep = np.zeros_like(has)
+    keep[np.flatnonzero(has)[~gross]] = True
+    Ek = E[good & keep[None, :]]
+    return TruthErrors(
+        np.sqrt(np.mean(Ek**2, axis=0)) if len(Ek) else np.full(3, np.nan),
+        np.sqrt(np.mean(bias[~gross] ** 2, axis=0)) if np.any(~gross) else np.full(3, np.nan),
+        np.median(np.abs(E[good]), axis=0),
+        int(np.count_nonzero(has)),
+        int(np.count_nonzero(gross)),
+    )
+
+
 # --------------------------------------------------------------------------- the parabola
 
 
@@ -281,6 +344,8 @@ class ErrorAnalysis:
                     "n_outliers": r.n_outliers,
                     "sigma_m": dict(zip("xyz", map(float, r.sigma_m))),
                     "predicted_sigma_m": dict(zip("xyz", map(float, r.predicted_sigma_m))),
+                    # eq. 2 inverted at this range alone: is sigma_d constant over range?
+                    "sigma_disparity_px": subpixel_accuracy_px(float(r.sigma_m[2]) / r.range_m**2, self.focal_px, self.baseline_m),
                 }
                 for r in self.ranges
             ],

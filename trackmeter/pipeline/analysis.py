@@ -1,0 +1,239 @@
+"""Running the paper's error analysis (sections 2.F-2.G) on a source of a still target.
+
+The source (the simulator's ``static_ranges`` scenario, or any sequence of a still object) is
+read frame by frame and split into *ranges*: runs of consecutive frames with the same true pose
+when the source has ground truth (the target held still at one range), else one range for the
+whole source. On the first frame of each range, points are selected on the target (Shi-Tomasi
+corners, inside the lit object, away from its outline where a patch would straddle the black
+sky); then every frame of that range measures them with the stereo matcher
+(:func:`trackmeter.core.matching.measure_points`). The pure statistics are
+:mod:`trackmeter.core.error_analysis`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Iterable, Iterator
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from trackmeter.core.error_analysis import (
+    AnalyzeParams,
+    ErrorAnalysis,
+    RangeStatistics,
+    analyze_ranges,
+    range_statistics,
+    truth_errors,
+)
+from trackmeter.core.matching import MeasureParams, measure_points
+from trackmeter.core.stereo import StereoRig
+from trackmeter.core.transforms import apply_transform
+from trackmeter.errors import TrackmeterError
+from trackmeter.sources.base import Source, StereoFrame
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True, eq=False)
+class RangeMeasurements:
+    """Everything measured at one range.
+
+    Attributes:
+        t_s: (F,) frame times, s.
+        uv: (P,2) selected left-image pixels, px.
+        xyz_m: (F,P,3) measured points, left camera frame, m (NaN when refused).
+        sigma_m: (F,P,3) error-propagation sigma of each measurement, m (NaN when refused).
+        sigma_disparity_px: (F,P) the matcher's disparity sigma (NaN when refused).
+        refusals: reason -> count of refused measurements.
+        true_range_m: the true range of the target's origin when the source knows it, else NaN.
+        true_xyz_m: (P,3) the true surface points at ``uv`` (left camera frame, m) when the
+            source can say (the simulator's ``surface_points``), else None.
+    """
+
+    t_s: FloatArray
+    uv: FloatArray
+    xyz_m: FloatArray
+    sigma_m: FloatArray
+    sigma_disparity_px: FloatArray
+    refusals: dict[str, int]
+    true_range_m: float
+    true_xyz_m: FloatArray | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class AnalysisRun:
+    """The result of :func:`run_error_analysis`."""
+
+    analysis: ErrorAnalysis
+    measurements: tuple[RangeMeasurements, ...]
+    statistics: tuple[RangeStatistics, ...]
+    predicted_sigma_disparity_px: float  # median of the matcher's own estimates
+    skipped_ranges: tuple[str, ...] = field(default_factory=tuple)
+    gross_sigmas: float = 8.0
+
+    def to_dict(self) -> dict[str, object]:
+        d = self.analysis.to_dict()
+        d["predicted_sigma_disparity_px"] = self.predicted_sigma_disparity_px
+        by_range = {round(s.range_m, 6): m for s, m in zip(self.statistics, self.measurements)}
+        for entry in d["ranges"]:  # type: ignore[union-attr]
+            m = by_range.get(round(entry["range_m"], 6))
+            if m is not None:
+                entry["true_range_m"] = m.true_range_m
+                entry["n_frames"] = len(m.t_s)
+                entry["n_selected"] = len(m.uv)
+                entry["refused"] = dict(m.refusals)
+                if m.true_xyz_m is not None:
+                    te = truth_errors(m.xyz_m, m.true_xyz_m, self.gross_sigmas)
+                    entry["truth_error"] = {
+                        "n_points": te.n_points,
+                        "n_gross": te.n_gross,
+                        "rms_m": dict(zip("xyz", map(float, te.rms_m))),
+                        "bias_rms_m": dict(zip("xyz", map(float, te.bias_rms_m))),
+                        "median_abs_m": dict(zip("xyz", map(float, te.median_abs_m))),
+                    }
+        d["skipped_ranges"] = list(self.skipped_ranges)
+        return d
+
+
+def select_points(left: NDArray[np.uint8], params: AnalyzeParams, min_grey: float, max_points: int | None = None) -> FloatArray:
+    """Shi-Tomasi corners (``cv2.goodFeaturesToTrack``) inside the lit target, (P,2) px, best first.
+
+    The mask keeps pixels brighter than ``min_grey`` (the target against black sky), eroded by
+    ``params.border_px`` so that no 8x8 patch straddles the outline or the image border.
+    """
+    mask = (left > min_grey).astype(np.uint8) * 255
+    b = int(params.border_px)
+    if b > 0:
+        mask = cv2.erode(mask, np.ones((2 * b + 1, 2 * b + 1), np.uint8))
+        mask[:b, :] = 0
+        mask[-b:, :] = 0
+        mask[:, :b] = 0
+        mask[:, -b:] = 0
+    corners = cv2.goodFeaturesToTrack(
+        left, maxCorners=int(max_points or params.points_per_range), qualityLevel=float(params.corner_quality),
+        minDistance=float(params.corner_min_distance_px), mask=mask,
+    )
+    if corners is None:
+        return np.zeros((0, 2))
+    return corners.reshape(-1, 2).astype(float)
+
+
+def split_ranges(frames: Iterable[StereoFrame], position_tolerance_m: float = 1e-6) -> Iterator[list[StereoFrame]]:
+    """Group consecutive frames with the same true pose (the target held still); without
+    ground truth, all frames form one group."""
+    group: list[StereoFrame] = []
+    key: FloatArray | None = None
+    for frame in frames:
+        T = None if frame.truth is None else np.asarray(frame.truth.T_cam_body, dtype=float)
+        if group and (T is None) != (key is None):
+            raise TrackmeterError("ground truth present on some frames only: cannot split the source into ranges")
+        if group and T is not None and key is not None and np.max(np.abs(T - key)) > position_tolerance_m:
+            yield group
+            group = []
+        group.append(frame)
+        key = T
+    if group:
+        yield group
+
+
+def measure_range(
+    frames: list[StereoFrame],
+    rig: StereoRig,
+    measure: MeasureParams,
+    params: AnalyzeParams,
+    surface_points: Callable[[int, FloatArray], FloatArray] | None = None,
+) -> RangeMeasurements:
+    """Select points on the first frame and measure them in every frame of one range.
+
+    Candidates are four times ``params.points_per_range`` corners; the best ones the matcher
+    accepts on the first frame are kept (a corner on a repetitive grid or seen by the left
+    camera only is refused there, and would only add refusals later).
+    """
+    first = frames[0]
+    candidates = select_points(first.left, params, measure.min_mean_grey, 4 * params.points_per_range)
+    if len(candidates):
+        ok = [m.ok for m in measure_points(rig, first.left, first.right, candidates, measure)]
+        candidates = candidates[np.asarray(ok, dtype=bool)]
+    uv = candidates[: params.points_per_range]
+    F, P = len(frames), len(uv)
+    xyz = np.full((F, P, 3), np.nan)
+    sig = np.full((F, P, 3), np.nan)
+    sd = np.full((F, P), np.nan)
+    refusals: dict[str, int] = {}
+    for f, frame in enumerate(frames):
+        if P == 0:
+            break
+        for p, m in enumerate(measure_points(rig, frame.left, frame.right, uv, measure)):
+            if m.ok:
+                xyz[f, p] = m.xyz_m
+                sig[f, p] = m.sigma_m
+                sd[f, p] = m.sigma_disparity_px
+            else:
+                refusals[str(m.reason)] = refusals.get(str(m.reason), 0) + 1
+    truth = first.truth
+    true_range = float(np.linalg.norm(truth.T_cam_body[:3, 3])) if truth is not None else float("nan")
+    true_xyz = None
+    if surface_points is not None and truth is not None and P > 0:
+        p_body = np.asarray(surface_points(first.index, uv), dtype=float).reshape(-1, 3)
+        true_xyz = apply_transform(truth.T_cam_body, p_body)
+    return RangeMeasurements(np.array([fr.t_s for fr in frames]), uv, xyz, sig, sd, refusals, true_range, true_xyz)
+
+
+def run_error_analysis(
+    source: Source,
+    rig: StereoRig,
+    measure: MeasureParams,
+    params: AnalyzeParams,
+    progress: Callable[[Iterable[StereoFrame]], Iterable[StereoFrame]] | None = None,
+) -> AnalysisRun:
+    """Read ``source`` to its end and run the error analysis over its ranges.
+
+    Ranges where fewer than 3 points have ``params.min_samples`` good measurements are skipped
+    and named in :attr:`AnalysisRun.skipped_ranges` (e.g. the target too small far away).
+
+    Raises:
+        TrackmeterError: an empty source, or no usable range.
+    """
+
+    def frames() -> Iterator[StereoFrame]:
+        while (frame := source.read()) is not None:
+            yield frame
+
+    stream: Iterable[StereoFrame] = frames()
+    if progress is not None:
+        stream = progress(stream)
+    measured: list[RangeMeasurements] = []
+    stats: list[RangeStatistics] = []
+    skipped: list[str] = []
+    for group in split_ranges(stream):
+        m = measure_range(group, rig, measure, params, getattr(source, "surface_points", None))
+        label = f"{m.true_range_m:.2f} m" if np.isfinite(m.true_range_m) else f"frames from t={m.t_s[0]:.3f} s"
+        try:
+            st = range_statistics(m.xyz_m, m.sigma_m, params.min_samples, params.max_abs_residual_sigmas)
+        except TrackmeterError as exc:
+            skipped.append(f"{label}: {exc}")
+            continue
+        if st.n_points < 3:
+            skipped.append(f"{label}: only {st.n_points} point(s) measured often enough")
+            continue
+        measured.append(m)
+        stats.append(st)
+    if not stats:
+        detail = "; ".join(skipped) if skipped else "the source gave no frames"
+        raise TrackmeterError(f"no usable range for the error analysis ({detail})")
+    focal = rig.rectification.focal_px
+    baseline = rig.rectification.baseline_m
+    analysis = analyze_ranges(stats, focal, baseline, params.histogram_bins)
+    sd_all = np.concatenate([m.sigma_disparity_px.reshape(-1) for m in measured])
+    predicted_sd = float(np.nanmedian(sd_all)) if np.any(np.isfinite(sd_all)) else float("nan")
+    order = np.argsort([s.range_m for s in stats])
+    return AnalysisRun(
+        analysis,
+        tuple(measured[i] for i in order),
+        tuple(stats[i] for i in order),
+        predicted_sd,
+        tuple(skipped),
+        params.max_abs_residual_sigmas,
+    )
