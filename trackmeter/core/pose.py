@@ -71,9 +71,17 @@ class PoseParams:
         3, "a new target joins the model after this many consecutive consistent frames", min=1
     )
     still_time_s: float = param(2.0, "case (c): how long the object must be held still to acquire a model, s", min=0.0)
-    still_tolerance_m: float = param(
-        0.004, "case (c): largest RMS movement of a point's running mean still counted as 'still', m", min=0.0
+    still_max_d2: float = param(
+        9.0, "case (c): largest mean squared Mahalanobis scatter of a point about its mean still counted as "
+        "'still' (3 when perfectly still)", min=0.0,
     )
+    recover_model_points: bool = param(
+        True, "re-lock lost model points at their projection through the current pose (paper 2.D)"
+    )
+    recovery_interval_frames: int = param(5, "frames between two re-lock attempts of one model point", min=1)
+    max_recoveries_per_frame: int = param(4, "re-lock attempts per frame at most (bounds the step time)", min=0)
+    recovery_margin_px: float = param(8.0, "a projected model point must lie this far inside both images, px",
+                                      min=0.0)
 
 
 @dataclass(frozen=True, eq=False)
@@ -85,7 +93,8 @@ class PoseFit:
         t_cam_body: (3,) body origin in the camera frame, m.
         cov: (6,6) covariance of (t m, rotation vector rad), camera frame.
         inliers: (N,) bool, the points used in the final fit.
-        d2: (N,) squared Mahalanobis residual of every point against the final pose.
+        d2: (N,) squared Mahalanobis residual of every point against the final pose (for an
+            outlier, against its predictive covariance).
         scale2: factor the point covariances were inflated by (>= 1; 1 when they were honest).
     """
 
@@ -228,7 +237,8 @@ def robust_pose(
        pose whose median squared Mahalanobis residual over all points is smallest.
     2. Robust scale ``s² = median(d²) / median(chi2_3)`` (only ever >= 1: honest covariances are
        kept); points with ``d² > s² chi2_3(outlier_probability)`` are outliers.
-    3. :func:`solve_pose` on the inliers; re-gate against the refined pose; repeat once.
+    3. :func:`solve_pose` on the inliers; re-gate every point against the refined pose (a
+       left-out point by its predictive covariance) and refit until the set is stable.
 
     With exactly 3 points nothing can be checked: the fit is exact and all are inliers.
 
@@ -283,21 +293,37 @@ def robust_pose(
     scale2 = 1.0
     R, t, cov = solve_pose(b[inliers], p[inliers], C[inliers], None if Cb is None else Cb[inliers],
                            start, params.refine_iterations)
-    for _ in range(2):
-        d2 = mahalanobis_d2(R, t, b, p, C, Cb)
+    for _ in range(6):
+        d2 = _gating_d2(R, t, cov, b, p, C, Cb, inliers)
         if n < 4:
             break
         scale2 = max(1.0, float(np.median(d2[inliers])) / _CHI2_3_MEDIAN) if params.robust_scale else 1.0
         new_inliers = d2 <= gate * scale2
-        if new_inliers.sum() < 3:
-            break
-        if np.array_equal(new_inliers, inliers):
+        if new_inliers.sum() < 3 or np.array_equal(new_inliers, inliers):
             break
         inliers = new_inliers
         R, t, cov = solve_pose(b[inliers], p[inliers], C[inliers], None if Cb is None else Cb[inliers],
                                (R, t), params.refine_iterations)
-    d2 = mahalanobis_d2(R, t, b, p, C, Cb)
+    d2 = _gating_d2(R, t, cov, b, p, C, Cb, inliers)
     return PoseFit(R, t, cov * scale2, inliers, d2, scale2)
+
+
+def _gating_d2(R: FloatArray, t: FloatArray, cov: FloatArray, b: FloatArray, p: FloatArray, C: FloatArray,
+               Cb: FloatArray | None, inliers: NDArray[np.bool_]) -> FloatArray:
+    """Squared Mahalanobis residuals for gating. A point left out of the fit is judged by its
+    PREDICTIVE covariance ``C + R Cb R^T + J cov J^T`` (the pose from the other points is
+    uncertain too): a far-out point the others barely constrain would otherwise never get back in."""
+    d2 = mahalanobis_d2(R, t, b, p, C, Cb)
+    out = np.flatnonzero(~inliers)
+    if len(out):
+        Rb = b[out] @ R.T
+        J = np.concatenate([np.broadcast_to(np.eye(3), (len(out), 3, 3)), -_skew(Rb)], axis=2)
+        Cp = C[out] + J @ cov @ np.transpose(J, (0, 2, 1))
+        if Cb is not None:
+            Cp = Cp + R @ Cb[out] @ R.T
+        r = Rb + t - p[out]
+        d2[out] = np.einsum("ni,nij,nj->n", r, np.linalg.inv(Cp), r)
+    return d2
 
 
 # --------------------------------------------------------------------------- model frames

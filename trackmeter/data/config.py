@@ -26,6 +26,9 @@ from trackmeter.core.calibration import CalibrationParams
 from trackmeter.core.matching import MeasureParams
 from trackmeter.core.error_analysis import AnalyzeParams
 from trackmeter.core.metrics import EvaluateParams
+from trackmeter.core.output_filter import FilterParams
+from trackmeter.core.pose import PoseParams
+from trackmeter.core.velocity import VelocityParams
 from trackmeter.errors import TrackmeterError
 from trackmeter.paths import DEFAULT_CONFIG
 
@@ -38,6 +41,9 @@ class Config:
     calibrate: CalibrationParams = field(default_factory=CalibrationParams)
     evaluate: EvaluateParams = field(default_factory=EvaluateParams)
     analyze: AnalyzeParams = field(default_factory=AnalyzeParams)
+    pose: PoseParams = field(default_factory=PoseParams)
+    velocity: VelocityParams = field(default_factory=VelocityParams)
+    output_filter: FilterParams = field(default_factory=FilterParams)
 
 
 def load_config(user_file: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> Config:

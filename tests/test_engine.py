@@ -1,0 +1,324 @@
+"""The engine's per-frame logic on a geometric tracker double (no images): cases a, b, c,
+invalid poses, outliers, recovery through the pose, model growth, commands.
+
+The double measures true body points through a known motion with the stereo error
+propagation's covariance (sigma_z = 4 mm at 3.5 m) and can lose, corrupt and re-lock them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from trackmeter.core.targets import Refusal, TargetState
+from trackmeter.data.config import load_config
+from trackmeter.data.model import Model
+from trackmeter.pipeline.engine import Engine
+from trackmeter.pipeline.snapshot import (
+    AcquireModel,
+    ClearTargets,
+    LoadModel,
+    SelectPoint,
+    SetAuto,
+    SetCase,
+    SetFilterCutoff,
+)
+from trackmeter.sources.base import GroundTruth, StereoFrame
+
+SIGMA_D_PX = 0.004 * 1152 * 0.28 / 3.5**2
+DT = 0.04
+OMEGA = np.radians([2.0, -3.0, 8.0])  # body rate, rad/s
+V = np.array([0.002, -0.001, 0.003])
+R0 = Rotation.from_rotvec([0.4, -0.3, 0.2]).as_matrix()
+P0 = np.array([0.02, -0.01, 3.5])
+
+
+def true_pose(t: float) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R0 @ Rotation.from_rotvec(OMEGA * t).as_matrix()
+    T[:3, 3] = P0 + V * t
+    return T
+
+
+def body_points(n: int = 12) -> np.ndarray:
+    rng = np.random.default_rng(4)
+    return rng.uniform(-0.5, 0.5, (n, 3)) * [1.0, 1.0, 0.6]
+
+
+class FakeTracker:
+    """Measures body points through ``true_pose`` (geometry only), with realistic noise."""
+
+    def __init__(self, rig, points_body: np.ndarray, ids: list[str], noise: bool = True, seed: int = 0) -> None:
+        self.rig = rig
+        self.body = {i: p for i, p in zip(ids, points_body)}
+        self.active: dict[str, str] = {i: "tracking" for i in ids}
+        self.noise = noise
+        self.rng = np.random.default_rng(seed)
+        self.offsets: dict[str, np.ndarray] = {}  # corrupted measurements (sliding targets)
+        self.force_lost: set[str] = set()
+        self.relocks: list[tuple[str, tuple[float, float]]] = []
+        self.added: list[tuple[str | None, tuple[float, float], str]] = []
+        self.rejected: list[set[str]] = []
+        self._auto = (False, 16, "gabor")
+        self._states: tuple[TargetState, ...] = ()
+
+    @property
+    def auto(self):
+        return self._auto
+
+    def set_auto(self, enabled, count=None, method=None):
+        self._auto = (enabled, count or self._auto[1], method or self._auto[2])
+
+    def _measure(self, tid: str, t_s: float) -> TargetState:
+        T = true_pose(t_s)
+        p = T[:3, :3] @ self.body[tid] + T[:3, 3]
+        rect = self.rig.rectification
+        uv_r, d = rect.project_rectified(p[None])
+        C = rect.point_covariance(uv_r, d, SIGMA_D_PX, 0.07)[0]
+        q = p + (np.linalg.cholesky(C) @ self.rng.standard_normal(3) if self.noise else 0) + self.offsets.get(tid, 0)
+        uvl, uvr = self.rig.project(p[None])
+        return TargetState(tid, "auto", "tracking", uvl[0], uvr[0], q, C, 0.99, uvl[0], (0, 0, 1, 1))
+
+    def _lost(self, tid: str) -> TargetState:
+        nan2, nan3 = np.full(2, np.nan), np.full(3, np.nan)
+        return TargetState(tid, "auto", "lost", np.zeros(2), nan2, nan3, np.full((3, 3), np.nan), np.nan, nan2,
+                           (0, 0, 1, 1), "test")
+
+    def step(self, frame, reject_ids=()):
+        self.rejected.append(set(reject_ids))
+        self._t = frame.t_s
+        for tid in reject_ids:
+            if tid in self.active:
+                self.active[tid] = "lost"
+        for tid in self.force_lost:
+            self.active[tid] = "lost"
+        self._states = tuple(self._measure(i, frame.t_s) if s != "lost" else self._lost(i)
+                             for i, s in self.active.items())
+        return self._states
+
+    @property
+    def targets(self):
+        return self._states
+
+    def relock(self, tid, uv, frame):
+        self.relocks.append((tid, uv))
+        if tid in self.force_lost:
+            return Refusal(uv, "still hidden")
+        self.active[tid] = "tracking"
+        self.offsets.pop(tid, None)
+        s = self._measure(tid, frame.t_s)
+        self._states = tuple(s if x.id == tid else x for x in self._states)
+        return s
+
+    def add_target(self, frame, uv, target_id=None, origin="operator"):
+        self.added.append((target_id, uv, origin))
+        if target_id is None or target_id not in self.body:
+            return Refusal(uv, "black space")
+        self.active[target_id] = "tracking"
+        s = self._measure(target_id, frame.t_s)
+        self._states = self._states + (s,)
+        return s
+
+    def remove_target(self, tid):
+        return self.active.pop(tid, None) is not None
+
+    def remove_nearest(self, uv):
+        return None
+
+    def clear(self):
+        self.active.clear()
+
+
+def frame_at(k: int) -> StereoFrame:
+    t = k * DT
+    T = true_pose(t)
+    # body rate constant; origin velocity of the body origin in cam: V
+    truth = GroundTruth(T, V.copy(), OMEGA.copy())
+    img = np.zeros((4, 4), np.uint8)
+    return StereoFrame(k, t, img, img, truth)
+
+
+def make_engine(estec_rig, n=12, case=None, with_model=True, noise=True, ids=None, **tracker_kw):
+    pts = body_points(n)
+    ids = ids or [f"m{i}" for i in range(n)]
+    model = Model(tuple(ids), pts) if with_model else None
+    tracker = FakeTracker(estec_rig, pts, ids, noise=noise, **tracker_kw)
+    engine = Engine(load_config(), estec_rig, model, case, tracker=tracker, rate_hz=1 / DT)
+    return engine, tracker, pts
+
+
+def run(engine, frames):
+    return [engine.process(frame_at(k)) for k in frames]
+
+
+def test_case_b_noise_free_is_exact(estec_rig) -> None:
+    engine, _, _ = make_engine(estec_rig, noise=False)
+    out = run(engine, range(60))
+    targets, pose, errors = out[-1]
+    assert pose.valid and pose.case == "b" and pose.n_points == 12
+    np.testing.assert_allclose(pose.T_cam_body, true_pose(59 * DT), atol=1e-9)
+    np.testing.assert_allclose(errors["velocity_m_s"], 0, atol=1e-9)
+    np.testing.assert_allclose(errors["omega_rad_s"], 0, atol=1e-9)
+
+
+def test_case_b_noisy_errors_within_pose_sigma(estec_rig) -> None:
+    engine, _, _ = make_engine(estec_rig)
+    out = run(engine, range(100))
+    _, pose, errors = out[-1]
+    sigma = np.sqrt(np.diag(pose.cov_pose))
+    assert np.all(np.abs(errors["position_m"]) < 4 * sigma[:3])
+    assert np.all(np.abs(errors["attitude_rad"]) < 4 * sigma[3:])
+    assert np.all(np.abs(errors["omega_rad_s"]) < np.radians(0.3))
+
+
+def test_fewer_than_three_points_is_invalid_with_reason(estec_rig) -> None:
+    engine, tracker, _ = make_engine(estec_rig)
+    run(engine, range(5))
+    tracker.force_lost = {f"m{i}" for i in range(10)}
+    _, pose, errors = engine.process(frame_at(5))
+    assert not pose.valid and errors is None
+    assert "2 model points" in pose.reason
+    assert np.all(np.isnan(pose.T_cam_body))
+
+
+def test_case_b_needs_a_model(estec_rig) -> None:
+    from trackmeter.errors import TrackmeterError
+
+    with pytest.raises(TrackmeterError, match="model"):
+        make_engine(estec_rig, case="b", with_model=False)
+    engine, _, _ = make_engine(estec_rig, with_model=False)
+    assert engine.case == "a"
+    reply = engine.handle(SetCase("b"), None)
+    assert not reply.ok and "model" in reply.message
+
+
+def test_outlier_is_rejected_and_handed_to_the_tracker(estec_rig) -> None:
+    engine, tracker, _ = make_engine(estec_rig)
+    run(engine, range(10))
+    clean = engine.process(frame_at(10))[1]
+    tracker.offsets["m3"] = np.array([0.0, 0.02, 0.06])  # slid onto another surface
+    _, pose, errors = engine.process(frame_at(11))
+    assert pose.valid and pose.outlier_ids == ("m3",)
+    assert np.linalg.norm(errors["position_m"]) < 0.003
+    engine.process(frame_at(12))
+    assert "m3" in tracker.rejected[-1]
+    del clean
+
+
+def test_lost_model_point_is_relocked_at_its_projection(estec_rig) -> None:
+    engine, tracker, pts = make_engine(estec_rig)
+    run(engine, range(10))
+    tracker.force_lost = {"m5"}
+    run(engine, range(10, 12))
+    tracker.force_lost = set()
+    tracker.relocks.clear()
+    run(engine, range(12, 20))
+    assert tracker.relocks and tracker.relocks[0][0] == "m5"
+    k = 12 + next(i for i in range(8) if True)  # first attempt happens on a frame >= 12
+    uv_true = [estec_rig.project((true_pose(t * DT)[:3, :3] @ pts[5] + true_pose(t * DT)[:3, 3])[None])[0][0]
+               for t in range(12, 20)]
+    assert min(np.linalg.norm(np.array(tracker.relocks[0][1]) - u) for u in uv_true) < 1.0
+    assert engine.stats.recoveries >= 1
+    del k
+
+
+def test_missing_model_point_is_measured_at_its_projection(estec_rig) -> None:
+    engine, tracker, _ = make_engine(estec_rig)
+    del tracker.active["m7"]
+    run(engine, range(12))
+    assert any(a[0] == "m7" and a[2] == "model" for a in tracker.added)
+    assert "m7" in tracker.active
+
+
+def test_new_points_join_the_model_with_true_body_coordinates(estec_rig) -> None:
+    pts = body_points(14)
+    ids = [f"m{i}" for i in range(10)] + ["a1", "a2", "a3", "a4"]
+    model = Model(tuple(ids[:10]), pts[:10])
+    tracker = FakeTracker(estec_rig, pts, ids, noise=False)
+    engine = Engine(load_config(), estec_rig, model, tracker=tracker, rate_hz=25)
+    run(engine, range(10))
+    assert set(engine.model_ids) == set(ids)
+    mp = dict(zip(engine.model_ids, engine.model_points_body))
+    for i, tid in enumerate(ids[10:], start=10):
+        np.testing.assert_allclose(mp[tid], pts[i], atol=1e-9)
+    assert engine.stats.model_points_joined == 4
+
+
+def test_case_a_frame_from_three_points_then_no_jump_on_loss(estec_rig) -> None:
+    engine, tracker, pts = make_engine(estec_rig, with_model=False)
+    assert engine.case == "a"
+    _, pose0, _ = engine.process(frame_at(0))
+    assert pose0.valid and engine.frame_ids == ("m0", "m1", "m2")
+    run(engine, range(1, 60))
+    _, before, _ = engine.process(frame_at(60))
+    tracker.force_lost = {"m0"}  # frame point 1 lost
+    _, after, _ = engine.process(frame_at(61))
+    assert after.valid and 9 <= after.n_points <= 11
+    # Expected motion over one frame, removed: the jump is what is left.
+    T_pred = true_pose(61 * DT) @ np.linalg.inv(true_pose(60 * DT)) @ before.T_cam_body
+    jump = np.concatenate([after.T_cam_body[:3, 3] - T_pred[:3, 3],
+                           Rotation.from_matrix(after.T_cam_body[:3, :3] @ T_pred[:3, :3].T).as_rotvec()])
+    assert np.all(np.abs(jump) < 3 * np.sqrt(np.diag(after.cov_pose)))
+
+
+def test_case_a_frame_is_the_three_point_frame(estec_rig) -> None:
+    from trackmeter.core.pose import three_point_body_frame
+
+    engine, _, pts = make_engine(estec_rig, with_model=False, noise=False)
+    _, pose, _ = engine.process(frame_at(0))
+    T = true_pose(0)
+    P = pts[:3] @ T[:3, :3].T + T[:3, 3]
+    R_f, o_f = three_point_body_frame(*P)
+    np.testing.assert_allclose(pose.T_cam_body[:3, :3], R_f, atol=1e-9)
+    np.testing.assert_allclose(pose.T_cam_body[:3, 3], o_f, atol=1e-9)
+    # ... and stays glued to the body afterwards (to the output filter's second-order chart
+    # error: the centroid origin of case (a) accelerates as the body turns).
+    _, pose, errors = run(engine, range(1, 40))[-1]
+    np.testing.assert_allclose(errors["position_m"], 0, atol=1e-5)
+    np.testing.assert_allclose(errors["attitude_rad"], 0, atol=1e-6)
+
+
+def test_case_c_acquires_a_model_while_still(estec_rig, monkeypatch) -> None:
+    import sys
+
+    engine, tracker, pts = make_engine(estec_rig, with_model=False)
+    monkeypatch.setattr(sys.modules[__name__], "OMEGA", np.zeros(3))
+    monkeypatch.setattr(sys.modules[__name__], "V", np.zeros(3))
+    reply = engine.handle(AcquireModel(), None)
+    assert reply.ok and engine.case == "c" and engine.acquiring
+    outs = run(engine, range(0, 70))  # still_time_s = 2 s = 50 frames
+    assert not outs[10][1].valid and "hold still" in outs[10][1].reason
+    valid = [k for k, o in enumerate(outs) if o[1].valid]
+    assert valid and not engine.acquiring
+    pose = outs[valid[0]][1]
+    # Frozen frame: camera axes at acquisition, origin at the points' centroid.
+    T = true_pose(0)
+    centroid = (pts @ T[:3, :3].T + T[:3, 3]).mean(axis=0)
+    np.testing.assert_allclose(pose.T_cam_body[:3, :3], np.eye(3), atol=np.radians(0.1))
+    np.testing.assert_allclose(pose.T_cam_body[:3, 3], centroid, atol=0.002)
+
+
+def test_case_c_refuses_a_moving_object(estec_rig) -> None:
+    engine, _, _ = make_engine(estec_rig, with_model=False)
+    engine.handle(AcquireModel(), None)
+    outs = run(engine, range(0, 80))  # tumbling at 8 deg/s: never still
+    assert not any(o[1].valid for o in outs)
+    assert any("moved" in o[1].reason for o in outs)
+
+
+def test_commands(estec_rig, tmp_path) -> None:
+    engine, tracker, _ = make_engine(estec_rig)
+    assert not engine.handle(SelectPoint(10, 10), None).ok
+    reply = engine.handle(SelectPoint(10, 10), frame_at(0))
+    assert not reply.ok and "black space" in reply.message
+    assert engine.handle(SetAuto(True, 20, None), None).ok and engine.auto_enabled and engine.auto_count == 20
+    assert engine.handle(SetFilterCutoff(1.5), None).ok and engine.filter_cutoff_hz == 1.5
+    assert not engine.handle(SetFilterCutoff(0.0), None).ok
+    reply = engine.handle(LoadModel(str(tmp_path / "missing.yaml")), None)
+    assert not reply.ok and "missing.yaml" in reply.message
+    bad = tmp_path / "dup.yaml"
+    bad.write_text("points:\n- {id: a, xyz: [0, 0, 0]}\n- {id: a, xyz: [1, 0, 0]}\n- {id: b, xyz: [0, 1, 0]}\n")
+    reply = engine.handle(LoadModel(str(bad)), None)
+    assert not reply.ok and "twice" in reply.message
+    assert engine.handle(ClearTargets(), None).ok and not tracker.active

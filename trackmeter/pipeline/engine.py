@@ -1,0 +1,650 @@
+"""The tracking thread's whole per-frame logic: tracker step, pose, velocities, filter, recovery.
+
+No threads and no I/O here: :class:`trackmeter.pipeline.pipeline.Pipeline` owns one
+:class:`Engine` on its tracking thread and calls :meth:`Engine.process` for every frame and
+:meth:`Engine.handle` for every command; ``trackmeter track`` and the benchmarks call it the
+same way, or directly.
+
+Per frame (:meth:`Engine.process`):
+
+1. ``tracker.step(frame, reject_ids)`` — ``reject_ids`` are last frame's pose outliers, which
+   the tracker marks lost.
+2. The model: body-frame coordinates of tracked points, by id. Case (b): the a-priori model
+   (fixed) plus grown points; case (a): built from the first three well-spread points (paper
+   section 2.C: origin at point 1, x toward point 2, xy-plane through point 3; output origin
+   at their centroid) and every point tracked at that moment; case (c): points averaged while
+   the object was held still (:class:`~trackmeter.pipeline.snapshot.AcquireModel`), frame =
+   the camera frame at that time, origin at their centroid.
+3. Pose: robust generalised least squares over every measured model point
+   (:func:`trackmeter.core.pose.robust_pose`); fewer than ``pose.min_points`` gives an invalid
+   pose with the reason — never a made-up one. Outliers go to ``reject_ids``.
+4. Model upkeep while the pose is known: measured (not a-priori) model points are averaged
+   (information-weighted) so the model sharpens as the body turns; new targets consistent for
+   ``join_after_frames`` frames join the model with their body coordinates from the pose, so
+   the model grows as new faces come into view (paper 2.D). Losing one of the three frame
+   points of case (a) changes nothing: the frame lives on in the model (no jump).
+5. Velocities (:mod:`trackmeter.core.velocity`) from the raw poses, then the output filter
+   (:mod:`trackmeter.core.output_filter`).
+6. Recovery (paper 2.D): lost model points are reprojected through the current pose
+   (``rig.project``) and re-locked with ``tracker.relock``; a-priori model points without a
+   target are measured at their projection (``tracker.add_target(origin="model")``). A
+   re-locked point whose 3D position disagrees with the pose is rejected at once. Without a
+   model the tracker itself looks again where a target was lost.
+7. Errors against ``frame.truth`` (cases a and c: after an online body alignment, the chordal
+   mean of ``T_est^-1 T_true`` so far — the same constant offset ``evaluate --align body``
+   fits over the whole run).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
+
+from trackmeter.core.output_filter import FilterParams, PoseFilter
+from trackmeter.core.pose import (
+    PoseParams,
+    choose_frame_points,
+    fuse_point,
+    robust_pose,
+    three_point_body_frame,
+    to_body,
+)
+from trackmeter.core.stereo import StereoRig
+from trackmeter.core.targets import Refusal, TargetState
+from trackmeter.core.transforms import attitude_error_components, matrix_to_quat_wxyz
+from trackmeter.core.velocity import VelocityEstimator, VelocityParams
+from trackmeter.errors import TrackmeterError
+from trackmeter.pipeline.snapshot import (
+    AcquireModel,
+    ClearTargets,
+    Command,
+    CommandReply,
+    LoadModel,
+    ModelCase,
+    PoseEstimate,
+    RemoveNearest,
+    RemoveTarget,
+    ResetTracking,
+    SelectPoint,
+    SetAuto,
+    SetCase,
+    SetFilterCutoff,
+)
+from trackmeter.sources.base import StereoFrame
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass
+class _ModelPoint:
+    b: FloatArray  # (3,) body frame, m
+    cov: FloatArray  # (3,3) m²; zeros for an a-priori point
+    fixed: bool  # a-priori: never refined
+
+
+@dataclass
+class _Candidate:
+    b: FloatArray
+    cov: FloatArray
+    count: int = 1
+
+
+@dataclass
+class _Acquisition:
+    """Case (c): points collected while the object is held still."""
+
+    t_start: float | None = None
+    points: dict[str, list[FloatArray]] = field(default_factory=dict)
+    covs: dict[str, list[FloatArray]] = field(default_factory=dict)
+    frames: int = 0
+
+
+@dataclass
+class EngineStats:
+    """Counters since the start (or the last reset)."""
+
+    frames: int = 0
+    valid_frames: int = 0
+    outliers_rejected: int = 0
+    relock_attempts: int = 0
+    recoveries: int = 0
+    recoveries_rejected: int = 0
+    model_points_joined: int = 0
+
+
+class Engine:
+    """Tracker + motion estimation for one stream (see the module docstring).
+
+    Args:
+        config: the whole configuration (sections ``tracker``, ``features``, ``measure``,
+            ``pose``, ``velocity``, ``output_filter``; missing sections take their defaults).
+        rig: the stereo rig of the frames.
+        model: an a-priori model (case b), bound to targets by id.
+        case: ``"a"``, ``"b"`` or ``"c"``; default ``"b"`` with a model, else ``"a"``.
+        tracker: a tracker to use instead of building
+            :class:`trackmeter.core.tracking.Tracker` from the config (tests inject doubles).
+        rate_hz: frame rate the output filter is designed for (the source's rate).
+
+    Raises:
+        TrackmeterError: case ``"b"`` without a model.
+    """
+
+    def __init__(
+        self,
+        config: Any,
+        rig: StereoRig,
+        model: Any | None = None,
+        case: ModelCase | None = None,
+        *,
+        tracker: Any | None = None,
+        rate_hz: float | None = None,
+    ) -> None:
+        self.config = config
+        self.rig = rig
+        self.pose_params: PoseParams = getattr(config, "pose", None) or PoseParams()
+        self.velocity_params: VelocityParams = getattr(config, "velocity", None) or VelocityParams()
+        self.filter_params: FilterParams = getattr(config, "output_filter", None) or FilterParams()
+        if tracker is None:
+            from trackmeter.core.features import FeatureParams
+            from trackmeter.core.matching import MeasureParams
+            from trackmeter.core.tracking import Tracker, TrackerParams
+
+            tracker = Tracker(
+                rig,
+                getattr(config, "tracker", None) or TrackerParams(),
+                getattr(config, "features", None) or FeatureParams(),
+                getattr(config, "measure", None) or MeasureParams(),
+            )
+        self.tracker = tracker
+        self.rate_hz = float(rate_hz) if rate_hz else 25.0
+        chosen: ModelCase = case or ("b" if model is not None else "a")
+        if chosen not in ("a", "b", "c"):
+            raise TrackmeterError(f"model case must be a, b or c, got {chosen!r}")
+        if chosen == "b" and model is None:
+            raise TrackmeterError("case (b) needs an a-priori model (--model or a source that carries one)")
+        self._given_model = model
+        self._case: ModelCase = chosen
+        self._gate = float(chi2.ppf(self.pose_params.outlier_probability, 3))
+        self.stats = EngineStats()
+        self._acquisition: _Acquisition | None = None
+        self._reset_motion()
+
+    # ------------------------------------------------------------------ read-only state
+
+    @property
+    def case(self) -> ModelCase:
+        return self._case
+
+    @property
+    def auto_enabled(self) -> bool:
+        return bool(self.tracker.auto[0])
+
+    @property
+    def auto_count(self) -> int:
+        return int(self.tracker.auto[1])
+
+    @property
+    def auto_method(self) -> str:
+        return str(self.tracker.auto[2])
+
+    @property
+    def model(self) -> Any | None:
+        """The a-priori model (case b), or None."""
+        return self._given_model
+
+    @property
+    def model_ids(self) -> tuple[str, ...]:
+        """Ids of every point in the working model (a-priori, grown, acquired)."""
+        return tuple(self._model)
+
+    @property
+    def model_points_body(self) -> FloatArray:
+        """(N,3) body coordinates of the working model, in the order of :attr:`model_ids`."""
+        return np.array([m.b for m in self._model.values()]).reshape(-1, 3)
+
+    @property
+    def frame_ids(self) -> tuple[str, ...]:
+        """Case (a): the ids of the three points that define the body frame (empty before)."""
+        return self._frame_ids
+
+    @property
+    def acquiring(self) -> bool:
+        """Case (c): True while a model is being acquired."""
+        return self._acquisition is not None
+
+    @property
+    def filter_cutoff_hz(self) -> float:
+        return self.filter_params.cutoff_hz
+
+    # ------------------------------------------------------------------ state resets
+
+    def _reset_motion(self) -> None:
+        """Forget the working model, the pose history, the filter (not the targets)."""
+        self._model: dict[str, _ModelPoint] = {}
+        if self._case == "b" and self._given_model is not None:
+            for pid, b in zip(self._given_model.ids, self._given_model.points_body):
+                self._model[pid] = _ModelPoint(np.array(b, dtype=float), np.zeros((3, 3)), True)
+        self._frame_ids: tuple[str, ...] = ()
+        self._anchor: dict[str, FloatArray] = {}  # case c: acquired coordinates, the frozen frame
+        self._candidates: dict[str, _Candidate] = {}
+        self._pending_reject: set[str] = set()
+        self._last_fit: tuple[FloatArray, FloatArray, FloatArray] | None = None
+        self._last_valid_t: float | None = None
+        self._last_attempt: dict[str, int] = {}
+        self._velocity = VelocityEstimator(self.velocity_params)
+        self._filter = PoseFilter(self.filter_params, self.rate_hz)
+        self._align_M = np.zeros((3, 3))
+        self._align_t = np.zeros(3)
+        self._align_n = 0
+
+    # ------------------------------------------------------------------ commands
+
+    def handle(self, command: Command, frame: StereoFrame | None) -> CommandReply:
+        """Apply one command; ``frame`` is the last processed frame (the one the operator saw)."""
+        try:
+            return self._handle(command, frame)
+        except TrackmeterError as exc:
+            return CommandReply(False, str(exc))
+
+    def _handle(self, command: Command, frame: StereoFrame | None) -> CommandReply:
+        if isinstance(command, SelectPoint):
+            if frame is None:
+                return CommandReply(False, "no frame yet")
+            result = self.tracker.add_target(frame, (command.u, command.v), command.target_id, "operator")
+            if isinstance(result, Refusal):
+                return CommandReply(False, f"refused at ({command.u:.1f}, {command.v:.1f}): {result.reason}")
+            note = ""
+            if self._case == "b" and command.target_id is not None and command.target_id not in self._model:
+                note = f" (not a model point: it joins the model once the pose is known)"
+            return CommandReply(True, f"target {result.id} at {result.point_cam[2]:.3f} m{note}", result.id)
+        if isinstance(command, RemoveTarget):
+            if not self.tracker.remove_target(command.target_id):
+                return CommandReply(False, f"no target {command.target_id!r}")
+            self._forget(command.target_id)
+            return CommandReply(True, f"removed {command.target_id}", command.target_id)
+        if isinstance(command, RemoveNearest):
+            tid = self.tracker.remove_nearest((command.u, command.v))
+            if tid is None:
+                return CommandReply(False, f"no target near ({command.u:.0f}, {command.v:.0f})")
+            self._forget(tid)
+            return CommandReply(True, f"removed {tid}", tid)
+        if isinstance(command, ClearTargets):
+            self.tracker.clear()
+            self._acquisition = None
+            self._reset_motion()
+            return CommandReply(True, "all targets removed")
+        if isinstance(command, SetAuto):
+            self.tracker.set_auto(command.enabled, command.count, command.method)
+            enabled, count, method = self.tracker.auto
+            return CommandReply(True, f"automatic selection {'on' if enabled else 'off'} ({count} targets, {method})")
+        if isinstance(command, SetCase):
+            if command.case not in ("a", "b", "c"):
+                return CommandReply(False, f"unknown model case {command.case!r} (a, b or c)")
+            if command.case == "b" and self._given_model is None:
+                return CommandReply(False, "case (b) needs an a-priori model: load one first")
+            self._case = command.case
+            self._acquisition = _Acquisition() if command.case == "c" else None
+            self._reset_motion()
+            extra = ": hold the object still to acquire the model" if command.case == "c" else ""
+            return CommandReply(True, f"model case ({command.case}){extra}")
+        if isinstance(command, AcquireModel):
+            self._case = "c"
+            self._acquisition = _Acquisition()
+            self._reset_motion()
+            return CommandReply(True, f"acquiring a model: hold the object still for {self.pose_params.still_time_s:g} s")
+        if isinstance(command, LoadModel):
+            from trackmeter.data.model import load_model
+
+            self._given_model = load_model(command.path)
+            self._case = "b"
+            self._acquisition = None
+            self._reset_motion()
+            return CommandReply(True, f"model with {len(self._given_model)} points loaded: case (b)")
+        if isinstance(command, SetFilterCutoff):
+            if not command.cutoff_hz > 0:
+                return CommandReply(False, f"filter cutoff must be positive, got {command.cutoff_hz}")
+            self.filter_params = replace(self.filter_params, cutoff_hz=float(command.cutoff_hz))
+            self._filter = PoseFilter(self.filter_params, self.rate_hz)
+            return CommandReply(True, f"output filter cutoff {command.cutoff_hz:g} Hz")
+        if isinstance(command, ResetTracking):
+            self.tracker.clear()
+            self._acquisition = _Acquisition() if self._case == "c" else None
+            self._reset_motion()
+            self.stats = EngineStats()
+            return CommandReply(True, "tracking reset")
+        return CommandReply(False, f"{type(command).__name__} is not an engine command")
+
+    def _forget(self, target_id: str) -> None:
+        """A target the operator removed: drop its measured model point and candidacy."""
+        point = self._model.get(target_id)
+        if point is not None and not point.fixed and target_id not in self._frame_ids:
+            del self._model[target_id]
+        self._candidates.pop(target_id, None)
+
+    # ------------------------------------------------------------------ per frame
+
+    def process(self, frame: StereoFrame) -> tuple[tuple[TargetState, ...], PoseEstimate, dict | None]:
+        """Track one frame; returns ``(targets, pose, errors)`` (see the module docstring)."""
+        reject = self._pending_reject
+        self._pending_reject = set()
+        targets = self.tracker.step(frame, reject_ids=reject)
+        self.stats.frames += 1
+        measured = {
+            t.id: t for t in targets
+            if t.measured and np.all(np.isfinite(t.point_cam)) and np.all(np.isfinite(t.cov_cam))
+        }
+        existing = {t.id for t in targets}
+        # Grown points whose target the tracker dropped can never be measured again.
+        for pid in [p for p, m in self._model.items() if not m.fixed and p not in existing and p not in self._frame_ids
+                    and p not in self._anchor]:
+            del self._model[pid]
+        for pid in [p for p in self._candidates if p not in measured]:
+            del self._candidates[pid]
+
+        reason: str | None = None
+        if self._case == "c" and self._acquisition is not None:
+            reason = self._acquire(frame, measured)
+        if self._case == "a" and not self._model:
+            reason = self._establish_frame(measured)
+        fit = None
+        if reason is None:
+            fit, reason = self._fit(frame, measured)
+        if fit is None:
+            pose = PoseEstimate.invalid(reason or "no pose", self._case)
+            if self._last_valid_t is not None and frame.t_s - self._last_valid_t > self.velocity_params.max_gap_s:
+                self._velocity.reset()
+                self._filter.reset()
+            return self.tracker.targets if self._recovered_any else targets, pose, None
+        R, t, cov, n_used, outliers = fit
+        self.stats.valid_frames += 1
+        self._last_valid_t = frame.t_s
+        rates = self._velocity.update(frame.t_s, R, t)
+        v, w = rates if rates is not None else (np.full(3, np.nan), np.full(3, np.nan))
+        R_f, t_f = self._filter.update(frame.t_s, R, t, v if rates else None, w if rates else None)
+        T = np.eye(4)
+        T[:3, :3] = R_f
+        T[:3, 3] = t_f
+        pose = PoseEstimate(True, None, self._case, T, cov, np.asarray(v, float), np.asarray(w, float),
+                            n_used, tuple(outliers))
+        self._recovered_any = False
+        if self.pose_params.recover_model_points:
+            self._recover(frame, R, t, cov, existing)
+        errors = self._errors(frame, pose)
+        return (self.tracker.targets if self._recovered_any else targets), pose, errors
+
+    _recovered_any = False
+
+    # ------------------------------------------------------------------ model building
+
+    def _establish_frame(self, measured: dict[str, TargetState]) -> str | None:
+        """Case (a): the three-point frame and the initial model from the measured points."""
+        ids = list(measured)
+        if len(ids) < 3:
+            return f"case (a): {len(ids)} measured points, 3 needed to define the frame"
+        P = np.array([measured[i].point_cam for i in ids])
+        triple = choose_frame_points(P, self.pose_params.min_triangle_m)
+        if triple is None:
+            return "case (a): the measured points are (nearly) collinear or clustered: no frame"
+        i, j, k = triple
+        R_frame, origin = three_point_body_frame(P[i], P[j], P[k])
+        C = np.array([measured[x].cov_cam for x in ids])
+        b, Cb = to_body(R_frame, origin, P, C)
+        assert Cb is not None
+        self._model = {pid: _ModelPoint(b[n], Cb[n], False) for n, pid in enumerate(ids)}
+        self._frame_ids = (ids[i], ids[j], ids[k])
+        return None
+
+    def _acquire(self, frame: StereoFrame, measured: dict[str, TargetState]) -> str | None:
+        """Case (c): collect points while still; on success freeze the model. Returns the reason
+        the pose is not available yet (None once the model exists)."""
+        acq = self._acquisition
+        assert acq is not None
+        p = self.pose_params
+        if len(measured) < 3:
+            self._acquisition = _Acquisition()
+            return f"acquiring a model: {len(measured)} measured points, 3 needed"
+        if acq.t_start is None:
+            acq.t_start = frame.t_s
+        acq.frames += 1
+        for tid, tgt in measured.items():
+            acq.points.setdefault(tid, []).append(np.asarray(tgt.point_cam, float))
+            acq.covs.setdefault(tid, []).append(np.asarray(tgt.cov_cam, float))
+        # Still? Each point's samples must scatter about their mean as their covariance says.
+        for tid, pts in acq.points.items():
+            if len(pts) < 3:
+                continue
+            P = np.array(pts)
+            C = np.array(acq.covs[tid])
+            r = P - P.mean(axis=0)
+            d2 = float(np.mean(np.einsum("ni,nij,nj->n", r, np.linalg.inv(C), r)))
+            if d2 > p.still_max_d2:
+                self._acquisition = _Acquisition()
+                return f"acquiring a model: the object moved (point {tid}); hold it still"
+        elapsed = frame.t_s - acq.t_start
+        if elapsed < p.still_time_s:
+            return f"acquiring a model: hold still ({p.still_time_s - elapsed:.1f} s left)"
+        need = max(2, acq.frames // 2)
+        ids = [tid for tid, pts in acq.points.items() if len(pts) >= need and tid in measured]
+        if len(ids) < 3:
+            self._acquisition = _Acquisition()
+            return "acquiring a model: fewer than 3 points stayed tracked; hold still"
+        means, covs = [], []
+        for tid in ids:
+            W = np.linalg.inv(np.array(acq.covs[tid]))
+            Wsum = W.sum(axis=0)
+            C = np.linalg.inv(Wsum)
+            means.append(C @ np.einsum("nij,nj->i", W, np.array(acq.points[tid])))
+            covs.append(C)
+        M = np.array(means)
+        if choose_frame_points(M, p.min_triangle_m) is None:
+            self._acquisition = _Acquisition()
+            return "acquiring a model: the points are (nearly) collinear; select spread-out points"
+        centroid = M.mean(axis=0)
+        self._model = {tid: _ModelPoint(M[n] - centroid, covs[n], False) for n, tid in enumerate(ids)}
+        self._anchor = {tid: M[n] - centroid for n, tid in enumerate(ids)}
+        self._acquisition = None
+        return None
+
+    # ------------------------------------------------------------------ pose
+
+    def _fit(self, frame: StereoFrame, measured: dict[str, TargetState]
+             ) -> tuple[tuple[FloatArray, FloatArray, FloatArray, int, list[str]] | None, str | None]:
+        ids = [i for i in measured if i in self._model]
+        if not self._model:
+            return None, "no model" if self._case != "a" else "case (a): no frame yet"
+        if len(ids) < self.pose_params.min_points:
+            return None, f"only {len(ids)} model points measured ({self.pose_params.min_points} needed)"
+        b = np.array([self._model[i].b for i in ids])
+        Cb = np.array([self._model[i].cov for i in ids])
+        P = np.array([measured[i].point_cam for i in ids])
+        C = np.array([measured[i].cov_cam for i in ids])
+        initial = (self._last_fit[0], self._last_fit[1]) if self._last_fit is not None else None
+        try:
+            fit = robust_pose(b, P, C, Cb, self.pose_params, initial=initial, seed=frame.index)
+        except TrackmeterError as exc:
+            return None, str(exc)
+        if fit.inliers.sum() < self.pose_params.min_points:
+            return None, f"only {int(fit.inliers.sum())} consistent model points"
+        outliers = [ids[n] for n in np.flatnonzero(~fit.inliers)]
+        self._pending_reject.update(outliers)
+        self.stats.outliers_rejected += len(outliers)
+        R, t, cov = fit.R_cam_body, fit.t_cam_body, fit.cov
+        self._last_fit = (R, t, cov)
+        self._update_model(R, t, ids, fit.inliers, measured)
+        if self._last_fit is not None:
+            R, t, cov = self._last_fit  # re-gauged
+        return (R, t, cov, int(fit.inliers.sum()), outliers), None
+
+    def _update_model(self, R: FloatArray, t: FloatArray, ids: list[str], inliers: NDArray[np.bool_],
+                      measured: dict[str, TargetState]) -> None:
+        p = self.pose_params
+        if p.model_refine:
+            for n, pid in enumerate(ids):
+                m = self._model[pid]
+                if m.fixed or not inliers[n]:
+                    continue
+                tgt = measured[pid]
+                b_obs = R.T @ (tgt.point_cam - t)
+                C_obs = R.T @ tgt.cov_cam @ R
+                m.b, m.cov = fuse_point(m.b, m.cov, b_obs, C_obs)
+        # Candidates: measured targets not yet in the model.
+        for tid, tgt in measured.items():
+            if tid in self._model:
+                continue
+            b_obs = R.T @ (tgt.point_cam - t)
+            C_obs = R.T @ tgt.cov_cam @ R
+            cand = self._candidates.get(tid)
+            if cand is None:
+                self._candidates[tid] = _Candidate(b_obs, C_obs)
+                cand = self._candidates[tid]
+            else:
+                r = b_obs - cand.b
+                d2 = float(r @ np.linalg.solve(cand.cov + C_obs, r))
+                if d2 > self._gate:
+                    self._candidates[tid] = _Candidate(b_obs, C_obs)
+                    continue
+                cand.b, cand.cov = fuse_point(cand.b, cand.cov, b_obs, C_obs)
+                cand.count += 1
+            if cand.count >= p.join_after_frames:
+                self._model[tid] = _ModelPoint(cand.b, cand.cov, False)
+                del self._candidates[tid]
+                self.stats.model_points_joined += 1
+        if p.model_refine:
+            self._regauge()
+
+    def _regauge(self) -> None:
+        """Keep the body frame where its definition puts it while measured points are refined:
+        case (a) the three-point frame of the refined frame points; case (c) the acquired
+        (frozen) coordinates. Moves the model and the last pose together (no output jump)."""
+        if self._case == "a" and len(self._frame_ids) == 3 and all(i in self._model for i in self._frame_ids):
+            R_g, o_g = three_point_body_frame(*(self._model[i].b for i in self._frame_ids))
+        elif self._case == "c" and self._anchor:
+            ids = [i for i in self._anchor if i in self._model]
+            if len(ids) < 3:
+                return
+            from trackmeter.core.transforms import absolute_orientation
+
+            R_g, o_g = absolute_orientation(np.array([self._model[i].b for i in ids]),
+                                            np.array([self._anchor[i] for i in ids]))
+            # absolute_orientation gives model = R_g anchor + o_g: the anchor frame in model coordinates.
+        else:
+            return
+        if np.allclose(R_g, np.eye(3), atol=1e-12) and np.allclose(o_g, 0.0, atol=1e-12):
+            return
+        for m in self._model.values():
+            if m.fixed:
+                continue
+            m.b = R_g.T @ (m.b - o_g)
+            m.cov = R_g.T @ m.cov @ R_g
+        for c in self._candidates.values():
+            c.b = R_g.T @ (c.b - o_g)
+            c.cov = R_g.T @ c.cov @ R_g
+        if self._last_fit is not None:
+            R, t, cov = self._last_fit
+            # T_cam_newbody = T_cam_oldbody @ T_oldbody_newbody, T_oldbody_newbody = (R_g, o_g).
+            self._last_fit = (R @ R_g, t + R @ o_g, cov)
+
+    # ------------------------------------------------------------------ recovery
+
+    def _recover(self, frame: StereoFrame, R: FloatArray, t: FloatArray, cov: FloatArray, existing: set[str]) -> None:
+        p = self.pose_params
+        states = {s.id: s for s in self.tracker.targets}
+        todo: list[tuple[str, bool]] = []
+        for pid, m in self._model.items():
+            s = states.get(pid)
+            if s is not None and s.status == "lost":
+                todo.append((pid, True))
+            elif s is None and m.fixed:
+                todo.append((pid, False))
+        if not todo:
+            return
+        todo.sort(key=lambda item: self._last_attempt.get(item[0], -10**9))
+        attempts = 0
+        w, h = self.rig.image_size
+        margin = p.recovery_margin_px
+        for pid, is_target in todo:
+            if attempts >= p.max_recoveries_per_frame:
+                break
+            last = self._last_attempt.get(pid)
+            if last is not None and frame.index - last < p.recovery_interval_frames:
+                continue
+            m = self._model[pid]
+            x_cam = R @ m.b + t
+            if x_cam[2] <= 0:
+                continue
+            uv_l, uv_r = self.rig.project(x_cam[None])
+            uv_l, uv_r = uv_l[0], uv_r[0]
+            if not (margin <= uv_l[0] <= w - 1 - margin and margin <= uv_l[1] <= h - 1 - margin
+                    and margin <= uv_r[0] <= w - 1 - margin and margin <= uv_r[1] <= h - 1 - margin):
+                continue
+            self._last_attempt[pid] = frame.index
+            attempts += 1
+            self.stats.relock_attempts += 1
+            uv = (float(uv_l[0]), float(uv_l[1]))
+            result = self.tracker.relock(pid, uv, frame) if is_target else \
+                self.tracker.add_target(frame, uv, pid, "model")
+            if isinstance(result, Refusal):
+                continue
+            self._recovered_any = True
+            # The re-locked point must sit where the pose says the model point is.
+            r = np.asarray(result.point_cam, float) - x_cam
+            C = np.asarray(result.cov_cam, float) + R @ m.cov @ R.T + _position_cov(cov, m.b, R)
+            d2 = float(r @ np.linalg.solve(C, r)) if np.all(np.isfinite(r)) else np.inf
+            if d2 > self._gate:
+                self.stats.recoveries_rejected += 1
+                if is_target:
+                    self._pending_reject.add(pid)
+                else:
+                    self.tracker.remove_target(pid)
+            else:
+                self.stats.recoveries += 1
+
+    # ------------------------------------------------------------------ errors
+
+    def _errors(self, frame: StereoFrame, pose: PoseEstimate) -> dict | None:
+        truth = frame.truth
+        if truth is None or not pose.valid:
+            return None
+        T_true = np.asarray(truth.T_cam_body, float)
+        R_e, p_e = pose.T_cam_body[:3, :3], pose.T_cam_body[:3, 3]
+        v_e, w_e = pose.velocity_cam_m_s, pose.omega_body_rad_s
+        if self._case != "b":
+            # Online body alignment X = T_bodytrue_bodyest: chordal mean of R_true^T R_est and
+            # mean of R_true^T (p_est - p_true) so far (metrics.estimate_body_offset, running).
+            from trackmeter.core.metrics import refer_to_true_body
+
+            self._align_M += T_true[:3, :3].T @ R_e
+            self._align_t += T_true[:3, :3].T @ (p_e - T_true[:3, 3])
+            self._align_n += 1
+            U, _, Vt = np.linalg.svd(self._align_M)
+            R_X = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0]) @ Vt
+            t_X = self._align_t / self._align_n
+            q, pos, vel, om = refer_to_true_body(matrix_to_quat_wxyz(R_e), p_e, R_X, t_X,
+                                                 v_e[None] if np.all(np.isfinite(v_e)) else None,
+                                                 w_e[None] if np.all(np.isfinite(w_e)) else None)
+            R_e = Rotation.from_quat(q[0], scalar_first=True).as_matrix()
+            p_e = pos[0]
+            v_e = vel[0] if vel is not None else np.full(3, np.nan)
+            w_e = om[0] if om is not None else np.full(3, np.nan)
+        att = attitude_error_components(matrix_to_quat_wxyz(R_e), matrix_to_quat_wxyz(T_true[:3, :3]))
+        return {
+            "position_m": p_e - T_true[:3, 3],
+            "attitude_rad": att,
+            "attitude_total_rad": float(np.linalg.norm(att)),
+            "velocity_m_s": np.asarray(v_e, float) - np.asarray(truth.velocity_cam_m_s, float),
+            "omega_rad_s": np.asarray(w_e, float) - np.asarray(truth.omega_body_rad_s, float),
+        }
+
+
+def _position_cov(cov_pose: FloatArray, b: FloatArray, R: FloatArray) -> FloatArray:
+    """Covariance (3,3) of a body point ``R b + t`` in the camera frame from the pose covariance
+    (first order, ``d(Rb+t) = dt - [Rb]x dtheta``)."""
+    Rb = R @ b
+    S = np.array([[0, -Rb[2], Rb[1]], [Rb[2], 0, -Rb[0]], [-Rb[1], Rb[0], 0]])
+    J = np.hstack([np.eye(3), -S])
+    return J @ cov_pose @ J.T
