@@ -1,15 +1,67 @@
-"""trackmeter simulate (not built yet)."""
+"""Render a tumbling-satellite scenario to a stereo sequence folder (DESIGN.md section 6).
+
+The folder holds the left and right images (cam0/, cam1/ with data.csv), rig.yaml,
+groundtruth.tum, groundtruth.csv, model.yaml (the mock-up's salient points) and scenario.yaml
+(the scenario as run). It is written into DIR.partial and renamed to DIR only when complete,
+so DIR never holds half a sequence; an existing non-empty DIR is refused.
+
+examples:
+  trackmeter simulate --out /tmp/estec                      (the estec scenario, 60 s)
+  trackmeter simulate --scenario harsh_light --duration 5 --out /tmp/harsh
+  trackmeter simulate --scenario my_scenario.yaml --out /tmp/mine
+"""
 
 from __future__ import annotations
 
 import argparse
-
-from trackmeter.cli.common import not_built_yet
+import shutil
+import sys
+from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    pass
+    parser.add_argument("--scenario", metavar="FILE", default="estec",
+                        help="scenario file, or a name in config/scenarios/ (default: estec)")
+    parser.add_argument("--duration", metavar="S", type=float, default=None,
+                        help="render only the first S seconds (static_ranges: fewer frames per range)")
+    parser.add_argument("--out", metavar="DIR", required=True, help="sequence folder to create (must not exist or be empty)")
 
 
 def run(args: argparse.Namespace) -> int:
-    return not_built_yet("simulate")
+    import yaml
+
+    from trackmeter.cli.common import progress
+    from trackmeter.data.config import config_to_dict
+    from trackmeter.data.sequence import SequenceWriter
+    from trackmeter.errors import TrackmeterError
+    from trackmeter.sources.sim.scenario import load_scenario
+    from trackmeter.sources.sim.simulator import Simulator
+
+    out = Path(args.out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise TrackmeterError(f"{out}: exists and is not an empty folder; choose a new --out")
+    scenario = load_scenario(args.scenario)
+    if args.duration is not None:
+        if not args.duration > 0:
+            raise TrackmeterError(f"--duration must be positive, got {args.duration}")
+        scenario = scenario.with_duration(args.duration)
+    sim = Simulator(scenario)
+    partial = out.with_name(out.name + ".partial")
+    if partial.exists():
+        shutil.rmtree(partial)  # left over from an interrupted run of this command
+    try:
+        with SequenceWriter(partial, rig=sim.true_rig, model_points=sim.model) as writer:
+            (partial / "scenario.yaml").write_text(
+                "# the scenario this sequence was rendered from\n"
+                + yaml.safe_dump(config_to_dict(scenario), sort_keys=False), encoding="utf-8")
+            for i in progress(range(sim.n_frames), sim.n_frames, f"simulate {scenario.name}"):
+                writer.write(sim.frame(i))
+        if out.exists():
+            out.rmdir()  # empty, checked above
+        partial.rename(out)
+    except BaseException:
+        shutil.rmtree(partial, ignore_errors=True)
+        raise
+    print(f"wrote {sim.n_frames} frames ({sim.n_frames / sim.rate_hz:.2f} s at {sim.rate_hz:g} Hz) of "
+          f"scenario {scenario.name} to {out}", file=sys.stdout)
+    return 0

@@ -1,0 +1,198 @@
+"""``sim``: the tumbling mock-up rendered live through the rig's two cameras, with ground truth.
+
+:class:`Simulator` turns a :class:`~trackmeter.sources.sim.scenario.Scenario` into a
+:class:`~trackmeter.sources.base.Source`. Frame ``i`` is at ``t_i = i / rate_hz``; its pose
+comes from the free rigid-body solution (Euler's equations, paper eq. 13, with quaternion
+kinematics, eq. 15; :mod:`trackmeter.core.dynamics`) and the translation profile, and its images
+from the stereo renderer (:mod:`trackmeter.sources.sim.render`). Every frame carries its ground
+truth: ``T_cam_body``, the velocity of the body origin in the camera frame and the body-frame
+angular velocity (paper eq. 14).
+
+Frames are random-access (:meth:`Simulator.frame`): the sensor-noise generator of frame ``i`` is
+seeded with ``(seed, i)``, so a frame renders identically whatever was rendered before it.
+:meth:`Simulator.surface_points` says which body-frame surface point a left-image pixel sees at
+a frame (or NaN), so a test can follow a surface point's true image through a sequence and tell
+a locked target from a false lock.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+from trackmeter.core.dynamics import FreeRotation, Translation, integrate_free_rotation
+from trackmeter.core.stereo import StereoRig
+from trackmeter.core.transforms import make_transform, quat_wxyz_to_matrix
+from trackmeter.data.model import Model
+from trackmeter.data.rigfile import load_rig
+from trackmeter.errors import TrackmeterError
+from trackmeter.sources.base import GroundTruth, Source, StereoFrame
+from trackmeter.sources.pacing import Pacer
+from trackmeter.sources.sim.mockup import Mockup, load_mockup
+from trackmeter.sources.sim.render import Occluder, StereoRenderer
+from trackmeter.sources.sim.scenario import Scenario, load_scenario, mockup_path, rig_path
+
+FloatArray = NDArray[np.float64]
+DEG = np.pi / 180.0
+
+
+class Simulator(Source):
+    """A scenario rendered frame by frame, with ground truth.
+
+    Args:
+        scenario: a :class:`Scenario` or the name/path of a scenario file.
+        rig_override: the rig this source *reports* (``--rig``), e.g. a deliberately
+            miscalibrated one; the images are always rendered through the scenario's true rig
+            (:attr:`true_rig`).
+        realtime: deliver frames at ``rate_hz`` (sleeping as needed); else as fast as rendered.
+        loop: start again after the last frame; indices and timestamps keep increasing (each
+            loop is shifted by ``n_frames / rate_hz``) and the images repeat exactly.
+        mockup: an already loaded mock-up (saves reloading its textures), else the scenario's.
+
+    Attributes:
+        scenario: the scenario.
+        true_rig: the rig the images are rendered through.
+        rig: ``rig_override`` or ``true_rig``.
+        rate_hz: the scenario's frame rate.
+        mockup: the mock-up.
+        model: the mock-up's salient points as a :class:`Model` (what ``model.yaml`` holds).
+        renderer: the :class:`StereoRenderer`.
+    """
+
+    def __init__(
+        self,
+        scenario: Scenario | str,
+        rig_override: StereoRig | None = None,
+        realtime: bool = False,
+        loop: bool = False,
+        mockup: Mockup | None = None,
+    ) -> None:
+        self.scenario = load_scenario(scenario) if isinstance(scenario, str) else scenario
+        sc = self.scenario
+        self.true_rig = load_rig(rig_path(sc))
+        self.rig = rig_override if rig_override is not None else self.true_rig
+        self.rate_hz = float(sc.rate_hz)
+        self.mockup = mockup if mockup is not None else load_mockup(mockup_path(sc))
+        self.model = Model.from_pairs(self.mockup.salient_points) if len(self.mockup.salient_points) >= 3 else None
+        self.renderer = StereoRenderer(self.true_rig, self.mockup, sc.render)
+        self.realtime = realtime
+        self.loop = loop
+        sun = np.asarray(sc.sun_dir_cam, dtype=float)
+        self.sun_dir_cam: FloatArray = sun / np.linalg.norm(sun)
+        q0 = np.asarray(sc.attitude0_wxyz, dtype=float)
+        self._q0 = q0 / np.linalg.norm(q0)
+        self._rotation: FreeRotation | None = None
+        if not sc.static_ranges_m:
+            self._rotation = integrate_free_rotation(
+                sc.inertia_kg_m2, self._q0, np.asarray(sc.omega0_body_deg_s, dtype=float) * DEG, max(sc.span_s, 1e-6)
+            )
+        self._translation = Translation(
+            sc.position0_m, sc.velocity_m_s,
+            None if sc.approach_to_m is None else np.asarray(sc.approach_to_m, dtype=float), sc.approach_s,
+        )
+        self._pacer = Pacer()
+        self._pos = 0
+        self._count = 0
+        self._loops = 0
+
+    # ------------------------------------------------------------------ random access
+
+    @property
+    def n_frames(self) -> int:
+        """Frames in one pass of the scenario."""
+        return self.scenario.n_frames
+
+    def __len__(self) -> int:
+        return self.n_frames
+
+    def time_of(self, index: int) -> float:
+        """``t_i = i / rate_hz``, s (index within one pass)."""
+        return index / self.rate_hz
+
+    def _check(self, index: int) -> int:
+        if not 0 <= int(index) < self.n_frames:
+            raise TrackmeterError(f"frame {index} outside the scenario's {self.n_frames} frames")
+        return int(index)
+
+    def truth(self, index: int) -> GroundTruth:
+        """Ground truth of frame ``index``: pose, origin velocity (cam), omega (body)."""
+        i = self._check(index)
+        sc = self.scenario
+        if sc.static_ranges_m:
+            k = i // sc.frames_per_range
+            direction = np.asarray(sc.position0_m, dtype=float)
+            direction = direction / np.linalg.norm(direction)
+            T = make_transform(quat_wxyz_to_matrix(self._q0), direction * sc.static_ranges_m[k])
+            return GroundTruth(T, np.zeros(3), np.zeros(3))
+        t = self.time_of(i)
+        assert self._rotation is not None
+        q, w = self._rotation.state(min(t, self._rotation.duration_s))
+        p, v = self._translation.at(t)
+        return GroundTruth(make_transform(quat_wxyz_to_matrix(q), p), v, w)
+
+    def static_range_of(self, index: int) -> float | None:
+        """For a static-ranges scenario, the nominal range of frame ``index``, m; else None."""
+        sc = self.scenario
+        if not sc.static_ranges_m:
+            return None
+        return float(sc.static_ranges_m[self._check(index) // sc.frames_per_range])
+
+    def occluders_at(self, index: int) -> tuple[Occluder, ...]:
+        """The occluding panels present at frame ``index``."""
+        t = self.time_of(self._check(index))
+        out = []
+        for occ in self.scenario.occluders:
+            if occ.start_s <= t <= occ.end_s:
+                centre = np.asarray(occ.position_m, dtype=float) + (t - occ.start_s) * np.asarray(occ.velocity_m_s, dtype=float)
+                R = Rotation.from_rotvec(np.asarray(occ.rotvec_deg, dtype=float) * DEG).as_matrix()
+                out.append(Occluder(make_transform(R, centre), tuple(occ.size_m)))
+        return tuple(out)
+
+    def frame(self, index: int) -> StereoFrame:
+        """Render frame ``index`` of the scenario (deterministic; no pacing)."""
+        i = self._check(index)
+        gt = self.truth(i)
+        # The pose one frame earlier, for motion blur. Frame 0 has none in the scenario, so it
+        # takes frame 1's: the blur spreads symmetrically about the current pose, so the
+        # direction of the motion does not matter, only its size.
+        prev = self.truth(i - 1).T_cam_body if i > 0 else (self.truth(1).T_cam_body if self.n_frames > 1 else None)
+        rng = np.random.default_rng([self.scenario.seed, i])
+        left, right = self.renderer.render(gt.T_cam_body, self.sun_dir_cam, rng, T_cam_body_prev=prev,
+                                           occluders=self.occluders_at(i))
+        return StereoFrame(index=i, t_s=self.time_of(i), left=left, right=right, truth=gt)
+
+    def surface_points(self, index: int, uv_left: ArrayLike) -> FloatArray:
+        """Body-frame surface points (N,3), m, seen at left-image pixels ``uv_left`` (N,2) in
+        frame ``index`` (distorted, as rendered); NaN rows where a pixel sees space or an occluder."""
+        i = self._check(index)
+        return self.renderer.surface_points(self.truth(i).T_cam_body, np.asarray(uv_left, dtype=float).reshape(-1, 2),
+                                            occluders=self.occluders_at(i))
+
+    @property
+    def model_points_body(self) -> FloatArray:
+        """(N,3) the mock-up's salient points in the body frame, m."""
+        return np.array([np.asarray(x, dtype=float) for _, x in self.mockup.salient_points]).reshape(-1, 3)
+
+    # ------------------------------------------------------------------ streaming
+
+    def read(self) -> StereoFrame | None:
+        if self._pos >= self.n_frames:
+            if not self.loop:
+                return None
+            self._pos = 0
+            self._loops += 1
+        f = self.frame(self._pos)
+        self._pos += 1
+        t = f.t_s + self._loops * self.n_frames / self.rate_hz
+        if self.realtime:
+            self._pacer.wait(t)
+        out = StereoFrame(index=self._count, t_s=t, left=f.left, right=f.right, truth=f.truth)
+        self._count += 1
+        return out
+
+    def restart(self) -> None:
+        self._pos = 0
+        self._count = 0
+        self._loops = 0
+        self._pacer.reset()
