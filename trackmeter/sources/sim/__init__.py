@@ -1,0 +1,1 @@
+"""The simulator: satellite mock-up, stereo renderer, rigid-body dynamics and scenarios."""

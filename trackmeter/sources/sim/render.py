@@ -1,0 +1,640 @@
+"""Stereo renderer of the satellite mock-up: what the rig's two cameras see, geometrically exact.
+
+For each camera the mock-up's planar faces are drawn into an undistorted pinhole *canvas*
+(the camera's K, shifted so the canvas covers every ray of the real image), then the rig's lens
+distortion is applied once with ``cv2.remap`` through a map computed at start-up (each original,
+distorted pixel → its pinhole canvas position, via :meth:`Camera.undistort`). The right camera
+renders with its own pose ``T_cam1_body = rig.T_cam1_cam @ T_cam_body`` and its own K and
+distortion, so the rig's rotation and distortion are exercised for real.
+
+A face is drawn with one ``cv2.warpPerspective`` over its bounding box: the homography maps
+texel centres ``(i, j, 1)`` to canvas pixels (Hartley & Zisserman, plane-induced homography)
+
+    H = K_canvas [R e_u s_u | R e_v s_v | R (origin + s_u/2 e_u + s_v/2 e_v) + t]
+
+where ``s_u = w / n_u`` is the texel size and ``(R, t) = T_view_body``; OpenCV's warps and
+remap both put integer pixel coordinates at pixel centres, the convention of this project,
+so a texture point lands exactly where ``StereoRig.project`` puts it (tests check 0.05 px).
+Visibility: back faces are culled; faces are drawn far to near and composited "over" with
+their (premultiplied) coverage, behind a per-pixel depth test on ``1/z``, which is affine in
+the pixel coordinates for a plane: ``1/z = (n·K⁻¹[u v 1]ᵀ) / (n·p0)``.
+
+Shading is done per texel, in texture space, before warping (a texel's view direction and
+sun direction are exact there): Lambert with the perturbed normal ``n'``,
+``albedo (ambient + E max(n'·s, 0) lit)``, plus glints ``spec E lit exp(k (n'·h - 1))``
+(a Phong-like lobe, ``h`` the half vector of sun and view directions, ``k`` the sharpness).
+``lit`` is 0 in shadows, which are the faces (and occluders) between the face and the sun,
+projected along the sun onto the face's plane and rasterised into its texture.
+
+Then auto-iris exposure (a high percentile of the satellite's radiance in the left image is
+set to a target grey level), sensor noise (read noise and shot noise, Gaussian with the
+Poisson variance ``gain * signal``), optional motion blur (the average of sub-frame renders
+spread over the shutter time centred on the current pose), 8-bit grey output.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy.ndimage import map_coordinates
+from scipy.spatial.transform import Rotation
+
+from trackmeter.core.params import param
+from trackmeter.core.stereo import Camera, StereoRig
+from trackmeter.errors import TrackmeterError
+from trackmeter.sources.sim.mockup import Face, MaterialSpec, Mockup, Surface, _make_face
+
+F32 = NDArray[np.float32]
+FloatArray = NDArray[np.float64]
+
+_NEAR_M = 0.02  # faces with a corner closer than this to a camera are not drawn
+
+
+@dataclass(frozen=True)
+class RenderParams:
+    """Lighting, exposure, sensor and blur of the simulated cameras (part of a scenario file)."""
+
+    sun_irradiance: float = param(1.0, "Sun irradiance, relative radiance units (sets the scale of everything).", min=0.0)
+    ambient: float = param(0.03, "Ambient light (Earth albedo, lab walls), fraction of the sun's irradiance.", min=0.0, max=10.0)
+    glint_strength: float = param(1.0, "Multiplies every material's specular (glint) strength.", min=0.0, max=100.0)
+    glint_sharpness: float = param(1.0, "Multiplies every material's specular exponent (>1: smaller, faster-changing glints).", min=0.01, max=100.0)
+    auto_exposure: bool = param(True, "Auto-iris: scale each frame so exposure_percentile of the satellite sits at exposure_target_grey.")
+    exposure_percentile: float = param(99.0, "Percentile of the satellite's pixels (left image) the auto-iris holds at the target.", min=50.0, max=100.0)
+    exposure_target_grey: float = param(200.0, "Grey level the auto-iris puts that percentile at.", min=1.0, max=255.0)
+    exposure_gain_grey: float = param(400.0, "Grey levels per unit radiance when auto_exposure is off.", min=0.0)
+    max_gain_grey: float = param(4000.0, "Auto-iris limit: largest gain, grey levels per unit radiance (fully open iris).", min=0.0)
+    black_level_grey: float = param(3.0, "Sensor black level (offset added before noise and quantisation), grey levels.", min=0.0, max=255.0)
+    read_noise_grey: float = param(1.0, "Read noise standard deviation, grey levels.", min=0.0, max=100.0)
+    shot_noise_gain: float = param(0.02, "Conversion gain for shot noise, grey levels per photo-electron: variance = gain * signal.", min=0.0, max=100.0)
+    motion_blur_subframes: int = param(1, "Sub-frames averaged for motion blur (1: none; needs T_cam_body_prev).", min=1, max=64)
+    shutter_fraction: float = param(0.5, "Exposure time as a fraction of the frame interval (motion blur), centred on the frame's pose.", min=0.0, max=1.0)
+    occluder_albedo: float = param(0.03, "Diffuse reflectance of occluder panels (dark, matte).", min=0.0, max=1.0)
+    mip_bias: float = param(0.0, "Texture level-of-detail bias, octaves (+: blurrier, less aliasing).", min=-4.0, max=4.0)
+
+
+@dataclass(frozen=True, eq=False)
+class Occluder:
+    """A dark flat rectangular panel between the camera and the mock-up (harsh-light scenarios).
+
+    Attributes:
+        T_cam_occluder: (4,4) pose of the panel in the LEFT camera frame; the panel spans
+            ``|x| <= w/2``, ``|y| <= h/2`` of its own frame, at z = 0. It hides what is behind it
+            and casts shadows.
+        size_m: ``(w, h)``, m.
+    """
+
+    T_cam_occluder: FloatArray
+    size_m: tuple[float, float]
+
+    def __post_init__(self) -> None:
+        T = np.asarray(self.T_cam_occluder, dtype=float)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise TrackmeterError("Occluder.T_cam_occluder must be a finite 4x4 matrix")
+        if len(self.size_m) != 2 or min(self.size_m) <= 0:
+            raise TrackmeterError(f"Occluder.size_m must be two positive lengths, got {self.size_m}")
+        object.__setattr__(self, "T_cam_occluder", T)
+        object.__setattr__(self, "size_m", (float(self.size_m[0]), float(self.size_m[1])))
+
+
+class _View:
+    """One camera: its pinhole canvas and the distortion map (original pixel → canvas pixel)."""
+
+    def __init__(self, cam: Camera, margin_px: int = 3) -> None:
+        self.cam = cam
+        W, H = cam.image_size
+        uu, vv = np.meshgrid(np.arange(W, dtype=float), np.arange(H, dtype=float))
+        xy = cam.undistort(np.column_stack([uu.ravel(), vv.ravel()]))
+        K = cam.K
+        u_pin = K[0, 0] * xy[:, 0] + K[0, 1] * xy[:, 1] + K[0, 2]
+        v_pin = K[1, 1] * xy[:, 1] + K[1, 2]
+        ox = math.floor(u_pin.min()) - margin_px
+        oy = math.floor(v_pin.min()) - margin_px
+        self.K_canvas = K.copy()
+        self.K_canvas[0, 2] -= ox
+        self.K_canvas[1, 2] -= oy
+        self.K_canvas_inv = np.linalg.inv(self.K_canvas)
+        self.size = (int(math.ceil(u_pin.max())) - ox + margin_px + 1, int(math.ceil(v_pin.max())) - oy + margin_px + 1)
+        map_x = (u_pin - ox).reshape(H, W).astype(np.float32)
+        map_y = (v_pin - oy).reshape(H, W).astype(np.float32)
+        self.map_x, self.map_y = map_x, map_y
+
+
+@dataclass
+class _Item:
+    face: Face
+    surface: Surface
+    side: float
+    depth: float
+    roi: tuple[int, int, int, int]
+    index: int
+
+
+class _Geom:
+    """Faces as stacked arrays, for vectorised visibility, projection and shadow tests."""
+
+    def __init__(self, faces: Sequence[Face]) -> None:
+        self.faces = list(faces)
+        self.origin = np.array([f.origin for f in faces])
+        self.normal = np.array([f.normal for f in faces])
+        self.has_back = np.array([f.back is not None for f in faces])
+        self.corners = np.array(
+            [f.origin + np.array([[0, 0], [f.size_m[0], 0], [f.size_m[0], f.size_m[1]], [0, f.size_m[1]]]) @ np.vstack([f.e_u, f.e_v]) for f in faces]
+        )
+        self.n_texels = np.array([float(np.prod(f.front.levels[0].shape)) for f in faces])
+        # shadow casters: one convex solid per part (a box's shadow is that of its 8 corners),
+        # as vertices and edges so that the part on the sun side of a plane can be cut out
+        parts: dict[str, int] = {}
+        verts, vid, edges = [], [], []
+        n = 0
+        for f in faces:
+            c = parts.setdefault(f.part or f.name, len(parts))
+            k = len(f.outline)
+            verts.append(f.outline_body)
+            vid.append(np.full(k, c))
+            edges.append(np.column_stack([np.arange(k), (np.arange(k) + 1) % k]) + n)
+            n += k
+        self.caster_verts = np.concatenate(verts)
+        self.caster_of_vert = np.concatenate(vid)
+        self.caster_edges = np.concatenate(edges)
+        self.n_casters = len(parts)
+
+
+class StereoRenderer:
+    """Renders the rig's left and right images of a mock-up at a pose (see the module doc).
+
+    Args:
+        rig: the stereo rig (image size, intrinsics, distortion, extrinsics).
+        mockup: the mock-up (:func:`trackmeter.sources.sim.mockup.load_mockup`).
+        params: lighting, exposure, noise and blur.
+    """
+
+    def __init__(self, rig: StereoRig, mockup: Mockup, params: RenderParams | None = None) -> None:
+        self.rig = rig
+        self.mockup = mockup
+        self.params = params if params is not None else RenderParams()
+        self._views = (_View(rig.left), _View(rig.right))
+        self._geom = _Geom(mockup.faces)
+        self._occluder_surfaces: dict[tuple[float, float], Face] = {}
+        self._last_gain = float("nan")
+
+    @property
+    def last_gain_grey(self) -> float:
+        """The exposure gain of the last :meth:`render`, grey levels per unit radiance."""
+        return self._last_gain
+
+    # ------------------------------------------------------------------ public API
+
+    def render(
+        self,
+        T_cam_body: FloatArray,
+        sun_dir_cam: FloatArray,
+        rng: np.random.Generator,
+        T_cam_body_prev: FloatArray | None = None,
+        occluders: Sequence[Occluder] = (),
+        noise: bool = True,
+    ) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
+        """Render a stereo pair.
+
+        Args:
+            T_cam_body: (4,4) pose of the mock-up in the left camera frame (m).
+            sun_dir_cam: (3,) direction TOWARD the sun in the left camera frame (normalised here).
+            rng: source of the sensor noise (the only randomness).
+            T_cam_body_prev: pose one frame interval earlier; with ``motion_blur_subframes > 1``
+                the image averages sub-frames over ``shutter_fraction`` of the interval, centred
+                on ``T_cam_body``.
+            occluders: dark panels in the left camera frame.
+            noise: False gives the noise-free image (black level still added), for tests.
+
+        Returns:
+            ``(left, right)``: (H,W) uint8 grey images, unrectified, with the rig's distortion.
+        """
+        p = self.params
+        T_cam_body = _as_pose(T_cam_body, "T_cam_body")
+        s_cam = np.asarray(sun_dir_cam, dtype=float).reshape(3)
+        if not np.all(np.isfinite(s_cam)) or np.linalg.norm(s_cam) == 0:
+            raise TrackmeterError("sun_dir_cam must be a finite non-zero 3-vector")
+        s_cam = s_cam / np.linalg.norm(s_cam)
+        poses = [T_cam_body]
+        if T_cam_body_prev is not None and p.motion_blur_subframes > 1 and p.shutter_fraction > 0:
+            poses = _subframe_poses(_as_pose(T_cam_body_prev, "T_cam_body_prev"), T_cam_body, p.motion_blur_subframes, p.shutter_fraction)
+        canvases: list[F32] = [np.zeros(0, np.float32), np.zeros(0, np.float32)]
+        cover: NDArray[np.bool_] | None = None
+        for k, T in enumerate(poses):
+            shared: dict = {}  # type: ignore[type-arg]
+            for side in (0, 1):
+                rad, zbuf = self.radiance_canvas(side, T, s_cam, occluders, _shared=shared)
+                canvases[side] = rad if k == 0 else canvases[side] + rad
+                if side == 0 and cover is None:
+                    cover = zbuf > 0
+        if len(poses) > 1:
+            for c in canvases:
+                c *= np.float32(1.0 / len(poses))
+        assert cover is not None
+        if p.auto_exposure:
+            vals = canvases[0][cover]
+            level = float(np.percentile(vals[:: max(1, len(vals) // 20000)], p.exposure_percentile)) if len(vals) else 0.0
+            gain = p.exposure_target_grey / level if level > 0 else p.max_gain_grey
+            gain = min(gain, p.max_gain_grey)
+        else:
+            gain = p.exposure_gain_grey
+        self._last_gain = gain
+        out = []
+        for side in (0, 1):
+            view = self._views[side]
+            img = cv2.remap(canvases[side], view.map_x, view.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            img *= np.float32(gain)
+            if noise:
+                # Gaussian with the Poisson variance of the signal plus the read noise. OpenCV's
+                # generator (seeded from rng, so runs repeat) is ~2x faster than numpy's here.
+                sigma = cv2.sqrt(cv2.add(img * np.float32(p.shot_noise_gain), p.read_noise_grey**2)) if p.shot_noise_gain > 0 else None
+                z = np.empty_like(img)
+                cv2.setRNGSeed(int(rng.integers(0, 2**31 - 1)))
+                cv2.randn(z, 0.0, 1.0)
+                if sigma is None:
+                    z *= np.float32(p.read_noise_grey)
+                else:
+                    z *= sigma
+                img += z
+            img += p.black_level_grey + 0.5
+            np.clip(img, 0.0, 255.0, out=img)
+            out.append(img.astype(np.uint8))
+        return out[0], out[1]
+
+    def surface_points(self, T_cam_body: FloatArray, uv_left: FloatArray, occluders: Sequence[Occluder] = ()) -> FloatArray:
+        """Body-frame surface point (N,3), m, seen at each ORIGINAL left pixel (N,2); NaN rows where
+        the pixel sees black space or an occluder.
+
+        Same visibility as :meth:`render`: the nearest front-facing (or two-sided) face whose
+        coverage at that point is at least one half.
+        """
+        return self._surface_points(0, _as_pose(T_cam_body, "T_cam_body"), _as_pose(T_cam_body, "T_cam_body"), uv_left, occluders)
+
+    def surface_points_right(self, T_cam_body: FloatArray, uv_right: FloatArray, occluders: Sequence[Occluder] = ()) -> FloatArray:
+        """As :meth:`surface_points` for ORIGINAL right-image pixels (N,2)."""
+        T = _as_pose(T_cam_body, "T_cam_body")
+        return self._surface_points(1, self.rig.T_cam1_cam @ T, T, uv_right, occluders)
+
+    # ------------------------------------------------------------------ internals
+
+    def _occluder_faces(self, T_cam_body: FloatArray, occluders: Sequence[Occluder]) -> list[Face]:
+        """Occluder panels as two-sided faces in the body frame (textures cached by size)."""
+        faces = []
+        T_body_cam = np.linalg.inv(T_cam_body)
+        for k, occ in enumerate(occluders):
+            key = occ.size_m
+            proto = self._occluder_surfaces.get(key)
+            if proto is None:
+                mat = MaterialSpec(name="occluder", kind="plain", albedo=self.params.occluder_albedo, albedo_variation=0.0)
+                proto = _make_face("occluder", np.zeros(3), np.eye(3)[0], np.eye(3)[1], key, mat, mat, "rect", self.mockup.texel_m, 0, "")
+                self._occluder_surfaces[key] = proto
+            T = T_body_cam @ occ.T_cam_occluder
+            e_u, e_v = T[:3, 0], T[:3, 1]
+            origin = T[:3, 3] - 0.5 * key[0] * e_u - 0.5 * key[1] * e_v
+            faces.append(
+                Face(
+                    name=f"occluder_{k}",
+                    origin=origin,
+                    e_u=e_u,
+                    e_v=e_v,
+                    size_m=key,
+                    front=proto.front,
+                    back=proto.back,
+                    outline=proto.outline,
+                    part=f"occluder_{k}",
+                )
+            )
+        return faces
+
+    def radiance_canvas(
+        self,
+        side: int,
+        T_cam_body: FloatArray,
+        sun_dir_cam: FloatArray,
+        occluders: Sequence[Occluder] = (),
+        _shared: dict | None = None,  # type: ignore[type-arg]
+    ) -> tuple[F32, F32]:
+        """Noise-free radiance of one camera's undistorted pinhole canvas and its ``1/z`` buffer
+        (0 where nothing is drawn). ``side`` 0 = left, 1 = right.
+
+        ``_shared`` lets the two cameras of one instant share what does not depend on the view
+        (shadows, diffuse shading); pass the same fresh dict for both.
+        """
+        view = self._views[side]
+        T_view_body = T_cam_body if side == 0 else self.rig.T_cam1_cam @ T_cam_body
+        R, t = T_view_body[:3, :3], T_view_body[:3, 3]
+        s_body = T_cam_body[:3, :3].T @ np.asarray(sun_dir_cam, dtype=float)
+        s_body = s_body / np.linalg.norm(s_body)
+        C = -R.T @ t
+        shared = _shared if _shared is not None else {}
+        geom = shared.get("geom")
+        if geom is None:
+            geom = self._geom if not occluders else _Geom(list(self.mockup.faces) + self._occluder_faces(T_cam_body, occluders))
+            shared["geom"] = geom
+        Wc, Hc = view.size
+        Kc = view.K_canvas
+        p = self.params
+        E = p.sun_irradiance
+
+        # visibility, projection and level of detail of every face at once
+        dC = np.einsum("fk,fk->f", C - geom.origin, geom.normal)
+        sgn = np.where(dC > 0, 1.0, -1.0)
+        drawable = (dC > 0) | geom.has_back
+        P = geom.corners @ R.T + t  # (F,4,3) view frame
+        z = P[..., 2]
+        drawable &= z.min(axis=1) >= _NEAR_M
+        uvw = P @ Kc.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = uvw[..., :2] / uvw[..., 2:]
+        x0 = np.floor(uv[..., 0].min(axis=1)) - 2
+        y0 = np.floor(uv[..., 1].min(axis=1)) - 2
+        x1 = np.ceil(uv[..., 0].max(axis=1)) + 3
+        y1 = np.ceil(uv[..., 1].max(axis=1)) + 3
+        drawable &= (x1 > 0) & (y1 > 0) & (x0 < Wc) & (y0 < Hc)
+        u, v = uv[..., 0], uv[..., 1]
+        area = 0.5 * np.abs(np.einsum("fk,fk->f", u, np.roll(v, 1, axis=1)) - np.einsum("fk,fk->f", v, np.roll(u, 1, axis=1)))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lod = 0.5 * np.log2(geom.n_texels / np.maximum(area, 1e-6)) + 0.5 + p.mip_bias
+        order = np.flatnonzero(drawable)
+        order = order[np.argsort(-z[order].mean(axis=1), kind="stable")]
+        s_side_n = (geom.normal @ s_body) * sgn  # sun elevation over each visible side
+
+        canvas = np.zeros((Hc, Wc), np.float32)
+        zbuf = np.zeros((Hc, Wc), np.float32)
+        amb = p.ambient * E
+        for f in order:
+            face = geom.faces[f]
+            surf = face.front if sgn[f] > 0 else face.back
+            assert surf is not None
+            level = min(max(int(math.floor(lod[f])) if math.isfinite(lod[f]) else 0, 0), len(surf.levels) - 1)
+            lvl = surf.levels[level]
+            nv, nu = lvl.shape
+            w, h = face.size_m
+            su, sv = w / nu, h / nv
+            n_side = sgn[f] * geom.normal[f]
+            if s_side_n[f] <= 0 or E == 0:
+                rad_pm = lvl.albedo_pm * np.float32(amb)
+            else:
+                key = (int(f), level)
+                cached = shared.get(key)
+                if cached is None:
+                    lit = _shadow_mask(geom, int(f), n_side, (nv, nu), s_body)
+                    s_loc = np.array([s_body @ face.e_u, s_body @ face.e_v, s_side_n[f]])
+                    ndl = cv2.transform(lvl.normal, s_loc.reshape(1, 3))  # n'.s per texel
+                    ndl = cv2.max(ndl, 0.0)
+                    if lit is not None:
+                        ndl = cv2.multiply(ndl, lit)
+                    diffuse = cv2.multiply(ndl, lvl.albedo_pm, scale=E)
+                    diffuse = cv2.scaleAdd(lvl.albedo_pm, amb, diffuse)
+                    cached = (diffuse, lit, s_loc)
+                    shared[key] = cached
+                diffuse, lit, s_loc = cached
+                rad_pm = diffuse
+                k_spec = p.glint_strength * E
+                sharp = surf.sharpness * p.glint_sharpness
+                if k_spec * surf.material.specular > 0:
+                    hv = _half_vectors(face, n_side, C, s_loc)
+                    # skip faces whose facets cannot reach the lobe: the steepest facet tilt is
+                    # ~4 sigma of the material's slope; the lobe is negligible 7/k below its peak
+                    tilt = math.atan(4.0 * surf.material.slope)
+                    best = math.acos(min(1.0, max(-1.0, float(hv[..., 2].max()))))
+                    if math.cos(max(0.0, best - tilt)) > 1.0 - 7.0 / sharp:
+                        big = cv2.resize(hv, (nu, nv), interpolation=cv2.INTER_LINEAR)
+                        ndh = cv2.transform(cv2.multiply(lvl.normal, big), np.ones((1, 3)))  # n'.h
+                        glint = cv2.exp(cv2.addWeighted(ndh, sharp, ndh, 0.0, -sharp))  # exp(k (n'.h - 1))
+                        glint = cv2.multiply(glint, lvl.spec_pm, scale=k_spec)
+                        if lit is not None:
+                            glint = cv2.multiply(glint, lit)
+                        rad_pm = cv2.add(diffuse, glint)
+            ix0, iy0 = max(0, int(x0[f])), max(0, int(y0[f]))
+            ix1, iy1 = min(Wc, int(x1[f])), min(Hc, int(y1[f]))
+            # texel centres (i, j, 1) -> canvas pixels, shifted into the ROI
+            o = face.origin + 0.5 * su * face.e_u + 0.5 * sv * face.e_v
+            H = Kc @ np.column_stack([R @ face.e_u * su, R @ face.e_v * sv, R @ o + t])
+            H[0] -= ix0 * H[2]
+            H[1] -= iy0 * H[2]
+            size = (ix1 - ix0, iy1 - iy0)
+            # one-channel warps: OpenCV's 2-channel float path is several times slower
+            rw = cv2.warpPerspective(rad_pm, H, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            aw = cv2.warpPerspective(lvl.alpha, H, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            # inverse depth of the face's plane over the ROI: 1/z = g . (u, v, 1)
+            n_v = R @ n_side
+            g = (view.K_canvas_inv.T @ n_v) / (n_v @ (R @ face.origin + t))
+            xs = np.arange(ix0, ix1, dtype=np.float32) * np.float32(g[0])
+            ys = np.arange(iy0, iy1, dtype=np.float32) * np.float32(g[1]) + np.float32(g[2])
+            iz = ys[:, None] + xs[None, :]
+            zb = zbuf[iy0:iy1, ix0:ix1]
+            cv = canvas[iy0:iy1, ix0:ix1]
+            # depth test, skipped when the face is nearer than everything drawn in its box
+            # (1/z is affine, so its minimum over the box is at a corner)
+            iz_min = min(xs[0], xs[-1]) + min(ys[0], ys[-1])
+            if float(zb.max()) * (1.0 - 1e-3) > iz_min:
+                vis = (iz >= zb * np.float32(1.0 - 1e-3)).astype(np.float32)
+                aw *= vis
+                rw *= vis
+            cv -= cv * aw
+            cv += rw
+            np.copyto(zb, iz, where=aw >= 0.5)
+        return canvas, zbuf
+
+    def _surface_points(
+        self, side: int, T_view_body: FloatArray, T_cam_body: FloatArray, uv: FloatArray, occluders: Sequence[Occluder]
+    ) -> FloatArray:
+        uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+        cam = self._views[side].cam
+        xy = cam.undistort(uv)
+        rays = np.column_stack([xy, np.ones(len(xy))])
+        R, t = T_view_body[:3, :3], T_view_body[:3, 3]
+        C = -R.T @ t
+        d = rays @ R  # rows R^T r
+        best = np.full(len(uv), np.inf)
+        blocked = np.zeros(len(uv), bool)
+        n_mock = len(self.mockup.faces)
+        faces = list(self.mockup.faces) + self._occluder_faces(T_cam_body, occluders)
+        for index, face in enumerate(faces):
+            n = face.normal
+            if (C - face.origin) @ n > 0:
+                surf = face.front
+            elif face.back is not None:
+                surf = face.back
+            else:
+                continue
+            denom = d @ n
+            with np.errstate(divide="ignore", invalid="ignore"):
+                lam = ((face.origin - C) @ n) / denom
+            P = C + lam[:, None] * d
+            x = (P - face.origin) @ face.e_u
+            y = (P - face.origin) @ face.e_v
+            w, h = face.size_m
+            hit = np.isfinite(lam) & (lam > 0) & (x >= 0) & (x <= w) & (y >= 0) & (y <= h) & (lam < best)
+            if not hit.any():
+                continue
+            lvl = surf.levels[0]
+            nv, nu = lvl.shape
+            a = map_coordinates(lvl.alpha, [y[hit] / (h / nv) - 0.5, x[hit] / (w / nu) - 0.5], order=1, mode="constant", cval=0.0)
+            idx = np.flatnonzero(hit)[a >= 0.5]
+            best[idx] = lam[idx]
+            blocked[idx] = index >= n_mock
+        out = C + best[:, None] * d
+        out[~np.isfinite(best) | blocked] = np.nan
+        return out
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _as_pose(T: FloatArray, name: str) -> FloatArray:
+    T = np.asarray(T, dtype=float)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise TrackmeterError(f"{name} must be a finite 4x4 matrix")
+    return T
+
+
+def _subframe_poses(T_prev: FloatArray, T_cur: FloatArray, n: int, shutter: float) -> list[FloatArray]:
+    """Poses spread over the shutter time centred on ``T_cur``: rotation along the geodesic,
+    translation linear, extrapolated half a shutter past ``T_cur`` with the same motion."""
+    dR = T_cur[:3, :3] @ T_prev[:3, :3].T
+    rv = Rotation.from_matrix(dR).as_rotvec()
+    out = []
+    for a in 1.0 + shutter * np.linspace(-0.5, 0.5, n):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec(a * rv).as_matrix() @ T_prev[:3, :3]
+        T[:3, 3] = T_prev[:3, 3] + a * (T_cur[:3, 3] - T_prev[:3, 3])
+        out.append(T)
+    return out
+
+
+def _half_vectors(face: Face, n_side: FloatArray, C: FloatArray, s_loc: FloatArray, g: int = 9) -> F32:
+    """Unit half vectors of sun and view directions, (g,g,3) float32 in the face's local frame
+    ``(e_u, e_v, n_side)``, exact at a g x g grid placed where ``cv2.resize``'s bilinear
+    interpolation to the texture size puts its samples (h varies smoothly over a face)."""
+    w, h = face.size_m
+    d = C - face.origin
+    c_loc = np.array([d @ face.e_u, d @ face.e_v, d @ n_side])
+    xs = (np.arange(g) + 0.5) * (w / g)
+    ys = (np.arange(g) + 0.5) * (h / g)
+    v = np.empty((g, g, 3))
+    v[..., 0] = c_loc[0] - xs[None, :]
+    v[..., 1] = c_loc[1] - ys[:, None]
+    v[..., 2] = c_loc[2]
+    v /= np.linalg.norm(v, axis=2, keepdims=True)
+    hv = v + s_loc
+    hv /= np.linalg.norm(hv, axis=2, keepdims=True)
+    return hv.astype(np.float32)
+
+
+def _shadow_mask(geom: _Geom, index: int, n_side: FloatArray, shape: tuple[int, int], s_body: FloatArray) -> F32 | None:
+    """Lit fraction (nv,nu) of a face's texels (1 lit, 0 in shadow), or None when nothing shades it.
+
+    Each part (a convex solid: box, panel, disc) is cut to the sun side of the face's plane
+    (its vertices there plus its edges' crossings of the plane), projected along the sun
+    direction onto the plane, and the convex hull filled (anti-aliased) in texel coordinates.
+    """
+    face = geom.faces[index]
+    nv, nu = shape
+    w, h = face.size_m
+    sn = float(s_body @ n_side)
+    eps = 1e-4
+    V = geom.caster_verts
+    dist = (V - face.origin) @ n_side - eps
+    pos = dist > 0
+    if not pos.any():
+        return None
+    a, b = geom.caster_edges[:, 0], geom.caster_edges[:, 1]
+    cross = pos[a] != pos[b]
+    a, b = a[cross], b[cross]
+    tt = dist[a] / (dist[a] - dist[b])
+    X = V[a] + tt[:, None] * (V[b] - V[a])
+    pts = np.concatenate([V[pos], X])
+    ids = np.concatenate([geom.caster_of_vert[pos], geom.caster_of_vert[a]])
+    Q = pts - np.outer(((pts - face.origin) @ n_side) / sn, s_body)
+    ij = np.column_stack([(Q - face.origin) @ face.e_u * (nu / w) - 0.5, (Q - face.origin) @ face.e_v * (nv / h) - 0.5])
+    order = np.argsort(ids, kind="stable")
+    ids, ij = ids[order], ij[order]
+    bounds = np.flatnonzero(np.diff(ids)) + 1
+    mask: NDArray[np.uint8] | None = None
+    for chunk in np.split(ij, bounds):
+        if len(chunk) < 3:
+            continue
+        lo, hi = chunk.min(axis=0), chunk.max(axis=0)
+        if hi[0] < -1 or hi[1] < -1 or lo[0] > nu or lo[1] > nv:
+            continue
+        if mask is None:
+            mask = np.zeros((nv, nu), np.uint8)
+        hull = cv2.convexHull(np.round(chunk * 16).astype(np.int32))
+        cv2.fillConvexPoly(mask, hull, 255, cv2.LINE_AA, shift=4)
+    if mask is None:
+        return None
+    return 1.0 - mask.astype(np.float32) * np.float32(1.0 / 255.0)
+
+
+# --------------------------------------------------------------------------- preview pictures
+
+
+def look_at(position_cam: FloatArray, rotvec_deg: FloatArray) -> FloatArray:
+    """A pose ``T_cam_body`` with the body origin at ``position_cam`` (m) and attitude given as a
+    rotation vector (deg) of the body axes in the camera frame."""
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix()
+    T[:3, 3] = position_cam
+    return T
+
+
+def preview_pairs(out_dir: Path, rig_path: Path | None = None, mockup_path: Path | None = None) -> list[Path]:
+    """Render the README pictures: a left|right pair of the ESTEC geometry and of a harsh-light
+    geometry (low sun, strong glints, a dark panel shading and hiding part of the mock-up)."""
+    from trackmeter.data.rigfile import load_rig
+    from trackmeter.paths import MODELS_DIR, RIGS_DIR
+    from trackmeter.sources.sim.mockup import load_mockup
+
+    rig = load_rig(rig_path or RIGS_DIR / "estec_12mm.yaml")
+    mockup = load_mockup(mockup_path or MODELS_DIR / "estec_mockup.yaml")
+    rng = np.random.default_rng(1)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    shots = {
+        "estec": (
+            RenderParams(),
+            look_at(np.array([0.12, 0.0, 3.5]), np.array([-110.0, 35.0, 20.0])),
+            np.array([-0.5, -0.6, -0.6]),
+            (),
+        ),
+        "harsh_light": (
+            RenderParams(ambient=0.005, glint_strength=3.0, glint_sharpness=2.0, exposure_percentile=95.0),
+            look_at(np.array([0.0, 0.05, 3.5]), np.array([-80.0, 60.0, 35.0])),
+            np.array([0.95, -0.25, 0.15]),
+            (Occluder(look_at(np.array([-0.55, 0.05, 2.6]), np.array([0.0, 40.0, 0.0])), (0.5, 1.4)),),
+        ),
+    }
+    paths = []
+    for name, (params, T, sun, occ) in shots.items():
+        renderer = StereoRenderer(rig, mockup, params)
+        left, right = renderer.render(T, sun, rng, occluders=occ)
+        gap = np.full((left.shape[0], 6), 255, np.uint8)
+        path = out_dir / f"sim_{name}.png"
+        tmp = path.with_suffix(".tmp.png")
+        cv2.imwrite(str(tmp), np.hstack([left, gap, right]), [cv2.IMWRITE_PNG_COMPRESSION, 9])
+        tmp.replace(path)
+        paths.append(path)
+    return paths
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m trackmeter.sources.sim.render",
+        description="Render the README pictures (left|right pairs of the estec and harsh-light geometries).",
+    )
+    parser.add_argument("--preview", type=Path, required=True, metavar="DIR", help="folder for sim_estec.png and sim_harsh_light.png")
+    args = parser.parse_args(argv)
+    for path in preview_pairs(args.preview):
+        print(path)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
