@@ -1,13 +1,93 @@
 """Patch stereo matching and 3D point measurement (paper section 2.A).
 
-(Work in progress: the matcher lands here.)
+The operator points at a pixel of the LEFT image; its neighbourhood (default 8x8, as the paper)
+is searched for along the epipolar line of the rectified RIGHT image with the zero-mean
+normalised cross-correlation (ZNCC), refined to sub-pixel, checked, and triangulated with its
+uncertainty from the stereo error propagation (paper eqs. 1-2).
+
+Only the pixels a point needs are rectified: the patch and the search strip are sampled
+straight from the original images through slices of the rectification maps
+(:attr:`trackmeter.core.stereo.Rectification.maps`), so one point costs a few small remaps
+instead of two full-image remaps. The patch is centred EXACTLY on the requested pixel (an
+even-sized patch samples between pixels): the disparity belongs to that pixel, not to a
+neighbour half a pixel away.
+
+Sub-pixel refinement without pixel locking
+------------------------------------------
+A parabola through the three ZNCC scores around the integer peak (``subpixel="parabola"``)
+is the textbook refinement and is biased toward integer disparities ("pixel locking",
+Shimizu & Okutomi 2001): the correlation peak is not a parabola. The default
+(``subpixel="gauss_newton"``) instead fits the right patch itself at a fractional position:
+with ``R(x)`` the strip interpolated at column offset ``x`` (Keys cubic convolution, exact
+derivative), it solves the linear least-squares problem
+
+    T ≈ a R(x) + c R'(x) + b          (gain a, offset b, shift step dx = c / a)
+
+and iterates ``x ← x + dx`` (Lucas & Kanade 1981 in 1D, with the gain/offset that makes it
+maximise ZNCC). The fit's residual gives the disparity's standard deviation,
+``sigma_x² = s² [(AᵀA)⁻¹]_cc / a²`` with ``s² = |r|² / (n - 3)``. ``benchmarks/measure.py``
+measures both methods' bias curves on exactly shifted synthetic textures.
+
+Checks (a refused point has ``ok=False`` and a reason from :data:`REASONS`, never a number):
+outside the image, patch not inside the image, too dark (black sky), textureless, no texture
+along the epipolar line, search window outside the right image, beyond the disparity range
+(peak at the edge of the search), low score, ambiguous (a second peak outside the main lobe
+nearly as good), left-right inconsistent (matching the right patch back along the left row
+lands elsewhere), sub-pixel refinement failed.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from typing import Any, Sequence
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from trackmeter.core.params import param
+from trackmeter.core.stereo import Rectification, StereoRig
+from trackmeter.errors import TrackmeterError
+
+FloatArray = NDArray[np.float64]
+
+REASON_OUTSIDE_IMAGE = "outside image"
+REASON_PATCH_OUTSIDE = "patch not inside image"
+REASON_TOO_DARK = "too dark (black sky)"
+REASON_TEXTURELESS = "textureless"
+REASON_NO_EPIPOLAR_TEXTURE = "no texture along epipolar line"
+REASON_SEARCH_OUTSIDE = "search window outside right image"
+REASON_BEYOND_RANGE = "beyond disparity range"
+REASON_LOW_SCORE = "low score"
+REASON_AMBIGUOUS = "ambiguous (second peak)"
+REASON_LEFT_RIGHT = "left-right inconsistent"
+REASON_SUBPIXEL = "sub-pixel refinement failed"
+REASON_UNCERTAIN = "disparity too uncertain"
+
+#: Every reason a point can be refused for, in the order the checks run.
+REASONS: tuple[str, ...] = (
+    REASON_OUTSIDE_IMAGE,
+    REASON_PATCH_OUTSIDE,
+    REASON_TOO_DARK,
+    REASON_TEXTURELESS,
+    REASON_NO_EPIPOLAR_TEXTURE,
+    REASON_SEARCH_OUTSIDE,
+    REASON_BEYOND_RANGE,
+    REASON_LOW_SCORE,
+    REASON_AMBIGUOUS,
+    REASON_LEFT_RIGHT,
+    REASON_SUBPIXEL,
+    REASON_UNCERTAIN,
+)
+
+#: Extra strip columns kept on each side of the candidate positions, so the cubic
+#: interpolation of the sub-pixel fit and the "is the peak inside the range" test have data.
+STRIP_MARGIN_PX = 2
+
+#: Columns kept on each side of the integer match when the strip is resampled finely for the
+#: sub-pixel fit (the B-spline prefilter needs ~7 columns of context to be exact to 1e-4).
+FINE_MARGIN_PX = 10
 
 
 @dataclass(frozen=True)
@@ -15,3 +95,681 @@ class MeasureParams:
     """Tunables of a single 3D point measurement."""
 
     patch_size: int = param(8, "side of the square patch matched between the images, px", min=3, max=63)
+    min_disparity_px: float = param(0.0, "smallest disparity searched, rectified px", min=0.0)
+    max_disparity_px: float = param(320.0, "largest disparity searched, rectified px", min=1.0, max=2048.0)
+    min_score: float = param(0.8, "smallest ZNCC accepted at the refined match", min=-1.0, max=1.0)
+    uniqueness_margin: float = param(
+        0.05, "refuse when a second ZNCC peak outside the main lobe comes this close to the best", min=0.0, max=2.0
+    )
+    left_right_tolerance_px: float = param(
+        1.0, "largest disagreement of the right-to-left match with the left-to-right one, px", min=0.0
+    )
+    min_mean_grey: float = param(12.0, "darker patches (mean grey level) are black sky and refused", min=0.0, max=255.0)
+    min_texture_std: float = param(3.0, "smallest standard deviation of the patch, grey levels", min=0.0)
+    min_gradient_rms: float = param(
+        1.0, "smallest RMS of the patch's horizontal (epipolar) gradient, grey levels per px", min=0.0
+    )
+    subpixel: str = param(
+        "gauss_newton", "sub-pixel refinement: gauss_newton (unbiased) or parabola (baseline)",
+        choices=("gauss_newton", "parabola"),
+    )
+    subpixel_interpolation: str = param(
+        "bspline", "interpolation of the right strip at fractional shifts: bspline (flat response) or keys (cubic convolution)",
+        choices=("bspline", "keys"),
+    )
+    subpixel_iterations: int = param(10, "largest number of Gauss-Newton steps", min=1, max=100)
+    subpixel_tolerance_px: float = param(1e-3, "Gauss-Newton stops when a step is smaller, px", min=0.0)
+    max_sigma_disparity_px: float = param(
+        0.08, "refuse when the fit's own disparity standard deviation is larger (aperture problem), px", min=0.0
+    )
+    sigma_disparity_px: float = param(
+        0.0, "disparity standard deviation for the error propagation, px; 0 = estimate from the fit", min=0.0
+    )
+    min_sigma_disparity_px: float = param(
+        0.02, "floor under an estimated disparity standard deviation, px", min=0.0
+    )
+    sigma_uv_px: float = param(0.0, "standard deviation of the left pixel itself, px (0: taken as exact)", min=0.0)
+
+
+# --------------------------------------------------------------------------- results
+
+
+@dataclass(frozen=True, eq=False)
+class StripMatch:
+    """Result of matching one template along one strip (:func:`match_strip`).
+
+    Attributes:
+        ok, reason: whether the match passed the score/uniqueness/range checks, and why not.
+        position_px: sub-pixel column ``x`` of the template's first column in the strip:
+            ``template ≈ strip[:, x : x + P]`` (NaN when refused before refinement).
+        integer_position: the best candidate column (-1 when there was none).
+        score: ZNCC at ``position_px`` (NaN when not computed).
+        second_score: best ZNCC outside the main lobe (-1 when none).
+        sigma_px: standard deviation of ``position_px`` from the fit residual, px.
+        scores: (W - P + 1,) ZNCC at every integer column of the strip.
+    """
+
+    ok: bool
+    reason: str | None
+    position_px: float
+    integer_position: int
+    score: float
+    second_score: float
+    sigma_px: float
+    scores: NDArray[np.float32]
+
+
+@dataclass(frozen=True, eq=False)
+class PointMeasurement:
+    """One measured (or refused) point.
+
+    Attributes:
+        uv: (2,) requested pixel of the ORIGINAL left image, px.
+        ok: True when every check passed and the numbers below are valid.
+        reason: why the point was refused (one of :data:`REASONS`), None when ok.
+        uv_rect: (2,) the requested pixel in the rectified left image, px (NaN if outside).
+        right_uv: (2,) matched pixel of the ORIGINAL right image, px (NaN when refused).
+        disparity_px: rectified disparity ``u_left - u_right``, px (NaN when refused).
+        sigma_disparity_px: its standard deviation used for ``sigma_m``/``cov_m``, px.
+        xyz_m: (3,) point in the LEFT camera frame, m (NaN when refused).
+        sigma_m: (3,) standard deviation per axis of ``xyz_m``, m.
+        cov_m: (3,3) covariance of ``xyz_m`` (paper eqs. 1-2 propagated), m².
+        score: ZNCC of the match (NaN when not computed; may be given for refused points).
+    """
+
+    uv: FloatArray
+    ok: bool
+    reason: str | None
+    uv_rect: FloatArray
+    right_uv: FloatArray
+    disparity_px: float
+    sigma_disparity_px: float
+    xyz_m: FloatArray
+    sigma_m: FloatArray
+    cov_m: FloatArray
+    score: float
+
+    def to_json(self) -> dict[str, Any]:
+        """The DESIGN.md ``measure --json`` object; unavailable numbers are ``None`` (null)."""
+
+        def num(x: float) -> float | None:
+            return float(x) if math.isfinite(x) else None
+
+        def vec(a: FloatArray) -> list[float | None] | None:
+            return None if not np.all(np.isfinite(a)) else [float(v) for v in a]
+
+        return {
+            "uv": [float(self.uv[0]), float(self.uv[1])],
+            "ok": bool(self.ok),
+            "reason": self.reason,
+            "right_uv": vec(self.right_uv),
+            "disparity_px": num(self.disparity_px),
+            "xyz_m": vec(self.xyz_m),
+            "sigma_m": vec(self.sigma_m),
+            "score": num(self.score),
+        }
+
+
+# --------------------------------------------------------------------------- sampling
+
+
+def sample_rectified(
+    rect: Rectification,
+    image: NDArray[np.uint8],
+    side: int,
+    x0: float,
+    y0: float,
+    width: int,
+    height: int,
+    interpolation: int = cv2.INTER_LANCZOS4,
+) -> tuple[NDArray[np.float32], NDArray[np.bool_] | None]:
+    """Sample a block of the RECTIFIED image straight from the original image.
+
+    Returns the rectified pixels at ``(x0 + j, y0 + i)``, ``j < width``, ``i < height``
+    (``x0``, ``y0`` may be fractional), as (height, width) float32, and ``col_ok``: per column
+    whether every source pixel lies inside the original image, or None when all do (the
+    common case, spared an array). The rectification maps are interpolated bilinearly at the
+    fractional offset (they are smooth), the image with bicubic ``cv2.remap`` over just the
+    region it needs, converted to float so no grey-level rounding is added.
+
+    Args:
+        rect: the rig's rectification.
+        image: (H, W) uint8 original left (side 0) or right (side 1) image.
+        side: 0 left, 1 right.
+        x0, y0: rectified position of the block's top-left sample, px. The block plus one
+            column and row must lie on the rectified grid (callers clip first).
+        width, height: block size, px.
+        interpolation: OpenCV interpolation flag for the image.
+    """
+    mx_full, my_full = rect.maps[side]
+    bx, by = math.floor(x0), math.floor(y0)
+    fx, fy = x0 - bx, y0 - by
+    H, W = mx_full.shape
+    if bx < 0 or by < 0 or bx + width >= W or by + height >= H:
+        raise ValueError(f"rectified block at ({x0}, {y0}) size {width}x{height} leaves the {W}x{H} grid")
+    # Bilinear interpolation of the (smooth) maps at the block's fractional offset, one call each.
+    centre = (x0 + 0.5 * (width - 1), y0 + 0.5 * (height - 1))
+    mx = cv2.getRectSubPix(mx_full, (width, height), centre)
+    my = cv2.getRectSubPix(my_full, (width, height), centre)
+    h_img, w_img = image.shape
+    x_lo, x_hi = cv2.minMaxLoc(mx)[:2]
+    y_lo, y_hi = cv2.minMaxLoc(my)[:2]
+    col_ok = None
+    if not (x_lo >= 0 and y_lo >= 0 and x_hi <= w_img - 1 and y_hi <= h_img - 1):
+        col_ok = np.all((mx >= 0) & (mx <= w_img - 1) & (my >= 0) & (my <= h_img - 1), axis=0)
+    # Lanczos-4 reaches 3 pixels beyond the 2x2 cell; take the region plus 4 and let remap
+    # replicate at the true image border (those columns are flagged invalid anyway).
+    u0 = min(max(int(math.floor(x_lo)) - 4, 0), w_img - 1)
+    u1 = max(min(int(math.floor(x_hi)) + 6, w_img), u0 + 1)
+    v0 = min(max(int(math.floor(y_lo)) - 4, 0), h_img - 1)
+    v1 = max(min(int(math.floor(y_hi)) + 6, h_img), v0 + 1)
+    roi = image[v0:v1, u0:u1].astype(np.float32)
+    if u0:
+        mx -= np.float32(u0)
+    if v0:
+        my -= np.float32(v0)
+    out = cv2.remap(roi, mx, my, interpolation, borderMode=cv2.BORDER_REPLICATE)
+    return out, col_ok
+
+
+# --------------------------------------------------------------------------- 1D matching
+
+
+def _keys_weights(t: float) -> tuple[tuple[float, float, float, float], tuple[float, float, float, float]]:
+    """Keys (1981) cubic convolution (a = -1/2) weights for samples -1, 0, 1, 2 at offset t in
+    [0, 1), and their derivatives with respect to t."""
+    t2, t3 = t * t, t * t * t
+    w = (-0.5 * t3 + t2 - 0.5 * t, 1.5 * t3 - 2.5 * t2 + 1.0, -1.5 * t3 + 2.0 * t2 + 0.5 * t, 0.5 * t3 - 0.5 * t2)
+    dw = (-1.5 * t2 + 2.0 * t - 0.5, 4.5 * t2 - 5.0 * t, -4.5 * t2 + 4.0 * t + 0.5, 1.5 * t2 - t)
+    return w, dw
+
+
+def _bspline_weights(t: float) -> tuple[tuple[float, float, float, float], tuple[float, float, float, float]]:
+    """Cubic B-spline weights for coefficients -1, 0, 1, 2 at offset t in [0, 1), and their
+    derivatives with respect to t."""
+    t2, t3, u = t * t, t * t * t, 1.0 - t
+    w = (u * u * u / 6.0, (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0, (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0, t3 / 6.0)
+    dw = (-0.5 * u * u, 1.5 * t2 - 2.0 * t, -1.5 * t2 + t + 0.5, 0.5 * t2)
+    return w, dw
+
+
+#: The cubic B-spline's inverse (prefilter) 6 / (z + 4 + 1/z) as a truncated FIR:
+#: h[k] = sqrt(3) * (sqrt(3) - 2)^|k|, |k| <= 7 (the tail is below 1e-4).
+_BSPLINE_PREFILTER = (math.sqrt(3.0) * (math.sqrt(3.0) - 2.0) ** np.abs(np.arange(-7, 8))).reshape(1, -1)
+_BSPLINE_PREFILTER = (_BSPLINE_PREFILTER / _BSPLINE_PREFILTER.sum()).astype(np.float32)
+
+
+def zncc(a: ArrayLike, b: ArrayLike) -> float:
+    """Zero-mean normalised cross-correlation of two equal-shaped patches, in [-1, 1]."""
+    a = np.asarray(a, dtype=np.float64).ravel()
+    b = np.asarray(b, dtype=np.float64).ravel()
+    a = a - a.mean()
+    b = b - b.mean()
+    den = math.sqrt(float(a @ a) * float(b @ b))
+    return float(a @ b) / den if den > 0 else 0.0
+
+
+def _main_lobe(scores: NDArray[np.float32], best: int, lo: int, hi: int) -> tuple[int, int]:
+    """Columns ``[l, r]`` of the peak at ``best``: walk out while the scores keep falling (at
+    least one column each side)."""
+    l = best
+    while l - 1 >= lo and (scores[l - 1] < scores[l] or l == best):
+        l -= 1
+    r = best
+    while r + 1 <= hi and (scores[r + 1] < scores[r] or r == best):
+        r += 1
+    return l, r
+
+
+def match_strip(
+    template: NDArray[np.floating],
+    strip: NDArray[np.floating],
+    params: MeasureParams,
+    lo: int | None = None,
+    hi: int | None = None,
+    refine: bool = True,
+) -> StripMatch:
+    """Find a (rectified) template along a (rectified) strip of the same height, sub-pixel.
+
+    ZNCC at every integer column (``cv2.matchTemplate``, ``TM_CCOEFF_NORMED``); the best of
+    the candidate columns ``[lo, hi]`` is checked and refined (see the module docstring):
+
+    - beyond range: the best candidate sits on ``lo`` or ``hi`` and the column outside it
+      scores higher (or does not exist), so the true peak may lie outside the range;
+    - ambiguous: the best candidate outside the main lobe (the monotonic descent around the
+      peak) scores within ``params.uniqueness_margin`` of the peak;
+    - low score: the refined ZNCC is below ``params.min_score``.
+
+    Args:
+        template: (P, P) patch, e.g. the rectified left patch or a tracker's stored template.
+        strip: (P, W) rectified strip along the epipolar line, W >= P.
+        params: matching tunables (``subpixel``, scores, iterations).
+        lo, hi: candidate columns (default: all, leaving :data:`STRIP_MARGIN_PX` columns each
+            side as margin when the strip is wide enough).
+        refine: refine to sub-pixel here (:func:`refine_position`); when False the position is
+            the parabola's and ``sigma_px`` NaN, for callers that refine on better-resampled
+            data (as :func:`measure_points` does).
+
+    Returns:
+        :class:`StripMatch`; ``position_px`` is where ``template`` starts in ``strip``.
+    """
+    T = np.ascontiguousarray(template, dtype=np.float32)
+    S = np.ascontiguousarray(strip, dtype=np.float32)
+    P = T.shape[1]
+    n = S.shape[1] - P + 1
+    empty = np.zeros(0, np.float32)
+    if S.shape[0] != T.shape[0] or n < 1:
+        raise ValueError(f"strip {S.shape} cannot hold template {T.shape}")
+    scores = cv2.matchTemplate(S, T, cv2.TM_CCOEFF_NORMED).ravel()
+    if lo is None:
+        lo = STRIP_MARGIN_PX if n > 2 * STRIP_MARGIN_PX else 0
+    if hi is None:
+        hi = n - 1 - STRIP_MARGIN_PX if n > 2 * STRIP_MARGIN_PX else n - 1
+    lo, hi = max(lo, 0), min(hi, n - 1)
+    if hi < lo:
+        return StripMatch(False, REASON_SEARCH_OUTSIDE, math.nan, -1, math.nan, -1.0, math.nan, scores if n else empty)
+    cand = scores[lo : hi + 1]
+    best = lo + int(np.argmax(cand))
+    c0 = float(scores[best])
+
+    def refuse(reason: str, score: float = c0, second: float = -1.0) -> StripMatch:
+        return StripMatch(False, reason, math.nan, best, score, second, math.nan, scores)
+
+    # A peak on the range's edge is only a peak if the score falls beyond it.
+    if (best == lo and (lo == 0 or scores[lo - 1] >= c0)) or (best == hi and (hi == n - 1 or scores[hi + 1] >= c0)):
+        return refuse(REASON_BEYOND_RANGE)
+    l, r = _main_lobe(scores, best, lo, hi)
+    outside = np.concatenate([scores[lo:l], scores[r + 1 : hi + 1]])
+    second = float(outside.max()) if outside.size else -1.0
+    if c0 < params.min_score:
+        return refuse(REASON_LOW_SCORE, c0, second)
+    if second > c0 - params.uniqueness_margin:
+        return refuse(REASON_AMBIGUOUS, c0, second)
+
+    # Parabola through the three scores around the peak: the baseline, and the start of the fit.
+    cm, cp = float(scores[best - 1]), float(scores[best + 1])
+    den = cm - 2.0 * c0 + cp
+    delta = 0.5 * (cm - cp) / den if den < 0 else 0.0
+    x = best + min(max(delta, -0.5), 0.5)
+    if not refine:
+        return StripMatch(True, None, x, best, c0, second, math.nan, scores)
+    x, sigma, score, reason = refine_position(T, S, x, params)
+    if reason is not None:
+        return refuse(reason, score, second)
+    return StripMatch(True, None, x, best, score, second, sigma, scores)
+
+
+def refine_position(
+    template: NDArray[np.floating], strip: NDArray[np.floating], x: float, params: MeasureParams
+) -> tuple[float, float, float, str | None]:
+    """Sub-pixel position of ``template`` in ``strip`` near column ``x`` (see module docstring).
+
+    ``params.subpixel`` selects the Gauss-Newton fit (iterated from ``x``) or the parabola
+    baseline (``x`` kept as given); either way the fit at the final position gives the
+    standard deviation and the ZNCC, which are checked against ``params.max_sigma_disparity_px``
+    and ``params.min_score``.
+
+    Returns:
+        ``(x, sigma_x, zncc, reason)``; ``reason`` is None when the position is accepted.
+    """
+    T = np.asarray(template, dtype=np.float32)
+    fit = _ShiftFit(T, strip, params.subpixel_interpolation)
+    start = x
+    if params.subpixel == "parabola":
+        _, _, sigma, score = fit.solve(x)
+    else:
+        x, sigma, score = _gauss_newton(fit, x, params)
+        if not math.isfinite(x) or abs(x - start) > 1.0:
+            return math.nan, math.nan, score, REASON_SUBPIXEL
+    if not score >= params.min_score:
+        return math.nan, math.nan, score, REASON_LOW_SCORE
+    if not sigma <= params.max_sigma_disparity_px:
+        return math.nan, math.nan, score, REASON_UNCERTAIN
+    return x, sigma, score, None
+
+
+class _ShiftFit:
+    """Least-squares fit of a template by a shifted strip window, ``T ≈ a R(x) + c R'(x) + b``.
+
+    ``R(x)`` is Keys cubic interpolation, a weighted sum of four integer-shifted windows
+    ``S_k`` (k = -1..2) with weights ``w(t)``, ``t = x - floor(x)``. All the fit needs are the
+    moments of those four windows with each other, with the template and with 1; they are
+    computed once per integer position, so each Gauss-Newton step is a few scalar operations.
+    """
+
+    def __init__(self, template: NDArray[np.floating], strip: NDArray[np.floating], kernel: str = "bspline") -> None:
+        self.t = np.asarray(template, dtype=np.float64).ravel()
+        if kernel == "bspline":
+            # B-spline coefficients of each row (Unser 1999): interpolating them with the cubic
+            # B-spline reproduces the samples exactly and has a far flatter response than Keys.
+            self.strip = cv2.filter2D(
+                np.asarray(strip, dtype=np.float32), cv2.CV_32F, _BSPLINE_PREFILTER, borderType=cv2.BORDER_REFLECT_101
+            )
+            self.weights = _bspline_weights
+        else:
+            self.strip = strip
+            self.weights = _keys_weights
+        self.P = template.shape[1]
+        self.n = self.t.size
+        t1 = float(self.t.sum())
+        self.t1 = t1
+        self.ctt = float(self.t @ self.t) - t1 * t1 / self.n
+        self._i: int | None = None
+
+    def _moments(self, i: int) -> None:
+        if self._i == i:
+            return
+        P, S = self.P, self.strip
+        width = S.shape[1]
+        if i - 1 >= 0 and i + P + 2 <= width:
+            win = S[:, i - 1 : i + P + 2]
+        else:
+            win = S[:, np.clip(np.arange(i - 1, i + P + 2), 0, width - 1)]
+        Sk = np.stack([win[:, k : k + P] for k in range(4)]).reshape(4, -1).astype(np.float64)
+        s1 = Sk.sum(axis=1)
+        # centred moments: removing the means solves for the offset b in closed form
+        self.G = (Sk @ Sk.T - np.outer(s1, s1) / self.n).tolist()
+        self.h = (Sk @ self.t - s1 * (self.t1 / self.n)).tolist()
+        self._i = i
+
+    def solve(self, x: float) -> tuple[float, float, float, float]:
+        """Fit at ``x``: ``(a, step, sigma_x, zncc)`` with ``step = c / a`` the Gauss-Newton
+        update of ``x``, ``sigma_x`` its standard deviation from the residual, and the ZNCC of
+        the template with ``R(x)``."""
+        i = math.floor(x)
+        self._moments(i)
+        w, dw = self.weights(x - i)
+        G, h = self.G, self.h
+        Gw = [sum(G[r][k] * w[k] for k in range(4)) for r in range(4)]
+        Gd = [sum(G[r][k] * dw[k] for k in range(4)) for r in range(4)]
+        cvv = sum(w[r] * Gw[r] for r in range(4))
+        cvd = sum(dw[r] * Gw[r] for r in range(4))
+        cdd = sum(dw[r] * Gd[r] for r in range(4))
+        cvt = sum(w[r] * h[r] for r in range(4))
+        cdt = sum(dw[r] * h[r] for r in range(4))
+        det = cvv * cdd - cvd * cvd
+        if det <= 0 or cvv <= 0 or self.ctt <= 0:
+            return math.nan, math.nan, math.nan, math.nan
+        a = (cdd * cvt - cvd * cdt) / det
+        c = (cvv * cdt - cvd * cvt) / det
+        rss = max(self.ctt - (a * cvt + c * cdt), 0.0)
+        s2 = rss / max(self.n - 3, 1)
+        score = cvt / math.sqrt(cvv * self.ctt)
+        if a <= 0:  # anti-correlated: not a match
+            return a, math.nan, math.nan, score
+        return a, c / a, math.sqrt(s2 * cvv / det) / a, score
+
+
+def _gauss_newton(fit: _ShiftFit, x: float, params: MeasureParams) -> tuple[float, float, float]:
+    """Refine the template's column ``x`` in the strip: solve ``T ≈ a R(x) + c R'(x) + b`` and
+    step ``x += c / a`` until the step is below tolerance. Returns ``(x, sigma_x, zncc)``."""
+    start = x
+    sigma = score = math.nan
+    for _ in range(params.subpixel_iterations):
+        _, step, sigma, score = fit.solve(x)
+        if not math.isfinite(step):
+            return math.nan, math.nan, math.nan
+        step = min(max(step, -0.5), 0.5)
+        x += step
+        if abs(x - start) > 1.0:
+            return math.nan, math.nan, math.nan
+        if abs(step) < params.subpixel_tolerance_px:
+            break
+    # sigma and score belong to the last fit, less than the tolerance away from x.
+    return x, sigma, score
+
+
+# --------------------------------------------------------------------------- one point
+
+
+@dataclass(frozen=True)
+class _Match:
+    reason: str | None
+    disparity_px: float = math.nan
+    sigma_px: float = math.nan
+    score: float = math.nan
+
+
+def _disparity_range(params: MeasureParams) -> tuple[int, int]:
+    d_lo = int(math.ceil(params.min_disparity_px))
+    d_hi = int(math.floor(params.max_disparity_px))
+    return d_lo, max(d_hi, d_lo)
+
+
+def match_rectified_point(
+    rect: Rectification,
+    left: NDArray[np.uint8],
+    right: NDArray[np.uint8],
+    uv_rect: ArrayLike,
+    params: MeasureParams,
+) -> tuple[str | None, float, float, float]:
+    """Match one rectified left pixel along its rectified right row.
+
+    Samples the P x P left patch centred exactly on ``uv_rect`` and the right strip covering
+    the disparity range (plus :data:`STRIP_MARGIN_PX`), checks texture, matches with
+    :func:`match_strip`, then checks left-right consistency by matching the right patch at the
+    found disparity back along the left row.
+
+    Returns:
+        ``(reason, disparity_px, sigma_disparity_px, score)``; ``reason`` is None when
+        accepted (then the numbers are valid), else one of :data:`REASONS`.
+    """
+    m = _match_rectified(rect, left, right, np.asarray(uv_rect, dtype=float).reshape(2), params)
+    return m.reason, m.disparity_px, m.sigma_px, m.score
+
+
+def _match_rectified(
+    rect: Rectification, left: NDArray[np.uint8], right: NDArray[np.uint8], uv_rect: FloatArray, params: MeasureParams
+) -> _Match:
+    P = params.patch_size
+    W, H = rect.rig.image_size
+    half = 0.5 * (P - 1)
+    x0, y0 = float(uv_rect[0]) - half, float(uv_rect[1]) - half
+    bx, by = math.floor(x0), math.floor(y0)
+    fx = x0 - bx
+    if not (math.isfinite(x0) and math.isfinite(y0)) or bx < 0 or by < 0 or bx + P >= W or by + P >= H:
+        return _Match(REASON_PATCH_OUTSIDE)
+    T_fine, col_ok = sample_rectified(rect, left, 0, x0, y0, P, P)
+    if col_ok is not None and not col_ok.all():
+        return _Match(REASON_PATCH_OUTSIDE)
+    T = T_fine
+
+    mean, std = cv2.meanStdDev(T)
+    if float(mean[0, 0]) < params.min_mean_grey:
+        return _Match(REASON_TOO_DARK)
+    if float(std[0, 0]) < params.min_texture_std:
+        return _Match(REASON_TEXTURELESS)
+    gx = (T[:, 1:] - T[:, :-1]).ravel()
+    if math.sqrt(float(gx @ gx) / gx.size) < params.min_gradient_rms:
+        return _Match(REASON_NO_EPIPOLAR_TEXTURE)
+
+    # Right strip: the patch for integer disparity d starts at rectified column x0 - d.
+    d_lo, d_hi = _disparity_range(params)
+    mg = STRIP_MARGIN_PX
+    c_first = max(bx - d_hi - mg, 0)  # strip's first grid column
+    c_last = min(bx - d_lo + mg + P - 1, W - 2)  # last grid column (bilinear map needs +1)
+    width = c_last - c_first + 1
+    if width < P:
+        return _Match(REASON_SEARCH_OUTSIDE)
+    # Integer search on a bilinearly resampled strip (fast); the sub-pixel fit below resamples
+    # just the neighbourhood of the match with Lanczos-4 (accurate).
+    T = sample_rectified(rect, left, 0, x0, y0, P, P, cv2.INTER_LINEAR)[0]
+    S, s_ok = sample_rectified(rect, right, 1, c_first + fx, y0, width, P, cv2.INTER_LINEAR)
+    # Column position x in the strip <-> disparity d = bx - (c_first + x).
+    n = width - P + 1
+    lo = max(bx - d_hi - c_first, 0)
+    hi = min(bx - d_lo - c_first, n - 1)
+    if hi < lo:
+        return _Match(REASON_SEARCH_OUTSIDE)
+    if s_ok is not None:  # drop candidates whose right patch leaves the original right image
+        valid = np.flatnonzero(_windows_ok(s_ok, P)[lo : hi + 1]) + lo
+        if valid.size == 0:
+            return _Match(REASON_SEARCH_OUTSIDE)
+        lo, hi = int(valid[0]), int(valid[-1])
+    sm = match_strip(T, S, params, lo, hi, refine=False)
+    if not sm.ok:
+        return _Match(sm.reason, score=sm.score)
+    f_first = max(c_first + sm.integer_position - FINE_MARGIN_PX, 0)
+    f_last = min(c_first + sm.integer_position + P - 1 + FINE_MARGIN_PX, W - 2)
+    S_fine = sample_rectified(rect, right, 1, f_first + fx, y0, f_last - f_first + 1, P)[0]
+    x, sigma, score, reason = refine_position(T_fine, S_fine, sm.position_px - (f_first - c_first), params)
+    if reason is not None:
+        return _Match(reason, score=score)
+    d = bx - f_first - x
+
+    # Left-right check: the right patch at the integer match, searched along the left row.
+    d0 = bx - c_first - sm.integer_position
+    R0 = S[:, sm.integer_position : sm.integer_position + P]
+    r_col = bx - d0  # right patch's first grid column
+    l_first = max(r_col + d_lo - mg, 0)
+    l_last = min(r_col + d_hi + mg + P - 1, W - 2)
+    l_width = l_last - l_first + 1
+    if l_width >= P:
+        L, l_ok = sample_rectified(rect, left, 0, l_first + fx, y0, l_width, P, cv2.INTER_LINEAR)
+        lr_scores = cv2.matchTemplate(L, np.ascontiguousarray(R0), cv2.TM_CCOEFF_NORMED).ravel()
+        l_lo = max(r_col + d_lo - l_first, 0)
+        l_hi = min(r_col + d_hi - l_first, lr_scores.size - 1)
+        cand = lr_scores[l_lo : l_hi + 1]
+        if l_ok is not None:
+            cand = np.where(_windows_ok(l_ok, P)[l_lo : l_hi + 1], cand, -np.inf)
+        if cand.size and np.isfinite(cand.max()):
+            d_back = (l_first + l_lo + int(np.argmax(cand))) - r_col
+            if abs(d_back - d0) > params.left_right_tolerance_px:
+                return _Match(REASON_LEFT_RIGHT, score=score)
+    return _Match(None, d, sigma, score)
+
+
+def _windows_ok(col_ok: NDArray[np.bool_], P: int) -> NDArray[np.bool_]:
+    """Per window start: all ``P`` columns valid."""
+    return np.convolve(col_ok.astype(np.int32), np.ones(P, np.int32), "valid") == P
+
+
+# --------------------------------------------------------------------------- points
+
+
+def check_stereo_pair(rig: StereoRig, left: NDArray[Any], right: NDArray[Any]) -> None:
+    """Raise :class:`TrackmeterError` unless both images are (H, W) uint8 of the rig's size."""
+    W, H = rig.image_size
+    for name, img in (("left", left), ("right", right)):
+        arr = np.asarray(img)
+        if arr.ndim != 2 or arr.dtype != np.uint8:
+            raise TrackmeterError(f"{name} image must be 8-bit grey (H, W) uint8, got {arr.dtype} {arr.shape}")
+        if arr.shape != (H, W):
+            raise TrackmeterError(f"{name} image is {arr.shape[1]}x{arr.shape[0]} px but the rig expects {W}x{H}")
+
+
+def measure_points(
+    rig: StereoRig,
+    left: NDArray[np.uint8],
+    right: NDArray[np.uint8],
+    uv_left: ArrayLike,
+    params: MeasureParams | None = None,
+) -> tuple[PointMeasurement, ...]:
+    """Measure the 3D points at pixels of the left image (paper section 2.A).
+
+    For each pixel: rectify it (``rig.rectification``, cached), match its P x P patch along the
+    rectified right row (:func:`match_rectified_point`), triangulate (``Rectification.triangulate``)
+    and propagate the disparity's standard deviation (paper eqs. 1-2,
+    ``Rectification.point_covariance``) — ``params.sigma_disparity_px``, or when 0 the fit's own
+    estimate floored at ``params.min_sigma_disparity_px``.
+
+    Args:
+        rig: the calibrated stereo rig.
+        left, right: (H, W) uint8 ORIGINAL (unrectified) images of the rig's size.
+        uv_left: (N, 2) pixels of the original left image, px (centre of top-left pixel = 0, 0).
+        params: matching tunables (default :class:`MeasureParams`).
+
+    Returns:
+        One :class:`PointMeasurement` per pixel, in order. Refused points carry a reason and
+        NaN numbers.
+
+    Raises:
+        TrackmeterError: images of the wrong type or size.
+    """
+    params = params or MeasureParams()
+    check_stereo_pair(rig, left, right)
+    uv = np.array(uv_left, dtype=float).reshape(-1, 2)  # a copy: its rows are handed out
+    n = len(uv)
+    if n == 0:
+        return ()
+    rect = rig.rectification
+    finite = np.all(np.isfinite(uv), axis=1)
+    inside = finite & rig.left.contains(np.where(finite[:, None], uv, 0.0))
+    uv_rect = np.full((n, 2), np.nan)
+    if inside.any():
+        uv_rect[inside] = rect.rectify_points(uv[inside], 0)
+
+    reasons: list[str | None] = []
+    disp = np.full(n, np.nan)
+    sig_d = np.full(n, np.nan)
+    scores = np.full(n, np.nan)
+    for i in range(n):
+        if not inside[i]:
+            reasons.append(REASON_OUTSIDE_IMAGE)
+            continue
+        m = _match_rectified(rect, left, right, uv_rect[i], params)
+        reasons.append(m.reason)
+        scores[i] = m.score
+        if m.reason is None:
+            disp[i], sig_d[i] = m.disparity_px, m.sigma_px
+
+    ok = np.array([r is None for r in reasons])
+    right_uv = np.full((n, 2), np.nan)
+    xyz = np.full((n, 3), np.nan)
+    cov = np.full((n, 3, 3), np.nan)
+    if ok.any():
+        idx = np.flatnonzero(ok)
+        if params.sigma_disparity_px > 0:
+            sig_d[idx] = params.sigma_disparity_px
+        else:  # the fit's own estimate, floored (a NaN estimate becomes infinite: no confidence)
+            est = sig_d[idx]
+            sig_d[idx] = np.where(est == est, np.fmax(est, params.min_sigma_disparity_px), np.inf)
+        xyz[idx] = rect.triangulate(uv_rect[idx], disp[idx])
+        bad = ~np.isfinite(xyz[idx, 2])  # zero or negative disparity: at infinity
+        if bad.any():
+            for j in idx[bad]:
+                reasons[j] = REASON_BEYOND_RANGE
+            idx = idx[~bad]
+            ok[:] = [r is None for r in reasons]
+        if idx.size:
+            right_rect = uv_rect[idx].copy()
+            right_rect[:, 0] -= disp[idx]
+            right_uv[idx] = rect.unrectify_points(right_rect, 1)
+            cov[idx] = rect.point_covariance(uv_rect[idx], disp[idx], sig_d[idx], params.sigma_uv_px)
+    sigma = np.sqrt(np.diagonal(cov, axis1=1, axis2=2))
+    for arr in (uv, uv_rect, right_uv, xyz, cov, sigma):
+        arr.flags.writeable = False  # rows are shared, read-only views
+
+    out = []
+    for i in range(n):
+        good = bool(ok[i])
+        out.append(
+            PointMeasurement(
+                uv=uv[i],
+                ok=good,
+                reason=reasons[i],
+                uv_rect=uv_rect[i],
+                right_uv=right_uv[i] if good else _NAN2,
+                disparity_px=float(disp[i]) if good else math.nan,
+                sigma_disparity_px=float(sig_d[i]) if good else math.nan,
+                xyz_m=xyz[i] if good else _NAN3,
+                sigma_m=sigma[i] if good else _NAN3,
+                cov_m=cov[i] if good else _NAN33,
+                score=float(scores[i]),
+            )
+        )
+    return tuple(out)
+
+
+def _frozen_nan(*shape: int) -> FloatArray:
+    a = np.full(shape, np.nan)
+    a.flags.writeable = False
+    return a
+
+
+_NAN2, _NAN3, _NAN33 = _frozen_nan(2), _frozen_nan(3), _frozen_nan(3, 3)
+
+
+def measurements_to_json(measurements: Sequence[PointMeasurement]) -> list[dict[str, Any]]:
+    """The ``trackmeter measure --json`` list (DESIGN.md section 6)."""
+    return [m.to_json() for m in measurements]

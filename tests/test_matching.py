@@ -1,0 +1,275 @@
+"""Patch stereo matching and 3D point measurement (paper 2.A), pinned to exact references.
+
+References: synthetic pairs whose right image is the left texture shifted by an exactly known
+disparity (a sum of sinusoids evaluated analytically, so no interpolation makes the truth), a
+textured plane rendered exactly through the paper's rig (distortion and rotated right camera
+included), OpenCV's own full-image remap, the stereo error propagation of
+``Rectification.point_sigma``, and the real Middlebury Tsukuba pair against OpenCV StereoSGBM.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from benchmarks.measure import (
+    band_limited_texture,
+    bias_curve,
+    estec_plane,
+    identity_rig,
+    shifted_pair,
+    subpixel_errors,
+    to_uint8,
+    tsukuba_figures,
+)
+from trackmeter.core import matching as M
+from trackmeter.core.matching import MeasureParams, match_strip, measure_points, sample_rectified
+from trackmeter.errors import TrackmeterError
+
+W, H = 96, 40
+NARROW = MeasureParams(min_disparity_px=0, max_disparity_px=16)
+
+
+@pytest.fixture(scope="module")
+def plane():  # type: ignore[no-untyped-def]
+    return estec_plane(seed=3)
+
+
+def _pair(d: float, seed: int = 0, noise: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return shifted_pair(band_limited_texture(rng), W, H, d, noise, rng)
+
+
+# --------------------------------------------------------------------------- geometry
+
+
+def test_identity_rig_rectification_is_the_identity() -> None:
+    rect = identity_rig(W, H).rectification
+    np.testing.assert_allclose(rect.R1, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(rect.P1[:, :3], rect.P2[:, :3], atol=1e-9)
+    (mx, my), _ = rect.maps
+    u, v = np.meshgrid(np.arange(W), np.arange(H))
+    assert np.abs(mx - u).max() < 1e-4 and np.abs(my - v).max() < 1e-4
+
+
+@pytest.mark.parametrize("interp", [cv2.INTER_LANCZOS4, cv2.INTER_LINEAR])
+def test_sample_rectified_equals_opencv_full_image_remap(plane, interp: int) -> None:  # type: ignore[no-untyped-def]
+    rig, left, right, _ = plane
+    rect = rig.rectification
+    for side, image in ((0, left), (1, right)):
+        mx, my = rect.maps[side]
+        full = cv2.remap(image.astype(np.float32), mx, my, interp, borderMode=cv2.BORDER_REPLICATE)
+        block, col_ok = sample_rectified(rect, image, side, 200.0, 150.0, 40, 8, interp)
+        assert col_ok is None
+        np.testing.assert_allclose(block, full[150:158, 200:240], atol=0.05)
+        # a fractional offset samples between the grid points: compare with remapping the
+        # bilinearly interpolated maps
+        fx, fy = 0.37, 0.81
+        bmx = cv2.getRectSubPix(mx, (40, 8), (200 + fx + 19.5, 150 + fy + 3.5))
+        bmy = cv2.getRectSubPix(my, (40, 8), (200 + fx + 19.5, 150 + fy + 3.5))
+        ref = cv2.remap(image.astype(np.float32), bmx, bmy, interp, borderMode=cv2.BORDER_REPLICATE)
+        block, _ = sample_rectified(rect, image, side, 200 + fx, 150 + fy, 40, 8, interp)
+        np.testing.assert_allclose(block, ref, atol=0.05)
+
+
+# --------------------------------------------------------------------------- disparities
+
+
+@pytest.mark.parametrize("d", [2.0, 3.25, 7.5, 11.8, 13.93])
+def test_known_disparities_are_recovered(d: float) -> None:
+    left, right = _pair(d, seed=int(d * 100))
+    uv = np.array([[40.0, 12.0], [55.0, 20.0], [70.0, 27.0], [47.3, 18.6]])
+    ms = measure_points(identity_rig(W, H), left, right, uv, NARROW)
+    for m in ms:
+        assert m.ok, m.reason
+        assert m.disparity_px == pytest.approx(d, abs=0.08)
+        # rectified == original here: the right pixel is the left one shifted by d
+        np.testing.assert_allclose(m.right_uv, m.uv - [d, 0], atol=0.08)
+        assert m.score > 0.95
+
+
+def test_chosen_subpixel_method_has_far_less_bias_than_the_parabola() -> None:
+    fractions, errors = subpixel_errors(n_pairs=40, points_per_pair=4, seed=11)
+    gn, pb = errors["gauss_newton"], errors["parabola"]
+    assert np.isfinite(gn).mean() > 0.95 and np.isfinite(pb).mean() > 0.95
+    bias_gn = np.abs(bias_curve(fractions, gn, bins=5)).max()
+    bias_pb = np.abs(bias_curve(fractions, pb, bins=5)).max()
+    rms_gn = float(np.sqrt(np.nanmean(gn**2)))
+    rms_pb = float(np.sqrt(np.nanmean(pb**2)))
+    # the parabola's pixel locking is real and measurable here ...
+    assert bias_pb > 0.012
+    # ... and the Gauss-Newton fit removes most of it
+    assert bias_gn < 0.4 * bias_pb, (bias_gn, bias_pb)
+    assert rms_gn < 0.6 * rms_pb, (rms_gn, rms_pb)
+    assert rms_gn <= 0.05
+
+
+def test_match_strip_finds_a_callers_own_template() -> None:
+    left, right = _pair(6.4, seed=5, noise=0.5)
+    T = left[10:18, 50:58].astype(np.float32)
+    strip = right[10:18, 30:70].astype(np.float32)
+    sm = match_strip(T, strip, NARROW)
+    assert sm.ok, sm.reason
+    # template at left column 50 sits at right column 50 - 6.4 = 43.6, i.e. strip column 13.6
+    assert sm.position_px == pytest.approx(13.6, abs=0.05)
+    assert sm.integer_position in (13, 14)
+    assert sm.scores.shape == (40 - 8 + 1,)
+    assert 0 < sm.sigma_px < 0.08
+
+
+# --------------------------------------------------------------------------- 3D through the real rig
+
+
+def test_xyz_matches_the_true_point_of_a_plane_through_the_distorted_rig(plane) -> None:  # type: ignore[no-untyped-def]
+    rig, left, right, truth = plane
+    gu, gv = np.meshgrid(np.linspace(60, 560, 8), np.linspace(50, 460, 6))
+    uv = np.column_stack([gu.ravel(), gv.ravel()]) + [0.3, 0.6]
+    ms = measure_points(rig, left, right, uv)
+    ok = np.array([m.ok for m in ms])
+    assert ok.mean() > 0.8, [m.reason for m in ms]
+    xyz = np.array([m.xyz_m for m in ms])[ok]
+    true = truth(uv[ok])
+    err = xyz - true
+    # 3.5 m away, 0.026 px of disparity is 1 mm of depth. On the slanted plane a translated
+    # 8x8 patch measures a texture-weighted mean of the disparity over the patch (about 0.02
+    # px RMS here, noise-free), plus 1 grey level of noise.
+    assert np.sqrt(np.mean(err[:, 2] ** 2)) < 1.5e-3, err[:, 2]
+    assert np.abs(err[:, 2]).max() < 4e-3, np.abs(err[:, 2]).max()
+    assert np.abs(err[:, :2]).max() < 1e-3
+    # the matched right pixel is the true point's projection in the ORIGINAL right image
+    right_uv = np.array([m.right_uv for m in ms])[ok]
+    np.testing.assert_allclose(right_uv, rig.project(true)[1], atol=0.1)
+    # sigma is the rig's error propagation of the disparity sigma, and it is honest
+    rect = rig.rectification
+    for m in (m for m in ms if m.ok):
+        np.testing.assert_allclose(m.sigma_m, rect.point_sigma(m.uv_rect[None], [m.disparity_px], m.sigma_disparity_px)[0])
+        np.testing.assert_allclose(np.sqrt(np.diag(m.cov_m)), m.sigma_m)
+    sig = np.array([m.sigma_m for m in ms])[ok]
+    assert np.median(np.abs(err[:, 2]) / sig[:, 2]) < 3.0
+
+
+def test_fixed_disparity_sigma_from_params_is_used(plane) -> None:  # type: ignore[no-untyped-def]
+    rig, left, right, _ = plane
+    (m,) = measure_points(rig, left, right, [[300.3, 250.6]], MeasureParams(sigma_disparity_px=0.1))
+    assert m.ok and m.sigma_disparity_px == 0.1
+    z, f, b = m.xyz_m[2], rig.rectification.focal_px, rig.rectification.baseline_m
+    assert m.sigma_m[2] == pytest.approx(z * z * 0.1 / (f * b), rel=0.02)  # paper eq. 2
+
+
+# --------------------------------------------------------------------------- refusals
+
+
+def _reason(left: np.ndarray, right: np.ndarray, uv, params: MeasureParams = NARROW) -> str | None:  # type: ignore[no-untyped-def]
+    (m,) = measure_points(identity_rig(W, H), left, right, [uv], params)
+    if not m.ok:
+        assert math.isnan(m.disparity_px) and np.all(np.isnan(m.xyz_m)) and np.all(np.isnan(m.right_uv))
+    return m.reason
+
+
+def test_black_sky_is_refused() -> None:
+    rng = np.random.default_rng(1)
+    left = to_uint8(np.full((H, W), 3.0), 1.0, rng)
+    right = to_uint8(np.full((H, W), 3.0), 1.0, rng)
+    assert _reason(left, right, (50, 20)) == M.REASON_TOO_DARK
+
+
+def test_textureless_is_refused() -> None:
+    rng = np.random.default_rng(2)
+    flat = to_uint8(np.full((H, W), 120.0), 0.5, rng)
+    assert _reason(flat, flat.copy(), (50, 20)) == M.REASON_TEXTURELESS
+
+
+def test_horizontal_stripes_have_no_texture_along_the_epipolar_line() -> None:
+    rng = np.random.default_rng(3)
+    v = np.arange(H, dtype=float)[:, None] * np.ones((1, W))
+    img = to_uint8(120 + 40 * np.sin(2 * np.pi * v / 7.0), 0.3, rng)
+    assert _reason(img, img.copy(), (50, 20)) == M.REASON_NO_EPIPOLAR_TEXTURE
+
+
+def test_outside_the_image_and_patch_not_inside_are_refused() -> None:
+    left, right = _pair(5.0)
+    assert _reason(left, right, (-3.0, 10.0)) == M.REASON_OUTSIDE_IMAGE
+    assert _reason(left, right, (W + 2.0, 10.0)) == M.REASON_OUTSIDE_IMAGE
+    assert _reason(left, right, (float("nan"), 10.0)) == M.REASON_OUTSIDE_IMAGE
+    assert _reason(left, right, (1.0, 20.0)) == M.REASON_PATCH_OUTSIDE
+    assert _reason(left, right, (50.0, H - 2.0)) == M.REASON_PATCH_OUTSIDE
+
+
+def test_disparity_beyond_the_search_range_is_refused() -> None:
+    left, right = _pair(12.4, seed=4)
+    assert _reason(left, right, (60, 20), MeasureParams(min_disparity_px=0, max_disparity_px=8)) == M.REASON_BEYOND_RANGE
+    # searching above the truth: the best candidate is either on the range's edge, or a
+    # chance bump of the correlation far from the true peak, which scores low
+    assert _reason(left, right, (60, 20), MeasureParams(min_disparity_px=16, max_disparity_px=30)) in (
+        M.REASON_BEYOND_RANGE,
+        M.REASON_LOW_SCORE,
+    )
+    assert _reason(left, right, (60, 20), MeasureParams(min_disparity_px=0, max_disparity_px=20)) is None
+
+
+def test_repetitive_texture_is_refused_as_ambiguous() -> None:
+    rng = np.random.default_rng(5)
+    u, v = np.meshgrid(np.arange(W, dtype=float), np.arange(H, dtype=float))
+    tex = lambda x: 120 + 40 * np.sin(2 * np.pi * x / 5.0) + 20 * np.sin(2 * np.pi * v / 9.0)  # noqa: E731
+    left, right = to_uint8(tex(u), 1.0, rng), to_uint8(tex(u + 6.3), 1.0, rng)
+    assert _reason(left, right, (60, 20)) == M.REASON_AMBIGUOUS
+
+
+def test_unrelated_right_image_is_refused() -> None:
+    left, _ = _pair(5.0, seed=6)
+    _, other = _pair(5.0, seed=7)
+    for uv in ((30, 12), (45, 20), (60, 20), (75, 28)):
+        assert _reason(left, other, uv) in (M.REASON_LOW_SCORE, M.REASON_AMBIGUOUS, M.REASON_BEYOND_RANGE)
+
+
+def test_every_reason_is_listed() -> None:
+    assert len(set(M.REASONS)) == len(M.REASONS)
+    assert all(isinstance(r, str) and r for r in M.REASONS)
+
+
+def test_images_of_the_wrong_size_or_type_raise() -> None:
+    left, right = _pair(5.0)
+    rig = identity_rig(W, H)
+    with pytest.raises(TrackmeterError, match="rig expects"):
+        measure_points(rig, left[:, :-1], right, [[50, 20]])
+    with pytest.raises(TrackmeterError, match="8-bit grey"):
+        measure_points(rig, left.astype(np.float32), right, [[50, 20]])
+    assert measure_points(rig, left, right, np.zeros((0, 2))) == ()
+
+
+# --------------------------------------------------------------------------- output
+
+
+def test_json_has_exactly_the_contract_keys_and_no_nan(plane) -> None:  # type: ignore[no-untyped-def]
+    rig, left, right, _ = plane
+    ms = measure_points(rig, left, right, [[300.3, 250.6], [-1.0, 5.0]])
+    objs = M.measurements_to_json(ms)
+    text = json.dumps(objs, allow_nan=False)
+    back = json.loads(text)
+    keys = ["uv", "ok", "reason", "right_uv", "disparity_px", "xyz_m", "sigma_m", "score"]
+    assert [list(o) for o in back] == [keys, keys]
+    assert back[0]["ok"] and back[0]["reason"] is None and len(back[0]["xyz_m"]) == 3
+    assert not back[1]["ok"] and back[1]["reason"] == M.REASON_OUTSIDE_IMAGE
+    assert back[1]["xyz_m"] is None and back[1]["disparity_px"] is None and back[1]["score"] is None
+
+
+def test_results_are_read_only(plane) -> None:  # type: ignore[no-untyped-def]
+    rig, left, right, _ = plane
+    (m,) = measure_points(rig, left, right, [[300.3, 250.6]])
+    with pytest.raises(ValueError):
+        m.xyz_m[0] = 1.0
+
+
+# --------------------------------------------------------------------------- real data
+
+
+@pytest.mark.slow
+def test_tsukuba_bad1_rate_no_higher_than_sgbm(shared_data) -> None:  # type: ignore[no-untyped-def]
+    fig = tsukuba_figures(step=12)
+    assert fig["tsukuba_points"] > 150
+    assert fig["tsukuba_bad1_rate"] <= fig["tsukuba_bad1_rate_sgbm"]
+    assert fig["tsukuba_accept_rate"] > 0.6
