@@ -1,15 +1,92 @@
-"""trackmeter measure (not built yet)."""
+"""trackmeter measure: 3D points of a stereo pair at given left-image pixels (paper 2.A).
+
+Each --at U,V is a pixel of the ORIGINAL left image (column, row; the centre of the top-left
+pixel is 0,0). Its patch (default 8x8) is matched along the epipolar line of the right image
+(ZNCC, sub-pixel Gauss-Newton fit), checked (texture, uniqueness, left-right consistency,
+range) and triangulated into the left camera frame (x right, y down, z along the viewing
+axis), with its standard deviation per axis from the stereo error propagation. A point that
+fails a check is refused with its reason, never given a wrong number.
+
+--json prints a JSON list, one object per --at, in order:
+  {"uv": [u, v], "ok": bool, "reason": str|null, "right_uv": [u, v], "disparity_px": d,
+   "xyz_m": [x, y, z], "sigma_m": [sx, sy, sz], "score": s}
+(right_uv in the original right image; null where a refused point has no number).
+
+example:
+  trackmeter measure --rig config/rigs/estec_12mm.yaml --left l.png --right r.png \\
+      --at 362,255 --at 400.5,300 --json
+"""
 
 from __future__ import annotations
 
 import argparse
 
-from trackmeter.cli.common import not_built_yet
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    pass
+    parser.add_argument("--rig", required=True, metavar="RIG", help="stereo rig file (OpenCV FileStorage YAML)")
+    parser.add_argument("--left", required=True, metavar="IMG", help="left image (read as 8-bit grey)")
+    parser.add_argument("--right", required=True, metavar="IMG", help="right image (read as 8-bit grey)")
+    parser.add_argument(
+        "--at", required=True, action="append", metavar="U,V",
+        help="left-image pixel to measure (repeat for more; write --at=-5,3 for a negative u)",
+    )
+    parser.add_argument("--patch", type=int, metavar="N", help="patch side, px (default: measure.patch_size, 8)")
+    parser.add_argument("--json", action="store_true", help="print a JSON list instead of a table")
 
 
 def run(args: argparse.Namespace) -> int:
-    return not_built_yet("measure")
+    import dataclasses
+    import json
+
+    from trackmeter.cli.common import parse_uv
+    from trackmeter.core.matching import measure_points, measurements_to_json
+    from trackmeter.data.config import load_config
+    from trackmeter.data.images import read_grey
+    from trackmeter.data.rigfile import load_rig
+    from trackmeter.errors import TrackmeterError
+
+    params = load_config(args.config).measure
+    if args.patch is not None:
+        if not 3 <= args.patch <= 63:
+            raise TrackmeterError(f"--patch must be a patch side between 3 and 63 px, got {args.patch}")
+        params = dataclasses.replace(params, patch_size=args.patch)
+    uv = [parse_uv(text) for text in args.at]
+    rig = load_rig(args.rig)
+    W, H = rig.image_size
+    images = []
+    for path in (args.left, args.right):
+        image = read_grey(path)
+        if image.shape != (H, W):
+            raise TrackmeterError(
+                f"{path}: image is {image.shape[1]}x{image.shape[0]} px but the rig {args.rig} is {W}x{H}"
+            )
+        images.append(image)
+
+    results = measure_points(rig, images[0], images[1], uv, params)
+    if args.json:
+        print(json.dumps(measurements_to_json(results), allow_nan=False))
+        return 0
+    print(format_table(results))
+    return 0
+
+
+def format_table(results) -> str:  # type: ignore[no-untyped-def]
+    """A readable table: one row per point; millimetres for the standard deviations."""
+    header = (
+        f"{'u':>8} {'v':>8}  {'ok':<3} {'u_right':>8} {'v_right':>8} {'disp_px':>8} "
+        f"{'x_m':>8} {'y_m':>8} {'z_m':>8} {'sx_mm':>6} {'sy_mm':>6} {'sz_mm':>6} {'score':>6}  reason"
+    )
+    lines = [header]
+    for m in results:
+        score = f"{m.score:6.3f}" if m.score == m.score else f"{'-':>6}"
+        head = f"{m.uv[0]:8.2f} {m.uv[1]:8.2f}  {'yes' if m.ok else 'no':<3} "
+        if m.ok:
+            body = (
+                f"{m.right_uv[0]:8.2f} {m.right_uv[1]:8.2f} {m.disparity_px:8.3f} "
+                f"{m.xyz_m[0]:8.4f} {m.xyz_m[1]:8.4f} {m.xyz_m[2]:8.4f} "
+                f"{m.sigma_m[0] * 1e3:6.2f} {m.sigma_m[1] * 1e3:6.2f} {m.sigma_m[2] * 1e3:6.2f} {score}"
+            )
+        else:
+            body = " ".join(f"{'-':>{w}}" for w in (8, 8, 8, 8, 8, 8, 6, 6, 6)) + f" {score}  {m.reason}"
+        lines.append(head + body)
+    return "\n".join(lines)

@@ -1,0 +1,133 @@
+"""``trackmeter measure`` end to end: the JSON contract (DESIGN.md section 6), the table, and
+bad input (one line on stderr, exit code 2, no traceback)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from benchmarks.measure import estec_plane
+from trackmeter.cli.main import main
+from trackmeter.core.matching import REASON_OUTSIDE_IMAGE, MeasureParams, measure_points
+
+REPO = Path(__file__).resolve().parent.parent
+RIG = REPO / "config" / "rigs" / "estec_12mm.yaml"
+KEYS = ["uv", "ok", "reason", "right_uv", "disparity_px", "xyz_m", "sigma_m", "score"]
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
+    rig, left, right, truth = estec_plane(seed=5)
+    folder = tmp_path_factory.mktemp("pair")
+    cv2.imwrite(str(folder / "left.png"), left)
+    cv2.imwrite(str(folder / "right.png"), cv2.cvtColor(right, cv2.COLOR_GRAY2BGR))  # colour is converted
+    return rig, left, right, truth, folder
+
+
+def _run(folder: Path, *extra: str, rig: Path = RIG, left: str = "left.png", right: str = "right.png") -> int:
+    return main(["measure", "--rig", str(rig), "--left", str(folder / left), "--right", str(folder / right), *extra])
+
+
+def _one_error_line(capsys: pytest.CaptureFixture[str], *words: str) -> str:
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1, captured.err
+    assert "Traceback" not in captured.err
+    assert lines[0].startswith("trackmeter measure")
+    for word in words:
+        assert word in lines[0], lines[0]
+    assert captured.out == ""
+    return lines[0]
+
+
+def test_json_is_the_contract_and_agrees_with_the_library_and_the_truth(pair, capsys) -> None:  # type: ignore[no-untyped-def]
+    rig, left, right, truth, folder = pair
+    ats = [(300.3, 250.6), (-5.0, 3.0), (420.0, 180.25)]
+    assert _run(folder, "--at", "300.3,250.6", "--at=-5,3", "--at", "420,180.25", "--json") == 0
+    out = json.loads(capsys.readouterr().out)
+    assert isinstance(out, list) and len(out) == 3
+    assert all(list(o) == KEYS for o in out)
+    assert [o["uv"] for o in out] == [list(a) for a in ats]
+    lib = measure_points(rig, left, right, ats, MeasureParams())
+    for o, m in zip(out, lib):
+        assert o["ok"] == m.ok and o["reason"] == m.reason
+    good = [o for o in out if o["ok"]]
+    assert len(good) == 2
+    for o, at in zip((out[0], out[2]), (ats[0], ats[2])):
+        assert o["reason"] is None
+        xyz = np.array(o["xyz_m"])
+        np.testing.assert_allclose(xyz, truth(np.array([at]))[0], atol=4e-3)
+        np.testing.assert_allclose(o["right_uv"], rig.project(xyz)[1][0], atol=1e-3)
+        assert 0 < o["sigma_m"][2] < 0.01 and 0.8 <= o["score"] <= 1.0 and o["disparity_px"] > 0
+    refused = out[1]
+    assert refused["ok"] is False and refused["reason"] == REASON_OUTSIDE_IMAGE
+    assert refused["xyz_m"] is None and refused["right_uv"] is None and refused["disparity_px"] is None
+
+
+def test_table_and_patch_option(pair, capsys) -> None:  # type: ignore[no-untyped-def]
+    *_, folder = pair
+    assert _run(folder, "--at", "300.3,250.6", "--at", "1,1", "--patch", "11") == 0
+    text = capsys.readouterr().out.splitlines()
+    assert text[0].split()[:3] == ["u", "v", "ok"] and len(text) == 3
+    assert " yes " in text[1] and "3.4" in text[1]
+    assert " no " in text[2] and "patch not inside image" in text[2]
+
+
+def test_help_runs_as_a_console_script() -> None:
+    done = subprocess.run(
+        [sys.executable, "-m", "trackmeter.cli.main", "measure", "--help"], capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == 0 and "--at" in done.stdout and "xyz_m" in done.stdout
+
+
+def test_missing_rig(pair, tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    *_, folder = pair
+    assert _run(folder, "--at", "1,1", rig=tmp_path / "none.yaml") == 2
+    _one_error_line(capsys, "none.yaml")
+
+
+def test_malformed_rig(pair, tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    *_, folder = pair
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("%YAML:1.0\nimage_width: 726\nK1: [1, 2\n")
+    assert _run(folder, "--at", "1,1", rig=bad) == 2
+    _one_error_line(capsys, "bad.yaml")
+    partial = tmp_path / "partial.yaml"
+    partial.write_text("%YAML:1.0\n---\nimage_width: 726\nimage_height: 512\n")
+    assert _run(folder, "--at", "1,1", rig=partial) == 2
+    _one_error_line(capsys, "partial.yaml")
+
+
+def test_image_of_the_wrong_size(pair, capsys) -> None:  # type: ignore[no-untyped-def]
+    *_, left, _, _, folder = pair
+    cv2.imwrite(str(folder / "small.png"), left[:, :700])
+    assert _run(folder, "--at", "1,1", right="small.png") == 2
+    _one_error_line(capsys, "small.png", "700x512", "726x512")
+
+
+def test_non_image_file(pair, capsys) -> None:  # type: ignore[no-untyped-def]
+    *_, folder = pair
+    (folder / "notes.png").write_text("not an image\n")
+    assert _run(folder, "--at", "1,1", left="notes.png") == 2
+    _one_error_line(capsys, "notes.png")
+    assert _run(folder, "--at", "1,1", left="missing.png") == 2
+    _one_error_line(capsys, "missing.png")
+
+
+@pytest.mark.parametrize("at", ["1", "1,2,3", "a,b", "1;2", ""])
+def test_bad_at(pair, capsys, at: str) -> None:  # type: ignore[no-untyped-def]
+    *_, folder = pair
+    assert _run(folder, f"--at={at}") == 2
+    _one_error_line(capsys, "U,V")
+
+
+def test_bad_patch(pair, capsys) -> None:  # type: ignore[no-untyped-def]
+    *_, folder = pair
+    assert _run(folder, "--at", "1,1", "--patch", "2") == 2
+    _one_error_line(capsys, "--patch")
