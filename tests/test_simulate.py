@@ -83,18 +83,15 @@ def test_simulate_into_an_empty_existing_folder(tmp_path):
     assert len(open_source(str(out))) == 6  # one frame per range
 
 
-def test_camera_that_cannot_be_opened_exits_2():
-    """A source SPEC naming a missing camera: one clear line, exit 2 (through the CLI error path)."""
-    code = (
-        "import sys\n"
-        "from trackmeter.cli.main import main\n"
-        "from trackmeter.sources import open_source\n"
-        "from trackmeter.errors import TrackmeterError\n"
-        "try:\n"
-        "    open_source('camera:99')\n"
-        "except TrackmeterError as e:\n"
-        "    print(e, file=sys.stderr); sys.exit(2)\n"
-    )
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+def test_camera_that_cannot_be_opened_exits_2(tmp_path, capsys):
+    """A source SPEC naming a missing camera, through a real command that takes --source: one
+    clear line on stderr, exit 2, no traceback."""
+    proc = subprocess.run([sys.executable, "-m", "trackmeter.cli.main", "analyze", "--source", "camera:99"],
+                          capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2
-    assert proc.stderr.strip() == "camera 99 cannot be opened (no such device, or it is busy)"
+    assert proc.stderr.strip() == "trackmeter analyze: error: camera 99 cannot be opened (no such device, or it is busy)"
+    for spec, message in [("camera:x", "device numbers"), (f"video:{tmp_path}/l.avi,{tmp_path}/r.avi", "no such video file"),
+                          ("nothing_here", "unknown source 'nothing_here'")]:
+        assert main(["analyze", "--source", spec]) == 2
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1
