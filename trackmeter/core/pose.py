@@ -61,6 +61,10 @@ class PoseParams:
     robust_scale: bool = param(
         True, "inflate the point covariances by the robust residual scale when they are too optimistic"
     )
+    point_sigma_floor_m: float = param(
+        0.0003, "isotropic std added to every point's stereo covariance: tracking and surface errors the "
+        "stereo propagation does not see (also keeps the covariances invertible), m", min=0.0,
+    )
     min_triangle_m: float = param(
         0.05, "case (a): the third frame point must lie at least this far off the line of the first two, m", min=0.0
     )

@@ -334,8 +334,9 @@ class Engine:
         self._pending_reject = set()
         targets = self.tracker.step(frame, reject_ids=reject)
         self.stats.frames += 1
+        floor = self.pose_params.point_sigma_floor_m**2 * np.eye(3)
         measured = {
-            t.id: t for t in targets
+            t.id: replace(t, cov_cam=np.asarray(t.cov_cam, float) + floor) for t in targets
             if t.measured and np.all(np.isfinite(t.point_cam)) and np.all(np.isfinite(t.cov_cam))
         }
         existing = {t.id for t in targets}
@@ -466,8 +467,8 @@ class Engine:
         initial = (self._last_fit[0], self._last_fit[1]) if self._last_fit is not None else None
         try:
             fit = robust_pose(b, P, C, Cb, self.pose_params, initial=initial, seed=frame.index)
-        except TrackmeterError as exc:
-            return None, str(exc)
+        except (TrackmeterError, np.linalg.LinAlgError) as exc:
+            return None, f"pose undetermined: {exc}"
         if fit.inliers.sum() < self.pose_params.min_points:
             return None, f"only {int(fit.inliers.sum())} consistent model points"
         outliers = [ids[n] for n in np.flatnonzero(~fit.inliers)]

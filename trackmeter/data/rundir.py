@@ -1,0 +1,160 @@
+"""A ``trackmeter track`` run directory (DESIGN.md section 6), written while frames arrive.
+
+::
+
+    DIR/trajectory.tum   valid poses only, TUM (t tx ty tz qx qy qz qw), pose T_cam_body
+    DIR/states.csv       t,valid,x,y,z,qw,qx,qy,qz,vx,vy,vz,wx,wy,wz,n_tracked,n_lost,latency_ms
+                         one row per frame (valid 0/1; an invalid row has empty pose fields)
+    DIR/targets.csv      t,id,state,u,v,u_right,v_right,x,y,z,score  one row per target per frame
+    DIR/run.yaml         config, source, versions; the summary once the run ends
+
+Every row is written whole and flushed at once, so an interrupted run (Ctrl-C, a source that
+fails) leaves complete, readable files; ``run.yaml`` is rewritten atomically (``status:
+running`` at the start, the final status and summary at the end).
+"""
+
+from __future__ import annotations
+
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any, IO, Sequence
+
+import numpy as np
+import yaml
+
+from trackmeter.core.targets import TargetState
+from trackmeter.core.transforms import matrix_to_quat_wxyz
+from trackmeter.data.motion_csv import STATES_COLUMNS, MotionCsvWriter
+from trackmeter.data.trajectory import format_tum_line, write_text_atomic
+from trackmeter.errors import TrackmeterError
+
+#: Header of ``targets.csv`` (a contract, DESIGN.md section 6).
+TARGETS_COLUMNS: tuple[str, ...] = ("t", "id", "state", "u", "v", "u_right", "v_right", "x", "y", "z", "score")
+
+_RUN_FILES = ("trajectory.tum", "states.csv", "targets.csv", "run.yaml")
+
+
+def _num(value: float, fmt: str = ".9f") -> str:
+    return "" if value is None or not np.isfinite(value) else format(float(value), fmt)
+
+
+def versions() -> dict[str, str]:
+    """Versions of the software that made the run."""
+    import cv2
+    import scipy
+
+    from trackmeter import __version__
+
+    return {
+        "trackmeter": __version__,
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "scipy": scipy.__version__,
+        "opencv": cv2.__version__,
+    }
+
+
+class RunWriter:
+    """Writes one run directory incrementally.
+
+    Args:
+        directory: created if missing; refused when it already holds a run (``run.yaml``)
+            unless ``overwrite``.
+        config: a plain dict of the configuration (``config_to_dict``).
+        source: the source SPEC and what it carried (rig name, model, rate).
+        overwrite: replace an earlier run's files.
+
+    Raises:
+        TrackmeterError: the folder holds a run already, or cannot be written.
+    """
+
+    def __init__(self, directory: str | Path, config: dict[str, Any], source: dict[str, Any],
+                 overwrite: bool = False, extra: dict[str, Any] | None = None) -> None:
+        self.directory = Path(directory)
+        if self.directory.exists() and not self.directory.is_dir():
+            raise TrackmeterError(f"{self.directory}: exists and is not a folder")
+        if (self.directory / "run.yaml").exists() and not overwrite:
+            raise TrackmeterError(f"{self.directory}: holds a run already (run.yaml); choose another --out")
+        try:
+            self.directory.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise TrackmeterError(f"{self.directory}: cannot create: {exc.strerror}") from None
+        self._meta: dict[str, Any] = {
+            "status": "running",
+            "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "command": " ".join(sys.argv),
+            "source": source,
+            "versions": versions(),
+            **(extra or {}),
+            "config": config,
+        }
+        self._write_meta()
+        self._states = MotionCsvWriter(self.directory / "states.csv", STATES_COLUMNS)
+        self._tum: IO[str] | None = open(self.directory / "trajectory.tum", "w", encoding="utf-8", newline="\n")
+        self._tum.write("# t tx ty tz qx qy qz qw  (T_cam_body)\n")
+        self._tum.flush()
+        self._targets: IO[str] | None = open(self.directory / "targets.csv", "w", encoding="utf-8", newline="\n")
+        self._targets.write(",".join(TARGETS_COLUMNS) + "\n")
+        self._targets.flush()
+        self.frames = 0
+        self.valid_frames = 0
+
+    def _write_meta(self) -> None:
+        write_text_atomic(self.directory / "run.yaml", yaml.safe_dump(self._meta, sort_keys=False, allow_unicode=True))
+
+    def write_frame(self, t_s: float, targets: Sequence[TargetState], pose: Any, latency_ms: float = float("nan")) -> None:
+        """Append one frame: a ``states.csv`` row, its targets, and the pose when valid.
+
+        ``pose`` is a :class:`trackmeter.pipeline.snapshot.PoseEstimate`.
+        """
+        if self._tum is None or self._targets is None:
+            raise TrackmeterError(f"{self.directory}: run writer is closed")
+        n_tracked = sum(1 for s in targets if s.measured)
+        n_lost = len(targets) - n_tracked
+        if pose.valid:
+            p = pose.T_cam_body[:3, 3]
+            q = matrix_to_quat_wxyz(pose.T_cam_body[:3, :3])
+            self._states.write(t=t_s, valid=1, position_m=p, quat_wxyz=q, velocity_cam_m_s=pose.velocity_cam_m_s,
+                               omega_body_rad_s=pose.omega_body_rad_s, n_tracked=n_tracked, n_lost=n_lost,
+                               latency_ms=latency_ms)
+            self._tum.write(format_tum_line(t_s, p, q) + "\n")
+            self._tum.flush()
+            self.valid_frames += 1
+        else:
+            self._states.write(t=t_s, valid=0, n_tracked=n_tracked, n_lost=n_lost, latency_ms=latency_ms)
+        lines = []
+        for s in targets:
+            uv, uvr, x = s.uv, s.uv_right, s.point_cam
+            lines.append(",".join([
+                f"{t_s:.9f}", s.id, s.status, _num(uv[0], ".4f"), _num(uv[1], ".4f"), _num(uvr[0], ".4f"),
+                _num(uvr[1], ".4f"), _num(x[0]), _num(x[1]), _num(x[2]), _num(s.score, ".5f"),
+            ]) + "\n")
+        if lines:
+            self._targets.write("".join(lines))  # one frame's rows in one write
+            self._targets.flush()
+        self.frames += 1
+
+    def close(self, status: str = "complete", summary: dict[str, Any] | None = None) -> None:
+        """Close the files and rewrite ``run.yaml`` with the final status and summary."""
+        if self._tum is None:
+            return
+        self._states.close()
+        self._tum.close()
+        if self._targets is not None:
+            self._targets.close()
+        self._tum = self._targets = None
+        self._meta["status"] = status
+        self._meta["finished_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+        self._meta["summary"] = {"frames": self.frames, "valid_frames": self.valid_frames, **(summary or {})}
+        # Keep config last: the summary is what a reader looks for first.
+        config = self._meta.pop("config")
+        self._meta["config"] = config
+        self._write_meta()
+
+    def __enter__(self) -> RunWriter:
+        return self
+
+    def __exit__(self, exc_type: object, *exc: object) -> None:
+        self.close("interrupted" if exc_type is not None else "complete")
