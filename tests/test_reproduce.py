@@ -1,0 +1,47 @@
+"""The reproduction script reports a step whose command is not built (or fails) instead of faking it."""
+
+from __future__ import annotations
+
+import json
+import math
+
+from benchmarks.reproduce import Runner, Step, benchmark_rows, evaluation_rows, trackmeter
+from trackmeter.core.metrics import evaluate
+
+from tests.test_metrics import tumbling_truth, with_pose
+
+
+def test_unbuilt_command_is_missing_and_dependants_are_skipped(tmp_path):
+    r = Runner(tmp_path, tmp_path, built={"track": False, "evaluate": True})
+    track = r.run("track_x", trackmeter("track", "--source", "sim", "--out", str(tmp_path / "run")))
+    assert track.status == "missing" and "not built yet" in track.reason
+    ev = r.run("evaluate_x", trackmeter("evaluate", "--truth", "a", "--estimate", "b"), needs=[track])
+    assert ev.status == "skipped" and "track_x" in ev.reason
+    rows = evaluation_rows("estec, case (b)", None, [track, ev], "cmd")
+    assert len(rows) == 1 and "_missing: track_x" in rows[0]
+
+
+def test_failing_command_is_failed_with_its_message(tmp_path):
+    r = Runner(tmp_path, tmp_path, built={"evaluate": True})
+    step = r.run("evaluate_bad", trackmeter("evaluate", "--truth", str(tmp_path / "no.tum"), "--estimate", "x", "--json"))
+    assert step.status == "failed" and "no such file" in step.reason
+    assert r.json_of(step) is None
+    assert (tmp_path / "evaluate_bad.log").read_text().startswith("$ trackmeter evaluate")
+
+
+def test_evaluation_rows_show_max_and_rms_in_display_units():
+    truth = tumbling_truth()
+    summary = evaluate(truth, with_pose(truth, p=truth.position_m + [0.0, 0.0, 0.0025])).summary
+    ok = Step("s", [], status="ok")
+    rows = evaluation_rows("estec, case (b)", json.loads(json.dumps(summary)), [ok], "cmd")
+    depth = next(r for r in rows if "viewing axis z" in r)
+    assert "| ±5 mm | 2.50 mm / 2.50 mm |" in depth
+    assert any("SPEED" in r for r in rows)
+
+
+def test_benchmark_rows_never_invent_figures():
+    rows = benchmark_rows({"measure": {"point_ms_median": 0.5}}, Step("b", [], status="ok"), ["measure", "tracker"], ["tracker"])
+    assert any("| 15 ms | 0.500 ms |" in r for r in rows)
+    assert all("not built yet" in r for r in rows if "tracker" in r)
+    missing_key = benchmark_rows({"measure": {}}, Step("b", [], status="ok"), ["measure"], [])
+    assert all("missing" in r for r in missing_key) and not any(str(math.nan) in r for r in missing_key)
