@@ -11,6 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import yaml
 from scipy.spatial.transform import Rotation
 
 from trackmeter.data.model import Model, load_model, save_model
@@ -128,12 +129,66 @@ def test_euroc_mav0_layout_with_sensor_yaml(tmp_path):
             cv2.imwrite(str(root / cam / "data" / f"{ns}.png"), colour)
             rows.append(f"{ns},{ns}.png")
         (root / cam / "data.csv").write_text("\r\n".join(rows) + "\r\n")
-    src = open_source(f"seq:{tmp_path / 'MH_01'}")
+    with pytest.warns(UserWarning, match="no key 'intrinsics'"):
+        src = open_source(f"seq:{tmp_path / 'MH_01'}")
     assert src.rig is None and src.skipped == 0
     assert src.rate_hz == pytest.approx(20.0)
     f = src.read()
     assert f.left.dtype == np.uint8 and f.left.shape == (10, 12)
     assert f.t_s == pytest.approx(t0 * 1e-9)
+
+
+EUROC_CAM0 = """# General sensor definitions.
+sensor_type: camera
+comment: VI-Sensor cam0 (MT9M034)
+
+# Sensor extrinsics wrt. the body-frame.
+T_BS:
+  cols: 4
+  rows: 4
+  data: [0.0148655429818, -0.999880929698, 0.00414029679422, -0.0216401454975,
+         0.999557249008, 0.0149672133247, 0.025715529948, -0.064676986768,
+        -0.0257744366974, 0.00375618835797, 0.999660727178, 0.00981073058949,
+         0.0, 0.0, 0.0, 1.0]
+
+# Camera specific definitions.
+rate_hz: 20
+resolution: [752, 480]
+camera_model: pinhole
+intrinsics: [458.654, 457.296, 367.215, 248.375] #fu, fv, cu, cv
+distortion_model: radial-tangential
+distortion_coefficients: [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05]
+"""
+
+
+def test_euroc_sensor_yaml_gives_the_rig(tmp_path):
+    """cam1 mounted 0.11 m along cam0's +x and turned 1 deg about its y axis: the rig says so."""
+    _write(tmp_path / "seq" / "mav0", _frames(2, truth=False))
+    T_BS0 = np.array(yaml.safe_load(EUROC_CAM0)["T_BS"]["data"]).reshape(4, 4)
+    T_c0_c1 = np.eye(4)
+    T_c0_c1[:3, :3] = Rotation.from_euler("y", 1.0, degrees=True).as_matrix()
+    T_c0_c1[:3, 3] = [0.11, 0.0, 0.0]
+    T_BS1 = T_BS0 @ T_c0_c1
+    cam1 = EUROC_CAM0.replace("VI-Sensor cam0", "VI-Sensor cam1")
+    old = EUROC_CAM0[EUROC_CAM0.index("  data: ["):EUROC_CAM0.index("# Camera specific")]
+    cam1 = cam1.replace(old, "  data: [" + ", ".join(repr(float(x)) for x in T_BS1.ravel()) + "]\n\n")
+    (tmp_path / "seq" / "mav0" / "cam0" / "sensor.yaml").write_text("%YAML:1.0\n" + EUROC_CAM0)
+    (tmp_path / "seq" / "mav0" / "cam1" / "sensor.yaml").write_text(cam1)
+    src = open_source(f"seq:{tmp_path / 'seq'}")
+    rig = src.rig
+    assert rig is not None and src.warning is None
+    assert rig.image_size == (752, 480)
+    assert np.allclose(rig.left.K, [[458.654, 0, 367.215], [0, 457.296, 248.375], [0, 0, 1]])
+    assert np.allclose(rig.left.dist[:4], [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05])
+    # p_cam1 = R p_cam0 + T with (R, T) = inv(T_c0_c1).
+    assert np.allclose(rig.R, T_c0_c1[:3, :3].T, atol=1e-12)
+    assert np.allclose(rig.T, -T_c0_c1[:3, :3].T @ [0.11, 0, 0], atol=1e-12)
+    assert rig.baseline_m == pytest.approx(0.11)
+    # An unsupported model: played, rig unknown, and said so.
+    (tmp_path / "seq" / "mav0" / "cam1" / "sensor.yaml").write_text(cam1.replace("radial-tangential", "equidistant"))
+    with pytest.warns(UserWarning, match="not supported"):
+        src = open_source(f"seq:{tmp_path / 'seq'}")
+    assert src.rig is None and "not supported" in src.warning and src.skipped == 0
 
 
 # --------------------------------------------------------------------------- bad input

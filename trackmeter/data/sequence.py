@@ -11,7 +11,8 @@
     DIR/model.yaml                    optional: model points in the body frame
 
 Real EuRoC folders (``DIR/mav0/cam0/...`` with a ``sensor.yaml`` per camera and no
-``rig.yaml``) are indexed too; their rig is then unknown (None) unless the caller gives one.
+``rig.yaml``) are indexed too; their rig comes from the two ``sensor.yaml`` files when they
+hold a pinhole radial-tangential calibration, else it is unknown (None) unless the caller gives one.
 
 :class:`SequenceWriter` appends frames while they arrive (the simulator, the pipeline's
 recorder): each image is encoded in memory, written to a hidden temporary file and renamed,
@@ -31,6 +32,7 @@ from typing import IO, TYPE_CHECKING, Iterable, Sequence
 
 import cv2
 import numpy as np
+import yaml
 from numpy.typing import ArrayLike, NDArray
 
 from trackmeter.core.stereo import StereoRig
@@ -189,7 +191,8 @@ class SequenceIndex:
         root: the folder holding ``cam0``/``cam1`` (``DIR`` or ``DIR/mav0``).
         t_s: (N,) timestamps of the stereo pairs (the left image's), s, increasing.
         left_paths, right_paths: (N,) image files of each pair.
-        rig: from ``rig.yaml`` when present, else None.
+        rig: from ``rig.yaml`` when present, else from a real EuRoC folder's two
+            ``sensor.yaml`` (:func:`read_euroc_rig`), else None.
         model: from ``model.yaml`` when present, else None.
         truth: ground truth per pair (N rows, NaN rows where a pair has no truth within
             the tolerance), from ``groundtruth.csv`` or else ``groundtruth.tum``; None when
@@ -324,7 +327,12 @@ def index_sequence(directory: str | Path, tolerance_s: float | None = None) -> S
     if not pairs:
         raise TrackmeterError(f"{directory}: no stereo pair (left and right timestamps within {tolerance_s * 1e3:.3g} ms)")
     t_s = np.array([t_left[i] for i, _ in pairs], dtype=float) * 1e-9
-    rig = load_rig(root / "rig.yaml") if (root / "rig.yaml").is_file() else None
+    if (root / "rig.yaml").is_file():
+        rig = load_rig(root / "rig.yaml")
+    else:
+        rig, problem = read_euroc_rig(root)
+        if problem:
+            warnings.append(problem)
     model_file = root / "model.yaml"
     model = load_model(model_file) if model_file.is_file() else None
     truth = _read_truth(root, t_s, tolerance_s)
@@ -340,6 +348,55 @@ def index_sequence(directory: str | Path, tolerance_s: float | None = None) -> S
         warnings=tuple(warnings),
         tolerance_s=float(tolerance_s),
     )
+
+
+def read_euroc_rig(root: Path) -> tuple[StereoRig | None, str | None]:
+    """The stereo rig of a real EuRoC folder from its ``cam0/sensor.yaml`` and ``cam1/sensor.yaml``.
+
+    Each file gives ``T_BS`` (the camera's pose in the MAV body frame, 4x4 row-major), the
+    ``resolution`` ``[w, h]``, pinhole ``intrinsics`` ``[fu, fv, cu, cv]`` and radial-tangential
+    ``distortion_coefficients`` ``[k1, k2, p1, p2]`` (OpenCV's model and order). The stereo
+    extrinsics follow: ``T_cam1_cam0 = inv(T_BS1) @ T_BS0``, i.e. ``p_cam1 = R p_cam0 + T``.
+
+    Returns:
+        ``(rig, None)``; ``(None, None)`` when the folder has no sensor.yaml files (a sequence
+        without calibration); ``(None, reason)`` when they exist but cannot be used.
+    """
+    files = [root / cam / "sensor.yaml" for cam in CAMERAS]
+    if not all(f.is_file() for f in files):
+        return None, None
+    from trackmeter.core.stereo import Camera
+
+    cams = []
+    poses = []
+    for f in files:
+        try:
+            # Some writers put an OpenCV-style "%YAML:1.0" directive first, which PyYAML refuses.
+            text = "\n".join(line for line in f.read_text(encoding="utf-8").splitlines() if not line.startswith("%"))
+            data = yaml.safe_load(text) or {}
+            if data.get("camera_model", "pinhole") != "pinhole" or data.get("distortion_model", "radial-tangential") not in (
+                "radial-tangential", "radtan", "plumb_bob"
+            ):
+                return None, f"{f}: camera model {data.get('camera_model')}/{data.get('distortion_model')} not supported; rig unknown"
+            fu, fv, cu, cv = (float(x) for x in data["intrinsics"])
+            width, height = (int(x) for x in data["resolution"])
+            dist = np.array([float(x) for x in data.get("distortion_coefficients", [0, 0, 0, 0])])
+            T_BS = np.array([float(x) for x in data["T_BS"]["data"]]).reshape(4, 4)
+            cams.append(Camera(width, height, np.array([[fu, 0.0, cu], [0.0, fv, cv], [0.0, 0.0, 1.0]]), dist))
+            poses.append(T_BS)
+        except KeyError as exc:
+            return None, f"{f}: no key {exc} in the camera calibration; rig unknown"
+        except (OSError, UnicodeDecodeError, yaml.YAMLError, TypeError, ValueError, AttributeError) as exc:
+            return None, f"{f}: cannot read the camera calibration ({exc.__class__.__name__}); rig unknown"
+        except TrackmeterError as exc:
+            return None, f"{f}: {exc}; rig unknown"
+    from trackmeter.core.transforms import invert_transform
+
+    T_c1_c0 = invert_transform(poses[1]) @ poses[0]
+    try:
+        return StereoRig(cams[0], cams[1], T_c1_c0[:3, :3], T_c1_c0[:3, 3], name=root.parent.name), None
+    except TrackmeterError as exc:
+        return None, f"{root}: EuRoC sensor.yaml files do not make a stereo rig ({exc}); rig unknown"
 
 
 def _read_truth(root: Path, t_s: FloatArray, tolerance_s: float) -> MotionSeries | None:

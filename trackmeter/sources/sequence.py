@@ -70,7 +70,9 @@ class SequenceSource(Source):
         parts = list(self.index.warnings)
         if self._skipped_on_read:
             parts.append(f"{self._skipped_on_read} pair(s) with an unreadable image skipped ({self._read_errors[-1]})")
-        return ("skipped " + str(self.skipped) + ": " + "; ".join(parts)) if parts else None
+        if not parts:
+            return None
+        return ("skipped " + str(self.skipped) + ": " if self.skipped else "") + "; ".join(parts)
 
     def __len__(self) -> int:
         return len(self.index)
