@@ -252,10 +252,14 @@ def sample_rectified(
     mx = cv2.getRectSubPix(mx_full, (width, height), centre)
     my = cv2.getRectSubPix(my_full, (width, height), centre)
     h_img, w_img = image.shape
-    x_lo, x_hi = cv2.minMaxLoc(mx)[:2]
-    y_lo, y_hi = cv2.minMaxLoc(my)[:2]
+    # The maps are smooth and monotonic, so the block's extent in the original image is that
+    # of its corners (the bilinear interpolation stays inside the grid cells around them).
+    x_lo = min(float(mx_full[by, bx]), float(mx_full[by + height, bx]))
+    x_hi = max(float(mx_full[by, bx + width]), float(mx_full[by + height, bx + width]))
+    y_lo = min(float(my_full[by, bx]), float(my_full[by, bx + width]))
+    y_hi = max(float(my_full[by + height, bx]), float(my_full[by + height, bx + width]))
     col_ok = None
-    if not (x_lo >= 0 and y_lo >= 0 and x_hi <= w_img - 1 and y_hi <= h_img - 1):
+    if not (x_lo >= 0.5 and y_lo >= 0.5 and x_hi <= w_img - 1.5 and y_hi <= h_img - 1.5):
         col_ok = np.all((mx >= 0) & (mx <= w_img - 1) & (my >= 0) & (my <= h_img - 1), axis=0)
     # Lanczos-4 reaches 3 pixels beyond the 2x2 cell; take the region plus 4 and let remap
     # replicate at the true image border (those columns are flagged invalid anyway).
@@ -454,39 +458,38 @@ class _ShiftFit:
         t1 = float(self.t.sum())
         self.t1 = t1
         self.ctt = float(self.t @ self.t) - t1 * t1 / self.n
-        self._i: int | None = None
+        self._base: int | None = None
 
-    def _moments(self, i: int) -> None:
-        if self._i == i:
-            return
-        P, S = self.P, self.strip
-        width = S.shape[1]
-        if i - 1 >= 0 and i + P + 2 <= width:
-            win = S[:, i - 1 : i + P + 2]
-        else:
-            win = S[:, np.clip(np.arange(i - 1, i + P + 2), 0, width - 1)]
-        Sk = np.stack([win[:, k : k + P] for k in range(4)]).reshape(4, -1).astype(np.float64)
-        s1 = Sk.sum(axis=1)
-        # centred moments: removing the means solves for the offset b in closed form
-        self.G = (Sk @ Sk.T - np.outer(s1, s1) / self.n).tolist()
-        self.h = (Sk @ self.t - s1 * (self.t1 / self.n)).tolist()
-        self._i = i
+    def _moments(self, i: int) -> tuple[FloatArray, FloatArray]:
+        """Centred moments (4x4 with each other, 4 with the template) of the windows
+        ``S[:, i-1+k : i-1+k+P]``, k = 0..3. Computed for six windows around the first ``i``
+        asked for, so the fit's steps across one integer boundary reuse them."""
+        if self._base is None or not (self._base <= i - 1 and i + 2 <= self._base + 5):
+            P, S = self.P, self.strip
+            width = S.shape[1]
+            base = i - 2
+            if base >= 0 and base + P + 5 <= width:
+                win = S[:, base : base + P + 5]
+            else:
+                win = S[:, np.clip(np.arange(base, base + P + 5), 0, width - 1)]
+            Sk = np.stack([win[:, k : k + P] for k in range(6)]).reshape(6, -1).astype(np.float64)
+            s1 = Sk.sum(axis=1)
+            # centred moments: removing the means solves for the offset b in closed form
+            self._G = Sk @ Sk.T - np.outer(s1, s1) / self.n
+            self._h = Sk @ self.t - s1 * (self.t1 / self.n)
+            self._base = base
+        k = i - 1 - self._base
+        return self._G[k : k + 4, k : k + 4], self._h[k : k + 4]
 
     def solve(self, x: float) -> tuple[float, float, float, float]:
         """Fit at ``x``: ``(a, step, sigma_x, zncc)`` with ``step = c / a`` the Gauss-Newton
         update of ``x``, ``sigma_x`` its standard deviation from the residual, and the ZNCC of
         the template with ``R(x)``."""
         i = math.floor(x)
-        self._moments(i)
-        w, dw = self.weights(x - i)
-        G, h = self.G, self.h
-        Gw = [sum(G[r][k] * w[k] for k in range(4)) for r in range(4)]
-        Gd = [sum(G[r][k] * dw[k] for k in range(4)) for r in range(4)]
-        cvv = sum(w[r] * Gw[r] for r in range(4))
-        cvd = sum(dw[r] * Gw[r] for r in range(4))
-        cdd = sum(dw[r] * Gd[r] for r in range(4))
-        cvt = sum(w[r] * h[r] for r in range(4))
-        cdt = sum(dw[r] * h[r] for r in range(4))
+        G, h = self._moments(i)
+        Wm = np.array(self.weights(x - i))  # rows: w, dw
+        (cvv, cvd), (_, cdd) = (Wm @ G @ Wm.T).tolist()
+        cvt, cdt = (Wm @ h).tolist()
         det = cvv * cdd - cvd * cvd
         if det <= 0 or cvv <= 0 or self.ctt <= 0:
             return math.nan, math.nan, math.nan, math.nan
@@ -693,71 +696,64 @@ def measure_points(
     if n == 0:
         return ()
     rect = rig.rectification
-    finite = np.all(np.isfinite(uv), axis=1)
-    inside = finite & rig.left.contains(np.where(finite[:, None], uv, 0.0))
-    uv_rect = np.full((n, 2), np.nan)
-    if inside.any():
-        uv_rect[inside] = rect.rectify_points(uv[inside], 0)
+    W, H = rig.image_size
+    # NaN fails every comparison, so it lands outside too
+    inside = [-0.5 <= u <= W - 0.5 and -0.5 <= v <= H - 0.5 for u, v in uv.tolist()]
+    if all(inside):
+        uv_rect = rect.rectify_points(uv, 0)
+    else:
+        uv_rect = np.full((n, 2), np.nan)
+        if any(inside):
+            uv_rect[inside] = rect.rectify_points(uv[inside], 0)
 
-    reasons: list[str | None] = []
+    reasons: list[str | None] = [REASON_OUTSIDE_IMAGE] * n
+    scores = [math.nan] * n
     disp = np.full(n, np.nan)
     sig_d = np.full(n, np.nan)
-    scores = np.full(n, np.nan)
     for i in range(n):
-        if not inside[i]:
-            reasons.append(REASON_OUTSIDE_IMAGE)
-            continue
-        m = _match_rectified(rect, left, right, uv_rect[i], params)
-        reasons.append(m.reason)
-        scores[i] = m.score
-        if m.reason is None:
-            disp[i], sig_d[i] = m.disparity_px, m.sigma_px
+        if inside[i]:
+            m = _match_rectified(rect, left, right, uv_rect[i], params)
+            reasons[i], scores[i] = m.reason, m.score
+            if m.reason is None:
+                disp[i], sig_d[i] = m.disparity_px, m.sigma_px
 
-    ok = np.array([r is None for r in reasons])
     right_uv = np.full((n, 2), np.nan)
     xyz = np.full((n, 3), np.nan)
     cov = np.full((n, 3, 3), np.nan)
-    if ok.any():
-        idx = np.flatnonzero(ok)
+    idx = [i for i in range(n) if reasons[i] is None]
+    if idx:
         if params.sigma_disparity_px > 0:
             sig_d[idx] = params.sigma_disparity_px
         else:  # the fit's own estimate, floored (a NaN estimate becomes infinite: no confidence)
             est = sig_d[idx]
             sig_d[idx] = np.where(est == est, np.fmax(est, params.min_sigma_disparity_px), np.inf)
         xyz[idx] = rect.triangulate(uv_rect[idx], disp[idx])
-        bad = ~np.isfinite(xyz[idx, 2])  # zero or negative disparity: at infinity
-        if bad.any():
-            for j in idx[bad]:
-                reasons[j] = REASON_BEYOND_RANGE
-            idx = idx[~bad]
-            ok[:] = [r is None for r in reasons]
-        if idx.size:
-            right_rect = uv_rect[idx].copy()
-            right_rect[:, 0] -= disp[idx]
-            right_uv[idx] = rect.unrectify_points(right_rect, 1)
-            cov[idx] = rect.point_covariance(uv_rect[idx], disp[idx], sig_d[idx], params.sigma_uv_px)
+        at_infinity = [i for i in idx if not math.isfinite(xyz[i, 2])]  # disparity <= 0
+        for i in at_infinity:
+            reasons[i] = REASON_BEYOND_RANGE
+        if at_infinity:
+            idx = [i for i in idx if reasons[i] is None]
+    if idx:
+        right_rect = uv_rect[idx]  # fancy indexing: a copy
+        right_rect[:, 0] -= disp[idx]
+        right_uv[idx] = rect.unrectify_points(right_rect, 1)
+        cov[idx] = rect.point_covariance(uv_rect[idx], disp[idx], sig_d[idx], params.sigma_uv_px)
     sigma = np.sqrt(np.diagonal(cov, axis1=1, axis2=2))
     for arr in (uv, uv_rect, right_uv, xyz, cov, sigma):
-        arr.flags.writeable = False  # rows are shared, read-only views
+        arr.flags.writeable = False  # rows are handed out as read-only views
 
     out = []
     for i in range(n):
-        good = bool(ok[i])
-        out.append(
-            PointMeasurement(
-                uv=uv[i],
-                ok=good,
-                reason=reasons[i],
-                uv_rect=uv_rect[i],
-                right_uv=right_uv[i] if good else _NAN2,
-                disparity_px=float(disp[i]) if good else math.nan,
-                sigma_disparity_px=float(sig_d[i]) if good else math.nan,
-                xyz_m=xyz[i] if good else _NAN3,
-                sigma_m=sigma[i] if good else _NAN3,
-                cov_m=cov[i] if good else _NAN33,
-                score=float(scores[i]),
+        if reasons[i] is None:
+            pm = PointMeasurement(
+                uv[i], True, None, uv_rect[i], right_uv[i], float(disp[i]), float(sig_d[i]),
+                xyz[i], sigma[i], cov[i], float(scores[i]),
             )
-        )
+        else:
+            pm = PointMeasurement(
+                uv[i], False, reasons[i], uv_rect[i], _NAN2, math.nan, math.nan, _NAN3, _NAN3, _NAN33, float(scores[i])
+            )
+        out.append(pm)
     return tuple(out)
 
 
