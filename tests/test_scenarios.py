@@ -183,6 +183,9 @@ def test_loop_keeps_time_increasing(sims, tmp_path):
     assert [f.index for f in frames] == list(range(7))
     assert np.allclose(np.diff([f.t_s for f in frames]), 0.04)
     assert np.array_equal(frames[3].left, frames[0].left)
+    assert np.array_equal(sim.truth(frames[5].index).T_cam_body, frames[5].truth.T_cam_body)
+    uv = np.array([[363.0, 256.0]])
+    assert np.array_equal(sim.surface_points(frames[5].index, uv), sim.surface_points(2, uv), equal_nan=True)
     once = Simulator(sc, mockup=sims["estec"].mockup)
     assert [once.read() is None for _ in range(4)] == [False, False, False, True]
 

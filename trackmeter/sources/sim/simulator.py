@@ -47,7 +47,9 @@ class Simulator(Source):
             (:attr:`true_rig`).
         realtime: deliver frames at ``rate_hz`` (sleeping as needed); else as fast as rendered.
         loop: start again after the last frame; indices and timestamps keep increasing (each
-            loop is shifted by ``n_frames / rate_hz``) and the images repeat exactly.
+            loop is shifted by ``n_frames / rate_hz``) and the images repeat exactly. The
+            index-taking methods (:meth:`truth`, :meth:`surface_points`, ...) then accept a
+            streamed frame's index and take it modulo ``n_frames``.
         mockup: an already loaded mock-up (saves reloading its textures), else the scenario's.
 
     Attributes:
@@ -111,6 +113,10 @@ class Simulator(Source):
         return index / self.rate_hz
 
     def _check(self, index: int) -> int:
+        # A looping source numbers its frames on (StereoFrame.index); frame k shows pass frame
+        # k mod n, so callers holding a frame's index get the right answer.
+        if self.loop and int(index) >= 0:
+            return int(index) % self.n_frames
         if not 0 <= int(index) < self.n_frames:
             raise TrackmeterError(f"frame {index} outside the scenario's {self.n_frames} frames")
         return int(index)
