@@ -322,3 +322,17 @@ def test_commands(estec_rig, tmp_path) -> None:
     reply = engine.handle(LoadModel(str(bad)), None)
     assert not reply.ok and "twice" in reply.message
     assert engine.handle(ClearTargets(), None).ok and not tracker.active
+
+
+def test_case_a_frame_redefined_after_losing_everything(estec_rig) -> None:
+    engine, tracker, pts = make_engine(estec_rig, with_model=False)
+    run(engine, range(10))
+    tracker.force_lost = set(tracker.active)
+    outs = run(engine, range(10, 30))  # 0.8 s without a pose (> velocity.max_gap_s)
+    assert not any(o[1].valid for o in outs)
+    for i, p in enumerate(pts):  # automatic selection brings new targets
+        tracker.body[f"n{i}"] = p
+        tracker.active[f"n{i}"] = "tracking"
+    _, pose, _ = engine.process(frame_at(30))
+    assert pose.valid and engine.frame_ids == ("n0", "n1", "n2")
+    assert engine.stats.frames_redefined == 1

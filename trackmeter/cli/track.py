@@ -1,15 +1,213 @@
-"""trackmeter track (not built yet)."""
+"""Track targets and estimate pose and velocities, headless, into a run folder.
+
+Runs the pipeline (acquisition and tracking threads) without the console on any source, with
+targets from --target and/or automatic selection (--auto N), and writes the run directory:
+trajectory.tum (valid poses), states.csv (one row per frame), targets.csv, run.yaml. Recorded
+and simulated sources are processed frame by frame as fast as possible (no frame dropped);
+cameras run live. Ends at the end of the source or on Ctrl-C, with complete files either way.
+
+Model cases (paper section 2.C):
+  a  no model: the body frame from three tracked points (origin at their centroid, x toward
+     the second, xy-plane through the third); redundant points carry it when one is lost
+  b  a-priori model (--model, or the source's own model.yaml): targets named by model point
+     id (--target ID=U,V) bind to it; automatic targets join it once the pose is known
+  c  model acquired while the object is held still (pose.still_time_s), output in that frame
+
+Examples:
+  trackmeter track --source sim --auto 16 --out runs/estec_a
+  trackmeter track --source seq:runs/seq1 --case b --target bus_c0=312.5,201.0 --auto 16 --out runs/b
+"""
 
 from __future__ import annotations
 
 import argparse
+import sys
+import time
+from typing import Any
 
-from trackmeter.cli.common import not_built_yet
+from trackmeter.cli.common import parse_uv
+from trackmeter.errors import TrackmeterError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    pass
+    parser.add_argument("--source", required=True, metavar="SPEC",
+                        help="sim, sim:SCENARIO, seq:DIR or DIR, video:LEFT,RIGHT, camera:I[,J]")
+    parser.add_argument("--rig", metavar="RIG", help="stereo rig file (default: the source's own rig)")
+    parser.add_argument("--model", metavar="MODEL", help="model.yaml for case (b) (default: the source's own model)")
+    parser.add_argument("--target", action="append", default=[], metavar="[ID=]U,V",
+                        help="a target at left-image pixel U,V of the first frame, optionally named (repeatable)")
+    parser.add_argument("--auto", type=int, metavar="N", help="keep N automatically selected targets alive")
+    parser.add_argument("--case", choices=("a", "b", "c"),
+                        help="model case (default: b when a model is given or carried by the source, else a)")
+    parser.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
+    parser.add_argument("--out", required=True, metavar="DIR", help="run folder to write")
+    parser.add_argument("--overwrite", action="store_true", help="replace an earlier run in --out")
+
+
+def parse_target(text: str) -> tuple[str | None, tuple[float, float]]:
+    """``"[ID=]U,V"`` → ``(id or None, (u, v))``."""
+    name, sep, rest = text.partition("=")
+    if not sep:
+        return None, parse_uv(text)
+    if not name.strip():
+        raise TrackmeterError(f"--target: empty id in {text!r} (expected ID=U,V)")
+    return name.strip(), parse_uv(rest)
+
+
+class _Limited:
+    """A source that ends after ``n`` frames (``--max-frames``); everything else delegates."""
+
+    def __init__(self, source: Any, n: int) -> None:
+        self._source = source
+        self._left = n
+        self.rig = source.rig
+        self.rate_hz = source.rate_hz
+
+    def read(self):  # type: ignore[no-untyped-def]
+        if self._left <= 0:
+            return None
+        self._left -= 1
+        return self._source.read()
+
+    def restart(self) -> None:
+        self._source.restart()
+
+    def close(self) -> None:
+        self._source.close()
+
+
+def _total_frames(source: Any, max_frames: int | None) -> int | None:
+    try:
+        n = len(source)
+    except TypeError:
+        n = None
+    if max_frames is not None:
+        n = max_frames if n is None else min(n, max_frames)
+    return n
 
 
 def run(args: argparse.Namespace) -> int:
-    return not_built_yet("track")
+    from trackmeter.cli.common import load_config_from_args
+    from trackmeter.data.config import config_to_dict
+    from trackmeter.data.model import load_model
+    from trackmeter.data.rigfile import load_rig
+    from trackmeter.data.rundir import RunWriter
+    from trackmeter.pipeline.engine import Engine
+    from trackmeter.pipeline.pipeline import run_headless
+    from trackmeter.pipeline.snapshot import AcquireModel, SelectPoint, SetAuto, Snapshot
+    from trackmeter.sources import open_source
+
+    config = load_config_from_args(args)
+    targets = [parse_target(t) for t in args.target]
+    if args.auto is not None and args.auto < 1:
+        raise TrackmeterError(f"--auto must be at least 1, got {args.auto}")
+    if args.max_frames is not None and args.max_frames < 1:
+        raise TrackmeterError(f"--max-frames must be at least 1, got {args.max_frames}")
+    if not targets and args.auto is None:
+        raise TrackmeterError("nothing to track: give --target [ID=]U,V and/or --auto N")
+    rig_override = load_rig(args.rig) if args.rig else None
+    model = load_model(args.model) if args.model else None
+
+    source = open_source(args.source, rig_override=rig_override, realtime=args.source.startswith("camera"))
+    try:
+        rig = source.rig
+        if rig is None:
+            raise TrackmeterError(f"source {args.source!r} carries no stereo rig: give --rig")
+        if model is None and args.case in (None, "b"):
+            model = getattr(source, "model", None)
+        case = args.case or ("b" if model is not None and any(i for i, _ in targets) else "a")
+        if case == "b":
+            if model is None:
+                raise TrackmeterError("case (b) needs a model: give --model (the source carries none)")
+            unknown = [i for i, _ in targets if i is not None and i not in model.ids]
+            if unknown:
+                raise TrackmeterError(f"--target id {unknown[0]!r} is not in the model (ids: {', '.join(model.ids[:8])}"
+                                      f"{', ...' if len(model.ids) > 8 else ''})")
+        engine = Engine(config, rig, model if case == "b" else None, case, rate_hz=source.rate_hz or 25.0)
+        commands: list[Any] = [SelectPoint(uv[0], uv[1], tid) for tid, uv in targets]
+        if args.auto is not None:
+            commands.append(SetAuto(True, args.auto, None))
+        if case == "c":
+            commands.append(AcquireModel())
+        total = _total_frames(source, args.max_frames)
+        feed = _Limited(source, args.max_frames) if args.max_frames else source
+        source_info = {
+            "spec": args.source,
+            "rig": rig.name or (args.rig or "source"),
+            "rate_hz": source.rate_hz,
+            "model": args.model or ("source" if case == "b" else None),
+            "case": case,
+            "targets": [f"{i + '=' if i else ''}{u:g},{v:g}" for i, (u, v) in targets],
+            "auto": args.auto,
+        }
+        writer = RunWriter(args.out, config_to_dict(config), source_info, overwrite=args.overwrite)
+        state = {"last_index": -1, "invalid": {}, "last_draw": 0.0, "t0": time.monotonic(), "status": None}
+        tty = sys.stderr.isatty()
+
+        def on_snapshot(snap: Snapshot) -> None:
+            state["status"] = snap.source_status
+            frame = snap.frame
+            if frame is None or frame.index == state["last_index"]:
+                return
+            state["last_index"] = frame.index
+            writer.write_frame(frame.t_s, snap.targets, snap.pose, snap.timings.latency_ms)
+            if not snap.pose.valid:
+                reason = snap.pose.reason or "?"
+                state["invalid"][reason] = state["invalid"].get(reason, 0) + 1
+            now = time.monotonic()
+            if tty and now - state["last_draw"] > 0.25:
+                state["last_draw"] = now
+                n = writer.frames
+                of = f"/{total}" if total else ""
+                fps = n / max(now - state["t0"], 1e-9)
+                ok = "valid" if snap.pose.valid else "INVALID"
+                sys.stderr.write(f"\rtrack: frame {n}{of}  {fps:5.1f} fps  pose {ok:7s}  "
+                                 f"targets {sum(t.measured for t in snap.targets):2d}/{len(snap.targets):2d}   ")
+                sys.stderr.flush()
+
+        status = "complete"
+        try:
+            last, replies = run_headless(feed, engine, on_snapshot=on_snapshot, commands=commands,
+                                         realtime=args.source.startswith("camera"), rig=rig)
+        except KeyboardInterrupt:
+            writer.close("interrupted", _summary(engine, writer, state))
+            if tty:
+                sys.stderr.write("\n")
+            print(f"trackmeter track: interrupted after {writer.frames} frames; files in {args.out} are complete",
+                  file=sys.stderr)
+            raise
+        if tty:
+            sys.stderr.write("\n")
+        for command, reply in zip(commands, replies):
+            if not reply.ok:
+                print(f"trackmeter track: warning: {type(command).__name__}: {reply.message}", file=sys.stderr)
+        src_status = last.source_status or state["status"]
+        if src_status and src_status != "ended":
+            status = "source failed"
+            print(f"trackmeter track: source stopped: {src_status}", file=sys.stderr)
+        summary = _summary(engine, writer, state)
+        summary["source_status"] = src_status
+        summary["dropped_frames"] = last.timings.frames_dropped
+        writer.close(status, summary)
+        elapsed = time.monotonic() - state["t0"]
+        print(f"{writer.frames} frames in {elapsed:.1f} s ({writer.frames / max(elapsed, 1e-9):.1f} fps), "
+              f"{writer.valid_frames} valid poses, case ({case}) -> {args.out}")
+        for reason, count in sorted(state["invalid"].items(), key=lambda kv: -kv[1])[:5]:
+            print(f"  invalid in {count} frames: {reason}")
+        if writer.frames == 0:
+            raise TrackmeterError(f"source {args.source!r} delivered no frame" + (f": {src_status}" if src_status else ""))
+        return 0 if status == "complete" else 2
+    finally:
+        source.close()
+
+
+def _summary(engine: Any, writer: Any, state: dict[str, Any]) -> dict[str, Any]:
+    import dataclasses
+
+    out: dict[str, Any] = {"engine": dataclasses.asdict(engine.stats)}
+    stats = getattr(engine.tracker, "stats", None)
+    if isinstance(stats, dict):
+        out["tracker"] = {k: int(v) for k, v in stats.items()}
+    out["invalid_reasons"] = dict(state["invalid"])
+    out["elapsed_s"] = round(time.monotonic() - state["t0"], 3)
+    return out

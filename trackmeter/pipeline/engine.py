@@ -115,6 +115,7 @@ class EngineStats:
     recoveries: int = 0
     recoveries_rejected: int = 0
     model_points_joined: int = 0
+    frames_redefined: int = 0
 
 
 class Engine:
@@ -348,6 +349,8 @@ class Engine:
             del self._candidates[pid]
 
         reason: str | None = None
+        if self._last_valid_t is None and self._model and self._case == "a":
+            self._last_valid_t = frame.t_s
         if self._case == "c" and self._acquisition is not None:
             reason = self._acquire(frame, measured)
         if self._case == "a" and not self._model:
@@ -357,9 +360,15 @@ class Engine:
             fit, reason = self._fit(frame, measured)
         if fit is None:
             pose = PoseEstimate.invalid(reason or "no pose", self._case)
-            if self._last_valid_t is not None and frame.t_s - self._last_valid_t > self.velocity_params.max_gap_s:
+            since = frame.t_s - (self._last_valid_t if self._last_valid_t is not None else frame.t_s)
+            if since > self.velocity_params.max_gap_s:
                 self._velocity.reset()
                 self._filter.reset()
+                if self._case == "a" and self._model:
+                    # The frame's points are gone for good: define a new frame from the points
+                    # tracked now (the pose was invalid anyway; a new body frame starts here).
+                    self._reset_motion()
+                    self.stats.frames_redefined += 1
             return self.tracker.targets if self._recovered_any else targets, pose, None
         R, t, cov, n_used, outliers = fit
         self.stats.valid_frames += 1
