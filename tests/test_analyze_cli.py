@@ -42,9 +42,13 @@ def test_analyze_static_ranges_recovers_the_parabola(tmp_path, capsys):
     # ... and eq. 2 at each range alone gives the same sub-pixel accuracy within a factor 2.5.
     for r in ranges:
         assert 0.4 < r["sigma_disparity_px"] / s["sigma_disparity_px"] < 2.5
-    # Sub-pixel: far below a pixel, and of the order of the matcher's own noise estimate.
+    # Sub-pixel, and consistent with the scenario's sensor noise: the accuracy inferred from k
+    # agrees with the Cramer-Rao limit that the noise measured over the still frames allows
+    # each patch (within 35 %, at every range and overall); the matcher cannot beat it by much.
     assert 0.005 < s["sigma_disparity_px"] < 0.2
-    assert 0.2 < s["sigma_disparity_px"] / s["predicted_sigma_disparity_px"] < 5
+    assert 0.65 < s["sigma_disparity_px"] / s["noise_limited_sigma_disparity_px"] < 1.35
+    for r in ranges:
+        assert 0.5 < r["sigma_disparity_px"] / r["noise_limited_sigma_disparity_px"] < 1.5
     # The depth residuals, normalised per range, are unit Gaussian by construction of sigma.
     assert s["density_normalised"]["sigma"] == pytest.approx(1.0, abs=0.1)
     for name in ("analysis.json", "ranges.csv", "sigma_vs_range.png", "error_density.png", "report.md"):

@@ -24,7 +24,9 @@ from trackmeter.core.error_analysis import (
     ErrorAnalysis,
     RangeStatistics,
     analyze_ranges,
+    noise_limited_disparity_sigma,
     range_statistics,
+    temporal_noise_variance,
     truth_errors,
 )
 from trackmeter.core.matching import MeasureParams, measure_points
@@ -50,6 +52,8 @@ class RangeMeasurements:
         true_range_m: the true range of the target's origin when the source knows it, else NaN.
         true_xyz_m: (P,3) the true surface points at ``uv`` (left camera frame, m) when the
             source can say (the simulator's ``surface_points``), else None.
+        noise_sigma_disparity_px: (P,) the disparity sigma that the image noise measured over
+            the range's frames allows each patch (Cramer-Rao bound, NaN when unknown).
     """
 
     t_s: FloatArray
@@ -60,6 +64,7 @@ class RangeMeasurements:
     refusals: dict[str, int]
     true_range_m: float
     true_xyz_m: FloatArray | None = None
+    noise_sigma_disparity_px: FloatArray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -76,6 +81,11 @@ class AnalysisRun:
     def to_dict(self) -> dict[str, object]:
         d = self.analysis.to_dict()
         d["predicted_sigma_disparity_px"] = self.predicted_sigma_disparity_px
+        nsd = [m.noise_sigma_disparity_px for m in self.measurements if m.noise_sigma_disparity_px is not None]
+        nsd_all = np.concatenate(nsd) if nsd else np.zeros(0)
+        nsd_all = nsd_all[np.isfinite(nsd_all)]
+        # RMS: the sigma a fit over all points' variances would see.
+        d["noise_limited_sigma_disparity_px"] = float(np.sqrt(np.mean(nsd_all**2))) if len(nsd_all) else float("nan")
         by_range = {round(s.range_m, 6): m for s, m in zip(self.statistics, self.measurements)}
         for entry in d["ranges"]:  # type: ignore[union-attr]
             m = by_range.get(round(entry["range_m"], 6))
@@ -84,6 +94,9 @@ class AnalysisRun:
                 entry["n_frames"] = len(m.t_s)
                 entry["n_selected"] = len(m.uv)
                 entry["refused"] = dict(m.refusals)
+                if m.noise_sigma_disparity_px is not None and np.any(np.isfinite(m.noise_sigma_disparity_px)):
+                    nsd = m.noise_sigma_disparity_px[np.isfinite(m.noise_sigma_disparity_px)]
+                    entry["noise_limited_sigma_disparity_px"] = float(np.sqrt(np.mean(nsd**2)))
                 if m.true_xyz_m is not None:
                     te = truth_errors(m.xyz_m, m.true_xyz_m, self.gross_sigmas)
                     entry["truth_error"] = {
@@ -172,13 +185,51 @@ def measure_range(
                 sd[f, p] = m.sigma_disparity_px
             else:
                 refusals[str(m.reason)] = refusals.get(str(m.reason), 0) + 1
+    noise_sd = _noise_limited_sigmas(frames, uv, xyz, measure.patch_size, rig) if F >= 2 and P > 0 else None
     truth = first.truth
     true_range = float(np.linalg.norm(truth.T_cam_body[:3, 3])) if truth is not None else float("nan")
     true_xyz = None
     if surface_points is not None and truth is not None and P > 0:
         p_body = np.asarray(surface_points(first.index, uv), dtype=float).reshape(-1, 3)
         true_xyz = apply_transform(truth.T_cam_body, p_body)
-    return RangeMeasurements(np.array([fr.t_s for fr in frames]), uv, xyz, sig, sd, refusals, true_range, true_xyz)
+    return RangeMeasurements(np.array([fr.t_s for fr in frames]), uv, xyz, sig, sd, refusals, true_range, true_xyz, noise_sd)
+
+
+def _noise_limited_sigmas(
+    frames: list[StereoFrame], uv: FloatArray, xyz: FloatArray, patch_size: int, rig: StereoRig
+) -> FloatArray:
+    """Per point, the noise-limited disparity sigma (:func:`noise_limited_disparity_sigma`)
+    from the frame-averaged left patch's x-gradients and the temporal noise of both images
+    (the right patch located by projecting the mean measured point). Rows of the original
+    images stand in for the rectified epipolar lines (the rig's rectification turns them by
+    a fraction of a degree)."""
+    left = np.stack([f.left for f in frames]).astype(float)
+    right = np.stack([f.right for f in frames]).astype(float)
+    mean_left = left.mean(axis=0)
+    var_left = temporal_noise_variance(left)
+    var_right = temporal_noise_variance(right)
+    H, W = mean_left.shape
+    half = patch_size // 2
+    out = np.full(len(uv), np.nan)
+    counts = np.sum(np.all(np.isfinite(xyz), axis=2), axis=0)
+    for p, (u, v) in enumerate(uv):
+        if counts[p] == 0:
+            continue
+        mean_xyz = np.nanmean(xyz[:, p, :], axis=0)
+        _, uv_right = rig.project(mean_xyz[None, :])
+        ur, vr = np.round(uv_right[0]).astype(int)
+        u0, v0 = int(round(u)) - half, int(round(v)) - half
+        if not (1 <= u0 and u0 + patch_size + 1 <= W and 0 <= v0 and v0 + patch_size <= H):
+            continue
+        if not (0 <= ur - half and ur - half + patch_size <= W and 0 <= vr - half and vr - half + patch_size <= H):
+            continue
+        patch = mean_left[v0 : v0 + patch_size, u0 - 1 : u0 + patch_size + 1]
+        noise = 0.5 * (
+            float(np.mean(var_left[v0 : v0 + patch_size, u0 : u0 + patch_size]))
+            + float(np.mean(var_right[vr - half : vr - half + patch_size, ur - half : ur - half + patch_size]))
+        )
+        out[p] = noise_limited_disparity_sigma(patch, noise)
+    return out
 
 
 def run_error_analysis(
