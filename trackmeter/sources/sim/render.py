@@ -55,6 +55,7 @@ F32 = NDArray[np.float32]
 FloatArray = NDArray[np.float64]
 
 _NEAR_M = 0.02  # faces with a corner closer than this to a camera are not drawn
+_MIN_SHADOW_AREA_PX = 300.0  # smaller faces (a few px across) are not worth a shadow test
 
 
 @dataclass(frozen=True)
@@ -148,6 +149,17 @@ class _Geom:
             [f.origin + np.array([[0, 0], [f.size_m[0], 0], [f.size_m[0], f.size_m[1]], [0, f.size_m[1]]]) @ np.vstack([f.e_u, f.e_v]) for f in faces]
         )
         self.n_texels = np.array([float(np.prod(f.front.levels[0].shape)) for f in faces])
+        self.e_u = np.array([f.e_u for f in faces])
+        self.centre = self.corners.mean(axis=1)
+        self.half_diag = np.array([0.5 * math.hypot(*f.size_m) for f in faces])
+        self.e_v = np.array([f.e_v for f in faces])
+        self.size = np.array([f.size_m for f in faces])
+        # (nv, nu) of every mip level (front and back share the texel grid), padded with the last
+        self.n_levels = np.array([len(f.front.levels) for f in faces])
+        lmax = int(self.n_levels.max())
+        self.level_shape = np.array(
+            [[f.front.levels[min(k, len(f.front.levels) - 1)].shape for k in range(lmax)] for f in faces], dtype=float
+        )
         # shadow casters: one convex solid per part (a box's shadow is that of its 8 corners),
         # as vertices and edges so that the part on the sun side of a plane can be cut out
         parts: dict[str, int] = {}
@@ -232,13 +244,13 @@ class StereoRenderer:
                 rad, zbuf = self.radiance_canvas(side, T, s_cam, occluders, _shared=shared)
                 canvases[side] = rad if k == 0 else canvases[side] + rad
                 if side == 0 and cover is None:
-                    cover = zbuf > 0
+                    cover = rad > 0
         if len(poses) > 1:
             for c in canvases:
                 c *= np.float32(1.0 / len(poses))
         assert cover is not None
         if p.auto_exposure:
-            vals = canvases[0][cover]
+            vals = canvases[0][::2, ::2][cover[::2, ::2]]
             level = float(np.percentile(vals[:: max(1, len(vals) // 20000)], p.exposure_percentile)) if len(vals) else 0.0
             gain = p.exposure_target_grey / level if level > 0 else p.max_gain_grey
             gain = min(gain, p.max_gain_grey)
@@ -321,7 +333,8 @@ class StereoRenderer:
         _shared: dict | None = None,  # type: ignore[type-arg]
     ) -> tuple[F32, F32]:
         """Noise-free radiance of one camera's undistorted pinhole canvas and its ``1/z`` buffer
-        (0 where nothing is drawn). ``side`` 0 = left, 1 = right.
+        (0 where nothing is drawn; only kept up to date where a later face needs it: use the
+        radiance, not this buffer, to tell space from satellite). ``side`` 0 = left, 1 = right.
 
         ``_shared`` lets the two cameras of one instant share what does not depend on the view
         (shadows, diffuse shading); pass the same fresh dict for both.
@@ -364,27 +377,49 @@ class StereoRenderer:
         order = np.flatnonzero(drawable)
         order = order[np.argsort(-z[order].mean(axis=1), kind="stable")]
         s_side_n = (geom.normal @ s_body) * sgn  # sun elevation over each visible side
+        # per-face mip level, homography (texel centres -> canvas ROI) and 1/z plane, vectorised
+        level = np.clip(np.floor(np.nan_to_num(lod, nan=0.0, posinf=0.0, neginf=0.0)), 0, geom.n_levels - 1).astype(int)
+        nvnu = geom.level_shape[np.arange(len(level)), level]
+        su = geom.size[:, 0] / nvnu[:, 1]
+        sv = geom.size[:, 1] / nvnu[:, 0]
+        o = geom.origin + 0.5 * su[:, None] * geom.e_u + 0.5 * sv[:, None] * geom.e_v
+        M = np.stack([(geom.e_u @ R.T) * su[:, None], (geom.e_v @ R.T) * sv[:, None], o @ R.T + t], axis=2)
+        Hs = np.einsum("ij,fjk->fik", Kc, M)
+        ix0 = np.clip(x0, 0, Wc).astype(int)
+        iy0 = np.clip(y0, 0, Hc).astype(int)
+        ix1 = np.clip(x1, 0, Wc).astype(int)
+        iy1 = np.clip(y1, 0, Hc).astype(int)
+        Hs[:, 0] -= ix0[:, None] * Hs[:, 2]
+        Hs[:, 1] -= iy0[:, None] * Hs[:, 2]
+        n_v = (geom.normal * sgn[:, None]) @ R.T
+        gz = (n_v @ view.K_canvas_inv) / np.einsum("fk,fk->f", n_v, geom.origin @ R.T + t)[:, None]
+        gz = gz.astype(np.float32)
+        big_enough = area >= _MIN_SHADOW_AREA_PX
+        # which drawn faces' boxes overlap an earlier one (must read the depth buffer) or a later
+        # one (must write it)
+        bx0, by0, bx1, by1 = ix0[order], iy0[order], ix1[order], iy1[order]
+        overlap = (bx0[:, None] < bx1[None, :]) & (bx0[None, :] < bx1[:, None]) & (by0[:, None] < by1[None, :]) & (by0[None, :] < by1[:, None])
+        rank = np.arange(len(order))
+        must_read = dict(zip(order.tolist(), (overlap & (rank[None, :] < rank[:, None])).any(axis=1).tolist()))
+        must_write = dict(zip(order.tolist(), (overlap & (rank[None, :] > rank[:, None])).any(axis=1).tolist()))
 
         canvas = np.zeros((Hc, Wc), np.float32)
         zbuf = np.zeros((Hc, Wc), np.float32)
         amb = p.ambient * E
-        for f in order:
+        for f in order.tolist():
             face = geom.faces[f]
             surf = face.front if sgn[f] > 0 else face.back
             assert surf is not None
-            level = min(max(int(math.floor(lod[f])) if math.isfinite(lod[f]) else 0, 0), len(surf.levels) - 1)
-            lvl = surf.levels[level]
+            lvl = surf.levels[int(level[f])]
             nv, nu = lvl.shape
-            w, h = face.size_m
-            su, sv = w / nu, h / nv
             n_side = sgn[f] * geom.normal[f]
             if s_side_n[f] <= 0 or E == 0:
                 rad_pm = lvl.albedo_pm * np.float32(amb)
             else:
-                key = (int(f), level)
+                key = (f, int(level[f]))
                 cached = shared.get(key)
                 if cached is None:
-                    lit = _shadow_mask(geom, int(f), n_side, (nv, nu), s_body)
+                    lit = _shadow_mask(geom, f, n_side, (nv, nu), s_body) if big_enough[f] else None
                     s_loc = np.array([s_body @ face.e_u, s_body @ face.e_v, s_side_n[f]])
                     ndl = cv2.transform(lvl.normal, s_loc.reshape(1, 3))  # n'.s per texel
                     ndl = cv2.max(ndl, 0.0)
@@ -399,12 +434,18 @@ class StereoRenderer:
                 k_spec = p.glint_strength * E
                 sharp = surf.sharpness * p.glint_sharpness
                 if k_spec * surf.material.specular > 0:
-                    hv = _half_vectors(face, n_side, C, s_loc)
                     # skip faces whose facets cannot reach the lobe: the steepest facet tilt is
-                    # ~4 sigma of the material's slope; the lobe is negligible 7/k below its peak
+                    # ~4 sigma of the material's slope, the lobe is negligible 7/k below its peak,
+                    # and across the face h turns by at most half the view direction's spread
                     tilt = math.atan(4.0 * surf.material.slope)
-                    best = math.acos(min(1.0, max(-1.0, float(hv[..., 2].max()))))
-                    if math.cos(max(0.0, best - tilt)) > 1.0 - 7.0 / sharp:
+                    lobe = math.acos(max(-1.0, 1.0 - 7.0 / sharp))
+                    to_cam = C - geom.centre[f]
+                    dist = math.sqrt(float(to_cam @ to_cam))
+                    h_c = to_cam / dist + s_body
+                    off = math.acos(min(1.0, max(-1.0, float(h_c @ n_side) / math.sqrt(float(h_c @ h_c)))))
+                    spread = 0.5 * math.atan(geom.half_diag[f] / dist) + 0.02
+                    if off - spread - tilt < lobe:
+                        hv = _half_vectors(face, n_side, C, s_loc)
                         big = cv2.resize(hv, (nu, nv), interpolation=cv2.INTER_LINEAR)
                         ndh = cv2.transform(cv2.multiply(lvl.normal, big), np.ones((1, 3)))  # n'.h
                         glint = cv2.exp(cv2.addWeighted(ndh, sharp, ndh, 0.0, -sharp))  # exp(k (n'.h - 1))
@@ -412,35 +453,31 @@ class StereoRenderer:
                         if lit is not None:
                             glint = cv2.multiply(glint, lit)
                         rad_pm = cv2.add(diffuse, glint)
-            ix0, iy0 = max(0, int(x0[f])), max(0, int(y0[f]))
-            ix1, iy1 = min(Wc, int(x1[f])), min(Hc, int(y1[f]))
-            # texel centres (i, j, 1) -> canvas pixels, shifted into the ROI
-            o = face.origin + 0.5 * su * face.e_u + 0.5 * sv * face.e_v
-            H = Kc @ np.column_stack([R @ face.e_u * su, R @ face.e_v * sv, R @ o + t])
-            H[0] -= ix0 * H[2]
-            H[1] -= iy0 * H[2]
-            size = (ix1 - ix0, iy1 - iy0)
+            a0, b0, a1, b1 = int(ix0[f]), int(iy0[f]), int(ix1[f]), int(iy1[f])
+            H = Hs[f]
+            size = (a1 - a0, b1 - b0)
             # one-channel warps: OpenCV's 2-channel float path is several times slower
             rw = cv2.warpPerspective(rad_pm, H, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
             aw = cv2.warpPerspective(lvl.alpha, H, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
             # inverse depth of the face's plane over the ROI: 1/z = g . (u, v, 1)
-            n_v = R @ n_side
-            g = (view.K_canvas_inv.T @ n_v) / (n_v @ (R @ face.origin + t))
-            xs = np.arange(ix0, ix1, dtype=np.float32) * np.float32(g[0])
-            ys = np.arange(iy0, iy1, dtype=np.float32) * np.float32(g[1]) + np.float32(g[2])
-            iz = ys[:, None] + xs[None, :]
-            zb = zbuf[iy0:iy1, ix0:ix1]
-            cv = canvas[iy0:iy1, ix0:ix1]
-            # depth test, skipped when the face is nearer than everything drawn in its box
-            # (1/z is affine, so its minimum over the box is at a corner)
-            iz_min = min(xs[0], xs[-1]) + min(ys[0], ys[-1])
-            if float(zb.max()) * (1.0 - 1e-3) > iz_min:
-                vis = (iz >= zb * np.float32(1.0 - 1e-3)).astype(np.float32)
-                aw *= vis
-                rw *= vis
+            zb = zbuf[b0:b1, a0:a1]
+            cv = canvas[b0:b1, a0:a1]
+            if must_read[f] or must_write[f]:
+                g0, g1, g2 = gz[f]
+                xs = np.arange(a0, a1, dtype=np.float32) * g0
+                ys = np.arange(b0, b1, dtype=np.float32) * g1 + g2
+                iz = ys[:, None] + xs[None, :]
+                # depth test, skipped when the face is nearer than everything drawn in its box
+                # (1/z is affine, so its minimum over the box is at a corner)
+                iz_min = min(xs[0], xs[-1]) + min(ys[0], ys[-1])
+                if must_read[f] and float(zb.max()) * (1.0 - 1e-3) > iz_min:
+                    vis = (iz >= zb * np.float32(1.0 - 1e-3)).astype(np.float32)
+                    aw *= vis
+                    rw *= vis
+                if must_write[f]:
+                    np.copyto(zb, iz, where=aw >= 0.5)
             cv -= cv * aw
             cv += rw
-            np.copyto(zb, iz, where=aw >= 0.5)
         return canvas, zbuf
 
     def _surface_points(
@@ -510,7 +547,7 @@ def _subframe_poses(T_prev: FloatArray, T_cur: FloatArray, n: int, shutter: floa
     return out
 
 
-def _half_vectors(face: Face, n_side: FloatArray, C: FloatArray, s_loc: FloatArray, g: int = 9) -> F32:
+def _half_vectors(face: Face, n_side: FloatArray, C: FloatArray, s_loc: FloatArray, g: int = 7) -> F32:
     """Unit half vectors of sun and view directions, (g,g,3) float32 in the face's local frame
     ``(e_u, e_v, n_side)``, exact at a g x g grid placed where ``cv2.resize``'s bilinear
     interpolation to the texture size puts its samples (h varies smoothly over a face)."""
@@ -523,9 +560,9 @@ def _half_vectors(face: Face, n_side: FloatArray, C: FloatArray, s_loc: FloatArr
     v[..., 0] = c_loc[0] - xs[None, :]
     v[..., 1] = c_loc[1] - ys[:, None]
     v[..., 2] = c_loc[2]
-    v /= np.linalg.norm(v, axis=2, keepdims=True)
+    v /= np.sqrt((v * v).sum(axis=2, keepdims=True))
     hv = v + s_loc
-    hv /= np.linalg.norm(hv, axis=2, keepdims=True)
+    hv /= np.sqrt((hv * hv).sum(axis=2, keepdims=True))
     return hv.astype(np.float32)
 
 
@@ -555,18 +592,19 @@ def _shadow_mask(geom: _Geom, index: int, n_side: FloatArray, shape: tuple[int, 
     ids = np.concatenate([geom.caster_of_vert[pos], geom.caster_of_vert[a]])
     Q = pts - np.outer(((pts - face.origin) @ n_side) / sn, s_body)
     ij = np.column_stack([(Q - face.origin) @ face.e_u * (nu / w) - 0.5, (Q - face.origin) @ face.e_v * (nv / h) - 0.5])
+    # per-part bounding boxes of the projections; only parts whose shadow reaches the face are drawn
     order = np.argsort(ids, kind="stable")
     ids, ij = ids[order], ij[order]
-    bounds = np.flatnonzero(np.diff(ids)) + 1
-    mask: NDArray[np.uint8] | None = None
-    for chunk in np.split(ij, bounds):
-        if len(chunk) < 3:
-            continue
-        lo, hi = chunk.min(axis=0), chunk.max(axis=0)
-        if hi[0] < -1 or hi[1] < -1 or lo[0] > nu or lo[1] > nv:
-            continue
-        if mask is None:
-            mask = np.zeros((nv, nu), np.uint8)
+    starts = np.flatnonzero(np.r_[True, np.diff(ids) != 0])
+    lo = np.minimum.reduceat(ij, starts, axis=0)
+    hi = np.maximum.reduceat(ij, starts, axis=0)
+    counts = np.diff(np.r_[starts, len(ids)])
+    hits = np.flatnonzero((counts >= 3) & (hi[:, 0] >= -1) & (hi[:, 1] >= -1) & (lo[:, 0] <= nu) & (lo[:, 1] <= nv))
+    if len(hits) == 0:
+        return None
+    mask = np.zeros((nv, nu), np.uint8)
+    for k in hits:
+        chunk = ij[starts[k] : starts[k] + counts[k]]
         hull = cv2.convexHull(np.round(chunk * 16).astype(np.int32))
         cv2.fillConvexPoly(mask, hull, 255, cv2.LINE_AA, shift=4)
     if mask is None:
