@@ -76,6 +76,7 @@ def static_depth_sigma(
     n_frames: int = 16,
     grid_step_px: int = 14,
     simulator: Simulator | None = None,
+    selection: str = "grid",
 ) -> DepthSigmaResult:
     """Single-point depth standard deviation at ``range_m`` with the scenario's noise (or ``read_noise_grey``).
 
@@ -86,6 +87,10 @@ def static_depth_sigma(
         n_frames: noisy renders (same pose) per point.
         grid_step_px: spacing of the candidate pixel grid, px.
         simulator: a simulator of the same scenario to reuse its loaded mock-up.
+        selection: ``"grid"`` (the default, the calibration's definition): every grid pixel on
+            the target the matcher accepts without noise, i.e. a typical textured point;
+            ``"corners"``: Shi-Tomasi corners of the noise-free left image (``cv2.goodFeaturesToTrack``,
+            at most 200, 10 px apart), the best-textured points an automatic selector would pick.
     """
     render = scenario.render
     if read_noise_grey is not None:
@@ -94,15 +99,24 @@ def static_depth_sigma(
     sim = Simulator(held, mockup=simulator.mockup if simulator is not None else None)
     rig = sim.true_rig
     W, H = rig.image_size
-    uu, vv = np.meshgrid(np.arange(16, W - 16, grid_step_px), np.arange(16, H - 16, grid_step_px))
-    uv = np.column_stack([uu.ravel(), vv.ravel()]).astype(float)
     T = sim.truth(0).T_cam_body
+    clean_left, clean_right = sim.renderer.render(T, sim.sun_dir_cam, np.random.default_rng(0), noise=False)
+    if selection == "grid":
+        uu, vv = np.meshgrid(np.arange(16, W - 16, grid_step_px), np.arange(16, H - 16, grid_step_px))
+        uv = np.column_stack([uu.ravel(), vv.ravel()]).astype(float)
+    elif selection == "corners":
+        import cv2
+
+        found = cv2.goodFeaturesToTrack(clean_left, maxCorners=200, qualityLevel=0.01, minDistance=10)
+        uv = np.zeros((0, 2)) if found is None else found.reshape(-1, 2).astype(float)
+        uv = uv[(uv[:, 0] >= 16) & (uv[:, 0] < W - 16) & (uv[:, 1] >= 16) & (uv[:, 1] < H - 16)]
+    else:
+        raise ValueError(f"selection must be 'grid' or 'corners', got {selection!r}")
     surface = sim.surface_points(0, uv)
     on_target = ~np.isnan(surface[:, 0])
     uv, surface = uv[on_target], surface[on_target]
     z_true = apply_transform(T, surface)[:, 2]
     params = relaxed_params()
-    clean_left, clean_right = sim.renderer.render(T, sim.sun_dir_cam, np.random.default_rng(0), noise=False)
     clean = measure_points(rig, clean_left, clean_right, uv, MeasureParams())
     keep = np.array([m.ok and abs(m.xyz_m[2] - z) < 0.02 for m, z in zip(clean, z_true)])
     uv, z_true = uv[keep], z_true[keep]
@@ -153,9 +167,14 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenario", default="estec")
     parser.add_argument("--check", action="store_true", help="only measure the scenario's configured noise")
+    parser.add_argument("--selection", choices=("grid", "corners"), default="grid",
+                        help="which points: a grid of typical textured points (default) or Shi-Tomasi corners")
     args = parser.parse_args(argv)
     scenario = load_scenario(args.scenario)
-    results = [static_depth_sigma(scenario)] if args.check else calibrate_read_noise(scenario)
+    if args.check:
+        results = [static_depth_sigma(scenario, selection=args.selection)]
+    else:
+        results = calibrate_read_noise(scenario, selection=args.selection)
     for r in results:
         print(json.dumps(dataclasses.asdict(r)), flush=True)
     return 0
