@@ -17,7 +17,8 @@ Figures (keys are contracts, issue 2):
   coordinates, so the shift is not an interpolation artefact), fractions spread uniformly over
   [0, 1), noise of 1 grey level. The curve is the mean error in 10 bins of the fractional
   part. ``..._parabola``: the same data refined with the 3-point parabola on the ZNCC scores
-  (the biased baseline), same run.
+  (the biased baseline), same run; ``..._keys``: the Gauss-Newton fit with Keys cubic
+  convolution instead of the cubic B-spline.
 - ``tsukuba_bad1_rate``, ``tsukuba_bad1_rate_sgbm``, ``tsukuba_accept_rate``: on the Middlebury
   Tsukuba pair, over a grid of textured pixels with known ground truth that is constant within
   the patch, the share of accepted points more than 1 px off, ours and OpenCV StereoSGBM's at
@@ -171,18 +172,35 @@ def median_cpu_ms(fn: Callable[[], object], repeats: int = 101, warmup: int = 5)
     return float(statistics.median(times))
 
 
+#: Sub-pixel variants compared: name -> (subpixel, subpixel_interpolation).
+SUBPIXEL_METHODS = {
+    "gauss_newton": ("gauss_newton", "bspline"),
+    "parabola": ("parabola", "bspline"),
+    "keys": ("gauss_newton", "keys"),
+}
+
+
 def subpixel_errors(
     n_pairs: int = 200, points_per_pair: int = 6, seed: int = 7, methods: tuple[str, ...] = ("gauss_newton", "parabola")
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """Disparity errors on exactly shifted synthetic pairs: ``(fractions, {method: errors})``,
-    one entry per measured point (refused points are NaN)."""
+    one entry per measured point (refused points are NaN); methods from :data:`SUBPIXEL_METHODS`."""
     from trackmeter.core.matching import MeasureParams, measure_points
 
     rng = np.random.default_rng(seed)
     W, H = 96, 40
     rig = identity_rig(W, H)
     fractions = (np.arange(n_pairs) + rng.uniform(0, 1, n_pairs)) / n_pairs  # stratified over [0, 1)
-    params = {m: MeasureParams(patch_size=8, min_disparity_px=0, max_disparity_px=16, subpixel=m) for m in methods}
+    params = {
+        m: MeasureParams(
+            patch_size=8,
+            min_disparity_px=0,
+            max_disparity_px=16,
+            subpixel=SUBPIXEL_METHODS[m][0],
+            subpixel_interpolation=SUBPIXEL_METHODS[m][1],
+        )
+        for m in methods
+    }
     fr_all: list[float] = []
     errs: dict[str, list[float]] = {m: [] for m in methods}
     for frac in fractions:
@@ -309,8 +327,8 @@ def run() -> dict[str, float | list[float]]:
     out["plane_sigma_z_mm_median"] = float(np.median(sig[:, 2]) * 1e3)
 
     # Sub-pixel accuracy: ours and the parabola, same data.
-    fractions, errors = subpixel_errors()
-    for method, suffix in (("gauss_newton", ""), ("parabola", "_parabola")):
+    fractions, errors = subpixel_errors(methods=("gauss_newton", "parabola", "keys"))
+    for method, suffix in (("gauss_newton", ""), ("parabola", "_parabola"), ("keys", "_keys")):
         e = errors[method]
         good = np.isfinite(e)
         curve = bias_curve(fractions, e)

@@ -267,7 +267,6 @@ def test_results_are_read_only(plane) -> None:  # type: ignore[no-untyped-def]
 # --------------------------------------------------------------------------- real data
 
 
-@pytest.mark.slow
 def test_tsukuba_bad1_rate_no_higher_than_sgbm(shared_data) -> None:  # type: ignore[no-untyped-def]
     fig = tsukuba_figures(step=12)
     assert fig["tsukuba_points"] > 150

@@ -20,6 +20,10 @@ example:
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING, Sequence
+
+if TYPE_CHECKING:
+    from trackmeter.core.matching import PointMeasurement
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -70,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def format_table(results) -> str:  # type: ignore[no-untyped-def]
+def format_table(results: Sequence[PointMeasurement]) -> str:
     """A readable table: one row per point; millimetres for the standard deviations."""
     header = (
         f"{'u':>8} {'v':>8}  {'ok':<3} {'u_right':>8} {'v_right':>8} {'disp_px':>8} "
