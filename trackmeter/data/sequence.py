@@ -36,6 +36,7 @@ import yaml
 from numpy.typing import ArrayLike, NDArray
 
 from trackmeter.core.stereo import StereoRig
+from trackmeter.core.transforms import matrix_to_quat_wxyz
 from trackmeter.data.model import Model, load_model, save_model
 from trackmeter.data.motion_csv import GROUNDTRUTH_COLUMNS, MotionCsvWriter, MotionSeries, read_motion_csv
 from trackmeter.data.rigfile import load_rig, save_rig
@@ -149,8 +150,6 @@ class SequenceWriter:
         truth = frame.truth
         assert truth is not None
         T = np.asarray(truth.T_cam_body, dtype=float)
-        from trackmeter.core.transforms import matrix_to_quat_wxyz
-
         q = matrix_to_quat_wxyz(T[:3, :3])
         if self._truth_csv is None:
             self._truth_csv = MotionCsvWriter(self.directory / "groundtruth.csv", GROUNDTRUTH_COLUMNS)

@@ -2,9 +2,9 @@
 
 Two files or devices give the left and right images; one side-by-side stereo device
 (``camera:I``) delivers both in one frame, left half and right half. Colour is converted to
-8-bit grey. Video files carry their frame rate; timestamps are the file's own (``POS_MSEC``)
-when it reports them, else ``index / fps``. Cameras are stamped with the wall clock
-(monotonic, from the first frame).
+8-bit grey. Video files carry their frame rate; frame i is stamped ``i / fps`` (the nominal
+time: container timestamps differ between the two files and between backends). Cameras are
+stamped with the wall clock (monotonic, from the first frame), taken after both grabs.
 """
 
 from __future__ import annotations
