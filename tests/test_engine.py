@@ -336,3 +336,19 @@ def test_case_a_frame_redefined_after_losing_everything(estec_rig) -> None:
     _, pose, _ = engine.process(frame_at(30))
     assert pose.valid and engine.frame_ids == ("n0", "n1", "n2")
     assert engine.stats.frames_redefined == 1
+
+
+def test_select_model_points_clicks_true_projections(estec_rig) -> None:
+    from trackmeter.pipeline.engine import SelectModelPoints
+
+    engine, tracker, pts = make_engine(estec_rig)
+    tracker.active.clear()
+    reply = engine.handle(SelectModelPoints(), frame_at(0))
+    assert reply.ok and "12 model points selected" in reply.message
+    T = true_pose(0)
+    for tid, uv, origin in tracker.added:
+        i = int(tid[1:])
+        expected = estec_rig.project((T[:3, :3] @ pts[i] + T[:3, 3])[None])[0][0]
+        np.testing.assert_allclose(uv, expected, atol=1e-9)
+    no_truth = StereoFrame(0, 0.0, np.zeros((4, 4), np.uint8), np.zeros((4, 4), np.uint8))
+    assert not engine.handle(SelectModelPoints(), no_truth).ok

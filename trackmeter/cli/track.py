@@ -15,7 +15,8 @@ Model cases (paper section 2.C):
 
 Examples:
   trackmeter track --source sim --auto 16 --out runs/estec_a
-  trackmeter track --source seq:runs/seq1 --case b --target bus_c0=312.5,201.0 --auto 16 --out runs/b
+  trackmeter track --source seq:runs/seq1 --case b --target bus_c0=312.5,201.0 ... --auto 16 --out runs/b
+  trackmeter track --source sim --case b --select-model-points --auto 16 --out runs/estec_b
 """
 
 from __future__ import annotations
@@ -37,6 +38,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--target", action="append", default=[], metavar="[ID=]U,V",
                         help="a target at left-image pixel U,V of the first frame, optionally named (repeatable)")
     parser.add_argument("--auto", type=int, metavar="N", help="keep N automatically selected targets alive")
+    parser.add_argument("--select-model-points", action="store_true",
+                        help="case (b) on a source with ground truth: simulate the operator clicking every model "
+                             "point visible in the first frame (at its true projection)")
     parser.add_argument("--case", choices=("a", "b", "c"),
                         help="model case (default: b when a model is given or carried by the source, else a)")
     parser.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
@@ -92,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
     from trackmeter.data.model import load_model
     from trackmeter.data.rigfile import load_rig
     from trackmeter.data.rundir import RunWriter
-    from trackmeter.pipeline.engine import Engine
+    from trackmeter.pipeline.engine import Engine, SelectModelPoints
     from trackmeter.pipeline.pipeline import run_headless
     from trackmeter.pipeline.snapshot import AcquireModel, SelectPoint, SetAuto, Snapshot
     from trackmeter.sources import open_source
@@ -115,7 +119,8 @@ def run(args: argparse.Namespace) -> int:
             raise TrackmeterError(f"source {args.source!r} carries no stereo rig: give --rig")
         if model is None and args.case in (None, "b"):
             model = getattr(source, "model", None)
-        case = args.case or ("b" if model is not None and any(i for i, _ in targets) else "a")
+        binds = any(i for i, _ in targets) or args.select_model_points
+        case = args.case or ("b" if model is not None and binds else "a")
         if case == "b":
             if model is None:
                 raise TrackmeterError("case (b) needs a model: give --model (the source carries none)")
@@ -123,8 +128,16 @@ def run(args: argparse.Namespace) -> int:
             if unknown:
                 raise TrackmeterError(f"--target id {unknown[0]!r} is not in the model (ids: {', '.join(model.ids[:8])}"
                                       f"{', ...' if len(model.ids) > 8 else ''})")
+            if not binds:
+                print("trackmeter track: warning: case (b) but no model point is selected: the pose stays invalid "
+                      "until 3 model points are tracked (give --target ID=U,V, or --select-model-points on a "
+                      "simulated source)", file=sys.stderr)
+        if args.select_model_points and case != "b":
+            raise TrackmeterError("--select-model-points needs case (b) and a model")
         engine = Engine(config, rig, model if case == "b" else None, case, rate_hz=source.rate_hz or 25.0)
         commands: list[Any] = [SelectPoint(uv[0], uv[1], tid) for tid, uv in targets]
+        if args.select_model_points:
+            commands.insert(0, SelectModelPoints())
         if args.auto is not None:
             commands.append(SetAuto(True, args.auto, None))
         if case == "c":

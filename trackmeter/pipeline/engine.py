@@ -80,6 +80,14 @@ from trackmeter.sources.base import StereoFrame
 FloatArray = NDArray[np.float64]
 
 
+@dataclass(frozen=True, eq=False)
+class SelectModelPoints(Command):
+    """Simulated operator (case b on a source with ground truth): create a target at the TRUE
+    projection of every model point that falls inside both images of the frame, named by its
+    model id — what an operator does by clicking the model's points. Points hidden behind the
+    body are measured on the wrong surface and rejected as outliers by the pose."""
+
+
 @dataclass
 class _ModelPoint:
     b: FloatArray  # (3,) body frame, m
@@ -263,6 +271,8 @@ class Engine:
             if self._case == "b" and command.target_id is not None and command.target_id not in self._model:
                 note = f" (not a model point: it joins the model once the pose is known)"
             return CommandReply(True, f"target {result.id} at {result.point_cam[2]:.3f} m{note}", result.id)
+        if isinstance(command, SelectModelPoints):
+            return self._select_model_points(frame)
         if isinstance(command, RemoveTarget):
             if not self.tracker.remove_target(command.target_id):
                 return CommandReply(False, f"no target {command.target_id!r}")
@@ -319,6 +329,26 @@ class Engine:
             self.stats = EngineStats()
             return CommandReply(True, "tracking reset")
         return CommandReply(False, f"{type(command).__name__} is not an engine command")
+
+    def _select_model_points(self, frame: StereoFrame | None) -> CommandReply:
+        if frame is None or frame.truth is None:
+            return CommandReply(False, "selecting model points needs a frame with ground truth")
+        if self._given_model is None or self._case != "b":
+            return CommandReply(False, "selecting model points needs case (b) with a model")
+        T = np.asarray(frame.truth.T_cam_body, float)
+        X = self._given_model.points_body @ T[:3, :3].T + T[:3, 3]
+        uv_l, uv_r = self.rig.project(X)
+        w, h = self.rig.image_size
+        m = self.pose_params.recovery_margin_px
+        made, refused = [], []
+        for pid, x, ul, ur in zip(self._given_model.ids, X, uv_l, uv_r):
+            inside = x[2] > 0 and all(m <= u[0] <= w - 1 - m and m <= u[1] <= h - 1 - m for u in (ul, ur))
+            if not inside:
+                continue
+            result = self.tracker.add_target(frame, (float(ul[0]), float(ul[1])), pid, "operator")
+            (refused if isinstance(result, Refusal) else made).append(pid)
+        ok = len(made) >= self.pose_params.min_points
+        return CommandReply(ok, f"{len(made)} model points selected ({', '.join(made)}); {len(refused)} refused")
 
     def _forget(self, target_id: str) -> None:
         """A target the operator removed: drop its measured model point and candidacy."""
@@ -485,29 +515,35 @@ class Engine:
         self.stats.outliers_rejected += len(outliers)
         R, t, cov = fit.R_cam_body, fit.t_cam_body, fit.cov
         self._last_fit = (R, t, cov)
-        self._update_model(R, t, ids, fit.inliers, measured)
+        self._update_model(R, t, cov, fit.scale2, ids, fit.inliers, measured)
         if self._last_fit is not None:
             R, t, cov = self._last_fit  # re-gauged
         return (R, t, cov, int(fit.inliers.sum()), outliers), None
 
-    def _update_model(self, R: FloatArray, t: FloatArray, ids: list[str], inliers: NDArray[np.bool_],
-                      measured: dict[str, TargetState]) -> None:
+    def _update_model(self, R: FloatArray, t: FloatArray, cov: FloatArray, scale2: float, ids: list[str],
+                      inliers: NDArray[np.bool_], measured: dict[str, TargetState]) -> None:
+        """Refine measured model points and let consistent new targets join. A body-frame
+        observation ``b = R^T (p - t)`` carries the point's covariance (inflated by the fit's
+        robust scale) plus the pose's, propagated to that point."""
         p = self.pose_params
+
+        def observe(tgt: TargetState) -> tuple[FloatArray, FloatArray]:
+            b_obs = R.T @ (tgt.point_cam - t)
+            C_cam = scale2 * np.asarray(tgt.cov_cam, float) + _position_cov(cov, b_obs, R)
+            return b_obs, R.T @ C_cam @ R
+
         if p.model_refine:
             for n, pid in enumerate(ids):
                 m = self._model[pid]
                 if m.fixed or not inliers[n]:
                     continue
-                tgt = measured[pid]
-                b_obs = R.T @ (tgt.point_cam - t)
-                C_obs = R.T @ tgt.cov_cam @ R
+                b_obs, C_obs = observe(measured[pid])
                 m.b, m.cov = fuse_point(m.b, m.cov, b_obs, C_obs)
         # Candidates: measured targets not yet in the model.
         for tid, tgt in measured.items():
             if tid in self._model:
                 continue
-            b_obs = R.T @ (tgt.point_cam - t)
-            C_obs = R.T @ tgt.cov_cam @ R
+            b_obs, C_obs = observe(tgt)
             cand = self._candidates.get(tid)
             if cand is None:
                 self._candidates[tid] = _Candidate(b_obs, C_obs)
