@@ -211,6 +211,20 @@ def test_disparity_beyond_the_search_range_is_refused() -> None:
     assert _reason(left, right, (60, 20), MeasureParams(min_disparity_px=0, max_disparity_px=20)) is None
 
 
+def test_per_point_disparity_range_narrows_the_search() -> None:
+    left, right = _pair(9.3, seed=8)
+    uv = [[40.0, 15.0], [60.0, 25.0]]
+    rig = identity_rig(W, H)
+    wide = measure_points(rig, left, right, uv, NARROW)
+    near = measure_points(rig, left, right, uv, NARROW, disparity_range_px=[[7, 12], [8, 11]])
+    for a, b in zip(wide, near):
+        assert a.ok and b.ok and b.disparity_px == pytest.approx(a.disparity_px, abs=1e-9)
+    off = measure_points(rig, left, right, uv, NARROW, disparity_range_px=[1, 6])  # one range for all
+    assert [m.reason for m in off] == [M.REASON_BEYOND_RANGE] * 2
+    with pytest.raises(TrackmeterError, match="min <= max"):
+        measure_points(rig, left, right, uv, NARROW, disparity_range_px=[6, 1])
+
+
 def test_repetitive_texture_is_refused_as_ambiguous() -> None:
     rng = np.random.default_rng(5)
     u, v = np.meshgrid(np.arange(W, dtype=float), np.arange(H, dtype=float))

@@ -547,9 +547,9 @@ class _Match:
     score: float = math.nan
 
 
-def _disparity_range(params: MeasureParams) -> tuple[int, int]:
-    d_lo = int(math.ceil(params.min_disparity_px))
-    d_hi = int(math.floor(params.max_disparity_px))
+def _disparity_range(lo_px: float, hi_px: float) -> tuple[int, int]:
+    d_lo = int(math.ceil(lo_px))
+    d_hi = int(math.floor(hi_px))
     return d_lo, max(d_hi, d_lo)
 
 
@@ -571,12 +571,18 @@ def match_rectified_point(
         ``(reason, disparity_px, sigma_disparity_px, score)``; ``reason`` is None when
         accepted (then the numbers are valid), else one of :data:`REASONS`.
     """
-    m = _match_rectified(rect, left, right, np.asarray(uv_rect, dtype=float).reshape(2), params)
+    rng = (params.min_disparity_px, params.max_disparity_px)
+    m = _match_rectified(rect, left, right, np.asarray(uv_rect, dtype=float).reshape(2), params, rng)
     return m.reason, m.disparity_px, m.sigma_px, m.score
 
 
 def _match_rectified(
-    rect: Rectification, left: NDArray[np.uint8], right: NDArray[np.uint8], uv_rect: FloatArray, params: MeasureParams
+    rect: Rectification,
+    left: NDArray[np.uint8],
+    right: NDArray[np.uint8],
+    uv_rect: FloatArray,
+    params: MeasureParams,
+    disparity_range: tuple[float, float],
 ) -> _Match:
     P = params.patch_size
     W, H = rect.rig.image_size
@@ -601,7 +607,7 @@ def _match_rectified(
         return _Match(REASON_NO_EPIPOLAR_TEXTURE)
 
     # Right strip: the patch for integer disparity d starts at rectified column x0 - d.
-    d_lo, d_hi = _disparity_range(params)
+    d_lo, d_hi = _disparity_range(*disparity_range)
     mg = STRIP_MARGIN_PX
     c_first = max(bx - d_hi - mg, 0)  # strip's first grid column
     c_last = min(bx - d_lo + mg + P - 1, W - 2)  # last grid column (bilinear map needs +1)
@@ -681,6 +687,7 @@ def measure_points(
     right: NDArray[np.uint8],
     uv_left: ArrayLike,
     params: MeasureParams | None = None,
+    disparity_range_px: ArrayLike | None = None,
 ) -> tuple[PointMeasurement, ...]:
     """Measure the 3D points at pixels of the left image (paper section 2.A).
 
@@ -695,6 +702,10 @@ def measure_points(
         left, right: (H, W) uint8 ORIGINAL (unrectified) images of the rig's size.
         uv_left: (N, 2) pixels of the original left image, px (centre of top-left pixel = 0, 0).
         params: matching tunables (default :class:`MeasureParams`).
+        disparity_range_px: optional (N, 2) or (2,) ``[min, max]`` disparity searched per point,
+            px, instead of ``params.min/max_disparity_px`` — e.g. a tracker's predicted
+            disparity ± a margin: a narrower search is faster and less often ambiguous. A
+            peak on its edge is refused as beyond range, as with the global range.
 
     Returns:
         One :class:`PointMeasurement` per pixel, in order. Refused points carry a reason and
@@ -709,6 +720,13 @@ def measure_points(
     n = len(uv)
     if n == 0:
         return ()
+    if disparity_range_px is None:
+        ranges = [(params.min_disparity_px, params.max_disparity_px)] * n
+    else:
+        rng_arr = np.broadcast_to(np.asarray(disparity_range_px, dtype=float), (n, 2))
+        if not np.all(np.isfinite(rng_arr)) or np.any(rng_arr[:, 1] < rng_arr[:, 0]):
+            raise TrackmeterError("disparity_range_px must be finite [min, max] pairs with min <= max")
+        ranges = [(float(a), float(b)) for a, b in rng_arr]
     rect = rig.rectification
     W, H = rig.image_size
     # NaN fails every comparison, so it lands outside too
@@ -726,7 +744,7 @@ def measure_points(
     sig_d = np.full(n, np.nan)
     for i in range(n):
         if inside[i]:
-            m = _match_rectified(rect, left, right, uv_rect[i], params)
+            m = _match_rectified(rect, left, right, uv_rect[i], params, ranges[i])
             reasons[i], scores[i] = m.reason, m.score
             if m.reason is None:
                 disp[i], sig_d[i] = m.disparity_px, m.sigma_px
