@@ -233,6 +233,22 @@ def test_repetitive_texture_is_refused_as_ambiguous() -> None:
     assert _reason(left, right, (60, 20)) == M.REASON_AMBIGUOUS
 
 
+def test_a_match_the_right_image_assigns_elsewhere_is_left_right_inconsistent() -> None:
+    # The left patch at u = 60 is overwritten with a noisy copy of the (intact) patch at 48.
+    # Its own right counterpart is gone, so it matches the original's right patch at
+    # 48 - 5 = 43 (d = 17); matched back along the left row, that right patch picks the
+    # original at 48 (d = 5): inconsistent.
+    left, right = _pair(5.0, seed=9, noise=0.5)
+    left = left.copy()
+    rng = np.random.default_rng(9)
+    left[14:26, 55:67] = to_uint8(left[14:26, 43:55].astype(float), 4.0, rng)
+    params = MeasureParams(max_disparity_px=24)
+    assert _reason(left, right, (60, 20), params) == M.REASON_LEFT_RIGHT
+    loose = MeasureParams(max_disparity_px=24, left_right_tolerance_px=15)
+    (m,) = measure_points(identity_rig(W, H), left, right, [[60, 20]], loose)
+    assert m.ok and m.disparity_px == pytest.approx(17.0, abs=0.2)  # the check is what refused it
+
+
 def test_unrelated_right_image_is_refused() -> None:
     left, _ = _pair(5.0, seed=6)
     _, other = _pair(5.0, seed=7)
