@@ -164,3 +164,24 @@ def test_console_script_exit_code(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "trackmeter.cli.main", "evaluate", "--truth", str(tmp_path / "x.tum"),
                            "--estimate", str(tmp_path / "y.tum")], capture_output=True, text=True)
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "no such file" in proc.stderr
+
+
+def test_settle_counts_from_the_start_of_the_run(capsys, tmp_path):
+    """A run whose first second has no pose: --settle 2 skips poses before t0 + 2 s of the run,
+    not 2 s after the first pose."""
+    truth = tumbling_truth()  # t = 2.0, 2.08, ...
+    n = len(truth)
+    valid = truth.t_s >= 3.0
+    p = truth.position_m.copy()
+    p[truth.t_s < 4.0] += 0.01  # settling errors until t = 4.0 s = run start + 2 s
+    est = MotionSeries(truth.t_s, valid, np.where(valid[:, None], p, np.nan),
+                       np.where(valid[:, None], truth.quat_wxyz, np.nan),
+                       truth.velocity_cam_m_s, truth.omega_body_rad_s)
+    write_states_csv(tmp_path / "run" / "states.csv", est)
+    _tum(tmp_path / "truth.tum", truth)
+    code, out, err = _run(capsys, "evaluate", "--truth", str(tmp_path / "truth.tum"), "--estimate", str(tmp_path / "run"),
+                          "--settle", "2", "--json")
+    assert code == 0, err
+    s = json.loads(out)
+    assert s["matched"] == int(np.count_nonzero(truth.t_s >= 4.0 - 1e-9))
+    assert s["position_m"]["norm"]["max"] < TUM_EPS

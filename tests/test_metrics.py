@@ -247,3 +247,19 @@ def test_refer_to_true_body_inverts_the_offset():
     np.testing.assert_allclose(p, truth.position_m, atol=1e-12)
     np.testing.assert_allclose(v, truth.velocity_cam_m_s, atol=1e-8)
     np.testing.assert_allclose(w, truth.omega_body_rad_s, atol=1e-12)
+
+
+def test_velocity_statistics_skip_samples_without_velocity():
+    """An estimator warming up writes valid poses without velocities: those samples count for
+    the pose errors only."""
+    truth = tumbling_truth()
+    v = truth.velocity_cam_m_s + [0.0, 0.001, 0.0]
+    v[:5] = np.nan
+    w = truth.omega_body_rad_s.copy()
+    w[:5] = np.nan
+    s = evaluate(truth, with_pose(truth, v=v, w=w)).summary
+    assert s["matched"] == 60
+    assert S(s, "velocity_m_s", "y")["rms"] == pytest.approx(0.001, abs=1e-15)
+    assert S(s, "omega_rad_s", "norm")["max"] == 0.0
+    none = evaluate(truth, with_pose(truth, v=np.full((60, 3), np.nan), w=w)).summary
+    assert "velocity_m_s" not in none and "omega_rad_s" not in none

@@ -27,7 +27,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--truth", required=True, metavar="TUM", help="ground truth: TUM file, groundtruth.csv or sequence folder")
     parser.add_argument("--estimate", required=True, metavar="TUM_OR_RUN_DIR", help="estimate: TUM file, states.csv or run directory")
     parser.add_argument("--align", choices=("none", "body"), help="none: same body frame; body: fit a constant body-frame offset (default from config)")
-    parser.add_argument("--settle", type=float, metavar="S", help="seconds to skip after the first paired pose")
+    parser.add_argument("--settle", type=float, metavar="S",
+                        help="seconds to skip from the start of the run (first states.csv row; for a TUM file its first pose)")
     parser.add_argument("--tolerance", type=float, metavar="S", help="largest timestamp difference of a pair, s")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON (SI units)")
     parser.add_argument("--out", metavar="DIR", help="write errors.csv, summary.json, plots and report.md here")
@@ -60,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
     params = _params(args)
     truth = load_truth(args.truth)
     estimate = load_estimate(args.estimate)
-    result = evaluate(truth.series, estimate.series, params)
+    result = evaluate(truth.series, estimate.series, params, estimate.t_start_s)
     if args.out:
         write_evaluation(result, args.out, truth.source, estimate.source, params.align, params.settle_s)
     if args.json:

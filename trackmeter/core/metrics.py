@@ -44,7 +44,7 @@ class EvaluateParams:
         0.01, "largest |t_estimate - t_truth| for two poses to be paired, s", min=0.0, max=10.0
     )
     settle_s: float = param(
-        0.0, "seconds skipped after the first paired pose before errors count (filter settling), s",
+        0.0, "seconds skipped from the start of the run (else the first paired pose) before errors count, s",
         min=0.0, max=1e6,
     )
     align: str = param(
@@ -229,8 +229,9 @@ class MotionErrors:
         position_m: (M,3) ``p_est - p_true``, camera frame, m.
         attitude_rad: (M,3) eq. 17 components: rotation vector of ``R_est R_true^T``, camera
             frame (z about the viewing axis), rad; its norm is eq. 16's total angle.
-        velocity_m_s: (M,3) ``v_est - v_true``, camera frame, m/s, or None.
-        omega_rad_s: (M,3) ``omega_est - omega_true``, TRUE body frame, rad/s, or None.
+        velocity_m_s: (M,3) ``v_est - v_true``, camera frame, m/s, or None (NaN rows where a
+            side had no velocity at that sample).
+        omega_rad_s: (M,3) ``omega_est - omega_true``, TRUE body frame, rad/s, or None (ditto).
         position_rel: (M,) ``|p_est - p_true| / |p_true|`` (SPEED's position score).
     """
 
@@ -320,7 +321,8 @@ def summarize(errors: MotionErrors, association: Association) -> dict[str, objec
 
     ``{"matched", "unmatched", "position_m": {x,y,z,norm}, "attitude_rad": {x,y,z,total},
     ["velocity_m_s": {x,y,z,norm}, "omega_rad_s": {x,y,z,norm},] "speed_score"}``, each
-    leaf ``{"rms", "max", "p95"}``; velocity entries only when velocity errors exist.
+    leaf ``{"rms", "max", "p95"}``; velocity entries only when velocity errors exist, over
+    the samples where both sides have one.
     """
     out: dict[str, object] = {
         "matched": int(len(errors.t_s)),
@@ -328,10 +330,12 @@ def summarize(errors: MotionErrors, association: Association) -> dict[str, objec
         "position_m": _axes(errors.position_m, "norm", np.linalg.norm(errors.position_m, axis=1)),
         "attitude_rad": _axes(errors.attitude_rad, "total", errors.attitude_total_rad),
     }
-    if errors.velocity_m_s is not None:
-        out["velocity_m_s"] = _axes(errors.velocity_m_s, "norm", np.linalg.norm(errors.velocity_m_s, axis=1))
-    if errors.omega_rad_s is not None:
-        out["omega_rad_s"] = _axes(errors.omega_rad_s, "norm", np.linalg.norm(errors.omega_rad_s, axis=1))
+    for key, e in (("velocity_m_s", errors.velocity_m_s), ("omega_rad_s", errors.omega_rad_s)):
+        if e is None:
+            continue
+        finite = e[np.all(np.isfinite(e), axis=1)]  # rows where both sides had a velocity
+        if len(finite):
+            out[key] = _axes(finite, "norm", np.linalg.norm(finite, axis=1))
     out["speed_score"] = float(np.mean(errors.speed_score))
     return out
 
@@ -357,17 +361,27 @@ class Evaluation:
 
 
 def _rates(track: PoseTrack, index: IntArray) -> tuple[FloatArray | None, FloatArray | None]:
-    """Velocities of the selected samples when the track has them, finite (else None)."""
+    """Velocities of the selected samples when the track has any finite ones (else None);
+    rows without them (an estimator still warming up) stay NaN and are left out of the
+    velocity statistics."""
     out = []
     for name in ("velocity_cam_m_s", "omega_body_rad_s"):
         a = getattr(track, name, None)
         a = None if a is None else np.asarray(a, dtype=float)[index]
-        out.append(a if a is not None and np.all(np.isfinite(a)) else None)
+        out.append(a if a is not None and np.any(np.all(np.isfinite(a), axis=-1)) else None)
     return out[0], out[1]
 
 
-def evaluate(truth: PoseTrack, estimate: PoseTrack, params: EvaluateParams = EvaluateParams()) -> Evaluation:
+def evaluate(
+    truth: PoseTrack,
+    estimate: PoseTrack,
+    params: EvaluateParams = EvaluateParams(),
+    t_start_s: float | None = None,
+) -> Evaluation:
     """Associate, align (``params.align``), skip ``params.settle_s``, and measure the errors.
+
+    The settle time counts from ``t_start_s`` (the start of the run, e.g. the first row of a
+    ``states.csv`` whether or not it had a pose) or, when None, from the first paired pose.
 
     Velocity metrics need finite ``velocity_cam_m_s`` and ``omega_body_rad_s`` on both
     sides (for the paired samples); otherwise only pose metrics are computed.
@@ -386,7 +400,8 @@ def evaluate(truth: PoseTrack, estimate: PoseTrack, params: EvaluateParams = Eva
         )
     it, ie = assoc.index_truth, assoc.index_est
     t_paired = truth.t_s[it]
-    keep = t_paired >= t_paired[0] + params.settle_s  # settle counts from the first paired pose
+    t0 = float(t_paired[0]) if t_start_s is None else float(t_start_s)
+    keep = t_paired >= t0 + params.settle_s
     if not np.any(keep):
         raise TrackmeterError(f"no paired poses left after the settle time of {params.settle_s:g} s")
     it, ie = it[keep], ie[keep]

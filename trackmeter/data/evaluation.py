@@ -30,6 +30,7 @@ class LoadedMotion:
     series: MotionSeries  # valid rows only
     source: str  # the file(s) read
     has_velocity: bool
+    t_start_s: float | None = None  # start of a run (first states.csv row, valid or not)
 
 
 def _looks_like_motion_csv(path: Path) -> bool:
@@ -105,18 +106,25 @@ def load_estimate(spec: str | Path) -> LoadedMotion:
             s = read_motion_csv(path / "states.csv")
             if not np.any(s.valid):
                 raise TrackmeterError(f"{path / 'states.csv'}: no valid pose in the run")
+            t_start = float(s.t_s[0])
             s = s.valid_only()
-            return LoadedMotion(s, str(path / "states.csv"), s.has_velocity)
+            return LoadedMotion(s, str(path / "states.csv"), s.has_velocity, t_start)
         if (path / "trajectory.tum").is_file():
             s = MotionSeries.from_trajectory(read_tum(path / "trajectory.tum"))
             return LoadedMotion(s, str(path / "trajectory.tum"), False)
         raise TrackmeterError(f"{path}: not a run directory (no states.csv or trajectory.tum)")
     if not path.is_file():
         raise TrackmeterError(f"{path}: no such file or folder")
-    s = _read_pose_file(path)
+    t_start = None
+    if _looks_like_motion_csv(path):
+        full = read_motion_csv(path)
+        t_start = float(full.t_s[0])
+        s = full.valid_only()
+    else:
+        s = MotionSeries.from_trajectory(read_tum(path))
     if len(s) == 0:
         raise TrackmeterError(f"{path}: no valid pose")
-    return LoadedMotion(s, str(path), s.has_velocity)
+    return LoadedMotion(s, str(path), s.has_velocity, t_start)
 
 
 # --------------------------------------------------------------------------- paper figures
@@ -146,13 +154,13 @@ def format_summary(summary: dict, truth: str = "", estimate: str = "", align: st
     if truth or estimate:
         lines.append(f"truth:    {truth}\nestimate: {estimate}\nalign:    {align}")
     lines.append(f"matched {summary['matched']} pose(s), unmatched {summary['unmatched']}")
-    lines.append(f"{'error':<32}{'axis':>6}{'rms':>10}{'p95':>10}{'max':>10}")
+    lines.append(f"{'error':<40}{'axis':>6}{'rms':>10}{'p95':>10}{'max':>10}")
     for group, (title, unit, scale) in _DISPLAY.items():
         if group not in summary:
             continue
         for axis, st in summary[group].items():
             lines.append(
-                f"{title + ' [' + unit + ']':<32}{axis:>6}"
+                f"{title + ' [' + unit + ']':<40}{axis:>6}"
                 f"{st['rms'] * scale:>10.3f}{st['p95'] * scale:>10.3f}{st['max'] * scale:>10.3f}"
             )
     lines.append(f"SPEED score (mean of angle [rad] + |dt|/|t|): {summary['speed_score']:.6f}")
@@ -213,6 +221,13 @@ def plot_errors(evaluation: Evaluation, out_dir: Path) -> list[Path]:
 
     e = evaluation.errors
     t = e.t_s - e.t_s[0]
+    # Break the lines where poses are missing (more than 1.5 typical intervals), so a gap is
+    # not drawn as a straight line across it.
+    gaps = np.zeros(0, dtype=int)
+    if len(t) > 2:
+        dt = np.diff(t)
+        gaps = np.flatnonzero(dt > 1.5 * np.median(dt)) + 1
+    t = np.insert(t, gaps, np.nan)
     groups = [("position_m", e.position_m), ("attitude_rad", e.attitude_rad)]
     if e.velocity_m_s is not None and e.omega_rad_s is not None:
         groups += [("velocity_m_s", e.velocity_m_s), ("omega_rad_s", e.omega_rad_s)]
@@ -221,14 +236,14 @@ def plot_errors(evaluation: Evaluation, out_dir: Path) -> list[Path]:
         title, unit, scale = _DISPLAY[group]
         fig, axes = plt.subplots(3, 1, figsize=(8, 6.5), sharex=True)
         for i, (ax, axis) in enumerate(zip(axes, "xyz")):
-            ax.plot(t, values[:, i] * scale, lw=0.9)
+            ax.plot(t, np.insert(values[:, i] * scale, gaps, np.nan), lw=0.9)
             bound = PAPER_BOUNDS[group][axis] * scale
             ax.axhline(bound, ls="--", c="grey", lw=0.8)
             ax.axhline(-bound, ls="--", c="grey", lw=0.8)
             ax.set_ylabel(f"{axis} [{unit}]")
             ax.grid(alpha=0.3)
         axes[0].set_title(f"{title} error (estimate - truth); dashed: paper at 3.5 m (z = viewing axis)")
-        axes[-1].set_xlabel("time since first paired pose [s]")
+        axes[-1].set_xlabel("time since the first evaluated pose [s]")
         fig.tight_layout()
         path = out_dir / f"{group.split('_')[0]}_error.png"
         _save_figure(fig, path)
