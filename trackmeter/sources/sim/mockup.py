@@ -190,7 +190,8 @@ class Mockup:
 
         Returns:
             vertices (V,3) float32 body frame m, faces (F,3) int32 (counter-clockwise seen from
-            the front), colours (F,3) uint8 RGB per triangle (material tint x mean albedo).
+            the front), colours (F,3) uint8 RGB per triangle (material tint x albedo, so one
+            colour per material).
             Two-sided faces get a second, reversed copy for their back.
         """
         verts: list[FloatArray] = []
@@ -205,9 +206,8 @@ class Mockup:
             for surface, idx in sides:
                 verts.append(poly)
                 tris.append(idx + n)
-                lvl = surface.levels[-1]
-                a = float(lvl.albedo_pm.sum() / max(lvl.alpha.sum(), 1e-9))
-                grey = np.clip(0.25 + 1.2 * a, 0.0, 1.0)
+                # one colour per material (the console draws one mesh per colour)
+                grey = np.clip(0.25 + 1.2 * surface.material.albedo, 0.0, 1.0)
                 rgb = np.clip(255.0 * grey * np.asarray(surface.material.tint_rgb), 0, 255).astype(np.uint8)
                 cols.append(np.repeat(rgb[None, :], len(idx), axis=0))
                 n += k

@@ -624,39 +624,41 @@ def look_at(position_cam: FloatArray, rotvec_deg: FloatArray) -> FloatArray:
     return T
 
 
-def preview_pairs(out_dir: Path, rig_path: Path | None = None, mockup_path: Path | None = None) -> list[Path]:
-    """Render the README pictures: a left|right pair of the ESTEC geometry and of a harsh-light
-    geometry (low sun, strong glints, a dark panel shading and hiding part of the mock-up)."""
-    from trackmeter.data.rigfile import load_rig
-    from trackmeter.paths import MODELS_DIR, RIGS_DIR
-    from trackmeter.sources.sim.mockup import load_mockup
+#: README pictures: scenario name -> frame indices (one left|right row per frame). estec 1250:
+#: wings, dish and its shadow at 50 s; harsh_light 276: the panel hides part of the lit face,
+#: differently in the two cameras; 326: glints and the star tracker's shadow.
+PREVIEW_FRAMES: dict[str, tuple[int, ...]] = {"estec": (1250,), "harsh_light": (276, 326)}
 
-    rig = load_rig(rig_path or RIGS_DIR / "estec_12mm.yaml")
-    mockup = load_mockup(mockup_path or MODELS_DIR / "estec_mockup.yaml")
-    rng = np.random.default_rng(1)
+
+def preview_pairs(out_dir: Path, frames: dict[str, tuple[int, ...]] | None = None, scale: float = 0.7) -> list[Path]:
+    """Render the README pictures: for each scenario, its left|right pairs at the given frames,
+    exactly as the simulator delivers them (noise included), cropped to the satellite plus a
+    margin (the same crop in both images, so the disparity shows), shown at ``scale`` (area
+    averaging; keeps the PNGs small despite the sensor noise), into ``sim_<name>.png``."""
+    from trackmeter.sources.sim.simulator import Simulator
+
     out_dir.mkdir(parents=True, exist_ok=True)
-    shots = {
-        "estec": (
-            RenderParams(),
-            look_at(np.array([0.12, 0.0, 3.5]), np.array([-110.0, 35.0, 20.0])),
-            np.array([-0.5, -0.6, -0.6]),
-            (),
-        ),
-        "harsh_light": (
-            RenderParams(ambient=0.005, glint_strength=3.0, glint_sharpness=2.0, exposure_percentile=95.0),
-            look_at(np.array([0.0, 0.05, 3.5]), np.array([-80.0, 60.0, 35.0])),
-            np.array([0.95, -0.25, 0.15]),
-            (Occluder(look_at(np.array([-0.55, 0.05, 2.6]), np.array([0.0, 40.0, 0.0])), (0.5, 1.4)),),
-        ),
-    }
     paths = []
-    for name, (params, T, sun, occ) in shots.items():
-        renderer = StereoRenderer(rig, mockup, params)
-        left, right = renderer.render(T, sun, rng, occluders=occ)
-        gap = np.full((left.shape[0], 6), 255, np.uint8)
+    for name, indices in (frames or PREVIEW_FRAMES).items():
+        sim = Simulator(name)
+        pairs = [sim.frame(i) for i in indices]
+        lit = np.zeros(pairs[0].left.shape, bool)
+        for i in indices:
+            clean = sim.renderer.render(sim.truth(i).T_cam_body, sim.sun_dir_cam, np.random.default_rng(0), noise=False,
+                                        occluders=sim.occluders_at(i))
+            lit |= (clean[0] > 12) | (clean[1] > 12)
+        rows, cols = np.flatnonzero(lit.any(axis=1)), np.flatnonzero(lit.any(axis=0))
+        h, w = lit.shape
+        r0, r1 = (max(0, rows[0] - 24), min(h, rows[-1] + 25)) if len(rows) else (0, h)
+        c0, c1 = (max(0, cols[0] - 24), min(w, cols[-1] + 25)) if len(cols) else (0, w)
+        gap = np.full((r1 - r0, 6), 255, np.uint8)
+        rows_img = [np.hstack([f.left[r0:r1, c0:c1], gap, f.right[r0:r1, c0:c1]]) for f in pairs]
+        sheet = np.vstack([x for row in rows_img for x in (row, np.full((6, row.shape[1]), 255, np.uint8))][:-1])
+        if scale != 1.0:
+            sheet = cv2.resize(sheet, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
         path = out_dir / f"sim_{name}.png"
-        tmp = path.with_suffix(".tmp.png")
-        cv2.imwrite(str(tmp), np.hstack([left, gap, right]), [cv2.IMWRITE_PNG_COMPRESSION, 9])
+        tmp = path.with_name(path.stem + ".tmp.png")
+        cv2.imwrite(str(tmp), sheet, [cv2.IMWRITE_PNG_COMPRESSION, 9])
         tmp.replace(path)
         paths.append(path)
     return paths
@@ -665,9 +667,10 @@ def preview_pairs(out_dir: Path, rig_path: Path | None = None, mockup_path: Path
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m trackmeter.sources.sim.render",
-        description="Render the README pictures (left|right pairs of the estec and harsh-light geometries).",
+        description="Render the README pictures: left|right pairs of the estec and harsh_light scenarios "
+        "(frames in PREVIEW_FRAMES) into DIR/sim_estec.png and DIR/sim_harsh_light.png.",
     )
-    parser.add_argument("--preview", type=Path, required=True, metavar="DIR", help="folder for sim_estec.png and sim_harsh_light.png")
+    parser.add_argument("--preview", type=Path, required=True, metavar="DIR", help="output folder, e.g. docs/images")
     args = parser.parse_args(argv)
     for path in preview_pairs(args.preview):
         print(path)
