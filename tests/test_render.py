@@ -81,6 +81,28 @@ def test_rendered_dots_land_on_rig_projection(estec_rig, dot_scene) -> None:  # 
     assert np.abs(errors).max() < 0.05, np.abs(errors).max()
 
 
+def test_rendered_dots_exact_on_coarse_texture_levels(estec_rig) -> None:  # type: ignore[no-untyped-def]
+    """At 9-10 m the renderer draws from coarser mip levels (texel ~ 4x smaller than a pixel at
+    level 0); their texel centres must map as exactly as level 0's."""
+    n, sigma = 400, 8.0
+    dots = ((77.3, 101.8), (300.6, 280.25), (200.0, 200.5), (320.2, 80.7))
+    jj, ii = np.mgrid[0:n, 0:n].astype(float)
+    tex = sum(np.exp(-((ii - di) ** 2 + (jj - dj) ** 2) / (2 * sigma**2)) for di, dj in dots)
+    face = _board(tex)
+    renderer = StereoRenderer(estec_rig, Mockup(name="far", texel_m=TEXEL_M, faces=(face,)), EXACT)
+    errors = []
+    for pos, rv in (((1.5, -1.0, 9.0), (20, -30, 10)), ((-1.2, 0.8, 10.0), (-25, 15, 40))):
+        T = look_at(np.array(pos), np.array(rv, float))
+        left, right = renderer.render(T, T[:3, :3] @ np.array([0, 0, -1.0]), np.random.default_rng(0), noise=False)
+        for di, dj in dots:
+            uv_l, uv_r = estec_rig.project((T[:3, :3] @ _texel_body(face, di, dj) + T[:3, 3])[None])
+            for img, uv in ((left, uv_l[0]), (right, uv_r[0])):
+                c = _centroid(img, uv, k=6)
+                assert c is not None
+                errors.append(c - uv)
+    assert np.abs(np.array(errors)).max() < 0.05
+
+
 def test_surface_points_agree_with_render(estec_rig, dot_scene) -> None:  # type: ignore[no-untyped-def]
     face, renderer = dot_scene
     T = look_at(np.array([0.3, -0.2, 3.4]), np.array([15.0, -20.0, 5.0]))
