@@ -263,13 +263,14 @@ def sample_rectified(
     my = cv2.getRectSubPix(my_full, (width, height), centre)
     h_img, w_img = image.shape
     # The maps are smooth and monotonic, so the block's extent in the original image is that
-    # of its corners (the bilinear interpolation stays inside the grid cells around them).
+    # of its corners (the bilinear interpolation stays inside the grid cells around them); the
+    # 0.1 px margin covers a lens's curvature of the map along the block's few rows.
     x_lo = min(float(mx_full[by, bx]), float(mx_full[by + height, bx]))
     x_hi = max(float(mx_full[by, bx + width]), float(mx_full[by + height, bx + width]))
     y_lo = min(float(my_full[by, bx]), float(my_full[by, bx + width]))
     y_hi = max(float(my_full[by + height, bx]), float(my_full[by + height, bx + width]))
     col_ok = None
-    if not (x_lo >= 0.5 and y_lo >= 0.5 and x_hi <= w_img - 1.5 and y_hi <= h_img - 1.5):
+    if not (x_lo >= 0.1 and y_lo >= 0.1 and x_hi <= w_img - 1.1 and y_hi <= h_img - 1.1):
         col_ok = np.all((mx >= 0) & (mx <= w_img - 1) & (my >= 0) & (my <= h_img - 1), axis=0)
     if not exact:
         return cv2.remap(image, mx, my, interpolation, borderMode=cv2.BORDER_REPLICATE), col_ok
@@ -614,9 +615,15 @@ def _match_rectified(
     width = c_last - c_first + 1
     if width < P:
         return _Match(REASON_SEARCH_OUTSIDE)
-    # Integer search on a bilinearly resampled strip (fast); the sub-pixel fit below resamples
-    # just the neighbourhood of the match with Lanczos-4 (accurate).
-    T = sample_rectified(rect, left, 0, x0, y0, P, P, cv2.INTER_LINEAR, exact=False)[0]
+    # Integer search on bilinearly resampled strips (fast); the sub-pixel fit below resamples
+    # just the neighbourhood of the match with Lanczos-4 (accurate). One left strip serves the
+    # search template and the left-right check, whose candidates lie within the disparity
+    # range's width on either side of the patch.
+    spread = d_hi - d_lo
+    l_first = max(bx - spread - mg, 0)
+    l_last = min(bx + spread + mg + P - 1, W - 2)
+    Lrow, l_ok = sample_rectified(rect, left, 0, l_first + fx, y0, l_last - l_first + 1, P, cv2.INTER_LINEAR, exact=False)
+    T = np.ascontiguousarray(Lrow[:, bx - l_first : bx - l_first + P])
     S, s_ok = sample_rectified(rect, right, 1, c_first + fx, y0, width, P, cv2.INTER_LINEAR, exact=False)
     # Column position x in the strip <-> disparity d = bx - (c_first + x).
     n = width - P + 1
@@ -644,19 +651,16 @@ def _match_rectified(
     d0 = bx - c_first - sm.integer_position
     R0 = S[:, sm.integer_position : sm.integer_position + P]
     r_col = bx - d0  # right patch's first grid column
-    l_first = max(r_col + d_lo - mg, 0)
-    l_last = min(r_col + d_hi + mg + P - 1, W - 2)
-    l_width = l_last - l_first + 1
-    if l_width >= P:
-        L, l_ok = sample_rectified(rect, left, 0, l_first + fx, y0, l_width, P, cv2.INTER_LINEAR, exact=False)
-        lr_scores = cv2.matchTemplate(L, np.ascontiguousarray(R0), cv2.TM_CCOEFF_NORMED).ravel()
-        l_lo = max(r_col + d_lo - l_first, 0)
-        l_hi = min(r_col + d_hi - l_first, lr_scores.size - 1)
-        cand = lr_scores[l_lo : l_hi + 1]
+    # left patch for disparity d starts at column r_col + d, i.e. Lrow column r_col + d - l_first
+    l_lo = max(r_col + d_lo - l_first, 0)
+    l_hi = min(r_col + d_hi - l_first, Lrow.shape[1] - P)
+    if l_hi >= l_lo:
+        Lsub = Lrow[:, l_lo : l_hi + P]
+        lr_scores = cv2.matchTemplate(Lsub, np.ascontiguousarray(R0), cv2.TM_CCOEFF_NORMED).ravel()
         if l_ok is not None:
-            cand = np.where(_windows_ok(l_ok, P)[l_lo : l_hi + 1], cand, -np.inf)
-        if cand.size and np.isfinite(cand.max()):
-            d_back = (l_first + l_lo + int(np.argmax(cand))) - r_col
+            lr_scores = np.where(_windows_ok(l_ok, P)[l_lo : l_hi + 1], lr_scores, -np.inf)
+        if np.isfinite(lr_scores.max()):
+            d_back = (l_first + l_lo + int(np.argmax(lr_scores))) - r_col
             if abs(d_back - d0) > params.left_right_tolerance_px:
                 return _Match(REASON_LEFT_RIGHT, score=score)
     return _Match(None, d, sigma, score)
