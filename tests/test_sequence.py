@@ -73,6 +73,7 @@ def test_write_then_read_frame_for_frame(tmp_path, estec_rig):
     with open_source(f"seq:{d}") as src:
         assert isinstance(src, SequenceSource)
         assert src.skipped == 0 and src.warning is None
+        assert src.n_frames == len(src) == len(frames)
         assert src.rate_hz == pytest.approx(25.0)
         assert src.rig is not None and np.allclose(src.rig.left.K, estec_rig.left.K)
         assert np.allclose(src.rig.R, estec_rig.R) and np.allclose(src.rig.T, estec_rig.T)

@@ -77,6 +77,11 @@ class SequenceSource(Source):
     def __len__(self) -> int:
         return len(self.index)
 
+    @property
+    def n_frames(self) -> int:
+        """Stereo pairs in one pass of the folder (as :attr:`Simulator.n_frames`)."""
+        return len(self.index)
+
     def truth_at(self, position: int) -> GroundTruth | None:
         """Ground truth of the ``position``-th pair of the folder, or None."""
         truth = self.index.truth
