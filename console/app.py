@@ -112,6 +112,7 @@ class Console:
         self._trails: dict[str, deque[tuple[float, float]]] = {}
         self._pending: deque[tuple[Future[CommandReply], Any, str]] = deque()
         self._pending_lock = threading.Lock()
+        self._views: dict[int, list[Any]] = {}  # client id -> [client, preset, aspect framed for]
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._unsubscribe: Any = None
@@ -127,6 +128,7 @@ class Console:
         self._build_scene()
         self._build_gui()
         server.on_client_connect(self._on_connect)
+        server.on_client_disconnect(self._on_disconnect)
 
     # ------------------------------------------------------------------ life cycle
     def start(self) -> Console:
@@ -290,7 +292,7 @@ class Console:
         self.record_checkbox.on_update(self._cb(lambda e: SetRecording(
             self._fresh_record_dir() if self.record_checkbox.value else None)))
         self.right_checkbox.on_update(lambda e: setattr(self.right_image, "visible", bool(self.right_checkbox.value)))
-        self.view_buttons.on_click(lambda e: self._apply_view(e.client, str(self.view_buttons.value)) if e.client else None)
+        self.view_buttons.on_click(lambda e: self._choose_view(e.client, str(self.view_buttons.value)) if e.client else None)
 
     def _auto_command(self) -> Command:
         return SetAuto(bool(self.auto_checkbox.value), int(self.auto_count.value), str(self.auto_method.value))
@@ -362,7 +364,37 @@ class Console:
 
     # ------------------------------------------------------------------ clients and views
     def _on_connect(self, client: viser.ClientHandle) -> None:
-        self._apply_view(client, "image")
+        # Framing needs the browser's canvas aspect, which settles after the page's layout
+        # (the docked panel); the publisher re-frames the image preset when it changes.
+        with self._pending_lock:
+            self._views[client.client_id] = [client, "image", None]
+
+    def _on_disconnect(self, client: viser.ClientHandle) -> None:
+        with self._pending_lock:
+            self._views.pop(client.client_id, None)
+
+    def _frame_clients(self) -> None:
+        with self._pending_lock:
+            views = list(self._views.values())
+        for view in views:
+            client, preset, framed_aspect = view
+            try:
+                aspect = float(client.camera.aspect)
+            except Exception:  # no camera message yet, or gone
+                continue
+            if preset == "image" and (framed_aspect is None or abs(aspect - framed_aspect) > 1e-3):
+                view[2] = aspect
+                try:
+                    self._apply_view(client, "image")
+                except Exception as exc:
+                    log.debug("client view not set: %s", exc)
+
+    def _choose_view(self, client: Any, preset: str) -> None:
+        with self._pending_lock:
+            view = self._views.get(client.client_id)
+            if view is not None:
+                view[1], view[2] = preset, None
+        self._apply_view(client, preset)
 
     def _apply_view(self, client: Any, preset: str) -> None:
         rw, rh = self.render_size
@@ -378,8 +410,13 @@ class Console:
                 client.camera.position = (mid, 0.0, -15.0)
                 client.camera.look_at = (mid, 0.0, 1.0)
             else:
-                # Fit the image height in the vertical field of view, with a small margin.
-                d = 1.08 * (rh / 2) / np.tan(np.radians(50.0) / 2)
+                # Fit the whole image in the view (height and width), with a small margin.
+                tan_half = np.tan(np.radians(50.0) / 2)
+                try:
+                    aspect = float(client.camera.aspect)
+                except (AssertionError, ZeroDivisionError):
+                    aspect = 16 / 9
+                d = 1.04 * max((rh / 2) / tan_half, (rw / 2) / (tan_half * aspect))
                 client.camera.position = (0.0, 0.0, -d)
                 client.camera.look_at = (0.0, 0.0, 0.0)
 
@@ -401,6 +438,7 @@ class Console:
             next_time = max(next_time + period, now)
             try:
                 self._flush_replies()
+                self._frame_clients()
                 snap = self.pipeline.latest()
                 if snap.sequence != last_seq:
                     last_seq = snap.sequence
@@ -515,11 +553,11 @@ class Console:
             rv = np.degrees(Rotation.from_matrix(T[:3, :3]).as_rotvec())
             v = np.asarray(pose.velocity_cam_m_s) * 1e3
             w = np.degrees(pose.omega_body_rad_s)
-            lines.append(f"pose **valid** (case {pose.case}, {pose.n_points} points)")
+            lines.append(f"pose valid (case {pose.case}, {pose.n_points} points)")
             lines.append(f"p = ({p[0]:+.3f}, {p[1]:+.3f}, {p[2]:+.3f}) m · rotvec = ({rv[0]:+.1f}, {rv[1]:+.1f}, {rv[2]:+.1f})°")
             lines.append(f"v = ({v[0]:+.1f}, {v[1]:+.1f}, {v[2]:+.1f}) mm/s · ω = ({w[0]:+.2f}, {w[1]:+.2f}, {w[2]:+.2f}) °/s")
         else:
-            lines.append(f"pose **invalid**: {pose.reason}")
+            lines.append(f"pose invalid: {pose.reason}")
         e = snap.errors
         if e and "position_m" in e:
             ep = np.asarray(e["position_m"]) * 1e3
