@@ -103,6 +103,31 @@ def test_rendered_dots_exact_on_coarse_texture_levels(estec_rig) -> None:  # typ
     assert np.abs(np.array(errors)).max() < 0.05
 
 
+def test_motion_blur_is_centred_on_the_current_pose(estec_rig) -> None:  # type: ignore[no-untyped-def]
+    """Sub-frames spread symmetrically about T_cam_body: a dot moving 7 px per frame is smeared
+    along its motion, but its centroid stays on the current pose's projection."""
+    face = _board(_dot_texture())
+    params = RenderParams(ambient=0.0, auto_exposure=False, exposure_gain_grey=230.0, black_level_grey=0.0, motion_blur_subframes=9, shutter_fraction=1.0)
+    renderer = StereoRenderer(estec_rig, Mockup(name="dots", texel_m=TEXEL_M, faces=(face,)), params)
+    T = look_at(np.array([0.1, 0.05, 3.5]), np.array([10.0, -5.0, 0.0]))
+    T_prev = T.copy()
+    T_prev[:3, 3] -= (0.02, 0.0, 0.0)  # 2 cm per frame: ~6.6 px
+    sun = T[:3, :3] @ np.array([0, 0, -1.0])
+    blurred, _ = renderer.render(T, sun, np.random.default_rng(0), T_cam_body_prev=T_prev, noise=False)
+    sharp, _ = renderer.render(T, sun, np.random.default_rng(0), noise=False)
+    for di, dj in DOTS:
+        uv = estec_rig.project((T[:3, :3] @ _texel_body(face, di, dj) + T[:3, 3])[None])[0][0]
+        c = _centroid(blurred, uv, k=12)
+        assert c is not None and np.abs(c - uv).max() < 0.05
+        u0, v0 = np.round(uv).astype(int)
+        # smeared along u: the blurred dot is wider in u than in v, the sharp one is round
+        win = blurred[v0 - 12 : v0 + 13, u0 - 12 : u0 + 13].astype(float)
+        spread_u = (win.sum(axis=0) > 0.2 * win.sum(axis=0).max()).sum()
+        spread_v = (win.sum(axis=1) > 0.2 * win.sum(axis=1).max()).sum()
+        assert spread_u >= spread_v + 4
+        assert blurred[v0, u0] < sharp[v0, u0]
+
+
 def test_surface_points_agree_with_render(estec_rig, dot_scene) -> None:  # type: ignore[no-untyped-def]
     face, renderer = dot_scene
     T = look_at(np.array([0.3, -0.2, 3.4]), np.array([15.0, -20.0, 5.0]))

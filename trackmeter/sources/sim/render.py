@@ -55,7 +55,8 @@ F32 = NDArray[np.float32]
 FloatArray = NDArray[np.float64]
 
 _NEAR_M = 0.02  # faces with a corner closer than this to a camera are not drawn
-_MIN_SHADOW_AREA_PX = 300.0  # smaller faces (a few px across) are not worth a shadow test
+_MIN_SHADOW_AREA_PX = 300.0
+_LIT_OF_MASK = (1.0 - np.arange(256, dtype=np.float32) / 255.0).astype(np.float32)  # shadow mask (0..255) -> lit fraction  # smaller faces (a few px across) are not worth a shadow test
 
 
 @dataclass(frozen=True)
@@ -609,7 +610,7 @@ def _shadow_mask(geom: _Geom, index: int, n_side: FloatArray, shape: tuple[int, 
         cv2.fillConvexPoly(mask, hull, 255, cv2.LINE_AA, shift=4)
     if mask is None:
         return None
-    return 1.0 - mask.astype(np.float32) * np.float32(1.0 / 255.0)
+    return _LIT_OF_MASK[mask]
 
 
 # --------------------------------------------------------------------------- preview pictures
