@@ -477,7 +477,9 @@ class StereoRenderer:
                     rw *= vis
                 if must_write[f]:
                     np.copyto(zb, iz, where=aw >= 0.5)
-            cv -= cv * aw
+            if must_read[f]:
+                cv -= cv * aw
+            # else nothing was drawn in this box yet: the canvas there is 0
             cv += rw
         return canvas, zbuf
 
