@@ -42,13 +42,13 @@ def test_analyze_static_ranges_recovers_the_parabola(tmp_path, capsys):
     # ... and eq. 2 at each range alone gives the same sub-pixel accuracy within a factor 2.5.
     for r in ranges:
         assert 0.4 < r["sigma_disparity_px"] / s["sigma_disparity_px"] < 2.5
-    # Sub-pixel, and consistent with the scenario's sensor noise: the accuracy inferred from k
-    # agrees with the Cramer-Rao limit that the noise measured over the still frames allows
-    # each patch (within 35 %, at every range and overall); the matcher cannot beat it by much.
+    # Sub-pixel, and consistent with the scenario's sensor noise: point by point, the disparity
+    # sigma measured over the still frames (eq. 2) is what the Cramer-Rao limit of the noise
+    # measured in the same frames allows that patch (median ratio within 40 % of 1, per range).
     assert 0.005 < s["sigma_disparity_px"] < 0.2
-    assert 0.65 < s["sigma_disparity_px"] / s["noise_limited_sigma_disparity_px"] < 1.35
+    assert 0.6 < s["measured_over_noise_limit_median"] < 1.4
     for r in ranges:
-        assert 0.5 < r["sigma_disparity_px"] / r["noise_limited_sigma_disparity_px"] < 1.5
+        assert 0.6 < r["measured_over_noise_limit_median"] < 1.4
     # The depth residuals, normalised per range, are unit Gaussian by construction of sigma.
     assert s["density_normalised"]["sigma"] == pytest.approx(1.0, abs=0.1)
     for name in ("analysis.json", "ranges.csv", "sigma_vs_range.png", "error_density.png", "report.md"):

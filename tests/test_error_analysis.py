@@ -183,3 +183,14 @@ def test_noise_limited_disparity_sigma_matches_monte_carlo_of_the_shift_estimato
     assert np.std(estimates) == pytest.approx(predicted, rel=0.05)
     stack = clean[None] + rng.normal(scale=noise, size=(400, *clean.shape))
     assert np.mean(temporal_noise_variance(stack)) == pytest.approx(noise**2, rel=0.03)
+
+
+def test_point_disparity_sigma_is_eq2_per_point():
+    from trackmeter.core.error_analysis import point_disparity_sigma
+
+    sigma = np.array([0.0, 0.0, 0.003])
+    X = exact_stack(3.5, sigma, n_points=3, n_frames=6)
+    X[:, 2, :] = np.nan
+    sd = point_disparity_sigma(X, F_PX, B_M, min_samples=5)
+    assert np.isnan(sd[2])
+    np.testing.assert_allclose(sd[:2], 0.003 * F_PX * B_M / 3.5**2, rtol=1e-12)

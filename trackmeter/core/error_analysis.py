@@ -253,6 +253,29 @@ def noise_limited_disparity_sigma(patch: ArrayLike, noise_variance: float) -> fl
     return float(np.sqrt(2.0 * noise_variance / energy))
 
 
+def point_disparity_sigma(points_cam_m: ArrayLike, focal_px: float, baseline_m: float, min_samples: int = 5) -> FloatArray:
+    """Each still point's repeated-measurement sigma, turned into disparity by eq. 2, px.
+
+    ``sigma_d,p = std(z_p) f b / mean(z_p)^2`` over the point's good samples (unbiased std);
+    NaN for points with fewer than ``min_samples`` (at least 2) good samples. Compared point by
+    point with :func:`noise_limited_disparity_sigma`, it tells whether the matcher reaches
+    what the image noise allows.
+
+    Args:
+        points_cam_m: (F, P, 3) measurements, left camera frame, m (NaN where refused).
+    """
+    X = np.asarray(points_cam_m, dtype=float)
+    if X.ndim != 3 or X.shape[2] != 3:
+        raise TrackmeterError(f"need (frames, points, 3) measurements, got {X.shape}")
+    out = np.full(X.shape[1], np.nan)
+    good = np.all(np.isfinite(X), axis=2)
+    for p in range(X.shape[1]):
+        z = X[good[:, p], p, 2]
+        if len(z) >= max(int(min_samples), 2):
+            out[p] = float(np.std(z, ddof=1)) * focal_px * baseline_m / float(np.mean(z)) ** 2
+    return out
+
+
 # --------------------------------------------------------------------------- the parabola
 
 

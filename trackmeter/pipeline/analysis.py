@@ -25,6 +25,7 @@ from trackmeter.core.error_analysis import (
     RangeStatistics,
     analyze_ranges,
     noise_limited_disparity_sigma,
+    point_disparity_sigma,
     range_statistics,
     temporal_noise_variance,
     truth_errors,
@@ -77,15 +78,33 @@ class AnalysisRun:
     predicted_sigma_disparity_px: float  # median of the matcher's own estimates
     skipped_ranges: tuple[str, ...] = field(default_factory=tuple)
     gross_sigmas: float = 8.0
+    min_samples: int = 5
 
     def to_dict(self) -> dict[str, object]:
         d = self.analysis.to_dict()
         d["predicted_sigma_disparity_px"] = self.predicted_sigma_disparity_px
-        nsd = [m.noise_sigma_disparity_px for m in self.measurements if m.noise_sigma_disparity_px is not None]
-        nsd_all = np.concatenate(nsd) if nsd else np.zeros(0)
-        nsd_all = nsd_all[np.isfinite(nsd_all)]
-        # RMS: the sigma a fit over all points' variances would see.
-        d["noise_limited_sigma_disparity_px"] = float(np.sqrt(np.mean(nsd_all**2))) if len(nsd_all) else float("nan")
+        f, b = self.analysis.focal_px, self.analysis.baseline_m
+        ratios: list[FloatArray] = []
+        limits: list[FloatArray] = []
+        per_range: list[tuple[float, float] | None] = []
+        for m in self.measurements:
+            if m.noise_sigma_disparity_px is None:
+                per_range.append(None)
+                continue
+            measured = point_disparity_sigma(m.xyz_m, f, b, self.min_samples)
+            ok = np.isfinite(measured) & np.isfinite(m.noise_sigma_disparity_px)
+            limits.append(m.noise_sigma_disparity_px[ok])
+            ratios.append(measured[ok] / m.noise_sigma_disparity_px[ok])
+            per_range.append(
+                (float(np.sqrt(np.mean(limits[-1] ** 2))), float(np.median(ratios[-1])))
+                if np.any(ok) else None
+            )
+        lim_all = np.concatenate(limits) if limits else np.zeros(0)
+        rat_all = np.concatenate(ratios) if ratios else np.zeros(0)
+        # RMS of the limits: the sigma a fit over the points' variances would see; the median
+        # ratio per point: does the matcher reach what the noise allows (1 = it does)?
+        d["noise_limited_sigma_disparity_px"] = float(np.sqrt(np.mean(lim_all**2))) if len(lim_all) else float("nan")
+        d["measured_over_noise_limit_median"] = float(np.median(rat_all)) if len(rat_all) else float("nan")
         by_range = {round(s.range_m, 6): m for s, m in zip(self.statistics, self.measurements)}
         for entry in d["ranges"]:  # type: ignore[union-attr]
             m = by_range.get(round(entry["range_m"], 6))
@@ -94,9 +113,9 @@ class AnalysisRun:
                 entry["n_frames"] = len(m.t_s)
                 entry["n_selected"] = len(m.uv)
                 entry["refused"] = dict(m.refusals)
-                if m.noise_sigma_disparity_px is not None and np.any(np.isfinite(m.noise_sigma_disparity_px)):
-                    nsd = m.noise_sigma_disparity_px[np.isfinite(m.noise_sigma_disparity_px)]
-                    entry["noise_limited_sigma_disparity_px"] = float(np.sqrt(np.mean(nsd**2)))
+                pr = per_range[self.measurements.index(m)]
+                if pr is not None:
+                    entry["noise_limited_sigma_disparity_px"], entry["measured_over_noise_limit_median"] = pr
                 if m.true_xyz_m is not None:
                     te = truth_errors(m.xyz_m, m.true_xyz_m, self.gross_sigmas)
                     entry["truth_error"] = {
@@ -287,4 +306,5 @@ def run_error_analysis(
         predicted_sd,
         tuple(skipped),
         params.max_abs_residual_sigmas,
+        params.min_samples,
     )
