@@ -10,8 +10,11 @@ plus the SPEED challenge score.
   --truth    TUM file, groundtruth.csv, or a sequence folder
   --estimate TUM file, states.csv, or a `trackmeter track` run directory
 
---json prints the summary in SI units; --out DIR also writes errors.csv, summary.json, PNG plots
-of the errors against time and report.md beside the paper's figures.
+"matched" counts the evaluated pairs; "unmatched" the estimated poses with no truth pose within
+the tolerance plus the truth poses inside the estimate's time span with no estimate (frames the
+run has no valid pose for). --json prints the summary in SI units; --out DIR also writes
+errors.csv, summary.json, PNG plots of the errors against time and report.md beside the
+paper's figures.
 """
 
 from __future__ import annotations
