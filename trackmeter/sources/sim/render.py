@@ -26,6 +26,12 @@ sun direction are exact there): Lambert with the perturbed normal ``n'``,
 ``lit`` is 0 in shadows, which are the faces (and occluders) between the face and the sun,
 projected along the sun onto the face's plane and rasterised into its texture.
 
+Approximations, all far below a pixel or a grey level where it matters: ``h`` is exact on a
+7x7 grid per face and bilinear in between; faces smaller than ~300 px² in the image receive
+no shadows; a face's glints are skipped when no facet tilt can bring ``n'`` within the lobe.
+Texture minification uses mip levels (area-averaged, each covering the whole face, so the
+texel-centre formula above stays exact at every level).
+
 Then auto-iris exposure (a high percentile of the satellite's radiance in the left image is
 set to a target grey level), sensor noise (read noise and shot noise, Gaussian with the
 Poisson variance ``gain * signal``), optional motion blur (the average of sub-frame renders
