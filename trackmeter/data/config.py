@@ -25,9 +25,11 @@ import yaml
 from trackmeter.core.calibration import CalibrationParams
 from trackmeter.core.matching import MeasureParams
 from trackmeter.core.error_analysis import AnalyzeParams
+from trackmeter.core.features import FeatureParams
 from trackmeter.core.metrics import EvaluateParams
 from trackmeter.core.output_filter import FilterParams
 from trackmeter.core.pose import PoseParams
+from trackmeter.core.tracking import TrackerParams
 from trackmeter.core.velocity import VelocityParams
 from trackmeter.errors import TrackmeterError
 from trackmeter.paths import DEFAULT_CONFIG
@@ -44,6 +46,8 @@ class Config:
     pose: PoseParams = field(default_factory=PoseParams)
     velocity: VelocityParams = field(default_factory=VelocityParams)
     output_filter: FilterParams = field(default_factory=FilterParams)
+    tracker: TrackerParams = field(default_factory=TrackerParams)
+    features: FeatureParams = field(default_factory=FeatureParams)
 
 
 def load_config(user_file: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> Config:

@@ -1,0 +1,168 @@
+"""Sub-pixel patch tracking: exact shifts, gain/bias, no pixel locking, affine anchor, drift,
+epipolar matching, and the real RubberWhale optical-flow pair."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from trackmeter.core import patch_tracking as pt
+from trackmeter.core.features import FeatureParams, target_mask
+from trackmeter.sources.plane import PlaneScene, pose_translating
+
+
+def smooth_texture(shape=(160, 160), sigma=1.5, seed=0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    img = cv2.GaussianBlur(rng.standard_normal(shape).astype(np.float32), (0, 0), sigma)
+    return (128 + 40 * img / img.std()).astype(np.float32)
+
+
+def read_flo(path) -> np.ndarray:
+    with open(path, "rb") as f:
+        assert np.fromfile(f, np.float32, 1)[0] == 202021.25  # "PIEH"
+        w, h = np.fromfile(f, np.int32, 2)
+        return np.fromfile(f, np.float32).reshape(h, w, 2)
+
+
+def test_bilinear_matches_exact_linear_interpolation() -> None:
+    img = np.add.outer(np.arange(20.0) * 3, np.arange(30.0) * 2).astype(np.float32)  # 2u + 3v
+    x = np.array([0.0, 3.25, 28.9, 10.5])
+    y = np.array([0.0, 7.75, 18.1, 2.5])
+    val, inside = pt.bilinear(img, x, y)
+    np.testing.assert_allclose(val, 2 * x + 3 * y, atol=1e-4)
+    assert inside.all()
+    _, inside = pt.bilinear(img, np.array([-0.1, 29.5]), np.array([1.0, 1.0]))
+    assert not inside.any()
+
+
+@pytest.mark.parametrize("shift", [(0.3, 0.2), (-0.45, 0.7), (1.6, -1.2)])
+def test_lk_recovers_exact_subpixel_shifts_with_gain_and_bias(shift) -> None:
+    I0 = smooth_texture()
+    # ndimage.shift moves the content by +shift (rows, cols): points move by (du, dv) = shift.
+    I1 = ndimage.shift(I0, (shift[1], shift[0]), order=5, mode="nearest").astype(np.float32)
+    I1 = 1.4 * I1 - 30.0  # brightness change: gain and bias
+    pts = np.array([[60.0, 60.0], [80.0, 100.0], [100.0, 70.0], [70.0, 90.0]])
+    T = pt.make_templates(I0, pts, 8)
+    res = pt.refine_lk(I1, T, np.round(pts + shift), tolerance_px=1e-4, max_iterations=20)
+    assert res.converged.all()
+    np.testing.assert_allclose(res.uv - pts, np.broadcast_to(shift, pts.shape), atol=0.03)
+    assert np.all(res.score > 0.99)
+
+
+def test_no_pixel_locking_bias_over_a_pixel_of_shifts() -> None:
+    """The mean error over many points must not follow the fractional shift (pixel locking
+    bends it toward integers, e.g. a parabola fit's S-curve)."""
+    I0 = smooth_texture((220, 220), sigma=1.3, seed=3)
+    grid = np.stack(np.meshgrid(np.arange(40.0, 181.0, 20), np.arange(40.0, 181.0, 20)), -1).reshape(-1, 2)
+    T = pt.make_templates(I0, grid, 8)
+    bias = []
+    for s in np.linspace(0.0, 0.9, 10):
+        I1 = ndimage.shift(I0, (0.0, s), order=5, mode="nearest").astype(np.float32)
+        res = pt.refine_lk(I1, T, grid + [np.round(s), 0.0], tolerance_px=1e-4, max_iterations=20)
+        bias.append(np.mean(res.uv[:, 0] - grid[:, 0] - s))
+    assert np.max(np.abs(bias)) < 0.02, bias
+
+
+def test_affine_anchor_keeps_the_centre_on_its_point_under_rotation() -> None:
+    I0 = smooth_texture((200, 200), sigma=1.6, seed=5)
+    centre = np.array([100.0, 100.0])
+    pts = np.array([[92.0, 95.0], [108.0, 103.0], [100.0, 112.0]])
+    angle = 12.0
+    M = cv2.getRotationMatrix2D(tuple(centre), angle, 1.0)
+    I1 = cv2.warpAffine(I0, M, (200, 200), flags=cv2.INTER_CUBIC)
+    truth = pts @ M[:, :2].T + M[:, 2]
+    T = pt.make_templates(I0, pts, 8)
+    W0 = np.concatenate([np.repeat(np.eye(2)[None], 3, 0), np.round(truth)[:, :, None]], axis=2)
+    aff = pt.refine_lk_affine(I1, T, W0)
+    trans = pt.refine_lk(I1, T, np.round(truth))
+    assert aff.converged.all()
+    err_aff = np.linalg.norm(aff.uv - truth, axis=1)
+    err_trans = np.linalg.norm(trans.uv - truth, axis=1)
+    assert err_aff.max() < 0.1
+    assert err_aff.mean() < err_trans.mean()  # translation-only is pulled by the rotation
+    # The recovered linear part is the rotation.
+    np.testing.assert_allclose(aff.warp[:, :, :2], np.repeat(M[None, :, :2], 3, 0), atol=0.03)
+
+
+def run_drift(scene: PlaneScene, uv0: np.ndarray, frames: int, naive: bool) -> np.ndarray:
+    """Max error per frame of 2-frame tracking with the naive always-update template, or the
+    anchored strategy (track_patches), against the scene's truth."""
+    f0 = scene.frame(0)
+    body = scene.surface_points(0, uv0)
+    img = f0.left.astype(np.float32)
+    anchor = pt.make_templates(img, uv0, 8)
+    current = anchor
+    lin = np.repeat(np.eye(2)[None], len(uv0), 0)
+    uv = uv0.copy()
+    errs = []
+    for k in range(1, frames):
+        img = scene.frame(k).left.astype(np.float32)
+        starts = np.array([pt.zncc_search(img, current.values[i], uv[i], np.array([6.0, 6.0]))[0] for i in range(len(uv))])
+        if naive:
+            uv = pt.refine_lk(img, current, starts).uv
+        else:
+            res = pt.track_patches(img, anchor, lin, current, starts, anchor_min_score=0.9, drift_tolerance_px=0.5)
+            uv = res.uv
+            lin = np.where(res.anchored[:, None, None], res.anchor_lin, lin)
+        current = pt.make_templates(img, uv, 8)
+        truth, _ = scene.project(k, body)
+        errs.append(np.linalg.norm(uv - truth, axis=1).max())
+    return np.array(errs)
+
+
+@pytest.mark.slow
+def test_anchored_template_does_not_drift_where_naive_update_does(estec_rig) -> None:
+    """A plate turning about the viewing axis (0.3 rad/s, 25 Hz) for 40 frames: the naive
+    every-frame template update accumulates error; the anchored (drift-corrected) one does not."""
+    scene = PlaneScene(estec_rig, pose_translating(3.5, (0.15, 0.05, 0.0), (0.0, 0.0, 0.3)), noise_sigma=1.0)
+    f0 = scene.frame(0)
+    mask = target_mask(f0.left, FeatureParams(target_margin_px=40))  # well inside the plate
+    uv0 = cv2.goodFeaturesToTrack(f0.left, 12, 0.05, 30, mask=mask).reshape(-1, 2).astype(float)
+    naive = run_drift(scene, uv0, 40, naive=True)
+    anchored = run_drift(scene, uv0, 40, naive=False)
+    print(f"max error after 40 frames: naive {naive[-1]:.3f} px, anchored {anchored[-1]:.3f} px")
+    assert anchored.max() < 0.25
+    assert naive[-1] > 2 * anchored[-1]
+
+
+def test_epipolar_match_recovers_the_true_disparity(estec_rig) -> None:
+    scene = PlaneScene(estec_rig, pose_translating(3.5, (0.0, 0.0, 0.0)), noise_sigma=0.5)
+    f = scene.frame(0)
+    rect = estec_rig.rectification
+    mask = target_mask(f.left, FeatureParams(target_margin_px=10))
+    uv = cv2.goodFeaturesToTrack(f.left, 20, 0.05, 25, mask=mask).reshape(-1, 2).astype(float)
+    body = scene.surface_points(0, uv)
+    cl, d_true = rect.project_rectified(body @ scene.T_cam_body(0)[:3, :3].T + scene.T_cam_body(0)[:3, 3])
+    m = pt.match_epipolar(
+        f.left.astype(np.float32), f.right.astype(np.float32), rect.maps[0], rect.maps[1],
+        rect.rectify_points(uv, 0), np.full(len(uv), 40.0), 80, 8,
+        min_score=0.8, uniqueness_margin=0.05, epipolar_tolerance_px=1.0,
+    )
+    # Some corners of the texture's rectangles repeat along their rows: refused as ambiguous.
+    assert m.ok.mean() > 0.5
+    assert all(r is None or "ambiguous" in r for r in m.reason)
+    err = np.abs(m.disparity_px - d_true)[m.ok]
+    assert np.median(err) < 0.05 and err.max() < 0.2
+    assert np.all(np.abs(m.epipolar_residual_px[m.ok]) < 0.2)
+
+
+def test_rubberwhale_median_endpoint_error(shared_data) -> None:
+    """Real imagery: Shi-Tomasi corners of frame10 tracked into frame11 against the true flow
+    (Middlebury RubberWhale); OpenCV's pyramidal LK on the same points for comparison."""
+    d = shared_data / "optical_flow_rubberwhale"
+    f0 = cv2.imread(str(d / "frame10.png"), cv2.IMREAD_GRAYSCALE)
+    f1 = cv2.imread(str(d / "frame11.png"), cv2.IMREAD_GRAYSCALE)
+    flow = read_flo(d / "flow10.flo")
+    pts = cv2.goodFeaturesToTrack(f0, 500, 0.01, 8).reshape(-1, 2).astype(float)
+    gt = flow[np.rint(pts[:, 1]).astype(int), np.rint(pts[:, 0]).astype(int)]
+    known = np.all(np.abs(gt) < 1e9, axis=1)
+    uv, ok = pt.track_points(f0, f1, pts)
+    epe = np.linalg.norm(uv - pts - gt, axis=1)[ok & known]
+    lk, st, _ = cv2.calcOpticalFlowPyrLK(f0, f1, pts.astype(np.float32), None)
+    epe_lk = np.linalg.norm(lk - pts - gt, axis=1)[(st.ravel() == 1) & known]
+    print(f"RubberWhale median EPE: ours {np.median(epe):.4f} px on {len(epe)} points, "
+          f"pyramidal LK {np.median(epe_lk):.4f} px on {len(epe_lk)} points")
+    assert len(epe) > 0.7 * known.sum()
+    assert np.median(epe) <= 0.05

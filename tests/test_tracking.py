@@ -1,0 +1,186 @@
+"""The multi-target Tracker: tracking in both images against exact ground truth, refusals,
+immediate loss, gating, rigid-body check, recovery, automatic selection."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+
+from trackmeter.core.features import FeatureParams, target_mask
+from trackmeter.core.matching import MeasureParams
+from trackmeter.core.targets import Refusal, TargetState
+from trackmeter.core.tracking import Tracker, TrackerParams
+from trackmeter.errors import TrackmeterError
+from trackmeter.sources.base import StereoFrame
+from trackmeter.sources.plane import PlaneScene, pose_translating
+
+
+@pytest.fixture(scope="module")
+def scene(estec_rig) -> PlaneScene:  # type: ignore[no-untyped-def]
+    # 0.1 m/s across, 0.05 m/s down, turning 0.2 rad/s about the viewing axis, at 3.5 m.
+    return PlaneScene(estec_rig, pose_translating(3.5, (0.1, 0.05, 0.0), (0.0, 0.0, 0.2)), noise_sigma=1.0)
+
+
+def interior_points(frame: StereoFrame, n: int, margin: int = 30) -> np.ndarray:
+    mask = target_mask(frame.left, FeatureParams(target_margin_px=margin))
+    return cv2.goodFeaturesToTrack(frame.left, n, 0.05, 30, mask=mask).reshape(-1, 2).astype(float)
+
+
+def make_tracker(rig, **kw) -> Tracker:  # type: ignore[no-untyped-def]
+    return Tracker(rig, TrackerParams(**kw), FeatureParams(), MeasureParams())
+
+
+def add_all(tr: Tracker, frame: StereoFrame, pts: np.ndarray) -> list[str]:
+    ids = []
+    for uv in pts:
+        r = tr.add_target(frame, (float(uv[0]), float(uv[1])))
+        if isinstance(r, TargetState):
+            ids.append(r.id)
+    return ids
+
+
+def test_tracks_a_moving_turning_plate_in_both_images(scene, estec_rig) -> None:
+    f0 = scene.frame(0)
+    tr = make_tracker(estec_rig)
+    ids = add_all(tr, f0, interior_points(f0, 8))
+    assert len(ids) >= 6
+    body = {t.id: scene.surface_points(0, t.uv[None])[0] for t in tr.targets}
+    worst_left, worst_right, z3 = 0.0, 0.0, []
+    for k in range(1, 31):
+        f = scene.frame(k)
+        states = tr.step(f)
+        T = scene.T_cam_body(k)
+        assert sum(t.status == "tracking" for t in states) >= len(ids) - 1, [t.lost_reason for t in states]
+        for t in states:
+            if t.status == "lost":
+                continue
+            true_l, true_r = scene.project(k, body[t.id][None])
+            worst_left = max(worst_left, float(np.linalg.norm(t.uv - true_l[0])))
+            worst_right = max(worst_right, float(np.linalg.norm(t.uv_right - true_r[0])))
+            p_true = T[:3, :3] @ body[t.id] + T[:3, 3]
+            z3.append((t.point_cam - p_true) / np.sqrt(np.diag(t.cov_cam)))
+    assert worst_left < 0.15 and worst_right < 0.3
+    # The 3D errors are of the size the covariance says (eqs. 1-2).
+    assert np.all(np.std(np.array(z3), axis=0) < 2.0)
+
+
+def test_bad_clicks_are_refused_with_their_reason(scene, estec_rig) -> None:
+    f0 = scene.frame(0)
+    tr = make_tracker(estec_rig, max_targets=2)
+    left = f0.left.copy()
+    left[200:240, 300:340] = 120  # a flat grey patch on the plate
+    flat = StereoFrame(0, 0.0, left, f0.right.copy())
+    checks = {
+        (60.0, 60.0): "dark",  # black space around the plate
+        (-3.0, 100.0): "outside",
+        (320.0, 220.0): "textureless",
+    }
+    for uv, word in checks.items():
+        r = tr.add_target(flat, uv)
+        assert isinstance(r, Refusal) and word in r.reason, (uv, r)
+    pts = interior_points(f0, 3)
+    assert isinstance(tr.add_target(f0, tuple(pts[0])), TargetState)
+    assert isinstance(tr.add_target(f0, tuple(pts[1])), TargetState)
+    r = tr.add_target(f0, tuple(pts[2]))
+    assert isinstance(r, Refusal) and "target limit" in r.reason
+    assert len(tr.targets) == 2
+
+
+def test_an_edge_is_refused_as_an_aperture_problem(estec_rig) -> None:
+    left = np.full((512, 726), 30, np.uint8)
+    left[:, 363:] = 200
+    left = cv2.GaussianBlur(left, (0, 0), 1.0)
+    rng = np.random.default_rng(0)
+    left = np.clip(left + rng.normal(0, 1, left.shape), 0, 255).astype(np.uint8)
+    right = np.roll(left, -92, axis=1)
+    r = make_tracker(estec_rig).add_target(StereoFrame(0, 0.0, left, right), (363.0, 256.0))
+    assert isinstance(r, Refusal)
+
+
+def test_an_occluded_target_is_lost_at_once_and_relocked(scene, estec_rig) -> None:
+    f0 = scene.frame(0)
+    tr = make_tracker(estec_rig, recover_lost=False)
+    add_all(tr, f0, interior_points(f0, 6))
+    for k in (1, 2):
+        tr.step(scene.frame(k))
+    alive = [t for t in tr.targets if t.status == "tracking"]
+    assert len(alive) >= 4
+    victim = alive[0]
+    f3 = scene.frame(3)
+    left = f3.left.copy()
+    u, v = np.round(victim.uv).astype(int)
+    left[v - 12 : v + 13, u - 12 : u + 13] = 0  # something passes in front of it
+    states = {t.id: t for t in tr.step(StereoFrame(3, f3.t_s, left, f3.right))}
+    assert states[victim.id].status == "lost" and states[victim.id].lost_reason
+    assert np.all(np.isnan(states[victim.id].point_cam))
+    assert all(states[t.id].status == "tracking" for t in alive[1:]), [(t.id, t.lost_reason) for t in states.values()]
+    # Re-lock through a predicted position (as the pose estimator does, paper 2.D).
+    f4 = scene.frame(4)
+    tr.step(f4)
+    true_uv, _ = scene.project(4, scene.surface_points(2, victim.uv[None]))
+    r = tr.relock(victim.id, tuple(true_uv[0] + 1.5), f4)
+    assert isinstance(r, TargetState) and r.status == "recovered"
+    assert np.linalg.norm(r.uv - true_uv[0]) < 0.2
+
+
+def test_a_jump_loses_every_target_instead_of_locking_elsewhere(estec_rig) -> None:
+    def pose(t: float) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, 3] = (0.05 * (t > 0.1), 0.0, 3.5)  # jumps 16 px sideways after frame 2
+        return T
+
+    scene = PlaneScene(estec_rig, pose, noise_sigma=1.0)
+    f0 = scene.frame(0)
+    tr = make_tracker(estec_rig, recover_lost=False, min_search_px=3.0, max_search_px=8.0)
+    add_all(tr, f0, interior_points(f0, 6))
+    for k in (1, 2):
+        assert all(t.status == "tracking" for t in tr.step(scene.frame(k)))
+    states = tr.step(scene.frame(3))
+    assert all(t.status == "lost" for t in states), [(t.id, t.status) for t in states]
+
+
+def test_rigid_check_loses_the_point_that_moved(scene, estec_rig) -> None:
+    f0 = scene.frame(0)
+    tr = make_tracker(estec_rig)
+    add_all(tr, f0, interior_points(f0, 6))
+    tr.step(scene.frame(1))
+    live = [tr._targets[t.id] for t in tr.targets]
+    assert tr._rigid_inconsistent(live) == {}
+    live[2].point_cam = live[2].point_cam + np.array([0.02, 0.0, 0.0])  # slid 2 cm on the body
+    bad = tr._rigid_inconsistent(live)
+    assert list(bad) == [live[2].id]
+
+
+def test_pose_outliers_are_dropped_and_targets_managed(scene, estec_rig) -> None:
+    f0 = scene.frame(0)
+    tr = make_tracker(estec_rig)
+    ids = add_all(tr, f0, interior_points(f0, 5))
+    states = {t.id: t for t in tr.step(scene.frame(1), reject_ids={ids[0]})}
+    assert states[ids[0]].status == "lost" and "pose" in states[ids[0]].lost_reason
+    second = tr.targets[1]
+    assert tr.remove_nearest(tuple(second.uv + 3.0)) == second.id
+    assert tr.remove_target("nope") is False
+    with pytest.raises(TrackmeterError):
+        tr.set_auto(True, method="sift")
+    with pytest.raises(TrackmeterError):
+        tr.set_auto(True, count=0)
+    tr.clear()
+    assert tr.targets == ()
+
+
+def test_automatic_selection_keeps_the_count_alive(scene, estec_rig) -> None:
+    tr = make_tracker(estec_rig, max_targets=40)
+    tr.set_auto(True, count=10, method="gabor")
+    states = tr.step(scene.frame(0))
+    assert sum(t.status != "lost" for t in states) == 10
+    assert all(t.origin == "auto" for t in states)
+    # Remove some: the next top-up replaces them.
+    for t in states[:4]:
+        tr.remove_target(t.id)
+    for k in range(1, 7):
+        states = tr.step(scene.frame(k))
+    assert sum(t.status != "lost" for t in states) == 10
+    assert len(dataclasses.fields(TrackerParams)) > 10

@@ -1,0 +1,660 @@
+"""Sub-pixel 2D patch tracking, batched over targets (paper section 2.B).
+
+Three pure steps, each vectorised across all targets of a frame:
+
+1. :func:`sample_patches` — bilinear sampling of square patches centred at sub-pixel points,
+   with exact float weights (``cv2.remap`` quantises its weights to 1/32 px, which would put a
+   pixel-locking pattern of up to 0.016 px into every result), optionally through a coordinate
+   map (the rectification maps, so patches can be taken in rectified images from the original
+   ones without rectifying whole images).
+2. :func:`zncc_search` — coarse integer search of the best zero-mean normalised
+   cross-correlation (``cv2.matchTemplate``, ``TM_CCOEFF_NORMED``) in a window.
+3. :func:`refine_lk` — inverse-compositional Lucas-Kanade on translation (Baker & Matthews,
+   "Lucas-Kanade 20 years on", IJCV 2004, section 3.2) with the gain and bias of the image
+   patch solved in closed form at every iteration (so the match is invariant to the affine
+   brightness changes of a glinting surface, like ZNCC). The translation is found by
+   Gauss-Newton on interpolated intensities, not by fitting a parabola to integer scores, so
+   it carries no pixel-locking bias.
+
+Template strategy (:func:`track_patches`): "template update with drift correction",
+Matthews, Ishikawa & Baker, PAMI 2004 ("The template update problem", strategy 3). Each target
+keeps its ANCHOR template (taken when it was created or last re-anchored) with the affine warp
+that maps it into the current image, and its CURRENT template (the patch where it was found in
+the previous frame). The window is searched with the current template (which looks most like
+this frame); the position is then measured against the anchor by affine LK, so the error does
+not accumulate and the rotation of a tumbling surface does not pull the patch centre off its
+point. When the anchor no longer matches (a glint, a large change of view) the current
+template's match is used, and once the rest of the step verified it (stereo match, gating,
+rigid-body check) the anchor is replaced by it (a re-anchor). Measured against naive
+every-frame template update in ``tests/test_patch_tracking.py`` and the ``tracker`` benchmark.
+
+Pixels: (u, v) = (column, row), centre of the top-left pixel at (0, 0). A patch of side ``n``
+centred at ``c`` samples ``c + k - (n-1)/2`` for ``k = 0..n-1`` (as ``cv2.getRectSubPix``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+F32 = NDArray[np.float32]
+
+
+def patch_offsets(size: int) -> F32:
+    """Offsets (size,) of a patch's samples from its centre, px: ``k - (size-1)/2``."""
+    return (np.arange(size, dtype=np.float32) - (size - 1) / 2.0).astype(np.float32)
+
+
+def bilinear(image: F32, x: NDArray, y: NDArray) -> tuple[F32, NDArray[np.bool_]]:
+    """Bilinear interpolation of a float32 image at sub-pixel points (any equal shapes).
+
+    ``image`` is (H,W), or a stack (N,H,W) sampled with ``x, y`` of shape (N, ...) — point
+    ``[i, ...]`` in image ``i``. Returns ``(values, inside)``; points outside
+    ``[0, W-1] x [0, H-1]`` are clamped to the border and flagged ``inside = False``.
+    """
+    h, w = image.shape[-2:]
+    x = np.asarray(x, dtype=np.float32)
+    y = np.asarray(y, dtype=np.float32)
+    inside = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
+    xc = np.minimum(np.maximum(x, 0), np.float32(w - 1.001))
+    yc = np.minimum(np.maximum(y, 0), np.float32(h - 1.001))
+    x0 = xc.astype(np.int32)  # floor: xc >= 0
+    y0 = yc.astype(np.int32)
+    fx = xc - x0
+    fy = yc - y0
+    flat = image.reshape(-1)
+    i00 = y0 * w + x0
+    if image.ndim == 3:
+        i00 += (np.arange(image.shape[0], dtype=np.int32) * (h * w)).reshape((-1,) + (1,) * (x.ndim - 1))
+    a = flat[i00]
+    b = flat[i00 + 1]
+    c = flat[i00 + w]
+    d = flat[i00 + w + 1]
+    top = a + fx * (b - a)
+    bot = c + fx * (d - c)
+    return (top + fy * (bot - top)).astype(np.float32, copy=False), inside
+
+
+def sample_points(image: F32, x: NDArray, y: NDArray, coord_map: tuple[F32, F32] | None = None) -> tuple[F32, NDArray[np.bool_]]:
+    """Sample ``image`` at points (x, y); with ``coord_map = (map_x, map_y)`` the points are first
+    sent through the map (e.g. rectified → original pixels, ``Rectification.maps``)."""
+    if coord_map is not None:
+        mx, inside_m = bilinear(coord_map[0], x, y)
+        my, _ = bilinear(coord_map[1], x, y)
+        values, inside = bilinear(image, mx, my)
+        return values, inside & inside_m
+    return bilinear(image, x, y)
+
+
+def sample_patches(
+    image: F32, centres: NDArray, size: int, coord_map: tuple[F32, F32] | None = None
+) -> tuple[F32, NDArray[np.bool_]]:
+    """Patches (N,size,size) centred at ``centres`` (N,2) px, and whether each lies fully inside."""
+    c = np.asarray(centres, dtype=np.float32).reshape(-1, 2)
+    off = patch_offsets(size)
+    x = c[:, 0, None, None] + off[None, None, :]
+    y = c[:, 1, None, None] + off[None, :, None]
+    x, y = np.broadcast_arrays(x, y)
+    values, inside = sample_points(image, x, y, coord_map)
+    return values, inside.reshape(len(c), -1).all(axis=1)
+
+
+@dataclass(frozen=True, eq=False)
+class Templates:
+    """Reference patches of N targets with what inverse-compositional LK precomputes.
+
+    Attributes:
+        values: (N,n,n) intensities.
+        gx, gy: (N,n,n) central-difference gradients, per px.
+        hessian_inv: (N,2,2) inverse Gauss-Newton Hessian of the zero-mean template.
+        ok: (N,) the template lay inside the image and has texture (a regular Hessian).
+    """
+
+    values: F32
+    gx: F32
+    gy: F32
+    hessian_inv: FloatArray
+    ok: NDArray[np.bool_]
+
+    @property
+    def size(self) -> int:
+        return int(self.values.shape[-1])
+
+    def select(self, index: NDArray) -> "Templates":
+        return Templates(self.values[index], self.gx[index], self.gy[index], self.hessian_inv[index], self.ok[index])
+
+
+def make_templates(image: F32, centres: NDArray, size: int, coord_map: tuple[F32, F32] | None = None) -> Templates:
+    """Templates (side ``size``) at ``centres`` (N,2): a (size+4)² patch is sampled so the
+    gradients are finite differences of real samples."""
+    # Five-point derivative (-1, 8, 0, -8, 1)/12: the plain central difference under-estimates
+    # the gradient of fine texture, which makes Gauss-Newton overshoot and converge slowly.
+    big, inside = sample_patches(image, centres, size + 4, coord_map)
+    values = np.ascontiguousarray(big[:, 2:-2, 2:-2])
+    gx = (8.0 * (big[:, 2:-2, 3:-1] - big[:, 2:-2, 1:-3]) - (big[:, 2:-2, 4:] - big[:, 2:-2, :-4])) / 12.0
+    gy = (8.0 * (big[:, 3:-1, 2:-2] - big[:, 1:-3, 2:-2]) - (big[:, 4:, 2:-2] - big[:, :-4, 2:-2])) / 12.0
+    return Templates(values, gx, gy, *_hessian(gx, gy, inside))
+
+
+def _hessian(gx: F32, gy: F32, inside: NDArray[np.bool_]) -> tuple[FloatArray, NDArray[np.bool_]]:
+    # Gradients of a zero-mean template are the same as of the template; the gain/bias solved
+    # in closed form leaves the geometric Hessian sum(grad grad^T).
+    gxx = np.einsum("nij,nij->n", gx, gx, dtype=np.float64)
+    gyy = np.einsum("nij,nij->n", gy, gy, dtype=np.float64)
+    gxy = np.einsum("nij,nij->n", gx, gy, dtype=np.float64)
+    det = gxx * gyy - gxy * gxy
+    ok = inside & (det > 1e-6 * np.maximum(gxx + gyy, 1e-12) ** 2) & (gxx + gyy > 1e-6)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        hinv = np.stack([np.stack([gyy, -gxy], -1), np.stack([-gxy, gxx], -1)], -2) / det[:, None, None]
+    hinv[~ok] = 0.0
+    return hinv, ok
+
+
+def _project_out(J: FloatArray, t_unit: FloatArray) -> FloatArray:
+    """Columns of J (N,K[,P]) minus their mean and their component along the unit, zero-mean
+    template ``t_unit`` (N,K): the part a gain/bias change cannot explain."""
+    if J.ndim == 2:
+        J = J - J.mean(1, keepdims=True)
+        return J - (J * t_unit).sum(1, keepdims=True) * t_unit
+    J = J - J.mean(1, keepdims=True)
+    return J - np.einsum("nkp,nk->np", J, t_unit)[:, None, :] * t_unit[:, :, None]
+
+
+def zncc(a: F32, b: F32) -> FloatArray:
+    """Zero-mean normalised cross-correlation (N,) of two stacks of patches (N,n,n), in [-1, 1]."""
+    a = a.reshape(len(a), -1).astype(np.float64)
+    b = b.reshape(len(b), -1).astype(np.float64)
+    a = a - a.mean(axis=1, keepdims=True)
+    b = b - b.mean(axis=1, keepdims=True)
+    den = np.sqrt((a * a).sum(1) * (b * b).sum(1))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(den > 1e-9, (a * b).sum(1) / den, 0.0)
+
+
+@dataclass(frozen=True, eq=False)
+class LKResult:
+    """Result of :func:`refine_lk` for N patches.
+
+    Attributes:
+        uv: (N,2) refined centres, px (in the sampled image's coordinates).
+        score: (N,) ZNCC between the template and the image patch at ``uv``.
+        converged: (N,) the last step was below the tolerance and the patch stayed inside.
+        iterations: (N,) Gauss-Newton iterations used.
+    """
+
+    uv: FloatArray
+    score: FloatArray
+    converged: NDArray[np.bool_]
+    iterations: NDArray[np.int32]
+
+
+def refine_lk(
+    image: F32,
+    templates: Templates,
+    uv0: NDArray,
+    *,
+    coord_map: tuple[F32, F32] | None = None,
+    max_iterations: int = 10,
+    tolerance_px: float = 5e-3,
+    max_shift_px: float = 3.0,
+    axis_mask: tuple[float, float] = (1.0, 1.0),
+) -> LKResult:
+    """Lucas-Kanade on translation with closed-form gain and bias, ESM steps.
+
+    Minimises ``sum_x [ a (I(x + p) - mean I) - (T(x) - mean T) ]²`` over the translation
+    ``p``: at each iteration the patch ``I(x + p)`` is sampled (bilinear, exact weights), the
+    gain ``a`` is its least-squares fit to ``T`` (the bias drops out with the means), and the
+    Gauss-Newton step uses the ESM Jacobian ``J = (grad T + a grad I(x + p)) / 2``
+    (Benhimane & Malis, IROS 2004; Baker & Matthews 2004 for the IC family):
+    ``p <- p - (J^T J)^-1 J^T (I' - T)``.
+
+    Args:
+        image: float32 image (H,W) the patches are sampled from, or a stack (N,H,W) of one
+            small image per patch (e.g. rectified strips).
+        templates: N templates.
+        uv0: (N,2) start centres, px.
+        coord_map: optional sampling map (see :func:`sample_points`).
+        max_shift_px: a patch that moves farther than this from ``uv0`` did not converge.
+        axis_mask: (1, 0) to move along u only (e.g. along a rectified epipolar line).
+    """
+    n = templates.size
+    p = np.asarray(uv0, dtype=np.float64).reshape(-1, 2).copy()
+    N = len(p)
+    T = templates.values.reshape(N, -1).astype(np.float64)
+    Tm = T - T.mean(1, keepdims=True)
+    Tn = Tm / np.maximum(np.linalg.norm(Tm, axis=1, keepdims=True), 1e-9)
+    gx = templates.gx.reshape(N, -1).astype(np.float64)
+    gy = templates.gy.reshape(N, -1).astype(np.float64)
+    active = templates.ok.copy()
+    converged = np.zeros(N, bool)
+    iters = np.zeros(N, np.int32)
+    mask = np.asarray(axis_mask, dtype=np.float64)
+    for _ in range(max_iterations):
+        idx = np.flatnonzero(active)
+        if len(idx) == 0:
+            break
+        big, inside = sample_patches(image if image.ndim == 2 else image[idx], p[idx], n + 4, coord_map)
+        big = big.astype(np.float64)
+        I = big[:, 2:-2, 2:-2].reshape(len(idx), -1)
+        Im = I - I.mean(1, keepdims=True)
+        # Closed-form gain: I' = gain (I - mean I) is the least-squares fit of the patch to the
+        # zero-mean template; the bias drops out with the means.
+        cov = (Im * Tm[idx]).sum(1)
+        ivar = (Im * Im).sum(1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            gain = np.where(ivar > 1e-9, cov / ivar, 0.0)
+        err = Im * gain[:, None] - Tm[idx]
+        # ESM (Benhimane & Malis 2004): the mean of the template's and the warped image's
+        # gradients gives second-order convergence (plain IC converges slowly on fine texture).
+        ix = (8.0 * (big[:, 2:-2, 3:-1] - big[:, 2:-2, 1:-3]) - (big[:, 2:-2, 4:] - big[:, 2:-2, :-4])) / 12.0
+        iy = (8.0 * (big[:, 3:-1, 2:-2] - big[:, 1:-3, 2:-2]) - (big[:, 4:, 2:-2] - big[:, :-4, 2:-2])) / 12.0
+        jx = 0.5 * (gx[idx] + gain[:, None] * ix.reshape(len(idx), -1)) * mask[0]
+        jy = 0.5 * (gy[idx] + gain[:, None] * iy.reshape(len(idx), -1)) * mask[1]
+        # Variable projection: the gain and bias are solved in closed form, so the Jacobian
+        # must be orthogonal to what they explain (span{1, T}); otherwise a shift that looks
+        # like a brightness change is counted twice and the steps fall short.
+        jx = _project_out(jx, Tn[idx])
+        jy = _project_out(jy, Tn[idx])
+        hxx = (jx * jx).sum(1)
+        hyy = (jy * jy).sum(1)
+        hxy = (jx * jy).sum(1)
+        det = hxx * hyy - hxy * hxy
+        bx = (jx * err).sum(1)
+        by = (jy * err).sum(1)
+        if mask[1] == 0.0:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                dp = np.column_stack([np.where(hxx > 1e-9, bx / hxx, 0.0), np.zeros(len(idx))])
+        else:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                dp = np.column_stack([(hyy * bx - hxy * by) / det, (hxx * by - hxy * bx) / det])
+            dp[~(det > 1e-12)] = 0.0
+        p[idx] -= dp
+        iters[idx] += 1
+        step = np.abs(dp).max(1)
+        bad = ~inside | (np.abs(p[idx] - np.asarray(uv0, float).reshape(-1, 2)[idx]).max(1) > max_shift_px) | (gain <= 0)
+        done = step < tolerance_px
+        converged[idx[done & ~bad]] = True
+        active[idx[done | bad]] = False
+    final, inside = sample_patches(image, p, n, coord_map)
+    score = zncc(templates.values, final)
+    converged &= inside & templates.ok
+    return LKResult(uv=p, score=score, converged=converged, iterations=iters)
+
+
+def zncc_search(
+    image: F32, template: F32, centre: NDArray, half_size: NDArray
+) -> tuple[FloatArray, float, float] | None:
+    """Best integer ZNCC position of ``template`` (n,n) in a window around ``centre`` (2,).
+
+    The window covers centres ``centre ± half_size`` (2,) px, clipped to the image. Returns
+    ``(uv (2,), best score, best score of the other local maxima)``
+    or None when the window is smaller than the template. The returned centre is offset from
+    an integer grid by the template's own sub-pixel offset, so LK can start from it.
+    """
+    n = template.shape[0]
+    h, w = image.shape
+    half = (n - 1) / 2.0
+    cu, cv = float(centre[0]), float(centre[1])
+    x0 = int(np.floor(cu - half_size[0] - half))
+    x1 = int(np.ceil(cu + half_size[0] + half)) + 1
+    y0 = int(np.floor(cv - half_size[1] - half))
+    y1 = int(np.ceil(cv + half_size[1] + half)) + 1
+    x0, y0 = max(x0, 0), max(y0, 0)
+    x1, y1 = min(x1, w), min(y1, h)
+    if x1 - x0 < n or y1 - y0 < n:
+        return None
+    roi = image[y0:y1, x0:x1]
+    res = cv2.matchTemplate(roi, template, cv2.TM_CCOEFF_NORMED)
+    _, best, _, loc = cv2.minMaxLoc(res)
+    j, i = loc
+    # Second peak: the best other LOCAL MAXIMUM of the score (a broad main peak's flanks do not
+    # count) farther than half a patch from the best (noise ripples on the main peak do not).
+    r = max(n // 2, 2)
+    peaks = (res >= cv2.dilate(res, np.ones((3, 3), np.uint8))) & (res > -1.0)
+    peaks[max(i - r, 0) : i + r + 1, max(j - r, 0) : j + r + 1] = False
+    second = float(res[peaks].max()) if peaks.any() else -1.0
+    uv = np.array([x0 + j + half, y0 + i + half])
+    return uv, float(best), second
+
+
+@dataclass(frozen=True, eq=False)
+class PatchTrack:
+    """Result of :func:`track_patches` for N targets.
+
+    Attributes:
+        uv: (N,2) sub-pixel positions, px.
+        score: (N,) ZNCC of the accepted match.
+        converged: (N,) a match was found (anchor or current template).
+        anchored: (N,) the position came from the anchor template (drift corrected).
+        anchor_lin: (N,2,2) linear part of the anchor → image affine warp (identity where not
+            anchored).
+    """
+
+    uv: FloatArray
+    score: FloatArray
+    converged: NDArray[np.bool_]
+    anchored: NDArray[np.bool_]
+    anchor_lin: FloatArray
+
+
+def track_patches(
+    image: F32,
+    anchor: Templates,
+    anchor_lin: NDArray,
+    current: Templates,
+    uv0: NDArray,
+    *,
+    anchor_min_score: float,
+    drift_tolerance_px: float,
+) -> PatchTrack:
+    """Sub-pixel positions of N targets near ``uv0`` (N,2) (e.g. integer ZNCC search results).
+
+    Template update with drift correction (Matthews, Ishikawa & Baker, PAMI 2004, strategy 3),
+    arranged so the common case costs one refinement: each target is first aligned with its
+    ANCHOR template by affine LK (:func:`refine_lk_affine`, started from last frame's linear
+    warp ``anchor_lin`` (N,2,2) and this frame's search result). When the anchor converges
+    within ``1 + drift_tolerance_px`` of the search result with ZNCC >= ``anchor_min_score``,
+    its position is taken: every frame is measured against the same reference, so errors do
+    not accumulate (no drift), and the affine warp follows rotation and foreshortening. Where
+    the anchor no longer fits (appearance changed: a glint, a large turn), the CURRENT template
+    (last frame's patch) is refined by translation LK (:func:`refine_lk`) instead; the caller
+    re-anchors on that match once the rest of the step verified it.
+    """
+    N = len(uv0)
+    uv0 = np.asarray(uv0, dtype=np.float64).reshape(N, 2)
+    lin = np.asarray(anchor_lin, dtype=np.float64).reshape(N, 2, 2)
+    W0 = np.concatenate([lin, uv0[:, :, None]], axis=2)
+    la = refine_lk_affine(image, anchor, W0, max_iterations=8, tolerance_px=0.02, max_shift_px=2.0)
+    moved = np.abs(la.uv - uv0).max(1)
+    anchored = la.converged & (la.score >= anchor_min_score) & (moved <= 1.0 + drift_tolerance_px)
+    uv = np.where(anchored[:, None], la.uv, np.nan)
+    score = np.where(anchored, la.score, np.nan)
+    converged = anchored.copy()
+    out_lin = np.where(anchored[:, None, None], la.warp[:, :, :2], np.eye(2))
+    rest = np.flatnonzero(~anchored)
+    if len(rest):
+        lc = refine_lk(image, current.select(rest), uv0[rest], max_iterations=8, tolerance_px=0.01)
+        uv[rest] = lc.uv
+        score[rest] = lc.score
+        # A re-anchor is only safe where the anchor still converged to the same spot (its score
+        # merely dropped with the appearance); where the two disagree the target is not
+        # trusted: following the current template alone is how template trackers drift away.
+        agree = la.converged[rest] & (np.abs(la.uv[rest] - lc.uv).max(1) <= drift_tolerance_px)
+        converged[rest] = lc.converged & agree
+    return PatchTrack(uv=uv, score=score, converged=converged, anchored=anchored, anchor_lin=out_lin)
+
+
+@dataclass(frozen=True, eq=False)
+class EpipolarMatch:
+    """Right-image matches of N left points along their rectified epipolar lines.
+
+    Attributes:
+        uv_rect_left: (N,2) left points in the rectified left image, px.
+        uv_rect_right: (N,2) sub-pixel matches in the rectified right image, px.
+        disparity_px: (N,) ``u_rect_left - u_rect_right``, px.
+        score: (N,) ZNCC of the refined match.
+        second_score: (N,) best ZNCC along the searched line outside the chosen peak (ambiguity).
+        epipolar_residual_px: (N,) vertical offset of the 2D-refined match from the left row, px.
+        reason: (N,) None when accepted, else why not (one line).
+    """
+
+    uv_rect_left: FloatArray
+    uv_rect_right: FloatArray
+    disparity_px: FloatArray
+    score: FloatArray
+    second_score: FloatArray
+    epipolar_residual_px: FloatArray
+    reason: list[str | None]
+
+    @property
+    def ok(self) -> NDArray[np.bool_]:
+        return np.array([r is None for r in self.reason], dtype=bool)
+
+
+def match_epipolar(
+    left: F32,
+    right: F32,
+    left_map: tuple[F32, F32],
+    right_map: tuple[F32, F32],
+    uv_rect_left: NDArray,
+    disparity_low_px: NDArray,
+    span_px: int,
+    size: int,
+    *,
+    min_score: float,
+    uniqueness_margin: float,
+    epipolar_tolerance_px: float,
+) -> EpipolarMatch:
+    """Match left patches along the rectified right rows, batched over N points.
+
+    The left patch is sampled in the RECTIFIED left image at ``uv_rect_left`` (through the
+    rectification map, so only the patch is rectified), and compared by ZNCC with the
+    rectified right row at every integer disparity ``d_low .. d_low + span``. The best peak
+    must score ``min_score`` and beat every other peak of the line (outside ±size/2 of it) by
+    ``uniqueness_margin`` (else the point is ambiguous along its epipolar line). It is then
+    refined by 2D inverse-compositional LK (:func:`refine_lk`); a refined match that leaves the
+    row by more than ``epipolar_tolerance_px`` fails the epipolar consistency check.
+
+    Args:
+        left, right: float32 ORIGINAL images.
+        left_map, right_map: rectified → original maps (``Rectification.maps``).
+        uv_rect_left: (N,2) rectified left pixels.
+        disparity_low_px: (N,) smallest disparity searched, px.
+        span_px: number of disparities searched above it (same for all points).
+        size: patch side, px.
+    """
+    cl = np.asarray(uv_rect_left, dtype=np.float64).reshape(-1, 2)
+    N = len(cl)
+    d_low = np.asarray(disparity_low_px, dtype=np.float64).reshape(-1)
+    span = int(span_px)
+    d_high = d_low + span
+    templates = make_templates(left, cl, size, left_map)
+    half = (size - 1) / 2.0
+    off = patch_offsets(size).astype(np.float64)
+    width = span + size
+    margin = 4  # rows above and below the patch: room for the 2D refinement's gradients and vertical check
+    x_first = cl[:, 0] - d_high - half
+    xs = x_first[:, None] + np.arange(width)[None, :]
+    ys = cl[:, 1, None] + patch_offsets(size + 2 * margin).astype(np.float64)[None, :]
+    X = np.broadcast_to(xs[:, None, :], (N, size + 2 * margin, width))
+    Y = np.broadcast_to(ys[:, :, None], (N, size + 2 * margin, width))
+    # The rectified right strip around each epipolar line: the only right pixels rectified.
+    strip, inside = sample_points(right, X, Y, right_map)
+    core = strip[:, margin:-margin, :].astype(np.float64)
+    inside = inside[:, margin:-margin, :]
+    # ZNCC of the template with every window of the strip, all at once.
+    win = np.lib.stride_tricks.sliding_window_view(core, size, axis=2)  # (N, size, span+1, size)
+    win = np.moveaxis(win, 2, 1).reshape(N, span + 1, size * size)
+    t = templates.values.reshape(N, -1).astype(np.float64)
+    t = t - t.mean(1, keepdims=True)
+    wm = win - win.mean(2, keepdims=True)
+    num = np.einsum("nkp,np->nk", wm, t)
+    den = np.sqrt(np.einsum("nkp,nkp->nk", wm, wm) * (t * t).sum(1)[:, None])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scores = np.where(den > 1e-9, num / den, -1.0)
+    valid_col = np.lib.stride_tricks.sliding_window_view(inside, size, axis=2).all(axis=(1, 3))
+    scores = np.where(valid_col, scores, -1.0)
+    k_best = scores.argmax(1)
+    best = scores[np.arange(N), k_best]
+    r = max(size // 2, 2)
+    kk = np.arange(span + 1)[None, :]
+    far = np.abs(kk - k_best[:, None]) > r
+    second = np.where(far, scores, -1.0).max(1) if span + 1 > 1 else np.full(N, -1.0)
+    # Sub-pixel: 2D IC-LK inside the strips (strip pixel (j, r) is the rectified pixel
+    # (x_first + j, v - half - margin + r), so bilinear sampling of the strip is bilinear
+    # sampling of the rectified image).
+    start = np.column_stack([k_best + half, np.full(N, margin + half)])
+    lk = refine_lk(np.ascontiguousarray(strip), templates, start, max_shift_px=float(margin) / 2 - 0.01)
+    u_right = x_first + lk.uv[:, 0]
+    v_right = cl[:, 1] + (lk.uv[:, 1] - margin - half)
+    disparity = cl[:, 0] - u_right
+    resid = v_right - cl[:, 1]
+    lk = LKResult(uv=np.column_stack([u_right, v_right]), score=lk.score, converged=lk.converged, iterations=lk.iterations)
+    reasons: list[str | None] = []
+    for i in range(N):
+        if not templates.ok[i]:
+            reasons.append("textureless or outside the rectified image")
+        elif best[i] < min_score:
+            reasons.append(f"no stereo match along the epipolar line (score {best[i]:.2f})")
+        elif second[i] > best[i] - uniqueness_margin:
+            reasons.append(f"ambiguous along the epipolar line (scores {best[i]:.2f} and {second[i]:.2f})")
+        elif k_best[i] in (0, span) and span > 0:
+            reasons.append("stereo match at the edge of the disparity range")
+        elif not lk.converged[i]:
+            reasons.append("stereo sub-pixel refinement did not converge")
+        elif abs(resid[i]) > epipolar_tolerance_px:
+            reasons.append(f"off the epipolar line by {resid[i]:.2f} px")
+        elif lk.score[i] < min_score:
+            reasons.append(f"weak stereo match (score {lk.score[i]:.2f})")
+        else:
+            reasons.append(None)
+    return EpipolarMatch(cl, lk.uv, disparity, lk.score, second, resid, reasons)
+
+
+@dataclass(frozen=True, eq=False)
+class AffineLKResult:
+    """Result of :func:`refine_lk_affine` for N patches.
+
+    Attributes:
+        warp: (N,2,3) affine maps from template offsets ``(x, y, 1)`` to image pixels; the
+            target's position is the last column (the template centre's image).
+        score: (N,) ZNCC between the template and the warped image patch.
+        converged: (N,) converged inside the image without degenerating.
+    """
+
+    warp: FloatArray
+    score: FloatArray
+    converged: NDArray[np.bool_]
+
+    @property
+    def uv(self) -> FloatArray:
+        return self.warp[:, :, 2]
+
+
+def sample_warped(image: F32, warp: NDArray, size: int) -> tuple[F32, NDArray[np.bool_]]:
+    """Patches (N,size,size) sampled at ``warp @ (x, y, 1)`` for the template offsets (x, y)."""
+    off = patch_offsets(size).astype(np.float64)
+    gx, gy = np.meshgrid(off, off)
+    W = np.asarray(warp, dtype=np.float64)
+    x = W[:, 0, 0, None, None] * gx + W[:, 0, 1, None, None] * gy + W[:, 0, 2, None, None]
+    y = W[:, 1, 0, None, None] * gx + W[:, 1, 1, None, None] * gy + W[:, 1, 2, None, None]
+    values, inside = bilinear(image, x, y)
+    return values, inside.reshape(len(W), -1).all(axis=1)
+
+
+def refine_lk_affine(
+    image: F32,
+    templates: Templates,
+    warp0: NDArray,
+    *,
+    max_iterations: int = 20,
+    tolerance_px: float = 1e-3,
+    max_shift_px: float = 3.0,
+) -> AffineLKResult:
+    """Inverse-compositional Lucas-Kanade with an affine warp and closed-form gain/bias.
+
+    Baker & Matthews 2004, section 3.2 with the 6-parameter affine warp
+    ``W(x; p) = [[1+p1, p3, p5], [p2, 1+p4, p6]] (x, y, 1)`` about the template centre:
+    steepest-descent images ``grad T * dW/dp = (x Tx, x Ty, y Tx, y Ty, Tx, Ty)``, Hessian
+    ``H = sum SD^T SD`` precomputed, step ``dp = H^-1 sum SD^T (I'(W(x;p)) - T)``, update
+    ``W <- W o W(dp)^-1``. Following the rotation, scaling and shear of a tumbling surface, the
+    template CENTRE stays on its surface point, where a translation-only match of a rotated
+    patch is pulled toward the patch's texture.
+
+    Args:
+        warp0: (N,2,3) start warps (e.g. last frame's linear part with this frame's position).
+        max_shift_px: the centre may not move farther than this from ``warp0``'s.
+    """
+    n = templates.size
+    N = len(templates.values)
+    W = np.zeros((N, 3, 3))
+    W[:, :2, :] = np.asarray(warp0, dtype=np.float64).reshape(N, 2, 3)
+    W[:, 2, 2] = 1.0
+    start = W[:, :2, 2].copy()
+    off = patch_offsets(n).astype(np.float64)
+    ox, oy = np.meshgrid(off, off)
+    ox, oy = ox.ravel(), oy.ravel()
+    gx = templates.gx.reshape(N, -1).astype(np.float64)
+    gy = templates.gy.reshape(N, -1).astype(np.float64)
+    T = templates.values.reshape(N, -1).astype(np.float64)
+    Tm = T - T.mean(1, keepdims=True)
+    Tn = Tm / np.maximum(np.linalg.norm(Tm, axis=1, keepdims=True), 1e-9)
+    SD = np.stack([ox * gx, ox * gy, oy * gx, oy * gy, gx, gy], axis=-1)  # (N, n², 6)
+    SD = _project_out(SD, Tn)  # gain and bias solved in closed form (variable projection)
+    H = np.einsum("nki,nkj->nij", SD, SD)
+    damp = 1e-6 * np.trace(H, axis1=1, axis2=2)[:, None, None] * np.eye(6)
+    Hinv = np.linalg.inv(H + damp)
+    active = templates.ok.copy()
+    converged = np.zeros(N, bool)
+    for _ in range(max_iterations):
+        idx = np.flatnonzero(active)
+        if len(idx) == 0:
+            break
+        patches, inside = sample_warped(image, W[idx, :2, :], n)
+        I = patches.reshape(len(idx), -1).astype(np.float64)
+        Im = I - I.mean(1, keepdims=True)
+        cov = (Im * Tm[idx]).sum(1)
+        ivar = (Im * Im).sum(1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            gain = np.where(ivar > 1e-9, cov / ivar, 0.0)
+        err = Im * gain[:, None] - Tm[idx]
+        dp = np.einsum("nij,nj->ni", Hinv[idx], np.einsum("nki,nk->ni", SD[idx], err))
+        D = np.zeros((len(idx), 3, 3))
+        D[:, 0, 0] = 1 + dp[:, 0]
+        D[:, 1, 0] = dp[:, 1]
+        D[:, 0, 1] = dp[:, 2]
+        D[:, 1, 1] = 1 + dp[:, 3]
+        D[:, 0, 2] = dp[:, 4]
+        D[:, 1, 2] = dp[:, 5]
+        D[:, 2, 2] = 1.0
+        W[idx] = W[idx] @ np.linalg.inv(D)
+        # Convergence: the largest displacement the step causes over the patch.
+        r = (n - 1) / 2.0
+        step = np.abs(dp[:, 4:6]).max(1) + r * np.abs(dp[:, :4]).max(1)
+        lin = W[idx, :2, :2]
+        det = np.linalg.det(lin)
+        moved = np.abs(W[idx, :2, 2] - start[idx]).max(1)
+        bad = ~inside | (moved > max_shift_px) | (det < 0.5) | (det > 2.0) | (gain <= 0) | ~np.all(np.isfinite(lin), axis=(1, 2))
+        done = step < tolerance_px
+        converged[idx[done & ~bad]] = True
+        active[idx[done | bad]] = False
+    final, inside = sample_warped(image, W[:, :2, :], n)
+    score = zncc(templates.values, final)
+    return AffineLKResult(warp=W[:, :2, :].copy(), score=score, converged=converged & inside & templates.ok)
+
+
+def track_points(
+    previous: NDArray,
+    current: NDArray,
+    uv: NDArray,
+    size: int = 8,
+    search_px: float = 8.0,
+    *,
+    min_score: float = 0.8,
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Two-frame patch tracking (the left-image tracker without a filter): points ``uv`` (N,2)
+    of ``previous`` found in ``current`` (both (H,W) grey) — ZNCC search in ``±search_px``,
+    then :func:`track_patches` with the patch of ``previous`` as anchor and current template.
+
+    Returns ``(uv_current (N,2), ok (N,))``.
+    """
+    a = np.asarray(previous, dtype=np.float32)
+    b = np.asarray(current, dtype=np.float32)
+    pts = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    tmpl = make_templates(a, pts, size)
+    starts = np.full_like(pts, np.nan)
+    ok = tmpl.ok.copy()
+    for i in range(len(pts)):
+        found = zncc_search(b, tmpl.values[i], pts[i], np.array([search_px, search_px])) if ok[i] else None
+        if found is None or found[1] < min_score:
+            ok[i] = False
+            starts[i] = pts[i]
+        else:
+            starts[i] = found[0]
+    res = track_patches(b, tmpl, np.repeat(np.eye(2)[None], len(pts), 0), tmpl, starts,
+                        anchor_min_score=min_score, drift_tolerance_px=0.5)
+    return res.uv, ok & res.converged & (res.score >= min_score)

@@ -1,0 +1,702 @@
+"""Multi-target patch tracking in both images with Kalman prediction (paper section 2.B).
+
+:class:`Tracker` is the thin stateful wrapper: it holds the targets and, every frame, calls the
+pure steps of :mod:`trackmeter.core.kalman`, :mod:`trackmeter.core.patch_tracking` and
+:mod:`trackmeter.core.features`, batched over all targets:
+
+1. predict each target's left pixel with its constant-acceleration Kalman filter; the search
+   window's half-size is ``window_sigmas`` predicted standard deviations;
+2. find the patch in the window (integer ZNCC with the CURRENT template), refine it sub-pixel
+   (inverse-compositional LK with gain/bias), then refine against the ANCHOR template (drift
+   correction, Matthews et al. 2004; see :mod:`trackmeter.core.patch_tracking`);
+3. gate the match on the filter's innovation (Mahalanobis, chi-square) and fuse it;
+4. re-match the patch along the rectified epipolar line in the right image, near the previous
+   disparity, sub-pixel; triangulate and propagate the covariance (paper eqs. 1-2);
+5. check the 3D points against the rigid motion of the others (pairwise distances of points on
+   one rigid body stay constant within their uncertainty).
+
+A target failing any check — low score, no convergence, ambiguous peak, gated jump, stereo or
+epipolar failure, rigid inconsistency, left the image — is marked ``lost`` at once with the
+reason; it never keeps reporting a guess. Lost targets are looked for again near where they
+were lost (anchor template, strict score), or re-locked by the pose estimator through
+:meth:`Tracker.relock` (paper 2.D). With automatic selection on, lost automatic targets are
+replaced so that ``features.count`` targets stay alive.
+"""
+
+from __future__ import annotations
+
+import itertools
+import warnings
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Collection
+
+import numpy as np
+from filterpy.kalman import KalmanFilter
+from numpy.typing import NDArray
+
+from trackmeter.core import kalman as kf_mod
+from trackmeter.core.features import FeatureParams, select_features
+from trackmeter.core.kalman import KalmanParams
+from trackmeter.core.matching import MeasureParams, measure_points
+from trackmeter.core.params import param
+from trackmeter.core.patch_tracking import (
+    Templates,
+    make_templates,
+    match_epipolar,
+    refine_lk,
+    track_patches,
+    sample_patches,
+    zncc_search,
+)
+from trackmeter.core.stereo import StereoRig
+from trackmeter.core.targets import Refusal, TargetOrigin, TargetState, TargetStatus
+
+if TYPE_CHECKING:  # core never imports the sources layer at run time
+    from trackmeter.sources.base import StereoFrame
+
+FloatArray = NDArray[np.float64]
+_NAN2 = np.full(2, np.nan)
+_NAN3 = np.full(3, np.nan)
+_NAN33 = np.full((3, 3), np.nan)
+
+
+@dataclass(frozen=True)
+class TrackerParams:
+    """Tunables of multi-target tracking."""
+
+    max_targets: int = param(32, "most targets tracked at once (operator + automatic)", min=1, max=1024)
+    patch_size: int = param(8, "side of the tracked square patch, px (paper: 8)", min=3, max=63)
+    min_score: float = param(0.8, "left-image ZNCC below which a target is lost", min=-1.0, max=1.0)
+    ambiguity_margin: float = param(
+        0.02, "lost when another peak in the search window comes within this ZNCC of the best", min=0.0, max=2.0
+    )
+    anchor_min_score: float = param(0.9, "ZNCC the anchor template must reach to correct drift", min=-1.0, max=1.0)
+    drift_tolerance_px: float = param(0.5, "anchor refinement may move the match at most this far, px", min=0.0)
+    min_search_px: float = param(3.0, "smallest search window half-size, px", min=0.0)
+    max_search_px: float = param(96.0, "largest search window half-size, px", min=1.0)
+    stereo_search_px: int = param(6, "disparity change searched per frame while tracking, +-px", min=1, max=256)
+    stereo_min_score: float = param(0.8, "right-image ZNCC below which a target is lost", min=-1.0, max=1.0)
+    uniqueness_margin: float = param(
+        0.05, "the epipolar match must beat every other peak on its line by this ZNCC", min=0.0, max=2.0
+    )
+    epipolar_tolerance_px: float = param(1.0, "largest vertical offset of the right match from the rectified row, px", min=0.0)
+    sigma_disparity_px: float = param(0.1, "std of a tracked sub-pixel disparity, px (paper: 0.07)", min=0.0)
+    sigma_uv_px: float = param(0.05, "std of a tracked left-image position, px", min=0.0)
+    min_gradient_eig: float = param(
+        20.0, "smallest eigenvalue of the patch's mean gradient structure tensor, grey²/px² (aperture problem)", min=0.0
+    )
+    rigid_check: bool = param(True, "lose targets whose 3D distances to the others change (rigid-body check)")
+    rigid_sigmas: float = param(5.0, "a distance change beyond this many standard deviations is inconsistent", min=0.0)
+    rigid_tolerance_m: float = param(0.001, "distance change always tolerated, m", min=0.0)
+    rigid_min_pairs: int = param(3, "pairs with other targets needed to judge rigid consistency", min=1)
+    recover_lost: bool = param(True, "look for lost targets again where they were lost (paper 2.D, no model)")
+    recover_min_score: float = param(0.92, "anchor ZNCC needed to recover a lost target", min=-1.0, max=1.0)
+    recover_search_px: float = param(24.0, "half-size of the window searched to recover a target, px", min=1.0)
+    neighbour_velocity_sigma_px_s: float = param(
+        100.0, "std added to the other targets' velocity spread for a new target's velocity, px/s", min=0.0
+    )
+    lost_keep_frames: int = param(10, "frames a lost automatic target is kept before it is replaced", min=0)
+    auto: bool = param(False, "automatic feature selection on at start")
+    auto_interval_frames: int = param(5, "automatic selection tops up at most every this many frames", min=1)
+    kalman: KalmanParams = field(default_factory=KalmanParams)
+
+
+@dataclass(eq=False)
+class _Target:
+    id: str
+    origin: TargetOrigin
+    kf: KalmanFilter
+    anchor: Templates  # one target's templates (leading axis of length 1)
+    current: Templates
+    t_s: float
+    status: TargetStatus = "tracking"
+    uv: FloatArray = field(default_factory=lambda: _NAN2.copy())
+    uv_right: FloatArray = field(default_factory=lambda: _NAN2.copy())
+    point_cam: FloatArray = field(default_factory=lambda: _NAN3.copy())
+    cov_cam: FloatArray = field(default_factory=lambda: _NAN33.copy())
+    disparity_px: float = float("nan")
+    score: float = float("nan")
+    predicted_uv: FloatArray = field(default_factory=lambda: _NAN2.copy())
+    search_box: tuple[float, float, float, float] = (np.nan, np.nan, np.nan, np.nan)
+    lost_reason: str | None = None
+    age_frames: int = 0
+    lost_frames: int = 0
+    reanchors: int = 0
+    slot: int = -1
+    anchor_lin: FloatArray = field(default_factory=lambda: np.eye(2))  # anchor → image linear warp
+
+    def state(self) -> TargetState:
+        lost = self.status == "lost"
+        return TargetState(
+            id=self.id,
+            origin=self.origin,
+            status=self.status,
+            uv=self.uv.copy(),
+            uv_right=_NAN2.copy() if lost else self.uv_right.copy(),
+            point_cam=_NAN3.copy() if lost else self.point_cam.copy(),
+            cov_cam=_NAN33.copy() if lost else self.cov_cam.copy(),
+            score=float("nan") if lost else float(self.score),
+            predicted_uv=self.predicted_uv.copy(),
+            search_box=self.search_box,
+            lost_reason=self.lost_reason if lost else None,
+            age_frames=self.age_frames,
+        )
+
+
+def _stack(ts: list[Templates]) -> Templates:
+    return Templates(
+        np.concatenate([t.values for t in ts]),
+        np.concatenate([t.gx for t in ts]),
+        np.concatenate([t.gy for t in ts]),
+        np.concatenate([t.hessian_inv for t in ts]),
+        np.concatenate([t.ok for t in ts]),
+    )
+
+
+@dataclass
+class _FrameCache:
+    index: int
+    left: NDArray[np.float32]
+    right: NDArray[np.float32]
+
+
+class Tracker:
+    """Holds the targets and tracks them frame by frame in both images.
+
+    Args:
+        rig: the stereo rig of the frames.
+        params: tracking tunables.
+        features: automatic selection tunables (method, count, ...).
+        measure: point measurement tunables (shared with ``trackmeter measure``).
+    """
+
+    def __init__(self, rig: StereoRig, params: TrackerParams, features: FeatureParams, measure: MeasureParams) -> None:
+        self.rig = rig
+        self.params = params
+        self.features = features
+        self.measure = measure
+        self.rect = rig.rectification
+        self._maps = self.rect.maps
+        self._targets: dict[str, _Target] = {}
+        self._counter = itertools.count(1)
+        self._auto = bool(params.auto)
+        self._auto_count = features.count
+        self._auto_method = features.method
+        self._cache: _FrameCache | None = None
+        # Reference pairwise 3D distances (and their variances) for the rigid-body check,
+        # indexed by each target's slot.
+        self._ref_d = np.full((0, 0), np.nan)
+        self._ref_v = np.full((0, 0), np.nan)
+        self._free_slots: list[int] = []
+        self.last_losses: dict[str, str] = {}
+        self._last_top_up: int | None = None
+        self.stats = {"losses": 0, "recoveries": 0, "reanchors": 0, "added": 0}
+
+    # ------------------------------------------------------------------ public state
+
+    @property
+    def targets(self) -> tuple[TargetState, ...]:
+        """Every target's state after the last step (lost ones included)."""
+        return tuple(t.state() for t in self._targets.values())
+
+    @property
+    def auto(self) -> tuple[bool, int, str]:
+        """``(enabled, count, method)`` of automatic selection."""
+        return self._auto, self._auto_count, self._auto_method
+
+    def set_auto(self, enabled: bool, count: int | None = None, method: str | None = None) -> None:
+        """Toggle automatic selection; optionally change how many targets it keeps and its method."""
+        from trackmeter.core.features import METHODS
+        from trackmeter.errors import TrackmeterError
+
+        if method is not None and method not in METHODS:
+            raise TrackmeterError(f"unknown feature selection method {method!r} (known: {', '.join(METHODS)})")
+        if count is not None and not 1 <= int(count) <= self.params.max_targets:
+            raise TrackmeterError(f"automatic target count must be in [1, {self.params.max_targets}], got {count}")
+        self._auto = bool(enabled)
+        if count is not None:
+            self._auto_count = int(count)
+        if method is not None:
+            self._auto_method = method
+
+    def remove_target(self, target_id: str) -> bool:
+        """Forget a target; False when there was none of that id."""
+        t = self._targets.pop(target_id, None)
+        if t is None:
+            return False
+        self._forget_distances(t)
+        self._free_slots.append(t.slot)
+        return True
+
+    def _forget_distances(self, t: _Target) -> None:
+        if 0 <= t.slot < len(self._ref_d):
+            self._ref_d[t.slot, :] = self._ref_d[:, t.slot] = np.nan
+            self._ref_v[t.slot, :] = self._ref_v[:, t.slot] = np.nan
+
+    def _new_slot(self) -> int:
+        if self._free_slots:
+            return self._free_slots.pop()
+        n = len(self._ref_d)
+        grow = max(8, n)
+        for name in ("_ref_d", "_ref_v"):
+            old = getattr(self, name)
+            new = np.full((n + grow, n + grow), np.nan)
+            new[:n, :n] = old
+            setattr(self, name, new)
+        self._free_slots.extend(range(n + grow - 1, n, -1))
+        return n
+
+    def remove_nearest(self, uv: tuple[float, float], max_distance_px: float = 20.0) -> str | None:
+        """Remove the target whose left pixel is nearest to ``uv`` (within ``max_distance_px``)."""
+        best, best_d = None, max_distance_px
+        for t in self._targets.values():
+            d = float(np.hypot(*(t.uv - np.asarray(uv, float))))
+            if d <= best_d:
+                best, best_d = t.id, d
+        if best is not None:
+            self.remove_target(best)
+        return best
+
+    def clear(self) -> None:
+        """Remove every target."""
+        self._targets.clear()
+        self._ref_d = np.full((0, 0), np.nan)
+        self._ref_v = np.full((0, 0), np.nan)
+        self._free_slots = []
+
+    # ------------------------------------------------------------------ frames
+
+    def _frame(self, frame: StereoFrame) -> _FrameCache:
+        if self._cache is None or self._cache.index != frame.index or self._cache.left.shape != frame.left.shape:
+            self._cache = _FrameCache(
+                frame.index, np.asarray(frame.left, np.float32), np.asarray(frame.right, np.float32)
+            )
+        return self._cache
+
+    # ------------------------------------------------------------------ adding targets
+
+    def _check_click(self, left: NDArray[np.float32], uv: FloatArray) -> str | None:
+        p = self.params
+        n = p.patch_size
+        if not np.all(np.isfinite(uv)):
+            return "not a finite pixel"
+        margin = n / 2 + 2
+        w, h = self.rig.image_size
+        if not (margin - 0.5 <= uv[0] <= w - 0.5 - margin and margin - 0.5 <= uv[1] <= h - 0.5 - margin):
+            return f"outside the image (the {n}x{n} patch must fit with a 2 px margin)"
+        patch, _ = sample_patches(left, uv[None], n + 2)
+        gx = 0.5 * (patch[0, 1:-1, 2:] - patch[0, 1:-1, :-2])
+        gy = 0.5 * (patch[0, 2:, 1:-1] - patch[0, :-2, 1:-1])
+        st = np.array([[np.mean(gx * gx), np.mean(gx * gy)], [np.mean(gx * gy), np.mean(gy * gy)]])
+        lam = float(np.linalg.eigvalsh(st)[0])
+        if lam < p.min_gradient_eig:
+            return f"textureless patch in one direction (aperture problem: min gradient eigenvalue {lam:.1f})"
+        return None
+
+    def _new_id(self, origin: str) -> str:
+        prefix = {"operator": "p", "auto": "a", "model": "m"}.get(origin, "t")
+        while True:
+            tid = f"{prefix}{next(self._counter)}"
+            if tid not in self._targets:
+                return tid
+
+    def _velocity_guess(self) -> tuple[FloatArray, float | None]:
+        """A new target's image velocity (2,) px/s and its std: the median of the settled
+        targets' velocities (one rigid body moves them all alike), else zero with the wide
+        default std (None)."""
+        v = np.array([t.kf.x[2:4] for t in self._targets.values() if t.status != "lost" and t.age_frames >= 3])
+        if len(v) < 2:
+            return np.zeros(2), None
+        med = np.median(v, axis=0)
+        spread = float(np.max(np.abs(v - med)))
+        return med, spread + self.params.neighbour_velocity_sigma_px_s
+
+    def add_target(
+        self,
+        frame: StereoFrame,
+        uv: tuple[float, float],
+        target_id: str | None = None,
+        origin: TargetOrigin = "operator",
+    ) -> TargetState | Refusal:
+        """Create a target at left pixel ``uv`` (ORIGINAL image, px) of ``frame``.
+
+        Refused (with the reason) when: the target limit is reached, the id exists, the pixel is
+        outside the image, the patch is black space or textureless, or it has no strong, unique
+        stereo match along its epipolar line — as a measurement of that point would be.
+        """
+        uvf = np.asarray(uv, dtype=float).reshape(2)
+        key = (float(uvf[0]), float(uvf[1]))
+        if len(self._targets) >= self.params.max_targets:
+            return Refusal(key, f"target limit reached ({self.params.max_targets} targets)")
+        if target_id is not None and target_id in self._targets:
+            return Refusal(key, f"a target named {target_id!r} exists")
+        # Refused exactly as a measurement of the point would be (paper 2.A, H2's matcher)...
+        meas = measure_points(self.rig, frame.left, frame.right, uvf[None], self.measure)[0]
+        if not meas.ok:
+            return Refusal(key, str(meas.reason))
+        # ... and where it could not be tracked (patch too close to the border, aperture problem).
+        fc = self._frame(frame)
+        reason = self._check_click(fc.left, uvf)
+        if reason is not None:
+            return Refusal(key, reason)
+        tid = target_id or self._new_id(origin)
+        tmpl = make_templates(fc.left, uvf[None], self.params.patch_size)
+        v0, sv = self._velocity_guess()
+        kf = kf_mod.make_filter(uvf, self.params.kalman, velocity_px_s=v0, velocity_sigma_px_s=sv)
+        t = _Target(tid, origin, kf, tmpl, tmpl, frame.t_s, uv=uvf.copy(), predicted_uv=uvf.copy())
+        t.slot = self._new_slot()
+        t.disparity_px = float(meas.disparity_px)
+        t.point_cam = np.asarray(meas.xyz_m, float).copy()
+        t.cov_cam = np.asarray(meas.cov_m, float).copy()
+        t.uv_right = np.asarray(meas.right_uv, float).copy()
+        t.score = 1.0
+        n2 = self.params.patch_size / 2
+        t.search_box = (uvf[0] - n2, uvf[1] - n2, uvf[0] + n2, uvf[1] + n2)
+        self._targets[tid] = t
+        self._set_reference_distances(t)
+        self.stats["added"] += 1
+        return t.state()
+
+    def _set_reference_distances(self, t: _Target) -> None:
+        """Remember a new target's 3D distances to the targets measured now, so its very first
+        step is already checked against the rigid body (a jump to a look-alike is caught)."""
+        others = [o for o in self._targets.values() if o is not t and o.status != "lost"]
+        for o in others:
+            diff = t.point_cam - o.point_cam
+            dist = float(np.linalg.norm(diff))
+            if not np.isfinite(dist):
+                continue
+            u = diff / max(dist, 1e-12)
+            var = float(u @ (t.cov_cam + o.cov_cam) @ u)
+            self._ref_d[t.slot, o.slot] = self._ref_d[o.slot, t.slot] = dist
+            self._ref_v[t.slot, o.slot] = self._ref_v[o.slot, t.slot] = var
+
+    def relock(self, target_id: str, uv_predicted: tuple[float, float], frame: StereoFrame) -> TargetState | Refusal:
+        """Re-lock a (lost) target near ``uv_predicted`` (e.g. a model point reprojected through
+        the current pose, paper 2.D): anchor-template search in ``recover_search_px``, strict
+        score, stereo re-match. The target is ``recovered`` on success."""
+        uvf = np.asarray(uv_predicted, dtype=float).reshape(2)
+        key = (float(uvf[0]), float(uvf[1]))
+        t = self._targets.get(target_id)
+        if t is None:
+            return Refusal(key, f"no target named {target_id!r}")
+        fc = self._frame(frame)
+        ok, reason = self._try_recover(fc, frame, t, uvf)
+        return t.state() if ok else Refusal(key, reason or "not found")
+
+    # ------------------------------------------------------------------ stereo
+
+    def _stereo(self, fc: _FrameCache, uv: FloatArray, d_low: FloatArray, span: int):  # type: ignore[no-untyped-def]
+        p = self.params
+        cl = self.rect.rectify_points(uv, 0)
+        return match_epipolar(
+            fc.left,
+            fc.right,
+            self._maps[0],
+            self._maps[1],
+            cl,
+            d_low,
+            span,
+            p.patch_size,
+            min_score=p.stereo_min_score,
+            uniqueness_margin=p.uniqueness_margin,
+            epipolar_tolerance_px=p.epipolar_tolerance_px,
+        )
+
+    def _set_stereo(self, ts: list[_Target], m, idx: NDArray) -> None:  # type: ignore[no-untyped-def]
+        """Triangulate matches ``idx`` of ``m`` (batched) into targets ``ts``."""
+        if len(ts) == 0:
+            return
+        p = self.params
+        cl = m.uv_rect_left[idx]
+        d = m.disparity_px[idx]
+        P = self.rect.triangulate(cl, d)
+        C = self.rect.point_covariance(cl, d, p.sigma_disparity_px, p.sigma_uv_px)
+        R = self.rect.unrectify_points(m.uv_rect_right[idx], 1)
+        for k, t in enumerate(ts):
+            t.disparity_px = float(d[k])
+            t.point_cam = P[k]
+            t.cov_cam = C[k]
+            t.uv_right = R[k]
+
+    # ------------------------------------------------------------------ recovery
+
+    def _try_recover(self, fc: _FrameCache, frame: StereoFrame, t: _Target, centre: FloatArray) -> tuple[bool, str | None]:
+        p = self.params
+        half = np.array([p.recover_search_px, p.recover_search_px])
+        # The current template is the last verified appearance of the target.
+        found = zncc_search(fc.left, t.current.values[0], centre, half)
+        if found is None:
+            return False, "search window outside the image"
+        uv0, best, second = found
+        if best < p.recover_min_score or second > best - p.ambiguity_margin:
+            return False, f"not found (score {best:.2f})"
+        # The same drift-free measurement as tracking: anchor (affine) and current template
+        # must agree.
+        res = track_patches(
+            fc.left, t.anchor, t.anchor_lin[None], t.current, uv0[None],
+            anchor_min_score=p.anchor_min_score, drift_tolerance_px=p.drift_tolerance_px,
+        )
+        if not res.converged[0] or res.score[0] < p.recover_min_score:
+            return False, "sub-pixel refinement failed"
+        uv = res.uv[0]
+        lo = np.array([t.disparity_px - 2 * p.stereo_search_px])
+        span = 4 * p.stereo_search_px
+        m = self._stereo(fc, uv[None], lo, span)
+        if m.reason[0] is not None:
+            return False, m.reason[0]
+        # Without a model, a look-alike elsewhere on the body is the danger: the recovered 3D
+        # point must keep its old distances to the targets tracked now (rigid body).
+        why = self._rigid_recheck(t, m)
+        if why is not None:
+            return False, why
+        v0, sv = self._velocity_guess()
+        t.kf = kf_mod.make_filter(uv, p.kalman, velocity_px_s=v0, velocity_sigma_px_s=sv)
+        t.uv = uv.copy()
+        t.predicted_uv = centre.copy()
+        t.search_box = (centre[0] - half[0], centre[1] - half[1], centre[0] + half[0], centre[1] + half[1])
+        self._set_stereo([t], m, np.array([0]))
+        t.score = float(res.score[0])
+        if res.anchored[0]:
+            t.anchor_lin = res.anchor_lin[0].copy()
+        t.current = make_templates(fc.left, uv[None], p.patch_size)
+        t.status = "recovered"
+        t.lost_reason = None
+        t.lost_frames = 0
+        t.t_s = frame.t_s
+        self.stats["recoveries"] += 1
+        return True, None
+
+    # ------------------------------------------------------------------ the step
+
+    def _lose(self, t: _Target, reason: str) -> None:
+        t.status = "lost"
+        t.lost_reason = reason
+        t.lost_frames = 0
+        self.last_losses[t.id] = reason
+        self.stats["losses"] += 1
+        # Its reference distances are kept: a recovery must agree with them.
+
+    def step(self, frame: StereoFrame, reject_ids: Collection[str] = ()) -> tuple[TargetState, ...]:
+        """Track every target into ``frame``; returns all targets' states (see module doc)."""
+        p = self.params
+        fc = self._frame(frame)
+        self.last_losses = {}
+        live = [t for t in self._targets.values() if t.status != "lost"]
+        lost = [t for t in self._targets.values() if t.status == "lost"]
+        for t in self._targets.values():
+            t.age_frames += 1
+        for t in lost:
+            t.lost_frames += 1
+
+        # 1-2. predict, search, refine with the current template.
+        searched: list[_Target] = []
+        starts = []
+        n2 = p.patch_size / 2
+        for t in live:
+            dt = frame.t_s - t.t_s if frame.t_s > t.t_s else 0.0
+            if dt > 0:
+                kf_mod.predict(t.kf, dt, p.kalman)
+            t.t_s = frame.t_s
+            pred = t.kf.x[:2].copy()
+            half = kf_mod.search_half_size(t.kf, p.kalman, p.min_search_px, p.max_search_px)
+            t.predicted_uv = pred
+            t.search_box = (pred[0] - half[0] - n2, pred[1] - half[1] - n2, pred[0] + half[0] + n2, pred[1] + half[1] + n2)
+            if not np.all(np.isfinite(pred)):
+                self._lose(t, "prediction diverged")
+                continue
+            found = zncc_search(fc.left, t.current.values[0], pred, half)
+            if found is None:
+                self._lose(t, "left the image")
+                continue
+            uv0, best, second = found
+            if best < p.min_score:
+                self._lose(t, f"low match score ({best:.2f})")
+                continue
+            if second > best - p.ambiguity_margin:
+                self._lose(t, f"ambiguous in the search window (scores {best:.2f}, {second:.2f})")
+                continue
+            searched.append(t)
+            starts.append(uv0)
+        if searched:
+            res = track_patches(
+                fc.left,
+                _stack([t.anchor for t in searched]),
+                np.array([t.anchor_lin for t in searched]),
+                _stack([t.current for t in searched]),
+                np.array(starts),
+                anchor_min_score=p.anchor_min_score,
+                drift_tolerance_px=p.drift_tolerance_px,
+            )
+            uv_all, anchored = res.uv, res.anchored
+            w, h = self.rig.image_size
+            inner = (uv_all[:, 0] >= n2 + 1) & (uv_all[:, 0] <= w - n2 - 2) & (uv_all[:, 1] >= n2 + 1) & (uv_all[:, 1] <= h - n2 - 2)
+        survivors: list[tuple[_Target, FloatArray, bool, float]] = []
+        for i, t in enumerate(searched):
+            if not res.converged[i]:
+                self._lose(t, "sub-pixel match did not converge")
+            elif res.score[i] < p.min_score:
+                self._lose(t, f"low match score ({res.score[i]:.2f})")
+            elif not inner[i]:
+                self._lose(t, "left the image")
+            else:
+                # 3. gating on the innovation.
+                accepted, d2 = kf_mod.update(t.kf, uv_all[i], p.kalman)
+                if not accepted:
+                    self._lose(t, f"jump rejected by the filter (Mahalanobis² {d2:.1f})")
+                else:
+                    if anchored[i]:
+                        t.anchor_lin = res.anchor_lin[i].copy()
+                    survivors.append((t, uv_all[i], bool(anchored[i]), float(res.score[i])))
+
+        # 4. right-image re-match near the previous disparity.
+        if survivors:
+            uv = np.array([s[1] for s in survivors])
+            d_prev = np.array([s[0].disparity_px for s in survivors])
+            m = self._stereo(fc, uv, d_prev - p.stereo_search_px, 2 * p.stereo_search_px)
+            good = []
+            for i, (t, uvi, anch, score) in enumerate(survivors):
+                if m.reason[i] is not None:
+                    self._lose(t, m.reason[i])
+                    continue
+                t.uv = uvi.copy()
+                t.score = score
+                good.append(i)
+            kept = [(survivors[i][0], survivors[i][2]) for i in good]
+            self._set_stereo([t for t, _ in kept], m, np.array(good, dtype=int))
+            # 5. rigid-body consistency.
+            if p.rigid_check and kept:
+                bad = self._rigid_inconsistent([t for t, _ in kept])
+                for tid, why in bad.items():
+                    self._lose(self._targets[tid], why)
+            final = []
+            for t, anch in kept:
+                if t.status == "lost" and t.lost_reason is not None and t.id not in reject_ids:
+                    continue
+                if t.id in reject_ids:
+                    if t.status != "lost":
+                        self._lose(t, "rejected by the pose estimator")
+                    continue
+                t.status = "tracking"
+                final.append((t, anch))
+            # Template strategy: refresh the current template where the anchor confirmed the
+            # match; re-anchor on this verified match when the anchor no longer fits.
+            if final:
+                new = make_templates(fc.left, np.array([t.uv for t, _ in final]), p.patch_size)
+                for k, (t, anch) in enumerate(final):
+                    if not new.ok[k]:
+                        continue
+                    one = new.select(np.array([k]))
+                    t.current = one
+                    if not anch:
+                        t.anchor = one
+                        t.anchor_lin = np.eye(2)
+                        t.reanchors += 1
+                        self.stats["reanchors"] += 1
+
+        # Recovery of lost targets where they were lost (no model).
+        if p.recover_lost:
+            for t in lost:
+                self._try_recover(fc, frame, t, t.uv)
+        for t in lost:
+            if t.status == "lost":
+                t.t_s = frame.t_s
+
+        if self._auto:
+            self._top_up(frame, fc)
+        return self.targets
+
+    def _rigid_recheck(self, t: _Target, m) -> str | None:  # type: ignore[no-untyped-def]
+        """Why a re-found target's 3D point disagrees with its reference distances to the
+        targets measured now (None when it agrees with at least ``rigid_min_pairs`` of them)."""
+        p = self.params
+        others = [o for o in self._targets.values() if o is not t and o.status != "lost" and o.slot >= 0]
+        if t.slot < 0 or t.slot >= len(self._ref_d):
+            return "no reference distances to check the recovery against"
+        P = self.rect.triangulate(m.uv_rect_left[:1], m.disparity_px[:1])[0]
+        C = self.rect.point_covariance(m.uv_rect_left[:1], m.disparity_px[:1], p.sigma_disparity_px, p.sigma_uv_px)[0]
+        z = []
+        for o in others:
+            ref, ref_v = self._ref_d[t.slot, o.slot], self._ref_v[t.slot, o.slot]
+            if not np.isfinite(ref):
+                continue
+            diff = P - o.point_cam
+            dist = float(np.linalg.norm(diff))
+            u = diff / max(dist, 1e-12)
+            var = float(u @ (C + o.cov_cam) @ u)
+            z.append(abs(dist - ref) / (p.rigid_sigmas * np.sqrt(var + ref_v) + p.rigid_tolerance_m))
+        if len(z) < p.rigid_min_pairs:
+            return f"only {len(z)} reference distances to check the recovery against"
+        if float(np.median(z)) > 1.0:
+            return "re-found patch is not where the rigid body puts it"
+        return None
+
+    def _rigid_inconsistent(self, ts: list[_Target]) -> dict[str, str]:
+        """Targets whose distances to the other targets changed beyond their uncertainty.
+
+        For targets i, j on one rigid body ``|P_i - P_j|`` is constant. Each pair's distance is
+        remembered when first measured; its change is compared with
+        ``rigid_sigmas * sigma + rigid_tolerance_m``, sigma propagated from both points'
+        covariances along the pair's direction (and from the reference). The target whose
+        median normalised change is worst is lost, and the test repeats without it.
+        """
+        p = self.params
+        n = len(ts)
+        if n < 2:
+            return {}
+        slots = np.array([t.slot for t in ts])
+        P = np.array([t.point_cam for t in ts])
+        C = np.array([t.cov_cam for t in ts])
+        diff = P[:, None, :] - P[None, :, :]
+        dist = np.linalg.norm(diff, axis=2)
+        u = diff / np.maximum(dist, 1e-12)[..., None]
+        q = np.einsum("ijk,ikl,ijl->ij", u, C, u)  # u_ij^T C_i u_ij
+        var = q + q.T
+        ix = np.ix_(slots, slots)
+        ref_d, ref_v = self._ref_d[ix], self._ref_v[ix]
+        fresh = ~np.isfinite(ref_d)
+        np.fill_diagonal(fresh, False)
+        ref_d = np.where(fresh, dist, ref_d)
+        ref_v = np.where(fresh, var, ref_v)
+        self._ref_d[ix] = ref_d
+        self._ref_v[ix] = ref_v
+        z = np.abs(dist - ref_d) / (p.rigid_sigmas * np.sqrt(var + ref_v) + p.rigid_tolerance_m)
+        z[fresh] = np.nan
+        np.fill_diagonal(z, np.nan)
+        bad: dict[str, str] = {}
+        if not np.any(z > 1.0):  # NaN compares False: the common, all-consistent case
+            return bad
+        alive = np.ones(n, bool)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            while alive.sum() > p.rigid_min_pairs:
+                zz = np.where(alive[None, :] & alive[:, None], z, np.nan)
+                counts = np.isfinite(zz).sum(1)
+                med = np.nanmedian(zz, axis=1)
+                med[(counts < p.rigid_min_pairs) | ~alive] = np.nan
+                if not np.any(np.isfinite(med)):
+                    break
+                worst = int(np.nanargmax(med))
+                if med[worst] <= 1.0:
+                    break
+                bad[ts[worst].id] = "3D distances to the other targets changed (not on the rigid body)"
+                alive[worst] = False
+        return bad
+
+    def _top_up(self, frame: StereoFrame, fc: _FrameCache) -> None:
+        p = self.params
+        if self._last_top_up is not None and frame.index - self._last_top_up < p.auto_interval_frames and frame.index >= self._last_top_up:
+            return
+        for t in list(self._targets.values()):
+            if t.origin == "auto" and t.status == "lost" and t.lost_frames >= p.lost_keep_frames:
+                self.remove_target(t.id)
+        alive = sum(1 for t in self._targets.values() if t.status != "lost")
+        need = min(self._auto_count - alive, p.max_targets - len(self._targets))
+        if need <= 0:
+            return
+        exclude = np.array([t.uv for t in self._targets.values()]).reshape(-1, 2)
+        fp = self.features
+        self._last_top_up = frame.index
+        pts = select_features(frame.left, frame.right, self.rig, need, self._auto_method, fp, exclude)
+        for uv in pts:
+            self.add_target(frame, (float(uv[0]), float(uv[1])), origin="auto")
