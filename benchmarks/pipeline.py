@@ -1,0 +1,192 @@
+"""Throughput of the whole pipeline (issue 5): live on the simulator, and offline on a recording.
+
+Figures:
+
+- ``live_rate_hz``: frames tracked per second by the tracking thread, the ``sim`` source (the
+  ``estec`` scenario rendered live at its 25 Hz) with 16 automatic targets, over
+  ``MEASURE_S`` seconds after ``WARMUP_S`` of warm-up, while the stream is also recorded.
+  Target: 25 Hz.
+- ``dropped_fraction``: frames the tracker never saw (latest frame won) over frames read, same
+  window. Target: < 0.01.
+- ``acquisition_hz``: frames the source delivered per second in that window.
+- ``source_alone_fps``: the simulator rendering as fast as it can with nothing else running,
+  measured in the same run: the ceiling the live figures are bounded by on this machine.
+- ``latency_ms_median``, ``step_ms_median``: frame leaving the source → pose published, and the
+  tracking step alone, medians over the window.
+- ``recorded_fraction``: frames written by the recorder over frames read during the live run
+  (every frame must be recorded: 1.0), and ``record_not_recorded`` (frames the recorder had to
+  count as not recorded).
+- ``offline_fps``: ``trackmeter track``'s pipeline on a recorded sequence folder
+  (``OFFLINE_FRAMES`` frames of the same scenario), as fast as possible, lossless, 16 automatic
+  targets. Target: >= 60.
+- ``offline_read_fps``: reading the same folder without tracking (baseline, same run), and
+  ``offline_ratio_to_read`` = ``offline_fps / offline_read_fps``.
+
+Environment: ``TRACKMETER_BENCH_LIVE_S`` changes ``MEASURE_S`` (default 40).
+"""
+
+from __future__ import annotations
+
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+WARMUP_S = 10.0
+MEASURE_S = float(os.environ.get("TRACKMETER_BENCH_LIVE_S", "40"))
+OFFLINE_FRAMES = 150
+N_TARGETS = 16
+
+
+def _log(msg: str) -> None:
+    print(f"[pipeline] {msg}", file=sys.stderr, flush=True)
+
+
+def make_engine(source: Any, case: str = "a") -> Any:
+    """The real tracking engine for ``source`` (config/default.yaml)."""
+    from trackmeter.data.config import load_config
+    from trackmeter.pipeline.engine import Engine
+
+    return Engine(load_config(), source.rig, model=getattr(source, "model", None), case=case,  # type: ignore[arg-type]
+                  rate_hz=source.rate_hz)
+
+
+class LiveWindow:
+    """Counters of a running pipeline between :meth:`begin` and :meth:`end`."""
+
+    def __init__(self, pipe: Any) -> None:
+        self.pipe = pipe
+        self.latencies: list[float] = []
+        self.steps: list[float] = []
+        self._last_processed = -1
+        self._on = False
+        pipe.subscribe(self._collect)
+
+    def _collect(self, snap: Any) -> None:
+        t = snap.timings
+        if self._on and t.frames_processed != self._last_processed:
+            self.latencies.append(t.latency_ms)
+            self.steps.append(t.step_ms)
+        self._last_processed = t.frames_processed
+
+    def begin(self) -> None:
+        self.t0 = time.monotonic()
+        self.s0 = self.pipe.latest().timings
+        self._on = True
+
+    def end(self) -> dict[str, float]:
+        self._on = False
+        t1 = time.monotonic()
+        s1 = self.pipe.latest().timings
+        dt = t1 - self.t0
+        read = s1.frames_read - self.s0.frames_read
+        return {
+            "rate_hz": (s1.frames_processed - self.s0.frames_processed) / dt,
+            "acquisition_hz": read / dt,
+            "dropped_fraction": (s1.frames_dropped - self.s0.frames_dropped) / read if read else float("nan"),
+            "latency_ms_median": statistics.median(self.latencies) if self.latencies else float("nan"),
+            "step_ms_median": statistics.median(self.steps) if self.steps else float("nan"),
+        }
+
+
+def start_live(record_dir: Path | None = None, n_targets: int = N_TARGETS) -> Any:
+    """The live pipeline on ``sim`` (realtime, looping) with ``n_targets`` automatic targets."""
+    from trackmeter.pipeline.pipeline import Pipeline
+    from trackmeter.pipeline.snapshot import SetAuto
+    from trackmeter.sources import open_source
+
+    source = open_source("sim", realtime=True, loop=True)
+    pipe = Pipeline(source, make_engine(source), drop_frames=True, record_dir=record_dir)
+    pipe.submit(SetAuto(True, n_targets, "gabor"))
+    return pipe.start()
+
+
+def source_alone_fps(seconds: float = 6.0) -> float:
+    from trackmeter.sources import open_source
+
+    source = open_source("sim", realtime=False, loop=True)
+    source.read()
+    n, t0 = 0, time.monotonic()
+    while time.monotonic() - t0 < seconds:
+        source.read()
+        n += 1
+    return n / (time.monotonic() - t0)
+
+
+def offline(tmp: Path) -> dict[str, float]:
+    from trackmeter.data.sequence import SequenceWriter
+    from trackmeter.pipeline.pipeline import run_headless
+    from trackmeter.pipeline.snapshot import SetAuto
+    from trackmeter.sources import open_source
+
+    seq = tmp / "offline_seq"
+    sim = open_source("sim", realtime=False)
+    _log(f"rendering {OFFLINE_FRAMES} frames to {seq}")
+    with SequenceWriter(seq, sim.rig) as writer:
+        for _ in range(OFFLINE_FRAMES):
+            frame = sim.read()
+            if frame is None:
+                break
+            writer.write(frame)
+    sim.close()
+
+    source = open_source(f"seq:{seq}")
+    t0 = time.perf_counter()
+    n_read = 0
+    while source.read() is not None:
+        n_read += 1
+    read_fps = n_read / (time.perf_counter() - t0)
+    source.close()
+
+    source = open_source(f"seq:{seq}")
+    engine = make_engine(source)
+    t0 = time.perf_counter()
+    last, replies = run_headless(source, engine, commands=[SetAuto(True, N_TARGETS, "gabor")])
+    wall = time.perf_counter() - t0
+    source.close()
+    processed = last.timings.frames_processed
+    n_tracked = sum(1 for t in last.targets if t.measured)
+    _log(f"offline: {processed} frames in {wall:.1f} s, {n_tracked} targets measured at the end")
+    return {
+        "offline_fps": processed / wall,
+        "offline_read_fps": read_fps,
+        "offline_ratio_to_read": (processed / wall) / read_fps if read_fps else float("nan"),
+        "offline_frames": float(processed),
+        "offline_targets_at_end": float(n_tracked),
+    }
+
+
+def run() -> dict[str, float]:
+    out: dict[str, float] = {}
+    _log("source alone ...")
+    out["source_alone_fps"] = source_alone_fps()
+    with tempfile.TemporaryDirectory(prefix="trackmeter-bench-") as tmp_name:
+        tmp = Path(tmp_name)
+        _log(f"live: warm-up {WARMUP_S:.0f} s, measure {MEASURE_S:.0f} s (recording on)")
+        pipe = start_live(record_dir=tmp / "live_rec")
+        window = LiveWindow(pipe)
+        try:
+            time.sleep(WARMUP_S)
+            window.begin()
+            time.sleep(MEASURE_S)
+            live = window.end()
+            snap = pipe.latest()
+        finally:
+            pipe.close()
+        rec = pipe.recording_stats()
+        out["live_rate_hz"] = live["rate_hz"]
+        out["dropped_fraction"] = live["dropped_fraction"]
+        out["acquisition_hz"] = live["acquisition_hz"]
+        out["latency_ms_median"] = live["latency_ms_median"]
+        out["step_ms_median"] = live["step_ms_median"]
+        out["live_targets_measured"] = float(sum(1 for t in snap.targets if t.measured))
+        out["live_pose_valid"] = float(snap.pose.valid)
+        total_read = pipe.latest().timings.frames_read
+        out["recorded_fraction"] = rec.frames_written / total_read if total_read else float("nan")
+        out["record_not_recorded"] = float(rec.frames_dropped)
+        _log(f"live: {out}")
+        out.update(offline(tmp))
+    return out
