@@ -108,6 +108,27 @@ def test_chosen_subpixel_method_has_far_less_bias_than_the_parabola() -> None:
     assert rms_gn <= 0.05
 
 
+def test_slant_rescoring_measures_a_slanted_plane_and_leaves_a_flat_one_alone() -> None:
+    # right(u_r) = texture(u_l) with u_r = u_l - d(u_l), d = d0 + g (u_l - u0): exact slant
+    rng = np.random.default_rng(12)
+    tex = band_limited_texture(rng)
+    g, d0, u0 = 0.2, 8.0, 50.0
+    u, v = np.meshgrid(np.arange(W, dtype=float), np.arange(H, dtype=float))
+    left = to_uint8(tex(u, v), 1.0, rng)
+    right = to_uint8(tex((u + d0 - g * u0) / (1 - g), v), 1.0, rng)
+    uv = np.array([[40.0, 15.0], [50.0, 20.0], [62.0, 25.0]])
+    slant = MeasureParams(max_disparity_px=20, slant_scales=(0.8, 0.9, 1.1, 1.25), min_score=0.7, max_sigma_disparity_px=0.3)
+    for m in measure_points(identity_rig(W, H), left, right, uv, slant):
+        assert m.ok, m.reason
+        # a translated patch measures the disparity near its centre to a fraction of a pixel
+        assert m.disparity_px == pytest.approx(d0 + g * (m.uv[0] - u0), abs=0.3)
+    flat_l, flat_r = _pair(6.7, seed=13)
+    plain = measure_points(identity_rig(W, H), flat_l, flat_r, uv, NARROW)
+    with_slant = measure_points(identity_rig(W, H), flat_l, flat_r, uv, MeasureParams(max_disparity_px=16, slant_scales=(0.8, 1.25)))
+    for a, b in zip(plain, with_slant):
+        assert a.ok and b.ok and b.disparity_px == pytest.approx(a.disparity_px, abs=1e-9)
+
+
 def test_match_strip_finds_a_callers_own_template() -> None:
     left, right = _pair(6.4, seed=5, noise=0.5)
     T = left[10:18, 50:58].astype(np.float32)

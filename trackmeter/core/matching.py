@@ -115,6 +115,13 @@ class MeasureParams:
     min_gradient_rms: float = param(
         1.0, "smallest RMS of the patch's horizontal (epipolar) gradient, grey levels per px", min=0.0
     )
+    slant_scales: tuple[float, ...] = param(
+        (),
+        "horizontal stretches of the right patch tried at the best peaks (slanted surfaces); empty: off",
+        min=0.5,
+        max=2.0,
+    )
+    slant_candidates: int = param(3, "how many of the highest correlation peaks are re-scored for slant", min=1, max=10)
     subpixel: str = param(
         "gauss_newton", "sub-pixel refinement: gauss_newton (unbiased) or parabola (baseline)",
         choices=("gauss_newton", "parabola"),
@@ -390,16 +397,20 @@ def match_strip(
     cand = scores[lo : hi + 1]
     best = lo + int(np.argmax(cand))
     c0 = float(scores[best])
+    rivals = -1.0  # best slant-corrected score of the other candidate peaks
+    if params.slant_scales and params.slant_candidates > 1:
+        best, c0, rivals = _slant_rescore(T, S, scores, lo, hi, params)
 
     def refuse(reason: str, score: float = c0, second: float = -1.0) -> StripMatch:
         return StripMatch(False, reason, math.nan, best, score, second, math.nan, scores)
 
     # A peak on the range's edge is only a peak if the score falls beyond it.
-    if (best == lo and (lo == 0 or scores[lo - 1] >= c0)) or (best == hi and (hi == n - 1 or scores[hi + 1] >= c0)):
+    cb = float(scores[best])
+    if (best == lo and (lo == 0 or scores[lo - 1] >= cb)) or (best == hi and (hi == n - 1 or scores[hi + 1] >= cb)):
         return refuse(REASON_BEYOND_RANGE)
     l, r = _main_lobe(scores, best, lo, hi)
     outside = np.concatenate([scores[lo:l], scores[r + 1 : hi + 1]])
-    second = float(outside.max()) if outside.size else -1.0
+    second = max(float(outside.max()) if outside.size else -1.0, rivals)
     if c0 < params.min_score:
         return refuse(REASON_LOW_SCORE, c0, second)
     if second > c0 - params.uniqueness_margin:
@@ -407,7 +418,7 @@ def match_strip(
 
     # Parabola through the three scores around the peak: the baseline, and the start of the fit.
     cm, cp = float(scores[best - 1]), float(scores[best + 1])
-    den = cm - 2.0 * c0 + cp
+    den = cm - 2.0 * cb + cp
     delta = 0.5 * (cm - cp) / den if den < 0 else 0.0
     x = best + min(max(delta, -0.5), 0.5)
     if not refine:
@@ -416,6 +427,58 @@ def match_strip(
     if reason is not None:
         return refuse(reason, score, second)
     return StripMatch(True, None, x, best, score, second, sigma, scores)
+
+
+def _slant_rescore(
+    T: NDArray[np.generic], S: NDArray[np.generic], scores: NDArray[np.float32], lo: int, hi: int, params: MeasureParams
+) -> tuple[int, float, float]:
+    """Re-score the best few peaks allowing for a slanted surface.
+
+    On a surface slanted away from the fronto-parallel, the disparity changes across the
+    patch and the right patch is the left one stretched horizontally by ``s = 1 - dd/du``
+    about its centre. A strongly slanted, regularly textured face (a radiator's tile grid seen
+    obliquely) then correlates worse at its true disparity than at a wrong one: measured on
+    the simulated mock-up, true 0.70 against a false 0.87. Each of the
+    ``params.slant_candidates`` highest local maxima is scored again with the right patch
+    resampled (linearly, about its centre) at each of ``params.slant_scales``, and keeps its
+    best score. Returns ``(column, score, best score of the other peaks)``.
+
+    Off by default: on the simulated mock-up (estec scenario, three frames, 8 px grid) it cut
+    accepted points more than 2 cm off from 123 of 1130 to 93 of 1108, and costs ~0.1 ms a
+    point; the rest of those errors are patches straddling depth edges.
+    """
+    P = T.shape[1]
+    inner = scores[lo : hi + 1]
+    if inner.size < 3:
+        b = lo + int(np.argmax(inner))
+        return b, float(scores[b]), -1.0
+    peaks = np.flatnonzero((inner[1:-1] >= inner[:-2]) & (inner[1:-1] >= inner[2:])) + 1 + lo
+    ends = [e for e in (lo, hi) if scores[e] >= scores[e + 1 if e == lo else e - 1]]
+    peaks = np.concatenate([peaks, np.array(ends, dtype=int)]) if ends else peaks
+    if peaks.size == 0:
+        b = lo + int(np.argmax(inner))
+        return b, float(scores[b]), -1.0
+    k = min(params.slant_candidates, peaks.size)
+    top = peaks[np.argsort(scores[peaks])[::-1][:k]]
+    scales = np.array((1.0, *params.slant_scales))
+    m = 0.5 * (P - 1)
+    # columns of the stretched right patch: centre c + m, offsets (j - m) * s
+    pos = top[:, None, None] + m + (np.arange(P)[None, None, :] - m) * scales[None, :, None]
+    pos = np.clip(pos, 0.0, S.shape[1] - 1.000001).reshape(-1)
+    i0 = pos.astype(np.intp)
+    t = pos - i0
+    R = S[:, i0] * (1.0 - t) + S[:, i0 + 1] * t  # (rows, k * scales * P), float64
+    rows = R.shape[0]
+    R = R.reshape(rows, -1, P).transpose(1, 0, 2).reshape(-1, rows * P)  # (k * scales, rows * P)
+    R -= R.mean(axis=1, keepdims=True)
+    Tc = T.astype(np.float64).ravel()
+    Tc -= Tc.mean()
+    den = np.sqrt((R * R).sum(axis=1) * float(Tc @ Tc))
+    zn = (R @ Tc / np.maximum(den, 1e-12)).reshape(k, len(scales)).max(axis=1)  # (k,)
+    order = np.argsort(zn)[::-1]
+    b = int(top[order[0]])
+    rival = float(zn[order[1]]) if k > 1 else -1.0
+    return b, float(zn[order[0]]), rival
 
 
 def refine_position(
