@@ -40,9 +40,13 @@ class VelocityParams:
         "poly", "'poly': causal local polynomial fit on the rotation group; 'difference': eq. 14 finite difference",
         choices=("poly", "difference"),
     )
-    window_s: float = param(1.2, "poly: length of the fitted window of past poses, s", min=0.05)
-    order: int = param(2, "poly: degree of the fitted polynomial (1 = constant rate, 2 = constant acceleration)",
+    window_s: float = param(1.2, "poly: window of the attitude fit (angular velocity), s", min=0.05)
+    order: int = param(2, "poly: degree of the attitude polynomial (1 = constant rate, 2 = constant acceleration)",
                        min=1, max=4)
+    position_window_s: float = param(
+        2.0, "poly: window of the position fit, s (the relative translation is slow and smooth)", min=0.05
+    )
+    position_order: int = param(2, "poly: degree of the position polynomial (1 = constant velocity)", min=1, max=4)
     max_gap_s: float = param(0.5, "a gap between valid poses longer than this restarts the estimator, s", min=0.0)
 
 
@@ -131,16 +135,20 @@ class VelocityEstimator:
         self._t.append(float(t_s))
         self._R.append(np.asarray(R_cam_body, dtype=float))
         self._p.append(np.asarray(p_cam, dtype=float))
-        if self.params.method == "difference":
-            while len(self._t) > 2:
-                self._t.popleft(), self._R.popleft(), self._p.popleft()
-        else:
-            while len(self._t) > 2 and t_s - self._t[0] > self.params.window_s:
-                self._t.popleft(), self._R.popleft(), self._p.popleft()
+        keep = 2 if self.params.method == "difference" else None
+        longest = max(self.params.window_s, self.params.position_window_s)
+        while len(self._t) > 2 and (keep is not None and len(self._t) > keep or t_s - self._t[0] > longest):
+            self._t.popleft(), self._R.popleft(), self._p.popleft()
         if len(self._t) < 2:
             return None
         if self.params.method == "difference":
-            return finite_difference_rates(self._t[0], self._R[0], self._p[0], self._t[1], self._R[1], self._p[1])
-        _, _, v, omega = local_polynomial_rates(np.array(self._t), np.array(self._R), np.array(self._p),
-                                                self.params.order)
+            return finite_difference_rates(self._t[-2], self._R[-2], self._p[-2], self._t[-1], self._R[-1], self._p[-1])
+        t = np.array(self._t)
+        R = np.array(self._R)
+        P = np.array(self._p)
+        rot = t >= t_s - self.params.window_s - 1e-9
+        pos = t >= t_s - self.params.position_window_s - 1e-9
+        rot[-2:] = pos[-2:] = True
+        _, _, _, omega = local_polynomial_rates(t[rot], R[rot], P[rot], self.params.order)
+        _, _, v, _ = local_polynomial_rates(t[pos], R[pos], P[pos], self.params.position_order)
         return v, omega

@@ -239,7 +239,6 @@ class Engine:
             for pid, b in zip(self._given_model.ids, self._given_model.points_body):
                 self._model[pid] = _ModelPoint(np.array(b, dtype=float), np.zeros((3, 3)), True)
         self._frame_ids: tuple[str, ...] = ()
-        self._anchor: dict[str, FloatArray] = {}  # case c: acquired coordinates, the frozen frame
         self._candidates: dict[str, _Candidate] = {}
         self._pending_reject: set[str] = set()
         self._last_fit: tuple[FloatArray, FloatArray, FloatArray] | None = None
@@ -372,8 +371,7 @@ class Engine:
         }
         existing = {t.id for t in targets}
         # Grown points whose target the tracker dropped can never be measured again.
-        for pid in [p for p, m in self._model.items() if not m.fixed and p not in existing and p not in self._frame_ids
-                    and p not in self._anchor]:
+        for pid in [p for p, m in self._model.items() if not m.fixed and p not in existing and p not in self._frame_ids]:
             del self._model[pid]
         for pid in [p for p in self._candidates if p not in measured]:
             del self._candidates[pid]
@@ -486,7 +484,6 @@ class Engine:
             return "acquiring a model: the points are (nearly) collinear; select spread-out points"
         centroid = M.mean(axis=0)
         self._model = {tid: _ModelPoint(M[n] - centroid, covs[n], False) for n, tid in enumerate(ids)}
-        self._anchor = {tid: M[n] - centroid for n, tid in enumerate(ids)}
         self._acquisition = None
         return None
 
@@ -516,15 +513,18 @@ class Engine:
         R, t, cov = fit.R_cam_body, fit.t_cam_body, fit.cov
         self._last_fit = (R, t, cov)
         self._update_model(R, t, cov, fit.scale2, ids, fit.inliers, measured)
-        if self._last_fit is not None:
-            R, t, cov = self._last_fit  # re-gauged
         return (R, t, cov, int(fit.inliers.sum()), outliers), None
 
     def _update_model(self, R: FloatArray, t: FloatArray, cov: FloatArray, scale2: float, ids: list[str],
                       inliers: NDArray[np.bool_], measured: dict[str, TargetState]) -> None:
         """Refine measured model points and let consistent new targets join. A body-frame
         observation ``b = R^T (p - t)`` carries the point's covariance (inflated by the fit's
-        robust scale) plus the pose's, propagated to that point."""
+        robust scale) plus the pose's, propagated to that point.
+
+        The refinement does not move the body frame: the pose fit has already removed the
+        rigid part of the residuals, so averaging them only sharpens the model's shape. The
+        frame stays where its definition put it (case a: the three-point frame at the moment
+        it was established; case c: the frozen frame), carried by every point afterwards."""
         p = self.pose_params
 
         def observe(tgt: TargetState) -> tuple[FloatArray, FloatArray]:
@@ -560,40 +560,6 @@ class Engine:
                 self._model[tid] = _ModelPoint(cand.b, cand.cov, False)
                 del self._candidates[tid]
                 self.stats.model_points_joined += 1
-        if p.model_refine:
-            self._regauge()
-
-    def _regauge(self) -> None:
-        """Keep the body frame where its definition puts it while measured points are refined:
-        case (a) the three-point frame of the refined frame points; case (c) the acquired
-        (frozen) coordinates. Moves the model and the last pose together (no output jump)."""
-        if self._case == "a" and len(self._frame_ids) == 3 and all(i in self._model for i in self._frame_ids):
-            R_g, o_g = three_point_body_frame(*(self._model[i].b for i in self._frame_ids))
-        elif self._case == "c" and self._anchor:
-            ids = [i for i in self._anchor if i in self._model]
-            if len(ids) < 3:
-                return
-            from trackmeter.core.transforms import absolute_orientation
-
-            R_g, o_g = absolute_orientation(np.array([self._model[i].b for i in ids]),
-                                            np.array([self._anchor[i] for i in ids]))
-            # absolute_orientation gives model = R_g anchor + o_g: the anchor frame in model coordinates.
-        else:
-            return
-        if np.allclose(R_g, np.eye(3), atol=1e-12) and np.allclose(o_g, 0.0, atol=1e-12):
-            return
-        for m in self._model.values():
-            if m.fixed:
-                continue
-            m.b = R_g.T @ (m.b - o_g)
-            m.cov = R_g.T @ m.cov @ R_g
-        for c in self._candidates.values():
-            c.b = R_g.T @ (c.b - o_g)
-            c.cov = R_g.T @ c.cov @ R_g
-        if self._last_fit is not None:
-            R, t, cov = self._last_fit
-            # T_cam_newbody = T_cam_oldbody @ T_oldbody_newbody, T_oldbody_newbody = (R_g, o_g).
-            self._last_fit = (R @ R_g, t + R @ o_g, cov)
 
     # ------------------------------------------------------------------ recovery
 
