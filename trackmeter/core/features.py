@@ -233,7 +233,7 @@ def disparity_range(rig: StereoRig, min_depth_m: float, max_depth_m: float) -> t
 
 def stereo_matchable(left: NDArray, right: NDArray, rig: StereoRig, uv: FloatArray, params: FeatureParams) -> NDArray[np.bool_]:
     """Whether each left point (N,2) has a strong, unique match along its epipolar line."""
-    from trackmeter.core.patch_tracking import match_epipolar
+    from trackmeter.core.patch_tracking import match_epipolar, rectified_to_original
 
     rect = rig.rectification
     lo, hi = disparity_range(rig, params.min_depth_m, params.max_depth_m)
@@ -244,8 +244,8 @@ def stereo_matchable(left: NDArray, right: NDArray, rig: StereoRig, uv: FloatArr
     m = match_epipolar(
         np.asarray(left, np.float32),
         np.asarray(right, np.float32),
-        rect.maps[0],
-        rect.maps[1],
+        rectified_to_original(rect, 0),
+        rectified_to_original(rect, 1),
         cl,
         np.full(len(cl), lo),
         int(np.ceil(hi - lo)),

@@ -35,10 +35,13 @@ centred at ``c`` samples ``c + k - (n-1)/2`` for ``k = 0..n-1`` (as ``cv2.getRec
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+
+from trackmeter.core.stereo import Rectification
 
 FloatArray = NDArray[np.float64]
 F32 = NDArray[np.float32]
@@ -50,7 +53,7 @@ def patch_offsets(size: int) -> F32:
 
 
 def bilinear(image: F32, x: NDArray, y: NDArray) -> tuple[F32, NDArray[np.bool_]]:
-    """Bilinear interpolation of a float32 image at sub-pixel points (any equal shapes).
+    """Bilinear interpolation of a float32 (or uint8) image at sub-pixel points (any equal shapes).
 
     ``image`` is (H,W), or a stack (N,H,W) sampled with ``x, y`` of shape (N, ...) — point
     ``[i, ...]`` in image ``i``. Returns ``(values, inside)``; points outside
@@ -70,28 +73,47 @@ def bilinear(image: F32, x: NDArray, y: NDArray) -> tuple[F32, NDArray[np.bool_]
     i00 = y0 * w + x0
     if image.ndim == 3:
         i00 += (np.arange(image.shape[0], dtype=np.int32) * (h * w)).reshape((-1,) + (1,) * (x.ndim - 1))
-    a = flat[i00]
-    b = flat[i00 + 1]
-    c = flat[i00 + w]
-    d = flat[i00 + w + 1]
+    a = flat[i00].astype(np.float32, copy=False)  # uint8 images are gathered, then converted
+    b = flat[i00 + 1].astype(np.float32, copy=False)
+    c = flat[i00 + w].astype(np.float32, copy=False)
+    d = flat[i00 + w + 1].astype(np.float32, copy=False)
     top = a + fx * (b - a)
     bot = c + fx * (d - c)
     return (top + fy * (bot - top)).astype(np.float32, copy=False), inside
 
 
-def sample_points(image: F32, x: NDArray, y: NDArray, coord_map: tuple[F32, F32] | None = None) -> tuple[F32, NDArray[np.bool_]]:
-    """Sample ``image`` at points (x, y); with ``coord_map = (map_x, map_y)`` the points are first
-    sent through the map (e.g. rectified → original pixels, ``Rectification.maps``)."""
-    if coord_map is not None:
-        mx, inside_m = bilinear(coord_map[0], x, y)
-        my, _ = bilinear(coord_map[1], x, y)
-        values, inside = bilinear(image, mx, my)
-        return values, inside & inside_m
-    return bilinear(image, x, y)
+CoordMap = "tuple[F32, F32] | Callable[[NDArray, NDArray], tuple[NDArray, NDArray]]"
+
+
+def sample_points(image: F32, x: NDArray, y: NDArray, coord_map: CoordMap | None = None) -> tuple[F32, NDArray[np.bool_]]:
+    """Sample ``image`` at points (x, y); with ``coord_map`` the points are first sent through it:
+    a pair of remap tables ``(map_x, map_y)`` (e.g. ``Rectification.maps``, interpolated), or a
+    function ``(x, y) -> (x', y')`` (e.g. :func:`rectified_to_original`, exact)."""
+    if coord_map is None:
+        return bilinear(image, x, y)
+    if callable(coord_map):
+        mx, my = coord_map(np.asarray(x), np.asarray(y))
+        return bilinear(image, mx, my)
+    mx, inside_m = bilinear(coord_map[0], x, y)
+    my, _ = bilinear(coord_map[1], x, y)
+    values, inside = bilinear(image, mx, my)
+    return values, inside & inside_m
+
+
+def rectified_to_original(rect: Rectification, side: int) -> Callable[[NDArray, NDArray], tuple[NDArray, NDArray]]:
+    """A coordinate map: rectified pixels (any shape) → original pixels of the left (0) or right
+    (1) image, exactly (``Rectification.unrectify_points``: one ``cv2.projectPoints`` call)."""
+
+    def to_original(x: NDArray, y: NDArray) -> tuple[NDArray, NDArray]:
+        shape = np.shape(x)
+        uv = rect.unrectify_points(np.column_stack([np.ravel(x), np.ravel(y)]), side)
+        return uv[:, 0].reshape(shape), uv[:, 1].reshape(shape)
+
+    return to_original
 
 
 def sample_patches(
-    image: F32, centres: NDArray, size: int, coord_map: tuple[F32, F32] | None = None
+    image: F32, centres: NDArray, size: int, coord_map: CoordMap | None = None
 ) -> tuple[F32, NDArray[np.bool_]]:
     """Patches (N,size,size) centred at ``centres`` (N,2) px, and whether each lies fully inside."""
     c = np.asarray(centres, dtype=np.float32).reshape(-1, 2)
@@ -128,7 +150,7 @@ class Templates:
         return Templates(self.values[index], self.gx[index], self.gy[index], self.hessian_inv[index], self.ok[index])
 
 
-def make_templates(image: F32, centres: NDArray, size: int, coord_map: tuple[F32, F32] | None = None) -> Templates:
+def make_templates(image: F32, centres: NDArray, size: int, coord_map: CoordMap | None = None) -> Templates:
     """Templates (side ``size``) at ``centres`` (N,2): a (size+4)² patch is sampled so the
     gradients are finite differences of real samples."""
     # Five-point derivative (-1, 8, 0, -8, 1)/12: the plain central difference under-estimates
@@ -197,7 +219,7 @@ def refine_lk(
     templates: Templates,
     uv0: NDArray,
     *,
-    coord_map: tuple[F32, F32] | None = None,
+    coord_map: CoordMap | None = None,
     max_iterations: int = 10,
     tolerance_px: float = 5e-3,
     max_shift_px: float = 3.0,
@@ -307,8 +329,8 @@ def zncc_search(
     x1, y1 = min(x1, w), min(y1, h)
     if x1 - x0 < n or y1 - y0 < n:
         return None
-    roi = image[y0:y1, x0:x1]
-    res = cv2.matchTemplate(roi, template, cv2.TM_CCOEFF_NORMED)
+    roi = np.asarray(image[y0:y1, x0:x1], dtype=np.float32)
+    res = cv2.matchTemplate(roi, np.asarray(template, dtype=np.float32), cv2.TM_CCOEFF_NORMED)
     _, best, _, loc = cv2.minMaxLoc(res)
     j, i = loc
     # Second peak: the best other LOCAL MAXIMUM of the score (a broad main peak's flanks do not
@@ -418,8 +440,8 @@ class EpipolarMatch:
 def match_epipolar(
     left: F32,
     right: F32,
-    left_map: tuple[F32, F32],
-    right_map: tuple[F32, F32],
+    left_map: CoordMap,
+    right_map: CoordMap,
     uv_rect_left: NDArray,
     disparity_low_px: NDArray,
     span_px: int,
@@ -441,7 +463,7 @@ def match_epipolar(
 
     Args:
         left, right: float32 ORIGINAL images.
-        left_map, right_map: rectified → original maps (``Rectification.maps``).
+        left_map, right_map: rectified → original coordinate maps (see :func:`sample_points`).
         uv_rect_left: (N,2) rectified left pixels.
         disparity_low_px: (N,) smallest disparity searched, px.
         span_px: number of disparities searched above it (same for all points).

@@ -42,6 +42,7 @@ from trackmeter.core.params import param
 from trackmeter.core.patch_tracking import (
     Templates,
     make_templates,
+    rectified_to_original,
     match_epipolar,
     refine_lk,
     track_patches,
@@ -156,8 +157,8 @@ def _stack(ts: list[Templates]) -> Templates:
 @dataclass
 class _FrameCache:
     index: int
-    left: NDArray[np.float32]
-    right: NDArray[np.float32]
+    left: NDArray[np.uint8]
+    right: NDArray[np.uint8]
 
 
 class Tracker:
@@ -176,13 +177,12 @@ class Tracker:
         self.features = features
         self.measure = measure
         self.rect = rig.rectification
-        self._maps = self.rect.maps
+        self._maps = (rectified_to_original(self.rect, 0), rectified_to_original(self.rect, 1))
         self._targets: dict[str, _Target] = {}
         self._counter = itertools.count(1)
         self._auto = bool(params.auto)
         self._auto_count = features.count
         self._auto_method = features.method
-        self._cache: _FrameCache | None = None
         # Reference pairwise 3D distances (and their variances) for the rigid-body check,
         # indexed by each target's slot.
         self._ref_d = np.full((0, 0), np.nan)
@@ -267,15 +267,12 @@ class Tracker:
     # ------------------------------------------------------------------ frames
 
     def _frame(self, frame: StereoFrame) -> _FrameCache:
-        if self._cache is None or self._cache.index != frame.index or self._cache.left.shape != frame.left.shape:
-            self._cache = _FrameCache(
-                frame.index, np.asarray(frame.left, np.float32), np.asarray(frame.right, np.float32)
-            )
-        return self._cache
+        # uint8 as delivered: the samplers gather from it and convert only what they read.
+        return _FrameCache(frame.index, np.ascontiguousarray(frame.left), np.ascontiguousarray(frame.right))
 
     # ------------------------------------------------------------------ adding targets
 
-    def _check_click(self, left: NDArray[np.float32], uv: FloatArray) -> str | None:
+    def _check_click(self, left: NDArray[np.uint8], uv: FloatArray) -> str | None:
         p = self.params
         n = p.patch_size
         if not np.all(np.isfinite(uv)):
