@@ -129,6 +129,17 @@ def test_slant_rescoring_measures_a_slanted_plane_and_leaves_a_flat_one_alone() 
         assert a.ok and b.ok and b.disparity_px == pytest.approx(a.disparity_px, abs=1e-9)
 
 
+def test_zncc_equals_opencv_and_ignores_gain_and_offset() -> None:
+    rng = np.random.default_rng(14)
+    a = rng.uniform(0, 255, (8, 8)).astype(np.float32)
+    b = (a + rng.normal(0, 20, a.shape)).astype(np.float32)
+    ref = float(cv2.matchTemplate(b, a, cv2.TM_CCOEFF_NORMED)[0, 0])
+    assert M.zncc(a, b) == pytest.approx(ref, abs=1e-5)
+    assert M.zncc(a, 3.0 * a + 40.0) == pytest.approx(1.0)
+    assert M.zncc(a, -a) == pytest.approx(-1.0)
+    assert M.zncc(a, np.full_like(a, 7.0)) == 0.0
+
+
 def test_match_strip_finds_a_callers_own_template() -> None:
     left, right = _pair(6.4, seed=5, noise=0.5)
     T = left[10:18, 50:58].astype(np.float32)
