@@ -122,7 +122,9 @@ class Console:
         self.last_pushed_sequence = 0
         self.last_pushed_target_ids: tuple[str, ...] = ()
         self.last_pushed_time = 0.0
+        self.last_push: tuple[float, int, tuple[str, ...]] = (0.0, 0, ())
         self.notifications: deque[tuple[str, str]] = deque(maxlen=50)
+        self.push_ms: deque[float] = deque(maxlen=200)  # publisher cost of recent pushes
         self._last_frame_index: int | None = None
         self._plot_version: dict[str, int] = {}
         self._build_scene()
@@ -442,7 +444,9 @@ class Console:
                 snap = self.pipeline.latest()
                 if snap.sequence != last_seq:
                     last_seq = snap.sequence
+                    t0 = time.perf_counter()
                     self._push(snap, plots=(tick % self.plot_every == 0))
+                    self.push_ms.append((time.perf_counter() - t0) * 1e3)
                     tick += 1
             except Exception:
                 log.exception("console publish failed")
@@ -515,6 +519,8 @@ class Console:
         self.last_pushed_sequence = snap.sequence
         self.last_pushed_target_ids = tuple(t.id for t in snap.targets)
         self.last_pushed_time = time.monotonic()
+        # One assignment, so a reader never pairs these ids with an older push time.
+        self.last_push = (self.last_pushed_time, snap.sequence, self.last_pushed_target_ids)
 
     def _sync_widgets(self, snap: Snapshot) -> None:
         # Reflect the tracker's state (several browsers; a refused toggle snaps back).

@@ -1,0 +1,172 @@
+"""The operator console under load (issue 7): tracking rate with a browser connected, image
+updates reaching the browser, click-to-target latency.
+
+The console runs in this process on the ``sim`` source (the ``estec`` scenario at 25 Hz) with
+16 automatic targets; Debian's Chromium (headless, SwiftShader WebGL) is connected through
+Playwright and its websocket frames are counted.
+
+Figures:
+
+- ``tracking_rate_hz``: frames tracked per second over ``MEASURE_S`` s after ``WARMUP_S`` s
+  (target 25), and ``dropped_fraction`` (target < 0.01), ``acquisition_hz`` the source's rate.
+- ``browser_image_updates_per_s``: websocket frames the browser received that carry a JPEG
+  image (the left image with its overlays), per second, same window (target >= 10).
+- ``published_images_per_s``: images the console pushed per second (the server side of it),
+  and ``publish_ms_median`` the publisher's time per push (overlays, JPEG, scene, numbers, plots).
+- ``click_latency_ms``: median over ``N_CLICKS`` clicks on the satellite in the browser: from
+  the mouse click until the browser has received the first image that shows the new target
+  (target < 300). ``click_to_server_ms``: the part until the tracking thread created it.
+- ``tracking_rate_hz_without_browser``: the same console with no browser connected, measured
+  first in the same run (the browser's rendering competes for the two cores).
+
+Environment: ``TRACKMETER_BENCH_CONSOLE_SOURCE`` (default ``sim``; ``plate`` replays one
+pre-rendered frame of a textured plate at 25 Hz, which takes the renderer's CPU out of the
+figures), ``TRACKMETER_BENCH_LIVE_S`` (default 30).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import statistics
+import sys
+import time
+from typing import Any
+
+import numpy as np
+
+WARMUP_S = 10.0
+MEASURE_S = float(os.environ.get("TRACKMETER_BENCH_LIVE_S", "30"))
+N_CLICKS = 5
+SOURCE = os.environ.get("TRACKMETER_BENCH_CONSOLE_SOURCE", "sim")
+
+
+def _log(msg: str) -> None:
+    print(f"[console] {msg}", file=sys.stderr, flush=True)
+
+
+def _poll(page: Any, predicate: Any, timeout_s: float) -> Any:
+    """Poll while letting Playwright deliver its events (websocket frames)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        page.wait_for_timeout(5)
+    return None
+
+
+def _click_candidates(running: Any) -> list[tuple[float, float]]:
+    """Pixels on the satellite: around the projection of the body origin (truth or estimate)."""
+    snap = running.pipeline.latest()
+    T = None
+    if snap.frame is not None and snap.frame.truth is not None:
+        T = np.asarray(snap.frame.truth.T_cam_body)
+    elif snap.pose.valid:
+        T = np.asarray(snap.pose.T_cam_body)
+    w, h = running.console._image_size
+    centre = np.array([w / 2, h / 2]) if T is None else running.pipeline.rig.left.project(T[:3, 3][None])[0]
+    rng = np.random.default_rng(1)
+    return [tuple(map(float, np.clip(centre + rng.normal(0, 25, 2), 10, [w - 10, h - 10]))) for _ in range(40)]
+
+
+def run() -> dict[str, float]:
+    from playwright.sync_api import sync_playwright
+
+    from benchmarks.pipeline import LiveWindow, make_engine
+    from console.server import start_console
+    from tests.browser.conftest import CHROMIUM_ARGS, VIEWPORT, free_port, pixel_to_screen
+    from trackmeter.pipeline.snapshot import RemoveTarget, SetAuto
+    from trackmeter.sources import open_source
+
+    chromium = shutil.which("chromium")
+    if chromium is None:
+        raise RuntimeError("Debian chromium is needed (apt-get install chromium)")
+    if SOURCE == "plate":  # the browser tests' textured plate: no renderer competing for the cores
+        from tests.browser.conftest import plate_source
+
+        source: Any = plate_source()
+    else:
+        source = open_source(SOURCE, realtime=True, loop=True)
+    running = start_console(source, make_engine(source), port=free_port())
+    out: dict[str, float] = {}
+    try:
+        running.pipeline.call(SetAuto(True, 16, "gabor"), 60)
+        window = LiveWindow(running.pipeline)
+        _log(f"no browser: warm-up {WARMUP_S:.0f} s, measure {MEASURE_S / 2:.0f} s")
+        time.sleep(WARMUP_S)
+        window.begin()
+        time.sleep(MEASURE_S / 2)
+        out["tracking_rate_hz_without_browser"] = window.end()["rate_hz"]
+
+        jpeg_times: list[float] = []
+
+        def on_ws(ws: Any) -> None:
+            def frame(payload: Any) -> None:
+                if isinstance(payload, (bytes, bytearray)) and b"\xff\xd8\xff" in payload:
+                    jpeg_times.append(time.monotonic())
+
+            ws.on("framereceived", frame)
+
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=chromium, args=CHROMIUM_ARGS)
+            page = browser.new_context(viewport=VIEWPORT).new_page()
+            page.on("websocket", on_ws)
+            before = set(running.server.get_clients())
+            page.goto(running.url)
+            _poll(page, lambda: set(running.server.get_clients()) - before, 30)
+            client_id = next(iter(set(running.server.get_clients()) - before))
+            client = running.server.get_clients()[client_id]
+            _log(f"browser connected: warm-up {WARMUP_S:.0f} s, measure {MEASURE_S:.0f} s")
+            page.wait_for_timeout(WARMUP_S * 1000)
+            window.begin()
+            n_jpeg0, pushed0, t0 = len(jpeg_times), running.console.images_pushed, time.monotonic()
+            page.wait_for_timeout(MEASURE_S * 1000)
+            live = window.end()
+            dt = time.monotonic() - t0
+            out["tracking_rate_hz"] = live["rate_hz"]
+            out["dropped_fraction"] = live["dropped_fraction"]
+            out["acquisition_hz"] = live["acquisition_hz"]
+            out["latency_ms_median"] = live["latency_ms_median"]
+            out["browser_image_updates_per_s"] = (len(jpeg_times) - n_jpeg0) / dt
+            out["published_images_per_s"] = (running.console.images_pushed - pushed0) / dt
+            out["publish_ms_median"] = statistics.median(running.console.push_ms)
+            _log(f"rates: {out}")
+
+            latencies, to_server = [], []
+            for uv in _click_candidates(running):
+                if len(latencies) >= N_CLICKS:
+                    break
+                known = {t.id for t in running.pipeline.latest().targets}
+                n_notes = len(running.console.notifications)
+                sx, sy = pixel_to_screen(running, client, page, uv)
+                t_click = time.monotonic()
+                page.mouse.click(sx, sy)
+
+                def new_target() -> Any:
+                    return next((t for t in running.pipeline.latest().targets
+                                 if t.id not in known and t.origin == "operator"), None) or \
+                        (len(running.console.notifications) > n_notes and "refused")
+
+                got = _poll(page, new_target, 5)
+                if got is None or got == "refused":
+                    continue
+                t_server = time.monotonic()
+                pushed = _poll(page, lambda: (push := running.console.last_push)[0] > t_click
+                               and got.id in push[2] and push[0], 5)
+                if not pushed:
+                    continue
+                shown = _poll(page, lambda: next((t for t in jpeg_times if t >= pushed), None), 5)
+                if shown is None:
+                    continue
+                latencies.append((shown - t_click) * 1e3)
+                to_server.append((t_server - t_click) * 1e3)
+                running.pipeline.call(RemoveTarget(got.id), 10)
+                page.wait_for_timeout(300)
+            out["click_latency_ms"] = statistics.median(latencies) if latencies else float("nan")
+            out["click_to_server_ms"] = statistics.median(to_server) if to_server else float("nan")
+            out["clicks_measured"] = float(len(latencies))
+            browser.close()
+    finally:
+        running.stop()
+    return out
