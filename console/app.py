@@ -201,7 +201,7 @@ class Console:
         for k, rgb in enumerate(keys):
             sel = faces[inverse.reshape(-1) == k]
             self.server.scene.add_mesh_simple(f"{name}/part{k}", vertices, sel, color=tuple(int(c) for c in rgb),
-                                              opacity=opacity, side="double", flat_shading=True,
+                                              opacity=opacity, side="front", flat_shading=True,
                                               cast_shadow=False, receive_shadow=False)
 
     def _update_scene3d(self, snap: Snapshot) -> None:

@@ -1,0 +1,59 @@
+"""Starting the console: exact port or a clear error, a failing source reported in the UI.
+
+No browser here (see ``tests/browser``); viser's server runs in-process on a free port.
+"""
+
+from __future__ import annotations
+
+import socket
+import time
+import urllib.request
+
+import pytest
+
+pytest.importorskip("viser")
+
+from console.server import check_port_free, start_console  # noqa: E402
+from tests.test_pipeline import CountingSource, RecordingEngine  # noqa: E402
+from trackmeter.cli.main import main  # noqa: E402
+from trackmeter.errors import TrackmeterError  # noqa: E402
+
+
+def _listening_socket() -> tuple[socket.socket, int]:
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    s.listen()
+    return s, s.getsockname()[1]
+
+
+def test_busy_port_is_a_clear_error_not_a_move_to_the_next_port(capsys: pytest.CaptureFixture[str]) -> None:
+    s, port = _listening_socket()
+    with s:
+        with pytest.raises(TrackmeterError, match=f"port {port} on 127.0.0.1 is already in use"):
+            check_port_free("127.0.0.1", port)
+        assert main(["console", "--port", str(port)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err == [f"trackmeter console: error: port {port} on 127.0.0.1 is already in use; choose another with --port"]
+    check_port_free("127.0.0.1", port)  # free again once nobody listens
+    with pytest.raises(TrackmeterError, match="port must be 1-65535"):
+        check_port_free("127.0.0.1", 70000)
+
+
+def test_a_failing_source_is_shown_and_the_console_stays_up() -> None:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    img_source = CountingSource(40, fail_at=25)
+    running = start_console(img_source, RecordingEngine(), port=port)  # type: ignore[arg-type]
+    try:
+        assert running.url == f"http://127.0.0.1:{port}"
+        deadline = time.monotonic() + 20
+        while "source failed: camera unplugged" not in running.console.status_md.content:
+            assert time.monotonic() < deadline, running.console.status_md.content
+            time.sleep(0.05)
+        assert running.pipeline.running
+        with urllib.request.urlopen(running.url, timeout=10) as response:
+            assert response.status == 200
+    finally:
+        running.stop()
+    assert not running.pipeline.running and img_source.closed
