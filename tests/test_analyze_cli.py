@@ -60,3 +60,25 @@ def test_analyze_bad_source_is_one_line(tmp_path, capsys):
     code = main(["analyze", "--source", f"seq:{tmp_path / 'missing'}"])
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_split_ranges_groups_frames_by_true_pose():
+    import numpy as np
+
+    from trackmeter.pipeline.analysis import split_ranges
+    from trackmeter.sources.base import GroundTruth, StereoFrame
+
+    def frame(i, z):
+        T = np.eye(4)
+        T[2, 3] = z
+        truth = None if z is None else GroundTruth(T, np.zeros(3), np.zeros(3))
+        img = np.zeros((4, 4), np.uint8)
+        return StereoFrame(i, 0.1 * i, img, img, truth)
+
+    groups = list(split_ranges([frame(0, 2.0), frame(1, 2.0), frame(2, 3.5), frame(3, 3.5), frame(4, 3.5), frame(5, 2.0)]))
+    assert [[f.index for f in g] for g in groups] == [[0, 1], [2, 3, 4], [5]]
+    assert [len(g) for g in split_ranges([frame(i, None) for i in range(4)])] == [4]  # no truth: one range
+    from trackmeter.errors import TrackmeterError
+
+    with pytest.raises(TrackmeterError, match="some frames only"):
+        list(split_ranges([frame(0, 2.0), frame(1, None)]))
