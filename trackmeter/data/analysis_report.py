@@ -108,7 +108,7 @@ def _plot(analysis: ErrorAnalysis, out: Path) -> list[Path]:
         ax.stairs(d.density / scale, edges, fill=True, alpha=0.5, label="measured")
         x = np.linspace(edges[0], edges[-1], 300)
         ax.plot(x, stats.norm.pdf(x, d.mu * scale, d.sigma * scale), "r-",
-                label=f"normal fit mu={d.mu * scale:.3g}, sigma={d.sigma * scale:.3g}")
+                label=f"normal fit mu={d.mu * scale:.3f}, sigma={d.sigma * scale:.3f}")
         ax.set_xlabel(unit)
         ax.set_ylabel("probability density")
         ax.set_title(f"{title}\nKS D={d.ks_statistic:.3f}, K² p={d.k2_pvalue:.2g}", fontsize=9)
