@@ -34,7 +34,7 @@ def test_process_noise_is_filterpys_discrete_white_noise_in_our_state_order() ->
 
 
 def test_filter_learns_velocity_and_acceleration_and_predicts_the_next_frame() -> None:
-    p = KalmanParams()
+    p = KalmanParams(initial_velocity_sigma_px_s=1000.0)  # starts fast with no velocity guess
     dt = 0.04
     u = lambda t: 100 + 400 * t + 0.5 * 600 * t**2  # noqa: E731
     v = lambda t: 200 - 250 * t  # noqa: E731
@@ -84,3 +84,35 @@ def test_search_window_follows_the_predicted_covariance() -> None:
     settled = kalman.search_half_size(kf, p, 0.0, 1e9)
     assert np.all(settled < first / 3)  # a settled target is searched in a small window
     np.testing.assert_allclose(kalman.search_half_size(kf, p, 5.0, 6.0), np.clip(settled, 5.0, 6.0))
+
+
+def test_batched_predict_and_update_equal_filterpys() -> None:
+    p = KalmanParams()
+    rng = np.random.default_rng(2)
+    ours, ref = [], []
+    for i in range(5):
+        a = kalman.make_filter(rng.uniform(0, 500, 2), p, velocity_px_s=rng.normal(0, 100, 2))
+        b = kalman.make_filter(a.x[:2], p, velocity_px_s=a.x[2:4])
+        ours.append(a)
+        ref.append(b)
+    dts = [0.04, 0.04, 0.02, 0.04, 0.0]
+    kalman.predict_many(ours, dts, p)
+    for kf, dt in zip(ref, dts):
+        if dt > 0:
+            kalman.predict(kf, dt, p)
+    for a, b in zip(ours, ref):
+        np.testing.assert_allclose(a.x, b.x, rtol=1e-12)
+        np.testing.assert_allclose(a.P, b.P, rtol=1e-10)
+    np.testing.assert_allclose(
+        kalman.search_half_sizes(ours, p, 0, 1e9), np.array([kalman.search_half_size(k, p, 0, 1e9) for k in ref])
+    )
+    z = np.array([kf.x[:2] + rng.normal(0, 0.5, 2) for kf in ref])
+    z[1] += 1000.0  # a jump: gated out
+    accepted, d2 = kalman.update_many(ours, z, p)
+    for i, kf in enumerate(ref):
+        ok, d2_ref = kalman.update(kf, z[i], p)
+        assert ok == accepted[i]
+        assert d2[i] == pytest.approx(d2_ref, rel=1e-9)
+        np.testing.assert_allclose(ours[i].x, kf.x, rtol=1e-10)
+        np.testing.assert_allclose(ours[i].P, kf.P, rtol=1e-8, atol=1e-12)
+    assert not accepted[1]

@@ -46,7 +46,7 @@ class KalmanParams:
     )
     measurement_sigma_px: float = param(0.1, "std of one left-image patch match, px", min=1e-4)
     initial_velocity_sigma_px_s: float = param(
-        250.0, "std of a new target's unknown image velocity, px/s", min=0.0
+        50.0, "std of a new target's unknown image velocity (no other target to copy it from), px/s", min=0.0
     )
     initial_accel_sigma_px_s2: float = param(
         1000.0, "std of a new target's unknown image acceleration, px/s^2", min=0.0
@@ -142,3 +142,70 @@ def update(kf: KalmanFilter, z: ArrayLike, params: KalmanParams) -> tuple[bool, 
         return False, d2
     kf.update(np.asarray(z, float)[:2])
     return True, d2
+
+
+# ---------------------------------------------------------------------------- batched forms
+#
+# A tracker steps dozens of filters per frame; filterpy's per-object predict/update costs tens of
+# microseconds of Python each. These functions apply the SAME equations as filterpy's
+# ``KalmanFilter.predict`` / ``update`` (Joseph-form covariance update) to many filters at once,
+# reading and writing their ``x`` and ``P``; ``tests/test_kalman.py`` pins them to filterpy.
+
+
+def predict_many(kfs: list[KalmanFilter], dts_s: ArrayLike, params: KalmanParams) -> None:
+    """:func:`predict` for many filters (in place), each by its own ``dt`` (grouped by value)."""
+    if not kfs:
+        return
+    dts = np.round(np.maximum(np.asarray(dts_s, dtype=float).reshape(-1), 0.0), 9)
+    for dt in np.unique(dts):
+        idx = np.flatnonzero(dts == dt)
+        if dt <= 0:
+            continue
+        F, Q = _cached_fq(float(dt), float(params.accel_step_sigma_px_s2))
+        X = np.stack([kfs[i].x for i in idx])
+        P = np.stack([kfs[i].P for i in idx])
+        X = X @ F.T
+        P = F @ P @ F.T + Q
+        for j, i in enumerate(idx):
+            kfs[i].x = X[j]
+            kfs[i].P = P[j]
+
+
+def innovation_covariances(kfs: list[KalmanFilter]) -> FloatArray:
+    """(N,2,2) ``S = H P H^T + R`` of many filters (H selects (u, v))."""
+    return np.stack([kf.P[:2, :2] + kf.R for kf in kfs]) if kfs else np.zeros((0, 2, 2))
+
+
+def search_half_sizes(kfs: list[KalmanFilter], params: KalmanParams, min_px: float, max_px: float) -> FloatArray:
+    """(N,2) :func:`search_half_size` of many filters."""
+    S = innovation_covariances(kfs)
+    s = np.sqrt(np.stack([S[:, 0, 0], S[:, 1, 1]], axis=1))
+    return np.clip(params.window_sigmas * s, min_px, max_px)
+
+
+def update_many(kfs: list[KalmanFilter], z: ArrayLike, params: KalmanParams) -> tuple[NDArray[np.bool_], FloatArray]:
+    """:func:`update` for many filters: gate each measurement (N,2) and fuse the accepted ones.
+
+    Returns ``(accepted (N,), d² (N,))``.
+    """
+    n = len(kfs)
+    if n == 0:
+        return np.zeros(0, bool), np.zeros(0)
+    Z = np.asarray(z, dtype=float).reshape(n, 2)
+    X = np.stack([kf.x for kf in kfs])
+    P = np.stack([kf.P for kf in kfs])
+    R = np.stack([kf.R for kf in kfs])
+    S = P[:, :2, :2] + R
+    Sinv = np.linalg.inv(S)
+    y = Z - X[:, :2]
+    d2 = np.einsum("ni,nij,nj->n", y, Sinv, y)
+    accepted = d2 <= gate_threshold(params.gate_probability)
+    K = P[:, :, :2] @ Sinv  # P H^T S^-1
+    X = X + np.einsum("nij,nj->ni", K, y)
+    IKH = np.repeat(np.eye(6)[None], n, 0)
+    IKH[:, :, :2] -= K
+    P = IKH @ P @ np.transpose(IKH, (0, 2, 1)) + K @ R @ np.transpose(K, (0, 2, 1))  # Joseph form
+    for i in np.flatnonzero(accepted):
+        kfs[i].x = X[i]
+        kfs[i].P = P[i]
+    return accepted, d2

@@ -42,7 +42,6 @@ from trackmeter.core.params import param
 from trackmeter.core.patch_tracking import (
     Templates,
     make_templates,
-    rectified_to_original,
     match_epipolar,
     refine_lk,
     track_patches,
@@ -177,7 +176,9 @@ class Tracker:
         self.features = features
         self.measure = measure
         self.rect = rig.rectification
-        self._maps = (rectified_to_original(self.rect, 0), rectified_to_original(self.rect, 1))
+        # Rectified → original remap tables, interpolated bilinearly at the sampled points (the
+        # tables are smooth: far cheaper than projecting thousands of points every frame).
+        self._maps = self.rect.maps
         self._targets: dict[str, _Target] = {}
         self._counter = itertools.count(1)
         self._auto = bool(params.auto)
@@ -490,13 +491,11 @@ class Tracker:
         searched: list[_Target] = []
         starts = []
         n2 = p.patch_size / 2
-        for t in live:
-            dt = frame.t_s - t.t_s if frame.t_s > t.t_s else 0.0
-            if dt > 0:
-                kf_mod.predict(t.kf, dt, p.kalman)
+        kf_mod.predict_many([t.kf for t in live], [max(frame.t_s - t.t_s, 0.0) for t in live], p.kalman)
+        halves = kf_mod.search_half_sizes([t.kf for t in live], p.kalman, p.min_search_px, p.max_search_px)
+        for t, half in zip(live, halves):
             t.t_s = frame.t_s
             pred = t.kf.x[:2].copy()
-            half = kf_mod.search_half_size(t.kf, p.kalman, p.min_search_px, p.max_search_px)
             t.predicted_uv = pred
             t.search_box = (pred[0] - half[0] - n2, pred[1] - half[1] - n2, pred[0] + half[0] + n2, pred[1] + half[1] + n2)
             if not np.all(np.isfinite(pred)):
@@ -529,6 +528,7 @@ class Tracker:
             w, h = self.rig.image_size
             inner = (uv_all[:, 0] >= n2 + 1) & (uv_all[:, 0] <= w - n2 - 2) & (uv_all[:, 1] >= n2 + 1) & (uv_all[:, 1] <= h - n2 - 2)
         survivors: list[tuple[_Target, FloatArray, bool, float]] = []
+        matched: list[int] = []
         for i, t in enumerate(searched):
             if not res.converged[i]:
                 self._lose(t, "sub-pixel match did not converge")
@@ -537,14 +537,17 @@ class Tracker:
             elif not inner[i]:
                 self._lose(t, "left the image")
             else:
-                # 3. gating on the innovation.
-                accepted, d2 = kf_mod.update(t.kf, uv_all[i], p.kalman)
-                if not accepted:
-                    self._lose(t, f"jump rejected by the filter (Mahalanobis² {d2:.1f})")
-                else:
-                    if anchored[i]:
-                        t.anchor_lin = res.anchor_lin[i].copy()
-                    survivors.append((t, uv_all[i], bool(anchored[i]), float(res.score[i])))
+                matched.append(i)
+        # 3. gating on the innovation, and the filter update (batched).
+        accepted, d2 = kf_mod.update_many([searched[i].kf for i in matched], uv_all[matched] if matched else np.zeros((0, 2)), p.kalman)
+        for j, i in enumerate(matched):
+            t = searched[i]
+            if not accepted[j]:
+                self._lose(t, f"jump rejected by the filter (Mahalanobis² {d2[j]:.1f})")
+                continue
+            if anchored[i]:
+                t.anchor_lin = res.anchor_lin[i].copy()
+            survivors.append((t, uv_all[i], bool(anchored[i]), float(res.score[i])))
 
         # 4. right-image re-match near the previous disparity.
         if survivors:
