@@ -44,7 +44,7 @@ class VelocityParams:
     order: int = param(2, "poly: degree of the attitude polynomial (1 = constant rate, 2 = constant acceleration)",
                        min=1, max=4)
     position_window_s: float = param(
-        2.0, "poly: window of the position fit, s (the relative translation is slow and smooth)", min=0.05
+        3.0, "poly: window of the position fit, s (the relative translation is slow and smooth)", min=0.05
     )
     position_order: int = param(2, "poly: degree of the position polynomial (1 = constant velocity)", min=1, max=4)
     max_gap_s: float = param(0.5, "a gap between valid poses longer than this restarts the estimator, s", min=0.0)
