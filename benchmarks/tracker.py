@@ -36,7 +36,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from trackmeter.core.features import FeatureParams, select_features, target_mask
+from trackmeter.core.features import FeatureParams, target_mask
 from trackmeter.core.matching import MeasureParams
 from trackmeter.core.patch_tracking import make_templates, refine_lk, track_patches, track_points, zncc_search
 
@@ -46,7 +46,7 @@ from trackmeter.sources.plane import PlaneScene, pose_translating
 
 REPO = Path(__file__).resolve().parent.parent
 DATA = (REPO / ".." / "shared" / "data").resolve()
-SCENARIO_FRAMES = 150
+SCENARIO_FRAMES = 125
 SPEEDS_PX_S = (200, 500, 1000, 1250, 1500, 1750, 2000, 2500, 3000)
 
 

@@ -50,7 +50,7 @@ class FeatureParams:
     min_directions: int = param(2, "a good feature answers strongly in at least this many directions", min=1, max=16)
     quality: float = param(0.05, "keep candidates scoring at least this fraction of the best score", min=0.0, max=1.0)
     candidates_factor: int = param(10, "candidates stereo-checked per requested point", min=1, max=100)
-    min_depth_m: float = param(0.5, "nearest depth searched when checking stereo matchability, m", min=0.01)
+    min_depth_m: float = param(1.0, "nearest depth searched when checking stereo matchability, m", min=0.01)
     max_depth_m: float = param(50.0, "farthest depth searched when checking stereo matchability, m", min=0.02)
     stereo_min_score: float = param(0.85, "ZNCC a selected point must reach along its epipolar line", min=-1.0, max=1.0)
     uniqueness_margin: float = param(0.1, "the best epipolar match must beat every other peak by this ZNCC", min=0.0, max=2.0)
@@ -233,7 +233,7 @@ def disparity_range(rig: StereoRig, min_depth_m: float, max_depth_m: float) -> t
 
 def stereo_matchable(left: NDArray, right: NDArray, rig: StereoRig, uv: FloatArray, params: FeatureParams) -> NDArray[np.bool_]:
     """Whether each left point (N,2) has a strong, unique match along its epipolar line."""
-    from trackmeter.core.patch_tracking import match_epipolar, rectified_to_original
+    from trackmeter.core.patch_tracking import match_epipolar
 
     rect = rig.rectification
     lo, hi = disparity_range(rig, params.min_depth_m, params.max_depth_m)
@@ -242,10 +242,10 @@ def stereo_matchable(left: NDArray, right: NDArray, rig: StereoRig, uv: FloatArr
     lo = max(0.0, np.floor(lo))
     cl = rect.rectify_points(uv, 0)
     m = match_epipolar(
-        np.asarray(left, np.float32),
-        np.asarray(right, np.float32),
-        rectified_to_original(rect, 0),
-        rectified_to_original(rect, 1),
+        np.ascontiguousarray(left),
+        np.ascontiguousarray(right),
+        rect.maps[0],
+        rect.maps[1],
         cl,
         np.full(len(cl), lo),
         int(np.ceil(hi - lo)),

@@ -43,7 +43,6 @@ from trackmeter.core.patch_tracking import (
     Templates,
     make_templates,
     match_epipolar,
-    refine_lk,
     track_patches,
     sample_patches,
     zncc_search,
