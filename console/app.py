@@ -57,7 +57,7 @@ log = logging.getLogger(__name__)
 #: Scene units per image pixel of the image planes (726 px → 7.26 units).
 UNITS_PER_PX = 0.01
 #: Where the 3D view (the left camera frame) sits in the scene, left of the image.
-SCENE3D_OFFSET = (-11.0, 0.0, 0.0)
+SCENE3D_OFFSET = (-8.0, 0.0, -3.0)
 AUTO_METHODS = ("gabor", "centroid")
 SERIES_COLOURS = ("#e6194b", "#3cb44b", "#4363d8", "#111111")
 TRAIL_FRAMES = 12
@@ -127,6 +127,7 @@ class Console:
         self.push_ms: deque[float] = deque(maxlen=200)  # publisher cost of recent pushes
         self._last_frame_index: int | None = None
         self._plot_version: dict[str, int] = {}
+        self._omega_shown = False
         self._build_scene()
         self._build_gui()
         server.on_client_connect(self._on_connect)
@@ -219,15 +220,19 @@ class Console:
             self.body.wxyz = _wxyz(T[:3, :3])
             self.body.position = tuple(T[:3, 3])
             self.body.visible = True
-            omega_cam = T[:3, :3] @ np.asarray(pose.omega_body_rad_s)
-            # 1 deg/s of spin is drawn 0.1 m long.
-            tip = T[:3, 3] + omega_cam * np.degrees(1.0) * 0.1
-            self.server.scene.add_arrows("/scene3d/omega", np.array([[T[:3, 3], tip]], np.float32), (255, 0, 200),
-                                         shaft_radius=0.01, head_radius=0.03, head_length=0.06)
         else:
             self.body.visible = False
+        omega_body = np.asarray(pose.omega_body_rad_s)
+        if pose.valid and np.all(np.isfinite(omega_body)):
+            # The spin axis in the camera frame from the body origin; 1 deg/s is drawn 0.1 m long.
+            tip = T[:3, 3] + (T[:3, :3] @ omega_body) * np.degrees(1.0) * 0.1
+            self.server.scene.add_arrows("/scene3d/omega", np.array([[T[:3, 3], tip]], np.float32), (255, 0, 200),
+                                         shaft_radius=0.01, head_radius=0.03, head_length=0.06)
+            self._omega_shown = True
+        elif self._omega_shown:
             self.server.scene.add_arrows("/scene3d/omega", np.zeros((1, 2, 3), np.float32), (255, 0, 200),
                                          visible=False)
+            self._omega_shown = False
         truth = snap.frame.truth if snap.frame is not None else None
         if truth is not None:
             T = np.asarray(truth.T_cam_body)
@@ -408,9 +413,10 @@ class Console:
                 client.camera.position = (ox - 1.2, oy - 1.0, oz - 1.5)
                 client.camera.look_at = (ox, oy, oz + 3.5)
             elif preset == "both":
-                mid = (SCENE3D_OFFSET[0] + rw / 2) / 2
-                client.camera.position = (mid, 0.0, -15.0)
-                client.camera.look_at = (mid, 0.0, 1.0)
+                # The rig's scene (satellite ~3.5 m ahead, so near z = 0.5 here) left of the image.
+                mid = (SCENE3D_OFFSET[0] - 1.5 + rw / 2) / 2
+                client.camera.position = (mid, 0.0, -14.5)
+                client.camera.look_at = (mid, 0.0, 0.0)
             else:
                 # Fit the whole image in the view (height and width), with a small margin.
                 tan_half = np.tan(np.radians(50.0) / 2)
@@ -561,7 +567,10 @@ class Console:
             w = np.degrees(pose.omega_body_rad_s)
             lines.append(f"pose valid (case {pose.case}, {pose.n_points} points)")
             lines.append(f"p = ({p[0]:+.3f}, {p[1]:+.3f}, {p[2]:+.3f}) m · rotvec = ({rv[0]:+.1f}, {rv[1]:+.1f}, {rv[2]:+.1f})°")
-            lines.append(f"v = ({v[0]:+.1f}, {v[1]:+.1f}, {v[2]:+.1f}) mm/s · ω = ({w[0]:+.2f}, {w[1]:+.2f}, {w[2]:+.2f}) °/s")
+            if np.all(np.isfinite(v)) and np.all(np.isfinite(w)):
+                lines.append(f"v = ({v[0]:+.1f}, {v[1]:+.1f}, {v[2]:+.1f}) mm/s · ω = ({w[0]:+.2f}, {w[1]:+.2f}, {w[2]:+.2f}) °/s")
+            else:
+                lines.append("velocities: not yet (need a few frames of valid pose)")
         else:
             lines.append(f"pose invalid: {pose.reason}")
         e = snap.errors

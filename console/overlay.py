@@ -113,13 +113,21 @@ def draw_overlays(
     """
     half = max(patch_px / 2.0, 3.0)
     font = cv2.FONT_HERSHEY_SIMPLEX
+    if show_search:
+        # Search windows can be large and overlap: drawn at 40 % so the image stays readable.
+        layer = rgb.copy()
+        drawn = False
+        for t in targets:
+            if t.status != "lost" and np.all(np.isfinite(t.search_box)):
+                u0, v0, u1, v1 = t.search_box
+                cv2.rectangle(layer, _pt((u0, v0), scale), _pt((u1, v1), scale), SEARCH_RGB, 1, cv2.LINE_8)
+                drawn = True
+        if drawn:
+            cv2.addWeighted(layer, 0.4, rgb, 0.6, 0.0, dst=rgb)
     for t in targets:
         if not np.all(np.isfinite(t.uv)):
             continue
         colour = STATUS_RGB.get(t.status, (255, 255, 255))
-        if show_search and t.status != "lost" and np.all(np.isfinite(t.search_box)):
-            u0, v0, u1, v1 = t.search_box
-            cv2.rectangle(rgb, _pt((u0, v0), scale), _pt((u1, v1), scale), SEARCH_RGB, 1, cv2.LINE_AA)
         if trails is not None and t.id in trails:
             pts = np.array([_pt(p, scale) for p in trails[t.id] if np.all(np.isfinite(p))], np.int32)
             if len(pts) >= 2:
