@@ -14,7 +14,9 @@ case a, whose body frame is its own), as the largest absolute error and the RMS 
    sigma_z = 4 mm at 3.5 m, sigma_uv = 0.07 px) by a geometric stand-in for the tracker. Points
    come and go as faces turn, so model growth and recovery are exercised. Here the velocity
    estimator is also compared with the paper's plain eq. 14 finite difference on the same
-   poses (``geom_b_*_eq14``).
+   poses (``geom_b_*_eq14``). ``geom_occluded_*``: the same with half the body hidden from
+   6 s to 14 s (harsh_light's occlusion): largest errors, and the largest frame-to-frame pose
+   jump at a loss or a re-appearance, in sigmas of the pose covariance.
 3. ``harsh_light_b_*`` — the whole chain through the occlusion (6-14 s) and the glints of
    ``harsh_light`` (first ``TRACKMETER_HARSH_S`` seconds, default 16): valid fraction, losses
    and recoveries, and the largest frame-to-frame pose jump at a loss or a recovery after
@@ -124,7 +126,9 @@ class GeometricTracker:
     automatic selection that keeps 16 targets alive would.
     """
 
-    def __init__(self, rig: Any, points_body: np.ndarray, normals_body: np.ndarray, seed: int = 0) -> None:
+    def __init__(self, rig: Any, points_body: np.ndarray, normals_body: np.ndarray, seed: int = 0,
+                 occlusion_s: tuple[float, float] | None = None) -> None:
+        self.occlusion_s = occlusion_s
         self.rig = rig
         self.rect = rig.rectification
         self.points = points_body
@@ -162,6 +166,10 @@ class GeometricTracker:
     def step(self, frame: Any, reject_ids: Any = ()) -> tuple[TargetState, ...]:
         T = np.asarray(frame.truth.T_cam_body, float)
         vis = self._visible(T)
+        if self.occlusion_s is not None and self.occlusion_s[0] <= frame.t_s < self.occlusion_s[1]:
+            # A panel hides everything left of the body's centre (camera x < body origin x).
+            X = self.points @ T[:3, :3].T + T[:3, 3]
+            vis &= X[:, 0] >= T[0, 3]
         for tid in reject_ids:
             self.tracked.pop(tid, None)
         for tid in list(self.tracked):
@@ -206,7 +214,8 @@ def face_points(mockup: Any, per_face: int = 6, seed: int = 3) -> tuple[np.ndarr
     return np.concatenate(pts), np.concatenate(normals)
 
 
-def run_geometric(case: str, velocity_method: str | None = None) -> tuple[MotionSeries, MotionSeries]:
+def run_geometric(case: str, velocity_method: str | None = None, occlusion_s: tuple[float, float] | None = None,
+                  jumps: dict[str, float] | None = None) -> tuple[MotionSeries, MotionSeries]:
     from trackmeter.data.model import Model
     from trackmeter.pipeline.engine import Engine
     from trackmeter.sources.sim.simulator import Simulator
@@ -214,7 +223,7 @@ def run_geometric(case: str, velocity_method: str | None = None) -> tuple[Motion
 
     sim = Simulator("estec")
     pts, normals = face_points(sim.mockup)
-    tracker = GeometricTracker(sim.rig, pts, normals)
+    tracker = GeometricTracker(sim.rig, pts, normals, occlusion_s=occlusion_s)
     config = Config()  # the dataclass defaults (= config/default.yaml, checked by tests/test_config.py)
     if velocity_method is not None:
         config = replace(config, velocity=replace(config.velocity, method=velocity_method))
@@ -224,12 +233,24 @@ def run_geometric(case: str, velocity_method: str | None = None) -> tuple[Motion
     blank = np.zeros((1, 1), np.uint8)
     from trackmeter.sources.base import StereoFrame
 
+    prev: tuple[Any, Any, set[str]] | None = None
+    event, anyframe = [0.0], [0.0]
     for k in range(len(sim)):
         gt = sim.truth(k)
         frame = StereoFrame(k, sim.time_of(k), blank, blank, gt)
-        _, pose, _ = engine.process(frame)
+        targets, pose, _ = engine.process(frame)
+        ids = {t.id for t in targets if t.measured}
+        if pose.valid and prev is not None and prev[0].valid:
+            z = _jump_sigma(prev[0].T_cam_body, pose.T_cam_body, pose.cov_pose, prev[1], gt.T_cam_body)
+            anyframe.append(z)
+            if (prev[2] - ids) or (ids - prev[2]):
+                event.append(z)
+        prev = (pose, gt.T_cam_body, ids)
         truth_rows.append((frame.t_s, True, (gt.T_cam_body, gt.velocity_cam_m_s, gt.omega_body_rad_s)))
         est_rows.append((frame.t_s, pose.valid, (pose.T_cam_body, pose.velocity_cam_m_s, pose.omega_body_rad_s)))
+    if jumps is not None:
+        jumps.update(max_jump_sigma_at_loss_or_recovery=max(event), loss_or_recovery_frames=len(event) - 1,
+                     max_jump_sigma_any_frame=max(anyframe))
     return _series(truth_rows), _series(est_rows)
 
 
@@ -306,6 +327,13 @@ def run() -> dict[str, float]:
         truth, est = run_geometric(case)
         out.update(figures(truth, est, align, f"geom_{case}"))
         _log(f"geometric case {case} done")
+    for case, align in (("b", "none"), ("a", "body")):
+        jumps: dict[str, float] = {}
+        truth, est = run_geometric(case, occlusion_s=(6.0, 14.0), jumps=jumps)
+        occ = figures(truth, est, align, f"geom_occluded_{case}")
+        out.update({k: v for k, v in occ.items() if "valid_fraction" in k or "_max_" in k})
+        out.update({f"geom_occluded_{case}_{k}": float(v) for k, v in jumps.items()})
+        _log(f"geometric occluded case {case} done")
     truth, est = run_geometric("b", velocity_method="difference")
     fd = figures(truth, est, "none", "geom_b")
     for key in ("vel_lateral", "vel_depth", "omega"):
