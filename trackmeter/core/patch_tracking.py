@@ -73,31 +73,44 @@ def bilinear(image: F32, x: NDArray, y: NDArray) -> tuple[F32, NDArray[np.bool_]
     i00 = y0 * w + x0
     if image.ndim == 3:
         i00 += (np.arange(image.shape[0], dtype=np.int32) * (h * w)).reshape((-1,) + (1,) * (x.ndim - 1))
-    a = flat[i00].astype(np.float32, copy=False)  # uint8 images are gathered, then converted
-    b = flat[i00 + 1].astype(np.float32, copy=False)
-    c = flat[i00 + w].astype(np.float32, copy=False)
-    d = flat[i00 + w + 1].astype(np.float32, copy=False)
+    # uint8 images are gathered, then converted; a complex64 image (two channels, e.g. a pair
+    # of remap tables as x + iy) keeps its type.
+    out_t = np.complex64 if image.dtype == np.complex64 else np.float32
+    a = flat[i00].astype(out_t, copy=False)
+    b = flat[i00 + 1].astype(out_t, copy=False)
+    c = flat[i00 + w].astype(out_t, copy=False)
+    d = flat[i00 + w + 1].astype(out_t, copy=False)
     top = a + fx * (b - a)
     bot = c + fx * (d - c)
-    return (top + fy * (bot - top)).astype(np.float32, copy=False), inside
+    return (top + fy * (bot - top)).astype(out_t, copy=False), inside
 
 
-CoordMap = "tuple[F32, F32] | Callable[[NDArray, NDArray], tuple[NDArray, NDArray]]"
+CoordMap = "tuple[F32, F32] | NDArray[np.complex64] | Callable[[NDArray, NDArray], tuple[NDArray, NDArray]]"
 
 
 def sample_points(image: F32, x: NDArray, y: NDArray, coord_map: CoordMap | None = None) -> tuple[F32, NDArray[np.bool_]]:
     """Sample ``image`` at points (x, y); with ``coord_map`` the points are first sent through it:
-    a pair of remap tables ``(map_x, map_y)`` (e.g. ``Rectification.maps``, interpolated), or a
-    function ``(x, y) -> (x', y')`` (e.g. :func:`rectified_to_original`, exact)."""
+    a pair of remap tables ``(map_x, map_y)`` (e.g. ``Rectification.maps``, interpolated), the
+    same as one complex table ``map_x + 1j map_y`` (:func:`complex_map`, one gather instead of
+    two), or a function ``(x, y) -> (x', y')`` (e.g. :func:`rectified_to_original`, exact)."""
     if coord_map is None:
         return bilinear(image, x, y)
     if callable(coord_map):
         mx, my = coord_map(np.asarray(x), np.asarray(y))
         return bilinear(image, mx, my)
+    if isinstance(coord_map, np.ndarray):  # complex table x + iy: one gather for both
+        mxy, inside_m = bilinear(coord_map, x, y)
+        values, inside = bilinear(image, mxy.real, mxy.imag)
+        return values, inside & inside_m
     mx, inside_m = bilinear(coord_map[0], x, y)
     my, _ = bilinear(coord_map[1], x, y)
     values, inside = bilinear(image, mx, my)
     return values, inside & inside_m
+
+
+def complex_map(map_x: NDArray, map_y: NDArray) -> NDArray[np.complex64]:
+    """One complex64 table ``map_x + 1j map_y`` from a pair of remap tables (see :func:`sample_points`)."""
+    return (np.asarray(map_x, np.float32) + 1j * np.asarray(map_y, np.float32)).astype(np.complex64)
 
 
 def rectified_to_original(rect: Rectification, side: int) -> Callable[[NDArray, NDArray], tuple[NDArray, NDArray]]:

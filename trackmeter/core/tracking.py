@@ -41,6 +41,7 @@ from trackmeter.core.matching import MeasureParams, measure_points
 from trackmeter.core.params import param
 from trackmeter.core.patch_tracking import (
     Templates,
+    complex_map,
     make_templates,
     match_epipolar,
     track_patches,
@@ -177,7 +178,7 @@ class Tracker:
         self.rect = rig.rectification
         # Rectified → original remap tables, interpolated bilinearly at the sampled points (the
         # tables are smooth: far cheaper than projecting thousands of points every frame).
-        self._maps = self.rect.maps
+        self._maps = tuple(complex_map(*m) for m in self.rect.maps)
         self._targets: dict[str, _Target] = {}
         self._counter = itertools.count(1)
         self._auto = bool(params.auto)
