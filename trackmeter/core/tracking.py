@@ -92,6 +92,7 @@ class TrackerParams:
     recover_lost: bool = param(True, "look for lost targets again where they were lost (paper 2.D, no model)")
     recover_min_score: float = param(0.92, "anchor ZNCC needed to recover a lost target", min=-1.0, max=1.0)
     recover_search_px: float = param(24.0, "half-size of the window searched to recover a target, px", min=1.0)
+    recover_interval_frames: int = param(3, "frames between two recovery attempts of a lost target", min=1)
     neighbour_velocity_sigma_px_s: float = param(
         100.0, "std added to the other targets' velocity spread for a new target's velocity, px/s", min=0.0
     )
@@ -597,7 +598,8 @@ class Tracker:
         # Recovery of lost targets where they were lost (no model).
         if p.recover_lost:
             for t in lost:
-                self._try_recover(fc, frame, t, t.uv)
+                if t.lost_frames % p.recover_interval_frames == 0:
+                    self._try_recover(fc, frame, t, t.uv)
         for t in lost:
             if t.status == "lost":
                 t.t_s = frame.t_s
