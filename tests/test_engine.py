@@ -328,12 +328,13 @@ def test_case_a_frame_redefined_after_losing_everything(estec_rig) -> None:
     engine, tracker, pts = make_engine(estec_rig, with_model=False)
     run(engine, range(10))
     tracker.force_lost = set(tracker.active)
-    outs = run(engine, range(10, 30))  # 0.8 s without a pose (> velocity.max_gap_s)
+    outs = run(engine, range(10, 90))  # 3.2 s without a pose (> pose.redefine_after_s)
     assert not any(o[1].valid for o in outs)
+    assert engine.stats.frames_redefined == 0 or engine.frame_ids == ()
     for i, p in enumerate(pts):  # automatic selection brings new targets
         tracker.body[f"n{i}"] = p
         tracker.active[f"n{i}"] = "tracking"
-    _, pose, _ = engine.process(frame_at(30))
+    _, pose, _ = engine.process(frame_at(90))
     assert pose.valid and engine.frame_ids == ("n0", "n1", "n2")
     assert engine.stats.frames_redefined == 1
 

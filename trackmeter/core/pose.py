@@ -68,6 +68,10 @@ class PoseParams:
     min_triangle_m: float = param(
         0.05, "case (a): the third frame point must lie at least this far off the line of the first two, m", min=0.0
     )
+    redefine_after_s: float = param(
+        3.0, "case (a): without a pose for this long, the frame is given up and defined anew from the "
+        "points tracked then (a new body frame), s", min=0.0,
+    )
     model_refine: bool = param(
         True, "average the body coordinates of measured (not a-priori) model points over time"
     )

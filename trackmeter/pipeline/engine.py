@@ -392,6 +392,8 @@ class Engine:
             if since > self.velocity_params.max_gap_s:
                 self._velocity.reset()
                 self._filter.reset()
+                self._last_fit = None
+            if since > self.pose_params.redefine_after_s:
                 if self._case == "a" and self._model:
                     # The frame's points are gone for good: define a new frame from the points
                     # tracked now (the pose was invalid anyway; a new body frame starts here).
