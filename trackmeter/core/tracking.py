@@ -86,7 +86,7 @@ class TrackerParams:
         20.0, "smallest eigenvalue of the patch's mean gradient structure tensor, grey²/px² (aperture problem)", min=0.0
     )
     rigid_check: bool = param(True, "lose targets whose 3D distances to the others change (rigid-body check)")
-    rigid_sigmas: float = param(5.0, "a distance change beyond this many standard deviations is inconsistent", min=0.0)
+    rigid_sigmas: float = param(4.0, "a distance change beyond this many standard deviations is inconsistent", min=0.0)
     rigid_tolerance_m: float = param(0.001, "distance change always tolerated, m", min=0.0)
     rigid_min_pairs: int = param(3, "pairs with other targets needed to judge rigid consistency", min=1)
     recover_lost: bool = param(True, "look for lost targets again where they were lost (paper 2.D, no model)")
@@ -94,7 +94,7 @@ class TrackerParams:
     recover_search_px: float = param(24.0, "half-size of the window searched to recover a target, px", min=1.0)
     recover_interval_frames: int = param(3, "frames between two recovery attempts of a lost target", min=1)
     neighbour_velocity_sigma_px_s: float = param(
-        100.0, "std added to the other targets' velocity spread for a new target's velocity, px/s", min=0.0
+        30.0, "std added to the other targets' velocity spread for a new target's velocity, px/s", min=0.0
     )
     lost_keep_frames: int = param(10, "frames a lost automatic target is kept before it is replaced", min=0)
     auto: bool = param(False, "automatic feature selection on at start")
@@ -357,14 +357,17 @@ class Tracker:
         return t.state()
 
     def _set_reference_distances(self, t: _Target) -> None:
-        """Remember a new target's 3D distances to the targets measured now, so its very first
-        step is already checked against the rigid body (a jump to a look-alike is caught)."""
+        """Remember a new (or just verified, recovered) target's 3D distances to the targets
+        measured now where none is known yet, so its next step is already checked against the
+        rigid body (a jump to a look-alike is caught)."""
         others = [o for o in self._targets.values() if o is not t and o.status != "lost"]
         for o in others:
             diff = t.point_cam - o.point_cam
             dist = float(np.linalg.norm(diff))
             if not np.isfinite(dist):
                 continue
+            if np.isfinite(self._ref_d[t.slot, o.slot]):
+                continue  # keep the older reference
             u = diff / max(dist, 1e-12)
             var = float(u @ (t.cov_cam + o.cov_cam) @ u)
             self._ref_d[t.slot, o.slot] = self._ref_d[o.slot, t.slot] = dist
@@ -463,6 +466,7 @@ class Tracker:
         t.lost_reason = None
         t.lost_frames = 0
         t.t_s = frame.t_s
+        self._set_reference_distances(t)
         self.stats["recoveries"] += 1
         return True, None
 
@@ -699,6 +703,10 @@ class Tracker:
         exclude = np.array([t.uv for t in self._targets.values()]).reshape(-1, 2)
         fp = self.features
         self._last_top_up = frame.index
-        pts = select_features(frame.left, frame.right, self.rig, need, self._auto_method, fp, exclude)
+        # Ask for spares: the measurement may still refuse some (e.g. disparity too uncertain).
+        pts = select_features(frame.left, frame.right, self.rig, 3 * need, self._auto_method, fp, exclude)
+        added = 0
         for uv in pts:
-            self.add_target(frame, (float(uv[0]), float(uv[1])), origin="auto")
+            if added >= need:
+                break
+            added += isinstance(self.add_target(frame, (float(uv[0]), float(uv[1])), origin="auto"), TargetState)
