@@ -15,10 +15,16 @@ Figures:
 - ``duration_s``, ``frames_processed``, ``tracking_rate_hz``, ``dropped_fraction``: what ran.
 - ``slope_mb_per_min``: least-squares slope of RSS after the first minute (a leak shows as a
   steady slope even when the run is too short for 5 %).
+- ``log_errors``: ERROR records logged by ``trackmeter`` and ``console`` during the run.
+
+With ``TRACKMETER_SOAK_CONSOLE=1`` the run is the operator console instead (issue 7: the
+``sim`` console with two headless Chromium pages connected); the RSS is this process's (the
+pipeline, the console and the viser server), not the browsers'.
 """
 
 from __future__ import annotations
 
+import logging
 import os
 import sys
 import time
@@ -38,11 +44,24 @@ def rss_mb() -> float:
     return float("nan")
 
 
+class _ErrorCounter(logging.Handler):
+    def __init__(self) -> None:
+        super().__init__(logging.ERROR)
+        self.count = 0
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.count += 1
+
+
 def soak(duration_s: float, start_live=None) -> dict[str, float]:  # type: ignore[no-untyped-def]
-    """Run ``start_live()`` (a started pipeline) for ``duration_s`` and sample memory."""
+    """Run ``start_live()`` (a started pipeline, or anything with ``latest()`` and ``close()``)
+    for ``duration_s`` and sample memory."""
     if start_live is None:
         from benchmarks.pipeline import start_live
     settle = min(SETTLE_S, duration_s / 2)
+    errors = _ErrorCounter()
+    for name in ("trackmeter", "console"):
+        logging.getLogger(name).addHandler(errors)
     pipe = start_live()
     times, rss = [], []
     t0 = time.monotonic()
@@ -60,6 +79,8 @@ def soak(duration_s: float, start_live=None) -> dict[str, float]:  # type: ignor
         snap = pipe.latest()
     finally:
         pipe.close()
+        for name in ("trackmeter", "console"):
+            logging.getLogger(name).removeHandler(errors)
     t, r = np.array(times), np.array(rss)
     at_settle = float(np.median(r[np.abs(t - settle) <= 5.0])) if np.any(np.abs(t - settle) <= 5.0) else float(r[0])
     end = float(np.median(r[t >= t[-1] - 30.0]))
@@ -77,8 +98,49 @@ def soak(duration_s: float, start_live=None) -> dict[str, float]:  # type: ignor
         "tracking_rate_hz": tm.frames_processed / float(t[-1]) if t[-1] > 0 else float("nan"),
         "dropped_fraction": tm.frames_dropped / tm.frames_read if tm.frames_read else float("nan"),
         "targets_measured_at_end": float(sum(1 for x in snap.targets if x.measured)),
+        "log_errors": float(errors.count),
     }
 
 
+class _ConsoleRun:
+    """The ``sim`` console with automatic selection and two headless browsers connected."""
+
+    def __init__(self) -> None:
+        import shutil
+
+        from playwright.sync_api import sync_playwright
+
+        from benchmarks.pipeline import make_engine
+        from console.server import start_console
+        from tests.browser.conftest import CHROMIUM_ARGS, VIEWPORT, free_port
+        from trackmeter.pipeline.snapshot import SetAuto
+        from trackmeter.sources import open_source
+
+        source = open_source("sim", realtime=True, loop=True)
+        self.running = start_console(source, make_engine(source), port=free_port())
+        self.running.pipeline.submit(SetAuto(True, 16, "gabor"))
+        self._pw = sync_playwright().start()
+        self._browser = self._pw.chromium.launch(executable_path=shutil.which("chromium"), args=CHROMIUM_ARGS)
+        self.pages = []
+        for _ in range(2):
+            page = self._browser.new_context(viewport=VIEWPORT).new_page()
+            page.goto(self.running.url)
+            self.pages.append(page)
+
+    def latest(self):  # type: ignore[no-untyped-def]
+        return self.running.pipeline.latest()
+
+    def close(self) -> None:
+        try:
+            self._browser.close()
+            self._pw.stop()
+        finally:
+            self.running.stop()
+
+
 def run() -> dict[str, float]:
+    if os.environ.get("TRACKMETER_SOAK_CONSOLE") == "1":
+        out = soak(DURATION_S, _ConsoleRun)
+        out["console"] = 1.0
+        return out
     return soak(DURATION_S)

@@ -128,6 +128,7 @@ class Console:
         self._last_frame_index: int | None = None
         self._plot_version: dict[str, int] = {}
         self._omega_shown = False
+        self._pushed_operator_ids: set[str] = set()
         self._build_scene()
         self._build_gui()
         server.on_client_connect(self._on_connect)
@@ -434,28 +435,36 @@ class Console:
         self.plots.add(snap)
 
     def _publish_loop(self) -> None:
+        """Push the newest snapshot at ``publish_hz``; a change of the target set (a click, a
+        removal) is pushed at once, so the operator sees the answer without waiting a tick."""
         period = 1.0 / self.publish_hz
         last_seq = -1
         tick = 0
-        next_time = time.monotonic()
+        last_push = 0.0
         while not self._stop.is_set():
-            now = time.monotonic()
-            if now < next_time:
-                self._stop.wait(next_time - now)
-                continue
-            next_time = max(next_time + period, now)
             try:
+                snap = self.pipeline.wait_snapshot(last_seq, min(period, 0.1))
                 self._flush_replies()
                 self._frame_clients()
-                snap = self.pipeline.latest()
-                if snap.sequence != last_seq:
-                    last_seq = snap.sequence
-                    t0 = time.perf_counter()
-                    self._push(snap, plots=(tick % self.plot_every == 0))
-                    self.push_ms.append((time.perf_counter() - t0) * 1e3)
-                    tick += 1
+                if snap is None:
+                    continue
+                # Only the operator's own targets make a push urgent (automatic ones churn).
+                operator_ids = {t.id for t in snap.targets if t.origin == "operator"}
+                urgent = operator_ids != self._pushed_operator_ids
+                wait = last_push + period - time.monotonic()
+                if wait > 0 and not urgent:
+                    if self._stop.wait(wait):
+                        break
+                    snap = self.pipeline.latest()
+                last_seq = snap.sequence
+                last_push = time.monotonic()
+                t0 = time.perf_counter()
+                self._push(snap, plots=(tick % self.plot_every == 0))
+                self.push_ms.append((time.perf_counter() - t0) * 1e3)
+                tick += 1
             except Exception:
                 log.exception("console publish failed")
+                self._stop.wait(period)
 
     def _flush_replies(self) -> None:
         done = []
@@ -524,6 +533,7 @@ class Console:
         self.images_pushed += left_rgb is not None
         self.last_pushed_sequence = snap.sequence
         self.last_pushed_target_ids = tuple(t.id for t in snap.targets)
+        self._pushed_operator_ids = {t.id for t in snap.targets if t.origin == "operator"}
         self.last_pushed_time = time.monotonic()
         # One assignment, so a reader never pairs these ids with an older push time.
         self.last_push = (self.last_pushed_time, snap.sequence, self.last_pushed_target_ids)
@@ -534,7 +544,9 @@ class Console:
             busy = bool(self._pending)
         if busy:
             return
-        self.pause_button.label = "Play" if snap.paused else "Pause"
+        label = "Play" if snap.paused else "Pause"
+        if self.pause_button.label != label:
+            self.pause_button.label = label
         if self.auto_checkbox.value != snap.auto_enabled:
             self.auto_checkbox.value = snap.auto_enabled
         if self.record_checkbox.value != snap.recording:

@@ -105,7 +105,7 @@ def test_plots_receive_data(page_and_client: Any, running_console: Any, artifact
     t, x, y, z = con.uplots["position"].data
     assert np.all(np.diff(t) > 0) and np.all(np.abs(z - 3.5) < 0.5)  # the plate is 3.5 m away
     # The browser draws them: uPlot's legend shows the series of the plots.
-    page.locator(".uplot").first.wait_for(timeout=10_000)
+    page.locator(".uplot").first.wait_for(state="attached", timeout=30_000)
     page.get_by_text("Position, camera frame", exact=False).first.scroll_into_view_if_needed()
     time.sleep(0.5)
     page.screenshot(path=str(artifacts / "05_plots.png"))
@@ -118,9 +118,10 @@ def test_second_browser_sees_the_same_targets(browser: Any, running_console: Any
         pytest.skip("needs the clicked target of the earlier test")
     page2, _ = open_page(browser, running_console)
     try:
+        # A late joiner gets the current state at once: the status and the target list.
+        page2.get_by_text("targets:", exact=False).first.wait_for(timeout=20_000)
         if any(t.id == tid for t in running_console.pipeline.latest().targets):
-            page2.get_by_text(tid).first.wait_for(timeout=10_000)
-        page2.get_by_text("pose valid", exact=False).first.wait_for(timeout=10_000)
+            page2.get_by_text(tid, exact=True).first.wait_for(timeout=20_000)
         page2.screenshot(path=str(artifacts / "06_second_browser.png"))
         ids = {t.id for t in running_console.pipeline.latest().targets if t.origin == "auto"}
         assert ids and any(page2.get_by_text(i, exact=True).count() for i in list(ids)[:5])
