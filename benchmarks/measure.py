@@ -28,8 +28,9 @@ Figures (keys are contracts, issue 2):
   renders of the simulated satellite mock-up (``estec`` scenario), the share of mock-up pixels
   accepted, the share of accepted points more than 2 cm off the true surface point (patches
   straddling depth edges, strongly slanted regular textures), and the median error of the rest.
-  ``..._patch_only``: the same with the wider-window check of repetitive texture off
-  (``context_width_px: 0``), the baseline of the same run.
+  ``..._patch_only``: the same with the checks added for this imagery off (the wider window
+  against repetitive texture, ``context_width_px: 0``, and the shifted windows against depth
+  edges, ``edge_shift_px: 0``): the 8x8 patch's own checks, the baseline of the same run.
 
 The synthetic generators here are shared with ``tests/test_matching.py``.
 """
@@ -386,5 +387,5 @@ def run() -> dict[str, float | list[float]]:
         out.update(tsukuba_figures())
     # The simulated mock-up: acceptance and gross errors on realistic renders.
     out.update(mockup_figures())
-    out.update(mockup_figures(params=MeasureParams(context_width_px=0), suffix="_patch_only"))
+    out.update(mockup_figures(params=MeasureParams(context_width_px=0, edge_shift_px=0), suffix="_patch_only"))
     return out

@@ -11,8 +11,9 @@ scenario's initial attitude at ``range_m``; a grid of left-image pixels on the m
 by the project's matcher (:func:`trackmeter.core.matching.measure_points`) in ``n_frames``
 renders that differ only in sensor noise. The point set is fixed from the noise-free render
 (pixels the matcher accepts there, within 2 cm of the true depth), and the noise-dependent
-acceptance tests (``min_score``, ``max_sigma_disparity_px``) are relaxed so that the set does not
-shrink to the best-textured points as the noise grows (that would bias sigma low). Per point,
+acceptance tests (``min_score``, ``max_sigma_disparity_px``, the depth-edge and repetitive-texture
+checks) are relaxed so that the set does not shrink to the best-textured points as the noise grows
+(that would bias sigma low). Per point,
 the standard deviation of z over the frames is scaled to 3.5 m by (3.5 / z)²; the figure is the
 median over points. Gross mismatches (more than 10 cm off) are dropped and counted.
 
@@ -64,9 +65,14 @@ class DepthSigmaResult:
 
 
 def relaxed_params(params: MeasureParams | None = None) -> MeasureParams:
-    """The matcher's parameters with the noise-dependent refusals switched off (see module doc)."""
+    """The matcher's parameters with the noise-dependent refusals switched off (see module doc):
+    the score and disparity-sigma floors, and the depth-edge and repetitive-texture checks
+    (at the paper's noise the edge test's shifted windows refuse the noisiest outcomes of
+    ordinary points too; the set is already free of edges and repeats, chosen noise-free)."""
     p = params or MeasureParams()
-    return dataclasses.replace(p, min_score=0.0, max_sigma_disparity_px=1e6)
+    return dataclasses.replace(
+        p, min_score=0.0, max_sigma_disparity_px=1e6, edge_shift_px=0, context_width_px=0
+    )
 
 
 def static_depth_sigma(
