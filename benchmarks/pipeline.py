@@ -21,6 +21,9 @@ Figures:
   targets. Target: >= 60.
 - ``offline_read_fps``: reading the same folder without tracking (baseline, same run), and
   ``offline_ratio_to_read`` = ``offline_fps / offline_read_fps``.
+- ``offline_engine_alone_fps``: the same engine called in a plain loop (read + process on one
+  thread, no pipeline), and ``offline_ratio_to_engine_alone`` = ``offline_fps`` over it: the
+  pipeline's own cost (1.0 = none; above 1 when reading overlaps tracking).
 
 Environment: ``TRACKMETER_BENCH_LIVE_S`` changes ``MEASURE_S`` (default 40).
 """
@@ -141,6 +144,21 @@ def offline(tmp: Path) -> dict[str, float]:
     read_fps = n_read / (time.perf_counter() - t0)
     source.close()
 
+    # Baseline: the same engine called in a plain loop on this thread (no pipeline threads).
+    source = open_source(f"seq:{seq}")
+    engine = make_engine(source)
+    first = source.read()
+    assert first is not None
+    t0 = time.perf_counter()
+    engine.process(first)
+    engine.handle(SetAuto(True, N_TARGETS, "gabor"), first)
+    n_direct = 1
+    while (frame := source.read()) is not None:
+        engine.process(frame)
+        n_direct += 1
+    direct_fps = n_direct / (time.perf_counter() - t0)
+    source.close()
+
     source = open_source(f"seq:{seq}")
     engine = make_engine(source)
     t0 = time.perf_counter()
@@ -154,6 +172,8 @@ def offline(tmp: Path) -> dict[str, float]:
         "offline_fps": processed / wall,
         "offline_read_fps": read_fps,
         "offline_ratio_to_read": (processed / wall) / read_fps if read_fps else float("nan"),
+        "offline_engine_alone_fps": direct_fps,
+        "offline_ratio_to_engine_alone": (processed / wall) / direct_fps,
         "offline_frames": float(processed),
         "offline_targets_at_end": float(n_tracked),
     }
