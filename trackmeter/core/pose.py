@@ -76,7 +76,7 @@ class PoseParams:
         True, "average the body coordinates of measured (not a-priori) model points over time"
     )
     join_after_frames: int = param(
-        3, "a new target joins the model after this many consecutive consistent frames", min=1
+        1, "a new target joins the model after this many consecutive consistent frames", min=1
     )
     still_time_s: float = param(2.0, "case (c): how long the object must be held still to acquire a model, s", min=0.0)
     still_max_d2: float = param(
