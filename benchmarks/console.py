@@ -38,6 +38,7 @@ import numpy as np
 WARMUP_S = 10.0
 MEASURE_S = float(os.environ.get("TRACKMETER_BENCH_LIVE_S", "30"))
 N_CLICKS = 5
+CLICKS_MAX_S = 60.0  # the click phase's share of the 5-minute budget
 SOURCE = os.environ.get("TRACKMETER_BENCH_CONSOLE_SOURCE", "sim")
 
 
@@ -134,8 +135,9 @@ def run() -> dict[str, float]:
             _log(f"rates: {out}")
 
             latencies, to_server = [], []
+            clicks_deadline = time.monotonic() + CLICKS_MAX_S
             for uv in _click_candidates(running):
-                if len(latencies) >= N_CLICKS:
+                if len(latencies) >= N_CLICKS or time.monotonic() > clicks_deadline:
                     break
                 known = {t.id for t in running.pipeline.latest().targets}
                 n_notes = len(running.console.notifications)
@@ -148,7 +150,7 @@ def run() -> dict[str, float]:
                                  if t.id not in known and t.origin == "operator"), None) or \
                         (len(running.console.notifications) > n_notes and "refused")
 
-                got = _poll(page, new_target, 5)
+                got = _poll(page, new_target, 3)
                 if got is None or got == "refused":
                     continue
                 t_server = time.monotonic()
