@@ -783,8 +783,9 @@ def _edge_check(
     A patch straddling a depth edge takes the disparity of whichever side has the stronger
     texture, often not that of its centre pixel (on the simulated mock-up: 0.5-2 px errors
     along the silhouettes, ~5 px where a patch on the body catches a thin boom or mast in
-    front). The patch is matched again at four windows shifted by ``s = edge_shift_px`` left, right, up and down ("multiple windows", Fusiello,
-    Roberto & Trucco 1997, used here as a test). On a plane the disparity is linear in the
+    front). The patch is matched again at four windows shifted by ``s = edge_shift_px``
+    left, right, up and down ("multiple windows", Fusiello, Roberto & Trucco 1997, used here
+    as a test). On a plane the disparity is linear in the
     image, so each opposite pair averages to the patch's own:
     ``|d(-s) + d(+s) - 2 d| <= edge_tolerance_px`` for both axes, whatever the slant; across a
     depth edge one side jumps, or its window has no correlation peak near ``d`` at all, or
@@ -795,9 +796,9 @@ def _edge_check(
     pixel, and this costs a fraction of the Gauss-Newton fit (which gave the same figures).
 
     Measured on three renders of the ``estec`` mock-up (8 px grid, after the wider-window
-    check): accepted points > 2 cm off 60 of 1063 -> 27 of 871 (tolerance 0.7 px, s = 3,
-    ZNCC floor 0.5; tolerance 0.5 px: 20 of 741; with Gauss-Newton fits and no floor,
-    tolerance 1.0 px: 37 of 994; shifts of 4 px: 14 of 682). Near the image border (the
+    check, ``max_sigma_disparity_px`` 0.08): accepted points > 2 cm off 60 of 1063 -> 27 of
+    871 (tolerance 0.7 px, s = 3, ZNCC floor 0.5; tolerance 0.5 px: 20 of 741; with
+    Gauss-Newton fits and no floor, tolerance 1.0 px: 37 of 994; shifts of 4 px: 14 of 682). Near the image border (the
     shifted windows and their search do not fit) the check is skipped.
 
     Args:
@@ -864,8 +865,8 @@ def _context_check(
     edges.
 
     Measured on three frames of the ``estec`` scenario (8 px grid, as ``python -m benchmarks
-    measure``): accepted points more than 2 cm off fall from 123 of 1130 to 60 of 1063, those
-    more than 10 cm off (false matches several px away) from 88 to 25; most of the rest are
+    measure``, ``max_sigma_disparity_px`` 0.08): accepted points more than 2 cm off fall from
+    123 of 1130 to 60 of 1063, those more than 10 cm off (false matches several px away) from 88 to 25; most of the rest are
     patches straddling depth edges (:func:`_edge_check`). A smaller ``context_window`` (0.15)
     leaves 71; ``context_ratio`` 8 changes nothing there (5: a few more) but spares the check
     on most well-textured points, whose best peak is near-perfect. Near the image border the
