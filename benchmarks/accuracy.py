@@ -86,6 +86,19 @@ def figures(truth: MotionSeries, estimate: MotionSeries, align: str, prefix: str
         out[f"{prefix}_seconds"] = 0.0
         return out
     e = ev.errors
+    # Velocities exist only once the estimator has a long enough window (NaN before, e.g. right
+    # after a gap); evaluate treats any NaN as "no velocities", so judge them on their rows.
+    has_rates = np.all(np.isfinite(est.velocity_cam_m_s), axis=1) & np.all(np.isfinite(est.omega_body_rad_s), axis=1)
+    if e.velocity_m_s is None and np.any(has_rates):
+        sub = MotionSeries(est.t_s[has_rates], est.valid[has_rates], est.position_m[has_rates],
+                           est.quat_wxyz[has_rates], est.velocity_cam_m_s[has_rates], est.omega_body_rad_s[has_rates])
+        try:
+            ev_rates = evaluate(truth, sub, EvaluateParams(tolerance_s=0.005, settle_s=SETTLE_S, align=align))
+            e = type(e)(e.t_s, e.position_m, e.attitude_rad, ev_rates.errors.velocity_m_s, ev_rates.errors.omega_rad_s,
+                        e.position_rel)
+            out[f"{prefix}_rates_fraction"] = float(np.mean(has_rates))
+        except TrackmeterError as exc:
+            _log(f"{prefix}: velocities not evaluated: {exc}")
 
     def stat(a: np.ndarray, cols: list[int], scale: float) -> tuple[float, float]:
         a = a[:, cols] * scale

@@ -117,3 +117,14 @@ def test_estimator_restarts_after_a_gap() -> None:
     for ti, ri, pi in zip(t, R, p):
         est.update(ti, ri, pi)
     assert est.update(5.0, R[0], p[0]) is None
+
+
+def test_rates_are_provisional_until_the_window_spans_min_span() -> None:
+    est = VelocityEstimator(VelocityParams(min_span_s=0.4))
+    t = np.arange(15) * 0.04
+    R, p = constant_rate(t)
+    settled = []
+    for ti, ri, pi in zip(t, R, p):
+        est.update(ti, ri, pi)
+        settled.append(est.settled)
+    assert settled.index(True) == 10  # 10 intervals of 40 ms = 0.4 s

@@ -47,6 +47,10 @@ class VelocityParams:
         3.0, "poly: window of the position fit, s (the relative translation is slow and smooth)", min=0.05
     )
     position_order: int = param(2, "poly: degree of the position polynomial (1 = constant velocity)", min=1, max=4)
+    min_span_s: float = param(
+        0.4, "poly: no velocity is reported until the fitted poses span this long (a restart after a "
+        "gap would otherwise report a two-pose difference), s", min=0.0,
+    )
     max_gap_s: float = param(0.5, "a gap between valid poses longer than this restarts the estimator, s", min=0.0)
 
 
@@ -122,6 +126,14 @@ class VelocityEstimator:
         self._t: deque[float] = deque()
         self._R: deque[FloatArray] = deque()
         self._p: deque[FloatArray] = deque()
+
+    @property
+    def settled(self) -> bool:
+        """True once the poses in the window span ``min_span_s`` (before that the rates are
+        provisional: fine for the output filter's chart, not for reporting)."""
+        if self.params.method == "difference":
+            return len(self._t) >= 2
+        return len(self._t) >= 2 and self._t[-1] - self._t[0] >= self.params.min_span_s - 1e-9
 
     def reset(self) -> None:
         self._t.clear()

@@ -406,6 +406,8 @@ class Engine:
         rates = self._velocity.update(frame.t_s, R, t)
         v, w = rates if rates is not None else (np.full(3, np.nan), np.full(3, np.nan))
         R_f, t_f = self._filter.update(frame.t_s, R, t, v if rates else None, w if rates else None)
+        if not self._velocity.settled:  # provisional rates steer the filter but are not reported
+            v, w = np.full(3, np.nan), np.full(3, np.nan)
         T = np.eye(4)
         T[:3, :3] = R_f
         T[:3, 3] = t_f
