@@ -148,3 +148,21 @@ def test_wider_lenses_have_wider_fields() -> None:
     }
     assert fov["estec_12mm"] < fov["estec_8mm"] < fov["estec_4p8mm"]
     assert fov["estec_8mm"] == pytest.approx(2 * np.degrees(np.arctan(363 / 768)), abs=1e-3)
+
+
+def test_files_written_whole_get_ordinary_permissions(tmp_path, estec_rig):
+    """Atomic writes go through mkstemp (mode 0600); the result must be a normal file (0666 & ~umask)."""
+    import os
+
+    from trackmeter.data.atomic import write_text_atomic
+    from trackmeter.data.rigfile import save_rig
+
+    mask = os.umask(0o022)
+    try:
+        save_rig(estec_rig, tmp_path / "rig.yaml")
+        write_text_atomic(tmp_path / "a.txt", "x\n")
+    finally:
+        os.umask(mask)
+    for name in ("rig.yaml", "a.txt"):
+        assert (tmp_path / name).stat().st_mode & 0o777 == 0o644
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "rig.yaml"]  # no temporary left

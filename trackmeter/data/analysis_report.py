@@ -20,7 +20,7 @@ import numpy as np
 
 from trackmeter.core.error_analysis import DensityFit, ErrorAnalysis
 from trackmeter.data.evaluation import _save_figure
-from trackmeter.data.trajectory import write_text_atomic
+from trackmeter.data.atomic import write_text_atomic
 
 #: The paper's figures (sections 2.F-2.G): sigma_z at 3.5 m, sub-pixel accuracy.
 PAPER_SIGMA_Z_3P5_M = 0.004

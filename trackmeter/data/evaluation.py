@@ -19,7 +19,8 @@ import numpy as np
 
 from trackmeter.core.metrics import Evaluation, associate
 from trackmeter.data.motion_csv import MotionSeries, read_motion_csv
-from trackmeter.data.trajectory import read_tum, write_text_atomic
+from trackmeter.data.atomic import write_text_atomic
+from trackmeter.data.trajectory import read_tum
 from trackmeter.errors import TrackmeterError
 
 

@@ -22,7 +22,7 @@ import yaml
 from numpy.typing import ArrayLike, NDArray
 
 from trackmeter.data.config import build_dataclass, read_yaml_mapping
-from trackmeter.data.trajectory import write_text_atomic
+from trackmeter.data.atomic import write_text_atomic
 from trackmeter.errors import TrackmeterError
 
 FloatArray = NDArray[np.float64]

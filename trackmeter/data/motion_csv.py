@@ -29,7 +29,8 @@ from typing import IO, Any, Mapping, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from trackmeter.data.trajectory import Trajectory, write_text_atomic
+from trackmeter.data.atomic import write_text_atomic
+from trackmeter.data.trajectory import Trajectory
 from trackmeter.errors import TrackmeterError
 
 FloatArray = NDArray[np.float64]

@@ -8,14 +8,13 @@ beside it; that pair carries no image size, so pass ``image_size``.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from trackmeter.core.stereo import Camera, StereoRig
+from trackmeter.data.atomic import atomic_path
 from trackmeter.errors import TrackmeterError
 
 
@@ -115,11 +114,8 @@ def save_rig(rig: StereoRig, path: str | Path, extra: dict[str, np.ndarray | flo
     ``extra`` adds keys such as ``E``, ``F`` or per-parameter standard deviations.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(suffix=".yaml", dir=path.parent, prefix=f".{path.stem}.")
-    os.close(fd)
-    try:
-        fs = cv2.FileStorage(tmp_name, cv2.FILE_STORAGE_WRITE)
+    with atomic_path(path, suffix=".yaml") as tmp:  # OpenCV picks YAML by the extension
+        fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
         fs.write("image_width", int(rig.left.width))
         fs.write("image_height", int(rig.left.height))
         fs.write("K1", rig.left.K)
@@ -133,8 +129,4 @@ def save_rig(rig: StereoRig, path: str | Path, extra: dict[str, np.ndarray | flo
         for key, value in (extra or {}).items():
             fs.write(key, np.asarray(value, dtype=float) if not np.isscalar(value) else float(value))
         fs.release()
-        os.replace(tmp_name, path)
-    except BaseException:
-        Path(tmp_name).unlink(missing_ok=True)
-        raise
     return path

@@ -27,7 +27,8 @@ import yaml
 from trackmeter.core.targets import TargetState
 from trackmeter.core.transforms import matrix_to_quat_wxyz
 from trackmeter.data.motion_csv import STATES_COLUMNS, MotionCsvWriter
-from trackmeter.data.trajectory import format_tum_line, write_text_atomic
+from trackmeter.data.atomic import write_text_atomic
+from trackmeter.data.trajectory import format_tum_line
 from trackmeter.errors import TrackmeterError
 
 #: Header of ``targets.csv`` (a contract, DESIGN.md section 6).

@@ -7,14 +7,13 @@ scalar-last place in the project); in memory quaternions are ``wxyz``. Poses are
 
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
+from trackmeter.data.atomic import write_text_atomic
 from trackmeter.errors import TrackmeterError
 
 FloatArray = NDArray[np.float64]
@@ -102,16 +101,3 @@ def write_tum(path: str | Path, trajectory: Trajectory) -> Path:
     )
     write_text_atomic(path, "# t tx ty tz qx qy qz qw  (T_cam_body)\n" + text)
     return path
-
-
-def write_text_atomic(path: str | Path, text: str) -> None:
-    """Write ``text`` to ``path`` so that readers see either the old or the whole new file."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
