@@ -78,8 +78,8 @@ def plate_source(rate_hz: float = 25.0) -> LoopedFrame:
     from scipy.spatial.transform import Rotation
 
     from trackmeter.data.rigfile import load_rig
+    from trackmeter.sources import plane
 
-    plane = pytest.importorskip("trackmeter.sources.plane", reason="the textured-plate source has not landed")
     rig = load_rig(REPO / "config" / "rigs" / "estec_12mm.yaml")
     T = np.eye(4)
     T[:3, :3] = Rotation.from_rotvec([0.2, -0.25, 0.05]).as_matrix()
@@ -89,10 +89,10 @@ def plate_source(rate_hz: float = 25.0) -> LoopedFrame:
 
 
 def make_engine(rig: Any) -> Any:
-    engine_mod = pytest.importorskip("trackmeter.pipeline.engine", reason="the tracking engine has not landed")
     from trackmeter.data.config import load_config
+    from trackmeter.pipeline.engine import Engine
 
-    return engine_mod.Engine(load_config(), rig, case="a", rate_hz=25.0)
+    return Engine(load_config(), rig, case="a", rate_hz=25.0)
 
 
 @pytest.fixture(scope="session")
