@@ -38,15 +38,13 @@ The synthetic generators here are shared with ``tests/test_matching.py``.
 from __future__ import annotations
 
 import math
-import statistics
-import time
 from pathlib import Path
 from typing import Callable
 
 import cv2
 import numpy as np
 
-from benchmarks import median_ms
+from benchmarks import median_cpu_ms, median_ms
 
 REPO = Path(__file__).resolve().parent.parent
 TSUKUBA = (REPO / ".." / "shared" / "data" / "middlebury_tsukuba").resolve()
@@ -166,18 +164,6 @@ def estec_plane(seed: int = 1):  # type: ignore[no-untyped-def]
 
 
 # --------------------------------------------------------------------------- figures
-
-
-def median_cpu_ms(fn: Callable[[], object], repeats: int = 101, warmup: int = 5) -> float:
-    """Median CPU time of this thread per ``fn()`` call, ms (``time.thread_time``)."""
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        start = time.thread_time()
-        fn()
-        times.append((time.thread_time() - start) * 1e3)
-    return float(statistics.median(times))
 
 
 #: Sub-pixel variants compared: name -> (subpixel, subpixel_interpolation).
