@@ -296,7 +296,6 @@ def sample_rectified(
     """
     mx_full, my_full = rect.maps[side]
     bx, by = math.floor(x0), math.floor(y0)
-    fx, fy = x0 - bx, y0 - by
     H, W = mx_full.shape
     if bx < 0 or by < 0 or bx + width >= W or by + height >= H:
         raise ValueError(f"rectified block at ({x0}, {y0}) size {width}x{height} leaves the {W}x{H} grid")

@@ -268,7 +268,7 @@ class Engine:
                 return CommandReply(False, f"refused at ({command.u:.1f}, {command.v:.1f}): {result.reason}")
             note = ""
             if self._case == "b" and command.target_id is not None and command.target_id not in self._model:
-                note = f" (not a model point: it joins the model once the pose is known)"
+                note = " (not a model point: it joins the model once the pose is known)"
             return CommandReply(True, f"target {result.id} at {result.point_cam[2]:.3f} m{note}", result.id)
         if isinstance(command, SelectModelPoints):
             return self._select_model_points(frame)
