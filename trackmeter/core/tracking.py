@@ -70,8 +70,16 @@ class TrackerParams:
     ambiguity_margin: float = param(
         0.02, "lost when another peak in the search window comes within this ZNCC of the best", min=0.0, max=2.0
     )
-    anchor_min_score: float = param(0.9, "ZNCC the anchor template must reach to correct drift", min=-1.0, max=1.0)
+    anchor_min_score: float = param(0.92, "ZNCC the anchor template must reach to correct drift", min=-1.0, max=1.0)
     drift_tolerance_px: float = param(0.5, "anchor refinement may move the match at most this far, px", min=0.0)
+    anchor_warp: str = param(
+        "similarity", "warp fitted to the anchor: similarity (4 dof), euclidean (scale from depth) or affine (6 dof, noisy on 8x8)",
+        choices=("similarity", "euclidean", "affine"),
+    )
+    anchor_tolerance_px: float = param(0.05, "anchor fit converged when its last step moves the patch less than this, px", min=0.0)
+    anchor_max_scale_error: float = param(
+        0.1, "anchor fit rejected when its scale differs from the depth-implied one by more than this fraction", min=0.0,
+    )
     min_search_px: float = param(3.0, "smallest search window half-size, px", min=0.0)
     max_search_px: float = param(96.0, "largest search window half-size, px", min=1.0)
     stereo_search_px: int = param(6, "disparity change searched per frame while tracking, +-px", min=1, max=256)
@@ -125,6 +133,7 @@ class _Target:
     reanchors: int = 0
     slot: int = -1
     anchor_lin: FloatArray = field(default_factory=lambda: np.eye(2))  # anchor → image linear warp
+    anchor_z_m: float = float("nan")  # depth when the anchor was taken (nan: not yet measured)
 
     def state(self) -> TargetState:
         lost = self.status == "lost"
@@ -438,9 +447,15 @@ class Tracker:
         res = track_patches(
             fc.left, t.anchor, t.anchor_lin[None], t.current, uv0[None],
             anchor_min_score=p.anchor_min_score, drift_tolerance_px=p.drift_tolerance_px,
+            anchor_warp=p.anchor_warp, anchor_tolerance_px=p.anchor_tolerance_px,
+            expected_scale=self._expected_scale([t]), max_scale_error=p.anchor_max_scale_error,
         )
         if not res.converged[0] or res.score[0] < p.recover_min_score:
             return False, "sub-pixel refinement failed"
+        # Only the drift-free anchor may re-find a target: the current template is the one
+        # that was last seen where tracking failed, and a look-alike matches it as well.
+        if not res.anchored[0]:
+            return False, "the anchor template does not confirm the re-found patch"
         uv = res.uv[0]
         lo = np.array([t.disparity_px - 2 * p.stereo_search_px])
         span = 4 * p.stereo_search_px
@@ -528,6 +543,10 @@ class Tracker:
                 np.array(starts),
                 anchor_min_score=p.anchor_min_score,
                 drift_tolerance_px=p.drift_tolerance_px,
+                anchor_warp=p.anchor_warp,
+                anchor_tolerance_px=p.anchor_tolerance_px,
+                expected_scale=self._expected_scale(searched),
+                max_scale_error=p.anchor_max_scale_error,
             )
             uv_all, anchored = res.uv, res.anchored
             w, h = self.rig.image_size
@@ -596,6 +615,7 @@ class Tracker:
                     if not anch:
                         t.anchor = one
                         t.anchor_lin = np.eye(2)
+                        t.anchor_z_m = float(t.point_cam[2])
                         t.reanchors += 1
                         self.stats["reanchors"] += 1
 
@@ -612,9 +632,21 @@ class Tracker:
             self._top_up(frame, fc)
         return self.targets
 
+    def _expected_scale(self, targets: list[_Target]) -> FloatArray:
+        """Image scale of each target's anchor implied by its depth change, ``z_anchor / z``
+        (pinhole: image size ~ 1/depth), from the last measured depth; 1 where unknown."""
+        out = np.ones(len(targets))
+        for i, t in enumerate(targets):
+            z = float(t.point_cam[2])
+            if not np.isfinite(t.anchor_z_m) and np.isfinite(z):
+                t.anchor_z_m = z  # the first depth measured is the anchor's (taken at creation)
+            if np.isfinite(t.anchor_z_m) and np.isfinite(z) and z > 0:
+                out[i] = t.anchor_z_m / z
+        return out
+
     def _rigid_recheck(self, t: _Target, m) -> str | None:  # type: ignore[no-untyped-def]
         """Why a re-found target's 3D point disagrees with its reference distances to the
-        targets measured now (None when it agrees with at least ``rigid_min_pairs`` of them)."""
+        targets measured now (None when it agrees with every one of them, at least ``rigid_min_pairs``)."""
         p = self.params
         others = [o for o in self._targets.values() if o is not t and o.status != "lost" and o.slot >= 0]
         if t.slot < 0 or t.slot >= len(self._ref_d):
@@ -633,7 +665,9 @@ class Tracker:
             z.append(abs(dist - ref) / (p.rigid_sigmas * np.sqrt(var + ref_v) + p.rigid_tolerance_m))
         if len(z) < p.rigid_min_pairs:
             return f"only {len(z)} reference distances to check the recovery against"
-        if float(np.median(z)) > 1.0:
+        # Every pair must agree (not their median): a look-alike a few cm along the surface
+        # keeps the distances across that direction and changes only the others.
+        if float(np.max(z)) > 1.0:
             return "re-found patch is not where the rigid body puts it"
         return None
 
