@@ -55,14 +55,18 @@ def log(msg: str) -> None:
 
 
 def read_flo(path: Path) -> np.ndarray:
+    """Middlebury ``.flo`` optical flow: (H,W,2) float32 (u, v), px; values > 1e9 are unknown."""
     with open(path, "rb") as f:
-        np.fromfile(f, np.float32, 1)
+        if np.fromfile(f, np.float32, 1)[0] != 202021.25:  # the magic "PIEH"
+            raise ValueError(f"{path}: not a Middlebury .flo file")
         w, h = np.fromfile(f, np.int32, 2)
         return np.fromfile(f, np.float32).reshape(h, w, 2)
 
 
-def rubberwhale() -> dict[str, float]:
-    d = DATA / "optical_flow_rubberwhale"
+def rubberwhale(data_dir: Path = DATA) -> dict[str, float]:
+    """Shi-Tomasi corners of RubberWhale frame10 tracked into frame11 by our patch tracker and by
+    OpenCV's pyramidal LK on the same points: median end-point errors against the true flow."""
+    d = data_dir / "optical_flow_rubberwhale"
     f0 = cv2.imread(str(d / "frame10.png"), cv2.IMREAD_GRAYSCALE)
     f1 = cv2.imread(str(d / "frame11.png"), cv2.IMREAD_GRAYSCALE)
     flow = read_flo(d / "flow10.flo")
@@ -78,6 +82,7 @@ def rubberwhale() -> dict[str, float]:
         "rubberwhale_median_epe_px_lk": float(np.median(epe_lk)),
         "rubberwhale_points": float(len(epe)),
         "rubberwhale_points_lk": float(len(epe_lk)),
+        "rubberwhale_points_known_flow": float(known.sum()),
     }
 
 

@@ -19,13 +19,6 @@ def smooth_texture(shape=(160, 160), sigma=1.5, seed=0) -> np.ndarray:
     return (128 + 40 * img / img.std()).astype(np.float32)
 
 
-def read_flo(path) -> np.ndarray:
-    with open(path, "rb") as f:
-        assert np.fromfile(f, np.float32, 1)[0] == 202021.25  # "PIEH"
-        w, h = np.fromfile(f, np.int32, 2)
-        return np.fromfile(f, np.float32).reshape(h, w, 2)
-
-
 def test_bilinear_matches_exact_linear_interpolation() -> None:
     img = np.add.outer(np.arange(20.0) * 3, np.arange(30.0) * 2).astype(np.float32)  # 2u + 3v
     x = np.array([0.0, 3.25, 28.9, 10.5])
@@ -206,19 +199,13 @@ def test_epipolar_match_recovers_the_true_disparity(estec_rig) -> None:
 
 def test_rubberwhale_median_endpoint_error(shared_data) -> None:
     """Real imagery: Shi-Tomasi corners of frame10 tracked into frame11 against the true flow
-    (Middlebury RubberWhale); OpenCV's pyramidal LK on the same points for comparison."""
-    d = shared_data / "optical_flow_rubberwhale"
-    f0 = cv2.imread(str(d / "frame10.png"), cv2.IMREAD_GRAYSCALE)
-    f1 = cv2.imread(str(d / "frame11.png"), cv2.IMREAD_GRAYSCALE)
-    flow = read_flo(d / "flow10.flo")
-    pts = cv2.goodFeaturesToTrack(f0, 500, 0.01, 8).reshape(-1, 2).astype(float)
-    gt = flow[np.rint(pts[:, 1]).astype(int), np.rint(pts[:, 0]).astype(int)]
-    known = np.all(np.abs(gt) < 1e9, axis=1)
-    uv, ok = pt.track_points(f0, f1, pts)
-    epe = np.linalg.norm(uv - pts - gt, axis=1)[ok & known]
-    lk, st, _ = cv2.calcOpticalFlowPyrLK(f0, f1, pts.astype(np.float32), None)
-    epe_lk = np.linalg.norm(lk - pts - gt, axis=1)[(st.ravel() == 1) & known]
-    print(f"RubberWhale median EPE: ours {np.median(epe):.4f} px on {len(epe)} points, "
-          f"pyramidal LK {np.median(epe_lk):.4f} px on {len(epe_lk)} points")
-    assert len(epe) > 0.7 * known.sum()
-    assert np.median(epe) <= 0.05
+    (Middlebury RubberWhale); OpenCV's pyramidal LK on the same points for comparison. The same
+    evaluation the ``tracker`` benchmark reports."""
+    from benchmarks.tracker import rubberwhale
+
+    figures = rubberwhale(shared_data)
+    print(f"RubberWhale median EPE: ours {figures['rubberwhale_median_epe_px']:.4f} px on "
+          f"{figures['rubberwhale_points']:.0f} points, pyramidal LK "
+          f"{figures['rubberwhale_median_epe_px_lk']:.4f} px on {figures['rubberwhale_points_lk']:.0f} points")
+    assert figures["rubberwhale_points"] > 0.7 * figures["rubberwhale_points_known_flow"]
+    assert figures["rubberwhale_median_epe_px"] <= 0.05
