@@ -209,3 +209,33 @@ def test_rubberwhale_median_endpoint_error(shared_data) -> None:
           f"{figures['rubberwhale_median_epe_px_lk']:.4f} px on {figures['rubberwhale_points_lk']:.0f} points")
     assert figures["rubberwhale_points"] > 0.7 * figures["rubberwhale_points_known_flow"]
     assert figures["rubberwhale_median_epe_px"] <= 0.05
+
+
+def test_match_epipolar_per_point_span_equals_separate_calls(estec_rig) -> None:
+    """One batch with a span per point gives each point what a call with its own span gives,
+    and a point whose true disparity lies just past its own span is not matched there."""
+    scene = PlaneScene(estec_rig, pose_translating(3.5, (0.0, 0.0, 0.0)), noise_sigma=0.5)
+    f = scene.frame(0)
+    rect = estec_rig.rectification
+    mask = target_mask(f.left, FeatureParams(target_margin_px=10))
+    uv = cv2.goodFeaturesToTrack(f.left, 12, 0.05, 25, mask=mask).reshape(-1, 2).astype(float)
+    body = scene.surface_points(0, uv)
+    _, d_true = rect.project_rectified(body @ scene.T_cam_body(0)[:3, :3].T + scene.T_cam_body(0)[:3, 3])
+    n = len(uv)
+    spans = np.where(np.arange(n) % 2 == 0, 12, 24)
+    lo = np.floor(d_true) - spans // 2
+    lo[-1] = np.floor(d_true[-1]) + 3  # the truth is below this point's range
+    args = (f.left.astype(np.float32), f.right.astype(np.float32), rect.maps[0], rect.maps[1])
+    kw = dict(min_score=0.8, uniqueness_margin=0.05, epipolar_tolerance_px=1.0)
+    cl = rect.rectify_points(uv, 0)
+    batch = pt.match_epipolar(*args, cl, lo, spans, 8, **kw)
+    for i in range(n):
+        one = pt.match_epipolar(*args, cl[i : i + 1], lo[i : i + 1], int(spans[i]), 8, **kw)
+        assert batch.reason[i] == one.reason[0]
+        if one.reason[0] is None:
+            np.testing.assert_allclose(batch.disparity_px[i], one.disparity_px[0], atol=1e-9)
+        np.testing.assert_allclose(batch.second_score[i], one.second_score[0], atol=1e-9)
+    ok = batch.ok[:-1]
+    assert ok.mean() > 0.5
+    assert np.all(np.abs(batch.disparity_px[:-1][ok] - d_true[:-1][ok]) < 0.2)
+    assert batch.reason[-1] is not None

@@ -126,6 +126,37 @@ def test_an_occluded_target_is_lost_at_once_and_relocked(scene, estec_rig) -> No
     assert np.linalg.norm(r.uv - true_uv[0]) < 0.2
 
 
+def test_occluded_targets_are_recovered_in_the_step_where_they_were_lost(estec_rig) -> None:
+    """Without a model, lost targets are searched again where they were lost (batched with the
+    tracked ones) and come back on their own surface points, not elsewhere."""
+    scene = PlaneScene(estec_rig, pose_translating(3.5, (0.02, 0.0, 0.0)), noise_sigma=1.0)
+    f0 = scene.frame(0)
+    tr = make_tracker(estec_rig, recover_lost=True, recover_interval_frames=1)
+    add_all(tr, f0, interior_points(f0, 8))
+    for k in (1, 2):
+        tr.step(scene.frame(k))
+    alive = [t for t in tr.targets if t.status == "tracking"]
+    assert len(alive) >= 6
+    victims = alive[:2]
+    body = {t.id: scene.surface_points(2, t.uv[None])[0] for t in alive}
+    f3 = scene.frame(3)
+    left = f3.left.copy()
+    for t in victims:
+        u, v = np.round(t.uv).astype(int)
+        left[v - 12 : v + 13, u - 12 : u + 13] = 0
+    states = {t.id: t for t in tr.step(StereoFrame(3, f3.t_s, left, f3.right))}
+    assert all(states[t.id].status == "lost" for t in victims)
+    recovered_before = tr.stats["recoveries"]
+    for k in range(4, 7):
+        states = {t.id: t for t in tr.step(scene.frame(k))}
+    assert tr.stats["recoveries"] - recovered_before >= len(victims)
+    for t in alive:
+        s = states[t.id]
+        assert s.status in ("tracking", "recovered"), (t.id, s.lost_reason)
+        true_uv, _ = scene.project(6, body[t.id][None])
+        assert np.linalg.norm(s.uv - true_uv[0]) < 0.2
+
+
 def test_a_jump_loses_every_target_instead_of_locking_elsewhere(estec_rig) -> None:
     def pose(t: float) -> np.ndarray:
         T = np.eye(4)

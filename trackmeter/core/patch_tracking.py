@@ -477,7 +477,7 @@ def match_epipolar(
     right_map: CoordMap,
     uv_rect_left: NDArray,
     disparity_low_px: NDArray,
-    span_px: int,
+    span_px: int | NDArray,
     size: int,
     *,
     min_score: float,
@@ -499,17 +499,18 @@ def match_epipolar(
         left_map, right_map: rectified → original coordinate maps (see :func:`sample_points`).
         uv_rect_left: (N,2) rectified left pixels.
         disparity_low_px: (N,) smallest disparity searched, px.
-        span_px: number of disparities searched above it (same for all points).
+        span_px: number of disparities searched above it: one for all points, or (N,) one per
+            point (e.g. a wider search for re-found targets batched with tracked ones).
         size: patch side, px.
     """
     cl = np.asarray(uv_rect_left, dtype=np.float64).reshape(-1, 2)
     N = len(cl)
     d_low = np.asarray(disparity_low_px, dtype=np.float64).reshape(-1)
-    span = int(span_px)
-    d_high = d_low + span
+    spans = np.broadcast_to(np.asarray(span_px, dtype=np.int64), (N,))
+    span = int(spans.max()) if N else 0
+    d_high = d_low + spans
     templates = make_templates(left, cl, size, left_map)
     half = (size - 1) / 2.0
-    off = patch_offsets(size).astype(np.float64)
     width = span + size
     margin = 4  # rows above and below the patch: room for the 2D refinement's gradients and vertical check
     x_first = cl[:, 0] - d_high - half
@@ -532,6 +533,8 @@ def match_epipolar(
     with np.errstate(divide="ignore", invalid="ignore"):
         scores = np.where(den > 1e-9, num / den, -1.0)
     valid_col = np.lib.stride_tricks.sliding_window_view(inside, size, axis=2).all(axis=(1, 3))
+    # Column k is disparity d_high - k: past a point's own span it is below its d_low.
+    valid_col &= np.arange(span + 1)[None, :] <= spans[:, None]
     scores = np.where(valid_col, scores, -1.0)
     k_best = scores.argmax(1)
     best = scores[np.arange(N), k_best]
@@ -557,7 +560,7 @@ def match_epipolar(
             reasons.append(f"no stereo match along the epipolar line (score {best[i]:.2f})")
         elif second[i] > best[i] - uniqueness_margin:
             reasons.append(f"ambiguous along the epipolar line (scores {best[i]:.2f} and {second[i]:.2f})")
-        elif k_best[i] in (0, span) and span > 0:
+        elif k_best[i] in (0, spans[i]) and spans[i] > 0:
             reasons.append("stereo match at the edge of the disparity range")
         elif not lk.converged[i]:
             reasons.append("stereo sub-pixel refinement did not converge")

@@ -40,6 +40,7 @@ from trackmeter.core.kalman import KalmanParams
 from trackmeter.core.matching import MeasureParams, measure_points
 from trackmeter.core.params import param
 from trackmeter.core.patch_tracking import (
+    PatchTrack,
     Templates,
     complex_map,
     make_templates,
@@ -433,49 +434,90 @@ class Tracker:
     # ------------------------------------------------------------------ recovery
 
     def _try_recover(self, fc: _FrameCache, frame: StereoFrame, t: _Target, centre: FloatArray) -> tuple[bool, str | None]:
+        return self._try_recover_many(fc, frame, [t], np.asarray(centre, dtype=float).reshape(1, 2))[0]
+
+    def _try_recover_many(
+        self, fc: _FrameCache, frame: StereoFrame, targets: list[_Target], centres: FloatArray
+    ) -> list[tuple[bool, str | None]]:
+        """Re-find lost ``targets`` near ``centres`` (N,2): one batched sub-pixel fit and one
+        batched stereo match for all of them. Returns ``(recovered, why not)`` per target."""
         p = self.params
+        out, found_i, starts = self._recover_search(fc, targets, centres)
+        if not found_i:
+            return out
+        ts = [targets[i] for i in found_i]
+        res = self._fit_patches(fc, ts, np.array(starts))
+        refined = self._recover_refined(res, np.arange(len(ts)), found_i, out)
+        if refined:
+            kk = np.array(refined)
+            lo = np.array([ts[k].disparity_px - 2 * p.stereo_search_px for k in refined])
+            m = self._stereo(fc, res.uv[kk], lo, 4 * p.stereo_search_px)
+            for j, k in enumerate(refined):
+                i = found_i[k]
+                out[i] = self._recover_accept(fc, frame, ts[k], centres[i], res, k, m, j)
+        return out
+
+    def _recover_search(
+        self, fc: _FrameCache, targets: list[_Target], centres: FloatArray
+    ) -> tuple[list[tuple[bool, str | None]], list[int], list[FloatArray]]:
+        """Integer search for lost targets: ``(outcomes so far, indices found, start points)``."""
+        p = self.params
+        out: list[tuple[bool, str | None]] = [(False, None)] * len(targets)
         half = np.array([p.recover_search_px, p.recover_search_px])
-        # The current template is the last verified appearance of the target.
-        found = zncc_search(fc.left, t.current.values[0], centre, half)
-        if found is None:
-            return False, "search window outside the image"
-        uv0, best, second = found
-        if best < p.recover_min_score or second > best - p.ambiguity_margin:
-            return False, f"not found (score {best:.2f})"
-        # The same drift-free measurement as tracking: anchor (affine) and current template
-        # must agree.
-        res = track_patches(
-            fc.left, t.anchor, t.anchor_lin[None], t.current, uv0[None],
-            anchor_min_score=p.anchor_min_score, drift_tolerance_px=p.drift_tolerance_px,
-            anchor_warp=p.anchor_warp, anchor_tolerance_px=p.anchor_tolerance_px,
-            expected_scale=self._expected_scale([t]), max_scale_error=p.anchor_max_scale_error,
-        )
-        if not res.converged[0] or res.score[0] < p.recover_min_score:
-            return False, "sub-pixel refinement failed"
-        # Only the drift-free anchor may re-find a target: the current template is the one
-        # that was last seen where tracking failed, and a look-alike matches it as well.
-        if not res.anchored[0]:
-            return False, "the anchor template does not confirm the re-found patch"
-        uv = res.uv[0]
-        lo = np.array([t.disparity_px - 2 * p.stereo_search_px])
-        span = 4 * p.stereo_search_px
-        m = self._stereo(fc, uv[None], lo, span)
-        if m.reason[0] is not None:
-            return False, m.reason[0]
-        # Without a model, a look-alike elsewhere on the body is the danger: the recovered 3D
-        # point must keep its old distances to the targets tracked now (rigid body).
-        why = self._rigid_recheck(t, m)
+        found_i: list[int] = []
+        starts: list[FloatArray] = []
+        for i, (t, centre) in enumerate(zip(targets, centres)):
+            # The current template is the last verified appearance of the target.
+            found = zncc_search(fc.left, t.current.values[0], centre, half)
+            if found is None:
+                out[i] = (False, "search window outside the image")
+                continue
+            uv0, best, second = found
+            if best < p.recover_min_score or second > best - p.ambiguity_margin:
+                out[i] = (False, f"not found (score {best:.2f})")
+                continue
+            found_i.append(i)
+            starts.append(uv0)
+        return out, found_i, starts
+
+    def _recover_refined(self, res: PatchTrack, rows: NDArray, found_i: list[int], out: list[tuple[bool, str | None]]) -> list[int]:
+        """Which re-found targets (rows ``rows`` of ``res``, outcome slots ``found_i``) the
+        drift-free sub-pixel fit confirms; returns their positions in ``rows``."""
+        p = self.params
+        refined: list[int] = []
+        for k, r in enumerate(rows):
+            if not res.converged[r] or res.score[r] < p.recover_min_score:
+                out[found_i[k]] = (False, "sub-pixel refinement failed")
+            elif not res.anchored[r]:
+                # Only the drift-free anchor may re-find a target: the current template is the
+                # one that was last seen where tracking failed, and a look-alike matches it as well.
+                out[found_i[k]] = (False, "the anchor template does not confirm the re-found patch")
+            else:
+                refined.append(k)
+        return refined
+
+    def _recover_accept(
+        self, fc: _FrameCache, frame: StereoFrame, t: _Target, centre: FloatArray, res: PatchTrack, r: int, m, j: int,  # type: ignore[no-untyped-def]
+    ) -> tuple[bool, str | None]:
+        """Finish re-finding ``t`` from row ``r`` of the patch fit and row ``j`` of the stereo match."""
+        p = self.params
+        if m.reason[j] is not None:
+            return False, m.reason[j]
+        # Without a model, a look-alike elsewhere on the body is the danger: the recovered
+        # 3D point must keep its old distances to the targets tracked now (rigid body).
+        why = self._rigid_recheck(t, m, j)
         if why is not None:
             return False, why
+        uv = res.uv[r]
+        half = p.recover_search_px
         v0, sv = self._velocity_guess()
         t.kf = kf_mod.make_filter(uv, p.kalman, velocity_px_s=v0, velocity_sigma_px_s=sv)
         t.uv = uv.copy()
-        t.predicted_uv = centre.copy()
-        t.search_box = (centre[0] - half[0], centre[1] - half[1], centre[0] + half[0], centre[1] + half[1])
-        self._set_stereo([t], m, np.array([0]))
-        t.score = float(res.score[0])
-        if res.anchored[0]:
-            t.anchor_lin = res.anchor_lin[0].copy()
+        t.predicted_uv = np.array(centre, dtype=float)
+        t.search_box = (centre[0] - half, centre[1] - half, centre[0] + half, centre[1] + half)
+        self._set_stereo([t], m, np.array([j]))
+        t.score = float(res.score[r])
+        t.anchor_lin = res.anchor_lin[r].copy()
         t.current = make_templates(fc.left, uv[None], p.patch_size)
         t.status = "recovered"
         t.lost_reason = None
@@ -484,6 +526,23 @@ class Tracker:
         self._set_reference_distances(t)
         self.stats["recoveries"] += 1
         return True, None
+
+    def _fit_patches(self, fc: _FrameCache, ts: list[_Target], starts: FloatArray) -> PatchTrack:
+        """The drift-free sub-pixel fit (:func:`track_patches`) of targets ``ts`` from ``starts`` (N,2)."""
+        p = self.params
+        return track_patches(
+            fc.left,
+            _stack([t.anchor for t in ts]),
+            np.array([t.anchor_lin for t in ts]),
+            _stack([t.current for t in ts]),
+            starts,
+            anchor_min_score=p.anchor_min_score,
+            drift_tolerance_px=p.drift_tolerance_px,
+            anchor_warp=p.anchor_warp,
+            anchor_tolerance_px=p.anchor_tolerance_px,
+            expected_scale=self._expected_scale(ts),
+            max_scale_error=p.anchor_max_scale_error,
+        )
 
     # ------------------------------------------------------------------ the step
 
@@ -534,20 +593,14 @@ class Tracker:
                 continue
             searched.append(t)
             starts.append(uv0)
-        if searched:
-            res = track_patches(
-                fc.left,
-                _stack([t.anchor for t in searched]),
-                np.array([t.anchor_lin for t in searched]),
-                _stack([t.current for t in searched]),
-                np.array(starts),
-                anchor_min_score=p.anchor_min_score,
-                drift_tolerance_px=p.drift_tolerance_px,
-                anchor_warp=p.anchor_warp,
-                anchor_tolerance_px=p.anchor_tolerance_px,
-                expected_scale=self._expected_scale(searched),
-                max_scale_error=p.anchor_max_scale_error,
-            )
+        # Lost targets due for recovery (where they were lost, no model) join the same batched
+        # fit and stereo match: each batched call has a fixed cost that dwarfs a few patches.
+        due = [t for t in lost if p.recover_lost and t.lost_frames % p.recover_interval_frames == 0]
+        rec_out, rec_found, rec_starts = self._recover_search(fc, due, np.array([t.uv for t in due], dtype=float).reshape(-1, 2))
+        rec_ts = [due[i] for i in rec_found]
+        n_s = len(searched)
+        if searched or rec_ts:
+            res = self._fit_patches(fc, searched + rec_ts, np.array(starts + rec_starts, dtype=float).reshape(-1, 2))
             uv_all, anchored = res.uv, res.anchored
             w, h = self.rig.image_size
             inner = (uv_all[:, 0] >= n2 + 1) & (uv_all[:, 0] <= w - n2 - 2) & (uv_all[:, 1] >= n2 + 1) & (uv_all[:, 1] <= h - n2 - 2)
@@ -573,11 +626,17 @@ class Tracker:
                 t.anchor_lin = res.anchor_lin[i].copy()
             survivors.append((t, uv_all[i], bool(anchored[i]), float(res.score[i])))
 
-        # 4. right-image re-match near the previous disparity.
+        rec_refined = self._recover_refined(res, n_s + np.arange(len(rec_ts)), rec_found, rec_out) if rec_ts else []
+
+        # 4. right-image re-match near the previous disparity (re-found targets: twice as wide).
+        m = None
+        if survivors or rec_refined:
+            ss = p.stereo_search_px
+            uv = np.array([s[1] for s in survivors] + [res.uv[n_s + k] for k in rec_refined]).reshape(-1, 2)
+            lo = np.array([s[0].disparity_px - ss for s in survivors] + [rec_ts[k].disparity_px - 2 * ss for k in rec_refined])
+            spans = np.array([2 * ss] * len(survivors) + [4 * ss] * len(rec_refined))
+            m = self._stereo(fc, uv, lo, spans)
         if survivors:
-            uv = np.array([s[1] for s in survivors])
-            d_prev = np.array([s[0].disparity_px for s in survivors])
-            m = self._stereo(fc, uv, d_prev - p.stereo_search_px, 2 * p.stereo_search_px)
             good = []
             for i, (t, uvi, anch, score) in enumerate(survivors):
                 if m.reason[i] is not None:
@@ -619,11 +678,11 @@ class Tracker:
                         t.reanchors += 1
                         self.stats["reanchors"] += 1
 
-        # Recovery of lost targets where they were lost (no model).
-        if p.recover_lost:
-            for t in lost:
-                if t.lost_frames % p.recover_interval_frames == 0:
-                    self._try_recover(fc, frame, t, t.uv)
+        # Recovery of lost targets where they were lost (no model), after the tracked ones were
+        # updated: their fresh 3D points are what a re-found point's distances are checked against.
+        for j, k in enumerate(rec_refined):
+            t = rec_ts[k]
+            self._recover_accept(fc, frame, t, t.uv.copy(), res, n_s + k, m, len(survivors) + j)
         for t in lost:
             if t.status == "lost":
                 t.t_s = frame.t_s
@@ -644,15 +703,15 @@ class Tracker:
                 out[i] = t.anchor_z_m / z
         return out
 
-    def _rigid_recheck(self, t: _Target, m) -> str | None:  # type: ignore[no-untyped-def]
+    def _rigid_recheck(self, t: _Target, m, j: int = 0) -> str | None:  # type: ignore[no-untyped-def]
         """Why a re-found target's 3D point disagrees with its reference distances to the
         targets measured now (None when it agrees with every one of them, at least ``rigid_min_pairs``)."""
         p = self.params
         others = [o for o in self._targets.values() if o is not t and o.status != "lost" and o.slot >= 0]
         if t.slot < 0 or t.slot >= len(self._ref_d):
             return "no reference distances to check the recovery against"
-        P = self.rect.triangulate(m.uv_rect_left[:1], m.disparity_px[:1])[0]
-        C = self.rect.point_covariance(m.uv_rect_left[:1], m.disparity_px[:1], p.sigma_disparity_px, p.sigma_uv_px)[0]
+        P = self.rect.triangulate(m.uv_rect_left[j : j + 1], m.disparity_px[j : j + 1])[0]
+        C = self.rect.point_covariance(m.uv_rect_left[j : j + 1], m.disparity_px[j : j + 1], p.sigma_disparity_px, p.sigma_uv_px)[0]
         z = []
         for o in others:
             ref, ref_v = self._ref_d[t.slot, o.slot], self._ref_v[t.slot, o.slot]
