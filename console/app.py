@@ -79,6 +79,35 @@ def _load_malloc_trim() -> Any:
 
 _MALLOC_TRIM = _load_malloc_trim()
 
+#: glibc mallopt(3) parameters (malloc.h).
+_M_MMAP_THRESHOLD = -3
+_M_ARENA_MAX = -8
+#: Allocations at least this large are served by mmap and returned to the system when freed.
+MMAP_THRESHOLD_BYTES = 256 * 1024
+
+
+def pin_mmap_threshold(threshold_bytes: int = MMAP_THRESHOLD_BYTES, arena_max: int = 2) -> bool:
+    """Keep image-sized buffers out of the heap arenas (glibc); False where unavailable.
+
+    Why: glibc starts with a 128 kB mmap threshold and RAISES it (up to 32 MB) each time an
+    mmapped block is freed, so after the first published frame every 1 MB overlay, JPEG and
+    message buffer comes from the per-thread arenas, which keep the freed pages (see
+    :func:`release_free_heap`). Setting the threshold explicitly turns that dynamic raise off
+    (mallopt(3)): every buffer of at least ``threshold_bytes`` is mmapped and unmapped on free.
+    ``arena_max`` bounds the number of arenas the publisher, tracking, acquisition and web
+    threads can spread their free memory over. Call it before the threads start.
+    """
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return False
+    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    ok = mallopt(_M_MMAP_THRESHOLD, int(threshold_bytes)) == 1
+    if arena_max > 0:
+        ok = mallopt(_M_ARENA_MAX, int(arena_max)) == 1 and ok
+    return ok
+
 
 def release_free_heap() -> bool:
     """Return the C heap's free pages to the system (glibc ``malloc_trim(0)``); False where unavailable.

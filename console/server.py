@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import viser
 
-from console.app import Console
+from console.app import Console, pin_mmap_threshold
 from trackmeter.errors import TrackmeterError
 from trackmeter.pipeline.pipeline import Engine, Pipeline
 from trackmeter.sources.base import Source
@@ -99,6 +99,7 @@ def start_console(
     Raises:
         TrackmeterError: the port is taken; a recording folder that cannot be used.
     """
+    pin_mmap_threshold()
     server = start_server(host, port)
     pipeline = Pipeline(source, engine, drop_frames=True, record_dir=record_dir)
     try:
