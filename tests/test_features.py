@@ -9,6 +9,7 @@ import pytest
 
 from trackmeter.core import features as ft
 from trackmeter.core.features import FeatureParams, select_features
+from trackmeter.core.patch_tracking import match_epipolar
 from trackmeter.errors import TrackmeterError
 from trackmeter.sources.plane import PlaneScene, pose_translating
 
@@ -19,18 +20,133 @@ def plate(estec_rig):  # type: ignore[no-untyped-def]
     return scene, scene.frame(0)
 
 
-def test_gabor_prefers_a_corner_to_an_edge() -> None:
+@pytest.fixture(scope="module")
+def estec():  # type: ignore[no-untyped-def]
+    """One frame of the simulated mock-up: bright faces, black space, and a regular grid
+    (repetitive along the epipolar lines) on the solar panel and the side face."""
+    from trackmeter.sources.sim.simulator import Simulator
+
+    sim = Simulator("estec")
+    return sim.rig, sim.frame(30)
+
+
+def texture(shape: tuple[int, int], seed: int = 1) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return cv2.GaussianBlur(rng.integers(0, 256, shape).astype(np.uint8), (0, 0), 1.5)
+
+
+@pytest.mark.parametrize("pyramid", [False, True])
+def test_gabor_prefers_a_corner_to_an_edge(pyramid: bool) -> None:
     """A good feature answers in at least two directions; a straight edge in one only."""
     img = np.full((120, 160), 40, np.uint8)
     img[30:90, 20:70] = 200  # a square: corners at (20,30), (69,30), ...
     img[:, 110:] = 200  # a long vertical edge at u = 110 (no corner in the middle rows)
-    score = ft.gabor_score(img, FeatureParams())
+    score = ft.gabor_score(img, FeatureParams(gabor_pyramid=pyramid))
     corner = score[25:36, 15:26].max()
     edge = score[55:66, 105:116].max()
     assert corner > 2 * edge
-    energy = ft.gabor_directional_energy(img, (4.0, 8.0), 4)
+    energy = ft.gabor_directional_energy(img, (4.0, 8.0), 4, pyramid=pyramid)
     e = energy[:, 60, 110]
     assert np.sort(e)[-1] > 5 * np.sort(e)[-2]  # the edge answers in one direction
+
+
+@pytest.mark.parametrize(("wavelengths", "orientations"), [((4.0, 8.0), 4), ((3.0,), 6), ((5.0, 7.0), 3)])
+def test_separable_gabor_equals_the_2d_bank(wavelengths, orientations) -> None:  # type: ignore[no-untyped-def]
+    """The separable filtering is the 2D bank (cv2.getGaborKernel, zero-mean even part)
+    applied with cv2.filter2D, to float32 rounding."""
+    img = texture((90, 110))
+    ref = np.zeros((orientations, *img.shape), np.float32)
+    for k, scales in enumerate(ft.gabor_bank(wavelengths, orientations)):
+        for even, odd in scales:
+            e = cv2.filter2D(img.astype(np.float32), cv2.CV_32F, even)
+            o = cv2.filter2D(img.astype(np.float32), cv2.CV_32F, odd)
+            np.maximum(ref[k], np.hypot(e, o), out=ref[k])
+    got = ft.gabor_directional_energy(img, wavelengths, orientations)
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-5 * ref.max())
+
+
+def test_pyramid_gabor_approximates_the_exact_bank() -> None:
+    """The 8 px wavelength filtered at half resolution: the same energies where they matter
+    (the strongest tenth) within a few percent, without bias."""
+    img = texture((200, 240))
+    exact = ft.gabor_directional_energy(img, (4.0, 8.0), 4)
+    pyr = ft.gabor_directional_energy(img, (4.0, 8.0), 4, pyramid=True)
+    strong = exact > np.percentile(exact, 90)
+    rel = pyr[strong] / exact[strong] - 1
+    assert abs(np.median(rel)) < 0.05
+    assert np.median(np.abs(rel)) < 0.08
+    # The pyramid level only changes the 8 px band: a 4 px-only bank is untouched.
+    np.testing.assert_allclose(ft.gabor_directional_energy(img, (4.0,), 4, pyramid=True), ft.gabor_directional_energy(img, (4.0,), 4), rtol=1e-6)
+
+
+def greedy_reference(points: np.ndarray, scores: np.ndarray, d: float, limit: int) -> np.ndarray:
+    kept: list[np.ndarray] = []
+    for i in np.argsort(-scores, kind="stable"):
+        if all(((points[i] - q) ** 2).sum() >= d * d for q in kept):
+            kept.append(points[i])
+            if len(kept) >= limit:
+                break
+    return np.array(kept, dtype=float).reshape(-1, 2)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_spread_is_the_greedy_non_maximum_suppression(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 300))
+    # Integer pixels (exact distances of 20 px occur: such a pair is kept) and tied scores.
+    pts = rng.integers(0, 150, (n, 2)).astype(float) if seed % 2 else rng.random((n, 2)) * 150
+    scores = rng.integers(0, 10, n).astype(float)
+    for d, limit in [(20.0, 1000), (13.0, 7), (0.0, 5)]:
+        np.testing.assert_array_equal(ft.spread(pts, scores, d, limit), greedy_reference(pts, scores, d, limit))
+
+
+def full_range_reference(rig, frame, uv, params) -> np.ndarray:  # type: ignore[no-untyped-def]
+    """match_epipolar over the whole depth range in one pass: what stereo_matchable decides."""
+    rect = rig.rectification
+    lo, hi = ft.search_disparities(rig, params)
+    m = match_epipolar(
+        frame.left, frame.right, rect.maps[0], rect.maps[1], rect.rectify_points(uv, 0), np.full(len(uv), lo), int(np.ceil(hi - lo)),
+        params.patch_size, min_score=params.stereo_min_score, uniqueness_margin=params.uniqueness_margin, epipolar_tolerance_px=1.0,
+    )  # fmt: skip
+    return m.ok
+
+
+def test_stereo_check_equals_match_epipolar_over_the_whole_line(estec) -> None:  # type: ignore[no-untyped-def]
+    """The two-stage check (cheap ZNCC profile over the line, match_epipolar near the peak)
+    decides as match_epipolar over the whole line, on the mock-up's candidates: many are
+    ambiguous on its regular grid."""
+    rig, f = estec
+    params = FeatureParams()
+    cand = ft._candidates_gabor(f.left, ft.target_mask(f.left, params), params, 80)
+    ref = full_range_reference(rig, f, cand, params)
+    assert 10 <= ref.sum() <= len(cand) - 10  # both outcomes are exercised
+    np.testing.assert_array_equal(ft.stereo_matchable(f.left, f.right, rig, cand, params), ref)
+    # need=k: the same first k, nothing checked after the k-th pass.
+    first = ft.stereo_matchable(f.left, f.right, rig, cand, params, need=5)
+    k = np.flatnonzero(ref)[4]
+    np.testing.assert_array_equal(first[: k + 1], ref[: k + 1])
+    assert first.sum() >= 5
+
+
+def test_the_integer_profile_is_match_epipolars(estec) -> None:  # type: ignore[no-untyped-def]
+    rig, f = estec
+    params = FeatureParams()
+    cand = ft._candidates_gabor(f.left, ft.target_mask(f.left, params), params, 40)
+    rect = rig.rectification
+    lo, hi = ft.search_disparities(rig, params)
+    span = int(np.ceil(hi - lo))
+    cl = rect.rectify_points(cand, 0)
+    scores, k_best = ft._epipolar_profile(f.left.astype(np.float32), f.right.astype(np.float32), rect, cl, int(lo), span, params.patch_size)
+    m = match_epipolar(
+        f.left, f.right, rect.maps[0], rect.maps[1], cl, np.full(len(cl), lo), span,
+        params.patch_size, min_score=params.stereo_min_score, uniqueness_margin=params.uniqueness_margin, epipolar_tolerance_px=1.0,
+    )  # fmt: skip
+    far = np.abs(np.arange(span + 1)[None] - k_best[:, None]) > params.patch_size // 2
+    second = np.where(far, scores, -1).max(1)
+    np.testing.assert_allclose(second, m.second_score, atol=1e-3)
+    # The peak is where the refined match is (within the sub-pixel refinement).
+    ok = np.array(m.ok)
+    np.testing.assert_allclose((lo + span - k_best)[ok], m.disparity_px[ok], atol=1.0)
 
 
 def test_centroid_of_a_bright_disc_on_black_space() -> None:
@@ -71,3 +187,21 @@ def test_nothing_is_selected_on_black_space(estec_rig) -> None:
 def test_unknown_method_is_refused() -> None:
     with pytest.raises(TrackmeterError, match="unknown feature selection method"):
         select_features(np.zeros((10, 10), np.uint8), None, None, 3, "sift", FeatureParams(), ())
+
+
+def test_a_disparity_range_narrows_the_search_but_not_below_the_minimum_span(plate, estec_rig) -> None:
+    scene, f = plate
+    params = FeatureParams()
+    full = ft.search_disparities(estec_rig, params)
+    assert ft.search_disparities(estec_rig, params, (80.0, 110.0)) == (63.0, 127.0)  # widened to 64 px about 95
+    assert ft.search_disparities(estec_rig, params, (40.0, 200.0)) == (40.0, 200.0)
+    assert ft.search_disparities(estec_rig, params, (-50.0, 1000.0)) == full  # clipped to the depth range
+    # The plate at 3.5 m: around its disparity, the same points as over the whole range.
+    d = estec_rig.rectification.focal_px * estec_rig.rectification.baseline_m / 3.5 + estec_rig.rectification.disparity_offset_px
+    pts = select_features(f.left, f.right, estec_rig, 8, "gabor", params)
+    near = select_features(f.left, f.right, estec_rig, 8, "gabor", params, disparity_range_px=(d - 20, d + 20))
+    assert len(pts) == 8
+    np.testing.assert_array_equal(near, pts)
+    for bad in [(10.0,), (5.0, 1.0), (np.nan, 3.0)]:
+        with pytest.raises(TrackmeterError, match="disparity_range_px"):
+            select_features(f.left, f.right, estec_rig, 3, "gabor", params, disparity_range_px=bad)  # type: ignore[arg-type]
