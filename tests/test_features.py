@@ -126,6 +126,9 @@ def test_stereo_check_equals_match_epipolar_over_the_whole_line(estec) -> None: 
     k = np.flatnonzero(ref)[4]
     np.testing.assert_array_equal(first[: k + 1], ref[: k + 1])
     assert first.sum() >= 5
+    # Without the second stage: every point match_epipolar passes, and few more.
+    coarse = ft.stereo_matchable(f.left, f.right, rig, cand, params, refine=False)
+    assert np.all(coarse[ref]) and (coarse & ~ref).sum() <= 0.05 * ref.sum()
 
 
 def test_the_integer_profile_is_match_epipolars(estec) -> None:  # type: ignore[no-untyped-def]
@@ -159,10 +162,10 @@ def test_centroid_of_a_bright_disc_on_black_space() -> None:
     np.testing.assert_allclose(pts[0], (180, 90), atol=0.5)
 
 
-@pytest.mark.parametrize("method", ["gabor", "shi_tomasi"])
-def test_selected_points_are_on_the_target_spread_and_stereo_matchable(plate, estec_rig, method) -> None:
+@pytest.mark.parametrize(("method", "refine"), [("gabor", True), ("shi_tomasi", True), ("gabor", False)])
+def test_selected_points_are_on_the_target_spread_and_stereo_matchable(plate, estec_rig, method, refine) -> None:
     scene, f = plate
-    params = FeatureParams()
+    params = FeatureParams(stereo_refine=refine)
     exclude = np.array([[400.0, 250.0]])
     pts = select_features(f.left, f.right, estec_rig, 12, method, params, exclude)
     assert 6 <= len(pts) <= 12
@@ -174,8 +177,10 @@ def test_selected_points_are_on_the_target_spread_and_stereo_matchable(plate, es
     d = np.linalg.norm(pts[:, None] - pts[None], axis=2) + np.eye(len(pts)) * 1e9
     assert d.min() >= params.min_distance_px - 1e-9
     assert np.linalg.norm(pts - exclude, axis=1).min() >= params.min_distance_px
-    # Stereo-matchable: every point has a unique epipolar match (and it is the right one).
-    assert ft.stereo_matchable(f.left, f.right, estec_rig, pts, params).all()
+    # Stereo-matchable: every point has a unique epipolar match (with the sub-pixel checks
+    # too when refined; without, a rare point may fail those).
+    ok = ft.stereo_matchable(f.left, f.right, estec_rig, pts, params)
+    assert ok.all() if refine else ok.mean() >= 0.9
 
 
 def test_nothing_is_selected_on_black_space(estec_rig) -> None:

@@ -57,6 +57,7 @@ class FeatureParams:
     max_depth_m: float = param(50.0, "farthest depth searched when checking stereo matchability, m", min=0.02)
     stereo_min_score: float = param(0.85, "ZNCC a selected point must reach along its epipolar line", min=-1.0, max=1.0)
     uniqueness_margin: float = param(0.1, "the best epipolar match must beat every other peak by this ZNCC", min=0.0, max=2.0)
+    stereo_refine: bool = param(False, "also confirm each selected point with the sub-pixel epipolar match (match_epipolar), not only its integer ZNCC profile along the line")
     stereo_min_span_px: float = param(64.0, "a disparity range given to the stereo check is widened to at least this span, px", min=1.0)
 
 
@@ -432,7 +433,7 @@ def select_features(
     cand = finder(left, mask, params, limit)
     if not stereo or len(cand) == 0:
         return cand[:n]
-    ok = stereo_matchable(left, right_or_none, rig, cand, params, disparity_range_px, need=n)
+    ok = stereo_matchable(left, right_or_none, rig, cand, params, disparity_range_px, need=n, refine=params.stereo_refine)
     return cand[ok][:n]
 
 
@@ -553,6 +554,7 @@ def stereo_matchable(
     params: FeatureParams,
     disparity_range_px: tuple[float, float] | None = None,
     need: int | None = None,
+    refine: bool = True,
 ) -> NDArray[np.bool_]:
     """Whether each left point (N,2) has a strong, unique match along its epipolar line:
     :func:`trackmeter.core.patch_tracking.match_epipolar` over :func:`search_disparities`.
@@ -572,6 +574,10 @@ def stereo_matchable(
     Args:
         need: stop once this many points (in the order given) have passed; the points after
             the last one checked are reported False. None: check all.
+        refine: run the second stage; without it a point passes on the first stage alone
+            (strong, unique integer peak inside the range; only points within the tolerance
+            go through ``match_epipolar``). On the estec frames ~0.6 % of those then fail
+            the sub-pixel checks; the call costs ~3 ms less (``match_epipolar``'s fixed cost).
     """
     from trackmeter.core.patch_tracking import match_epipolar
 
@@ -582,50 +588,64 @@ def stereo_matchable(
     if len(uv) == 0 or hi <= lo:
         return ok
     d_low, span, size = int(lo), int(np.ceil(hi - lo)), params.patch_size
+    n = len(uv)
     cl = rect.rectify_points(uv, 0)
     left_f = np.asarray(left, np.float32)
     right_f = np.asarray(right, np.float32)
-    scores, k_best = _epipolar_profile(left_f, right_f, rect, cl, d_low, span, size)
-    n = len(uv)
-    best = scores[np.arange(n), k_best]
-    r = max(size // 2, 2)
-    far = np.abs(np.arange(span + 1)[None, :] - k_best[:, None]) > r
-    second = np.where(far, scores, -1.0).max(axis=1)
-    tol = 1e-3
-    unique_by = best - params.uniqueness_margin - second
-    survive = (best >= params.stereo_min_score - tol) & (unique_by >= -tol) & (k_best > 0) & (k_best < span)
-    # Within the tolerance of a threshold the first stage cannot decide: the whole range again.
-    borderline = survive & ((best < params.stereo_min_score + tol) | (unique_by < tol))
-    idx = np.flatnonzero(survive)
-    # Second stage on a window of +-2 patches around the peak, slid inside the searched range
-    # (the peak is never at its edge: the first stage refused those at the range's edges).
-    w_span = min(4 * size, span)
-    w_lo = np.clip(d_low + span - k_best - w_span // 2, d_low, d_low + span - w_span)
-    w_lo[borderline] = d_low
     maps = _complex_maps(rect)
     lc, rc = np.ascontiguousarray(left), np.ascontiguousarray(right)
+    r = max(size // 2, 2)
+    tol = 1e-3
+    # Second-stage window: +-2 patches around the peak, slid inside the searched range (the
+    # peak is never at its edge: the first stage refuses those at the range's edges).
+    w_span = min(4 * size, span)
     passed = 0
-    pos = 0
-    while pos < len(idx) and (need is None or passed < need):
-        # In batches when only ``need`` are wanted: the survivors pass at ~0.99.
-        batch = idx[pos:] if need is None else idx[pos : pos + max(2, need - passed + 1)]
-        pos += len(batch)
-        for sel, s in ((batch[~borderline[batch]], w_span), (batch[borderline[batch]], span)):
-            if len(sel) == 0:
+    start = 0
+    pending: list[tuple[int, int, bool]] = []  # first-stage survivors: (point, window low, borderline)
+    while need is None or passed < need:
+        want = n if need is None else need - passed + 1
+        while len(pending) < want and start < n:
+            # With ``need``, the first stage too runs on chunks in the given order, a few times
+            # the points still missing (on repetitive texture most candidates are ambiguous).
+            stop = n if need is None else min(n, start + max(8, 3 * want))
+            chunk = np.arange(start, stop)
+            start = stop
+            scores, k_best = _epipolar_profile(left_f, right_f, rect, cl[chunk], d_low, span, size)
+            best = scores[np.arange(len(chunk)), k_best]
+            far = np.abs(np.arange(span + 1)[None, :] - k_best[:, None]) > r
+            second = np.where(far, scores, -1.0).max(axis=1)
+            unique_by = best - params.uniqueness_margin - second
+            survive = (best >= params.stereo_min_score - tol) & (unique_by >= -tol) & (k_best > 0) & (k_best < span)
+            # Within the tolerance of a threshold the first stage cannot decide: whole range again.
+            borderline = (best < params.stereo_min_score + tol) | (unique_by < tol)
+            w_lo = np.clip(d_low + span - k_best - w_span // 2, d_low, d_low + span - w_span)
+            pending.extend((int(chunk[i]), d_low if borderline[i] else int(w_lo[i]), bool(borderline[i])) for i in np.flatnonzero(survive))
+        if not pending:
+            break
+        # The survivors pass at ~0.99: one batch of what is still missing (and one spare).
+        batch, pending = pending[:want], pending[want:]
+        if not refine:
+            sure = [i for i, _, b in batch if not b]
+            ok[sure] = True
+            passed += len(sure)
+        for wide in (False, True) if refine else (True,):
+            sel = [(i, w) for i, w, b in batch if b == wide]
+            if not sel:
                 continue
+            pts = np.array([i for i, _ in sel])
             m = match_epipolar(
                 lc,
                 rc,
                 maps[0],
                 maps[1],
-                cl[sel],
-                w_lo[sel],
-                s,
+                cl[pts],
+                np.array([w for _, w in sel], dtype=float),
+                span if wide else w_span,
                 size,
                 min_score=params.stereo_min_score,
                 uniqueness_margin=params.uniqueness_margin,
                 epipolar_tolerance_px=1.0,
             )
-            ok[sel] = m.ok
+            ok[pts] = m.ok
             passed += int(m.ok.sum())
     return ok
