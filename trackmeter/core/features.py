@@ -49,7 +49,7 @@ class FeatureParams:
     target_margin_px: int = param(3, "the patch grown by this margin must lie entirely on the bright target, px", min=0)
     gabor_wavelengths_px: tuple[float, ...] = param((4.0, 8.0), "Gabor wavelengths (scales), px", min=2.0)
     gabor_orientations: int = param(4, "number of Gabor orientations over 180 degrees", min=2, max=16)
-    gabor_pyramid: bool = param(True, "filter wavelengths of 2^l times the smallest on pyramid level l (half resolution, ...): faster, approximate")
+    gabor_pyramid: bool = param(False, "filter wavelengths of 2^l times the smallest on pyramid level l (half resolution, ...): faster, approximate")
     min_directions: int = param(2, "a good feature answers strongly in at least this many directions", min=1, max=16)
     quality: float = param(0.05, "keep candidates scoring at least this fraction of the best score", min=0.0, max=1.0)
     candidates_factor: int = param(10, "candidates stereo-checked per requested point", min=1, max=100)
@@ -247,8 +247,10 @@ def gabor_directional_energy(image: NDArray, wavelengths_px: tuple[float, ...], 
     Computed with separable 1D passes (:class:`_SeparableGabor`): equal to the 2D filtering to
     float32 rounding, ~10x cheaper for the 25x25 kernels of an 8 px wavelength. With
     ``pyramid`` the longer wavelengths are filtered on a half-resolution (quarter, ...)
-    pyramid level (:func:`_gabor_plan`): an approximation of the same energies (within ~10 %
-    where they are strong) at about half the cost again.
+    pyramid level (:func:`_gabor_plan`): an approximation of the same energies (median error
+    ~5 % where they are strong) at about half the cost again — but it re-ranks the
+    candidates: on 50 estec frames the tracker accepted 31 % of 16 pyramid-selected points
+    against 36 % of the exact ones, so selection does not use it by default.
     """
     img = np.ascontiguousarray(image, dtype=np.float32)
     out = np.empty((orientations, *img.shape), np.float32)
