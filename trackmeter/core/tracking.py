@@ -72,14 +72,17 @@ class TrackerParams:
         0.02, "lost when another peak in the search window comes within this ZNCC of the best", min=0.0, max=2.0
     )
     anchor_min_score: float = param(0.92, "ZNCC the anchor template must reach to correct drift", min=-1.0, max=1.0)
-    drift_tolerance_px: float = param(0.5, "anchor refinement may move the match at most this far, px", min=0.0)
+    drift_tolerance_px: float = param(
+        0.25, "anchor refinement may move the match at most this far; a re-anchor needs the anchor and current "
+        "template to agree this closely (each re-anchor can add this much drift), px", min=0.0,
+    )
     anchor_warp: str = param(
         "similarity", "warp fitted to the anchor: similarity (4 dof), euclidean (scale from depth) or affine (6 dof, noisy on 8x8)",
         choices=("similarity", "euclidean", "affine"),
     )
     anchor_tolerance_px: float = param(0.05, "anchor fit converged when its last step moves the patch less than this, px", min=0.0)
     anchor_max_scale_error: float = param(
-        0.1, "anchor fit rejected when its scale differs from the depth-implied one by more than this fraction", min=0.0,
+        0.2, "anchor fit rejected when its scale differs from the depth-implied one by more than this fraction", min=0.0,
     )
     min_search_px: float = param(3.0, "smallest search window half-size, px", min=0.0)
     max_search_px: float = param(96.0, "largest search window half-size, px", min=1.0)
