@@ -14,6 +14,13 @@ Whatever the method, the points are on the target (their whole patch, plus a mar
 brighter than black space), spread over it (at least ``min_distance_px`` apart and from the
 excluded points), away from the border, and — when a right image is given — stereo-matchable:
 unique along their epipolar line (:func:`trackmeter.core.patch_tracking.match_epipolar`).
+
+Selection runs inside the tracker's 25 Hz step, so its cost matters (``benchmarks/select.py``):
+the Gabor bank is filtered with separable 1D passes (the same numbers as the 2D kernels, ~7-10x
+cheaper), only on the bounding box of the selectable pixels; the greedy spreading uses one k-d
+tree query; and the stereo check scores the whole epipolar line of all candidates at once with
+``cv2.remap`` and batched ZNCC, in score order until enough pass (:func:`stereo_matchable`),
+optionally over a narrower disparity range the caller knows (``disparity_range_px``).
 """
 
 from __future__ import annotations
