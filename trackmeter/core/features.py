@@ -422,8 +422,9 @@ def select_features(
             already tracked on the object. See :func:`stereo_matchable`.
 
     The candidates (up to ``candidates_factor * n``, best first) are stereo-checked in score
-    order until ``n`` pass (:func:`stereo_matchable` with ``need=n``): the result is the
-    first ``n`` that pass, as if all had been checked.
+    order until ``n`` pass (:func:`stereo_matchable` with ``need=n``, and its sub-pixel second
+    stage when ``params.stereo_refine``): the result is the first ``n`` that pass, as if all
+    had been checked.
 
     Raises:
         TrackmeterError: unknown method, malformed ``disparity_range_px``.
@@ -442,6 +443,7 @@ def select_features(
     cand = finder(left, mask, params, limit)
     if not stereo or len(cand) == 0:
         return cand[:n]
+    assert right_or_none is not None and rig is not None
     ok = stereo_matchable(left, right_or_none, rig, cand, params, disparity_range_px, need=n, refine=params.stereo_refine)
     return cand[ok][:n]
 
