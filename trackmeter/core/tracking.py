@@ -344,6 +344,13 @@ class Tracker:
             return Refusal(key, f"a target named {target_id!r} exists")
         # Refused exactly as a measurement of the point would be (paper 2.A, H2's matcher)...
         meas = measure_points(self.rig, frame.left, frame.right, uvf[None], self.measure)[0]
+        return self._create(frame, uvf, meas, target_id, origin)
+
+    def _create(
+        self, frame: StereoFrame, uvf: FloatArray, meas, target_id: str | None, origin: TargetOrigin,  # type: ignore[no-untyped-def]
+    ) -> TargetState | Refusal:
+        """A new target at ``uvf`` (2,) from its measurement ``meas`` (:func:`measure_points`), or the refusal."""
+        key = (float(uvf[0]), float(uvf[1]))
         if not meas.ok:
             return Refusal(key, str(meas.reason))
         # ... and where it could not be tracked (patch too close to the border, aperture problem).
@@ -801,8 +808,12 @@ class Tracker:
         self._last_top_up = frame.index
         # Ask for spares: the measurement may still refuse some (e.g. disparity too uncertain).
         pts = select_features(frame.left, frame.right, self.rig, 3 * need, self._auto_method, fp, exclude)
+        if len(pts) == 0:
+            return
+        # One batched measurement of all the candidates (most of its cost is per call).
+        meas = measure_points(self.rig, frame.left, frame.right, np.asarray(pts, float).reshape(-1, 2), self.measure)
         added = 0
-        for uv in pts:
-            if added >= need:
+        for uv, m in zip(pts, meas):
+            if added >= need or len(self._targets) >= p.max_targets:
                 break
-            added += isinstance(self.add_target(frame, (float(uv[0]), float(uv[1])), origin="auto"), TargetState)
+            added += isinstance(self._create(frame, np.asarray(uv, float).reshape(2), m, None, "auto"), TargetState)
