@@ -13,7 +13,7 @@ import time
 from typing import Callable
 
 #: Benchmarks in the order ``python -m benchmarks`` runs them.
-NAMES: tuple[str, ...] = ("measure", "render", "tracker", "accuracy", "pipeline", "soak", "console", "sequence_write")
+NAMES: tuple[str, ...] = ("measure", "render", "select", "tracker", "accuracy", "pipeline", "soak", "console", "sequence_write")
 
 
 def median_ms(
