@@ -152,13 +152,24 @@ def run(engine, frames):
     return [engine.process(frame_at(k)) for k in frames]
 
 
-def test_case_b_noise_free_is_exact(estec_rig) -> None:
+@pytest.mark.parametrize("method", ["poly", "screw"])
+def test_case_b_noise_free_is_exact(estec_rig, method: str) -> None:
+    """This motion (constant omega_body, constant v_cam of the origin) is exact for the 'poly'
+    velocity fit. The default 'screw' fit is exact for a constant TWIST (tests/test_velocity.py);
+    here the body-frame velocity turns at |omega x V|, which its order-1 line over the window
+    follows with a lag of about (window/2) |omega x V| = 0.24 mm/s."""
+    from dataclasses import replace
+
     engine, _, _ = make_engine(estec_rig, noise=False)
+    engine.velocity_params = replace(engine.velocity_params, method=method)
+    engine._reset_motion()
     out = run(engine, range(60))
     targets, pose, errors = out[-1]
     assert pose.valid and pose.case == "b" and pose.n_points == 12
-    np.testing.assert_allclose(pose.T_cam_body, true_pose(59 * DT), atol=1e-9)
-    np.testing.assert_allclose(errors["velocity_m_s"], 0, atol=1e-9)
+    exact = method == "poly"
+    np.testing.assert_allclose(pose.T_cam_body[:3, :3], true_pose(59 * DT)[:3, :3], atol=1e-9)
+    np.testing.assert_allclose(pose.T_cam_body[:3, 3], true_pose(59 * DT)[:3, 3], atol=1e-9 if exact else 1e-4)
+    np.testing.assert_allclose(errors["velocity_m_s"], 0, atol=1e-9 if exact else 0.5e-3)
     np.testing.assert_allclose(errors["omega_rad_s"], 0, atol=1e-9)
 
 

@@ -15,6 +15,27 @@ is ``omega_body = J_r(phi) phi'`` (``J_r``: right Jacobian of SO(3)), which is e
 the fitted curve. A motion that is polynomial of degree ``order`` in the chart (constant rate,
 constant angular acceleration about a fixed axis) is differentiated exactly; noise is averaged
 over the window. ``benchmarks/accuracy.py`` compares it with the plain eq. 14 difference.
+
+The default, ``'screw'``, fits on SE(3) instead: each pose of the window enters as the twist
+coordinates ``x_k = log(T_ref^-1 T_k)`` (6,) in the chart of the newest pose, a polynomial of
+degree ``screw_order`` (default 1) is fitted to them, and the fitted curve
+``T(tau) = T_ref exp(x(tau))`` is differentiated at the newest time. A constant body twist
+(a screw motion: constant ``omega_body`` and constant body-frame velocity of the origin) is a
+straight line in this chart, so order 1 differentiates it exactly *whatever the origin* —
+whereas the SO(3) x R^3 fit above sees an origin off the rotation axis move on a curve (its
+velocity ``v + omega x r`` turns with the body) and needs order 2, whose end-point slope has
+about 4 times the standard deviation of order 1's over the same window
+(Savitzky-Golay end-point weights). The window is ``screw_window_s`` long but reaches back no
+further than the body has turned ``screw_max_angle_deg``: the chart stays far from the cut
+locus at pi (a fast tumble's poses would otherwise wrap), and since Euler's equations are
+invariant under ``omega -> s omega, t -> t/s``, a window fixed in angle gives a torque-free
+tumble the same relative lag at any spin rate.
+
+Measured on the estec scenario, case (a), from recorded engine poses (first 20 s; the errors
+after a 2 s settle, max/RMS): 'poly' 3.3/0.8 mm/s lateral, 2.7/0.9 mm/s depth, 0.42/0.08 deg/s;
+'screw' 0.8/0.2, 1.2/0.5, 0.10/0.03. What remains is mostly the pose's own low-frequency error
+(slowly varying per-point measurement errors), not steps where the set of tracked points
+changes: frame-to-frame pose steps are only ~5 % larger at set changes than without one.
 """
 
 from __future__ import annotations
@@ -37,8 +58,16 @@ class VelocityParams:
     """Tunables of the velocity estimation."""
 
     method: str = param(
-        "poly", "'poly': causal local polynomial fit on the rotation group; 'difference': eq. 14 finite difference",
-        choices=("poly", "difference"),
+        "screw", "'screw': causal polynomial fit on SE(3) (constant twist exact at order 1); 'poly': on SO(3) "
+        "and R^3 separately; 'difference': eq. 14 finite difference",
+        choices=("screw", "poly", "difference"),
+    )
+    screw_window_s: float = param(2.5, "screw: longest window of the fit, s", min=0.05)
+    screw_order: int = param(1, "screw: degree of the polynomial in the twist chart (1 = constant twist)",
+                             min=1, max=3)
+    screw_max_angle_deg: float = param(
+        30.0, "screw: the window reaches back no further than the body has turned this far, deg "
+        "(a fast tumble gets a short window, and the chart never wraps)", min=1.0, max=170.0,
     )
     window_s: float = param(1.2, "poly: window of the attitude fit (angular velocity), s", min=0.05)
     order: int = param(2, "poly: degree of the attitude polynomial (1 = constant rate, 2 = constant acceleration)",
@@ -114,6 +143,93 @@ def local_polynomial_rates(
     return value[3:], R_fit, slope[3:], omega
 
 
+def se3_log(R: ArrayLike, t: ArrayLike) -> FloatArray:
+    """Twist coordinates ``(rho, theta)`` of rigid transforms ``(R, t)``: ``(R, t) = exp(x)``.
+
+    ``theta = log(R)`` (rotation vector) and ``rho = J_l(theta)^-1 t`` with the inverse left
+    Jacobian of SO(3) ``J_l^-1 = I - [theta]x / 2 + (1/θ² - (1 + cos θ) / (2 θ sin θ)) [theta]x²``
+    (Barfoot, *State Estimation for Robotics*, eqs. 7.83, 7.85 and 7.86). ``rho`` is the
+    body-frame velocity of the origin times the time of a constant twist.
+
+    Args:
+        R: (3,3) or (N,3,3) rotations; t: (3,) or (N,3) translations, m.
+
+    Returns:
+        (6,) or (N,6) ``(rho, theta)``.
+    """
+    Rm = np.asarray(R, dtype=float)
+    single = Rm.ndim == 2
+    Rm = Rm.reshape(-1, 3, 3)
+    tv = np.asarray(t, dtype=float).reshape(-1, 3)
+    theta = Rotation.from_matrix(Rm).as_rotvec()
+    a = np.linalg.norm(theta, axis=1)
+    small = a < 1e-4
+    a_safe = np.where(small, 1.0, a)
+    # coefficient of [theta]x^2; its series 1/12 + θ²/720 near 0
+    c2 = np.where(small, 1.0 / 12.0 + a**2 / 720.0,
+                  1.0 / a_safe**2 - (1.0 + np.cos(a_safe)) / (2.0 * a_safe * np.sin(a_safe)))
+    cross1 = np.cross(theta, tv)
+    cross2 = np.cross(theta, cross1)
+    rho = tv - 0.5 * cross1 + c2[:, None] * cross2
+    out = np.concatenate([rho, theta], axis=1)
+    return out[0] if single else out
+
+
+def se3_exp(x: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """Inverse of :func:`se3_log`: ``(R (3,3), t (3,))`` of the twist coordinates ``x = (rho, theta)``."""
+    x = np.asarray(x, dtype=float)
+    return Rotation.from_rotvec(x[3:]).as_matrix(), right_jacobian_so3(-x[3:]) @ x[:3]
+
+
+def screw_rates(
+    times_s: ArrayLike, R: ArrayLike, p: ArrayLike, order: int = 1, t_eval_s: float | None = None
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Fit a polynomial to a window of poses in the twist chart of SE(3) and differentiate it.
+
+    With ``T_ref`` the newest pose, ``x_k = log(T_ref^-1 T_k)`` (:func:`se3_log`) is fitted by a
+    polynomial ``x(tau)`` of degree ``min(order, N-1)`` (least squares); the motion
+    ``T(tau) = T_ref exp(x(tau))`` is then differentiated by a central difference of the
+    fitted curve (step 1e-4 of the window: exact to ~1e-8 relative). For a constant body
+    twist ``x_k`` is linear in time, so order 1 is exact (module docstring). The rotation
+    between any pose of the window and the newest must stay below pi (the caller's window).
+
+    Args:
+        times_s: (N,) increasing times, s.
+        R: (N,3,3) attitudes ``R_cam_body``.
+        p: (N,3) body-origin positions in the camera frame, m.
+        order: polynomial degree.
+        t_eval_s: where to evaluate; default the newest time.
+
+    Returns:
+        ``(p_fit (3,), R_fit (3,3), v_cam (3,) m/s, omega_body (3,) rad/s)`` at ``t_eval_s``:
+        ``v_cam`` is the body origin's velocity in the camera frame, ``omega_body`` the angular
+        velocity in the body frame (eq. 14 on the fitted curve).
+    """
+    t = np.asarray(times_s, dtype=float)
+    Rm = np.asarray(R, dtype=float).reshape(-1, 3, 3)
+    P = np.asarray(p, dtype=float).reshape(-1, 3)
+    t_eval = t[-1] if t_eval_s is None else float(t_eval_s)
+    deg = min(order, len(t) - 1)
+    R_ref, p_ref = Rm[-1], P[-1]
+    X = se3_log(np.einsum("ji,njk->nik", R_ref, Rm), (P - p_ref) @ R_ref)
+    tau = t - t_eval
+    scale = max(float(np.max(np.abs(tau))), 1e-9)  # conditioning of the Vandermonde matrix
+    coef, *_ = np.linalg.lstsq(np.vander(tau / scale, deg + 1, increasing=True), X, rcond=None)
+
+    def pose_at(s: float) -> tuple[FloatArray, FloatArray]:
+        x = np.vander(np.array([s / scale]), deg + 1, increasing=True)[0] @ coef
+        dR, dt = se3_exp(x)
+        return R_ref @ dR, p_ref + R_ref @ dt
+
+    h = 1e-4 * scale
+    R_fit, p_fit = pose_at(0.0)
+    R_a, p_a = pose_at(-h)
+    R_b, p_b = pose_at(h)
+    v = (p_b - p_a) / (2 * h)
+    omega = Rotation.from_matrix(R_a.T @ R_b).as_rotvec() / (2 * h)
+    return p_fit, R_fit, v, omega
+
+
 class VelocityEstimator:
     """Causal velocity estimation over a stream of poses (stateful wrapper of the functions above).
 
@@ -126,16 +242,22 @@ class VelocityEstimator:
         self._t: deque[float] = deque()
         self._R: deque[FloatArray] = deque()
         self._p: deque[FloatArray] = deque()
+        self._capped = False  # screw: the last window was cut short by screw_max_angle_deg
 
     @property
     def settled(self) -> bool:
-        """True once the poses in the window span ``min_span_s`` (before that the rates are
-        provisional: fine for the output filter's chart, not for reporting)."""
+        """True once the poses in the window span ``min_span_s`` — or, for 'screw', once the
+        window is limited by ``screw_max_angle_deg`` and holds at least 3 poses (a fast tumble)
+        — before that the rates are provisional: fine for the output filter's chart, not for
+        reporting."""
         if self.params.method == "difference":
             return len(self._t) >= 2
+        if self.params.method == "screw" and self._capped:
+            return True
         return len(self._t) >= 2 and self._t[-1] - self._t[0] >= self.params.min_span_s - 1e-9
 
     def reset(self) -> None:
+        self._capped = False
         self._t.clear()
         self._R.clear()
         self._p.clear()
@@ -148,7 +270,10 @@ class VelocityEstimator:
         self._R.append(np.asarray(R_cam_body, dtype=float))
         self._p.append(np.asarray(p_cam, dtype=float))
         keep = 2 if self.params.method == "difference" else None
-        longest = max(self.params.window_s, self.params.position_window_s)
+        if self.params.method == "screw":
+            longest = self.params.screw_window_s
+        else:
+            longest = max(self.params.window_s, self.params.position_window_s)
         while len(self._t) > 2 and (keep is not None and len(self._t) > keep or t_s - self._t[0] > longest):
             self._t.popleft(), self._R.popleft(), self._p.popleft()
         if len(self._t) < 2:
@@ -158,6 +283,16 @@ class VelocityEstimator:
         t = np.array(self._t)
         R = np.array(self._R)
         P = np.array(self._p)
+        if self.params.method == "screw":
+            # Newest poses within screw_max_angle_deg of the newest attitude (angle from the trace).
+            cos = (np.einsum("ij,nij->n", R[-1], R) - 1.0) / 2.0
+            far = np.flatnonzero(cos < np.cos(np.radians(self.params.screw_max_angle_deg)))
+            start = int(far[-1]) + 1 if len(far) else 0
+            self._capped = start > 0 and len(t) - start >= 3
+            if len(t) - start < 2:  # turned further than the cap within one frame: the last two
+                start = len(t) - 2
+            _, _, v, omega = screw_rates(t[start:], R[start:], P[start:], self.params.screw_order)
+            return v, omega
         rot = t >= t_s - self.params.window_s - 1e-9
         pos = t >= t_s - self.params.position_window_s - 1e-9
         rot[-2:] = pos[-2:] = True
