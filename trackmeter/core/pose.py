@@ -87,6 +87,20 @@ class PoseParams:
         True, "re-lock lost model points at their projection through the current pose (paper 2.D)"
     )
     recovery_interval_frames: int = param(5, "frames between two re-lock attempts of one model point", min=1)
+    max_model_points: int = param(
+        64, "grown model points kept (re-locked by measurement at their projection after their target was "
+        "dropped); beyond this the longest unseen go", min=3,
+    )
+    coast_max_s: float = param(
+        2.0, "after the pose is lost, model points are still re-locked this long at their projection through "
+        "the last pose carried forward at its last velocities, s", min=0.0,
+    )
+    coast_sigma_m_per_s: float = param(
+        0.02, "growth rate of the carried-forward pose's position uncertainty (1 sigma), m/s", min=0.0,
+    )
+    coast_sigma_rad_per_s: float = param(
+        0.05, "growth rate of the carried-forward pose's attitude uncertainty (1 sigma), rad/s", min=0.0,
+    )
     max_recoveries_per_frame: int = param(4, "re-lock attempts per frame at most (bounds the step time)", min=0)
     recovery_margin_px: float = param(8.0, "a projected model point must lie this far inside both images, px",
                                       min=0.0)

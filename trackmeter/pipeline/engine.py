@@ -170,6 +170,10 @@ class Engine:
                 getattr(config, "measure", None) or MeasureParams(),
             )
         self.tracker = tracker
+        from trackmeter.core.tracking import TrackerParams
+
+        # How long a re-made target of a grown model point may stay lost (as auto targets).
+        self._lost_keep_frames = (getattr(config, "tracker", None) or TrackerParams()).lost_keep_frames
         self.rate_hz = float(rate_hz) if rate_hz else 25.0
         chosen: ModelCase = case or ("b" if model is not None else "a")
         if chosen not in ("a", "b", "c"):
@@ -244,6 +248,9 @@ class Engine:
         self._last_fit: tuple[FloatArray, FloatArray, FloatArray] | None = None
         self._last_valid_t: float | None = None
         self._last_attempt: dict[str, int] = {}
+        self._seen_t: dict[str, float] = {}
+        self._lost_since: dict[str, int] = {}
+        self._coast: tuple[float, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray] | None = None
         self._velocity = VelocityEstimator(self.velocity_params)
         self._filter = PoseFilter(self.filter_params, self.rate_hz)
         self._align_M = np.zeros((3, 3))
@@ -370,9 +377,7 @@ class Engine:
             if t.measured and np.all(np.isfinite(t.point_cam)) and np.all(np.isfinite(t.cov_cam))
         }
         existing = {t.id for t in targets}
-        # Grown points whose target the tracker dropped can never be measured again.
-        for pid in [p for p, m in self._model.items() if not m.fixed and p not in existing and p not in self._frame_ids]:
-            del self._model[pid]
+        self._forget_stale(frame, targets, measured)
         for pid in [p for p in self._candidates if p not in measured]:
             del self._candidates[pid]
 
@@ -389,6 +394,11 @@ class Engine:
         if fit is None:
             pose = PoseEstimate.invalid(reason or "no pose", self._case)
             since = frame.t_s - (self._last_valid_t if self._last_valid_t is not None else frame.t_s)
+            self._recovered_any = False
+            coast = self._carried_pose(frame.t_s)
+            if coast is not None and self.pose_params.recover_model_points:
+                # Paper 2.D through a loss: the model points are where the motion carries them.
+                self._recover(frame, *coast, existing)
             if since > self.velocity_params.max_gap_s:
                 self._velocity.reset()
                 self._filter.reset()
@@ -405,6 +415,7 @@ class Engine:
         self._last_valid_t = frame.t_s
         rates = self._velocity.update(frame.t_s, R, t)
         v, w = rates if rates is not None else (np.full(3, np.nan), np.full(3, np.nan))
+        self._coast = (frame.t_s, R, t, cov, np.asarray(v, float), np.asarray(w, float))
         R_f, t_f = self._filter.update(frame.t_s, R, t, v if rates else None, w if rates else None)
         if not self._velocity.settled:  # provisional rates steer the filter but are not reported
             v, w = np.full(3, np.nan), np.full(3, np.nan)
@@ -567,6 +578,48 @@ class Engine:
 
     # ------------------------------------------------------------------ recovery
 
+    def _forget_stale(self, frame: StereoFrame, targets: tuple[TargetState, ...], measured: dict[str, TargetState]) -> None:
+        """Bound what re-locking keeps: grown model points outlive their targets (they are
+        re-locked by measurement at their projection, like a-priori points) up to
+        ``max_model_points``; a re-made target of a grown point that stays lost is dropped again."""
+        for pid in measured:
+            self._seen_t[pid] = frame.t_s
+        keep_frames = self._lost_keep_frames
+        for t in targets:
+            m = self._model.get(t.id)
+            if t.status != "lost" or t.origin != "model" or m is None or m.fixed:
+                self._lost_since.pop(t.id, None)
+                continue
+            since = self._lost_since.setdefault(t.id, frame.index)
+            if frame.index - since >= keep_frames:
+                self.tracker.remove_target(t.id)
+                self._lost_since.pop(t.id, None)
+        grown = [pid for pid, m in self._model.items() if not m.fixed and pid not in self._frame_ids]
+        excess = len(grown) - self.pose_params.max_model_points
+        if excess > 0:
+            grown.sort(key=lambda pid: self._seen_t.get(pid, -np.inf))
+            for pid in grown[:excess]:
+                if pid not in measured:
+                    del self._model[pid]
+                    self._seen_t.pop(pid, None)
+
+    def _carried_pose(self, t_s: float) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+        """The last valid pose carried forward to ``t_s`` at its last velocities (constant twist:
+        ``R(t) = R0 exp([omega_body dt]x)``, ``p(t) = p0 + v dt``) with its covariance grown by
+        ``coast_sigma_*`` per second; None beyond ``coast_max_s`` or before any pose."""
+        if self._coast is None:
+            return None
+        t0, R0, p0, cov0, v, w = self._coast
+        dt = t_s - t0
+        p = self.pose_params
+        if not 0.0 < dt <= p.coast_max_s:
+            return None
+        v = np.where(np.isfinite(v), v, 0.0)
+        w = np.where(np.isfinite(w), w, 0.0)
+        R = R0 @ Rotation.from_rotvec(w * dt).as_matrix()
+        grow = np.concatenate([np.full(3, (p.coast_sigma_m_per_s * dt) ** 2), np.full(3, (p.coast_sigma_rad_per_s * dt) ** 2)])
+        return R, p0 + v * dt, cov0 + np.diag(grow)
+
     def _recover(self, frame: StereoFrame, R: FloatArray, t: FloatArray, cov: FloatArray, existing: set[str]) -> None:
         p = self.pose_params
         states = {s.id: s for s in self.tracker.targets}
@@ -575,7 +628,7 @@ class Engine:
             s = states.get(pid)
             if s is not None and s.status == "lost":
                 todo.append((pid, True))
-            elif s is None and m.fixed:
+            elif s is None:
                 todo.append((pid, False))
         if not todo:
             return
