@@ -62,6 +62,7 @@ class FakeTracker:
         self.rejected: list[set[str]] = []
         self._auto = (False, 16, "gabor")
         self._states: tuple[TargetState, ...] = ()
+        self.ages: dict[str, int] = {}  # frames since each target appeared
 
     @property
     def auto(self):
@@ -78,7 +79,8 @@ class FakeTracker:
         C = rect.point_covariance(uv_r, d, SIGMA_D_PX, 0.07)[0]
         q = p + (np.linalg.cholesky(C) @ self.rng.standard_normal(3) if self.noise else 0) + self.offsets.get(tid, 0)
         uvl, uvr = self.rig.project(p[None])
-        return TargetState(tid, "auto", "tracking", uvl[0], uvr[0], q, C, 0.99, uvl[0], (0, 0, 1, 1))
+        return TargetState(tid, "auto", "tracking", uvl[0], uvr[0], q, C, 0.99, uvl[0], (0, 0, 1, 1),
+                           age_frames=self.ages.get(tid, 0))
 
     def _lost(self, tid: str) -> TargetState:
         nan2, nan3 = np.full(2, np.nan), np.full(3, np.nan)
@@ -88,6 +90,8 @@ class FakeTracker:
     def step(self, frame, reject_ids=()):
         self.rejected.append(set(reject_ids))
         self._t = frame.t_s
+        for tid in self.active:
+            self.ages[tid] = self.ages.get(tid, -1) + 1
         for tid in reject_ids:
             if tid in self.active:
                 self.active[tid] = "lost"
@@ -305,7 +309,11 @@ def test_a_grown_point_outlives_its_dropped_target_and_is_measured_again(estec_r
 def test_case_a_frame_from_three_points_then_no_jump_on_loss(estec_rig) -> None:
     engine, tracker, pts = make_engine(estec_rig, with_model=False)
     assert engine.case == "a"
-    _, pose0, _ = engine.process(frame_at(0))
+    age = engine.pose_params.frame_min_age_frames
+    outs = run(engine, range(age))
+    # No frame from points younger than pose.frame_min_age_frames: invalid, with the reason.
+    assert not any(o[1].valid for o in outs) and "tracked for" in (outs[-1][1].reason or "")
+    _, pose0, _ = engine.process(frame_at(age))
     assert pose0.valid and engine.frame_ids == ("m0", "m1", "m2")
     run(engine, range(1, 60))
     _, before, _ = engine.process(frame_at(60))
@@ -323,8 +331,10 @@ def test_case_a_frame_is_the_three_point_frame(estec_rig) -> None:
     from trackmeter.core.pose import three_point_body_frame
 
     engine, _, pts = make_engine(estec_rig, with_model=False, noise=False)
-    _, pose, _ = engine.process(frame_at(0))
-    T = true_pose(0)
+    age = engine.pose_params.frame_min_age_frames
+    run(engine, range(age))
+    _, pose, _ = engine.process(frame_at(age))
+    T = true_pose(age * DT)
     P = pts[:3] @ T[:3, :3].T + T[:3, 3]
     R_f, o_f = three_point_body_frame(*P)
     np.testing.assert_allclose(pose.T_cam_body[:3, :3], R_f, atol=1e-9)
@@ -332,7 +342,7 @@ def test_case_a_frame_is_the_three_point_frame(estec_rig) -> None:
     # ... and stays glued to the body afterwards (to 0.1 mm: the output filter's transient before
     # the velocity estimate exists, and its second-order chart error, since the centroid origin
     # of case (a) accelerates as the body turns).
-    _, pose, errors = run(engine, range(1, 40))[-1]
+    _, pose, errors = run(engine, range(age + 1, age + 40))[-1]
     np.testing.assert_allclose(errors["position_m"], 0, atol=1e-4)
     np.testing.assert_allclose(errors["attitude_rad"], 0, atol=1e-5)
 
@@ -384,15 +394,17 @@ def test_commands(estec_rig, tmp_path) -> None:
 
 def test_case_a_frame_redefined_after_losing_everything(estec_rig) -> None:
     engine, tracker, pts = make_engine(estec_rig, with_model=False)
-    run(engine, range(10))
+    run(engine, range(20))
     tracker.force_lost = set(tracker.active)
-    outs = run(engine, range(10, 90))  # 3.2 s without a pose (> pose.redefine_after_s)
+    outs = run(engine, range(20, 100))  # 3.2 s without a pose (> pose.redefine_after_s)
     assert not any(o[1].valid for o in outs)
     assert engine.stats.frames_redefined == 0 or engine.frame_ids == ()
     for i, p in enumerate(pts):  # automatic selection brings new targets
         tracker.body[f"n{i}"] = p
         tracker.active[f"n{i}"] = "tracking"
-    _, pose, _ = engine.process(frame_at(90))
+    age = engine.pose_params.frame_min_age_frames
+    run(engine, range(100, 100 + age))
+    _, pose, _ = engine.process(frame_at(100 + age))
     assert pose.valid and engine.frame_ids == ("n0", "n1", "n2")
     assert engine.stats.frames_redefined == 1
 

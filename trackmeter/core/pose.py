@@ -68,6 +68,10 @@ class PoseParams:
     min_triangle_m: float = param(
         0.05, "case (a): the third frame point must lie at least this far off the line of the first two, m", min=0.0
     )
+    frame_min_age_frames: int = param(
+        12, "case (a): only points tracked for at least this many frames define the frame and the first model",
+        min=0,
+    )
     redefine_after_s: float = param(
         3.0, "case (a): without a pose for this long, the frame is given up and defined anew from the "
         "points tracked then (a new body frame), s", min=0.0,

@@ -435,10 +435,15 @@ class Engine:
     # ------------------------------------------------------------------ model building
 
     def _establish_frame(self, measured: dict[str, TargetState]) -> str | None:
-        """Case (a): the three-point frame and the initial model from the measured points."""
-        ids = list(measured)
+        """Case (a): the three-point frame and the initial model from the measured points that
+        have been tracked for ``frame_min_age_frames`` (a frame and model made of targets that
+        die within a few frames of their creation would be re-made from poorly fitted poses:
+        the body frame would wander until the model settles)."""
+        min_age = self.pose_params.frame_min_age_frames
+        ids = [i for i, s in measured.items() if s.age_frames >= min_age]
         if len(ids) < 3:
-            return f"case (a): {len(ids)} measured points, 3 needed to define the frame"
+            return (f"case (a): {len(ids)} points tracked for {min_age} frames, 3 needed to define the frame"
+                    if min_age else f"case (a): {len(ids)} measured points, 3 needed to define the frame")
         P = np.array([measured[i].point_cam for i in ids])
         triple = choose_frame_points(P, self.pose_params.min_triangle_m)
         if triple is None:
