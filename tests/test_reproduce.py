@@ -45,3 +45,25 @@ def test_benchmark_rows_never_invent_figures():
     assert all("not built yet" in r for r in rows if "tracker" in r)
     missing_key = benchmark_rows({"measure": {}}, Step("b", [], status="ok"), ["measure"], [])
     assert all("missing" in r for r in missing_key) and not any(str(math.nan) in r for r in missing_key)
+
+
+def test_readme_table_is_replaced_between_the_markers_only(tmp_path):
+    from benchmarks.reproduce import README_BEGIN, README_END, update_readme
+
+    readme = tmp_path / "README.md"
+    readme.write_text(f"# T\n\nintro\n\n{README_BEGIN}\nold table\n{README_END}\n\nafter\n", encoding="utf-8")
+    assert update_readme(readme, "| a | b |\n| --- | --- |\n| 1 | 2 |")
+    text = readme.read_text(encoding="utf-8")
+    assert "old table" not in text and "| 1 | 2 |" in text
+    assert text.startswith("# T\n\nintro\n\n" + README_BEGIN) and text.endswith(README_END + "\n\nafter\n")
+    assert update_readme(readme, "| x |")  # idempotent on its own output
+    assert "| 1 | 2 |" not in readme.read_text(encoding="utf-8")
+
+
+def test_readme_without_markers_is_left_alone(tmp_path):
+    from benchmarks.reproduce import update_readme
+
+    readme = tmp_path / "README.md"
+    readme.write_text("# T\n", encoding="utf-8")
+    assert not update_readme(readme, "| a |")
+    assert readme.read_text(encoding="utf-8") == "# T\n"
