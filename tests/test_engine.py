@@ -197,6 +197,18 @@ def test_fewer_than_three_points_is_invalid_with_reason(estec_rig) -> None:
     assert np.all(np.isnan(pose.T_cam_body))
 
 
+def test_three_points_with_a_gross_mismatch_give_no_pose(estec_rig) -> None:
+    """With exactly 3 model points no outlier can be rejected; a gross mismatch (a corner
+    matched 275 mm too deep) must make the pose invalid with the reason, never bend it."""
+    engine, tracker, _ = make_engine(estec_rig, n=3)
+    tracker.offsets["m0"] = np.array([0.0, 0.0, -0.275])
+    _, pose, _ = engine.process(frame_at(0))
+    assert not pose.valid and "disagree with the model" in pose.reason
+    tracker.offsets.clear()
+    _, pose, _ = engine.process(frame_at(1))
+    assert pose.valid and pose.n_points == 3
+
+
 def test_case_b_needs_a_model(estec_rig) -> None:
     from trackmeter.errors import TrackmeterError
 

@@ -68,6 +68,10 @@ class PoseParams:
     min_triangle_m: float = param(
         0.05, "case (a): the third frame point must lie at least this far off the line of the first two, m", min=0.0
     )
+    max_residual_per_dof: float = param(
+        25.0, "a pose whose inlier residual exceeds this chi-square per degree of freedom (after the robust "
+        "scale) is refused: with 3 points a gross mismatch cannot be rejected, only detected", min=1.0,
+    )
     frame_min_age_frames: int = param(
         12, "case (a): only points tracked for at least this many frames define the frame and the first model",
         min=0,

@@ -398,7 +398,7 @@ class Engine:
             coast = self._carried_pose(frame.t_s)
             if coast is not None and self.pose_params.recover_model_points:
                 # Paper 2.D through a loss: the model points are where the motion carries them.
-                self._recover(frame, *coast, existing)
+                self._recover(frame, *coast, existing, carried=True)
             if since > self.velocity_params.max_gap_s:
                 self._velocity.reset()
                 self._filter.reset()
@@ -527,6 +527,15 @@ class Engine:
             return None, f"pose undetermined: {exc}"
         if fit.inliers.sum() < self.pose_params.min_points:
             return None, f"only {int(fit.inliers.sum())} consistent model points"
+        # With as few points as the pose has unknowns (3), nothing can be singled out as an
+        # outlier: a gross mismatch bends the pose instead. The residual still shows it (3 of
+        # the 9 coordinates are redundant): chi-square per degree of freedom of the inliers.
+        dof = 3 * int(fit.inliers.sum()) - 6
+        if dof > 0:
+            per_dof = float(np.sum(fit.d2[fit.inliers])) / dof / max(fit.scale2, 1.0)
+            if per_dof > self.pose_params.max_residual_per_dof:
+                return None, (f"the measured model points disagree with the model (chi-square {per_dof:.0f} per "
+                              f"degree of freedom): a wrong match among too few points to single it out")
         outliers = [ids[n] for n in np.flatnonzero(~fit.inliers)]
         self._pending_reject.update(outliers)
         self.stats.outliers_rejected += len(outliers)
@@ -625,7 +634,14 @@ class Engine:
         grow = np.concatenate([np.full(3, (p.coast_sigma_m_per_s * dt) ** 2), np.full(3, (p.coast_sigma_rad_per_s * dt) ** 2)])
         return R, p0 + v * dt, cov0 + np.diag(grow)
 
-    def _recover(self, frame: StereoFrame, R: FloatArray, t: FloatArray, cov: FloatArray, existing: set[str]) -> None:
+    def _recover(self, frame: StereoFrame, R: FloatArray, t: FloatArray, cov: FloatArray, existing: set[str],
+                 carried: bool = False) -> None:
+        """Re-lock lost model points at their projection through the pose ``(R, t)`` (paper 2.D).
+
+        Lost targets are searched for with their own (anchor) templates; model points without a
+        target are measured at their projection, which is only safe through a measured pose:
+        through a ``carried`` one (coasting after a loss) a wrong prediction would measure
+        whatever surface lies there, so only template re-locks are tried."""
         p = self.pose_params
         states = {s.id: s for s in self.tracker.targets}
         todo: list[tuple[str, bool]] = []
@@ -633,7 +649,7 @@ class Engine:
             s = states.get(pid)
             if s is not None and s.status == "lost":
                 todo.append((pid, True))
-            elif s is None:
+            elif s is None and not carried:
                 todo.append((pid, False))
         if not todo:
             return
