@@ -258,13 +258,19 @@ def test_missing_model_point_is_measured_at_its_projection(estec_rig) -> None:
     assert "m7" in tracker.active
 
 
-def test_new_points_join_the_model_with_true_body_coordinates(estec_rig) -> None:
+def growing_engine(estec_rig):  # type: ignore[no-untyped-def]
+    """Case (b): 10 a-priori model points and 4 automatic targets that join the model (10 frames run)."""
     pts = body_points(14)
     ids = [f"m{i}" for i in range(10)] + ["a1", "a2", "a3", "a4"]
     model = Model(tuple(ids[:10]), pts[:10])
     tracker = FakeTracker(estec_rig, pts, ids, noise=False)
     engine = Engine(load_config(), estec_rig, model, tracker=tracker, rate_hz=25)
     run(engine, range(10))
+    return engine, tracker, pts, ids
+
+
+def test_new_points_join_the_model_with_true_body_coordinates(estec_rig) -> None:
+    engine, tracker, pts, ids = growing_engine(estec_rig)
     assert set(engine.model_ids) == set(ids)
     mp = dict(zip(engine.model_ids, engine.model_points_body))
     for i, tid in enumerate(ids[10:], start=10):
@@ -304,12 +310,7 @@ def test_pose_is_not_carried_forward_beyond_coast_max_s(estec_rig) -> None:
 
 
 def test_a_grown_point_outlives_its_dropped_target_and_is_measured_again(estec_rig) -> None:
-    pts = body_points(14)
-    ids = [f"m{i}" for i in range(10)] + ["a1", "a2", "a3", "a4"]
-    model = Model(tuple(ids[:10]), pts[:10])
-    tracker = FakeTracker(estec_rig, pts, ids, noise=False)
-    engine = Engine(load_config(), estec_rig, model, tracker=tracker, rate_hz=25)
-    run(engine, range(10))
+    engine, tracker, pts, ids = growing_engine(estec_rig)
     assert "a2" in engine.model_ids
     tracker.remove_target("a2")  # the tracker dropped it (e.g. lost too long)
     run(engine, range(10, 30))
