@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import importlib.util
 import json
@@ -34,13 +35,18 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"[benchmarks] {name} ...", file=sys.stderr, flush=True)
         start = time.perf_counter()
-        results[name] = module.run()
+        # stdout carries the JSON alone: whatever a benchmark's libraries print (viser's banner)
+        # goes to stderr with the progress.
+        with contextlib.redirect_stdout(sys.stderr):
+            results[name] = module.run()
         print(f"[benchmarks] {name} done in {time.perf_counter() - start:.1f} s", file=sys.stderr, flush=True)
     text = json.dumps(results, indent=2, sort_keys=True)
     print(text)
     if args.out:
+        from trackmeter.data.atomic import write_text_atomic
+
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+        write_text_atomic(args.out, text + "\n")
     return 0
 
 

@@ -120,8 +120,16 @@ class Runner:
         try:
             return json.loads(step.stdout)
         except json.JSONDecodeError:
-            step.status, step.reason = "failed", "printed no JSON"
-            return None
+            pass
+        # A command's stdout may carry more than its JSON (a library's banner): its --out file does not.
+        if "--out" in step.argv:
+            out = Path(step.argv[step.argv.index("--out") + 1])
+            try:
+                return json.loads(out.read_text(encoding="utf-8")) if out.is_file() else None
+            except (OSError, json.JSONDecodeError):
+                pass
+        step.status, step.reason = "failed", "printed no JSON"
+        return None
 
 
 def trackmeter(*args: str) -> list[str]:
