@@ -258,13 +258,13 @@ def test_missing_model_point_is_measured_at_its_projection(estec_rig) -> None:
     assert "m7" in tracker.active
 
 
-def growing_engine(estec_rig):  # type: ignore[no-untyped-def]
+def growing_engine(estec_rig, config=None):  # type: ignore[no-untyped-def]
     """Case (b): 10 a-priori model points and 4 automatic targets that join the model (10 frames run)."""
     pts = body_points(14)
     ids = [f"m{i}" for i in range(10)] + ["a1", "a2", "a3", "a4"]
     model = Model(tuple(ids[:10]), pts[:10])
     tracker = FakeTracker(estec_rig, pts, ids, noise=False)
-    engine = Engine(load_config(), estec_rig, model, tracker=tracker, rate_hz=25)
+    engine = Engine(config or load_config(), estec_rig, model, tracker=tracker, rate_hz=25)
     run(engine, range(10))
     return engine, tracker, pts, ids
 
@@ -317,6 +317,19 @@ def test_a_grown_point_outlives_its_dropped_target_and_is_measured_again(estec_r
     assert "a2" in engine.model_ids
     assert any(a[0] == "a2" and a[2] == "model" for a in tracker.added)
     assert tracker.active.get("a2") == "tracking"
+
+
+def test_grown_points_are_not_remade_into_the_operators_reserve(estec_rig) -> None:
+    import dataclasses
+
+    config = load_config()
+    # 13 targets once a2 is dropped: no room when the reserve would be eaten into.
+    config = dataclasses.replace(config, tracker=dataclasses.replace(
+        config.tracker, max_targets=13 + config.pose.operator_reserve_targets))
+    engine, tracker, _, _ = growing_engine(estec_rig, config)
+    tracker.remove_target("a2")
+    run(engine, range(10, 30))
+    assert "a2" in engine.model_ids and not any(a[0] == "a2" for a in tracker.added)
 
 
 def test_case_a_frame_from_three_points_then_no_jump_on_loss(estec_rig) -> None:

@@ -99,6 +99,10 @@ class PoseParams:
         64, "grown model points kept (re-locked by measurement at their projection after their target was "
         "dropped); beyond this the longest unseen go", min=3,
     )
+    operator_reserve_targets: int = param(
+        8, "grown model points are re-made as targets only while this many target slots stay free (for the "
+        "operator's clicks and automatic selection)", min=0,
+    )
     coast_max_s: float = param(
         2.0, "after the pose is lost, model points are still re-locked this long at their projection through "
         "the last pose carried forward at its last velocities, s", min=0.0,

@@ -173,7 +173,9 @@ class Engine:
         from trackmeter.core.tracking import TrackerParams
 
         # How long a re-made target of a grown model point may stay lost (as auto targets).
-        self._lost_keep_frames = (getattr(config, "tracker", None) or TrackerParams()).lost_keep_frames
+        tracker_params = getattr(config, "tracker", None) or TrackerParams()
+        self._lost_keep_frames = tracker_params.lost_keep_frames
+        self._max_targets = tracker_params.max_targets
         self.rate_hz = float(rate_hz) if rate_hz else 25.0
         chosen: ModelCase = case or ("b" if model is not None else "a")
         if chosen not in ("a", "b", "c"):
@@ -644,12 +646,14 @@ class Engine:
         whatever surface lies there, so only template re-locks are tried."""
         p = self.pose_params
         states = {s.id: s for s in self.tracker.targets}
+        # Re-made targets of grown points must leave the operator room to click.
+        room = len(states) < self._max_targets - p.operator_reserve_targets
         todo: list[tuple[str, bool]] = []
         for pid, m in self._model.items():
             s = states.get(pid)
             if s is not None and s.status == "lost":
                 todo.append((pid, True))
-            elif s is None and not carried:
+            elif s is None and not carried and (m.fixed or room):
                 todo.append((pid, False))
         if not todo:
             return
