@@ -58,8 +58,23 @@ def _poll(page: Any, predicate: Any, timeout_s: float) -> Any:
 
 
 def _click_candidates(running: Any) -> list[tuple[float, float]]:
-    """Pixels on the satellite: around the projection of the body origin (truth or estimate)."""
+    """Pixels an operator would click: textured, stereo-matchable points of the satellite in the
+    latest frame away from the targets (automatic selection's own test), else pixels around
+    the projection of the body origin (truth or estimate)."""
+    from trackmeter.core.features import FeatureParams, select_features
+    from trackmeter.core.matching import MeasureParams, measure_points
+
     snap = running.pipeline.latest()
+    if snap.frame is not None:
+        exclude = [t.uv for t in snap.targets]
+        rig = running.pipeline.rig
+        pts = select_features(snap.frame.left, snap.frame.right, rig, 60, "gabor", FeatureParams(), exclude)
+        if len(pts):
+            # ... that the measurement accepts in this frame (the satellite moves little before the click).
+            ok = [m.ok for m in measure_points(rig, snap.frame.left, snap.frame.right, pts, MeasureParams())]
+            good = [tuple(map(float, p)) for p, k in zip(pts, ok) if k]
+            if good:
+                return good
     T = None
     if snap.frame is not None and snap.frame.truth is not None:
         T = np.asarray(snap.frame.truth.T_cam_body)
@@ -135,10 +150,13 @@ def run() -> dict[str, float]:
             _log(f"rates: {out}")
 
             latencies, to_server = [], []
+            skipped: list[str] = []
             clicks_deadline = time.monotonic() + CLICKS_MAX_S
-            for uv in _click_candidates(running):
-                if len(latencies) >= N_CLICKS or time.monotonic() > clicks_deadline:
-                    break
+            rng = np.random.default_rng(7)
+            while len(latencies) < N_CLICKS and time.monotonic() < clicks_deadline:
+                # Chosen afresh on the latest frame each time: the satellite turns between clicks.
+                candidates = _click_candidates(running)
+                uv = candidates[int(rng.integers(min(len(candidates), 5)))]
                 known = {t.id for t in running.pipeline.latest().targets}
                 n_notes = len(running.console.notifications)
                 sx, sy = pixel_to_screen(running, client, page, uv)
@@ -152,14 +170,21 @@ def run() -> dict[str, float]:
 
                 got = _poll(page, new_target, 3)
                 if got is None or got == "refused":
+                    why = running.console.notifications[-1] if got == "refused" else "no target and no refusal in 3 s"
+                    _log(f"click at ({uv[0]:.0f}, {uv[1]:.0f}): {why}")
+                    skipped.append(str(why))
                     continue
                 t_server = time.monotonic()
                 pushed = _poll(page, lambda: (push := running.console.last_push)[0] > t_click
                                and got.id in push[2] and push[0], 5)
                 if not pushed:
+                    _log(f"click at ({uv[0]:.0f}, {uv[1]:.0f}): target {got.id} made, but no image showing it was published in 5 s")
+                    skipped.append("not published")
                     continue
                 shown = _poll(page, lambda: next((t for t in jpeg_times if t >= pushed), None), 5)
                 if shown is None:
+                    _log(f"click at ({uv[0]:.0f}, {uv[1]:.0f}): published, but the browser received no image in 5 s")
+                    skipped.append("not received")
                     continue
                 latencies.append((shown - t_click) * 1e3)
                 to_server.append((t_server - t_click) * 1e3)
@@ -168,6 +193,7 @@ def run() -> dict[str, float]:
             out["click_latency_ms"] = statistics.median(latencies) if latencies else float("nan")
             out["click_to_server_ms"] = statistics.median(to_server) if to_server else float("nan")
             out["clicks_measured"] = float(len(latencies))
+            out["clicks_not_measured"] = float(len(skipped))
             browser.close()
     finally:
         running.stop()
