@@ -176,14 +176,21 @@ def test_anchored_template_does_not_drift_where_naive_update_does(estec_rig) -> 
     assert naive[-1] > 2 * anchored[-1]
 
 
-def test_epipolar_match_recovers_the_true_disparity(estec_rig) -> None:
-    scene = PlaneScene(estec_rig, pose_translating(3.5, (0.0, 0.0, 0.0)), noise_sigma=0.5)
+def still_plate_corners(rig, n: int):  # type: ignore[no-untyped-def]
+    """A still textured plate at 3.5 m: its stereo frame, ``n`` interior corners (N,2) and their
+    true rectified disparities (N,)."""
+    scene = PlaneScene(rig, pose_translating(3.5, (0.0, 0.0, 0.0)), noise_sigma=0.5)
     f = scene.frame(0)
-    rect = estec_rig.rectification
     mask = target_mask(f.left, FeatureParams(target_margin_px=10))
-    uv = cv2.goodFeaturesToTrack(f.left, 20, 0.05, 25, mask=mask).reshape(-1, 2).astype(float)
-    body = scene.surface_points(0, uv)
-    cl, d_true = rect.project_rectified(body @ scene.T_cam_body(0)[:3, :3].T + scene.T_cam_body(0)[:3, 3])
+    uv = cv2.goodFeaturesToTrack(f.left, n, 0.05, 25, mask=mask).reshape(-1, 2).astype(float)
+    T = scene.T_cam_body(0)
+    _, d_true = rig.rectification.project_rectified(scene.surface_points(0, uv) @ T[:3, :3].T + T[:3, 3])
+    return f, uv, d_true
+
+
+def test_epipolar_match_recovers_the_true_disparity(estec_rig) -> None:
+    f, uv, d_true = still_plate_corners(estec_rig, 20)
+    rect = estec_rig.rectification
     m = pt.match_epipolar(
         f.left.astype(np.float32), f.right.astype(np.float32), rect.maps[0], rect.maps[1],
         rect.rectify_points(uv, 0), np.full(len(uv), 40.0), 80, 8,
@@ -214,13 +221,8 @@ def test_rubberwhale_median_endpoint_error(shared_data) -> None:
 def test_match_epipolar_per_point_span_equals_separate_calls(estec_rig) -> None:
     """One batch with a span per point gives each point what a call with its own span gives,
     and a point whose true disparity lies just past its own span is not matched there."""
-    scene = PlaneScene(estec_rig, pose_translating(3.5, (0.0, 0.0, 0.0)), noise_sigma=0.5)
-    f = scene.frame(0)
+    f, uv, d_true = still_plate_corners(estec_rig, 12)
     rect = estec_rig.rectification
-    mask = target_mask(f.left, FeatureParams(target_margin_px=10))
-    uv = cv2.goodFeaturesToTrack(f.left, 12, 0.05, 25, mask=mask).reshape(-1, 2).astype(float)
-    body = scene.surface_points(0, uv)
-    _, d_true = rect.project_rectified(body @ scene.T_cam_body(0)[:3, :3].T + scene.T_cam_body(0)[:3, 3])
     n = len(uv)
     spans = np.where(np.arange(n) % 2 == 0, 12, 24)
     lo = np.floor(d_true) - spans // 2
