@@ -408,7 +408,7 @@ class Tracker:
 
     # ------------------------------------------------------------------ stereo
 
-    def _stereo(self, fc: _FrameCache, uv: FloatArray, d_low: FloatArray, span: int):  # type: ignore[no-untyped-def]
+    def _stereo(self, fc: _FrameCache, uv: FloatArray, d_low: FloatArray, span: int | NDArray):  # type: ignore[no-untyped-def]
         p = self.params
         cl = self.rect.rectify_points(uv, 0)
         return match_epipolar(
@@ -444,28 +444,25 @@ class Tracker:
     # ------------------------------------------------------------------ recovery
 
     def _try_recover(self, fc: _FrameCache, frame: StereoFrame, t: _Target, centre: FloatArray) -> tuple[bool, str | None]:
-        return self._try_recover_many(fc, frame, [t], np.asarray(centre, dtype=float).reshape(1, 2))[0]
-
-    def _try_recover_many(
-        self, fc: _FrameCache, frame: StereoFrame, targets: list[_Target], centres: FloatArray
-    ) -> list[tuple[bool, str | None]]:
-        """Re-find lost ``targets`` near ``centres`` (N,2): one batched sub-pixel fit and one
-        batched stereo match for all of them. Returns ``(recovered, why not)`` per target."""
-        p = self.params
-        out, found_i, starts = self._recover_search(fc, targets, centres)
+        """Re-find lost target ``t`` near ``centre`` (2,) (the step batches the same pieces for
+        all its lost targets); returns ``(recovered, why not)``."""
+        centres = np.asarray(centre, dtype=float).reshape(1, 2)
+        out, found_i, starts = self._recover_search(fc, [t], centres)
         if not found_i:
-            return out
-        ts = [targets[i] for i in found_i]
-        res = self._fit_patches(fc, ts, np.array(starts))
-        refined = self._recover_refined(res, np.arange(len(ts)), found_i, out)
-        if refined:
-            kk = np.array(refined)
-            lo = np.array([ts[k].disparity_px - 2 * p.stereo_search_px for k in refined])
-            m = self._stereo(fc, res.uv[kk], lo, 4 * p.stereo_search_px)
-            for j, k in enumerate(refined):
-                i = found_i[k]
-                out[i] = self._recover_accept(fc, frame, ts[k], centres[i], res, k, m, j)
-        return out
+            return out[0]
+        res = self._fit_patches(fc, [t], np.array(starts))
+        if not self._recover_refined(res, np.arange(1), found_i, out):
+            return out[0]
+        lo, span = self._recover_disparities([t])
+        m = self._stereo(fc, res.uv[:1], lo, span)
+        return self._recover_accept(fc, frame, t, centres[0], res, 0, m, 0)
+
+    def _recover_disparities(self, targets: list[_Target]) -> tuple[FloatArray, NDArray]:
+        """Disparity search of re-found targets ``(d_low (N,), span (N,))``: twice the tracking
+        search around the last disparity (the target was not followed while lost)."""
+        ss = self.params.stereo_search_px
+        lo = np.array([t.disparity_px - 2 * ss for t in targets], dtype=float)
+        return lo, np.full(len(targets), 4 * ss)
 
     def _recover_search(
         self, fc: _FrameCache, targets: list[_Target], centres: FloatArray
@@ -643,8 +640,9 @@ class Tracker:
         if survivors or rec_refined:
             ss = p.stereo_search_px
             uv = np.array([s[1] for s in survivors] + [res.uv[n_s + k] for k in rec_refined]).reshape(-1, 2)
-            lo = np.array([s[0].disparity_px - ss for s in survivors] + [rec_ts[k].disparity_px - 2 * ss for k in rec_refined])
-            spans = np.array([2 * ss] * len(survivors) + [4 * ss] * len(rec_refined))
+            rec_lo, rec_spans = self._recover_disparities([rec_ts[k] for k in rec_refined])
+            lo = np.concatenate([[s[0].disparity_px - ss for s in survivors], rec_lo])
+            spans = np.concatenate([np.full(len(survivors), 2 * ss), rec_spans]).astype(int)
             m = self._stereo(fc, uv, lo, spans)
         if survivors:
             good = []
