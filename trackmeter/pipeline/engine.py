@@ -172,7 +172,8 @@ class Engine:
         self.tracker = tracker
         from trackmeter.core.tracking import TrackerParams
 
-        # How long a re-made target of a grown model point may stay lost (as auto targets).
+        # Re-made targets of grown model points follow the tracker's rules for automatic ones:
+        # dropped after lost_keep_frames, and never into the room the operator needs.
         tracker_params = getattr(config, "tracker", None) or TrackerParams()
         self._lost_keep_frames = tracker_params.lost_keep_frames
         self._max_targets = tracker_params.max_targets
@@ -599,15 +600,15 @@ class Engine:
         re-locked by measurement at their projection, like a-priori points) up to
         ``max_model_points``; a re-made target of a grown point that stays lost is dropped again."""
         for pid in measured:
-            self._seen_t[pid] = frame.t_s
-        keep_frames = self._lost_keep_frames
+            if pid in self._model:  # only model points compete for a place (the dict stays bounded)
+                self._seen_t[pid] = frame.t_s
         for t in targets:
             m = self._model.get(t.id)
             if t.status != "lost" or t.origin != "model" or m is None or m.fixed:
                 self._lost_since.pop(t.id, None)
                 continue
             since = self._lost_since.setdefault(t.id, frame.index)
-            if frame.index - since >= keep_frames:
+            if frame.index - since >= self._lost_keep_frames:
                 self.tracker.remove_target(t.id)
                 self._lost_since.pop(t.id, None)
         grown = [pid for pid, m in self._model.items() if not m.fixed and pid not in self._frame_ids]
