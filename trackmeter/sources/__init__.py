@@ -27,7 +27,8 @@ __all__ = ["GroundTruth", "Source", "StereoFrame", "open_source", "DEFAULT_SCENA
 DEFAULT_SCENARIO = "estec"
 
 
-def open_source(spec: str, rig_override: StereoRig | None = None, realtime: bool = False, loop: bool = False) -> Source:
+def open_source(spec: str, rig_override: StereoRig | None = None, realtime: bool = False, loop: bool = False,
+                render_ahead: bool = True) -> Source:
     """Open the source a SPEC string names.
 
     Args:
@@ -36,6 +37,8 @@ def open_source(spec: str, rig_override: StereoRig | None = None, realtime: bool
         realtime: play recorded and simulated streams at their frame rate (else as fast as
             possible). Cameras are always live.
         loop: start recorded and simulated streams again at their end (else they end).
+        render_ahead: the simulator renders its stream in a separate process, ahead of the
+            reader (else in the reader's thread); other sources ignore it.
 
     Raises:
         TrackmeterError: a malformed SPEC, a missing file or folder, a camera that cannot be
@@ -50,7 +53,8 @@ def open_source(spec: str, rig_override: StereoRig | None = None, realtime: bool
         from trackmeter.sources.sim.simulator import Simulator
 
         scenario = load_scenario(arg or DEFAULT_SCENARIO)
-        return Simulator(scenario, rig_override=rig_override, realtime=realtime, loop=loop)
+        return Simulator(scenario, rig_override=rig_override, realtime=realtime, loop=loop,
+                         render_ahead=render_ahead)
     if kind == "seq":
         if not arg:
             raise TrackmeterError("seq: needs a folder, as seq:DIR")

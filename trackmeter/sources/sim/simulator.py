@@ -31,6 +31,7 @@ from trackmeter.sources.base import GroundTruth, Source, StereoFrame
 from trackmeter.sources.pacing import Pacer
 from trackmeter.sources.sim.mockup import Mockup, load_mockup
 from trackmeter.sources.sim.render import Occluder, StereoRenderer
+from trackmeter.sources.sim.render_ahead import RenderAhead
 from trackmeter.sources.sim.scenario import Scenario, load_scenario, mockup_path, rig_path
 
 FloatArray = NDArray[np.float64]
@@ -51,6 +52,11 @@ class Simulator(Source):
             index-taking methods (:meth:`truth`, :meth:`surface_points`, ...) then accept a
             streamed frame's index and take it modulo ``n_frames``.
         mockup: an already loaded mock-up (saves reloading its textures), else the scenario's.
+        render_ahead: stream (:meth:`read`) frames rendered ahead in a separate process
+            (:class:`~trackmeter.sources.sim.render_ahead.RenderAhead`), so that rendering
+            does not take CPU from the reader's process, as a camera would not; else render in
+            the caller's thread. Started at the first :meth:`read`, stopped by :meth:`close`;
+            the images are identical either way.
 
     Attributes:
         scenario: the scenario.
@@ -69,6 +75,7 @@ class Simulator(Source):
         realtime: bool = False,
         loop: bool = False,
         mockup: Mockup | None = None,
+        render_ahead: bool = False,
     ) -> None:
         self.scenario = load_scenario(scenario) if isinstance(scenario, str) else scenario
         sc = self.scenario
@@ -94,6 +101,8 @@ class Simulator(Source):
             None if sc.approach_to_m is None else np.asarray(sc.approach_to_m, dtype=float), sc.approach_s,
         )
         self._pacer = Pacer()
+        self._render_ahead = bool(render_ahead)
+        self._ahead: RenderAhead | None = None
         self._pos = 0
         self._count = 0
         self._loops = 0
@@ -188,7 +197,7 @@ class Simulator(Source):
                 return None
             self._pos = 0
             self._loops += 1
-        f = self.frame(self._pos)
+        f = self._streamed_frame(self._pos)
         self._pos += 1
         t = f.t_s + self._loops * self.n_frames / self.rate_hz
         if self.realtime:
@@ -197,8 +206,26 @@ class Simulator(Source):
         self._count += 1
         return out
 
+    def _streamed_frame(self, index: int) -> StereoFrame:
+        if not self._render_ahead:
+            return self.frame(index)
+        if self._ahead is None:
+            self._ahead = RenderAhead(self.scenario, self.true_rig.left.image_size)
+        left, right = self._ahead.images(index, self._next_in_pass)
+        return StereoFrame(index=index, t_s=self.time_of(index), left=left, right=right, truth=self.truth(index))
+
+    def _next_in_pass(self, index: int) -> int | None:
+        if index + 1 < self.n_frames:
+            return index + 1
+        return 0 if self.loop else None
+
     def restart(self) -> None:
         self._pos = 0
         self._count = 0
         self._loops = 0
         self._pacer.reset()
+
+    def close(self) -> None:
+        if self._ahead is not None:
+            self._ahead.close()
+            self._ahead = None

@@ -1,0 +1,82 @@
+"""The simulator's render-ahead worker gives the very frames the reader would render itself."""
+
+from __future__ import annotations
+
+import io
+import pickle
+
+import numpy as np
+import pytest
+
+from trackmeter.errors import TrackmeterError
+from trackmeter.sources.sim.render_ahead import _INT, RenderAhead, worker_main
+from trackmeter.sources.sim.scenario import load_scenario
+from trackmeter.sources.sim.simulator import Simulator
+
+
+@pytest.fixture(scope="module")
+def short_estec():
+    return load_scenario("estec").with_duration(0.12)  # 3 frames
+
+
+def test_streamed_frames_are_identical_and_wrap(short_estec):
+    here = Simulator(short_estec, loop=True)
+    ahead = Simulator(short_estec, mockup=here.mockup, loop=True, render_ahead=True)
+    try:
+        frames = [ahead.read() for _ in range(7)]
+        assert [f.index for f in frames] == list(range(7))
+        for f in frames:
+            ref = here.frame(f.index)
+            assert np.array_equal(f.left, ref.left) and np.array_equal(f.right, ref.right)
+            assert np.array_equal(f.truth.T_cam_body, ref.truth.T_cam_body)
+        assert np.allclose(np.diff([f.t_s for f in frames]), 0.04)
+        # A restart discards what was queued and starts again at frame 0.
+        ahead.restart()
+        again = ahead.read()
+        assert again.index == 0 and np.array_equal(again.left, frames[0].left)
+        worker = ahead._ahead
+        assert worker is not None
+    finally:
+        ahead.close()
+    assert worker._proc.poll() is not None, "close() must stop the worker process"
+
+
+def test_a_stream_that_ends_ends(short_estec):
+    with Simulator(short_estec, render_ahead=True) as sim:
+        assert [sim.read() is None for _ in range(4)] == [False, False, False, True]
+
+
+def test_a_worker_error_is_one_clear_message_and_the_worker_serves_on(short_estec):
+    ahead = RenderAhead(short_estec, (726, 512), depth=2)
+    try:
+        with pytest.raises(TrackmeterError, match="failed on frame 99.*outside the scenario"):
+            ahead.images(99, lambda i: None)
+        left, right = ahead.images(1, lambda i: None)
+        assert np.array_equal(left, Simulator(short_estec).frame(1).left)
+    finally:
+        ahead.close()
+
+
+def test_worker_protocol_in_process(short_estec):
+    blob = pickle.dumps(short_estec)
+    requests = io.BytesIO(_INT.pack(len(blob)) + blob + _INT.pack(2) + _INT.pack(5))
+    answers = io.BytesIO()
+    assert worker_main(requests, answers) == 0  # ends cleanly at end of input
+    data = answers.getvalue()
+    n = 726 * 512
+    assert _INT.unpack_from(data, 0)[0] == 2
+    ref = Simulator(short_estec).frame(2)
+    assert data[8:8 + n] == ref.left.tobytes() and data[8 + n:8 + 2 * n] == ref.right.tobytes()
+    rest = data[8 + 2 * n:]
+    assert _INT.unpack_from(rest, 0)[0] == -1
+    size = _INT.unpack_from(rest, 8)[0]
+    assert b"outside the scenario" in rest[16:16 + size]
+
+
+def test_a_dead_worker_is_reported(short_estec):
+    ahead = RenderAhead(short_estec, (726, 512))
+    ahead._proc.kill()
+    ahead._proc.wait()
+    with pytest.raises(TrackmeterError, match="render worker stopped"):
+        ahead.images(0, lambda i: i + 1)
+    ahead.close()

@@ -1,0 +1,199 @@
+"""Render simulator frames ahead of the reader, in a separate process.
+
+A camera hands the tracker finished images at no CPU cost to the tracking process. The
+simulator's renderer is pure NumPy/OpenCV and costs about as much CPU per stereo pair as the whole
+tracking step; run in the reader's process it competes with tracking for the interpreter lock,
+and a live ``sim`` source could not keep 25 Hz beside a 25 Hz tracker on two cores.
+:class:`RenderAhead` moves rendering into a worker process and keeps the next ``depth`` frames in
+flight, so the reader's process only tracks.
+
+Frames are random-access and deterministic (each frame's noise is seeded by ``(seed, index)``;
+see :class:`~trackmeter.sources.sim.simulator.Simulator`), so a frame rendered in the worker is
+the frame the reader would have rendered itself, bit for bit.
+
+The worker is a plain ``python -c`` child talking over its stdin/stdout pipes, not a
+``multiprocessing`` pool: ``fork`` is unsafe in a process that already runs threads (pipeline,
+viser), and ``spawn`` re-imports the caller's main script, which breaks any script that opens a
+source without an ``if __name__ == "__main__"`` guard. The child exits when its stdin closes, so
+it never outlives the reader. A thread of the reader drains the child's stdout into a queue: a
+frame (~0.7 MB) is larger than a pipe's buffer, and an undrained pipe would stall the child
+after each frame instead of letting it render ahead.
+
+Protocol (native byte order): the reader sends the pickled scenario once, length-prefixed, then
+one int64 frame index per request; the worker answers each request in order with an int64
+status header (``index`` or -1 on error), then either ``left`` and ``right`` as raw uint8 bytes
+of the rig's image size, or a length-prefixed UTF-8 error message.
+"""
+
+from __future__ import annotations
+
+import pickle
+import queue
+import struct
+import subprocess
+import sys
+import threading
+from collections import deque
+from collections.abc import Callable
+from typing import IO, TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from trackmeter.errors import TrackmeterError
+
+if TYPE_CHECKING:
+    from trackmeter.sources.sim.scenario import Scenario
+
+_INT = struct.Struct("=q")
+
+
+def _read_exact(stream: IO[bytes], n: int) -> bytes:
+    data = stream.read(n)
+    if data is None or len(data) != n:
+        raise EOFError(f"expected {n} bytes, got {0 if data is None else len(data)}")
+    return data
+
+
+def worker_main(stdin: IO[bytes] | None = None, stdout: IO[bytes] | None = None) -> int:
+    """The worker's loop: read the scenario, then render each requested frame (until EOF)."""
+    from trackmeter.sources.sim.simulator import Simulator
+
+    inp = stdin if stdin is not None else sys.stdin.buffer
+    out = stdout if stdout is not None else sys.stdout.buffer
+    try:
+        (size,) = _INT.unpack(_read_exact(inp, _INT.size))
+        sim = Simulator(pickle.loads(_read_exact(inp, size)))
+    except EOFError:
+        return 0
+    while True:
+        try:
+            (index,) = _INT.unpack(_read_exact(inp, _INT.size))
+        except EOFError:
+            return 0
+        try:
+            frame = sim.frame(index)
+            payload = [_INT.pack(index), np.ascontiguousarray(frame.left).tobytes(),
+                       np.ascontiguousarray(frame.right).tobytes()]
+        except Exception as exc:  # report to the reader, keep serving
+            msg = f"{type(exc).__name__}: {exc}".encode()
+            payload = [_INT.pack(-1), _INT.pack(len(msg)), msg]
+        out.write(b"".join(payload))
+        out.flush()
+
+
+class RenderAhead:
+    """The next frames of a scenario, rendered in a worker process while the caller works.
+
+    Args:
+        scenario: the scenario the worker renders (it loads its own mock-up and rig).
+        image_size: (width, height) of the rendered images, px.
+        depth: frames kept in flight (>= 1); the caller asks for them in order.
+
+    :meth:`images` returns frame ``index``'s (left, right) and queues the frames after it (as
+    ``next_index`` says: ``index + 1``, wrapped for a looping source, None at the end). Asking
+    for any other frame than the one queued first (a restart, a seek) discards the queue.
+    """
+
+    def __init__(self, scenario: Scenario, image_size: tuple[int, int], depth: int = 3) -> None:
+        if depth < 1:
+            raise TrackmeterError(f"render ahead needs depth >= 1, got {depth}")
+        self._shape = (int(image_size[1]), int(image_size[0]))
+        self._depth = depth
+        self._queue: deque[int] = deque()
+        # The child imports trackmeter from wherever this process did.
+        boot = (f"import sys; sys.path[:0] = {[p for p in sys.path if p]!r}; "
+                "from trackmeter.sources.sim.render_ahead import worker_main; sys.exit(worker_main())")
+        self._proc = subprocess.Popen([sys.executable, "-c", boot], stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        self._results: queue.Queue[tuple[int, object]] = queue.Queue()
+        self._drain = threading.Thread(target=self._drain_stdout, name="render-ahead-drain", daemon=True)
+        self._drain.start()
+        blob = pickle.dumps(scenario)
+        self._send(_INT.pack(len(blob)) + blob)
+
+    def _send(self, data: bytes) -> None:
+        assert self._proc.stdin is not None
+        try:
+            self._proc.stdin.write(data)
+            self._proc.stdin.flush()
+        except (BrokenPipeError, OSError):
+            raise self._died() from None
+
+    def _died(self) -> TrackmeterError:
+        code = self._proc.poll()
+        return TrackmeterError(f"simulator render worker stopped (exit code {code})")
+
+    def images(self, index: int, next_index: Callable[[int], int | None]) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
+        """Frame ``index``'s (left, right) images (waits for the worker), with the next ones queued.
+
+        Raises:
+            TrackmeterError: the worker failed to render the frame, or stopped.
+        """
+        if self._queue and self._queue[0] != index:
+            self._discard_queue()
+        if not self._queue:
+            self._request(index)
+        while len(self._queue) < self._depth + 1:
+            nxt = next_index(self._queue[-1])
+            if nxt is None:
+                break
+            self._request(nxt)
+        return self._receive(self._queue.popleft())
+
+    def _request(self, index: int) -> None:
+        self._send(_INT.pack(index))
+        self._queue.append(index)
+
+    def _drain_stdout(self) -> None:
+        """Reader thread: each answer of the worker onto ``self._results``; (-2, why) at the end."""
+        out = self._proc.stdout
+        assert out is not None
+        n = self._shape[0] * self._shape[1]
+        try:
+            while True:
+                (got,) = _INT.unpack(_read_exact(out, _INT.size))
+                if got == -1:
+                    (size,) = _INT.unpack(_read_exact(out, _INT.size))
+                    self._results.put((-1, _read_exact(out, size).decode(errors="replace")))
+                    continue
+                left = np.frombuffer(_read_exact(out, n), np.uint8).reshape(self._shape)
+                right = np.frombuffer(_read_exact(out, n), np.uint8).reshape(self._shape)
+                self._results.put((got, (left, right)))
+        except (EOFError, OSError, ValueError):
+            self._results.put((-2, None))
+
+    def _receive(self, index: int) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
+        got, payload = self._results.get()
+        if got == -2:
+            self._results.put((got, payload))  # every later call fails the same way
+            raise self._died()
+        if got == -1:
+            raise TrackmeterError(f"simulator render worker failed on frame {index}: {payload}")
+        if got != index:
+            raise TrackmeterError(f"simulator render worker out of step: frame {got} where {index} was due")
+        return payload  # type: ignore[return-value]
+
+    def _discard_queue(self) -> None:
+        while self._queue:
+            index = self._queue.popleft()
+            try:
+                self._receive(index)
+            except TrackmeterError:
+                if self._proc.poll() is not None:
+                    raise
+
+    def close(self) -> None:
+        """Stop the worker (frames in flight are discarded)."""
+        if self._proc.stdin is not None and not self._proc.stdin.closed:
+            try:
+                self._proc.stdin.close()
+            except OSError:
+                pass
+        try:
+            self._proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            self._proc.kill()
+            self._proc.wait()
+        self._drain.join(timeout=5)
+        if self._proc.stdout is not None:
+            self._proc.stdout.close()
