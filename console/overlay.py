@@ -129,7 +129,8 @@ def draw_overlays(
             continue
         colour = STATUS_RGB.get(t.status, (255, 255, 255))
         if trails is not None and t.id in trails:
-            pts = np.array([_pt(p, scale) for p in trails[t.id] if np.all(np.isfinite(p))], np.int32)
+            trail = np.asarray(list(trails[t.id]), dtype=float).reshape(-1, 2)
+            pts = np.rint(trail[np.isfinite(trail).all(axis=1)] * scale).astype(np.int32)
             if len(pts) >= 2:
                 cv2.polylines(rgb, [pts.reshape(-1, 1, 2)], False, TRAIL_RGB, 1, cv2.LINE_AA)
         if np.all(np.isfinite(t.predicted_uv)):
