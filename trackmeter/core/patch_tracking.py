@@ -36,6 +36,7 @@ centred at ``c`` samples ``c + k - (n-1)/2`` for ``k = 0..n-1`` (as ``cv2.getRec
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Callable
 
 import cv2
@@ -50,7 +51,19 @@ F32 = NDArray[np.float32]
 
 def patch_offsets(size: int) -> F32:
     """Offsets (size,) of a patch's samples from its centre, px: ``k - (size-1)/2``."""
-    return (np.arange(size, dtype=np.float32) - (size - 1) / 2.0).astype(np.float32)
+    return _patch_grid(size)[0].copy()
+
+
+@lru_cache(maxsize=32)
+def _patch_grid(size: int) -> tuple[F32, F32, F32, FloatArray, FloatArray]:
+    """Per patch side, computed once (read-only): the offsets (size,) float32, the sample grid's
+    x and y offsets (size,size) float32, and the same raveled (size²,) float64."""
+    off = (np.arange(size, dtype=np.float32) - (size - 1) / 2.0).astype(np.float32)
+    gx, gy = np.meshgrid(off, off)
+    out = (off, gx, gy, gx.astype(np.float64).ravel(), gy.astype(np.float64).ravel())
+    for a in out:
+        a.flags.writeable = False
+    return out
 
 
 def bilinear(image: F32, x: NDArray, y: NDArray) -> tuple[F32, NDArray[np.bool_]]:
@@ -60,30 +73,45 @@ def bilinear(image: F32, x: NDArray, y: NDArray) -> tuple[F32, NDArray[np.bool_]
     ``[i, ...]`` in image ``i``. Returns ``(values, inside)``; points outside
     ``[0, W-1] x [0, H-1]`` are clamped to the border and flagged ``inside = False``.
     """
+    # Called a dozen times per tracker step on a few hundred points, so its cost is numpy's
+    # per-call overhead: the four neighbours come from ONE gather of a (4, M) index array
+    # and the two horizontal interpolations run as one (2, M) operation (same arithmetic,
+    # same dtypes, so the same numbers as four gathers and three interpolations).
     h, w = image.shape[-2:]
     x = np.asarray(x, dtype=np.float32)
     y = np.asarray(y, dtype=np.float32)
+    shape = x.shape
     inside = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
-    xc = np.minimum(np.maximum(x, 0), np.float32(w - 1.001))
-    yc = np.minimum(np.maximum(y, 0), np.float32(h - 1.001))
-    x0 = xc.astype(np.int32)  # floor: xc >= 0
-    y0 = yc.astype(np.int32)
+    xc = np.minimum(np.maximum(x, 0), np.float32(w - 1.001)).reshape(-1)
+    yc = np.minimum(np.maximum(y, 0), np.float32(h - 1.001)).reshape(-1)
+    x0 = xc.astype(np.intp)  # floor: xc >= 0
+    y0 = yc.astype(np.intp)
+    # float32 - integer promotes to float64, exactly as the fractions always were
     fx = xc - x0
     fy = yc - y0
-    flat = image.reshape(-1)
     i00 = y0 * w + x0
     if image.ndim == 3:
-        i00 += (np.arange(image.shape[0], dtype=np.int32) * (h * w)).reshape((-1,) + (1,) * (x.ndim - 1))
+        i00 = (i00.reshape(shape) + (np.arange(image.shape[0], dtype=np.intp) * (h * w)).reshape((-1,) + (1,) * (x.ndim - 1))).reshape(-1)
     # uint8 images are gathered, then converted; a complex64 image (two channels, e.g. a pair
     # of remap tables as x + iy) keeps its type.
     out_t = np.complex64 if image.dtype == np.complex64 else np.float32
-    a = flat[i00].astype(out_t, copy=False)
-    b = flat[i00 + 1].astype(out_t, copy=False)
-    c = flat[i00 + w].astype(out_t, copy=False)
-    d = flat[i00 + w + 1].astype(out_t, copy=False)
-    top = a + fx * (b - a)
-    bot = c + fx * (d - c)
-    return (top + fy * (bot - top)).astype(out_t, copy=False), inside
+    quad = image.reshape(-1).take(i00 + _QUAD_OFFSETS[w]).astype(out_t, copy=False).reshape(2, 2, -1)
+    lo = quad[:, 0]
+    rows = lo + fx * (quad[:, 1] - lo)  # (2, M): the top and bottom rows at x
+    top = rows[0]
+    return (top + fy * (rows[1] - top)).astype(out_t, copy=False).reshape(shape), inside
+
+
+class _QuadOffsets(dict):
+    """Index offsets (4,1) of a pixel's right, lower and lower-right neighbours, per row width."""
+
+    def __missing__(self, w: int) -> NDArray[np.intp]:
+        off = np.array([0, 1, w, w + 1], dtype=np.intp).reshape(4, 1)
+        self[w] = off
+        return off
+
+
+_QUAD_OFFSETS = _QuadOffsets()
 
 
 CoordMap = "tuple[F32, F32] | NDArray[np.complex64] | Callable[[NDArray, NDArray], tuple[NDArray, NDArray]]"
@@ -131,10 +159,9 @@ def sample_patches(
 ) -> tuple[F32, NDArray[np.bool_]]:
     """Patches (N,size,size) centred at ``centres`` (N,2) px, and whether each lies fully inside."""
     c = np.asarray(centres, dtype=np.float32).reshape(-1, 2)
-    off = patch_offsets(size)
-    x = c[:, 0, None, None] + off[None, None, :]
-    y = c[:, 1, None, None] + off[None, :, None]
-    x, y = np.broadcast_arrays(x, y)
+    _, gx, gy, _, _ = _patch_grid(size)
+    x = c[:, 0, None, None] + gx
+    y = c[:, 1, None, None] + gy
     values, inside = sample_points(image, x, y, coord_map)
     return values, inside.reshape(len(c), -1).all(axis=1)
 
@@ -259,6 +286,7 @@ def refine_lk(
     """
     n = templates.size
     p = np.asarray(uv0, dtype=np.float64).reshape(-1, 2).copy()
+    p0 = p.copy()
     N = len(p)
     T = templates.values.reshape(N, -1).astype(np.float64)
     Tm = T - T.mean(1, keepdims=True)
@@ -269,32 +297,36 @@ def refine_lk(
     converged = np.zeros(N, bool)
     iters = np.zeros(N, np.int32)
     mask = np.asarray(axis_mask, dtype=np.float64)
+    # Rows still iterating: a slice while all are (no gathers), their indices once some stopped.
+    idx = np.flatnonzero(active)
+    rows: slice | NDArray = slice(None) if len(idx) == N else idx
     for _ in range(max_iterations):
-        idx = np.flatnonzero(active)
         if len(idx) == 0:
             break
-        big, inside = sample_patches(image if image.ndim == 2 else image[idx], p[idx], n + 4, coord_map)
+        big, inside = sample_patches(image if image.ndim == 2 else image[rows], p[rows], n + 4, coord_map)
         big = big.astype(np.float64)
         I = big[:, 2:-2, 2:-2].reshape(len(idx), -1)
         Im = I - I.mean(1, keepdims=True)
+        Tmi = Tm[rows]
         # Closed-form gain: I' = gain (I - mean I) is the least-squares fit of the patch to the
         # zero-mean template; the bias drops out with the means.
-        cov = (Im * Tm[idx]).sum(1)
+        cov = (Im * Tmi).sum(1)
         ivar = (Im * Im).sum(1)
         with np.errstate(divide="ignore", invalid="ignore"):
             gain = np.where(ivar > 1e-9, cov / ivar, 0.0)
-        err = Im * gain[:, None] - Tm[idx]
+        err = Im * gain[:, None] - Tmi
         # ESM (Benhimane & Malis 2004): the mean of the template's and the warped image's
         # gradients gives second-order convergence (plain IC converges slowly on fine texture).
         ix = (8.0 * (big[:, 2:-2, 3:-1] - big[:, 2:-2, 1:-3]) - (big[:, 2:-2, 4:] - big[:, 2:-2, :-4])) / 12.0
         iy = (8.0 * (big[:, 3:-1, 2:-2] - big[:, 1:-3, 2:-2]) - (big[:, 4:, 2:-2] - big[:, :-4, 2:-2])) / 12.0
-        jx = 0.5 * (gx[idx] + gain[:, None] * ix.reshape(len(idx), -1)) * mask[0]
-        jy = 0.5 * (gy[idx] + gain[:, None] * iy.reshape(len(idx), -1)) * mask[1]
+        jx = 0.5 * (gx[rows] + gain[:, None] * ix.reshape(len(idx), -1)) * mask[0]
+        jy = 0.5 * (gy[rows] + gain[:, None] * iy.reshape(len(idx), -1)) * mask[1]
         # Variable projection: the gain and bias are solved in closed form, so the Jacobian
         # must be orthogonal to what they explain (span{1, T}); otherwise a shift that looks
         # like a brightness change is counted twice and the steps fall short.
-        jx = _project_out(jx, Tn[idx])
-        jy = _project_out(jy, Tn[idx])
+        Tni = Tn[rows]
+        jx = _project_out(jx, Tni)
+        jy = _project_out(jy, Tni)
         hxx = (jx * jx).sum(1)
         hyy = (jy * jy).sum(1)
         hxy = (jx * jy).sum(1)
@@ -308,13 +340,18 @@ def refine_lk(
             with np.errstate(divide="ignore", invalid="ignore"):
                 dp = np.column_stack([(hyy * bx - hxy * by) / det, (hxx * by - hxy * bx) / det])
             dp[~(det > 1e-12)] = 0.0
-        p[idx] -= dp
-        iters[idx] += 1
+        pi = p[rows] - dp
+        p[rows] = pi
+        iters[rows] += 1
         step = np.abs(dp).max(1)
-        bad = ~inside | (np.abs(p[idx] - np.asarray(uv0, float).reshape(-1, 2)[idx]).max(1) > max_shift_px) | (gain <= 0)
+        bad = ~inside | (np.abs(pi - p0[rows]).max(1) > max_shift_px) | (gain <= 0)
         done = step < tolerance_px
-        converged[idx[done & ~bad]] = True
-        active[idx[done | bad]] = False
+        stop = done | bad
+        if stop.any():
+            converged[idx[done & ~bad]] = True
+            active[idx[stop]] = False
+            idx = idx[~stop]
+            rows = idx
     final, inside = sample_patches(image, p, n, coord_map)
     score = zncc(templates.values, final)
     converged &= inside & templates.ok
@@ -523,8 +560,10 @@ def match_epipolar(
     core = strip[:, margin:-margin, :].astype(np.float64)
     inside = inside[:, margin:-margin, :]
     # ZNCC of the template with every window of the strip, all at once.
-    win = np.lib.stride_tricks.sliding_window_view(core, size, axis=2)  # (N, size, span+1, size)
-    win = np.moveaxis(win, 2, 1).reshape(N, span + 1, size * size)
+    # window k of point i is core[i, :, k : k + size] (a strided view, copied once by reshape)
+    s0, s1, s2 = core.strides
+    win = np.lib.stride_tricks.as_strided(core, (N, span + 1, size, size), (s0, s2, s1, s2), writeable=False)
+    win = win.reshape(N, span + 1, size * size)
     t = templates.values.reshape(N, -1).astype(np.float64)
     t = t - t.mean(1, keepdims=True)
     wm = win - win.mean(2, keepdims=True)
@@ -532,7 +571,10 @@ def match_epipolar(
     den = np.sqrt(np.einsum("nkp,nkp->nk", wm, wm) * (t * t).sum(1)[:, None])
     with np.errstate(divide="ignore", invalid="ignore"):
         scores = np.where(den > 1e-9, num / den, -1.0)
-    valid_col = np.lib.stride_tricks.sliding_window_view(inside, size, axis=2).all(axis=(1, 3))
+    # a window is valid when all its columns lie inside (running count of inside columns)
+    col_in = np.zeros((N, width + 1), np.int32)
+    np.cumsum(inside.all(axis=1), axis=1, out=col_in[:, 1:])
+    valid_col = (col_in[:, size:] - col_in[:, :-size]) == size
     # Column k is disparity d_high - k: past a point's own span it is below its d_low.
     valid_col &= np.arange(span + 1)[None, :] <= spans[:, None]
     scores = np.where(valid_col, scores, -1.0)
@@ -595,13 +637,12 @@ class AffineLKResult:
 
 def sample_warped(image: F32, warp: NDArray, size: int) -> tuple[F32, NDArray[np.bool_]]:
     """Patches (N,size,size) sampled at ``warp @ (x, y, 1)`` for the template offsets (x, y)."""
-    off = patch_offsets(size).astype(np.float64)
-    gx, gy = np.meshgrid(off, off)
+    _, _, _, ox, oy = _patch_grid(size)
     W = np.asarray(warp, dtype=np.float64)
-    x = W[:, 0, 0, None, None] * gx + W[:, 0, 1, None, None] * gy + W[:, 0, 2, None, None]
-    y = W[:, 1, 0, None, None] * gx + W[:, 1, 1, None, None] * gy + W[:, 1, 2, None, None]
+    x = W[:, 0, 0, None] * ox + W[:, 0, 1, None] * oy + W[:, 0, 2, None]
+    y = W[:, 1, 0, None] * ox + W[:, 1, 1, None] * oy + W[:, 1, 2, None]
     values, inside = bilinear(image, x, y)
-    return values, inside.reshape(len(W), -1).all(axis=1)
+    return values.reshape(len(W), size, size), inside.all(axis=1)
 
 
 def refine_lk_affine(
@@ -697,9 +738,7 @@ def _refine_lk_warp(
     W[:, :2, :] = np.asarray(warp0, dtype=np.float64).reshape(N, 2, 3)
     W[:, 2, 2] = 1.0
     start = W[:, :2, 2].copy()
-    off = patch_offsets(n).astype(np.float64)
-    ox, oy = np.meshgrid(off, off)
-    ox, oy = ox.ravel(), oy.ravel()
+    _, _, _, ox, oy = _patch_grid(n)
     gx = templates.gx.reshape(N, -1).astype(np.float64)
     gy = templates.gy.reshape(N, -1).astype(np.float64)
     T = templates.values.reshape(N, -1).astype(np.float64)
@@ -721,19 +760,25 @@ def _refine_lk_warp(
     active = templates.ok.copy()
     converged = np.zeros(N, bool)
     r = (n - 1) / 2.0
+    # The per-target arrays are indexed by the still-active rows only when some have stopped
+    # (on a tracker step most targets take the same few iterations): numpy's per-call
+    # overhead, not arithmetic, is what this loop costs for a handful of 8x8 patches.
+    idx = np.flatnonzero(active)
+    rows: slice | NDArray = slice(None) if len(idx) == N else idx
     for _ in range(max_iterations):
-        idx = np.flatnonzero(active)
         if len(idx) == 0:
             break
-        patches, inside = sample_warped(image, W[idx, :2, :], n)
+        Wi = W[rows]
+        patches, inside = sample_warped(image, Wi[:, :2, :], n)
         I = patches.reshape(len(idx), -1).astype(np.float64)
         Im = I - I.mean(1, keepdims=True)
-        cov = (Im * Tm[idx]).sum(1)
+        Tmi = Tm[rows]
+        cov = (Im * Tmi).sum(1)
         ivar = (Im * Im).sum(1)
         with np.errstate(divide="ignore", invalid="ignore"):
             gain = np.where(ivar > 1e-9, cov / ivar, 0.0)
-        err = Im * gain[:, None] - Tm[idx]
-        dp = np.einsum("nij,nj->ni", Hinv[idx], np.einsum("nki,nk->ni", SD[idx], err))
+        err = Im * gain[:, None] - Tmi
+        dp = np.einsum("nij,nj->ni", Hinv[rows], np.einsum("nki,nk->ni", SD[rows], err))
         D = np.zeros((len(idx), 3, 3))
         D[:, 2, 2] = 1.0
         if model == "affine":
@@ -755,16 +800,22 @@ def _refine_lk_warp(
             lin_step = np.abs(dp[:, 0])
         D[:, 0, 2] = dp[:, -2]
         D[:, 1, 2] = dp[:, -1]
-        W[idx] = W[idx] @ np.linalg.inv(D)
+        Wi = Wi @ np.linalg.inv(D)
+        W[rows] = Wi
         # Convergence: the largest displacement the step causes over the patch.
         step = np.abs(dp[:, -2:]).max(1) + r * lin_step
-        lin = W[idx, :2, :2]
-        det = np.linalg.det(lin)
-        moved = np.abs(W[idx, :2, 2] - start[idx]).max(1)
-        bad = ~inside | (moved > max_shift_px) | (det < 0.5) | (det > 2.0) | (gain <= 0) | ~np.all(np.isfinite(lin), axis=(1, 2))
+        lin = Wi[:, :2, :2]
+        det = lin[:, 0, 0] * lin[:, 1, 1] - lin[:, 0, 1] * lin[:, 1, 0]
+        moved = np.abs(Wi[:, :2, 2] - start[rows]).max(1)
+        # det is NaN where the warp is not finite: (det > 0.5) & (det < 2.0) fails there too.
+        bad = ~inside | (moved > max_shift_px) | ~((det >= 0.5) & (det <= 2.0)) | (gain <= 0) | ~np.isfinite(lin).all(axis=(1, 2))
         done = step < tolerance_px
-        converged[idx[done & ~bad]] = True
-        active[idx[done | bad]] = False
+        stop = done | bad
+        if stop.any():
+            converged[idx[done & ~bad]] = True
+            active[idx[stop]] = False
+            idx = idx[~stop]
+            rows = idx
     final, inside = sample_warped(image, W[:, :2, :], n)
     score = zncc(templates.values, final)
     return AffineLKResult(warp=W[:, :2, :].copy(), score=score, converged=converged & inside & templates.ok)
