@@ -45,7 +45,8 @@ def run(args: argparse.Namespace) -> int:
         if not args.duration > 0:
             raise TrackmeterError(f"--duration must be positive, got {args.duration}")
         scenario = scenario.with_duration(args.duration)
-    sim = Simulator(scenario)
+    # Rendering ahead in a worker overlaps it with this process's image encoding and writing.
+    sim = Simulator(scenario, render_ahead=True)
     partial = out.with_name(out.name + ".partial")
     if partial.exists():
         shutil.rmtree(partial)  # left over from an interrupted run of this command
@@ -54,14 +55,19 @@ def run(args: argparse.Namespace) -> int:
             (partial / "scenario.yaml").write_text(
                 "# the scenario this sequence was rendered from\n"
                 + yaml.safe_dump(config_to_dict(scenario), sort_keys=False), encoding="utf-8")
-            for i in progress(range(sim.n_frames), sim.n_frames, f"simulate {scenario.name}"):
-                writer.write(sim.frame(i))
+            for _ in progress(range(sim.n_frames), sim.n_frames, f"simulate {scenario.name}"):
+                frame = sim.read()
+                if frame is None:
+                    raise TrackmeterError(f"scenario {scenario.name} ended before its {sim.n_frames} frames")
+                writer.write(frame)
         if out.exists():
             out.rmdir()  # empty, checked above
         partial.rename(out)
     except BaseException:
         shutil.rmtree(partial, ignore_errors=True)
         raise
+    finally:
+        sim.close()
     print(f"wrote {sim.n_frames} frames ({sim.n_frames / sim.rate_hz:.2f} s at {sim.rate_hz:g} Hz) of "
           f"scenario {scenario.name} to {out}", file=sys.stdout)
     return 0
