@@ -39,6 +39,7 @@ WARMUP_S = 10.0
 MEASURE_S = float(os.environ.get("TRACKMETER_BENCH_LIVE_S", "30"))
 N_CLICKS = 5
 CLICKS_MAX_S = 60.0  # the click phase's share of the 5-minute budget
+CLICK_SLACK_PX = 3.0  # a click candidate is accepted this far around it too
 SOURCE = os.environ.get("TRACKMETER_BENCH_CONSOLE_SOURCE", "sim")
 
 
@@ -70,9 +71,14 @@ def _click_candidates(running: Any) -> list[tuple[float, float]]:
         rig = running.pipeline.rig
         pts = select_features(snap.frame.left, snap.frame.right, rig, 60, "gabor", FeatureParams(), exclude)
         if len(pts):
-            # ... that the measurement accepts in this frame (the satellite moves little before the click).
-            ok = [m.ok for m in measure_points(rig, snap.frame.left, snap.frame.right, pts, MeasureParams())]
-            good = [tuple(map(float, p)) for p, k in zip(pts, ok) if k]
+            # ... that the measurement accepts in this frame, and also CLICK_SLACK_PX around them:
+            # the satellite moves a few pixels between this frame and the click's, as it does
+            # under an operator's cursor.
+            pts = np.asarray(pts, float).reshape(-1, 2)
+            offsets = np.array([(0, 0), (CLICK_SLACK_PX, 0), (-CLICK_SLACK_PX, 0), (0, CLICK_SLACK_PX), (0, -CLICK_SLACK_PX)], float)
+            probes = (pts[:, None, :] + offsets[None]).reshape(-1, 2)
+            ok = np.array([m.ok for m in measure_points(rig, snap.frame.left, snap.frame.right, probes, MeasureParams())])
+            good = [tuple(map(float, p)) for p, k in zip(pts, ok.reshape(len(pts), len(offsets)).all(axis=1)) if k]
             if good:
                 return good
     T = None
@@ -164,9 +170,12 @@ def run() -> dict[str, float]:
                 page.mouse.click(sx, sy)
 
                 def new_target() -> Any:
-                    return next((t for t in running.pipeline.latest().targets
-                                 if t.id not in known and t.origin == "operator"), None) or \
-                        (len(running.console.notifications) > n_notes and "refused")
+                    # The click's target in the tracker's latest state, or "refused" once the
+                    # console has notified a refusal (an accepted click notifies too: not a refusal).
+                    made = next((t for t in running.pipeline.latest().targets
+                                 if t.id not in known and t.origin == "operator"), None)
+                    refused = any(str(title).endswith("refused") for title, _ in list(running.console.notifications)[n_notes:])
+                    return made or (refused and "refused")
 
                 got = _poll(page, new_target, 3)
                 if got is None or got == "refused":

@@ -9,8 +9,9 @@ Figures:
 - ``dropped_fraction``: frames the tracker never saw (latest frame won) over frames read, same
   window. Target: < 0.01.
 - ``acquisition_hz``: frames the source delivered per second in that window.
-- ``source_alone_fps``: the simulator rendering as fast as it can with nothing else running,
-  measured in the same run: the ceiling the live figures are bounded by on this machine.
+- ``source_alone_fps``: the simulator rendering as fast as it can with nothing else running
+  (in its render-ahead worker process, as the live source does), measured in the same run: the
+  ceiling the live figures are bounded by on this machine.
 - ``latency_ms_median``, ``step_ms_median``: frame leaving the source → pose published, and the
   tracking step alone, medians over the window.
 - ``recorded_fraction``: frames written by the recorder over frames read during the live run
