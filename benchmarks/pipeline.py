@@ -111,13 +111,13 @@ def start_live(record_dir: Path | None = None, n_targets: int = N_TARGETS) -> An
 def source_alone_fps(seconds: float = 6.0) -> float:
     from trackmeter.sources import open_source
 
-    source = open_source("sim", realtime=False, loop=True)
-    source.read()
-    n, t0 = 0, time.monotonic()
-    while time.monotonic() - t0 < seconds:
+    with open_source("sim", realtime=False, loop=True) as source:
         source.read()
-        n += 1
-    return n / (time.monotonic() - t0)
+        n, t0 = 0, time.monotonic()
+        while time.monotonic() - t0 < seconds:
+            source.read()
+            n += 1
+        return n / (time.monotonic() - t0)
 
 
 def offline(tmp: Path) -> dict[str, float]:
@@ -135,7 +135,7 @@ def offline(tmp: Path) -> dict[str, float]:
             if frame is None:
                 break
             writer.write(frame)
-    sim.close()
+    sim.close()  # stops its render-ahead worker
 
     source = open_source(f"seq:{seq}")
     t0 = time.perf_counter()
