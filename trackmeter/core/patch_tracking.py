@@ -291,12 +291,14 @@ def refine_lk(
     T = templates.values.reshape(N, -1).astype(np.float64)
     Tm = T - T.mean(1, keepdims=True)
     Tn = Tm / np.maximum(np.linalg.norm(Tm, axis=1, keepdims=True), 1e-9)
-    gx = templates.gx.reshape(N, -1).astype(np.float64)
-    gy = templates.gy.reshape(N, -1).astype(np.float64)
+    # Template gradients (N, 2, n²): x and y rows side by side, so each Gauss-Newton product
+    # below is one numpy call for both axes (the same element-wise arithmetic and sums).
+    g = np.stack([templates.gx.reshape(N, -1), templates.gy.reshape(N, -1)], axis=1).astype(np.float64)
     active = templates.ok.copy()
     converged = np.zeros(N, bool)
     iters = np.zeros(N, np.int32)
     mask = np.asarray(axis_mask, dtype=np.float64)
+    mask_col = mask.reshape(1, 2, 1)
     # Rows still iterating: a slice while all are (no gathers), their indices once some stopped.
     idx = np.flatnonzero(active)
     rows: slice | NDArray = slice(None) if len(idx) == N else idx
@@ -319,20 +321,18 @@ def refine_lk(
         # gradients gives second-order convergence (plain IC converges slowly on fine texture).
         ix = (8.0 * (big[:, 2:-2, 3:-1] - big[:, 2:-2, 1:-3]) - (big[:, 2:-2, 4:] - big[:, 2:-2, :-4])) / 12.0
         iy = (8.0 * (big[:, 3:-1, 2:-2] - big[:, 1:-3, 2:-2]) - (big[:, 4:, 2:-2] - big[:, :-4, 2:-2])) / 12.0
-        jx = 0.5 * (gx[rows] + gain[:, None] * ix.reshape(len(idx), -1)) * mask[0]
-        jy = 0.5 * (gy[rows] + gain[:, None] * iy.reshape(len(idx), -1)) * mask[1]
+        k = len(idx)
+        J = 0.5 * (g[rows] + gain[:, None, None] * np.stack([ix.reshape(k, -1), iy.reshape(k, -1)], axis=1)) * mask_col
         # Variable projection: the gain and bias are solved in closed form, so the Jacobian
         # must be orthogonal to what they explain (span{1, T}); otherwise a shift that looks
         # like a brightness change is counted twice and the steps fall short.
-        Tni = Tn[rows]
-        jx = _project_out(jx, Tni)
-        jy = _project_out(jy, Tni)
-        hxx = (jx * jx).sum(1)
-        hyy = (jy * jy).sum(1)
-        hxy = (jx * jy).sum(1)
+        Tni = Tn[rows][:, None, :]
+        J = J - J.mean(2, keepdims=True)
+        J = J - (J * Tni).sum(2, keepdims=True) * Tni
+        Hm = (J[:, :, None, :] * J[:, None, :, :]).sum(3)  # (k, 2, 2) Gauss-Newton Hessian
+        hxx, hyy, hxy = Hm[:, 0, 0], Hm[:, 1, 1], Hm[:, 0, 1]
         det = hxx * hyy - hxy * hxy
-        bx = (jx * err).sum(1)
-        by = (jy * err).sum(1)
+        bx, by = (J * err[:, None, :]).sum(2).T
         if mask[1] == 0.0:
             with np.errstate(divide="ignore", invalid="ignore"):
                 dp = np.column_stack([np.where(hxx > 1e-9, bx / hxx, 0.0), np.zeros(len(idx))])
@@ -356,6 +356,9 @@ def refine_lk(
     score = zncc(templates.values, final)
     converged &= inside & templates.ok
     return LKResult(uv=p, score=score, converged=converged, iterations=iters)
+
+
+_KERNEL_3X3 = np.ones((3, 3), np.uint8)
 
 
 def zncc_search(
@@ -387,9 +390,10 @@ def zncc_search(
     # Second peak: the best other LOCAL MAXIMUM of the score (a broad main peak's flanks do not
     # count) farther than half a patch from the best (noise ripples on the main peak do not).
     r = max(n // 2, 2)
-    peaks = (res >= cv2.dilate(res, np.ones((3, 3), np.uint8))) & (res > -1.0)
+    peaks = res >= cv2.dilate(res, _KERNEL_3X3)
     peaks[max(i - r, 0) : i + r + 1, max(j - r, 0) : j + r + 1] = False
-    second = float(res[peaks].max()) if peaks.any() else -1.0
+    # -1 (a flat window's score) is the floor: a maximum at or below it does not count
+    second = float(np.max(res, where=peaks, initial=-1.0))
     uv = np.array([x0 + j + half, y0 + i + half])
     return uv, float(best), second
 
