@@ -598,25 +598,47 @@ def match_epipolar(
     disparity = cl[:, 0] - u_right
     resid = v_right - cl[:, 1]
     lk = LKResult(uv=np.column_stack([u_right, v_right]), score=lk.score, converged=lk.converged, iterations=lk.iterations)
-    reasons: list[str | None] = []
-    for i in range(N):
-        if not templates.ok[i]:
-            reasons.append("textureless or outside the rectified image")
-        elif best[i] < min_score:
-            reasons.append(f"no stereo match along the epipolar line (score {best[i]:.2f})")
-        elif second[i] > best[i] - uniqueness_margin:
-            reasons.append(f"ambiguous along the epipolar line (scores {best[i]:.2f} and {second[i]:.2f})")
-        elif k_best[i] in (0, spans[i]) and spans[i] > 0:
-            reasons.append("stereo match at the edge of the disparity range")
-        elif not lk.converged[i]:
-            reasons.append("stereo sub-pixel refinement did not converge")
-        elif abs(resid[i]) > epipolar_tolerance_px:
-            reasons.append(f"off the epipolar line by {resid[i]:.2f} px")
-        elif lk.score[i] < min_score:
-            reasons.append(f"weak stereo match (score {lk.score[i]:.2f})")
-        else:
-            reasons.append(None)
+    # The checks in order, vectorised: the first failing one names the reason (the loop below
+    # only runs for failures, with Python scalars: numpy scalar access per point is slow).
+    edge = (k_best == 0) | (k_best == spans)
+    failed = (
+        ~templates.ok
+        | (best < min_score)
+        | (second > best - uniqueness_margin)
+        | (edge & (spans > 0))
+        | ~lk.converged
+        | (np.abs(resid) > epipolar_tolerance_px)
+        | (lk.score < min_score)
+    )
+    reasons: list[str | None] = [None] * N
+    for i in np.flatnonzero(failed).tolist():
+        reasons[i] = _epipolar_reason(
+            bool(templates.ok[i]), float(best[i]), float(second[i]), int(k_best[i]), int(spans[i]), bool(lk.converged[i]),
+            float(resid[i]), float(lk.score[i]), min_score, uniqueness_margin, epipolar_tolerance_px,
+        )
     return EpipolarMatch(cl, lk.uv, disparity, lk.score, second, resid, reasons)
+
+
+def _epipolar_reason(
+    ok: bool, best: float, second: float, k_best: int, span: int, converged: bool, resid: float, score: float,
+    min_score: float, uniqueness_margin: float, epipolar_tolerance_px: float,
+) -> str | None:
+    """Why :func:`match_epipolar` refuses one point (None: accepted), the first failing check."""
+    if not ok:
+        return "textureless or outside the rectified image"
+    if best < min_score:
+        return f"no stereo match along the epipolar line (score {best:.2f})"
+    if second > best - uniqueness_margin:
+        return f"ambiguous along the epipolar line (scores {best:.2f} and {second:.2f})"
+    if k_best in (0, span) and span > 0:
+        return "stereo match at the edge of the disparity range"
+    if not converged:
+        return "stereo sub-pixel refinement did not converge"
+    if abs(resid) > epipolar_tolerance_px:
+        return f"off the epipolar line by {resid:.2f} px"
+    if score < min_score:
+        return f"weak stereo match (score {score:.2f})"
+    return None
 
 
 @dataclass(frozen=True, eq=False)
