@@ -163,7 +163,7 @@ def sample_patches(
     x = c[:, 0, None, None] + gx
     y = c[:, 1, None, None] + gy
     values, inside = sample_points(image, x, y, coord_map)
-    return values, inside.reshape(len(c), -1).all(axis=1)
+    return values, inside.reshape(len(c), size * size).all(axis=1)
 
 
 @dataclass(frozen=True, eq=False)
