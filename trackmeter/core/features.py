@@ -279,11 +279,16 @@ def gabor_score(image: NDArray, params: FeatureParams) -> NDArray[np.float32]:
             np.maximum(top, e, out=top)
         return top
     if k == 2:
-        # Running top two, no sort over the orientation axis: second = max(second, min(first, e)).
-        first = np.zeros(img.shape, np.float32)
-        second = np.zeros(img.shape, np.float32)
+        # Running top two, no sort over the orientation axis: second = max(second, min(first, e)),
+        # started from the first two orientations (energies are >= 0, so this equals starting
+        # from zeros, with four fewer passes over the image).
+        _, e0 = next(energies)
+        _, e1 = next(energies)
+        first = np.maximum(e0, e1)
+        second = np.minimum(e0, e1, out=e1)
+        low = np.empty_like(first)
         for _, e in energies:
-            np.maximum(second, np.minimum(first, e), out=second)
+            np.maximum(second, np.minimum(first, e, out=low), out=second)
             np.maximum(first, e, out=first)
         return second
     stack = np.stack([e for _, e in energies])
