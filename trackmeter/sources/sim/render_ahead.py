@@ -57,7 +57,15 @@ def _read_exact(stream: IO[bytes], n: int) -> bytes:
 
 def worker_main(stdin: IO[bytes] | None = None, stdout: IO[bytes] | None = None) -> int:
     """The worker's loop: read the scenario, then render each requested frame (until EOF)."""
+    import signal
+
     from trackmeter.sources.sim.simulator import Simulator
+
+    if stdin is None:
+        # Ctrl-C in a terminal reaches the whole process group: the reader shuts down cleanly
+        # and closes our stdin, which ends this loop; a KeyboardInterrupt here would only
+        # print a traceback and fail the frames still in flight.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
     inp = stdin if stdin is not None else sys.stdin.buffer
     out = stdout if stdout is not None else sys.stdout.buffer
