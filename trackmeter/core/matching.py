@@ -339,6 +339,91 @@ def sample_rectified(
     return out, col_ok
 
 
+#: Width of the map rows when many blocks are resampled in one ``cv2.remap`` (OpenCV asks for
+#: maps narrower than 32767 columns).
+_STACK_COLS = 1024
+
+
+def sample_rectified_blocks(
+    rect: Rectification,
+    image: NDArray[np.uint8],
+    side: int,
+    blocks: Sequence[tuple[float, float, int, int]],
+    interpolation: int = cv2.INTER_LANCZOS4,
+    exact: bool = True,
+) -> list[tuple[NDArray[np.float32] | NDArray[np.uint8], NDArray[np.bool_] | None]]:
+    """:func:`sample_rectified` for many blocks ``(x0, y0, width, height)`` of one image at once.
+
+    Each block's maps are interpolated exactly as :func:`sample_rectified` does; the maps of all
+    blocks are laid end to end in one map of :data:`_STACK_COLS` columns and the image is
+    resampled in ONE ``cv2.remap`` (``exact``: from the float copy of the union of the regions
+    the blocks need, which reaches every sample's interpolation support as each block's own
+    region does). ``remap`` computes every output pixel from its own map entry alone, so each
+    block is the same as :func:`sample_rectified`'s, bit for bit, at a fraction of the fixed
+    cost of one call per block.
+
+    Returns:
+        One ``(block, col_ok)`` per block, in order, as :func:`sample_rectified`.
+    """
+    if len(blocks) == 0:
+        return []
+    if len(blocks) == 1:
+        return [sample_rectified(rect, image, side, *blocks[0], interpolation=interpolation, exact=exact)]
+    mx_full, my_full = rect.maps[side]
+    H, W = mx_full.shape
+    h_img, w_img = image.shape
+    mxs, mys, oks = [], [], []
+    u0 = v0 = 1 << 30
+    u1 = v1 = -1
+    for x0, y0, width, height in blocks:
+        bx, by = math.floor(x0), math.floor(y0)
+        if bx < 0 or by < 0 or bx + width >= W or by + height >= H:
+            raise ValueError(f"rectified block at ({x0}, {y0}) size {width}x{height} leaves the {W}x{H} grid")
+        centre = (x0 + 0.5 * (width - 1), y0 + 0.5 * (height - 1))
+        mx = cv2.getRectSubPix(mx_full, (width, height), centre)
+        my = cv2.getRectSubPix(my_full, (width, height), centre)
+        x_lo = min(float(mx_full[by, bx]), float(mx_full[by + height, bx]))
+        x_hi = max(float(mx_full[by, bx + width]), float(mx_full[by + height, bx + width]))
+        y_lo = min(float(my_full[by, bx]), float(my_full[by, bx + width]))
+        y_hi = max(float(my_full[by + height, bx]), float(my_full[by + height, bx + width]))
+        col_ok = None
+        if not (x_lo >= 0.1 and y_lo >= 0.1 and x_hi <= w_img - 1.1 and y_hi <= h_img - 1.1):
+            col_ok = np.all((mx >= 0) & (mx <= w_img - 1) & (my >= 0) & (my <= h_img - 1), axis=0)
+        if exact:  # the region sample_rectified would take, merged into the union
+            bu0 = min(max(int(math.floor(x_lo)) - 4, 0), w_img - 1)
+            bv0 = min(max(int(math.floor(y_lo)) - 4, 0), h_img - 1)
+            u0, v0 = min(u0, bu0), min(v0, bv0)
+            u1 = max(u1, max(min(int(math.floor(x_hi)) + 6, w_img), bu0 + 1))
+            v1 = max(v1, max(min(int(math.floor(y_hi)) + 6, h_img), bv0 + 1))
+        mxs.append(mx.ravel())
+        mys.append(my.ravel())
+        oks.append(col_ok)
+    total = sum(m.size for m in mxs)
+    rows = -(-total // _STACK_COLS)
+    MX = np.zeros(rows * _STACK_COLS, np.float32)
+    MY = np.zeros(rows * _STACK_COLS, np.float32)
+    np.concatenate(mxs, out=MX[:total])
+    np.concatenate(mys, out=MY[:total])
+    MX, MY = MX.reshape(rows, _STACK_COLS), MY.reshape(rows, _STACK_COLS)
+    if exact:
+        src = image[v0:v1, u0:u1].astype(np.float32)
+        # subtracting a whole number from a float32 map entry is exact (Sterbenz-like: the
+        # difference is a multiple of the entry's ulp and smaller than it)
+        if u0:
+            MX -= np.float32(u0)
+        if v0:
+            MY -= np.float32(v0)
+    else:
+        src = image
+    flat = cv2.remap(src, MX, MY, interpolation, borderMode=cv2.BORDER_REPLICATE).ravel()
+    out = []
+    at = 0
+    for (_, _, width, height), col_ok in zip(blocks, oks):
+        out.append((flat[at : at + width * height].reshape(height, width), col_ok))
+        at += width * height
+    return out
+
+
 # --------------------------------------------------------------------------- 1D matching
 
 
@@ -643,6 +728,124 @@ def _gauss_newton(fit: _ShiftFit, x: float, params: MeasureParams) -> tuple[floa
     return x, sigma, score
 
 
+#: Fewer points are refined one by one (the array operations' fixed cost outweighs the loop's).
+_MIN_BATCH = 4
+
+
+def refine_positions(
+    templates: Sequence[NDArray[np.floating]],
+    strips: Sequence[NDArray[np.floating]],
+    x: ArrayLike,
+    params: MeasureParams,
+) -> tuple[FloatArray, FloatArray, FloatArray, list[str | None]]:
+    """:func:`refine_position` for many (template, strip, start) at once, same results.
+
+    The Gauss-Newton fit of every point runs in lock step on stacked arrays: the B-spline
+    prefilter of all strips of one width in one ``cv2.filter2D`` call (it filters along rows
+    only, so stacking rows changes nothing), each step's 4x4 moments and 2x2 solve for all
+    points still iterating as array operations, a point leaving the loop exactly when its own
+    scalar loop would. The numbers equal the scalar fit's up to the summation order of the
+    moment sums (differences ~1e-15 px). The parabola baseline, and fewer than
+    :data:`_MIN_BATCH` points, run point by point (:func:`refine_position`).
+
+    Args:
+        templates: m (P, P) float patches (one size P).
+        strips: m (P, W_j) strips (widths may differ).
+        x: (m,) start columns of each template in its strip.
+
+    Returns:
+        ``(x, sigma_x, zncc, reasons)``, as :func:`refine_position` per point.
+    """
+    m = len(templates)
+    x_in = np.array(x, dtype=float).reshape(m)
+    if m < _MIN_BATCH or params.subpixel != "gauss_newton":
+        res = [refine_position(T, S, float(xi), params) for T, S, xi in zip(templates, strips, x_in)]
+        return (np.array([r[0] for r in res]), np.array([r[1] for r in res]), np.array([r[2] for r in res]), [r[3] for r in res])
+    P = templates[0].shape[1]
+    n = P * templates[0].shape[0]
+    widths = np.array([S.shape[1] for S in strips])
+    wmax = int(widths.max())
+    coef = np.zeros((m, P, wmax), np.float32)
+    if params.subpixel_interpolation == "bspline":
+        weights = _bspline_weights
+        for w in np.unique(widths).tolist():
+            sel = np.flatnonzero(widths == w)
+            stack = np.concatenate([np.asarray(strips[j], dtype=np.float32) for j in sel])
+            f = cv2.filter2D(stack, cv2.CV_32F, _BSPLINE_PREFILTER, borderType=cv2.BORDER_REFLECT_101)
+            coef[sel, :, :w] = f.reshape(len(sel), P, w)
+    else:
+        weights = _keys_weights
+        for j, S in enumerate(strips):
+            coef[j, :, : widths[j]] = S
+    t = np.stack([np.asarray(T, dtype=np.float32) for T in templates]).reshape(m, n).astype(np.float64)
+    t1 = t.sum(axis=1)
+    ctt = np.einsum("ij,ij->i", t, t) - t1 * t1 / n
+    G = np.zeros((m, 6, 6))
+    h = np.zeros((m, 6))
+    base = np.full(m, np.iinfo(np.int64).min // 4, np.int64)  # no moments yet: always refreshed
+    span = np.arange(P + 5)
+    x = x_in.copy()
+    sigma = np.full(m, np.nan)
+    score = np.full(m, np.nan)
+    active = np.arange(m)
+    failed = np.zeros(m, bool)
+    four = np.arange(4)
+    with np.errstate(all="ignore"):
+        for _ in range(params.subpixel_iterations):
+            if active.size == 0:
+                break
+            xa = x[active]
+            i = np.floor(xa).astype(np.int64)
+            b = base[active]
+            stale = ~((b <= i - 1) & (i + 2 <= b + 5))
+            if stale.any():  # moments of the six windows around i, as _ShiftFit._moments
+                js = active[stale]
+                nb = i[stale] - 2
+                cols = np.clip(nb[:, None] + span, 0, widths[js, None] - 1)
+                win = np.take_along_axis(coef[js], np.broadcast_to(cols[:, None, :], (js.size, P, P + 5)), axis=2)
+                Sk = np.stack([win[:, :, k : k + P] for k in range(6)], axis=1).reshape(js.size, 6, n).astype(np.float64)
+                s1 = Sk.sum(axis=2)
+                G[js] = Sk @ Sk.transpose(0, 2, 1) - s1[:, :, None] * s1[:, None, :] / n
+                h[js] = np.einsum("jkn,jn->jk", Sk, t[js]) - s1 * (t1[js] / n)[:, None]
+                base[js] = nb
+            k = i - 1 - base[active]
+            rows = k[:, None] + four
+            Ga = G[active[:, None, None], rows[:, :, None], rows[:, None, :]]
+            ha = h[active[:, None], rows]
+            w, dw = (np.stack(v, axis=1) for v in weights(xa - i))
+            Gw, Gd = np.einsum("jkl,jl->jk", Ga, w), np.einsum("jkl,jl->jk", Ga, dw)
+            cvv, cvd, cdd = np.einsum("jk,jk->j", w, Gw), np.einsum("jk,jk->j", w, Gd), np.einsum("jk,jk->j", dw, Gd)
+            cvt, cdt = np.einsum("jk,jk->j", w, ha), np.einsum("jk,jk->j", dw, ha)
+            det = cvv * cdd - cvd * cvd
+            a = (cdd * cvt - cvd * cdt) / det
+            c = (cvv * cdt - cvd * cvt) / det
+            s2 = np.maximum(ctt[active] - (a * cvt + c * cdt), 0.0) / max(n - 3, 1)
+            sig = np.sqrt(s2 * cvv / det) / a
+            step = c / a
+            good = (det > 0) & (cvv > 0) & (ctt[active] > 0) & (a > 0) & np.isfinite(step)
+            sigma[active], score[active] = sig, cvt / np.sqrt(cvv * ctt[active])
+            step = np.clip(step, -0.5, 0.5)
+            xn = xa + step
+            gone = ~good | (np.abs(xn - x_in[active]) > 1.0)
+            x[active] = xn
+            failed[active[gone]] = True
+            active = active[~gone & ~(np.abs(step) < params.subpixel_tolerance_px)]
+    x[failed], sigma[failed], score[failed] = np.nan, np.nan, np.nan
+    reasons: list[str | None] = []
+    for j in range(m):
+        if not math.isfinite(x[j]) or abs(x[j] - x_in[j]) > 1.0:
+            reasons.append(REASON_SUBPIXEL)
+        elif not score[j] >= params.min_score:
+            reasons.append(REASON_LOW_SCORE)
+        elif not sigma[j] <= params.max_sigma_disparity_px:
+            reasons.append(REASON_UNCERTAIN)
+        else:
+            reasons.append(None)
+    bad = np.array([r is not None for r in reasons], bool)
+    x[bad], sigma[bad] = np.nan, np.nan
+    return x, sigma, score, reasons
+
+
 # --------------------------------------------------------------------------- one point
 
 
@@ -691,91 +894,163 @@ def _match_rectified(
     params: MeasureParams,
     disparity_range: tuple[float, float],
 ) -> _Match:
+    return _match_many(rect, left, right, np.reshape(uv_rect, (1, 2)), params, [disparity_range])[0]
+
+
+def _match_many(
+    rect: Rectification,
+    left: NDArray[np.uint8],
+    right: NDArray[np.uint8],
+    uv_rect: FloatArray,
+    params: MeasureParams,
+    disparity_ranges: Sequence[tuple[float, float]],
+) -> list[_Match]:
+    """Match rectified left pixels (m, 2) along their rectified right rows, one result each.
+
+    The points go through the stages of a single point's match together, so that each
+    stage's resampling is one :func:`sample_rectified_blocks` call for all of them (patches;
+    left rows and right strips; the fine strips around the integer matches) and the
+    sub-pixel fit one :func:`refine_positions`. A point refused at a stage drops out of the
+    later ones; its reason is the one it gets alone (the checks and their order are a single
+    point's).
+    """
     P = params.patch_size
     W, H = rect.rig.image_size
     half = 0.5 * (P - 1)
-    x0, y0 = float(uv_rect[0]) - half, float(uv_rect[1]) - half
-    bx, by = math.floor(x0), math.floor(y0)
-    fx = x0 - bx
-    if not (math.isfinite(x0) and math.isfinite(y0)) or bx < 0 or by < 0 or bx + P >= W or by + P >= H:
-        return _Match(REASON_PATCH_OUTSIDE)
-    T_fine, col_ok = sample_rectified(rect, left, 0, x0, y0, P, P)
-    if col_ok is not None and not col_ok.all():
-        return _Match(REASON_PATCH_OUTSIDE)
-    T = T_fine
+    m = len(uv_rect)
+    out: list[_Match | None] = [None] * m
+    geo: dict[int, tuple[float, float, int, int, float]] = {}
+    for j in range(m):
+        x0, y0 = float(uv_rect[j, 0]) - half, float(uv_rect[j, 1]) - half
+        bx, by = math.floor(x0), math.floor(y0)
+        if not (math.isfinite(x0) and math.isfinite(y0)) or bx < 0 or by < 0 or bx + P >= W or by + P >= H:
+            out[j] = _Match(REASON_PATCH_OUTSIDE)
+        else:
+            geo[j] = (x0, y0, bx, by, x0 - bx)
 
-    mean, std = cv2.meanStdDev(T)
-    if float(mean[0, 0]) < params.min_mean_grey:
-        return _Match(REASON_TOO_DARK)
-    if float(std[0, 0]) < params.min_texture_std:
-        return _Match(REASON_TEXTURELESS)
-    gx = (T[:, 1:] - T[:, :-1]).ravel()
-    if math.sqrt(float(gx @ gx) / gx.size) < params.min_gradient_rms:
-        return _Match(REASON_NO_EPIPOLAR_TEXTURE)
+    # Stage 1: the Lanczos patches, texture checks, strip geometry.
+    todo = list(geo)
+    patches = sample_rectified_blocks(rect, left, 0, [(geo[j][0], geo[j][1], P, P) for j in todo])
+    T_fine: dict[int, NDArray[np.float32]] = {}
+    strips: dict[int, tuple[int, int, int, int, int, int]] = {}
+    for j, (T, col_ok) in zip(todo, patches):
+        if col_ok is not None and not col_ok.all():
+            out[j] = _Match(REASON_PATCH_OUTSIDE)
+            continue
+        mean, std = cv2.meanStdDev(T)
+        if float(mean[0, 0]) < params.min_mean_grey:
+            out[j] = _Match(REASON_TOO_DARK)
+            continue
+        if float(std[0, 0]) < params.min_texture_std:
+            out[j] = _Match(REASON_TEXTURELESS)
+            continue
+        gx = (T[:, 1:] - T[:, :-1]).ravel()
+        if math.sqrt(float(gx @ gx) / gx.size) < params.min_gradient_rms:
+            out[j] = _Match(REASON_NO_EPIPOLAR_TEXTURE)
+            continue
+        bx = geo[j][2]
+        # Right strip: the patch for integer disparity d starts at rectified column x0 - d.
+        d_lo, d_hi = _disparity_range(*disparity_ranges[j])
+        mg = STRIP_MARGIN_PX
+        c_first = max(bx - d_hi - mg, 0)  # strip's first grid column
+        c_last = min(bx - d_lo + mg + P - 1, W - 2)  # last grid column (bilinear map needs +1)
+        if c_last - c_first + 1 < P:
+            out[j] = _Match(REASON_SEARCH_OUTSIDE)
+            continue
+        # Integer search on bilinearly resampled strips (fast); the sub-pixel fit below
+        # resamples just the neighbourhood of the match with Lanczos-4 (accurate). One left strip
+        # serves the search template and the left-right check, whose candidates lie within the
+        # disparity range's width on either side of the patch.
+        spread = d_hi - d_lo
+        l_first = max(bx - spread - mg, 0)
+        l_last = min(bx + spread + mg + P - 1, W - 2)
+        T_fine[j] = T
+        strips[j] = (d_lo, d_hi, c_first, c_last, l_first, l_last)
 
-    # Right strip: the patch for integer disparity d starts at rectified column x0 - d.
-    d_lo, d_hi = _disparity_range(*disparity_range)
-    mg = STRIP_MARGIN_PX
-    c_first = max(bx - d_hi - mg, 0)  # strip's first grid column
-    c_last = min(bx - d_lo + mg + P - 1, W - 2)  # last grid column (bilinear map needs +1)
-    width = c_last - c_first + 1
-    if width < P:
-        return _Match(REASON_SEARCH_OUTSIDE)
-    # Integer search on bilinearly resampled strips (fast); the sub-pixel fit below resamples
-    # just the neighbourhood of the match with Lanczos-4 (accurate). One left strip serves the
-    # search template and the left-right check, whose candidates lie within the disparity
-    # range's width on either side of the patch.
-    spread = d_hi - d_lo
-    l_first = max(bx - spread - mg, 0)
-    l_last = min(bx + spread + mg + P - 1, W - 2)
-    Lrow, l_ok = sample_rectified(rect, left, 0, l_first + fx, y0, l_last - l_first + 1, P, cv2.INTER_LINEAR, exact=False)
-    T = np.ascontiguousarray(Lrow[:, bx - l_first : bx - l_first + P])
-    S, s_ok = sample_rectified(rect, right, 1, c_first + fx, y0, width, P, cv2.INTER_LINEAR, exact=False)
-    # Column position x in the strip <-> disparity d = bx - (c_first + x).
-    n = width - P + 1
-    lo = max(bx - d_hi - c_first, 0)
-    hi = min(bx - d_lo - c_first, n - 1)
-    if hi < lo:
-        return _Match(REASON_SEARCH_OUTSIDE)
-    if s_ok is not None:  # drop candidates whose right patch leaves the original right image
-        valid = np.flatnonzero(_windows_ok(s_ok, P)[lo : hi + 1]) + lo
-        if valid.size == 0:
-            return _Match(REASON_SEARCH_OUTSIDE)
-        lo, hi = int(valid[0]), int(valid[-1])
-    sm = match_strip(T, S, params, lo, hi, refine=False)
-    if not sm.ok:
-        return _Match(sm.reason, score=sm.score)
-    # The sub-pixel fit before the wider-window check: cheaper, and the most frequent refusal
-    # (see the module docstring); neither depends on the other's outcome.
-    f_first = max(c_first + sm.integer_position - FINE_MARGIN_PX, 0)
-    f_last = min(c_first + sm.integer_position + P - 1 + FINE_MARGIN_PX, W - 2)
-    S_fine = sample_rectified(rect, right, 1, f_first + fx, y0, f_last - f_first + 1, P)[0]
-    x, sigma, score, reason = refine_position(T_fine, S_fine, sm.position_px - (f_first - c_first), params)
-    if reason is not None:
-        return _Match(reason, score=score)
-    if params.context_width_px > 0 and not _context_check(rect, left, right, x0, y0, c_first, sm, lo, hi, params):
-        return _Match(REASON_REPETITIVE, score=sm.score)
-    d = bx - f_first - x
+    # Stage 2: the bilinear left rows and right strips, the integer search.
+    todo = list(strips)
+    lrows = sample_rectified_blocks(
+        rect, left, 0, [(strips[j][4] + geo[j][4], geo[j][1], strips[j][5] - strips[j][4] + 1, P) for j in todo],
+        cv2.INTER_LINEAR, exact=False,
+    )  # fmt: skip
+    rstrips = sample_rectified_blocks(
+        rect, right, 1, [(strips[j][2] + geo[j][4], geo[j][1], strips[j][3] - strips[j][2] + 1, P) for j in todo],
+        cv2.INTER_LINEAR, exact=False,
+    )  # fmt: skip
+    found: dict[int, tuple[Any, ...]] = {}
+    for j, (Lrow, l_ok), (S, s_ok) in zip(todo, lrows, rstrips):
+        bx = geo[j][2]
+        d_lo, d_hi, c_first, c_last, l_first, _ = strips[j]
+        T = np.ascontiguousarray(Lrow[:, bx - l_first : bx - l_first + P])
+        # Column position x in the strip <-> disparity d = bx - (c_first + x).
+        n = S.shape[1] - P + 1
+        lo = max(bx - d_hi - c_first, 0)
+        hi = min(bx - d_lo - c_first, n - 1)
+        if hi < lo:
+            out[j] = _Match(REASON_SEARCH_OUTSIDE)
+            continue
+        if s_ok is not None:  # drop candidates whose right patch leaves the original right image
+            valid = np.flatnonzero(_windows_ok(s_ok, P)[lo : hi + 1]) + lo
+            if valid.size == 0:
+                out[j] = _Match(REASON_SEARCH_OUTSIDE)
+                continue
+            lo, hi = int(valid[0]), int(valid[-1])
+        sm = match_strip(T, S, params, lo, hi, refine=False)
+        if not sm.ok:
+            out[j] = _Match(sm.reason, score=sm.score)
+            continue
+        f_first = max(c_first + sm.integer_position - FINE_MARGIN_PX, 0)
+        f_last = min(c_first + sm.integer_position + P - 1 + FINE_MARGIN_PX, W - 2)
+        found[j] = (Lrow, l_ok, S, sm, lo, hi, f_first, f_last)
 
-    # Left-right check: the right patch at the integer match, searched along the left row.
-    d0 = bx - c_first - sm.integer_position
-    R0 = S[:, sm.integer_position : sm.integer_position + P]
-    r_col = bx - d0  # right patch's first grid column
-    # left patch for disparity d starts at column r_col + d, i.e. Lrow column r_col + d - l_first
-    l_lo = max(r_col + d_lo - l_first, 0)
-    l_hi = min(r_col + d_hi - l_first, Lrow.shape[1] - P)
-    if l_hi >= l_lo:
-        Lsub = Lrow[:, l_lo : l_hi + P]
-        lr_scores = cv2.matchTemplate(Lsub, np.ascontiguousarray(R0), cv2.TM_CCOEFF_NORMED).ravel()
-        if l_ok is not None:
-            lr_scores = np.where(_windows_ok(l_ok, P)[l_lo : l_hi + 1], lr_scores, -np.inf)
-        if np.isfinite(lr_scores.max()):
-            d_back = (l_first + l_lo + int(np.argmax(lr_scores))) - r_col
-            if abs(d_back - d0) > params.left_right_tolerance_px:
-                return _Match(REASON_LEFT_RIGHT, score=score)
-    if params.edge_shift_px > 0 and not _edge_check(rect, left, right, x0, y0, d, params):
-        return _Match(REASON_DEPTH_EDGE, score=score)
-    return _Match(None, d, sigma, score)
+    # Stage 3: the sub-pixel fit on Lanczos strips around the matches, before the wider-window
+    # check: cheaper, and the most frequent refusal (see the module docstring); neither depends
+    # on the other's outcome.
+    todo = list(found)
+    fine = sample_rectified_blocks(
+        rect, right, 1, [(found[j][6] + geo[j][4], geo[j][1], found[j][7] - found[j][6] + 1, P) for j in todo]
+    )
+    xs, sigmas, fit_scores, fit_reasons = refine_positions(
+        [T_fine[j] for j in todo], [f[0] for f in fine],
+        [found[j][3].position_px - (found[j][6] - strips[j][2]) for j in todo], params,
+    )  # fmt: skip
+
+    # Stage 4: the remaining checks, point by point.
+    for k, j in enumerate(todo):
+        x0, y0, bx, _, _ = geo[j]
+        d_lo, d_hi, c_first, _, l_first, _ = strips[j]
+        Lrow, l_ok, S, sm, lo, hi, f_first, _ = found[j]
+        x, sigma, score = float(xs[k]), float(sigmas[k]), float(fit_scores[k])
+        if fit_reasons[k] is not None:
+            out[j] = _Match(fit_reasons[k], score=score)
+            continue
+        if params.context_width_px > 0 and not _context_check(rect, left, right, x0, y0, c_first, sm, lo, hi, params):
+            out[j] = _Match(REASON_REPETITIVE, score=sm.score)
+            continue
+        d = bx - f_first - x
+
+        # Left-right check: the right patch at the integer match, searched along the left row.
+        d0 = bx - c_first - sm.integer_position
+        R0 = S[:, sm.integer_position : sm.integer_position + P]
+        r_col = bx - d0  # right patch's first grid column
+        # left patch for disparity d starts at column r_col + d, i.e. Lrow column r_col + d - l_first
+        l_lo = max(r_col + d_lo - l_first, 0)
+        l_hi = min(r_col + d_hi - l_first, Lrow.shape[1] - P)
+        if l_hi >= l_lo:
+            Lsub = Lrow[:, l_lo : l_hi + P]
+            lr_scores = cv2.matchTemplate(Lsub, np.ascontiguousarray(R0), cv2.TM_CCOEFF_NORMED).ravel()
+            if l_ok is not None:
+                lr_scores = np.where(_windows_ok(l_ok, P)[l_lo : l_hi + 1], lr_scores, -np.inf)
+            if np.isfinite(lr_scores.max()):
+                d_back = (l_first + l_lo + int(np.argmax(lr_scores))) - r_col
+                if abs(d_back - d0) > params.left_right_tolerance_px:
+                    out[j] = _Match(REASON_LEFT_RIGHT, score=score)
+                    continue
+        if params.edge_shift_px > 0 and not _edge_check(rect, left, right, x0, y0, d, params):
+            out[j] = _Match(REASON_DEPTH_EDGE, score=score)
+            continue
+        out[j] = _Match(None, d, sigma, score)
+    return out  # type: ignore[return-value]
 
 
 def _edge_check(
@@ -1018,12 +1293,11 @@ def measure_points(
     scores = [math.nan] * n
     disp = np.full(n, np.nan)
     sig_d = np.full(n, np.nan)
-    for i in range(n):
-        if inside[i]:
-            m = _match_rectified(rect, left, right, uv_rect[i], params, ranges[i])
-            reasons[i], scores[i] = m.reason, m.score
-            if m.reason is None:
-                disp[i], sig_d[i] = m.disparity_px, m.sigma_px
+    todo = [i for i in range(n) if inside[i]]
+    for i, m in zip(todo, _match_many(rect, left, right, uv_rect[todo], params, [ranges[i] for i in todo])):
+        reasons[i], scores[i] = m.reason, m.score
+        if m.reason is None:
+            disp[i], sig_d[i] = m.disparity_px, m.sigma_px
 
     right_uv = np.full((n, 2), np.nan)
     xyz = np.full((n, 3), np.nan)
