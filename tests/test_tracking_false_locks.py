@@ -111,3 +111,27 @@ def test_automatic_selection_refuses_points_off_the_bodys_depth(estec_rig) -> No
         assert len(z[margin]) >= 4
     assert np.all(np.abs(z[16.0] - 3.5) < 0.2), z[16.0]
     assert np.any(np.abs(z[400.0] - 1.6) < 0.1), z[400.0]
+
+
+def test_body_check_loses_a_target_that_crept_from_its_first_point(estec_rig) -> None:
+    scene = PlaneScene(estec_rig, pose_translating(3.5, (0.1, 0.05, 0.0), (0.0, 0.0, 0.2)), noise_sigma=1.0)
+    f0 = scene.frame(0)
+    tr = make_tracker(estec_rig)
+    add_all(tr, f0, corners(f0.left, 8))
+    for k in range(1, 6):
+        tr.step(scene.frame(k))
+    live = [tr._targets[t.id] for t in tr.targets if t.status != "lost"]
+    assert len(live) >= 6
+    P = np.array([t.point_cam for t in live])
+    Q = np.array([t.body_point for t in live])
+    # The plate turned 0.2 rad/s and moved: every first point, carried by the fitted motion,
+    # is still on its target (the fit and the points' noise stay far below the limit).
+    assert np.all(np.isfinite(Q))
+    assert tr._body_offsets_px(P, Q).max() < 0.3 * tr.params.body_drift_px
+    f = estec_rig.rectification.focal_px
+    crept = live[2]
+    for shift_px, lost in ((1.0, False), (2.0, True)):  # limit 1.5 px
+        crept.point_cam = P[2] + np.array([shift_px * P[2][2] / f, 0.0, 0.0])
+        bad = tr._body_drift(live)
+        assert list(bad) == ([crept.id] if lost else []), bad
+    crept.point_cam = P[2]
