@@ -369,9 +369,18 @@ def sample_rectified_blocks(
         return []
     if len(blocks) == 1:
         return [sample_rectified(rect, image, side, *blocks[0], interpolation=interpolation, exact=exact)]
+    mxs, mys, oks, roi = _block_maps(rect, image.shape, side, blocks, exact)
+    return list(zip(_remap_stacked(image, mxs, mys, roi, interpolation), oks))
+
+
+def _block_maps(
+    rect: Rectification, image_shape: tuple[int, ...], side: int, blocks: Sequence[tuple[float, float, int, int]], exact: bool
+) -> tuple[list[NDArray[np.float32]], list[NDArray[np.float32]], list[NDArray[np.bool_] | None], tuple[int, int, int, int] | None]:
+    """The maps and ``col_ok`` of each block as :func:`sample_rectified` computes them, and
+    (``exact``) the union ``(u0, v0, u1, v1)`` of the image regions their samples need."""
     mx_full, my_full = rect.maps[side]
     H, W = mx_full.shape
-    h_img, w_img = image.shape
+    h_img, w_img = image_shape
     mxs, mys, oks = [], [], []
     u0 = v0 = 1 << 30
     u1 = v1 = -1
@@ -395,20 +404,40 @@ def sample_rectified_blocks(
             u0, v0 = min(u0, bu0), min(v0, bv0)
             u1 = max(u1, max(min(int(math.floor(x_hi)) + 6, w_img), bu0 + 1))
             v1 = max(v1, max(min(int(math.floor(y_hi)) + 6, h_img), bv0 + 1))
-        mxs.append(mx.ravel())
-        mys.append(my.ravel())
+        mxs.append(mx)
+        mys.append(my)
         oks.append(col_ok)
-    total = sum(m.size for m in mxs)
-    rows = -(-total // _STACK_COLS)
-    MX = np.zeros(rows * _STACK_COLS, np.float32)
-    MY = np.zeros(rows * _STACK_COLS, np.float32)
-    np.concatenate(mxs, out=MX[:total])
-    np.concatenate(mys, out=MY[:total])
-    MX, MY = MX.reshape(rows, _STACK_COLS), MY.reshape(rows, _STACK_COLS)
-    if exact:
+    return mxs, mys, oks, ((u0, v0, u1, v1) if exact else None)
+
+
+def _remap_stacked(
+    image: NDArray[np.uint8],
+    mxs: Sequence[NDArray[np.float32]],
+    mys: Sequence[NDArray[np.float32]],
+    roi: tuple[int, int, int, int] | None,
+    interpolation: int,
+) -> list[NDArray[np.float32] | NDArray[np.uint8]]:
+    """Resample ``image`` at every block's maps in one ``cv2.remap``: from the float copy of
+    ``roi`` (float32 blocks), or from the image itself when ``roi`` is None (uint8 blocks)."""
+    sizes = [m.size for m in mxs]
+    total = sum(sizes)
+    if total == 0:
+        return [np.zeros(m.shape, np.float32 if roi else np.uint8) for m in mxs]
+    if len(mxs) == 1 and mxs[0].shape[1] < 32767:  # one block: its own maps
+        MX, MY = np.array(mxs[0], np.float32, order="C"), np.array(mys[0], np.float32, order="C")
+    else:
+        rows = -(-total // _STACK_COLS)
+        MX = np.zeros(rows * _STACK_COLS, np.float32)
+        MY = np.zeros(rows * _STACK_COLS, np.float32)
+        np.concatenate([m.ravel() for m in mxs], out=MX[:total])
+        np.concatenate([m.ravel() for m in mys], out=MY[:total])
+        MX, MY = MX.reshape(rows, _STACK_COLS), MY.reshape(rows, _STACK_COLS)
+    if roi is not None:
+        u0, v0, u1, v1 = roi
         src = image[v0:v1, u0:u1].astype(np.float32)
-        # subtracting a whole number from a float32 map entry is exact (Sterbenz-like: the
-        # difference is a multiple of the entry's ulp and smaller than it)
+        # subtracting a whole number from a float32 map entry is exact (the difference is a
+        # multiple of the entry's ulp and smaller than it), so the samples are those of the
+        # block's own region
         if u0:
             MX -= np.float32(u0)
         if v0:
@@ -418,9 +447,9 @@ def sample_rectified_blocks(
     flat = cv2.remap(src, MX, MY, interpolation, borderMode=cv2.BORDER_REPLICATE).ravel()
     out = []
     at = 0
-    for (_, _, width, height), col_ok in zip(blocks, oks):
-        out.append((flat[at : at + width * height].reshape(height, width), col_ok))
-        at += width * height
+    for m, size in zip(mxs, sizes):
+        out.append(flat[at : at + size].reshape(m.shape))
+        at += size
     return out
 
 
@@ -967,21 +996,26 @@ def _match_many(
         T_fine[j] = T
         strips[j] = (d_lo, d_hi, c_first, c_last, l_first, l_last)
 
-    # Stage 2: the bilinear left rows and right strips, the integer search.
+    # Stage 2: the bilinear right strips and left patches, the integer search. The left rows
+    # around the patches (for the left-right check) get their maps now but are resampled in
+    # stage 4, for the points that get there: the patch is their slice, the same samples.
     todo = list(strips)
-    lrows = sample_rectified_blocks(
-        rect, left, 0, [(strips[j][4] + geo[j][4], geo[j][1], strips[j][5] - strips[j][4] + 1, P) for j in todo],
-        cv2.INTER_LINEAR, exact=False,
-    )  # fmt: skip
+    lmx, lmy, lok, _ = _block_maps(
+        rect, left.shape, 0, [(strips[j][4] + geo[j][4], geo[j][1], strips[j][5] - strips[j][4] + 1, P) for j in todo], False
+    )
+    lrow_of = {j: k for k, j in enumerate(todo)}
+    tcol = [geo[j][2] - strips[j][4] for j in todo]  # the patch's first column in its left row
+    patches8 = _remap_stacked(
+        left, [mx[:, c : c + P] for mx, c in zip(lmx, tcol)], [my[:, c : c + P] for my, c in zip(lmy, tcol)], None, cv2.INTER_LINEAR
+    )
     rstrips = sample_rectified_blocks(
         rect, right, 1, [(strips[j][2] + geo[j][4], geo[j][1], strips[j][3] - strips[j][2] + 1, P) for j in todo],
         cv2.INTER_LINEAR, exact=False,
     )  # fmt: skip
     found: dict[int, tuple[Any, ...]] = {}
-    for j, (Lrow, l_ok), (S, s_ok) in zip(todo, lrows, rstrips):
+    for j, T, (S, s_ok) in zip(todo, patches8, rstrips):
         bx = geo[j][2]
         d_lo, d_hi, c_first, c_last, l_first, _ = strips[j]
-        T = np.ascontiguousarray(Lrow[:, bx - l_first : bx - l_first + P])
         # Column position x in the strip <-> disparity d = bx - (c_first + x).
         n = S.shape[1] - P + 1
         lo = max(bx - d_hi - c_first, 0)
@@ -1001,32 +1035,62 @@ def _match_many(
             continue
         f_first = max(c_first + sm.integer_position - FINE_MARGIN_PX, 0)
         f_last = min(c_first + sm.integer_position + P - 1 + FINE_MARGIN_PX, W - 2)
-        found[j] = (Lrow, l_ok, S, sm, lo, hi, f_first, f_last)
+        found[j] = (S, sm, lo, hi, f_first, f_last)
 
     # Stage 3: the sub-pixel fit on Lanczos strips around the matches, before the wider-window
     # check: cheaper, and the most frequent refusal (see the module docstring); neither depends
     # on the other's outcome.
     todo = list(found)
     fine = sample_rectified_blocks(
-        rect, right, 1, [(found[j][6] + geo[j][4], geo[j][1], found[j][7] - found[j][6] + 1, P) for j in todo]
+        rect, right, 1, [(found[j][4] + geo[j][4], geo[j][1], found[j][5] - found[j][4] + 1, P) for j in todo]
     )
     xs, sigmas, fit_scores, fit_reasons = refine_positions(
         [T_fine[j] for j in todo], [f[0] for f in fine],
-        [found[j][3].position_px - (found[j][6] - strips[j][2]) for j in todo], params,
+        [found[j][1].position_px - (found[j][4] - strips[j][2]) for j in todo], params,
     )  # fmt: skip
 
-    # Stage 4: the remaining checks, point by point.
+    # Stage 4: the wider-window check, the left-right check (on the left rows, resampled now
+    # for the points still in), the depth-edge check.
+    # The checks are independent, so each one's samples are taken for all the points it sees
+    # at once; a point's reason is still the first check it fails, in the single-point order.
+    plans: dict[int, bool | tuple[Any, ...]] = {}
     for k, j in enumerate(todo):
+        if fit_reasons[k] is not None:
+            out[j] = _Match(fit_reasons[k], score=float(fit_scores[k]))
+        elif params.context_width_px > 0:
+            S, sm, lo, hi, _, _ = found[j]
+            plans[j] = _context_plan(rect, geo[j][0], geo[j][1], strips[j][2], sm, lo, hi, params)
+        else:
+            plans[j] = True
+    need = [j for j, pl in plans.items() if not isinstance(pl, bool)]
+    lcs = sample_rectified_blocks(rect, left, 0, [plans[j][0] for j in need], cv2.INTER_LINEAR, exact=False)  # type: ignore[index]
+    scs = sample_rectified_blocks(rect, right, 1, [plans[j][1] for j in need], cv2.INTER_LINEAR, exact=False)  # type: ignore[index]
+    for j, (Lc, _), (Sc, _) in zip(need, lcs, scs):
+        plans[j] = _context_decide(plans[j], Lc, Sc, params)  # type: ignore[arg-type]
+    kept = []
+    for k, j in enumerate(todo):
+        if j in plans:
+            if plans[j]:
+                kept.append((k, j))
+            else:
+                out[j] = _Match(REASON_REPETITIVE, score=found[j][1].score)
+    lrows = _remap_stacked(
+        left, [lmx[lrow_of[j]] for _, j in kept], [lmy[lrow_of[j]] for _, j in kept], None, cv2.INTER_LINEAR
+    )
+    edge: dict[int, Any] = {}
+    if params.edge_shift_px > 0:
+        for k, j in kept:
+            edge[j] = _edge_blocks(rect, geo[j][0], geo[j][1], geo[j][2] - found[j][4] - float(xs[k]), params)
+    need = [j for j, eb in edge.items() if eb is not None]
+    els = sample_rectified_blocks(rect, left, 0, [edge[j][0] for j in need], cv2.INTER_LINEAR, exact=False)
+    ers = sample_rectified_blocks(rect, right, 1, [edge[j][1] for j in need], cv2.INTER_LINEAR, exact=False)
+    edge_samples = {j: (L[0], R[0]) for j, L, R in zip(need, els, ers)}
+    for (k, j), Lrow in zip(kept, lrows):
         x0, y0, bx, _, _ = geo[j]
         d_lo, d_hi, c_first, _, l_first, _ = strips[j]
-        Lrow, l_ok, S, sm, lo, hi, f_first, _ = found[j]
+        S, sm, lo, hi, f_first, _ = found[j]
+        l_ok = lok[lrow_of[j]]
         x, sigma, score = float(xs[k]), float(sigmas[k]), float(fit_scores[k])
-        if fit_reasons[k] is not None:
-            out[j] = _Match(fit_reasons[k], score=score)
-            continue
-        if params.context_width_px > 0 and not _context_check(rect, left, right, x0, y0, c_first, sm, lo, hi, params):
-            out[j] = _Match(REASON_REPETITIVE, score=sm.score)
-            continue
         d = bx - f_first - x
 
         # Left-right check: the right patch at the integer match, searched along the left row.
@@ -1046,7 +1110,7 @@ def _match_many(
                 if abs(d_back - d0) > params.left_right_tolerance_px:
                     out[j] = _Match(REASON_LEFT_RIGHT, score=score)
                     continue
-        if params.edge_shift_px > 0 and not _edge_check(rect, left, right, x0, y0, d, params):
+        if j in edge_samples and not _edge_decide(*edge_samples[j], d, params):
             out[j] = _Match(REASON_DEPTH_EDGE, score=score)
             continue
         out[j] = _Match(None, d, sigma, score)
@@ -1089,19 +1153,41 @@ def _edge_check(
         x0, y0: rectified position of the patch's top-left sample, px.
         d: the patch's refined disparity, px.
     """
+    blocks = _edge_blocks(rect, x0, y0, d, params)
+    if blocks is None:
+        return True
+    L = sample_rectified(rect, left, 0, *blocks[0], cv2.INTER_LINEAR, exact=False)[0]
+    R = sample_rectified(rect, right, 1, *blocks[1], cv2.INTER_LINEAR, exact=False)[0]
+    return _edge_decide(L, R, d, params)
+
+
+_EDGE_REACH = 3  # integer disparities the depth-edge check searches either side of round(d)
+
+
+def _edge_blocks(
+    rect: Rectification, x0: float, y0: float, d: float, params: MeasureParams
+) -> tuple[tuple[float, float, int, int], tuple[float, float, int, int]] | None:
+    """The left and right blocks ``(x0, y0, width, height)`` :func:`_edge_check` samples, or
+    None near the image border (check skipped)."""
     P, sh = params.patch_size, params.edge_shift_px
     W, H = rect.rig.image_size
     bx, by = math.floor(x0), math.floor(y0)
     fx = x0 - bx
-    reach = 3  # integer disparities searched either side of round(d)
+    reach = _EDGE_REACH
     di = int(round(d))
     r0 = bx - di - sh - reach  # right block's first grid column
     if bx - sh < 0 or by - sh < 0 or bx + P + sh + 1 >= W or by + P + sh + 1 >= H or r0 < 0 or r0 + P + 2 * (sh + reach) + 1 >= W:
-        return True
+        return None
     # One left and one right block (bilinear, 8 bit: the test needs tenths of a pixel, not
     # hundredths) hold all four windows and their searches.
-    L = sample_rectified(rect, left, 0, x0 - sh, y0 - sh, P + 2 * sh, P + 2 * sh, cv2.INTER_LINEAR, exact=False)[0]
-    R = sample_rectified(rect, right, 1, r0 + fx, y0 - sh, P + 2 * (sh + reach), P + 2 * sh, cv2.INTER_LINEAR, exact=False)[0]
+    return (x0 - sh, y0 - sh, P + 2 * sh, P + 2 * sh), (r0 + fx, y0 - sh, P + 2 * (sh + reach), P + 2 * sh)
+
+
+def _edge_decide(L: NDArray[np.uint8], R: NDArray[np.uint8], d: float, params: MeasureParams) -> bool:
+    """:func:`_edge_check`'s decision on its sampled blocks (:func:`_edge_blocks`)."""
+    P, sh = params.patch_size, params.edge_shift_px
+    reach = _EDGE_REACH
+    di = int(round(d))
     disp = []
     for dx, dy in ((-sh, 0), (sh, 0), (0, -sh), (0, sh)):
         T = np.ascontiguousarray(L[sh + dy : sh + dy + P, sh + dx : sh + dx + P])
@@ -1164,6 +1250,20 @@ def _context_check(
     Returns:
         True when there is no rival peak or the wide window prefers the best one.
     """
+    plan = _context_plan(rect, x0, y0, c_first, sm, lo, hi, params)
+    if isinstance(plan, bool):
+        return plan
+    Lc = sample_rectified(rect, left, 0, *plan[0], cv2.INTER_LINEAR, exact=False)[0]
+    S = sample_rectified(rect, right, 1, *plan[1], cv2.INTER_LINEAR, exact=False)[0]
+    return _context_decide(plan, Lc, S, params)
+
+
+def _context_plan(
+    rect: Rectification, x0: float, y0: float, c_first: int, sm: StripMatch, lo: int, hi: int, params: MeasureParams
+) -> bool | tuple[Any, ...]:
+    """:func:`_context_check`'s decision when it needs no samples (True: no rival peak; False:
+    no room for the right window), else its left and right blocks ``(x0, y0, width, height)``
+    and what :func:`_context_decide` needs."""
     sc = sm.scores
     best = sm.integer_position
     inner = sc[lo : hi + 1]
@@ -1188,7 +1288,6 @@ def _context_check(
     fx, fy = x0 - math.floor(x0), y0 - math.floor(y0)
     bx0 = min(max(math.floor(x0) - (cw - P) // 2, 0), W - 2 - cw)
     by0 = min(max(math.floor(y0) - (ch - P) // 2, 0), H - 2 - ch)
-    Lc = sample_rectified(rect, left, 0, bx0 + fx, by0 + fy, cw, ch, cv2.INTER_LINEAR, exact=False)[0]
     # Right column of window column j for candidate disparity d_c, stretched by s about the
     # patch centre Xc: Xr = Xc - d_c + s (X_j - Xc).
     xc = x0 + 0.5 * (P - 1)
@@ -1199,9 +1298,14 @@ def _context_check(
     r_hi = min(math.ceil(float(xr.max())) + 1, W - 2)
     if r_hi - r_lo < 2:
         return False
-    S = sample_rectified(rect, right, 1, r_lo + fx, by0 + fy, r_hi - r_lo + 1, ch, cv2.INTER_LINEAR, exact=False)[0]
+    return (bx0 + fx, by0 + fy, cw, ch), (r_lo + fx, by0 + fy, r_hi - r_lo + 1, ch), xr, r_lo + fx, len(cand), len(scales)
+
+
+def _context_decide(plan: tuple[Any, ...], Lc: NDArray[np.uint8], S: NDArray[np.uint8], params: MeasureParams) -> bool:
+    """:func:`_context_check`'s decision on its sampled blocks (:func:`_context_plan`)."""
+    (_, _, cw, ch), _, xr, s_first, n_cand, n_scales = plan
     # every (candidate, scale) window side by side, resampled in one bilinear remap
-    pos = np.clip(xr - (r_lo + fx), 0.0, S.shape[1] - 1.0).astype(np.float32).reshape(1, -1)
+    pos = np.clip(xr - s_first, 0.0, S.shape[1] - 1.0).astype(np.float32).reshape(1, -1)
     rows = np.arange(ch, dtype=np.float32).reshape(-1, 1)
     R = cv2.remap(S, np.repeat(pos, ch, axis=0), np.repeat(rows, pos.shape[1], axis=1), cv2.INTER_LINEAR)
     R = R.astype(np.float32).reshape(ch, -1, cw).transpose(1, 0, 2).reshape(-1, ch * cw)
@@ -1209,7 +1313,7 @@ def _context_check(
     Tc = Lc.astype(np.float32).ravel()
     Tc -= Tc.mean()
     den = np.sqrt(np.einsum("ij,ij->i", R, R) * float(Tc @ Tc))
-    zn = (R @ Tc / np.maximum(den, 1e-12)).reshape(len(cand), len(scales)).max(axis=1)
+    zn = (R @ Tc / np.maximum(den, 1e-12)).reshape(n_cand, n_scales).max(axis=1)
     return bool(zn[0] >= float(zn[1:].max()) + params.context_margin)
 
 
