@@ -215,3 +215,43 @@ def test_automatic_selection_keeps_the_count_alive(scene, estec_rig) -> None:
         states = tr.step(scene.frame(k))
     assert sum(t.status != "lost" for t in states) == 10
     assert len(dataclasses.fields(TrackerParams)) > 10
+
+
+def test_relock_many_equals_one_relock_after_another(scene, estec_rig) -> None:
+    """The batched re-lock (one search, fit and stereo match for all) gives each target the
+    result a relock of its own gives; unknown ids are refused in their slot."""
+    import copy
+
+    f0 = scene.frame(0)
+    tr = make_tracker(estec_rig, recover_lost=False)
+    add_all(tr, f0, interior_points(f0, 8))
+    for k in (1, 2):
+        tr.step(scene.frame(k))
+    alive = [t for t in tr.targets if t.status == "tracking"][:4]
+    assert len(alive) >= 3
+    f3 = scene.frame(3)
+    left = f3.left.copy()
+    for t in alive:
+        u, v = np.round(t.uv).astype(int)
+        left[v - 12 : v + 13, u - 12 : u + 13] = 0
+    tr.step(StereoFrame(3, f3.t_s, left, f3.right))
+    f4 = scene.frame(4)
+    tr.step(f4)
+    requests = []
+    for i, t in enumerate(alive):
+        true_uv, _ = scene.project(4, scene.surface_points(2, t.uv[None]))
+        # The last one is predicted far off (found nowhere near): refused, not misplaced.
+        requests.append((t.id, tuple(true_uv[0] + (1.0 if i < len(alive) - 1 else 60.0))))
+    requests.insert(1, ("no-such-id", (100.0, 100.0)))
+    one_by_one = copy.deepcopy(tr)
+    single = [one_by_one.relock(tid, uv, f4) for tid, uv in requests]
+    batched = tr.relock_many(requests, f4)
+    assert [type(r) for r in batched] == [type(r) for r in single]
+    assert isinstance(batched[1], Refusal) and "no target named" in batched[1].reason
+    assert sum(isinstance(r, TargetState) for r in batched) >= 2
+    for b, s in zip(batched, single):
+        if isinstance(b, TargetState):
+            assert b.status == "recovered"
+            assert np.allclose(b.uv, s.uv, atol=1e-9) and np.allclose(b.point_cam, s.point_cam, atol=1e-9)
+        else:
+            assert b.reason == s.reason

@@ -437,14 +437,32 @@ class Tracker:
         """Re-lock a (lost) target near ``uv_predicted`` (e.g. a model point reprojected through
         the current pose, paper 2.D): anchor-template search in ``recover_search_px``, strict
         score, stereo re-match. The target is ``recovered`` on success."""
-        uvf = np.asarray(uv_predicted, dtype=float).reshape(2)
-        key = (float(uvf[0]), float(uvf[1]))
-        t = self._targets.get(target_id)
-        if t is None:
-            return Refusal(key, f"no target named {target_id!r}")
-        fc = self._frame(frame)
-        ok, reason = self._try_recover(fc, frame, t, uvf)
-        return t.state() if ok else Refusal(key, reason or "not found")
+        return self.relock_many([(target_id, uv_predicted)], frame)[0]
+
+    def relock_many(
+        self, requests: Sequence[tuple[str, tuple[float, float]]], frame: StereoFrame
+    ) -> list[TargetState | Refusal]:
+        """:meth:`relock` for several targets at once, ``requests`` = ``[(target_id, uv_predicted)]``;
+        one result per request, in order. The searches, the sub-pixel fits and the stereo
+        matches are each one batched call (most of their cost is per call, not per target)."""
+        results: list[TargetState | Refusal | None] = [None] * len(requests)
+        targets: list[_Target] = []
+        centres: list[FloatArray] = []
+        slots: list[int] = []
+        for k, (target_id, uv_predicted) in enumerate(requests):
+            uvf = np.asarray(uv_predicted, dtype=float).reshape(2)
+            t = self._targets.get(target_id)
+            if t is None:
+                results[k] = Refusal((float(uvf[0]), float(uvf[1])), f"no target named {target_id!r}")
+                continue
+            targets.append(t)
+            centres.append(uvf)
+            slots.append(k)
+        if targets:
+            outcomes = self._try_recover(self._frame(frame), frame, targets, np.array(centres))
+            for k, t, uvf, (ok, reason) in zip(slots, targets, centres, outcomes):
+                results[k] = t.state() if ok else Refusal((float(uvf[0]), float(uvf[1])), reason or "not found")
+        return results  # type: ignore[return-value]
 
     # ------------------------------------------------------------------ stereo
 
@@ -483,19 +501,26 @@ class Tracker:
 
     # ------------------------------------------------------------------ recovery
 
-    def _try_recover(self, fc: _FrameCache, frame: StereoFrame, t: _Target, centre: FloatArray) -> tuple[bool, str | None]:
-        """Re-find lost target ``t`` near ``centre`` (2,) (the step batches the same pieces for
-        all its lost targets); returns ``(recovered, why not)``."""
-        centres = np.asarray(centre, dtype=float).reshape(1, 2)
-        out, found_i, starts = self._recover_search(fc, [t], centres)
+    def _try_recover(
+        self, fc: _FrameCache, frame: StereoFrame, targets: list[_Target], centres: FloatArray
+    ) -> list[tuple[bool, str | None]]:
+        """Re-find lost ``targets`` near ``centres`` (N,2) (the step batches the same pieces for
+        its own lost targets); returns ``(recovered, why not)`` per target."""
+        centres = np.asarray(centres, dtype=float).reshape(-1, 2)
+        out, found_i, starts = self._recover_search(fc, targets, centres)
         if not found_i:
-            return out[0]
-        res = self._fit_patches(fc, [t], np.array(starts))
-        if not self._recover_refined(res, np.arange(1), found_i, out):
-            return out[0]
-        lo, span = self._recover_disparities([t])
-        m = self._stereo(fc, res.uv[:1], lo, span)
-        return self._recover_accept(fc, frame, t, centres[0], res, 0, m, 0)
+            return out
+        found = [targets[i] for i in found_i]
+        res = self._fit_patches(fc, found, np.array(starts))
+        refined = self._recover_refined(res, np.arange(len(found)), found_i, out)
+        if not refined:
+            return out
+        lo, span = self._recover_disparities([found[k] for k in refined])
+        m = self._stereo(fc, res.uv[refined], lo, span)
+        for j, k in enumerate(refined):
+            i = found_i[k]
+            out[i] = self._recover_accept(fc, frame, targets[i], centres[i], res, k, m, j)
+        return out
 
     def _recover_disparities(self, targets: list[_Target]) -> tuple[FloatArray, NDArray]:
         """Disparity search of re-found targets ``(d_low (N,), span (N,))``: twice the tracking
