@@ -23,7 +23,9 @@ figures on 726x512 frames of the simulated mock-up (``estec`` scenario, frames 0
   ``select_ms_16``'s calls that a fresh tracker's ``add_target`` accepts (the measurement's
   own checks), without and with the pyramid.
 - ``measure_ms_per_candidate_16``: one ``measure_points`` call on those 16 points (as the
-  tracker's top-up measures its candidates, most of which the measurement refuses), per point.
+  tracker's top-up measures its candidates, most of which the measurement refuses), per point;
+  ``measure_ms_per_candidate_16_one_by_one``: the same points one call each (same results, see
+  ``tests/test_matching_batch.py``), same run; ``measure_batch_ratio_16`` = the first over it.
 """
 
 from __future__ import annotations
@@ -121,6 +123,11 @@ def run() -> dict[str, float]:
             if key == "accept_rate_16" and len(pts):
                 timed("measure_ms_per_candidate_16", lambda: measure_points(rig, L, R, pts, cfg.measure))
                 times["measure_ms_per_candidate_16"][-1] /= len(pts)
+                timed(
+                    "measure_ms_per_candidate_16_one_by_one",
+                    lambda: [measure_points(rig, L, R, p[None], cfg.measure) for p in pts],
+                )
+                times["measure_ms_per_candidate_16_one_by_one"][-1] /= len(pts)
             tracker = Tracker(rig, dataclasses.replace(cfg.tracker, max_targets=64), cfg.features, cfg.measure)
             accepted[key][0] += sum(isinstance(tracker.add_target(f, (float(u), float(v))), TargetState) for u, v in pts)
             accepted[key][1] += len(pts)
@@ -130,6 +137,7 @@ def run() -> dict[str, float]:
     out["select_ratio_vs_shi_tomasi"] = out["select_ms_4"] / out["select_ms_4_shi_tomasi"]
     out["gabor_speedup_vs_2d"] = out["gabor_score_ms_2d"] / out["gabor_score_ms"]
     out["stereo_speedup_vs_full_line"] = out["stereo_check_ms_40_full_line"] / out["stereo_check_ms_40"]
+    out["measure_batch_ratio_16"] = out["measure_ms_per_candidate_16"] / out["measure_ms_per_candidate_16_one_by_one"]
     for key, (n_ok, n_all) in accepted.items():
         out[key] = n_ok / max(n_all, 1)
     return out
