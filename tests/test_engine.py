@@ -278,6 +278,28 @@ def test_new_points_join_the_model_with_true_body_coordinates(estec_rig) -> None
     assert engine.stats.model_points_joined == 4
 
 
+@pytest.mark.parametrize("correlated", [False, True])
+def test_grown_point_keeps_its_share_of_the_pose_error(estec_rig, correlated: bool) -> None:
+    """pose.model_pose_error_correlated: a grown point observed over 50 frames through poses
+    with (nearly) the same error keeps that error's covariance ``R^T J cov J^T R`` (J: the point's
+    position Jacobian in the pose); fused as independent, its covariance falls well below it."""
+    from dataclasses import replace
+
+    from trackmeter.pipeline.engine import _position_cov
+
+    config = load_config()
+    config = replace(config, pose=replace(config.pose, model_pose_error_correlated=correlated))
+    engine, _, _, _ = growing_engine(estec_rig, config)
+    run(engine, range(10, 60))
+    R, _, cov = engine._last_fit
+    m = engine._model["a1"]
+    share = np.trace(R.T @ _position_cov(cov, m.b, R) @ R)
+    if correlated:
+        assert np.trace(m.cov) >= 0.9 * share
+    else:
+        assert np.trace(m.cov) < 0.5 * share
+
+
 def test_pose_comes_back_after_every_point_was_lost_through_the_carried_pose(estec_rig) -> None:
     """Paper 2.D through a total loss (an occluder passes): the model points are re-locked at
     their projection through the last pose carried forward at its last velocities."""

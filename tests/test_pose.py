@@ -14,6 +14,7 @@ from trackmeter.core.pose import (
     PoseParams,
     choose_frame_points,
     fuse_point,
+    fuse_point_correlated,
     robust_pose,
     solve_pose,
     three_point_body_frame,
@@ -136,6 +137,28 @@ def test_several_outliers_among_many(estec_rig) -> None:
     assert Rotation.from_matrix(fit.R_cam_body @ R.T).magnitude() < np.radians(0.2)
 
 
+def test_outlier_in_a_self_consistent_triple_among_five(estec_rig) -> None:
+    """Five points, one of them (point 2) measured as if the body were turned 10 deg about the
+    line through points 0 and 1: the triple (0, 1, 2) fits that wrong pose exactly, as every
+    triple of the four good points fits the true one, so the median residual (the 3rd of 5)
+    is zero for both. The consensus must judge by the 4th smallest and keep the true pose."""
+    b = satellite_points(5, seed=3)
+    R, t = true_pose()
+    axis = (b[1] - b[0]) / np.linalg.norm(b[1] - b[0])
+    turn = Rotation.from_rotvec(np.radians(10.0) * axis).as_matrix()
+    b_seen = b.copy()
+    b_seen[2] = b[0] + turn @ (b[2] - b[0])
+    p = b_seen @ R.T + t
+    C = covariances(estec_rig, p)
+    # A little noise on points 3 and 4 only: the bad triple is then the only exact one, and a
+    # median that can sit on its zeros picks it (the old criterion did: 10 deg off).
+    p[3:] = noisy(p[3:], 0.1 * C[3:], np.random.default_rng(0))
+    fit = robust_pose(b, p, C, seed=0)
+    assert fit.inliers.tolist() == [True, True, False, True, True]
+    angle = np.degrees(Rotation.from_matrix(fit.R_cam_body @ R.T).magnitude())
+    assert angle < 0.05 and np.linalg.norm(fit.t_cam_body - t) < 0.001
+
+
 def test_too_few_or_collinear_points_refused(estec_rig) -> None:
     b = satellite_points(2)
     with pytest.raises(TrackmeterError, match="at least 3"):
@@ -194,6 +217,38 @@ def test_fuse_point_is_information_weighted() -> None:
     b, C = fuse_point(np.zeros(3), np.eye(3) * 4.0, np.ones(3), np.eye(3) * 1.0)
     np.testing.assert_allclose(b, np.full(3, 0.8))
     np.testing.assert_allclose(C, np.eye(3) * 0.8)
+
+
+def test_fuse_point_correlated_without_pose_error_is_fuse_point() -> None:
+    rng = np.random.default_rng(0)
+    A1, A2 = rng.normal(size=(3, 3)), rng.normal(size=(3, 3))
+    C1, C2 = A1 @ A1.T + np.eye(3), A2 @ A2.T + 0.1 * np.eye(3)
+    b1, b2 = rng.normal(size=3), rng.normal(size=3)
+    b, Cm, L = fuse_point_correlated(b1, C1, np.zeros((3, 6)), b2, C2, np.zeros((3, 6)))
+    b_ref, C_ref = fuse_point(b1, C1, b2, C2)
+    np.testing.assert_allclose(b, b_ref, atol=1e-12)
+    np.testing.assert_allclose(Cm, C_ref, atol=1e-12)
+    np.testing.assert_allclose(L, 0.0)
+
+
+def test_fuse_point_correlated_keeps_a_common_pose_error() -> None:
+    """Scalar closed form per axis: measurement variances 4 and 1, a common pose error of std
+    0.5 (the same z in both). Weights from the totals 4.25 and 1.25: a = 1.25/5.5, b = 4.25/5.5;
+    the measurement part a²4 + b²1, the pose part (a 0.5 + b 0.5)² = 0.25 (not averaged away),
+    and the fused total is the variance of a e1 + b e2 by Monte Carlo."""
+    L = np.zeros((3, 6))
+    L[:, :3] = 0.5 * np.eye(3)
+    b, Cm, Lf = fuse_point_correlated(np.zeros(3), 4.0 * np.eye(3), L, np.ones(3), np.eye(3), L)
+    a, bb = 1.25 / 5.5, 4.25 / 5.5
+    np.testing.assert_allclose(b, np.full(3, bb))
+    np.testing.assert_allclose(Cm, (a**2 * 4 + bb**2) * np.eye(3))
+    np.testing.assert_allclose(Lf @ Lf.T, 0.25 * np.eye(3))
+    rng = np.random.default_rng(1)
+    z = rng.standard_normal(200_000)
+    e = a * (2.0 * rng.standard_normal(z.size) + 0.5 * z) + bb * (rng.standard_normal(z.size) + 0.5 * z)
+    assert abs(np.var(e) - (Cm[0, 0] + 0.25)) < 0.01
+    # Independent fusion would have claimed (1/4.25 + 1/1.25)^-1 < 1 - less than the pose part alone allows.
+    assert (Cm + Lf @ Lf.T)[0, 0] > 1 / (1 / 4.25 + 1 / 1.25)
 
 
 def test_params_defaults_are_valid() -> None:

@@ -86,6 +86,11 @@ class PoseParams:
     join_after_frames: int = param(
         1, "a new target joins the model after this many consecutive consistent frames", min=1
     )
+    model_pose_error_correlated: bool = param(
+        False, "a grown model point's share of the pose error is common to all its observations and is not "
+        "averaged away (fuse_point_correlated): points grown through drifting poses stay as uncertain as "
+        "those poses, so the a-priori points keep their say; off: observations fused as independent"
+    )
     still_time_s: float = param(2.0, "case (c): how long the object must be held still to acquire a model, s", min=0.0)
     still_max_d2: float = param(
         9.0, "case (c): largest mean squared Mahalanobis scatter of a point about its mean still counted as "
@@ -268,7 +273,8 @@ def robust_pose(
 
     1. With N >= 4 points, try up to ``params.ransac_trials`` triples (all of them when there
        are fewer; deterministic for a given ``seed``) plus ``initial`` when given; keep the
-       pose whose median squared Mahalanobis residual over all points is smallest.
+       pose whose median squared Mahalanobis residual over all points (at least the 4th
+       smallest: a triple fits itself exactly) is smallest.
     2. Robust scale ``s² = median(d²) / median(chi2_3)`` (only ever >= 1: honest covariances are
        kept); points with ``d² > s² chi2_3(outlier_probability)`` are outliers.
     3. :func:`solve_pose` on the inliers; re-gate every point against the refined pose (a
@@ -317,7 +323,13 @@ def robust_pose(
             W = np.linalg.inv(C)
             r = np.einsum("kij,nj->kni", R_k, b) + t_k[:, None, :] - p[None]
             d2 = np.einsum("kni,nij,knj->kn", r, W, r)
-            best = int(np.argmin(np.median(d2, axis=1)))
+            # The median, but never below the 4th-smallest residual: a minimal triple fits itself
+            # exactly, so with 4-7 points the median can be one of its own zeros, and a triple
+            # holding an outlier (its pose rotated about the line of the other two) would tie
+            # with the true pose and win by its place in the list (Rousseeuw & Leroy's LMS takes
+            # the h-th order statistic, h = [n/2] + [(p+1)/2], for the same reason).
+            crit = np.maximum(np.median(d2, axis=1), np.partition(d2, min(3, n - 1), axis=1)[:, min(3, n - 1)])
+            best = int(np.argmin(crit))
             start = (R_k[best], t_k[best])
             med = float(np.median(d2[best]))
             scale2 = max(1.0, med / _CHI2_3_MEDIAN)
@@ -413,6 +425,44 @@ def fuse_point(b_old: FloatArray, C_old: FloatArray, b_new: FloatArray, C_new: F
     W_new = np.linalg.inv(C_new)
     C = np.linalg.inv(W_old + W_new)
     return C @ (W_old @ b_old + W_new @ b_new), 0.5 * (C + C.T)
+
+
+def fuse_point_correlated(
+    b_old: FloatArray, Cm_old: FloatArray, L_old: FloatArray,
+    b_new: FloatArray, Cm_new: FloatArray, L_new: FloatArray,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Fuse two estimates of one body point whose errors share the pose's error.
+
+    A body point observed through an estimated pose, ``b = R^T (p - t)``, carries two errors:
+    the measurement's, independent from frame to frame (covariance ``Cm``), and the pose's,
+    ``L z`` with ``z`` the pose error in whitened units (``L`` (3,K) maps it to the point). The
+    pose errors of consecutive frames are nearly the same (they come from the same model
+    points), so averaging observations must not shrink that part: :func:`fuse_point` would, and
+    a grown point would soon claim more precision than the pose it was measured through.
+
+    Here ``z`` is taken as common to both estimates (perfect correlation). With the weights of
+    the usual information mean, ``A = C Cold^-1``, ``B = C Cnew^-1``, ``C = (Cold^-1 + Cnew^-1)^-1``
+    (``C* = Cm* + L* L*^T``), the fused point ``b = A b_old + B b_new`` has the exact error
+    decomposition ``Cm = A Cm_old A^T + B Cm_new B^T`` and ``L = A L_old + B L_new``: with equal
+    ``L`` the pose part stays as it is, with ``L = 0`` this is :func:`fuse_point`.
+
+    Args:
+        b_old, b_new: (3,) estimates, body frame, m.
+        Cm_old, Cm_new: (3,3) independent (measurement) covariances, m².
+        L_old, L_new: (3,K) pose-error factors, m per unit of ``z``.
+
+    Returns:
+        ``(b (3,), Cm (3,3), L (3,K))``; the total covariance is ``Cm + L L^T``.
+    """
+    C_old = Cm_old + L_old @ L_old.T
+    C_new = Cm_new + L_new @ L_new.T
+    W_old = np.linalg.inv(C_old)
+    W_new = np.linalg.inv(C_new)
+    C = np.linalg.inv(W_old + W_new)
+    A = C @ W_old
+    B = C @ W_new
+    Cm = A @ Cm_old @ A.T + B @ Cm_new @ B.T
+    return A @ b_old + B @ b_new, 0.5 * (Cm + Cm.T), A @ L_old + B @ L_new
 
 
 def pose_between_models(model_from: FloatArray, model_to: FloatArray) -> tuple[FloatArray, FloatArray]:

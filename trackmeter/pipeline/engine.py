@@ -49,7 +49,7 @@ from trackmeter.core.output_filter import FilterParams, PoseFilter
 from trackmeter.core.pose import (
     PoseParams,
     choose_frame_points,
-    fuse_point,
+    fuse_point_correlated,
     robust_pose,
     three_point_body_frame,
     to_body,
@@ -88,17 +88,24 @@ class SelectModelPoints(Command):
     body are measured on the wrong surface and rejected as outliers by the pose."""
 
 
+_NO_POSE_ERROR = np.zeros((3, 6))
+
+
 @dataclass
 class _ModelPoint:
     b: FloatArray  # (3,) body frame, m
-    cov: FloatArray  # (3,3) m²; zeros for an a-priori point
+    cov: FloatArray  # (3,3) m², total (cm + L L^T); zeros for an a-priori point
     fixed: bool  # a-priori: never refined
+    cm: FloatArray | None = None  # (3,3) m², the independent (measurement) part; None: all of cov
+    L: FloatArray = field(default_factory=lambda: _NO_POSE_ERROR)  # (3,6) pose-error factor, m
 
 
 @dataclass
 class _Candidate:
     b: FloatArray
     cov: FloatArray
+    cm: FloatArray
+    L: FloatArray
     count: int = 1
 
 
@@ -559,37 +566,48 @@ class Engine:
         it was established; case c: the frozen frame), carried by every point afterwards."""
         p = self.pose_params
 
-        def observe(tgt: TargetState) -> tuple[FloatArray, FloatArray]:
+        L_pose = np.linalg.cholesky(0.5 * (cov + cov.T) + 1e-18 * np.eye(6)) if p.model_pose_error_correlated else None
+
+        def observe(tgt: TargetState) -> tuple[FloatArray, FloatArray, FloatArray]:
+            """Body-frame observation, its measurement covariance and its pose-error factor."""
             b_obs = R.T @ (tgt.point_cam - t)
-            C_cam = scale2 * np.asarray(tgt.cov_cam, float) + _position_cov(cov, b_obs, R)
-            return b_obs, R.T @ C_cam @ R
+            Cm = R.T @ (scale2 * np.asarray(tgt.cov_cam, float)) @ R
+            if L_pose is None:
+                return b_obs, Cm + R.T @ _position_cov(cov, b_obs, R) @ R, _NO_POSE_ERROR
+            return b_obs, Cm, R.T @ _position_jacobian(b_obs, R) @ L_pose
+
+        def fuse(b: FloatArray, cm: FloatArray, L: FloatArray, b_obs: FloatArray, cm_obs: FloatArray,
+                 L_obs: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+            b, cm, L = fuse_point_correlated(b, cm, L, b_obs, cm_obs, L_obs)
+            return b, cm, L, cm + L @ L.T
 
         if p.model_refine:
             for n, pid in enumerate(ids):
                 m = self._model[pid]
                 if m.fixed or not inliers[n]:
                     continue
-                b_obs, C_obs = observe(measured[pid])
-                m.b, m.cov = fuse_point(m.b, m.cov, b_obs, C_obs)
+                b_obs, cm_obs, L_obs = observe(measured[pid])
+                m.b, m.cm, m.L, m.cov = fuse(m.b, m.cov if m.cm is None else m.cm, m.L, b_obs, cm_obs, L_obs)
         # Candidates: measured targets not yet in the model.
         for tid, tgt in measured.items():
             if tid in self._model:
                 continue
-            b_obs, C_obs = observe(tgt)
+            b_obs, cm_obs, L_obs = observe(tgt)
             cand = self._candidates.get(tid)
             if cand is None:
-                self._candidates[tid] = _Candidate(b_obs, C_obs)
+                self._candidates[tid] = _Candidate(b_obs, cm_obs + L_obs @ L_obs.T, cm_obs, L_obs)
                 cand = self._candidates[tid]
             else:
                 r = b_obs - cand.b
-                d2 = float(r @ np.linalg.solve(cand.cov + C_obs, r))
+                # The innovation's pose parts partly cancel; their sum bounds it (a loose gate).
+                d2 = float(r @ np.linalg.solve(cand.cov + cm_obs + L_obs @ L_obs.T, r))
                 if d2 > self._gate:
-                    self._candidates[tid] = _Candidate(b_obs, C_obs)
+                    self._candidates[tid] = _Candidate(b_obs, cm_obs + L_obs @ L_obs.T, cm_obs, L_obs)
                     continue
-                cand.b, cand.cov = fuse_point(cand.b, cand.cov, b_obs, C_obs)
+                cand.b, cand.cm, cand.L, cand.cov = fuse(cand.b, cand.cm, cand.L, b_obs, cm_obs, L_obs)
                 cand.count += 1
             if cand.count >= p.join_after_frames:
-                self._model[tid] = _ModelPoint(cand.b, cand.cov, False)
+                self._model[tid] = _ModelPoint(cand.b, cand.cov, False, cand.cm, cand.L)
                 del self._candidates[tid]
                 self.stats.model_points_joined += 1
 
@@ -736,10 +754,15 @@ class Engine:
         }
 
 
-def _position_cov(cov_pose: FloatArray, b: FloatArray, R: FloatArray) -> FloatArray:
-    """Covariance (3,3) of a body point ``R b + t`` in the camera frame from the pose covariance
-    (first order, ``d(Rb+t) = dt - [Rb]x dtheta``)."""
+def _position_jacobian(b: FloatArray, R: FloatArray) -> FloatArray:
+    """(3,6) derivative of a body point's camera position ``R b + t`` by the pose error
+    ``(dt, dtheta)`` (first order, ``d(Rb+t) = dt - [Rb]x dtheta``)."""
     Rb = R @ b
     S = np.array([[0, -Rb[2], Rb[1]], [Rb[2], 0, -Rb[0]], [-Rb[1], Rb[0], 0]])
-    J = np.hstack([np.eye(3), -S])
+    return np.hstack([np.eye(3), -S])
+
+
+def _position_cov(cov_pose: FloatArray, b: FloatArray, R: FloatArray) -> FloatArray:
+    """Covariance (3,3) of a body point ``R b + t`` in the camera frame from the pose covariance."""
+    J = _position_jacobian(b, R)
     return J @ cov_pose @ J.T
