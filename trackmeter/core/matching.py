@@ -768,6 +768,20 @@ def _gauss_newton(fit: _ShiftFit, x: float, params: MeasureParams) -> tuple[floa
     return x, sigma, score
 
 
+def _weight_polynomials(weights: Any) -> NDArray[np.float64]:
+    """(4, 8) coefficients ``C``: ``[t^0..t^3] @ C`` is the weights ``weights(t)`` of samples
+    -1..2 followed by their derivatives (both kernels are cubics in t), recovered by sampling
+    the scalar functions at four offsets."""
+    ts = np.array([0.0, 0.25, 0.5, 0.75])
+    V = np.power.outer(ts, np.arange(4))
+    w = np.array([weights(t)[0] for t in ts])
+    dw = np.array([weights(t)[1] for t in ts])
+    return np.concatenate([np.linalg.solve(V, w), np.linalg.solve(V, dw)], axis=1)
+
+
+_BSPLINE_POLY = _weight_polynomials(_bspline_weights)
+_KEYS_POLY = _weight_polynomials(_keys_weights)
+
 #: Fewer points are refined one by one (the array operations' fixed cost outweighs the loop's).
 _MIN_BATCH = 4
 
@@ -807,14 +821,14 @@ def refine_positions(
     wmax = int(widths.max())
     coef = np.zeros((m, P, wmax), np.float32)
     if params.subpixel_interpolation == "bspline":
-        weights = _bspline_weights
+        weight_poly = _BSPLINE_POLY
         for w in np.unique(widths).tolist():
             sel = np.flatnonzero(widths == w)
             stack = np.concatenate([np.asarray(strips[j], dtype=np.float32) for j in sel])
             f = cv2.filter2D(stack, cv2.CV_32F, _BSPLINE_PREFILTER, borderType=cv2.BORDER_REFLECT_101)
             coef[sel, :, :w] = f.reshape(len(sel), P, w)
     else:
-        weights = _keys_weights
+        weight_poly = _KEYS_POLY
         for j, S in enumerate(strips):
             coef[j, :, : widths[j]] = S
     t = np.stack([np.asarray(T, dtype=np.float32) for T in templates]).reshape(m, n).astype(np.float64)
@@ -852,10 +866,11 @@ def refine_positions(
             rows = k[:, None] + four
             Ga = G[active[:, None, None], rows[:, :, None], rows[:, None, :]]
             ha = h[active[:, None], rows]
-            w, dw = (np.stack(v, axis=1) for v in weights(xa - i))
-            Gw, Gd = np.einsum("jkl,jl->jk", Ga, w), np.einsum("jkl,jl->jk", Ga, dw)
-            cvv, cvd, cdd = np.einsum("jk,jk->j", w, Gw), np.einsum("jk,jk->j", w, Gd), np.einsum("jk,jk->j", dw, Gd)
-            cvt, cdt = np.einsum("jk,jk->j", w, ha), np.einsum("jk,jk->j", dw, ha)
+            # rows w, dw of the kernel's weights at offset t: powers of t times its coefficients
+            Wm = (np.power.outer(xa - i, four) @ weight_poly).reshape(-1, 2, 4)
+            Q = Wm @ Ga @ Wm.transpose(0, 2, 1)
+            r = (Wm @ ha[:, :, None])[:, :, 0]
+            cvv, cvd, cdd, cvt, cdt = Q[:, 0, 0], Q[:, 0, 1], Q[:, 1, 1], r[:, 0], r[:, 1]
             det = cvv * cdd - cvd * cvd
             a = (cdd * cvt - cvd * cdt) / det
             c = (cvv * cdt - cvd * cvt) / det
