@@ -151,6 +151,7 @@ class GeometricTracker:
         f, b = self.rect.focal_px, self.rect.baseline_m
         self.sigma_d = SIGMA_Z_AT_3P5_M * f * b / 3.5**2  # eq. 2 inverted
         self.tracked: dict[str, bool] = {}
+        self.ages: dict[str, int] = {}  # frames since each tracked point was selected (case a's frame waits)
         self._states: tuple[TargetState, ...] = ()
         self.truth_T: np.ndarray | None = None
         self.auto = (True, MAX_POINTS, "geometric")
@@ -174,7 +175,8 @@ class GeometricTracker:
         C = self.rect.point_covariance(uv_r, d, self.sigma_d, SIGMA_UV_PX)[0]
         p = x + np.linalg.cholesky(C) @ self.rng.standard_normal(3)
         uvl, uvr = self.rig.project(x[None])
-        return TargetState(self.ids[i], "auto", status, uvl[0], uvr[0], p, C, 0.99, uvl[0], (0, 0, 1, 1))
+        return TargetState(self.ids[i], "auto", status, uvl[0], uvr[0], p, C, 0.99, uvl[0], (0, 0, 1, 1),
+                           age_frames=self.ages.get(self.ids[i], 0))
 
     def step(self, frame: Any, reject_ids: Any = ()) -> tuple[TargetState, ...]:
         T = np.asarray(frame.truth.T_cam_body, float)
@@ -193,6 +195,7 @@ class GeometricTracker:
             if len(self.tracked) >= MAX_POINTS:
                 break
             self.tracked.setdefault(self.ids[i], True)
+        self.ages = {tid: self.ages.get(tid, -1) + 1 for tid in self.tracked}
         self._states = tuple(self._measure(int(tid[1:]), T) for tid in self.tracked)
         return self._states
 
