@@ -949,6 +949,7 @@ def _match_rectified(
     params: MeasureParams,
     disparity_range: tuple[float, float],
 ) -> _Match:
+    """One rectified left pixel (2,) matched with its disparity range (:func:`_match_many`)."""
     return _match_many(rect, left, right, np.reshape(uv_rect, (1, 2)), params, [disparity_range])[0]
 
 
