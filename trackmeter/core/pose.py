@@ -83,6 +83,21 @@ class PoseParams:
     model_refine: bool = param(
         True, "average the body coordinates of measured (not a-priori) model points over time"
     )
+    anchor_time_s: float = param(
+        2.0, "case (b): time constant with which the grown model is moved onto the a-priori points' frame "
+        "as the a-priori points seen reveal its drift, s (0: never)", min=0.0,
+    )
+    anchor_memory_s: float = param(
+        1.0, "case (b): how long the a-priori points' evidence of the grown model's drift is remembered "
+        "(exponential forgetting), s", min=0.04,
+    )
+    anchor_prior_m: float = param(
+        0.01, "case (b): expected drift of the grown model's frame, position (1 sigma; directions the "
+        "a-priori points do not see stay put), m", min=1e-6,
+    )
+    anchor_prior_rad: float = param(
+        0.02, "case (b): expected drift of the grown model's frame, attitude (1 sigma), rad", min=1e-6,
+    )
     join_after_frames: int = param(
         1, "a new target joins the model after this many consecutive consistent frames", min=1
     )

@@ -22,7 +22,9 @@ Per frame (:meth:`Engine.process`):
    (information-weighted) so the model sharpens as the body turns; new targets consistent for
    ``join_after_frames`` frames join the model with their body coordinates from the pose, so
    the model grows as new faces come into view (paper 2.D). Losing one of the three frame
-   points of case (a) changes nothing: the frame lives on in the model (no jump).
+   points of case (a) changes nothing: the frame lives on in the model (no jump). Case (b)
+   with ``pose.anchor_time_s`` > 0: the a-priori points seen reveal how far the grown model's
+   frame has drifted from theirs, and the grown model is moved back (:meth:`Engine._anchor`).
 5. Velocities (:mod:`trackmeter.core.velocity`) from the raw poses, then the output filter
    (:mod:`trackmeter.core.output_filter`).
 6. Recovery (paper 2.D): lost model points are reprojected through the current pose
@@ -51,6 +53,7 @@ from trackmeter.core.pose import (
     choose_frame_points,
     fuse_point_correlated,
     robust_pose,
+    solve_pose,
     three_point_body_frame,
     to_body,
 )
@@ -266,6 +269,9 @@ class Engine:
         self._align_M = np.zeros((3, 3))
         self._align_t = np.zeros(3)
         self._align_n = 0
+        self._anchor_H = np.zeros((6, 6))
+        self._anchor_g = np.zeros(6)
+        self._anchor_t: float | None = None
 
     # ------------------------------------------------------------------ commands
 
@@ -552,6 +558,7 @@ class Engine:
         R, t, cov = fit.R_cam_body, fit.t_cam_body, fit.cov
         self._last_fit = (R, t, cov)
         self._update_model(R, t, cov, fit.scale2, ids, fit.inliers, measured)
+        self._anchor(frame.t_s, R, t, ids, fit.inliers, measured)
         return (R, t, cov, int(fit.inliers.sum()), outliers), None
 
     def _update_model(self, R: FloatArray, t: FloatArray, cov: FloatArray, scale2: float, ids: list[str],
@@ -610,6 +617,57 @@ class Engine:
                 self._model[tid] = _ModelPoint(cand.b, cand.cov, False, cand.cm, cand.L)
                 del self._candidates[tid]
                 self.stats.model_points_joined += 1
+
+    def _anchor(self, t_s: float, R: FloatArray, t: FloatArray, ids: list[str], inliers: NDArray[np.bool_],
+                measured: dict[str, TargetState]) -> None:
+        """Case (b): move the grown model onto the a-priori frame as the a-priori points reveal its drift.
+
+        Grown points carry the pose error of the frames they joined in: the grown model sits in a
+        frame ``Delta`` off the a-priori one, ``b_grown = R_d b_true + t_d``. The pose from the grown
+        points alone, ``T_g = T_true Delta^-1``, puts an a-priori point ``b_f`` at ``T_g b_f`` where
+        it is measured at ``T_g Delta b_f``: the residual ``r = p_f - T_g b_f = R_g (dt - [b_f]x dtheta)``
+        (first order) is linear in the drift ``(dt, dtheta)``. Its normal equations are summed over
+        frames (forgetting over ``anchor_memory_s``; as the body turns, one or two a-priori points
+        seen now and then reveal every direction), solved with the prior ``anchor_prior_*`` (what
+        they do not reveal stays put), and a fraction ``dt / anchor_time_s`` of the drift is
+        removed from every grown point per frame — slowly, so the output does not jump."""
+        p = self.pose_params
+        if p.anchor_time_s <= 0 or self._case != "b":
+            return
+        dt = 0.0 if self._anchor_t is None else max(0.0, t_s - self._anchor_t)
+        self._anchor_t = t_s
+        decay = float(np.exp(-dt / p.anchor_memory_s))
+        self._anchor_H *= decay
+        self._anchor_g *= decay
+        fixed = [i for n, i in enumerate(ids) if inliers[n] and self._model[i].fixed]
+        grown = [i for n, i in enumerate(ids) if inliers[n] and not self._model[i].fixed]
+        if fixed and len(grown) >= 3:
+            try:
+                R_g, t_g, cov_g = solve_pose(
+                    np.array([self._model[i].b for i in grown]), np.array([measured[i].point_cam for i in grown]),
+                    np.array([measured[i].cov_cam for i in grown]), np.array([self._model[i].cov for i in grown]),
+                    (R, t), 2)
+            except (TrackmeterError, np.linalg.LinAlgError):
+                return
+            for i in fixed:
+                b_f = self._model[i].b
+                S = np.array([[0, -b_f[2], b_f[1]], [b_f[2], 0, -b_f[0]], [-b_f[1], b_f[0], 0]])
+                J = R_g @ np.hstack([np.eye(3), -S])
+                W = np.linalg.inv(np.asarray(measured[i].cov_cam, float) + _position_cov(cov_g, b_f, R_g))
+                r = np.asarray(measured[i].point_cam, float) - (R_g @ b_f + t_g)
+                self._anchor_H += J.T @ W @ J
+                self._anchor_g += J.T @ W @ r
+        if not np.any(self._anchor_g):
+            return
+        prior = np.diag([p.anchor_prior_m**-2] * 3 + [p.anchor_prior_rad**-2] * 3)
+        drift = np.linalg.solve(self._anchor_H + prior, self._anchor_g)
+        step = drift * min(1.0, dt / p.anchor_time_s)
+        R_s = Rotation.from_rotvec(step[3:]).as_matrix()
+        for m in list(self._model.values()) + list(self._candidates.values()):
+            if isinstance(m, _ModelPoint) and m.fixed:
+                continue
+            m.b = R_s.T @ (m.b - step[:3])
+        self._anchor_g -= self._anchor_H @ step
 
     # ------------------------------------------------------------------ recovery
 
