@@ -84,7 +84,7 @@ class PoseParams:
         True, "average the body coordinates of measured (not a-priori) model points over time"
     )
     anchor_time_s: float = param(
-        2.0, "case (b): time constant with which the grown model is moved onto the a-priori points' frame "
+        0.0, "case (b): time constant with which the grown model is moved onto the a-priori points' frame "
         "as the a-priori points seen reveal its drift, s (0: never)", min=0.0,
     )
     anchor_memory_s: float = param(
