@@ -116,7 +116,7 @@ def test_automatic_selection_refuses_points_off_the_bodys_depth(estec_rig) -> No
 def test_body_check_loses_a_target_that_crept_from_its_first_point(estec_rig) -> None:
     scene = PlaneScene(estec_rig, pose_translating(3.5, (0.1, 0.05, 0.0), (0.0, 0.0, 0.2)), noise_sigma=1.0)
     f0 = scene.frame(0)
-    tr = make_tracker(estec_rig)
+    tr = make_tracker(estec_rig, body_check=True)  # off by default: see config/default.yaml
     add_all(tr, f0, corners(f0.left, 8))
     for k in range(1, 6):
         tr.step(scene.frame(k))

@@ -120,7 +120,7 @@ class TrackerParams:
     )
     motion_min_targets: int = param(4, "targets followed from the last frame needed for the rigid-motion check", min=3)
     body_check: bool = param(
-        True, "lose targets that drift from where the rigid body, fitted to all targets' first 3D points, puts their first point"
+        False, "lose targets that drift from where the rigid body, fitted to all targets' first 3D points, puts their first point"
     )
     body_drift_px: float = param(
         1.5, "largest distance across the line of sight, in left-image px, of a target from its first point moved with the body", min=0.0,

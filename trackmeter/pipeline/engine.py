@@ -262,6 +262,7 @@ class Engine:
         self._last_valid_t: float | None = None
         self._last_attempt: dict[str, int] = {}
         self._seen_t: dict[str, float] = {}
+        self._frame_t_s = 0.0  # time of the frame being processed, s
         self._lost_since: dict[str, int] = {}
         self._coast: tuple[float, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray] | None = None
         self._velocity = VelocityEstimator(self.velocity_params)
@@ -385,6 +386,7 @@ class Engine:
         """Track one frame; returns ``(targets, pose, errors)`` (see the module docstring)."""
         reject = self._pending_reject
         self._pending_reject = set()
+        self._frame_t_s = frame.t_s
         targets = self.tracker.step(frame, reject_ids=reject)
         self.stats.frames += 1
         floor = self.pose_params.point_sigma_floor_m**2 * np.eye(3)
@@ -615,6 +617,9 @@ class Engine:
                 cand.count += 1
             if cand.count >= p.join_after_frames:
                 self._model[tid] = _ModelPoint(cand.b, cand.cov, False, cand.cm, cand.L)
+                # Seen now: a point that joins and is lost before its next measurement must not
+                # rank as the stalest of the grown model (pruned first, never re-locked).
+                self._seen_t[tid] = self._frame_t_s
                 del self._candidates[tid]
                 self.stats.model_points_joined += 1
 
