@@ -81,6 +81,7 @@ def _click_candidates(running: Any) -> list[tuple[float, float]]:
             good = [tuple(map(float, p)) for p, k in zip(pts, ok.reshape(len(pts), len(offsets)).all(axis=1)) if k]
             if good:
                 return good
+            _log(f"no click candidate the measurement accepts ({len(pts)} selected): aiming near the body origin")
     T = None
     if snap.frame is not None and snap.frame.truth is not None:
         T = np.asarray(snap.frame.truth.T_cam_body)
