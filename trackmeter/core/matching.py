@@ -281,6 +281,47 @@ class PointMeasurement:
 # --------------------------------------------------------------------------- sampling
 
 
+def _block_map(
+    mx_full: NDArray[np.float32], my_full: NDArray[np.float32], x0: float, y0: float, width: int, height: int,
+    w_img: int, h_img: int,
+) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.bool_] | None, tuple[float, float, float, float]]:
+    """One rectified block's maps ``(mx, my)`` (height, width), its ``col_ok`` (None when every
+    source pixel is inside the image) and the extent ``(x_lo, x_hi, y_lo, y_hi)`` of its source
+    pixels in the original image (see :func:`sample_rectified`)."""
+    bx, by = math.floor(x0), math.floor(y0)
+    H, W = mx_full.shape
+    if bx < 0 or by < 0 or bx + width >= W or by + height >= H:
+        raise ValueError(f"rectified block at ({x0}, {y0}) size {width}x{height} leaves the {W}x{H} grid")
+    # Bilinear interpolation of the (smooth) maps at the block's fractional offset, one call each.
+    centre = (x0 + 0.5 * (width - 1), y0 + 0.5 * (height - 1))
+    mx = cv2.getRectSubPix(mx_full, (width, height), centre)
+    my = cv2.getRectSubPix(my_full, (width, height), centre)
+    # The maps are smooth and monotonic, so the block's extent in the original image is that
+    # of its corners (the bilinear interpolation stays inside the grid cells around them); the
+    # 0.1 px margin covers a lens's curvature of the map along the block's few rows.
+    x_lo = min(float(mx_full[by, bx]), float(mx_full[by + height, bx]))
+    x_hi = max(float(mx_full[by, bx + width]), float(mx_full[by + height, bx + width]))
+    y_lo = min(float(my_full[by, bx]), float(my_full[by, bx + width]))
+    y_hi = max(float(my_full[by + height, bx]), float(my_full[by + height, bx + width]))
+    col_ok = None
+    if not (x_lo >= 0.1 and y_lo >= 0.1 and x_hi <= w_img - 1.1 and y_hi <= h_img - 1.1):
+        col_ok = np.all((mx >= 0) & (mx <= w_img - 1) & (my >= 0) & (my <= h_img - 1), axis=0)
+    return mx, my, col_ok, (x_lo, x_hi, y_lo, y_hi)
+
+
+def _source_region(extent: tuple[float, float, float, float], w_img: int, h_img: int) -> tuple[int, int, int, int]:
+    """The region ``(u0, v0, u1, v1)`` of the original image an exact (Lanczos-4) block of
+    source extent ``extent`` needs: Lanczos-4 reaches 3 pixels beyond the 2x2 cell; take the
+    extent plus 4 and let remap replicate at the true image border (those columns are flagged
+    invalid anyway)."""
+    x_lo, x_hi, y_lo, y_hi = extent
+    u0 = min(max(int(math.floor(x_lo)) - 4, 0), w_img - 1)
+    u1 = max(min(int(math.floor(x_hi)) + 6, w_img), u0 + 1)
+    v0 = min(max(int(math.floor(y_lo)) - 4, 0), h_img - 1)
+    v1 = max(min(int(math.floor(y_hi)) + 6, h_img), v0 + 1)
+    return u0, v0, u1, v1
+
+
 def sample_rectified(
     rect: Rectification,
     image: NDArray[np.uint8],
@@ -314,33 +355,11 @@ def sample_rectified(
             integer search, where it is cheaper and good enough).
     """
     mx_full, my_full = rect.maps[side]
-    bx, by = math.floor(x0), math.floor(y0)
-    H, W = mx_full.shape
-    if bx < 0 or by < 0 or bx + width >= W or by + height >= H:
-        raise ValueError(f"rectified block at ({x0}, {y0}) size {width}x{height} leaves the {W}x{H} grid")
-    # Bilinear interpolation of the (smooth) maps at the block's fractional offset, one call each.
-    centre = (x0 + 0.5 * (width - 1), y0 + 0.5 * (height - 1))
-    mx = cv2.getRectSubPix(mx_full, (width, height), centre)
-    my = cv2.getRectSubPix(my_full, (width, height), centre)
     h_img, w_img = image.shape
-    # The maps are smooth and monotonic, so the block's extent in the original image is that
-    # of its corners (the bilinear interpolation stays inside the grid cells around them); the
-    # 0.1 px margin covers a lens's curvature of the map along the block's few rows.
-    x_lo = min(float(mx_full[by, bx]), float(mx_full[by + height, bx]))
-    x_hi = max(float(mx_full[by, bx + width]), float(mx_full[by + height, bx + width]))
-    y_lo = min(float(my_full[by, bx]), float(my_full[by, bx + width]))
-    y_hi = max(float(my_full[by + height, bx]), float(my_full[by + height, bx + width]))
-    col_ok = None
-    if not (x_lo >= 0.1 and y_lo >= 0.1 and x_hi <= w_img - 1.1 and y_hi <= h_img - 1.1):
-        col_ok = np.all((mx >= 0) & (mx <= w_img - 1) & (my >= 0) & (my <= h_img - 1), axis=0)
+    mx, my, col_ok, extent = _block_map(mx_full, my_full, x0, y0, width, height, w_img, h_img)
     if not exact:
         return cv2.remap(image, mx, my, interpolation, borderMode=cv2.BORDER_REPLICATE), col_ok
-    # Lanczos-4 reaches 3 pixels beyond the 2x2 cell; take the region plus 4 and let remap
-    # replicate at the true image border (those columns are flagged invalid anyway).
-    u0 = min(max(int(math.floor(x_lo)) - 4, 0), w_img - 1)
-    u1 = max(min(int(math.floor(x_hi)) + 6, w_img), u0 + 1)
-    v0 = min(max(int(math.floor(y_lo)) - 4, 0), h_img - 1)
-    v1 = max(min(int(math.floor(y_hi)) + 6, h_img), v0 + 1)
+    u0, v0, u1, v1 = _source_region(extent, w_img, h_img)
     roi = image[v0:v1, u0:u1].astype(np.float32)
     if u0:
         mx -= np.float32(u0)
@@ -390,31 +409,15 @@ def _block_maps(
     """The maps and ``col_ok`` of each block as :func:`sample_rectified` computes them, and
     (``exact``) the union ``(u0, v0, u1, v1)`` of the image regions their samples need."""
     mx_full, my_full = rect.maps[side]
-    H, W = mx_full.shape
     h_img, w_img = image_shape
     mxs, mys, oks = [], [], []
     u0 = v0 = 1 << 30
     u1 = v1 = -1
     for x0, y0, width, height in blocks:
-        bx, by = math.floor(x0), math.floor(y0)
-        if bx < 0 or by < 0 or bx + width >= W or by + height >= H:
-            raise ValueError(f"rectified block at ({x0}, {y0}) size {width}x{height} leaves the {W}x{H} grid")
-        centre = (x0 + 0.5 * (width - 1), y0 + 0.5 * (height - 1))
-        mx = cv2.getRectSubPix(mx_full, (width, height), centre)
-        my = cv2.getRectSubPix(my_full, (width, height), centre)
-        x_lo = min(float(mx_full[by, bx]), float(mx_full[by + height, bx]))
-        x_hi = max(float(mx_full[by, bx + width]), float(mx_full[by + height, bx + width]))
-        y_lo = min(float(my_full[by, bx]), float(my_full[by, bx + width]))
-        y_hi = max(float(my_full[by + height, bx]), float(my_full[by + height, bx + width]))
-        col_ok = None
-        if not (x_lo >= 0.1 and y_lo >= 0.1 and x_hi <= w_img - 1.1 and y_hi <= h_img - 1.1):
-            col_ok = np.all((mx >= 0) & (mx <= w_img - 1) & (my >= 0) & (my <= h_img - 1), axis=0)
+        mx, my, col_ok, extent = _block_map(mx_full, my_full, x0, y0, width, height, w_img, h_img)
         if exact:  # the region sample_rectified would take, merged into the union
-            bu0 = min(max(int(math.floor(x_lo)) - 4, 0), w_img - 1)
-            bv0 = min(max(int(math.floor(y_lo)) - 4, 0), h_img - 1)
-            u0, v0 = min(u0, bu0), min(v0, bv0)
-            u1 = max(u1, max(min(int(math.floor(x_hi)) + 6, w_img), bu0 + 1))
-            v1 = max(v1, max(min(int(math.floor(y_hi)) + 6, h_img), bv0 + 1))
+            bu0, bv0, bu1, bv1 = _source_region(extent, w_img, h_img)
+            u0, v0, u1, v1 = min(u0, bu0), min(v0, bv0), max(u1, bu1), max(v1, bv1)
         mxs.append(mx)
         mys.append(my)
         oks.append(col_ok)
