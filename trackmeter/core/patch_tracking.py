@@ -255,6 +255,19 @@ class LKResult:
     iterations: NDArray[np.int32]
 
 
+def _retire(converged: NDArray[np.bool_], active: NDArray[np.bool_], idx: NDArray, done: NDArray[np.bool_],
+            bad: NDArray[np.bool_]) -> NDArray | None:
+    """End the Gauss-Newton iterations of the rows ``idx`` that converged (``done`` and not
+    ``bad``, marked in ``converged``) or failed (``bad``); returns the rows still iterating, or
+    None when none stopped (the caller keeps its arrays unindexed then)."""
+    stop = done | bad
+    if not stop.any():
+        return None
+    converged[idx[done & ~bad]] = True
+    active[idx[stop]] = False
+    return idx[~stop]
+
+
 def refine_lk(
     image: F32,
     templates: Templates,
@@ -346,12 +359,9 @@ def refine_lk(
         step = np.abs(dp).max(1)
         bad = ~inside | (np.abs(pi - p0[rows]).max(1) > max_shift_px) | (gain <= 0)
         done = step < tolerance_px
-        stop = done | bad
-        if stop.any():
-            converged[idx[done & ~bad]] = True
-            active[idx[stop]] = False
-            idx = idx[~stop]
-            rows = idx
+        still = _retire(converged, active, idx, done, bad)
+        if still is not None:
+            idx = rows = still
     final, inside = sample_patches(image, p, n, coord_map)
     score = zncc(templates.values, final)
     converged &= inside & templates.ok
@@ -836,12 +846,9 @@ def _refine_lk_warp(
         # det is NaN where the warp is not finite: (det > 0.5) & (det < 2.0) fails there too.
         bad = ~inside | (moved > max_shift_px) | ~((det >= 0.5) & (det <= 2.0)) | (gain <= 0) | ~np.isfinite(lin).all(axis=(1, 2))
         done = step < tolerance_px
-        stop = done | bad
-        if stop.any():
-            converged[idx[done & ~bad]] = True
-            active[idx[stop]] = False
-            idx = idx[~stop]
-            rows = idx
+        still = _retire(converged, active, idx, done, bad)
+        if still is not None:
+            idx = rows = still
     final, inside = sample_warped(image, W[:, :2, :], n)
     score = zncc(templates.values, final)
     return AffineLKResult(warp=W[:, :2, :].copy(), score=score, converged=converged & inside & templates.ok)
