@@ -51,10 +51,10 @@ along the epipolar line, search window outside the right image, beyond the dispa
 nearly as good), sub-pixel refinement failed (or its refined score low), disparity too
 uncertain (the fit's own standard deviation is large: the aperture problem along the epipolar
 line), repetitive texture (a wider window, allowed to be foreshortened, does not prefer the
-best peak over the other strong ones: see :func:`_context_check`), left-right inconsistent
+best peak over the other strong ones: see :func:`_context_decide`), left-right inconsistent
 (matching the right patch back along the left row lands elsewhere), depth edge inside the
 patch (windows shifted a few pixels each way disagree with the patch's disparity by more than
-a plane allows: see :func:`_edge_check`).
+a plane allows: see :func:`_edge_decide`).
 
 The checks are independent (each looks at the integer match or the sub-pixel fit, not at
 another check's outcome), so their order decides only which reason a point failing several
@@ -940,20 +940,8 @@ def match_rectified_point(
         accepted (then the numbers are valid), else one of :data:`REASONS`.
     """
     rng = (params.min_disparity_px, params.max_disparity_px)
-    m = _match_rectified(rect, left, right, np.asarray(uv_rect, dtype=float).reshape(2), params, rng)
+    m = _match_many(rect, left, right, np.asarray(uv_rect, dtype=float).reshape(1, 2), params, [rng])[0]
     return m.reason, m.disparity_px, m.sigma_px, m.score
-
-
-def _match_rectified(
-    rect: Rectification,
-    left: NDArray[np.uint8],
-    right: NDArray[np.uint8],
-    uv_rect: FloatArray,
-    params: MeasureParams,
-    disparity_range: tuple[float, float],
-) -> _Match:
-    """One rectified left pixel (2,) matched with its disparity range (:func:`_match_many`)."""
-    return _match_many(rect, left, right, np.reshape(uv_rect, (1, 2)), params, [disparity_range])[0]
 
 
 def _match_many(
@@ -1147,15 +1135,29 @@ def _match_many(
     return out  # type: ignore[return-value]
 
 
-def _edge_check(
-    rect: Rectification,
-    left: NDArray[np.uint8],
-    right: NDArray[np.uint8],
-    x0: float,
-    y0: float,
-    d: float,
-    params: MeasureParams,
-) -> bool:
+_EDGE_REACH = 3  # integer disparities the depth-edge check searches either side of round(d)
+
+
+def _edge_blocks(
+    rect: Rectification, x0: float, y0: float, d: float, params: MeasureParams
+) -> tuple[tuple[float, float, int, int], tuple[float, float, int, int]] | None:
+    """The left and right blocks ``(x0, y0, width, height)`` :func:`_edge_decide` samples, or
+    None near the image border (check skipped)."""
+    P, sh = params.patch_size, params.edge_shift_px
+    W, H = rect.rig.image_size
+    bx, by = math.floor(x0), math.floor(y0)
+    fx = x0 - bx
+    reach = _EDGE_REACH
+    di = int(round(d))
+    r0 = bx - di - sh - reach  # right block's first grid column
+    if bx - sh < 0 or by - sh < 0 or bx + P + sh + 1 >= W or by + P + sh + 1 >= H or r0 < 0 or r0 + P + 2 * (sh + reach) + 1 >= W:
+        return None
+    # One left and one right block (bilinear, 8 bit: the test needs tenths of a pixel, not
+    # hundredths) hold all four windows and their searches.
+    return (x0 - sh, y0 - sh, P + 2 * sh, P + 2 * sh), (r0 + fx, y0 - sh, P + 2 * (sh + reach), P + 2 * sh)
+
+
+def _edge_decide(L: NDArray[np.uint8], R: NDArray[np.uint8], d: float, params: MeasureParams) -> bool:
     """Whether the disparity is that of one (possibly slanted) surface across the patch.
 
     A patch straddling a depth edge takes the disparity of whichever side has the stronger
@@ -1180,41 +1182,9 @@ def _edge_check(
     shifted windows and their search do not fit) the check is skipped.
 
     Args:
-        x0, y0: rectified position of the patch's top-left sample, px.
+        L, R: the left and right blocks :func:`_edge_blocks` names, sampled (uint8).
         d: the patch's refined disparity, px.
     """
-    blocks = _edge_blocks(rect, x0, y0, d, params)
-    if blocks is None:
-        return True
-    L = sample_rectified(rect, left, 0, *blocks[0], cv2.INTER_LINEAR, exact=False)[0]
-    R = sample_rectified(rect, right, 1, *blocks[1], cv2.INTER_LINEAR, exact=False)[0]
-    return _edge_decide(L, R, d, params)
-
-
-_EDGE_REACH = 3  # integer disparities the depth-edge check searches either side of round(d)
-
-
-def _edge_blocks(
-    rect: Rectification, x0: float, y0: float, d: float, params: MeasureParams
-) -> tuple[tuple[float, float, int, int], tuple[float, float, int, int]] | None:
-    """The left and right blocks ``(x0, y0, width, height)`` :func:`_edge_check` samples, or
-    None near the image border (check skipped)."""
-    P, sh = params.patch_size, params.edge_shift_px
-    W, H = rect.rig.image_size
-    bx, by = math.floor(x0), math.floor(y0)
-    fx = x0 - bx
-    reach = _EDGE_REACH
-    di = int(round(d))
-    r0 = bx - di - sh - reach  # right block's first grid column
-    if bx - sh < 0 or by - sh < 0 or bx + P + sh + 1 >= W or by + P + sh + 1 >= H or r0 < 0 or r0 + P + 2 * (sh + reach) + 1 >= W:
-        return None
-    # One left and one right block (bilinear, 8 bit: the test needs tenths of a pixel, not
-    # hundredths) hold all four windows and their searches.
-    return (x0 - sh, y0 - sh, P + 2 * sh, P + 2 * sh), (r0 + fx, y0 - sh, P + 2 * (sh + reach), P + 2 * sh)
-
-
-def _edge_decide(L: NDArray[np.uint8], R: NDArray[np.uint8], d: float, params: MeasureParams) -> bool:
-    """:func:`_edge_check`'s decision on its sampled blocks (:func:`_edge_blocks`)."""
     P, sh = params.patch_size, params.edge_shift_px
     reach = _EDGE_REACH
     di = int(round(d))
@@ -1234,64 +1204,10 @@ def _edge_decide(L: NDArray[np.uint8], R: NDArray[np.uint8], d: float, params: M
     return all(abs(v) <= params.edge_tolerance_px for v in second)
 
 
-def _context_check(
-    rect: Rectification,
-    left: NDArray[np.uint8],
-    right: NDArray[np.uint8],
-    x0: float,
-    y0: float,
-    c_first: int,
-    sm: StripMatch,
-    lo: int,
-    hi: int,
-    params: MeasureParams,
-) -> bool:
-    """Whether a wider window confirms the patch's best peak over its other strong peaks.
-
-    An 8x8 patch on a regular texture (a radiator's tile grid, a solar panel's cells) matches
-    one period away nearly as well as at the truth, and on an obliquely seen face
-    foreshortening lowers the true peak below a false one (measured on the simulated mock-up:
-    0.70 against 0.87), so neither the margin of :func:`match_strip` nor the left-right check
-    (the wrong right patch matches back to the same left patch) can tell. A window of
-    ``context_width_px`` x ``context_height_px`` around the same centre reaches the pattern's
-    irregularities and borders. It is scored at each peak outside the best one's main lobe
-    that comes within ``context_window`` of the best and whose deficit ``1 - c`` is at most
-    ``context_ratio`` times the best's (at most ``context_candidates`` in all),
-    the right window stretched horizontally about the patch's centre by each of ``context_scales``
-    (and 1) so that a slanted face is not penalised, keeping each peak's best ZNCC (bilinear
-    resampling: it only ranks peaks). The best peak is confirmed when its score beats every
-    other candidate's by ``context_margin``. Only the decision uses the wide window: the
-    disparity is still fitted on the small patch, whose smaller footprint keeps it off depth
-    edges.
-
-    Measured on three frames of the ``estec`` scenario (8 px grid, as ``python -m benchmarks
-    measure``, ``max_sigma_disparity_px`` 0.08): accepted points more than 2 cm off fall from
-    123 of 1130 to 60 of 1063, those more than 10 cm off (false matches several px away) from 88 to 25; most of the rest are
-    patches straddling depth edges (:func:`_edge_check`). A smaller ``context_window`` (0.15)
-    leaves 71; ``context_ratio`` 8 changes nothing there (5: a few more) but spares the check
-    on most well-textured points, whose best peak is near-perfect. Near the image border the
-    window is shifted inward by whole pixels (it only has to contain the patch).
-
-    Args:
-        x0, y0: rectified position of the patch's top-left sample, px.
-        c_first: rectified column of the right strip's first sample (``sm`` indexes the strip).
-        sm: the patch's strip match; lo, hi: its candidate columns.
-
-    Returns:
-        True when there is no rival peak or the wide window prefers the best one.
-    """
-    plan = _context_plan(rect, x0, y0, c_first, sm, lo, hi, params)
-    if isinstance(plan, bool):
-        return plan
-    Lc = sample_rectified(rect, left, 0, *plan[0], cv2.INTER_LINEAR, exact=False)[0]
-    S = sample_rectified(rect, right, 1, *plan[1], cv2.INTER_LINEAR, exact=False)[0]
-    return _context_decide(plan, Lc, S, params)
-
-
 def _context_plan(
     rect: Rectification, x0: float, y0: float, c_first: int, sm: StripMatch, lo: int, hi: int, params: MeasureParams
 ) -> bool | tuple[Any, ...]:
-    """:func:`_context_check`'s decision when it needs no samples (True: no rival peak; False:
+    """:func:`_context_decide`'s decision when it needs no samples (True: no rival peak; False:
     no room for the right window), else its left and right blocks ``(x0, y0, width, height)``
     and what :func:`_context_decide` needs."""
     sc = sm.scores
@@ -1332,7 +1248,39 @@ def _context_plan(
 
 
 def _context_decide(plan: tuple[Any, ...], Lc: NDArray[np.uint8], S: NDArray[np.uint8], params: MeasureParams) -> bool:
-    """:func:`_context_check`'s decision on its sampled blocks (:func:`_context_plan`)."""
+    """Whether a wider window confirms the patch's best peak over its other strong peaks.
+
+    An 8x8 patch on a regular texture (a radiator's tile grid, a solar panel's cells) matches
+    one period away nearly as well as at the truth, and on an obliquely seen face
+    foreshortening lowers the true peak below a false one (measured on the simulated mock-up:
+    0.70 against 0.87), so neither the margin of :func:`match_strip` nor the left-right check
+    (the wrong right patch matches back to the same left patch) can tell. A window of
+    ``context_width_px`` x ``context_height_px`` around the same centre reaches the pattern's
+    irregularities and borders. It is scored at each peak outside the best one's main lobe
+    that comes within ``context_window`` of the best and whose deficit ``1 - c`` is at most
+    ``context_ratio`` times the best's (at most ``context_candidates`` in all),
+    the right window stretched horizontally about the patch's centre by each of ``context_scales``
+    (and 1) so that a slanted face is not penalised, keeping each peak's best ZNCC (bilinear
+    resampling: it only ranks peaks). The best peak is confirmed when its score beats every
+    other candidate's by ``context_margin``. Only the decision uses the wide window: the
+    disparity is still fitted on the small patch, whose smaller footprint keeps it off depth
+    edges.
+
+    Measured on three frames of the ``estec`` scenario (8 px grid, as ``python -m benchmarks
+    measure``, ``max_sigma_disparity_px`` 0.08): accepted points more than 2 cm off fall from
+    123 of 1130 to 60 of 1063, those more than 10 cm off (false matches several px away) from 88 to 25; most of the rest are
+    patches straddling depth edges (:func:`_edge_decide`). A smaller ``context_window`` (0.15)
+    leaves 71; ``context_ratio`` 8 changes nothing there (5: a few more) but spares the check
+    on most well-textured points, whose best peak is near-perfect. Near the image border the
+    window is shifted inward by whole pixels (it only has to contain the patch).
+
+    Args:
+        plan: what :func:`_context_plan` returned for the patch (its blocks and candidates).
+        Lc, S: the left window and the right strip block it names, sampled (uint8).
+
+    Returns:
+        True when the wide window prefers the best peak (the no-rival case is decided by the plan).
+    """
     (_, _, cw, ch), _, xr, s_first, n_cand, n_scales = plan
     # every (candidate, scale) window side by side, resampled in one bilinear remap
     pos = np.clip(xr - s_first, 0.0, S.shape[1] - 1.0).astype(np.float32).reshape(1, -1)
