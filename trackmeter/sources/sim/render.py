@@ -55,14 +55,14 @@ from scipy.spatial.transform import Rotation
 from trackmeter.core.params import param
 from trackmeter.core.stereo import Camera, StereoRig
 from trackmeter.errors import TrackmeterError
-from trackmeter.sources.sim.mockup import Face, MaterialSpec, Mockup, Surface, _make_face
+from trackmeter.sources.sim.mockup import Face, MaterialSpec, Mockup, Surface, TextureLevel, _make_face
 
 F32 = NDArray[np.float32]
 FloatArray = NDArray[np.float64]
 
 _NEAR_M = 0.02  # faces with a corner closer than this to a camera are not drawn
-_MIN_SHADOW_AREA_PX = 300.0
-_LIT_OF_MASK = (1.0 - np.arange(256, dtype=np.float32) / 255.0).astype(np.float32)  # shadow mask (0..255) -> lit fraction  # smaller faces (a few px across) are not worth a shadow test
+_MIN_SHADOW_AREA_PX = 300.0  # smaller faces (a few px across) are not worth a shadow test
+_LIT_OF_MASK = (1.0 - np.arange(256, dtype=np.float32) / 255.0).astype(np.float32)  # shadow mask (0..255) -> lit fraction
 
 
 @dataclass(frozen=True)
@@ -132,6 +132,22 @@ class _View:
         map_x = (u_pin - ox).reshape(H, W).astype(np.float32)
         map_y = (v_pin - oy).reshape(H, W).astype(np.float32)
         self.map_x, self.map_y = map_x, map_y
+        # extents of the canvas columns each image column reads (and rows each row reads), so
+        # that only the image pixels that can see drawn canvas pixels are remapped
+        self.col_min_x, self.col_max_x = map_x.min(axis=0), map_x.max(axis=0)
+        self.row_min_y, self.row_max_y = map_y.min(axis=1), map_y.max(axis=1)
+
+    def image_box(self, canvas_box: tuple[int, int, int, int]) -> tuple[int, int, int, int] | None:
+        """The box ``(c0, r0, c1, r1)`` of image pixels (columns c0..c1, rows r0..r1) that can
+        read any canvas pixel of ``canvas_box`` = ``(x0, y0, x1, y1)`` through the bilinear
+        remap (which reads the canvas pixels at ``floor(map)`` and ``floor(map) + 1``); every
+        image pixel outside it reads only canvas pixels outside ``canvas_box``. None if empty."""
+        x0, y0, x1, y1 = canvas_box
+        cols = np.flatnonzero((self.col_max_x > x0 - 2) & (self.col_min_x < x1 + 1))
+        rows = np.flatnonzero((self.row_max_y > y0 - 2) & (self.row_min_y < y1 + 1))
+        if len(cols) == 0 or len(rows) == 0:
+            return None
+        return int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1
 
 
 @dataclass
@@ -202,6 +218,8 @@ class StereoRenderer:
         self._geom = _Geom(mockup.faces)
         self._occluder_surfaces: dict[tuple[float, float], Face] = {}
         self._last_gain = float("nan")
+        # per texture level drawn: a 4-channel (radiance, alpha, 0, 0) texture, alpha filled once
+        self._tex4: dict[TextureLevel, F32] = {}
 
     @property
     def last_gain_grey(self) -> float:
@@ -244,20 +262,22 @@ class StereoRenderer:
         if T_cam_body_prev is not None and p.motion_blur_subframes > 1 and p.shutter_fraction > 0:
             poses = _subframe_poses(_as_pose(T_cam_body_prev, "T_cam_body_prev"), T_cam_body, p.motion_blur_subframes, p.shutter_fraction)
         canvases: list[F32] = [np.zeros(0, np.float32), np.zeros(0, np.float32)]
+        boxes: list[list[tuple[int, int, int, int]]] = [[], []]  # canvas boxes drawn into, per side
         cover: NDArray[np.bool_] | None = None
         for k, T in enumerate(poses):
             shared: dict = {}  # type: ignore[type-arg]
             for side in (0, 1):
                 rad, zbuf = self.radiance_canvas(side, T, s_cam, occluders, _shared=shared)
+                boxes[side].append(shared[("box", side)])
                 canvases[side] = rad if k == 0 else canvases[side] + rad
                 if side == 0 and cover is None:
-                    cover = rad > 0
+                    cover = rad[::2, ::2] > 0  # the first sub-frame's satellite, for the auto-iris
         if len(poses) > 1:
             for c in canvases:
                 c *= np.float32(1.0 / len(poses))
         assert cover is not None
         if p.auto_exposure:
-            vals = canvases[0][::2, ::2][cover[::2, ::2]]
+            vals = canvases[0][::2, ::2][cover]
             level = float(np.percentile(vals[:: max(1, len(vals) // 20000)], p.exposure_percentile)) if len(vals) else 0.0
             gain = p.exposure_target_grey / level if level > 0 else p.max_gain_grey
             gain = min(gain, p.max_gain_grey)
@@ -267,8 +287,17 @@ class StereoRenderer:
         out = []
         for side in (0, 1):
             view = self._views[side]
-            img = cv2.remap(canvases[side], view.map_x, view.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-            img *= np.float32(gain)
+            W, H = view.cam.image_size
+            img = np.zeros((H, W), np.float32)
+            # the canvas is 0 outside the faces' boxes, and so is the image where it only sees that
+            x0, y0 = min(b[0] for b in boxes[side]), min(b[1] for b in boxes[side])
+            x1, y1 = max(b[2] for b in boxes[side]), max(b[3] for b in boxes[side])
+            box = view.image_box((x0, y0, x1, y1)) if x1 > x0 and y1 > y0 else None
+            if box is not None:
+                c0, r0, c1, r1 = box
+                cv2.remap(canvases[side], view.map_x[r0:r1, c0:c1], view.map_y[r0:r1, c0:c1], cv2.INTER_LINEAR,
+                          dst=img[r0:r1, c0:c1], borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+                img[r0:r1, c0:c1] *= np.float32(gain)
             if noise:
                 # Gaussian with the Poisson variance of the signal plus the read noise. OpenCV's
                 # generator (seeded from rng, so runs repeat) is ~2x faster than numpy's here.
@@ -396,8 +425,6 @@ class StereoRenderer:
         iy0 = np.clip(y0, 0, Hc).astype(int)
         ix1 = np.clip(x1, 0, Wc).astype(int)
         iy1 = np.clip(y1, 0, Hc).astype(int)
-        Hs[:, 0] -= ix0[:, None] * Hs[:, 2]
-        Hs[:, 1] -= iy0[:, None] * Hs[:, 2]
         n_v = (geom.normal * sgn[:, None]) @ R.T
         gz = (n_v @ view.K_canvas_inv) / np.einsum("fk,fk->f", n_v, geom.origin @ R.T + t)[:, None]
         gz = gz.astype(np.float32)
@@ -412,6 +439,10 @@ class StereoRenderer:
 
         canvas = np.zeros((Hc, Wc), np.float32)
         zbuf = np.zeros((Hc, Wc), np.float32)
+        if len(order):
+            shared[("box", side)] = (int(ix0[order].min()), int(iy0[order].min()), int(ix1[order].max()), int(iy1[order].max()))
+        else:
+            shared[("box", side)] = (0, 0, 0, 0)
         amb = p.ambient * E
         for f in order.tolist():
             face = geom.faces[f]
@@ -460,34 +491,69 @@ class StereoRenderer:
                         if lit is not None:
                             glint = cv2.multiply(glint, lit)
                         rad_pm = cv2.add(diffuse, glint)
-            a0, b0, a1, b1 = int(ix0[f]), int(iy0[f]), int(ix1[f]), int(iy1[f])
-            H = Hs[f]
-            size = (a1 - a0, b1 - b0)
-            # one-channel warps: OpenCV's 2-channel float path is several times slower
-            rw = cv2.warpPerspective(rad_pm, H, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-            aw = cv2.warpPerspective(lvl.alpha, H, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-            # inverse depth of the face's plane over the ROI: 1/z = g . (u, v, 1)
-            zb = zbuf[b0:b1, a0:a1]
-            cv = canvas[b0:b1, a0:a1]
-            if must_read[f] or must_write[f]:
-                g0, g1, g2 = gz[f]
-                xs = np.arange(a0, a1, dtype=np.float32) * g0
-                ys = np.arange(b0, b1, dtype=np.float32) * g1 + g2
-                iz = ys[:, None] + xs[None, :]
-                # depth test, skipped when the face is nearer than everything drawn in its box
-                # (1/z is affine, so its minimum over the box is at a corner)
-                iz_min = min(xs[0], xs[-1]) + min(ys[0], ys[-1])
-                if must_read[f] and float(zb.max()) * (1.0 - 1e-3) > iz_min:
-                    vis = (iz >= zb * np.float32(1.0 - 1e-3)).astype(np.float32)
-                    aw *= vis
-                    rw *= vis
-                if must_write[f]:
-                    np.copyto(zb, iz, where=aw >= 0.5)
-            if must_read[f]:
-                cv -= cv * aw
-            # else nothing was drawn in this box yet: the canvas there is 0
-            cv += rw
+            self._draw(canvas, zbuf, rad_pm, lvl, Hs[f], (int(ix0[f]), int(iy0[f]), int(ix1[f]), int(iy1[f])), gz[f], must_read[f], must_write[f])
         return canvas, zbuf
+
+    def _draw(
+        self, canvas: F32, zbuf: F32, rad_pm: F32, lvl: TextureLevel, H_tex: FloatArray, box: tuple[int, int, int, int], g: F32,
+        read: bool, write: bool,
+    ) -> None:
+        """Composite one face's warped premultiplied radiance "over" the canvas in ``box``
+        (columns a0..a1, rows b0..b1), behind the ``1/z`` depth test when ``read`` (something may
+        be drawn there already) and updating ``zbuf`` where it covers when ``write``.
+        ``H_tex`` maps texel centres to canvas pixels; ``g`` is the face's ``1/z`` plane;
+        ``rad_pm`` the face's premultiplied radiance on the texel grid of ``lvl``, the mip level
+        whose ``alpha`` is the coverage."""
+        a0, b0, a1, b1 = box
+        H = H_tex.copy()  # texel -> box pixels
+        H[0] -= a0 * H_tex[2]
+        H[1] -= b0 * H_tex[2]
+        size = (a1 - a0, b1 - b0)
+        cv = canvas[b0:b1, a0:a1]  # views: OpenCV reads and writes them in place
+        zb = zbuf[b0:b1, a0:a1]
+        if not read and not write:
+            # nothing was drawn in this box yet (the canvas there is 0, so "over" is a copy), nor
+            # will be: neither coverage nor depth is needed
+            cv2.warpPerspective(rad_pm, H, size, dst=cv, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            return
+        # Radiance and coverage in one warp of a 4-channel texture: OpenCV's 4-channel float path
+        # costs about as much as one 1-channel warp (its 2-channel path several times more), and
+        # interpolates each channel exactly as a 1-channel warp would.
+        tex = self._tex4.get(lvl)
+        if tex is None:
+            tex = np.zeros((*lvl.shape, 4), np.float32)
+            cv2.insertChannel(lvl.alpha, tex, 1)
+            self._tex4[lvl] = tex
+        cv2.insertChannel(rad_pm, tex, 0)
+        both = cv2.warpPerspective(tex, H, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        aw = cv2.extractChannel(both, 1)
+        if not read:
+            cv2.extractChannel(both, 0, dst=cv)  # nothing was drawn in this box yet: a copy
+            rw = None
+        else:
+            rw = cv2.extractChannel(both, 0)
+        # inverse depth of the face's plane over the box: 1/z = g . (u, v, 1)
+        g0, g1, g2 = g
+        xs = np.arange(a0, a1, dtype=np.float32) * g0
+        ys = np.arange(b0, b1, dtype=np.float32) * g1 + g2
+        iz = None
+        if read:
+            assert rw is not None
+            # depth test, skipped when the face is nearer than everything drawn in its box
+            # (1/z is affine, so its minimum over the box is at a corner)
+            iz_min = min(xs[0], xs[-1]) + min(ys[0], ys[-1])
+            if cv2.minMaxLoc(zb)[1] * (1.0 - 1e-3) > iz_min:
+                iz = ys[:, None] + xs[None, :]
+                vis = (iz >= zb * np.float32(1.0 - 1e-3)).astype(np.float32)
+                aw *= vis
+                rw *= vis
+        if write:
+            if iz is None:
+                iz = ys[:, None] + xs[None, :]
+            cv2.copyTo(iz, cv2.compare(aw, 0.5, cv2.CMP_GE), zb)  # where covered; np.copyto(where=) is far slower
+        if read:
+            cv2.subtract(cv, cv2.multiply(cv, aw), dst=cv)  # premultiplied "over": cv (1 - a) + rad
+            cv2.add(cv, rw, dst=cv)
 
     def _surface_points(
         self, side: int, T_view_body: FloatArray, T_cam_body: FloatArray, uv: FloatArray, occluders: Sequence[Occluder]
@@ -618,7 +684,7 @@ def _shadow_mask(geom: _Geom, index: int, n_side: FloatArray, shape: tuple[int, 
         cv2.fillConvexPoly(mask, hull, 255, cv2.LINE_AA, shift=4)
     if mask is None:
         return None
-    return _LIT_OF_MASK[mask]
+    return cv2.LUT(mask, _LIT_OF_MASK)
 
 
 # --------------------------------------------------------------------------- preview pictures

@@ -170,8 +170,12 @@ class Simulator(Source):
         gt = self.truth(i)
         # The pose one frame earlier, for motion blur. Frame 0 has none in the scenario, so it
         # takes frame 1's: the blur spreads symmetrically about the current pose, so the
-        # direction of the motion does not matter, only its size.
-        prev = self.truth(i - 1).T_cam_body if i > 0 else (self.truth(1).T_cam_body if self.n_frames > 1 else None)
+        # direction of the motion does not matter, only its size. (Not computed when the
+        # scenario has no blur: the renderer would not use it.)
+        rp = self.renderer.params
+        prev = None
+        if rp.motion_blur_subframes > 1 and rp.shutter_fraction > 0:
+            prev = self.truth(i - 1).T_cam_body if i > 0 else (self.truth(1).T_cam_body if self.n_frames > 1 else None)
         rng = np.random.default_rng([self.scenario.seed, i])
         left, right = self.renderer.render(gt.T_cam_body, self.sun_dir_cam, rng, T_cam_body_prev=prev,
                                            occluders=self.occluders_at(i))
