@@ -336,7 +336,7 @@ def test_pose_comes_back_after_every_point_was_lost_through_the_carried_pose(est
     ids = list(tracker.active)
     tracker.force_lost = set(ids)
     out = run(engine, range(60, 70))  # 0.4 s hidden
-    assert not any(pose.valid for _, pose, _ in out)
+    assert not any(pose.valid and not pose.coasting_s for _, pose, _ in out)  # at most coasting
     tracker.force_lost = set()
     tracker.relocks.clear()
     out = run(engine, range(70, 80))
@@ -473,7 +473,7 @@ def test_case_a_frame_redefined_after_losing_everything(estec_rig) -> None:
     run(engine, range(20))
     tracker.force_lost = set(tracker.active)
     outs = run(engine, range(20, 100))  # 3.2 s without a pose (> pose.redefine_after_s)
-    assert not any(o[1].valid for o in outs)
+    assert not any(o[1].valid and not o[1].coasting_s for o in outs)  # at most coasting
     assert engine.stats.frames_redefined == 0 or engine.frame_ids == ()
     for i, p in enumerate(pts):  # automatic selection brings new targets
         tracker.body[f"n{i}"] = p

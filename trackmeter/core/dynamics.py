@@ -291,3 +291,89 @@ class Translation:
         if scalar:
             return p[0], v[0]
         return p, v
+
+
+# --------------------------------------------------------------------------- coasting
+
+
+def torque_free_accel_bound(omega_body: ArrayLike) -> float:
+    """Largest angular acceleration, rad/s², any torque-free rigid body can have at ``omega_body``.
+
+    Euler's equations in principal axes give ``|dw_i/dt| = |(I_j - I_k) / I_i| |w_j w_k|`` and
+    every physical body has ``|I_j - I_k| <= I_i`` (triangle inequality of the moments), so
+    ``|dw_i/dt| <= |w_j w_k|`` and ``|dw/dt|² <= w1²w2² + w2²w3² + w3²w1² <= |w|⁴ / 3``:
+    ``|dw/dt| <= |w|² / sqrt(3)``, whatever the (unknown) inertia, in any body frame (the norm
+    does not depend on the axes).
+    """
+    w = np.asarray(omega_body, dtype=float).reshape(3)
+    return float(w @ w) / np.sqrt(3.0)
+
+
+def coast_pose(
+    R0: ArrayLike,
+    p0: ArrayLike,
+    cov0: ArrayLike,
+    v_cam: ArrayLike,
+    omega_body: ArrayLike,
+    dt_s: float,
+    velocity_sigma_m_s: float,
+    omega_sigma_rad_s: float,
+    lever_m: float,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Carry a pose ``dt_s`` forward on the constant-twist motion model, with its covariance.
+
+    Motion (the screw the velocity estimator fits, :func:`trackmeter.core.velocity.screw_rates`):
+    the body twist ``(v_b, omega_b)`` with ``v_b = R0^T v_cam`` stays constant, so
+    ``T(dt) = T0 exp(dt (v_b, omega_b))`` (:func:`trackmeter.core.velocity.se3_exp`) and the
+    origin's velocity is ``v_cam(dt) = R(dt) v_b``.
+
+    Covariance of ``(position m, rotation vector rad)`` in the camera frame (left-multiplied
+    error, ``R = exp(dtheta) R_hat``, the pose covariance convention of
+    :func:`trackmeter.core.pose.solve_pose`). The model's unknowns are constant over the coast:
+    a rate error ``d_omega`` (``omega_sigma_rad_s`` per axis), an origin-velocity error ``d_v``
+    (``velocity_sigma_m_s`` per axis) and the angular acceleration the constant-twist model
+    ignores, bounded for a torque-free body by :func:`torque_free_accel_bound`
+    (``sigma_alpha = |omega|² / 3`` per axis, so that the 3-vector's RMS equals the bound).
+    To first order ``dtheta(dt) = dtheta0 + dt R d_omega + dt²/2 R alpha`` and the origin, at most
+    ``lever_m`` from the centre of mass the body turns about, moves by ``dt d_v`` plus up to
+    ``lever_m`` times the attitude error grown since ``dt = 0``. A centre of mass moving in a
+    straight line is a constant body twist only when its velocity is along the spin axis; the
+    screw bends its path by at most ``|v_c| |omega| dt² / 2`` (``|v_c| <= |v| + |omega| lever``),
+    added as one more term. Taking the unknowns independent of each other and of the starting
+    pose (its rates come from a window of earlier poses), with isotropic sigmas
+    (``R sigma² I R^T = sigma² I``)::
+
+        cov(dt) = cov0 + diag(a I3, b I3)
+        b = sigma_omega² dt² + sigma_alpha² dt⁴ / 4
+        a = sigma_v² dt² + lever² b + ((|v| + |omega| lever) |omega| dt² / 2)²
+
+    The position error the attitude error causes through the lever is correlated with it, with
+    a sign that depends on where the (unknown) centre of mass lies: the cross-covariance is left
+    out, so each block bounds its own errors (``tests/test_coasting.py``), not their joint.
+
+    Args:
+        R0: (3,3) ``R_cam_body`` at the start; p0: (3,) origin, m; cov0: (6,6) its covariance.
+        v_cam: (3,) origin velocity in the camera frame, m/s; omega_body: (3,) rad/s.
+        dt_s: time carried forward, s (>= 0).
+        velocity_sigma_m_s, omega_sigma_rad_s: 1-sigma errors of the rates, per axis.
+        lever_m: largest distance of the body origin from the centre of mass, m.
+
+    Returns:
+        ``(R (3,3), p (3,), v_cam (3,) at dt, cov (6,6))``.
+    """
+    from trackmeter.core.velocity import se3_exp
+
+    R0 = np.asarray(R0, dtype=float)
+    p0 = np.asarray(p0, dtype=float).reshape(3)
+    w = np.asarray(omega_body, dtype=float).reshape(3)
+    v_b = R0.T @ np.asarray(v_cam, dtype=float).reshape(3)
+    dt = float(dt_s)
+    dR, dp = se3_exp(dt * np.concatenate([v_b, w]))
+    R = R0 @ dR
+    sigma_alpha = float(w @ w) / 3.0
+    b = omega_sigma_rad_s**2 * dt**2 + sigma_alpha**2 * dt**4 / 4.0
+    speed_com = float(np.linalg.norm(v_b)) + float(np.linalg.norm(w)) * lever_m  # bound on |v| of the centre of mass
+    bend = speed_com * float(np.linalg.norm(w)) * dt**2 / 2.0
+    a = velocity_sigma_m_s**2 * dt**2 + lever_m**2 * b + bend**2
+    cov = np.asarray(cov0, dtype=float) + np.diag([a, a, a, b, b, b])
+    return R, p0 + R0 @ dp, R @ v_b, cov

@@ -133,6 +133,27 @@ class PoseParams:
     coast_sigma_rad_per_s: float = param(
         0.05, "growth rate of the carried-forward pose's attitude uncertainty (1 sigma), rad/s", min=0.0,
     )
+    coast_valid_attitude_sigma_deg: float = param(
+        1.0, "with no model point measured, the pose carried on the motion model (dynamics.coast_pose) is "
+        "output as valid, flagged coasting, while its attitude 1-sigma stays below this, deg (0: never)", min=0.0,
+    )
+    coast_valid_position_sigma_m: float = param(
+        0.01, "... and while its position 1-sigma stays below this, m", min=0.0,
+    )
+    coast_velocity_sigma_m_s: float = param(
+        0.003, "coasting: 1-sigma error of the estimated origin velocity, per axis, m/s", min=0.0,
+    )
+    coast_omega_sigma_rad_s: float = param(
+        0.004, "coasting: 1-sigma error of the estimated body angular velocity, per axis, rad/s", min=0.0,
+    )
+    coast_lever_m: float = param(
+        0.5, "coasting: largest distance of the body origin from the centre of mass the body turns about, m",
+        min=0.0,
+    )
+    coast_blend_s: float = param(
+        0.3, "when points are measured again after coasting, the output moves from the coasted pose onto the "
+        "measured one with this time constant (no jump), s (0: at once)", min=0.0,
+    )
     max_recoveries_per_frame: int = param(4, "re-lock attempts per frame at most (bounds the step time)", min=0)
     recovery_margin_px: float = param(8.0, "a projected model point must lie this far inside both images, px",
                                       min=0.0)

@@ -47,6 +47,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
+from trackmeter.core.dynamics import coast_pose
 from trackmeter.core.output_filter import FilterParams, PoseFilter
 from trackmeter.core.pose import (
     PoseParams,
@@ -265,6 +266,11 @@ class Engine:
         self._frame_t_s = 0.0  # time of the frame being processed, s
         self._lost_since: dict[str, int] = {}
         self._coast: tuple[float, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray] | None = None
+        # Coasting output: the last output pose with settled rates (t, R, p, cov, v_cam, omega_body),
+        # whether the last output was coasted, and the offset being blended out after a coast.
+        self._coast_out: tuple[float, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray] | None = None
+        self._coasting = False
+        self._blend: tuple[float, FloatArray, FloatArray] | None = None
         self._velocity = VelocityEstimator(self.velocity_params)
         self._filter = PoseFilter(self.filter_params, self.rate_hz)
         self._align_M = np.zeros((3, 3))
@@ -427,6 +433,11 @@ class Engine:
                     # tracked now (the pose was invalid anyway; a new body frame starts here).
                     self._reset_motion()
                     self.stats.frames_redefined += 1
+            coasted = self._coasted_pose(frame.t_s, pose.reason or "no pose")
+            if coasted is not None:
+                self._coasting = True
+                return self.tracker.targets if self._recovered_any else targets, coasted, self._errors(frame, coasted)
+            self._coasting = False
             return self.tracker.targets if self._recovered_any else targets, pose, None
         R, t, cov, n_used, outliers = fit
         self.stats.valid_frames += 1
@@ -437,11 +448,14 @@ class Engine:
         R_f, t_f = self._filter.update(frame.t_s, R, t, v if rates else None, w if rates else None)
         if not self._velocity.settled:  # provisional rates steer the filter but are not reported
             v, w = np.full(3, np.nan), np.full(3, np.nan)
+        R_f, t_f, cov_out = self._blend_out(frame.t_s, R_f, t_f, cov)
+        v_arr, w_arr = np.asarray(v, float), np.asarray(w, float)
+        self._coast_out = ((frame.t_s, R_f, t_f, cov_out, v_arr, w_arr)
+                           if np.all(np.isfinite(v_arr)) and np.all(np.isfinite(w_arr)) else None)
         T = np.eye(4)
         T[:3, :3] = R_f
         T[:3, 3] = t_f
-        pose = PoseEstimate(True, None, self._case, T, cov, np.asarray(v, float), np.asarray(w, float),
-                            n_used, tuple(outliers))
+        pose = PoseEstimate(True, None, self._case, T, cov_out, v_arr, w_arr, n_used, tuple(outliers))
         self._recovered_any = False
         if self.pose_params.recover_model_points:
             self._recover(frame, R, t, cov, existing)
@@ -717,6 +731,72 @@ class Engine:
         R = R0 @ Rotation.from_rotvec(w * dt).as_matrix()
         grow = np.concatenate([np.full(3, (p.coast_sigma_m_per_s * dt) ** 2), np.full(3, (p.coast_sigma_rad_per_s * dt) ** 2)])
         return R, p0 + v * dt, cov0 + np.diag(grow)
+
+    def _coast_state(self, t_s: float) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, float] | None:
+        """The last output pose carried to ``t_s`` on the motion model
+        (:func:`trackmeter.core.dynamics.coast_pose`): ``(R, p, v_cam, cov, dt)``, or None
+        without a pose with settled rates."""
+        if self._coast_out is None:
+            return None
+        t0, R0, p0, cov0, v, w = self._coast_out
+        dt = t_s - t0
+        if dt <= 0:
+            return None
+        p = self.pose_params
+        R, pos, v_t, cov = coast_pose(R0, p0, cov0, v, w, dt, p.coast_velocity_sigma_m_s,
+                                      p.coast_omega_sigma_rad_s, p.coast_lever_m)
+        return R, pos, v_t, cov, dt
+
+    def _coasted_pose(self, t_s: float, why: str) -> PoseEstimate | None:
+        """No pose measured this frame: the coasted one, valid while its covariance stays within
+        ``coast_valid_attitude_sigma_deg`` and ``coast_valid_position_sigma_m``, else None.
+        Flagged: ``coasting_s`` > 0, no points, and the reason says what it is."""
+        p = self.pose_params
+        if p.coast_valid_attitude_sigma_deg <= 0:
+            return None
+        state = self._coast_state(t_s)
+        if state is None:
+            return None
+        R, pos, v, cov, dt = state
+        d = np.diag(cov)
+        if (np.sqrt(d[3:].max()) > np.radians(p.coast_valid_attitude_sigma_deg)
+                or np.sqrt(d[:3].max()) > p.coast_valid_position_sigma_m):
+            return None
+        T = np.eye(4)
+        T[:3, :3] = R
+        T[:3, 3] = pos
+        w = self._coast_out[5] if self._coast_out is not None else np.full(3, np.nan)
+        return PoseEstimate(True, f"coasting {dt:.2f} s on the motion model ({why})", self._case, T, cov,
+                            v, np.asarray(w, float).copy(), 0, (), coasting_s=float(dt))
+
+    def _blend_out(self, t_s: float, R: FloatArray, pos: FloatArray, cov: FloatArray
+                   ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """The output after a coast: measured again, the pose would jump from the coasted one by
+        the coast's error. Instead the offset ``e`` (coasted minus measured: position, rotation
+        vector, camera frame) at the first measured frame is removed with the time constant
+        ``coast_blend_s``: output ``exp(a e) (R, p)`` with ``a = exp(-(t - t_e) / coast_blend_s)``
+        and covariance ``cov + a² cov_coast`` (the part of the coast's error still in it). An
+        offset outside the chi-square gate (6 dof) of ``cov + cov_coast`` means the coast was
+        wrong: no blending, the measured pose is output (the jump is real)."""
+        p = self.pose_params
+        if self._coasting and p.coast_blend_s > 0:
+            state = self._coast_state(t_s)
+            self._blend = None
+            if state is not None:
+                R_c, p_c, _, cov_c, _ = state
+                e = np.concatenate([p_c - pos, Rotation.from_matrix(R_c @ R.T).as_rotvec()])
+                d2 = float(e @ np.linalg.solve(cov + cov_c, e))
+                if d2 <= chi2.ppf(p.outlier_probability, 6):
+                    self._blend = (t_s, e, cov_c)
+        self._coasting = False
+        if self._blend is None:
+            return R, pos, cov
+        t_e, e, cov_c = self._blend
+        a = float(np.exp(-(t_s - t_e) / p.coast_blend_s))
+        if a < 1e-3:
+            self._blend = None
+            return R, pos, cov
+        return Rotation.from_rotvec(a * e[3:]).as_matrix() @ R, pos + a * e[:3], cov + a * a * cov_c
 
     def _recover(self, frame: StereoFrame, R: FloatArray, t: FloatArray, cov: FloatArray, existing: set[str],
                  carried: bool = False) -> None:

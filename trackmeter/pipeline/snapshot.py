@@ -27,7 +27,7 @@ class PoseEstimate:
 
     Attributes:
         valid: False when no pose could be made (then ``reason`` says why; the arrays are NaN).
-        reason: why the pose is invalid, else None.
+        reason: why the pose is invalid; for a valid pose None, or, while coasting, what it is.
         case: the model case used, ``"a"``, ``"b"`` or ``"c"``.
         T_cam_body: (4,4) filtered pose of the body in the left camera frame.
         cov_pose: (6,6) covariance of (position m, rotation vector rad) in the camera frame.
@@ -35,6 +35,10 @@ class PoseEstimate:
         omega_body_rad_s: (3,) angular velocity in the body frame, rad/s.
         n_points: number of points used.
         outlier_ids: targets rejected as outliers this frame.
+        coasting_s: 0 for a pose measured this frame; > 0: no model point was measured for this
+            long and the pose is the last one carried on the motion model
+            (:func:`trackmeter.core.dynamics.coast_pose`), valid only while its covariance is
+            within ``pose.coast_valid_*`` (``n_points`` is 0, ``reason`` says so).
     """
 
     valid: bool
@@ -46,6 +50,7 @@ class PoseEstimate:
     omega_body_rad_s: NDArray[np.float64]
     n_points: int = 0
     outlier_ids: tuple[str, ...] = ()
+    coasting_s: float = 0.0
 
     @staticmethod
     def invalid(reason: str, case: ModelCase = "a") -> PoseEstimate:

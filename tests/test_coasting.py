@@ -1,0 +1,206 @@
+"""Coasting through a loss of measurements: trackmeter.core.dynamics.coast_pose and its use by the engine.
+
+The closed-form covariance growth is pinned against Monte Carlo runs of the motion it models
+(rates and a constant angular acceleration drawn from their distributions, the rotation
+integrated numerically), the torque-free acceleration bound against Euler's equations.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from trackmeter.core.dynamics import coast_pose, euler_rates, torque_free_accel_bound
+from trackmeter.core.velocity import se3_exp
+
+
+def _rotate(R0: np.ndarray, omega: np.ndarray, alpha: np.ndarray, dt: float, steps: int = 200) -> np.ndarray:
+    """R(dt) for the body rate omega + alpha tau (body frame), midpoint rule on SO(3)."""
+    R = R0.copy()
+    h = dt / steps
+    for k in range(steps):
+        R = R @ Rotation.from_rotvec((omega + alpha * (k + 0.5) * h) * h).as_matrix()
+    return R
+
+
+def test_torque_free_acceleration_never_exceeds_the_bound() -> None:
+    rng = np.random.default_rng(0)
+    worst = 0.0
+    for _ in range(2000):
+        m = np.sort(rng.uniform(0.1, 1.0, 3))
+        m[2] = rng.uniform(m[1], m[0] + m[1])  # any physical body: I1 + I2 >= I3
+        w = rng.normal(size=3) * rng.uniform(0.01, 3.0)
+        ratio = np.linalg.norm(euler_rates(w, m)) / torque_free_accel_bound(w)
+        assert ratio <= 1.0 + 1e-12
+        worst = max(worst, ratio)
+    assert worst > 0.5
+    # Reached by a thin rod's limit (I1 -> 0, I2 = I3 = I1 + I2) spinning equally about all axes.
+    w = np.ones(3)
+    assert np.linalg.norm(euler_rates(w, [1e-9, 1.0, 1.0 + 1e-9])) / torque_free_accel_bound(w) == pytest.approx(
+        1.0, rel=1e-6)
+
+
+def test_exact_rates_reproduce_a_constant_twist() -> None:
+    """Zero errors: the coasted pose is the screw T0 exp(dt xi) and its velocity turns with the body."""
+    R0 = Rotation.from_rotvec([0.3, -0.2, 1.0]).as_matrix()
+    p0 = np.array([0.1, 0.0, 3.5])
+    w = np.radians([3.0, -1.0, 5.0])
+    v = np.array([0.004, -0.002, 0.01])
+    R, p, v_t, cov = coast_pose(R0, p0, np.zeros((6, 6)), v, w, 2.0, 0.0, 0.0, 0.0)
+    # The same screw integrated in small steps of the body twist.
+    v_b = R0.T @ v
+    Ri, pi = R0.copy(), p0.copy()
+    for _ in range(1000):
+        dR, dp = se3_exp(2e-3 * np.concatenate([v_b, w]))
+        pi = pi + Ri @ dp
+        Ri = Ri @ dR
+    np.testing.assert_allclose(R, Ri, atol=1e-12)
+    np.testing.assert_allclose(p, pi, atol=1e-12)
+    np.testing.assert_allclose(v_t, R @ v_b, atol=1e-15)
+    assert np.linalg.norm(v_t) == pytest.approx(np.linalg.norm(v))
+    # Left in the covariance: the torque-free acceleration bound and the screw's bend.
+    bend = np.linalg.norm(v) * np.linalg.norm(w) * 2.0**2 / 2  # lever 0: the origin is the centre
+    accel = (w @ w) / 3.0 * 2.0**2 / 2
+    np.testing.assert_allclose(cov, np.diag([bend**2] * 3 + [accel**2] * 3), rtol=1e-12, atol=0)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("dt", [0.5, 2.0])
+def test_covariance_growth_matches_monte_carlo(dt: float) -> None:
+    """Origin at the centre of mass, no translation: the attitude block is sigma_omega² dt² +
+    sigma_alpha² dt⁴/4 and the position block sigma_v² dt², as sampled."""
+    rng = np.random.default_rng(1)
+    R0 = Rotation.from_rotvec([0.5, 0.1, -0.7]).as_matrix()
+    p0 = np.array([0.0, 0.05, 3.5])
+    w = np.radians([3.0, -1.0, 5.0]) * 3  # fast enough that the acceleration term matters at 2 s
+    s_v, s_w = 0.003, 0.004
+    cov0 = np.diag([1e-6] * 3 + [1e-5] * 3)
+    R_pred, p_pred, _, cov = coast_pose(R0, p0, cov0, np.zeros(3), w, dt, s_v, s_w, 0.0)
+    s_a = (w @ w) / 3.0
+    n = 3000
+    E = np.empty((n, 6))
+    for k in range(n):
+        e0 = rng.multivariate_normal(np.zeros(6), cov0)
+        R_s = Rotation.from_rotvec(e0[3:]).as_matrix() @ R0
+        dv = rng.normal(0.0, s_v, 3)
+        R_t = _rotate(R_s, w + rng.normal(0.0, s_w, 3), rng.normal(0.0, s_a, 3), dt, steps=20)
+        E[k, :3] = p0 + e0[:3] + dv * dt - p_pred
+        E[k, 3:] = Rotation.from_matrix(R_t @ R_pred.T).as_rotvec()
+    C = np.cov(E.T)
+    # Sampling error of a variance from 3000 draws: ~2.6 % (1 sigma); model linearisation < 1 %.
+    np.testing.assert_allclose(np.diag(C), np.diag(cov), rtol=0.12)
+    assert np.abs(C[3:, 3:] - np.diag(np.diag(C[3:, 3:]))).max() < 0.12 * np.diag(cov)[3:].max()
+
+
+@pytest.mark.slow
+def test_covariance_bounds_an_offset_origin_and_a_moving_centre_of_mass() -> None:
+    """A body turning about a centre of mass ``lever`` from its origin, the centre moving in a
+    straight line (not a constant body twist): the sampled errors stay within the closed form."""
+    rng = np.random.default_rng(2)
+    R0 = Rotation.from_rotvec([0.2, 0.9, 0.1]).as_matrix()
+    r_b = np.array([0.3, -0.2, 0.3])  # origin relative to the centre of mass, body frame
+    lever = float(np.linalg.norm(r_b))
+    c0 = np.array([0.0, 0.0, 3.5])
+    v_c = np.array([0.01, -0.005, 0.02])
+    w = np.radians([6.0, -2.0, 10.0])
+    dt = 2.0
+    p0 = c0 + R0 @ r_b
+    v_origin = v_c + R0 @ np.cross(w, r_b)
+    s_v, s_w = 0.003, 0.004
+    R_pred, p_pred, _, cov = coast_pose(R0, p0, np.zeros((6, 6)), v_origin, w, dt, s_v, s_w, lever)
+    s_a = (w @ w) / 3.0
+    n = 2000
+    E = np.empty((n, 6))
+    for k in range(n):
+        R_t = _rotate(R0, w + rng.normal(0.0, s_w, 3), rng.normal(0.0, s_a, 3), dt, steps=20)
+        p_t = c0 + (v_c + rng.normal(0.0, s_v, 3)) * dt + R_t @ r_b
+        E[k, :3] = p_t - p_pred
+        E[k, 3:] = Rotation.from_matrix(R_t @ R_pred.T).as_rotvec()
+    second_moment = E.T @ E / n  # includes the bias of the straight-line centre against the screw
+    # Each block bounds its own errors (the cross-covariance depends on the unknown centre).
+    for block in (slice(0, 3), slice(3, 6)):
+        assert np.linalg.eigvalsh(cov[block, block] - second_moment[block, block] / 1.15).min() > 0.0
+
+
+# --------------------------------------------------------------------------- the engine
+
+
+def _engine(estec_rig, **pose_kw):  # type: ignore[no-untyped-def]
+    from dataclasses import replace
+
+    from tests.test_engine import make_engine
+
+    engine, tracker, pts = make_engine(estec_rig, noise=False)
+    engine.pose_params = replace(engine.pose_params, **pose_kw)
+    return engine, tracker
+
+
+def test_engine_coasts_flagged_and_within_its_covariance_then_stops(estec_rig) -> None:
+    """Every point lost: the pose is carried on the motion model, flagged (coasting_s, no points,
+    a reason), its true error inside 3 sigma of its growing covariance, and reported only while
+    that covariance stays within the configured bound."""
+    from tests.test_engine import DT, frame_at, run, true_pose
+
+    engine, tracker = _engine(estec_rig)
+    run(engine, range(60))  # the velocities settle
+    tracker.force_lost = set(tracker.active)
+    outs = [(k, engine.process(frame_at(k))[1]) for k in range(60, 60 + int(6.0 / DT))]
+    coasted = [(k, p) for k, p in outs if p.valid]
+    assert coasted and all(p.coasting_s > 0 and p.n_points == 0 and "coasting" in (p.reason or "") for _, p in coasted)
+    # Contiguous from the loss, then invalid for good.
+    assert [k for k, _ in coasted] == list(range(60, 60 + len(coasted)))
+    assert not any(p.valid for _, p in outs[len(coasted):])
+    sig = [np.sqrt(np.diag(p.cov_pose)) for _, p in coasted]
+    assert all(np.all(np.diff([s[3] for s in sig]) > 0) for _ in [0])  # grows
+    bound = np.radians(engine.pose_params.coast_valid_attitude_sigma_deg)
+    assert max(s[3:].max() for s in sig) <= bound
+    assert min(s[3:].max() for s in sig) < 0.5 * bound
+    for (k, p), s in zip(coasted, sig):
+        T = true_pose(k * DT)
+        e_p = p.T_cam_body[:3, 3] - T[:3, 3]
+        e_r = Rotation.from_matrix(p.T_cam_body[:3, :3] @ T[:3, :3].T).as_rotvec()
+        assert np.all(np.abs(np.concatenate([e_p, e_r])) < 3 * s)
+
+
+def test_engine_never_coasts_when_switched_off(estec_rig) -> None:
+    from tests.test_engine import run
+
+    engine, tracker = _engine(estec_rig, coast_valid_attitude_sigma_deg=0.0)
+    run(engine, range(60))
+    tracker.force_lost = set(tracker.active)
+    assert not any(p.valid for _, p, _ in run(engine, range(60, 70)))
+
+
+def test_engine_blends_back_onto_the_measured_pose_without_a_jump(estec_rig) -> None:
+    """After a coast whose rates were wrong, the measured pose differs from the coasted one; the
+    output moves over with the time constant coast_blend_s: no frame-to-frame step beyond
+    3 sigma of the reported covariance (the rule of issue #5), and it ends on the measured pose."""
+    from tests.test_engine import DT, frame_at, run, true_pose
+
+    engine, tracker = _engine(estec_rig, coast_omega_sigma_rad_s=0.01)
+    run(engine, range(60))
+    t0, R0, p0, cov0, v, w = engine._coast_out
+    engine._coast_out = (t0, R0, p0, cov0, v, w + np.array([0.004, -0.003, 0.0]))  # a rate error
+    tracker.force_lost = set(tracker.active)
+    run(engine, range(60, 85))  # 1 s coasting
+    tracker.force_lost = set()
+    prev = None
+    first_e = None
+    steps = []
+    for k in range(85, 85 + int(2.5 / DT)):
+        targets, pose, _ = engine.process(frame_at(k))
+        assert pose.valid
+        if first_e is None and engine._blend is not None:
+            first_e = engine._blend[1]
+        if prev is not None:
+            T_pred = true_pose(k * DT) @ np.linalg.inv(true_pose((k - 1) * DT)) @ prev
+            d = np.concatenate([pose.T_cam_body[:3, 3] - T_pred[:3, 3],
+                                Rotation.from_matrix(pose.T_cam_body[:3, :3] @ T_pred[:3, :3].T).as_rotvec()])
+            steps.append(np.max(np.abs(d) / np.sqrt(np.diag(pose.cov_pose))))
+        prev = pose.T_cam_body
+    assert max(steps) < 3.0
+    assert engine._blend is None
+    # Without the blend the first measured frame would have stepped by the coast's error, many
+    # sigmas of the measured pose.
+    assert np.max(np.abs(first_e) / np.sqrt(np.diag(pose.cov_pose))) > 5.0  # blended out: the output is the measured pose again
