@@ -15,12 +15,9 @@ from trackmeter.sources.sim.render import RenderParams, StereoRenderer, _View, l
 WARP = dict(flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
-def _plain_draw(self, canvas, zbuf, rad_pm, lvl, H_tex, box, g, read, write) -> None:  # type: ignore[no-untyped-def]
+def _plain_draw(self, canvas, zbuf, rad_pm, lvl, H, box, g, read, write) -> None:  # type: ignore[no-untyped-def]
     """The renderer's compositing step written plainly (two 1-channel warps, NumPy arithmetic)."""
     a0, b0, a1, b1 = box
-    H = H_tex.copy()
-    H[0] -= a0 * H_tex[2]
-    H[1] -= b0 * H_tex[2]
     size = (a1 - a0, b1 - b0)
     rw = cv2.warpPerspective(rad_pm, H, size, **WARP)
     aw = cv2.warpPerspective(lvl.alpha, H, size, **WARP)
@@ -90,3 +87,19 @@ def test_image_box_holds_every_pixel_that_sees_the_canvas_box(estec_rig) -> None
                 rows, cols = np.flatnonzero(full.any(axis=1)), np.flatnonzero(full.any(axis=0))
                 assert box is not None and box[0] >= cols[0] - 3 and box[2] <= cols[-1] + 4
                 assert box[1] >= rows[0] - 3 and box[3] <= rows[-1] + 4
+
+
+def test_reused_buffers_leave_nothing_behind(estec_rig) -> None:  # type: ignore[no-untyped-def]
+    """A render after one of a nearer, larger view (with motion blur: both buffer slots) equals
+    the same render by a fresh renderer."""
+    mockup = load_mockup(MODELS_DIR / "estec_mockup.yaml")
+    params = RenderParams(motion_blur_subframes=3)
+    used, fresh = StereoRenderer(estec_rig, mockup, params), StereoRenderer(estec_rig, mockup, params)
+    sun = np.array([-0.5, -0.6, -0.6])
+    near = look_at(np.array([-0.3, 0.2, 2.0]), np.array([60.0, -20.0, 150.0]))
+    T = look_at(np.array([0.4, 0.1, 4.5]), np.array([-110.0, 35.0, 20.0]))
+    T_prev = look_at(np.array([0.4, 0.1, 4.5]), np.array([-108.0, 34.0, 21.0]))
+    used.render(near, sun, np.random.default_rng(1), T_cam_body_prev=T)
+    a = used.render(T, sun, np.random.default_rng(2), T_cam_body_prev=T_prev)
+    b = fresh.render(T, sun, np.random.default_rng(2), T_cam_body_prev=T_prev)
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])

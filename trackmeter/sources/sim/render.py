@@ -62,6 +62,7 @@ FloatArray = NDArray[np.float64]
 
 _NEAR_M = 0.02  # faces with a corner closer than this to a camera are not drawn
 _MIN_SHADOW_AREA_PX = 300.0  # smaller faces (a few px across) are not worth a shadow test
+_SUM3 = np.ones((1, 3))  # cv2.transform matrix: sum of a 3-channel image's channels
 _LIT_OF_MASK = (1.0 - np.arange(256, dtype=np.float32) / 255.0).astype(np.float32)  # shadow mask (0..255) -> lit fraction
 
 
@@ -220,6 +221,8 @@ class StereoRenderer:
         self._last_gain = float("nan")
         # per texture level drawn: a 4-channel (radiance, alpha, 0, 0) texture, alpha filled once
         self._tex4: dict[TextureLevel, F32] = {}
+        self._unlit: dict[tuple[TextureLevel, float], F32] = {}  # radiance of faces the sun does not reach
+        self._buffers: dict[tuple[int, int], tuple[F32, F32, tuple[int, int, int, int]]] = {}  # radiance_canvas(_slot=)
 
     @property
     def last_gain_grey(self) -> float:
@@ -267,7 +270,7 @@ class StereoRenderer:
         for k, T in enumerate(poses):
             shared: dict = {}  # type: ignore[type-arg]
             for side in (0, 1):
-                rad, zbuf = self.radiance_canvas(side, T, s_cam, occluders, _shared=shared)
+                rad, zbuf = self.radiance_canvas(side, T, s_cam, occluders, _shared=shared, _slot=min(k, 1))
                 boxes[side].append(shared[("box", side)])
                 canvases[side] = rad if k == 0 else canvases[side] + rad
                 if side == 0 and cover is None:
@@ -288,13 +291,17 @@ class StereoRenderer:
         for side in (0, 1):
             view = self._views[side]
             W, H = view.cam.image_size
-            img = np.zeros((H, W), np.float32)
             # the canvas is 0 outside the faces' boxes, and so is the image where it only sees that
             x0, y0 = min(b[0] for b in boxes[side]), min(b[1] for b in boxes[side])
             x1, y1 = max(b[2] for b in boxes[side]), max(b[3] for b in boxes[side])
             box = view.image_box((x0, y0, x1, y1)) if x1 > x0 and y1 > y0 else None
+            c0, r0, c1, r1 = box if box is not None else (0, 0, 0, 0)
+            img = np.empty((H, W), np.float32)  # zeroed below outside the box (np.zeros page-faults)
+            img[:r0] = 0.0
+            img[r1:] = 0.0
+            img[r0:r1, :c0] = 0.0
+            img[r0:r1, c1:] = 0.0
             if box is not None:
-                c0, r0, c1, r1 = box
                 cv2.remap(canvases[side], view.map_x[r0:r1, c0:c1], view.map_y[r0:r1, c0:c1], cv2.INTER_LINEAR,
                           dst=img[r0:r1, c0:c1], borderMode=cv2.BORDER_CONSTANT, borderValue=0)
                 img[r0:r1, c0:c1] *= np.float32(gain)
@@ -367,13 +374,16 @@ class StereoRenderer:
         sun_dir_cam: FloatArray,
         occluders: Sequence[Occluder] = (),
         _shared: dict | None = None,  # type: ignore[type-arg]
+        _slot: int | None = None,
     ) -> tuple[F32, F32]:
         """Noise-free radiance of one camera's undistorted pinhole canvas and its ``1/z`` buffer
         (0 where nothing is drawn; only kept up to date where a later face needs it: use the
         radiance, not this buffer, to tell space from satellite). ``side`` 0 = left, 1 = right.
 
         ``_shared`` lets the two cameras of one instant share what does not depend on the view
-        (shadows, diffuse shading); pass the same fresh dict for both.
+        (shadows, diffuse shading); pass the same fresh dict for both. With ``_slot`` the two
+        buffers returned are the renderer's own, reused (and overwritten) by the next call with
+        the same side and slot; else they are new.
         """
         view = self._views[side]
         T_view_body = T_cam_body if side == 0 else self.rig.T_cam1_cam @ T_cam_body
@@ -425,6 +435,8 @@ class StereoRenderer:
         iy0 = np.clip(y0, 0, Hc).astype(int)
         ix1 = np.clip(x1, 0, Wc).astype(int)
         iy1 = np.clip(y1, 0, Hc).astype(int)
+        Hs[:, 0] -= ix0[:, None] * Hs[:, 2]  # texel centres -> pixels of the face's box
+        Hs[:, 1] -= iy0[:, None] * Hs[:, 2]
         n_v = (geom.normal * sgn[:, None]) @ R.T
         gz = (n_v @ view.K_canvas_inv) / np.einsum("fk,fk->f", n_v, geom.origin @ R.T + t)[:, None]
         gz = gz.astype(np.float32)
@@ -437,12 +449,25 @@ class StereoRenderer:
         must_read = dict(zip(order.tolist(), (overlap & (rank[None, :] < rank[:, None])).any(axis=1).tolist()))
         must_write = dict(zip(order.tolist(), (overlap & (rank[None, :] > rank[:, None])).any(axis=1).tolist()))
 
-        canvas = np.zeros((Hc, Wc), np.float32)
-        zbuf = np.zeros((Hc, Wc), np.float32)
         if len(order):
-            shared[("box", side)] = (int(ix0[order].min()), int(iy0[order].min()), int(ix1[order].max()), int(iy1[order].max()))
+            box = (int(ix0[order].min()), int(iy0[order].min()), int(ix1[order].max()), int(iy1[order].max()))
         else:
-            shared[("box", side)] = (0, 0, 0, 0)
+            box = (0, 0, 0, 0)
+        shared[("box", side)] = box
+        if _slot is None:
+            canvas = np.zeros((Hc, Wc), np.float32)
+            zbuf = np.zeros((Hc, Wc), np.float32)
+        else:
+            # reused buffers: only the box the last call drew into needs clearing (a fresh zeroed
+            # array of this size costs page faults, several times the clearing)
+            reuse = self._buffers.get((side, _slot))
+            if reuse is None:
+                canvas, zbuf = np.zeros((Hc, Wc), np.float32), np.zeros((Hc, Wc), np.float32)
+            else:
+                canvas, zbuf, (a0, b0, a1, b1) = reuse
+                canvas[b0:b1, a0:a1] = 0.0
+                zbuf[b0:b1, a0:a1] = 0.0
+            self._buffers[(side, _slot)] = (canvas, zbuf, box)
         amb = p.ambient * E
         for f in order.tolist():
             face = geom.faces[f]
@@ -452,7 +477,10 @@ class StereoRenderer:
             nv, nu = lvl.shape
             n_side = sgn[f] * geom.normal[f]
             if s_side_n[f] <= 0 or E == 0:
-                rad_pm = lvl.albedo_pm * np.float32(amb)
+                unlit_key = (lvl, amb)
+                rad_pm = self._unlit.get(unlit_key)  # type: ignore[assignment]
+                if rad_pm is None:
+                    rad_pm = self._unlit[unlit_key] = lvl.albedo_pm * np.float32(amb)
             else:
                 key = (f, int(level[f]))
                 cached = shared.get(key)
@@ -485,7 +513,7 @@ class StereoRenderer:
                     if off - spread - tilt < lobe:
                         hv = _half_vectors(face, n_side, C, s_loc)
                         big = cv2.resize(hv, (nu, nv), interpolation=cv2.INTER_LINEAR)
-                        ndh = cv2.transform(cv2.multiply(lvl.normal, big), np.ones((1, 3)))  # n'.h
+                        ndh = cv2.transform(cv2.multiply(lvl.normal, big), _SUM3)  # n'.h
                         glint = cv2.exp(cv2.addWeighted(ndh, sharp, ndh, 0.0, -sharp))  # exp(k (n'.h - 1))
                         glint = cv2.multiply(glint, lvl.spec_pm, scale=k_spec)
                         if lit is not None:
@@ -495,19 +523,16 @@ class StereoRenderer:
         return canvas, zbuf
 
     def _draw(
-        self, canvas: F32, zbuf: F32, rad_pm: F32, lvl: TextureLevel, H_tex: FloatArray, box: tuple[int, int, int, int], g: F32,
+        self, canvas: F32, zbuf: F32, rad_pm: F32, lvl: TextureLevel, H: FloatArray, box: tuple[int, int, int, int], g: F32,
         read: bool, write: bool,
     ) -> None:
         """Composite one face's warped premultiplied radiance "over" the canvas in ``box``
         (columns a0..a1, rows b0..b1), behind the ``1/z`` depth test when ``read`` (something may
         be drawn there already) and updating ``zbuf`` where it covers when ``write``.
-        ``H_tex`` maps texel centres to canvas pixels; ``g`` is the face's ``1/z`` plane;
+        ``H`` maps texel centres to the box's pixels; ``g`` is the face's ``1/z`` plane;
         ``rad_pm`` the face's premultiplied radiance on the texel grid of ``lvl``, the mip level
         whose ``alpha`` is the coverage."""
         a0, b0, a1, b1 = box
-        H = H_tex.copy()  # texel -> box pixels
-        H[0] -= a0 * H_tex[2]
-        H[1] -= b0 * H_tex[2]
         size = (a1 - a0, b1 - b0)
         cv = canvas[b0:b1, a0:a1]  # views: OpenCV reads and writes them in place
         zb = zbuf[b0:b1, a0:a1]
@@ -670,10 +695,10 @@ def _shadow_mask(geom: _Geom, index: int, n_side: FloatArray, shape: tuple[int, 
     # per-part bounding boxes of the projections; only parts whose shadow reaches the face are drawn
     order = np.argsort(ids, kind="stable")
     ids, ij = ids[order], ij[order]
-    starts = np.flatnonzero(np.r_[True, np.diff(ids) != 0])
+    starts = np.flatnonzero(np.concatenate([[True], ids[1:] != ids[:-1]]))
     lo = np.minimum.reduceat(ij, starts, axis=0)
     hi = np.maximum.reduceat(ij, starts, axis=0)
-    counts = np.diff(np.r_[starts, len(ids)])
+    counts = np.diff(np.append(starts, len(ids)))
     hits = np.flatnonzero((counts >= 3) & (hi[:, 0] >= -1) & (hi[:, 1] >= -1) & (lo[:, 0] <= nu) & (lo[:, 1] <= nv))
     if len(hits) == 0:
         return None
