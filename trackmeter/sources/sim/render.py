@@ -41,6 +41,7 @@ spread over the shutter time centred on the current pose), 8-bit grey output.
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -200,6 +201,36 @@ class _Geom:
         self.caster_of_vert = np.concatenate(vid)
         self.caster_edges = np.concatenate(edges)
         self.n_casters = len(parts)
+        self._cuts: dict[tuple[int, bool], tuple[FloatArray, NDArray[np.intp], NDArray[np.intp]] | None] = {}
+
+    def cut_casters(self, index: int, n_side: FloatArray) -> tuple[FloatArray, NDArray[np.intp], NDArray[np.intp]] | None:
+        """The shadow casters on the ``n_side`` side of face ``index``'s plane (which does not
+        depend on the sun, so it is cut once per face and side): ``(pts, starts, counts)``, the
+        points (N,3) grouped by part, part k's being ``pts[starts[k] : starts[k] + counts[k]]``,
+        body frame, m; None when no caster reaches that side."""
+        key = (index, bool(n_side @ self.faces[index].normal > 0))
+        if key in self._cuts:
+            return self._cuts[key]
+        face = self.faces[index]
+        eps = 1e-4
+        V = self.caster_verts
+        dist = (V - face.origin) @ n_side - eps
+        pos = dist > 0
+        out = None
+        if pos.any():
+            a, b = self.caster_edges[:, 0], self.caster_edges[:, 1]
+            cross = pos[a] != pos[b]
+            a, b = a[cross], b[cross]
+            tt = dist[a] / (dist[a] - dist[b])
+            X = V[a] + tt[:, None] * (V[b] - V[a])
+            pts = np.concatenate([V[pos], X])
+            ids = np.concatenate([self.caster_of_vert[pos], self.caster_of_vert[a]])
+            order = np.argsort(ids, kind="stable")
+            ids, pts = ids[order], pts[order]
+            starts = np.flatnonzero(np.concatenate([[True], ids[1:] != ids[:-1]]))
+            out = (pts, starts, np.diff(np.append(starts, len(ids))))
+        self._cuts[key] = out
+        return out
 
 
 class StereoRenderer:
@@ -219,8 +250,9 @@ class StereoRenderer:
         self._geom = _Geom(mockup.faces)
         self._occluder_surfaces: dict[tuple[float, float], Face] = {}
         self._last_gain = float("nan")
-        # per texture level drawn: a 4-channel (radiance, alpha, 0, 0) texture, alpha filled once
-        self._tex4: dict[TextureLevel, F32] = {}
+        # per texture level drawn: a 4-channel (radiance, alpha, 0, 0) texture, alpha filled once,
+        # and the radiance array its channel 0 holds
+        self._tex4: dict[TextureLevel, tuple[F32, F32]] = {}
         self._unlit: dict[tuple[TextureLevel, float], F32] = {}  # radiance of faces the sun does not reach
         self._buffers: dict[tuple[int, int], tuple[F32, F32, tuple[int, int, int, int]]] = {}  # radiance_canvas(_slot=)
 
@@ -469,20 +501,30 @@ class StereoRenderer:
                 zbuf[b0:b1, a0:a1] = 0.0
             self._buffers[(side, _slot)] = (canvas, zbuf, box)
         amb = p.ambient * E
+        n_sides = sgn[:, None] * geom.normal
+        # glint test geometry of every face: distance to the camera, angle of the half vector of
+        # the sun and the face centre's view direction to the face's normal (see below)
+        to_cam = C - geom.centre
+        dists = np.sqrt(np.einsum("fk,fk->f", to_cam, to_cam))
+        h_c = to_cam / dists[:, None] + s_body
+        with np.errstate(divide="ignore", invalid="ignore"):
+            offs = np.arccos(np.clip(np.einsum("fk,fk->f", h_c, n_sides) / np.sqrt(np.einsum("fk,fk->f", h_c, h_c)), -1.0, 1.0))
+            spreads = 0.5 * np.arctan(geom.half_diag / dists) + 0.02
+        levels = level.tolist()
         for f in order.tolist():
             face = geom.faces[f]
             surf = face.front if sgn[f] > 0 else face.back
             assert surf is not None
-            lvl = surf.levels[int(level[f])]
+            lvl = surf.levels[levels[f]]
             nv, nu = lvl.shape
-            n_side = sgn[f] * geom.normal[f]
+            n_side = n_sides[f]
             if s_side_n[f] <= 0 or E == 0:
                 unlit_key = (lvl, amb)
                 rad_pm = self._unlit.get(unlit_key)  # type: ignore[assignment]
                 if rad_pm is None:
                     rad_pm = self._unlit[unlit_key] = lvl.albedo_pm * np.float32(amb)
             else:
-                key = (f, int(level[f]))
+                key = (f, levels[f])
                 cached = shared.get(key)
                 if cached is None:
                     lit = _shadow_mask(geom, f, n_side, (nv, nu), s_body) if big_enough[f] else None
@@ -505,12 +547,7 @@ class StereoRenderer:
                     # and across the face h turns by at most half the view direction's spread
                     tilt = math.atan(4.0 * surf.material.slope)
                     lobe = math.acos(max(-1.0, 1.0 - 7.0 / sharp))
-                    to_cam = C - geom.centre[f]
-                    dist = math.sqrt(float(to_cam @ to_cam))
-                    h_c = to_cam / dist + s_body
-                    off = math.acos(min(1.0, max(-1.0, float(h_c @ n_side) / math.sqrt(float(h_c @ h_c)))))
-                    spread = 0.5 * math.atan(geom.half_diag[f] / dist) + 0.02
-                    if off - spread - tilt < lobe:
+                    if offs[f] - spreads[f] - tilt < lobe:
                         hv = _half_vectors(face, n_side, C, s_loc)
                         big = cv2.resize(hv, (nu, nv), interpolation=cv2.INTER_LINEAR)
                         ndh = cv2.transform(cv2.multiply(lvl.normal, big), _SUM3)  # n'.h
@@ -544,12 +581,13 @@ class StereoRenderer:
         # Radiance and coverage in one warp of a 4-channel texture: OpenCV's 4-channel float path
         # costs about as much as one 1-channel warp (its 2-channel path several times more), and
         # interpolates each channel exactly as a 1-channel warp would.
-        tex = self._tex4.get(lvl)
+        tex, held = self._tex4.get(lvl, (None, None))
         if tex is None:
             tex = np.zeros((*lvl.shape, 4), np.float32)
             cv2.insertChannel(lvl.alpha, tex, 1)
-            self._tex4[lvl] = tex
-        cv2.insertChannel(rad_pm, tex, 0)
+        if held is not rad_pm:  # the same array again (unlit, or the other camera's diffuse): already in
+            cv2.insertChannel(rad_pm, tex, 0)
+            self._tex4[lvl] = (tex, rad_pm)
         both = cv2.warpPerspective(tex, H, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         aw = cv2.extractChannel(both, 1)
         if not read:
@@ -647,19 +685,23 @@ def _subframe_poses(T_prev: FloatArray, T_cur: FloatArray, n: int, shutter: floa
     return out
 
 
+@functools.lru_cache(maxsize=1024)
+def _grid(size_m: tuple[float, float], g: int) -> tuple[FloatArray, FloatArray]:
+    """Centres of a g x g grid over a face of ``size_m`` (w, h): local x (g,) and y (g,), m."""
+    w, h = size_m
+    return (np.arange(g) + 0.5) * (w / g), (np.arange(g) + 0.5) * (h / g)
+
+
 def _half_vectors(face: Face, n_side: FloatArray, C: FloatArray, s_loc: FloatArray, g: int = 7) -> F32:
     """Unit half vectors of sun and view directions, (g,g,3) float32 in the face's local frame
     ``(e_u, e_v, n_side)``, exact at a g x g grid placed where ``cv2.resize``'s bilinear
     interpolation to the texture size puts its samples (h varies smoothly over a face)."""
-    w, h = face.size_m
     d = C - face.origin
-    c_loc = np.array([d @ face.e_u, d @ face.e_v, d @ n_side])
-    xs = (np.arange(g) + 0.5) * (w / g)
-    ys = (np.arange(g) + 0.5) * (h / g)
+    xs, ys = _grid(face.size_m, g)
     v = np.empty((g, g, 3))
-    v[..., 0] = c_loc[0] - xs[None, :]
-    v[..., 1] = c_loc[1] - ys[:, None]
-    v[..., 2] = c_loc[2]
+    v[..., 0] = d @ face.e_u - xs[None, :]
+    v[..., 1] = d @ face.e_v - ys[:, None]
+    v[..., 2] = d @ n_side
     v /= np.sqrt((v * v).sum(axis=2, keepdims=True))
     hv = v + s_loc
     hv /= np.sqrt((hv * hv).sum(axis=2, keepdims=True))
@@ -674,31 +716,18 @@ def _shadow_mask(geom: _Geom, index: int, n_side: FloatArray, shape: tuple[int, 
     direction onto the plane, and the convex hull filled (anti-aliased) in texel coordinates.
     """
     face = geom.faces[index]
+    cut = geom.cut_casters(index, n_side)
+    if cut is None:
+        return None
+    pts, starts, counts = cut
     nv, nu = shape
     w, h = face.size_m
     sn = float(s_body @ n_side)
-    eps = 1e-4
-    V = geom.caster_verts
-    dist = (V - face.origin) @ n_side - eps
-    pos = dist > 0
-    if not pos.any():
-        return None
-    a, b = geom.caster_edges[:, 0], geom.caster_edges[:, 1]
-    cross = pos[a] != pos[b]
-    a, b = a[cross], b[cross]
-    tt = dist[a] / (dist[a] - dist[b])
-    X = V[a] + tt[:, None] * (V[b] - V[a])
-    pts = np.concatenate([V[pos], X])
-    ids = np.concatenate([geom.caster_of_vert[pos], geom.caster_of_vert[a]])
     Q = pts - np.outer(((pts - face.origin) @ n_side) / sn, s_body)
     ij = np.column_stack([(Q - face.origin) @ face.e_u * (nu / w) - 0.5, (Q - face.origin) @ face.e_v * (nv / h) - 0.5])
     # per-part bounding boxes of the projections; only parts whose shadow reaches the face are drawn
-    order = np.argsort(ids, kind="stable")
-    ids, ij = ids[order], ij[order]
-    starts = np.flatnonzero(np.concatenate([[True], ids[1:] != ids[:-1]]))
     lo = np.minimum.reduceat(ij, starts, axis=0)
     hi = np.maximum.reduceat(ij, starts, axis=0)
-    counts = np.diff(np.append(starts, len(ids)))
     hits = np.flatnonzero((counts >= 3) & (hi[:, 0] >= -1) & (hi[:, 1] >= -1) & (lo[:, 0] <= nu) & (lo[:, 1] <= nv))
     if len(hits) == 0:
         return None
@@ -707,8 +736,6 @@ def _shadow_mask(geom: _Geom, index: int, n_side: FloatArray, shape: tuple[int, 
         chunk = ij[starts[k] : starts[k] + counts[k]]
         hull = cv2.convexHull(np.round(chunk * 16).astype(np.int32))
         cv2.fillConvexPoly(mask, hull, 255, cv2.LINE_AA, shift=4)
-    if mask is None:
-        return None
     return cv2.LUT(mask, _LIT_OF_MASK)
 
 
