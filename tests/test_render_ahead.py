@@ -29,6 +29,8 @@ def test_streamed_frames_are_identical_and_wrap(short_estec):
             ref = here.frame(f.index)
             assert np.array_equal(f.left, ref.left) and np.array_equal(f.right, ref.right)
             assert np.array_equal(f.truth.T_cam_body, ref.truth.T_cam_body)
+            assert np.array_equal(f.truth.velocity_cam_m_s, ref.truth.velocity_cam_m_s)
+            assert np.array_equal(f.truth.omega_body_rad_s, ref.truth.omega_body_rad_s)
         assert np.allclose(np.diff([f.t_s for f in frames]), 0.04)
         # A restart discards what was queued and starts again at frame 0.
         ahead.restart()
@@ -67,7 +69,10 @@ def test_worker_protocol_in_process(short_estec):
     assert _INT.unpack_from(data, 0)[0] == 2
     ref = Simulator(short_estec).frame(2)
     assert data[8:8 + n] == ref.left.tobytes() and data[8 + n:8 + 2 * n] == ref.right.tobytes()
-    rest = data[8 + 2 * n:]
+    truth = np.frombuffer(data[8 + 2 * n:8 + 2 * n + 8 * 22], np.float64)
+    assert np.array_equal(truth[:16].reshape(4, 4), ref.truth.T_cam_body)
+    assert np.array_equal(truth[16:19], ref.truth.velocity_cam_m_s) and np.array_equal(truth[19:], ref.truth.omega_body_rad_s)
+    rest = data[8 + 2 * n + 8 * 22:]
     assert _INT.unpack_from(rest, 0)[0] == -1
     size = _INT.unpack_from(rest, 8)[0]
     assert b"outside the scenario" in rest[16:16 + size]

@@ -22,7 +22,10 @@ after each frame instead of letting it render ahead.
 Protocol (native byte order): the reader sends the pickled scenario once, length-prefixed, then
 one int64 frame index per request; the worker answers each request in order with an int64
 status header (``index`` or -1 on error), then either ``left`` and ``right`` as raw uint8 bytes
-of the rig's image size, or a length-prefixed UTF-8 error message.
+of the rig's image size followed by the frame's ground truth as 22 float64 (``T_cam_body``
+row-major, ``velocity_cam_m_s``, ``omega_body_rad_s``: the worker computed it for the render,
+and evaluating the rotation's solution again would cost the reader ~0.5 ms a frame), or a
+length-prefixed UTF-8 error message.
 """
 
 from __future__ import annotations
@@ -41,11 +44,23 @@ import numpy as np
 from numpy.typing import NDArray
 
 from trackmeter.errors import TrackmeterError
+from trackmeter.sources.base import GroundTruth
 
 if TYPE_CHECKING:
     from trackmeter.sources.sim.scenario import Scenario
 
 _INT = struct.Struct("=q")
+_TRUTH_FLOATS = 22  # T_cam_body (16), velocity_cam_m_s (3), omega_body_rad_s (3)
+
+
+def _truth_bytes(truth: GroundTruth) -> bytes:
+    return np.concatenate([np.asarray(truth.T_cam_body, np.float64).ravel(), np.asarray(truth.velocity_cam_m_s, np.float64).ravel(),
+                           np.asarray(truth.omega_body_rad_s, np.float64).ravel()]).tobytes()
+
+
+def _truth_from_bytes(data: bytes) -> GroundTruth:
+    x = np.frombuffer(data, np.float64).copy()
+    return GroundTruth(x[:16].reshape(4, 4), x[16:19], x[19:22])
 
 
 def _read_exact(stream: IO[bytes], n: int) -> bytes:
@@ -81,8 +96,9 @@ def worker_main(stdin: IO[bytes] | None = None, stdout: IO[bytes] | None = None)
             return 0
         try:
             frame = sim.frame(index)
+            assert frame.truth is not None
             payload = [_INT.pack(index), np.ascontiguousarray(frame.left).tobytes(),
-                       np.ascontiguousarray(frame.right).tobytes()]
+                       np.ascontiguousarray(frame.right).tobytes(), _truth_bytes(frame.truth)]
         except Exception as exc:  # report to the reader, keep serving
             msg = f"{type(exc).__name__}: {exc}".encode()
             payload = [_INT.pack(-1), _INT.pack(len(msg)), msg]
@@ -137,6 +153,13 @@ class RenderAhead:
         Raises:
             TrackmeterError: the worker failed to render the frame, or stopped.
         """
+        left, right, _ = self.rendered(index, next_index)
+        return left, right
+
+    def rendered(
+        self, index: int, next_index: Callable[[int], int | None]
+    ) -> tuple[NDArray[np.uint8], NDArray[np.uint8], GroundTruth]:
+        """As :meth:`images`, with the frame's ground truth as the worker computed it."""
         if self._queue and self._queue[0] != index:
             self._discard_queue()
         if not self._queue:
@@ -166,11 +189,12 @@ class RenderAhead:
                     continue
                 left = np.frombuffer(_read_exact(out, n), np.uint8).reshape(self._shape)
                 right = np.frombuffer(_read_exact(out, n), np.uint8).reshape(self._shape)
-                self._results.put((got, (left, right)))
+                truth = _truth_from_bytes(_read_exact(out, 8 * _TRUTH_FLOATS))
+                self._results.put((got, (left, right, truth)))
         except (EOFError, OSError, ValueError):
             self._results.put((-2, None))
 
-    def _receive(self, index: int) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
+    def _receive(self, index: int) -> tuple[NDArray[np.uint8], NDArray[np.uint8], GroundTruth]:
         got, payload = self._results.get()
         if got == -2:
             self._results.put((got, payload))  # every later call fails the same way

@@ -215,8 +215,8 @@ class Simulator(Source):
             return self.frame(index)
         if self._ahead is None:
             self._ahead = RenderAhead(self.scenario, self.true_rig.left.image_size)
-        left, right = self._ahead.images(index, self._next_in_pass)
-        return StereoFrame(index=index, t_s=self.time_of(index), left=left, right=right, truth=self.truth(index))
+        left, right, truth = self._ahead.rendered(index, self._next_in_pass)
+        return StereoFrame(index=index, t_s=self.time_of(index), left=left, right=right, truth=truth)
 
     def _next_in_pass(self, index: int) -> int | None:
         if index + 1 < self.n_frames:
