@@ -115,6 +115,9 @@ class FakeTracker:
         self._states = tuple(s if x.id == tid else x for x in self._states)
         return s
 
+    def relock_many(self, requests, frame):
+        return [self.relock(tid, uv, frame) for tid, uv in requests]
+
     def add_target(self, frame, uv, target_id=None, origin="operator"):
         self.added.append((target_id, uv, origin))
         if target_id is None or target_id not in self.body:

@@ -28,7 +28,7 @@ Per frame (:meth:`Engine.process`):
 5. Velocities (:mod:`trackmeter.core.velocity`) from the raw poses, then the output filter
    (:mod:`trackmeter.core.output_filter`).
 6. Recovery (paper 2.D): lost model points are reprojected through the current pose
-   (``rig.project``) and re-locked with ``tracker.relock``; a-priori model points without a
+   (``rig.project``) and re-locked with ``tracker.relock_many``; a-priori model points without a
    target are measured at their projection (``tracker.add_target(origin="model")``). A
    re-locked point whose 3D position disagrees with the pose is rejected at once. Without a
    model the tracker itself looks again where a target was lost.
@@ -820,17 +820,19 @@ class Engine:
         if not todo:
             return
         todo.sort(key=lambda item: self._last_attempt.get(item[0], -10**9))
-        attempts = 0
+        # The attempts (at most max_recoveries_per_frame, in that order) do not depend on their
+        # outcomes: choose them first, then run each stretch of consecutive template re-locks as
+        # one batched call (Tracker.relock_many: one search, fit and stereo match for all).
         w, h = self.rig.image_size
         margin = p.recovery_margin_px
+        chosen: list[tuple[str, bool, FloatArray, tuple[float, float]]] = []
         for pid, is_target in todo:
-            if attempts >= p.max_recoveries_per_frame:
+            if len(chosen) >= p.max_recoveries_per_frame:
                 break
             last = self._last_attempt.get(pid)
             if last is not None and frame.index - last < p.recovery_interval_frames:
                 continue
-            m = self._model[pid]
-            x_cam = R @ m.b + t
+            x_cam = R @ self._model[pid].b + t
             if x_cam[2] <= 0:
                 continue
             uv_l, uv_r = self.rig.project(x_cam[None])
@@ -839,26 +841,39 @@ class Engine:
                     and margin <= uv_r[0] <= w - 1 - margin and margin <= uv_r[1] <= h - 1 - margin):
                 continue
             self._last_attempt[pid] = frame.index
-            attempts += 1
-            self.stats.relock_attempts += 1
-            uv = (float(uv_l[0]), float(uv_l[1]))
-            result = self.tracker.relock(pid, uv, frame) if is_target else \
-                self.tracker.add_target(frame, uv, pid, "model")
-            if isinstance(result, Refusal):
-                continue
-            self._recovered_any = True
-            # The re-locked point must sit where the pose says the model point is.
-            r = np.asarray(result.point_cam, float) - x_cam
-            C = np.asarray(result.cov_cam, float) + R @ m.cov @ R.T + _position_cov(cov, m.b, R)
-            d2 = float(r @ np.linalg.solve(C, r)) if np.all(np.isfinite(r)) else np.inf
-            if d2 > self._gate:
-                self.stats.recoveries_rejected += 1
-                if is_target:
-                    self._pending_reject.add(pid)
-                else:
-                    self.tracker.remove_target(pid)
+            chosen.append((pid, is_target, x_cam, (float(uv_l[0]), float(uv_l[1]))))
+        self.stats.relock_attempts += len(chosen)
+        k = 0
+        while k < len(chosen):
+            end = k + 1
+            if chosen[k][1]:
+                while end < len(chosen) and chosen[end][1]:
+                    end += 1
+                results = self.tracker.relock_many([(pid, uv) for pid, _, _, uv in chosen[k:end]], frame)
             else:
-                self.stats.recoveries += 1
+                results = [self.tracker.add_target(frame, chosen[k][3], chosen[k][0], "model")]
+            for (pid, is_target, x_cam, _), result in zip(chosen[k:end], results):
+                self._judge_recovery(pid, is_target, x_cam, result, R, cov)
+            k = end
+
+    def _judge_recovery(self, pid: str, is_target: bool, x_cam: FloatArray, result: TargetState | Refusal,
+                        R: FloatArray, cov: FloatArray) -> None:
+        """Keep a re-locked model point only where the pose ``(R, cov)`` puts it (``x_cam``)."""
+        if isinstance(result, Refusal):
+            return
+        self._recovered_any = True
+        m = self._model[pid]
+        r = np.asarray(result.point_cam, float) - x_cam
+        C = np.asarray(result.cov_cam, float) + R @ m.cov @ R.T + _position_cov(cov, m.b, R)
+        d2 = float(r @ np.linalg.solve(C, r)) if np.all(np.isfinite(r)) else np.inf
+        if d2 > self._gate:
+            self.stats.recoveries_rejected += 1
+            if is_target:
+                self._pending_reject.add(pid)
+            else:
+                self.tracker.remove_target(pid)
+        else:
+            self.stats.recoveries += 1
 
     # ------------------------------------------------------------------ errors
 
