@@ -84,6 +84,12 @@ def worker_main(stdin: IO[bytes] | None = None, stdout: IO[bytes] | None = None)
 
     inp = stdin if stdin is not None else sys.stdin.buffer
     out = stdout if stdout is not None else sys.stdout.buffer
+    if stdin is None:
+        import cv2
+
+        # One thread: the worker renders ahead, so its CPU per frame matters, not its latency;
+        # OpenCV's thread pool costs a few % more CPU (same images) and competes with the reader.
+        cv2.setNumThreads(1)
     try:
         (size,) = _INT.unpack(_read_exact(inp, _INT.size))
         sim = Simulator(pickle.loads(_read_exact(inp, size)))
