@@ -189,6 +189,9 @@ class Console:
         self.last_push: tuple[float, int, tuple[str, ...]] = (0.0, 0, ())
         self.notifications: deque[tuple[str, str]] = deque(maxlen=50)
         self.push_ms: deque[float] = deque(maxlen=200)  # publisher cost of recent pushes
+        # (time.monotonic(), target ids shown, JPEG size in bytes) of the recent image pushes: the
+        # size tells which push a browser displays (benchmarks/console.py).
+        self.image_pushes: deque[tuple[float, tuple[str, ...], int]] = deque(maxlen=200)
         self._last_frame_index: int | None = None
         self._plot_version: dict[str, int] = {}
         self._omega_shown = False
@@ -221,6 +224,12 @@ class Console:
     def _build_scene(self) -> None:
         scene = self.server.scene
         scene.set_up_direction("-y")
+        # No shadows: viser's default directional light renders three cascaded 1024x1024 shadow
+        # maps before every frame (measured in headless Chromium: 3 extra framebuffer passes per
+        # frame), and a console in space has nothing to cast them on. The client renders
+        # continuously while images stream in (each update opens a 250 ms render window), so
+        # this is paid at the browser's frame rate, not at the image rate.
+        scene.configure_default_lights(enabled=True, cast_shadow=False)
         w, h = self._image_size or (640, 480)
         rw, rh = self.render_size
         blank = np.zeros((h, w, 3), np.uint8)
@@ -606,6 +615,8 @@ class Console:
         self.images_pushed += left_rgb is not None
         self.last_pushed_sequence = snap.sequence
         self.last_pushed_target_ids = tuple(t.id for t in snap.targets)
+        if left_rgb is not None:
+            self.image_pushes.append((time.monotonic(), self.last_pushed_target_ids, len(self.left_image._data)))
         self._pushed_operator_ids = {t.id for t in snap.targets if t.origin == "operator"}
         self.last_pushed_time = time.monotonic()
         # One assignment, so a reader never pairs these ids with an older push time.
