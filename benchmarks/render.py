@@ -15,11 +15,17 @@ Figures:
 - ``remap_pair_ms_median`` and ``render_over_remap``: baseline measured in the same run (two
   full-frame ``cv2.remap`` of float images, the least any distorted stereo renderer must do)
   and the ratio, which cancels the machine's speed.
+- ``stream_fps``, ``worker_cpu_ms_per_frame``, ``reader_cpu_ms_per_frame``: the live ``sim``
+  source (frames rendered ahead in a worker process, as ``source_alone_fps`` of the ``pipeline``
+  benchmark measures it) read as fast as it delivers for ``STREAM_S`` seconds: frames per second
+  (wall clock, so it depends on what else runs), and the CPU time per frame of the worker
+  process and of the reading process (which, in the live pipeline, is the tracker's).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import os
 import statistics
 import sys
 import time
@@ -48,6 +54,40 @@ def estec_poses(n: int, rate_hz: float = 25.0, range_m: float = 3.5) -> list[np.
         T[:3, 3] = (0.05, -0.03, range_m)
         poses.append(T)
     return poses
+
+
+STREAM_S = 8.0
+
+
+def _process_cpu_s(pid: int) -> float:
+    """User + system CPU time of a (child) process so far, s (Linux /proc)."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def stream(seconds: float = STREAM_S) -> dict[str, float]:
+    """The render-ahead ``sim`` source read as fast as it delivers (see the module doc)."""
+    from trackmeter.sources import open_source
+
+    with open_source("sim", realtime=False, loop=True) as source:
+        source.read()  # starts the worker and waits for its first frame
+        ahead = getattr(source, "_ahead", None)
+        pid = ahead._proc.pid if ahead is not None else None
+        w0 = _process_cpu_s(pid) if pid is not None else float("nan")
+        r0 = time.process_time()
+        n, t0 = 0, time.monotonic()
+        while time.monotonic() - t0 < seconds:
+            source.read()
+            n += 1
+        wall = time.monotonic() - t0
+        w1 = _process_cpu_s(pid) if pid is not None else float("nan")
+        r1 = time.process_time()
+    return {
+        "stream_fps": round(n / wall, 2),
+        "worker_cpu_ms_per_frame": round((w1 - w0) * 1e3 / max(n, 1), 2),
+        "reader_cpu_ms_per_frame": round((r1 - r0) * 1e3 / max(n, 1), 3),
+    }
 
 
 def _times(fn, items, clock) -> list[float]:  # type: ignore[no-untyped-def]
@@ -106,7 +146,10 @@ def run() -> dict[str, float]:
     render_ms = statistics.median(wall)
     cpu_ms = statistics.median(cpu)
     remap_ms = statistics.median(remap)
+    print("[render] live sim source (render-ahead worker) ...", file=sys.stderr, flush=True)
+    live = stream()
     return {
+        **live,
         "stereo_fps": round(1000.0 / render_ms, 2),
         "render_ms_median": round(render_ms, 3),
         "render_cpu_ms_median": round(cpu_ms, 3),
