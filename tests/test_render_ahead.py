@@ -85,3 +85,17 @@ def test_a_dead_worker_is_reported(short_estec):
     with pytest.raises(TrackmeterError, match="render worker stopped"):
         ahead.images(0, lambda i: i + 1)
     ahead.close()
+
+
+def test_the_pipe_holds_a_whole_frame_where_the_system_allows(short_estec):
+    fcntl = pytest.importorskip("fcntl")
+    if not hasattr(fcntl, "F_GETPIPE_SZ"):
+        pytest.skip("no F_GETPIPE_SZ on this system")
+    with open("/proc/sys/fs/pipe-max-size") as f:
+        allowed = int(f.read())
+    ahead = RenderAhead(short_estec, (726, 512))
+    try:
+        size = fcntl.fcntl(ahead._proc.stdout.fileno(), fcntl.F_GETPIPE_SZ)
+        assert size >= min(allowed, 2 * 726 * 512 + 16 + 8 * 22)
+    finally:
+        ahead.close()

@@ -63,6 +63,31 @@ def _truth_from_bytes(data: bytes) -> GroundTruth:
     return GroundTruth(x[:16].reshape(4, 4), x[16:19], x[19:22])
 
 
+def _widen_pipe(fd: int, frame_bytes: int) -> None:
+    """Make the pipe ``fd`` hold a whole answer if the system allows (Linux ``F_SETPIPE_SZ``,
+    up to ``/proc/sys/fs/pipe-max-size``, 1 MiB by default); else leave it (64 KiB).
+
+    With the default size a frame crosses in a dozen pieces, and the reader's drain thread
+    must win the interpreter lock back from the tracking threads for each one: with a busy
+    reader (the tracker, the console) frames then arrive at well under the rate the worker
+    renders them. A pipe that holds a frame lets the worker write it at once and go on
+    rendering, and the drain thread take it in one read.
+    """
+    try:
+        import fcntl
+
+        size = 1 << max(16, (frame_bytes - 1).bit_length())
+        try:
+            with open("/proc/sys/fs/pipe-max-size") as f:
+                size = min(size, int(f.read()))
+        except (OSError, ValueError):
+            pass
+        if size > fcntl.fcntl(fd, fcntl.F_GETPIPE_SZ):  # type: ignore[attr-defined]
+            fcntl.fcntl(fd, fcntl.F_SETPIPE_SZ, size)  # type: ignore[attr-defined]
+    except (ImportError, AttributeError, OSError):
+        pass  # not Linux, or not allowed: the default pipe works, only slower
+
+
 def _read_exact(stream: IO[bytes], n: int) -> bytes:
     data = stream.read(n)
     if data is None or len(data) != n:
@@ -135,6 +160,8 @@ class RenderAhead:
         boot = (f"import sys; sys.path[:0] = {[p for p in sys.path if p]!r}; "
                 "from trackmeter.sources.sim.render_ahead import worker_main; sys.exit(worker_main())")
         self._proc = subprocess.Popen([sys.executable, "-c", boot], stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        assert self._proc.stdout is not None
+        _widen_pipe(self._proc.stdout.fileno(), 2 * self._shape[0] * self._shape[1] + 2 * _INT.size + 8 * _TRUTH_FLOATS)
         self._results: queue.Queue[tuple[int, object]] = queue.Queue()
         self._drain = threading.Thread(target=self._drain_stdout, name="render-ahead-drain", daemon=True)
         self._drain.start()
