@@ -24,7 +24,12 @@ Figures:
   ``offline_ratio_to_read`` = ``offline_fps / offline_read_fps``.
 - ``offline_engine_alone_fps``: the same engine called in a plain loop (read + process on one
   thread, no pipeline), and ``offline_ratio_to_engine_alone`` = ``offline_fps`` over it: the
-  pipeline's own cost (1.0 = none; above 1 when reading overlaps tracking).
+  pipeline's own cost (1.0 = none; above 1 when reading overlaps tracking, and automatic
+  selection's Gabor filtering runs on the pipeline's helper thread during the step).
+- ``offline_engine_alone_cpu_ms``, ``offline_cpu_ms``: CPU time of the whole process per frame
+  (all threads) in those two runs; less sensitive than the rates to other programs sharing the
+  cores. ``offline_tracking_cpu_ms``: CPU time of the tracking thread alone per frame in the
+  pipeline run (its critical path when the other core is free).
 
 Environment: ``TRACKMETER_BENCH_LIVE_S`` changes ``MEASURE_S`` (default 40).
 """
@@ -121,9 +126,9 @@ def source_alone_fps(seconds: float = 6.0) -> float:
 
 
 def offline(tmp: Path) -> dict[str, float]:
+    """Render ``OFFLINE_FRAMES`` frames of the scenario to a sequence folder under ``tmp``, then
+    :func:`offline_on` it."""
     from trackmeter.data.sequence import SequenceWriter
-    from trackmeter.pipeline.pipeline import run_headless
-    from trackmeter.pipeline.snapshot import SetAuto
     from trackmeter.sources import open_source
 
     seq = tmp / "offline_seq"
@@ -136,6 +141,14 @@ def offline(tmp: Path) -> dict[str, float]:
                 break
             writer.write(frame)
     sim.close()  # stops its render-ahead worker
+    return offline_on(seq)
+
+
+def offline_on(seq: Path) -> dict[str, float]:
+    """The ``offline_*`` figures on the recorded sequence folder ``seq``."""
+    from trackmeter.pipeline.pipeline import run_headless
+    from trackmeter.pipeline.snapshot import SetAuto
+    from trackmeter.sources import open_source
 
     source = open_source(f"seq:{seq}")
     t0 = time.perf_counter()
@@ -150,7 +163,7 @@ def offline(tmp: Path) -> dict[str, float]:
     engine = make_engine(source)
     first = source.read()
     assert first is not None
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     engine.process(first)
     engine.handle(SetAuto(True, N_TARGETS, "gabor"), first)
     n_direct = 1
@@ -158,13 +171,26 @@ def offline(tmp: Path) -> dict[str, float]:
         engine.process(frame)
         n_direct += 1
     direct_fps = n_direct / (time.perf_counter() - t0)
+    direct_cpu_ms = (time.process_time() - c0) * 1e3 / n_direct
     source.close()
 
     source = open_source(f"seq:{seq}")
     engine = make_engine(source)
-    t0 = time.perf_counter()
+    tracking_cpu_s: list[float] = []
+    process = engine.process
+
+    def timed_process(frame: Any, **kw: Any) -> Any:  # the tracking thread's own CPU time
+        c = time.thread_time()
+        try:
+            return process(frame, **kw)
+        finally:
+            tracking_cpu_s.append(time.thread_time() - c)
+
+    engine.process = timed_process  # type: ignore[method-assign]
+    t0, c0 = time.perf_counter(), time.process_time()
     last, replies = run_headless(source, engine, commands=[SetAuto(True, N_TARGETS, "gabor")])
     wall = time.perf_counter() - t0
+    cpu_s = time.process_time() - c0
     source.close()
     processed = last.timings.frames_processed
     n_tracked = sum(1 for t in last.targets if t.measured)
@@ -175,6 +201,9 @@ def offline(tmp: Path) -> dict[str, float]:
         "offline_ratio_to_read": (processed / wall) / read_fps if read_fps else float("nan"),
         "offline_engine_alone_fps": direct_fps,
         "offline_ratio_to_engine_alone": (processed / wall) / direct_fps,
+        "offline_engine_alone_cpu_ms": direct_cpu_ms,
+        "offline_cpu_ms": cpu_s * 1e3 / processed if processed else float("nan"),
+        "offline_tracking_cpu_ms": 1e3 * sum(tracking_cpu_s) / len(tracking_cpu_s) if tracking_cpu_s else float("nan"),
         "offline_frames": float(processed),
         "offline_targets_at_end": float(n_tracked),
     }
