@@ -204,3 +204,42 @@ def test_engine_blends_back_onto_the_measured_pose_without_a_jump(estec_rig) -> 
     # Without the blend the first measured frame would have stepped by the coast's error, many
     # sigmas of the measured pose.
     assert np.max(np.abs(first_e) / np.sqrt(np.diag(pose.cov_pose))) > 5.0  # blended out: the output is the measured pose again
+
+
+def test_new_points_join_through_the_coasted_pose_and_carry_the_pose_on(estec_rig) -> None:
+    """Every target lost for 2 s, then only NEW targets (other ids) come: they join through the
+    coasted pose, and the measured pose goes on in the a-priori frame, its error inside 3 sigma
+    of its covariance (which carries the coast's uncertainty)."""
+    from tests.test_engine import DT, frame_at, run, true_pose
+
+    engine, tracker = _engine(estec_rig)
+    run(engine, range(60))
+    old = list(tracker.active)
+    tracker.force_lost = set(old)
+    run(engine, range(60, 110))  # 2 s
+    for i, tid in enumerate(old):  # the same body points come back as new targets
+        tracker.body[f"new{i}"] = tracker.body[tid]
+        tracker.active[f"new{i}"] = "tracking"
+    outs = [(k, engine.process(frame_at(k))[1]) for k in range(110, 125)]
+    measured = [(k, p) for k, p in outs if p.valid and p.coasting_s == 0]
+    assert measured and measured[0][0] <= 112
+    assert engine.stats.model_points_joined >= len(old)
+    for k, p in measured:
+        T = true_pose(k * DT)
+        e = np.concatenate([p.T_cam_body[:3, 3] - T[:3, 3],
+                            Rotation.from_matrix(p.T_cam_body[:3, :3] @ T[:3, :3].T).as_rotvec()])
+        assert np.all(np.abs(e) < 3 * np.sqrt(np.diag(p.cov_pose)))
+
+
+def test_no_joining_through_a_coast_that_is_too_uncertain(estec_rig) -> None:
+    from tests.test_engine import frame_at, run
+
+    engine, tracker = _engine(estec_rig, coast_rejoin_attitude_sigma_deg=0.0)
+    run(engine, range(60))
+    old = list(tracker.active)
+    tracker.force_lost = set(old)
+    run(engine, range(60, 110))
+    for i, tid in enumerate(old):
+        tracker.body[f"new{i}"] = tracker.body[tid]
+        tracker.active[f"new{i}"] = "tracking"
+    assert not any(engine.process(frame_at(k))[1].valid for k in range(110, 115))

@@ -52,7 +52,12 @@ class FeatureParams:
     patch_size: int = param(8, "side of the patch a selected point must be trackable with, px", min=3, max=63)
     min_distance_px: float = param(20.0, "minimum distance between selected points (and from existing targets), px", min=0.0)
     border_px: int = param(16, "no selection closer than this to the image border, px", min=0)
-    black_level: int = param(16, "grey level at or below which a pixel is black space", min=0, max=254)
+    black_level: int = param(16, "grey level at or below which a pixel is black space (black_snr 0)", min=0, max=254)
+    black_snr: float = param(
+        0.0, "> 0: a pixel is on the target when the mean of its 5x5 neighbourhood exceeds the sky level "
+        "(the 5th percentile of those means) by this many of the mean's noise sigmas (the image's noise, "
+        "estimated by noise_sigma_grey): a target in deep shadow is still a target; 0: black_level", min=0.0,
+    )
     target_margin_px: int = param(3, "the patch grown by this margin must lie entirely on the bright target, px", min=0)
     gabor_wavelengths_px: tuple[float, ...] = param((4.0, 8.0), "Gabor wavelengths (scales), px", min=2.0)
     gabor_orientations: int = param(4, "number of Gabor orientations over 180 degrees", min=2, max=16)
@@ -295,9 +300,40 @@ def gabor_score(image: NDArray, params: FeatureParams) -> NDArray[np.float32]:
     return np.partition(stack, n_o - k, axis=0)[n_o - k]
 
 
+def noise_sigma_grey(image: NDArray) -> float:
+    """Standard deviation of the image's pixel noise, grey levels, from the image alone.
+
+    Immerkaer's estimator (*Fast noise variance estimation*, CVIU 64(2), 1996): the kernel
+    ``N = [[1,-2,1],[-2,4,-2],[1,-2,1]]`` (the difference of two Laplacians) cancels a locally
+    linear image, so ``I * N`` is mostly noise, with variance ``36 sigma²`` for white noise of
+    variance ``sigma²``. Robust variant: the median of ``|I * N|`` (of the interior, every second
+    row and column) over ``6 * 0.6745`` (the normal's median absolute value), so the texture and
+    edges of a target covering less than half the image do not count as noise.
+    """
+    img = np.asarray(image, dtype=np.float32)
+    if img.shape[0] < 3 or img.shape[1] < 3:
+        return 0.0
+    r = cv2.filter2D(img, -1, _IMMERKAER, borderType=cv2.BORDER_REPLICATE)[1:-1:2, 1:-1:2]
+    return float(np.median(np.abs(r))) / (6.0 * 0.6744897501960817)
+
+
+_IMMERKAER = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+
+
+def bright_pixels(image: NDArray, params: FeatureParams) -> NDArray[np.uint8]:
+    """1 where a pixel is on the target, 0 on black space (``black_level`` or ``black_snr``)."""
+    img = np.asarray(image)
+    if params.black_snr <= 0:
+        return (img > params.black_level).astype(np.uint8)
+    m = cv2.blur(img.astype(np.float32), (5, 5), borderType=cv2.BORDER_REPLICATE)
+    sky = float(np.percentile(m[::4, ::4], 5.0))
+    # The 5x5 mean of white noise of std sigma has std sigma / 5.
+    return (m > sky + params.black_snr * noise_sigma_grey(img) / 5.0).astype(np.uint8)
+
+
 def target_mask(image: NDArray, params: FeatureParams) -> NDArray[np.uint8]:
     """255 where a patch (plus margin) centred on the pixel lies entirely on the bright target."""
-    bright = (np.asarray(image) > params.black_level).astype(np.uint8)
+    bright = bright_pixels(image, params)
     r = params.patch_size // 2 + params.target_margin_px
     kernel = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
     mask = cv2.erode(bright, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)

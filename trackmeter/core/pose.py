@@ -150,6 +150,14 @@ class PoseParams:
         0.5, "coasting: largest distance of the body origin from the centre of mass the body turns about, m",
         min=0.0,
     )
+    coast_rejoin_attitude_sigma_deg: float = param(
+        3.0, "while the coasted pose's attitude 1-sigma is below this, newly measured targets join the model "
+        "through it (the pose goes on in the same body frame when the light returns; case a keeps its "
+        "frame), deg (0: never)", min=0.0,
+    )
+    coast_rejoin_position_sigma_m: float = param(
+        0.05, "... and while its position 1-sigma is below this, m", min=0.0,
+    )
     coast_blend_s: float = param(
         0.3, "when points are measured again after coasting, the output moves from the coasted pose onto the "
         "measured one with this time constant (no jump), s (0: at once)", min=0.0,

@@ -282,6 +282,8 @@ class Engine:
         self._coast_out: tuple[float, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray] | None = None
         self._coasting = False
         self._blend: tuple[float, FloatArray, FloatArray] | None = None
+        self._via_coast: set[str] = set()  # model points that joined through a coasted pose
+        self._frame_cov: FloatArray | None = None  # their common (frame) error, (6,6)
         self._velocity = VelocityEstimator(self.velocity_params)
         self._filter = PoseFilter(self.filter_params, self.rate_hz)
         self._align_M = np.zeros((3, 3))
@@ -442,7 +444,8 @@ class Engine:
                 self._velocity.reset()
                 self._filter.reset()
                 self._last_fit = None
-            if since > self.pose_params.redefine_after_s:
+            rejoin = self._rejoin_through_coast(frame.t_s, measured)
+            if since > self.pose_params.redefine_after_s and not rejoin:
                 if self._case == "a" and self._model:
                     # The frame's points are gone for good: define a new frame from the points
                     # tracked now (the pose was invalid anyway; a new body frame starts here).
@@ -586,7 +589,7 @@ class Engine:
         outliers = [ids[n] for n in np.flatnonzero(~fit.inliers)]
         self._pending_reject.update(outliers)
         self.stats.outliers_rejected += len(outliers)
-        R, t, cov = fit.R_cam_body, fit.t_cam_body, fit.cov
+        R, t, cov = fit.R_cam_body, fit.t_cam_body, self._with_frame_cov(fit.cov, ids, fit.inliers)
         self._last_fit = (R, t, cov)
         self._update_model(R, t, cov, fit.scale2, ids, fit.inliers, measured)
         self._anchor(frame.t_s, R, t, ids, fit.inliers, measured)
@@ -783,6 +786,45 @@ class Engine:
         w = self._coast_out[5] if self._coast_out is not None else np.full(3, np.nan)
         return PoseEstimate(True, f"coasting {dt:.2f} s on the motion model ({why})", self._case, T, cov,
                             v, np.asarray(w, float).copy(), 0, (), coasting_s=float(dt))
+
+    def _rejoin_through_coast(self, t_s: float, measured: dict[str, TargetState]) -> bool:
+        """No pose: while the coasted pose is within ``coast_rejoin_*``, measured targets that are
+        not model points join the model through it (paper 2.D's model growth, through the
+        predicted pose instead of a measured one: their body coordinates carry its covariance),
+        so that when the light returns the pose goes on in the same body frame from the new
+        points, continuous with the coast. Returns whether the coast is within those bounds
+        (case a then keeps its frame instead of defining a new one)."""
+        p = self.pose_params
+        if p.coast_rejoin_attitude_sigma_deg <= 0 or not self._model:
+            return False
+        state = self._coast_state(t_s)
+        if state is None:
+            return False
+        R, pos, _, cov, _ = state
+        d = np.diag(cov)
+        if (np.sqrt(d[3:].max()) > np.radians(p.coast_rejoin_attitude_sigma_deg)
+                or np.sqrt(d[:3].max()) > p.coast_rejoin_position_sigma_m):
+            return False
+        before = set(self._model)
+        self._update_model(R, pos, cov, 1.0, [], np.zeros(0, bool), measured)
+        joined = set(self._model) - before
+        if joined:
+            self._via_coast |= joined
+            # Their common error is the coast's, a rigid offset of the frame they define: isotropic
+            # bound (rotation-invariant blocks, so it holds in any later camera pose).
+            iso = np.diag([np.diag(cov)[:3].max()] * 3 + [np.diag(cov)[3:].max()] * 3)
+            self._frame_cov = iso if self._frame_cov is None else np.maximum(self._frame_cov, iso)
+        return True
+
+    def _with_frame_cov(self, cov: FloatArray, ids: list[str], inliers: NDArray[np.bool_]) -> FloatArray:
+        """The fit's covariance treats every point's error as independent; points that joined
+        through one coasted pose share its error (a rigid offset of the frame they define) and
+        would average it away. Unless at least 3 other points pin the frame, that common error
+        (``_frame_cov``) is added."""
+        if self._frame_cov is None:
+            return cov
+        pinned = sum(1 for n, i in enumerate(ids) if inliers[n] and i not in self._via_coast)
+        return cov if pinned >= 3 else cov + self._frame_cov
 
     def _blend_out(self, t_s: float, R: FloatArray, pos: FloatArray, cov: FloatArray
                    ) -> tuple[FloatArray, FloatArray, FloatArray]:

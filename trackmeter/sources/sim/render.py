@@ -240,6 +240,9 @@ class _Geom:
 class StereoRenderer:
     """Renders the rig's left and right images of a mock-up at a pose (see the module doc).
 
+    A renderer reuses its work buffers from call to call (a frame's canvases, the faces'
+    4-channel textures), so one renderer serves one thread at a time; give each thread its own.
+
     Args:
         rig: the stereo rig (image size, intrinsics, distortion, extrinsics).
         mockup: the mock-up (:func:`trackmeter.sources.sim.mockup.load_mockup`).
