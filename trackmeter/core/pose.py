@@ -98,6 +98,10 @@ class PoseParams:
     anchor_prior_rad: float = param(
         0.02, "case (b): expected drift of the grown model's frame, attitude (1 sigma), rad", min=1e-6,
     )
+    slide_sigma_m_per_sqrt_s: float = param(
+        0.0, "how fast a grown model point's target wanders on the surface (random walk: std after t seconds "
+        "is this times sqrt(t)); its body coordinates follow it and it weighs less in the pose, m/sqrt(s)", min=0.0,
+    )
     join_after_frames: int = param(
         1, "a new target joins the model after this many consecutive consistent frames", min=1
     )

@@ -21,9 +21,11 @@ Per frame (:meth:`Engine.process`):
 4. Model upkeep while the pose is known: measured (not a-priori) model points are averaged
    (information-weighted) so the model sharpens as the body turns; new targets consistent for
    ``join_after_frames`` frames join the model with their body coordinates from the pose, so
-   the model grows as new faces come into view (paper 2.D). Losing one of the three frame
-   points of case (a) changes nothing: the frame lives on in the model (no jump). Case (b)
-   with ``pose.anchor_time_s`` > 0: the a-priori points seen reveal how far the grown model's
+   the model grows as new faces come into view (paper 2.D). With ``pose.slide_sigma_m_per_sqrt_s``
+   a grown point is a random walk on the surface (a tracked pixel wanders): its covariance grows
+   with the time since its last refinement, so it follows its target and weighs less in the pose.
+   Losing one of the three frame points of case (a) changes nothing: the frame lives on in the
+   model (no jump). Case (b) with ``pose.anchor_time_s`` > 0: the a-priori points seen reveal how far the grown model's
    frame has drifted from theirs, and the grown model is moved back (:meth:`Engine._anchor`).
 5. Velocities (:mod:`trackmeter.core.velocity`) from the raw poses, then the output filter
    (:mod:`trackmeter.core.output_filter`).
@@ -102,6 +104,7 @@ class _ModelPoint:
     fixed: bool  # a-priori: never refined
     cm: FloatArray | None = None  # (3,3) m², the independent (measurement) part; None: all of cov
     L: FloatArray = field(default_factory=lambda: _NO_POSE_ERROR)  # (3,6) pose-error factor, m
+    t_s: float = 0.0  # time of the last refinement (the slide since adds pose.slide_sigma_m_per_sqrt_s), s
 
 
 @dataclass
@@ -567,7 +570,7 @@ class Engine:
         if len(ids) < self.pose_params.min_points:
             return None, f"only {len(ids)} model points measured ({self.pose_params.min_points} needed)"
         b = np.array([self._model[i].b for i in ids])
-        Cb = np.array([self._model[i].cov for i in ids])
+        Cb = np.array([self._model_cov(self._model[i], frame.t_s) for i in ids])
         P = np.array([measured[i].point_cam for i in ids])
         C = np.array([measured[i].cov_cam for i in ids])
         initial = (self._last_fit[0], self._last_fit[1]) if self._last_fit is not None else None
@@ -628,7 +631,9 @@ class Engine:
                 if m.fixed or not inliers[n]:
                     continue
                 b_obs, cm_obs, L_obs = observe(measured[pid])
-                m.b, m.cm, m.L, m.cov = fuse(m.b, m.cov if m.cm is None else m.cm, m.L, b_obs, cm_obs, L_obs)
+                cm = (m.cov if m.cm is None else m.cm) + self._slide_cov(m, self._frame_t_s)
+                m.b, m.cm, m.L, m.cov = fuse(m.b, cm, m.L, b_obs, cm_obs, L_obs)
+                m.t_s = self._frame_t_s
         # Candidates: measured targets not yet in the model.
         for tid, tgt in measured.items():
             if tid in self._model:
@@ -648,12 +653,25 @@ class Engine:
                 cand.b, cand.cm, cand.L, cand.cov = fuse(cand.b, cand.cm, cand.L, b_obs, cm_obs, L_obs)
                 cand.count += 1
             if cand.count >= p.join_after_frames:
-                self._model[tid] = _ModelPoint(cand.b, cand.cov, False, cand.cm, cand.L)
+                self._model[tid] = _ModelPoint(cand.b, cand.cov, False, cand.cm, cand.L, self._frame_t_s)
                 # Seen now: a point that joins and is lost before its next measurement must not
                 # rank as the stalest of the grown model (pruned first, never re-locked).
                 self._seen_t[tid] = self._frame_t_s
                 del self._candidates[tid]
                 self.stats.model_points_joined += 1
+
+    def _slide_cov(self, m: _ModelPoint, t_s: float) -> FloatArray:
+        """(3,3) how far a grown point may have slid on the surface since its last refinement: a
+        tracked pixel is not a fixed body point (template updates and sub-pixel re-centring let it
+        wander), modelled as a random walk, ``sigma² = slide_sigma_m_per_sqrt_s² dt`` per axis, m²."""
+        q = self.pose_params.slide_sigma_m_per_sqrt_s ** 2
+        if m.fixed or q <= 0.0:
+            return np.zeros((3, 3))
+        return q * max(0.0, t_s - m.t_s) * np.eye(3)
+
+    def _model_cov(self, m: _ModelPoint, t_s: float) -> FloatArray:
+        """Covariance (3,3) of a model point's body coordinates at ``t_s``, m²."""
+        return m.cov + self._slide_cov(m, t_s)
 
     def _anchor(self, t_s: float, R: FloatArray, t: FloatArray, ids: list[str], inliers: NDArray[np.bool_],
                 measured: dict[str, TargetState]) -> None:
