@@ -1,0 +1,248 @@
+"""Where case (b)'s whole-chain error comes from: the tracker's measurements replayed with parts made perfect.
+
+``python -m benchmarks.error_budget`` (a diagnostic, not in ``python -m benchmarks``' list: it
+runs the slow chain). The ``estec`` chain of ``benchmarks/accuracy.py`` (case b, 16 automatic
+targets plus the model points an operator clicks) is run once for ``TRACKMETER_BUDGET_S``
+seconds (default 60) and what the tracker handed the engine each frame is recorded. The engine is
+then run again on that record (:class:`Replay`: the recorded targets; re-locks refused, the
+record already holds what they gave) with measurements replaced by oracles built from the
+renderer's surface truth under each target (:meth:`Simulator.surface_points`):
+
+- ``recorded``: as measured (the replay reproduces the chain: ``replay_max_diff_mm``);
+- ``oracle_apriori``: the a-priori (model) points measured at their TRUE body point, with noise
+  drawn from their own covariance — corners measured without the bias of their patch;
+- ``oracle_auto``: the automatic targets measured at the surface point under their pixel with
+  noise from their covariance (no matcher bias; the pixel still wanders on the surface);
+- ``oracle_auto_pinned``: ... at the surface point under their FIRST pixel (a target that does
+  not wander);
+- ``oracle_all``: both oracles, pinned.
+
+Figures ``<variant>_<span>s_<metric>`` for spans 20, 40, 60 s (``benchmarks.accuracy.figures``,
+metrics as ``estec_b_*``), plus measurement statistics of the chain: ``slide_median_mm_1s`` /
+``_2s`` / ``_10s`` (how far the surface point under an automatic target has moved after that
+long), ``auto_depth_bias_mm`` (median depth error of automatic targets' 3D points),
+``apriori_lateral_error_median_mm`` / ``apriori_depth_error_median_mm`` (median absolute error
+of the a-priori points' measurements against their true position).
+Measured 2026-11-22 (60 s, H5): recorded 7.98 mm lateral / 6.84 mm depth / 1.18 deg; oracle_auto
+7.13 / 3.85 / 1.16; oracle_auto_pinned 3.01 / 1.64 / 0.38; oracle_all 0.84 / 1.25 / 0.14.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from benchmarks.accuracy import MAX_POINTS, _series, figures
+from trackmeter.core.targets import Refusal, TargetState
+from trackmeter.data.config import Config
+
+SPANS_S = (20.0, 40.0, 60.0)
+METRICS = ("pos_lateral", "pos_depth", "att_view", "att_other", "vel_lateral", "vel_depth", "omega")
+
+
+def _log(msg: str) -> None:
+    print(f"[error_budget] {msg}", file=sys.stderr, flush=True)
+
+
+class Replay:
+    """A tracker double that hands the engine the recorded targets of each frame."""
+
+    def __init__(self, frames: list[tuple[TargetState, ...]]) -> None:
+        self.frames = frames
+        self.k = 0
+        self.auto = (True, MAX_POINTS, None)
+        self.stats: dict[str, float] = {}
+
+    def step(self, frame: Any, reject_ids: Any = ()) -> tuple[TargetState, ...]:
+        self.k = frame.index
+        return self.frames[frame.index]
+
+    @property
+    def targets(self) -> tuple[TargetState, ...]:
+        return self.frames[self.k]
+
+    def relock(self, tid: str, uv: Any, frame: Any) -> Refusal:
+        return Refusal(tuple(uv), "replay")
+
+    def relock_many(self, requests: Any, frame: Any) -> list[Refusal]:
+        return [Refusal(tuple(uv), "replay") for _, uv in requests]
+
+    def add_target(self, frame: Any, uv: Any, target_id: Any = None, origin: str = "operator") -> Refusal:
+        return Refusal(tuple(uv), "replay")
+
+    def add_targets(self, frame: Any, requests: Any, *args: Any, **kwargs: Any) -> list[Refusal]:
+        return [Refusal((0.0, 0.0), "replay") for _ in requests]
+
+    def remove_target(self, tid: str) -> bool:
+        return False
+
+    def set_auto(self, *args: Any, **kwargs: Any) -> None:
+        pass
+
+
+def record(seconds: float, scenario: str = "estec") -> dict[str, Any]:
+    """Run the case (b) chain; per frame the targets the tracker gave, the truth and the pose."""
+    from trackmeter.pipeline.engine import Engine, SelectModelPoints
+    from trackmeter.pipeline.snapshot import SetAuto
+    from trackmeter.sources.sim.simulator import Simulator
+
+    sim = Simulator(scenario)
+    engine = Engine(Config(), sim.rig, sim.model, "b", rate_hz=sim.rate_hz or 25.0)
+    step = engine.tracker.step
+    seen: list[tuple[TargetState, ...]] = []
+
+    def recording_step(frame: Any, reject_ids: Any = ()) -> tuple[TargetState, ...]:
+        out = step(frame, reject_ids=reject_ids)
+        seen.append(tuple(out))
+        return out
+
+    engine.tracker.step = recording_step  # type: ignore[method-assign]
+    n = min(len(sim), int(round(seconds * (sim.rate_hz or 25.0))) + 1)
+    truth, poses = [], []
+    start = time.perf_counter()
+    for k in range(n):
+        frame = sim.read()
+        if frame is None:
+            break
+        _, pose, _ = engine.process(frame)
+        if k == 0:
+            engine.handle(SelectModelPoints(), frame)
+            engine.handle(SetAuto(True, MAX_POINTS, None), frame)
+        gt = frame.truth
+        truth.append((frame.t_s, gt.T_cam_body, gt.velocity_cam_m_s, gt.omega_body_rad_s))
+        poses.append(pose.T_cam_body if pose.valid else None)
+        if k % 100 == 0:
+            _log(f"chain frame {k}/{n} ({time.perf_counter() - start:.0f} s)")
+    surface = []
+    for k, targets in enumerate(seen):
+        ms = [t for t in targets if t.measured and np.all(np.isfinite(t.point_cam))]
+        sb = sim.surface_points(k, np.array([t.uv for t in ms])) if ms else np.zeros((0, 3))
+        surface.append({t.id: s for t, s in zip(ms, sb)})
+    return {"targets": seen, "truth": truth, "poses": poses, "surface": surface, "rig": sim.rig,
+            "model": sim.model, "apriori": dict(sim.mockup.salient_points)}
+
+
+def _sqrtm(C: np.ndarray) -> np.ndarray:
+    w, V = np.linalg.eigh(0.5 * (C + C.T))
+    return V * np.sqrt(np.clip(w, 0.0, None))
+
+
+def oracle_frames(rec: dict[str, Any], apriori: bool, auto: bool, pinned: bool, seed: int = 0
+                  ) -> list[tuple[TargetState, ...]]:
+    """The recorded targets with the chosen measurements replaced by truth + their own noise."""
+    rng = np.random.default_rng(seed)
+    first: dict[str, np.ndarray] = {}
+    out = []
+    for targets, (_, T, _, _), surf in zip(rec["targets"], rec["truth"], rec["surface"]):
+        R, t = T[:3, :3], T[:3, 3]
+        new = []
+        for tg in targets:
+            if tg.measured and np.all(np.isfinite(tg.point_cam)):
+                noise = _sqrtm(np.asarray(tg.cov_cam, float)) @ rng.standard_normal(3)
+                if tg.id in rec["apriori"]:
+                    if apriori:
+                        tg = replace(tg, point_cam=R @ rec["apriori"][tg.id] + t + noise)
+                elif auto and np.all(np.isfinite(surf.get(tg.id, np.nan))):
+                    b = first.setdefault(tg.id, surf[tg.id]) if pinned else surf[tg.id]
+                    tg = replace(tg, point_cam=R @ b + t + noise)
+            new.append(tg)
+        out.append(tuple(new))
+    return out
+
+
+def replay(rec: dict[str, Any], frames: list[tuple[TargetState, ...]], config: Config | None = None
+           ) -> tuple[Any, Any]:
+    """Run a fresh engine over recorded frames; (truth, estimate) as MotionSeries."""
+    from trackmeter.pipeline.engine import Engine
+    from trackmeter.sources.base import StereoFrame
+
+    engine = Engine(config or Config(), rec["rig"], rec["model"], "b", tracker=Replay(frames), rate_hz=25.0)
+    blank = np.zeros((1, 1), np.uint8)
+    truth_rows, est_rows = [], []
+    for k, (t_s, T, v, w) in enumerate(rec["truth"]):
+        from trackmeter.sources.base import GroundTruth
+
+        _, pose, _ = engine.process(StereoFrame(k, t_s, blank, blank, GroundTruth(T, v, w)))
+        truth_rows.append((t_s, True, (T, v, w)))
+        est_rows.append((t_s, pose.valid, (pose.T_cam_body, pose.velocity_cam_m_s, pose.omega_body_rad_s)))
+    return _series(truth_rows), _series(est_rows)
+
+
+def _span(series: Any, s: float) -> Any:
+    m = series.t_s <= s + 1e-6
+    return type(series)(series.t_s[m], series.valid[m], series.position_m[m], series.quat_wxyz[m],
+                        series.velocity_cam_m_s[m], series.omega_body_rad_s[m])
+
+
+def measurement_stats(rec: dict[str, Any]) -> dict[str, float]:
+    """Slide of automatic targets on the surface; depth bias; error of the a-priori points' measurements."""
+    out: dict[str, float] = {}
+    tracks: dict[str, list[tuple[float, np.ndarray]]] = {}
+    depth, ap_lat, ap_depth = [], [], []
+    for targets, (t_s, T, _, _), surf in zip(rec["targets"], rec["truth"], rec["surface"]):
+        R, t = T[:3, :3], T[:3, 3]
+        for tg in targets:
+            if not (tg.measured and np.all(np.isfinite(tg.point_cam))):
+                continue
+            if tg.id in rec["apriori"]:
+                e = np.asarray(tg.point_cam) - (R @ rec["apriori"][tg.id] + t)
+                if np.linalg.norm(e) < 0.05:  # a lock on another surface is the pose's outlier, not a bias
+                    ap_lat.append(np.linalg.norm(e[:2]))
+                    ap_depth.append(abs(e[2]))
+            elif np.all(np.isfinite(surf.get(tg.id, np.nan))):
+                e = np.asarray(tg.point_cam) - (R @ surf[tg.id] + t)
+                if np.linalg.norm(e) < 0.02:
+                    depth.append(e[2])
+                tracks.setdefault(tg.id, []).append((t_s, surf[tg.id]))
+    for after in (1.0, 2.0, 10.0):
+        d = []
+        for pts in tracks.values():
+            ts = np.array([p[0] for p in pts])
+            k = int(np.searchsorted(ts - ts[0], after))
+            if k < len(ts):
+                d.append(np.linalg.norm(pts[k][1] - pts[0][1]))
+        out[f"slide_median_mm_{after:.0f}s"] = float(np.median(d) * 1e3) if d else float("nan")
+    out["auto_depth_bias_mm"] = float(np.median(depth) * 1e3) if depth else float("nan")
+    out["apriori_lateral_error_median_mm"] = float(np.median(ap_lat) * 1e3) if ap_lat else float("nan")
+    out["apriori_depth_error_median_mm"] = float(np.median(ap_depth) * 1e3) if ap_depth else float("nan")
+    return out
+
+
+def run() -> dict[str, float]:
+    seconds = float(os.environ.get("TRACKMETER_BUDGET_S", "60"))
+    rec = record(seconds)
+    out = measurement_stats(rec)
+    variants = {
+        "recorded": None,
+        "oracle_apriori": dict(apriori=True, auto=False, pinned=False),
+        "oracle_auto": dict(apriori=False, auto=True, pinned=False),
+        "oracle_auto_pinned": dict(apriori=False, auto=True, pinned=True),
+        "oracle_all": dict(apriori=True, auto=True, pinned=True),
+    }
+    for name, kw in variants.items():
+        frames = rec["targets"] if kw is None else oracle_frames(rec, **kw)
+        truth, est = replay(rec, frames)
+        if kw is None:
+            diffs = [np.linalg.norm(T[:3, 3] - p) for T, p, ok in zip(rec["poses"], est.position_m, est.valid)
+                     if T is not None and ok]
+            out["replay_max_diff_mm"] = float(max(diffs) * 1e3) if diffs else float("nan")
+        for s in SPANS_S:
+            if truth.t_s[-1] < s - 0.1:
+                break
+            f = figures(_span(truth, s), _span(est, s), "none", "x")
+            for m in METRICS:
+                for key, value in f.items():
+                    if key.startswith(f"x_{m}_max_"):
+                        out[f"{name}_{s:.0f}s_{key[2:]}"] = value
+        _log(f"{name} done")
+    return out
+
+
+if __name__ == "__main__":
+    print(json.dumps(run(), indent=1))
