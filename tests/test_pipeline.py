@@ -180,6 +180,38 @@ def test_commands_applied_in_order_with_replies_on_the_tracking_thread() -> None
     assert len(engine.thread_ids) == 1 and threading.get_ident() not in engine.thread_ids
 
 
+def test_a_command_is_applied_before_the_waiting_frame_which_then_tracks_it() -> None:
+    # The operator clicked on the published frame 0 while frame 1+ waits in the slot: the click
+    # acts on frame 0 and the waiting frame already tracks the new target (no extra step).
+    release, go = threading.Event(), threading.Event()
+    processed_when_applied: list[int] = []
+
+    class Engine(RecordingEngine):
+        def handle(self, command, frame):  # type: ignore[no-untyped-def]
+            processed_when_applied.extend(self.processed)
+            return super().handle(command, frame)
+
+    engine = Engine(block_first=release)
+    source = CountingSource(10**6, gate=go, gate_from=1, delay_s=0.002)
+    with Pipeline(source, engine) as pipe:
+        assert engine.entered.wait(5)
+        go.set()
+        for _ in range(500):
+            if source.reads >= 3:
+                break
+            threading.Event().wait(0.01)
+        future = pipe.submit(SelectPoint(2.0, 1.0))
+        release.set()
+        reply = future.result(5)
+        assert reply.ok
+        snap = pipe.wait_snapshot(pipe.latest().sequence, 5)
+        while snap is not None and not snap.targets:
+            snap = pipe.wait_snapshot(snap.sequence, 5)
+    assert engine.commands[0] == ("SelectPoint", 0)
+    assert processed_when_applied == [0]  # applied before the waiting frame was processed
+    assert snap is not None and snap.frame is not None and snap.frame.index > 0
+
+
 def test_pause_and_step_read_exactly_one_frame() -> None:
     engine = RecordingEngine()
     source = CountingSource(10**6, delay_s=0.002)

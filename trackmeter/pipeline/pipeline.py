@@ -466,11 +466,16 @@ class Pipeline:
                 status = self._source_status
                 self._cond.notify_all()  # a lossless acquisition waits for the slot to empty
             changed = False
-            if item is not None:
-                self._process(*item)
-                changed = True
+            # Commands first: they act on the frame already published (the one the operator
+            # clicked on), and the waiting frame then tracks what they added, so a click costs
+            # no extra tracking step before it shows.
             for command in commands:
                 self._apply(command)
+                changed = True
+                if isinstance(command, RestartSource):
+                    item = None  # a frame of the stream before the restart
+            if item is not None:
+                self._process(*item)
                 changed = True
             if status != published_status or changed:
                 published_status = status
