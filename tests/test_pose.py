@@ -254,3 +254,16 @@ def test_fuse_point_correlated_keeps_a_common_pose_error() -> None:
 def test_params_defaults_are_valid() -> None:
     p = PoseParams()
     assert p.min_points >= 3 and 0 < p.outlier_probability < 1
+
+
+@pytest.mark.parametrize("n", [4, 5, 9, 16, 40, 300])
+def test_random_triples_are_numpys_choice(n: int) -> None:
+    # robust_pose's batched sampler must draw exactly the triples the per-trial rng.choice did
+    from trackmeter.core.pose import _random_triples
+
+    for seed in range(40):
+        rng = np.random.default_rng(seed)
+        expected = np.array([rng.choice(n, 3, replace=False) for _ in range(80)])
+        got = _random_triples(n, 80, seed)
+        assert got.dtype == expected.dtype
+        np.testing.assert_array_equal(got, expected)

@@ -30,6 +30,7 @@ whose frame is the camera frame at that time, origin at the points' centroid.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 from itertools import combinations
 
 import numpy as np
@@ -308,6 +309,45 @@ def _kabsch_batch(a: FloatArray, b: FloatArray) -> tuple[FloatArray, FloatArray,
     return R, t, S[:, 1]
 
 
+@lru_cache(maxsize=8)
+def _chi2_3_ppf(probability: float) -> float:
+    """``chi2.ppf(probability, 3)``, once per value (scipy's ppf costs ~0.1 ms a call)."""
+    return float(chi2.ppf(probability, 3))
+
+
+def _random_triples(n: int, trials: int, seed: int) -> NDArray[np.int64]:
+    """(trials, 3) index triples, exactly ``[rng.choice(n, 3, replace=False) for _ in range(trials)]``
+    with ``rng = np.random.default_rng(seed)``, drawn at once (the per-call overhead of 80
+    ``choice`` calls was a third of :func:`robust_pose`).
+
+    For ``n <= 10000`` numpy's ``Generator.choice`` runs Floyd's algorithm and shuffles the three
+    (``_generator.pyx``): five bounded draws per triple, each ``(u * (j + 1)) >> 32`` for the
+    next 32-bit output ``u`` (Lemire's method), redrawn only when the low word is below ``j + 1``
+    (probability < n / 2^32). Those outputs come from the same generator as ``integers(0, 2**32,
+    dtype=uint32)``. Where a redraw would be due, or ``n`` is outside that path, the triples are
+    drawn by ``choice`` itself. ``tests/test_pose.py`` checks the equality.
+    """
+    if 4 <= n <= 10000:
+        u = np.random.default_rng(seed).integers(0, 2**32, size=(trials, 5), dtype=np.uint32).astype(np.uint64)
+        # range of each draw: Floyd's j = n-3, n-2, n-1 (0..j), then the shuffle's 0..2 and 0..1
+        excl = np.array([n - 2, n - 1, n, 3, 2], dtype=np.uint64)
+        m = u * excl
+        if not ((m & np.uint64(0xFFFFFFFF)) < excl).any():
+            v = (m >> np.uint64(32)).astype(np.int64)
+            a, b, c = v[:, 0], v[:, 1].copy(), v[:, 2].copy()
+            b[b == a] = n - 2  # Floyd: a value already taken is replaced by j
+            c[(c == a) | (c == b)] = n - 1
+            d = np.stack([a, b, c], axis=1)
+            rows = np.arange(trials)
+            for i, k in ((2, v[:, 3]), (1, v[:, 4])):  # Fisher-Yates: swap element i with k <= i
+                t = d[rows, k].copy()
+                d[rows, k] = d[:, i]
+                d[:, i] = t
+            return d
+    rng = np.random.default_rng(seed)
+    return np.array([rng.choice(n, 3, replace=False) for _ in range(trials)])
+
+
 def robust_pose(
     points_body: ArrayLike,
     points_cam: ArrayLike,
@@ -349,7 +389,7 @@ def robust_pose(
     n = len(b)
     if n < 3:
         raise TrackmeterError(f"a pose needs at least 3 points, got {n}")
-    gate = float(chi2.ppf(params.outlier_probability, 3))
+    gate = _chi2_3_ppf(params.outlier_probability)
     inliers = np.ones(n, dtype=bool)
     start = initial
     if n >= 4:
@@ -357,8 +397,7 @@ def robust_pose(
         if all_triples <= params.ransac_trials:
             idx = np.array(list(combinations(range(n), 3)))
         else:
-            rng = np.random.default_rng(seed)
-            idx = np.array([rng.choice(n, 3, replace=False) for _ in range(params.ransac_trials)])
+            idx = _random_triples(n, params.ransac_trials, seed)
         R_k, t_k, s1 = _kabsch_batch(p[idx], b[idx])
         ok = s1 > 1e-6  # collinear triples fix no rotation
         R_k, t_k = R_k[ok], t_k[ok]
