@@ -55,6 +55,7 @@ from trackmeter.core.pose import (
     PoseParams,
     choose_frame_points,
     fuse_point_correlated,
+    hold_frame,
     robust_pose,
     solve_pose,
     three_point_body_frame,
@@ -594,7 +595,11 @@ class Engine:
         self.stats.outliers_rejected += len(outliers)
         R, t, cov = fit.R_cam_body, fit.t_cam_body, self._with_frame_cov(fit.cov, ids, fit.inliers)
         self._last_fit = (R, t, cov)
+        hold = self._case == "a" and self.pose_params.frame_hold
+        held = {i: (self._model[i].b.copy(), self._model[i].cov.copy()) for i in ids} if hold else {}
         self._update_model(R, t, cov, fit.scale2, ids, fit.inliers, measured)
+        if held:
+            self._hold_frame(held)
         self._anchor(frame.t_s, R, t, ids, fit.inliers, measured)
         return (R, t, cov, int(fit.inliers.sum()), outliers), None
 
@@ -659,6 +664,23 @@ class Engine:
                 self._seen_t[tid] = self._frame_t_s
                 del self._candidates[tid]
                 self.stats.model_points_joined += 1
+
+    def _hold_frame(self, held: dict[str, tuple[FloatArray, FloatArray]]) -> None:
+        """Case (a): undo the rigid part of this frame's model refinement (:func:`hold_frame`), so
+        averaging the points' observations sharpens the model without moving the body frame.
+        ``held``: body coordinates and covariances of the refined points before the update."""
+        ids = [i for i in held if i in self._model and not np.array_equal(self._model[i].b, held[i][0])]
+        if len(ids) < 3:
+            return
+        R_h, t_h = hold_frame(np.array([held[i][0] for i in ids]), np.array([self._model[i].b for i in ids]),
+                              np.array([held[i][1] for i in ids]))
+        for i in ids:
+            m = self._model[i]
+            m.b = R_h @ m.b + t_h
+            m.cov = R_h @ m.cov @ R_h.T
+            if m.cm is not None:
+                m.cm = R_h @ m.cm @ R_h.T
+            m.L = R_h @ m.L
 
     def _slide_cov(self, m: _ModelPoint, t_s: float) -> FloatArray:
         """(3,3) how far a grown point may have slid on the surface since its last refinement: a
