@@ -241,3 +241,29 @@ def test_match_epipolar_per_point_span_equals_separate_calls(estec_rig) -> None:
     assert ok.mean() > 0.5
     assert np.all(np.abs(batch.disparity_px[:-1][ok] - d_true[:-1][ok]) < 0.2)
     assert batch.reason[-1] is not None
+
+
+def test_zncc_search_matches_a_numpy_reference() -> None:
+    # the window, best position and second local maximum against a direct numpy formulation
+    rng = np.random.default_rng(5)
+    img = cv2.GaussianBlur(rng.random((80, 90)).astype(np.float32), (0, 0), 1.2)
+    img[:, 60:] = 0.5  # a flat part: scores of -1/0 and windows clipped at the border
+    for k in range(40):
+        c = rng.uniform([-5, -5], [95, 85])
+        half = rng.uniform(1, 12, size=2)
+        tmpl = img[20 + k % 30 : 28 + k % 30, 10 + k : 18 + k]
+        got = pt.zncc_search(img, tmpl, c, half)
+        x0 = max(int(np.floor(c[0] - half[0] - 3.5)), 0)
+        x1 = min(int(np.ceil(c[0] + half[0] + 3.5)) + 1, 90)
+        y0 = max(int(np.floor(c[1] - half[1] - 3.5)), 0)
+        y1 = min(int(np.ceil(c[1] + half[1] + 3.5)) + 1, 80)
+        if x1 - x0 < 8 or y1 - y0 < 8:
+            assert got is None
+            continue
+        res = cv2.matchTemplate(img[y0:y1, x0:x1], tmpl, cv2.TM_CCOEFF_NORMED)
+        i, j = np.unravel_index(np.argmax(res), res.shape)
+        peaks = res >= ndimage.maximum_filter(res, size=3, mode="nearest")
+        peaks[max(i - 4, 0) : i + 5, max(j - 4, 0) : j + 5] = False
+        np.testing.assert_array_equal(got[0], [x0 + j + 3.5, y0 + i + 3.5])
+        assert got[1] == float(res[i, j])
+        assert got[2] == float(np.max(res, where=peaks, initial=-1.0))
