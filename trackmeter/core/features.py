@@ -54,9 +54,10 @@ class FeatureParams:
     border_px: int = param(16, "no selection closer than this to the image border, px", min=0)
     black_level: int = param(16, "grey level at or below which a pixel is black space (black_snr 0)", min=0, max=254)
     black_snr: float = param(
-        0.0, "> 0: a pixel is on the target when the mean of its 5x5 neighbourhood exceeds the sky level "
+        10.0, "> 0: a pixel is on the target when the mean of its 5x5 neighbourhood exceeds the sky level "
         "(the 5th percentile of those means) by this many of the mean's noise sigmas (the image's noise, "
-        "estimated by noise_sigma_grey): a target in deep shadow is still a target; 0: black_level", min=0.0,
+        "estimated by noise_sigma_grey), when black_level leaves nothing selectable: a target in deep "
+        "shadow is still a target; 0: black_level only", min=0.0,
     )
     target_margin_px: int = param(3, "the patch grown by this margin must lie entirely on the bright target, px", min=0)
     gabor_wavelengths_px: tuple[float, ...] = param((4.0, 8.0), "Gabor wavelengths (scales), px", min=2.0)
@@ -320,10 +321,11 @@ def noise_sigma_grey(image: NDArray) -> float:
 _IMMERKAER = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
 
 
-def bright_pixels(image: NDArray, params: FeatureParams) -> NDArray[np.uint8]:
-    """1 where a pixel is on the target, 0 on black space (``black_level`` or ``black_snr``)."""
+def bright_pixels(image: NDArray, params: FeatureParams, snr: bool = False) -> NDArray[np.uint8]:
+    """1 where a pixel is on the target, 0 on black space: above ``black_level``, or with ``snr``
+    (and ``black_snr`` > 0) its 5x5 mean above the sky level by ``black_snr`` noise sigmas."""
     img = np.asarray(image)
-    if params.black_snr <= 0:
+    if not snr or params.black_snr <= 0:
         return (img > params.black_level).astype(np.uint8)
     m = cv2.blur(img.astype(np.float32), (5, 5), borderType=cv2.BORDER_REPLICATE)
     sky = float(np.percentile(m[::4, ::4], 5.0))
@@ -332,8 +334,20 @@ def bright_pixels(image: NDArray, params: FeatureParams) -> NDArray[np.uint8]:
 
 
 def target_mask(image: NDArray, params: FeatureParams) -> NDArray[np.uint8]:
-    """255 where a patch (plus margin) centred on the pixel lies entirely on the bright target."""
-    bright = bright_pixels(image, params)
+    """255 where a patch (plus margin) centred on the pixel lies entirely on the bright target.
+
+    Black space is what ``black_level`` says; only when that leaves no selectable pixel at all
+    (the target in deep shadow, the exposure set by glints) and ``black_snr`` > 0 is it told
+    by its signal-to-noise ratio instead (:func:`bright_pixels`): on estec the signal-to-noise
+    test everywhere accepted dim parts an 8x8 patch cannot track (false locks 0 -> 30-39 of
+    500 frames), so it is the fallback of a dark image, not the rule."""
+    mask = _patch_mask(bright_pixels(image, params), params)
+    if params.black_snr > 0 and not mask.any():
+        mask = _patch_mask(bright_pixels(image, params, snr=True), params)
+    return mask
+
+
+def _patch_mask(bright: NDArray[np.uint8], params: FeatureParams) -> NDArray[np.uint8]:
     r = params.patch_size // 2 + params.target_margin_px
     kernel = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
     mask = cv2.erode(bright, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
