@@ -267,3 +267,17 @@ def test_zncc_search_matches_a_numpy_reference() -> None:
         np.testing.assert_array_equal(got[0], [x0 + j + 3.5, y0 + i + 3.5])
         assert got[1] == float(res[i, j])
         assert got[2] == float(np.max(res, where=peaks, initial=-1.0))
+
+
+def test_row_mean_is_numpys_mean_bit_for_bit() -> None:
+    # the LK loops' cheaper mean must give exactly np.mean's numbers (sum / count)
+    rng = np.random.default_rng(3)
+    for shape in [(1, 64), (7, 144), (5, 2, 64), (3, 1000)]:
+        x = rng.normal(size=shape) * 10.0 ** rng.integers(-3, 4, size=shape[:-1] + (1,))
+        np.testing.assert_array_equal(pt._row_mean(x), x.mean(axis=-1, keepdims=True))
+    a, b = rng.random((9, 8, 8)).astype(np.float32), rng.random((9, 8, 8)).astype(np.float32)
+    a64 = a.reshape(9, -1).astype(np.float64)
+    ref = (a64 - a64.mean(1, keepdims=True)), b.reshape(9, -1).astype(np.float64)
+    ref = (ref[0] * (ref[1] - ref[1].mean(1, keepdims=True))).sum(1) / np.sqrt(
+        (ref[0] ** 2).sum(1) * ((ref[1] - ref[1].mean(1, keepdims=True)) ** 2).sum(1))
+    np.testing.assert_array_equal(pt.zncc(a, b), ref)

@@ -231,9 +231,19 @@ def _project_out(J: FloatArray, t_unit: FloatArray) -> FloatArray:
 def zncc(a: F32, b: F32) -> FloatArray:
     """Zero-mean normalised cross-correlation (N,) of two stacks of patches (N,n,n), in [-1, 1]."""
     a = a.reshape(len(a), -1).astype(np.float64)
+    return _zncc_centred(a - _row_mean(a), b)
+
+
+def _row_mean(x: FloatArray) -> FloatArray:
+    """``x.mean(axis=-1, keepdims=True)`` without np.mean's per-call overhead: numpy's mean is
+    this sum divided by the count, so the numbers are the same."""
+    return x.sum(axis=-1, keepdims=True) / x.shape[-1]
+
+
+def _zncc_centred(a: FloatArray, b: F32) -> FloatArray:
+    """:func:`zncc` with ``a`` (N,K) float64 already zero-mean (e.g. an LK fit's templates)."""
     b = b.reshape(len(b), -1).astype(np.float64)
-    a = a - a.mean(axis=1, keepdims=True)
-    b = b - b.mean(axis=1, keepdims=True)
+    b = b - _row_mean(b)
     den = np.sqrt((a * a).sum(1) * (b * b).sum(1))
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(den > 1e-9, (a * b).sum(1) / den, 0.0)
@@ -303,7 +313,7 @@ def refine_lk(
     p0 = p.copy()
     N = len(p)
     T = templates.values.reshape(N, -1).astype(np.float64)
-    Tm = T - T.mean(1, keepdims=True)
+    Tm = T - _row_mean(T)
     Tn = Tm / np.maximum(np.linalg.norm(Tm, axis=1, keepdims=True), 1e-9)
     # Template gradients (N, 2, n²): x and y rows side by side, so each Gauss-Newton product
     # below is one numpy call for both axes (the same element-wise arithmetic and sums).
@@ -312,7 +322,8 @@ def refine_lk(
     converged = np.zeros(N, bool)
     iters = np.zeros(N, np.int32)
     mask = np.asarray(axis_mask, dtype=np.float64)
-    mask_col = mask.reshape(1, 2, 1)
+    # multiplying by 1.0 changes no number: only a real mask is applied
+    mask_col = None if np.all(mask == 1.0) else mask.reshape(1, 2, 1)
     # Rows still iterating: a slice while all are (no gathers), their indices once some stopped.
     idx = np.flatnonzero(active)
     rows: slice | NDArray = slice(None) if len(idx) == N else idx
@@ -322,7 +333,7 @@ def refine_lk(
         big, inside = sample_patches(image if image.ndim == 2 else image[rows], p[rows], n + 4, coord_map)
         big = big.astype(np.float64)
         I = big[:, 2:-2, 2:-2].reshape(len(idx), -1)
-        Im = I - I.mean(1, keepdims=True)
+        Im = I - _row_mean(I)
         Tmi = Tm[rows]
         # Closed-form gain: I' = gain (I - mean I) is the least-squares fit of the patch to the
         # zero-mean template; the bias drops out with the means.
@@ -336,12 +347,14 @@ def refine_lk(
         ix = (8.0 * (big[:, 2:-2, 3:-1] - big[:, 2:-2, 1:-3]) - (big[:, 2:-2, 4:] - big[:, 2:-2, :-4])) / 12.0
         iy = (8.0 * (big[:, 3:-1, 2:-2] - big[:, 1:-3, 2:-2]) - (big[:, 4:, 2:-2] - big[:, :-4, 2:-2])) / 12.0
         k = len(idx)
-        J = 0.5 * (g[rows] + gain[:, None, None] * np.stack([ix.reshape(k, -1), iy.reshape(k, -1)], axis=1)) * mask_col
+        J = 0.5 * (g[rows] + gain[:, None, None] * np.stack([ix.reshape(k, -1), iy.reshape(k, -1)], axis=1))
+        if mask_col is not None:
+            J = J * mask_col
         # Variable projection: the gain and bias are solved in closed form, so the Jacobian
         # must be orthogonal to what they explain (span{1, T}); otherwise a shift that looks
         # like a brightness change is counted twice and the steps fall short.
         Tni = Tn[rows][:, None, :]
-        J = J - J.mean(2, keepdims=True)
+        J = J - _row_mean(J)
         J = J - (J * Tni).sum(2, keepdims=True) * Tni
         Hm = (J[:, :, None, :] * J[:, None, :, :]).sum(3)  # (k, 2, 2) Gauss-Newton Hessian
         hxx, hyy, hxy = Hm[:, 0, 0], Hm[:, 1, 1], Hm[:, 0, 1]
@@ -364,7 +377,7 @@ def refine_lk(
         if still is not None:
             idx = rows = still
     final, inside = sample_patches(image, p, n, coord_map)
-    score = zncc(templates.values, final)
+    score = _zncc_centred(Tm, final)
     converged &= inside & templates.ok
     return LKResult(uv=p, score=score, converged=converged, iterations=iters)
 
@@ -781,7 +794,7 @@ def _refine_lk_warp(
     gx = templates.gx.reshape(N, -1).astype(np.float64)
     gy = templates.gy.reshape(N, -1).astype(np.float64)
     T = templates.values.reshape(N, -1).astype(np.float64)
-    Tm = T - T.mean(1, keepdims=True)
+    Tm = T - _row_mean(T)
     Tn = Tm / np.maximum(np.linalg.norm(Tm, axis=1, keepdims=True), 1e-9)
     if model == "affine":
         SD = np.stack([ox * gx, ox * gy, oy * gx, oy * gy, gx, gy], axis=-1)  # (N, n², 6)
@@ -810,7 +823,7 @@ def _refine_lk_warp(
         Wi = W[rows]
         patches, inside = sample_warped(image, Wi[:, :2, :], n)
         I = patches.reshape(len(idx), -1).astype(np.float64)
-        Im = I - I.mean(1, keepdims=True)
+        Im = I - _row_mean(I)
         Tmi = Tm[rows]
         cov = (Im * Tmi).sum(1)
         ivar = (Im * Im).sum(1)
@@ -853,7 +866,7 @@ def _refine_lk_warp(
         if still is not None:
             idx = rows = still
     final, inside = sample_warped(image, W[:, :2, :], n)
-    score = zncc(templates.values, final)
+    score = _zncc_centred(Tm, final)
     return AffineLKResult(warp=W[:, :2, :].copy(), score=score, converged=converged & inside & templates.ok)
 
 
