@@ -441,7 +441,8 @@ def robust_pose(
         inliers = new_inliers
         R, t, cov = solve_pose(b[inliers], p[inliers], C[inliers], None if Cb is None else Cb[inliers],
                                (R, t), params.refine_iterations)
-    d2 = _gating_d2(R, t, cov, b, p, C, Cb, inliers)
+    else:  # the last refit is not gated yet (a break leaves d2 of the final pose and set)
+        d2 = _gating_d2(R, t, cov, b, p, C, Cb, inliers)
     return PoseFit(R, t, cov * scale2, inliers, d2, scale2)
 
 
