@@ -311,3 +311,15 @@ def test_frame_from_three_points_refuses_collinear() -> None:
         tf.frame_from_three_points([0, 0, 0], [1, 0, 0], [2, 0, 0])
     with pytest.raises(TrackmeterError):
         tf.frame_from_three_points([0, 0, 0], [0, 0, 0], [0, 1, 0])
+
+
+def test_matrix_to_quat_of_a_stack_is_the_single_calls() -> None:
+    # Engine._errors converts the estimate and the truth in one call: each row must be exactly
+    # what the single conversion gives (also for nearly orthonormal and half-turn matrices)
+    rng = np.random.default_rng(4)
+    Rs = Rotation.random(300, random_state=5).as_matrix() + rng.normal(size=(300, 3, 3)) * 1e-9
+    Rs = np.concatenate([Rs, [np.eye(3), np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, -1.0, 1.0])]])
+    for a, b in zip(Rs[:-1], Rs[1:]):
+        q2 = tf.matrix_to_quat_wxyz(np.stack([a, b]))
+        np.testing.assert_array_equal(q2[0], tf.matrix_to_quat_wxyz(a))
+        np.testing.assert_array_equal(q2[1], tf.matrix_to_quat_wxyz(b))
