@@ -101,6 +101,9 @@ class RunWriter:
         self._targets.flush()
         self.frames = 0
         self.valid_frames = 0
+        # Valid poses carried on the motion model with no point measured (the states.csv
+        # columns are a contract, so the count goes to the summary, not a new column).
+        self.coasted_frames = 0
 
     def _write_meta(self) -> None:
         write_text_atomic(self.directory / "run.yaml", yaml.safe_dump(self._meta, sort_keys=False, allow_unicode=True))
@@ -123,6 +126,8 @@ class RunWriter:
             self._tum.write(format_tum_line(t_s, p, q) + "\n")
             self._tum.flush()
             self.valid_frames += 1
+            if getattr(pose, "coasting_s", 0.0) > 0.0:
+                self.coasted_frames += 1
         else:
             self._states.write(t=t_s, valid=0, n_tracked=n_tracked, n_lost=n_lost, latency_ms=latency_ms)
         lines = []
@@ -148,7 +153,8 @@ class RunWriter:
         self._tum = self._targets = None
         self._meta["status"] = status
         self._meta["finished_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
-        self._meta["summary"] = {"frames": self.frames, "valid_frames": self.valid_frames, **(summary or {})}
+        self._meta["summary"] = {"frames": self.frames, "valid_frames": self.valid_frames,
+                                 "coasted_frames": self.coasted_frames, **(summary or {})}
         # Keep config last: the summary is what a reader looks for first.
         config = self._meta.pop("config")
         self._meta["config"] = config
