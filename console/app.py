@@ -661,7 +661,10 @@ class Console:
             rv = np.degrees(Rotation.from_matrix(T[:3, :3]).as_rotvec())
             v = np.asarray(pose.velocity_cam_m_s) * 1e3
             w = np.degrees(pose.omega_body_rad_s)
-            lines.append(f"pose valid (case {pose.case}, {pose.n_points} points)")
+            if getattr(pose, "coasting_s", 0.0) > 0.0:
+                lines.append(f"pose valid, COASTING (case {pose.case}): {pose.reason}")
+            else:
+                lines.append(f"pose valid (case {pose.case}, {pose.n_points} points)")
             lines.append(f"p = ({p[0]:+.3f}, {p[1]:+.3f}, {p[2]:+.3f}) m · rotvec = ({rv[0]:+.1f}, {rv[1]:+.1f}, {rv[2]:+.1f})°")
             if np.all(np.isfinite(v)) and np.all(np.isfinite(w)):
                 lines.append(f"v = ({v[0]:+.1f}, {v[1]:+.1f}, {v[2]:+.1f}) mm/s · ω = ({w[0]:+.2f}, {w[1]:+.2f}, {w[2]:+.2f}) °/s")
