@@ -267,3 +267,13 @@ def test_random_triples_are_numpys_choice(n: int) -> None:
         got = _random_triples(n, 80, seed)
         assert got.dtype == expected.dtype
         np.testing.assert_array_equal(got, expected)
+
+
+def test_random_triples_where_numpy_would_redraw() -> None:
+    # seed 1056 at n = 9000 holds a 32-bit draw Lemire's method rejects: the sampler must fall
+    # back to rng.choice rather than return the unrejected triple
+    from trackmeter.core.pose import _random_triples
+
+    rng = np.random.default_rng(1056)
+    expected = np.array([rng.choice(9000, 3, replace=False) for _ in range(80)])
+    np.testing.assert_array_equal(_random_triples(9000, 80, 1056), expected)
