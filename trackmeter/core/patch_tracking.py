@@ -691,9 +691,9 @@ def sample_warped(image: F32, warp: NDArray, size: int) -> tuple[F32, NDArray[np
     """Patches (N,size,size) sampled at ``warp @ (x, y, 1)`` for the template offsets (x, y)."""
     _, _, _, ox, oy = _patch_grid(size)
     W = np.asarray(warp, dtype=np.float64)
-    x = W[:, 0, 0, None] * ox + W[:, 0, 1, None] * oy + W[:, 0, 2, None]
-    y = W[:, 1, 0, None] * ox + W[:, 1, 1, None] * oy + W[:, 1, 2, None]
-    values, inside = bilinear(image, x, y)
+    # both rows of the warp at once (N,2,size²): the same products and sums as per row
+    xy = W[:, :, 0, None] * ox + W[:, :, 1, None] * oy + W[:, :, 2, None]
+    values, inside = bilinear(image, xy[:, 0], xy[:, 1])
     return values.reshape(len(W), size, size), inside.all(axis=1)
 
 
