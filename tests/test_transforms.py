@@ -44,6 +44,27 @@ def test_matrix_to_quat_is_canonical() -> None:
     np.testing.assert_allclose(back, q * np.sign(q[:, :1]), atol=1e-12)
 
 
+def test_rotation_from_matrix_is_scipys_conversion_bit_for_bit() -> None:
+    """The cheaper validity check must give exactly scipy's numbers: on products of rotations
+    (what the pipeline converts), on matrices drifted from SO(3) on both sides of scipy's 1e-12
+    orthogonality tolerance (scipy projects those by SVD), singly and stacked."""
+    rng = np.random.default_rng(7)
+    A = Rotation.random(400, rng=8).as_matrix()
+    products = A[:200] @ A[200:]
+    drift = np.logspace(-16, -9, 200)[:, None, None] * rng.normal(size=(200, 3, 3))
+    for M in (products, A[:200] + drift):
+        for m in M:
+            np.testing.assert_array_equal(tf.rotation_from_matrix(m).as_quat(), Rotation.from_matrix(m).as_quat())
+        for k in range(0, 200, 5):
+            np.testing.assert_array_equal(tf.rotation_from_matrix(M[k:k + 5]).as_rotvec(),
+                                          Rotation.from_matrix(M[k:k + 5]).as_rotvec())
+    # a reflection or NaN still goes through scipy's checks and fails as there
+    with pytest.raises(ValueError):
+        tf.rotation_from_matrix(np.diag([1.0, 1.0, -1.0]))
+    with pytest.raises(np.linalg.LinAlgError):
+        tf.rotation_from_matrix(np.full((3, 3), np.nan))
+
+
 @settings(max_examples=100, deadline=None)
 @given(quats)
 def test_property_quat_matrix_round_trip(q: np.ndarray) -> None:

@@ -34,6 +34,7 @@ from scipy import signal
 from scipy.spatial.transform import Rotation
 
 from trackmeter.core.params import param
+from trackmeter.core.transforms import rotation_from_matrix
 
 FloatArray = NDArray[np.float64]
 
@@ -119,7 +120,7 @@ class PoseFilter:
                 self._R_base = self._R_base @ Rotation.from_rotvec(np.asarray(omega_body, dtype=float) * dt).as_matrix()
             if v_cam is not None and np.all(np.isfinite(v_cam)):
                 self._p_base = self._p_base + np.asarray(v_cam, dtype=float) * dt
-        x = np.concatenate([Rotation.from_matrix(self._R_base.T @ R).as_rotvec(), p - self._p_base])
+        x = np.concatenate([rotation_from_matrix(self._R_base.T @ R).as_rotvec(), p - self._p_base])
         y, self._zi = signal.sosfilt(self.sos, x[None, :], axis=0, zi=self._zi)
         y = y[0]
         R_out = self._R_base @ Rotation.from_rotvec(y[:3]).as_matrix()

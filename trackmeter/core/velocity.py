@@ -52,7 +52,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from trackmeter.core.params import param
-from trackmeter.core.transforms import omega_body_between
+from trackmeter.core.transforms import omega_body_between, rotation_from_matrix
 
 FloatArray = NDArray[np.float64]
 
@@ -107,8 +107,8 @@ def finite_difference_rates(
 ) -> tuple[FloatArray, FloatArray]:
     """Plain eq. 14 on two poses: ``(v_cam (3,) m/s, omega_body (3,) rad/s)``."""
     dt = t1_s - t0_s
-    q0 = Rotation.from_matrix(np.asarray(R0, dtype=float)).as_quat(scalar_first=True)
-    q1 = Rotation.from_matrix(np.asarray(R1, dtype=float)).as_quat(scalar_first=True)
+    q0 = rotation_from_matrix(np.asarray(R0, dtype=float)).as_quat(scalar_first=True)
+    q1 = rotation_from_matrix(np.asarray(R1, dtype=float)).as_quat(scalar_first=True)
     v = (np.asarray(p1, dtype=float) - np.asarray(p0, dtype=float)) / dt
     return v, omega_body_between(q0, q1, dt)
 
@@ -134,7 +134,7 @@ def local_polynomial_rates(
     t_eval = t[-1] if t_eval_s is None else float(t_eval_s)
     deg = min(order, len(t) - 1)
     R_ref = Rm[-1]
-    phi = Rotation.from_matrix(np.einsum("ji,njk->nik", R_ref, Rm)).as_rotvec()  # log(R_ref^T R_k)
+    phi = rotation_from_matrix(np.einsum("ji,njk->nik", R_ref, Rm)).as_rotvec()  # log(R_ref^T R_k)
     tau = t - t_eval
     scale = max(float(np.max(np.abs(tau))), 1e-9)  # conditioning of the Vandermonde matrix
     V = np.vander(tau / scale, deg + 1, increasing=True)
@@ -165,7 +165,7 @@ def se3_log(R: ArrayLike, t: ArrayLike) -> FloatArray:
     single = Rm.ndim == 2
     Rm = Rm.reshape(-1, 3, 3)
     tv = np.asarray(t, dtype=float).reshape(-1, 3)
-    theta = Rotation.from_matrix(Rm).as_rotvec()
+    theta = rotation_from_matrix(Rm).as_rotvec()
     a = np.linalg.norm(theta, axis=1)
     small = a < 1e-4
     a_safe = np.where(small, 1.0, a)
@@ -230,7 +230,7 @@ def screw_rates(
     R_a, p_a = pose_at(-h)
     R_b, p_b = pose_at(h)
     v = (p_b - p_a) / (2 * h)
-    omega = Rotation.from_matrix(R_a.T @ R_b).as_rotvec() / (2 * h)
+    omega = rotation_from_matrix(R_a.T @ R_b).as_rotvec() / (2 * h)
     return p_fit, R_fit, v, omega
 
 
