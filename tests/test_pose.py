@@ -168,6 +168,22 @@ def test_too_few_or_collinear_points_refused(estec_rig) -> None:
         solve_pose(line, line + [0, 0, 3.5], np.broadcast_to(np.eye(3) * 1e-6, (4, 3, 3)))
 
 
+def test_cond_check_agrees_with_numpy_cond() -> None:
+    """solve_pose's collinearity check is np.linalg.cond(H) > 1e12, including near the limit,
+    for singular and all-zero normal matrices (cond: inf / nan -> inf)."""
+    from trackmeter.core.pose import _cond_above
+
+    rng = np.random.default_rng(3)
+    mats = [np.zeros((6, 6)), np.diag([1.0, 1, 1, 1, 1, 0])]
+    for c in np.logspace(10, 14, 300):
+        Q, _ = np.linalg.qr(rng.normal(size=(6, 6)))
+        s = np.geomspace(1.0, 1.0 / c, 6) * rng.uniform(1e-6, 1e6)
+        mats.append((Q * s) @ Q.T)
+    got = [_cond_above(H, 1e12) for H in mats]
+    assert got == [bool(np.linalg.cond(H) > 1e12) for H in mats]
+    assert 50 < sum(got) < 250  # both sides of the limit were exercised
+
+
 def test_case_a_three_point_frame_recovered_exactly() -> None:
     b = satellite_points(8)
     R, t = true_pose()
