@@ -185,6 +185,32 @@ def test_screw_fit_exact_on_constant_twist_where_poly_is_not() -> None:
     assert np.linalg.norm(v_poly - R[-1] @ V_BODY) > 1e-3  # > 1 mm/s off
 
 
+def test_screw_fit_is_three_se3_exp_calls_bit_for_bit() -> None:
+    """screw_rates exponentiates the fitted twist at 0 and ±h in one scipy call: the same
+    numbers as se3_exp on each (the pose_at of the plain version), to the last bit."""
+    rng = np.random.default_rng(4)
+    for _ in range(100):
+        n = int(rng.integers(2, 10))
+        t = np.sort(rng.uniform(0.0, 0.4, n))
+        R = Rotation.from_rotvec(t[:, None] * rng.normal(size=3) + 0.01 * rng.normal(size=(n, 3))).as_matrix()
+        p = rng.normal(size=(n, 3))
+        order = int(rng.integers(1, 3))
+        deg = min(order, n - 1)
+        X = se3_log(np.einsum("ji,njk->nik", R[-1], R), (p - p[-1]) @ R[-1])
+        scale = max(float(np.max(np.abs(t - t[-1]))), 1e-9)
+        coef, *_ = np.linalg.lstsq(np.vander((t - t[-1]) / scale, deg + 1, increasing=True), X, rcond=None)
+        h = 1e-4 * scale
+        ref = []
+        for s in (0.0, -h, h):
+            dR, dt = se3_exp(np.vander(np.array([s / scale]), deg + 1, increasing=True)[0] @ coef)
+            ref.append((R[-1] @ dR, p[-1] + R[-1] @ dt))
+        (R_fit, p_fit), (R_a, p_a), (R_b, p_b) = ref
+        v = (p_b - p_a) / (2 * h)
+        omega = Rotation.from_matrix(R_a.T @ R_b).as_rotvec() / (2 * h)
+        for got, want in zip(screw_rates(t, R, p, order), (p_fit, R_fit, v, omega)):
+            np.testing.assert_array_equal(got, want)
+
+
 def test_screw_fit_noise_matches_least_squares_slope() -> None:
     """Noise averaging: white position noise sigma on N poses gives the line fit's slope
     standard deviation sigma / sqrt(sum (t - mean t)^2) per axis (Monte Carlo, 20 % tolerance)."""
