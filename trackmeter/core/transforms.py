@@ -14,6 +14,8 @@ section 4: error measures).
 
 from __future__ import annotations
 
+import inspect
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
@@ -43,13 +45,14 @@ def rotation_from_matrix(R: ArrayLike) -> Rotation:
     anything else (drifted, reflected, NaN) goes through the full ``Rotation.from_matrix``.
     """
     R = np.asarray(R, dtype=float)
-    if R.shape[-2:] == (3, 3) and R.size:
-        if np.abs(R @ R.mT - _EYE3).max() <= 1e-13 and np.linalg.det(R).min() > 0:
+    if _HAS_ASSUME_VALID and R.shape[-2:] == (3, 3) and R.size:
+        if np.abs(R @ np.swapaxes(R, -1, -2) - _EYE3).max() <= 1e-13 and np.linalg.det(R).min() > 0:
             return Rotation.from_matrix(R, assume_valid=True)
     return Rotation.from_matrix(R)
 
 
 _EYE3 = np.eye(3)
+_HAS_ASSUME_VALID = "assume_valid" in inspect.signature(Rotation.from_matrix).parameters  # not in every scipy the project allows
 
 
 def matrix_to_quat_wxyz(R: ArrayLike) -> FloatArray:
