@@ -53,6 +53,19 @@ def test_finite_difference_is_eq14() -> None:
     np.testing.assert_allclose(w, omega_body_between(q[0], q[1], 0.04))
 
 
+def test_finite_difference_converts_both_attitudes_like_single_calls() -> None:
+    """The two matrices go through scipy in one stacked call: the same numbers as one call each."""
+    rng = np.random.default_rng(5)
+    for _ in range(50):
+        R0, R1 = Rotation.random(2, rng=rng).as_matrix() @ Rotation.random(2, rng=rng).as_matrix()
+        p0, p1 = rng.normal(size=(2, 3))
+        q0 = Rotation.from_matrix(R0).as_quat(scalar_first=True)
+        q1 = Rotation.from_matrix(R1).as_quat(scalar_first=True)
+        v, w = finite_difference_rates(0.1, R0, p0, 0.13, R1, p1)
+        np.testing.assert_array_equal(w, omega_body_between(q0, q1, 0.13 - 0.1))
+        np.testing.assert_array_equal(v, (p1 - p0) / (0.13 - 0.1))
+
+
 @pytest.mark.parametrize("order", [1, 2, 3])
 def test_polynomial_fit_exact_on_constant_rate(order: int) -> None:
     t = np.arange(25) * 0.04

@@ -107,8 +107,9 @@ def finite_difference_rates(
 ) -> tuple[FloatArray, FloatArray]:
     """Plain eq. 14 on two poses: ``(v_cam (3,) m/s, omega_body (3,) rad/s)``."""
     dt = t1_s - t0_s
-    q0 = rotation_from_matrix(np.asarray(R0, dtype=float)).as_quat(scalar_first=True)
-    q1 = rotation_from_matrix(np.asarray(R1, dtype=float)).as_quat(scalar_first=True)
+    # one scipy conversion for both (each row is the single call's number)
+    q0, q1 = rotation_from_matrix(np.stack([np.asarray(R0, dtype=float), np.asarray(R1, dtype=float)])).as_quat(
+        scalar_first=True)
     v = (np.asarray(p1, dtype=float) - np.asarray(p0, dtype=float)) / dt
     return v, omega_body_between(q0, q1, dt)
 
