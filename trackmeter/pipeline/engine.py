@@ -816,9 +816,7 @@ class Engine:
         if state is None:
             return None
         R, pos, v, cov, dt = state
-        d = np.diag(cov)
-        if (np.sqrt(d[3:].max()) > np.radians(p.coast_valid_attitude_sigma_deg)
-                or np.sqrt(d[:3].max()) > p.coast_valid_position_sigma_m):
+        if not _sigmas_within(cov, p.coast_valid_attitude_sigma_deg, p.coast_valid_position_sigma_m):
             return None
         T = np.eye(4)
         T[:3, :3] = R
@@ -841,9 +839,7 @@ class Engine:
         if state is None:
             return False
         R, pos, _, cov, _ = state
-        d = np.diag(cov)
-        if (np.sqrt(d[3:].max()) > np.radians(p.coast_rejoin_attitude_sigma_deg)
-                or np.sqrt(d[:3].max()) > p.coast_rejoin_position_sigma_m):
+        if not _sigmas_within(cov, p.coast_rejoin_attitude_sigma_deg, p.coast_rejoin_position_sigma_m):
             return False
         before = set(self._model)
         self._update_model(R, pos, cov, 1.0, [], np.zeros(0, bool), measured)
@@ -1013,6 +1009,13 @@ class Engine:
             "velocity_m_s": np.asarray(v_e, float) - np.asarray(truth.velocity_cam_m_s, float),
             "omega_rad_s": np.asarray(w_e, float) - np.asarray(truth.omega_body_rad_s, float),
         }
+
+
+def _sigmas_within(cov_pose: FloatArray, attitude_sigma_deg: float, position_sigma_m: float) -> bool:
+    """Whether every standard deviation of a (6,6) pose covariance (position m, rotation vector
+    rad) is within the bounds: rotation components in degrees, position components in metres."""
+    d = np.diag(cov_pose)
+    return bool(np.sqrt(d[3:].max()) <= np.radians(attitude_sigma_deg) and np.sqrt(d[:3].max()) <= position_sigma_m)
 
 
 def _position_jacobian(b: FloatArray, R: FloatArray) -> FloatArray:
