@@ -11,7 +11,6 @@ from trackmeter.core.tracking import Tracker
 from trackmeter.data.config import load_config
 from trackmeter.pipeline.engine import Engine
 from trackmeter.pipeline.snapshot import SetAuto
-from trackmeter.sources import open_source
 
 N_FRAMES = 45  # on estec, model points are lost and re-locked in batches of 2-4 from frame ~16
 
@@ -36,13 +35,9 @@ class Counting(Tracker):
 
 
 @pytest.fixture(scope="module")
-def estec_frames():  # type: ignore[no-untyped-def]
-    source = open_source("sim", render_ahead=False)
-    try:
-        frames = [source.read() for _ in range(N_FRAMES)]
-    finally:
-        source.close()
-    return source.rig, frames
+def estec_frames(estec_sim_frames):  # type: ignore[no-untyped-def]
+    rig, frames = estec_sim_frames
+    return rig, frames[:N_FRAMES]
 
 
 def run(cls, rig, frames):  # type: ignore[no-untyped-def]

@@ -14,20 +14,15 @@ from trackmeter.core.matching import MeasureParams
 from trackmeter.core.tracking import Tracker, TrackerParams
 from trackmeter.pipeline.pipeline import Pipeline
 from trackmeter.pipeline.snapshot import PoseEstimate
-from trackmeter.sources import open_source
 from trackmeter.sources.base import Source, StereoFrame
 
 N_FRAMES = 16
 
 
 @pytest.fixture(scope="module")
-def estec_frames():  # type: ignore[no-untyped-def]
-    source = open_source("sim", render_ahead=False)
-    try:
-        frames = [source.read() for _ in range(N_FRAMES)]
-    finally:
-        source.close()
-    return source.rig, frames
+def estec_frames(estec_sim_frames):  # type: ignore[no-untyped-def]
+    rig, frames = estec_sim_frames
+    return rig, frames[:N_FRAMES]
 
 
 @pytest.mark.slow
