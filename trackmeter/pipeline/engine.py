@@ -805,19 +805,26 @@ class Engine:
                                       p.coast_omega_sigma_rad_s, p.coast_lever_m)
         return R, pos, v_t, cov, dt
 
+    def _coast_within(self, t_s: float, attitude_sigma_deg: float, position_sigma_m: float
+                      ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, float] | None:
+        """:meth:`_coast_state` while its covariance is within the bounds (deg, m; an attitude
+        bound of 0 switches it off), else None."""
+        if attitude_sigma_deg <= 0:
+            return None
+        state = self._coast_state(t_s)
+        if state is None or not _sigmas_within(state[3], attitude_sigma_deg, position_sigma_m):
+            return None
+        return state
+
     def _coasted_pose(self, t_s: float, why: str) -> PoseEstimate | None:
         """No pose measured this frame: the coasted one, valid while its covariance stays within
         ``coast_valid_attitude_sigma_deg`` and ``coast_valid_position_sigma_m``, else None.
         Flagged: ``coasting_s`` > 0, no points, and the reason says what it is."""
         p = self.pose_params
-        if p.coast_valid_attitude_sigma_deg <= 0:
-            return None
-        state = self._coast_state(t_s)
+        state = self._coast_within(t_s, p.coast_valid_attitude_sigma_deg, p.coast_valid_position_sigma_m)
         if state is None:
             return None
         R, pos, v, cov, dt = state
-        if not _sigmas_within(cov, p.coast_valid_attitude_sigma_deg, p.coast_valid_position_sigma_m):
-            return None
         T = np.eye(4)
         T[:3, :3] = R
         T[:3, 3] = pos
@@ -833,14 +840,11 @@ class Engine:
         points, continuous with the coast. Returns whether the coast is within those bounds
         (case a then keeps its frame instead of defining a new one)."""
         p = self.pose_params
-        if p.coast_rejoin_attitude_sigma_deg <= 0 or not self._model:
-            return False
-        state = self._coast_state(t_s)
+        state = (self._coast_within(t_s, p.coast_rejoin_attitude_sigma_deg, p.coast_rejoin_position_sigma_m)
+                 if self._model else None)
         if state is None:
             return False
         R, pos, _, cov, _ = state
-        if not _sigmas_within(cov, p.coast_rejoin_attitude_sigma_deg, p.coast_rejoin_position_sigma_m):
-            return False
         before = set(self._model)
         self._update_model(R, pos, cov, 1.0, [], np.zeros(0, bool), measured)
         joined = set(self._model) - before
