@@ -792,10 +792,7 @@ class Tracker:
         """Whether automatic selection (Gabor) will probably top up at frame ``index`` (the next
         one): it is on, its interval has passed and fewer than ``count`` targets are tracking.
         A caller can then make :meth:`feature_response` of that frame ahead."""
-        last = self._last_top_up
-        if not self._auto or self._auto_method != "gabor":
-            return False
-        if last is not None and 0 <= index - last < self.params.auto_interval_frames:
+        if not self._auto or self._auto_method != "gabor" or self._top_up_resting(index):
             return False
         return sum(1 for t in self._targets.values() if t.status != "lost") < self._auto_count
 
@@ -1036,10 +1033,16 @@ class Tracker:
                 alive[worst] = False
         return bad
 
+    def _top_up_resting(self, index: int) -> bool:
+        """Whether frame ``index`` falls within ``auto_interval_frames`` after the last top-up
+        (a frame index below it, e.g. after a restart, does not)."""
+        last = self._last_top_up
+        return last is not None and 0 <= index - last < self.params.auto_interval_frames
+
     def _top_up(self, frame: StereoFrame, fc: _FrameCache,
                 feature_response: Callable[[], FeatureResponse | None] | None = None) -> None:
         p = self.params
-        if self._last_top_up is not None and frame.index - self._last_top_up < p.auto_interval_frames and frame.index >= self._last_top_up:
+        if self._top_up_resting(frame.index):
             return
         for t in list(self._targets.values()):
             if t.origin == "auto" and t.status == "lost" and t.lost_frames >= p.lost_keep_frames:
