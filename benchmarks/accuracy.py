@@ -314,7 +314,7 @@ def run_chain(case: str, seconds: float, scenario: str = "estec") -> tuple[Motio
         prev = (pose, frame.truth.T_cam_body, measured)
         if k == 0:
             if case == "b":
-                reply = engine.handle(SelectModelPoints(), frame)
+                reply = engine.handle(SelectModelPoints(repeat=True), frame)
                 _log(f"case b: {reply.message}")
             engine.handle(SetAuto(True, MAX_POINTS, None), frame)
         gt = frame.truth

@@ -128,6 +128,7 @@ class FakeTracker:
         return s
 
     def remove_target(self, tid):
+        self._states = tuple(x for x in self._states if x.id != tid)
         return self.active.pop(tid, None) is not None
 
     def remove_nearest(self, uv):
@@ -502,3 +503,40 @@ def test_select_model_points_clicks_true_projections(estec_rig) -> None:
         np.testing.assert_allclose(uv, expected, atol=1e-9)
     no_truth = StereoFrame(0, 0.0, np.zeros((4, 4), np.uint8), np.zeros((4, 4), np.uint8))
     assert not engine.handle(SelectModelPoints(), no_truth).ok
+
+
+def test_select_model_points_skips_a_hidden_point(estec_rig) -> None:
+    """A model point behind another surface is measured there (here 0.2 m nearer the camera):
+    the simulated operator does not click it, as the pose could not tell it from the others
+    with three points."""
+    from trackmeter.pipeline.engine import SelectModelPoints
+
+    engine, tracker, _ = make_engine(estec_rig)
+    tracker.active.clear()
+    tracker.offsets["m3"] = np.array([0.0, 0.0, -0.2])
+    reply = engine.handle(SelectModelPoints(), frame_at(0))
+    assert reply.ok and "11 model points selected" in reply.message and "1 hidden (m3)" in reply.message
+    assert "m3" not in tracker.active
+    tracker.offsets["m3"] = np.array([0.0, 0.0, -0.9 * engine.pose_params.operator_hidden_m])
+    assert "1 model points selected (m3)" in engine.handle(SelectModelPoints(), frame_at(1)).message
+
+
+@pytest.mark.parametrize("repeat", [False, True])
+def test_repeating_operator_clicks_again_after_a_total_loss(estec_rig, repeat: bool) -> None:
+    """Every model point lost for longer than the coast (no pose to re-lock them through): only
+    an operator who clicks again brings the pose back, ``operator_reselect_s`` after the loss."""
+    from trackmeter.pipeline.engine import SelectModelPoints
+
+    engine, tracker, _ = make_engine(estec_rig)
+    tracker.active.clear()
+    assert engine.handle(SelectModelPoints(repeat=repeat), frame_at(0)).ok
+    run(engine, range(0, 25))
+    tracker.force_lost = set(tracker.body)
+    dark = int(round((engine.pose_params.coast_max_s + 1.0) / DT))
+    outs = run(engine, range(25, 25 + dark))
+    assert not outs[-1][1].valid
+    tracker.force_lost = set()
+    wait = int(round(engine.pose_params.operator_reselect_s / DT)) + 5
+    outs = run(engine, range(25 + dark, 25 + dark + wait))
+    assert outs[-1][1].valid == repeat
+    assert (engine.stats.operator_reselections > 0) == repeat

@@ -40,7 +40,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--auto", type=int, metavar="N", help="keep N automatically selected targets alive")
     parser.add_argument("--select-model-points", action="store_true",
                         help="case (b) on a source with ground truth: simulate the operator clicking every model "
-                             "point visible in the first frame (at its true projection)")
+                             "point visible in the first frame (at its true projection), and again whenever the "
+                             "pose has been invalid for pose.operator_reselect_s")
     parser.add_argument("--case", choices=("a", "b", "c"),
                         help="model case (default: b when a model is given or carried by the source, else a)")
     parser.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
@@ -137,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
         engine = Engine(config, rig, model if case == "b" else None, case, rate_hz=source.rate_hz or 25.0)
         commands: list[Any] = [SelectPoint(uv[0], uv[1], tid) for tid, uv in targets]
         if args.select_model_points:
-            commands.insert(0, SelectModelPoints())
+            commands.insert(0, SelectModelPoints(repeat=True))
         if args.auto is not None:
             commands.append(SetAuto(True, args.auto, None))
         if case == "c":

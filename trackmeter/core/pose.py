@@ -128,6 +128,14 @@ class PoseParams:
         64, "grown model points kept (re-locked by measurement at their projection after their target was "
         "dropped); beyond this the longest unseen go", min=3,
     )
+    operator_hidden_m: float = param(
+        0.03, "simulated operator (SelectModelPoints): a model point whose stereo measurement lies farther than "
+        "this from its true position is hidden behind another surface and not clicked, m", min=0.0,
+    )
+    operator_reselect_s: float = param(
+        1.0, "repeating simulated operator: clicks the visible model points not tracked again after the pose "
+        "has been invalid this long (and at most once per this interval), s", min=0.0,
+    )
     operator_reserve_targets: int = param(
         8, "grown model points are re-made as targets only while this many target slots stay free (for the "
         "operator's clicks and automatic selection)", min=0,

@@ -91,8 +91,17 @@ FloatArray = NDArray[np.float64]
 class SelectModelPoints(Command):
     """Simulated operator (case b on a source with ground truth): create a target at the TRUE
     projection of every model point that falls inside both images of the frame, named by its
-    model id — what an operator does by clicking the model's points. Points hidden behind the
-    body are measured on the wrong surface and rejected as outliers by the pose."""
+    model id — what an operator does by clicking the model's points. A point the operator
+    cannot see is not clicked: one whose stereo measurement lies farther than
+    ``pose.operator_hidden_m`` from its true position is hidden behind another surface (with
+    only three model points, a hidden one measured on the wrong surface cannot be told from
+    the others by the pose's outlier test).
+
+    ``repeat``: the operator keeps watching, as at the console: whenever the pose has been
+    invalid for ``pose.operator_reselect_s`` (e.g. too few model points in view at the start,
+    or all lost in a dark spell), the visible model points not tracked are clicked again."""
+
+    repeat: bool = False
 
 
 _NO_POSE_ERROR = np.zeros((3, 6))
@@ -139,6 +148,7 @@ class EngineStats:
     recoveries_rejected: int = 0
     model_points_joined: int = 0
     frames_redefined: int = 0
+    operator_reselections: int = 0  # the repeating simulated operator clicked the model points again
 
 
 class Engine:
@@ -203,6 +213,7 @@ class Engine:
         self._gate = float(chi2.ppf(self.pose_params.outlier_probability, 3))
         self.stats = EngineStats()
         self._acquisition: _Acquisition | None = None
+        self._operator_t: float | None = None  # the repeating simulated operator's last clicks, s
         self._reset_motion()
 
     # ------------------------------------------------------------------ read-only state
@@ -318,7 +329,9 @@ class Engine:
                 note = " (not a model point: it joins the model once the pose is known)"
             return CommandReply(True, f"target {result.id} at {result.point_cam[2]:.3f} m{note}", result.id)
         if isinstance(command, SelectModelPoints):
-            return self._select_model_points(frame)
+            reply = self._select_model_points(frame)
+            self._operator_t = (frame.t_s if frame is not None else 0.0) if command.repeat else None
+            return reply
         if isinstance(command, RemoveTarget):
             if not self.tracker.remove_target(command.target_id):
                 return CommandReply(False, f"no target {command.target_id!r}")
@@ -332,6 +345,7 @@ class Engine:
             return CommandReply(True, f"removed {tid}", tid)
         if isinstance(command, ClearTargets):
             self.tracker.clear()
+            self._operator_t = None
             self._acquisition = None
             self._reset_motion()
             return CommandReply(True, "all targets removed")
@@ -370,6 +384,7 @@ class Engine:
             return CommandReply(True, f"output filter cutoff {command.cutoff_hz:g} Hz")
         if isinstance(command, ResetTracking):
             self.tracker.clear()
+            self._operator_t = None
             self._acquisition = _Acquisition() if self._case == "c" else None
             self._reset_motion()
             self.stats = EngineStats()
@@ -386,15 +401,36 @@ class Engine:
         uv_l, uv_r = self.rig.project(X)
         w, h = self.rig.image_size
         m = self.pose_params.recovery_margin_px
-        made, refused = [], []
+        states = {s.id: s for s in self.tracker.targets}
+        made, refused, hidden = [], [], []
         for pid, x, ul, ur in zip(self._given_model.ids, X, uv_l, uv_r):
             inside = x[2] > 0 and all(m <= u[0] <= w - 1 - m and m <= u[1] <= h - 1 - m for u in (ul, ur))
-            if not inside:
+            if not inside or (pid in states and states[pid].status != "lost"):
                 continue
+            if pid in states:
+                self.tracker.remove_target(pid)  # clicked again where the lost one should be
             result = self.tracker.add_target(frame, (float(ul[0]), float(ul[1])), pid, "operator")
-            (refused if isinstance(result, Refusal) else made).append(pid)
+            if isinstance(result, Refusal):
+                refused.append(pid)
+            elif not np.linalg.norm(np.asarray(result.point_cam, float) - x) <= self.pose_params.operator_hidden_m:
+                self.tracker.remove_target(pid)
+                hidden.append(pid)
+            else:
+                made.append(pid)
         ok = len(made) >= self.pose_params.min_points
-        return CommandReply(ok, f"{len(made)} model points selected ({', '.join(made)}); {len(refused)} refused")
+        return CommandReply(ok, f"{len(made)} model points selected ({', '.join(made)}); {len(refused)} refused"
+                                + (f"; {len(hidden)} hidden ({', '.join(hidden)})" if hidden else ""))
+
+    def _operator_watch(self, frame: StereoFrame) -> None:
+        """The repeating simulated operator (:class:`SelectModelPoints` ``repeat``): clicks the
+        visible model points again once the pose has been invalid for ``operator_reselect_s``."""
+        if self._operator_t is None or frame.truth is None:
+            return
+        last = max(self._operator_t, self._last_valid_t if self._last_valid_t is not None else -np.inf)
+        if frame.t_s - last >= self.pose_params.operator_reselect_s:
+            self._operator_t = frame.t_s
+            self.stats.operator_reselections += 1
+            self._select_model_points(frame)
 
     def _forget(self, target_id: str) -> None:
         """A target the operator removed: drop its measured model point and candidacy."""
@@ -455,6 +491,7 @@ class Engine:
                     # tracked now (the pose was invalid anyway; a new body frame starts here).
                     self._reset_motion()
                     self.stats.frames_redefined += 1
+            self._operator_watch(frame)
             coasted = self._coasted_pose(frame.t_s, pose.reason or "no pose")
             if coasted is not None:
                 self._coasting = True
