@@ -64,12 +64,17 @@ def soak(duration_s: float, start_live=None) -> dict[str, float]:  # type: ignor
         logging.getLogger(name).addHandler(errors)
     pipe = start_live()
     times, rss = [], []
+    measured, valid = [], []  # sampled with the memory: one end snapshot can fall on a loop's wrap
     t0 = time.monotonic()
     next_log = t0
     try:
         while (now := time.monotonic()) - t0 < duration_s:
             times.append(now - t0)
             rss.append(rss_mb())
+            latest = pipe.latest()
+            if latest is not None and now - t0 >= settle:
+                measured.append(sum(1 for x in latest.targets if x.measured))
+                valid.append(bool(latest.pose.valid))
             if now >= next_log:
                 s = pipe.latest().timings
                 print(f"[soak] {now - t0:5.0f} s  rss {rss[-1]:7.1f} MB  tracked {s.frames_processed}  "
@@ -98,6 +103,9 @@ def soak(duration_s: float, start_live=None) -> dict[str, float]:  # type: ignor
         "tracking_rate_hz": tm.frames_processed / float(t[-1]) if t[-1] > 0 else float("nan"),
         "dropped_fraction": tm.frames_dropped / tm.frames_read if tm.frames_read else float("nan"),
         "targets_measured_at_end": float(sum(1 for x in snap.targets if x.measured)),
+        "targets_measured_median": float(np.median(measured)) if measured else float("nan"),
+        "targets_measured_min": float(min(measured)) if measured else float("nan"),
+        "pose_valid_fraction": float(np.mean(valid)) if valid else float("nan"),
         "log_errors": float(errors.count),
     }
 
