@@ -48,10 +48,13 @@ from trackmeter.core.patch_tracking import (
     PatchTrack,
     Templates,
     complex_map,
+    fit_disparity_plane,
     make_templates,
     match_epipolar,
     track_patches,
+    plane_jacobian,
     sample_patches,
+    transform_plane,
     zncc_search,
 )
 from trackmeter.core.stereo import StereoRig
@@ -84,8 +87,20 @@ class TrackerParams:
         "template to agree this closely (each re-anchor can add this much drift), px", min=0.0,
     )
     anchor_warp: str = param(
-        "similarity", "warp fitted to the anchor: similarity (4 dof), euclidean (scale from depth) or affine (6 dof, noisy on 8x8)",
-        choices=("similarity", "euclidean", "affine"),
+        "similarity", "warp fitted to the anchor: similarity (4 dof), euclidean (scale from depth), affine (6 dof, noisy on 8x8) "
+        "or plane (linear part predicted from the body's motion and the stereo surface plane, position fitted)",
+        choices=("similarity", "euclidean", "affine", "plane"),
+    )
+    plane_patch_size: int = param(
+        24, "side of the patch whose stereo disparity slope gives a target's surface plane (anchor_warp plane), px", min=5, max=127,
+    )
+    plane_samples: int = param(
+        8, "stereo plane measurements per target (median, in its anchor frame); none are made after that", min=1, max=1000,
+    )
+    plane_min_samples: int = param(3, "plane measurements a target needs before its anchor warp is predicted", min=1, max=1000)
+    plane_min_score: float = param(0.9, "ZNCC a stereo plane fit must reach to count", min=-1.0, max=1.0)
+    plane_max_tilt_deg: float = param(
+        75.0, "a surface plane seen more obliquely than this (normal to line of sight) is not used, deg", min=0.0, max=90.0,
     )
     anchor_tolerance_px: float = param(0.05, "anchor fit converged when its last step moves the patch less than this, px", min=0.0)
     anchor_max_scale_error: float = param(
@@ -168,6 +183,14 @@ class _Target:
     slot: int = -1
     anchor_lin: FloatArray = field(default_factory=lambda: np.eye(2))  # anchor → image linear warp
     anchor_z_m: float = float("nan")  # depth when the anchor was taken (nan: not yet measured)
+    # anchor_warp "plane": the anchor's pixel and frame, the rigid motion (anchor camera → camera
+    # at the last step; NaN: unknown) and the surface plane measurements (m · X = 1, anchor camera)
+    anchor_uv: FloatArray = field(default_factory=lambda: _NAN2.copy())
+    anchor_frame: int = -1
+    anchor_R: FloatArray = field(default_factory=lambda: np.full((3, 3), np.nan))
+    anchor_t: FloatArray = field(default_factory=lambda: _NAN3.copy())
+    planes: list[FloatArray] = field(default_factory=list)
+    plane_m: FloatArray = field(default_factory=lambda: _NAN3.copy())  # their median
     body_point: FloatArray = field(default_factory=lambda: _NAN3.copy())  # first 3D point, tracker's body frame
 
     def state(self) -> TargetState:
@@ -243,6 +266,9 @@ class Tracker:
         self._body: tuple[FloatArray, FloatArray] | None = None
         # This step's frame-to-frame rigid motion (previous camera → camera), None: unknown.
         self._delta: tuple[FloatArray, FloatArray] | None = None
+        # The last known one and the steps since it (anchor_warp "plane" carries it over gaps).
+        self._last_delta: tuple[FloatArray, FloatArray] | None = None
+        self._delta_age = 0
 
     # ------------------------------------------------------------------ public state
 
@@ -400,6 +426,7 @@ class Tracker:
         v0, sv = self._velocity_guess()
         kf = kf_mod.make_filter(uvf, self.params.kalman, velocity_px_s=v0, velocity_sigma_px_s=sv)
         t = _Target(tid, origin, kf, tmpl, tmpl, frame.t_s, uv=uvf.copy(), predicted_uv=uvf.copy())
+        self._new_anchor(t, frame.index)
         t.slot = self._new_slot()
         t.disparity_px = float(meas.disparity_px)
         t.point_cam = np.asarray(meas.xyz_m, float).copy()
@@ -619,6 +646,7 @@ class Tracker:
             anchor_tolerance_px=p.anchor_tolerance_px,
             expected_scale=self._expected_scale(ts),
             max_scale_error=p.anchor_max_scale_error,
+            predicted_lin=self._predicted_lin(ts) if p.anchor_warp == "plane" else None,
         )
 
     # ------------------------------------------------------------------ the step
@@ -649,6 +677,7 @@ class Tracker:
         self._delta = None
         live = [t for t in self._targets.values() if t.status != "lost"]
         lost = [t for t in self._targets.values() if t.status == "lost"]
+        final: list[tuple[_Target, bool]] = []
         for t in self._targets.values():
             t.age_frames += 1
         for t in lost:
@@ -769,11 +798,16 @@ class Tracker:
                     one = new.select(np.array([k]))
                     t.current = one
                     if not anch:
+                        self._new_anchor(t, frame.index)
                         t.anchor = one
                         t.anchor_lin = np.eye(2)
                         t.anchor_z_m = float(t.point_cam[2])
                         t.reanchors += 1
                         self.stats["reanchors"] += 1
+
+        if p.anchor_warp == "plane":
+            self._carry_anchor_motion(frame.index)
+            self._measure_planes(fc, [t for t, _ in final if t.status == "tracking"], frame.index)
 
         # Recovery of lost targets where they were lost (no model), after the tracked ones were
         # updated: their fresh 3D points are what a re-found point's distances are checked against.
@@ -812,6 +846,106 @@ class Tracker:
             if np.isfinite(t.anchor_z_m) and np.isfinite(z) and z > 0:
                 out[i] = t.anchor_z_m / z
         return out
+
+    # ------------------------------------------------------------------ anchor_warp "plane"
+
+    def _step_delta(self) -> tuple[FloatArray, FloatArray] | None:
+        """The rigid motion (last camera → camera) of this step: the fitted one, else the last
+        known one for up to 3 steps (the body turns ~0.15 deg per frame: a frame's gap adds
+        about that to the predicted warp's angle), else None."""
+        if self._delta is not None:
+            return self._delta
+        return self._last_delta if self._delta_age < 3 else None
+
+    def _new_anchor(self, t: _Target, index: int) -> None:
+        """``t``'s anchor is (re)taken at its current pixel in frame ``index``: its motion starts
+        at identity, its plane measurements are carried into the new anchor frame."""
+        d = self._step_delta() if t.anchor_frame < index else (np.eye(3), np.zeros(3))
+        if t.planes and d is not None and np.all(np.isfinite(t.anchor_R)):
+            R, tv = d[0] @ t.anchor_R, d[0] @ t.anchor_t + d[1]
+            t.planes = list(transform_plane(np.array(t.planes), np.broadcast_to(R, (len(t.planes), 3, 3)),
+                                            np.broadcast_to(tv, (len(t.planes), 3))))
+        else:
+            t.planes = []
+        t.plane_m = np.median(np.array(t.planes), axis=0) if t.planes else _NAN3.copy()
+        t.anchor_uv = t.uv.copy()
+        t.anchor_frame = index
+        t.anchor_R = np.eye(3)
+        t.anchor_t = np.zeros(3)
+
+    def _carry_anchor_motion(self, index: int) -> None:
+        """Compose this step's rigid motion into every target's anchor → camera motion (the
+        targets anchored this step excepted); unknown (NaN) where the motion is unknown."""
+        if self._delta is not None:
+            self._last_delta, self._delta_age = self._delta, 0
+        else:
+            self._delta_age += 1
+        d = self._step_delta() if self._delta is None else self._delta
+        for t in self._targets.values():
+            if t.anchor_frame >= index:
+                continue
+            if d is None:
+                t.anchor_R = np.full((3, 3), np.nan)
+                t.anchor_t = _NAN3.copy()
+            else:
+                t.anchor_R, t.anchor_t = d[0] @ t.anchor_R, d[0] @ t.anchor_t + d[1]
+
+    def _tilt_ok(self, m: FloatArray, uv: FloatArray) -> NDArray[np.bool_]:
+        """Planes ``m`` (N,3) seen from pixels ``uv`` (N,2) within ``plane_max_tilt_deg`` of face-on."""
+        K = self.rig.left.K
+        ray = np.column_stack([(uv[:, 0] - K[0, 2]) / K[0, 0], (uv[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(uv))])
+        cos = np.einsum("ni,ni->n", m, ray) / (np.linalg.norm(m, axis=1) * np.linalg.norm(ray, axis=1))
+        return np.isfinite(cos) & (cos >= np.cos(np.radians(self.params.plane_max_tilt_deg)))
+
+    def _predicted_lin(self, ts: list[_Target]) -> FloatArray:
+        """The anchor → image linear warp (N,2,2) of targets ``ts`` predicted for this frame from
+        their anchor motion (extrapolated by the last frame's) and their surface plane
+        (:func:`~trackmeter.core.patch_tracking.plane_jacobian`); NaN where either is unknown."""
+        p = self.params
+        out = np.full((len(ts), 2, 2), np.nan)
+        rows = [i for i, t in enumerate(ts) if len(t.planes) >= p.plane_min_samples and np.all(np.isfinite(t.anchor_R))]
+        if not rows:
+            return out
+        sel = [ts[i] for i in rows]
+        m = np.array([t.plane_m for t in sel])
+        R = np.array([t.anchor_R for t in sel])
+        tv = np.array([t.anchor_t for t in sel])
+        d = self._last_delta if self._delta_age < 3 else None
+        if d is not None:  # one frame ahead: this frame's motion as the last one
+            R, tv = d[0] @ R, tv @ d[0].T + d[1]
+        uv_a = np.array([t.anchor_uv for t in sel])
+        m_now = transform_plane(m, R, tv)
+        ok = self._tilt_ok(m, uv_a) & self._tilt_ok(m_now, np.array([t.uv for t in sel]))
+        J = plane_jacobian(self.rig.left.K, R, tv, m, uv_a)
+        out[np.array(rows)[ok]] = J[ok]
+        return out
+
+    def _measure_planes(self, fc: _FrameCache, ts: list[_Target], index: int) -> None:
+        """Measure the surface plane of targets ``ts`` (tracked this step) by the stereo
+        disparity slope (:func:`~trackmeter.core.patch_tracking.fit_disparity_plane`) while they
+        hold fewer than ``plane_samples``; kept in each one's anchor camera frame."""
+        p = self.params
+        ts = [t for t in ts if len(t.planes) < p.plane_samples and np.all(np.isfinite(t.anchor_R))
+              and np.isfinite(t.disparity_px)]
+        if not ts:
+            return
+        uv = np.array([t.uv for t in ts])
+        r = self.rect
+        fit = fit_disparity_plane(
+            fc.left, fc.right, self._maps[0], self._maps[1], r.rectify_points(uv, 0), np.array([t.disparity_px for t in ts]),
+            p.plane_patch_size, focal_px=r.focal_px, baseline_m=r.baseline_m, principal_px=(r.cx_left, r.cy),
+            disparity_offset_px=r.disparity_offset_px, max_iterations=10, tolerance_px=0.02,
+        )
+        m_cam = fit.plane_rect @ r.R1  # rows (R1ᵀ m)ᵀ: the plane in the left camera frame
+        ok = fit.converged & (fit.score >= p.plane_min_score) & np.all(np.isfinite(m_cam), axis=1) & self._tilt_ok(m_cam, uv)
+        R = np.array([t.anchor_R for t in ts])
+        tv = np.array([t.anchor_t for t in ts])
+        Rt = np.transpose(R, (0, 2, 1))
+        m_anchor = transform_plane(m_cam, Rt, -np.einsum("nij,nj->ni", Rt, tv))  # camera → anchor camera
+        for i in np.flatnonzero(ok):
+            t = ts[i]
+            t.planes.append(m_anchor[i])
+            t.plane_m = np.median(np.array(t.planes), axis=0)
 
     def _rigid_recheck(self, t: _Target, m, j: int = 0) -> str | None:  # type: ignore[no-untyped-def]
         """Why a re-found target's 3D point disagrees with its reference distances to the
