@@ -18,11 +18,16 @@ Figures:
   and drops a load that a newer image overtakes, so under CPU load fewer are shown than
   received. ``browser_renders_per_s``: WebGL frames the page drew (the client renders
   continuously for 250 ms after each scene update, so while images stream in this is as many
-  frames as the CPU allows); ``browser_cpu_cores``: CPU of all Chromium processes, cores.
+  frames as the CPU allows); ``browser_cpu_cores``: CPU of all Chromium processes, cores;
+  ``browser_cpu_ms_per_render`` the two divided (the browser's CPU per frame drawn).
+- ``paced_*``: the same figures over ``PACED_S`` s with the console's image rate lowered to
+  ``PACED_HZ`` (``paced_publish_hz``) in the same run: how many images the same browser
+  shows when fewer arrive than it drops.
 - ``click_latency_ms``: median over ``N_CLICKS`` clicks on the satellite in the browser: from
   the mouse button going down in the page until the page draws the first image that shows the
   new target (the texture upload of an image whose JPEG is one the console pushed with the
-  target in it; page clock at both ends) (target < 300). ``click_latency_received_ms``: until
+  target in it; page clock at both ends) (target < 300). The console holds the next image
+  back for its ``image_settle_s`` after such an image, so it is not dropped for a newer one. ``click_latency_received_ms``: until
   the browser received such an image (the earlier definition of this figure);
   ``click_to_server_ms``: until the tracking thread had created the target.
 - ``tracking_rate_hz_without_browser``: the same console with no browser connected, measured
@@ -52,8 +57,11 @@ N_CLICKS = 5
 CLICKS_MAX_S = 60.0  # the click phase's share of the 5-minute budget
 CLICK_SLACK_PX = 2.0  # a click candidate is accepted by the tracker on a ring this far around it too
 CLICK_INSIDE_PX = 15.0  # ... and lies at least this far inside the lit body (from black space)
+N_CANDIDATES = 60  # features checked as click candidates (fewer: fresher when clicked)
 SOURCE = os.environ.get("TRACKMETER_BENCH_CONSOLE_SOURCE", "sim")
 BROWSER_NICE = int(os.environ.get("TRACKMETER_BENCH_BROWSER_NICE", "0"))
+PACED_HZ = 6.0  # the paced phase's image rate
+PACED_S = 15.0
 
 
 def _log(msg: str) -> None:
@@ -167,14 +175,30 @@ def _renice_chromium(nice: int) -> None:
             pass
 
 
-def _click_candidates(running: Any) -> list[tuple[float, float]]:
+def _follow(before: Any, after: Any, uv: tuple[float, float], k: int = 3) -> tuple[float, float]:
+    """``uv`` of snapshot ``before`` moved to snapshot ``after`` with its ``k`` nearest tracked
+    targets (median displacement of the targets in both): the satellite keeps turning while
+    the candidates are computed, and a pixel chosen on an older frame lands elsewhere."""
+    now = {t.id: np.asarray(t.uv, float) for t in after.targets if t.status != "lost" and np.all(np.isfinite(t.uv))}
+    pairs = [(np.asarray(t.uv, float), now[t.id]) for t in before.targets
+             if t.id in now and t.status != "lost" and np.all(np.isfinite(t.uv))]
+    if not pairs:
+        return uv
+    p = np.asarray(uv, float)
+    pairs.sort(key=lambda ab: float(np.hypot(*(ab[0] - p))))
+    shift = np.median([b - a for a, b in pairs[:k]], axis=0)
+    return float(p[0] + shift[0]), float(p[1] + shift[1])
+
+
+def _click_candidates(running: Any) -> tuple[Any, list[tuple[float, float]]]:
     """Pixels an operator would click: textured points of the satellite in the latest frame, away
     from the targets (automatic selection's own test), that the tracker itself accepts (its own
     measurement parameters and click check) at the point and at 8 points ``CLICK_SLACK_PX``
     around it, so they are still good targets after the satellite moved a little under the
     cursor, and at least ``CLICK_INSIDE_PX`` inside the lit body (a click near the silhouette
     lands on black space once the body turned); the deepest inside first. Else pixels around
-    the projection of the body origin (truth or estimate).
+    the projection of the body origin (truth or estimate). Returns the snapshot they belong
+    to and the pixels (see :func:`_follow`).
 
     The tracker's own parameters matter: measured on the estec scenario, of the features
     selected with the default :class:`MeasureParams` only 4-16 of 24-39 were accepted by the
@@ -190,7 +214,7 @@ def _click_candidates(running: Any) -> list[tuple[float, float]]:
         exclude = [t.uv for t in snap.targets]
         rig = running.pipeline.rig
         left = np.ascontiguousarray(snap.frame.left)
-        pts = select_features(snap.frame.left, snap.frame.right, rig, 120, "gabor", FeatureParams(), exclude)
+        pts = select_features(snap.frame.left, snap.frame.right, rig, N_CANDIDATES, "gabor", FeatureParams(), exclude)
         if len(pts):
             pts = np.asarray(pts, float).reshape(-1, 2)
             ring = [(np.cos(a), np.sin(a)) for a in np.arange(8) * np.pi / 4]
@@ -206,7 +230,7 @@ def _click_candidates(running: Any) -> list[tuple[float, float]]:
             keep = ok.reshape(len(pts), len(offsets)).all(axis=1) & (depth >= CLICK_INSIDE_PX)
             good = [tuple(map(float, pts[i])) for i in np.argsort(-depth) if keep[i]]
             if good:
-                return good
+                return snap, good
             _log(f"no click candidate the tracker accepts ({len(pts)} selected): aiming near the body origin")
     T = None
     if snap.frame is not None and snap.frame.truth is not None:
@@ -216,7 +240,32 @@ def _click_candidates(running: Any) -> list[tuple[float, float]]:
     w, h = running.console._image_size
     centre = np.array([w / 2, h / 2]) if T is None else running.pipeline.rig.left.project(T[:3, 3][None])[0]
     rng = np.random.default_rng(1)
-    return [tuple(map(float, np.clip(centre + rng.normal(0, 25, 2), 10, [w - 10, h - 10]))) for _ in range(40)]
+    return snap, [tuple(map(float, np.clip(centre + rng.normal(0, 25, 2), 10, [w - 10, h - 10]))) for _ in range(40)]
+
+
+def _measure_browser(page: Any, running: Any, window: Any, jpeg_times: list[float], seconds: float) -> dict[str, float]:
+    """Tracking and browser figures over the next ``seconds`` (see the module docstring)."""
+    page_counts = "[window.__tm.renders, window.__tm.shown.length]"
+    window.begin()
+    n_jpeg0, pushed0, t0 = len(jpeg_times), running.console.images_pushed, time.monotonic()
+    (renders0, shown0), cpu0 = page.evaluate(page_counts), _chromium_cpu_s()
+    page.wait_for_timeout(seconds * 1000)
+    live = window.end()
+    (renders1, shown1), cpu1 = page.evaluate(page_counts), _chromium_cpu_s()
+    dt = time.monotonic() - t0
+    renders_per_s = (renders1 - renders0) / dt
+    return {
+        "tracking_rate_hz": live["rate_hz"],
+        "dropped_fraction": live["dropped_fraction"],
+        "acquisition_hz": live["acquisition_hz"],
+        "latency_ms_median": live["latency_ms_median"],
+        "browser_image_updates_per_s": (len(jpeg_times) - n_jpeg0) / dt,
+        "browser_images_shown_per_s": (shown1 - shown0) / dt,
+        "browser_renders_per_s": renders_per_s,
+        "browser_cpu_cores": (cpu1 - cpu0) / dt,
+        "browser_cpu_ms_per_render": 1e3 * (cpu1 - cpu0) / dt / renders_per_s if renders_per_s else float("nan"),
+        "published_images_per_s": (running.console.images_pushed - pushed0) / dt,
+    }
 
 
 def run() -> dict[str, float]:
@@ -275,24 +324,20 @@ def run() -> dict[str, float]:
             page.wait_for_timeout(WARMUP_S * 1000)
             if BROWSER_NICE:
                 _renice_chromium(BROWSER_NICE)  # threads started during the warm-up
-            page_counts = "[window.__tm.renders, window.__tm.shown.length]"
-            window.begin()
-            n_jpeg0, pushed0, t0 = len(jpeg_times), running.console.images_pushed, time.monotonic()
-            (renders0, shown0), cpu0 = page.evaluate(page_counts), _chromium_cpu_s()
-            page.wait_for_timeout(MEASURE_S * 1000)
-            live = window.end()
-            (renders1, shown1), cpu1 = page.evaluate(page_counts), _chromium_cpu_s()
-            dt = time.monotonic() - t0
-            out["tracking_rate_hz"] = live["rate_hz"]
-            out["dropped_fraction"] = live["dropped_fraction"]
-            out["acquisition_hz"] = live["acquisition_hz"]
-            out["latency_ms_median"] = live["latency_ms_median"]
-            out["browser_image_updates_per_s"] = (len(jpeg_times) - n_jpeg0) / dt
-            out["browser_images_shown_per_s"] = (shown1 - shown0) / dt
-            out["browser_renders_per_s"] = (renders1 - renders0) / dt
-            out["browser_cpu_cores"] = (cpu1 - cpu0) / dt
-            out["published_images_per_s"] = (running.console.images_pushed - pushed0) / dt
+            out.update(_measure_browser(page, running, window, jpeg_times, MEASURE_S))
             out["publish_ms_median"] = statistics.median(running.console.push_ms)
+            # The same browser with images at the rate it can draw (viser's client drops an image
+            # still loading when a newer one arrives): what the operator sees at a slower rate.
+            default_hz = running.console.publish_hz
+            running.console.publish_hz = PACED_HZ
+            page.wait_for_timeout(3000)
+            paced = _measure_browser(page, running, window, jpeg_times, PACED_S)
+            running.console.publish_hz = default_hz
+            out["paced_publish_hz"] = PACED_HZ
+            for key in ("tracking_rate_hz", "dropped_fraction", "browser_image_updates_per_s",
+                        "browser_images_shown_per_s", "browser_renders_per_s", "browser_cpu_cores"):
+                out[f"paced_{key}"] = paced[key]
+            page.wait_for_timeout(3000)
             _log(f"rates: {out}")
 
             latencies, received, to_server = [], [], []
@@ -302,8 +347,8 @@ def run() -> dict[str, float]:
             rng = np.random.default_rng(7)
             while len(latencies) < N_CLICKS and time.monotonic() < clicks_deadline:
                 # Chosen afresh on the latest frame each time: the satellite turns between clicks.
-                candidates = _click_candidates(running)
-                uv = candidates[int(rng.integers(min(len(candidates), 5)))]
+                snap0, candidates = _click_candidates(running)
+                uv = _follow(snap0, running.pipeline.latest(), candidates[int(rng.integers(min(len(candidates), 5)))])
                 known = {t.id for t in running.pipeline.latest().targets}
                 n_notes = len(running.console.notifications)
                 sx, sy = pixel_to_screen(running, client, page, uv)
@@ -331,8 +376,9 @@ def run() -> dict[str, float]:
                     skipped.append(str(why))
                     continue
                 t_server = time.monotonic()
-                pushed = _poll(page, lambda: (push := running.console.last_push)[0] > t_click
-                               and got.id in push[2] and push[0], 5)
+                # The first image pushed after the click that shows the target.
+                pushed = _poll(page, lambda: next((t for t, ids, _ in list(running.console.image_pushes)
+                                                   if t > t_click and got.id in ids), None), 5)
                 if not pushed:
                     _log(f"click at ({uv[0]:.0f}, {uv[1]:.0f}): target {got.id} made, but no image showing it was published in 5 s")
                     skipped.append("not published")

@@ -146,6 +146,8 @@ class Console:
         jpeg_quality: JPEG quality of the image planes.
         record_root: default parent folder of recordings started from the UI.
         patch_px: patch side drawn around each target, px.
+        image_settle_s: after an image that shows a change of the operator's targets (a
+            click's answer), the next image waits this long; see :meth:`_publish_loop`.
     """
 
     def __init__(
@@ -161,6 +163,7 @@ class Console:
         jpeg_quality: int = 85,
         record_root: str | Path = "runs",
         patch_px: int = 8,
+        image_settle_s: float = 0.5,
     ) -> None:
         self.server = server
         self.pipeline = pipeline
@@ -172,6 +175,7 @@ class Console:
         self.jpeg_quality = int(jpeg_quality)
         self.record_root = Path(record_root)
         self.patch_px = patch_px
+        self.image_settle_s = float(image_settle_s)
         self.plots = PlotData()
         self._trails: dict[str, deque[tuple[float, float]]] = {}
         self._pending: deque[tuple[Future[CommandReply], Any, str]] = deque()
@@ -514,13 +518,24 @@ class Console:
 
     def _publish_loop(self) -> None:
         """Push the newest snapshot at ``publish_hz``; a change of the target set (a click, a
-        removal) is pushed at once, so the operator sees the answer without waiting a tick."""
-        period = 1.0 / self.publish_hz
+        removal) is pushed at once, so the operator sees the answer without waiting a tick.
+
+        After such a push the next ``image_settle_s`` of pushes leave the image out (numbers,
+        3D view and plots still go): viser's client loads each image asynchronously and drops
+        a load that a newer image overtakes, and a browser drawing slower than images arrive
+        (headless Chromium's software WebGL: ~100 ms a frame, ~2-3 frames from receiving an
+        image to drawing it) would otherwise drop the very image that answers the click.
+        Measured (``benchmarks/console.py``): with images at 10 Hz such a browser drew ~0.6
+        of them a second, at 6 Hz ~3.
+
+        ``publish_hz`` is read at every push, so it can be changed while running."""
         last_seq = -1
         tick = 0
         last_push = 0.0
+        images_held_until = 0.0
         next_trim = time.monotonic() + TRIM_EVERY_S
         while not self._stop.is_set():
+            period = 1.0 / self.publish_hz
             try:
                 snap = self.pipeline.wait_snapshot(last_seq, min(period, 0.1))
                 self._flush_replies()
@@ -538,7 +553,10 @@ class Console:
                 last_seq = snap.sequence
                 last_push = time.monotonic()
                 t0 = time.perf_counter()
-                self._push(snap, plots=(tick % self.plot_every == 0))
+                image = urgent or last_push >= images_held_until
+                self._push(snap, plots=(tick % self.plot_every == 0), image=image)
+                if urgent:
+                    images_held_until = last_push + self.image_settle_s
                 self.push_ms.append((time.perf_counter() - t0) * 1e3)
                 tick += 1
                 if last_push >= next_trim:
@@ -565,7 +583,7 @@ class Console:
             title = label if reply.ok else f"{label}: refused"
             self._notify(client, title, reply.message or ("ok" if reply.ok else "refused"), reply.ok)
 
-    def _push(self, snap: Snapshot, plots: bool) -> None:
+    def _push(self, snap: Snapshot, plots: bool, image: bool = True) -> None:
         frame = snap.frame
         left_rgb = right_rgb = None
         if frame is not None:
@@ -579,6 +597,7 @@ class Console:
                 if tid not in alive:
                     del self._trails[tid]
             self._last_frame_index = frame.index
+        if frame is not None and image:
             left_rgb = draw_overlays(to_rgb(frame.left), snap.targets, self._trails, self.patch_px)
             if self.right_image.visible:
                 right_rgb = to_rgb(frame.right)
@@ -612,12 +631,14 @@ class Console:
                     if self._plot_version.get(name) != window.version and len(window) >= 2:
                         self._plot_version[name] = window.version
                         self.uplots[name].data = window.arrays()
-        self.images_pushed += left_rgb is not None
+        self._pushed_operator_ids = {t.id for t in snap.targets if t.origin == "operator"}
+        if left_rgb is None:
+            return
+        # The last_push* fields describe the last pushed IMAGE (what the browser can show).
+        self.images_pushed += 1
         self.last_pushed_sequence = snap.sequence
         self.last_pushed_target_ids = tuple(t.id for t in snap.targets)
-        if left_rgb is not None:
-            self.image_pushes.append((time.monotonic(), self.last_pushed_target_ids, len(self.left_image._data)))
-        self._pushed_operator_ids = {t.id for t in snap.targets if t.origin == "operator"}
+        self.image_pushes.append((time.monotonic(), self.last_pushed_target_ids, len(self.left_image._data)))
         self.last_pushed_time = time.monotonic()
         # One assignment, so a reader never pairs these ids with an older push time.
         self.last_push = (self.last_pushed_time, snap.sequence, self.last_pushed_target_ids)
