@@ -215,7 +215,8 @@ def test_tracker_measures_surface_planes_and_predicts_the_anchor_warp_on_the_sim
         predicted += int(np.all(np.isfinite(tracker._predicted_lin(live)), axis=(1, 2)).sum())
         T = frame.truth.T_cam_body
         for t in live:
-            if len(t.planes) < 3 or not np.all(np.isfinite(t.anchor_R)):
+            R, tv = tracker._anchor_motion(t)
+            if len(t.planes) < 3 or not np.all(np.isfinite(R)):
                 continue
             s = sim.surface_points(frame.index, t.uv + np.array([[0, 0], [4, 0], [0, 4], [-4, 0], [0, -4]]))
             if not np.all(np.isfinite(s)):
@@ -224,7 +225,7 @@ def test_tracker_measures_surface_planes_and_predicts_the_anchor_warp_on_the_sim
             _, sv, Vt = np.linalg.svd(X - X.mean(0))
             if sv[-1] > 1e-4:  # the cross straddles an edge: no single plane
                 continue
-            m = transform_plane(t.plane_m[None], t.anchor_R[None], t.anchor_t[None])[0]
+            m = transform_plane(t.plane_m[None], R[None], tv[None])[0]
             angles.append(np.degrees(np.arccos(min(1.0, abs(m @ Vt[-1]) / np.linalg.norm(m)))))
     # (targets without a prediction: planes seen too obliquely, patches across an edge, or too new)
     assert predicted >= 10, predicted
