@@ -819,8 +819,8 @@ def _refine_lk_warp(
     max_shift_px: float,
     hold_linear: NDArray[np.bool_] | None = None,
 ) -> AffineLKResult:
-    """Shared IC-LK loop of the warp fits: ``model`` "affine", "similarity", "euclidean",
-    "translation" (``warp0``'s linear part held) or "disparity_plane" (:func:`fit_disparity_plane`).
+    """Shared IC-LK loop of the warp fits: ``model`` "affine", "similarity", "euclidean" or
+    "disparity_plane" (:func:`fit_disparity_plane`).
     Every increment ``D`` lies in the model's group, so ``W o D^-1`` stays in it.
 
     ``hold_linear`` (N,): rows whose linear parameters are held at ``warp0``'s (their
@@ -844,8 +844,6 @@ def _refine_lk_warp(
         SD = np.stack([ox * gx + oy * gy, ox * gy - oy * gx, gx, gy], axis=-1)  # (N, n², 4)
     elif model == "euclidean":
         SD = np.stack([ox * gy - oy * gx, gx, gy], axis=-1)  # (N, n², 3)
-    elif model == "translation":
-        SD = np.stack([gx, gy], axis=-1)  # (N, n², 2)
     elif model == "disparity_plane":
         SD = np.stack([ox * gx, oy * gx, gx, gy], axis=-1)  # (N, n², 4)
     else:
@@ -892,9 +890,6 @@ def _refine_lk_warp(
             D[:, 1, 0] = dp[:, 1]
             D[:, 0, 1] = -dp[:, 1]
             lin_step = np.hypot(dp[:, 0], dp[:, 1])
-        elif model == "translation":
-            D[:, 0, 0] = D[:, 1, 1] = 1.0
-            lin_step = np.zeros(len(idx))
         elif model == "disparity_plane":  # x' = (1+p1) x + p2 y: the row's disparity slopes
             D[:, 0, 0] = 1 + dp[:, 0]
             D[:, 0, 1] = dp[:, 1]
@@ -939,7 +934,8 @@ def refine_lk_translation(
     fitted (steepest-descent images ``(Tx, Ty)``, the step mapped through the linear part). For
     an anchor whose shape change is known from geometry (:func:`plane_jacobian`), so the
     patch's own weakly determined linear parameters add no noise to the centre."""
-    return _refine_lk_warp(image, templates, warp0, "translation", max_iterations, tolerance_px, max_shift_px)
+    hold = np.ones(len(templates.values), dtype=bool)
+    return _refine_lk_warp(image, templates, warp0, "similarity", max_iterations, tolerance_px, max_shift_px, hold)
 
 
 def plane_jacobian(K: NDArray, R: NDArray, t: NDArray, m: NDArray, uv: NDArray) -> FloatArray:
@@ -1060,26 +1056,20 @@ def fit_disparity_plane(
 _ANCHOR_FITS = {"affine": refine_lk_affine, "similarity": refine_lk_similarity, "euclidean": refine_lk_euclidean}
 
 
+#: anchor warps whose linear part is predicted, and the fit of the rows with a prediction
 _PLANE_FITS = {"plane": "translation"}
-_LK_FITS = dict(_ANCHOR_FITS, translation=refine_lk_translation)
 
 
 def _fit_anchors(image: F32, anchor: Templates, W0: FloatArray, fits: NDArray, tolerance_px: float) -> AffineLKResult:
-    """The anchor fits of :func:`track_patches`, one batched call per warp model in ``fits`` (N,)."""
-    models = list(dict.fromkeys(fits.tolist()))
+    """The anchor fits of :func:`track_patches` in one batched call (its cost is mostly per
+    call). ``fits`` (N,): each row's model, the same :data:`_ANCHOR_FITS` model for every row,
+    or "translation" rows among "similarity" ones (``anchor_warp="plane"``): those are
+    similarity rows with their linear part held (:func:`refine_lk_translation`)."""
     kw = dict(max_iterations=8, tolerance_px=tolerance_px, max_shift_px=2.0)
-    if set(models) == {"translation", "similarity"}:
-        # one call (its cost is mostly per call): the translation rows hold their linear part
-        return _refine_lk_warp(image, anchor, W0, "similarity", hold_linear=fits == "translation", **kw)
-    if len(models) == 1:
-        return _LK_FITS[models[0]](image, anchor, W0, **kw)
-    N = len(W0)
-    warp, score, conv = np.zeros((N, 2, 3)), np.zeros(N), np.zeros(N, bool)
-    for model in models:
-        rows = np.flatnonzero(fits == model)
-        r = _LK_FITS[model](image, anchor.select(rows), W0[rows], **kw)
-        warp[rows], score[rows], conv[rows] = r.warp, r.score, r.converged
-    return AffineLKResult(warp=warp, score=score, converged=conv)
+    hold = fits == "translation"
+    if hold.any():
+        return _refine_lk_warp(image, anchor, W0, "similarity", hold_linear=hold, **kw)
+    return _ANCHOR_FITS[fits[0] if len(fits) else "similarity"](image, anchor, W0, **kw)
 
 
 def track_points(
