@@ -903,7 +903,7 @@ class Tracker:
             self._last_delta, self._delta_age = self._delta, 0
         else:
             self._delta_age += 1
-        d = self._step_delta() if self._delta is None else self._delta
+        d = self._step_delta()
         for t in self._targets.values():
             if t.anchor_frame >= index:
                 continue
@@ -935,7 +935,7 @@ class Tracker:
         m = np.array([t.plane_m for t in sel])
         R = np.array([motion[i][0] for i in rows])
         tv = np.array([motion[i][1] for i in rows])
-        d = self._last_delta if self._delta_age < 3 else None
+        d = self._step_delta()  # before this step's fit: the last known motion
         if d is not None:  # one frame ahead: this frame's motion as the last one
             R, tv = d[0] @ R, tv @ d[0].T + d[1]
         uv_a = np.array([t.anchor_uv for t in sel])
