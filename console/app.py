@@ -23,6 +23,7 @@ import logging
 import threading
 import time
 from collections import deque
+from html import escape
 from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
@@ -63,6 +64,7 @@ SCENE3D_OFFSET = (-8.0, 0.0, -3.0)
 AUTO_METHODS = ("gabor", "centroid")
 SERIES_COLOURS = ("#e6194b", "#3cb44b", "#4363d8", "#111111")
 TRAIL_FRAMES = 12
+STATUS_HEIGHT_EM = 23.0  # the live numbers' fixed height (see Console._status_html)
 #: How often the publisher hands the C heap's free pages back to the system (see :func:`release_free_heap`).
 TRIM_EVERY_S = 10.0
 
@@ -333,7 +335,7 @@ class Console:
         except Exception:  # older viser: the panel floats, which is fine
             pass
         gui.configure_theme(dark_mode=False, show_logo=False)
-        self.status_md = gui.add_markdown("**TV-Trackmeter** — starting …")
+        self.status_html = gui.add_html('<div style="padding:0 0.75rem">TV-Trackmeter — starting …</div>')
         with gui.add_folder("Source"):
             self.pause_button = gui.add_button("Pause")
             self.step_button = gui.add_button("Step")
@@ -344,7 +346,6 @@ class Console:
             self.auto_method = gui.add_dropdown("Method", AUTO_METHODS, initial_value="gabor")
             self.clear_button = gui.add_button("Clear targets")
             gui.add_markdown("Click the left image to add a target; shift- or ctrl-click removes the nearest.")
-            self.targets_md = gui.add_markdown("")
         with gui.add_folder("Model", expand_by_default=False):
             self.case_dropdown = gui.add_dropdown("Case", ("a", "b", "c"), initial_value="a")
             self.acquire_button = gui.add_button("Acquire model (object still)")
@@ -368,6 +369,10 @@ class Console:
                 data = (np.array([0.0, 1e-3]),) + tuple(np.zeros(2) for _ in labels)
                 self.uplots[name] = gui.add_uplot(data, series, title=title, aspect=1.6,
                                                   scales={"x": viser.uplot.Scale(time=False, auto=True)})
+        # Last in the panel: its height follows the number of targets, which changes every few
+        # frames, and nothing below it can move.
+        with gui.add_folder("Target list"):
+            self.targets_md = gui.add_markdown("")
         self.pause_button.on_click(self._cb(lambda e: SetPaused(not self.pipeline.latest().paused)))
         self.step_button.on_click(self._cb(lambda e: StepOnce()))
         self.restart_button.on_click(self._cb(lambda e: RestartSource()))
@@ -607,7 +612,7 @@ class Console:
                         h = self.patch_px // 2
                         right_rgb[max(v - h, 0):v + h + 1, [max(u - h, 0), min(u + h, right_rgb.shape[1] - 1)]] = (60, 230, 60)
                         right_rgb[[max(v - h, 0), min(v + h, right_rgb.shape[0] - 1)], max(u - h, 0):u + h + 1] = (60, 230, 60)
-        status_text = self._status_markdown(snap)
+        status_text = self._status_html(snap)
         targets_text = self._targets_markdown(snap)
         rec = self.pipeline.recording_stats()
         with self.server.atomic():
@@ -619,11 +624,11 @@ class Console:
                 self.left_image.image = left_rgb
                 if right_rgb is not None:
                     self.right_image.image = right_rgb
-            self.status_md.content = status_text
+            self.status_html.content = status_text
             self.targets_md.content = targets_text
             self.record_md.content = (
                 f"{rec.directory}: {rec.frames_written} frames written, {rec.frames_dropped} not recorded"
-                + (f", {rec.error}" if rec.error else "") if rec.directory else "")
+                + (f", {rec.error}" if rec.error else "") if rec.directory else "not recording")
             self._sync_widgets(snap)
             self._update_scene3d(snap)
             if plots:
@@ -660,45 +665,57 @@ class Console:
             self.case_dropdown.value = snap.pose.case
 
     @staticmethod
-    def _status_markdown(snap: Snapshot) -> str:
+    def _status_html(snap: Snapshot) -> str:
+        """The live numbers as HTML in a box of fixed height (:data:`STATUS_HEIGHT_EM`).
+
+        Its height must not follow the content: a panel that grows when the pose becomes valid
+        or a line wraps moves the buttons below under the operator's cursor, and a browser's
+        click never finds them still. Every state fills the same rows, a dash where there is
+        nothing to say; a long reason scrolls inside the box.
+        """
         t = snap.timings
         n_track = sum(1 for x in snap.targets if x.measured)
         n_lost = sum(1 for x in snap.targets if not x.measured)
         dropped_pct = 100.0 * t.frames_dropped / t.frames_read if t.frames_read else 0.0
-        lines = []
-        if snap.source_status:
-            lines.append(f"**Source: {snap.source_status}**")
         state = "paused" if snap.paused else "running"
-        lines.append(f"**{state}** · frame {snap.frame.index if snap.frame else '-'} · "
-                     f"read {t.acquisition_hz:.1f} Hz · tracking {t.tracking_hz:.1f} Hz")
-        lines.append(f"latency {t.latency_ms:.0f} ms · step {t.step_ms:.0f} ms · dropped {t.frames_dropped} "
-                     f"({dropped_pct:.1f} %)")
-        lines.append(f"targets: **{n_track} tracking**, {n_lost} lost · auto "
-                     f"{'on' if snap.auto_enabled else 'off'}" + (" · ● REC" if snap.recording else ""))
+        source = (f"<b>Source: {escape(snap.source_status)}</b>" if snap.source_status
+                  else "source delivering")
+        lines = [f"<b>{state}</b> · frame {snap.frame.index if snap.frame else '-'} · auto "
+                 f"{'on' if snap.auto_enabled else 'off'}" + (" · <b>● REC</b>" if snap.recording else ""),
+                 source,
+                 f"read {t.acquisition_hz:.1f} Hz · tracking {t.tracking_hz:.1f} Hz",
+                 f"latency {t.latency_ms:.0f} ms · step {t.step_ms:.0f} ms",
+                 f"dropped {t.frames_dropped} ({dropped_pct:.1f} %)",
+                 f"targets: <b>{n_track} tracking</b>, {n_lost} lost"]
         pose = snap.pose
+        rows: dict[str, Any] = dict.fromkeys(("p [m]", "rotvec [°]", "v [mm/s]", "ω [°/s]", "error [mm]"))
         if pose.valid:
             T = np.asarray(pose.T_cam_body)
-            p = T[:3, 3]
-            rv = np.degrees(Rotation.from_matrix(T[:3, :3]).as_rotvec())
-            v = np.asarray(pose.velocity_cam_m_s) * 1e3
-            w = np.degrees(pose.omega_body_rad_s)
-            if getattr(pose, "coasting_s", 0.0) > 0.0:
-                lines.append(f"pose valid, COASTING (case {pose.case}): {pose.reason}")
+            if pose.coasting_s > 0.0:
+                lines.append(f"pose valid, <b>COASTING</b> (case {pose.case}): {escape(str(pose.reason))}")
             else:
                 lines.append(f"pose valid (case {pose.case}, {pose.n_points} points)")
-            lines.append(f"p = ({p[0]:+.3f}, {p[1]:+.3f}, {p[2]:+.3f}) m · rotvec = ({rv[0]:+.1f}, {rv[1]:+.1f}, {rv[2]:+.1f})°")
-            if np.all(np.isfinite(v)) and np.all(np.isfinite(w)):
-                lines.append(f"v = ({v[0]:+.1f}, {v[1]:+.1f}, {v[2]:+.1f}) mm/s · ω = ({w[0]:+.2f}, {w[1]:+.2f}, {w[2]:+.2f}) °/s")
-            else:
-                lines.append("velocities: not yet (need a few frames of valid pose)")
+            rows["p [m]"] = (T[:3, 3], "{:+.3f}")
+            rows["rotvec [°]"] = (np.degrees(Rotation.from_matrix(T[:3, :3]).as_rotvec()), "{:+.1f}")
+            rows["v [mm/s]"] = (np.asarray(pose.velocity_cam_m_s) * 1e3, "{:+.1f}")
+            rows["ω [°/s]"] = (np.degrees(pose.omega_body_rad_s), "{:+.2f}")
         else:
-            lines.append(f"pose invalid: {pose.reason}")
+            lines.append(f"pose invalid: {escape(str(pose.reason))}")
         e = snap.errors
+        attitude_error = "–"
         if e and "position_m" in e:
-            ep = np.asarray(e["position_m"]) * 1e3
-            lines.append(f"error: position ({ep[0]:+.1f}, {ep[1]:+.1f}, {ep[2]:+.1f}) mm · attitude "
-                         f"{np.degrees(float(e.get('attitude_total_rad', np.nan))):.2f}°")  # type: ignore[arg-type]
-        return "  \n".join(lines)
+            rows["error [mm]"] = (np.asarray(e["position_m"]) * 1e3, "{:+.1f}")
+            attitude_error = f"{np.degrees(float(e.get('attitude_total_rad', np.nan))):.2f}°"  # type: ignore[arg-type]
+        cell = 'style="text-align:right;padding:0 0.4em"'
+        table = [f"<tr><td></td>{''.join(f'<td {cell}>{a}</td>' for a in 'xyz')}</tr>"]
+        for name, value in rows.items():
+            texts = (["–"] * 3 if value is None or not np.all(np.isfinite(value[0]))
+                     else [value[1].format(x) for x in value[0]])
+            table.append(f"<tr><td>{name}</td>{''.join(f'<td {cell}>{x}</td>' for x in texts)}</tr>")
+        return (f'<div style="height:{STATUS_HEIGHT_EM}em;overflow-y:auto;font-size:0.875rem;'
+                f'line-height:1.45;padding:0 0.75rem">' + "<br>".join(lines)
+                + '<table style="border-collapse:collapse;font-variant-numeric:tabular-nums">'
+                + "".join(table) + f"</table>attitude error: {attitude_error}</div>")
 
     @staticmethod
     def _targets_markdown(snap: Snapshot) -> str:

@@ -107,3 +107,53 @@ def test_plot_data_from_a_snapshot_in_display_units() -> None:
     assert data.windows["omega"].arrays()[2][0] == pytest.approx(2.0)
     assert [a[0] for a in data.windows["err_attitude"].arrays()][1:] == pytest.approx([0.1, 0.2, 0.3, 0.4])
     assert len(data.windows["position"]) == 1  # the invalid pose added no row
+
+
+def test_status_keeps_its_height_whatever_the_state() -> None:
+    """The controls under the live numbers must not move while the operator reaches for them."""
+    from html.parser import HTMLParser
+
+    from console.app import STATUS_HEIGHT_EM, Console
+
+    class Tags(HTMLParser):
+        def __init__(self) -> None:
+            super().__init__()
+            self.tags: list[str] = []
+            self.text = ""
+
+        def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+            self.tags.append(tag)
+
+        def handle_data(self, data: str) -> None:
+            self.text += data
+
+    def parse(html: str) -> Tags:
+        tags = Tags()
+        tags.feed(html)
+        return tags
+
+    T = np.eye(4)
+    T[:3, 3] = (0.0, 0.0, 3.5)
+    valid = PoseEstimate(True, None, "b", T, np.eye(6), np.zeros(3), np.zeros(3), 5)
+    no_velocity = PoseEstimate(True, None, "b", T, np.eye(6), np.full(3, np.nan), np.full(3, np.nan), 5)
+    coasting = PoseEstimate(True, "no model point measured", "b", T, np.eye(6), np.zeros(3), np.zeros(3), 0,
+                            coasting_s=0.2)
+    img = np.zeros((4, 4), np.uint8)
+    frame = StereoFrame(3, 0.12, img, img, GroundTruth(T, np.zeros(3), np.zeros(3)))
+    errors = {"position_m": np.zeros(3), "attitude_rad": np.zeros(3), "attitude_total_rad": 0.0,
+              "velocity_m_s": np.zeros(3), "omega_rad_s": np.zeros(3)}
+    states = [
+        Snapshot(frame, (_target("op1", (10.0, 20.0)),), valid, errors, Timings()),  # type: ignore[arg-type]
+        Snapshot(frame, (), no_velocity, None, Timings()),
+        Snapshot(frame, (), coasting, errors, Timings(), recording=True),  # type: ignore[arg-type]
+        Snapshot(None, (), PoseEstimate.invalid("fewer than 3 points"), None, Timings(), paused=True,
+                 source_status="source failed: <camera> unplugged"),
+    ]
+    htmls = [Console._status_html(s) for s in states]
+    assert all(f"height:{STATUS_HEIGHT_EM}em" in h for h in htmls)
+    # Same rows in every state, bold aside (it does not change the height).
+    structures = {tuple(t for t in parse(h).tags if t != "b") for h in htmls}
+    assert len(structures) == 1, structures
+    texts = [parse(h).text for h in htmls]
+    assert "<camera> unplugged" in texts[3] and "pose invalid: fewer than 3 points" in texts[3]
+    assert "COASTING" in texts[2] and "REC" in texts[2] and "v [mm/s]–––" in texts[1]

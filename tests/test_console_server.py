@@ -48,8 +48,8 @@ def test_a_failing_source_is_shown_and_the_console_stays_up() -> None:
     try:
         assert running.url == f"http://127.0.0.1:{port}"
         deadline = time.monotonic() + 20
-        while "source failed: camera unplugged" not in running.console.status_md.content:
-            assert time.monotonic() < deadline, running.console.status_md.content
+        while "source failed: camera unplugged" not in running.console.status_html.content:
+            assert time.monotonic() < deadline, running.console.status_html.content
             time.sleep(0.05)
         assert running.pipeline.running
         with urllib.request.urlopen(running.url, timeout=10) as response:
