@@ -540,3 +540,25 @@ def test_repeating_operator_clicks_again_after_a_total_loss(estec_rig, repeat: b
     outs = run(engine, range(25 + dark, 25 + dark + wait))
     assert outs[-1][1].valid == repeat
     assert (engine.stats.operator_reselections > 0) == repeat
+
+
+def test_a_cut_in_the_stream_starts_tracking_over(estec_rig) -> None:
+    """A looping source's new pass (or a restart) jumps the scene: no target, model point,
+    pose history or coasted pose may carry over it, or the body frame changes silently."""
+    from dataclasses import replace
+
+    for cut in (False, True):
+        engine, tracker, _ = make_engine(estec_rig, with_model=False)
+        outs = run(engine, range(30))
+        assert outs[-1][1].valid and engine.stats.frames_redefined == 0
+        targets, pose, _ = engine.process(replace(frame_at(30), cut=cut))
+        assert engine.stats.stream_cuts == int(cut)
+        if not cut:
+            assert pose.valid and targets and not pose.coasting_s
+            continue
+        assert not tracker.active and not targets  # every target dropped before tracking
+        assert not pose.valid and not pose.coasting_s  # no coasting across the cut
+        assert "frame" in (pose.reason or "")  # case (a) defines a new frame
+        tracker.active = {i: "tracking" for i in tracker.body}  # automatic selection re-fills
+        outs = run(engine, range(31, 60))
+        assert outs[-1][1].valid and engine.stats.valid_frames > 30

@@ -33,9 +33,10 @@ def test_streamed_frames_are_identical_and_wrap(short_estec):
             assert np.array_equal(f.truth.omega_body_rad_s, ref.truth.omega_body_rad_s)
         assert np.allclose(np.diff([f.t_s for f in frames]), 0.04)
         # A restart discards what was queued and starts again at frame 0.
+        assert [f.cut for f in frames] == [False, False, False, True, False, False, True]
         ahead.restart()
         again = ahead.read()
-        assert again.index == 0 and np.array_equal(again.left, frames[0].left)
+        assert again.index == 0 and np.array_equal(again.left, frames[0].left) and again.cut
         worker = ahead._ahead
         assert worker is not None
     finally:

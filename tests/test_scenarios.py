@@ -182,6 +182,10 @@ def test_loop_keeps_time_increasing(sims, tmp_path):
     frames = [sim.read() for _ in range(7)]
     assert [f.index for f in frames] == list(range(7))
     assert np.allclose(np.diff([f.t_s for f in frames]), 0.04)
+    # The scene jumps where a pass starts again: those frames are marked, the others not.
+    assert [f.cut for f in frames] == [False, False, False, True, False, False, True]
+    sim.restart()
+    assert [sim.read().cut for _ in range(2)] == [True, False]
     assert np.array_equal(frames[3].left, frames[0].left)
     assert np.array_equal(sim.truth(frames[5].index).T_cam_body, frames[5].truth.T_cam_body)
     uv = np.array([[363.0, 256.0]])

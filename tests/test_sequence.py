@@ -105,12 +105,14 @@ def test_tum_only_truth_and_no_truth(tmp_path):
 def test_loop_and_restart_keep_time_increasing(tmp_path):
     d = _write(tmp_path / "s", _frames(3))
     src = SequenceSource(d, loop=True)
-    ts = [src.read().t_s for _ in range(7)]
+    frames = [src.read() for _ in range(7)]
+    ts = [f.t_s for f in frames]
     assert np.all(np.diff(ts) > 0)
     assert np.allclose(np.diff(ts), 0.04)
+    assert [f.cut for f in frames] == [False, False, False, True, False, False, True]
     src.restart()
     f = src.read()
-    assert f.index == 0 and f.t_s == 0.0
+    assert f.index == 0 and f.t_s == 0.0 and f.cut and not src.read().cut
     src2 = SequenceSource(d)
     assert [src2.read() is not None for _ in range(4)] == [True, True, True, False]
 
@@ -329,11 +331,13 @@ def test_video_source_reads_two_files(tmp_path):
         assert f.left.shape == (48, 64) and f.left.dtype == np.uint8
         assert np.mean(np.abs(f.left.astype(float) - img)) < 12  # MJPG is lossy
     src.restart()
-    assert src.read().index == 0
+    first = src.read()
+    assert first.index == 0 and first.cut and not src.read().cut
     src.close()
     looped = open_source(f"video:{paths[0]},{paths[1]}", loop=True)
-    ts = [looped.read().t_s for _ in range(8)]
-    assert np.all(np.diff(ts) > 0)
+    frames = [looped.read() for _ in range(8)]
+    assert np.all(np.diff([f.t_s for f in frames]) > 0)
+    assert [f.cut for f in frames] == [False] * 5 + [True, False, False]
 
 
 def test_pacer_sleeps_to_media_time():

@@ -149,6 +149,7 @@ class EngineStats:
     model_points_joined: int = 0
     frames_redefined: int = 0
     operator_reselections: int = 0  # the repeating simulated operator clicked the model points again
+    stream_cuts: int = 0  # frames after which the stream jumped (StereoFrame.cut): tracking started over
 
 
 class Engine:
@@ -383,10 +384,8 @@ class Engine:
             self._filter = PoseFilter(self.filter_params, self.rate_hz)
             return CommandReply(True, f"output filter cutoff {command.cutoff_hz:g} Hz")
         if isinstance(command, ResetTracking):
-            self.tracker.clear()
+            self._start_over()
             self._operator_t = None
-            self._acquisition = _Acquisition() if self._case == "c" else None
-            self._reset_motion()
             self.stats = EngineStats()
             return CommandReply(True, "tracking reset")
         return CommandReply(False, f"{type(command).__name__} is not an engine command")
@@ -432,6 +431,13 @@ class Engine:
             self.stats.operator_reselections += 1
             self._select_model_points(frame)
 
+    def _start_over(self) -> None:
+        """Drop every target, the working model and the motion history; the settings (case,
+        given model, automatic selection, the simulated operator) stay."""
+        self.tracker.clear()
+        self._acquisition = _Acquisition() if self._case == "c" else None
+        self._reset_motion()
+
     def _forget(self, target_id: str) -> None:
         """A target the operator removed: drop its measured model point and candidacy."""
         point = self._model.get(target_id)
@@ -446,6 +452,12 @@ class Engine:
         """Track one frame; returns ``(targets, pose, errors)`` (see the module docstring).
         ``feature_response``: :meth:`feature_response` of this frame made ahead (a callable
         returning it, e.g. a future's ``result``), for automatic selection; the same result."""
+        if frame.cut:
+            # The scene jumped (a looping source's new pass, a restart): a model grown before
+            # would re-lock onto whatever lies where its points were, and the coasted pose
+            # would carry new points into it, so the body frame would change silently.
+            self._start_over()
+            self.stats.stream_cuts += 1
         reject = self._pending_reject
         self._pending_reject = set()
         self._frame_t_s = frame.t_s

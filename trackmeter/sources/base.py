@@ -40,6 +40,9 @@ class StereoFrame:
         t_s: timestamp, s.
         left, right: (H,W) uint8 grey images, unrectified, as the cameras delivered them.
         truth: ground truth at ``t_s`` when the source has it.
+        cut: the stream is discontinuous before this frame: the first frame after a
+            ``restart()`` or of a looping source's new pass. The scene jumps here, so nothing
+            tracked may carry over (a tracker would re-find its points on the wrong surfaces).
     """
 
     index: int
@@ -47,6 +50,7 @@ class StereoFrame:
     left: NDArray[np.uint8]
     right: NDArray[np.uint8]
     truth: GroundTruth | None = None
+    cut: bool = False
 
 
 class Source(ABC):

@@ -55,6 +55,7 @@ class SequenceSource(Source):
         self._pos = 0
         self._loops = 0
         self._count = 0
+        self._cut = False  # the next frame read starts a new pass or follows a restart
         n = len(self.index)
         dt = 1.0 / self.rate_hz if self.rate_hz else 0.0
         self._period_s = float(self.index.t_s[-1] - self.index.t_s[0]) + dt if n else 0.0
@@ -100,6 +101,7 @@ class SequenceSource(Source):
                     return None
                 self._pos = 0
                 self._loops += 1
+                self._cut = True
                 self._pacer.reset()
             pos = self._pos
             self._pos += 1
@@ -118,7 +120,8 @@ class SequenceSource(Source):
             t = float(self.index.t_s[pos]) + self._loops * self._period_s
             if self.realtime:
                 self._pacer.wait(t)
-            frame = StereoFrame(index=self._count, t_s=t, left=left, right=right, truth=self.truth_at(pos))
+            frame = StereoFrame(index=self._count, t_s=t, left=left, right=right, truth=self.truth_at(pos), cut=self._cut)
+            self._cut = False
             self._count += 1
             return frame
 
@@ -126,6 +129,7 @@ class SequenceSource(Source):
         self._pos = 0
         self._loops = 0
         self._count = 0
+        self._cut = True
         self._pacer.reset()
 
 

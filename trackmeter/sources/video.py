@@ -60,6 +60,7 @@ class VideoSource(Source):
         self._pacer = Pacer()
         self._count = 0
         self._pos = 0
+        self._cut = False  # the next frame read starts a new pass or follows a restart
         self._t_offset = 0.0
         self._last_t = -np.inf
 
@@ -80,6 +81,7 @@ class VideoSource(Source):
             self._t_offset = self._last_t + (1.0 / self.rate_hz if self.rate_hz else 0.04)
             self._rewind()
             self._pacer.reset()
+            self._cut = True
             return self.read()
         t = self._pos / self.rate_hz if self.rate_hz else float(self._pos)
         t += self._t_offset
@@ -90,7 +92,8 @@ class VideoSource(Source):
             raise TrackmeterError(f"left and right videos differ in frame size: {left.shape} vs {right.shape}")
         if self.realtime:
             self._pacer.wait(t)
-        frame = StereoFrame(index=self._count, t_s=t, left=left, right=right)
+        frame = StereoFrame(index=self._count, t_s=t, left=left, right=right, cut=self._cut)
+        self._cut = False
         self._count += 1
         return frame
 
@@ -102,6 +105,7 @@ class VideoSource(Source):
 
     def restart(self) -> None:
         self._rewind()
+        self._cut = True
         self._count = 0
         self._t_offset = 0.0
         self._last_t = -np.inf

@@ -106,6 +106,7 @@ class Simulator(Source):
         self._pos = 0
         self._count = 0
         self._loops = 0
+        self._cut = False  # the next frame read starts a new pass or follows a restart
 
     # ------------------------------------------------------------------ random access
 
@@ -201,12 +202,14 @@ class Simulator(Source):
                 return None
             self._pos = 0
             self._loops += 1
+            self._cut = True
         f = self._streamed_frame(self._pos)
         self._pos += 1
         t = f.t_s + self._loops * self.n_frames / self.rate_hz
         if self.realtime:
             self._pacer.wait(t)
-        out = StereoFrame(index=self._count, t_s=t, left=f.left, right=f.right, truth=f.truth)
+        out = StereoFrame(index=self._count, t_s=t, left=f.left, right=f.right, truth=f.truth, cut=self._cut)
+        self._cut = False
         self._count += 1
         return out
 
@@ -227,6 +230,7 @@ class Simulator(Source):
         self._pos = 0
         self._count = 0
         self._loops = 0
+        self._cut = True
         self._pacer.reset()
 
     def close(self) -> None:
