@@ -28,6 +28,7 @@ import argparse
 import datetime as _dt
 import json
 import math
+import os
 import platform
 import shlex
 import shutil
@@ -78,8 +79,10 @@ class Runner:
             self.built[command] = proc.returncode == 0 and "not built yet" not in proc.stdout
         return self.built[command]
 
-    def run(self, name: str, argv: list[str], needs: list[Step] | None = None, timeout_s: float = 7200) -> Step:
-        """Run one command unless a step it needs did not succeed; log it; classify the result."""
+    def run(self, name: str, argv: list[str], needs: list[Step] | None = None, timeout_s: float = 7200,
+            env: dict[str, str] | None = None) -> Step:
+        """Run one command unless a step it needs did not succeed; log it; classify the result.
+        ``env``: variables set for this command on top of the environment."""
         step = Step(name, argv)
         self.steps.append(step)
         if argv[:3] == trackmeter() and not self.is_built(argv[3]):
@@ -95,7 +98,8 @@ class Runner:
         print(f"[reproduce] run    {name}: {step.command}", file=sys.stderr, flush=True)
         start = time.monotonic()
         try:
-            proc = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=timeout_s)
+            proc = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=timeout_s,
+                                  env={**os.environ, **env} if env else None)
         except subprocess.TimeoutExpired:
             step.status, step.reason = "failed", f"timed out after {timeout_s:.0f} s"
             return step
@@ -230,6 +234,25 @@ BENCHMARK_ROWS: dict[tuple[str, str], tuple[str, str, float, str, int]] = {
     ("console", "browser_image_updates_per_s"): ("image updates received by the browser", "—", 1.0, "/s", 1),
     ("console", "dropped_fraction"): ("frames dropped with the console connected", "—", 100.0, "%", 2),
 }
+
+
+CONSOLE_SOAK_ROWS = (
+    ("rss_growth_fraction", "memory growth over a 10-minute console run, two browsers connected", 100.0, "%", 2),
+    ("log_errors", "errors logged in that run", 1.0, "", 0),
+    ("tracking_rate_hz", "tracking rate in that run (the browsers share the two cores)", 1.0, "Hz", 1),
+)
+
+
+def console_soak_rows(results: dict | None, step: Step) -> list[str]:
+    """The table rows of the console soak (``results``: its ``python -m benchmarks soak`` JSON)."""
+    cmd = "TRACKMETER_SOAK_CONSOLE=1 python -m benchmarks soak"
+    figures = (results or {}).get("soak", {})
+    rows = []
+    for key, capability, scale, unit, digits in CONSOLE_SOAK_ROWS:
+        value = figures.get(key)
+        ours = _fmt(float(value), scale, digits, unit) if value is not None else (_status_cell(step) or "—")
+        rows.append(f"| {capability} | — | {ours} | `{cmd}` |")
+    return rows
 
 
 def benchmark_rows(results: dict | None, step: Step | None, names: list[str], not_built: list[str]) -> list[str]:
@@ -370,6 +393,11 @@ def main(argv: list[str] | None = None) -> int:
     for n in not_built:
         if not any(b == n for b, _ in BENCHMARK_ROWS):
             table.append(f"| benchmark `{n}` | — | _missing: benchmarks/{n}.py not built yet_ | `python -m benchmarks {n}` |")
+    if "soak" in wanted and not args.quick:
+        # Issue 7's soak: the operator console with two headless browsers for 10 minutes.
+        soak_step = r.run("soak_console", [sys.executable, "-m", "benchmarks", "soak", "--out", str(out / "soak_console.json")],
+                          env={"TRACKMETER_SOAK_CONSOLE": "1"})
+        table += console_soak_rows(r.json_of(soak_step), soak_step)
 
     # the table
     header = [

@@ -67,3 +67,19 @@ def test_readme_without_markers_is_left_alone(tmp_path):
     readme.write_text("# T\n", encoding="utf-8")
     assert not update_readme(readme, "| a |")
     assert readme.read_text(encoding="utf-8") == "# T\n"
+
+
+def test_console_soak_rows_and_the_environment_of_a_step(tmp_path):
+    import sys
+
+    from benchmarks.reproduce import console_soak_rows
+
+    r = Runner(tmp_path, tmp_path)
+    step = r.run("env", [sys.executable, "-c", "import os, json; print(json.dumps({'soak': "
+                         "{'rss_growth_fraction': float(os.environ['TM_X']), 'log_errors': 0.0}}))"],
+                 env={"TM_X": "0.0123"})
+    assert step.status == "ok"
+    rows = console_soak_rows(r.json_of(step), step)
+    assert "| 1.23 % |" in rows[0] and "| 0 |" in rows[1] and "| — | — |" in rows[2]  # a figure the run did not give: a dash, never a number
+    failed = Step("soak_console", [], status="failed", reason="exit 1: no chromium")
+    assert all("_failed: soak_console" in row for row in console_soak_rows(None, failed))
