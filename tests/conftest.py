@@ -26,13 +26,13 @@ def estec_rig():  # type: ignore[no-untyped-def]
 
 @pytest.fixture(scope="session")
 def estec_sim_frames():  # type: ignore[no-untyped-def]
-    """(rig, the first 45 frames of the default ``sim`` source: the estec scenario), rendered
+    """(rig, the first 60 frames of the default ``sim`` source: the estec scenario), rendered
     once per test session for the tests that run the tracker or the engine over real frames."""
     from trackmeter.sources import open_source
 
     source = open_source("sim", render_ahead=False)
     try:
-        frames = [source.read() for _ in range(45)]
+        frames = [source.read() for _ in range(60)]
     finally:
         source.close()
     return source.rig, frames

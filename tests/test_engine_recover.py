@@ -12,7 +12,7 @@ from trackmeter.data.config import load_config
 from trackmeter.pipeline.engine import Engine
 from trackmeter.pipeline.snapshot import SetAuto
 
-N_FRAMES = 45  # on estec, model points are lost and re-locked in batches of 2-4 from frame ~16
+N_FRAMES = 60  # on estec, model points are lost and re-locked in batches of 2-4 (3 batches by frame 60)
 
 
 class OneByOne(Tracker):

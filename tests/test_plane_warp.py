@@ -203,6 +203,7 @@ def test_tracker_measures_surface_planes_and_predicts_the_anchor_warp_on_the_sim
     from trackmeter.sources.sim.simulator import Simulator
 
     rig, frames = estec_sim_frames
+    frames = frames[:45]
     tracker = Tracker(rig, TrackerParams(anchor_warp="plane"), FeatureParams(), MeasureParams())
     tracker.set_auto(True, 16)
     sim = Simulator("estec")

@@ -255,3 +255,31 @@ def test_relock_many_equals_one_relock_after_another(scene, estec_rig) -> None:
             assert np.allclose(b.uv, s.uv, atol=1e-9) and np.allclose(b.point_cam, s.point_cam, atol=1e-9)
         else:
             assert b.reason == s.reason
+
+
+def test_a_new_target_starts_at_the_image_velocity_the_rigid_motion_gives_it(scene, estec_rig) -> None:
+    """The plate turns about the viewing axis, so its points move at different image speeds: the
+    other targets' median velocity misses a new point far from them; the tracked points' rigid
+    motion applied to its 3D point does not (and a tight first search window follows)."""
+    f0 = scene.frame(0)
+    pts = interior_points(f0, 16)
+    centre = pts[:8].mean(axis=0)
+    new_uv = pts[8:][np.argmax(np.linalg.norm(pts[8:] - centre, axis=1))]  # far from the others
+    k = 5
+    body = scene.surface_points(k, new_uv[None])
+    assert np.all(np.isfinite(body))
+    dt = 1.0 / scene.rate_hz
+    true_v = (scene.project(k + 1, body)[0][0] - scene.project(k - 1, body)[0][0]) / (2 * dt)
+    miss = {}
+    for rigid in (False, True):
+        tr = make_tracker(estec_rig, rigid_velocity_guess=rigid)
+        assert len(add_all(tr, f0, pts[:8])) >= 6
+        for i in range(1, k + 1):
+            tr.step(scene.frame(i))
+        made = tr.add_target(scene.frame(k), (float(new_uv[0]), float(new_uv[1])))
+        assert isinstance(made, TargetState), made
+        kf = tr._targets[made.id].kf
+        miss[rigid] = float(np.linalg.norm(kf.x[2:4] - true_v))
+        sigma_v = float(np.sqrt(kf.P[2, 2]))
+        assert miss[rigid] < 3.0 * sigma_v, (rigid, miss[rigid], sigma_v)  # the std is honest
+    assert miss[True] < 3.0 and miss[True] < miss[False] / 3.0, miss

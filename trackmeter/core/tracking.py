@@ -152,6 +152,12 @@ class TrackerParams:
     neighbour_velocity_sigma_px_s: float = param(
         30.0, "std added to the other targets' velocity spread for a new target's velocity, px/s", min=0.0
     )
+    rigid_velocity_guess: bool = param(
+        True, "a new or re-found target's image velocity is the one the tracked points' rigid motion gives its 3D point",
+    )
+    rigid_velocity_sigma_px_s: float = param(
+        10.0, "std added to that prediction's median miss on the settled targets, px/s", min=0.0,
+    )
     lost_keep_frames: int = param(10, "frames a lost automatic target is kept before it is replaced", min=0)
     auto: bool = param(False, "automatic feature selection on at start")
     auto_interval_frames: int = param(5, "automatic selection tops up at most every this many frames", min=1)
@@ -275,6 +281,8 @@ class Tracker:
         # The last known one and the steps since it (anchor_warp "plane" carries it over gaps).
         self._last_delta: tuple[FloatArray, FloatArray] | None = None
         self._delta_age = 0
+        self._last_step_t_s: float | None = None  # time of the last step's frame, s
+        self._step_dt_s = 0.0  # interval of this step (the rigid motion's), s
         self._body_gen = 0  # counts the body frames started (:meth:`_body_drift`)
 
     # ------------------------------------------------------------------ public state
@@ -383,16 +391,41 @@ class Tracker:
             if tid not in self._targets:
                 return tid
 
-    def _velocity_guess(self) -> tuple[FloatArray, float | None]:
-        """A new target's image velocity (2,) px/s and its std: the median of the settled
-        targets' velocities (one rigid body moves them all alike), else zero with the wide
-        default std (None)."""
-        v = np.array([t.kf.x[2:4] for t in self._targets.values() if t.status != "lost" and t.age_frames >= 3])
-        if len(v) < 2:
+    def _velocity_guess(self, uv: FloatArray | None = None, point_cam: FloatArray | None = None
+                        ) -> tuple[FloatArray, float | None]:
+        """A new target's image velocity (2,) px/s and its std.
+
+        With its 3D point ``point_cam`` (3,) at left pixel ``uv`` (2,) and this step's rigid
+        motion of the tracked points (``P_now = R P_prev + t``, fitted by the motion check), the
+        velocity the body's motion gives that point: ``(proj(R X + t) - uv) / dt`` (a turning
+        body moves its points at different image speeds, which one median cannot give), with
+        the std of the same prediction against the settled targets' own filtered velocities.
+        Otherwise the median of the settled targets' velocities (one rigid body moves them all
+        alike) with their spread; else zero with the wide default std (None)."""
+        p = self.params
+        settled = [t for t in self._targets.values() if t.status != "lost" and t.age_frames >= 3]
+        if len(settled) < 2:
             return np.zeros(2), None
+        v = np.array([t.kf.x[2:4] for t in settled])
+        if (p.rigid_velocity_guess and self._delta is not None and self._step_dt_s > 0 and uv is not None
+                and point_cam is not None and np.all(np.isfinite(point_cam))):
+            P = np.array([t.point_cam for t in settled])
+            U = np.array([t.uv for t in settled])
+            ok = np.all(np.isfinite(P), axis=1)
+            if ok.sum() >= 2:
+                predicted = self._rigid_image_velocity(np.vstack([P[ok], point_cam]), np.vstack([U[ok], uv]))
+                miss = np.linalg.norm(predicted[:-1] - v[ok], axis=1)
+                return predicted[-1], float(np.median(miss)) + p.rigid_velocity_sigma_px_s
         med = np.median(v, axis=0)
         spread = float(np.max(np.abs(v - med)))
-        return med, spread + self.params.neighbour_velocity_sigma_px_s
+        return med, spread + p.neighbour_velocity_sigma_px_s
+
+    def _rigid_image_velocity(self, P: FloatArray, uv: FloatArray) -> FloatArray:
+        """Left-image velocities (N,2) px/s of points ``P`` (N,3) at pixels ``uv`` (N,2) moved by
+        this step's rigid motion over this step's interval."""
+        R, t = self._delta  # type: ignore[misc]
+        moved, _ = self.rig.project(P @ R.T + t)
+        return (moved - uv) / self._step_dt_s
 
     def add_target(
         self,
@@ -431,7 +464,7 @@ class Tracker:
             return Refusal(key, reason)
         tid = target_id or self._new_id(origin)
         tmpl = make_templates(fc.left, uvf[None], self.params.patch_size)
-        v0, sv = self._velocity_guess()
+        v0, sv = self._velocity_guess(uvf, np.asarray(meas.xyz_m, float))
         kf = kf_mod.make_filter(uvf, self.params.kalman, velocity_px_s=v0, velocity_sigma_px_s=sv)
         t = _Target(tid, origin, kf, tmpl, tmpl, frame.t_s, uv=uvf.copy(), predicted_uv=uvf.copy())
         self._new_anchor(t, frame.index)
@@ -622,12 +655,12 @@ class Tracker:
             return False, why
         uv = res.uv[r]
         half = p.recover_search_px
-        v0, sv = self._velocity_guess()
-        t.kf = kf_mod.make_filter(uv, p.kalman, velocity_px_s=v0, velocity_sigma_px_s=sv)
         t.uv = uv.copy()
         t.predicted_uv = np.array(centre, dtype=float)
         t.search_box = (centre[0] - half, centre[1] - half, centre[0] + half, centre[1] + half)
         self._set_stereo([t], m, np.array([j]))
+        v0, sv = self._velocity_guess(uv, t.point_cam)
+        t.kf = kf_mod.make_filter(uv, p.kalman, velocity_px_s=v0, velocity_sigma_px_s=sv)
         t.score = float(res.score[r])
         t.anchor_lin = res.anchor_lin[r].copy()
         t.current = make_templates(fc.left, uv[None], p.patch_size)
@@ -683,6 +716,8 @@ class Tracker:
         fc = self._frame(frame)
         self.last_losses = {}
         self._delta = None
+        self._step_dt_s = frame.t_s - self._last_step_t_s if self._last_step_t_s is not None else 0.0
+        self._last_step_t_s = frame.t_s
         live = [t for t in self._targets.values() if t.status != "lost"]
         lost = [t for t in self._targets.values() if t.status == "lost"]
         final: list[tuple[_Target, bool]] = []
