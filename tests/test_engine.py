@@ -562,3 +562,41 @@ def test_a_cut_in_the_stream_starts_tracking_over(estec_rig) -> None:
         tracker.active = {i: "tracking" for i in tracker.body}  # automatic selection re-fills
         outs = run(engine, range(31, 60))
         assert outs[-1][1].valid and engine.stats.valid_frames > 30
+
+
+def test_a_pose_from_nearly_collinear_points_is_invalid_not_made_up(estec_rig) -> None:
+    """Three model points on (almost) one line leave the rotation about it free: the fit's
+    covariance says so, and such a pose is refused with the reason instead of reported valid."""
+    ids = ["p0", "p1", "p2"]
+    for bend_m, valid in ((0.3, True), (0.0005, False)):
+        pts = np.array([[-0.4, 0.0, 0.0], [0.4, 0.0, 0.0], [0.0, bend_m, 0.0]])
+        tracker = FakeTracker(estec_rig, pts, ids)
+        engine = Engine(load_config(), estec_rig, Model(tuple(ids), pts), "b", tracker=tracker, rate_hz=1 / DT)
+        pose = run(engine, range(5))[-1][1]
+        assert pose.valid == valid, pose.reason
+        if not valid:
+            assert "undetermined" in (pose.reason or "") and not pose.coasting_s
+
+
+def test_three_points_that_contradict_the_coasted_motion_are_not_trusted(estec_rig) -> None:
+    """After a loss, three look-alikes whose distances fit the model give a self-consistent wrong
+    pose (here all three measured 0.2 m off); the motion carried through the loss refuses it and
+    the three are dropped. The same three measured right are taken."""
+    for offset_m, trusted in ((0.0, True), (0.2, False)):
+        engine, tracker, _ = make_engine(estec_rig, noise=False)
+        run(engine, range(40))
+        tracker.force_lost = set(tracker.active)
+        outs = run(engine, range(40, 44))
+        assert outs[-1][1].valid and outs[-1][1].coasting_s > 0  # coasting through the loss
+        back = ["m0", "m1", "m2"]
+        tracker.force_lost -= set(back)
+        for tid in back:
+            tracker.active[tid] = "tracking"
+            tracker.offsets[tid] = np.array([offset_m, 0.0, 0.0])
+        _, pose, _ = engine.process(frame_at(44))
+        measured = pose.valid and not pose.coasting_s
+        assert measured == trusted, pose.reason
+        if not trusted:
+            assert "too few points to trust" in (pose.reason or "")
+            engine.process(frame_at(45))
+            assert set(back) <= tracker.rejected[-1]  # dropped at the next step

@@ -150,6 +150,11 @@ class PoseParams:
     coast_sigma_rad_per_s: float = param(
         0.05, "growth rate of the carried-forward pose's attitude uncertainty (1 sigma), rad/s", min=0.0,
     )
+    max_attitude_sigma_deg: float = param(
+        5.0, "a measured pose whose attitude 1-sigma exceeds this is undetermined (e.g. nearly collinear points): "
+        "invalid, deg", min=0.0,
+    )
+    max_position_sigma_m: float = param(0.05, "... or whose position 1-sigma exceeds this, m", min=0.0)
     coast_valid_attitude_sigma_deg: float = param(
         1.0, "with no model point measured, the pose carried on the motion model (dynamics.coast_pose) is "
         "output as valid, flagged coasting, while its attitude 1-sigma stays below this, deg (0: never)", min=0.0,
