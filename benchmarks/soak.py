@@ -45,12 +45,17 @@ def rss_mb() -> float:
 
 
 class _ErrorCounter(logging.Handler):
+    """Counts ERROR records and prints each (with its traceback) to stderr: a count alone does
+    not say what went wrong."""
+
     def __init__(self) -> None:
         super().__init__(logging.ERROR)
         self.count = 0
+        self.setFormatter(logging.Formatter("[soak] logged %(levelname)s from %(name)s at %(relativeCreated).0f ms: %(message)s"))
 
     def emit(self, record: logging.LogRecord) -> None:
         self.count += 1
+        print(self.format(record), file=sys.stderr, flush=True)
 
 
 def soak(duration_s: float, start_live=None) -> dict[str, float]:  # type: ignore[no-untyped-def]
