@@ -942,8 +942,7 @@ class Engine:
         if state is None:
             return None
         R_c, p_c, _, cov_c, _ = state
-        e = np.concatenate([p_c - fit.t_cam_body, Rotation.from_matrix(R_c @ fit.R_cam_body.T).as_rotvec()])
-        d2 = float(e @ np.linalg.solve(fit.cov + cov_c, e))
+        e, d2 = _offset_from(R_c, p_c, cov_c, fit.R_cam_body, fit.t_cam_body, fit.cov)
         if d2 <= chi2.ppf(p.outlier_probability, 6):
             return None
         return (f"{int(fit.inliers.sum())} model points give a pose {np.linalg.norm(e[:3]) * 1e3:.0f} mm from the "
@@ -964,8 +963,7 @@ class Engine:
             self._blend = None
             if state is not None:
                 R_c, p_c, _, cov_c, _ = state
-                e = np.concatenate([p_c - pos, Rotation.from_matrix(R_c @ R.T).as_rotvec()])
-                d2 = float(e @ np.linalg.solve(cov + cov_c, e))
+                e, d2 = _offset_from(R_c, p_c, cov_c, R, pos, cov)
                 if d2 <= chi2.ppf(p.outlier_probability, 6):
                     self._blend = (t_s, e, cov_c)
         self._coasting = False
@@ -1096,6 +1094,14 @@ class Engine:
             "velocity_m_s": np.asarray(v_e, float) - np.asarray(truth.velocity_cam_m_s, float),
             "omega_rad_s": np.asarray(w_e, float) - np.asarray(truth.omega_body_rad_s, float),
         }
+
+
+def _offset_from(R_c: FloatArray, p_c: FloatArray, cov_c: FloatArray, R: FloatArray, p: FloatArray,
+                 cov: FloatArray) -> tuple[FloatArray, float]:
+    """Offset ``e`` (6,) of pose ``(R_c, p_c)`` from ``(R, p)`` (position m, rotation vector rad,
+    camera frame) and its squared Mahalanobis distance under ``cov_c + cov`` (both (6,6))."""
+    e = np.concatenate([p_c - p, Rotation.from_matrix(R_c @ R.T).as_rotvec()])
+    return e, float(e @ np.linalg.solve(cov + cov_c, e))
 
 
 def _sigmas_within(cov_pose: FloatArray, attitude_sigma_deg: float, position_sigma_m: float) -> bool:
