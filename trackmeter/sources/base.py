@@ -64,6 +64,13 @@ class Source(ABC):
 
     rig: StereoRig | None = None
     rate_hz: float | None = None
+    # Set by a source whose next frame follows a restart() or starts a new pass of a loop.
+    _cut: bool = False
+
+    def _take_cut(self) -> bool:
+        """Whether the frame being made is a cut (:attr:`StereoFrame.cut`); clears the mark."""
+        cut, self._cut = self._cut, False
+        return cut
 
     @abstractmethod
     def read(self) -> StereoFrame | None:

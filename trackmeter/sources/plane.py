@@ -100,7 +100,6 @@ class PlaneScene(Source):
         size = rig.image_size
         self._rays = (_rays(rig.left, size), _rays(rig.right, size))
         self._next = 0
-        self._restarted = False
 
     def T_cam_body(self, index: int) -> FloatArray:
         return np.asarray(self.pose(index / self.rate_hz), dtype=float)
@@ -140,15 +139,14 @@ class PlaneScene(Source):
         if self._next >= self.n_frames:
             return None
         f = self.frame(self._next)
-        if self._restarted:
+        if self._take_cut():
             f = replace(f, cut=True)
-            self._restarted = False
         self._next += 1
         return f
 
     def restart(self) -> None:
         self._next = 0
-        self._restarted = True
+        self._cut = True
 
     def surface_points(self, index: int, uv_left: NDArray) -> FloatArray:
         """Body points (N,3) seen at left pixels ``uv_left`` (N,2) in frame ``index``; NaN where

@@ -55,7 +55,6 @@ class SequenceSource(Source):
         self._pos = 0
         self._loops = 0
         self._count = 0
-        self._cut = False  # the next frame read starts a new pass or follows a restart
         n = len(self.index)
         dt = 1.0 / self.rate_hz if self.rate_hz else 0.0
         self._period_s = float(self.index.t_s[-1] - self.index.t_s[0]) + dt if n else 0.0
@@ -120,8 +119,7 @@ class SequenceSource(Source):
             t = float(self.index.t_s[pos]) + self._loops * self._period_s
             if self.realtime:
                 self._pacer.wait(t)
-            frame = StereoFrame(index=self._count, t_s=t, left=left, right=right, truth=self.truth_at(pos), cut=self._cut)
-            self._cut = False
+            frame = StereoFrame(index=self._count, t_s=t, left=left, right=right, truth=self.truth_at(pos), cut=self._take_cut())
             self._count += 1
             return frame
 

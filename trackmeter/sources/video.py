@@ -60,7 +60,6 @@ class VideoSource(Source):
         self._pacer = Pacer()
         self._count = 0
         self._pos = 0
-        self._cut = False  # the next frame read starts a new pass or follows a restart
         self._t_offset = 0.0
         self._last_t = -np.inf
 
@@ -92,8 +91,7 @@ class VideoSource(Source):
             raise TrackmeterError(f"left and right videos differ in frame size: {left.shape} vs {right.shape}")
         if self.realtime:
             self._pacer.wait(t)
-        frame = StereoFrame(index=self._count, t_s=t, left=left, right=right, cut=self._cut)
-        self._cut = False
+        frame = StereoFrame(index=self._count, t_s=t, left=left, right=right, cut=self._take_cut())
         self._count += 1
         return frame
 

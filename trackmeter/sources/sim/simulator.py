@@ -106,7 +106,6 @@ class Simulator(Source):
         self._pos = 0
         self._count = 0
         self._loops = 0
-        self._cut = False  # the next frame read starts a new pass or follows a restart
 
     # ------------------------------------------------------------------ random access
 
@@ -208,8 +207,7 @@ class Simulator(Source):
         t = f.t_s + self._loops * self.n_frames / self.rate_hz
         if self.realtime:
             self._pacer.wait(t)
-        out = StereoFrame(index=self._count, t_s=t, left=f.left, right=f.right, truth=f.truth, cut=self._cut)
-        self._cut = False
+        out = StereoFrame(index=self._count, t_s=t, left=f.left, right=f.right, truth=f.truth, cut=self._take_cut())
         self._count += 1
         return out
 
