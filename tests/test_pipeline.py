@@ -212,6 +212,39 @@ def test_a_command_is_applied_before_the_waiting_frame_which_then_tracks_it() ->
     assert snap is not None and snap.frame is not None and snap.frame.index > 0
 
 
+def test_a_click_is_published_on_the_clicked_frame_before_the_waiting_frame_is_tracked() -> None:
+    # The operator's answer (the new target on the frame they clicked) must not wait for the
+    # next tracking step: the pipeline publishes it as soon as the command is applied.
+    release, go, hold = threading.Event(), threading.Event(), threading.Event()
+    in_second = threading.Event()
+
+    class Engine(RecordingEngine):
+        def process(self, frame):  # type: ignore[no-untyped-def]
+            if frame.index >= 1:
+                in_second.set()
+                hold.wait(5)
+            return super().process(frame)
+
+    engine = Engine(block_first=release)
+    source = CountingSource(10**6, gate=go, gate_from=1)
+    with Pipeline(source, engine) as pipe:
+        assert engine.entered.wait(5)  # frame 0 is being tracked
+        go.set()
+        for _ in range(500):  # frame 1+ waits in the slot
+            if source.reads >= 2:
+                break
+            threading.Event().wait(0.01)
+        future = pipe.submit(SelectPoint(2.0, 1.0))
+        release.set()
+        assert future.result(5).ok
+        assert in_second.wait(5)  # the waiting frame's step has begun and is held
+        snap = pipe.latest()
+        hold.set()
+    assert snap.frame is not None and snap.frame.index == 0
+    assert [t.id for t in snap.targets] == ["t0"]
+    assert engine.processed[0] == 0
+
+
 def test_pause_and_step_read_exactly_one_frame() -> None:
     engine = RecordingEngine()
     source = CountingSource(10**6, delay_s=0.002)

@@ -236,6 +236,12 @@ class Engine:
         return str(self.tracker.auto[2])
 
     @property
+    def targets(self) -> tuple[TargetState, ...]:
+        """Every target as it stands now (lost ones included): after the last step and any
+        command since, e.g. a click's new target, measured on the frame the operator clicked."""
+        return tuple(self.tracker.targets)
+
+    @property
     def model(self) -> Any | None:
         """The a-priori model (case b), or None."""
         return self._given_model

@@ -72,7 +72,9 @@ class Engine(Protocol):
     No threads inside: the pipeline calls both methods from the tracking thread only. An engine
     may also offer ``top_up_due(index) -> bool`` and ``feature_response(frame)`` (safe on another
     thread) with ``process(frame, feature_response=callable)``: the pipeline then makes the
-    response on its helper thread during the step (see the module docstring).
+    response on its helper thread during the step (see the module docstring). An engine that
+    offers ``targets`` (every target as it stands after the commands) has a command's effect,
+    e.g. a click's new target, published at once on the frame the operator saw.
     """
 
     def handle(self, command: Command, frame: StereoFrame | None) -> CommandReply:
@@ -474,12 +476,28 @@ class Pipeline:
                 changed = True
                 if isinstance(command, RestartSource):
                     item = None  # a frame of the stream before the restart
+            if commands and self._refresh_targets() and item is not None:
+                # The answer to a click (its target on the frame the operator clicked) is shown
+                # now, not one tracking step later.
+                self._publish()
             if item is not None:
                 self._process(*item)
                 changed = True
             if status != published_status or changed:
                 published_status = status
                 self._publish()
+
+    def _refresh_targets(self) -> bool:
+        """Take the engine's targets as they stand after the commands (engines that offer
+        ``targets``); True when they changed."""
+        current = getattr(self.engine, "targets", None)
+        if current is None or self._last_frame is None:
+            return False
+        current = tuple(current)
+        if [(t.id, t.status) for t in current] == [(t.id, t.status) for t in self._last_targets]:
+            return False
+        self._last_targets = current
+        return True
 
     def _ready_commands(self) -> bool:
         if not self._commands:
