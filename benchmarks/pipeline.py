@@ -54,13 +54,14 @@ def _log(msg: str) -> None:
     print(f"[pipeline] {msg}", file=sys.stderr, flush=True)
 
 
-def make_engine(source: Any, case: str = "a") -> Any:
-    """The real tracking engine for ``source`` (config/default.yaml)."""
+def make_engine(source: Any, case: str = "a", live_errors: bool = True) -> Any:
+    """The real tracking engine for ``source`` (config/default.yaml); ``live_errors=False`` as
+    ``trackmeter track`` builds it (no errors against the truth while tracking)."""
     from trackmeter.data.config import load_config
     from trackmeter.pipeline.engine import Engine
 
     return Engine(load_config(), source.rig, model=getattr(source, "model", None), case=case,  # type: ignore[arg-type]
-                  rate_hz=source.rate_hz)
+                  rate_hz=source.rate_hz, live_errors=live_errors)
 
 
 class LiveWindow:
@@ -160,7 +161,7 @@ def offline_on(seq: Path) -> dict[str, float]:
 
     # Baseline: the same engine called in a plain loop on this thread (no pipeline threads).
     source = open_source(f"seq:{seq}")
-    engine = make_engine(source)
+    engine = make_engine(source, live_errors=False)  # as track builds it
     first = source.read()
     assert first is not None
     t0, c0 = time.perf_counter(), time.process_time()
@@ -175,7 +176,7 @@ def offline_on(seq: Path) -> dict[str, float]:
     source.close()
 
     source = open_source(f"seq:{seq}")
-    engine = make_engine(source)
+    engine = make_engine(source, live_errors=False)  # as track builds it
     tracking_cpu_s: list[float] = []
     process = engine.process
 

@@ -191,6 +191,21 @@ def test_case_b_noisy_errors_within_pose_sigma(estec_rig) -> None:
     assert np.all(np.abs(errors["omega_rad_s"]) < np.radians(0.3))
 
 
+def test_without_live_errors_the_same_poses_come_with_no_errors(estec_rig) -> None:
+    # track builds its engine this way (its run directory holds no errors): the errors are
+    # skipped, nothing else changes.
+    engine, _, _ = make_engine(estec_rig)
+    quiet, _, _ = make_engine(estec_rig)
+    quiet.live_errors = False
+    for (_, pose, errors), (_, pose_q, errors_q) in zip(run(engine, range(30)), run(quiet, range(30))):
+        assert errors_q is None
+        assert pose_q.valid == pose.valid
+        if pose.valid:
+            assert errors is not None
+            np.testing.assert_array_equal(pose_q.T_cam_body, pose.T_cam_body)
+            np.testing.assert_array_equal(pose_q.omega_body_rad_s, pose.omega_body_rad_s)
+
+
 def test_fewer_than_three_points_is_invalid_with_reason(estec_rig) -> None:
     engine, tracker, _ = make_engine(estec_rig)
     run(engine, range(5))

@@ -135,7 +135,8 @@ def run(args: argparse.Namespace) -> int:
                       "simulated source)", file=sys.stderr)
         if args.select_model_points and case != "b":
             raise TrackmeterError("--select-model-points needs case (b) and a model")
-        engine = Engine(config, rig, model if case == "b" else None, case, rate_hz=source.rate_hz or 25.0)
+        engine = Engine(config, rig, model if case == "b" else None, case, rate_hz=source.rate_hz or 25.0,
+                        live_errors=False)  # the run directory holds no errors: evaluate makes them
         commands: list[Any] = [SelectPoint(uv[0], uv[1], tid) for tid, uv in targets]
         if args.select_model_points:
             commands.insert(0, SelectModelPoints(repeat=True))

@@ -164,6 +164,9 @@ class Engine:
         tracker: a tracker to use instead of building
             :class:`trackmeter.core.tracking.Tracker` from the config (tests inject doubles).
         rate_hz: frame rate the output filter is designed for (the source's rate).
+        live_errors: compute each pose's errors against the frame's ground truth when it has
+            one (the console's error plots); a caller that never reads them (``track``, whose
+            run directory holds no errors: ``evaluate`` computes them afterwards) saves the work.
 
     Raises:
         TrackmeterError: case ``"b"`` without a model.
@@ -178,6 +181,7 @@ class Engine:
         *,
         tracker: Any | None = None,
         rate_hz: float | None = None,
+        live_errors: bool = True,
     ) -> None:
         self.config = config
         self.rig = rig
@@ -204,6 +208,7 @@ class Engine:
         self._lost_keep_frames = tracker_params.lost_keep_frames
         self._max_targets = tracker_params.max_targets
         self.rate_hz = float(rate_hz) if rate_hz else 25.0
+        self.live_errors = bool(live_errors)
         chosen: ModelCase = case or ("b" if model is not None else "a")
         if chosen not in ("a", "b", "c"):
             raise TrackmeterError(f"model case must be a, b or c, got {chosen!r}")
@@ -1063,7 +1068,7 @@ class Engine:
 
     def _errors(self, frame: StereoFrame, pose: PoseEstimate) -> dict | None:
         truth = frame.truth
-        if truth is None or not pose.valid:
+        if truth is None or not pose.valid or not self.live_errors:
             return None
         T_true = np.asarray(truth.T_cam_body, float)
         R_e, p_e = pose.T_cam_body[:3, :3], pose.T_cam_body[:3, 3]
