@@ -8,6 +8,9 @@ case a, whose body frame is its own), as the largest absolute error and the RMS 
    :class:`~trackmeter.pipeline.engine.SelectModelPoints`), the engine estimates pose,
    velocities and filters. Rendering and tracking are slow on this machine, so the run covers
    the first ``TRACKMETER_ACCURACY_S`` seconds of the scenario (default 20; 60 is the whole trial).
+   Each case runs under ``TRACKMETER_ACCURACY_SEEDS`` sensor-noise seeds (default 3: the
+   scenario's own seed and the next two) and every figure is the MEDIAN over them
+   (:func:`median_over_runs`), with each ``_max_`` figure's values per seed beside it.
 2. ``geom_b_*`` / ``geom_a_*`` — the motion estimation alone on the same trajectory (the
    simulator's ground truth, the whole 60 s): up to 16 points on the mock-up's faces that face
    the camera, measured with the paper's single-point noise (stereo error propagation with
@@ -284,12 +287,18 @@ def _jump_sigma(prev_T: np.ndarray, T: np.ndarray, cov: np.ndarray, prev_true: n
     return float(np.max(np.abs(d) / np.sqrt(np.diag(cov))))
 
 
-def run_chain(case: str, seconds: float, scenario: str = "estec") -> tuple[MotionSeries, MotionSeries, dict[str, float]]:
+def run_chain(case: str, seconds: float, scenario: str = "estec", seed_offset: int = 0
+              ) -> tuple[MotionSeries, MotionSeries, dict[str, float]]:
+    """The whole chain on ``scenario`` with its noise seed plus ``seed_offset``: truth, estimate, extras."""
+    import dataclasses
+
     from trackmeter.pipeline.engine import Engine, SelectModelPoints
     from trackmeter.pipeline.snapshot import SetAuto
+    from trackmeter.sources.sim.scenario import load_scenario
     from trackmeter.sources.sim.simulator import Simulator
 
-    sim = Simulator(scenario)
+    spec = load_scenario(scenario)
+    sim = Simulator(dataclasses.replace(spec, seed=spec.seed + seed_offset) if seed_offset else spec)
     engine = Engine(Config(), sim.rig, sim.model if case == "b" else None, case, rate_hz=sim.rate_hz or 25.0)
     n = min(len(sim), int(round(seconds * (sim.rate_hz or 25.0))) + 1)
     truth_rows, est_rows = [], []
@@ -337,8 +346,30 @@ def run_chain(case: str, seconds: float, scenario: str = "estec") -> tuple[Motio
     return _series(truth_rows), _series(est_rows), extra
 
 
-def run() -> dict[str, float]:
-    out: dict[str, float] = {}
+def _maxima(fig: dict[str, Any]) -> str:
+    return ", ".join(f"{k.split('_', 2)[2]} {v:.3g}" for k, v in fig.items() if "_max_" in k and isinstance(v, float))
+
+
+def median_over_runs(runs: list[dict[str, float]]) -> dict[str, Any]:
+    """Each figure as its median over ``runs`` (the same chain under different sensor-noise
+    seeds), and every ``_max_`` figure's values per run as ``<figure>_per_seed``.
+
+    One run's largest error is one draw: on estec case (b), 30 s, changing nothing but a tuning
+    constant that should not matter moved the largest lateral error between 3.0 and 6.4 mm, so a
+    single run cannot tell a change from luck. A figure present in only some runs is the median
+    of those."""
+    keys = sorted({k for r in runs for k in r})
+    out: dict[str, Any] = {}
+    for k in keys:
+        vals = [float(r[k]) for r in runs if k in r and np.isfinite(r[k])]
+        out[k] = float(np.median(vals)) if vals else float("nan")
+        if "_max_" in k:
+            out[f"{k}_per_seed"] = [float(r.get(k, float("nan"))) for r in runs]
+    return out
+
+
+def run() -> dict[str, Any]:
+    out: dict[str, Any] = {}
     for case, align in (("b", "none"), ("a", "body")):
         truth, est = run_geometric(case)
         out.update(figures(truth, est, align, f"geom_{case}"))
@@ -358,11 +389,16 @@ def run() -> dict[str, float]:
             name = f"geom_b_{key}_{stat}_{unit}"
             out[f"{name}_eq14"] = fd.get(name, float("nan"))
     seconds = float(os.environ.get("TRACKMETER_ACCURACY_S", "20"))
+    seeds = range(int(os.environ.get("TRACKMETER_ACCURACY_SEEDS", "3")))
     for case, align in (("b", "none"), ("a", "body")):
         try:
-            truth, est, extra = run_chain(case, seconds)
-            out.update(figures(truth, est, align, f"estec_{case}"))
-            out.update(extra)
+            runs = []
+            for offset in seeds:
+                truth, est, extra = run_chain(case, seconds, seed_offset=offset)
+                runs.append({**figures(truth, est, align, f"estec_{case}"), **extra})
+                _log(f"chain case {case}, noise seed +{offset}: {_maxima(runs[-1])}")
+            out.update(median_over_runs(runs))
+            out[f"estec_{case}_noise_seeds"] = float(len(runs))
         except Exception as exc:  # the chain depends on every layer: report, never invent
             _log(f"chain case {case} failed: {type(exc).__name__}: {exc}")
             out[f"estec_{case}_failed"] = 1.0

@@ -47,6 +47,21 @@ def test_benchmark_rows_never_invent_figures():
     assert all("missing" in r for r in missing_key) and not any(str(math.nan) in r for r in missing_key)
 
 
+def test_accuracy_figures_are_medians_over_seeds_with_each_seed_shown():
+    from benchmarks.accuracy import median_over_runs
+
+    runs = [{"estec_b_pos_depth_max_mm": v, "estec_b_valid_fraction": f}
+            for v, f in ((3.0, 1.0), (1.0, 0.9), (2.0, math.nan))]
+    out = median_over_runs(runs)
+    assert out["estec_b_pos_depth_max_mm"] == 2.0
+    assert out["estec_b_pos_depth_max_mm_per_seed"] == [3.0, 1.0, 2.0]
+    assert out["estec_b_valid_fraction"] == 0.95  # the median of the runs that have it
+    assert "estec_b_valid_fraction_per_seed" not in out
+    rows = benchmark_rows({"accuracy": out}, Step("b", [], status="ok"), ["accuracy"], [])
+    depth = next(r for r in rows if "estec_b" not in r and "case (b)" in r and "viewing axis (max)" in r)
+    assert "| 2.00 mm (median of 3.00, 1.00, 2.00) |" in depth
+
+
 def test_readme_table_is_replaced_between_the_markers_only(tmp_path):
     from benchmarks.reproduce import README_BEGIN, README_END, update_readme
 
