@@ -537,20 +537,19 @@ class StereoRenderer:
             assert surf is not None
             lvl = surf.levels[levels[f]]
             nv, nu = lvl.shape
-            rad_pm = self._face_radiance(geom, f, surf, levels[f], n_sides[f], s_body, s_side_n[f], E, amb, C,
-                                         offs[f], spreads[f], big_enough[f], shared)
+            face_light = (geom, f, surf, n_sides[f], s_body, s_side_n[f], E, amb, C, offs[f], spreads[f], big_enough[f], shared)
+            rad_pm = self._face_radiance(*face_light, levels[f])
             w = 0.0 if blend is None else float(blend[f])
             if w > 1e-3 and levels[f] + 1 < len(surf.levels):
-                coarse = self._face_radiance(geom, f, surf, levels[f] + 1, n_sides[f], s_body, s_side_n[f], E, amb, C,
-                                             offs[f], spreads[f], big_enough[f], shared)
+                coarse = self._face_radiance(*face_light, levels[f] + 1)
                 up = cv2.resize(coarse, (nu, nv), interpolation=cv2.INTER_LINEAR)
                 rad_pm = cv2.addWeighted(rad_pm, 1.0 - w, up, w, 0.0)
             self._draw(canvas, zbuf, rad_pm, lvl, Hs[f], (int(ix0[f]), int(iy0[f]), int(ix1[f]), int(iy1[f])), gz[f], must_read[f], must_write[f])
         return canvas, zbuf
 
-    def _face_radiance(self, geom: Any, f: int, surf: Surface, level: int, n_side: FloatArray, s_body: FloatArray,
+    def _face_radiance(self, geom: _Geom, f: int, surf: Surface, n_side: FloatArray, s_body: FloatArray,
                        s_side_n: float, E: float, amb: float, C: FloatArray, off: float, spread: float,
-                       big_enough: bool, shared: dict) -> F32:  # type: ignore[type-arg]
+                       big_enough: bool, shared: dict, level: int) -> F32:  # type: ignore[type-arg]
         """Premultiplied radiance of face ``f``'s visible side ``surf`` on the texel grid of mip
         ``level``: ambient + diffuse (with the face's cast shadows) + glint."""
         p = self.params
