@@ -1,0 +1,63 @@
+"""The accuracy benchmark's evaluation of a case-(a) run whose body frame was defined anew."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from benchmarks.accuracy import figures, figures_per_body_frame
+from trackmeter.data.motion_csv import MotionSeries
+
+from tests.test_metrics import DT, tumbling_truth
+
+
+def _in_body_frame(truth: MotionSeries, rows: slice, rotvec: list[float], t_body_m: list[float]) -> tuple[np.ndarray, np.ndarray]:
+    """Poses of ``truth`` (rows) referred to another body frame: T_cam_est = T_cam_true T_true_est."""
+    R_x, t_x = Rotation.from_rotvec(rotvec), np.asarray(t_body_m)
+    R = Rotation.from_quat(truth.quat_wxyz[rows], scalar_first=True)
+    return truth.position_m[rows] + R.apply(t_x), (R * R_x).as_quat(scalar_first=True)
+
+
+def test_each_body_frame_definition_is_aligned_on_its_own():
+    truth = tumbling_truth(n=300)  # 24 s
+    n = len(truth)
+    p = np.full((n, 3), np.nan)
+    q = np.full((n, 4), np.nan)
+    valid = np.zeros(n, bool)
+    frames = np.zeros(n, int)
+    # definition 0 until a total loss at frame 140; definition 1 from frame 160, a different frame
+    p[:140], q[:140] = _in_body_frame(truth, slice(0, 140), [0.3, -0.2, 0.1], [0.05, 0.02, -0.1])
+    p[160:], q[160:] = _in_body_frame(truth, slice(160, n), [-1.0, 0.4, 0.7], [-0.2, 0.1, 0.05])
+    valid[:140] = valid[160:] = True
+    frames[140:] = 1
+    nan = np.full((n, 3), np.nan)  # no rates: pose figures only
+    est = MotionSeries(truth.t_s, valid, p, q, nan, nan)
+
+    out = figures_per_body_frame(truth, est, frames, "x")
+    assert out["x_body_frames"] == 2
+    assert out["x_valid_fraction"] == pytest.approx(280 / 300)
+    for key in ("x_pos_lateral_max_mm", "x_pos_depth_max_mm", "x_att_view_max_deg", "x_att_other_max_deg"):
+        assert out[key] < 1e-6, key
+    # each definition settles for 2 s from its first pose (25 samples), then runs to its last
+    assert out["x_seconds"] == pytest.approx(2 * (139 - 25) * DT, abs=1e-9)
+    # one alignment over both definitions cannot fit them: the reason for evaluating them apart
+    whole = figures(truth, est, "body", "x")
+    assert whole["x_pos_lateral_max_mm"] > 50
+
+
+def test_a_single_definition_is_the_plain_evaluation():
+    truth = tumbling_truth(n=150)
+    p, q = _in_body_frame(truth, slice(None), [0.1, 0.2, 0.3], [0.01, 0.0, 0.02])
+    p = p + np.array([0.0, 0.0, 0.002])  # a camera-frame error the body alignment cannot absorb
+    est = MotionSeries(truth.t_s, np.ones(len(truth), bool), p, q, truth.velocity_cam_m_s, truth.omega_body_rad_s)
+    out = figures_per_body_frame(truth, est, np.zeros(len(truth), int), "y")
+    plain = figures(truth, est, "body", "y")
+    assert out == {**plain, "y_body_frames": 1.0}
+    assert out["y_pos_depth_max_mm"] > 0.5
+
+
+def test_labels_must_match_the_estimates():
+    truth = tumbling_truth(n=100)
+    with pytest.raises(ValueError):
+        figures_per_body_frame(truth, truth, [0] * 99, "z")
