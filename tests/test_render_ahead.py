@@ -100,3 +100,17 @@ def test_the_pipe_holds_a_whole_frame_where_the_system_allows(short_estec):
         assert size >= min(allowed, 2 * 726 * 512 + 16 + 8 * 22)
     finally:
         ahead.close()
+
+
+def test_the_worker_runs_in_a_session_of_its_own(short_estec):
+    # Autogroup scheduling shares the CPUs between sessions: the camera stand-in must not take
+    # its CPU out of the tracking process's share (trackmeter.pipeline.priority).
+    import os
+
+    ahead = RenderAhead(short_estec, (726, 512))
+    try:
+        assert os.getsid(ahead._proc.pid) == ahead._proc.pid != os.getsid(0)
+        left, right = ahead.images(0, lambda i: i + 1)  # and it renders as before
+        assert left.shape == right.shape == (512, 726) and left.any()
+    finally:
+        ahead.close()

@@ -102,9 +102,9 @@ def worker_main(stdin: IO[bytes] | None = None, stdout: IO[bytes] | None = None)
     from trackmeter.sources.sim.simulator import Simulator
 
     if stdin is None:
-        # Ctrl-C in a terminal reaches the whole process group: the reader shuts down cleanly
-        # and closes our stdin, which ends this loop; a KeyboardInterrupt here would only
-        # print a traceback and fail the frames still in flight.
+        # The reader shuts down by closing our stdin, which ends this loop. Ctrl-C in a terminal
+        # does not reach this session of our own; an interrupt sent anyway would only print a
+        # traceback and fail the frames still in flight.
         signal.signal(signal.SIGINT, signal.SIG_IGN)
 
     inp = stdin if stdin is not None else sys.stdin.buffer
@@ -112,9 +112,13 @@ def worker_main(stdin: IO[bytes] | None = None, stdout: IO[bytes] | None = None)
     if stdin is None:
         import cv2
 
+        from trackmeter.pipeline.priority import autogroup_follows_nice
+
         # One thread: the worker renders ahead, so its CPU per frame matters, not its latency;
         # OpenCV's thread pool costs a few % more CPU (same images) and competes with the reader.
         cv2.setNumThreads(1)
+        # Our own session (see RenderAhead): at the priority the reader gave us, if it raised its own.
+        autogroup_follows_nice()
     try:
         (size,) = _INT.unpack(_read_exact(inp, _INT.size))
         sim = Simulator(pickle.loads(_read_exact(inp, size)))
@@ -159,7 +163,11 @@ class RenderAhead:
         # The child imports trackmeter from wherever this process did.
         boot = (f"import sys; sys.path[:0] = {[p for p in sys.path if p]!r}; "
                 "from trackmeter.sources.sim.render_ahead import worker_main; sys.exit(worker_main())")
-        self._proc = subprocess.Popen([sys.executable, "-c", boot], stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        # A session of its own: on Linux with autogroup scheduling the sessions share the CPUs
+        # equally, so the renderer, which stands in for the cameras' own hardware, does not take
+        # its CPU out of the tracking process's share when another program (a browser) is busy.
+        self._proc = subprocess.Popen([sys.executable, "-c", boot], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                      start_new_session=True)
         assert self._proc.stdout is not None
         _widen_pipe(self._proc.stdout.fileno(), 2 * self._shape[0] * self._shape[1] + 2 * _INT.size + 8 * _TRUTH_FLOATS)
         self._results: queue.Queue[tuple[int, object]] = queue.Queue()
