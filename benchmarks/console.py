@@ -37,7 +37,11 @@ Environment: ``TRACKMETER_BENCH_BROWSER_NICE`` (default 0, the issue's condition
 competes for the cores as it is; N > 0 runs Chromium's processes at nice N, a stand-in for an
 operator's browser on another machine, reported as ``browser_nice``), ``TRACKMETER_BENCH_CONSOLE_SOURCE`` (default ``sim``; ``plate`` replays one
 pre-rendered frame of a textured plate at 25 Hz, which takes the renderer's CPU out of the
-figures), ``TRACKMETER_BENCH_LIVE_S`` (default 30).
+figures), ``TRACKMETER_BENCH_LIVE_S`` (default 30), ``TRACKMETER_BENCH_CPU_NICE`` (default: what
+``trackmeter console`` does, ``--cpu-nice``'s default: the process and its session's autogroup
+at nice -10, see :mod:`trackmeter.pipeline.priority`; 0 leaves the priority alone, a stand-in
+for an operator without the privilege). ``cpu_nice`` is the value asked for and
+``cpu_priority_raised`` 1 when the system allowed it.
 """
 
 from __future__ import annotations
@@ -66,6 +70,21 @@ PACED_S = 15.0
 
 def _log(msg: str) -> None:
     print(f"[console] {msg}", file=sys.stderr, flush=True)
+
+
+def console_priority() -> tuple[int, Any]:
+    """Raise the CPU priority as ``trackmeter console`` does (before the source opens), or as
+    ``TRACKMETER_BENCH_CPU_NICE`` says; returns the nice value asked for and the
+    :class:`PriorityChange` (None: left alone) for :func:`~trackmeter.pipeline.priority.restore_cpu_priority`."""
+    from trackmeter.cli.console import DEFAULT_CPU_NICE
+    from trackmeter.pipeline.priority import raise_cpu_priority
+
+    nice = int(os.environ.get("TRACKMETER_BENCH_CPU_NICE", DEFAULT_CPU_NICE))
+    if nice == 0:
+        return 0, None
+    change = raise_cpu_priority(nice)
+    _log(change.message)
+    return nice, change
 
 
 def _poll(page: Any, predicate: Any, timeout_s: float) -> Any:
@@ -286,9 +305,12 @@ def run() -> dict[str, float]:
     from trackmeter.pipeline.snapshot import RemoveTarget, SetAuto
     from trackmeter.sources import open_source
 
+    from trackmeter.pipeline.priority import restore_cpu_priority
+
     chromium = shutil.which("chromium")
     if chromium is None:
         raise RuntimeError("Debian chromium is needed (apt-get install chromium)")
+    nice, priority = console_priority()
     if SOURCE == "plate":  # the browser tests' textured plate: no renderer competing for the cores
         from tests.browser.conftest import plate_source
 
@@ -296,7 +318,7 @@ def run() -> dict[str, float]:
     else:
         source = open_source(SOURCE, realtime=True, loop=True)
     running = start_console(source, make_engine(source), port=free_port())
-    out: dict[str, float] = {}
+    out: dict[str, float] = {"cpu_nice": float(nice)}
     try:
         running.pipeline.call(SetAuto(True, 16, "gabor"), 60)
         window = LiveWindow(running.pipeline)
@@ -422,4 +444,7 @@ def run() -> dict[str, float]:
             browser.close()
     finally:
         running.stop()
+        if priority is not None:
+            restore_cpu_priority(priority)
+    out["cpu_priority_raised"] = float(priority is not None and priority.applied)
     return out

@@ -129,6 +129,9 @@ class _ConsoleRun:
         from trackmeter.pipeline.snapshot import SetAuto
         from trackmeter.sources import open_source
 
+        from benchmarks.console import console_priority
+
+        _, self._priority = console_priority()  # as trackmeter console does
         source = open_source("sim", realtime=True, loop=True)
         self.running = start_console(source, make_engine(source), port=free_port())
         self.running.pipeline.submit(SetAuto(True, 16, "gabor"))
@@ -149,6 +152,10 @@ class _ConsoleRun:
             self._pw.stop()
         finally:
             self.running.stop()
+            if self._priority is not None:
+                from trackmeter.pipeline.priority import restore_cpu_priority
+
+                restore_cpu_priority(self._priority)
 
 
 def run() -> dict[str, float]:

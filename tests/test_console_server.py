@@ -39,6 +39,11 @@ def test_busy_port_is_a_clear_error_not_a_move_to_the_next_port(capsys: pytest.C
         check_port_free("127.0.0.1", 70000)
 
 
+def test_an_out_of_range_cpu_priority_is_a_clear_error(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["console", "--cpu-nice", "-21"]) == 2
+    assert capsys.readouterr().err.strip() == "trackmeter console: error: --cpu-nice must be -20..19, got -21"
+
+
 def test_a_failing_source_is_shown_and_the_console_stays_up() -> None:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from typing import Any
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -30,6 +31,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rig", metavar="RIG", help="stereo rig file to use instead of the source's own")
     parser.add_argument("--case", choices=("a", "b", "c"), help="model case at start (default: b when the source carries a model, else a)")
     parser.add_argument("--publish-hz", type=float, default=12.0, help="browser update rate, Hz (default 12)")
+    parser.add_argument("--cpu-nice", type=int, default=DEFAULT_CPU_NICE, metavar="N",
+                        help=f"run tracking at this CPU priority, -20..19, ahead of a browser on the same machine "
+                             f"(default {DEFAULT_CPU_NICE}; needs root or CAP_SYS_NICE, else it says so and runs as is; "
+                             f"0: leave the priority alone)")
+
+
+DEFAULT_CPU_NICE = -10
 
 
 def run(args: argparse.Namespace) -> int:
@@ -38,11 +46,30 @@ def run(args: argparse.Namespace) -> int:
 
     if not 1.0 <= args.publish_hz <= 30.0:
         raise TrackmeterError(f"--publish-hz must be 1-30, got {args.publish_hz}")
+    if not -20 <= args.cpu_nice <= 19:
+        raise TrackmeterError(f"--cpu-nice must be -20..19, got {args.cpu_nice}")
     # The command line is the one place where the library meets the console (viser).
-    from console.server import check_port_free, serve_forever, start_console
+    from console.server import check_port_free
 
     check_port_free(args.host, args.port)  # before the (slow) source opens
     config = load_config_from_args(args)
+    from trackmeter.pipeline.priority import raise_cpu_priority, restore_cpu_priority
+
+    priority = None
+    if args.cpu_nice:
+        # Before the source opens: its threads and the simulator's render worker inherit it.
+        priority = raise_cpu_priority(args.cpu_nice)
+        print(f"trackmeter console: {priority.message}", file=sys.stderr, flush=True)
+    try:
+        return _serve(args, config)
+    finally:
+        if priority is not None:
+            restore_cpu_priority(priority)  # the autogroup is the terminal session's: give it back
+
+
+def _serve(args: argparse.Namespace, config: Any) -> int:
+    from console.server import serve_forever, start_console
+    from trackmeter.errors import TrackmeterError
     from trackmeter.pipeline.engine import Engine
     from trackmeter.sources import open_source
 

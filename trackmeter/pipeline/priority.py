@@ -15,6 +15,10 @@ process that is not allowed to (neither root nor ``CAP_SYS_NICE``) gets a one-li
 runs as before. :func:`autogroup_follows_nice` lets a child started in a session of its own
 (the simulator's render worker, which stands in for the cameras' own hardware) give that
 session the priority it inherited. Linux only; elsewhere both report that nothing was done.
+
+The autogroup belongs to the session (a terminal's, when started from one), not to the
+process: :func:`restore_cpu_priority` gives it back, and ``trackmeter console`` does so when it
+stops; a process killed outright leaves its session at the raised priority until it ends.
 """
 
 from __future__ import annotations
