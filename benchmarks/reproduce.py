@@ -243,6 +243,8 @@ BENCHMARK_ROWS: dict[tuple[str, str], tuple[str, str, float, str, int]] = {
     ("console", "click_latency_ms"): ("click to target on screen", "—", 1.0, "ms", 0),
     ("console", "browser_image_updates_per_s"): ("image updates received by the browser", "—", 1.0, "/s", 1),
     ("console", "dropped_fraction"): ("frames dropped with the console connected", "—", 100.0, "%", 2),
+    ("console", "cpu_nice"): ("console's CPU priority in that run (nice; `trackmeter console --cpu-nice`)", "—", 1.0, "", 0),
+    ("console", "browser_images_shown_per_s"): ("images the browser drew per second in that run (software WebGL, same cores)", "—", 1.0, "/s", 2),
 }
 
 
