@@ -302,10 +302,9 @@ def run() -> dict[str, float]:
     from benchmarks.pipeline import LiveWindow, make_engine
     from console.server import start_console
     from tests.browser.conftest import CHROMIUM_ARGS, VIEWPORT, free_port, pixel_to_screen
+    from trackmeter.pipeline.priority import restore_cpu_priority
     from trackmeter.pipeline.snapshot import RemoveTarget, SetAuto
     from trackmeter.sources import open_source
-
-    from trackmeter.pipeline.priority import restore_cpu_priority
 
     chromium = shutil.which("chromium")
     if chromium is None:
