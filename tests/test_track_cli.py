@@ -143,3 +143,29 @@ def test_unknown_source_is_one_line(tmp_path, capsys) -> None:
     assert main(["track", "--source", "nope:1", "--auto", "4", "--out", str(tmp_path / "r")]) == 2
     err = capsys.readouterr().err
     assert "unknown source" in err and len(err.strip().splitlines()) == 1
+
+
+def test_sigterm_ends_a_run_as_ctrl_c_does(tmp_path) -> None:
+    # A service manager stops a run with SIGTERM: the files must be complete, as after Ctrl-C.
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "trackmeter.cli.main", "track", "--source", "sim", "--auto", "4",
+                             "--out", str(out)], stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not (out / "states.csv").exists() or len((out / "states.csv").read_text().splitlines()) < 4:
+            assert proc.poll() is None and time.monotonic() < deadline, "track ended or never wrote a frame"
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, err
+    assert "interrupted after" in err and "are complete" in err
+    meta = yaml.safe_load((out / "run.yaml").read_text())
+    assert meta["status"] == "interrupted"
+    assert len(read_motion_csv(out / "states.csv")) == meta["summary"]["frames"] >= 3

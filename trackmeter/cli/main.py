@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
+import threading
 from typing import NoReturn, Sequence
 
 from trackmeter.errors import TrackmeterError
@@ -55,12 +57,21 @@ def _command_module(name: str):  # type: ignore[no-untyped-def]
     return importlib.import_module(f"trackmeter.cli.{name}")
 
 
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
         parser.print_help()
         return 2
+    # A service manager's stop (SIGTERM) ends a run as Ctrl-C does: threads joined, files
+    # complete, the console's raised CPU priority given back (killed outright, none of that).
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _interrupt)
     try:
         return int(_command_module(args.command).run(args) or 0)
     except TrackmeterError as exc:
@@ -69,6 +80,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"trackmeter {args.command}: interrupted", file=sys.stderr)
         return 130
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":
