@@ -267,6 +267,27 @@ def test_fuse_point_correlated_keeps_a_common_pose_error() -> None:
     assert (Cm + Lf @ Lf.T)[0, 0] > 1 / (1 / 4.25 + 1 / 1.25)
 
 
+def test_fuse_point_correlated_stacked_equals_one_at_a_time() -> None:
+    """N points fused in one call give each point's single-call result."""
+    rng = np.random.default_rng(4)
+    n = 7
+
+    def spd() -> np.ndarray:
+        a = rng.normal(size=(n, 3, 3))
+        return a @ np.swapaxes(a, -1, -2) + 0.1 * np.eye(3)
+
+    b1, b2 = rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
+    C1, C2 = spd(), spd()
+    L1, L2 = 0.3 * rng.normal(size=(n, 3, 6)), 0.3 * rng.normal(size=(n, 3, 6))
+    b, Cm, L = fuse_point_correlated(b1, C1, L1, b2, C2, L2)
+    assert b.shape == (n, 3) and Cm.shape == (n, 3, 3) and L.shape == (n, 3, 6)
+    for i in range(n):
+        bi, Cmi, Li = fuse_point_correlated(b1[i], C1[i], L1[i], b2[i], C2[i], L2[i])
+        np.testing.assert_allclose(b[i], bi, rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(Cm[i], Cmi, rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(L[i], Li, rtol=1e-12, atol=1e-14)
+
+
 def test_params_defaults_are_valid() -> None:
     p = PoseParams()
     assert p.min_points >= 3 and 0 < p.outlier_probability < 1

@@ -560,23 +560,28 @@ def fuse_point_correlated(
     decomposition ``Cm = A Cm_old A^T + B Cm_new B^T`` and ``L = A L_old + B L_new``: with equal
     ``L`` the pose part stays as it is, with ``L = 0`` this is :func:`fuse_point`.
 
+    Every argument may carry the same leading dimensions (N points fused at once, one call
+    instead of N: the engine refines all its grown points every frame).
+
     Args:
-        b_old, b_new: (3,) estimates, body frame, m.
-        Cm_old, Cm_new: (3,3) independent (measurement) covariances, m².
-        L_old, L_new: (3,K) pose-error factors, m per unit of ``z``.
+        b_old, b_new: (...,3) estimates, body frame, m.
+        Cm_old, Cm_new: (...,3,3) independent (measurement) covariances, m².
+        L_old, L_new: (...,3,K) pose-error factors, m per unit of ``z``.
 
     Returns:
-        ``(b (3,), Cm (3,3), L (3,K))``; the total covariance is ``Cm + L L^T``.
+        ``(b (...,3), Cm (...,3,3), L (...,3,K))``; the total covariance is ``Cm + L L^T``.
     """
-    C_old = Cm_old + L_old @ L_old.T
-    C_new = Cm_new + L_new @ L_new.T
+    C_old = Cm_old + L_old @ np.swapaxes(L_old, -1, -2)
+    C_new = Cm_new + L_new @ np.swapaxes(L_new, -1, -2)
     W_old = np.linalg.inv(C_old)
     W_new = np.linalg.inv(C_new)
     C = np.linalg.inv(W_old + W_new)
     A = C @ W_old
     B = C @ W_new
-    Cm = A @ Cm_old @ A.T + B @ Cm_new @ B.T
-    return A @ b_old + B @ b_new, 0.5 * (Cm + Cm.T), A @ L_old + B @ L_new
+    At, Bt = np.swapaxes(A, -1, -2), np.swapaxes(B, -1, -2)
+    Cm = A @ Cm_old @ At + B @ Cm_new @ Bt
+    b = (A @ b_old[..., None] + B @ b_new[..., None])[..., 0]
+    return b, 0.5 * (Cm + np.swapaxes(Cm, -1, -2)), A @ L_old + B @ L_new
 
 
 def pose_between_models(model_from: FloatArray, model_to: FloatArray) -> tuple[FloatArray, FloatArray]:

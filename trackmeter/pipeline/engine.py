@@ -687,52 +687,64 @@ class Engine:
         p = self.pose_params
 
         L_pose = np.linalg.cholesky(0.5 * (cov + cov.T) + 1e-18 * np.eye(6)) if p.model_pose_error_correlated else None
+        t_s = self._frame_t_s
 
-        def observe(tgt: TargetState) -> tuple[FloatArray, FloatArray, FloatArray]:
-            """Body-frame observation, its measurement covariance and its pose-error factor."""
-            b_obs = R.T @ (tgt.point_cam - t)
-            Cm = R.T @ (scale2 * np.asarray(tgt.cov_cam, float)) @ R
+        def observe(tgts: list[TargetState]) -> tuple[FloatArray, FloatArray, FloatArray]:
+            """Body-frame observations (N,3), their measurement covariances (N,3,3) and their
+            pose-error factors (N,3,6), all points in one go (the cost is numpy's per call)."""
+            b_obs = (np.array([tg.point_cam for tg in tgts], float) - t) @ R  # R^T (p - t) per row
+            Cm = R.T @ (scale2 * np.array([tg.cov_cam for tg in tgts], float)) @ R
             if L_pose is None:
-                return b_obs, Cm + R.T @ _position_cov(cov, b_obs, R) @ R, _NO_POSE_ERROR
-            return b_obs, Cm, R.T @ _position_jacobian(b_obs, R) @ L_pose
+                return b_obs, Cm + R.T @ _position_cov(cov, b_obs, R) @ R, np.zeros((len(tgts), 3, 6))
+            return b_obs, Cm, R.T @ _position_jacobians(b_obs, R) @ L_pose
 
-        def fuse(b: FloatArray, cm: FloatArray, L: FloatArray, b_obs: FloatArray, cm_obs: FloatArray,
-                 L_obs: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-            b, cm, L = fuse_point_correlated(b, cm, L, b_obs, cm_obs, L_obs)
-            return b, cm, L, cm + L @ L.T
+        def fuse(points: list[_ModelPoint] | list[_Candidate], cm: FloatArray, b_obs: FloatArray,
+                 cm_obs: FloatArray, L_obs: FloatArray) -> None:
+            """Fuse each point with its observation (in place)."""
+            b, cm, L = fuse_point_correlated(np.array([m.b for m in points]), cm, np.array([m.L for m in points]),
+                                             b_obs, cm_obs, L_obs)
+            total = cm + L @ np.swapaxes(L, -1, -2)
+            for k, m in enumerate(points):
+                m.b, m.cm, m.L, m.cov = b[k], cm[k], L[k], total[k]
 
         if p.model_refine:
-            for n, pid in enumerate(ids):
-                m = self._model[pid]
-                if m.fixed or not inliers[n]:
-                    continue
-                b_obs, cm_obs, L_obs = observe(measured[pid])
-                cm = (m.cov if m.cm is None else m.cm) + self._slide_cov(m, self._frame_t_s)
-                m.b, m.cm, m.L, m.cov = fuse(m.b, cm, m.L, b_obs, cm_obs, L_obs)
-                m.t_s = self._frame_t_s
+            refine = [pid for n, pid in enumerate(ids) if inliers[n] and not self._model[pid].fixed]
+            if refine:
+                points = [self._model[pid] for pid in refine]
+                cm_old = np.array([(m.cov if m.cm is None else m.cm) + self._slide_cov(m, t_s) for m in points])
+                fuse(points, cm_old, *observe([measured[pid] for pid in refine]))
+                for m in points:
+                    m.t_s = t_s
         # Candidates: measured targets not yet in the model.
-        for tid, tgt in measured.items():
-            if tid in self._model:
-                continue
-            b_obs, cm_obs, L_obs = observe(tgt)
+        new = [tid for tid in measured if tid not in self._model]
+        if not new:
+            return
+        b_obs, cm_obs, L_obs = observe([measured[tid] for tid in new])
+        cov_obs = cm_obs + L_obs @ np.swapaxes(L_obs, -1, -2)
+        again: list[int] = []
+        restarted: set[str] = set()  # an observation off its candidate starts it over, not joining now
+        for k, tid in enumerate(new):
             cand = self._candidates.get(tid)
-            if cand is None:
-                self._candidates[tid] = _Candidate(b_obs, cm_obs + L_obs @ L_obs.T, cm_obs, L_obs)
-                cand = self._candidates[tid]
-            else:
-                r = b_obs - cand.b
+            if cand is not None:
+                r = b_obs[k] - cand.b
                 # The innovation's pose parts partly cancel; their sum bounds it (a loose gate).
-                d2 = float(r @ np.linalg.solve(cand.cov + cm_obs + L_obs @ L_obs.T, r))
-                if d2 > self._gate:
-                    self._candidates[tid] = _Candidate(b_obs, cm_obs + L_obs @ L_obs.T, cm_obs, L_obs)
+                if float(r @ np.linalg.solve(cand.cov + cov_obs[k], r)) <= self._gate:
+                    again.append(k)
                     continue
-                cand.b, cand.cm, cand.L, cand.cov = fuse(cand.b, cand.cm, cand.L, b_obs, cm_obs, L_obs)
-                cand.count += 1
-            if cand.count >= p.join_after_frames:
-                self._model[tid] = _ModelPoint(cand.b, cand.cov, False, cand.cm, cand.L, self._frame_t_s)
+                restarted.add(tid)
+            self._candidates[tid] = _Candidate(b_obs[k], cov_obs[k], cm_obs[k], L_obs[k])
+        if again:
+            cands = [self._candidates[new[k]] for k in again]
+            fuse(cands, np.array([c.cm for c in cands]), b_obs[again], cm_obs[again], L_obs[again])
+            for c in cands:
+                c.count += 1
+        for tid in new:
+            cand = self._candidates[tid]
+            if tid not in restarted and cand.count >= p.join_after_frames:
+                self._model[tid] = _ModelPoint(cand.b, cand.cov, False, cand.cm, cand.L, t_s)
                 # Seen now: a point that joins and is lost before its next measurement must not
                 # rank as the stalest of the grown model (pruned first, never re-locked).
-                self._seen_t[tid] = self._frame_t_s
+                self._seen_t[tid] = t_s
                 del self._candidates[tid]
                 self.stats.model_points_joined += 1
 
@@ -1122,15 +1134,21 @@ def _sigmas_within(cov_pose: FloatArray, attitude_sigma_deg: float, position_sig
     return bool(np.sqrt(d[3:].max()) <= np.radians(attitude_sigma_deg) and np.sqrt(d[:3].max()) <= position_sigma_m)
 
 
-def _position_jacobian(b: FloatArray, R: FloatArray) -> FloatArray:
-    """(3,6) derivative of a body point's camera position ``R b + t`` by the pose error
-    ``(dt, dtheta)`` (first order, ``d(Rb+t) = dt - [Rb]x dtheta``)."""
-    Rb = R @ b
-    S = np.array([[0, -Rb[2], Rb[1]], [Rb[2], 0, -Rb[0]], [-Rb[1], Rb[0], 0]])
-    return np.hstack([np.eye(3), -S])
+def _position_jacobians(b: FloatArray, R: FloatArray) -> FloatArray:
+    """(...,3,6) derivative of body points' camera positions ``R b + t`` (b (...,3)) by the
+    pose error ``(dt, dtheta)`` (first order, ``d(Rb+t) = dt - [Rb]x dtheta``)."""
+    Rb = np.asarray(b, float) @ R.T
+    J = np.zeros(Rb.shape[:-1] + (3, 6))
+    J[..., 0, 0] = J[..., 1, 1] = J[..., 2, 2] = 1.0
+    # -[Rb]x in the rotation columns
+    J[..., 0, 4], J[..., 0, 5] = Rb[..., 2], -Rb[..., 1]
+    J[..., 1, 3], J[..., 1, 5] = -Rb[..., 2], Rb[..., 0]
+    J[..., 2, 3], J[..., 2, 4] = Rb[..., 1], -Rb[..., 0]
+    return J
 
 
 def _position_cov(cov_pose: FloatArray, b: FloatArray, R: FloatArray) -> FloatArray:
-    """Covariance (3,3) of a body point ``R b + t`` in the camera frame from the pose covariance."""
-    J = _position_jacobian(b, R)
-    return J @ cov_pose @ J.T
+    """Covariance (...,3,3) of body points ``R b + t`` (b (...,3)) in the camera frame from the
+    pose covariance (6,6)."""
+    J = _position_jacobians(b, R)
+    return J @ cov_pose @ np.swapaxes(J, -1, -2)
