@@ -15,6 +15,7 @@ from trackmeter.core.pose import (
     choose_frame_points,
     fuse_point,
     fuse_point_correlated,
+    position_jacobians,
     robust_pose,
     solve_pose,
     three_point_body_frame,
@@ -286,6 +287,24 @@ def test_fuse_point_correlated_stacked_equals_one_at_a_time() -> None:
         np.testing.assert_allclose(b[i], bi, rtol=1e-12, atol=1e-14)
         np.testing.assert_allclose(Cm[i], Cmi, rtol=1e-12, atol=1e-14)
         np.testing.assert_allclose(L[i], Li, rtol=1e-12, atol=1e-14)
+
+
+def test_position_jacobians_match_finite_differences() -> None:
+    """[I | -[R b]x] is the derivative of R b + t by (dt, dtheta) with R <- exp(dtheta) R."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(5)
+    R = Rotation.from_rotvec(rng.normal(size=3)).as_matrix()
+    b = rng.normal(size=(4, 3))
+    J = position_jacobians(b, R)
+    assert J.shape == (4, 3, 6)
+    eps = 1e-7
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = eps
+        moved = b @ (Rotation.from_rotvec(d[3:]).as_matrix() @ R).T + d[:3]
+        np.testing.assert_allclose((moved - b @ R.T) / eps, J[:, :, k], atol=1e-6)
+    np.testing.assert_allclose(position_jacobians(b[0], R), J[0], rtol=0, atol=1e-15)
 
 
 def test_params_defaults_are_valid() -> None:

@@ -235,6 +235,14 @@ def _skew(v: FloatArray) -> FloatArray:
     return S
 
 
+def position_jacobians(points_body: FloatArray, R_cam_body: FloatArray) -> FloatArray:
+    """(...,3,6) derivative of body points' camera positions ``R b + t`` (``points_body``
+    (...,3)) by the pose error ``(dt, dtheta)``, camera frame, to first order:
+    ``d(R b + t) = dt - [R b]x dtheta``, i.e. ``[I | -[R b]x]``."""
+    Rb = np.asarray(points_body, dtype=float) @ R_cam_body.T
+    return np.concatenate([np.broadcast_to(np.eye(3), Rb.shape[:-1] + (3, 3)), -_skew(Rb)], axis=-1)
+
+
 def _weights(R: FloatArray, cov_cam: FloatArray, cov_body: FloatArray | None) -> FloatArray:
     C = cov_cam if cov_body is None else cov_cam + R @ cov_body @ R.T
     return np.linalg.inv(C)
@@ -477,7 +485,7 @@ def _gating_d2(R: FloatArray, t: FloatArray, cov: FloatArray, b: FloatArray, p: 
     out = np.flatnonzero(~inliers)
     if len(out):
         Rb = b[out] @ R.T
-        J = np.concatenate([np.broadcast_to(np.eye(3), (len(out), 3, 3)), -_skew(Rb)], axis=2)
+        J = position_jacobians(b[out], R)
         Cp = C[out] + J @ cov @ np.transpose(J, (0, 2, 1))
         if Cb is not None:
             Cp = Cp + R @ Cb[out] @ R.T

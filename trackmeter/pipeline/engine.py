@@ -56,6 +56,7 @@ from trackmeter.core.pose import (
     choose_frame_points,
     fuse_point_correlated,
     hold_frame,
+    position_jacobians,
     robust_pose,
     solve_pose,
     three_point_body_frame,
@@ -696,7 +697,7 @@ class Engine:
             Cm = R.T @ (scale2 * np.array([tg.cov_cam for tg in tgts], float)) @ R
             if L_pose is None:
                 return b_obs, Cm + R.T @ _position_cov(cov, b_obs, R) @ R, np.zeros((len(tgts), 3, 6))
-            return b_obs, Cm, R.T @ _position_jacobians(b_obs, R) @ L_pose
+            return b_obs, Cm, R.T @ position_jacobians(b_obs, R) @ L_pose
 
         def fuse(points: list[_ModelPoint] | list[_Candidate], cm: FloatArray, b_obs: FloatArray,
                  cm_obs: FloatArray, L_obs: FloatArray) -> None:
@@ -1134,21 +1135,8 @@ def _sigmas_within(cov_pose: FloatArray, attitude_sigma_deg: float, position_sig
     return bool(np.sqrt(d[3:].max()) <= np.radians(attitude_sigma_deg) and np.sqrt(d[:3].max()) <= position_sigma_m)
 
 
-def _position_jacobians(b: FloatArray, R: FloatArray) -> FloatArray:
-    """(...,3,6) derivative of body points' camera positions ``R b + t`` (b (...,3)) by the
-    pose error ``(dt, dtheta)`` (first order, ``d(Rb+t) = dt - [Rb]x dtheta``)."""
-    Rb = np.asarray(b, float) @ R.T
-    J = np.zeros(Rb.shape[:-1] + (3, 6))
-    J[..., 0, 0] = J[..., 1, 1] = J[..., 2, 2] = 1.0
-    # -[Rb]x in the rotation columns
-    J[..., 0, 4], J[..., 0, 5] = Rb[..., 2], -Rb[..., 1]
-    J[..., 1, 3], J[..., 1, 5] = -Rb[..., 2], Rb[..., 0]
-    J[..., 2, 3], J[..., 2, 4] = Rb[..., 1], -Rb[..., 0]
-    return J
-
-
 def _position_cov(cov_pose: FloatArray, b: FloatArray, R: FloatArray) -> FloatArray:
     """Covariance (...,3,3) of body points ``R b + t`` (b (...,3)) in the camera frame from the
     pose covariance (6,6)."""
-    J = _position_jacobians(b, R)
+    J = position_jacobians(b, R)
     return J @ cov_pose @ np.swapaxes(J, -1, -2)
