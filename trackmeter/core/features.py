@@ -397,39 +397,6 @@ def spread(points: FloatArray, scores: FloatArray, min_distance_px: float, limit
     return pts[kept]
 
 
-@dataclass(frozen=True, eq=False)
-class FeatureResponse:
-    """The Gabor feature score (:func:`gabor_score`) of one left image where selection may pick.
-
-    ``score`` (h,w) float32 covers the image region whose top-left pixel is ``(x0, y0)``: the
-    bounding box of the selectable pixels (:func:`target_mask`) plus the filters' reach, so
-    every selectable pixel's score is the whole image's. It depends on the image and ``params``
-    only (not on the targets to keep away from), so it can be made ahead, e.g. on another
-    thread while the targets of that frame are tracked (:func:`feature_response`), and handed
-    to :func:`select_features`: the selection is then the same, bit for bit, without filtering.
-    """
-
-    x0: int
-    y0: int
-    score: NDArray[np.float32]
-    params: FeatureParams
-
-    def covers(self, x0: int, y0: int, x1: int, y1: int, params: FeatureParams) -> bool:
-        h, w = self.score.shape
-        return (params == self.params and self.x0 <= x0 and self.y0 <= y0
-                and x1 <= self.x0 + w and y1 <= self.y0 + h)
-
-
-def feature_response(left: NDArray, params: FeatureParams) -> FeatureResponse | None:
-    """The Gabor score of ``left`` (H,W) uint8 over its selectable region (:class:`FeatureResponse`);
-    None when no pixel is selectable."""
-    region = _gabor_region(target_mask(left, params), params)
-    if region is None:
-        return None
-    x0, y0, x1, y1 = region
-    return FeatureResponse(x0, y0, gabor_score(np.asarray(left)[y0:y1, x0:x1], params), params)
-
-
 def _gabor_region(mask: NDArray[np.uint8], params: FeatureParams) -> tuple[int, int, int, int] | None:
     """``(x0, y0, x1, y1)``: the bounding box of the selectable pixels plus the filters' reach
     (kernel, pyramid smoothing and up-sampling, in full-resolution px), its corner on the
@@ -445,19 +412,15 @@ def _gabor_region(mask: NDArray[np.uint8], params: FeatureParams) -> tuple[int, 
     return x0, y0, x1, y1
 
 
-def _candidates_gabor(left: NDArray, mask: NDArray[np.uint8], params: FeatureParams, limit: int,
-                      response: FeatureResponse | None = None) -> FloatArray:
-    # Filter only the bounding box of the selectable pixels (every selectable pixel's score is
-    # the whole image's), or take it from the response made ahead for this image.
+def _candidates_gabor(left: NDArray, mask: NDArray[np.uint8], params: FeatureParams, limit: int) -> FloatArray:
+    # Filter only the bounding box of the selectable pixels: every selectable pixel's score is
+    # the whole image's.
     region = _gabor_region(mask, params)
     if region is None:
         return np.zeros((0, 2))
     x0, y0, x1, y1 = region
     m = mask[y0:y1, x0:x1]
-    if response is not None and response.covers(x0, y0, x1, y1, params):
-        score = response.score[y0 - response.y0 : y1 - response.y0, x0 - response.x0 : x1 - response.x0].copy()
-    else:
-        score = gabor_score(np.asarray(left)[y0:y1, x0:x1], params)
+    score = gabor_score(np.asarray(left)[y0:y1, x0:x1], params)
     np.copyto(score, np.float32(0.0), where=m == 0)
     best = float(score.max())
     if best <= 0:
@@ -506,7 +469,6 @@ def select_features(
     params: FeatureParams,
     exclude_uv: ArrayLike = (),
     disparity_range_px: tuple[float, float] | None = None,
-    response: FeatureResponse | None = None,
 ) -> FloatArray:
     """Up to ``n`` points (N,2), left ORIGINAL image px, good to track, best first.
 
@@ -523,8 +485,6 @@ def select_features(
             ``d = u_left - u_right``) the stereo check searches instead of the whole
             ``[min_depth_m, max_depth_m]`` range, e.g. around the disparities of the targets
             already tracked on the object. See :func:`stereo_matchable`.
-        response: the Gabor score of ``left`` made ahead (:func:`feature_response`, same
-            ``params``); method ``"gabor"`` then filters nothing. The result is the same.
 
     The candidates (up to ``candidates_factor * n``, best first) are stereo-checked in score
     order until ``n`` pass (:func:`stereo_matchable` with ``need=n``, and its sub-pixel second
@@ -544,11 +504,8 @@ def select_features(
     excl = np.asarray(exclude_uv, dtype=float).reshape(-1, 2)
     mask = _exclusion(target_mask(left, params), excl, params.min_distance_px)
     limit = n * params.candidates_factor if right_or_none is not None else n
-    if method == "gabor":
-        cand = _candidates_gabor(left, mask, params, limit, response)
-    else:
-        finder = {"centroid": _candidates_centroid, "shi_tomasi": _candidates_shi_tomasi}[method]
-        cand = finder(left, mask, params, limit)
+    finder = {"gabor": _candidates_gabor, "centroid": _candidates_centroid, "shi_tomasi": _candidates_shi_tomasi}[method]
+    cand = finder(left, mask, params, limit)
     if not stereo or len(cand) == 0:
         return cand[:n]
     assert right_or_none is not None and rig is not None

@@ -34,7 +34,7 @@ from __future__ import annotations
 import itertools
 import warnings
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Callable, Collection, Sequence
+from typing import TYPE_CHECKING, Collection, Sequence
 
 import numpy as np
 from filterpy.kalman import KalmanFilter
@@ -42,7 +42,7 @@ from numpy.typing import NDArray
 from scipy.stats import chi2
 
 from trackmeter.core import kalman as kf_mod
-from trackmeter.core.features import FeatureParams, FeatureResponse, feature_response, select_features
+from trackmeter.core.features import FeatureParams, select_features
 from trackmeter.core.kalman import KalmanParams
 from trackmeter.core.matching import MeasureParams, measure_points
 from trackmeter.core.params import param
@@ -704,14 +704,8 @@ class Tracker:
         self,
         frame: StereoFrame,
         reject_ids: Collection[str] = (),
-        feature_response: Callable[[], FeatureResponse | None] | None = None,
     ) -> tuple[TargetState, ...]:
-        """Track every target into ``frame``; returns all targets' states (see module doc).
-
-        ``feature_response``: when given, returns :meth:`feature_response` of this frame (e.g.
-        the result of a computation started on another thread before the step); automatic
-        selection then takes its Gabor score from it instead of filtering the image itself.
-        The targets are the same either way."""
+        """Track every target into ``frame``; returns all targets' states (see module doc)."""
         p = self.params
         fc = self._frame(frame)
         self.last_losses = {}
@@ -866,21 +860,8 @@ class Tracker:
                 t.t_s = frame.t_s
 
         if self._auto:
-            self._top_up(frame, fc, feature_response)
+            self._top_up(frame, fc)
         return self.targets
-
-    def top_up_due(self, index: int) -> bool:
-        """Whether automatic selection (Gabor) will probably top up at frame ``index`` (the next
-        one): it is on, its interval has passed and fewer than ``count`` targets are tracking.
-        A caller can then make :meth:`feature_response` of that frame ahead."""
-        if not self._auto or self._auto_method != "gabor" or self._top_up_resting(index):
-            return False
-        return sum(1 for t in self._targets.values() if t.status != "lost") < self._auto_count
-
-    def feature_response(self, frame: StereoFrame) -> FeatureResponse | None:
-        """The Gabor score automatic selection needs of ``frame`` (:func:`~trackmeter.core.features.feature_response`).
-        Reads only the frame and the (immutable) feature tunables: safe on another thread."""
-        return feature_response(frame.left, self.features)
 
     def _expected_scale(self, targets: list[_Target]) -> FloatArray:
         """Image scale of each target's anchor implied by its depth change, ``z_anchor / z``
@@ -1239,8 +1220,7 @@ class Tracker:
         last = self._last_top_up
         return last is not None and 0 <= index - last < self.params.auto_interval_frames
 
-    def _top_up(self, frame: StereoFrame, fc: _FrameCache,
-                feature_response: Callable[[], FeatureResponse | None] | None = None) -> None:
+    def _top_up(self, frame: StereoFrame, fc: _FrameCache) -> None:
         p = self.params
         if self._top_up_resting(frame.index):
             return
@@ -1255,8 +1235,7 @@ class Tracker:
         fp = self.features
         self._last_top_up = frame.index
         # Ask for spares: the measurement may still refuse some (e.g. disparity too uncertain).
-        response = feature_response() if feature_response is not None and self._auto_method == "gabor" else None
-        pts = select_features(frame.left, frame.right, self.rig, 3 * need, self._auto_method, fp, exclude, response=response)
+        pts = select_features(frame.left, frame.right, self.rig, 3 * need, self._auto_method, fp, exclude)
         if len(pts) == 0:
             return
         pts = np.asarray(pts, float).reshape(-1, 2)

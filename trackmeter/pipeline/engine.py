@@ -42,7 +42,7 @@ Per frame (:meth:`Engine.process`):
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -276,17 +276,6 @@ class Engine:
     def filter_cutoff_hz(self) -> float:
         return self.filter_params.cutoff_hz
 
-    def top_up_due(self, index: int) -> bool:
-        """Whether automatic selection will probably top up at frame ``index`` (the next one):
-        a caller with a spare thread can make :meth:`feature_response` of it ahead."""
-        due = getattr(self.tracker, "top_up_due", None)
-        return bool(due(index)) if due is not None else False
-
-    def feature_response(self, frame: StereoFrame) -> Any:
-        """What automatic selection filters ``frame`` for (``Tracker.feature_response``); reads
-        only the frame and immutable tunables, so another thread may make it during the step."""
-        return self.tracker.feature_response(frame)
-
     # ------------------------------------------------------------------ state resets
 
     def _reset_motion(self) -> None:
@@ -459,11 +448,8 @@ class Engine:
 
     # ------------------------------------------------------------------ per frame
 
-    def process(self, frame: StereoFrame, feature_response: Callable[[], Any] | None = None
-                ) -> tuple[tuple[TargetState, ...], PoseEstimate, dict | None]:
-        """Track one frame; returns ``(targets, pose, errors)`` (see the module docstring).
-        ``feature_response``: :meth:`feature_response` of this frame made ahead (a callable
-        returning it, e.g. a future's ``result``), for automatic selection; the same result."""
+    def process(self, frame: StereoFrame) -> tuple[tuple[TargetState, ...], PoseEstimate, dict | None]:
+        """Track one frame; returns ``(targets, pose, errors)`` (see the module docstring)."""
         if frame.cut:
             # The scene jumped (a looping source's new pass, a restart): a model grown before
             # would re-lock onto whatever lies where its points were, and the coasted pose
@@ -473,8 +459,7 @@ class Engine:
         reject = self._pending_reject
         self._pending_reject = set()
         self._frame_t_s = frame.t_s
-        targets = (self.tracker.step(frame, reject_ids=reject) if feature_response is None
-                   else self.tracker.step(frame, reject_ids=reject, feature_response=feature_response))
+        targets = self.tracker.step(frame, reject_ids=reject)
         self.stats.frames += 1
         floor = self.pose_params.point_sigma_floor_m**2 * np.eye(3)
         measured = {

@@ -18,10 +18,11 @@
   applies the queued :class:`Command` objects in the order they were sent, resolving each
   command's ``reply`` future. Pause, step, restart and recording are handled here; everything
   else goes to ``engine.handle(command, frame)`` with the frame the operator saw.
-- When the engine says automatic selection will top up on a frame (``engine.top_up_due``), a
-  helper thread filters that frame for it (``engine.feature_response``, the Gabor bank: OpenCV
-  and numpy, which release the GIL) while the tracking thread tracks the targets; the step then
-  waits for the result instead of filtering. Same targets; the step is shorter by what overlaps.
+- Automatic selection filters its frame (the Gabor bank) on the tracking thread, inside the
+  step. A helper thread filtering it while the step tracked the targets was measured slower
+  on two cores: its many short OpenCV calls each wait for the GIL the tracking thread holds,
+  so the step waited ~14 ms for a ~12 ms filtering (recorded sequence: 57-65 fps with the
+  helper, 73 without).
 - The recorder writes every frame the acquisition read to a sequence folder from its own
   bounded queue (``record_queue_frames`` deep). It never blocks the acquisition; if the disk
   cannot keep up and the queue is full, the frame is counted in
@@ -38,7 +39,7 @@ import logging
 import queue
 import threading
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Protocol, Sequence
@@ -70,10 +71,7 @@ class Engine(Protocol):
     """What the tracking thread needs from the tracker (``trackmeter.pipeline.engine.Engine``).
 
     No threads inside: the pipeline calls both methods from the tracking thread only. An engine
-    may also offer ``top_up_due(index) -> bool`` and ``feature_response(frame)`` (safe on another
-    thread) with ``process(frame, feature_response=callable)``: the pipeline then makes the
-    response on its helper thread during the step (see the module docstring). An engine that
-    offers ``targets`` (every target as it stands after the commands) has a command's effect,
+    that offers ``targets`` (every target as it stands after the commands) has a command's effect,
     e.g. a click's new target, published at once on the frame the operator saw.
     """
 
@@ -292,8 +290,6 @@ class Pipeline:
         self._snap_cond = threading.Condition()
         self.engine_errors = 0
 
-        # Filters a frame for automatic selection while the tracking thread tracks it (module doc).
-        self._features: ThreadPoolExecutor | None = None
         self._acq_thread = threading.Thread(target=self._acquire_loop, name="trackmeter-acquisition", daemon=True)
         self._trk_thread = threading.Thread(target=self._track_loop, name="trackmeter-tracking", daemon=True)
         self._started = False
@@ -306,8 +302,6 @@ class Pipeline:
         self._started = True
         if self._initial_record_dir is not None:
             self._start_recording(self._initial_record_dir)
-        if callable(getattr(self.engine, "top_up_due", None)) and callable(getattr(self.engine, "feature_response", None)):
-            self._features = ThreadPoolExecutor(max_workers=1, thread_name_prefix="trackmeter-features")
         self._trk_thread.start()
         self._acq_thread.start()
         return self
@@ -322,8 +316,6 @@ class Pipeline:
                 thread.join(timeout_s)
                 if thread.is_alive():
                     log.error("%s did not stop within %.1f s", thread.name, timeout_s)
-        if self._features is not None:
-            self._features.shutdown(wait=True)
         self._stop_recording()
         # Commands nobody will apply any more must not leave a caller waiting forever.
         with self._cond:
@@ -516,12 +508,7 @@ class Pipeline:
     def _process(self, frame: StereoFrame, t_read: float) -> None:
         start = time.monotonic()
         try:
-            features = self._features
-            if features is not None and self.engine.top_up_due(frame.index):  # type: ignore[attr-defined]
-                ahead = features.submit(self.engine.feature_response, frame)  # type: ignore[attr-defined]
-                targets, pose, errors = self.engine.process(frame, feature_response=ahead.result)  # type: ignore[call-arg]
-            else:
-                targets, pose, errors = self.engine.process(frame)
+            targets, pose, errors = self.engine.process(frame)
             self._last_targets = tuple(targets)
             self._last_pose = pose
             self._last_errors = errors
