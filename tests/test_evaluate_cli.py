@@ -170,7 +170,6 @@ def test_settle_counts_from_the_start_of_the_run(capsys, tmp_path):
     """A run whose first second has no pose: --settle 2 skips poses before t0 + 2 s of the run,
     not 2 s after the first pose."""
     truth = tumbling_truth()  # t = 2.0, 2.08, ...
-    n = len(truth)
     valid = truth.t_s >= 3.0
     p = truth.position_m.copy()
     p[truth.t_s < 4.0] += 0.01  # settling errors until t = 4.0 s = run start + 2 s
