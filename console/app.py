@@ -64,6 +64,8 @@ SCENE3D_OFFSET = (-8.0, 0.0, -3.0)
 AUTO_METHODS = ("gabor", "centroid")
 SERIES_COLOURS = ("#e6194b", "#3cb44b", "#4363d8", "#111111")
 TRAIL_FRAMES = 12
+#: Colour of the measured 3D points in the 3D view: tracking, or measured again after a loss.
+POINT_COLOURS = {"tracking": (60, 230, 60), "other": (255, 200, 0)}
 STATUS_HEIGHT_EM = 23.0  # the live numbers' fixed height (see Console._status_html)
 #: How often the publisher hands the C heap's free pages back to the system (see :func:`release_free_heap`).
 TRIM_EVERY_S = 10.0
@@ -259,8 +261,14 @@ class Console:
             scene.add_camera_frustum("/scene3d/cam1", fov, aspect, scale=0.15, color=(255, 120, 40),
                                      wxyz=_wxyz(R.T), position=tuple(-R.T @ T))
         scene.add_frame("/scene3d/cam_axes", axes_length=0.2, axes_radius=0.008)
-        self.points = scene.add_point_cloud("/scene3d/points", np.zeros((1, 3), np.float32), (0, 255, 0),
-                                            point_size=0.03, precision="float32", visible=False)
+        # One cloud per status, each of one fixed colour, and only their positions are ever
+        # updated: viser's client builds a new point material (a shader program to compile)
+        # whenever a cloud's colours are assigned, and software WebGL (SwiftShader) compiled one
+        # per publish, ~12 a second, which took most of a headless browser's CPU.
+        self.points = {status: scene.add_point_cloud(f"/scene3d/points_{status}", np.zeros((1, 3), np.float32),
+                                                     POINT_COLOURS[status], point_size=0.03, precision="float32",
+                                                     visible=False)
+                       for status in POINT_COLOURS}
         self.body = scene.add_frame("/scene3d/body", axes_length=0.4, axes_radius=0.01, visible=False)
         self.truth = scene.add_frame("/scene3d/truth", axes_length=0.3, axes_radius=0.005, visible=False,
                                      origin_color=(180, 180, 180))
@@ -289,17 +297,16 @@ class Console:
                                               cast_shadow=False, receive_shadow=False)
 
     def _update_scene3d(self, snap: Snapshot) -> None:
-        pts = [t for t in snap.targets if t.measured and np.all(np.isfinite(t.point_cam))]
-        if pts:
-            # Update the handle in place: re-adding the node at every publish replaced it (a new
-            # handle, a purge of its buffered state, a create message) ~12 times a second.
-            xyz = np.array([t.point_cam for t in pts], np.float32)
-            rgb = np.array([(60, 230, 60) if t.status == "tracking" else (255, 200, 0) for t in pts], np.uint8)
-            self.points.points = xyz
-            self.points.colors = rgb
-            self.points.visible = True
-        else:
-            self.points.visible = False
+        for status, cloud in self.points.items():
+            pts = [t.point_cam for t in snap.targets
+                   if t.measured and (t.status == "tracking") == (status == "tracking") and np.all(np.isfinite(t.point_cam))]
+            if pts:
+                # Update the handle in place: re-adding the node at every publish replaced it (a
+                # new handle, a purge of its buffered state, a create message) ~12 times a second.
+                cloud.points = np.array(pts, np.float32)
+                cloud.visible = True
+            elif cloud.visible:
+                cloud.visible = False
         pose = snap.pose
         if pose.valid:
             T = np.asarray(pose.T_cam_body)
