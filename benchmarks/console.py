@@ -24,12 +24,15 @@ Figures:
   ``PACED_HZ`` (``paced_publish_hz``) in the same run: how many images the same browser
   shows when fewer arrive than it drops.
 - ``click_latency_ms``: median over ``N_CLICKS`` clicks on the satellite in the browser: from
-  the mouse button going down in the page until the page draws the first image that shows the
-  new target (the texture upload of an image whose JPEG is one the console pushed with the
-  target in it; page clock at both ends) (target < 300). The console holds the next image
-  back for its ``image_settle_s`` after such an image, so it is not dropped for a newer one. ``click_latency_received_ms``: until
-  the browser received such an image (the earlier definition of this figure);
-  ``click_to_server_ms``: until the tracking thread had created the target.
+  the mouse button going down in the page until the page draws the operator's box around the
+  clicked pixel (target < 300). The box is a scene node over the image, in its status colour as
+  tone-mapped on screen (:func:`console.overlay.displayed_rgb`); a probe in the page reads the
+  drawn pixels of four bands across the box's edges after every frame the page draws, and the
+  box counts as drawn when each band holds ``PROBE_MIN_PX`` more pixels of that colour than in
+  the first frame probed (page clock at both ends). ``click_latency_from_release_ms``: the same
+  from the button going up (the click is sent on release). ``click_latency_received_ms``: until
+  the browser received the first image pushed with the target; ``click_to_server_ms``: until
+  the tracking thread had created the target.
 - ``tracking_rate_hz_without_browser``: the same console with no browser connected, measured
   first in the same run (the browser's rendering competes for the two cores).
 
@@ -46,6 +49,7 @@ for an operator without the privilege). ``cpu_nice`` is the value asked for and
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import statistics
@@ -66,6 +70,8 @@ SOURCE = os.environ.get("TRACKMETER_BENCH_CONSOLE_SOURCE", "sim")
 BROWSER_NICE = int(os.environ.get("TRACKMETER_BENCH_BROWSER_NICE", "0"))
 PACED_HZ = 6.0  # the paced phase's image rate
 PACED_S = 15.0
+PROBE_SLACK_PX = 5.0  # screen px either side of the box's edges where its lines may fall (the target moves)
+PROBE_MIN_PX = 10  # pixels of the box's colour each edge's band must gain to count as drawn
 
 
 def _log(msg: str) -> None:
@@ -104,8 +110,9 @@ def _poll(page: Any, predicate: Any, timeout_s: float) -> Any:
 #: that came from a blob (viser's image planes load their JPEG through a blob URL).
 PAGE_HOOKS = """
 (() => {
-  const tm = window.__tm = {down: [], renders: 0, shown: []};
+  const tm = window.__tm = {down: [], up: [], renders: 0, shown: []};
   window.addEventListener('pointerdown', () => tm.down.push(performance.now()), true);
+  window.addEventListener('pointerup', () => tm.up.push(performance.now()), true);
   const sizes = new Map();
   const createURL = URL.createObjectURL;
   URL.createObjectURL = function (obj) {
@@ -124,7 +131,7 @@ PAGE_HOOKS = """
     const bind = P.bindFramebuffer;
     P.bindFramebuffer = function (target, fb) { this.__tmFb = fb; return bind.call(this, target, fb); };
     const clear = P.clear;
-    P.clear = function (mask) { if (!this.__tmFb) tm.renders++; return clear.call(this, mask); };
+    P.clear = function (mask) { if (!this.__tmFb) { tm.renders++; tm.gl = this; tm.drew = true; } return clear.call(this, mask); };
     for (const name of ['texImage2D', 'texSubImage2D']) {
       const f = P[name];
       P[name] = function (...args) {
@@ -133,8 +140,63 @@ PAGE_HOOKS = """
       };
     }
   }
+  // The probe: after each animation frame in which the page drew the scene, read the drawn
+  // pixels of the armed bands (page CSS px: x0, y0, x1, y1) and count those within ``tol`` of
+  // ``rgb``; ``found`` is the page time of the first frame in which every band holds ``min``
+  // more of them than in the first frame probed (``base``: what was there before, e.g. an
+  // automatic target's thin box drawn into the image).
+  tm.probe = null;
+  const raf = window.requestAnimationFrame;
+  window.requestAnimationFrame = function (cb) {
+    return raf.call(window, (t) => {
+      tm.drew = false;
+      cb(t);
+      const p = tm.probe, gl = tm.gl;
+      if (!tm.drew || !p || p.found !== null || !gl) return;
+      const c = gl.canvas, r = c.getBoundingClientRect();
+      const sx = c.width / r.width, sy = c.height / r.height;
+      let ok = true;
+      const counts = [];
+      for (const [bx0, by0, bx1, by1] of p.bands) {
+        const x0 = Math.max(0, Math.floor((bx0 - r.left) * sx)), x1 = Math.min(c.width, Math.ceil((bx1 - r.left) * sx));
+        const y0 = Math.max(0, Math.floor((by0 - r.top) * sy)), y1 = Math.min(c.height, Math.ceil((by1 - r.top) * sy));
+        if (x1 <= x0 || y1 <= y0) { ok = false; break; }
+        const buf = new Uint8Array((x1 - x0) * (y1 - y0) * 4);
+        gl.readPixels(x0, c.height - y1, x1 - x0, y1 - y0, gl.RGBA, gl.UNSIGNED_BYTE, buf);
+        let n = 0;
+        for (let i = 0; i < buf.length; i += 4)
+          if (Math.abs(buf[i] - p.rgb[0]) <= p.tol && Math.abs(buf[i + 1] - p.rgb[1]) <= p.tol
+              && Math.abs(buf[i + 2] - p.rgb[2]) <= p.tol) n++;
+        counts.push(n);
+      }
+      p.frames++;
+      if (!ok) return;
+      if (p.base === null) { p.base = counts; return; }
+      if (counts.every((n, i) => n >= p.base[i] + p.min)) p.found = performance.now();
+    });
+  };
 })();
 """
+
+
+def box_bands(running: Any, client: Any, page: Any, uv: tuple[float, float], half_px: float,
+              slack_px: float, box: dict[str, float]) -> list[list[float]]:
+    """Page rectangles (CSS px: x0, y0, x1, y1) around the middle of each edge of the box of
+    half-side ``half_px`` (image px) centred on image pixel ``uv``, ``slack_px`` (screen px)
+    either side of the edge: where that box's lines fall even when the target has moved a
+    little, and where no other box's lines cross all four."""
+    from tests.browser.conftest import pixel_to_screen
+
+    corners = [pixel_to_screen(running, client, page, (uv[0] + du, uv[1] + dv), box)
+               for du, dv in ((-half_px, -half_px), (half_px, -half_px), (half_px, half_px), (-half_px, half_px))]
+    bands = []
+    for (xa, ya), (xb, yb) in zip(corners, corners[1:] + corners[:1]):
+        # The middle 40 % of the edge, widened across it by the slack.
+        mx0, my0 = xa + 0.3 * (xb - xa), ya + 0.3 * (yb - ya)
+        mx1, my1 = xa + 0.7 * (xb - xa), ya + 0.7 * (yb - ya)
+        bands.append([min(mx0, mx1) - slack_px, min(my0, my1) - slack_px,
+                      max(mx0, mx1) + slack_px, max(my0, my1) + slack_px])
+    return bands
 
 
 def _page_offset_s(page: Any) -> float:
@@ -210,19 +272,20 @@ def _follow(before: Any, after: Any, uv: tuple[float, float], k: int = 3) -> tup
 
 
 def _click_candidates(running: Any) -> tuple[Any, list[tuple[float, float]]]:
-    """Pixels an operator would click: textured points of the satellite in the latest frame, away
-    from the targets (automatic selection's own test), that the tracker itself accepts (its own
-    measurement parameters and click check) at the point and at 8 points ``CLICK_SLACK_PX``
-    around it, so they are still good targets after the satellite moved a little under the
-    cursor, and at least ``CLICK_INSIDE_PX`` inside the lit body (a click near the silhouette
-    lands on black space once the body turned); the deepest inside first. Else the pixels of
-    the tracking targets (deepest inside first), else pixels around the projection of the body
-    origin (truth or estimate). Returns the snapshot they belong
-    to and the pixels (see :func:`_follow`).
+    """Pixels an operator would click: the pixels of the targets the tracker is measuring in the
+    latest frame (textured points it accepts, at most a frame old: nothing else to compute, so
+    the satellite has hardly moved by the time the click lands), at least ``CLICK_INSIDE_PX``
+    inside the lit body (a click near the silhouette lands on black space once the body
+    turned), the deepest inside first. Else textured points of the satellite that the tracker
+    itself accepts (its own measurement parameters and click check) at the point and at 8
+    points ``CLICK_SLACK_PX`` around it, deepest inside first; else pixels around the
+    projection of the body origin (truth or estimate). Returns the snapshot they belong to and
+    the pixels (see :func:`_follow`).
 
-    The tracker's own parameters matter: measured on the estec scenario, of the features
-    selected with the default :class:`MeasureParams` only 4-16 of 24-39 were accepted by the
-    tracker's (mostly "disparity too uncertain"), and 2-5 also 2 px around."""
+    Measured on the estec scenario: of the features selected with the default
+    :class:`MeasureParams` only 4-16 of 24-39 were accepted by the tracker's (mostly "disparity
+    too uncertain"), and 2-5 also 2 px around; choosing among them took long enough under load
+    that most clicks on them landed on another surface and were refused."""
     import cv2
 
     from trackmeter.core.features import FeatureParams, select_features
@@ -231,10 +294,21 @@ def _click_candidates(running: Any) -> tuple[Any, list[tuple[float, float]]]:
     snap = running.pipeline.latest()
     tracker = running.pipeline.engine.tracker
     if snap.frame is not None:
-        exclude = [t.uv for t in snap.targets]
-        rig = running.pipeline.rig
         left = np.ascontiguousarray(snap.frame.left)
-        pts = select_features(snap.frame.left, snap.frame.right, rig, N_CANDIDATES, "gabor", FeatureParams(), exclude)
+        # Distance of each pixel from black space (grey below the tracker's black-sky level).
+        lit = (cv2.blur(left, (5, 5)) >= tracker.measure.min_mean_grey).astype(np.uint8)
+        inside = cv2.distanceTransform(lit, cv2.DIST_L2, 5)
+        size = [left.shape[1] - 1, left.shape[0] - 1]
+        tracked = [t for t in snap.targets if t.status == "tracking" and np.all(np.isfinite(t.uv))]
+        if tracked:
+            ij = np.clip(np.rint([t.uv for t in tracked]).astype(int), 0, size)
+            depth = inside[ij[:, 1], ij[:, 0]]
+            good = [tuple(map(float, tracked[i].uv)) for i in np.argsort(-depth) if depth[i] >= CLICK_INSIDE_PX]
+            if good:
+                return snap, good
+        rig = running.pipeline.rig
+        pts = select_features(snap.frame.left, snap.frame.right, rig, N_CANDIDATES, "gabor", FeatureParams(),
+                              [t.uv for t in snap.targets])
         if len(pts):
             pts = np.asarray(pts, float).reshape(-1, 2)
             ring = [(np.cos(a), np.sin(a)) for a in np.arange(8) * np.pi / 4]
@@ -242,24 +316,14 @@ def _click_candidates(running: Any) -> tuple[Any, list[tuple[float, float]]]:
             probes = (pts[:, None, :] + offsets[None]).reshape(-1, 2)
             ok = np.array([m.ok for m in measure_points(rig, snap.frame.left, snap.frame.right, probes, tracker.measure)])
             ok &= np.array([tracker._check_click(left, p) is None for p in probes])
-            # Distance of each pixel from black space (grey below the tracker's black-sky level).
-            lit = (cv2.blur(left, (5, 5)) >= tracker.measure.min_mean_grey).astype(np.uint8)
-            inside = cv2.distanceTransform(lit, cv2.DIST_L2, 5)
-            ij = np.clip(np.rint(pts).astype(int), 0, [left.shape[1] - 1, left.shape[0] - 1])
+            ij = np.clip(np.rint(pts).astype(int), 0, size)
             depth = inside[ij[:, 1], ij[:, 0]]
             keep = ok.reshape(len(pts), len(offsets)).all(axis=1) & (depth >= CLICK_INSIDE_PX)
             good = [tuple(map(float, pts[i])) for i in np.argsort(-depth) if keep[i]]
             if good:
+                _log(f"no tracked target inside the body: aiming at {len(good)} selected features")
                 return snap, good
-            # The tracker is measuring its tracking targets frame after frame: their pixels are
-            # textured points it accepts (the click makes an operator target on top of one).
-            tracked = [t for t in snap.targets if t.status == "tracking" and np.all(np.isfinite(t.uv))]
-            if tracked:
-                ij = np.clip(np.rint([t.uv for t in tracked]).astype(int), 0, [left.shape[1] - 1, left.shape[0] - 1])
-                order = np.argsort(-inside[ij[:, 1], ij[:, 0]])
-                _log(f"no click candidate the tracker accepts ({len(pts)} selected): aiming at tracked targets")
-                return snap, [tuple(map(float, tracked[i].uv)) for i in order]
-            _log(f"no click candidate the tracker accepts ({len(pts)} selected): aiming near the body origin")
+        _log("no tracked target or accepted feature inside the body: aiming near the body origin")
     T = None
     if snap.frame is not None and snap.frame.truth is not None:
         T = np.asarray(snap.frame.truth.T_cam_body)
@@ -300,8 +364,9 @@ def run() -> dict[str, float]:
     from playwright.sync_api import sync_playwright
 
     from benchmarks.pipeline import LiveWindow, make_engine
+    from console.overlay import STATUS_RGB, displayed_rgb, node_rgb_for
     from console.server import start_console
-    from tests.browser.conftest import CHROMIUM_ARGS, VIEWPORT, free_port, pixel_to_screen
+    from tests.browser.conftest import CHROMIUM_ARGS, VIEWPORT, free_port, main_canvas_box, pixel_to_screen
     from trackmeter.pipeline.priority import restore_cpu_priority
     from trackmeter.pipeline.snapshot import RemoveTarget, SetAuto
     from trackmeter.sources import open_source
@@ -370,10 +435,11 @@ def run() -> dict[str, float]:
             page.wait_for_timeout(3000)
             _log(f"rates: {out}")
 
-            latencies, received, to_server = [], [], []
+            latencies, from_release, received, to_server = [], [], [], []
             offset_s = _page_offset_s(page)  # monotonic = page clock / 1000 + offset_s
             skipped: list[str] = []
             clicks_deadline = time.monotonic() + CLICKS_MAX_S
+            canvas = main_canvas_box(page)  # asked once: every ask waits for the busy page
             rng = np.random.default_rng(7)
             while len(latencies) < N_CLICKS and time.monotonic() < clicks_deadline:
                 # Chosen afresh on the latest frame each time: the satellite turns between clicks.
@@ -381,15 +447,20 @@ def run() -> dict[str, float]:
                 uv = _follow(snap0, running.pipeline.latest(), candidates[int(rng.integers(min(len(candidates), 5)))])
                 known = {t.id for t in running.pipeline.latest().targets}
                 n_notes = len(running.console.notifications)
-                sx, sy = pixel_to_screen(running, client, page, uv)
-                n_down = page.evaluate("window.__tm.down.length")
+                sx, sy = pixel_to_screen(running, client, page, uv, canvas)
+                # The operator's box (drawn over the image in its status colour) around the click.
+                half = max(running.console.patch_px / 2.0, 3.0) + 1.0
+                probe = {"bands": box_bands(running, client, page, uv, half, PROBE_SLACK_PX, canvas),
+                         "rgb": displayed_rgb(node_rgb_for(STATUS_RGB["tracking"])).round().tolist(), "tol": 40, "min": PROBE_MIN_PX, "found": None,
+                         "frames": 0, "base": None}
+                n_down = page.evaluate(f"(window.__tm.probe = {json.dumps(probe)}, window.__tm.down.length)")
                 t_click = time.monotonic()
                 page.mouse.click(sx, sy)
-                downs = page.evaluate(f"window.__tm.down.slice({n_down})")
-                if not downs:
-                    skipped.append("no pointerdown in the page")
+                downs, ups = page.evaluate(f"[window.__tm.down.slice({n_down}), window.__tm.up.slice({n_down})]")
+                if not downs or not ups:
+                    skipped.append("no pointerdown and pointerup in the page")
                     continue
-                t_down_ms = downs[0]
+                t_down_ms, t_up_ms = downs[0], ups[0]
 
                 def new_target() -> Any:
                     # The click's target in the tracker's latest state, or "refused" once the
@@ -401,6 +472,7 @@ def run() -> dict[str, float]:
 
                 got = _poll(page, new_target, 3)
                 if got is None or got == "refused":
+                    page.evaluate("window.__tm.probe = null")
                     why = running.console.notifications[-1] if got == "refused" else "no target and no refusal in 3 s"
                     _log(f"click at ({uv[0]:.0f}, {uv[1]:.0f}): {why}")
                     skipped.append(str(why))
@@ -410,32 +482,30 @@ def run() -> dict[str, float]:
                 pushed = _poll(page, lambda: next((t for t, ids, _ in list(running.console.image_pushes)
                                                    if t > t_click and got.id in ids), None), 5)
                 if not pushed:
-                    _log(f"click at ({uv[0]:.0f}, {uv[1]:.0f}): target {got.id} made, but no image showing it was published in 5 s")
+                    _log(f"click at ({uv[0]:.0f}, {uv[1]:.0f}): target {got.id} made, but not published in 5 s")
                     skipped.append("not published")
                     running.pipeline.call(RemoveTarget(got.id), 10)
                     continue
                 got_received = _poll(page, lambda: next((t for t in jpeg_times if t >= pushed), None), 5)
 
-                def on_screen() -> Any:
-                    # The first image the page drew after the click whose JPEG is one the console
-                    # pushed with the target in it (JPEG sizes identify the pushes).
-                    sizes = {size for _, ids, size in list(running.console.image_pushes) if got.id in ids}
-                    drawn = page.evaluate(f"window.__tm.shown.filter(x => x[0] >= {t_down_ms})")
-                    return next((t for t, size in drawn if size in sizes), None)
-
-                shown_ms = _poll(page, on_screen, 5)
+                shown_ms = _poll(page, lambda: page.evaluate("window.__tm.probe.found"), 5)
+                page.evaluate("window.__tm.probe = null")
                 if shown_ms is None:
-                    _log(f"click at ({uv[0]:.0f}, {uv[1]:.0f}): published, but the page drew no image showing it in 5 s")
+                    _log(f"click at ({uv[0]:.0f}, {uv[1]:.0f}): published, but the page drew no box around it in 5 s")
                     skipped.append("not drawn")
                     running.pipeline.call(RemoveTarget(got.id), 10)
                     continue
                 latencies.append(shown_ms - t_down_ms)
+                _log(f"click at ({uv[0]:.0f}, {uv[1]:.0f}): target {got.id} on screen {latencies[-1]:.0f} ms after the "
+                     f"press, {shown_ms - t_up_ms:.0f} ms after the release")
+                from_release.append(shown_ms - t_up_ms)
                 if got_received is not None:
                     received.append((got_received - t_click) * 1e3)
                 to_server.append((t_server - offset_s - t_down_ms / 1e3) * 1e3)
                 running.pipeline.call(RemoveTarget(got.id), 10)
                 page.wait_for_timeout(300)
             out["click_latency_ms"] = statistics.median(latencies) if latencies else float("nan")
+            out["click_latency_from_release_ms"] = statistics.median(from_release) if from_release else float("nan")
             out["click_latency_received_ms"] = statistics.median(received) if received else float("nan")
             out["click_to_server_ms"] = statistics.median(to_server) if to_server else float("nan")
             out["clicks_measured"] = float(len(latencies))

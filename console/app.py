@@ -33,7 +33,8 @@ import viser
 import viser.uplot
 from scipy.spatial.transform import Rotation
 
-from console.overlay import draw_overlays, nearest_target, ray_to_pixel, to_rgb
+from console.overlay import (STATUS_RGB, box_segments, draw_overlays, nearest_target, node_rgb_for,
+                             pixel_to_plane, ray_to_pixel, to_rgb)
 from console.series import PLOTS, PlotData
 from trackmeter.core.stereo import StereoRig
 from trackmeter.pipeline.pipeline import Pipeline
@@ -64,6 +65,10 @@ SCENE3D_OFFSET = (-8.0, 0.0, -3.0)
 AUTO_METHODS = ("gabor", "centroid")
 SERIES_COLOURS = ("#e6194b", "#3cb44b", "#4363d8", "#111111")
 TRAIL_FRAMES = 12
+#: Line thickness of the operator targets' boxes drawn over the left image, image px.
+OPERATOR_BOX_PX = 2.0
+#: In front of the image plane (scene units; the image is seen from -z).
+OVERLAY_Z = -0.01
 #: Colour of the measured 3D points in the 3D view: tracking, or measured again after a loss.
 POINT_COLOURS = {"tracking": (60, 230, 60), "other": (255, 200, 0)}
 STATUS_HEIGHT_EM = 23.0  # the live numbers' fixed height (see Console._status_html)
@@ -147,11 +152,12 @@ class Console:
             mock-up, drawn at the estimated pose (and as a ghost at the true pose).
         publish_hz: UI update rate (images, scene, numbers).
         plot_every: update the plots every Nth publish (they carry ~1000 points each).
+        text_every: update the live numbers and the target list every Nth publish, and at once
+            when the operator's targets change (text read by a person needs no 12 Hz; each update
+            is a re-layout of the panel in every browser, on the thread that also draws).
         jpeg_quality: JPEG quality of the image planes.
         record_root: default parent folder of recordings started from the UI.
         patch_px: patch side drawn around each target, px.
-        image_settle_s: after an image that shows a change of the operator's targets (a
-            click's answer), the next image waits this long; see :meth:`_publish_loop`.
     """
 
     def __init__(
@@ -164,10 +170,10 @@ class Console:
         source_label: str = "",
         publish_hz: float = 12.0,
         plot_every: int = 3,
+        text_every: int = 3,
         jpeg_quality: int = 85,
         record_root: str | Path = "runs",
         patch_px: int = 8,
-        image_settle_s: float = 0.5,
     ) -> None:
         self.server = server
         self.pipeline = pipeline
@@ -176,10 +182,10 @@ class Console:
         self.source_label = source_label
         self.publish_hz = float(publish_hz)
         self.plot_every = max(1, int(plot_every))
+        self.text_every = max(1, int(text_every))
         self.jpeg_quality = int(jpeg_quality)
         self.record_root = Path(record_root)
         self.patch_px = patch_px
-        self.image_settle_s = float(image_settle_s)
         self.plots = PlotData()
         self._trails: dict[str, deque[tuple[float, float]]] = {}
         self._pending: deque[tuple[Future[CommandReply], Any, str]] = deque()
@@ -246,6 +252,15 @@ class Console:
         self.right_image = scene.add_image("/right", blank, rw, rh, format="jpeg", jpeg_quality=self.jpeg_quality,
                                            position=(rw + 0.2, 0.0, 0.0), visible=False,
                                            cast_shadow=False, receive_shadow=False)
+        # The operator's targets are drawn over the image as scene nodes, not into it: a click's
+        # answer then shows in the browser's next frame instead of waiting for a new image to be
+        # decoded and uploaded (in software WebGL ~200 ms, and viser drops an image still loading
+        # when a newer one arrives). Automatic targets, many and coming and going, stay drawn
+        # into the image, in step with it.
+        self.operator_boxes = scene.add_line_segments(
+            "/left/operator_boxes", np.zeros((4, 2, 3), np.float32), np.zeros((4, 2, 3), np.uint8),
+            thickness=OPERATOR_BOX_PX * UNITS_PER_PX, visible=False)
+        self.operator_labels: dict[str, Any] = {}
         self.left_image.on_click(self._on_click)
         for modifier in ("shift", "cmd/ctrl", "alt"):
             self.left_image.on_click(modifier=modifier)(self._on_remove_click)
@@ -530,21 +545,14 @@ class Console:
 
     def _publish_loop(self) -> None:
         """Push the newest snapshot at ``publish_hz``; a change of the target set (a click, a
-        removal) is pushed at once, so the operator sees the answer without waiting a tick.
-
-        After such a push the next ``image_settle_s`` of pushes leave the image out (numbers,
-        3D view and plots still go): viser's client loads each image asynchronously and drops
-        a load that a newer image overtakes, and a browser drawing slower than images arrive
-        (headless Chromium's software WebGL: ~100 ms a frame, ~2-3 frames from receiving an
-        image to drawing it) would otherwise drop the very image that answers the click.
-        Measured (``benchmarks/console.py``): with images at 10 Hz such a browser drew ~0.6
-        of them a second, at 6 Hz ~3.
+        removal) is pushed at once, so the operator sees the answer without waiting a tick (the
+        operator's boxes are scene nodes over the image, :meth:`_update_operator_overlay`: they
+        show in the browser's next frame, not after a new image has loaded).
 
         ``publish_hz`` is read at every push, so it can be changed while running."""
         last_seq = -1
         tick = 0
         last_push = 0.0
-        images_held_until = 0.0
         next_trim = time.monotonic() + TRIM_EVERY_S
         while not self._stop.is_set():
             period = 1.0 / self.publish_hz
@@ -565,10 +573,7 @@ class Console:
                 last_seq = snap.sequence
                 last_push = time.monotonic()
                 t0 = time.perf_counter()
-                image = urgent or last_push >= images_held_until
-                self._push(snap, plots=(tick % self.plot_every == 0), image=image)
-                if urgent:
-                    images_held_until = last_push + self.image_settle_s
+                self._push(snap, plots=(tick % self.plot_every == 0), text=urgent or tick % self.text_every == 0)
                 self.push_ms.append((time.perf_counter() - t0) * 1e3)
                 tick += 1
                 if last_push >= next_trim:
@@ -595,7 +600,7 @@ class Console:
             title = label if reply.ok else f"{label}: refused"
             self._notify(client, title, reply.message or ("ok" if reply.ok else "refused"), reply.ok)
 
-    def _push(self, snap: Snapshot, plots: bool, image: bool = True) -> None:
+    def _push(self, snap: Snapshot, plots: bool, text: bool = True) -> None:
         frame = snap.frame
         left_rgb = right_rgb = None
         if frame is not None:
@@ -609,8 +614,9 @@ class Console:
                 if tid not in alive:
                     del self._trails[tid]
             self._last_frame_index = frame.index
-        if frame is not None and image:
-            left_rgb = draw_overlays(to_rgb(frame.left), snap.targets, self._trails, self.patch_px)
+        if frame is not None:
+            left_rgb = draw_overlays(to_rgb(frame.left), snap.targets, self._trails, self.patch_px,
+                                     operator_boxes=False)
             if self.right_image.visible:
                 right_rgb = to_rgb(frame.right)
                 for t in snap.targets:
@@ -619,8 +625,8 @@ class Console:
                         h = self.patch_px // 2
                         right_rgb[max(v - h, 0):v + h + 1, [max(u - h, 0), min(u + h, right_rgb.shape[1] - 1)]] = (60, 230, 60)
                         right_rgb[[max(v - h, 0), min(v + h, right_rgb.shape[0] - 1)], max(u - h, 0):u + h + 1] = (60, 230, 60)
-        status_text = self._status_html(snap)
-        targets_text = self._targets_markdown(snap)
+        status_text = self._status_html(snap) if text else None
+        targets_text = self._targets_markdown(snap) if text else None
         rec = self.pipeline.recording_stats()
         with self.server.atomic():
             if left_rgb is not None:
@@ -631,8 +637,10 @@ class Console:
                 self.left_image.image = left_rgb
                 if right_rgb is not None:
                     self.right_image.image = right_rgb
-            self.status_html.content = status_text
-            self.targets_md.content = targets_text
+            self._update_operator_overlay(snap)
+            if status_text is not None and targets_text is not None:
+                self.status_html.content = status_text
+                self.targets_md.content = targets_text
             self.record_md.content = (
                 f"{rec.directory}: {rec.frames_written} frames written, {rec.frames_dropped} not recorded"
                 + (f", {rec.error}" if rec.error else "") if rec.directory else "not recording")
@@ -654,6 +662,33 @@ class Console:
         self.last_pushed_time = time.monotonic()
         # One assignment, so a reader never pairs these ids with an older push time.
         self.last_push = (self.last_pushed_time, snap.sequence, self.last_pushed_target_ids)
+
+    def _update_operator_overlay(self, snap: Snapshot) -> None:
+        """The operator's targets as boxes (status colour) and ``id*`` labels over the left image."""
+        shown = [t for t in snap.targets if t.origin == "operator" and np.all(np.isfinite(t.uv))]
+        if self._image_size is not None and shown:
+            half = max(self.patch_px / 2.0, 3.0) + 1.0  # as draw_overlays draws an operator's box
+            self.operator_boxes.points = box_segments([t.uv for t in shown], half, self._image_size,
+                                                      self.render_size, OVERLAY_Z)
+            rgb = np.array([node_rgb_for(STATUS_RGB.get(t.status, (255, 255, 255))) for t in shown], np.uint8)
+            self.operator_boxes.colors = np.repeat(rgb, 8, axis=0).reshape(-1, 2, 3)
+            self.operator_boxes.visible = True
+        elif self.operator_boxes.visible:
+            self.operator_boxes.visible = False
+        labels = {t.id: t for t in shown} if self._image_size is not None else {}
+        for tid in [i for i in self.operator_labels if i not in labels]:
+            self.operator_labels.pop(tid).remove()
+        for tid, t in labels.items():
+            half = max(self.patch_px / 2.0, 3.0) + 1.0
+            x, y = pixel_to_plane([(t.uv[0] + half + 2.0, t.uv[1] - half)], self._image_size, self.render_size)[0]
+            position = (float(x), float(y), OVERLAY_Z)
+            label = self.operator_labels.get(tid)
+            if label is None:
+                self.operator_labels[tid] = self.server.scene.add_label(
+                    f"/left/operator_labels/{tid}", f"{tid}*", position=position, anchor="bottom-left",
+                    font_screen_scale=0.8)
+            else:
+                label.position = position
 
     def _sync_widgets(self, snap: Snapshot) -> None:
         # Reflect the tracker's state (several browsers; a refused toggle snaps back).

@@ -14,6 +14,7 @@ section 3), a pixel (u, v) of a W x H image sits at local::
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -33,12 +34,58 @@ PREDICTED_RGB = (255, 80, 255)
 TRAIL_RGB = (0, 220, 255)
 
 
+# three.js's ACES filmic tone mapping (the fit in its shader chunk tonemapping_pars_fragment,
+# after Stephen Hill's RRT + ODT fit), which viser's client applies to every scene node but images.
+_ACES_IN = np.array([[0.59719, 0.35458, 0.04823], [0.07600, 0.90834, 0.01566], [0.02840, 0.13383, 0.83777]])
+_ACES_OUT = np.array([[1.60475, -0.53108, -0.07367], [-0.10208, 1.10813, -0.00605], [-0.00327, -0.07276, 1.07602]])
+
+
+def displayed_rgb(node_rgb: ArrayLike) -> NDArray[np.float64]:
+    """(3,) the sRGB colour (0-255) on screen of a scene node given the colour ``node_rgb``
+    (0-255): viser's client takes it as linear, tone-maps it (ACES filmic, exposure 1) and
+    encodes sRGB. E.g. (60, 230, 60) shows as (179, 223, 165), as read off headless Chromium."""
+    c = np.asarray(node_rgb, dtype=float) / 255.0 / 0.6
+    v = _ACES_IN @ c
+    v = (v * (v + 0.0245786) - 0.000090537) / (v * (0.983729 * v + 0.4329510) + 0.238081)
+    lin = np.clip(_ACES_OUT @ v, 0.0, 1.0)
+    return 255.0 * np.where(lin <= 0.0031308, 12.92 * lin, 1.055 * lin ** (1 / 2.4) - 0.055)
+
+
+@lru_cache(maxsize=64)
+def node_rgb_for(rgb: tuple[int, int, int]) -> tuple[int, int, int]:
+    """The colour to give a scene node so that it shows as ``rgb`` (0-255, sRGB), or as close as
+    the tone mapping reaches (least squares over the node colour): the operator's boxes drawn
+    as nodes then match the status colours drawn into the image (:data:`STATUS_RGB`)."""
+    from scipy.optimize import least_squares
+
+    target = np.asarray(rgb, dtype=float)
+    fit = least_squares(lambda x: (displayed_rgb(x) - target) / 255.0, np.full(3, 128.0), bounds=(0.0, 255.0))
+    return tuple(int(round(float(x))) for x in fit.x)  # type: ignore[return-value]
+
+
 def pixel_to_plane(uv: ArrayLike, image_size: tuple[int, int], render_size: tuple[float, float]) -> NDArray[np.float64]:
     """(N,2) pixels (u, v) → (N,2) plane-local (x, y), scene units (see the module docstring)."""
     w, h = image_size
     rw, rh = render_size
     uv = np.asarray(uv, dtype=float).reshape(-1, 2)
     return np.stack([(uv[:, 0] + 0.5) * rw / w - rw / 2, (uv[:, 1] + 0.5) * rh / h - rh / 2], axis=1)
+
+
+def box_segments(
+    uv: ArrayLike, half_px: float, image_size: tuple[int, int], render_size: tuple[float, float], z: float
+) -> NDArray[np.float32]:
+    """(N*4,2,3) line segments of square boxes around pixels ``uv`` (N,2), in the image plane's
+    local frame (see the module docstring) at height ``z`` (negative: in front of the image).
+
+    Each box has corners ``uv ± half_px`` (pixels) and its four edges in the order top, right,
+    bottom, left.
+    """
+    c = np.asarray(uv, dtype=float).reshape(-1, 2)
+    h = float(half_px)
+    corners = np.stack([c + (-h, -h), c + (h, -h), c + (h, h), c + (-h, h)], axis=1)  # (N,4,2)
+    xy = pixel_to_plane(corners.reshape(-1, 2), image_size, render_size).reshape(-1, 4, 2)
+    ends = np.stack([xy, np.roll(xy, -1, axis=1)], axis=2).reshape(-1, 2, 2)  # (N*4, 2, 2)
+    return np.concatenate([ends, np.full((len(ends), 2, 1), z)], axis=2).astype(np.float32)
 
 
 def ray_to_pixel(
@@ -97,12 +144,15 @@ def draw_overlays(
     patch_px: int = 8,
     scale: float = 1.0,
     show_search: bool = True,
+    operator_boxes: bool = True,
 ) -> NDArray[np.uint8]:
     """Draw each target into ``rgb`` (modified in place and returned).
 
     Operator targets get a thick box with a corner tick, automatic ones a thin box, model
     re-locks a diamond; the colour says the status (:data:`STATUS_RGB`). Also the search
     window (thin blue), the Kalman-predicted position (magenta cross) and a short trail.
+    ``operator_boxes=False`` leaves the operator targets' boxes and ids out (the console draws
+    them as scene nodes over the image, see :func:`box_segments`).
 
     Args:
         rgb: (H*scale, W*scale, 3) uint8 image.
@@ -136,6 +186,8 @@ def draw_overlays(
         if np.all(np.isfinite(t.predicted_uv)):
             pu, pv = _pt(t.predicted_uv, scale)
             cv2.drawMarker(rgb, (pu, pv), PREDICTED_RGB, cv2.MARKER_CROSS, 7, 1, cv2.LINE_AA)
+        if t.origin == "operator" and not operator_boxes:
+            continue
         c = _pt(t.uv, scale)
         h = int(round(half * scale))
         if t.origin == "operator":

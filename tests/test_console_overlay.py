@@ -14,7 +14,16 @@ from scipy.spatial.transform import Rotation
 
 pytest.importorskip("viser")
 
-from console.overlay import STATUS_RGB, draw_overlays, nearest_target, pixel_to_plane, ray_to_pixel  # noqa: E402
+from console.overlay import (  # noqa: E402
+    STATUS_RGB,
+    box_segments,
+    displayed_rgb,
+    draw_overlays,
+    nearest_target,
+    node_rgb_for,
+    pixel_to_plane,
+    ray_to_pixel,
+)
 from console.series import PlotData, SeriesWindow  # noqa: E402
 from trackmeter.core.targets import TargetState  # noqa: E402
 from trackmeter.pipeline.snapshot import PoseEstimate, Snapshot, Timings  # noqa: E402
@@ -157,3 +166,55 @@ def test_status_keeps_its_height_whatever_the_state() -> None:
     texts = [parse(h).text for h in htmls]
     assert "<camera> unplugged" in texts[3] and "pose invalid: fewer than 3 points" in texts[3]
     assert "COASTING" in texts[2] and "REC" in texts[2] and "v [mm/s]–––" in texts[1]
+
+
+def test_box_segments_outline_the_pixel_box_in_front_of_the_image() -> None:
+    uv = np.array([[100.0, 200.0], [5.5, 7.25]])
+    seg = box_segments(uv, 5.0, SIZE, RENDER, -0.01)
+    assert seg.shape == (8, 2, 3) and seg.dtype == np.float32
+    assert np.all(seg[:, :, 2] == np.float32(-0.01))
+    # Every end point is a corner uv ± 5 px mapped to the plane, and each box is closed: an
+    # edge ends where the next one starts, the last where the first starts.
+    for k in range(2):
+        edges = seg[4 * k:4 * k + 4, :, :2].astype(float)
+        corners = pixel_to_plane(uv[k] + np.array([[-5, -5], [5, -5], [5, 5], [-5, 5]]), SIZE, RENDER)
+        assert edges[:, 0] == pytest.approx(corners, abs=1e-6)
+        assert edges[:, 1] == pytest.approx(np.roll(corners, -1, axis=0), abs=1e-6)
+    # The top edge (first) runs along the row v - 5, the right edge along the column u + 5.
+    back = [ray_to_pixel((x, y, -5.0), (0, 0, 1), (1.0, 0.0, 0.0, 0.0), (0, 0, 0), SIZE, RENDER)
+            for x, y in seg[0, :, :2].astype(float)]
+    assert back[0] == pytest.approx((95.0, 195.0), abs=1e-4) and back[1] == pytest.approx((105.0, 195.0), abs=1e-4)
+
+
+def test_displayed_colour_follows_threejs_aces_and_srgb() -> None:
+    # Read off headless Chromium (tests/browser, the operator's box given (60, 230, 60)).
+    assert displayed_rgb((60, 230, 60)) == pytest.approx([179, 223, 165], abs=1.0)
+    # Black stays black; ACES maps white (linear 1, exposure 1) below full white.
+    assert displayed_rgb((0, 0, 0)) == pytest.approx([0, 0, 0], abs=1.0)
+    white = displayed_rgb((255, 255, 255))
+    assert np.all(white < 255) and np.ptp(white) < 2
+    # Monotonic in each grey level.
+    greys = [displayed_rgb((g, g, g))[1] for g in range(0, 256, 15)]
+    assert np.all(np.diff(greys) > 0)
+
+
+@pytest.mark.parametrize("status", sorted(STATUS_RGB))
+def test_node_colour_shows_as_the_status_colour(status: str) -> None:
+    node = node_rgb_for(STATUS_RGB[status])
+    assert all(0 <= c <= 255 for c in node)
+    shown = displayed_rgb(node)
+    # As close as the tone mapping reaches: within 45 grey levels a channel, and much closer
+    # than the status colour given as it is.
+    assert np.max(np.abs(shown - STATUS_RGB[status])) <= 45
+    assert np.linalg.norm(shown - STATUS_RGB[status]) < 0.6 * np.linalg.norm(displayed_rgb(STATUS_RGB[status]) - STATUS_RGB[status])
+
+
+def test_operator_boxes_left_out_of_the_image_when_drawn_as_nodes() -> None:
+    grey = np.full((SIZE[1], SIZE[0], 3), 90, np.uint8)
+    targets = [_target("op", (200.0, 200.0)), _target("auto", (400.0, 300.0), origin="auto")]
+    drawn = draw_overlays(grey.copy(), targets, operator_boxes=False, show_search=False)
+    green = np.all(drawn == STATUS_RGB["tracking"], axis=2)
+    assert green[290:311, 390:411].any()  # the automatic target's box
+    assert not green[190:211, 190:211].any()  # not the operator's
+    both = draw_overlays(grey.copy(), targets, show_search=False)
+    assert np.all(both == STATUS_RGB["tracking"], axis=2)[190:211, 190:211].any()

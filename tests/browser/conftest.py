@@ -155,8 +155,11 @@ def main_canvas_box(page: Any) -> dict[str, float]:
     return max(boxes, key=lambda b: b["width"] * b["height"])
 
 
-def pixel_to_screen(running: Any, client: Any, page: Any, uv: tuple[float, float]) -> tuple[float, float]:
-    """Where image pixel ``uv`` of the left image is on the page, from the browser's own camera."""
+def pixel_to_screen(running: Any, client: Any, page: Any, uv: tuple[float, float],
+                    box: dict[str, float] | None = None) -> tuple[float, float]:
+    """Where image pixel ``uv`` of the left image is on the page, from the browser's own camera
+    (``box``: the main canvas's :func:`main_canvas_box`, asked of the page when not given; each
+    ask is a round trip per canvas to a page that may be busy drawing)."""
     from scipy.spatial.transform import Rotation
 
     from console.overlay import pixel_to_plane
@@ -169,7 +172,7 @@ def pixel_to_screen(running: Any, client: Any, page: Any, uv: tuple[float, float
     R = Rotation.from_quat(np.asarray(cam.wxyz), scalar_first=True).as_matrix()  # OpenCV camera in world
     pc = R.T @ (p_world - np.asarray(cam.position))
     tan_half = np.tan(cam.fov / 2.0)
-    box = main_canvas_box(page)
+    box = box or main_canvas_box(page)
     x_ndc = pc[0] / pc[2] / (tan_half * box["width"] / box["height"])
     y_ndc = pc[1] / pc[2] / tan_half
     return box["x"] + (x_ndc + 1.0) / 2.0 * box["width"], box["y"] + (y_ndc + 1.0) / 2.0 * box["height"]
