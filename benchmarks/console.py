@@ -61,7 +61,7 @@ import numpy as np
 
 WARMUP_S = 10.0
 MEASURE_S = float(os.environ.get("TRACKMETER_BENCH_LIVE_S", "30"))
-N_CLICKS = 5
+N_CLICKS = 9
 CLICKS_MAX_S = 80.0  # the click phase's share of the 5-minute budget
 CLICK_SLACK_PX = 2.0  # a click candidate is accepted by the tracker on a ring this far around it too
 CLICK_INSIDE_PX = 15.0  # ... and lies at least this far inside the lit body (from black space)

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 import viser
 import viser.uplot
+from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from console.overlay import (STATUS_RGB, box_segments, draw_overlays, nearest_target, node_rgb_for,
@@ -67,6 +68,8 @@ SERIES_COLOURS = ("#e6194b", "#3cb44b", "#4363d8", "#111111")
 TRAIL_FRAMES = 12
 #: Line thickness of the operator targets' boxes drawn over the left image, image px.
 OPERATOR_BOX_PX = 2.0
+#: Boxes for the operator's targets built ahead, parked (more are added when needed).
+OPERATOR_MARKS_RESERVED = 4
 #: In front of the image plane (scene units; the image is seen from -z).
 OVERLAY_Z = -0.01
 #: Colour of the measured 3D points in the 3D view: tracking, or measured again after a loss.
@@ -139,6 +142,95 @@ def release_free_heap() -> bool:
 def _wxyz(R: np.ndarray) -> tuple[float, float, float, float]:
     q = Rotation.from_matrix(R).as_quat(scalar_first=True)
     return tuple(float(x) for x in q)  # type: ignore[return-value]
+
+
+class _OperatorMarks:
+    """The operator's targets over the left image: one box (in its status colour) with an ``id*``
+    label per target, scene nodes under ``root`` in the image plane's frame.
+
+    A mark is moved by its node's position only: viser's client applies a node's pose in the
+    frame that receives it, whereas a change of its geometry or colour goes through a React
+    render and shows one frame later (in software WebGL ~100 ms a frame). So the marks are a
+    pool of boxes built once around their own origin; a target takes a free one, which is
+    moved onto it, recoloured only when the status changes, and parked out of sight when the
+    target goes: just behind the image, which hides it, but inside the view, so the browser
+    draws it (three.js compiles a shader when an object is first drawn, ~0.5 s in software
+    WebGL, which a box parked outside the view would leave for the operator's first click).
+    """
+
+    PARK = (0.0, 0.0, 0.05)
+
+    def __init__(self, scene: Any, root: str, patch_px: int) -> None:
+        self.scene = scene
+        self.root = root
+        self.half_px = max(patch_px / 2.0, 3.0) + 1.0  # as draw_overlays draws an operator's box
+        self.slots: list[tuple[Any, Any, list[Any]]] = []  # (box, label, [target id, status])
+        self.of_target: dict[str, int] = {}
+        self._geometry: tuple[tuple[int, int], tuple[float, float]] | None = None
+
+    def _box(self, image_size: tuple[int, int], render_size: tuple[float, float]) -> NDArray[np.float32]:
+        centre = (image_size[0] / 2.0, image_size[1] / 2.0)
+        seg = box_segments([centre], self.half_px, image_size, render_size, OVERLAY_Z)
+        seg[:, :, :2] -= pixel_to_plane([centre], image_size, render_size)[0].astype(np.float32)
+        return seg
+
+    def reserve(self, n: int, image_size: tuple[int, int], render_size: tuple[float, float]) -> None:
+        """Build ``n`` parked boxes ahead, so that the operator's first clicks find them built
+        and drawn once."""
+        self._geometry = (image_size, render_size)
+        while len(self.slots) < n:
+            self._new_slot(image_size, render_size)
+
+    def update(self, targets: list[Any], image_size: tuple[int, int], render_size: tuple[float, float]) -> None:
+        """Show ``targets`` (the operator's, with their ``uv`` in pixels of the image)."""
+        shown = {t.id: t for t in targets if np.all(np.isfinite(t.uv))}
+        if self._geometry != (image_size, render_size):  # a new image size: rebuild the boxes
+            self._geometry = (image_size, render_size)
+            box = self._box(image_size, render_size)
+            for node, label, _ in self.slots:
+                node.points = box
+                label.position = self._label_position(image_size, render_size)
+        for tid in [i for i in self.of_target if i not in shown]:
+            node, label, state = self.slots[self.of_target.pop(tid)]
+            node.position = self.PARK
+            label.text = ""
+            state[0] = None
+        free = [k for k, (_, _, state) in enumerate(self.slots) if state[0] is None]
+        for tid, t in shown.items():
+            k = self.of_target.get(tid)
+            if k is None:
+                k = free.pop(0) if free else self._new_slot(image_size, render_size)
+                self.of_target[tid] = k
+                self.slots[k][2][0] = tid
+                self.slots[k][1].text = f"{tid}*"
+            node, _, state = self.slots[k]
+            if state[1] != t.status:
+                state[1] = t.status
+                node.colors = self._colours(t.status)
+            x, y = pixel_to_plane([t.uv], image_size, render_size)[0]
+            node.position = (float(x), float(y), 0.0)
+
+    def _label_position(self, image_size: tuple[int, int], render_size: tuple[float, float]) -> tuple[float, float, float]:
+        per_px = render_size[0] / image_size[0]  # beside the box's top-right corner
+        return ((self.half_px + 2.0) * per_px, -self.half_px * per_px, OVERLAY_Z)
+
+    @staticmethod
+    def _colours(status: str) -> NDArray[np.uint8]:
+        # Per vertex: viser's client takes those as linear (what node_rgb_for models), but a
+        # single colour as sRGB.
+        rgb = np.array(node_rgb_for(STATUS_RGB.get(status, (255, 255, 255))), np.uint8)
+        return np.broadcast_to(rgb, (4, 2, 3)).copy()
+
+    def _new_slot(self, image_size: tuple[int, int], render_size: tuple[float, float]) -> int:
+        k = len(self.slots)
+        node = self.scene.add_line_segments(f"{self.root}/{k}", self._box(image_size, render_size),
+                                            self._colours("tracking"),
+                                            thickness=OPERATOR_BOX_PX * UNITS_PER_PX, position=self.PARK)
+        label = self.scene.add_label(f"{self.root}/{k}/label", "", position=self._label_position(image_size, render_size),
+                                     anchor="bottom-left", font_screen_scale=0.8,
+                                     depth_test=True)  # parked behind the image: hidden by it
+        self.slots.append((node, label, [None, "tracking"]))
+        return k
 
 
 class Console:
@@ -257,10 +349,9 @@ class Console:
         # decoded and uploaded (in software WebGL ~200 ms, and viser drops an image still loading
         # when a newer one arrives). Automatic targets, many and coming and going, stay drawn
         # into the image, in step with it.
-        self.operator_boxes = scene.add_line_segments(
-            "/left/operator_boxes", np.zeros((4, 2, 3), np.float32), np.zeros((4, 2, 3), np.uint8),
-            thickness=OPERATOR_BOX_PX * UNITS_PER_PX, visible=False)
-        self.operator_labels: dict[str, Any] = {}
+        self.operator_marks = _OperatorMarks(scene, "/left/operator_marks", self.patch_px)
+        if self._image_size is not None:
+            self.operator_marks.reserve(OPERATOR_MARKS_RESERVED, self._image_size, self.render_size)
         self.left_image.on_click(self._on_click)
         for modifier in ("shift", "cmd/ctrl", "alt"):
             self.left_image.on_click(modifier=modifier)(self._on_remove_click)
@@ -665,30 +756,9 @@ class Console:
 
     def _update_operator_overlay(self, snap: Snapshot) -> None:
         """The operator's targets as boxes (status colour) and ``id*`` labels over the left image."""
-        shown = [t for t in snap.targets if t.origin == "operator" and np.all(np.isfinite(t.uv))]
-        if self._image_size is not None and shown:
-            half = max(self.patch_px / 2.0, 3.0) + 1.0  # as draw_overlays draws an operator's box
-            self.operator_boxes.points = box_segments([t.uv for t in shown], half, self._image_size,
-                                                      self.render_size, OVERLAY_Z)
-            rgb = np.array([node_rgb_for(STATUS_RGB.get(t.status, (255, 255, 255))) for t in shown], np.uint8)
-            self.operator_boxes.colors = np.repeat(rgb, 8, axis=0).reshape(-1, 2, 3)
-            self.operator_boxes.visible = True
-        elif self.operator_boxes.visible:
-            self.operator_boxes.visible = False
-        labels = {t.id: t for t in shown} if self._image_size is not None else {}
-        for tid in [i for i in self.operator_labels if i not in labels]:
-            self.operator_labels.pop(tid).remove()
-        for tid, t in labels.items():
-            half = max(self.patch_px / 2.0, 3.0) + 1.0
-            x, y = pixel_to_plane([(t.uv[0] + half + 2.0, t.uv[1] - half)], self._image_size, self.render_size)[0]
-            position = (float(x), float(y), OVERLAY_Z)
-            label = self.operator_labels.get(tid)
-            if label is None:
-                self.operator_labels[tid] = self.server.scene.add_label(
-                    f"/left/operator_labels/{tid}", f"{tid}*", position=position, anchor="bottom-left",
-                    font_screen_scale=0.8)
-            else:
-                label.position = position
+        if self._image_size is not None:
+            self.operator_marks.update([t for t in snap.targets if t.origin == "operator"], self._image_size,
+                                       self.render_size)
 
     def _sync_widgets(self, snap: Snapshot) -> None:
         # Reflect the tracker's state (several browsers; a refused toggle snaps back).

@@ -218,3 +218,67 @@ def test_operator_boxes_left_out_of_the_image_when_drawn_as_nodes() -> None:
     assert not green[190:211, 190:211].any()  # not the operator's
     both = draw_overlays(grey.copy(), targets, show_search=False)
     assert np.all(both == STATUS_RGB["tracking"], axis=2)[190:211, 190:211].any()
+
+
+class _Node:
+    """A stand-in for a viser scene-node handle: records every assignment."""
+
+    def __init__(self, log: list[tuple[str, str, object]], name: str, **props: object) -> None:
+        object.__setattr__(self, "_log", log)
+        object.__setattr__(self, "name", name)
+        for k, v in props.items():
+            object.__setattr__(self, k, v)
+
+    def __setattr__(self, key: str, value: object) -> None:
+        self._log.append((self.name, key, value))
+        object.__setattr__(self, key, value)
+
+
+class _Scene:
+    def __init__(self) -> None:
+        self.log: list[tuple[str, str, object]] = []
+        self.nodes: dict[str, _Node] = {}
+
+    def add_line_segments(self, name: str, points: np.ndarray, colors: np.ndarray, **kw: object) -> _Node:
+        self.nodes[name] = _Node(self.log, name, points=points, colors=colors, position=kw.get("position"))
+        return self.nodes[name]
+
+    def add_label(self, name: str, text: str, **kw: object) -> _Node:
+        self.nodes[name] = _Node(self.log, name, text=text, position=kw.get("position"))
+        return self.nodes[name]
+
+
+def test_operator_marks_move_pooled_boxes_by_position_only() -> None:
+    from console.app import OVERLAY_Z, _OperatorMarks
+
+    scene = _Scene()
+    marks = _OperatorMarks(scene, "/left/marks", patch_px=8)
+    marks.reserve(2, SIZE, RENDER)
+    assert len(marks.slots) == 2 and all(n.position == marks.PARK for n, _, _ in marks.slots)
+    # Each box is the 10 px box around its own origin, in front of the image.
+    box = marks.slots[0][0].points
+    corners = pixel_to_plane([[95, 195], [105, 205]], SIZE, RENDER) - pixel_to_plane([[100, 200]], SIZE, RENDER)
+    assert box[0, 0, :2] == pytest.approx(corners[0], abs=1e-6) and box[1, 1, :2] == pytest.approx(corners[1], abs=1e-6)
+    assert np.all(box[:, :, 2] == np.float32(OVERLAY_Z))
+
+    scene.log.clear()
+    marks.update([_target("p1", (100.0, 200.0))], SIZE, RENDER)
+    node, label, _ = marks.slots[marks.of_target["p1"]]
+    assert node.position == pytest.approx((*pixel_to_plane([(100.0, 200.0)], SIZE, RENDER)[0], 0.0))
+    assert label.text == "p1*"
+    # A move is a position update and nothing else (no geometry, no colour).
+    scene.log.clear()
+    marks.update([_target("p1", (101.5, 199.0))], SIZE, RENDER)
+    assert [key for _, key, _ in scene.log] == ["position"]
+    # A status change recolours, per vertex, in the status colour as shown on screen.
+    marks.update([_target("p1", (101.5, 199.0), status="lost")], SIZE, RENDER)
+    assert node.colors.shape == (4, 2, 3) and tuple(node.colors[0, 0]) == node_rgb_for(STATUS_RGB["lost"])
+    # More targets than boxes: the pool grows; a target gone parks its box and clears its label.
+    marks.update([_target(f"p{k}", (50.0 + 20 * k, 60.0)) for k in range(1, 4)], SIZE, RENDER)
+    assert len(marks.slots) == 3
+    marks.update([_target("p3", (110.0, 60.0))], SIZE, RENDER)
+    parked = [(n, lab) for n, lab, state in marks.slots if state[0] is None]
+    assert len(parked) == 2 and all(n.position == marks.PARK and lab.text == "" for n, lab in parked)
+    # The next target reuses a parked box.
+    marks.update([_target("p3", (110.0, 60.0)), _target("p9", (300.0, 300.0))], SIZE, RENDER)
+    assert len(marks.slots) == 3
