@@ -141,3 +141,26 @@ def test_main_canvas_is_the_viewer(page_and_client: Any) -> None:
     page, _ = page_and_client
     box = main_canvas_box(page)
     assert box["width"] > 600 and box["height"] > 400
+
+
+def test_malformed_model_file_loaded_from_the_ui_is_refused_and_the_console_goes_on(
+        page_and_client: Any, running_console: Any, artifacts: Path, tmp_path: Path) -> None:
+    page, _ = page_and_client
+    bad = tmp_path / "model.yaml"
+    bad.write_text("points:\n- {id: a, xyz: [0, 0]}\n")  # a point with two coordinates
+    page.get_by_text("Model", exact=True).first.click()  # the folder starts collapsed
+    # viser's text field: its label and its input share one row.
+    field = page.locator(".mantine-Flex-root", has=page.get_by_text("Model file", exact=True)).locator("input").first
+    field.wait_for(timeout=10_000)
+    field.fill(str(bad))
+    field.press("Enter")
+    n_notes = len(running_console.console.notifications)
+    page.get_by_role("button", name="Load model").click()
+    wait_for(lambda: len(running_console.console.notifications) > n_notes, 10, "the console's answer")
+    title, body = running_console.console.notifications[-1]
+    assert title.endswith("refused") and "model.yaml" in body, (title, body)
+    page.get_by_text("LoadModel: refused", exact=False).first.wait_for(timeout=10_000)  # shown in the page
+    time.sleep(0.5)  # the notification slides in
+    page.screenshot(path=str(artifacts / "07_malformed_model.png"))
+    done = running_console.pipeline.latest().timings.frames_processed
+    wait_for(lambda: running_console.pipeline.latest().timings.frames_processed > done + 10, 10, "tracking going on")
