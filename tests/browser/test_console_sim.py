@@ -1,6 +1,6 @@
 """``trackmeter console``'s default: the tumbling satellite of the ``estec`` scenario, in Chromium.
 
-Automatic selection on, then the 3D view: both camera frustums, the point cloud, the estimated
+Automatic selection on, a click on the satellite, then the 3D view: both camera frustums, the point cloud, the estimated
 body frame with the mock-up mesh and the true pose as a ghost. The screenshots
 (``test-artifacts/browser/10_sim_image.png``, ``11_sim_both.png``) are the README's.
 """
@@ -13,7 +13,9 @@ from typing import Any
 
 import pytest
 
-from tests.browser.conftest import free_port, open_page, wait_for
+import numpy as np
+
+from tests.browser.conftest import free_port, main_canvas_box, open_page, pixel_to_screen, wait_for
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
@@ -48,6 +50,23 @@ def test_default_console_shows_the_satellite_in_image_and_3d(browser: Any, sim_c
                         240, "a valid pose on the tumbling satellite", poll_s=0.5)
         assert snap.frame is not None and snap.frame.truth is not None
         wait_for(lambda: con.body.visible and con.truth.visible, 10, "estimated and true body frames in 3D")
+        # The operator clicks the satellite where a target is being tracked (a textured pixel
+        # the tracker accepts); the satellite turns meanwhile, so a click may land on a pixel the
+        # tracker refuses: a few tries, each refusal shown as such.
+        canvas = main_canvas_box(page)
+        clicked = None
+        for _ in range(5):
+            aim = next(t for t in running.pipeline.latest().targets if t.status == "tracking")
+            n_notes = len(con.notifications)
+            page.mouse.click(*pixel_to_screen(running, client, page, tuple(aim.uv), canvas))
+            answer = wait_for(lambda: next((t for t in running.pipeline.latest().targets if t.origin == "operator"), None)
+                              or (len(con.notifications) > n_notes and con.notifications[-1][0].endswith("refused")),
+                              10, "the console's answer to the click")
+            if answer is not True:
+                clicked = answer
+                break
+        assert clicked is not None, f"every click refused, the last: {con.notifications[-1]}"
+        assert np.hypot(*(np.asarray(clicked.uv) - aim.uv)) < 15.0  # where the click landed, give or take the turn
         time.sleep(2.0)
         page.screenshot(path=str(artifacts / "10_sim_image.png"))
         page.get_by_role("button", name="both").click()
