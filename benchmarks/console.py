@@ -364,7 +364,7 @@ def run() -> dict[str, float]:
     from playwright.sync_api import sync_playwright
 
     from benchmarks.pipeline import LiveWindow, make_engine
-    from console.overlay import STATUS_RGB, displayed_rgb, node_rgb_for
+    from console.overlay import STATUS_RGB, box_half_px, displayed_rgb, node_rgb_for
     from console.server import start_console
     from tests.browser.conftest import CHROMIUM_ARGS, VIEWPORT, free_port, main_canvas_box, pixel_to_screen
     from trackmeter.pipeline.priority import restore_cpu_priority
@@ -449,7 +449,7 @@ def run() -> dict[str, float]:
                 n_notes = len(running.console.notifications)
                 sx, sy = pixel_to_screen(running, client, page, uv, canvas)
                 # The operator's box (drawn over the image in its status colour) around the click.
-                half = max(running.console.patch_px / 2.0, 3.0) + 1.0
+                half = box_half_px(running.console.patch_px, operator=True)
                 probe = {"bands": box_bands(running, client, page, uv, half, PROBE_SLACK_PX, canvas),
                          "rgb": displayed_rgb(node_rgb_for(STATUS_RGB["tracking"])).round().tolist(), "tol": 40, "min": PROBE_MIN_PX, "found": None,
                          "frames": 0, "base": None}

@@ -34,8 +34,8 @@ import viser.uplot
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from console.overlay import (STATUS_RGB, box_segments, draw_overlays, nearest_target, node_rgb_for,
-                             pixel_to_plane, ray_to_pixel, to_rgb)
+from console.overlay import (STATUS_RGB, box_half_px, box_segments, draw_overlays, nearest_target,
+                             node_rgb_for, pixel_to_plane, ray_to_pixel, to_rgb)
 from console.series import PLOTS, PlotData
 from trackmeter.core.stereo import StereoRig
 from trackmeter.pipeline.pipeline import Pipeline
@@ -163,7 +163,7 @@ class _OperatorMarks:
     def __init__(self, scene: Any, root: str, patch_px: int) -> None:
         self.scene = scene
         self.root = root
-        self.half_px = max(patch_px / 2.0, 3.0) + 1.0  # as draw_overlays draws an operator's box
+        self.half_px = box_half_px(patch_px, operator=True)
         self.slots: list[tuple[Any, Any, list[Any]]] = []  # (box, label, [target id, status])
         self.of_target: dict[str, int] = {}
         self._geometry: tuple[tuple[int, int], tuple[float, float]] | None = None

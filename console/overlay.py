@@ -137,6 +137,12 @@ def _pt(uv: ArrayLike, scale: float) -> tuple[int, int]:
     return int(round(u * scale)), int(round(v * scale))
 
 
+def box_half_px(patch_px: int, operator: bool = False) -> float:
+    """Half the side of the box drawn around a target, image px: its patch's, at least 3 px; an
+    operator's target's box one pixel more (drawn thicker, it stays clear of the patch)."""
+    return max(patch_px / 2.0, 3.0) + (1.0 if operator else 0.0)
+
+
 def draw_overlays(
     rgb: NDArray[np.uint8],
     targets: Sequence[TargetState],
@@ -161,7 +167,7 @@ def draw_overlays(
         patch_px: patch side drawn as the box, px.
         scale: display scale of ``rgb`` relative to the original image.
     """
-    half = max(patch_px / 2.0, 3.0)
+    half = box_half_px(patch_px)
     font = cv2.FONT_HERSHEY_SIMPLEX
     if show_search:
         # Search windows can be large and overlap: drawn at 40 % so the image stays readable.
