@@ -479,7 +479,7 @@ def run() -> dict[str, float]:
                     continue
                 t_server = time.monotonic()
                 # The first image pushed after the click that shows the target.
-                pushed = _poll(page, lambda: next((t for t, ids, _ in list(running.console.image_pushes)
+                pushed = _poll(page, lambda: next((t for t, ids in list(running.console.image_pushes)
                                                    if t > t_click and got.id in ids), None), 5)
                 if not pushed:
                     _log(f"click at ({uv[0]:.0f}, {uv[1]:.0f}): target {got.id} made, but not published in 5 s")

@@ -295,9 +295,8 @@ class Console:
         self.last_push: tuple[float, int, tuple[str, ...]] = (0.0, 0, ())
         self.notifications: deque[tuple[str, str]] = deque(maxlen=50)
         self.push_ms: deque[float] = deque(maxlen=200)  # publisher cost of recent pushes
-        # (time.monotonic(), target ids shown, JPEG size in bytes) of the recent image pushes: the
-        # size tells which push a browser displays (benchmarks/console.py).
-        self.image_pushes: deque[tuple[float, tuple[str, ...], int]] = deque(maxlen=200)
+        # (time.monotonic(), target ids shown) of the recent image pushes (benchmarks/console.py).
+        self.image_pushes: deque[tuple[float, tuple[str, ...]]] = deque(maxlen=200)
         self._last_frame_index: int | None = None
         self._plot_version: dict[str, int] = {}
         self._omega_shown = False
@@ -749,7 +748,7 @@ class Console:
         self.images_pushed += 1
         self.last_pushed_sequence = snap.sequence
         self.last_pushed_target_ids = tuple(t.id for t in snap.targets)
-        self.image_pushes.append((time.monotonic(), self.last_pushed_target_ids, len(self.left_image._data)))
+        self.image_pushes.append((time.monotonic(), self.last_pushed_target_ids))
         self.last_pushed_time = time.monotonic()
         # One assignment, so a reader never pairs these ids with an older push time.
         self.last_push = (self.last_pushed_time, snap.sequence, self.last_pushed_target_ids)
