@@ -10,12 +10,14 @@ from trackmeter.core.transforms import omega_body_between, quat_derivative
 from trackmeter.core.velocity import (
     VelocityEstimator,
     VelocityParams,
+    block_weights,
     finite_difference_rates,
     local_polynomial_rates,
     right_jacobian_so3,
     screw_rates,
     se3_exp,
     se3_log,
+    weighted_polyfit,
 )
 
 R0 = Rotation.from_rotvec([0.3, -1.1, 0.7]).as_matrix()
@@ -127,7 +129,7 @@ def test_estimator_beats_finite_difference_on_noise() -> None:
 
 
 def test_estimator_restarts_after_a_gap() -> None:
-    est = VelocityEstimator(VelocityParams(max_gap_s=0.2))
+    est = VelocityEstimator(VelocityParams(bridge_gap_s=0.2))
     t = np.arange(5) * 0.04
     R, p = constant_rate(t)
     for ti, ri, pi in zip(t, R, p):
@@ -279,3 +281,72 @@ def test_screw_estimator_beats_poly_on_noisy_slow_tumble() -> None:
     assert VelocityParams().method == "screw"
     assert rms["screw"][0] < rms["poly"][0] / 2
     assert rms["screw"][1] < rms["poly"][1] / 2
+
+
+@pytest.mark.parametrize("deg", [1, 2])
+def test_weighted_polyfit_matches_numpy_polyfit(deg: int) -> None:
+    """Each column's fit is numpy's weighted polyfit (its ``w`` multiplies the residuals: the
+    square root of the inverse variance)."""
+    rng = np.random.default_rng(3)
+    tau = np.linspace(-1.0, 0.0, 30)
+    V = np.vander(tau, deg + 1, increasing=True)
+    X = rng.normal(size=(30, 2))
+    W = rng.uniform(0.01, 10.0, size=(30, 2))
+    coef = weighted_polyfit(V, X, W)
+    for j in range(2):
+        want = np.polyfit(tau, X[:, j], deg, w=np.sqrt(W[:, j]))[::-1]
+        np.testing.assert_allclose(coef[:, j], want, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(weighted_polyfit(V, X, None), np.linalg.lstsq(V, X, rcond=None)[0], atol=1e-12)
+    # a column without enough positive weights falls back to equal weights
+    W[:, 1] = 0.0
+    W[0, 1] = 1.0
+    np.testing.assert_allclose(weighted_polyfit(V, X, W)[:, 1], np.linalg.lstsq(V, X[:, 1], rcond=None)[0], atol=1e-12)
+
+
+def test_block_weights_are_inverse_mean_variances() -> None:
+    C = np.diag([1e-6, 2e-6, 3e-6, 1e-4, 1e-4, 4e-4])
+    np.testing.assert_allclose(block_weights(C), [[3 / 6e-6, 3 / 6e-4]])
+    R = Rotation.from_rotvec([0.3, 0.2, -1.0]).as_matrix()
+    J = np.zeros((6, 6))
+    J[:3, :3] = J[3:, 3:] = R
+    np.testing.assert_allclose(block_weights(J @ C @ J.T), block_weights(C))  # the frame does not matter
+    assert np.all(block_weights(np.full((6, 6), np.nan)) == 0.0)
+
+
+@pytest.mark.parametrize("method", ["screw", "poly"])
+def test_a_pose_measured_poorly_barely_moves_the_weighted_rates(method: str) -> None:
+    """A pose off by 1 deg with a 1 deg sigma among poses with 0.05 deg sigmas: weighted, the rates
+    hardly notice it; with equal weights they turn by 0.09-0.5 deg/s (the case before a loss,
+    when 3-4 points are left)."""
+    t = np.arange(40) * 0.04
+    R, p = constant_rate(t)
+    R[-1] = Rotation.from_rotvec(np.radians([1.0, 0.0, 0.0])).as_matrix() @ R[-1]
+    good = np.diag([1e-6] * 3 + [np.radians(0.05) ** 2] * 3)
+    bad = np.diag([1e-6] * 3 + [np.radians(1.0) ** 2] * 3)
+    errs = {}
+    for weighted in (True, False):
+        est = VelocityEstimator(VelocityParams(method=method, weighted=weighted))
+        for k in range(len(t)):
+            out = est.update(t[k], R[k], p[k], bad if k == len(t) - 1 else good)
+        assert out is not None
+        errs[weighted] = np.degrees(np.linalg.norm(out[1] - OMEGA))
+    assert errs[False] > 0.05
+    assert errs[True] < errs[False] / 10  # screw: 0.005 against 0.087 deg/s
+
+
+def test_a_short_gap_keeps_the_poses_before_it() -> None:
+    """Same body frame on both sides of a 0.4 s loss: the rates right after it come from the poses
+    before it as well (settled at once), exact for this motion (constant rate, straight line);
+    a gap beyond bridge_gap_s starts over."""
+    est = VelocityEstimator(VelocityParams(method="poly", bridge_gap_s=1.0, min_span_s=0.4))
+    t = np.concatenate([np.arange(25) * 0.04, 1.4 + np.arange(3) * 0.04])
+    R, p = constant_rate(t)
+    for k in range(25):
+        est.update(t[k], R[k], p[k])
+    out = est.update(t[25], R[25], p[25])
+    assert out is not None and est.settled
+    assert len(est.window()[0]) == 26
+    np.testing.assert_allclose(out[0], V, atol=1e-9)
+    np.testing.assert_allclose(out[1], OMEGA, atol=1e-9)
+    assert est.update(5.0, R[0], p[0]) is None  # 3.5 s later: a new start
+    assert len(est.window()[0]) == 1

@@ -84,7 +84,16 @@ class VelocityParams:
         0.4, "poly: no velocity is reported until the fitted poses span this long (a restart after a "
         "gap would otherwise report a two-pose difference), s", min=0.0,
     )
-    max_gap_s: float = param(0.5, "a gap between valid poses longer than this restarts the estimator, s", min=0.0)
+    max_gap_s: float = param(0.5, "a gap between valid poses longer than this restarts the output filter, s", min=0.0)
+    bridge_gap_s: float = param(
+        2.5, "poses before a gap up to this long stay in the velocity window (same body frame): the "
+        "rates after a short loss are fitted across it, not from the few poses since; a longer gap "
+        "restarts the estimator, s", min=0.0,
+    )
+    weighted: bool = param(
+        True, "weight each pose of the window by its covariance (rotation and position parts "
+        "separately): a pose measured from few points counts for little",
+    )
 
 
 def right_jacobian_so3(phi: ArrayLike) -> FloatArray:
@@ -114,8 +123,43 @@ def finite_difference_rates(
     return v, omega_body_between(q0, q1, dt)
 
 
+def block_weights(cov_pose: ArrayLike) -> FloatArray:
+    """Per-pose weights ``(w_position, w_rotation)`` (N,2) from pose covariances (N,6,6) (position
+    m, rotation vector rad): the inverse of each block's mean variance, ``3 / tr(Sigma_block)``.
+
+    A trace is invariant under rotation, so the weight is the same whatever frame the block is
+    expressed in (the fits below work in the newest pose's body chart). A non-finite or
+    non-positive block weighs 0."""
+    C = np.asarray(cov_pose, dtype=float).reshape(-1, 6, 6)
+    tr = np.stack([np.trace(C[:, :3, :3], axis1=1, axis2=2), np.trace(C[:, 3:, 3:], axis1=1, axis2=2)], axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.where(np.isfinite(tr) & (tr > 0), 3.0 / tr, 0.0)
+    return w
+
+
+def weighted_polyfit(V: ArrayLike, X: ArrayLike, weights: ArrayLike | None = None) -> FloatArray:
+    """Least-squares coefficients ``coef`` (K,M) of ``X ≈ V @ coef`` for a design matrix ``V`` (N,K)
+    and data ``X`` (N,M), column ``j`` of ``X`` weighted by ``weights[:, j]`` (N,M) (inverse
+    variances; None: all equal): ``coef_j = (Vᵀ W_j V)⁻¹ Vᵀ W_j x_j`` — the weighted
+    Savitzky-Golay fit. A column whose weights cannot determine its fit (fewer positive
+    weights than coefficients) falls back to equal weights."""
+    V = np.asarray(V, dtype=float)
+    X = np.asarray(X, dtype=float)
+    if weights is None:
+        return np.linalg.lstsq(V, X, rcond=None)[0]
+    W = np.broadcast_to(np.asarray(weights, dtype=float), X.shape)
+    K = V.shape[1]
+    usable = (W > 0).sum(axis=0) >= K
+    W = np.where(usable[None, :], W, 1.0)
+    W = W / W.max(axis=0, keepdims=True)  # the solution is scale-free; this keeps it conditioned
+    A = np.einsum("nk,nm,nl->mkl", V, W, V)  # (M,K,K) normal matrices
+    b = np.einsum("nk,nm,nm->mk", V, W, X)  # (M,K)
+    return np.linalg.solve(A, b[..., None])[..., 0].T
+
+
 def local_polynomial_rates(
-    times_s: ArrayLike, R: ArrayLike, p: ArrayLike, order: int, t_eval_s: float | None = None
+    times_s: ArrayLike, R: ArrayLike, p: ArrayLike, order: int, t_eval_s: float | None = None,
+    weights: ArrayLike | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """Fit a polynomial to a window of poses on SE(3) and differentiate it (Savitzky-Golay on the group).
 
@@ -125,6 +169,7 @@ def local_polynomial_rates(
         p: (N,3) body-origin positions in the camera frame, m.
         order: polynomial degree; uses ``min(order, N-1)``.
         t_eval_s: where to evaluate; default the newest time.
+        weights: optional (N,2) ``(w_position, w_rotation)`` per pose (:func:`block_weights`).
 
     Returns:
         ``(p_fit (3,), R_fit (3,3), v_cam (3,) m/s, omega_body (3,) rad/s)`` at ``t_eval_s``.
@@ -139,7 +184,8 @@ def local_polynomial_rates(
     tau = t - t_eval
     scale = max(float(np.max(np.abs(tau))), 1e-9)  # conditioning of the Vandermonde matrix
     V = np.vander(tau / scale, deg + 1, increasing=True)
-    coef, *_ = np.linalg.lstsq(V, np.column_stack([phi, P]), rcond=None)
+    Wc = None if weights is None else np.repeat(np.asarray(weights, dtype=float).reshape(-1, 2)[:, ::-1], 3, axis=1)
+    coef = weighted_polyfit(V, np.column_stack([phi, P]), Wc)
     value = coef[0]
     slope = coef[1] / scale if deg >= 1 else np.zeros(6)
     phi0, phi_dot = value[:3], slope[:3]
@@ -187,7 +233,8 @@ def se3_exp(x: ArrayLike) -> tuple[FloatArray, FloatArray]:
 
 
 def screw_rates(
-    times_s: ArrayLike, R: ArrayLike, p: ArrayLike, order: int = 1, t_eval_s: float | None = None
+    times_s: ArrayLike, R: ArrayLike, p: ArrayLike, order: int = 1, t_eval_s: float | None = None,
+    weights: ArrayLike | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """Fit a polynomial to a window of poses in the twist chart of SE(3) and differentiate it.
 
@@ -204,6 +251,8 @@ def screw_rates(
         p: (N,3) body-origin positions in the camera frame, m.
         order: polynomial degree.
         t_eval_s: where to evaluate; default the newest time.
+        weights: optional (N,2) ``(w_position, w_rotation)`` per pose (:func:`block_weights`):
+            ``rho`` is fitted with the position weights, ``theta`` with the rotation weights.
 
     Returns:
         ``(p_fit (3,), R_fit (3,3), v_cam (3,) m/s, omega_body (3,) rad/s)`` at ``t_eval_s``:
@@ -219,7 +268,8 @@ def screw_rates(
     X = se3_log(np.einsum("ji,njk->nik", R_ref, Rm), (P - p_ref) @ R_ref)
     tau = t - t_eval
     scale = max(float(np.max(np.abs(tau))), 1e-9)  # conditioning of the Vandermonde matrix
-    coef, *_ = np.linalg.lstsq(np.vander(tau / scale, deg + 1, increasing=True), X, rcond=None)
+    Wc = None if weights is None else np.repeat(np.asarray(weights, dtype=float).reshape(-1, 2), 3, axis=1)
+    coef = weighted_polyfit(np.vander(tau / scale, deg + 1, increasing=True), X, Wc)
 
     h = 1e-4 * scale
     # the fitted twist at 0, -h and +h, exponentiated in one scipy call (from_rotvec costs
@@ -245,6 +295,7 @@ class VelocityEstimator:
         self._t: deque[float] = deque()
         self._R: deque[FloatArray] = deque()
         self._p: deque[FloatArray] = deque()
+        self._w: deque[FloatArray] = deque()  # (w_position, w_rotation) per pose
         self._capped = False  # screw: the last window was cut short by screw_max_angle_deg
 
     @property
@@ -259,26 +310,41 @@ class VelocityEstimator:
             return True
         return len(self._t) >= 2 and self._t[-1] - self._t[0] >= self.params.min_span_s - 1e-9
 
+    def window(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """The poses the rates are fitted to: ``(times (N,), R_cam_body (N,3,3), p_cam (N,3),
+        weights (N,2) (w_position, w_rotation))`` (copies)."""
+        return (np.array(self._t, dtype=float), np.array(self._R, dtype=float).reshape(-1, 3, 3),
+                np.array(self._p, dtype=float).reshape(-1, 3), np.array(self._w, dtype=float).reshape(-1, 2))
+
     def reset(self) -> None:
         self._capped = False
         self._t.clear()
         self._R.clear()
         self._p.clear()
+        self._w.clear()
 
-    def update(self, t_s: float, R_cam_body: ArrayLike, p_cam: ArrayLike) -> tuple[FloatArray, FloatArray] | None:
-        """Add a pose; return ``(v_cam m/s, omega_body rad/s)``, or None until two poses are known."""
-        if self._t and (t_s <= self._t[-1] or t_s - self._t[-1] > self.params.max_gap_s):
+    def update(self, t_s: float, R_cam_body: ArrayLike, p_cam: ArrayLike, cov_pose: ArrayLike | None = None
+               ) -> tuple[FloatArray, FloatArray] | None:
+        """Add a pose; return ``(v_cam m/s, omega_body rad/s)``, or None until two poses are known.
+
+        ``cov_pose`` (6,6) (position m, rotation vector rad), when given and ``params.weighted``,
+        weighs the pose in the fits (:func:`block_weights`). Why: the poses just before a loss
+        are often measured from 3-4 points (attitude sigma ~1 deg against ~0.05 deg with 16);
+        fitted with equal weights they turned the rates at the loss by ~2 deg/s on harsh_light,
+        which a coast then integrates."""
+        if self._t and (t_s <= self._t[-1] or t_s - self._t[-1] > self.params.bridge_gap_s):
             self.reset()
         self._t.append(float(t_s))
         self._R.append(np.asarray(R_cam_body, dtype=float))
         self._p.append(np.asarray(p_cam, dtype=float))
+        self._w.append(block_weights(cov_pose)[0] if cov_pose is not None and self.params.weighted else np.ones(2))
         keep = 2 if self.params.method == "difference" else None
         if self.params.method == "screw":
             longest = self.params.screw_window_s
         else:
             longest = max(self.params.window_s, self.params.position_window_s)
         while len(self._t) > 2 and (keep is not None and len(self._t) > keep or t_s - self._t[0] > longest):
-            self._t.popleft(), self._R.popleft(), self._p.popleft()
+            self._t.popleft(), self._R.popleft(), self._p.popleft(), self._w.popleft()
         if len(self._t) < 2:
             return None
         if self.params.method == "difference":
@@ -286,6 +352,7 @@ class VelocityEstimator:
         t = np.array(self._t)
         R = np.array(self._R)
         P = np.array(self._p)
+        Wp = np.array(self._w)
         if self.params.method == "screw":
             # Newest poses within screw_max_angle_deg of the newest attitude (angle from the trace).
             cos = (np.einsum("ij,nij->n", R[-1], R) - 1.0) / 2.0
@@ -294,11 +361,11 @@ class VelocityEstimator:
             self._capped = start > 0 and len(t) - start >= 3
             if len(t) - start < 2:  # turned further than the cap within one frame: the last two
                 start = len(t) - 2
-            _, _, v, omega = screw_rates(t[start:], R[start:], P[start:], self.params.screw_order)
+            _, _, v, omega = screw_rates(t[start:], R[start:], P[start:], self.params.screw_order, weights=Wp[start:])
             return v, omega
         rot = t >= t_s - self.params.window_s - 1e-9
         pos = t >= t_s - self.params.position_window_s - 1e-9
         rot[-2:] = pos[-2:] = True
-        _, _, _, omega = local_polynomial_rates(t[rot], R[rot], P[rot], self.params.order)
-        _, _, v, _ = local_polynomial_rates(t[pos], R[pos], P[pos], self.params.position_order)
+        _, _, _, omega = local_polynomial_rates(t[rot], R[rot], P[rot], self.params.order, weights=Wp[rot])
+        _, _, v, _ = local_polynomial_rates(t[pos], R[pos], P[pos], self.params.position_order, weights=Wp[pos])
         return v, omega
