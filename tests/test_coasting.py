@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from trackmeter.core.dynamics import coast_pose, euler_rates, torque_free_accel_bound
+from trackmeter.core.dynamics import coast_pose, euler_rates, fit_centre_of_mass, torque_free_accel_bound
 from trackmeter.core.velocity import se3_exp
 
 
@@ -242,4 +242,135 @@ def test_no_joining_through_a_coast_that_is_too_uncertain(estec_rig) -> None:
     for i, tid in enumerate(old):
         tracker.body[f"new{i}"] = tracker.body[tid]
         tracker.active[f"new{i}"] = "tracking"
-    assert not any(engine.process(frame_at(k))[1].valid for k in range(110, 115))
+    joined = engine.stats.model_points_joined
+    poses = [engine.process(frame_at(k))[1] for k in range(110, 115)]
+    # The coast may still be output (flagged), but nothing joins through it: no measured pose.
+    assert not any(p.valid and p.coasting_s == 0 for p in poses)
+    assert all(p.coasting_s > 0 for p in poses if p.valid)
+    assert engine.stats.model_points_joined == joined
+
+
+def _turning_about(c_body: np.ndarray, v_com: np.ndarray, omega: np.ndarray, t: np.ndarray,
+                   noise_m: float = 0.0, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Poses of a body origin ``c_body`` away from a centre of mass that drifts at ``v_com``
+    while the body turns at the constant body rate ``omega``: ``p = a + v t - R c``."""
+    rng = np.random.default_rng(seed)
+    R0 = Rotation.from_rotvec([0.4, -0.3, 1.1]).as_matrix()
+    R = np.array([R0 @ Rotation.from_rotvec(omega * ti).as_matrix() for ti in t])
+    a0 = np.array([0.02, 0.05, 3.5])
+    p = a0 + np.outer(t, v_com) - R @ c_body + rng.normal(0.0, noise_m, (len(t), 3)) if noise_m else \
+        a0 + np.outer(t, v_com) - R @ c_body
+    return R, p
+
+
+def test_centre_of_mass_fit_recovers_the_point_that_moves_straight() -> None:
+    """Noise-free: the drift velocity and the off-axis part of the centre of mass are exact; the
+    part along the spin axis, which no pose shows, stays at the prior's 0."""
+    omega = np.radians([3.0, -1.0, 5.0])
+    c = np.array([0.25, -0.3, 0.1])
+    v = np.array([0.003, -0.002, 0.001])
+    t = np.arange(63) * 0.04
+    R, p = _turning_about(c, v, omega, t)
+    fit = fit_centre_of_mass(t, R, p, np.full(len(t), 1e8), lever_m=0.5)  # weights of 0.1 mm poses
+    assert fit is not None
+    # The prior pulls the off-axis part a little: a 14 deg turn tells it apart from the velocity
+    # only through the curvature of the origin's path (sigma ~0.1 m per mm of pose noise).
+    np.testing.assert_allclose(fit.v_cam, v, atol=1e-5)
+    axis = omega / np.linalg.norm(omega)
+    off_axis = c - axis * (axis @ c)
+    np.testing.assert_allclose(fit.c_body - axis * (axis @ fit.c_body), off_axis, atol=1e-4)
+    assert abs(axis @ fit.c_body) < 1e-5
+    np.testing.assert_allclose(fit.a_cam, p[-1] + R[-1] @ fit.c_body, atol=1e-6)
+
+
+def test_centre_of_mass_fit_covariance_holds_its_errors() -> None:
+    """With 1 mm position noise (weights saying so) the velocity error stays within 3 sigma of the
+    fit's covariance over many draws, and the speed bound covers the true speed."""
+    omega = np.radians([3.0, -1.0, 5.0])
+    c = np.array([0.25, -0.3, 0.1])
+    v = np.array([0.003, -0.002, 0.001])
+    t = np.arange(63) * 0.04
+    z = []
+    for seed in range(40):
+        R, p = _turning_about(c, v, omega, t, noise_m=0.001, seed=seed)
+        fit = fit_centre_of_mass(t, R, p, np.full(len(t), 1e6), lever_m=0.5)
+        assert fit is not None
+        e = fit.v_cam - v
+        z.append(float(e @ np.linalg.solve(fit.cov[6:, 6:], e)))
+        assert fit.speed_bound_m_s >= np.linalg.norm(v)
+    # chi-square with 3 dof: mean 3; the residual-scaled covariance is not much too wide either
+    assert 1.0 < np.mean(z) < 6.0
+    assert np.mean(np.array(z) > 14.2) < 0.1  # 99.7 % quantile of chi2(3)
+
+
+def test_centre_of_mass_fit_needs_three_weighted_poses() -> None:
+    t = np.arange(5) * 0.04
+    R, p = _turning_about(np.zeros(3), np.zeros(3), np.radians([0, 0, 5.0]), t)
+    assert fit_centre_of_mass(t, R, p, np.array([1.0, 1.0, 0.0, 0.0, 0.0]), 0.5) is None
+    assert fit_centre_of_mass(t, R, p, np.ones(5), 0.5) is not None
+
+
+def test_a_known_centre_of_mass_speed_narrows_only_the_position_growth() -> None:
+    """The bend of the screw is bounded by the centre of mass's speed: a fitted bound below the
+    worst case the lever allows shrinks the position block; the attitude block is unchanged, and
+    a bound above the worst case changes nothing."""
+    R0 = Rotation.from_rotvec([0.3, -0.2, 1.0]).as_matrix()
+    args = (R0, np.array([0.1, 0.0, 3.5]), np.zeros((6, 6)), np.array([0.004, -0.002, 0.01]), np.radians([3.0, -1.0, 5.0]),
+            3.0, 0.003, 0.004, 0.5)
+    _, _, _, worst = coast_pose(*args)
+    _, _, _, known = coast_pose(*args, com_speed_m_s=0.005)
+    _, _, _, loose = coast_pose(*args, com_speed_m_s=10.0)
+    np.testing.assert_array_equal(loose, worst)
+    np.testing.assert_array_equal(known[3:, 3:], worst[3:, 3:])
+    assert known[0, 0] < 0.5 * worst[0, 0]
+    speed = np.linalg.norm(args[3]) + np.linalg.norm(args[4]) * 0.5
+    bend = lambda s: (s * np.linalg.norm(args[4]) * 3.0**2 / 2) ** 2  # noqa: E731
+    assert worst[0, 0] - known[0, 0] == pytest.approx(bend(speed) - bend(0.005), rel=1e-9)
+
+
+def test_case_a_keeps_its_frame_while_the_coast_is_valid(estec_rig) -> None:
+    """Every point lost for longer than redefine_after_s: while the coasted pose stays valid the
+    case-(a) frame is kept (no new body frame), and the same body points, back as new targets,
+    join through the coast so the measured pose goes on in that frame, within its covariance."""
+    from tests.test_engine import DT, frame_at, make_engine, run, true_pose
+
+    engine, tracker, _ = make_engine(estec_rig, with_model=False, noise=False)
+    run(engine, range(60))  # the frame is defined and the velocities settle
+    frame_ids = engine.frame_ids
+    X = np.linalg.inv(true_pose(59 * DT)) @ engine.process(frame_at(60))[1].T_cam_body  # body frame offset
+    old = list(tracker.active)
+    tracker.force_lost = set(old)
+    gap = int(1.2 * engine.pose_params.redefine_after_s / DT)
+    outs = [engine.process(frame_at(k))[1] for k in range(61, 61 + gap)]
+    assert all(p.valid and p.coasting_s > 0 for p in outs)
+    assert engine.stats.frames_redefined == 0 and engine.frame_ids == frame_ids
+    for i, tid in enumerate(old):
+        tracker.body[f"new{i}"] = tracker.body[tid]
+        tracker.active[f"new{i}"] = "tracking"
+    k0 = 61 + gap
+    outs = [(k, engine.process(frame_at(k))[1]) for k in range(k0, k0 + 10)]
+    measured = [(k, p) for k, p in outs if p.valid and p.coasting_s == 0]
+    assert measured and engine.stats.frames_redefined == 0
+    for k, p in measured:
+        T = true_pose(k * DT) @ X
+        e = np.concatenate([p.T_cam_body[:3, 3] - T[:3, 3],
+                            Rotation.from_matrix(p.T_cam_body[:3, :3] @ T[:3, :3].T).as_rotvec()])
+        assert np.all(np.abs(e) < 3 * np.sqrt(np.diag(p.cov_pose)))
+
+
+def test_case_a_frame_is_not_given_up_while_the_coast_is_valid(estec_rig) -> None:
+    """Without joining through the coast (rejoin off), a loss longer than redefine_after_s still
+    keeps the frame for as long as the coasted pose is valid; a new frame only after that."""
+    from tests.test_engine import DT, frame_at, make_engine, run
+
+    engine, tracker, _ = make_engine(estec_rig, with_model=False, noise=False)
+    from dataclasses import replace
+
+    engine.pose_params = replace(engine.pose_params, coast_rejoin_attitude_sigma_deg=0.0)
+    run(engine, range(60))
+    frame_ids = engine.frame_ids
+    tracker.force_lost = set(tracker.active)
+    gap = int(1.2 * engine.pose_params.redefine_after_s / DT)
+    outs = [engine.process(frame_at(k))[1] for k in range(60, 60 + gap)]
+    assert all(p.valid and p.coasting_s > 0 for p in outs)
+    assert engine.stats.frames_redefined == 0 and engine.frame_ids == frame_ids

@@ -309,6 +309,78 @@ def torque_free_accel_bound(omega_body: ArrayLike) -> float:
     return float(w @ w) / np.sqrt(3.0)
 
 
+@dataclass(frozen=True)
+class CentreOfMassFit:
+    """Result of :func:`fit_centre_of_mass`.
+
+    Attributes:
+        c_body: (3,) the centre of mass in the body frame, m.
+        a_cam: (3,) the centre of mass in the camera frame at the newest pose, m.
+        v_cam: (3,) its velocity in the camera frame, m/s.
+        cov: (9,9) covariance of ``(c_body, a_cam, v_cam)``, inflated by the fit's residual
+            scale when the residuals exceed the pose covariances.
+    """
+
+    c_body: FloatArray
+    a_cam: FloatArray
+    v_cam: FloatArray
+    cov: FloatArray
+
+    @property
+    def speed_bound_m_s(self) -> float:
+        """``|v_cam|`` plus 3 sigma of it (the largest eigenvalue of its covariance), m/s."""
+        return float(np.linalg.norm(self.v_cam) + 3.0 * np.sqrt(max(np.linalg.eigvalsh(self.cov[6:, 6:]).max(), 0.0)))
+
+
+def fit_centre_of_mass(
+    times_s: ArrayLike, R_cam_body: ArrayLike, p_cam: ArrayLike, position_weights: ArrayLike, lever_m: float
+) -> CentreOfMassFit | None:
+    """The point of the body that moves in a straight line, from a window of poses.
+
+    A free body's centre of mass drifts at constant velocity (over seconds, relative orbital
+    motion is negligible) while the body turns about it: with ``c`` its body coordinates,
+    ``p_k + R_k c = a + v tau_k`` (``tau_k = t_k - t_newest``) for every pose ``(R_k, p_k)`` of
+    the body origin. Linear in ``x = (c, a, v)`` (9,): weighted least squares with each pose's
+    position weight (inverse variance, :func:`trackmeter.core.velocity.block_weights`) and the
+    prior ``c ~ N(0, lever_m² I)`` (the origin lies within ``lever_m`` of the centre of mass),
+    which keeps the component of ``c`` along a fixed spin axis — invisible to the poses — at 0.
+    The velocity ``v`` and the off-axis ``c`` are told apart only by the curvature of the origin's
+    path (a turn of a few tens of degrees): over a short window ``cov`` says how poorly.
+
+    Args:
+        times_s: (N,) increasing, s; R_cam_body: (N,3,3); p_cam: (N,3) origin, m.
+        position_weights: (N,) inverse position variances, 1/m² (0: pose left out).
+        lever_m: prior 1-sigma of each coordinate of ``c``, m.
+
+    Returns:
+        The fit, or None with fewer than 3 weighted poses.
+    """
+    t = np.asarray(times_s, dtype=float).reshape(-1)
+    R = np.asarray(R_cam_body, dtype=float).reshape(-1, 3, 3)
+    P = np.asarray(p_cam, dtype=float).reshape(-1, 3)
+    w = np.asarray(position_weights, dtype=float).reshape(-1)
+    use = np.isfinite(w) & (w > 0) & np.all(np.isfinite(P), axis=1)
+    if use.sum() < 3:
+        return None
+    t, R, P, w = t[use], R[use], P[use], w[use]
+    tau = t - t[-1]
+    n = len(t)
+    eye = np.broadcast_to(np.eye(3), (n, 3, 3))
+    A = np.concatenate([R, -eye, -tau[:, None, None] * eye], axis=2)  # (n,3,9): R_k c - a - v tau_k = -p_k
+    b = -P
+    w_n = w / w.max()  # the solution does not depend on the weights' scale; the covariance does
+    H = np.einsum("n,nij,nik->jk", w_n, A, A)
+    g = np.einsum("n,nij,ni->j", w_n, A, b)
+    prior = np.zeros((9, 9))
+    prior[:3, :3] = np.eye(3) / (lever_m**2 * w.max())
+    x = np.linalg.solve(H + prior, g)
+    r = np.einsum("nij,j->ni", A, x) - b
+    dof = 3 * n - 9
+    scale2 = float(np.einsum("n,ni,ni->", w, r, r)) / dof if dof > 0 else 1.0
+    cov = np.linalg.inv(H + prior) / w.max() * max(1.0, scale2)
+    return CentreOfMassFit(x[:3], x[3:6], x[6:], 0.5 * (cov + cov.T))
+
+
 def coast_pose(
     R0: ArrayLike,
     p0: ArrayLike,
@@ -319,6 +391,7 @@ def coast_pose(
     velocity_sigma_m_s: float,
     omega_sigma_rad_s: float,
     lever_m: float,
+    com_speed_m_s: float | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """Carry a pose ``dt_s`` forward on the constant-twist motion model, with its covariance.
 
@@ -357,6 +430,9 @@ def coast_pose(
         dt_s: time carried forward, s (>= 0).
         velocity_sigma_m_s, omega_sigma_rad_s: 1-sigma errors of the rates, per axis.
         lever_m: largest distance of the body origin from the centre of mass, m.
+        com_speed_m_s: a bound on the centre of mass's speed when one is known (e.g.
+            :attr:`CentreOfMassFit.speed_bound_m_s`), m/s; it replaces ``|v| + |omega| lever``
+            where smaller.
 
     Returns:
         ``(R (3,3), p (3,), v_cam (3,) at dt, cov (6,6))``.
@@ -373,6 +449,8 @@ def coast_pose(
     sigma_alpha = float(w @ w) / 3.0
     b = omega_sigma_rad_s**2 * dt**2 + sigma_alpha**2 * dt**4 / 4.0
     speed_com = float(np.linalg.norm(v_b)) + float(np.linalg.norm(w)) * lever_m  # bound on |v| of the centre of mass
+    if com_speed_m_s is not None and np.isfinite(com_speed_m_s):
+        speed_com = min(speed_com, float(com_speed_m_s))
     bend = speed_com * float(np.linalg.norm(w)) * dt**2 / 2.0
     a = velocity_sigma_m_s**2 * dt**2 + lever_m**2 * b + bend**2
     cov = np.asarray(cov0, dtype=float) + np.diag([a, a, a, b, b, b])

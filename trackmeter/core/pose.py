@@ -156,11 +156,15 @@ class PoseParams:
     )
     max_position_sigma_m: float = param(0.05, "... or whose position 1-sigma exceeds this, m", min=0.0)
     coast_valid_attitude_sigma_deg: float = param(
-        1.0, "with no model point measured, the pose carried on the motion model (dynamics.coast_pose) is "
+        5.0, "with no model point measured, the pose carried on the motion model (dynamics.coast_pose) is "
         "output as valid, flagged coasting, while its attitude 1-sigma stays below this, deg (0: never)", min=0.0,
     )
     coast_valid_position_sigma_m: float = param(
-        0.01, "... and while its position 1-sigma stays below this, m", min=0.0,
+        0.05, "... and while its position 1-sigma stays below this, m", min=0.0,
+    )
+    coast_fit_centre_of_mass: bool = param(
+        True, "coasting: bound the centre of mass's speed by fitting it to the poses before the loss "
+        "(dynamics.fit_centre_of_mass) instead of assuming the worst the lever allows",
     )
     coast_velocity_sigma_m_s: float = param(
         0.003, "coasting: 1-sigma error of the estimated origin velocity, per axis, m/s", min=0.0,
@@ -173,7 +177,7 @@ class PoseParams:
         min=0.0,
     )
     coast_rejoin_attitude_sigma_deg: float = param(
-        3.0, "while the coasted pose's attitude 1-sigma is below this, newly measured targets join the model "
+        5.0, "while the coasted pose's attitude 1-sigma is below this, newly measured targets join the model "
         "through it (the pose goes on in the same body frame when the light returns; case a keeps its "
         "frame), deg (0: never)", min=0.0,
     )

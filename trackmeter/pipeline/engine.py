@@ -49,7 +49,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-from trackmeter.core.dynamics import coast_pose
+from trackmeter.core.dynamics import coast_pose, fit_centre_of_mass
 from trackmeter.core.output_filter import FilterParams, PoseFilter
 from trackmeter.core.pose import (
     PoseParams,
@@ -297,6 +297,7 @@ class Engine:
         # Coasting output: the last output pose with settled rates (t, R, p, cov, v_cam, omega_body),
         # whether the last output was coasted, and the offset being blended out after a coast.
         self._coast_out: tuple[float, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray] | None = None
+        self._com_cache: tuple[float, float | None] | None = None
         self._coasting = False
         self._blend: tuple[float, FloatArray, FloatArray] | None = None
         self._via_coast: set[str] = set()  # model points that joined through a coasted pose
@@ -489,19 +490,20 @@ class Engine:
             if coast is not None and self.pose_params.recover_model_points:
                 # Paper 2.D through a loss: the model points are where the motion carries them.
                 self._recover(frame, *coast, existing, carried=True)
-            if since > self.velocity_params.max_gap_s:
+            if since > self.velocity_params.bridge_gap_s:
                 self._velocity.reset()
+            if since > self.velocity_params.max_gap_s:
                 self._filter.reset()
                 self._last_fit = None
             rejoin = self._rejoin_through_coast(frame.t_s, measured)
-            if since > self.pose_params.redefine_after_s and not rejoin:
+            coasted = self._coasted_pose(frame.t_s, pose.reason or "no pose")
+            if since > self.pose_params.redefine_after_s and not rejoin and coasted is None:
                 if self._case == "a" and self._model:
-                    # The frame's points are gone for good: define a new frame from the points
-                    # tracked now (the pose was invalid anyway; a new body frame starts here).
+                    # The frame's points are gone for good and the coast has run out: define a
+                    # new frame from the points tracked now (a new body frame starts here).
                     self._reset_motion()
                     self.stats.frames_redefined += 1
             self._operator_watch(frame)
-            coasted = self._coasted_pose(frame.t_s, pose.reason or "no pose")
             if coasted is not None:
                 self._coasting = True
                 return self.tracker.targets if self._recovered_any else targets, coasted, self._errors(frame, coasted)
@@ -510,7 +512,7 @@ class Engine:
         R, t, cov, n_used, outliers = fit
         self.stats.valid_frames += 1
         self._last_valid_t = frame.t_s
-        rates = self._velocity.update(frame.t_s, R, t)
+        rates = self._velocity.update(frame.t_s, R, t, cov)
         v, w = rates if rates is not None else (np.full(3, np.nan), np.full(3, np.nan))
         self._coast = (frame.t_s, R, t, cov, np.asarray(v, float), np.asarray(w, float))
         R_f, t_f = self._filter.update(frame.t_s, R, t, v if rates else None, w if rates else None)
@@ -871,8 +873,23 @@ class Engine:
             return None
         p = self.pose_params
         R, pos, v_t, cov = coast_pose(R0, p0, cov0, v, w, dt, p.coast_velocity_sigma_m_s,
-                                      p.coast_omega_sigma_rad_s, p.coast_lever_m)
+                                      p.coast_omega_sigma_rad_s, p.coast_lever_m, self._com_speed_bound(t0))
         return R, pos, v_t, cov, dt
+
+    def _com_speed_bound(self, t0: float) -> float | None:
+        """A bound on the centre of mass's speed from the poses before the coast that starts at
+        ``t0`` (:func:`fit_centre_of_mass` on the velocity window; once per coast), m/s, or None.
+        Unknown, the coast must assume the worst the lever allows (``|v| + |omega| lever``: on
+        harsh_light 55 mm/s, which bent the predicted path's bound past 50 mm in 3 s)."""
+        if self._com_cache is not None and self._com_cache[0] == t0:
+            return self._com_cache[1]
+        bound = None
+        if self.pose_params.coast_fit_centre_of_mass:
+            t, R, P, W = self._velocity.window()
+            fit = fit_centre_of_mass(t, R, P, W[:, 0], self.pose_params.coast_lever_m) if len(t) else None
+            bound = fit.speed_bound_m_s if fit is not None else None
+        self._com_cache = (t0, bound)
+        return bound
 
     def _coast_within(self, t_s: float, attitude_sigma_deg: float, position_sigma_m: float
                       ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, float] | None:
