@@ -348,6 +348,8 @@ def run_chain(case: str, seconds: float, scenario: str = "estec", seed_offset: i
     step_s = []
     prev: tuple[Any, Any, set[str]] | None = None
     jumps_event, jumps_all = [0.0], [0.0]
+    coast_start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # last measured pose: T_true, T_est, cov
+    coast_z, coasted, longest = [0.0], 0, 0.0
     for k in range(n):
         frame = sim.read()
         if frame is None:
@@ -363,6 +365,16 @@ def run_chain(case: str, seconds: float, scenario: str = "estec", seed_offset: i
             if recovered or (prev[2] - measured):  # a loss or a recovery this frame
                 jumps_event.append(z)
         prev = (pose, frame.truth.T_cam_body, measured)
+        if pose.valid and pose.coasting_s == 0:
+            coast_start = (np.asarray(frame.truth.T_cam_body), np.asarray(pose.T_cam_body), np.asarray(pose.cov_pose))
+        elif pose.valid and coast_start is not None:
+            coasted += 1
+            longest = max(longest, float(pose.coasting_s))
+            # Drift since the coast began, in sigmas of the covariance the coast added: the
+            # truth carried by the body offset it started with (case a's frame is not the truth's).
+            true0, est0, cov0 = coast_start
+            grown = np.diag(np.clip(np.diag(pose.cov_pose) - np.diag(cov0), 1e-18, None))
+            coast_z.append(_jump_sigma(est0, pose.T_cam_body, grown, true0, frame.truth.T_cam_body))
         if k == 0:
             if case == "b":
                 reply = engine.handle(SelectModelPoints(repeat=True), frame)
@@ -386,6 +398,9 @@ def run_chain(case: str, seconds: float, scenario: str = "estec", seed_offset: i
         f"{scenario}_{case}_max_jump_sigma_at_loss_or_recovery": float(max(jumps_event)),
         f"{scenario}_{case}_loss_or_recovery_frames": float(len(jumps_event) - 1),
         f"{scenario}_{case}_max_jump_sigma_any_frame": float(max(jumps_all)),
+        f"{scenario}_{case}_coasted_frames": float(coasted),
+        f"{scenario}_{case}_longest_coast_s": longest,
+        f"{scenario}_{case}_coast_drift_max_sigma": float(max(coast_z)),
     }
     return _series(truth_rows), _series(est_rows), extra
 

@@ -61,3 +61,27 @@ def test_labels_must_match_the_estimates():
     truth = tumbling_truth(n=100)
     with pytest.raises(ValueError):
         figures_per_body_frame(truth, truth, [0] * 99, "z")
+
+
+def test_drift_since_a_coast_began_is_measured_in_any_body_frame():
+    """The coast figure: the estimate against the truth carried by the body offset the coast
+    started with (``_jump_sigma`` with the starting pair), in sigmas of the given covariance."""
+    from benchmarks.accuracy import _jump_sigma
+
+    def T(rotvec, t):
+        M = np.eye(4)
+        M[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+        M[:3, 3] = t
+        return M
+
+    X = T([0.4, -0.1, 0.9], [0.2, -0.05, 0.1])  # case (a): the estimate's body frame is not the truth's
+    true0, true = T([0.1, 0.2, 0.3], [0.0, 0.05, 3.5]), T([0.3, 0.1, 0.5], [0.01, 0.04, 3.49])
+    est0 = true0 @ X
+    cov = np.diag([1e-4] * 3 + [1e-4] * 3)  # 10 mm, 0.01 rad
+    assert _jump_sigma(est0, true @ X, cov, true0, true) == pytest.approx(0.0, abs=1e-9)
+    off = true @ X
+    off[:3, 3] += [0.0, 0.02, 0.0]  # 2 sigma off in y
+    assert _jump_sigma(est0, off, cov, true0, true) == pytest.approx(2.0)
+    turned = T([0.0, 0.0, 0.03], [0, 0, 0]) @ (true @ X)
+    turned[:3, 3] = (true @ X)[:3, 3]
+    assert _jump_sigma(est0, turned, cov, true0, true) == pytest.approx(3.0)
