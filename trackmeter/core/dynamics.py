@@ -349,7 +349,7 @@ def fit_centre_of_mass(
 
     Args:
         times_s: (N,) increasing, s; R_cam_body: (N,3,3); p_cam: (N,3) origin, m.
-        position_weights: (N,) inverse position variances, 1/m² (0: pose left out).
+        position_weights: (N,) inverse position variances, 1/m² (0 or NaN: pose left out).
         lever_m: prior 1-sigma of each coordinate of ``c``, m.
 
     Returns:

@@ -312,7 +312,8 @@ class VelocityEstimator:
 
     def window(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         """The poses the rates are fitted to: ``(times (N,), R_cam_body (N,3,3), p_cam (N,3),
-        weights (N,2) (w_position, w_rotation))`` (copies)."""
+        weights (N,2) (w_position, w_rotation), NaN for a pose given without covariance)``
+        (copies; the weights are kept whether or not ``params.weighted`` uses them in the fits)."""
         return (np.array(self._t, dtype=float), np.array(self._R, dtype=float).reshape(-1, 3, 3),
                 np.array(self._p, dtype=float).reshape(-1, 3), np.array(self._w, dtype=float).reshape(-1, 2))
 
@@ -337,7 +338,7 @@ class VelocityEstimator:
         self._t.append(float(t_s))
         self._R.append(np.asarray(R_cam_body, dtype=float))
         self._p.append(np.asarray(p_cam, dtype=float))
-        self._w.append(block_weights(cov_pose)[0] if cov_pose is not None and self.params.weighted else np.ones(2))
+        self._w.append(block_weights(cov_pose)[0] if cov_pose is not None else np.full(2, np.nan))
         keep = 2 if self.params.method == "difference" else None
         if self.params.method == "screw":
             longest = self.params.screw_window_s
@@ -353,6 +354,8 @@ class VelocityEstimator:
         R = np.array(self._R)
         P = np.array(self._p)
         Wp = np.array(self._w)
+        if not self.params.weighted or not np.all(np.isfinite(Wp)):
+            Wp = np.ones((len(t), 2))
         if self.params.method == "screw":
             # Newest poses within screw_max_angle_deg of the newest attitude (angle from the trace).
             cos = (np.einsum("ij,nij->n", R[-1], R) - 1.0) / 2.0
