@@ -353,9 +353,9 @@ class VelocityEstimator:
         t = np.array(self._t)
         R = np.array(self._R)
         P = np.array(self._p)
-        Wp = np.array(self._w)
+        Wp: FloatArray | None = np.array(self._w)
         if not self.params.weighted or not np.all(np.isfinite(Wp)):
-            Wp = np.ones((len(t), 2))
+            Wp = None  # equal weights: plain least squares
         if self.params.method == "screw":
             # Newest poses within screw_max_angle_deg of the newest attitude (angle from the trace).
             cos = (np.einsum("ij,nij->n", R[-1], R) - 1.0) / 2.0
@@ -364,11 +364,13 @@ class VelocityEstimator:
             self._capped = start > 0 and len(t) - start >= 3
             if len(t) - start < 2:  # turned further than the cap within one frame: the last two
                 start = len(t) - 2
-            _, _, v, omega = screw_rates(t[start:], R[start:], P[start:], self.params.screw_order, weights=Wp[start:])
+            _, _, v, omega = screw_rates(t[start:], R[start:], P[start:], self.params.screw_order,
+                                         weights=None if Wp is None else Wp[start:])
             return v, omega
         rot = t >= t_s - self.params.window_s - 1e-9
         pos = t >= t_s - self.params.position_window_s - 1e-9
         rot[-2:] = pos[-2:] = True
-        _, _, _, omega = local_polynomial_rates(t[rot], R[rot], P[rot], self.params.order, weights=Wp[rot])
-        _, _, v, _ = local_polynomial_rates(t[pos], R[pos], P[pos], self.params.position_order, weights=Wp[pos])
+        _, _, _, omega = local_polynomial_rates(t[rot], R[rot], P[rot], self.params.order, weights=None if Wp is None else Wp[rot])
+        _, _, v, _ = local_polynomial_rates(t[pos], R[pos], P[pos], self.params.position_order,
+                                         weights=None if Wp is None else Wp[pos])
         return v, omega
