@@ -32,3 +32,26 @@ def test_coasted_poses_are_valid_rows_and_counted_in_the_summary(tmp_path: Path)
     assert summary["frames"] == 4 and summary["valid_frames"] == 3 and summary["coasted_frames"] == 2
     tum = [ln for ln in (tmp_path / "run" / "trajectory.tum").read_text().splitlines() if not ln.startswith("#")]
     assert len(tum) == 3
+
+
+def test_a_target_id_with_a_comma_or_quote_stays_one_csv_field(tmp_path: Path) -> None:
+    """Model ids come from other tools' files; csv readers must get the row's columns back."""
+    import csv
+
+    from trackmeter.core.targets import TargetState
+
+    def target(tid: str) -> TargetState:
+        return TargetState(tid, "model", "tracking", np.array([10.0, 20.0]), np.array([5.0, 20.0]),
+                           np.array([0.1, 0.2, 3.5]), np.eye(3) * 1e-6, 0.97, np.array([10.0, 20.0]),
+                           (0.0, 0.0, 1.0, 1.0))
+
+    ids = ["plain", 'wing "north", c0', "a,b"]
+    writer = RunWriter(tmp_path / "run", {}, {"spec": "test"})
+    writer.write_frame(0.0, tuple(target(i) for i in ids), _pose(0.0))
+    writer.close("complete")
+    with (tmp_path / "run" / "targets.csv").open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["id"] for r in rows] == ids
+    assert all(r["state"] == "tracking" and float(r["z"]) == 3.5 for r in rows)
+    first = (tmp_path / "run" / "targets.csv").read_text().splitlines()[1]
+    assert first.split(",")[1] == "plain"  # ordinary ids are written as before, unquoted

@@ -41,6 +41,15 @@ def _num(value: float, fmt: str = ".9f") -> str:
     return "" if value is None or not np.isfinite(value) else format(float(value), fmt)
 
 
+def _csv_text(text: str) -> str:
+    """``text`` as one CSV field (RFC 4180, as :mod:`csv` writes it with minimal quoting): a
+    target id from a model file may hold a comma or a quote, which would otherwise shift the
+    row's columns for every reader."""
+    if any(c in text for c in ',"\r\n'):
+        return '"' + text.replace('"', '""') + '"'
+    return text
+
+
 def versions() -> dict[str, str]:
     """Versions of the software that made the run."""
     import cv2
@@ -134,7 +143,7 @@ class RunWriter:
         for s in targets:
             uv, uvr, x = s.uv, s.uv_right, s.point_cam
             lines.append(",".join([
-                f"{t_s:.9f}", s.id, s.status, _num(uv[0], ".4f"), _num(uv[1], ".4f"), _num(uvr[0], ".4f"),
+                f"{t_s:.9f}", _csv_text(s.id), s.status, _num(uv[0], ".4f"), _num(uv[1], ".4f"), _num(uvr[0], ".4f"),
                 _num(uvr[1], ".4f"), _num(x[0]), _num(x[1]), _num(x[2]), _num(s.score, ".5f"),
             ]) + "\n")
         if lines:
