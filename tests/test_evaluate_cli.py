@@ -184,3 +184,25 @@ def test_settle_counts_from_the_start_of_the_run(capsys, tmp_path):
     s = json.loads(out)
     assert s["matched"] == int(np.count_nonzero(truth.t_s >= 4.0 - 1e-9))
     assert s["position_m"]["norm"]["max"] < TUM_EPS
+
+
+def test_unwritable_out_is_one_line_and_exit_2(capsys, sequence_and_run):
+    """An --out the OS refuses (here: a folder under /proc) is the user's input, not a bug:
+    one line naming the path and the reason, exit 2, no traceback."""
+    _, seq, run = sequence_and_run
+    code, _, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--out", "/proc/nope")
+    assert code == 2
+    assert err.startswith("trackmeter evaluate: error: /proc/nope") and "No such file or directory" in err
+    assert len(err.strip().splitlines()) == 1
+
+
+def test_stdout_closed_early_gives_no_traceback(sequence_and_run):
+    """``evaluate --json | head -c 10``: the reader goes away before the summary is written;
+    the command ends quietly (the docs' recipe: exit 1, nothing on stderr)."""
+    _, seq, run = sequence_and_run
+    proc = subprocess.Popen([sys.executable, "-m", "trackmeter.cli.main", "evaluate", "--truth", str(seq),
+                             "--estimate", str(run), "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()  # long before the interpreter has even started: every write meets a closed pipe
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 1
+    assert err == ""

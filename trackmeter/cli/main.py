@@ -2,13 +2,17 @@
 
 Each subcommand lives in its own module ``trackmeter.cli.<name>`` with two functions,
 ``add_arguments(parser)`` and ``run(args) -> int``; heavy imports happen inside ``run`` so
-``--help`` stays fast. Any :class:`TrackmeterError` becomes one line on stderr and exit code 2.
+``--help`` stays fast. Any :class:`TrackmeterError` or :class:`OSError` (an output path that
+cannot be written, a full disk) becomes one line on stderr and exit code 2; a closed stdout
+(``... --json | head``) ends the command quietly. Any other exception is a bug and keeps its
+traceback.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import signal
 import sys
 import threading
@@ -61,7 +65,39 @@ def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
+def _describe_os_error(exc: OSError) -> str:
+    """``PATH: strerror`` (both paths of a failed rename), as the OS reported it."""
+    reason = exc.strerror or str(exc)
+    if exc.filename is None:
+        return reason
+    where = str(exc.filename) if exc.filename2 is None else f"{exc.filename} -> {exc.filename2}"
+    return f"{where}: {reason}"
+
+
+def _silence_stdout() -> None:
+    """Point stdout at devnull after its reader went away, so the interpreter's own flush at
+    exit does not raise BrokenPipeError again (the recipe of Python's ``signal`` docs)."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):  # stdout is not a real file (captured, closed): nothing to do
+        pass
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    # Output still buffered is flushed here, where a closed pipe can be caught, not at exit
+    # (where Python prints "Exception ignored ... BrokenPipeError"); argparse's --help
+    # already ignores a closed stdout by itself.
+    try:
+        code = _main(argv)
+        sys.stdout.flush()
+        return code
+    except BrokenPipeError:
+        _silence_stdout()
+        return 1  # what the docs' recipe exits with: the output was cut short
+
+
+def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
@@ -76,6 +112,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(_command_module(args.command).run(args) or 0)
     except TrackmeterError as exc:
         print(f"trackmeter {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except BrokenPipeError:
+        raise  # stdout closed by its reader: not an error to report (see main)
+    except OSError as exc:
+        # A path the user named that cannot be written or read (unwritable --out, full disk):
+        # their input or their system, not a bug, so one line like any other bad input.
+        print(f"trackmeter {args.command}: error: {_describe_os_error(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"trackmeter {args.command}: interrupted", file=sys.stderr)

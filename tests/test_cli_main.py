@@ -1,0 +1,41 @@
+"""``trackmeter`` itself (trackmeter.cli.main): which exceptions become one line and exit 2."""
+
+from __future__ import annotations
+
+import errno
+
+import pytest
+
+from trackmeter.cli import simulate
+from trackmeter.cli.main import main
+
+
+def test_os_error_is_one_line_with_path_and_reason(monkeypatch, capsys):
+    def full_disk(args):
+        raise OSError(errno.ENOSPC, "No space left on device", "/data/out/states.csv")
+
+    monkeypatch.setattr(simulate, "run", full_disk)
+    assert main(["simulate", "--out", "x"]) == 2
+    assert capsys.readouterr().err == "trackmeter simulate: error: /data/out/states.csv: No space left on device\n"
+
+
+def test_failed_rename_names_both_paths(monkeypatch, capsys):
+    def cross_device(args):
+        raise OSError(errno.EXDEV, "Invalid cross-device link", "/a/run.partial", None, "/b/run")  # as os.rename
+
+    monkeypatch.setattr(simulate, "run", cross_device)
+    assert main(["simulate", "--out", "x"]) == 2
+    assert capsys.readouterr().err == "trackmeter simulate: error: /a/run.partial -> /b/run: Invalid cross-device link\n"
+
+
+def test_a_bug_keeps_its_traceback(monkeypatch):
+    """Only the user's input and the system's refusals become one line; a programming error
+    must stay visible as one."""
+
+    def bug(args):
+        raise ValueError("a bug")
+
+    monkeypatch.setattr(simulate, "run", bug)
+    with pytest.raises(ValueError, match="a bug"):
+        main(["simulate", "--out", "x"])
+
