@@ -76,6 +76,28 @@ def test_simulate_refuses_a_used_folder_and_bad_input(tmp_path, capsys):
     assert not (tmp_path / "a").exists() and not (tmp_path / "c").exists()
 
 
+def test_simulate_unwritable_out_is_one_line_and_exit_2(capsys):
+    """An --out the OS refuses: one line naming the path and the reason, exit 2, no traceback."""
+    assert main(["simulate", "--duration", "0.04", "--out", "/proc/nope"]) == 2
+    err = capsys.readouterr().err
+    assert err == "trackmeter simulate: error: /proc/nope.partial: No such file or directory\n"
+
+
+def test_simulate_reads_its_config(tmp_path, capsys):
+    """--config is loaded (and checked) like every other command's, before anything is written."""
+    assert main(["simulate", "--config", str(tmp_path / "none.yaml"), "--duration", "0.04", "--out", str(tmp_path / "a")]) == 2
+    assert capsys.readouterr().err == f"trackmeter simulate: error: {tmp_path / 'none.yaml'}: no such file\n"
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("tracker: {no_such_knob: 1}\n")
+    assert main(["simulate", "--config", str(bad), "--duration", "0.04", "--out", str(tmp_path / "b")]) == 2
+    assert "unknown key 'tracker.no_such_knob'" in capsys.readouterr().err
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+    good = tmp_path / "good.yaml"
+    good.write_text("tracker: {max_targets: 8}\n")
+    assert main(["simulate", "--config", str(good), "--scenario", "static_ranges", "--duration", "0.04",
+                 "--out", str(tmp_path / "c")]) == 0
+
+
 def test_simulate_into_an_empty_existing_folder(tmp_path):
     out = tmp_path / "empty"
     out.mkdir()

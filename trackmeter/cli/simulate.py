@@ -30,13 +30,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import yaml
 
-    from trackmeter.cli.common import progress
+    from trackmeter.cli.common import load_config_from_args, progress
     from trackmeter.data.config import config_to_dict
     from trackmeter.data.sequence import SequenceWriter
     from trackmeter.errors import TrackmeterError
     from trackmeter.sources.sim.scenario import load_scenario
     from trackmeter.sources.sim.simulator import Simulator
 
+    # Nothing the simulator does is configured there (the scenario is), but a --config that
+    # is missing or wrong must fail as it does for every other command, not pass unread.
+    load_config_from_args(args)
     out = Path(args.out)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise TrackmeterError(f"{out}: exists and is not an empty folder; choose a new --out")
