@@ -218,6 +218,26 @@ def test_camera_and_rig_refuse_bad_values() -> None:
         StereoRig(cam, Camera(320, 240, K), np.eye(3), [-0.1, 0, 0])
 
 
+def test_rotation_written_with_five_decimals_becomes_the_nearest_rotation() -> None:
+    """A rig file's R rounded to 5 decimals (|R^T R - I| ~ 1e-5) is a rotation as written by a
+    person or another tool: taken, and replaced by the nearest exact rotation."""
+    K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    cam = Camera(640, 480, K)
+    exact = cv2.Rodrigues(np.array([0.013, -0.41, 0.027]))[0]
+    rounded = np.round(exact, 5)
+    assert np.max(np.abs(rounded.T @ rounded - np.eye(3))) > 1e-6  # what the old check refused
+    rig = StereoRig(cam, cam, rounded, [-0.1, 0, 0])
+    np.testing.assert_allclose(rig.R.T @ rig.R, np.eye(3), rtol=0, atol=1e-14)
+    assert np.linalg.det(rig.R) == pytest.approx(1.0, abs=1e-14)
+    np.testing.assert_allclose(rig.R, exact, rtol=0, atol=1e-5)
+    # An exact rotation is kept bit for bit.
+    assert np.array_equal(StereoRig(cam, cam, exact, [-0.1, 0, 0]).R, exact)
+    # A reflection, however close to orthonormal, and a clear non-rotation stay refused.
+    for bad in (np.round(exact, 5) @ np.diag([1.0, 1.0, -1.0]), exact * 1.01, exact + 0.01 * np.eye(3)):
+        with pytest.raises(TrackmeterError, match="R must be a rotation matrix"):
+            StereoRig(cam, cam, bad, [-0.1, 0, 0])
+
+
 def test_rectification_of_alpha_one_keeps_geometry(estec_rig: StereoRig) -> None:
     rect = Rectification.of(estec_rig, alpha=1.0)
     p = points_in_view(estec_rig, 10, 6)

@@ -54,6 +54,32 @@ def _as_matrix(value: ArrayLike, shape: tuple[int, ...], name: str) -> FloatArra
     return array
 
 
+#: How far ``R^T R`` may be from the identity (largest entry) for R to be taken as a rotation
+#: written with too few decimals: 5 decimals leave ~1e-5; a real non-rotation is far beyond.
+ROTATION_TOLERANCE = 1e-3
+
+
+def _nearest_rotation(R: FloatArray) -> FloatArray:
+    """R itself when orthonormal to working precision, else the nearest rotation (Frobenius
+    norm: the polar factor ``U V^T`` of ``R = U S V^T``) when R is within
+    :data:`ROTATION_TOLERANCE` of one; downstream code (rectification, pose) assumes an
+    exact rotation.
+
+    Raises:
+        TrackmeterError: a reflection (det < 0) or a matrix too far from any rotation.
+    """
+    error = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    det = float(np.linalg.det(R))
+    if det <= 0 or error > ROTATION_TOLERANCE:
+        raise TrackmeterError(
+            f"R must be a rotation matrix (orthonormal, det +1): |R^T R - I| = {error:.2g}, det = {det:.6g}"
+        )
+    if error <= 1e-12:
+        return R  # already a rotation: keep it bit for bit (files round-trip unchanged)
+    U, _, Vt = np.linalg.svd(R)
+    return U @ Vt  # det(U V^T) = +1 here since det(R) > 0
+
+
 @dataclass(frozen=True, eq=False)
 class Camera:
     """A pinhole camera with OpenCV lens distortion.
@@ -142,10 +168,7 @@ class StereoRig:
     name: str = ""
 
     def __post_init__(self) -> None:
-        R = _as_matrix(self.R, (3, 3), "R")
-        if abs(np.linalg.det(R) - 1.0) > 1e-6 or not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
-            raise TrackmeterError("R must be a rotation matrix (orthonormal, det +1)")
-        object.__setattr__(self, "R", R)
+        object.__setattr__(self, "R", _nearest_rotation(_as_matrix(self.R, (3, 3), "R")))
         T = _as_matrix(self.T, (3,), "T")
         if np.linalg.norm(T) <= 0:
             raise TrackmeterError("T must be non-zero (the baseline)")
