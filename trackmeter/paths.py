@@ -1,11 +1,31 @@
-"""Where the project's own resources live (``config/``, ``static/``)."""
+"""Where the project's own resources live (``config/``, ``static/``).
+
+``config/`` sits at the top of the repository (DESIGN.md names ``config/default.yaml``). A
+checkout or an editable install reads it there, so an edit takes effect at once; a wheel
+(``pip install .``) has no source tree and carries a copy as the data package
+``trackmeter._config`` (see ``pyproject.toml``), used when the source tree's is absent.
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
-CONFIG_DIR = PROJECT_ROOT / "config"
+_SOURCE_CONFIG_DIR = PROJECT_ROOT / "config"
+_PACKAGED_CONFIG_DIR = Path(__file__).resolve().parent / "_config"
+
+
+def _config_dir() -> Path:
+    # The source tree only when PROJECT_ROOT is one (pyproject.toml beside config/): installed,
+    # PROJECT_ROOT is site-packages, where some other distribution's "config" could sit.
+    if (PROJECT_ROOT / "pyproject.toml").is_file() and (_SOURCE_CONFIG_DIR / "default.yaml").is_file():
+        return _SOURCE_CONFIG_DIR
+    if (_PACKAGED_CONFIG_DIR / "default.yaml").is_file():
+        return _PACKAGED_CONFIG_DIR
+    return _SOURCE_CONFIG_DIR  # neither: errors name the path DESIGN.md documents
+
+
+CONFIG_DIR = _config_dir()
 STATIC_DIR = PROJECT_ROOT / "static"
 DEFAULT_CONFIG = CONFIG_DIR / "default.yaml"
 RIGS_DIR = CONFIG_DIR / "rigs"
