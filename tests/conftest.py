@@ -36,3 +36,48 @@ def estec_sim_frames():  # type: ignore[no-untyped-def]
     finally:
         source.close()
     return source.rig, frames
+
+
+@pytest.fixture(scope="session")
+def opencv_sample_rig(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A folder holding ``intrinsics.yml`` + ``extrinsics.yml`` as OpenCV's ``stereo_calib.cpp``
+    writes them (``M1 D1 M2 D2``; ``R T R1 R2 P1 P2 Q``), with OpenCV's own calibration of the
+    640x480 pairs of ``stereo_calib_opencv`` (its reference JSON, variant C; lengths in
+    squares). Like OpenCV's files, they carry no image size."""
+    import json
+
+    import cv2
+    import numpy as np
+
+    ref = json.loads((shared_data / "stereo_calib_opencv" / "reference_opencv_stereocalibrate.json").read_text())
+    c = ref["C_joint_5param_free"]
+    K1, K2 = np.array(c["K1"]), np.array(c["K2"])
+    D1, D2 = np.array(c["D1"]).reshape(1, -1), np.array(c["D2"]).reshape(1, -1)
+    R, _ = cv2.Rodrigues(np.deg2rad(np.array(c["R_rodrigues_deg"])))
+    T = np.array(c["T"]).reshape(3, 1)
+    R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(K1, D1, K2, D2, tuple(ref["image_size"]), R, T,
+                                                flags=cv2.CALIB_ZERO_DISPARITY, alpha=-1)
+    folder = tmp_path_factory.mktemp("opencv_rig")
+    for name, items in (("intrinsics.yml", (("M1", K1), ("D1", D1), ("M2", K2), ("D2", D2))),
+                        ("extrinsics.yml", (("R", R), ("T", T), ("R1", R1), ("R2", R2), ("P1", P1), ("P2", P2), ("Q", Q)))):
+        fs = cv2.FileStorage(str(folder / name), cv2.FILE_STORAGE_WRITE)
+        for key, value in items:
+            fs.write(key, value)
+        fs.release()
+    return folder
+
+
+@pytest.fixture(scope="session")
+def opencv_sample_sequence(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 3-frame sequence folder (no rig.yaml) of OpenCV's 640x480 sample pairs 01-03, 25 Hz."""
+    from trackmeter.data.images import read_grey
+    from trackmeter.data.sequence import SequenceWriter
+    from trackmeter.sources.base import StereoFrame
+
+    folder = tmp_path_factory.mktemp("opencv_seq") / "seq"
+    images = shared_data / "stereo_calib_opencv"
+    with SequenceWriter(folder) as writer:
+        for i in range(3):
+            writer.write(StereoFrame(i, i / 25.0, read_grey(images / f"left0{i + 1}.jpg"),
+                                     read_grey(images / f"right0{i + 1}.jpg")))
+    return folder

@@ -62,3 +62,17 @@ def test_a_failing_source_is_shown_and_the_console_stays_up() -> None:
     finally:
         running.stop()
     assert not running.pipeline.running and img_source.closed
+
+
+def test_frames_that_do_not_match_the_rig_are_a_clear_error(opencv_sample_sequence, capsys: pytest.CaptureFixture[str]) -> None:
+    from pathlib import Path
+
+    rig = Path(__file__).resolve().parent.parent / "config" / "rigs" / "estec_12mm.yaml"
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    code = main(["console", "--source", f"seq:{opencv_sample_sequence}", "--rig", str(rig), "--port", str(port),
+                 "--cpu-nice", "0"])
+    err = [line for line in capsys.readouterr().err.strip().splitlines() if "opening" not in line]
+    assert code == 2 and err == [f"trackmeter console: error: frame 640x480 does not match the rig's image size "
+                                 f"726x512 (--rig {rig})"], err

@@ -111,6 +111,29 @@ def test_image_of_the_wrong_size(pair, capsys) -> None:  # type: ignore[no-untyp
     _one_error_line(capsys, "small.png", "700x512", "726x512")
 
 
+def test_opencv_sample_pair_takes_the_size_of_the_left_image(opencv_sample_rig: Path, shared_data: Path,
+                                                             capsys) -> None:  # type: ignore[no-untyped-def]
+    """OpenCV's intrinsics.yml/extrinsics.yml carry no image size: measure takes the left image's.
+    On OpenCV's own chessboard pair, neighbouring corners come out one square apart."""
+    images = shared_data / "stereo_calib_opencv"
+    left = cv2.imread(str(images / "left01.jpg"), cv2.IMREAD_GRAYSCALE)
+    found, corners = cv2.findChessboardCorners(left, (9, 6))
+    assert found
+    corners = cv2.cornerSubPix(left, corners, (5, 5), (-1, -1),
+                               (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.01)).reshape(6, 9, 2)
+    ats = [f"--at={u:.3f},{v:.3f}" for u, v in corners.reshape(-1, 2)]
+    for rig_file in ("intrinsics.yml", "extrinsics.yml"):
+        code = main(["measure", "--rig", str(opencv_sample_rig / rig_file), "--left", str(images / "left01.jpg"),
+                     "--right", str(images / "right01.jpg"), *ats, "--json"])
+        captured = capsys.readouterr()
+        assert code == 0, captured.err
+        out = json.loads(captured.out)
+        xyz = np.array([o["xyz_m"] if o["ok"] else [np.nan] * 3 for o in out]).reshape(6, 9, 3)
+        assert np.isfinite(xyz[..., 0]).sum() >= 40  # most corners; a few are refused as ambiguous
+        step = np.linalg.norm(np.diff(xyz, axis=1), axis=2)  # along a row of corners, in squares
+        assert np.nanmedian(step) == pytest.approx(1.0, abs=0.01)
+
+
 def test_non_image_file(pair, capsys) -> None:  # type: ignore[no-untyped-def]
     *_, folder = pair
     (folder / "notes.png").write_text("not an image\n")

@@ -202,6 +202,7 @@ def test_rig_override_is_reported_not_rendered(sims, estec_rig):
     sim = Simulator(sims["estec"].scenario, rig_override=other, mockup=sims["estec"].mockup)
     assert sim.rig is other
     assert np.allclose(sim.true_rig.left.K, estec_rig.left.K)
+    assert sim.frame_size == estec_rig.image_size  # the size of the rendered frames, not of the reported rig
 
 
 @pytest.mark.parametrize(

@@ -169,3 +169,93 @@ def test_sigterm_ends_a_run_as_ctrl_c_does(tmp_path) -> None:
     meta = yaml.safe_load((out / "run.yaml").read_text())
     assert meta["status"] == "interrupted"
     assert len(read_motion_csv(out / "states.csv")) == meta["summary"]["frames"] >= 3
+
+
+# --------------------------------------------------------------------------- rig and frame size
+
+
+@pytest.fixture(scope="module")
+def sequence_with_wrong_rig(opencv_sample_sequence: Path, estec_rig, tmp_path_factory) -> Path:
+    """OpenCV's 640x480 sample pairs in a sequence folder whose rig.yaml is the 726x512 estec rig."""
+    from trackmeter.data.sequence import SequenceWriter
+    from trackmeter.sources import open_source
+
+    folder = tmp_path_factory.mktemp("wrong_rig") / "seq"
+    with open_source(f"seq:{opencv_sample_sequence}") as source, SequenceWriter(folder, rig=estec_rig) as writer:
+        while (frame := source.read()) is not None:
+            writer.write(frame)
+    return folder
+
+
+def test_an_opencv_pair_rig_takes_the_size_of_the_source_frames(opencv_sample_rig, opencv_sample_sequence,
+                                                                 tmp_path, capsys) -> None:
+    out = tmp_path / "run"
+    code = main(["track", "--source", f"seq:{opencv_sample_sequence}", "--rig", str(opencv_sample_rig / "intrinsics.yml"),
+                 "--auto", "4", "--out", str(out)])
+    assert code == 0, capsys.readouterr().err
+    meta = yaml.safe_load((out / "run.yaml").read_text())
+    assert meta["status"] == "complete" and meta["summary"]["frames"] == 3
+    assert len(read_motion_csv(out / "states.csv")) == 3
+
+
+@pytest.mark.parametrize("rig_from", ["--rig", "rig.yaml"])
+@pytest.mark.parametrize("targets", [["--auto", "4"], ["--target", "100,100"]])
+def test_frames_that_do_not_match_the_rig_are_refused_before_the_run(opencv_sample_sequence, sequence_with_wrong_rig,
+                                                                     tmp_path, capsys, rig_from, targets) -> None:
+    if rig_from == "--rig":
+        source, rig = [f"seq:{opencv_sample_sequence}"], ["--rig", str(REPO / "config" / "rigs" / "estec_12mm.yaml")]
+    else:
+        source, rig = [str(sequence_with_wrong_rig)], []
+    out = tmp_path / "run"
+    code = main(["track", "--source", *source, *rig, *targets, "--out", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    assert "frame 640x480 does not match the rig's image size 726x512" in err[0]
+    assert ("estec_12mm.yaml" if rig_from == "--rig" else "give the right one with --rig") in err[0]
+    assert not out.exists()  # nothing misleading written
+
+
+# --------------------------------------------------------------------------- model case
+
+
+THREE_POINTS = "points:\n- {id: a, xyz: [0, 0, 0]}\n- {id: b, xyz: [0.1, 0, 0]}\n- {id: c, xyz: [0, 0.1, 0]}\n"
+
+
+def test_case_help_says_when_b_is_chosen(capsys) -> None:
+    with pytest.raises(SystemExit):
+        main(["track", "--help"])
+    help_text = " ".join(capsys.readouterr().out.split())
+    assert "--target ID=U,V or --select-model-points" in help_text
+
+
+@pytest.mark.parametrize("model_from", ["--model", "source"])
+def test_a_model_without_bound_targets_runs_case_a_and_says_so(monkeypatch, tmp_path, estec_rig, capsys,
+                                                              model_from) -> None:
+    import trackmeter.sources as sources
+    from trackmeter.data.model import load_model
+
+    model_path = _model(tmp_path, THREE_POINTS)
+
+    def open_fake(spec, rig_override=None, realtime=False, loop=False):  # type: ignore[no-untyped-def]
+        source = TextureSource(rig_override or estec_rig, n=3)
+        source.model = load_model(model_path) if model_from == "source" else None
+        return source
+
+    monkeypatch.setattr(sources, "open_source", open_fake)
+    extra = ["--model", str(model_path)] if model_from == "--model" else []
+    out = tmp_path / "run"
+    assert main(["track", "--source", "fake", *extra, "--auto", "4", "--out", str(out)]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "case (a)" in err[0], err
+    assert "--target ID=U,V" in err[0] and "--select-model-points" in err[0] and "--case b" in err[0]
+    meta = yaml.safe_load((out / "run.yaml").read_text())["source"]
+    assert meta["case"] == "a" and meta["model"] is None  # no model was used
+    assert meta["model_available"] == (str(model_path) if model_from == "--model" else "source")
+    assert "no target bound" in meta["case_reason"]
+
+    # A target bound to a model point: case (b) with that model, and no note.
+    out = tmp_path / "run_b"
+    assert main(["track", "--source", "fake", *extra, "--target", "a=100,100", "--auto", "4", "--out", str(out)]) == 0
+    assert "case (a)" not in capsys.readouterr().err
+    meta = yaml.safe_load((out / "run.yaml").read_text())["source"]
+    assert meta["case"] == "b" and meta["model"] == (str(model_path) if model_from == "--model" else "source")

@@ -26,18 +26,19 @@ from trackmeter.cli.common import load_config_from_args, progress
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--source", default="sim:static_ranges", metavar="SPEC",
                         help="frames of a still target (default sim:static_ranges; seq:DIR or a folder)")
-    parser.add_argument("--rig", metavar="RIG", help="stereo rig file (default: the source's own)")
+    parser.add_argument("--rig", metavar="RIG",
+                        help="stereo rig file (default: the source's own); OpenCV's intrinsics.yml or extrinsics.yml "
+                             "(the other beside it) takes the size of the source's frames")
     parser.add_argument("--points", type=int, metavar="N", help="points selected per range (default from config)")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON (SI units)")
     parser.add_argument("--out", metavar="DIR", help="write analysis.json, ranges.csv, plots and report.md here")
 
 
 def run(args: argparse.Namespace) -> int:
+    from trackmeter.cli.common import open_source_with_rig
     from trackmeter.data.analysis_report import format_analysis, write_analysis
-    from trackmeter.data.rigfile import load_rig
     from trackmeter.errors import TrackmeterError
     from trackmeter.pipeline.analysis import run_error_analysis
-    from trackmeter.sources import open_source
 
     config = load_config_from_args(args)
     params = config.analyze
@@ -45,9 +46,9 @@ def run(args: argparse.Namespace) -> int:
         if args.points < 3:
             raise TrackmeterError(f"--points must be at least 3, got {args.points}")
         params = replace(params, points_per_range=args.points)
-    rig_override = load_rig(args.rig) if args.rig else None
-    with open_source(args.source, rig_override=rig_override) as source:
-        rig = rig_override or source.rig
+    # --rig is read once the source is open: it may take its size from the source's frames.
+    with open_source_with_rig(args.source, args.rig) as source:
+        rig = source.rig
         if rig is None:
             raise TrackmeterError(f"source {args.source!r} carries no rig: give --rig")
         total = getattr(source, "n_frames", None)

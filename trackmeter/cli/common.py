@@ -5,9 +5,12 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from typing import Iterable, Iterator, TypeVar
+from typing import TYPE_CHECKING, Iterable, Iterator, TypeVar
 
 from trackmeter.errors import TrackmeterError
+
+if TYPE_CHECKING:
+    from trackmeter.sources.base import Source
 
 T = TypeVar("T")
 
@@ -22,6 +25,48 @@ def load_config_from_args(args: argparse.Namespace):  # type: ignore[no-untyped-
     from trackmeter.data.config import load_config
 
     return load_config(getattr(args, "config", None))
+
+
+def open_source_with_rig(spec: str, rig_path: str | None, realtime: bool = False, loop: bool = False) -> Source:
+    """Open the source SPEC for a command that measures on its frames, with its rig checked.
+
+    The rig is the file ``rig_path`` (``--rig``) when given, else the one the source carries.
+    It is read once the source is open, so that a rig file without an image size (OpenCV's
+    ``intrinsics.yml``/``extrinsics.yml`` pair) takes the size of the source's frames
+    (:attr:`Source.frame_size`, from its first frame). Frames of another size than the rig's
+    are refused here, before anything is tracked or written: every pixel of the rig's
+    calibration would be wrong for them.
+
+    Args:
+        spec: a source SPEC (DESIGN.md section 6).
+        rig_path: the ``--rig`` file, or None.
+        realtime, loop: as :func:`trackmeter.sources.open_source`.
+
+    Returns:
+        The open source, its ``rig`` replaced by ``rig_path``'s when given (may still be None
+        when the source carries none: the caller says what is missing).
+
+    Raises:
+        TrackmeterError: a bad SPEC or rig file, or frames that do not match the rig (the
+            source is closed).
+    """
+    from trackmeter.data.rigfile import load_rig
+    from trackmeter.sources import open_source
+
+    source = open_source(spec, realtime=realtime, loop=loop)
+    try:
+        size = source.frame_size
+        if rig_path:
+            source.rig = load_rig(rig_path, image_size=size)
+        rig = source.rig
+        if rig is not None and size is not None and tuple(size) != rig.image_size:
+            where = f"--rig {rig_path}" if rig_path else f"the rig {spec} carries; give the right one with --rig"
+            raise TrackmeterError(f"frame {size[0]}x{size[1]} does not match the rig's image size "
+                                  f"{rig.image_size[0]}x{rig.image_size[1]} ({where})")
+    except BaseException:
+        source.close()
+        raise
+    return source
 
 
 def parse_uv(text: str) -> tuple[float, float]:

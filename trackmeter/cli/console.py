@@ -28,7 +28,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1: this machine only)")
     parser.add_argument("--port", type=int, default=8080, help="port to listen on (default 8080)")
     parser.add_argument("--record", metavar="DIR", help="record the incoming stereo stream to this sequence folder")
-    parser.add_argument("--rig", metavar="RIG", help="stereo rig file to use instead of the source's own")
+    parser.add_argument("--rig", metavar="RIG",
+                        help="stereo rig file to use instead of the source's own; OpenCV's intrinsics.yml or "
+                             "extrinsics.yml (the other beside it) takes the size of the source's frames")
     parser.add_argument("--case", choices=("a", "b", "c"), help="model case at start (default: b when the source carries a model, else a)")
     parser.add_argument("--publish-hz", type=float, default=12.0, help="browser update rate, Hz (default 12)")
     parser.add_argument("--cpu-nice", type=int, default=DEFAULT_CPU_NICE, metavar="N",
@@ -69,17 +71,14 @@ def run(args: argparse.Namespace) -> int:
 
 def _serve(args: argparse.Namespace, config: Any) -> int:
     from console.server import serve_forever, start_console
+    from trackmeter.cli.common import open_source_with_rig
     from trackmeter.errors import TrackmeterError
     from trackmeter.pipeline.engine import Engine
-    from trackmeter.sources import open_source
 
-    rig_override = None
-    if args.rig:
-        from trackmeter.data.rigfile import load_rig
-
-        rig_override = load_rig(args.rig)
     print(f"trackmeter console: opening {args.source} ...", file=sys.stderr, flush=True)
-    source = open_source(args.source, rig_override=rig_override, realtime=True, loop=True)
+    # --rig is read once the source is open (it may take its size from the source's frames),
+    # and frames of another size than the rig's are refused before the console starts.
+    source = open_source_with_rig(args.source, args.rig, realtime=True, loop=True)
     try:
         if source.rig is None:
             raise TrackmeterError(f"source {args.source} carries no stereo rig: give one with --rig")

@@ -27,7 +27,9 @@ if TYPE_CHECKING:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--rig", required=True, metavar="RIG", help="stereo rig file (OpenCV FileStorage YAML)")
+    parser.add_argument("--rig", required=True, metavar="RIG",
+                        help="stereo rig file (OpenCV FileStorage YAML; or OpenCV's intrinsics.yml or extrinsics.yml, "
+                             "the other beside it, sized by the left image)")
     parser.add_argument("--left", required=True, metavar="IMG", help="left image (read as 8-bit grey)")
     parser.add_argument("--right", required=True, metavar="IMG", help="right image (read as 8-bit grey)")
     parser.add_argument(
@@ -55,16 +57,16 @@ def run(args: argparse.Namespace) -> int:
             raise TrackmeterError(f"--patch must be a patch side between 3 and 63 px, got {args.patch}")
         params = dataclasses.replace(params, patch_size=args.patch)
     uv = [parse_uv(text) for text in args.at]
-    rig = load_rig(args.rig)
+    images = [read_grey(args.left), read_grey(args.right)]
+    # A rig file without an image size (OpenCV's intrinsics.yml/extrinsics.yml) takes the left
+    # image's; the size check below then still catches a right image of another size.
+    rig = load_rig(args.rig, image_size=(images[0].shape[1], images[0].shape[0]))
     W, H = rig.image_size
-    images = []
-    for path in (args.left, args.right):
-        image = read_grey(path)
+    for path, image in zip((args.left, args.right), images):
         if image.shape != (H, W):
             raise TrackmeterError(
                 f"{path}: image is {image.shape[1]}x{image.shape[0]} px but the rig {args.rig} is {W}x{H}"
             )
-        images.append(image)
 
     results = measure_points(rig, images[0], images[1], uv, params)
     if args.json:

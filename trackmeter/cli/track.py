@@ -10,7 +10,9 @@ Model cases (paper section 2.C):
   a  no model: the body frame from three tracked points (origin at their centroid, x toward
      the second, xy-plane through the third); redundant points carry it when one is lost
   b  a-priori model (--model, or the source's own model.yaml): targets named by model point
-     id (--target ID=U,V) bind to it; automatic targets join it once the pose is known
+     id (--target ID=U,V) bind to it; automatic targets join it once the pose is known.
+     Chosen by default only when a target is bound to a model point (--target ID=U,V or
+     --select-model-points): without one the pose can never be known, so a model alone runs (a)
   c  model acquired while the object is held still (pose.still_time_s), output in that frame
 
 Examples:
@@ -33,8 +35,11 @@ from trackmeter.errors import TrackmeterError
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--source", required=True, metavar="SPEC",
                         help="sim, sim:SCENARIO, seq:DIR or DIR, video:LEFT,RIGHT, camera:I[,J]")
-    parser.add_argument("--rig", metavar="RIG", help="stereo rig file (default: the source's own rig)")
-    parser.add_argument("--model", metavar="MODEL", help="model.yaml for case (b) (default: the source's own model)")
+    parser.add_argument("--rig", metavar="RIG",
+                        help="stereo rig file (default: the source's own rig); OpenCV's intrinsics.yml or "
+                             "extrinsics.yml (the other beside it) takes the size of the source's frames")
+    parser.add_argument("--model", metavar="MODEL",
+                        help="model.yaml for case (b) (default: the source's own model); unused in cases (a) and (c)")
     parser.add_argument("--target", action="append", default=[], metavar="[ID=]U,V",
                         help="a target at left-image pixel U,V of the first frame, optionally named (repeatable)")
     parser.add_argument("--auto", type=int, metavar="N", help="keep N automatically selected targets alive")
@@ -43,7 +48,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "point visible in the first frame (at its true projection), and again whenever the "
                              "pose has been invalid for pose.operator_reselect_s")
     parser.add_argument("--case", choices=("a", "b", "c"),
-                        help="model case (default: b when a model is given or carried by the source, else a)")
+                        help="model case (default: b when a model is given or carried by the source AND a target is "
+                             "bound to a model point with --target ID=U,V or --select-model-points; else a, with a "
+                             "note on stderr when a model was there)")
     parser.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
     parser.add_argument("--out", required=True, metavar="DIR", help="run folder to write")
     parser.add_argument("--overwrite", action="store_true", help="replace an earlier run in --out")
@@ -92,15 +99,13 @@ def _total_frames(source: Any, max_frames: int | None) -> int | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from trackmeter.cli.common import load_config_from_args
+    from trackmeter.cli.common import load_config_from_args, open_source_with_rig
     from trackmeter.data.config import config_to_dict
     from trackmeter.data.model import load_model
-    from trackmeter.data.rigfile import load_rig
     from trackmeter.data.rundir import RunWriter
     from trackmeter.pipeline.engine import Engine, SelectModelPoints
     from trackmeter.pipeline.pipeline import run_headless
     from trackmeter.pipeline.snapshot import AcquireModel, SelectPoint, SetAuto, Snapshot
-    from trackmeter.sources import open_source
 
     config = load_config_from_args(args)
     targets = [parse_target(t) for t in args.target]
@@ -110,18 +115,33 @@ def run(args: argparse.Namespace) -> int:
         raise TrackmeterError(f"--max-frames must be at least 1, got {args.max_frames}")
     if not targets and args.auto is None:
         raise TrackmeterError("nothing to track: give --target [ID=]U,V and/or --auto N")
-    rig_override = load_rig(args.rig) if args.rig else None
     model = load_model(args.model) if args.model else None
 
-    source = open_source(args.source, rig_override=rig_override, realtime=args.source.startswith("camera"))
+    # The rig is read once the source is open (a rig file may need its frame size) and checked
+    # against its frames here, before the run folder is made.
+    source = open_source_with_rig(args.source, args.rig, realtime=args.source.startswith("camera"))
     try:
         rig = source.rig
         if rig is None:
             raise TrackmeterError(f"source {args.source!r} carries no stereo rig: give --rig")
         if model is None and args.case in (None, "b"):
             model = getattr(source, "model", None)
+        model_label = args.model or ("source" if model is not None else None)
         binds = any(i for i, _ in targets) or args.select_model_points
+        # Case (b) needs targets bound to model point ids: without one its pose could never be
+        # valid, so a model alone does not choose it.
         case = args.case or ("b" if model is not None and binds else "a")
+        if args.case:
+            case_reason = "--case"
+        elif case == "b":
+            case_reason = "default: a model and targets bound to model points"
+        elif model is not None:
+            case_reason = "default: a model but no target bound to a model point"
+            print(f"trackmeter track: note: running case (a) without the model ({model_label}): no target is bound "
+                  f"to a model point; bind them with --target ID=U,V or --select-model-points, or force --case b",
+                  file=sys.stderr)
+        else:
+            case_reason = "default: no model"
         if case == "b":
             if model is None:
                 raise TrackmeterError("case (b) needs a model: give --model (the source carries none)")
@@ -150,8 +170,10 @@ def run(args: argparse.Namespace) -> int:
             "spec": args.source,
             "rig": rig.name or (args.rig or "source"),
             "rate_hz": source.rate_hz,
-            "model": args.model or ("source" if case == "b" else None),
+            "model": model_label if case == "b" else None,  # the model used, None when none was
+            "model_available": model_label,  # given or carried, used or not
             "case": case,
+            "case_reason": case_reason,
             "targets": [f"{i + '=' if i else ''}{u:g},{v:g}" for i, (u, v) in targets],
             "auto": args.auto,
         }

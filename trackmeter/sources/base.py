@@ -58,7 +58,7 @@ class Source(ABC):
 
     Attributes:
         rig: the stereo rig of the images when the source carries one (simulator scenario,
-            a sequence's ``rig.yaml``), else None.
+            a sequence's ``rig.yaml``), else None. A command given ``--rig`` replaces it.
         rate_hz: nominal frame rate, Hz, or None when unknown.
     """
 
@@ -71,6 +71,13 @@ class Source(ABC):
         """Whether the frame being made is a cut (:attr:`StereoFrame.cut`); clears the mark."""
         cut, self._cut = self._cut, False
         return cut
+
+    @property
+    def frame_size(self) -> tuple[int, int] | None:
+        """``(width, height)`` of the frames, px, known before the first :meth:`read`, or None
+        when the source cannot tell. Commands check it against the rig's image size before
+        tracking, and a rig file without a size (OpenCV's ``intrinsics.yml``) takes it."""
+        return None
 
     @abstractmethod
     def read(self) -> StereoFrame | None:

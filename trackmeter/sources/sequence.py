@@ -58,6 +58,7 @@ class SequenceSource(Source):
         n = len(self.index)
         dt = 1.0 / self.rate_hz if self.rate_hz else 0.0
         self._period_s = float(self.index.t_s[-1] - self.index.t_s[0]) + dt if n else 0.0
+        self._frame_size: tuple[int, int] | None = None
         if self.warning:
             _warnings.warn(f"{directory}: {self.warning}", stacklevel=2)
 
@@ -76,6 +77,20 @@ class SequenceSource(Source):
 
     def __len__(self) -> int:
         return len(self.index)
+
+    @property
+    def frame_size(self) -> tuple[int, int] | None:
+        """``(width, height)`` px of the first readable left image (read once), or None when
+        no image of the folder can be read."""
+        if self._frame_size is None:
+            for path in self.index.left_paths:
+                try:
+                    h, w = read_grey_image(path).shape[:2]
+                except TrackmeterError:
+                    continue  # read() skips it too
+                self._frame_size = (int(w), int(h))
+                break
+        return self._frame_size
 
     @property
     def n_frames(self) -> int:

@@ -62,6 +62,22 @@ class VideoSource(Source):
         self._pos = 0
         self._t_offset = 0.0
         self._last_t = -np.inf
+        self._frame_size: tuple[int, int] | None = None
+
+    @property
+    def frame_size(self) -> tuple[int, int] | None:
+        """``(width, height)`` px of the left file's first frame, decoded once by a capture of
+        its own (the stream is not disturbed), or None when it has no frame. Decoded rather
+        than taken from ``CAP_PROP_FRAME_WIDTH``: the size of what :meth:`read` delivers."""
+        if self._frame_size is None:
+            cap = self._open(self.paths[0])
+            try:
+                ok, image = cap.read()
+            finally:
+                cap.release()
+            if ok and image is not None:
+                self._frame_size = (int(image.shape[1]), int(image.shape[0]))
+        return self._frame_size
 
     @staticmethod
     def _open(path: Path) -> cv2.VideoCapture:
@@ -141,8 +157,27 @@ class CameraSource(Source):
         self.rate_hz = fps if fps > 0 else None
         self._count = 0
         self._t0: float | None = None
+        self._frame_size: tuple[int, int] | None = None
+
+    @property
+    def frame_size(self) -> tuple[int, int]:
+        """``(width, height)`` px of one image (half the device's width when side by side),
+        from a frame grabbed once and dropped: what the device delivers, not what it reports."""
+        if self._frame_size is None:
+            left, _, _ = self._grab()
+            self._frame_size = (int(left.shape[1]), int(left.shape[0]))
+        return self._frame_size
 
     def read(self) -> StereoFrame | None:
+        left, right, t_now = self._grab()
+        if self._t0 is None:
+            self._t0 = t_now
+        frame = StereoFrame(index=self._count, t_s=t_now - self._t0, left=left, right=right)
+        self._count += 1
+        return frame
+
+    def _grab(self) -> tuple[NDArray[np.uint8], NDArray[np.uint8], float]:
+        """One stereo pair (left, right grey images) and its monotonic time, s."""
         for cap in self._caps:
             cap.grab()  # grab both before decoding: the two exposures stay as close as possible
         t_now = time.monotonic()
@@ -161,11 +196,7 @@ class CameraSource(Source):
             left, right = images
             if left.shape != right.shape:
                 raise TrackmeterError(f"cameras {self.devices} deliver different sizes: {left.shape} vs {right.shape}")
-        if self._t0 is None:
-            self._t0 = t_now
-        frame = StereoFrame(index=self._count, t_s=t_now - self._t0, left=left, right=right)
-        self._count += 1
-        return frame
+        return left, right, t_now
 
     def close(self) -> None:
         for cap in self._caps:

@@ -110,6 +110,12 @@ class Simulator(Source):
     # ------------------------------------------------------------------ random access
 
     @property
+    def frame_size(self) -> tuple[int, int]:
+        """``(width, height)`` px: the images are rendered through :attr:`true_rig`, whatever
+        rig the source reports."""
+        return self.true_rig.image_size
+
+    @property
     def n_frames(self) -> int:
         """Frames in one pass of the scenario."""
         return self.scenario.n_frames
