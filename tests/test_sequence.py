@@ -71,6 +71,7 @@ def test_write_then_read_frame_for_frame(tmp_path, estec_rig):
     assert not [p for p in d.rglob(".*")], "no temporary files left behind"
     with open_source(f"seq:{d}") as src:
         assert isinstance(src, SequenceSource)
+        assert src.frame_size == (32, 24)  # from the first image, before the first read
         assert src.skipped == 0 and src.warning is None
         assert src.n_frames == len(src) == len(frames)
         assert src.rate_hz == pytest.approx(25.0)
@@ -134,10 +135,53 @@ def test_euroc_mav0_layout_with_sensor_yaml(tmp_path):
     with pytest.warns(UserWarning, match="no key 'intrinsics'"):
         src = open_source(f"seq:{tmp_path / 'MH_01'}")
     assert src.rig is None and src.skipped == 0
-    assert src.rate_hz == pytest.approx(20.0)
+    # Seconds since 1970 in a float are resolved to 2.4e-7 s, so a 50 ms interval to ~5e-6.
+    assert src.rate_hz == pytest.approx(20.0, rel=1e-5)
     f = src.read()
     assert f.left.dtype == np.uint8 and f.left.shape == (10, 12)
-    assert f.t_s == pytest.approx(t0 * 1e-9)
+    assert f.t_s == pytest.approx(t0 / 1e9)
+
+
+def test_mav0_layout_finds_rig_model_and_truth_in_dir_first(tmp_path, estec_rig):
+    """DESIGN.md lists rig.yaml, model.yaml and groundtruth.* in DIR; with the images under
+    DIR/mav0 they are found there, before DIR/mav0's own, and evaluate --truth agrees."""
+    from trackmeter.data.evaluation import load_truth
+
+    frames = _frames(4)
+    model = Model(("a", "b", "c"), np.array([[0, 0, 0], [1.0, 0, 0], [0, 0.5, 0.25]]))
+    d = tmp_path / "seq"
+    _write(d / "mav0", frames, rig=estec_rig, model_points=model)
+    for name in ("rig.yaml", "model.yaml", "groundtruth.csv", "groundtruth.tum"):
+        (d / "mav0" / name).rename(d / name)
+    index = index_sequence(d)
+    assert index.root == d / "mav0"
+    assert index.rig is not None and np.allclose(index.rig.left.K, estec_rig.left.K)
+    assert index.model is not None and index.model.ids == model.ids
+    assert index.truth is not None and np.all(index.truth.valid)
+    assert load_truth(d).source == str(d / "groundtruth.csv")
+    # DIR's files win over DIR/mav0's, for the sequence reader and for evaluate alike.
+    save_model(d / "mav0" / "model.yaml", Model(("x", "y", "z"), np.eye(3)))
+    (d / "mav0" / "groundtruth.csv").write_text((d / "groundtruth.csv").read_text())
+    assert index_sequence(d).model.ids == model.ids
+    assert load_truth(d).source == str(d / "groundtruth.csv")
+    # DIR is searched before DIR/mav0 (csv before tum within each): DIR's tum beats mav0's csv.
+    (d / "groundtruth.csv").unlink()
+    assert load_truth(d).source == str(d / "groundtruth.tum")
+    # Only in DIR/mav0 (EuRoC's own place): still found.
+    for name in ("model.yaml", "groundtruth.tum"):
+        (d / name).unlink()
+    assert index_sequence(d).model.ids == ("x", "y", "z")
+    assert load_truth(d).source == str(d / "mav0" / "groundtruth.csv")
+
+
+def test_frame_times_are_the_nanoseconds_correctly_rounded(tmp_path):
+    """t = ns / 1e9, not ns * 1e-9 (120000000 ns -> 0.12000000000000001 s): a frame's time in
+    the index, in groundtruth.* and as written by the simulator are the same float."""
+    frames = _frames(10)
+    index = index_sequence(_write(tmp_path / "s", frames))
+    assert index.t_s.tolist() == [f.t_s for f in frames]  # i / 25, exactly
+    assert index.truth is not None and np.all(index.truth.valid)
+    assert index.tolerance_s == 0.25 * 0.04
 
 
 EUROC_CAM0 = """# General sensor definitions.
@@ -323,6 +367,7 @@ def test_video_source_reads_two_files(tmp_path):
         vw.release()
     src = open_source(f"video:{paths[0]},{paths[1]}")
     assert src.rate_hz == pytest.approx(10.0)
+    assert src.frame_size == (64, 48)  # known before the first read, which still gets frame 0
     got = list(iter(src.read, None))
     assert len(got) == 5
     assert [f.t_s for f in got] == pytest.approx([0.0, 0.1, 0.2, 0.3, 0.4])
@@ -376,7 +421,8 @@ def test_model_round_trip(tmp_path):
         ("points: [{id: a, xyz: [0,0,0]}, {id: b, xyz: [1,0]}, {id: c, xyz: [0,1,0]}]", r"points\[1\]\.xyz"),
         ("points: [{id: a, xyz: [0,0,0]}, {xyz: [1,0,0]}, {id: c, xyz: [0,1,0]}]", r"points\[1\]': missing key 'id'"),
         ("pts: []", "missing key 'points'"),
-        ("points: [{id: a, xyz: [0,0,0], colour: red}]", "unknown key 'points\\[0\\].colour'"),
+        ("points: [{id: a, xyz: [0,0,0]}, {id: b, xyz: [1,0,.inf]}, {id: c, xyz: [0,1,0]}]", "non-finite"),
+        ("points: [a, b, c]", r"points\[0\]"),
         ("points: [{id: a, xyz: [0,0,0]", "malformed YAML"),
     ],
 )
@@ -384,4 +430,20 @@ def test_bad_model_files_name_the_problem(tmp_path, text, match):
     path = tmp_path / "model.yaml"
     path.write_text(text)
     with pytest.raises(TrackmeterError, match=match):
+        load_model(path)
+
+
+def test_model_file_keys_of_other_tools_are_ignored_with_a_warning(tmp_path):
+    """DESIGN.md's format is ``points: [{id, xyz}, ...]``; a file from another tool may carry
+    more (``units``, a point's ``note``): read, with one warning naming what was ignored."""
+    path = tmp_path / "model.yaml"
+    path.write_text("units: m\nname: mock-up\npoints:\n  - {id: a, xyz: [0, 0, 0], note: corner}\n"
+                    "  - {id: b, xyz: [1, 0, 0], note: edge}\n  - {id: c, xyz: [0, 1, 0]}\n")
+    with pytest.warns(UserWarning, match=r"ignoring key\(s\) that are not part of a model file: units, points\[\]\.note$"):
+        model = load_model(path)
+    assert model.ids == ("a", "b", "c")
+    np.testing.assert_array_equal(model.points_body, [[0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    # The extra keys do not weaken the other checks.
+    path.write_text("units: m\npoints: [{id: a, xyz: [0,0,0], note: x}, {id: a, xyz: [1,0,0]}, {id: c, xyz: [0,1,0]}]\n")
+    with pytest.warns(UserWarning), pytest.raises(TrackmeterError, match="'a' appears twice"):
         load_model(path)

@@ -20,6 +20,7 @@ import numpy as np
 from trackmeter.core.metrics import Evaluation, associate
 from trackmeter.data.motion_csv import MotionSeries, read_motion_csv
 from trackmeter.data.atomic import write_text_atomic
+from trackmeter.data.sequence import find_sequence_file
 from trackmeter.data.trajectory import read_tum
 from trackmeter.errors import TrackmeterError
 
@@ -76,14 +77,15 @@ def load_truth(spec: str | Path) -> LoadedMotion:
     """
     path = Path(spec)
     if path.is_dir():
-        for root in (path, path / "mav0"):
-            if (root / "groundtruth.csv").is_file():
-                s = read_motion_csv(root / "groundtruth.csv").valid_only()
-                return LoadedMotion(s, str(root / "groundtruth.csv"), s.has_velocity)
-            if (root / "groundtruth.tum").is_file():
-                s = MotionSeries.from_trajectory(read_tum(root / "groundtruth.tum"))
-                return LoadedMotion(s, str(root / "groundtruth.tum"), False)
-        raise TrackmeterError(f"{path}: folder has no groundtruth.csv or groundtruth.tum")
+        # The sequence reader's own rule, so evaluate and track see the same ground truth.
+        found = find_sequence_file(path, "groundtruth.csv", "groundtruth.tum")
+        if found is None:
+            raise TrackmeterError(f"{path}: folder has no groundtruth.csv or groundtruth.tum")
+        if found.suffix == ".csv":
+            s = read_motion_csv(found).valid_only()
+            return LoadedMotion(s, str(found), s.has_velocity)
+        s = MotionSeries.from_trajectory(read_tum(found))
+        return LoadedMotion(s, str(found), False)
     if not path.is_file():
         raise TrackmeterError(f"{path}: no such file or folder")
     series = _read_pose_file(path)

@@ -8,14 +8,18 @@ YAML, metres, body frame::
       - {id: antenna_tip, xyz: [0.0, 0.0, 1.2]}
 
 The a-priori model of pose case (b) (paper section 2.C) needs at least three points that are
-not collinear; ids are strings (numbers are read as their text) and must be unique.
+not collinear; ids are strings (numbers are read as their text) and must be unique. Other
+keys (``units: m``, a point's ``note``), which files from other tools carry, are ignored
+with one warning naming them; every check of ``points`` itself stays.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 import yaml
@@ -87,8 +91,35 @@ class _ModelFile:
     name: str = ""
 
 
+def _drop_unknown_keys(data: dict[str, Any], path: Path) -> dict[str, Any]:
+    """``data`` without the keys the model format does not define, warning once about them.
+
+    Unlike a config file (where an unknown key is a typo that would silently change
+    nothing), a model file is an exchange format: other tools add their own keys, and the
+    points are all that matter here.
+    """
+    top = {f.name for f in dataclasses.fields(_ModelFile)}
+    per_point = {f.name for f in dataclasses.fields(_PointEntry)}
+    ignored = [str(k) for k in data if k not in top]
+    out = {k: v for k, v in data.items() if k in top}
+    if isinstance(out.get("points"), list):
+        points = []
+        for entry in out["points"]:
+            if isinstance(entry, dict):  # anything else is left for build_dataclass to refuse
+                ignored += [f"points[].{k}" for k in entry if k not in per_point and f"points[].{k}" not in ignored]
+                entry = {k: v for k, v in entry.items() if k in per_point}
+            points.append(entry)
+        out["points"] = points
+    if ignored:
+        warnings.warn(f"{path}: ignoring key(s) that are not part of a model file: {', '.join(ignored)}", stacklevel=3)
+    return out
+
+
 def load_model(path: str | Path) -> Model:
     """Read a model file.
+
+    Keys other than ``name``, ``points`` and a point's ``id`` and ``xyz`` are ignored (one
+    ``UserWarning`` names them).
 
     Raises:
         TrackmeterError: naming the file and the key: missing ``points``, an entry without
@@ -98,6 +129,7 @@ def load_model(path: str | Path) -> Model:
     data = read_yaml_mapping(path)
     if "points" not in data:
         raise TrackmeterError(f"{path}: missing key 'points' (a list of {{id: NAME, xyz: [x, y, z]}})")
+    data = _drop_unknown_keys(data, path)
     entries = data["points"]
     if isinstance(entries, list):
         for i, entry in enumerate(entries):

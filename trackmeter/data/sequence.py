@@ -13,6 +13,8 @@
 Real EuRoC folders (``DIR/mav0/cam0/...`` with a ``sensor.yaml`` per camera and no
 ``rig.yaml``) are indexed too; their rig comes from the two ``sensor.yaml`` files when they
 hold a pinhole radial-tangential calibration, else it is unknown (None) unless the caller gives one.
+With that layout ``rig.yaml``, ``model.yaml`` and ``groundtruth.*`` are looked for in ``DIR``
+first, then in ``DIR/mav0`` (:func:`find_sequence_file`, also used by ``evaluate --truth DIR``).
 
 :class:`SequenceWriter` appends frames while they arrive (the simulator, the pipeline's
 recorder): each image is encoded in memory, written to a hidden temporary file and renamed,
@@ -54,6 +56,17 @@ CAMERAS = ("cam0", "cam1")
 def seconds_to_ns(t_s: float) -> int:
     """Timestamp in integer nanoseconds (EuRoC ``data.csv``) from float seconds."""
     return int(round(float(t_s) * 1e9))
+
+
+def ns_to_seconds(ns: int | NDArray[np.int64]) -> float | FloatArray:
+    """Seconds from integer nanoseconds, correctly rounded (exactly so below 2**53 ns, 104 days).
+
+    ``ns / 1e9`` is one correctly rounded division; ``ns * 1e-9`` multiplies by an inexact
+    constant and can land one unit in the last place off (1000 ns -> 1.0000000000000002e-06).
+    Every conversion goes through here so a frame's time joins exactly across data.csv,
+    groundtruth.* and a run's files.
+    """
+    return ns / 1e9
 
 
 # --------------------------------------------------------------------------- writing
@@ -130,7 +143,7 @@ class SequenceWriter:
             f.write(f"{ns},{name}\n")  # one write of a whole row, then flush
             f.flush()
         if frame.truth is not None:
-            self._write_truth(ns * 1e-9, frame)
+            self._write_truth(ns_to_seconds(ns), frame)
         self._last_ns = ns
         self.frames_written += 1
 
@@ -239,6 +252,22 @@ def find_sequence_root(directory: str | Path) -> Path:
     raise TrackmeterError(f"{d}: not a sequence folder (expected cam0/data.csv and cam1/data.csv, or mav0/...)")
 
 
+def find_sequence_file(directory: str | Path, *names: str) -> Path | None:
+    """The first of ``names`` in ``DIR``, else the first in ``DIR/mav0``; None when none is a file.
+
+    DESIGN.md puts ``rig.yaml``, ``model.yaml`` and ``groundtruth.*`` in ``DIR`` whatever the
+    image layout, and EuRoC's own files live under ``mav0``: every reader of a sequence folder
+    looks with this one rule so they all find the same file. ``names`` in order of preference
+    (``groundtruth.csv`` before ``groundtruth.tum``) within each folder.
+    """
+    d = Path(directory)
+    for folder in (d, d / "mav0"):
+        for name in names:
+            if (folder / name).is_file():
+                return folder / name
+    return None
+
+
 def _read_data_csv(path: Path) -> tuple[list[tuple[int, Path]], int, int]:
     """Rows ``(ns, image path)`` of one camera's data.csv, plus counts of bad rows and missing files."""
     entries: list[tuple[int, Path]] = []
@@ -313,8 +342,8 @@ def index_sequence(directory: str | Path, tolerance_s: float | None = None) -> S
     t_left = np.array([e[0] for e in left], dtype=np.int64)
     t_right = np.array([e[0] for e in right], dtype=np.int64)
     if tolerance_s is None:
-        tolerance_s = 0.25 * float(np.median(np.diff(t_left))) * 1e-9 if len(t_left) > 1 else 1e-3
-    pairs = pair_by_nearest(t_left * 1e-9, t_right * 1e-9, tolerance_s)
+        tolerance_s = 0.25 * float(ns_to_seconds(np.median(np.diff(t_left)))) if len(t_left) > 1 else 1e-3
+    pairs = pair_by_nearest(ns_to_seconds(t_left), ns_to_seconds(t_right), tolerance_s)
     unpaired = (len(left) - len(pairs)) + (len(right) - len(pairs))
     warnings: list[str] = []
     if miss_l or miss_r:
@@ -325,16 +354,17 @@ def index_sequence(directory: str | Path, tolerance_s: float | None = None) -> S
         warnings.append(f"{unpaired} image(s) without a partner within {tolerance_s * 1e3:.3g} ms skipped")
     if not pairs:
         raise TrackmeterError(f"{directory}: no stereo pair (left and right timestamps within {tolerance_s * 1e3:.3g} ms)")
-    t_s = np.array([t_left[i] for i, _ in pairs], dtype=float) * 1e-9
-    if (root / "rig.yaml").is_file():
-        rig = load_rig(root / "rig.yaml")
+    t_s = ns_to_seconds(np.array([t_left[i] for i, _ in pairs], dtype=np.int64))
+    rig_file = find_sequence_file(directory, "rig.yaml")
+    if rig_file is not None:
+        rig = load_rig(rig_file)
     else:
         rig, problem = read_euroc_rig(root)
         if problem:
             warnings.append(problem)
-    model_file = root / "model.yaml"
-    model = load_model(model_file) if model_file.is_file() else None
-    truth = _read_truth(root, t_s, tolerance_s)
+    model_file = find_sequence_file(directory, "model.yaml")
+    model = load_model(model_file) if model_file is not None else None
+    truth = _read_truth(find_sequence_file(directory, "groundtruth.csv", "groundtruth.tum"), t_s, tolerance_s)
     return SequenceIndex(
         root=root,
         t_s=t_s,
@@ -398,14 +428,12 @@ def read_euroc_rig(root: Path) -> tuple[StereoRig | None, str | None]:
         return None, f"{root}: EuRoC sensor.yaml files do not make a stereo rig ({exc}); rig unknown"
 
 
-def _read_truth(root: Path, t_s: FloatArray, tolerance_s: float) -> MotionSeries | None:
-    """Ground truth resampled to the pair times by nearest row within the tolerance (NaN elsewhere)."""
-    if (root / "groundtruth.csv").is_file():
-        series = read_motion_csv(root / "groundtruth.csv")
-    elif (root / "groundtruth.tum").is_file():
-        series = MotionSeries.from_trajectory(read_tum(root / "groundtruth.tum"))
-    else:
+def _read_truth(path: Path | None, t_s: FloatArray, tolerance_s: float) -> MotionSeries | None:
+    """Ground truth (``groundtruth.csv`` or ``.tum`` at ``path``) resampled to the pair times by
+    nearest row within the tolerance (NaN elsewhere); None without a file."""
+    if path is None:
         return None
+    series = read_motion_csv(path) if path.suffix == ".csv" else MotionSeries.from_trajectory(read_tum(path))
     n = len(t_s)
     p = np.full((n, 3), np.nan)
     q = np.full((n, 4), np.nan)
