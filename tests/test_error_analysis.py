@@ -194,3 +194,15 @@ def test_point_disparity_sigma_is_eq2_per_point():
     sd = point_disparity_sigma(X, F_PX, B_M, min_samples=5)
     assert np.isnan(sd[2])
     np.testing.assert_allclose(sd[:2], 0.003 * F_PX * B_M / 3.5**2, rtol=1e-12)
+
+
+def test_identical_frames_are_refused_with_a_reason_not_a_crash():
+    """A still image repeated (or a noise-free render) gives no scatter: say so (was a ValueError
+    from numpy deep inside, a traceback on the command line)."""
+    stacks = []
+    for z in RANGES:
+        same = np.broadcast_to(np.array([0.125, -0.0625, z]), (6, 4, 3)) + np.arange(4)[None, :, None] * 0.25
+        stacks.append(range_statistics(same, min_samples=2))
+    assert all(float(s.sigma_m[2]) == 0.0 for s in stacks)
+    with pytest.raises(TrackmeterError, match="scatter"):
+        analyze_ranges(stacks, F_PX, B_M)

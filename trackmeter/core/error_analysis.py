@@ -445,6 +445,10 @@ def analyze_ranges(
     if not ranges:
         raise TrackmeterError("error analysis needs measurements at one range at least")
     rs = tuple(sorted(ranges, key=lambda r: r.range_m))
+    if not any(r.sigma_m[2] > 0 for r in rs):
+        # Identical frames (a still image repeated, a noise-free render): no scatter to fit.
+        raise TrackmeterError("error analysis needs measurements that scatter: every range's depth "
+                              "spread is zero (are the frames identical copies?)")
     z = np.array([r.range_m for r in rs])
     fits = {axis: fit_parabola(z, [r.sigma_m[i] for r in rs]) for i, axis in enumerate("xyz")}
     normalised = np.concatenate([r.residuals_m[:, 2] / r.sigma_m[2] for r in rs if r.sigma_m[2] > 0])
