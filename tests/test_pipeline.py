@@ -389,3 +389,20 @@ def test_recording_with_the_sequence_writer_reads_back_every_frame(tmp_path: Pat
         reply = pipe2.call(SetRecording(str(tmp_path / "rec")))
         assert not reply.ok and "already holds a sequence" in reply.message
         assert not pipe2.latest().recording
+
+
+def test_a_recording_carries_the_model_the_run_uses(tmp_path: Path, estec_rig) -> None:  # type: ignore[no-untyped-def]
+    """Replayed with --source DIR, case (b) must find the model the live run had: the recording
+    writes the source's model (or the engine's a-priori one) to model.yaml."""
+    from trackmeter.data.model import Model
+    from trackmeter.data.sequence import index_sequence
+
+    model = Model(("c0", "c1", "c2"), np.array([[0.0, 0.0, 0.0], [0.4, 0.0, 0.0], [0.0, 0.3, 0.1]]))
+    source = CountingSource(5)
+    source.model = model  # type: ignore[attr-defined]
+    with Pipeline(source, RecordingEngine(), rig=estec_rig, record_dir=tmp_path / "rec") as pipe:
+        pipe.run_until_end(20)
+    index = index_sequence(tmp_path / "rec")
+    assert index.model is not None
+    assert index.model.ids == model.ids
+    assert np.array_equal(index.model.points_body, model.points_body)

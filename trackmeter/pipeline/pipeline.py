@@ -119,11 +119,12 @@ class RecordingStats:
     error: str | None = None
 
 
-def _default_writer_factory(rig: StereoRig | None) -> WriterFactory:
+def _default_writer_factory(rig: StereoRig | None, model: Any | None = None) -> WriterFactory:
     def make(directory: Path) -> RecordWriter:
         from trackmeter.data.sequence import SequenceWriter
 
-        return SequenceWriter(directory, rig, None)  # refuses a folder that holds a sequence
+        # The model goes with the frames: replayed with --source DIR, case (b) finds it.
+        return SequenceWriter(directory, rig, model)  # refuses a folder that holds a sequence
 
     return make
 
@@ -253,7 +254,10 @@ class Pipeline:
         self.rig = rig if rig is not None else source.rig
         self.drop_frames = drop_frames
         self._record_queue_frames = int(record_queue_frames)
-        self._writer_factory = writer_factory or _default_writer_factory(self.rig)
+        model = getattr(engine, "model", None)
+        if model is None:
+            model = getattr(source, "model", None)
+        self._writer_factory = writer_factory or _default_writer_factory(self.rig, model)
         self._initial_record_dir = Path(record_dir) if record_dir is not None else None
 
         # One condition guards the frame slot, the command queue and the run state, so the
