@@ -86,6 +86,20 @@ def test_run_directory_contract(monkeypatch, tmp_path, estec_rig, capsys) -> Non
     assert "holds a run already" in capsys.readouterr().err
 
 
+def test_targets_given_on_the_command_line_are_in_the_first_frames_rows(tmp_path) -> None:
+    """--target acts on frame 0 (after it was processed): its rows must say so, not start at frame 1."""
+    out = tmp_path / "run"
+    # Two textured points of the estec mock-up in its first frame (automatic selection's picks).
+    assert main(["track", "--source", "sim", "--target", "280,331", "--target", "303,178", "--max-frames", "3",
+                 "--case", "a", "--out", str(out)]) == 0
+    rows = list(csv.DictReader((out / "targets.csv").open()))
+    first = [r for r in rows if float(r["t"]) == 0.0]
+    assert len(first) == 2 and all(r["state"] == "tracking" and r["z"] for r in first)
+    assert (float(first[0]["u"]), float(first[0]["v"])) == (280.0, 331.0)
+    states = list(csv.DictReader((out / "states.csv").open()))
+    assert len(states) == 3 and [r["n_tracked"] for r in states] == ["2", "2", "2"]
+
+
 def test_source_failing_mid_run_keeps_what_was_written(monkeypatch, tmp_path, estec_rig, capsys) -> None:
     fake_source(monkeypatch, estec_rig, n=10, fail_after=4)
     out = tmp_path / "run"

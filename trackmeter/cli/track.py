@@ -178,19 +178,31 @@ def run(args: argparse.Namespace) -> int:
             "auto": args.auto,
         }
         writer = RunWriter(args.out, config_to_dict(config), source_info, overwrite=args.overwrite)
-        state = {"last_index": -1, "invalid": {}, "last_draw": 0.0, "t0": time.monotonic(), "status": None}
+        state = {"pending": None, "invalid": {}, "last_draw": 0.0, "t0": time.monotonic(), "status": None}
         tty = sys.stderr.isatty()
+
+        def flush_pending() -> None:
+            snap = state["pending"]
+            if snap is None:
+                return
+            state["pending"] = None
+            writer.write_frame(snap.frame.t_s, snap.targets, snap.pose, snap.timings.latency_ms)
+            if not snap.pose.valid:
+                reason = snap.pose.reason or "?"
+                state["invalid"][reason] = state["invalid"].get(reason, 0) + 1
 
         def on_snapshot(snap: Snapshot) -> None:
             state["status"] = snap.source_status
             frame = snap.frame
-            if frame is None or frame.index == state["last_index"]:
+            if frame is None:
                 return
-            state["last_index"] = frame.index
-            writer.write_frame(frame.t_s, snap.targets, snap.pose, snap.timings.latency_ms)
-            if not snap.pose.valid:
-                reason = snap.pose.reason or "?"
-                state["invalid"][reason] = state["invalid"].get(reason, 0) + 1
+            # A frame's row is written once the next frame arrives (or at the end): the
+            # commands act on frame 0 after it was processed (--target, --auto), and the
+            # snapshot they publish, not the first one, holds frame 0's targets.
+            pending = state["pending"]
+            if pending is not None and pending.frame.index != frame.index:
+                flush_pending()
+            state["pending"] = snap
             now = time.monotonic()
             if tty and now - state["last_draw"] > 0.25:
                 state["last_draw"] = now
@@ -207,12 +219,14 @@ def run(args: argparse.Namespace) -> int:
             last, replies = run_headless(feed, engine, on_snapshot=on_snapshot, commands=commands,
                                          realtime=args.source.startswith("camera"), rig=rig)
         except KeyboardInterrupt:
+            flush_pending()
             writer.close("interrupted", _summary(engine, writer, state))
             if tty:
                 sys.stderr.write("\n")
             print(f"trackmeter track: interrupted after {writer.frames} frames; files in {args.out} are complete",
                   file=sys.stderr)
             raise
+        flush_pending()
         if tty:
             sys.stderr.write("\n")
         for command, reply in zip(commands, replies):
