@@ -615,3 +615,43 @@ def test_three_points_that_contradict_the_coasted_motion_are_not_trusted(estec_r
             assert "too few points to trust" in (pose.reason or "")
             engine.process(frame_at(45))
             assert set(back) <= tracker.rejected[-1]  # dropped at the next step
+
+
+@pytest.mark.parametrize("progressive", [True, False])
+def test_case_b_binds_a_model_whose_points_are_seen_two_then_one_at_a_time(estec_rig, progressive: bool) -> None:
+    """pose.bind_progressively: never three a-priori points at once (A0 and A1 for 1.6 s, then
+    only A2), but the automatic points carry a provisional frame in which each is located as
+    it is seen; once three are, the model is bound and the pose is in the a-priori frame —
+    exactly, without noise. Without it, the pose never comes."""
+    from dataclasses import replace
+
+    pts = body_points(14)
+    apriori = ["A0", "A1", "A2", "A3"]
+    auto = [f"g{i}" for i in range(10)]
+    model = Model(tuple(apriori), pts[:4])
+    tracker = FakeTracker(estec_rig, pts, apriori + auto, noise=False)
+    for tid in ("A2", "A3"):
+        del tracker.active[tid]  # not in view yet
+    config = load_config()
+    config = replace(config, pose=replace(config.pose, bind_progressively=progressive))
+    engine = Engine(config, estec_rig, model, "b", tracker=tracker, rate_hz=1 / DT)
+    out = run(engine, range(40))
+    assert not any(pose.valid for _, pose, _ in out)
+    if progressive:
+        assert "binding the model: 2 of its points located" in out[-1][1].reason
+    tracker.force_lost = {"A0", "A1"}
+    tracker.active["A2"] = "tracking"
+    out = run(engine, range(40, 80))
+    if not progressive:
+        assert not any(pose.valid for _, pose, _ in out)
+        assert "only 1 model points measured" in out[-1][1].reason
+        return
+    first = next(k for k, (_, pose, _) in enumerate(out) if pose.valid)
+    assert first <= 5 and all(pose.valid for _, pose, _ in out[first:])
+    assert engine.stats.models_bound_progressively == 1
+    _, pose, errors = out[-1]
+    # Ten grown points, A2, and A3: measured at its projection through the bound pose (paper 2.D).
+    assert pose.case == "b" and pose.n_points == 12
+    # The position as in test_case_b_noise_free_is_exact: the screw fit's lag on this motion.
+    np.testing.assert_allclose(errors["position_m"], 0, atol=1e-4)
+    np.testing.assert_allclose(errors["attitude_rad"], 0, atol=1e-9)

@@ -88,6 +88,11 @@ class PoseParams:
     model_refine: bool = param(
         True, "average the body coordinates of measured (not a-priori) model points over time"
     )
+    bind_progressively: bool = param(
+        True, "case (b): while fewer than min_points a-priori points are measured at once, track in a "
+        "provisional case-(a) frame and locate each a-priori point in it as it is seen; bind the model "
+        "once min_points are located (seen at different times)",
+    )
     anchor_time_s: float = param(
         0.0, "case (b): time constant with which the grown model is moved onto the a-priori points' frame "
         "as the a-priori points seen reveal its drift, s (0: never)", min=0.0,

@@ -151,6 +151,7 @@ class EngineStats:
     frames_redefined: int = 0
     operator_reselections: int = 0  # the repeating simulated operator clicked the model points again
     stream_cuts: int = 0  # frames after which the stream jumped (StereoFrame.cut): tracking started over
+    models_bound_progressively: int = 0  # case (b): a-priori models bound through a provisional frame
 
 
 class Engine:
@@ -221,6 +222,9 @@ class Engine:
         self.stats = EngineStats()
         self._acquisition: _Acquisition | None = None
         self._operator_t: float | None = None  # the repeating simulated operator's last clicks, s
+        # Model points never forgotten for room (a provisional frame's a-priori points, located
+        # one at a time, must all still be there when the model is bound).
+        self._keep_ids: frozenset[str] = frozenset()
         self._reset_motion()
 
     # ------------------------------------------------------------------ read-only state
@@ -310,6 +314,10 @@ class Engine:
         self._anchor_H = np.zeros((6, 6))
         self._anchor_g = np.zeros(6)
         self._anchor_t: float | None = None
+        # Case (b) progressive binding: whether a pose in the a-priori frame was ever had (or the
+        # model was bound), and the provisional case-(a) engine tracking until then.
+        self._bound = False
+        self._provisional: Engine | None = None
 
     # ------------------------------------------------------------------ commands
 
@@ -446,6 +454,8 @@ class Engine:
         if point is not None and not point.fixed and target_id not in self._frame_ids:
             del self._model[target_id]
         self._candidates.pop(target_id, None)
+        if self._provisional is not None:
+            self._provisional._forget(target_id)
 
     # ------------------------------------------------------------------ per frame
 
@@ -459,9 +469,18 @@ class Engine:
             self.stats.stream_cuts += 1
         reject = self._pending_reject
         self._pending_reject = set()
-        self._frame_t_s = frame.t_s
         targets = self.tracker.step(frame, reject_ids=reject)
         self.stats.frames += 1
+        return self._after_step(frame, targets)
+
+    def _after_step(self, frame: StereoFrame, targets: tuple[TargetState, ...]
+                    ) -> tuple[tuple[TargetState, ...], PoseEstimate, dict | None]:
+        """Everything after the tracker's step of ``frame`` (:meth:`process`)."""
+        self._frame_t_s = frame.t_s
+        if self._binding_pending():
+            located_now = sum(1 for t in targets if t.measured and t.id in self._given_model.ids)
+            if located_now < self.pose_params.min_points:
+                return self._process_provisional(frame, targets)
         floor = self.pose_params.point_sigma_floor_m**2 * np.eye(3)
         measured = {
             t.id: replace(t, cov_cam=np.asarray(t.cov_cam, float) + floor) for t in targets
@@ -510,6 +529,7 @@ class Engine:
             self._coasting = False
             return self.tracker.targets if self._recovered_any else targets, pose, None
         R, t, cov, n_used, outliers = fit
+        self._bound, self._provisional = True, None
         self.stats.valid_frames += 1
         self._last_valid_t = frame.t_s
         rates = self._velocity.update(frame.t_s, R, t, cov)
@@ -533,6 +553,89 @@ class Engine:
         return (self.tracker.targets if self._recovered_any else targets), pose, errors
 
     _recovered_any = False
+
+    # ------------------------------------------------------------------ case (b): progressive binding
+
+    def _binding_pending(self) -> bool:
+        """Case (b) before its first pose in the a-priori frame, with ``pose.bind_progressively``."""
+        return (self._case == "b" and not self._bound and self._given_model is not None
+                and self.pose_params.bind_progressively)
+
+    def _process_provisional(self, frame: StereoFrame, targets: tuple[TargetState, ...]
+                             ) -> tuple[tuple[TargetState, ...], PoseEstimate, dict | None]:
+        """Case (b) while fewer than ``min_points`` a-priori points are measured at once: a case-(a)
+        engine on the same tracker carries a provisional body frame, and every a-priori point
+        tracked joins its model like any point (located in that frame, averaged as it is seen
+        again). Once ``min_points`` of them are located, :meth:`_bind` carries the provisional
+        model into the a-priori frame. The output stays invalid until then, with the reason."""
+        assert self._given_model is not None
+        inner = self._provisional
+        if inner is None:
+            inner = Engine(self.config, self.rig, None, "a", tracker=self.tracker, rate_hz=self.rate_hz,
+                           live_errors=False)
+            inner._keep_ids = frozenset(self._given_model.ids)
+            self._provisional = inner
+        out_targets, _, _ = inner._after_step(frame, targets)
+        # The next step's rejections are the provisional fit's outliers (this engine steps the tracker).
+        self._pending_reject |= inner._pending_reject
+        inner._pending_reject = set()
+        need = self.pose_params.min_points
+        located = [pid for pid in self._given_model.ids if pid in inner._model]
+        reason = (f"case (b): binding the model: {len(located)} of its points located in a provisional frame "
+                  f"({need} needed)")
+        if len(located) >= need:
+            refused = self._bind(inner, located)
+            reason = refused if refused is not None else f"case (b): model bound through {len(located)} of its points"
+        self._operator_watch(frame)
+        return out_targets, PoseEstimate.invalid(reason, self._case), None
+
+    def _bind(self, inner: "Engine", located: list[str]) -> str | None:
+        """Carry the provisional model of ``inner`` into the a-priori frame through the a-priori
+        points it has located: the weighted absolute orientation ``b_prov = R b_model + t`` of
+        their two sets of coordinates (:func:`trackmeter.core.pose.solve_pose`, the provisional
+        ones with their covariances), refused like a pose (non-collinear points, 1-sigma within
+        ``max_*_sigma_*``, chi-square per degree of freedom within ``max_residual_per_dof``).
+        Every other provisional point becomes a grown point ``R^T (b_prov - t)``, its covariance
+        plus the transform's. Returns why the binding was refused, or None when bound."""
+        assert self._given_model is not None
+        p = self.pose_params
+        given = dict(zip(self._given_model.ids, self._given_model.points_body))
+        B = np.array([given[pid] for pid in located], dtype=float)
+        if choose_frame_points(B, p.min_triangle_m) is None:
+            return (f"case (b): binding the model: its {len(located)} located points are (nearly) collinear; "
+                    f"waiting for another")
+        floor = p.point_sigma_floor_m**2 * np.eye(3)
+        P = np.array([inner._model[pid].b for pid in located])
+        C = np.array([inner._model[pid].cov for pid in located]) + floor
+        try:
+            R, t, cov = solve_pose(B, P, C, None, None, p.refine_iterations)
+        except (TrackmeterError, np.linalg.LinAlgError) as exc:
+            return f"case (b): binding the model: {exc}"
+        r = P - (B @ R.T + t)
+        d2 = float(np.einsum("ni,nij,nj->", r, np.linalg.inv(C), r))
+        dof = 3 * len(located) - 6
+        if dof > 0 and d2 / dof > p.max_residual_per_dof:
+            return (f"case (b): binding the model: its located points disagree with the model (chi-square "
+                    f"{d2 / dof:.0f} per degree of freedom)")
+        if not _sigmas_within(cov, p.max_attitude_sigma_deg, p.max_position_sigma_m):
+            return "case (b): binding the model: the located points leave the binding undetermined"
+        for pid, m in inner._model.items():
+            if pid in given:
+                continue  # the a-priori coordinates stand
+            b = R.T @ (m.b - t)
+            cov_b = R.T @ (m.cov + _position_cov(cov, b, R)) @ R
+            self._model[pid] = _ModelPoint(b, cov_b, False, t_s=m.t_s)
+        self._seen_t.update(inner._seen_t)
+        self._lost_since.update(inner._lost_since)
+        if inner._last_fit is not None:
+            R_c, t_c, cov_c = inner._last_fit
+            self._last_fit = (R_c @ R, R_c @ t + t_c, cov_c)  # T_cam_model = T_cam_prov T_prov_model
+        for name, value in vars(inner.stats).items():
+            if name != "frames":
+                setattr(self.stats, name, getattr(self.stats, name) + value)
+        self.stats.models_bound_progressively += 1
+        self._bound, self._provisional = True, None
+        return None
 
     # ------------------------------------------------------------------ model building
 
@@ -835,7 +938,8 @@ class Engine:
             if frame.index - since >= self._lost_keep_frames:
                 self.tracker.remove_target(t.id)
                 self._lost_since.pop(t.id, None)
-        grown = [pid for pid, m in self._model.items() if not m.fixed and pid not in self._frame_ids]
+        grown = [pid for pid, m in self._model.items()
+                 if not m.fixed and pid not in self._frame_ids and pid not in self._keep_ids]
         excess = len(grown) - self.pose_params.max_model_points
         if excess > 0:
             grown.sort(key=lambda pid: self._seen_t.get(pid, -np.inf))
