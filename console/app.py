@@ -38,6 +38,7 @@ from console.overlay import (STATUS_RGB, box_half_px, box_segments, draw_overlay
                              node_rgb_for, pixel_to_plane, ray_to_pixel, to_rgb)
 from console.series import PLOTS, PlotData
 from trackmeter.core.stereo import StereoRig
+from trackmeter.pipeline.engine import SelectModelPoints
 from trackmeter.pipeline.pipeline import Pipeline
 from trackmeter.pipeline.snapshot import (
     AcquireModel,
@@ -58,6 +59,9 @@ from trackmeter.pipeline.snapshot import (
 )
 
 log = logging.getLogger(__name__)
+
+#: The model-point dropdown's first option: the next click makes an ordinary (unnamed) target.
+NEW_TARGET = "a new target"
 
 #: Scene units per image pixel of the image planes (726 px → 7.26 units).
 UNITS_PER_PX = 0.01
@@ -460,6 +464,11 @@ class Console:
             gui.add_markdown("Click the left image to add a target; shift- or ctrl-click removes the nearest.")
         with gui.add_folder("Model", expand_by_default=False):
             self.case_dropdown = gui.add_dropdown("Case", ("a", "b", "c"), initial_value="a")
+            # Case (b) binds targets to the a-priori model by id: the operator names the next
+            # click after a model point (the options follow the model loaded).
+            self._model_ids: tuple[str, ...] = ()
+            self.model_point_dropdown = gui.add_dropdown("Next click is", (NEW_TARGET,), initial_value=NEW_TARGET)
+            self.select_model_button = gui.add_button("Click the model points (simulator)")
             self.acquire_button = gui.add_button("Acquire model (object still)")
             self.model_path = gui.add_text("Model file", initial_value="")
             self.load_model_button = gui.add_button("Load model")
@@ -493,6 +502,9 @@ class Console:
         self.auto_count.on_update(self._cb(lambda e: self._auto_command() if self.auto_checkbox.value else None))
         self.auto_method.on_update(self._cb(lambda e: self._auto_command() if self.auto_checkbox.value else None))
         self.case_dropdown.on_update(self._cb(lambda e: SetCase(self.case_dropdown.value)))  # type: ignore[arg-type]
+        # The simulated operator: clicks every model point in view at its true projection, and again
+        # whenever the pose has been invalid for a while (a source with ground truth only).
+        self.select_model_button.on_click(self._cb(lambda e: SelectModelPoints(repeat=True)))
         self.acquire_button.on_click(self._cb(lambda e: AcquireModel()))
         self.load_model_button.on_click(self._cb(lambda e: LoadModel(self.model_path.value.strip())))
         self.cutoff.on_update(self._cb(lambda e: SetFilterCutoff(float(self.cutoff.value))))
@@ -539,6 +551,12 @@ class Console:
     def _on_click(self, event: Any) -> None:
         uv = self._event_pixel(event)
         if uv is None:
+            return
+        model_point = self.model_point_dropdown.value
+        if model_point != NEW_TARGET:
+            self.model_point_dropdown.value = NEW_TARGET  # one click per choice
+            self.submit(SelectPoint(uv[0], uv[1], model_point), event.client,
+                        f"Model point {model_point} at ({uv[0]:.0f}, {uv[1]:.0f})")
             return
         self.submit(SelectPoint(uv[0], uv[1]), event.client, f"Target at ({uv[0]:.0f}, {uv[1]:.0f})")
 
@@ -760,6 +778,10 @@ class Console:
                                        self.render_size)
 
     def _sync_widgets(self, snap: Snapshot) -> None:
+        if snap.model_ids != self._model_ids:  # a model loaded (or dropped): its points to name clicks by
+            self._model_ids = snap.model_ids
+            self.model_point_dropdown.options = (NEW_TARGET, *snap.model_ids)
+            self.model_point_dropdown.value = NEW_TARGET
         # Reflect the tracker's state (several browsers; a refused toggle snaps back).
         with self._pending_lock:
             busy = bool(self._pending)

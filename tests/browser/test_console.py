@@ -164,3 +164,33 @@ def test_malformed_model_file_loaded_from_the_ui_is_refused_and_the_console_goes
     page.screenshot(path=str(artifacts / "07_malformed_model.png"))
     done = running_console.pipeline.latest().timings.frames_processed
     wait_for(lambda: running_console.pipeline.latest().timings.frames_processed > done + 10, 10, "tracking going on")
+
+
+def test_a_click_named_after_a_model_point_binds_that_point(
+        page_and_client: Any, running_console: Any, artifacts: Path, tmp_path: Path) -> None:
+    """Case (b) binds targets to the model by id: with a model loaded, the operator picks a point
+    in "Next click is" and the next click makes the target of that id (then back to a new target)."""
+    from trackmeter.pipeline.snapshot import LoadModel
+
+    page, client = page_and_client
+    con = running_console.console
+    model = tmp_path / "plate_model.yaml"
+    model.write_text("points:\n- {id: corner_a, xyz: [0, 0, 0]}\n- {id: corner_b, xyz: [0.1, 0, 0]}\n- {id: corner_c, xyz: [0, 0.1, 0]}\n")
+    assert running_console.pipeline.call(LoadModel(str(model)), 10).ok
+    wait_for(lambda: "corner_b" in con.model_point_dropdown.options, 10, "the model's ids offered to name a click")
+    if not page.get_by_text("Next click is", exact=True).first.is_visible():
+        page.get_by_text("Model", exact=True).first.click()  # the folder starts collapsed
+    row = page.locator(".mantine-Flex-root", has=page.get_by_text("Next click is", exact=True))
+    row.locator("input").first.click()
+    page.get_by_role("option", name="corner_b", exact=True).click()
+    wait_for(lambda: con.model_point_dropdown.value == "corner_b", 10, "corner_b chosen in the page")
+    uv = (TEXTURED_UV[0] + 24.0, TEXTURED_UV[1] - 12.0)
+    sx, sy = pixel_to_screen(running_console, client, page, uv)
+    page.mouse.click(sx, sy)
+    target = wait_for(lambda: next((t for t in running_console.pipeline.latest().targets if t.id == "corner_b"), None), 10,
+                      "the target named corner_b on the server")
+    assert target.origin == "operator"
+    assert abs(target.uv[0] - uv[0]) <= 1.0 and abs(target.uv[1] - uv[1]) <= 1.0, target.uv
+    wait_for(lambda: con.model_point_dropdown.value == "a new target", 5, "the choice used up by one click")
+    wait_for(lambda: "corner_b" in con.last_pushed_target_ids, 5, "the target in a pushed image")
+    page.screenshot(path=str(artifacts / "08_model_point_clicked.png"))

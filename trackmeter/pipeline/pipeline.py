@@ -640,6 +640,7 @@ class Pipeline:
             recording=recording,
             source_status=status,
             sequence=self._sequence,
+            model_ids=tuple(getattr(getattr(engine, "model", None), "ids", ()) or ()),
         )
 
     # ------------------------------------------------------------------ headless runs

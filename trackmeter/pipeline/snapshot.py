@@ -95,6 +95,8 @@ class Snapshot:
         paused, recording: pipeline state.
         source_status: None while the source delivers; else what went wrong or "ended".
         sequence: increasing number of the snapshot.
+        model_ids: the ids of the a-priori model's points (case b), empty without one: an
+            operator binds a click to one of them (:class:`SelectPoint` ``target_id``).
     """
 
     frame: StereoFrame | None
@@ -109,6 +111,7 @@ class Snapshot:
     recording: bool = False
     source_status: str | None = None
     sequence: int = 0
+    model_ids: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
