@@ -659,6 +659,7 @@ class Console:
 
         ``publish_hz`` is read at every push, so it can be changed while running."""
         last_seq = -1
+        last_text_seq = -1  # the snapshot whose numbers the page shows
         tick = 0
         last_push = 0.0
         next_trim = time.monotonic() + TRIM_EVERY_S
@@ -669,6 +670,12 @@ class Console:
                 self._flush_replies()
                 self._frame_clients()
                 if snap is None:
+                    if last_seq >= 0 and last_text_seq != last_seq:
+                        # The stream went quiet (paused, ended, failed) right after a push that
+                        # skipped the text: show its last state, or the page keeps an older one.
+                        quiet = self.pipeline.latest()
+                        self._push(quiet, plots=True, text=True)
+                        last_seq = last_text_seq = quiet.sequence
                     continue
                 # Only the operator's own targets make a push urgent (automatic ones churn).
                 operator_ids = {t.id for t in snap.targets if t.origin == "operator"}
@@ -681,7 +688,10 @@ class Console:
                 last_seq = snap.sequence
                 last_push = time.monotonic()
                 t0 = time.perf_counter()
-                self._push(snap, plots=(tick % self.plot_every == 0), text=urgent or tick % self.text_every == 0)
+                text = urgent or tick % self.text_every == 0
+                self._push(snap, plots=(tick % self.plot_every == 0), text=text)
+                if text:
+                    last_text_seq = snap.sequence
                 self.push_ms.append((time.perf_counter() - t0) * 1e3)
                 tick += 1
                 if last_push >= next_trim:
