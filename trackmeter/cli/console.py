@@ -31,7 +31,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rig", metavar="RIG",
                         help="stereo rig file to use instead of the source's own; OpenCV's intrinsics.yml or "
                              "extrinsics.yml (the other beside it) takes the size of the source's frames")
-    parser.add_argument("--case", choices=("a", "b", "c"), help="model case at start (default: b when the source carries a model, else a)")
+    parser.add_argument("--case", choices=("a", "b", "c"), help="model case at start (default: b when the source carries a model, else a; in case b a "
+                             "target binds to a model point by id: Model > Next click is, in the page)")
     parser.add_argument("--publish-hz", type=float, default=12.0, help="browser update rate, Hz (default 12)")
     parser.add_argument("--cpu-nice", type=int, default=DEFAULT_CPU_NICE, metavar="N",
                         help=f"run tracking at this CPU priority, -20..19, ahead of a browser on the same machine "
