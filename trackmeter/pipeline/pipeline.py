@@ -119,12 +119,13 @@ class RecordingStats:
     error: str | None = None
 
 
-def _default_writer_factory(rig: StereoRig | None, model: Any | None = None) -> WriterFactory:
+def _default_writer_factory(rig: StereoRig | None, model: Callable[[], Any | None] = lambda: None) -> WriterFactory:
     def make(directory: Path) -> RecordWriter:
         from trackmeter.data.sequence import SequenceWriter
 
-        # The model goes with the frames: replayed with --source DIR, case (b) finds it.
-        return SequenceWriter(directory, rig, model)  # refuses a folder that holds a sequence
+        # The model goes with the frames (the one in use when the recording starts: the
+        # operator may load another): replayed with --source DIR, case (b) finds it.
+        return SequenceWriter(directory, rig, model())  # refuses a folder that holds a sequence
 
     return make
 
@@ -254,10 +255,7 @@ class Pipeline:
         self.rig = rig if rig is not None else source.rig
         self.drop_frames = drop_frames
         self._record_queue_frames = int(record_queue_frames)
-        model = getattr(engine, "model", None)
-        if model is None:
-            model = getattr(source, "model", None)
-        self._writer_factory = writer_factory or _default_writer_factory(self.rig, model)
+        self._writer_factory = writer_factory or _default_writer_factory(self.rig, self._model_in_use)
         self._initial_record_dir = Path(record_dir) if record_dir is not None else None
 
         # One condition guards the frame slot, the command queue and the run state, so the
@@ -642,6 +640,11 @@ class Pipeline:
             sequence=self._sequence,
             model_ids=tuple(getattr(getattr(engine, "model", None), "ids", ()) or ()),
         )
+
+    def _model_in_use(self) -> Any | None:
+        """The engine's a-priori model, else the one the source carries (None without)."""
+        model = getattr(self.engine, "model", None)
+        return model if model is not None else getattr(self.source, "model", None)
 
     # ------------------------------------------------------------------ headless runs
     def run_until_end(self, timeout_s: float | None = None) -> Snapshot:
