@@ -98,3 +98,21 @@ def test_console_soak_rows_and_the_environment_of_a_step(tmp_path):
     assert "| 1.23 % |" in rows[0] and "| 0 |" in rows[1] and "| — | — |" in rows[2]  # a figure the run did not give: a dash, never a number
     failed = Step("soak_console", [], status="failed", reason="exit 1: no chromium")
     assert all("_failed: soak_console" in row for row in console_soak_rows(None, failed))
+
+
+def test_goal_rows_judge_each_figure_against_its_limit_and_never_invent_one():
+    from benchmarks.reproduce import ISSUE5_GOALS, Goal, goal_rows
+
+    goals = (Goal("accuracy", "estec_b_pos_depth_max_mm", "depth", 2.5, True, 1.0, "mm", 2),
+             Goal("pipeline", "offline_fps", "offline", 60.0, False, 1.0, "fps", 1),
+             Goal("soak", "rss_growth_fraction", "memory", 0.05, True, 100.0, "%", 2))
+    rows = goal_rows({"accuracy": {"estec_b_pos_depth_max_mm": 2.5}, "pipeline": {"offline_fps": 59.9}}, goals)
+    assert rows[2] == "| depth | ≤ 2.50 mm | 2.50 mm | yes |"  # the limit itself meets it
+    assert rows[3] == "| offline | ≥ 60.0 fps | 59.9 fps | **no** |"
+    assert rows[4] == "| memory | ≤ 5.00 % | — | not measured |"
+    assert goal_rows({"pipeline": {"offline_fps": math.nan}}, goals[1:2])[2].endswith("| — | not measured |")
+    # issue 5's list: both estec cases' seven motion figures, harsh_light, rates and memory
+    keys = {g.key for g in ISSUE5_GOALS}
+    assert {f"estec_{c}_{m}" for c in "ab" for m in ("pos_lateral_max_mm", "pos_depth_max_mm", "att_view_max_deg",
+            "att_other_max_deg", "vel_lateral_max_mm_s", "vel_depth_max_mm_s", "omega_max_deg_s")} <= keys
+    assert {"live_rate_hz", "dropped_fraction", "offline_fps", "rss_growth_fraction"} <= keys
