@@ -3,7 +3,9 @@
 Each benchmark is a module ``benchmarks/<name>.py`` with ``run() -> dict[str, float]``
 returning its figures: medians over repeats, and ratios against a baseline measured in the
 same run so the machine's noise cancels. Progress goes to stderr; the JSON object
-``{NAME: {figure: value}}`` to stdout (and ``--out``).
+``{NAME: {figure: value}}`` to stdout (and ``--out``): every value one number, ``null`` where
+it is not finite (strict JSON: no NaN), a per-seed or per-bin series as numbered figures
+(``..._seed0``, ``..._bin0_...``).
 """
 
 from __future__ import annotations

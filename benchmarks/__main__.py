@@ -7,11 +7,29 @@ import contextlib
 import importlib
 import importlib.util
 import json
+import math
+import numbers
 import sys
 import time
 from pathlib import Path
 
 from benchmarks import NAMES
+
+
+def figures_for_json(name: str, figures: dict) -> dict[str, float | None]:
+    """Benchmark ``name``'s figures as the JSON contract has them: one number per figure (a
+    bool or int becomes a float), ``null`` where it is not finite (NaN is not JSON: strict
+    readers refuse the whole object). A value that is not a number is left out, with a warning
+    naming it: a benchmark's bug must not cost the other figures of a long run."""
+    out: dict[str, float | None] = {}
+    for key, value in figures.items():
+        if isinstance(value, numbers.Real):  # numpy's scalars too
+            v = float(value)
+            out[key] = v if math.isfinite(v) else None
+        else:
+            print(f"[benchmarks] {name}: figure {key} is not a number ({type(value).__name__}): left out",
+                  file=sys.stderr, flush=True)
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -38,9 +56,9 @@ def main(argv: list[str] | None = None) -> int:
         # stdout carries the JSON alone: whatever a benchmark's libraries print (viser's banner)
         # goes to stderr with the progress.
         with contextlib.redirect_stdout(sys.stderr):
-            results[name] = module.run()
+            results[name] = figures_for_json(name, module.run())
         print(f"[benchmarks] {name} done in {time.perf_counter() - start:.1f} s", file=sys.stderr, flush=True)
-    text = json.dumps(results, indent=2, sort_keys=True)
+    text = json.dumps(results, indent=2, sort_keys=True, allow_nan=False)
     print(text)
     if args.out:
         from trackmeter.data.atomic import write_text_atomic

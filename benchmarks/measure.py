@@ -11,12 +11,12 @@ Figures (keys are contracts, issue 2):
   ``Rectification.rectify_images``, which a measurement does not need to do.
   ``plane_xyz_err_mm_median`` / ``plane_accept_rate`` check the same 100 points' 3D positions
   against the plane's true points.
-- ``subpixel_rms_px``, ``subpixel_bias_max_px``, ``subpixel_bias_curve_px``: disparity error
+- ``subpixel_rms_px``, ``subpixel_bias_max_px``, ``subpixel_bias_bin<k>_px``: disparity error
   of 8x8 patches on synthetic pairs whose right image is the left texture shifted by an exact
   fractional disparity (the texture is a sum of sinusoids evaluated analytically at shifted
   coordinates, so the shift is not an interpolation artefact), fractions spread uniformly over
-  [0, 1), noise of 1 grey level. The curve is the mean error in 10 bins of the fractional
-  part. ``..._parabola``: the same data refined with the 3-point parabola on the ZNCC scores
+  [0, 1), noise of 1 grey level. ``bin<k>`` (k = 0..9) is the mean error over the fractional
+  parts in [k/10, (k+1)/10). ``..._parabola``: the same data refined with the 3-point parabola on the ZNCC scores
   (the biased baseline), same run; ``..._keys``: the Gauss-Newton fit with Keys cubic
   convolution instead of the cubic B-spline.
 - ``tsukuba_bad1_rate``, ``tsukuba_bad1_rate_sgbm``, ``tsukuba_accept_rate``: on the Middlebury
@@ -364,7 +364,8 @@ def run() -> dict[str, float | list[float]]:
         curve = bias_curve(fractions, e)
         out[f"subpixel_rms_px{suffix}"] = float(np.sqrt(np.mean(e[good] ** 2)))
         out[f"subpixel_bias_max_px{suffix}"] = float(np.max(np.abs(curve)))
-        out[f"subpixel_bias_curve_px{suffix}"] = [round(c, 5) for c in curve]
+        for k, c in enumerate(curve):
+            out[f"subpixel_bias_bin{k}_px{suffix}"] = round(float(c), 5)
         out[f"subpixel_accept_rate{suffix}"] = float(good.mean())
     out["subpixel_points"] = int(len(fractions))
 

@@ -271,15 +271,25 @@ def console_soak_rows(results: dict | None, step: Step) -> list[str]:
     return rows
 
 
+def _per_seed(figures: dict, key: str) -> list[float]:
+    """The values of ``key`` per noise seed (``<key>_seed0``, ``_seed1``, ...), in seed order."""
+    values = []
+    while f"{key}_seed{len(values)}" in figures:
+        value = figures[f"{key}_seed{len(values)}"]
+        values.append(float("nan") if value is None else float(value))  # null: not finite in that run
+    return values
+
+
 def benchmark_rows(results: dict | None, step: Step | None, names: list[str], not_built: list[str]) -> list[str]:
     rows = []
     for (bench, key), (capability, paper, scale, unit, digits) in BENCHMARK_ROWS.items():
         if bench not in names:
             continue
         if results is not None and bench in results and key in results[bench]:
-            ours = _fmt(float(results[bench][key]), scale, digits, unit)
-            per_seed = results[bench].get(f"{key}_per_seed")
-            if isinstance(per_seed, list) and len(per_seed) > 1:  # a median over noise seeds: show each
+            value = results[bench][key]  # null: not finite in that run
+            ours = _fmt(None if value is None else float(value), scale, digits, unit)
+            per_seed = _per_seed(results[bench], key)
+            if len(per_seed) > 1:  # a median over noise seeds: show each
                 ours += f" (median of {', '.join(_fmt(float(v), scale, digits, '') for v in per_seed)})"
         elif bench in not_built:
             ours = f"_missing: benchmarks/{bench}.py not built yet_"
