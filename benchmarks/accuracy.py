@@ -409,7 +409,7 @@ def _maxima(fig: dict[str, Any]) -> str:
     return ", ".join(f"{k.split('_', 2)[2]} {v:.3g}" for k, v in fig.items() if "_max_" in k and isinstance(v, float))
 
 
-def median_over_runs(runs: list[dict[str, float]]) -> dict[str, Any]:
+def median_over_runs(runs: list[dict[str, float]]) -> dict[str, float]:
     """Each figure as its median over ``runs`` (the same chain under different sensor-noise
     seeds), and every ``_max_`` figure's value in run ``i`` as ``<figure>_seed<i>`` (NaN where
     that run has none; every figure stays one number, as ``python -m benchmarks`` promises).
@@ -420,7 +420,7 @@ def median_over_runs(runs: list[dict[str, float]]) -> dict[str, Any]:
     seeds gave 1.6, 2.9 and 17.6 mm over 20 s: a single run cannot tell a change from luck. A figure present in only some runs is the median
     of those."""
     keys = sorted({k for r in runs for k in r})
-    out: dict[str, Any] = {}
+    out: dict[str, float] = {}
     for k in keys:
         vals = [float(r[k]) for r in runs if k in r and np.isfinite(r[k])]
         out[k] = float(np.median(vals)) if vals else float("nan")

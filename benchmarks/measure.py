@@ -16,8 +16,8 @@ Figures (keys are contracts, issue 2):
   fractional disparity (the texture is a sum of sinusoids evaluated analytically at shifted
   coordinates, so the shift is not an interpolation artefact), fractions spread uniformly over
   [0, 1), noise of 1 grey level. ``bin<k>`` (k = 0..9) is the mean error over the fractional
-  parts in [k/10, (k+1)/10). ``..._parabola``: the same data refined with the 3-point parabola on the ZNCC scores
-  (the biased baseline), same run; ``..._keys``: the Gauss-Newton fit with Keys cubic
+  parts in [k/10, (k+1)/10). ``..._parabola``: the same data refined with the 3-point parabola
+  on the ZNCC scores (the biased baseline), same run; ``..._keys``: the Gauss-Newton fit with Keys cubic
   convolution instead of the cubic B-spline.
 - ``tsukuba_bad1_rate``, ``tsukuba_bad1_rate_sgbm``, ``tsukuba_accept_rate``: on the Middlebury
   Tsukuba pair, over a grid of textured pixels with known ground truth that is constant within
@@ -325,7 +325,7 @@ def mockup_figures(
     }
 
 
-def run() -> dict[str, float | list[float]]:
+def run() -> dict[str, float]:
     from trackmeter.core.matching import MeasureParams, measure_points
 
     out: dict[str, float | list[float]] = {}
