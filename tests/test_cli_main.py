@@ -39,3 +39,19 @@ def test_a_bug_keeps_its_traceback(monkeypatch):
     with pytest.raises(ValueError, match="a bug"):
         main(["simulate", "--out", "x"])
 
+
+
+def test_a_warning_is_one_line_naming_the_command(monkeypatch, capsys):
+    """A library warning (a sequence's unpaired images, a model file's unknown keys) reaches
+    the user as one line like an error, not Python's two lines with a source path."""
+    import warnings
+
+    def warns(args):
+        warnings.warn("3 image(s) without a partner\nwithin 10 ms skipped", UserWarning, stacklevel=1)
+        return 0
+
+    monkeypatch.setattr(simulate, "run", warns)
+    shown_before = warnings.showwarning
+    assert main(["simulate", "--out", "x"]) == 0
+    assert capsys.readouterr().err == "trackmeter simulate: warning: 3 image(s) without a partner within 10 ms skipped\n"
+    assert warnings.showwarning is shown_before  # given back when the command ends

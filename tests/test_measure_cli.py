@@ -49,6 +49,11 @@ def _one_error_line(capsys: pytest.CaptureFixture[str], *words: str) -> str:
 def test_json_is_the_contract_and_agrees_with_the_library_and_the_truth(pair, capsys) -> None:  # type: ignore[no-untyped-def]
     rig, left, right, truth, folder = pair
     ats = [(300.3, 250.6), (-5.0, 3.0), (420.0, 180.25)]
+    # DESIGN's `--at U,V [--at U,V ...]`, and several pixels after one --at as well.
+    assert _run(folder, "--at", "300.3,250.6", "--at", "420,180.25", "--json") == 0
+    repeated = capsys.readouterr().out
+    assert _run(folder, "--at", "300.3,250.6", "420,180.25", "--json") == 0
+    assert capsys.readouterr().out == repeated and len(json.loads(repeated)) == 2
     assert _run(folder, "--at", "300.3,250.6", "--at=-5,3", "--at", "420,180.25", "--json") == 0
     out = json.loads(capsys.readouterr().out)
     assert isinstance(out, list) and len(out) == 3
@@ -143,7 +148,7 @@ def test_non_image_file(pair, capsys) -> None:  # type: ignore[no-untyped-def]
     _one_error_line(capsys, "missing.png")
 
 
-@pytest.mark.parametrize("at", ["1", "1,2,3", "a,b", "1;2", ""])
+@pytest.mark.parametrize("at", ["1", "1,2,3", "a,b", "1;2", "", "nan,100", "100,inf", "-inf,1"])
 def test_bad_at(pair, capsys, at: str) -> None:  # type: ignore[no-untyped-def]
     *_, folder = pair
     assert _run(folder, f"--at={at}") == 2

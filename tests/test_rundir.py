@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +33,32 @@ def test_coasted_poses_are_valid_rows_and_counted_in_the_summary(tmp_path: Path)
     assert summary["frames"] == 4 and summary["valid_frames"] == 3 and summary["coasted_frames"] == 2
     tum = [ln for ln in (tmp_path / "run" / "trajectory.tum").read_text().splitlines() if not ln.startswith("#")]
     assert len(tum) == 3
+
+
+def test_a_valid_states_row_has_every_field_and_a_pose_without_rates_stays_in_the_trajectory(tmp_path: Path) -> None:
+    """states.csv's valid rows read like groundtruth.csv rows (DESIGN 6: "same meanings"): a pose
+    whose rates are not estimated yet is valid 0 there, its pose filled in, and still a line of
+    trajectory.tum (valid poses)."""
+    import csv
+
+    from dataclasses import replace
+
+    no_rates = replace(_pose(0.0), velocity_cam_m_s=np.full(3, np.nan), omega_body_rad_s=np.full(3, np.nan))
+    writer = RunWriter(tmp_path / "run", {}, {"spec": "test"})
+    writer.write_frame(0.00, (), PoseEstimate.invalid("fewer than 3 points"))
+    writer.write_frame(0.04, (), no_rates, latency_ms=12.0)
+    writer.write_frame(0.08, (), _pose(0.0), latency_ms=11.0)
+    writer.close("complete")
+    with (tmp_path / "run" / "states.csv").open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["valid"] for r in rows] == ["0", "0", "1"]
+    assert rows[0]["x"] == "" and rows[0]["vx"] == ""
+    assert float(rows[1]["z"]) == 3.5 and rows[1]["vx"] == rows[1]["wz"] == ""
+    assert all(math.isfinite(float(rows[2][c])) for c in STATES_COLUMNS)  # every field a number
+    tum = [ln for ln in (tmp_path / "run" / "trajectory.tum").read_text().splitlines() if not ln.startswith("#")]
+    assert [float(ln.split()[0]) for ln in tum] == [0.04, 0.08]
+    summary = yaml.safe_load((tmp_path / "run" / "run.yaml").read_text())["summary"]
+    assert summary["valid_frames"] == 2 and summary["rates_pending_frames"] == 1
 
 
 def test_a_target_id_with_a_comma_or_quote_stays_one_csv_field(tmp_path: Path) -> None:

@@ -90,7 +90,8 @@ def test_targets_given_on_the_command_line_are_in_the_first_frames_rows(tmp_path
     """--target acts on frame 0 (after it was processed): its rows must say so, not start at frame 1."""
     out = tmp_path / "run"
     # Two textured points of the estec mock-up in its first frame (automatic selection's picks).
-    assert main(["track", "--source", "sim", "--target", "280,331", "--target", "303,178", "--max-frames", "3",
+    # Several pixels after one --target, as DESIGN's `[--target [ID=]U,V ...]` reads.
+    assert main(["track", "--source", "sim", "--target", "280,331", "303,178", "--max-frames", "3",
                  "--case", "a", "--out", str(out)]) == 0
     rows = list(csv.DictReader((out / "targets.csv").open()))
     first = [r for r in rows if float(r["t"]) == 0.0]
@@ -151,6 +152,8 @@ def test_bad_arguments(monkeypatch, tmp_path, estec_rig, capsys) -> None:
     assert "needs a model" in capsys.readouterr().err
     assert main(["track", "--source", "fake", "--target", "1,x", "--out", str(tmp_path / "r")]) == 2
     assert "U,V" in capsys.readouterr().err
+    assert main(["track", "--source", "fake", "--target", "a=nan,5", "--out", str(tmp_path / "r")]) == 2
+    assert "finite" in capsys.readouterr().err
 
 
 def test_unknown_source_is_one_line(tmp_path, capsys) -> None:

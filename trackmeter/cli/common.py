@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from typing import TYPE_CHECKING, Iterable, Iterator, TypeVar
@@ -70,14 +71,18 @@ def open_source_with_rig(spec: str, rig_path: str | None, realtime: bool = False
 
 
 def parse_uv(text: str) -> tuple[float, float]:
-    """``"U,V"`` → ``(u, v)`` in px; raises TrackmeterError with the offending text."""
+    """``"U,V"`` → ``(u, v)`` in px; raises TrackmeterError with the offending text (also for
+    ``nan`` or ``inf``, which ``float`` accepts but no pixel is)."""
     parts = text.split(",")
     try:
         if len(parts) != 2:
             raise ValueError
-        return float(parts[0]), float(parts[1])
+        u, v = float(parts[0]), float(parts[1])
+        if not (math.isfinite(u) and math.isfinite(v)):
+            raise ValueError
+        return u, v
     except ValueError:
-        raise TrackmeterError(f"expected a pixel as U,V (two numbers), got {text!r}") from None
+        raise TrackmeterError(f"expected a pixel as U,V (two finite numbers), got {text!r}") from None
 
 
 def progress(items: Iterable[T], total: int | None, label: str, stream=None) -> Iterator[T]:  # type: ignore[no-untyped-def]

@@ -16,7 +16,8 @@ import os
 import signal
 import sys
 import threading
-from typing import NoReturn, Sequence
+import warnings
+from typing import Callable, NoReturn, Sequence, TextIO
 
 from trackmeter.errors import TrackmeterError
 
@@ -97,12 +98,29 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1  # what the docs' recipe exits with: the output was cut short
 
 
+def _warning_printer(command: str) -> Callable[..., None]:
+    """``warnings.showwarning`` for a command: one line, ``trackmeter CMD: warning: ...``, as
+    its errors are (the default shows the library's source path and line)."""
+
+    def show(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+             file: TextIO | None = None, line: str | None = None) -> None:
+        text = " ".join(str(message).split())
+        try:
+            print(f"trackmeter {command}: warning: {text}", file=file or sys.stderr)
+        except (OSError, ValueError):  # stderr gone: a warning is not worth failing over
+            pass
+
+    return show
+
+
 def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
         parser.print_help()
         return 2
+    shown_before = warnings.showwarning
+    warnings.showwarning = _warning_printer(args.command)
     # A service manager's stop (SIGTERM) ends a run as Ctrl-C does: threads joined, files
     # complete, the console's raised CPU priority given back (killed outright, none of that).
     previous = None
@@ -124,6 +142,7 @@ def _main(argv: Sequence[str] | None) -> int:
         print(f"trackmeter {args.command}: interrupted", file=sys.stderr)
         return 130
     finally:
+        warnings.showwarning = shown_before
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
 

@@ -33,8 +33,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--left", required=True, metavar="IMG", help="left image (read as 8-bit grey)")
     parser.add_argument("--right", required=True, metavar="IMG", help="right image (read as 8-bit grey)")
     parser.add_argument(
-        "--at", required=True, action="append", metavar="U,V",
-        help="left-image pixel to measure (repeat for more; write --at=-5,3 for a negative u)",
+        "--at", required=True, action="extend", nargs="+", metavar="U,V",
+        help="left-image pixels to measure (several may follow one --at, or repeat it; write --at=-5,3 "
+        "for a negative u)",
     )
     parser.add_argument("--patch", type=int, metavar="N", help="patch side, px (default: measure.patch_size, 8)")
     parser.add_argument("--json", action="store_true", help="print a JSON list instead of a table")

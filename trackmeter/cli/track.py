@@ -40,8 +40,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "extrinsics.yml (the other beside it) takes the size of the source's frames")
     parser.add_argument("--model", metavar="MODEL",
                         help="model.yaml for case (b) (default: the source's own model); unused in cases (a) and (c)")
-    parser.add_argument("--target", action="append", default=[], metavar="[ID=]U,V",
-                        help="a target at left-image pixel U,V of the first frame, optionally named (repeatable)")
+    parser.add_argument("--target", action="extend", nargs="+", default=[], metavar="[ID=]U,V",
+                        help="targets at left-image pixels U,V of the first frame, optionally named "
+                        "(several may follow one --target, or repeat it)")
     parser.add_argument("--auto", type=int, metavar="N", help="keep N automatically selected targets alive")
     parser.add_argument("--select-model-points", action="store_true",
                         help="case (b) on a source with ground truth: simulate the operator clicking every model "

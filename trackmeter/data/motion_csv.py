@@ -9,8 +9,11 @@ their columns:
 ``t`` in seconds; ``x,y,z`` the body origin in the left camera frame (m) and ``qw..qz`` the
 scalar-first attitude of ``T_cam_body``; ``vx,vy,vz`` the velocity of the body origin in the
 camera frame (m/s); ``wx,wy,wz`` the angular velocity in the BODY frame (rad/s, paper eq. 14);
-``valid`` 0/1 (a row with ``valid = 0`` may carry empty or ``nan`` fields). Any further column
-(``n_tracked``, ``latency_ms``, ...) is kept as a float array in :attr:`MotionSeries.extra`.
+``valid`` 0/1: 1 when every field of the row is a number, so a valid row reads like a
+``groundtruth.csv`` row; a row with ``valid = 0`` may carry empty or ``nan`` fields (a run writes
+a pose whose rates are not estimated yet as ``valid = 0``, the pose filled in, the rates empty).
+Any further column (``n_tracked``, ``latency_ms``, ...) is kept as a float array in
+:attr:`MotionSeries.extra`.
 
 One reader (:func:`read_motion_csv`) reads both; :func:`write_groundtruth_csv` and
 :func:`write_states_csv` write a whole series atomically; :class:`MotionCsvWriter` appends one

@@ -4,7 +4,12 @@
 
     DIR/trajectory.tum   valid poses only, TUM (t tx ty tz qx qy qz qw), pose T_cam_body
     DIR/states.csv       t,valid,x,y,z,qw,qx,qy,qz,vx,vy,vz,wx,wy,wz,n_tracked,n_lost,latency_ms
-                         one row per frame (valid 0/1; an invalid row has empty pose fields)
+                         one row per frame; valid 1 when every field is a number (pose and
+                         rates), so a reader may use a valid row as it would groundtruth.csv.
+                         A valid pose whose rates are not estimated yet (the velocity fit's
+                         first poses after the pose is found) is a row with valid 0 that
+                         carries the pose and leaves the rates empty; with no pose, the pose
+                         fields are empty too.
     DIR/targets.csv      t,id,state,u,v,u_right,v_right,x,y,z,score  one row per target per frame
     DIR/run.yaml         config, source, versions; the summary once the run ends
 
@@ -113,6 +118,8 @@ class RunWriter:
         # Valid poses carried on the motion model with no point measured (the states.csv
         # columns are a contract, so the count goes to the summary, not a new column).
         self.coasted_frames = 0
+        # Valid poses whose rates were not estimated yet (states.csv valid 0, pose filled in).
+        self.rates_pending_frames = 0
 
     def _write_meta(self) -> None:
         write_text_atomic(self.directory / "run.yaml", yaml.safe_dump(self._meta, sort_keys=False, allow_unicode=True))
@@ -129,12 +136,14 @@ class RunWriter:
         if pose.valid:
             p = pose.T_cam_body[:3, 3]
             q = matrix_to_quat_wxyz(pose.T_cam_body[:3, :3])
-            self._states.write(t=t_s, valid=1, position_m=p, quat_wxyz=q, velocity_cam_m_s=pose.velocity_cam_m_s,
-                               omega_body_rad_s=pose.omega_body_rad_s, n_tracked=n_tracked, n_lost=n_lost,
-                               latency_ms=latency_ms)
+            rates_known = bool(np.all(np.isfinite(pose.velocity_cam_m_s)) and np.all(np.isfinite(pose.omega_body_rad_s)))
+            self._states.write(t=t_s, valid=int(rates_known), position_m=p, quat_wxyz=q,
+                               velocity_cam_m_s=pose.velocity_cam_m_s, omega_body_rad_s=pose.omega_body_rad_s,
+                               n_tracked=n_tracked, n_lost=n_lost, latency_ms=latency_ms)
             self._tum.write(format_tum_line(t_s, p, q) + "\n")
             self._tum.flush()
             self.valid_frames += 1
+            self.rates_pending_frames += not rates_known
             if getattr(pose, "coasting_s", 0.0) > 0.0:
                 self.coasted_frames += 1
         else:
@@ -163,7 +172,8 @@ class RunWriter:
         self._meta["status"] = status
         self._meta["finished_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
         self._meta["summary"] = {"frames": self.frames, "valid_frames": self.valid_frames,
-                                 "coasted_frames": self.coasted_frames, **(summary or {})}
+                                 "coasted_frames": self.coasted_frames,
+                                 "rates_pending_frames": self.rates_pending_frames, **(summary or {})}
         # Keep config last: the summary is what a reader looks for first.
         config = self._meta.pop("config")
         self._meta["config"] = config
