@@ -55,3 +55,10 @@ def test_a_warning_is_one_line_naming_the_command(monkeypatch, capsys):
     assert main(["simulate", "--out", "x"]) == 0
     assert capsys.readouterr().err == "trackmeter simulate: warning: 3 image(s) without a partner within 10 ms skipped\n"
     assert warnings.showwarning is shown_before  # given back when the command ends
+
+
+def test_an_unknown_argument_is_reported_by_its_command(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["simulate", "--out", "x", "--bogus", "1"])
+    assert exit_info.value.code == 2
+    assert capsys.readouterr().err == "trackmeter simulate: error: unrecognized arguments: --bogus 1 (see --help)\n"
