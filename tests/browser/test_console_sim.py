@@ -53,10 +53,18 @@ def test_default_console_shows_the_satellite_in_image_and_3d(browser: Any, sim_c
         # The operator clicks the satellite where a target is being tracked (a textured pixel
         # the tracker accepts); the satellite turns meanwhile, so a click may land on a pixel the
         # tracker refuses: a few tries, each refusal shown as such.
+        # Each try aims at another target (the best-matched first): a click on the one the
+        # tracker just refused would be refused again for the same reason.
         canvas = main_canvas_box(page)
         clicked = None
-        for _ in range(5):
-            aim = next(t for t in running.pipeline.latest().targets if t.status == "tracking")
+        tried: set[str] = set()
+        for _ in range(8):
+            tracking = [t for t in running.pipeline.latest().targets if t.status == "tracking" and t.id not in tried]
+            if not tracking:
+                tried.clear()
+                continue
+            aim = max(tracking, key=lambda t: t.score if np.isfinite(t.score) else -2.0)
+            tried.add(aim.id)
             n_notes = len(con.notifications)
             page.mouse.click(*pixel_to_screen(running, client, page, tuple(aim.uv), canvas))
             answer = wait_for(lambda: next((t for t in running.pipeline.latest().targets if t.origin == "operator"), None)
