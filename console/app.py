@@ -68,6 +68,8 @@ UNITS_PER_PX = 0.01
 #: Where the 3D view (the left camera frame) sits in the scene, left of the image.
 SCENE3D_OFFSET = (-8.0, 0.0, -3.0)
 AUTO_METHODS = ("gabor", "centroid")
+# The operator widget each toggle command comes from (Console._mirror), by command name.
+_WIDGET_OF_COMMAND = {"SetAuto": "auto", "SetRecording": "record", "SetCase": "case"}
 SERIES_COLOURS = ("#e6194b", "#3cb44b", "#4363d8", "#111111")
 TRAIL_FRAMES = 12
 #: Line thickness of the operator targets' boxes drawn over the left image, image px.
@@ -305,6 +307,8 @@ class Console:
         self._plot_version: dict[str, int] = {}
         self._omega_shown = False
         self._pushed_operator_ids: set[str] = set()
+        # The tracker's state each operator widget last mirrored, by widget (see _mirror).
+        self._mirrored: dict[str, Any] = {}
         self._build_scene()
         self._build_gui()
         server.on_client_connect(self._on_connect)
@@ -715,6 +719,8 @@ class Console:
                 reply = CommandReply(False, f"{type(exc).__name__}: {exc}")
             if reply.ok and label.startswith(("SetAuto", "SetFilterCutoff", "SetPaused", "StepOnce")):
                 continue  # the UI shows the new state; no pop-up needed
+            if not reply.ok:  # the widget the operator changed shows the tracker's state again
+                self._mirrored.pop(_WIDGET_OF_COMMAND.get(label, ""), None)
             title = label if reply.ok else f"{label}: refused"
             self._notify(client, title, reply.message or ("ok" if reply.ok else "refused"), reply.ok)
 
@@ -792,20 +798,29 @@ class Console:
             self._model_ids = snap.model_ids
             self.model_point_dropdown.options = (NEW_TARGET, *snap.model_ids)
             self.model_point_dropdown.value = NEW_TARGET
-        # Reflect the tracker's state (several browsers; a refused toggle snaps back).
-        with self._pending_lock:
-            busy = bool(self._pending)
-        if busy:
-            return
         label = "Play" if snap.paused else "Pause"
         if self.pause_button.label != label:
             self.pause_button.label = label
-        if self.auto_checkbox.value != snap.auto_enabled:
-            self.auto_checkbox.value = snap.auto_enabled
-        if self.record_checkbox.value != snap.recording:
-            self.record_checkbox.value = snap.recording
-        if snap.pose.case != self.case_dropdown.value and snap.pose.case in ("a", "b", "c"):
-            self.case_dropdown.value = snap.pose.case
+        self._mirror("auto", self.auto_checkbox, snap.auto_enabled)
+        self._mirror("record", self.record_checkbox, snap.recording)
+        if snap.pose.case in ("a", "b", "c"):
+            self._mirror("case", self.case_dropdown, snap.pose.case)
+
+    def _mirror(self, name: str, widget: Any, state: Any) -> None:
+        """Show the tracker's ``state`` on ``widget`` when it changed since last shown here.
+
+        Edge-triggered on purpose. viser stores a browser's new value on the widget before it
+        runs the ``on_update`` callback in a worker thread; a push that reset every widget to
+        the tracker's state put the old value back in between, and the callback then read it
+        and sent it as the command (CI: a click on "Automatic selection" sent "off"). A
+        change made elsewhere (another browser, ``--auto``, a recording that failed) still
+        shows, and a refused command shows the state again (:meth:`_flush_replies`).
+        """
+        if name in self._mirrored and self._mirrored[name] == state:
+            return
+        self._mirrored[name] = state
+        if widget.value != state:
+            widget.value = state
 
     @staticmethod
     def _status_html(snap: Snapshot) -> str:

@@ -14,6 +14,7 @@ import pytest
 pytest.importorskip("viser")
 
 from console.server import check_port_free, start_console  # noqa: E402
+from tests.browser.conftest import free_port  # noqa: E402
 from tests.test_pipeline import CountingSource, RecordingEngine  # noqa: E402
 from trackmeter.cli.main import main  # noqa: E402
 from trackmeter.errors import TrackmeterError  # noqa: E402
@@ -45,9 +46,7 @@ def test_an_out_of_range_cpu_priority_is_a_clear_error(capsys: pytest.CaptureFix
 
 
 def test_a_failing_source_is_shown_and_the_console_stays_up() -> None:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port()
     img_source = CountingSource(40, fail_at=25)
     running = start_console(img_source, RecordingEngine(), port=port)  # type: ignore[arg-type]
     try:
@@ -68,11 +67,62 @@ def test_frames_that_do_not_match_the_rig_are_a_clear_error(opencv_sample_sequen
     from pathlib import Path
 
     rig = Path(__file__).resolve().parent.parent / "config" / "rigs" / "estec_12mm.yaml"
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port()
     code = main(["console", "--source", f"seq:{opencv_sample_sequence}", "--rig", str(rig), "--port", str(port),
                  "--cpu-nice", "0"])
     err = [line for line in capsys.readouterr().err.strip().splitlines() if "opening" not in line]
     assert code == 2 and err == [f"trackmeter console: error: frame 640x480 does not match the rig's image size "
                                  f"726x512 (--rig {rig})"], err
+
+
+class _AutoEngine(RecordingEngine):
+    """The test double, plus automatic selection: on with a count of 1 or more, refused with 0."""
+
+    auto_enabled = False
+
+    def handle(self, command, frame):  # type: ignore[no-untyped-def]
+        from trackmeter.pipeline.snapshot import CommandReply, SetAuto
+
+        if isinstance(command, SetAuto):
+            if command.enabled and not command.count:
+                return CommandReply(False, "count must be 1 or more")
+            self.auto_enabled = command.enabled
+            return CommandReply(True, "ok")
+        return super().handle(command, frame)
+
+
+def test_a_toggle_from_the_browser_is_not_undone_before_its_callback_runs() -> None:
+    """viser stores the browser's new value, then runs the callback in a worker thread: a push
+    in between must not put the tracker's old state back (the callback would send it)."""
+    from trackmeter.pipeline.snapshot import SetAuto
+
+    running = start_console(CountingSource(100_000, delay_s=0.02), _AutoEngine(), port=free_port())  # type: ignore[arg-type]
+    con = running.console
+
+    def pushes(n: int) -> None:
+        target = con.images_pushed + n
+        deadline = time.monotonic() + 20
+        while con.images_pushed < target:
+            assert time.monotonic() < deadline, "no pushes"
+            time.sleep(0.02)
+
+    try:
+        pushes(3)
+        assert con.auto_checkbox.value is False
+        con.auto_checkbox.value = True  # what viser does on the browser's message, before the callback
+        pushes(5)
+        assert con.auto_checkbox.value is True
+        con.submit(con._auto_command()).result(10)  # the callback
+        pushes(3)
+        assert running.pipeline.latest().auto_enabled and con.auto_checkbox.value is True
+        # A change made elsewhere (another client, the command line) shows on the widget.
+        running.pipeline.submit(SetAuto(False)).result(10)
+        pushes(5)
+        assert con.auto_checkbox.value is False
+        # A refused toggle snaps back to the tracker's state.
+        con.auto_checkbox.value = True
+        assert not con.submit(SetAuto(True, 0), None, "SetAuto").result(10).ok
+        pushes(5)
+        assert con.auto_checkbox.value is False
+    finally:
+        running.stop()
