@@ -223,10 +223,10 @@ def measurement_stats(rec: dict[str, Any]) -> dict[str, float]:
     out["apriori_lateral_error_median_mm"] = float(np.median(ap_lat) * 1e3) if ap_lat else float("nan")
     out["apriori_depth_error_median_mm"] = float(np.median(ap_depth) * 1e3) if ap_depth else float("nan")
     # A bias, not noise: the point's mean error over all its measurements, against their sigma.
-    worst = max(((float(np.mean(e)), float(np.mean(sd))) for e, sd in (np.array(v).T for v in ap_per_point.values())),
-                key=lambda m: abs(m[0]), default=(float("nan"), float("nan")))
-    out["apriori_depth_bias_worst_mm"] = worst[0] * 1e3
-    out["apriori_depth_bias_worst_sigmas"] = worst[0] / worst[1]
+    biases = [(float(np.mean([e for e, _ in v])), float(np.mean([sd for _, sd in v]))) for v in ap_per_point.values()]
+    bias_m, sigma_m = max(biases, key=lambda b: abs(b[0]), default=(float("nan"), float("nan")))
+    out["apriori_depth_bias_worst_mm"] = bias_m * 1e3
+    out["apriori_depth_bias_worst_sigmas"] = bias_m / sigma_m
     return out
 
 
