@@ -617,6 +617,24 @@ def test_three_points_that_contradict_the_coasted_motion_are_not_trusted(estec_r
             assert set(back) <= tracker.rejected[-1]  # dropped at the next step
 
 
+def test_case_b_waiting_for_an_untargeted_model_says_what_the_operator_must_do(estec_rig) -> None:
+    """Case (b) with none of the model's points among the targets: the reason says to target
+    them by id (a count of 0 alone does not); once one is a target, the hint goes."""
+    pts = body_points(14)
+    model = Model(("A0", "A1", "A2", "A3"), pts[:4])
+    tracker = FakeTracker(estec_rig, pts, ["A0", "A1", "A2", "A3"] + [f"g{i}" for i in range(10)], noise=False)
+    for tid in ("A0", "A1", "A2", "A3"):
+        del tracker.active[tid]
+    engine = Engine(load_config(), estec_rig, model, "b", tracker=tracker, rate_hz=1 / DT)
+    out = run(engine, range(10))
+    assert not any(pose.valid for _, pose, _ in out)
+    assert "none of its points is a target yet: target them by their model id" in out[-1][1].reason
+    tracker.active["A0"] = "tracking"
+    out = run(engine, range(10, 20))
+    assert not any(pose.valid for _, pose, _ in out)
+    assert "binding the model" in out[-1][1].reason and "none of its points" not in out[-1][1].reason
+
+
 @pytest.mark.parametrize("progressive", [True, False])
 def test_case_b_binds_a_model_whose_points_are_seen_two_then_one_at_a_time(estec_rig, progressive: bool) -> None:
     """pose.bind_progressively: never three a-priori points at once (A0 and A1 for 1.6 s, then

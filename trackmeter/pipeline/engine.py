@@ -583,6 +583,10 @@ class Engine:
         located = [pid for pid in self._given_model.ids if pid in inner._model]
         reason = (f"case (b): binding the model: {len(located)} of its points located in a provisional frame "
                   f"({need} needed)")
+        if not located and not any(t.id in inner._keep_ids for t in out_targets):
+            # The operator's next step, which the count alone does not say: nothing binds a model
+            # whose points nobody has targeted.
+            reason += "; none of its points is a target yet: target them by their model id"
         if len(located) >= need:
             refused = self._bind(inner, located)
             reason = refused if refused is not None else f"case (b): model bound through {len(located)} of its points"
