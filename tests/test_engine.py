@@ -628,11 +628,11 @@ def test_case_b_waiting_for_an_untargeted_model_says_what_the_operator_must_do(e
     engine = Engine(load_config(), estec_rig, model, "b", tracker=tracker, rate_hz=1 / DT)
     out = run(engine, range(10))
     assert not any(pose.valid for _, pose, _ in out)
-    assert "none of its points is a target yet: target them by their model id" in out[-1][1].reason
+    assert "none is a target yet: target them by id" in out[-1][1].reason
     tracker.active["A0"] = "tracking"
     out = run(engine, range(10, 20))
     assert not any(pose.valid for _, pose, _ in out)
-    assert "binding the model" in out[-1][1].reason and "none of its points" not in out[-1][1].reason
+    assert "binding the model" in out[-1][1].reason and "none is a target" not in out[-1][1].reason
 
 
 @pytest.mark.parametrize("progressive", [True, False])

@@ -586,7 +586,7 @@ class Engine:
         if not located and not any(t.id in inner._keep_ids for t in out_targets):
             # The operator's next step, which the count alone does not say: nothing binds a model
             # whose points nobody has targeted.
-            reason += "; none of its points is a target yet: target them by their model id"
+            reason += "; none is a target yet: target them by id"
         if len(located) >= need:
             refused = self._bind(inner, located)
             reason = refused if refused is not None else f"case (b): model bound through {len(located)} of its points"
