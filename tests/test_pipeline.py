@@ -159,6 +159,17 @@ def test_lossless_mode_tracks_every_frame_in_order() -> None:
     assert sorted(set(seen)) == list(range(80))
 
 
+def test_a_source_without_a_single_frame_ends_the_run_with_its_commands_unapplied() -> None:
+    # Engine commands wait for the first frame; a source that never delivers one (all images
+    # unreadable, an empty video) must still end the headless run, not hang it.
+    engine = RecordingEngine()
+    start = time.monotonic()
+    snap, replies = run_headless(CountingSource(0), engine, commands=[SelectPoint(1.0, 1.0)], timeout_s=30)
+    assert time.monotonic() - start < 10
+    assert snap.source_status == "ended" and snap.frame is None
+    assert [r.ok for r in replies] == [False] and engine.commands == []
+
+
 def test_commands_applied_in_order_with_replies_on_the_tracking_thread() -> None:
     engine = RecordingEngine()
     source = CountingSource(10**6)

@@ -660,7 +660,9 @@ class Pipeline:
             if snap is not None:
                 seq = snap.sequence
                 with self._cond:
-                    idle = self._slot is None and not self._commands
+                    # Engine commands still waiting for a first frame never run once the
+                    # source ended without one: they do not keep the run alive.
+                    idle = self._slot is None and not self._ready_commands()
                 t = snap.timings
                 if snap.source_status is not None and idle and t.frames_processed + t.frames_dropped == t.frames_read:
                     return snap
