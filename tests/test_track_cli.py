@@ -112,6 +112,17 @@ def test_source_failing_mid_run_keeps_what_was_written(monkeypatch, tmp_path, es
     assert meta["status"] == "source failed" and meta["summary"]["frames"] == 4
 
 
+def test_a_source_that_delivers_no_frame_is_one_line_not_a_hang(monkeypatch, tmp_path, estec_rig, capsys) -> None:
+    # All images unreadable, an empty video: --auto and --target wait for a first frame that
+    # never comes; the run must still end, with one line and exit code 2.
+    fake_source(monkeypatch, estec_rig, n=0)
+    out = tmp_path / "run"
+    assert main(["track", "--source", "fake", "--auto", "4", "--target", "10,10", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "delivered no frame" in err and len(err.strip().splitlines()) == 1
+    assert yaml.safe_load((out / "run.yaml").read_text())["status"] == "no frame"
+
+
 def test_max_frames(monkeypatch, tmp_path, estec_rig) -> None:
     fake_source(monkeypatch, estec_rig, n=10)
     out = tmp_path / "run"
@@ -213,6 +224,25 @@ def test_an_opencv_pair_rig_takes_the_size_of_the_source_frames(opencv_sample_ri
     meta = yaml.safe_load((out / "run.yaml").read_text())
     assert meta["status"] == "complete" and meta["summary"]["frames"] == 3
     assert len(read_motion_csv(out / "states.csv")) == 3
+
+
+def test_an_image_unreadable_mid_sequence_is_reported_at_the_end_and_in_run_yaml(opencv_sample_rig, opencv_sample_sequence,
+                                                                                   tmp_path, capsys) -> None:
+    import shutil
+
+    folder = tmp_path / "seq"
+    shutil.copytree(opencv_sample_sequence, folder)
+    broken = sorted((folder / "cam1" / "data").iterdir())[1]
+    broken.write_bytes(b"not an image")  # found at open (the file exists), unreadable at play
+    out = tmp_path / "run"
+    code = main(["track", "--source", f"seq:{folder}", "--rig", str(opencv_sample_rig / "intrinsics.yml"),
+                 "--auto", "4", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    warning = [line for line in err.splitlines() if "warning" in line]
+    assert len(warning) == 1 and "unreadable" in warning[0] and broken.name in warning[0]
+    meta = yaml.safe_load((out / "run.yaml").read_text())
+    assert meta["summary"]["frames"] == 2 and "unreadable" in meta["summary"]["source_warning"]
 
 
 @pytest.mark.parametrize("rig_from", ["--rig", "rig.yaml"])

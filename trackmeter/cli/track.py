@@ -121,6 +121,7 @@ def run(args: argparse.Namespace) -> int:
     # The rig is read once the source is open (a rig file may need its frame size) and checked
     # against its frames here, before the run folder is made.
     source = open_source_with_rig(args.source, args.rig, realtime=args.source.startswith("camera"))
+    warning_at_open = getattr(source, "warning", None)  # shown by the source already
     try:
         rig = source.rig
         if rig is None:
@@ -230,16 +231,30 @@ def run(args: argparse.Namespace) -> int:
         flush_pending()
         if tty:
             sys.stderr.write("\n")
-        for command, reply in zip(commands, replies):
-            if not reply.ok:
-                print(f"trackmeter track: warning: {type(command).__name__}: {reply.message}", file=sys.stderr)
         src_status = last.source_status or state["status"]
-        if src_status and src_status != "ended":
-            status = "source failed"
-            print(f"trackmeter track: source stopped: {src_status}", file=sys.stderr)
         summary = _summary(engine, writer, state)
         summary["source_status"] = src_status
         summary["dropped_frames"] = last.timings.frames_dropped
+        # What the source skipped while playing (unreadable images) is only known now.
+        source_warning = getattr(source, "warning", None)
+        if source_warning:
+            summary["source_warning"] = source_warning
+        if writer.frames == 0:
+            # Every image unreadable, an empty video: one line (the commands that waited for a
+            # first frame need no warning of their own), and run.yaml says so too.
+            writer.close("no frame", summary)
+            detail = f": {src_status}" if src_status and src_status != "ended" else ""
+            detail += f": {source_warning}" if source_warning else ""
+            raise TrackmeterError(f"source {args.source!r} delivered no frame{detail} (nothing tracked; "
+                                  f"{args.out} holds an empty run)")
+        if source_warning and source_warning != warning_at_open:
+            print(f"trackmeter track: warning: {source_warning}", file=sys.stderr)
+        for command, reply in zip(commands, replies):
+            if not reply.ok:
+                print(f"trackmeter track: warning: {type(command).__name__}: {reply.message}", file=sys.stderr)
+        if src_status and src_status != "ended":
+            status = "source failed"
+            print(f"trackmeter track: source stopped: {src_status}", file=sys.stderr)
         writer.close(status, summary)
         elapsed = time.monotonic() - state["t0"]
         print(f"{writer.frames} frames in {elapsed:.1f} s ({writer.frames / max(elapsed, 1e-9):.1f} fps), "
@@ -247,8 +262,6 @@ def run(args: argparse.Namespace) -> int:
               + (f" ({writer.coasted_frames} coasted)" if writer.coasted_frames else "") + f", case ({case}) -> {args.out}")
         for reason, count in sorted(state["invalid"].items(), key=lambda kv: -kv[1])[:5]:
             print(f"  invalid in {count} frames: {reason}")
-        if writer.frames == 0:
-            raise TrackmeterError(f"source {args.source!r} delivered no frame" + (f": {src_status}" if src_status else ""))
         return 0 if status == "complete" else 2
     finally:
         source.close()

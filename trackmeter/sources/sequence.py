@@ -129,7 +129,8 @@ class SequenceSource(Source):
                 continue
             if left.shape != right.shape:
                 raise TrackmeterError(
-                    f"{self.index.left_paths[pos]}: left and right images differ in size ({left.shape} vs {right.shape})"
+                    f"left and right images differ in size: {self.index.left_paths[pos]} is "
+                    f"{left.shape[1]}x{left.shape[0]} px, {self.index.right_paths[pos]} is {right.shape[1]}x{right.shape[0]} px"
                 )
             t = float(self.index.t_s[pos]) + self._loops * self._period_s
             if self.realtime:
