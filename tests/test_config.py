@@ -166,6 +166,16 @@ def test_out_of_range_is_refused_with_its_dotted_path(tmp_path: Path) -> None:
                 load_config(_write(tmp_path, _nested(dotted, value)))
 
 
+@pytest.mark.parametrize("value", [float("inf"), float("-inf"), float("nan")])
+def test_non_finite_numbers_are_refused_everywhere(tmp_path: Path, value: float) -> None:
+    # YAML spells them .inf / .nan; no setting takes infinity to mean "unbounded", and an
+    # unbounded scenario duration or gate only fails later, far from the file.
+    for dotted, f, _ in leaf_fields(Config):
+        if type(f.default) is float:
+            with pytest.raises(TrackmeterError, match=rf"'{re.escape(dotted)}': expected a finite number"):
+                load_config(_write(tmp_path, _nested(dotted, value)))
+
+
 def test_choice_outside_the_list_is_refused(tmp_path: Path) -> None:
     with pytest.raises(TrackmeterError, match=r"'calibrate\.distortion_model': expected one of"):
         load_config(_write(tmp_path, {"calibrate": {"distortion_model": "fisheye"}}))

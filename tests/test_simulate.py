@@ -64,8 +64,14 @@ def test_simulate_refuses_a_used_folder_and_bad_input(tmp_path, capsys):
     assert main(["simulate", "--duration", "0.04", "--out", str(used)]) == 2
     assert "not an empty folder" in capsys.readouterr().err
     assert (used / "x").read_text() == "keep me"
-    assert main(["simulate", "--duration", "-1", "--out", str(tmp_path / "a")]) == 2
-    assert "--duration" in capsys.readouterr().err
+    for duration in ("-1", "inf", "nan"):
+        assert main(["simulate", "--duration", duration, "--out", str(tmp_path / "a")]) == 2
+        err = capsys.readouterr().err
+        assert "--duration" in err and len(err.strip().splitlines()) == 1
+    endless = tmp_path / "endless.yaml"
+    endless.write_text("duration_s: .inf\n")
+    assert main(["simulate", "--scenario", str(endless), "--out", str(tmp_path / "a")]) == 2
+    assert "'duration_s': expected a finite number" in capsys.readouterr().err
     assert main(["simulate", "--scenario", "nope", "--out", str(tmp_path / "b")]) == 2
     assert "no scenario 'nope'" in capsys.readouterr().err
     bad = tmp_path / "bad.yaml"

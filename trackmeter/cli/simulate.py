@@ -14,6 +14,7 @@ examples:
 from __future__ import annotations
 
 import argparse
+import math
 import shutil
 import sys
 from pathlib import Path
@@ -45,8 +46,8 @@ def run(args: argparse.Namespace) -> int:
         raise TrackmeterError(f"{out}: exists and is not an empty folder; choose a new --out")
     scenario = load_scenario(args.scenario)
     if args.duration is not None:
-        if not args.duration > 0:
-            raise TrackmeterError(f"--duration must be positive, got {args.duration}")
+        if not (args.duration > 0 and math.isfinite(args.duration)):
+            raise TrackmeterError(f"--duration must be a positive number of seconds, got {args.duration}")
         scenario = scenario.with_duration(args.duration)
     # Rendering ahead in a worker overlaps it with this process's image encoding and writing.
     sim = Simulator(scenario, render_ahead=True)

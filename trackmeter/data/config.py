@@ -14,6 +14,7 @@ to ``config/default.yaml`` (a test checks the two agree).
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
 from dataclasses import dataclass, field
@@ -215,8 +216,8 @@ def _convert(tp: Any, value: Any, meta: Mapping[str, Any], source: str, dotted: 
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             fail()
         value = float(value)
-        if value != value:  # NaN
-            fail()
+        if not math.isfinite(value):  # NaN or YAML's .inf: no setting means "unbounded"
+            fail("a finite number")
         _check_range(value, meta, source, dotted)
         return value
     if tp is str:
