@@ -79,6 +79,18 @@ def test_worker_protocol_in_process(short_estec):
     assert b"outside the scenario" in rest[16:16 + size]
 
 
+def test_a_worker_whose_reader_is_gone_ends_quietly(short_estec):
+    # A second Ctrl-C can kill the reader before it closes the worker's stdin: the worker's
+    # next answer meets a broken pipe, and must end the worker, not print a traceback.
+    class GonePipe(io.BytesIO):
+        def write(self, data):  # type: ignore[no-untyped-def, override]
+            raise BrokenPipeError(32, "Broken pipe")
+
+    blob = pickle.dumps(short_estec)
+    requests = io.BytesIO(_INT.pack(len(blob)) + blob + _INT.pack(0) + _INT.pack(1))
+    assert worker_main(requests, GonePipe()) == 0
+
+
 def test_a_dead_worker_is_reported(short_estec):
     ahead = RenderAhead(short_estec, (726, 512))
     ahead._proc.kill()

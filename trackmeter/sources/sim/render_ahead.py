@@ -30,6 +30,7 @@ length-prefixed UTF-8 error message.
 
 from __future__ import annotations
 
+import os
 import pickle
 import queue
 import struct
@@ -137,8 +138,15 @@ def worker_main(stdin: IO[bytes] | None = None, stdout: IO[bytes] | None = None)
         except Exception as exc:  # report to the reader, keep serving
             msg = f"{type(exc).__name__}: {exc}".encode()
             payload = [_INT.pack(-1), _INT.pack(len(msg)), msg]
-        out.write(b"".join(payload))
-        out.flush()
+        try:
+            out.write(b"".join(payload))
+            out.flush()
+        except BrokenPipeError:
+            # The reader is gone (killed, or a second Ctrl-C cut its cleanup short): nobody is
+            # left to serve, and no traceback should land on the terminal it shared.
+            if stdout is None:
+                os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the exit flush too
+            return 0
 
 
 class RenderAhead:
