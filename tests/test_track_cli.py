@@ -167,6 +167,30 @@ def test_bad_arguments(monkeypatch, tmp_path, estec_rig, capsys) -> None:
     assert "finite" in capsys.readouterr().err
 
 
+def test_a_bad_out_or_auto_is_refused_before_the_source_is_opened(monkeypatch, tmp_path, capsys) -> None:
+    # Opening a source can print notes (a model it carries, frames it skipped): a bad --out
+    # or --auto must be the one line the user sees, and no folder may be made.
+    import trackmeter.sources as sources
+
+    def never(*args, **kwargs):  # type: ignore[no-untyped-def]
+        raise AssertionError("the source was opened")
+
+    monkeypatch.setattr(sources, "open_source", never)
+    a_file = tmp_path / "a_file"
+    a_file.write_text("x")
+    used = tmp_path / "used"
+    used.mkdir()
+    (used / "run.yaml").write_text("status: complete\n")
+    for extra, message in ((["--auto", "4", "--out", str(a_file)], "not a folder"),
+                           (["--auto", "4", "--out", str(used)], "holds a run already"),
+                           (["--auto", "4", "--out", str(a_file / "sub")], "not a writable folder"),
+                           (["--auto", "33", "--out", str(tmp_path / "r")], "--auto must be in [1, 32]")):
+        assert main(["track", "--source", "fake", *extra]) == 2
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "r").exists()
+
+
 def test_unknown_source_is_one_line(tmp_path, capsys) -> None:
     assert main(["track", "--source", "nope:1", "--auto", "4", "--out", str(tmp_path / "r")]) == 2
     err = capsys.readouterr().err

@@ -103,19 +103,23 @@ def run(args: argparse.Namespace) -> int:
     from trackmeter.cli.common import load_config_from_args, open_source_with_rig
     from trackmeter.data.config import config_to_dict
     from trackmeter.data.model import load_model
-    from trackmeter.data.rundir import RunWriter
+    from trackmeter.data.rundir import RunWriter, check_run_directory
     from trackmeter.pipeline.engine import Engine, SelectModelPoints
     from trackmeter.pipeline.pipeline import run_headless
     from trackmeter.pipeline.snapshot import AcquireModel, SelectPoint, SetAuto, Snapshot
 
     config = load_config_from_args(args)
     targets = [parse_target(t) for t in args.target]
-    if args.auto is not None and args.auto < 1:
-        raise TrackmeterError(f"--auto must be at least 1, got {args.auto}")
+    most = config.tracker.max_targets
+    if args.auto is not None and not 1 <= args.auto <= most:
+        raise TrackmeterError(f"--auto must be in [1, {most}] (tracker.max_targets), got {args.auto}")
+    if len(targets) > most:
+        raise TrackmeterError(f"{len(targets)} --target points but at most {most} targets are tracked (tracker.max_targets)")
     if args.max_frames is not None and args.max_frames < 1:
         raise TrackmeterError(f"--max-frames must be at least 1, got {args.max_frames}")
     if not targets and args.auto is None:
         raise TrackmeterError("nothing to track: give --target [ID=]U,V and/or --auto N")
+    check_run_directory(args.out, args.overwrite)  # before the source: its notes would come first
     model = load_model(args.model) if args.model else None
 
     # The rig is read once the source is open (a rig file may need its frame size) and checked

@@ -20,6 +20,7 @@ running`` at the start, the final status and summary at the end).
 
 from __future__ import annotations
 
+import os
 import platform
 import sys
 import time
@@ -71,6 +72,28 @@ def versions() -> dict[str, str]:
     }
 
 
+def check_run_directory(directory: str | Path, overwrite: bool = False) -> Path:
+    """``directory`` as a Path when a run can be written there; nothing is created.
+
+    Called before a run opens its source, so a bad ``--out`` is the one line the user sees.
+
+    Raises:
+        TrackmeterError: it is a file, holds a run already (without ``overwrite``), or its
+            nearest existing parent is not a folder this process may write in.
+    """
+    path = Path(directory)
+    if path.exists() and not path.is_dir():
+        raise TrackmeterError(f"{path}: exists and is not a folder")
+    if (path / "run.yaml").exists() and not overwrite:
+        raise TrackmeterError(f"{path}: holds a run already (run.yaml); choose another --out or give --overwrite")
+    existing = path.absolute()
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        raise TrackmeterError(f"{path}: cannot create a run folder there ({existing} is not a writable folder)")
+    return path
+
+
 class RunWriter:
     """Writes one run directory incrementally.
 
@@ -87,11 +110,7 @@ class RunWriter:
 
     def __init__(self, directory: str | Path, config: dict[str, Any], source: dict[str, Any],
                  overwrite: bool = False, extra: dict[str, Any] | None = None) -> None:
-        self.directory = Path(directory)
-        if self.directory.exists() and not self.directory.is_dir():
-            raise TrackmeterError(f"{self.directory}: exists and is not a folder")
-        if (self.directory / "run.yaml").exists() and not overwrite:
-            raise TrackmeterError(f"{self.directory}: holds a run already (run.yaml); choose another --out")
+        self.directory = check_run_directory(directory, overwrite)
         try:
             self.directory.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
