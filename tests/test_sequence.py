@@ -271,6 +271,29 @@ def test_missing_images_and_unpaired_timestamps_are_skipped_counted_and_reported
         assert np.allclose(f.truth.T_cam_body, frames[k].truth.T_cam_body)
 
 
+def test_data_csv_of_other_tools_extra_columns_and_a_bom_are_read(tmp_path):
+    frames = _frames(3)
+    d = _write(tmp_path / "s", frames)
+    for cam in ("cam0", "cam1"):
+        rows = (d / cam / "data.csv").read_text().splitlines()
+        extended = [rows[0] + ",exposure_us"] + [r + ",1200" for r in rows[1:]]
+        (d / cam / "data.csv").write_text("\ufeff" + "\n".join(extended) + "\n", encoding="utf-8")
+    src = SequenceSource(d)
+    assert src.warning is None and len(src) == 3
+    got = [src.read() for _ in range(3)]
+    assert [round(f.t_s * 25) for f in got] == [0, 1, 2]
+    assert all(np.array_equal(f.left, ref.left) for f, ref in zip(got, frames))
+
+
+def test_data_csv_with_no_usable_row_says_what_a_row_must_be(tmp_path):
+    d = _write(tmp_path / "s", _frames(3))
+    rows = (d / "cam0" / "data.csv").read_text().splitlines()
+    seconds = [rows[0]] + [f"{int(r.split(',')[0]) * 1e-9:.3f},{r.split(',')[1]}" for r in rows[1:]]
+    (d / "cam0" / "data.csv").write_text("\n".join(seconds) + "\n")
+    with pytest.raises(TrackmeterError, match=r"cam0.data\.csv: no usable row: expected 'timestamp_ns,filename'.*'0\.000,"):
+        SequenceSource(d)
+
+
 def test_unreadable_image_skipped_at_read(tmp_path):
     d = _write(tmp_path / "s", _frames(3))
     (d / "cam1" / "data" / "40000000.png").write_bytes(b"not a png")
@@ -421,7 +444,7 @@ def test_model_round_trip(tmp_path):
         ("points: [{id: a, xyz: [0,0,0]}, {id: b, xyz: [1,0]}, {id: c, xyz: [0,1,0]}]", r"points\[1\]\.xyz"),
         ("points: [{id: a, xyz: [0,0,0]}, {xyz: [1,0,0]}, {id: c, xyz: [0,1,0]}]", r"points\[1\]': missing key 'id'"),
         ("pts: []", "missing key 'points'"),
-        ("points: [{id: a, xyz: [0,0,0]}, {id: b, xyz: [1,0,.inf]}, {id: c, xyz: [0,1,0]}]", "non-finite"),
+        ("points: [{id: a, xyz: [0,0,0]}, {id: b, xyz: [1,0,.inf]}, {id: c, xyz: [0,1,0]}]", r"xyz\[2\]': expected a finite number"),
         ("points: [a, b, c]", r"points\[0\]"),
         ("points: [{id: a, xyz: [0,0,0]", "malformed YAML"),
     ],

@@ -269,11 +269,16 @@ def find_sequence_file(directory: str | Path, *names: str) -> Path | None:
 
 
 def _read_data_csv(path: Path) -> tuple[list[tuple[int, Path]], int, int]:
-    """Rows ``(ns, image path)`` of one camera's data.csv, plus counts of bad rows and missing files."""
+    """Rows ``(ns, image path)`` of one camera's data.csv, plus counts of bad rows and missing files.
+
+    A row is ``timestamp_ns,filename``; columns after those two (other tools' extras) are
+    ignored. A file with rows but none usable is refused, quoting its first row.
+    """
     entries: list[tuple[int, Path]] = []
     bad = missing = 0
+    first_bad: str | None = None
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")  # a BOM from a spreadsheet is not a timestamp
     except (OSError, UnicodeDecodeError) as exc:
         raise TrackmeterError(f"{path}: cannot read: {exc.__class__.__name__}") from None
     lines = text.split("\n")
@@ -287,17 +292,21 @@ def _read_data_csv(path: Path) -> tuple[list[tuple[int, Path]], int, int]:
             continue
         parts = [p.strip() for p in s.split(",")]
         try:
-            if len(parts) != 2 or not parts[1]:
+            if len(parts) < 2 or not parts[1]:
                 raise ValueError
             ns = int(parts[0])
         except ValueError:
             bad += 1
+            first_bad = first_bad or s
             continue
         image = path.parent / "data" / parts[1]
         if not image.is_file():
             missing += 1
             continue
         entries.append((ns, image))
+    if first_bad is not None and not entries and not missing:
+        raise TrackmeterError(f"{path}: no usable row: expected 'timestamp_ns,filename' with an integer "
+                              f"timestamp in nanoseconds, got {first_bad[:80]!r}")
     entries.sort(key=lambda e: e[0])
     return entries, bad, missing
 
