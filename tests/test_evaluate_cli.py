@@ -74,6 +74,35 @@ def test_run_dir_against_sequence_json_is_exact(capsys, sequence_and_run, tmp_pa
     assert _flat(json.loads(out2)) == pytest.approx(_flat(s), abs=TUM_EPS)
 
 
+def test_a_run_dir_evaluates_the_poses_of_its_trajectory_tum(capsys, sequence_and_run, tmp_path):
+    # A run writes its first poses, before the velocity fit has its window, as valid-0 rows
+    # that carry the pose with the rates empty, and as lines of trajectory.tum. Both files of
+    # one run must give the same pose figures; the velocity figures come from the valid rows.
+    truth, seq, _ = sequence_and_run
+    n = len(truth)
+    pending = (np.arange(n) >= 20) & (np.arange(n) < 25)  # rates still unknown
+    declared_invalid = np.arange(n) == 10  # valid 0 with every field filled in: not a pose
+    r = Rotation.from_rotvec([0, 0, math.radians(0.5)]) * Rotation.from_quat(truth.quat_wxyz, scalar_first=True)
+    v = np.where(pending[:, None], np.nan, truth.velocity_cam_m_s + [0, 0, 0.001])
+    est = MotionSeries(truth.t_s, ~(pending | declared_invalid), truth.position_m + [0.002, 0, 0],
+                       r.as_quat(scalar_first=True), v, np.where(pending[:, None], np.nan, truth.omega_body_rad_s))
+    run = tmp_path / "run"
+    write_states_csv(run / "states.csv", est)
+    poses = ~declared_invalid
+    write_tum(tmp_path / "trajectory.tum", Trajectory(est.t_s[poses], est.position_m[poses], est.quat_wxyz[poses]))
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
+    assert code == 0, err
+    from_run = json.loads(out)
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(tmp_path / "trajectory.tum"), "--json")
+    assert code == 0, err
+    from_tum = json.loads(out)
+    assert from_run["matched"] == from_tum["matched"] == n - 1
+    for key in ("position_m", "attitude_rad"):
+        assert _flat(from_run[key]) == pytest.approx(_flat(from_tum[key]), abs=TUM_EPS)
+    assert from_run["velocity_m_s"]["z"]["max"] == pytest.approx(0.001, abs=TUM_EPS)
+    assert "velocity_m_s" not in from_tum
+
+
 def _flat(tree, prefix=""):
     if isinstance(tree, dict):
         return {k: v for key, sub in tree.items() for k, v in _flat(sub, f"{prefix}{key}.").items()}

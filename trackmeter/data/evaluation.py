@@ -5,7 +5,7 @@ Truth (``--truth``): a TUM file (velocities from a ``groundtruth.csv`` beside it
 timestamps agree), a ``groundtruth.csv`` file, or a sequence folder (its ``groundtruth.csv``,
 else ``groundtruth.tum``; ``DIR`` or ``DIR/mav0``).
 Estimate (``--estimate``): a TUM file, a ``states.csv`` file, or a ``track`` run directory
-(its ``states.csv`` valid rows, else its ``trajectory.tum``).
+(its ``states.csv`` rows with a pose, the poses of its ``trajectory.tum``, else that file).
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from trackmeter.errors import TrackmeterError
 class LoadedMotion:
     """A truth or estimate as read, with where it came from (for messages and reports)."""
 
-    series: MotionSeries  # valid rows only
+    series: MotionSeries  # the rows with a pose (all marked valid)
     source: str  # the file(s) read
     has_velocity: bool
     t_start_s: float | None = None  # start of a run (first states.csv row, valid or not)
@@ -51,6 +51,31 @@ def _read_pose_file(path: Path) -> MotionSeries:
     if _looks_like_motion_csv(path):
         return read_motion_csv(path).valid_only()
     return MotionSeries.from_trajectory(read_tum(path))
+
+
+def _poses_of_run(states: MotionSeries) -> MotionSeries:
+    """The rows of a run's ``states.csv`` that carry a pose, all marked valid.
+
+    Those are the valid rows and the rows a run writes with valid 0 while its rates are still
+    unknown (pose filled in, rates empty): the poses of its ``trajectory.tum``, so the two
+    files evaluate alike. A valid-0 row with every field filled in was declared invalid and is
+    left out. The rates of the pose-only rows stay NaN (left out of the velocity figures).
+    """
+    def finite(a: np.ndarray) -> np.ndarray:
+        return np.all(np.isfinite(a), axis=1)
+
+    rates = finite(states.velocity_cam_m_s) & finite(states.omega_body_rad_s)
+    keep = states.valid | (finite(states.position_m) & finite(states.quat_wxyz) & ~rates)
+    with_rates = states.valid[keep][:, None]
+    return MotionSeries(states.t_s[keep], np.ones(int(np.count_nonzero(keep)), bool), states.position_m[keep],
+                        states.quat_wxyz[keep], np.where(with_rates, states.velocity_cam_m_s[keep], np.nan),
+                        np.where(with_rates, states.omega_body_rad_s[keep], np.nan),
+                        {k: a[keep] for k, a in states.extra.items()})
+
+
+def _any_rates(series: MotionSeries) -> bool:
+    return bool(np.any(np.all(np.isfinite(series.velocity_cam_m_s), axis=1)
+                       & np.all(np.isfinite(series.omega_body_rad_s), axis=1)))
 
 
 def _with_rates_from(series: MotionSeries, csv_path: Path) -> MotionSeries | None:
@@ -107,11 +132,11 @@ def load_estimate(spec: str | Path) -> LoadedMotion:
     if path.is_dir():
         if (path / "states.csv").is_file():
             s = read_motion_csv(path / "states.csv")
-            if not np.any(s.valid):
-                raise TrackmeterError(f"{path / 'states.csv'}: no valid pose in the run")
             t_start = float(s.t_s[0])
-            s = s.valid_only()
-            return LoadedMotion(s, str(path / "states.csv"), s.has_velocity, t_start)
+            s = _poses_of_run(s)
+            if len(s) == 0:
+                raise TrackmeterError(f"{path / 'states.csv'}: no valid pose in the run")
+            return LoadedMotion(s, str(path / "states.csv"), _any_rates(s), t_start)
         if (path / "trajectory.tum").is_file():
             s = MotionSeries.from_trajectory(read_tum(path / "trajectory.tum"))
             return LoadedMotion(s, str(path / "trajectory.tum"), False)
@@ -122,12 +147,12 @@ def load_estimate(spec: str | Path) -> LoadedMotion:
     if _looks_like_motion_csv(path):
         full = read_motion_csv(path)
         t_start = float(full.t_s[0])
-        s = full.valid_only()
+        s = _poses_of_run(full)
     else:
         s = MotionSeries.from_trajectory(read_tum(path))
     if len(s) == 0:
         raise TrackmeterError(f"{path}: no valid pose")
-    return LoadedMotion(s, str(path), s.has_velocity, t_start)
+    return LoadedMotion(s, str(path), _any_rates(s), t_start)
 
 
 # --------------------------------------------------------------------------- paper figures
