@@ -176,6 +176,12 @@ def test_non_finite_numbers_are_refused_everywhere(tmp_path: Path, value: float)
                 load_config(_write(tmp_path, _nested(dotted, value)))
 
 
+def test_an_empty_disparity_range_is_refused_naming_both_settings(tmp_path: Path) -> None:
+    text = {"measure": {"min_disparity_px": 300.0, "max_disparity_px": 200.0}}
+    with pytest.raises(TrackmeterError, match=r"'measure': min_disparity_px \(300\) must be below max_disparity_px \(200\)"):
+        load_config(_write(tmp_path, text))
+
+
 def test_choice_outside_the_list_is_refused(tmp_path: Path) -> None:
     with pytest.raises(TrackmeterError, match=r"'calibrate\.distortion_model': expected one of"):
         load_config(_write(tmp_path, {"calibrate": {"distortion_model": "fisheye"}}))

@@ -198,6 +198,12 @@ class MeasureParams:
     )
     sigma_uv_px: float = param(0.0, "standard deviation of the left pixel itself, px (0: taken as exact)", min=0.0)
 
+    def __post_init__(self) -> None:
+        if not self.min_disparity_px < self.max_disparity_px:
+            # An empty search range would refuse every point as "beyond range", far from the cause.
+            raise TrackmeterError(f"min_disparity_px ({self.min_disparity_px:g}) must be below "
+                                  f"max_disparity_px ({self.max_disparity_px:g})")
+
 
 # --------------------------------------------------------------------------- results
 
