@@ -84,6 +84,35 @@ def test_split_ranges_groups_frames_by_true_pose():
         list(split_ranges([frame(0, 2.0), frame(1, None)]))
 
 
+def test_a_moving_source_is_refused_in_one_short_line(estec_rig):
+    # Every frame of a moving object is a range of its own: the refusal must say why in one
+    # line, not repeat a reason per frame (a 60 s sequence made a 2.8 KB message).
+    import numpy as np
+
+    from trackmeter.core.matching import MeasureParams
+    from trackmeter.core.error_analysis import AnalyzeParams
+    from trackmeter.errors import TrackmeterError
+    from trackmeter.pipeline.analysis import run_error_analysis
+    from trackmeter.sources.base import GroundTruth, Source, StereoFrame
+
+    class Moving(Source):
+        def __init__(self) -> None:
+            self.i = 0
+
+        def read(self):  # type: ignore[no-untyped-def]
+            if self.i == 40:
+                return None
+            T = np.eye(4)
+            T[2, 3] = 3.5 + 0.01 * self.i
+            img = np.full((estec_rig.image_size[1], estec_rig.image_size[0]), 128, np.uint8)
+            self.i += 1
+            return StereoFrame(self.i - 1, 0.04 * self.i, img, img, GroundTruth(T, np.zeros(3), np.zeros(3)))
+
+    with pytest.raises(TrackmeterError, match="40 ranges of 1.0 frames .* the analysis needs a still target") as info:
+        run_error_analysis(Moving(), estec_rig, MeasureParams(), AnalyzeParams())
+    assert len(str(info.value)) < 300
+
+
 def test_analyze_refuses_frames_that_do_not_match_the_rig(opencv_sample_sequence, tmp_path, capsys):
     from pathlib import Path
 

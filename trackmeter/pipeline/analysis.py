@@ -277,8 +277,11 @@ def run_error_analysis(
     measured: list[RangeMeasurements] = []
     stats: list[RangeStatistics] = []
     skipped: list[str] = []
+    n_ranges = n_frames = 0
     for group in split_ranges(stream):
         m = measure_range(group, rig, measure, params, getattr(source, "surface_points", None))
+        n_ranges += 1
+        n_frames += len(m.t_s)
         label = f"{m.true_range_m:.2f} m" if np.isfinite(m.true_range_m) else f"frames from t={m.t_s[0]:.3f} s"
         try:
             st = range_statistics(m.xyz_m, m.sigma_m, params.min_samples, params.max_abs_residual_sigmas)
@@ -291,7 +294,13 @@ def run_error_analysis(
         measured.append(m)
         stats.append(st)
     if not stats:
-        detail = "; ".join(skipped) if skipped else "the source gave no frames"
+        if not skipped:
+            detail = "the source gave no frames"
+        elif len(skipped) <= 3:
+            detail = "; ".join(skipped)
+        else:  # a moving object: every frame its own "range"; one line, not one reason per frame
+            detail = (f"{n_ranges} ranges of {n_frames / n_ranges:.1f} frames on average, e.g. {skipped[0]}; "
+                      f"a range is the frames with one true pose: the analysis needs a still target")
         raise TrackmeterError(f"no usable range for the error analysis ({detail})")
     focal = rig.rectification.focal_px
     baseline = rig.rectification.baseline_m
