@@ -347,6 +347,13 @@ while True:
     assert index.truth is not None and np.all(index.truth.valid[:-1])
 
 
+def test_a_folder_named_like_a_scheme_is_pointed_to(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "seq").mkdir()
+    with pytest.raises(TrackmeterError, match=r"seq: needs a folder, as seq:DIR \(the folder 'seq' here: give ./seq\)"):
+        open_source("seq")
+
+
 def test_not_a_sequence_and_bad_specs(tmp_path):
     (tmp_path / "empty").mkdir()
     for spec, match in [

@@ -57,7 +57,8 @@ def open_source(spec: str, rig_override: StereoRig | None = None, realtime: bool
                          render_ahead=render_ahead)
     if kind == "seq":
         if not arg:
-            raise TrackmeterError("seq: needs a folder, as seq:DIR")
+            hint = f" (the folder {text!r} here: give ./{text})" if Path(text).is_dir() else ""
+            raise TrackmeterError(f"seq: needs a folder, as seq:DIR{hint}")
         return _open_sequence(arg, rig_override, realtime, loop)
     if kind == "video":
         parts = [p.strip() for p in arg.split(",")]
