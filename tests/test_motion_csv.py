@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import io
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -94,3 +97,19 @@ def test_bad_files_raise_one_line(tmp_path, text, message):
     with pytest.raises(TrackmeterError, match=message) as info:
         read_motion_csv(path)
     assert "\n" not in str(info.value) and str(path) in str(info.value)
+
+
+def test_tum_comments_anywhere_and_a_bom_read_as_numpy_loadtxt_reads_them(tmp_path: Path) -> None:
+    from trackmeter.data.trajectory import read_tum
+
+    text = ("# t tx ty tz qx qy qz qw\n"
+            "1.0 0.1 0.2 3.5 0 0 0 1   # first pose\n"
+            "\n"
+            "1.04 0.1 0.2 3.6 0 0 0.0499792 0.9987503 #\n")
+    path = tmp_path / "est.tum"
+    path.write_text("\ufeff" + text, encoding="utf-8")
+    got = read_tum(path)
+    reference = np.loadtxt(io.StringIO(text), comments="#")  # how evo reads a TUM file
+    assert np.array_equal(got.t_s, reference[:, 0]) and np.array_equal(got.position_m, reference[:, 1:4])
+    q = reference[:, [7, 4, 5, 6]]
+    assert np.allclose(got.quat_wxyz, q / np.linalg.norm(q, axis=1, keepdims=True), atol=1e-12)

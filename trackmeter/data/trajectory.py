@@ -59,12 +59,13 @@ def read_tum(path: str | Path) -> Trajectory:
         raise TrackmeterError(f"{path}: no such file")
     rows: list[list[float]] = []
     try:
-        lines = path.read_text(encoding="utf-8").splitlines()
+        lines = path.read_text(encoding="utf-8-sig").splitlines()
     except (OSError, UnicodeDecodeError) as exc:
         raise TrackmeterError(f"{path}: cannot read as text: {exc.__class__.__name__}") from None
     for number, line in enumerate(lines, 1):
-        text = line.strip()
-        if not text or text.startswith("#"):
+        # '#' starts a comment anywhere on a line, as numpy.loadtxt (and so evo) read TUM files.
+        text = line.split("#", 1)[0].strip()
+        if not text:
             continue
         fields = text.replace(",", " ").split()
         if len(fields) != 8:
