@@ -414,6 +414,22 @@ def test_video_source_reads_two_files(tmp_path):
     assert [f.cut for f in frames] == [False] * 5 + [True, False, False]
 
 
+def test_videos_of_different_lengths_are_warned_at_open(tmp_path):
+    paths = [tmp_path / "left.avi", tmp_path / "right.avi"]
+    img = np.random.default_rng(4).integers(0, 256, (48, 64), dtype=np.uint8)
+    for p, n in zip(paths, (5, 3)):
+        vw = cv2.VideoWriter(str(p), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (64, 48), isColor=True)
+        if not vw.isOpened():
+            pytest.skip("this OpenCV build cannot write MJPG")
+        for _ in range(n):
+            vw.write(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
+        vw.release()
+    with pytest.warns(UserWarning, match=r"differ in length \(left.avi: 5 frames, right.avi: 3\)"):
+        src = open_source(f"video:{paths[0]},{paths[1]}")
+    assert len(list(iter(src.read, None))) == 3
+    src.close()
+
+
 def test_pacer_sleeps_to_media_time():
     now = [0.0]
     slept = []

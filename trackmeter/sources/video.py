@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import cv2
@@ -57,6 +58,14 @@ class VideoSource(Source):
         self._caps = [self._open(p) for p in self.paths]
         fps = float(self._caps[0].get(cv2.CAP_PROP_FPS) or 0.0)
         self.rate_hz = fps if fps > 0 else None
+        counts = [int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0) for cap in self._caps]
+        #: One line on what does not match between the files (None when nothing found).
+        self.warning: str | None = None
+        if min(counts) > 0 and counts[0] != counts[1]:
+            # Frames pair by position, so the longer file's tail is never played.
+            self.warning = (f"the videos differ in length ({self.paths[0].name}: {counts[0]} frames, "
+                            f"{self.paths[1].name}: {counts[1]}): the stream ends with the shorter")
+            warnings.warn(self.warning, stacklevel=2)
         self._pacer = Pacer()
         self._count = 0
         self._pos = 0
@@ -104,7 +113,8 @@ class VideoSource(Source):
         self._last_t = t
         left, right = _grey(left), _grey(right)
         if left.shape != right.shape:
-            raise TrackmeterError(f"left and right videos differ in frame size: {left.shape} vs {right.shape}")
+            raise TrackmeterError(f"left and right videos differ in frame size: {self.paths[0].name} is "
+                                  f"{left.shape[1]}x{left.shape[0]} px, {self.paths[1].name} is {right.shape[1]}x{right.shape[0]} px")
         if self.realtime:
             self._pacer.wait(t)
         frame = StereoFrame(index=self._count, t_s=t, left=left, right=right, cut=self._take_cut())
@@ -155,6 +165,14 @@ class CameraSource(Source):
             self._caps.append(cap)
         fps = float(self._caps[0].get(cv2.CAP_PROP_FPS) or 0.0)
         self.rate_hz = fps if fps > 0 else None
+        counts = [int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0) for cap in self._caps]
+        #: One line on what does not match between the files (None when nothing found).
+        self.warning: str | None = None
+        if min(counts) > 0 and counts[0] != counts[1]:
+            # Frames pair by position, so the longer file's tail is never played.
+            self.warning = (f"the videos differ in length ({self.paths[0].name}: {counts[0]} frames, "
+                            f"{self.paths[1].name}: {counts[1]}): the stream ends with the shorter")
+            warnings.warn(self.warning, stacklevel=2)
         self._count = 0
         self._t0: float | None = None
         self._frame_size: tuple[int, int] | None = None
