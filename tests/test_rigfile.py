@@ -166,3 +166,20 @@ def test_files_written_whole_get_ordinary_permissions(tmp_path, estec_rig):
     for name in ("rig.yaml", "a.txt"):
         assert (tmp_path / name).stat().st_mode & 0o777 == 0o644
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "rig.yaml"]  # no temporary left
+
+
+def test_a_rig_with_its_cameras_swapped_is_warned_about(tmp_path: Path) -> None:
+    import dataclasses
+    import warnings
+
+    rig = _rig()
+    swapped = dataclasses.replace(rig, left=rig.right, right=rig.left, R=rig.R.T, T=-rig.R.T @ rig.T)
+    vertical = dataclasses.replace(rig, T=np.array([0.001, -0.25, 0.0]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the rigs as calibrated, horizontal or vertical: silent
+        load_rig(save_rig(rig, tmp_path / "rig.yaml"))
+        load_rig(save_rig(vertical, tmp_path / "vertical.yaml"))
+        for preset in sorted(RIGS_DIR.glob("*.yaml")):
+            load_rig(preset)
+    with pytest.warns(UserWarning, match="right camera lies left of the left one"):
+        load_rig(save_rig(swapped, tmp_path / "swapped.yaml"))

@@ -8,6 +8,7 @@ beside it; that pair carries no image size, so pass ``image_size``.
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import cv2
@@ -54,7 +55,24 @@ def _scalar(fs: cv2.FileStorage, key: str) -> float | None:
     return float(node.real())
 
 
+def swapped_cameras(rig: StereoRig) -> bool:
+    """True when the right camera's centre lies left of the left camera (a horizontal rig whose
+    files or cameras were swapped): every disparity is then negative and nothing matches."""
+    centre = -rig.R.T @ rig.T  # the right camera's optical centre in the left camera frame
+    return bool(centre[0] < 0 and abs(centre[0]) > abs(centre[1]))
+
+
 def load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> StereoRig:
+    """Read a stereo rig from an OpenCV FileStorage file (see :func:`_load_rig`); warns when
+    its right camera lies left of its left one (:func:`swapped_cameras`)."""
+    rig = _load_rig(path, image_size)
+    if swapped_cameras(rig):
+        warnings.warn(f"{path}: the right camera lies left of the left one (T = {np.round(rig.T, 4).tolist()}): "
+                      "left and right are swapped, so no point can be matched", stacklevel=2)
+    return rig
+
+
+def _load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> StereoRig:
     """Read a stereo rig from an OpenCV FileStorage file.
 
     Args:
