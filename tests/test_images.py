@@ -75,8 +75,9 @@ def test_expand_globs_sorts_naturally(tmp_path: Path) -> None:
 def test_pairing_by_number_and_by_order(tmp_path: Path) -> None:
     left = _touch(tmp_path, "left01.png", "left02.png", "left05.png")
     right = _touch(tmp_path, "right02.png", "right05.png", "right07.png")
-    assert [(a.name, b.name) for a, b in pair_stereo_paths(left, right)] == [
-        ("left02.png", "right02.png"), ("left05.png", "right05.png")]
+    with pytest.warns(UserWarning, match=r"2 image\(s\) without a partner .* left out: left01.png, right07.png"):
+        pairs = pair_stereo_paths(left, right)
+    assert [(a.name, b.name) for a, b in pairs] == [("left02.png", "right02.png"), ("left05.png", "right05.png")]
     left = _touch(tmp_path, "a.png", "b.png")
     right = _touch(tmp_path, "c.png", "d.png")
     assert [(a.name, b.name) for a, b in pair_stereo_paths(left, right)] == [("a.png", "c.png"), ("b.png", "d.png")]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import glob
 import re
+import warnings
 from pathlib import Path
 from typing import Iterable, Sequence
 
@@ -123,6 +124,11 @@ def pair_stereo_paths(left: Sequence[Path], right: Sequence[Path]) -> list[tuple
         pairs = [(lp, by_number[n]) for lp, n in zip(left, nl) if n in by_number]
         if not pairs:
             raise TrackmeterError("no left and right image share a frame number to pair by")
+        paired = {n for n in nl if n in by_number}
+        alone = [p.name for p, n in (*zip(left, nl), *zip(right, nr)) if n not in paired]
+        if alone:
+            warnings.warn(f"{len(alone)} image(s) without a partner of the same frame number left out: "
+                          f"{', '.join(alone[:4])}{', ...' if len(alone) > 4 else ''}", stacklevel=2)
         return pairs
     if len(left) != len(right):
         raise TrackmeterError(
