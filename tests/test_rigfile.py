@@ -72,7 +72,7 @@ def test_failed_save_leaves_old_file_intact(tmp_path: Path) -> None:
 # --------------------------------------------------------------------------- OpenCV's sample pair
 
 
-def _write_opencv_pair(folder: Path, rig: StereoRig) -> None:
+def _write_opencv_pair(folder: Path, rig: StereoRig, intrinsics: str = "intrinsics.yml", extrinsics: str = "extrinsics.yml") -> None:
     """Write intrinsics.yml / extrinsics.yml as OpenCV's samples/cpp/stereo_calib.cpp does:
     ``fs << "M1" << cameraMatrix[0] << "D1" << distCoeffs[0] << "M2" << ... << "D2" << ...``
     then ``fs << "R" << R << "T" << T << "R1" << R1 << "R2" << R2 << "P1" << P1 << "P2" << P2 << "Q" << Q``.
@@ -80,13 +80,13 @@ def _write_opencv_pair(folder: Path, rig: StereoRig) -> None:
     R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(
         rig.left.K, rig.left.dist, rig.right.K, rig.right.dist, rig.image_size, rig.R, rig.T.reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY, alpha=1
     )
-    fs = cv2.FileStorage(str(folder / "intrinsics.yml"), cv2.FILE_STORAGE_WRITE)
+    fs = cv2.FileStorage(str(folder / intrinsics), cv2.FILE_STORAGE_WRITE)
     fs.write("M1", rig.left.K)
     fs.write("D1", rig.left.dist.reshape(1, -1))
     fs.write("M2", rig.right.K)
     fs.write("D2", rig.right.dist.reshape(1, -1))
     fs.release()
-    fs = cv2.FileStorage(str(folder / "extrinsics.yml"), cv2.FILE_STORAGE_WRITE)
+    fs = cv2.FileStorage(str(folder / extrinsics), cv2.FILE_STORAGE_WRITE)
     for key, value in (("R", rig.R), ("T", rig.T.reshape(3, 1)), ("R1", R1), ("R2", R2), ("P1", P1), ("P2", P2), ("Q", Q)):
         fs.write(key, value)
     fs.release()
@@ -102,6 +102,17 @@ def test_reads_opencv_stereo_sample_pair(tmp_path: Path, which: str) -> None:
     np.testing.assert_array_equal(back.R, rig.R)
     np.testing.assert_array_equal(back.T, rig.T)
     assert back.image_size == (640, 480)
+
+
+@pytest.mark.parametrize(("intrinsics", "extrinsics"), [("intrinsics.xml", "extrinsics.xml"), ("intrinsics.xml", "extrinsics.yml"),
+                                                     ("intrinsics.yaml", "extrinsics.xml")])
+def test_the_opencv_pair_is_found_whatever_suffixes_opencv_wrote(tmp_path: Path, intrinsics: str, extrinsics: str) -> None:
+    rig = _rig(5, rms=None)
+    _write_opencv_pair(tmp_path, rig, intrinsics, extrinsics)
+    for given in (intrinsics, extrinsics):
+        back = load_rig(tmp_path / given, image_size=(640, 480))
+        np.testing.assert_array_equal(back.left.K, rig.left.K)
+        np.testing.assert_array_equal(back.T, rig.T)
 
 
 def test_opencv_pair_needs_image_size_and_both_files(tmp_path: Path) -> None:

@@ -108,11 +108,17 @@ def _load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> St
 
 def _load_opencv_pair(path: Path, image_size: tuple[int, int] | None) -> StereoRig:
     folder = path.parent
-    intr, extr = folder / "intrinsics.yml", folder / "extrinsics.yml"
+
+    def partner(stem: str) -> Path:
+        # OpenCV writes .yml, .yaml or .xml by the name it is given: the partner's own suffix
+        # first, then the others.
+        names = [stem + path.suffix] + [stem + s for s in (".yml", ".yaml", ".xml") if s != path.suffix]
+        return next((folder / n for n in names if (folder / n).is_file()), folder / names[0])
+
     if path.name.startswith("extrinsics"):
-        extr = path
+        intr, extr = partner("intrinsics"), path
     else:
-        intr = path
+        intr, extr = path, partner("extrinsics")
     fi, fe = _open(intr), _open(extr)
     try:
         if image_size is None:
