@@ -218,6 +218,8 @@ def test_sigterm_ends_a_run_as_ctrl_c_does(tmp_path) -> None:
         proc.kill()
     assert proc.returncode == 130, err
     assert "interrupted after" in err and "are complete" in err
+    assert [line for line in err.splitlines() if "interrupted" in line] == [  # one line, not two
+        f"trackmeter track: interrupted after {len(read_motion_csv(out / 'states.csv'))} frames; files in {out} are complete"]
     meta = yaml.safe_load((out / "run.yaml").read_text())
     assert meta["status"] == "interrupted"
     assert len(read_motion_csv(out / "states.csv")) == meta["summary"]["frames"] >= 3

@@ -146,8 +146,9 @@ def _main(argv: Sequence[str] | None) -> int:
         # their input or their system, not a bug, so one line like any other bad input.
         print(f"trackmeter {args.command}: error: {_describe_os_error(exc)}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"trackmeter {args.command}: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as exc:
+        # A command may say what it kept (KeyboardInterrupt("interrupted after ...")).
+        print(f"trackmeter {args.command}: {exc.args[0] if exc.args else 'interrupted'}", file=sys.stderr)
         return 130
     finally:
         warnings.showwarning = shown_before

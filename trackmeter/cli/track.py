@@ -229,9 +229,8 @@ def run(args: argparse.Namespace) -> int:
             writer.close("interrupted", _summary(engine, writer, state))
             if tty:
                 sys.stderr.write("\n")
-            print(f"trackmeter track: interrupted after {writer.frames} frames; files in {args.out} are complete",
-                  file=sys.stderr)
-            raise
+            # The one line main prints for an interrupt, with what the user needs to know.
+            raise KeyboardInterrupt(f"interrupted after {writer.frames} frames; files in {args.out} are complete") from None
         flush_pending()
         if tty:
             sys.stderr.write("\n")
