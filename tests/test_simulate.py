@@ -123,3 +123,20 @@ def test_camera_that_cannot_be_opened_exits_2(tmp_path, capsys):
         assert main(["analyze", "--source", spec]) == 2
         err = capsys.readouterr().err
         assert message in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_leftover_partial_is_replaced_only_when_it_is_ours(tmp_path, capsys):
+    # A run killed outright leaves OUT.partial behind; the next run replaces it. A folder of
+    # that name holding anything else is the user's: refused, untouched.
+    theirs = tmp_path / "a.partial"
+    theirs.mkdir()
+    (theirs / "notes.txt").write_text("keep me")
+    assert main(["simulate", "--duration", "0.04", "--out", str(tmp_path / "a")]) == 2
+    err = capsys.readouterr().err
+    assert "a.partial: exists and is not a sequence this command left unfinished" in err and err.count("\n") == 1
+    assert (theirs / "notes.txt").read_text() == "keep me" and not (tmp_path / "a").exists()
+    leftover = tmp_path / "b.partial"
+    (leftover / "cam0" / "data").mkdir(parents=True)
+    (leftover / ".rig.yaml.x1y2").write_text("half")
+    assert main(["simulate", "--duration", "0.04", "--out", str(tmp_path / "b")]) == 0
+    assert not leftover.exists() and (tmp_path / "b" / "cam0" / "data.csv").is_file()

@@ -49,11 +49,18 @@ def run(args: argparse.Namespace) -> int:
         if not (args.duration > 0 and math.isfinite(args.duration)):
             raise TrackmeterError(f"--duration must be a positive number of seconds, got {args.duration}")
         scenario = scenario.with_duration(args.duration)
+    partial = out.with_name(out.name + ".partial")
+    if partial.exists() or partial.is_symlink():
+        # Left over from a run of this command that was killed outright: replaced, but only
+        # when it holds nothing a sequence writer would not have written.
+        ours = {"cam0", "cam1", "groundtruth.csv", "groundtruth.tum", "model.yaml", "rig.yaml", "scenario.yaml"}
+        if partial.is_symlink() or not partial.is_dir() or any(
+                p.name not in ours and not p.name.startswith(".") for p in partial.iterdir()):
+            raise TrackmeterError(f"{partial}: exists and is not a sequence this command left unfinished; "
+                                  "move it away or choose another --out")
+        shutil.rmtree(partial)
     # Rendering ahead in a worker overlaps it with this process's image encoding and writing.
     sim = Simulator(scenario, render_ahead=True)
-    partial = out.with_name(out.name + ".partial")
-    if partial.exists():
-        shutil.rmtree(partial)  # left over from an interrupted run of this command
     try:
         with SequenceWriter(partial, rig=sim.true_rig, model_points=sim.model) as writer:
             (partial / "scenario.yaml").write_text(
