@@ -165,14 +165,6 @@ class CameraSource(Source):
             self._caps.append(cap)
         fps = float(self._caps[0].get(cv2.CAP_PROP_FPS) or 0.0)
         self.rate_hz = fps if fps > 0 else None
-        counts = [int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0) for cap in self._caps]
-        #: One line on what does not match between the files (None when nothing found).
-        self.warning: str | None = None
-        if min(counts) > 0 and counts[0] != counts[1]:
-            # Frames pair by position, so the longer file's tail is never played.
-            self.warning = (f"the videos differ in length ({self.paths[0].name}: {counts[0]} frames, "
-                            f"{self.paths[1].name}: {counts[1]}): the stream ends with the shorter")
-            warnings.warn(self.warning, stacklevel=2)
         self._count = 0
         self._t0: float | None = None
         self._frame_size: tuple[int, int] | None = None
