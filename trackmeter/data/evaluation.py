@@ -53,6 +53,16 @@ def _read_pose_file(path: Path) -> MotionSeries:
     return MotionSeries.from_trajectory(read_tum(path))
 
 
+def _finite_rows(a: np.ndarray) -> np.ndarray:
+    """(N,) True where row ``a[i]`` is all finite."""
+    return np.all(np.isfinite(a), axis=1)
+
+
+def _rows_with_rates(series: MotionSeries) -> np.ndarray:
+    """(N,) True where both the linear and the angular velocity are known."""
+    return _finite_rows(series.velocity_cam_m_s) & _finite_rows(series.omega_body_rad_s)
+
+
 def _poses_of_run(states: MotionSeries) -> MotionSeries:
     """The rows of a run's ``states.csv`` that carry a pose, all marked valid.
 
@@ -61,21 +71,13 @@ def _poses_of_run(states: MotionSeries) -> MotionSeries:
     files evaluate alike. A valid-0 row with every field filled in was declared invalid and is
     left out. The rates of the pose-only rows stay NaN (left out of the velocity figures).
     """
-    def finite(a: np.ndarray) -> np.ndarray:
-        return np.all(np.isfinite(a), axis=1)
-
-    rates = finite(states.velocity_cam_m_s) & finite(states.omega_body_rad_s)
-    keep = states.valid | (finite(states.position_m) & finite(states.quat_wxyz) & ~rates)
+    pose = _finite_rows(states.position_m) & _finite_rows(states.quat_wxyz)
+    keep = states.valid | (pose & ~_rows_with_rates(states))
     with_rates = states.valid[keep][:, None]
     return MotionSeries(states.t_s[keep], np.ones(int(np.count_nonzero(keep)), bool), states.position_m[keep],
                         states.quat_wxyz[keep], np.where(with_rates, states.velocity_cam_m_s[keep], np.nan),
                         np.where(with_rates, states.omega_body_rad_s[keep], np.nan),
                         {k: a[keep] for k, a in states.extra.items()})
-
-
-def _any_rates(series: MotionSeries) -> bool:
-    return bool(np.any(np.all(np.isfinite(series.velocity_cam_m_s), axis=1)
-                       & np.all(np.isfinite(series.omega_body_rad_s), axis=1)))
 
 
 def _with_rates_from(series: MotionSeries, csv_path: Path) -> MotionSeries | None:
@@ -136,7 +138,7 @@ def load_estimate(spec: str | Path) -> LoadedMotion:
             s = _poses_of_run(s)
             if len(s) == 0:
                 raise TrackmeterError(f"{path / 'states.csv'}: no valid pose in the run")
-            return LoadedMotion(s, str(path / "states.csv"), _any_rates(s), t_start)
+            return LoadedMotion(s, str(path / "states.csv"), bool(np.any(_rows_with_rates(s))), t_start)
         if (path / "trajectory.tum").is_file():
             s = MotionSeries.from_trajectory(read_tum(path / "trajectory.tum"))
             return LoadedMotion(s, str(path / "trajectory.tum"), False)
@@ -152,7 +154,7 @@ def load_estimate(spec: str | Path) -> LoadedMotion:
         s = MotionSeries.from_trajectory(read_tum(path))
     if len(s) == 0:
         raise TrackmeterError(f"{path}: no valid pose")
-    return LoadedMotion(s, str(path), _any_rates(s), t_start)
+    return LoadedMotion(s, str(path), bool(np.any(_rows_with_rates(s))), t_start)
 
 
 # --------------------------------------------------------------------------- paper figures
