@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from trackmeter.data.images import expand_globs, pair_stereo_paths, read_grey
+from trackmeter.data.images import data_bits, expand_globs, pair_stereo_paths, read_grey, read_grey_pair
 from trackmeter.errors import TrackmeterError
 
 
@@ -39,6 +39,42 @@ def test_sixteen_bit_keeps_the_high_byte(tmp_path: Path) -> None:
     img16 = np.arange(0, 65536, 256, dtype=np.uint16).reshape(16, 16) + 255
     cv2.imwrite(str(tmp_path / "d.png"), img16)
     np.testing.assert_array_equal(read_grey(tmp_path / "d.png"), (img16 >> 8).astype(np.uint8))
+
+
+@pytest.mark.parametrize(("largest", "bits"), [(0, 10), (1023, 10), (1024, 12), (4095, 12), (4096, 14),
+                                               (16383, 14), (16384, 16), (65535, 16)])
+def test_data_bits_is_the_smallest_sample_depth_that_holds_the_values(largest: int, bits: int) -> None:
+    img = np.zeros((4, 5), np.uint16)
+    img[2, 3] = largest
+    assert data_bits([img]) == bits
+    # the largest value over all the images decides; 8-bit images have no say
+    assert data_bits([img, np.full((2, 2), 255, np.uint8)]) == bits
+    assert data_bits([np.full((2, 2), 40, np.uint16), img]) == max(bits, 10)
+
+
+def test_data_bits_of_eight_bit_images_is_eight() -> None:
+    assert data_bits([np.full((3, 3), 255, np.uint8)]) == 8
+    assert data_bits([]) == 8
+
+
+def test_twelve_bit_data_in_sixteen_bit_files_reads_like_the_eight_bit_image(tmp_path: Path) -> None:
+    """A machine-vision camera's 12-bit samples stored as they are (values below 4096) read as
+    their top 8 bits, not as a black image (>> 8 would leave at most 15 grey levels)."""
+    rng = np.random.default_rng(3)
+    img8 = rng.integers(0, 256, (24, 32), dtype=np.uint8)
+    low = rng.integers(0, 16, img8.shape, dtype=np.uint16)
+    cv2.imwrite(str(tmp_path / "l.png"), (img8.astype(np.uint16) << 4) | low)
+    np.testing.assert_array_equal(read_grey(tmp_path / "l.png"), img8)
+    # an explicit depth is obeyed, and values beyond it saturate instead of wrapping
+    np.testing.assert_array_equal(read_grey(tmp_path / "l.png", bits=16), img8 >> 4)
+    np.testing.assert_array_equal(read_grey(tmp_path / "l.png", bits=10), np.minimum(img8.astype(int) * 4 + (low >> 2), 255))
+    # a pair is scaled alike: a darker right image keeps the left one's depth
+    dark = ((img8 // 8).astype(np.uint16) << 4)
+    cv2.imwrite(str(tmp_path / "r.png"), dark)
+    np.testing.assert_array_equal(read_grey(tmp_path / "r.png"), (img8 // 8) * 4)  # alone: read as 10-bit data
+    left, right = read_grey_pair(tmp_path / "l.png", tmp_path / "r.png")
+    np.testing.assert_array_equal(left, img8)
+    np.testing.assert_array_equal(right, img8 // 8)
 
 
 @pytest.mark.parametrize("content", [b"", b"hello", bytes(range(256))])

@@ -75,6 +75,19 @@ def test_json_is_the_contract_and_agrees_with_the_library_and_the_truth(pair, ca
     assert refused["xyz_m"] is None and refused["right_uv"] is None and refused["disparity_px"] is None
 
 
+def test_twelve_bit_pair_in_sixteen_bit_files_measures_like_the_eight_bit_one(pair, tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    """A camera's 12-bit samples stored as they are in 16-bit PNGs (values below 4096) are
+    the same pair: the same measurements, not a black image refused everywhere."""
+    _, left, right, _, folder = pair
+    assert _run(folder, "--at", "300.3,250.6", "--at", "420,180.25", "--json") == 0
+    eight = json.loads(capsys.readouterr().out)
+    cv2.imwrite(str(tmp_path / "left.png"), left.astype(np.uint16) << 4)
+    cv2.imwrite(str(tmp_path / "right.png"), right.astype(np.uint16) << 4 | np.uint16(5))
+    assert _run(tmp_path, "--at", "300.3,250.6", "--at", "420,180.25", "--json") == 0
+    twelve = json.loads(capsys.readouterr().out)
+    assert twelve == eight and all(o["ok"] for o in twelve)
+
+
 def test_table_and_patch_option(pair, capsys) -> None:  # type: ignore[no-untyped-def]
     *_, folder = pair
     assert _run(folder, "--at", "300.3,250.6", "--at", "1,1", "--patch", "11") == 0

@@ -285,6 +285,24 @@ def test_data_csv_of_other_tools_extra_columns_and_a_bom_are_read(tmp_path):
     assert all(np.array_equal(f.left, ref.left) for f, ref in zip(got, frames))
 
 
+def test_twelve_bit_images_in_sixteen_bit_files_play_scaled_alike_in_every_frame(tmp_path):
+    """A camera's 12-bit samples stored as they are in 16-bit PNGs: every frame reads as its top
+    8 bits, a dark frame among bright ones too (the depth is the sequence's, not the frame's)."""
+    frames = _frames(5)
+    d = _write(tmp_path / "s", frames)
+    for cam, side in (("cam0", "left"), ("cam1", "right")):
+        for k, path in enumerate(sorted((d / cam / "data").glob("*.png"), key=lambda q: int(q.stem))):
+            img8 = getattr(frames[k], side) // (8 if k == 2 else 1)  # frame 2 is dark
+            cv2.imwrite(str(path), img8.astype(np.uint16) << 4 | np.uint16(9))
+    src = SequenceSource(d)
+    assert src.image_bits == 12
+    got = [src.read() for _ in range(5)]
+    for k, (f, ref) in enumerate(zip(got, frames)):
+        scale = 8 if k == 2 else 1
+        assert np.array_equal(f.left, ref.left // scale) and np.array_equal(f.right, ref.right // scale)
+    assert SequenceSource(_write(tmp_path / "eight", frames)).image_bits == 8
+
+
 def test_data_csv_with_no_usable_row_says_what_a_row_must_be(tmp_path):
     d = _write(tmp_path / "s", _frames(3))
     rows = (d / "cam0" / "data.csv").read_text().splitlines()

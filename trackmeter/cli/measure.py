@@ -48,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
     from trackmeter.cli.common import parse_uv
     from trackmeter.core.matching import measure_points, measurements_to_json
     from trackmeter.data.config import load_config
-    from trackmeter.data.images import read_grey
+    from trackmeter.data.images import read_grey_pair
     from trackmeter.data.rigfile import load_rig
     from trackmeter.errors import TrackmeterError
 
@@ -58,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
             raise TrackmeterError(f"--patch must be a patch side between 3 and 63 px, got {args.patch}")
         params = dataclasses.replace(params, patch_size=args.patch)
     uv = [parse_uv(text) for text in args.at]
-    images = [read_grey(args.left), read_grey(args.right)]
+    images = list(read_grey_pair(args.left, args.right))
     # A rig file without an image size (OpenCV's intrinsics.yml/extrinsics.yml) takes the left
     # image's; the size check below then still catches a right image of another size.
     rig = load_rig(args.rig, image_size=(images[0].shape[1], images[0].shape[0]))

@@ -1,7 +1,8 @@
 """Reading images and image sets from disk.
 
-:func:`read_grey` reads any image OpenCV decodes (PNG, JPEG, PGM, TIFF, ...; 8 or 16 bit; grey,
-colour or with alpha) as an 8-bit grey ``(H, W)`` array, the layout every matcher and tracker of
+:func:`read_grey` reads any image OpenCV decodes (PNG, JPEG, PGM, TIFF, ...; 8 or 16 bit, 16-bit
+files holding 10- to 16-bit data (:func:`data_bits`); grey, colour or with alpha) as an 8-bit
+grey ``(H, W)`` array, the layout every matcher and tracker of
 the project works on. :func:`expand_globs` and :func:`pair_stereo_paths` turn command-line
 globs into an ordered list of left/right pairs.
 """
@@ -21,12 +22,8 @@ from numpy.typing import NDArray
 from trackmeter.errors import TrackmeterError
 
 
-def read_grey(path: str | Path) -> NDArray[np.uint8]:
-    """Read an image file as 8-bit grey, (H, W) uint8.
-
-    Colour is converted with OpenCV's luminance weights (``cvtColor``, BGR→GRAY), an alpha
-    channel is dropped, 16-bit images are scaled by 1/256 and float images (e.g. EXR) are
-    clipped to [0, 1] and scaled to [0, 255].
+def decode_image(path: str | Path) -> NDArray[np.generic]:
+    """The image file as OpenCV decodes it, unchanged (any depth and channel count).
 
     The bytes are decoded with ``cv2.imdecode`` rather than ``cv2.imread`` because the latter
     prints its own warning on stderr for unreadable files; here the caller gets one
@@ -45,16 +42,66 @@ def read_grey(path: str | Path) -> NDArray[np.uint8]:
     image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if image is None:
         raise TrackmeterError(f"{path}: not an image file OpenCV can decode")
-    return to_grey_u8(image, str(path))
+    return image
 
 
-def to_grey_u8(image: NDArray[np.generic], name: str = "image") -> NDArray[np.uint8]:
-    """Convert a decoded image ((H,W), (H,W,1), (H,W,3) BGR or (H,W,4) BGRA; any depth) to 8-bit grey."""
+#: The sample depths 16-bit files are told apart by (:func:`data_bits`).
+SAMPLE_BITS = (10, 12, 14, 16)
+
+
+def data_bits(images: Iterable[NDArray[np.generic]]) -> int:
+    """How many low bits of 16-bit ``images`` hold the data: the smallest of
+    :data:`SAMPLE_BITS` whose range holds their largest value; 8 when none is 16-bit.
+
+    Many machine-vision cameras store 10-, 12- or 14-bit samples in 16-bit PNG or TIFF files as
+    they are (a 12-bit image's values stay below 4096), not scaled up to the full 16-bit range
+    as the PNG standard asks. Read as 16-bit such an image is black (at most 15 grey levels of
+    256 for 12-bit data), so the depth is told from the values. The rule only changes images
+    that would otherwise be that dark; decide it once per sequence or stereo pair (from
+    several images, each with a lit target), so every frame is scaled alike.
+    """
+    largest = -1
+    for image in images:
+        img = np.asarray(image)
+        if img.dtype == np.uint16 and img.size:
+            largest = max(largest, int(img.max()))
+    if largest < 0:
+        return 8
+    return next(b for b in SAMPLE_BITS if largest < 2**b)
+
+
+def read_grey(path: str | Path, bits: int | None = None) -> NDArray[np.uint8]:
+    """Read an image file as 8-bit grey, (H, W) uint8 (:func:`decode_image`, :func:`to_grey_u8`).
+
+    Colour is converted with OpenCV's luminance weights (``cvtColor``, BGR→GRAY), an alpha
+    channel is dropped, 16-bit images keep their ``bits`` high data bits (default: their own
+    :func:`data_bits`) and float images (e.g. EXR) are clipped to [0, 1] and scaled to [0, 255].
+
+    Raises:
+        TrackmeterError: missing file, unreadable file, or a file that is not a decodable image.
+    """
+    image = decode_image(path)
+    return to_grey_u8(image, str(path), bits if bits is not None else data_bits([image]))
+
+
+def read_grey_pair(left: str | Path, right: str | Path) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
+    """:func:`read_grey` of a stereo pair, both 16-bit images scaled alike (their joint
+    :func:`data_bits`)."""
+    images = [decode_image(left), decode_image(right)]
+    bits = data_bits(images)
+    return to_grey_u8(images[0], str(left), bits), to_grey_u8(images[1], str(right), bits)
+
+
+def to_grey_u8(image: NDArray[np.generic], name: str = "image", bits: int = 16) -> NDArray[np.uint8]:
+    """Convert a decoded image ((H,W), (H,W,1), (H,W,3) BGR or (H,W,4) BGRA; any depth) to 8-bit
+    grey. A 16-bit image's data are its low ``bits`` bits (:func:`data_bits`): its top 8 of
+    them are kept, larger values saturate at 255."""
     img = np.asarray(image)
     if img.ndim == 3 and img.shape[2] == 1:
         img = img[:, :, 0]
     if img.dtype == np.uint16:
-        img = (img >> 8).astype(np.uint8)
+        shift = min(max(int(bits), 8), 16) - 8
+        img = np.minimum(img >> shift, 255).astype(np.uint8)
     elif img.dtype in (np.float32, np.float64):
         img = np.clip(np.nan_to_num(img) * 255.0 + 0.5, 0, 255).astype(np.uint8)
     elif img.dtype != np.uint8:

@@ -30,7 +30,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, TYPE_CHECKING, Iterable, Sequence
+from typing import IO, TYPE_CHECKING, Sequence
 
 import cv2
 import numpy as np
@@ -39,6 +39,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.transforms import matrix_to_quat_wxyz
+from trackmeter.data.images import data_bits, decode_image
 from trackmeter.data.model import Model, load_model, save_model
 from trackmeter.data.motion_csv import GROUNDTRUTH_COLUMNS, MotionCsvWriter, MotionSeries, read_motion_csv
 from trackmeter.data.rigfile import load_rig, save_rig
@@ -456,22 +457,18 @@ def _read_truth(path: Path | None, t_s: FloatArray, tolerance_s: float) -> Motio
     return MotionSeries(t_s, valid, p, q, v, w)
 
 
-def read_grey_image(path: Path) -> NDArray[np.uint8]:
-    """Read one sequence image as (H,W) uint8 grey (colour converted with OpenCV's weights)."""
-    data = np.fromfile(str(path), dtype=np.uint8) if path.is_file() else np.zeros(0, np.uint8)
-    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
-    if image is None:
-        raise TrackmeterError(f"{path}: missing or not a decodable image")
-    if image.ndim == 3:
-        image = cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
-    if image.dtype == np.uint16:
-        image = (image >> 8).astype(np.uint8)
-    if image.dtype != np.uint8:
-        raise TrackmeterError(f"{path}: unsupported pixel type {image.dtype}")
-    return image
-
-
-def iter_pairs(index: SequenceIndex) -> Iterable[tuple[float, NDArray[np.uint8], NDArray[np.uint8]]]:
-    """``(t_s, left, right)`` for every pair of an index, loading images one pair at a time."""
-    for t, lp, rp in zip(index.t_s, index.left_paths, index.right_paths):
-        yield float(t), read_grey_image(lp), read_grey_image(rp)
+def sequence_data_bits(index: SequenceIndex, samples: int = 3) -> int:
+    """The sample depth of a sequence's images (:func:`trackmeter.data.images.data_bits`),
+    decided once for the whole sequence from both images of ``samples`` pairs spread over it
+    (first, middle, last), so every frame is scaled alike; 8 when they are 8-bit, and when
+    none of them can be read (reading them later says why)."""
+    n = len(index)
+    positions = sorted({round(k * (n - 1) / max(samples - 1, 1)) for k in range(samples)}) if n else []
+    images = []
+    for pos in positions:
+        for path in (index.left_paths[pos], index.right_paths[pos]):
+            try:
+                images.append(decode_image(path))
+            except TrackmeterError:
+                continue
+    return data_bits(images)

@@ -9,7 +9,8 @@ from pathlib import Path
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.transforms import transform_from_pose
 from trackmeter.data.model import Model
-from trackmeter.data.sequence import SequenceIndex, index_sequence, read_grey_image
+from trackmeter.data.images import read_grey
+from trackmeter.data.sequence import SequenceIndex, index_sequence, sequence_data_bits
 from trackmeter.errors import TrackmeterError
 from trackmeter.sources.base import GroundTruth, Source, StereoFrame
 from trackmeter.sources.pacing import Pacer
@@ -32,6 +33,8 @@ class SequenceSource(Source):
         index: the :class:`SequenceIndex` (paths, times, truth).
         model: the folder's ``model.yaml`` as a :class:`Model`, or None.
         skipped: images not played (missing, unpaired, unreadable rows or files), counted.
+        image_bits: the sample depth of its 16-bit images (8 for 8-bit ones), the same for
+            every frame.
         warning: one line saying what was skipped and why, or None when nothing was.
     """
 
@@ -59,8 +62,17 @@ class SequenceSource(Source):
         dt = 1.0 / self.rate_hz if self.rate_hz else 0.0
         self._period_s = float(self.index.t_s[-1] - self.index.t_s[0]) + dt if n else 0.0
         self._frame_size: tuple[int, int] | None = None
+        self._image_bits: int | None = None
         if self.warning:
             _warnings.warn(f"{directory}: {self.warning}", stacklevel=2)
+
+    @property
+    def image_bits(self) -> int:
+        """The sample depth the folder's images are read with (:func:`sequence_data_bits`,
+        decided on first use): 8 for 8-bit images, 10-16 for 16-bit ones."""
+        if self._image_bits is None:
+            self._image_bits = sequence_data_bits(self.index)
+        return self._image_bits
 
     @property
     def skipped(self) -> int:
@@ -85,7 +97,7 @@ class SequenceSource(Source):
         if self._frame_size is None:
             for path in self.index.left_paths:
                 try:
-                    h, w = read_grey_image(path).shape[:2]
+                    h, w = read_grey(path, self.image_bits).shape[:2]
                 except TrackmeterError:
                     continue  # read() skips it too
                 self._frame_size = (int(w), int(h))
@@ -120,8 +132,8 @@ class SequenceSource(Source):
             pos = self._pos
             self._pos += 1
             try:
-                left = read_grey_image(self.index.left_paths[pos])
-                right = read_grey_image(self.index.right_paths[pos])
+                left = read_grey(self.index.left_paths[pos], self.image_bits)
+                right = read_grey(self.index.right_paths[pos], self.image_bits)
             except TrackmeterError as exc:
                 if self._loops == 0:
                     self._skipped_on_read += 1
