@@ -64,6 +64,19 @@ def test_calibrate_prints_summary_and_writes_rig(calib_dir: Path, tmp_path: Path
     assert [p.name for p in out.parent.iterdir()] == ["rig.yaml"]  # no temp file left behind
 
 
+def test_a_square_given_in_millimetres_is_warned_about(calib_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``--square 25`` meant as 25 mm: the rig is written as asked, with one warning line that
+    says the baseline is implausible and how the square is given."""
+    args = _args(calib_dir, tmp_path / "rig.yaml")
+    args[args.index("--square") + 1] = "25"
+    assert main(args) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("trackmeter calibrate: warning: baseline 83."), err
+    assert "T must be in metres" in err[0] and "--square is the side of one square in metres" in err[0]
+    with pytest.warns(UserWarning, match="T must be in metres"):  # and again when it is read
+        assert load_rig(tmp_path / "rig.yaml").baseline_m == pytest.approx(25 * 3.327, rel=0.003)
+
+
 def test_calibrate_pairs_by_frame_number(calib_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """9 left and 13 right images: the 9 with a partner of the same number pair up."""
     assert main(_args(calib_dir, tmp_path / "rig.yaml", left="left0*.jpg", right="right*.jpg")) == 0

@@ -194,3 +194,17 @@ def test_a_rig_with_its_cameras_swapped_is_warned_about(tmp_path: Path) -> None:
             load_rig(preset)
     with pytest.warns(UserWarning, match="right camera lies left of the left one"):
         load_rig(save_rig(swapped, tmp_path / "swapped.yaml"))
+
+
+def test_a_rig_with_its_baseline_in_millimetres_is_warned_about(tmp_path: Path) -> None:
+    import dataclasses
+    import warnings
+
+    rig = _rig()
+    in_mm = dataclasses.replace(rig, T=rig.T * 1000.0)
+    with pytest.warns(UserWarning, match=r"baseline .* m \(\|T\|\): T must be in metres.*1000x too large"):
+        load_rig(save_rig(in_mm, tmp_path / "mm.yaml"))
+    wide = dataclasses.replace(rig, T=rig.T / np.linalg.norm(rig.T) * 9.0)  # wide, but metres
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_rig(save_rig(wide, tmp_path / "wide.yaml"))

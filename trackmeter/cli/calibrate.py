@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Sequence
 
@@ -40,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
     from trackmeter.cli.common import load_config_from_args, progress
     from trackmeter.core.calibration import calibrate_stereo, detect_corners, parse_pattern
     from trackmeter.data.images import expand_globs, pair_stereo_paths, read_grey
-    from trackmeter.data.rigfile import save_rig
+    from trackmeter.data.rigfile import baseline_problem, save_rig
     from trackmeter.errors import TrackmeterError
 
     params = load_config_from_args(args).calibrate
@@ -86,6 +87,9 @@ def run(args: argparse.Namespace) -> int:
     }
     out_path = save_rig(rig, args.out, extra)
     print(format_report(result, pairs, args.square, out_path))
+    implausible = baseline_problem(rig)
+    if implausible:
+        warnings.warn(f"{implausible}: --square is the side of one square in metres (25 mm is 0.025)", stacklevel=1)
     return 0
 
 

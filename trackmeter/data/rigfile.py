@@ -62,14 +62,33 @@ def swapped_cameras(rig: StereoRig) -> bool:
     return bool(centre[0] < 0 and abs(centre[0]) > abs(centre[1]))
 
 
+#: A baseline longer than this (m) is taken for one written in millimetres (DESIGN.md: ``T`` in
+#: metres): no stereo rig of this domain is 10 m wide, and any baseline from 1 cm up in mm is.
+MAX_PLAUSIBLE_BASELINE_M = 10.0
+
+
 def load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> StereoRig:
     """Read a stereo rig from an OpenCV FileStorage file (see :func:`_load_rig`); warns when
-    its right camera lies left of its left one (:func:`swapped_cameras`)."""
+    its right camera lies left of its left one (:func:`swapped_cameras`) and when its baseline
+    is longer than :data:`MAX_PLAUSIBLE_BASELINE_M` (``T`` in millimetres: every depth would
+    come out 1000 times too far)."""
     rig = _load_rig(path, image_size)
     if swapped_cameras(rig):
         warnings.warn(f"{path}: the right camera lies left of the left one (T = {np.round(rig.T, 4).tolist()}): "
                       "left and right are swapped, so no point can be matched", stacklevel=2)
+    implausible = baseline_problem(rig)
+    if implausible:
+        warnings.warn(f"{path}: {implausible}", stacklevel=2)
     return rig
+
+
+def baseline_problem(rig: StereoRig) -> str | None:
+    """One line when the rig's baseline is longer than :data:`MAX_PLAUSIBLE_BASELINE_M` (its
+    ``T`` most likely in millimetres: calibrated with the square size in mm), else None."""
+    if rig.baseline_m <= MAX_PLAUSIBLE_BASELINE_M:
+        return None
+    return (f"baseline {rig.baseline_m:.4g} m (|T|): T must be in metres; if it is in millimetres (calibrated with "
+            "the square size in mm), every depth and distance comes out 1000x too large")
 
 
 def _load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> StereoRig:
