@@ -22,7 +22,9 @@ case a, whose body frame is its own), as the largest absolute error and the RMS 
    jump at a loss or a re-appearance, in sigmas of the pose covariance.
 3. ``harsh_light_b_*`` / ``harsh_light_a_*`` — the whole chain through the occlusion (6-14 s)
    and the glints of ``harsh_light`` (first ``TRACKMETER_HARSH_S`` seconds, default 20): valid
-   fraction, over the whole run and while the panel passes (``valid_fraction_occluded``),
+   fraction, over the whole run and while the panel passes (``valid_fraction_occluded``; and
+   ``valid_fraction_occluded_once_valid``: the same from the first valid pose on, i.e. whether
+   the pose, once there, stays valid through the occlusion),
    losses and recoveries, and the largest frame-to-frame pose jump at a loss or a recovery
    after removing the true motion, in sigmas of the pose covariance (``..._max_jump_sigma_...``).
    Case (a) defines a new body frame after a total loss; each definition is aligned to the
@@ -486,9 +488,27 @@ def harsh_light_figures(case: str, seconds: float) -> dict[str, float]:
     truth, est, extra = run_chain(case, seconds, "harsh_light", body_frames=frames)
     out = figures(truth, est, "none", prefix) if case == "b" else figures_per_body_frame(truth, est, frames, prefix)
     out.update(extra)
-    hidden = np.zeros(len(est), dtype=bool)
-    for occ in load_scenario("harsh_light").occluders:
-        hidden |= (est.t_s >= occ.start_s) & (est.t_s < occ.end_s)
+    windows = [(occ.start_s, occ.end_s) for occ in load_scenario("harsh_light").occluders]
+    out.update({f"{prefix}_{k}": v for k, v in validity_while_hidden(est.t_s, est.valid, windows).items()})
+    return out
+
+
+def validity_while_hidden(t_s: np.ndarray, valid: np.ndarray, windows: list[tuple[float, float]]) -> dict[str, float]:
+    """Valid poses while something hides the target, frames at ``t_s`` (N,) in any of the
+    ``windows`` ``[start, end)`` s: ``valid_fraction_occluded`` over all those frames, and
+    ``valid_fraction_occluded_once_valid`` over those from the first valid pose on (whether the
+    pose, once there, stays valid through the occlusion: case (b)'s model may bind only while
+    the panel passes, and before that there is no pose to stay valid). A figure is left out
+    when it has no frame."""
+    t_s, valid = np.asarray(t_s, float), np.asarray(valid, bool)
+    hidden = np.zeros(len(t_s), dtype=bool)
+    for start, end in windows:
+        hidden |= (t_s >= start) & (t_s < end)
+    out: dict[str, float] = {}
     if hidden.any():
-        out[f"{prefix}_valid_fraction_occluded"] = float(np.mean(est.valid[hidden]))
+        out["valid_fraction_occluded"] = float(np.mean(valid[hidden]))
+    first = int(np.argmax(valid)) if valid.any() else len(valid)
+    held = hidden & (np.arange(len(valid)) >= first)
+    if held.any():
+        out["valid_fraction_occluded_once_valid"] = float(np.mean(valid[held]))
     return out

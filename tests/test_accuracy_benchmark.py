@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from benchmarks.accuracy import figures, figures_per_body_frame
+from benchmarks.accuracy import figures, figures_per_body_frame, validity_while_hidden
 from trackmeter.data.motion_csv import MotionSeries
 
 from tests.test_metrics import DT, tumbling_truth
@@ -85,3 +85,16 @@ def test_drift_since_a_coast_began_is_measured_in_any_body_frame():
     turned = T([0.0, 0.0, 0.03], [0, 0, 0]) @ (true @ X)
     turned[:3, 3] = (true @ X)[:3, 3]
     assert _jump_sigma(est0, turned, cov, true0, true) == pytest.approx(3.0)
+
+
+def test_validity_while_hidden_counts_the_occlusion_and_what_follows_the_first_pose():
+    t = np.arange(20) * 0.5  # 0 .. 9.5 s
+    valid = t >= 3.0  # the pose starts at 3 s, inside the occlusion [2, 6)
+    valid[t == 5.0] = False  # one loss while hidden
+    got = validity_while_hidden(t, valid, [(2.0, 6.0), (8.0, 8.6)])
+    # hidden frames: 2.0 .. 5.5 (8) and 8.0, 8.5 (2); valid among them: 3.0, 3.5, 4.0, 4.5, 5.5, 8.0, 8.5
+    assert got["valid_fraction_occluded"] == pytest.approx(7 / 10)
+    # from the first valid pose (3.0 s): 3.0 .. 5.5 (6) and 8.0, 8.5 (2); 7 of 8 valid
+    assert got["valid_fraction_occluded_once_valid"] == pytest.approx(7 / 8)
+    assert validity_while_hidden(t, np.zeros(20, bool), [(2.0, 6.0)]) == {"valid_fraction_occluded": 0.0}
+    assert validity_while_hidden(t, valid, [(20.0, 30.0)]) == {}
