@@ -74,8 +74,8 @@ def read_grey(path: str | Path, bits: int | None = None) -> NDArray[np.uint8]:
     """Read an image file as 8-bit grey, (H, W) uint8 (:func:`decode_image`, :func:`to_grey_u8`).
 
     Colour is converted with OpenCV's luminance weights (``cvtColor``, BGR→GRAY), an alpha
-    channel is dropped, 16-bit images keep their ``bits`` high data bits (default: their own
-    :func:`data_bits`) and float images (e.g. EXR) are clipped to [0, 1] and scaled to [0, 255].
+    channel is dropped, 16-bit images keep the top 8 of their ``bits`` data bits (default:
+    their own :func:`data_bits`) and float images (e.g. EXR) are clipped to [0, 1] and scaled to [0, 255].
 
     Raises:
         TrackmeterError: missing file, unreadable file, or a file that is not a decodable image.
