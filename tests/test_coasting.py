@@ -163,6 +163,30 @@ def test_engine_coasts_flagged_and_within_its_covariance_then_stops(estec_rig) -
         assert np.all(np.abs(np.concatenate([e_p, e_r])) < 3 * s)
 
 
+def test_a_longer_centre_of_mass_window_fits_more_poses_and_bounds_the_speed_tighter(estec_rig) -> None:
+    """``coast_centre_of_mass_window_s``: the centre of mass is fitted to the measured poses of
+    that span (kept within it, forgotten with the body frame) instead of the velocity window's;
+    the longer turn tells the drift from the offset better, and the bound still holds the truth."""
+    from tests.test_engine import DT, V, run
+
+    bounds = {}
+    for span in (0.0, 6.0):
+        engine, _ = _engine(estec_rig, coast_centre_of_mass_window_s=span)
+        run(engine, range(int(8.0 / DT)))
+        t_last = (int(8.0 / DT) - 1) * DT
+        kept = [x[0] for x in engine._com_history]
+        if span:
+            assert kept[-1] == pytest.approx(t_last) and t_last - kept[0] <= span + 1e-9 and len(kept) > 100
+        else:
+            assert kept == []  # off: nothing kept
+        bounds[span] = engine._com_speed_bound(t_last)
+    assert bounds[0.0] is not None and bounds[6.0] is not None
+    assert bounds[6.0] < 0.5 * bounds[0.0]
+    assert bounds[6.0] >= np.linalg.norm(V)  # the origin is the centre of mass there: it drifts at V
+    engine._reset_motion()
+    assert not engine._com_history
+
+
 def test_engine_never_coasts_when_switched_off(estec_rig) -> None:
     from tests.test_engine import run
 

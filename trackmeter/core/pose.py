@@ -171,6 +171,10 @@ class PoseParams:
         True, "coasting: bound the centre of mass's speed by fitting it to the poses before the loss "
         "(dynamics.fit_centre_of_mass) instead of assuming the worst the lever allows",
     )
+    coast_centre_of_mass_window_s: float = param(
+        0.0, "coasting: fit the centre of mass to the measured poses of this many seconds before the loss "
+        "(the same body frame), s (0: to the velocity window's)", min=0.0,
+    )
     coast_velocity_sigma_m_s: float = param(
         0.003, "coasting: 1-sigma error of the estimated origin velocity, per axis, m/s", min=0.0,
     )

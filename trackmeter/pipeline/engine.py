@@ -41,6 +41,7 @@ Per frame (:meth:`Engine.process`):
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -65,7 +66,7 @@ from trackmeter.core.pose import (
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.targets import Refusal, TargetState
 from trackmeter.core.transforms import attitude_error_components, matrix_to_quat_wxyz
-from trackmeter.core.velocity import VelocityEstimator, VelocityParams
+from trackmeter.core.velocity import VelocityEstimator, VelocityParams, block_weights
 from trackmeter.errors import TrackmeterError
 from trackmeter.pipeline.snapshot import (
     AcquireModel,
@@ -302,6 +303,8 @@ class Engine:
         # whether the last output was coasted, and the offset being blended out after a coast.
         self._coast_out: tuple[float, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray] | None = None
         self._com_cache: tuple[float, float | None] | None = None
+        # Measured poses (t, R, p, position weight) for the centre-of-mass fit, this body frame.
+        self._com_history: deque[tuple[float, FloatArray, FloatArray, float]] = deque()
         self._coasting = False
         self._blend: tuple[float, FloatArray, FloatArray] | None = None
         self._via_coast: set[str] = set()  # model points that joined through a coasted pose
@@ -533,6 +536,7 @@ class Engine:
         self.stats.valid_frames += 1
         self._last_valid_t = frame.t_s
         rates = self._velocity.update(frame.t_s, R, t, cov)
+        self._remember_for_com(frame.t_s, R, t, cov)
         v, w = rates if rates is not None else (np.full(3, np.nan), np.full(3, np.nan))
         self._coast = (frame.t_s, R, t, cov, np.asarray(v, float), np.asarray(w, float))
         R_f, t_f = self._filter.update(frame.t_s, R, t, v if rates else None, w if rates else None)
@@ -993,11 +997,28 @@ class Engine:
             return self._com_cache[1]
         bound = None
         if self.pose_params.coast_fit_centre_of_mass:
-            t, R, P, W = self._velocity.window()
-            fit = fit_centre_of_mass(t, R, P, W[:, 0], self.pose_params.coast_lever_m) if len(t) else None
+            if self.pose_params.coast_centre_of_mass_window_s > 0:
+                h = self._com_history
+                t, R, P = (np.array([x[k] for x in h]) for k in range(3))
+                w = np.array([x[3] for x in h])
+            else:
+                t, R, P, W = self._velocity.window()
+                w = W[:, 0]
+            fit = fit_centre_of_mass(t, R, P, w, self.pose_params.coast_lever_m) if len(t) else None
             bound = fit.speed_bound_m_s if fit is not None else None
         self._com_cache = (t0, bound)
         return bound
+
+    def _remember_for_com(self, t_s: float, R: FloatArray, p: FloatArray, cov: FloatArray) -> None:
+        """Keep measured poses of the last ``coast_centre_of_mass_window_s`` for
+        :meth:`_com_speed_bound` (nothing when it is 0)."""
+        span = self.pose_params.coast_centre_of_mass_window_s
+        if span <= 0:
+            return
+        h = self._com_history
+        h.append((t_s, np.array(R, float), np.array(p, float), float(block_weights(cov)[0][0])))
+        while h and h[0][0] < t_s - span:
+            h.popleft()
 
     def _coast_within(self, t_s: float, attitude_sigma_deg: float, position_sigma_m: float
                       ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, float] | None:
