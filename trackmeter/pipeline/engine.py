@@ -990,7 +990,8 @@ class Engine:
 
     def _com_speed_bound(self, t0: float) -> float | None:
         """A bound on the centre of mass's speed from the poses before the coast that starts at
-        ``t0`` (:func:`fit_centre_of_mass` on the velocity window; once per coast), m/s, or None.
+        ``t0`` (:func:`fit_centre_of_mass` on the velocity window, or on the measured poses of the
+        last ``coast_centre_of_mass_window_s`` when that is set; once per coast), m/s, or None.
         Unknown, the coast must assume the worst the lever allows (``|v| + |omega| lever``: on
         harsh_light 55 mm/s, which bent the predicted path's bound past 50 mm in 3 s)."""
         if self._com_cache is not None and self._com_cache[0] == t0:
