@@ -255,6 +255,36 @@ def test_new_points_join_through_the_coasted_pose_and_carry_the_pose_on(estec_ri
         assert np.all(np.abs(e) < 3 * np.sqrt(np.diag(p.cov_pose)))
 
 
+def test_points_joining_through_poses_that_rest_on_coast_joined_points_share_their_error(estec_rig) -> None:
+    """The coast's error is a rigid offset of the frame its new points define; the poses fit to
+    them carry it in their covariance, and so must points that join through those poses: when
+    only the later points are measured, the pose is no better known than the coast was
+    (harsh_light case (b), 10 s centre-of-mass window: 14 mm off with a 0.2 mm sigma before)."""
+    from tests.test_engine import frame_at, run
+
+    engine, tracker = _engine(estec_rig)
+    run(engine, range(60))
+    old = list(tracker.active)
+    tracker.force_lost = set(old)
+    run(engine, range(60, 110))  # 2 s coasting
+    first, later = old[:6], old[6:]
+    for i, tid in enumerate(first):  # half the body points come back as new targets: join through the coast
+        tracker.body[f"new{i}"] = tracker.body[tid]
+        tracker.active[f"new{i}"] = "tracking"
+    rejoined = [engine.process(frame_at(k))[1] for k in range(110, 115)]
+    sd_rejoined = min(np.sqrt(np.diag(p.cov_pose)[:3]).max() for p in rejoined if p.valid and p.coasting_s == 0)
+    for i, tid in enumerate(later):  # the other half: join through poses fit to the first half
+        tracker.body[f"late{i}"] = tracker.body[tid]
+        tracker.active[f"late{i}"] = "tracking"
+    run(engine, range(115, 125))
+    tracker.force_lost |= {f"new{i}" for i in range(len(first))}
+    poses = [engine.process(frame_at(k))[1] for k in range(125, 130)]
+    measured = [p for p in poses if p.valid and p.coasting_s == 0]
+    assert measured
+    for p in measured:
+        assert np.sqrt(np.diag(p.cov_pose)[:3]).max() >= 0.5 * sd_rejoined
+
+
 def test_no_joining_through_a_coast_that_is_too_uncertain(estec_rig) -> None:
     from tests.test_engine import frame_at, run
 

@@ -673,3 +673,34 @@ def test_case_b_binds_a_model_whose_points_are_seen_two_then_one_at_a_time(estec
     # The position as in test_case_b_noise_free_is_exact: the screw fit's lag on this motion.
     np.testing.assert_allclose(errors["position_m"], 0, atol=1e-4)
     np.testing.assert_allclose(errors["attitude_rad"], 0, atol=1e-9)
+
+
+def test_a_bound_models_pose_carries_the_bindings_error_until_three_apriori_points_pin_it(estec_rig) -> None:
+    """The grown points carried into the a-priori frame by a progressive binding share the
+    binding's error (a rigid offset of the frame: here three a-priori points each located from
+    a few measurements): a pose fit to them alone must not average it away (harsh_light case
+    (b): 2-4.5 mm off with a 0.2-0.8 mm sigma before), and once three a-priori points are
+    measured again they pin the frame and the pose is known as well as its points say."""
+    pts = body_points(14)
+    apriori = ["A0", "A1", "A2", "A3"]
+    model = Model(tuple(apriori), pts[:4])
+    tracker = FakeTracker(estec_rig, pts, apriori + [f"g{i}" for i in range(10)])
+    for tid in apriori:
+        del tracker.active[tid]
+    engine = Engine(load_config(), estec_rig, model, "b", tracker=tracker, rate_hz=1 / DT)
+    run(engine, range(30))  # the automatic points carry a provisional frame
+    for tid in ("A0", "A1"):  # a-priori points seen for a moment, never three at once
+        tracker.active[tid] = "tracking"
+    run(engine, range(30, 34))
+    tracker.force_lost = {"A0", "A1"}
+    tracker.active["A2"] = "tracking"
+    run(engine, range(34, 38))
+    assert engine.stats.models_bound_progressively == 1
+    tracker.force_lost = {"A0", "A1", "A2"}
+    resting = [pose for _, pose, _ in run(engine, range(38, 60)) if pose.valid]
+    tracker.force_lost = set()
+    pinned = [pose for _, pose, _ in run(engine, range(60, 80))[5:] if pose.valid and pose.n_points >= 13]
+    assert resting and pinned
+    sd_resting = min(np.sqrt(np.diag(p.cov_pose)[:3]).max() for p in resting)
+    sd_pinned = max(np.sqrt(np.diag(p.cov_pose)[:3]).max() for p in pinned)
+    assert sd_resting > 1.5 * sd_pinned

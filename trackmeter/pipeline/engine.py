@@ -307,8 +307,11 @@ class Engine:
         self._com_history: deque[tuple[float, FloatArray, FloatArray, float]] = deque()
         self._coasting = False
         self._blend: tuple[float, FloatArray, FloatArray] | None = None
-        self._via_coast: set[str] = set()  # model points that joined through a coasted pose
-        self._frame_cov: FloatArray | None = None  # their common (frame) error, (6,6)
+        # Model points whose body coordinates share one rigid error of the frame they were
+        # carried into (joined through a coasted pose, carried into the a-priori frame by a
+        # binding, or joined through a pose resting on such points), and that error, (6,6).
+        self._frame_error_ids: set[str] = set()
+        self._frame_cov: FloatArray | None = None
         self._velocity = VelocityEstimator(self.velocity_params)
         self._filter = PoseFilter(self.filter_params, self.rate_hz)
         self._align_M = np.zeros((3, 3))
@@ -627,12 +630,15 @@ class Engine:
                     f"{d2 / dof:.0f} per degree of freedom)")
         if not _sigmas_within(cov, p.max_attitude_sigma_deg, p.max_position_sigma_m):
             return "case (b): binding the model: the located points leave the binding undetermined"
+        carried = set()
         for pid, m in inner._model.items():
             if pid in given:
                 continue  # the a-priori coordinates stand
             b = R.T @ (m.b - t)
             cov_b = R.T @ (m.cov + _position_cov(cov, b, R)) @ R
             self._model[pid] = _ModelPoint(b, cov_b, False, t_s=m.t_s)
+            carried.add(pid)
+        self._share_frame_error(carried, cov)
         self._seen_t.update(inner._seen_t)
         self._lost_since.update(inner._lost_since)
         if inner._last_fit is not None:
@@ -753,6 +759,13 @@ class Engine:
             sd = np.sqrt(np.diag(fit.cov))
             return None, (f"{int(fit.inliers.sum())} model points leave the pose undetermined (1-sigma "
                           f"{sd[:3].max() * 1e3:.0f} mm, {np.degrees(sd[3:].max()):.1f} deg; nearly collinear?)")
+        resting = self._rests_on_frame_error(ids, fit.inliers)
+        cov = fit.cov + self._frame_cov if resting else fit.cov
+        if resting and not _sigmas_within(cov, self.pose_params.max_attitude_sigma_deg, self.pose_params.max_position_sigma_m):
+            sd = np.sqrt(np.diag(self._frame_cov))
+            return None, (f"the model points measured share the error of the coast or binding they joined through "
+                          f"(1-sigma {sd[:3].max() * 1e3:.0f} mm, {np.degrees(sd[3:].max()):.1f} deg): too uncertain "
+                          f"for a pose until points free of it are measured")
         contradiction = self._contradicts_coast(frame.t_s, fit)
         if contradiction is not None:
             # Which of them is wrong is unknown, and kept they would give the same pose again
@@ -763,11 +776,15 @@ class Engine:
         outliers = [ids[n] for n in np.flatnonzero(~fit.inliers)]
         self._pending_reject.update(outliers)
         self.stats.outliers_rejected += len(outliers)
-        R, t, cov = fit.R_cam_body, fit.t_cam_body, self._with_frame_cov(fit.cov, ids, fit.inliers)
+        R, t = fit.R_cam_body, fit.t_cam_body
         self._last_fit = (R, t, cov)
         hold = self._case == "a" and self.pose_params.frame_hold
         held = {i: (self._model[i].b.copy(), self._model[i].cov.copy()) for i in ids} if hold else {}
+        before = set(self._model)
         self._update_model(R, t, cov, fit.scale2, ids, fit.inliers, measured)
+        if resting:
+            # Points joining through this pose are located in the same offset frame.
+            self._frame_error_ids |= set(self._model) - before
         if held:
             self._hold_frame(held)
         self._anchor(frame.t_s, R, t, ids, fit.inliers, measured)
@@ -1064,23 +1081,31 @@ class Engine:
         before = set(self._model)
         self._update_model(R, pos, cov, 1.0, [], np.zeros(0, bool), measured)
         joined = set(self._model) - before
-        if joined:
-            self._via_coast |= joined
-            # Their common error is the coast's, a rigid offset of the frame they define: isotropic
-            # bound (rotation-invariant blocks, so it holds in any later camera pose).
-            iso = np.diag([np.diag(cov)[:3].max()] * 3 + [np.diag(cov)[3:].max()] * 3)
-            self._frame_cov = iso if self._frame_cov is None else np.maximum(self._frame_cov, iso)
+        self._share_frame_error(joined, cov)  # the coast's error: a rigid offset of the frame they define
         return True
 
-    def _with_frame_cov(self, cov: FloatArray, ids: list[str], inliers: NDArray[np.bool_]) -> FloatArray:
-        """The fit's covariance treats every point's error as independent; points that joined
-        through one coasted pose share its error (a rigid offset of the frame they define) and
-        would average it away. Unless at least 3 other points pin the frame, that common error
-        (``_frame_cov``) is added."""
+    def _share_frame_error(self, ids: set[str], cov: FloatArray) -> None:
+        """Model points ``ids`` were carried into the body frame by one transform of covariance
+        ``cov`` (6,6) (position m, rotation rad): a coasted pose they joined through, or the
+        binding that carried a provisional model into the a-priori frame. They share its error,
+        a rigid offset of the frame they define, which a pose fit to them would average away;
+        it is kept as an isotropic bound (rotation-invariant blocks, so it holds in any later
+        camera pose) and added to such poses (:meth:`_rests_on_frame_error`)."""
+        if not ids:
+            return
+        self._frame_error_ids |= ids
+        iso = np.diag([np.diag(cov)[:3].max()] * 3 + [np.diag(cov)[3:].max()] * 3)
+        self._frame_cov = iso if self._frame_cov is None else np.maximum(self._frame_cov, iso)
+
+    def _rests_on_frame_error(self, ids: list[str], inliers: NDArray[np.bool_]) -> bool:
+        """Whether a fit to the model points ``ids`` (``inliers`` (N,) used) carries the frame's
+        common error (``_frame_cov``, :meth:`_share_frame_error`): the fit's covariance treats
+        every point's error as independent, so it is added unless at least 3 points free of it
+        (a-priori points, points grown through poses pinned by such points) pin the frame."""
         if self._frame_cov is None:
-            return cov
-        pinned = sum(1 for n, i in enumerate(ids) if inliers[n] and i not in self._via_coast)
-        return cov if pinned >= 3 else cov + self._frame_cov
+            return False
+        pinned = sum(1 for n, i in enumerate(ids) if inliers[n] and i not in self._frame_error_ids)
+        return pinned < 3
 
     def _contradicts_coast(self, t_s: float, fit: Any) -> str | None:
         """Why a fit from just ``min_points`` points, the first after a coast, is not trusted (None
