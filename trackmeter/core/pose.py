@@ -172,7 +172,7 @@ class PoseParams:
         "(dynamics.fit_centre_of_mass) instead of assuming the worst the lever allows",
     )
     coast_centre_of_mass_window_s: float = param(
-        0.0, "coasting: fit the centre of mass to the measured poses of this many seconds before the loss "
+        10.0, "coasting: fit the centre of mass to the measured poses of this many seconds before the loss "
         "(the same body frame), s (0: to the velocity window's)", min=0.0,
     )
     coast_velocity_sigma_m_s: float = param(
