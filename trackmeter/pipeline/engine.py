@@ -784,7 +784,7 @@ class Engine:
         self._update_model(R, t, cov, fit.scale2, ids, fit.inliers, measured)
         if resting:
             # Points joining through this pose are located in the same offset frame.
-            self._frame_error_ids |= set(self._model) - before
+            self._frame_error_ids = (self._frame_error_ids | (set(self._model) - before)) & self._model.keys()
         if held:
             self._hold_frame(held)
         self._anchor(frame.t_s, R, t, ids, fit.inliers, measured)
@@ -1093,7 +1093,8 @@ class Engine:
         camera pose) and added to such poses (:meth:`_rests_on_frame_error`)."""
         if not ids:
             return
-        self._frame_error_ids |= ids
+        # Forgotten model points leave the set (ids are never reused; a long run would grow it).
+        self._frame_error_ids = (self._frame_error_ids | ids) & self._model.keys()
         iso = np.diag([np.diag(cov)[:3].max()] * 3 + [np.diag(cov)[3:].max()] * 3)
         self._frame_cov = iso if self._frame_cov is None else np.maximum(self._frame_cov, iso)
 
