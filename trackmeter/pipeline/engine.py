@@ -1093,7 +1093,8 @@ class Engine:
         camera pose) and added to such poses (:meth:`_rests_on_frame_error`)."""
         if not ids:
             return
-        # Forgotten model points leave the set (ids are never reused; a long run would grow it).
+        # Forgotten model points leave the set: a long run would grow it, and one that joins
+        # again is judged by the pose it joins through.
         self._frame_error_ids = (self._frame_error_ids | ids) & self._model.keys()
         iso = np.diag([np.diag(cov)[:3].max()] * 3 + [np.diag(cov)[3:].max()] * 3)
         self._frame_cov = iso if self._frame_cov is None else np.maximum(self._frame_cov, iso)
