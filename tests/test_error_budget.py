@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from benchmarks.error_budget import measurement_stats
+from benchmarks.error_budget import measurement_stats, oracle_frames
 from trackmeter.core.targets import TargetState
 
 
@@ -36,3 +36,28 @@ def test_the_most_biased_a_priori_point_is_named_by_its_mean_depth_error_in_mm_a
     assert np.isclose(out["apriori_depth_bias_worst_sigmas"], -2.0)
     assert np.isclose(out["apriori_depth_error_median_mm"], np.median([6, 10, 3, 1]))
     assert np.isclose(out["apriori_lateral_error_median_mm"], 0.0, atol=1e-9)
+
+
+def test_an_a_priori_oracle_with_a_bias_is_the_same_draw_moved_by_a_constant_per_point() -> None:
+    """oracle_frames(apriori_bias_sd_m=...): each a-priori point is off by ONE offset of its own in
+    every frame (a bias, not noise), depth about three times x and y; the noise and the
+    automatic targets are those of the unbiased oracle."""
+    apriori = {f"corner_{i}": np.array([0.1 * i, 0.05, -0.02 * i]) for i in range(40)}
+    Ts = []
+    for k in range(4):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec([0.05 * k, -0.1, 0.2]).as_matrix()
+        T[:3, 3] = (0.01 * k, -0.02, 3.5)
+        Ts.append(T)
+    frames = [tuple(_target(tid, T[:3, :3] @ b + T[:3, 3], 0.002) for tid, b in apriori.items())
+              + (_target("auto_1", T[:3, 3], 0.002),) for T in Ts]
+    rec = {"targets": frames, "truth": [(0.04 * k, T, None, None) for k, T in enumerate(Ts)],
+           "surface": [{"auto_1": np.zeros(3)} for _ in frames], "apriori": apriori}
+    plain = oracle_frames(rec, apriori=True, auto=True, pinned=False)
+    biased = oracle_frames(rec, apriori=True, auto=True, pinned=False, apriori_bias_sd_m=0.003)
+    offsets = np.array([[np.asarray(b.point_cam) - np.asarray(p.point_cam) for p, b in zip(fp, fb)]
+                        for fp, fb in zip(plain, biased)])  # (frames, targets, 3)
+    assert np.allclose(offsets, offsets[0], atol=1e-12)  # constant per point over the frames
+    assert np.allclose(offsets[0, -1], 0.0)  # the automatic target: untouched
+    sd = offsets[0, :-1].std(axis=0)
+    assert 0.002 < sd[2] < 0.004 and np.all((0.0005 < sd[:2]) & (sd[:2] < 0.0015))
