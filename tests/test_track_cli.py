@@ -123,6 +123,38 @@ def test_a_source_that_delivers_no_frame_is_one_line_not_a_hang(monkeypatch, tmp
     assert yaml.safe_load((out / "run.yaml").read_text())["status"] == "no frame"
 
 
+def test_when_every_target_is_refused_and_nothing_else_can_start_one_the_run_ends_at_once(
+        monkeypatch, tmp_path, estec_rig, capsys) -> None:
+    """--target pixels the tracker refuses on frame 0 (here outside the image), without --auto:
+    nothing could ever be tracked, so the run stops there rather than playing the whole
+    source for nothing — each refusal said, one line why it stopped, exit code 2, and the run
+    directory complete for the frames it holds."""
+    fake_source(monkeypatch, estec_rig, n=500)
+    out = tmp_path / "run"
+    code = main(["track", "--source", "fake", "--target", "100000,5", "--target", "5,-300", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    lines = err.strip().splitlines()
+    assert sum("refused at (100000.0, 5.0): outside image" in line for line in lines) == 1, err
+    assert sum("refused at (5.0, -300.0): outside image" in line for line in lines) == 1, err
+    assert "nothing to track: every --target was refused" in lines[-1], err
+    meta = yaml.safe_load((out / "run.yaml").read_text())
+    assert meta["status"] == "nothing to track"
+    frames = meta["summary"]["frames"]
+    assert 1 <= frames < 50 and len(read_motion_csv(out / "states.csv")) == frames
+
+
+def test_a_refused_target_is_said_while_the_run_goes_on_with_the_others(tmp_path, capsys) -> None:
+    out = tmp_path / "run"
+    # 280,331: a textured point of the estec mock-up in its first frame (as above).
+    assert main(["track", "--source", "sim", "--target", "100000,5", "--target", "280,331", "--max-frames", "4",
+                 "--case", "a", "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert sum("refused at (100000.0, 5.0): outside image" in line for line in err.splitlines()) == 1, err
+    meta = yaml.safe_load((out / "run.yaml").read_text())
+    assert meta["status"] == "complete" and meta["summary"]["frames"] == 4
+
+
 def test_max_frames(monkeypatch, tmp_path, estec_rig) -> None:
     fake_source(monkeypatch, estec_rig, n=10)
     out = tmp_path / "run"

@@ -220,10 +220,27 @@ def run(args: argparse.Namespace) -> int:
                                  f"targets {sum(t.measured for t in snap.targets):2d}/{len(snap.targets):2d}   ")
                 sys.stderr.flush()
 
+        # Only the --target points can start a target: when the tracker refuses every one,
+        # nothing will ever be tracked and playing the rest of the source is time lost.
+        only_targets = bool(targets) and args.auto is None and not args.select_model_points
+        said: set[int] = set()  # the commands whose refusal was shown
+
+        def on_replies(replies: list[Any]) -> bool:
+            """Each refusal shown as soon as frame 0 gave it, not after the whole run."""
+            for k, (command, reply) in enumerate(zip(commands, replies)):
+                if not reply.ok and reply.message not in ("pipeline stopped", "not applied"):
+                    if tty:
+                        sys.stderr.write("\r\033[K")  # over the progress line
+                    print(f"trackmeter track: warning: {type(command).__name__}: {reply.message}", file=sys.stderr)
+                    said.add(k)
+            refused = [r for c, r in zip(commands, replies) if isinstance(c, SelectPoint) and not r.ok]
+            state["nothing"] = only_targets and len(refused) == len(targets) and len(said) == len(refused)
+            return bool(state["nothing"])
+
         status = "complete"
         try:
             last, replies = run_headless(feed, engine, on_snapshot=on_snapshot, commands=commands,
-                                         realtime=args.source.startswith("camera"), rig=rig)
+                                         realtime=args.source.startswith("camera"), rig=rig, on_replies=on_replies)
         except KeyboardInterrupt:
             flush_pending()
             writer.close("interrupted", _summary(engine, writer, state))
@@ -252,9 +269,14 @@ def run(args: argparse.Namespace) -> int:
                                   f"{args.out} holds an empty run)")
         if source_warning and source_warning != warning_at_open:
             print(f"trackmeter track: warning: {source_warning}", file=sys.stderr)
-        for command, reply in zip(commands, replies):
-            if not reply.ok:
+        for k, (command, reply) in enumerate(zip(commands, replies)):
+            if not reply.ok and k not in said:
                 print(f"trackmeter track: warning: {type(command).__name__}: {reply.message}", file=sys.stderr)
+        if state.get("nothing"):
+            writer.close("nothing to track", summary)
+            raise TrackmeterError(f"nothing to track: every --target was refused on the first frame and there is no "
+                                  f"--auto (stopped after {writer.frames} frame{'s' if writer.frames != 1 else ''}; "
+                                  f"{args.out} holds {'them' if writer.frames != 1 else 'it'})")
         if src_status and src_status != "ended":
             status = "source failed"
             print(f"trackmeter track: source stopped: {src_status}", file=sys.stderr)

@@ -308,11 +308,17 @@ class Pipeline:
         self._acq_thread.start()
         return self
 
-    def stop(self, timeout_s: float = 10.0) -> None:
-        """Stop both threads, join them, close the recording (everything queued is written)."""
+    def request_stop(self) -> None:
+        """Ask both threads to stop after what they are doing, without waiting for them: safe
+        on the tracking thread itself (a snapshot subscriber, a command's reply callback).
+        :meth:`stop` still joins them and closes the recording."""
         with self._cond:
             self._stop = True
             self._cond.notify_all()
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        """Stop both threads, join them, close the recording (everything queued is written)."""
+        self.request_stop()
         for thread in (self._acq_thread, self._trk_thread):
             if thread.is_alive():
                 thread.join(timeout_s)
@@ -698,6 +704,7 @@ def run_headless(
     rig: StereoRig | None = None,
     record_dir: str | Path | None = None,
     timeout_s: float | None = None,
+    on_replies: Callable[[list[CommandReply]], bool] | None = None,
 ) -> tuple[Snapshot, list[CommandReply]]:
     """Run the pipeline without a console until the source ends (``trackmeter track``).
 
@@ -712,6 +719,10 @@ def run_headless(
         realtime: True for live sources (latest frame wins, drops counted).
         record_dir: also record the stream there.
         timeout_s: give up waiting after this long (the snapshot so far is returned).
+        on_replies: called once with the replies to ``commands`` (in order) as soon as every
+            one has its reply — on the tracking thread, before the next frame is tracked;
+            returning True ends the run there (e.g. every ``--target`` refused: nothing will
+            ever be tracked).
 
     Returns:
         The last snapshot and the replies to ``commands`` (in order).
@@ -722,6 +733,8 @@ def run_headless(
     if on_snapshot is not None:
         pipe.subscribe(on_snapshot)
     futures = [pipe.submit(c) for c in commands]
+    if on_replies is not None:
+        _when_all_replied(futures, lambda replies: on_replies(replies) and pipe.request_stop())
     pipe.start()
     try:
         last = pipe.run_until_end(timeout_s)
@@ -729,6 +742,24 @@ def run_headless(
         pipe.stop()
     replies = [f.result(0) if f.done() else CommandReply(False, "not applied") for f in futures]
     return last, replies
+
+
+def _when_all_replied(futures: list[Future[CommandReply]], callback: Callable[[list[CommandReply]], Any]) -> None:
+    """Call ``callback(replies)`` once, on the thread that resolves the last of ``futures``."""
+    lock = threading.Lock()
+    left = [len(futures)]
+
+    def one_done(_: Future[CommandReply]) -> None:
+        with lock:
+            left[0] -= 1
+            if left[0] != 0:
+                return
+        callback([f.result() for f in futures])
+
+    if not futures:
+        callback([])
+    for f in futures:
+        f.add_done_callback(one_done)
 
 
 def snapshot_points(snapshot: Snapshot) -> tuple[np.ndarray, list[str]]:
