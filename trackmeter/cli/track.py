@@ -233,8 +233,8 @@ def run(args: argparse.Namespace) -> int:
                         sys.stderr.write("\r\033[K")  # over the progress line
                     print(f"trackmeter track: warning: {type(command).__name__}: {reply.message}", file=sys.stderr)
                     said.add(k)
-            refused = [r for c, r in zip(commands, replies) if isinstance(c, SelectPoint) and not r.ok]
-            state["nothing"] = only_targets and len(refused) == len(targets) and len(said) == len(refused)
+            refused = [k for k in said if isinstance(commands[k], SelectPoint)]
+            state["nothing"] = only_targets and len(refused) == len(targets)
             return bool(state["nothing"])
 
         status = "complete"
