@@ -720,9 +720,9 @@ def run_headless(
         record_dir: also record the stream there.
         timeout_s: give up waiting after this long (the snapshot so far is returned).
         on_replies: called once with the replies to ``commands`` (in order) as soon as every
-            one has its reply — on the tracking thread, before the next frame is tracked;
-            returning True ends the run there (e.g. every ``--target`` refused: nothing will
-            ever be tracked).
+            one has its reply (on the tracking thread, as the commands are applied);
+            returning True ends the run there, after at most the frame already waiting (e.g.
+            every ``--target`` refused: nothing will ever be tracked).
 
     Returns:
         The last snapshot and the replies to ``commands`` (in order).
