@@ -105,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
     from trackmeter.data.model import load_model
     from trackmeter.data.rundir import RunWriter, check_run_directory
     from trackmeter.pipeline.engine import Engine, SelectModelPoints
-    from trackmeter.pipeline.pipeline import run_headless
+    from trackmeter.pipeline.pipeline import NOT_APPLIED, STOPPED, run_headless
     from trackmeter.pipeline.snapshot import AcquireModel, SelectPoint, SetAuto, Snapshot
 
     config = load_config_from_args(args)
@@ -228,7 +228,7 @@ def run(args: argparse.Namespace) -> int:
         def on_replies(replies: list[Any]) -> bool:
             """Each refusal shown as soon as frame 0 gave it, not after the whole run."""
             for k, (command, reply) in enumerate(zip(commands, replies)):
-                if not reply.ok and reply.message not in ("pipeline stopped", "not applied"):
+                if not reply.ok and reply.message not in (STOPPED, NOT_APPLIED):
                     if tty:
                         sys.stderr.write("\r\033[K")  # over the progress line
                     print(f"trackmeter track: warning: {type(command).__name__}: {reply.message}", file=sys.stderr)

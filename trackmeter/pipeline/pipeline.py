@@ -217,6 +217,11 @@ class _RateMeter:
         return (len(self._times) - 1) / span if span > 0 else 0.0
 
 
+# The replies of commands the pipeline never got to apply (it stopped, or the run ended first):
+# not refusals by the tracker.
+STOPPED = "pipeline stopped"
+NOT_APPLIED = "not applied"
+
 class Pipeline:
     """Acquisition and tracking threads around one source and one engine.
 
@@ -329,7 +334,7 @@ class Pipeline:
         with self._cond:
             pending, self._commands = list(self._commands), collections.deque()
         for command in pending:
-            _resolve(command, CommandReply(False, "pipeline stopped"))
+            _resolve(command, CommandReply(False, STOPPED))
 
     def close(self) -> None:
         """Stop and close the source."""
@@ -399,7 +404,7 @@ class Pipeline:
         assert command.reply is not None
         with self._cond:
             if self._stop:
-                _resolve(command, CommandReply(False, "pipeline stopped"))
+                _resolve(command, CommandReply(False, STOPPED))
             else:
                 self._commands.append(command)
                 self._cond.notify_all()
@@ -740,7 +745,7 @@ def run_headless(
         last = pipe.run_until_end(timeout_s)
     finally:
         pipe.stop()
-    replies = [f.result(0) if f.done() else CommandReply(False, "not applied") for f in futures]
+    replies = [f.result(0) if f.done() else CommandReply(False, NOT_APPLIED) for f in futures]
     return last, replies
 
 
