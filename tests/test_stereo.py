@@ -243,3 +243,30 @@ def test_rectification_of_alpha_one_keeps_geometry(estec_rig: StereoRig) -> None
     p = points_in_view(estec_rig, 10, 6)
     uv, d = rect.project_rectified(p)
     np.testing.assert_allclose(rect.triangulate(uv, d), p, atol=1e-9)
+
+
+def test_matching_needs_the_right_camera_to_the_right(estec_rig: StereoRig) -> None:
+    """The matcher searches along rectified ROWS with ``d = u_left - u_right > 0``: a vertical
+    rig (its epipolar lines are columns) or a swapped one (every depth negative) would give
+    points that look measured and are not, so measuring and tracking refuse them up front."""
+    import dataclasses
+
+    from trackmeter.core.matching import measure_points
+    from trackmeter.core.stereo import check_side_by_side
+    from trackmeter.core.tracking import Tracker, TrackerParams
+    from trackmeter.core.features import FeatureParams
+    from trackmeter.core.matching import MeasureParams
+
+    check_side_by_side(estec_rig)  # right camera at +x: fine
+    slightly_tilted = dataclasses.replace(estec_rig, T=np.array([-0.28, 0.09, 0.02]))
+    check_side_by_side(slightly_tilted)  # rectification turns it level
+    vertical = dataclasses.replace(estec_rig, T=np.array([0.0, -0.28, 0.0]))
+    swapped = dataclasses.replace(estec_rig, T=-estec_rig.T)
+    img = np.zeros(estec_rig.image_size[::-1], np.uint8)
+    for rig, words in ((vertical, "not side by side"), (swapped, "lies left of the left one")):
+        with pytest.raises(TrackmeterError, match=words):
+            check_side_by_side(rig)
+        with pytest.raises(TrackmeterError, match=words):
+            measure_points(rig, img, img, [(300.0, 200.0)])
+        with pytest.raises(TrackmeterError, match=words):
+            Tracker(rig, TrackerParams(), FeatureParams(), MeasureParams())

@@ -75,7 +75,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from trackmeter.core.params import param
-from trackmeter.core.stereo import Rectification, StereoRig
+from trackmeter.core.stereo import Rectification, StereoRig, check_side_by_side
 from trackmeter.errors import TrackmeterError
 
 FloatArray = NDArray[np.float64]
@@ -1310,7 +1310,9 @@ def _windows_ok(col_ok: NDArray[np.bool_], P: int) -> NDArray[np.bool_]:
 
 
 def check_stereo_pair(rig: StereoRig, left: NDArray[Any], right: NDArray[Any]) -> None:
-    """Raise :class:`TrackmeterError` unless both images are (H, W) uint8 of the rig's size."""
+    """Raise :class:`TrackmeterError` unless both images are (H, W) uint8 of the rig's size and
+    the rig is side by side (:func:`~trackmeter.core.stereo.check_side_by_side`)."""
+    check_side_by_side(rig)
     W, H = rig.image_size
     for name, img in (("left", left), ("right", right)):
         arr = np.asarray(img)

@@ -393,6 +393,33 @@ class Rectification:
         return np.sqrt(np.diagonal(C, axis1=1, axis2=2))
 
 
+def check_side_by_side(rig: StereoRig) -> None:
+    """Raise :class:`TrackmeterError` unless ``rig`` can be matched: after rectification its
+    right camera must lie to the right of the left one, so that a point's match lies on the
+    same rectified ROW with a positive disparity ``d = u_left - u_right`` (the stereo matcher
+    searches rows, and depth is ``f b / d``).
+
+    A vertical rig rectifies to equal columns (``P2[1,3]`` carries the baseline, ``P2[0,3]`` is
+    0): a row search finds look-alikes at made-up depths. A swapped rig (right camera at -x:
+    the images or the cameras exchanged) gives every depth negative.
+    """
+    P2 = rig.rectification.P2
+    bx, by = float(P2[0, 3]), float(P2[1, 3])
+    t = np.round(rig.T, 4).tolist()
+    if abs(by) > abs(bx):
+        raise TrackmeterError(
+            f"the rig is not side by side (T = {t} m: the right camera lies mostly "
+            f"{'below' if by < 0 else 'above'} the left one): matching searches along rectified rows, so the "
+            "right camera must lie to the right of the left one (T about (-baseline, 0, 0)); turn both "
+            "images and the rig by 90 degrees"
+        )
+    if bx >= 0:
+        raise TrackmeterError(
+            f"the right camera lies left of the left one (T = {t} m): left and right are swapped; "
+            "exchange the left and right images (and the rig's cameras)"
+        )
+
+
 def depth_sigma(z_m: ArrayLike, focal_px: float, baseline_m: float, sigma_disparity_px: float) -> FloatArray:
     """Depth standard deviation of a stereo point, paper eq. 2: ``sigma_z = z² sigma_d / (f b)``, m.
 

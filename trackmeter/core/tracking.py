@@ -59,7 +59,7 @@ from trackmeter.core.patch_tracking import (
     transform_plane,
     zncc_search,
 )
-from trackmeter.core.stereo import StereoRig
+from trackmeter.core.stereo import StereoRig, check_side_by_side
 from trackmeter.core.targets import Refusal, TargetOrigin, TargetState, TargetStatus
 from trackmeter.core.transforms import absolute_orientation
 from trackmeter.errors import TrackmeterError
@@ -251,6 +251,7 @@ class Tracker:
     """
 
     def __init__(self, rig: StereoRig, params: TrackerParams, features: FeatureParams, measure: MeasureParams) -> None:
+        check_side_by_side(rig)
         self.rig = rig
         self.params = params
         self.features = features
