@@ -208,3 +208,35 @@ def test_a_rig_with_its_baseline_in_millimetres_is_warned_about(tmp_path: Path) 
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         load_rig(save_rig(wide, tmp_path / "wide.yaml"))
+
+
+@pytest.mark.parametrize("header", ["%YAML:1.0\n---\n", ""])
+def test_plain_yaml_lists_are_matrices_too(tmp_path: Path, header: str) -> None:
+    """A rig written by hand or by another tool as plain YAML lists (nested rows or flat) reads
+    as the same rig as the ``!!opencv-matrix`` form; a key that is no matrix at all is one
+    clear error, not OpenCV's."""
+    rig = _rig()
+    K1, K2 = rig.left.K, rig.right.K
+
+    def flat(a: np.ndarray) -> str:
+        return "[" + ", ".join(repr(float(x)) for x in np.ravel(a)) + "]"
+
+    def rows(a: np.ndarray) -> str:
+        return "[" + ", ".join(flat(r) for r in a) + "]"
+
+    text = (f"{header}image_width: 640\nimage_height: 480\nK1: {rows(K1)}\nD1: {flat(rig.left.dist)}\n"
+            f"K2: {flat(K2)}\nD2: {rows(rig.right.dist.reshape(1, -1))}\nR: {rows(rig.R)}\nT: {flat(rig.T)}\n")
+    path = tmp_path / "plain.yaml"
+    path.write_text(text)
+    got = load_rig(path)
+    np.testing.assert_array_equal(got.left.K, K1)
+    np.testing.assert_array_equal(got.right.K, K2)
+    np.testing.assert_array_equal(got.left.dist, rig.left.dist)
+    np.testing.assert_array_equal(got.right.dist, rig.right.dist)
+    np.testing.assert_allclose(got.R, rig.R, rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(got.T, rig.T)
+    for bad, words in (("K1: hello", "'K1' is not a matrix"), ("K1: [[1, 2], [3]]", "'K1' is not a matrix"),
+                       ("K1: {a: 1}", "'K1' is not a matrix")):
+        path.write_text(text.replace(f"K1: {rows(K1)}", bad))
+        with pytest.raises(TrackmeterError, match=words):
+            load_rig(path)

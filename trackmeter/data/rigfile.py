@@ -32,18 +32,45 @@ def _open(path: Path) -> cv2.FileStorage:
     return fs
 
 
+#: Keys whose matrix is 3x3: a flat list of nine numbers is read row by row.
+_SQUARE_KEYS = frozenset({"K1", "K2", "M1", "M2", "R"})
+
+
 def _matrix(fs: cv2.FileStorage, key: str, path: Path, required: bool = True) -> np.ndarray | None:
+    """``key``'s matrix: an ``!!opencv-matrix``, a number, or a plain YAML list (flat, or a list
+    of rows) of numbers as a hand-written or another tool's file has it."""
     node = fs.getNode(key)
     if node.empty() or node.isNone():
         if required:
             raise TrackmeterError(f"{path}: missing key '{key}'")
         return None
+    not_matrix = TrackmeterError(f"{path}: key '{key}' is not a matrix (an !!opencv-matrix or a list of numbers)")
     if node.isReal() or node.isInt():
         return np.array([node.real()])
-    mat = node.mat()
+    if node.isSeq():
+        try:
+            values = np.array(_numbers(node), dtype=float)
+        except (TypeError, ValueError):  # a string inside, or rows of unequal length
+            raise not_matrix from None
+        if values.ndim > 2 or values.size == 0:
+            raise not_matrix
+        return values.reshape(3, 3) if key in _SQUARE_KEYS and values.size == 9 else values
+    try:
+        mat = node.mat()
+    except (cv2.error, SystemError):  # a mapping that is not an !!opencv-matrix, or a string
+        raise not_matrix from None
     if mat is None:
-        raise TrackmeterError(f"{path}: key '{key}' is not a matrix")
+        raise not_matrix
     return np.asarray(mat, dtype=float)
+
+
+def _numbers(node: cv2.FileNode) -> list | float | str:
+    """A plain YAML sequence as nested Python lists (a non-number leaf stays a string)."""
+    if node.isSeq():
+        return [_numbers(node.at(i)) for i in range(node.size())]
+    if node.isReal() or node.isInt():
+        return float(node.real())
+    return "not a number"
 
 
 def _scalar(fs: cv2.FileStorage, key: str) -> float | None:
