@@ -164,6 +164,9 @@ def _write(path, text):
         (lambda d: (_write(d / "t.tum", "5.0 0 0 3 0 0 0 1\n"), None), "no overlapping timestamps"),
         (lambda d: (d / "missing.tum", None), "no such file"),
         (lambda d: ((d / "emptydir").mkdir(), d / "emptydir"), "no groundtruth"),
+        # a run's states.csv given as the truth, without one valid pose
+        (lambda d: (_write(d / "s.csv", ",".join(STATES_COLUMNS) + "\n0.0,0" + "," * (len(STATES_COLUMNS) - 2) + "\n"),
+                    d / "s.csv"), "no valid pose"),
     ],
 )
 def test_bad_truth_is_one_line_and_exit_2(capsys, tmp_path, make, message):

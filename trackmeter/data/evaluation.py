@@ -110,12 +110,16 @@ def load_truth(spec: str | Path) -> LoadedMotion:
             raise TrackmeterError(f"{path}: folder has no groundtruth.csv or groundtruth.tum")
         if found.suffix == ".csv":
             s = read_motion_csv(found).valid_only()
+            if len(s) == 0:
+                raise TrackmeterError(f"{found}: no valid pose")
             return LoadedMotion(s, str(found), s.has_velocity)
         s = MotionSeries.from_trajectory(read_tum(found))
         return LoadedMotion(s, str(found), False)
     if not path.is_file():
         raise TrackmeterError(f"{path}: no such file or folder")
     series = _read_pose_file(path)
+    if len(series) == 0:  # e.g. a run's states.csv that never had a pose
+        raise TrackmeterError(f"{path}: no valid pose")
     beside = path.parent / "groundtruth.csv"
     if not series.has_velocity and beside.is_file() and beside.resolve() != path.resolve():
         merged = _with_rates_from(series, beside)
@@ -195,7 +199,8 @@ def format_summary(summary: dict, truth: str = "", estimate: str = "", align: st
             )
     lines.append(f"SPEED score (mean of angle [rad] + |dt|/|t|): {summary['speed_score']:.6f}")
     if "velocity_m_s" not in summary:
-        lines.append("(no velocity errors: needs a run directory's states.csv and a groundtruth.csv)")
+        lines.append("(no velocity errors: they need velocities on both sides, paired after the settle time: a "
+                     "run's states.csv, once its rates settled, and a groundtruth.csv)")
     return "\n".join(lines)
 
 
