@@ -48,7 +48,7 @@ class TextureSource(Source):
 def fake_source(monkeypatch, rig, **kw) -> None:
     import trackmeter.sources as sources
 
-    monkeypatch.setattr(sources, "open_source", lambda spec, rig_override=None, realtime=False, loop=False:
+    monkeypatch.setattr(sources, "open_source", lambda spec, rig_override=None, realtime=False, loop=False, **_:
                         TextureSource(rig_override or rig, **kw))
 
 
@@ -326,6 +326,32 @@ def test_frames_that_do_not_match_the_rig_are_refused_before_the_run(opencv_samp
 THREE_POINTS = "points:\n- {id: a, xyz: [0, 0, 0]}\n- {id: b, xyz: [0.1, 0, 0]}\n- {id: c, xyz: [0, 0.1, 0]}\n"
 
 
+def test_a_broken_rig_or_model_in_the_folder_stops_nothing_the_user_replaced(opencv_sample_rig, opencv_sample_sequence,
+                                                                            tmp_path, capsys) -> None:
+    """DESIGN.md section 6: the folder's rig.yaml is used unless --rig is given, its model.yaml
+    for case (b) unless --model is given; a broken one the user replaced (or case a, which
+    needs none) must not stop the run, and one that would be used is still one clear line."""
+    import shutil
+
+    folder = tmp_path / "seq"
+    shutil.copytree(opencv_sample_sequence, folder)
+    (folder / "rig.yaml").write_text("%YAML:1.0\n---\nimage_width: 640\n")
+    (folder / "model.yaml").write_text("points: [oops\n")
+    (tmp_path / "model.yaml").write_text(THREE_POINTS)
+    rig = ["--rig", str(opencv_sample_rig / "intrinsics.yml")]
+    for k, extra in enumerate([["--model", str(tmp_path / "model.yaml")], ["--case", "a"]]):
+        out = tmp_path / f"run{k}"
+        code = main(["track", "--source", f"seq:{folder}", *rig, *extra, "--auto", "4", "--out", str(out)])
+        assert code == 0, capsys.readouterr().err
+        assert yaml.safe_load((out / "run.yaml").read_text())["status"] == "complete"
+    capsys.readouterr()
+    for k, args in enumerate([rig, ["--model", str(tmp_path / "model.yaml")]]):
+        code = main(["track", "--source", f"seq:{folder}", *args, "--auto", "4", "--out", str(tmp_path / f"bad{k}")])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1 and ("model.yaml" if k == 0 else "rig.yaml") in err[0], err
+        assert not (tmp_path / f"bad{k}").exists()
+
+
 def test_case_help_says_when_b_is_chosen(capsys) -> None:
     with pytest.raises(SystemExit):
         main(["track", "--help"])
@@ -341,7 +367,7 @@ def test_a_model_without_bound_targets_runs_case_a_and_says_so(monkeypatch, tmp_
 
     model_path = _model(tmp_path, THREE_POINTS)
 
-    def open_fake(spec, rig_override=None, realtime=False, loop=False):  # type: ignore[no-untyped-def]
+    def open_fake(spec, rig_override=None, realtime=False, loop=False, **_):  # type: ignore[no-untyped-def]
         source = TextureSource(rig_override or estec_rig, n=3)
         source.model = load_model(model_path) if model_from == "source" else None
         return source

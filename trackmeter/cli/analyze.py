@@ -47,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
             raise TrackmeterError(f"--points must be at least 3, got {args.points}")
         params = replace(params, points_per_range=args.points)
     # --rig is read once the source is open: it may take its size from the source's frames.
-    with open_source_with_rig(args.source, args.rig) as source:
+    with open_source_with_rig(args.source, args.rig, own_model=False) as source:
         rig = source.rig
         if rig is None:
             raise TrackmeterError(f"source {args.source!r} carries no rig: give --rig")

@@ -28,7 +28,8 @@ def load_config_from_args(args: argparse.Namespace):  # type: ignore[no-untyped-
     return load_config(getattr(args, "config", None))
 
 
-def open_source_with_rig(spec: str, rig_path: str | None, realtime: bool = False, loop: bool = False) -> Source:
+def open_source_with_rig(spec: str, rig_path: str | None, realtime: bool = False, loop: bool = False,
+                         own_model: bool = True) -> Source:
     """Open the source SPEC for a command that measures on its frames, with its rig checked.
 
     The rig is the file ``rig_path`` (``--rig``) when given, else the one the source carries.
@@ -42,6 +43,9 @@ def open_source_with_rig(spec: str, rig_path: str | None, realtime: bool = False
         spec: a source SPEC (DESIGN.md section 6).
         rig_path: the ``--rig`` file, or None.
         realtime, loop: as :func:`trackmeter.sources.open_source`.
+        own_model: False: the source's own model (a sequence folder's ``model.yaml``) is not
+            read (``--model`` given, or a command that needs none). With ``rig_path``, the
+            folder's ``rig.yaml`` is not read either: a broken file there stops nothing.
 
     Returns:
         The open source, its ``rig`` replaced by ``rig_path``'s when given (may still be None
@@ -54,7 +58,7 @@ def open_source_with_rig(spec: str, rig_path: str | None, realtime: bool = False
     from trackmeter.data.rigfile import load_rig
     from trackmeter.sources import open_source
 
-    source = open_source(spec, realtime=realtime, loop=loop)
+    source = open_source(spec, realtime=realtime, loop=loop, own_rig=not rig_path, own_model=own_model)
     try:
         size = source.frame_size
         if rig_path:

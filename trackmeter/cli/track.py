@@ -124,7 +124,9 @@ def run(args: argparse.Namespace) -> int:
 
     # The rig is read once the source is open (a rig file may need its frame size) and checked
     # against its frames here, before the run folder is made.
-    source = open_source_with_rig(args.source, args.rig, realtime=args.source.startswith("camera"))
+    # The folder's own model only when it may be used: not with --model, nor in case (a) or (c).
+    source = open_source_with_rig(args.source, args.rig, realtime=args.source.startswith("camera"),
+                                  own_model=model is None and args.case in (None, "b"))
     warning_at_open = getattr(source, "warning", None)  # shown by the source already
     try:
         rig = source.rig

@@ -334,13 +334,17 @@ def pair_by_nearest(t_left: ArrayLike, t_right: ArrayLike, tolerance: float) -> 
     return [(i, int(j)) for i, j in enumerate(j_of_i) if i_of_j[j] == i and abs(a[i] - b[j]) <= tolerance]
 
 
-def index_sequence(directory: str | Path, tolerance_s: float | None = None) -> SequenceIndex:
+def index_sequence(
+    directory: str | Path, tolerance_s: float | None = None, *, read_rig: bool = True, read_model: bool = True
+) -> SequenceIndex:
     """Index a sequence folder: pair its images, read its rig, model and ground truth.
 
     Args:
         directory: ``DIR`` (or an EuRoC ``DIR`` with ``mav0/``).
         tolerance_s: how far apart a left and a right timestamp may be to form a pair, s.
             Default: a quarter of the median left frame interval (1 ms when unknown).
+        read_rig, read_model: False leaves the folder's rig (model) unread and None, e.g. when
+            the user gives another (``--rig``, ``--model``): a broken file there then stops nothing.
 
     Raises:
         TrackmeterError: not a sequence folder, unreadable CSV or rig/model/truth file, or no
@@ -366,13 +370,16 @@ def index_sequence(directory: str | Path, tolerance_s: float | None = None) -> S
         raise TrackmeterError(f"{directory}: no stereo pair (left and right timestamps within {tolerance_s * 1e3:.3g} ms)")
     t_s = ns_to_seconds(np.array([t_left[i] for i, _ in pairs], dtype=np.int64))
     rig_file = find_sequence_file(directory, "rig.yaml")
-    if rig_file is not None:
+    rig: StereoRig | None = None
+    if not read_rig:
+        pass
+    elif rig_file is not None:
         rig = load_rig(rig_file)
     else:
         rig, problem = read_euroc_rig(root)
         if problem:
             warnings.append(problem)
-    model_file = find_sequence_file(directory, "model.yaml")
+    model_file = find_sequence_file(directory, "model.yaml") if read_model else None
     model = load_model(model_file) if model_file is not None else None
     truth = _read_truth(find_sequence_file(directory, "groundtruth.csv", "groundtruth.tum"), t_s, tolerance_s)
     return SequenceIndex(

@@ -28,7 +28,7 @@ DEFAULT_SCENARIO = "estec"
 
 
 def open_source(spec: str, rig_override: StereoRig | None = None, realtime: bool = False, loop: bool = False,
-                render_ahead: bool = True) -> Source:
+                render_ahead: bool = True, *, own_rig: bool = True, own_model: bool = True) -> Source:
     """Open the source a SPEC string names.
 
     Args:
@@ -39,6 +39,9 @@ def open_source(spec: str, rig_override: StereoRig | None = None, realtime: bool
         loop: start recorded and simulated streams again at their end (else they end).
         render_ahead: the simulator renders its stream in a separate process, ahead of the
             reader (else in the reader's thread); other sources ignore it.
+        own_rig, own_model: False: a sequence folder's ``rig.yaml`` (``model.yaml``) is not
+            read, its ``rig`` (``model``) None — the caller brings another or needs none, and a
+            broken file there must not stop it.
 
     Raises:
         TrackmeterError: a malformed SPEC, a missing file or folder, a camera that cannot be
@@ -59,7 +62,7 @@ def open_source(spec: str, rig_override: StereoRig | None = None, realtime: bool
         if not arg:
             hint = f" (the folder {text!r} here: give ./{text})" if Path(text).is_dir() else ""
             raise TrackmeterError(f"seq: needs a folder, as seq:DIR{hint}")
-        return _open_sequence(arg, rig_override, realtime, loop)
+        return _open_sequence(arg, rig_override, realtime, loop, own_rig, own_model)
     if kind == "video":
         parts = [p.strip() for p in arg.split(",")]
         if len(parts) != 2 or not all(parts):
@@ -82,13 +85,14 @@ def open_source(spec: str, rig_override: StereoRig | None = None, realtime: bool
         return CameraSource(devices, rig=rig_override)
     # A bare folder (DESIGN.md: "seq:DIR or a bare DIR"). Windows drive letters never reach here.
     if Path(text).is_dir():
-        return _open_sequence(text, rig_override, realtime, loop)
+        return _open_sequence(text, rig_override, realtime, loop, own_rig, own_model)
     raise TrackmeterError(
         f"unknown source {spec!r}: expected sim, sim:SCENARIO, seq:DIR, an existing folder, video:LEFT,RIGHT, camera:I[,J]"
     )
 
 
-def _open_sequence(directory: str, rig: StereoRig | None, realtime: bool, loop: bool) -> Source:
+def _open_sequence(directory: str, rig: StereoRig | None, realtime: bool, loop: bool, own_rig: bool = True,
+                   own_model: bool = True) -> Source:
     from trackmeter.sources.sequence import SequenceSource
 
-    return SequenceSource(directory, rig=rig, realtime=realtime, loop=loop)
+    return SequenceSource(directory, rig=rig, realtime=realtime, loop=loop, read_rig=own_rig, read_model=own_model)

@@ -28,6 +28,8 @@ class SequenceSource(Source):
             across loops (each loop is shifted by the sequence's span plus one frame
             interval), so downstream filters never see time go backwards.
         tolerance_s: left/right pairing tolerance (default: a quarter frame interval).
+        read_rig, read_model: False leaves the folder's ``rig.yaml`` (``model.yaml``) unread:
+            the user brings another, or needs none. With ``rig`` given, ``rig.yaml`` is not read.
 
     Attributes:
         index: the :class:`SequenceIndex` (paths, times, truth).
@@ -45,8 +47,12 @@ class SequenceSource(Source):
         realtime: bool = False,
         loop: bool = False,
         tolerance_s: float | None = None,
+        read_rig: bool = True,
+        read_model: bool = True,
     ) -> None:
-        self.index: SequenceIndex = index_sequence(directory, tolerance_s)
+        self.index: SequenceIndex = index_sequence(
+            directory, tolerance_s, read_rig=read_rig and rig is None, read_model=read_model
+        )
         self.rig = rig if rig is not None else self.index.rig
         self.rate_hz = self.index.rate_hz
         self.model: Model | None = self.index.model
