@@ -173,6 +173,9 @@ def _model(tmp_path: Path, text: str) -> Path:
     [
         ("points:\n- {id: a, xyz: [0, 0, 0]}\n- {id: b, xyz: [1, 0, 0]}\n", [], "at least 3 points"),
         ("points:\n- {id: a, xyz: [0, 0, 0]}\n- {id: a, xyz: [1, 0, 0]}\n- {id: c, xyz: [0, 1, 0]}\n", [], "twice"),
+        # no attitude about their line: case (b)'s pose is undefined
+        ("points:\n- {id: a, xyz: [0, 0, 0]}\n- {id: b, xyz: [1, 0, 0]}\n- {id: c, xyz: [2, 0, 0]}\n", [], "collinear"),
+        ("points:\n- {id: a, xyz: [1, 2, 3]}\n- {id: b, xyz: [1, 2, 3]}\n- {id: c, xyz: [1, 2, 3]}\n", [], "collinear"),
         ("points:\n- {id: a, xyz: [0, 0, 0]}\n- {id: b, xyz: [1, 0, 0]}\n- {id: c, xyz: [0, 1, 0]}\n",
          ["--target", "zz=100,100"], "'zz' is not in the model"),
     ],

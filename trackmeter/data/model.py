@@ -58,6 +58,13 @@ class Model:
             if i in seen:
                 raise TrackmeterError(f"model point id {i!r} appears twice")
             seen.add(i)
+        # Points on one line (or at one place) leave the attitude about that line undefined.
+        spread = np.linalg.svd(p - p.mean(axis=0), compute_uv=False)
+        if not spread[1] > 1e-9 * max(spread[0], 1e-300):
+            raise TrackmeterError(
+                f"a model's points must not all be collinear (or at one place): {len(ids)} points on one line "
+                "leave the attitude about it undefined"
+            )
         p.flags.writeable = False
         object.__setattr__(self, "ids", ids)
         object.__setattr__(self, "points_body", p)

@@ -83,7 +83,10 @@ class Simulator(Source):
         self.rig = rig_override if rig_override is not None else self.true_rig
         self.rate_hz = float(sc.rate_hz)
         self.mockup = mockup if mockup is not None else load_mockup(mockup_path(sc))
-        self.model = Model.from_pairs(self.mockup.salient_points) if len(self.mockup.salient_points) >= 3 else None
+        try:
+            self.model: Model | None = Model.from_pairs(self.mockup.salient_points)
+        except TrackmeterError:  # fewer than 3 salient points, or collinear ones: no case (b) on it
+            self.model = None
         self.renderer = StereoRenderer(self.true_rig, self.mockup, sc.render)
         self.realtime = realtime
         self.loop = loop
