@@ -321,6 +321,21 @@ def test_unreadable_image_skipped_at_read(tmp_path):
     assert src.skipped == 1 and "unreadable" in src.warning
 
 
+def test_a_frame_of_another_size_mid_sequence_fails_the_source_by_name(tmp_path):
+    """The rig's calibration holds for one image size (checked against the first frame when
+    the source opens); a later pair of another size is no frame of this camera: the source
+    fails there with the file named, instead of tracking garbage."""
+    d = _write(tmp_path / "s", _frames(3))
+    small = np.zeros((12, 16), np.uint8)
+    for cam in ("cam0", "cam1"):
+        cv2.imwrite(str(d / cam / "data" / "80000000.png"), small)
+    src = SequenceSource(d)
+    assert src.frame_size == (32, 24)
+    assert src.read() is not None and src.read() is not None
+    with pytest.raises(TrackmeterError, match=r"80000000.png is 16x12 px.*32x24"):
+        src.read()
+
+
 def test_writer_refuses_existing_sequence_and_bad_images(tmp_path):
     d = _write(tmp_path / "s", _frames(2))
     with pytest.raises(TrackmeterError, match="already holds a sequence"):

@@ -306,6 +306,31 @@ def test_an_image_unreadable_mid_sequence_is_reported_at_the_end_and_in_run_yaml
     assert meta["summary"]["frames"] == 2 and "unreadable" in meta["summary"]["source_warning"]
 
 
+def test_a_source_failing_mid_run_is_said_once(opencv_sample_rig, opencv_sample_sequence, tmp_path) -> None:
+    """As a user runs it (a process of its own, logging as it is by default): the failure is
+    one line of track's, not also the pipeline's log line; the frames before it are kept."""
+    import shutil
+    import subprocess
+    import sys
+
+    import cv2
+
+    folder = tmp_path / "seq"
+    shutil.copytree(opencv_sample_sequence, folder)
+    for cam in ("cam0", "cam1"):
+        last = sorted((folder / cam / "data").iterdir())[-1]
+        cv2.imwrite(str(last), cv2.resize(cv2.imread(str(last)), (320, 240)))  # another camera's frame
+    out = tmp_path / "run"
+    done = subprocess.run([sys.executable, "-m", "trackmeter.cli.main", "track", "--source", f"seq:{folder}",
+                           "--rig", str(opencv_sample_rig / "intrinsics.yml"), "--auto", "4", "--out", str(out)],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr
+    said = [line for line in done.stderr.splitlines() if "320x240" in line]
+    assert len(said) == 1 and said[0].startswith("trackmeter track: source stopped: source failed:"), done.stderr
+    assert yaml.safe_load((out / "run.yaml").read_text())["status"] == "source failed"
+    assert len(read_motion_csv(out / "states.csv")) == 2
+
+
 @pytest.mark.parametrize("rig_from", ["--rig", "rig.yaml"])
 @pytest.mark.parametrize("targets", [["--auto", "4"], ["--target", "100,100"]])
 def test_frames_that_do_not_match_the_rig_are_refused_before_the_run(opencv_sample_sequence, sequence_with_wrong_rig,

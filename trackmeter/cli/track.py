@@ -24,9 +24,11 @@ Examples:
 from __future__ import annotations
 
 import argparse
+import contextlib
+import logging
 import sys
 import time
-from typing import Any
+from typing import Any, Iterator
 
 from trackmeter.cli.common import parse_uv
 from trackmeter.errors import TrackmeterError
@@ -105,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
     from trackmeter.data.model import load_model
     from trackmeter.data.rundir import RunWriter, check_run_directory
     from trackmeter.pipeline.engine import Engine, SelectModelPoints
-    from trackmeter.pipeline.pipeline import NOT_APPLIED, STOPPED, run_headless
+    from trackmeter.pipeline.pipeline import NOT_APPLIED, STOPPED, run_headless, source_log
     from trackmeter.pipeline.snapshot import AcquireModel, SelectPoint, SetAuto, Snapshot
 
     config = load_config_from_args(args)
@@ -241,8 +243,10 @@ def run(args: argparse.Namespace) -> int:
 
         status = "complete"
         try:
-            last, replies = run_headless(feed, engine, on_snapshot=on_snapshot, commands=commands,
-                                         realtime=args.source.startswith("camera"), rig=rig, on_replies=on_replies)
+            # A failing source is said once, below, with the run's status (not also by the log).
+            with _quiet(source_log):
+                last, replies = run_headless(feed, engine, on_snapshot=on_snapshot, commands=commands,
+                                             realtime=args.source.startswith("camera"), rig=rig, on_replies=on_replies)
         except KeyboardInterrupt:
             flush_pending()
             writer.close("interrupted", _summary(engine, writer, state))
@@ -304,3 +308,14 @@ def _summary(engine: Any, writer: Any, state: dict[str, Any]) -> dict[str, Any]:
     out["invalid_reasons"] = dict(state["invalid"])
     out["elapsed_s"] = round(time.monotonic() - state["t0"], 3)
     return out
+
+
+@contextlib.contextmanager
+def _quiet(logger: logging.Logger) -> Iterator[None]:
+    """``logger`` silent within the block (its level restored after)."""
+    level = logger.level
+    logger.setLevel(logging.CRITICAL + 1)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)

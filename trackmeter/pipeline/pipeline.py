@@ -63,6 +63,9 @@ from trackmeter.pipeline.snapshot import (
 from trackmeter.sources.base import Source, StereoFrame
 
 log = logging.getLogger(__name__)
+#: A failing source's one line (a console's terminal shows it). The status also reaches every
+#: snapshot: a consumer that reports it itself (``trackmeter track``) quiets this logger.
+source_log = logging.getLogger(f"{__name__}.source")
 
 ErrorsDict = dict[str, Any]
 
@@ -429,7 +432,7 @@ class Pipeline:
                     frame = self.source.read()
             except Exception as exc:  # a failing camera must not take the process down
                 message = str(exc) if isinstance(exc, TrackmeterError) else f"{type(exc).__name__}: {exc}"
-                log.error("source failed: %s", message)
+                source_log.error("source failed: %s", message)
                 self._source_finished(f"source failed: {message}")
                 continue
             if frame is None:

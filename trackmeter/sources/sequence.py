@@ -150,6 +150,13 @@ class SequenceSource(Source):
                     f"left and right images differ in size: {self.index.left_paths[pos]} is "
                     f"{left.shape[1]}x{left.shape[0]} px, {self.index.right_paths[pos]} is {right.shape[1]}x{right.shape[0]} px"
                 )
+            size = self.frame_size
+            if size is not None and (left.shape[1], left.shape[0]) != size:
+                # The rig (checked against the first frame) is calibrated for one image size.
+                raise TrackmeterError(
+                    f"{self.index.left_paths[pos]} is {left.shape[1]}x{left.shape[0]} px, the sequence's first "
+                    f"frame {size[0]}x{size[1]} px: one camera's frames have one size"
+                )
             t = float(self.index.t_s[pos]) + self._loops * self._period_s
             if self.realtime:
                 self._pacer.wait(t)
