@@ -144,6 +144,22 @@ def test_when_every_target_is_refused_and_nothing_else_can_start_one_the_run_end
     assert 1 <= frames < 50 and len(read_motion_csv(out / "states.csv")) == frames
 
 
+def test_select_model_points_alone_is_something_to_track_unless_the_source_has_no_truth(
+        monkeypatch, tmp_path, estec_rig, capsys) -> None:
+    """--select-model-points starts targets by itself (no --target or --auto needed); on a
+    source without ground truth it never can, so the run stops at once and says why."""
+    fake_source(monkeypatch, estec_rig, n=500)  # its frames carry no truth
+    model = _model(tmp_path, THREE_POINTS)
+    out = tmp_path / "run"
+    code = main(["track", "--source", "fake", "--model", str(model), "--case", "b", "--select-model-points",
+                 "--out", str(out)])
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 2, lines
+    assert "nothing to track" in lines[-1] and "ground truth" in lines[-1], lines
+    meta = yaml.safe_load((out / "run.yaml").read_text())
+    assert meta["status"] == "nothing to track" and meta["summary"]["frames"] < 50
+
+
 def test_a_refused_target_is_said_while_the_run_goes_on_with_the_others(tmp_path, capsys) -> None:
     out = tmp_path / "run"
     # 280,331: a textured point of the estec mock-up in its first frame (as above).

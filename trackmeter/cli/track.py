@@ -106,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
     from trackmeter.data.config import config_to_dict
     from trackmeter.data.model import load_model
     from trackmeter.data.rundir import RunWriter, check_run_directory
-    from trackmeter.pipeline.engine import Engine, SelectModelPoints
+    from trackmeter.pipeline.engine import NEEDS_TRUTH, Engine, SelectModelPoints
     from trackmeter.pipeline.pipeline import NOT_APPLIED, STOPPED, run_headless, source_log
     from trackmeter.pipeline.snapshot import AcquireModel, SelectPoint, SetAuto, Snapshot
 
@@ -119,8 +119,8 @@ def run(args: argparse.Namespace) -> int:
         raise TrackmeterError(f"{len(targets)} --target points but at most {most} targets are tracked (tracker.max_targets)")
     if args.max_frames is not None and args.max_frames < 1:
         raise TrackmeterError(f"--max-frames must be at least 1, got {args.max_frames}")
-    if not targets and args.auto is None:
-        raise TrackmeterError("nothing to track: give --target [ID=]U,V and/or --auto N")
+    if not targets and args.auto is None and not args.select_model_points:
+        raise TrackmeterError("nothing to track: give --target [ID=]U,V, --auto N and/or --select-model-points")
     check_run_directory(args.out, args.overwrite)  # before the source: its notes would come first
     model = load_model(args.model) if args.model else None
 
@@ -224,10 +224,11 @@ def run(args: argparse.Namespace) -> int:
                                  f"targets {sum(t.measured for t in snap.targets):2d}/{len(snap.targets):2d}   ")
                 sys.stderr.flush()
 
-        # Only the --target points can start a target: when the tracker refuses every one,
-        # nothing will ever be tracked and playing the rest of the source is time lost.
-        only_targets = bool(targets) and args.auto is None and not args.select_model_points
+        # Without --auto only the --target points and --select-model-points can start a target:
+        # when the tracker refuses every point, and the model points cannot be selected at all
+        # (no ground truth), nothing will ever be tracked and playing the rest is time lost.
         said: set[int] = set()  # the commands whose refusal was shown
+        for_good: set[int] = set()  # ... and could never succeed later
 
         def on_replies(replies: list[Any]) -> bool:
             """Each refusal shown as soon as frame 0 gave it, not after the whole run."""
@@ -237,8 +238,10 @@ def run(args: argparse.Namespace) -> int:
                         sys.stderr.write("\r\033[K")  # over the progress line
                     print(f"trackmeter track: warning: {type(command).__name__}: {reply.message}", file=sys.stderr)
                     said.add(k)
-            refused = [k for k in said if isinstance(commands[k], SelectPoint)]
-            state["nothing"] = only_targets and len(refused) == len(targets)
+                    if isinstance(command, SelectPoint) or reply.message == NEEDS_TRUTH:
+                        for_good.add(k)
+            starters = [k for k, c in enumerate(commands) if isinstance(c, (SelectPoint, SelectModelPoints))]
+            state["nothing"] = args.auto is None and all(k in for_good for k in starters)
             return bool(state["nothing"])
 
         status = "complete"
@@ -280,8 +283,11 @@ def run(args: argparse.Namespace) -> int:
                 print(f"trackmeter track: warning: {type(command).__name__}: {reply.message}", file=sys.stderr)
         if state.get("nothing"):
             writer.close("nothing to track", summary)
-            raise TrackmeterError(f"nothing to track: every --target was refused on the first frame and there is no "
-                                  f"--auto (stopped after {writer.frames} frame{'s' if writer.frames != 1 else ''}; "
+            why = " and ".join((["every --target was refused on the first frame"] if targets else [])
+                               + (["the source has no ground truth to select model points with"]
+                                  if args.select_model_points else []))
+            raise TrackmeterError(f"nothing to track: {why}, and there is no --auto (stopped after {writer.frames} "
+                                  f"frame{'s' if writer.frames != 1 else ''}; "
                                   f"{args.out} holds {'them' if writer.frames != 1 else 'it'})")
         if src_status and src_status != "ended":
             status = "source failed"

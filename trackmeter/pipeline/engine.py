@@ -89,6 +89,11 @@ from trackmeter.sources.base import StereoFrame
 FloatArray = NDArray[np.float64]
 
 
+#: The reply of :class:`SelectModelPoints` on a frame without ground truth (a source that has
+#: none never will: the command cannot start a target there).
+NEEDS_TRUTH = "selecting model points needs a frame with ground truth (a simulated source, or a recording with its truth)"
+
+
 @dataclass(frozen=True, eq=False)
 class SelectModelPoints(Command):
     """Simulated operator (case b on a source with ground truth): create a target at the TRUE
@@ -408,7 +413,7 @@ class Engine:
 
     def _select_model_points(self, frame: StereoFrame | None) -> CommandReply:
         if frame is None or frame.truth is None:
-            return CommandReply(False, "selecting model points needs a frame with ground truth")
+            return CommandReply(False, NEEDS_TRUTH)
         if self._given_model is None or self._case != "b":
             return CommandReply(False, "selecting model points needs case (b) with a model")
         T = np.asarray(frame.truth.T_cam_body, float)
