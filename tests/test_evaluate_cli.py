@@ -130,6 +130,24 @@ def test_bare_tum_files_give_pose_metrics_only_and_out_dir(capsys, tmp_path):
     assert (out_dir / "attitude_error.png").is_file()
 
 
+def test_an_estimate_mostly_unpaired_is_warned_about_with_both_spans(capsys, tmp_path):
+    """Timestamps in nanoseconds against seconds pair only t = 0: the figures then describe one
+    pose, so the evaluation says so (one warning line with both time spans); it still runs."""
+    truth = tumbling_truth()
+    t = truth.t_s - truth.t_s[0]  # from 0, as a recording's clock: t = 0 pairs in both units
+    _tum(tmp_path / "truth.tum", MotionSeries.from_trajectory(Trajectory(t, truth.position_m, truth.quat_wxyz)))
+    _tum(tmp_path / "est.tum", MotionSeries.from_trajectory(Trajectory(t * 1e9, truth.position_m, truth.quat_wxyz)))
+    code, out, err = _run(capsys, "evaluate", "--truth", str(tmp_path / "truth.tum"), "--estimate",
+                          str(tmp_path / "est.tum"), "--settle", "0")
+    assert code == 0 and "matched 1 pose" in out
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("trackmeter evaluate: warning: only 1 of 60 estimated poses"), err
+    assert "units" in lines[0]
+    code, out, err = _run(capsys, "evaluate", "--truth", str(tmp_path / "truth.tum"), "--estimate",
+                          str(tmp_path / "truth.tum"))
+    assert code == 0 and err == ""
+
+
 def test_align_body_recovers_offset_through_the_cli(capsys, tmp_path):
     truth = tumbling_truth()
     R_X = Rotation.from_rotvec([0.3, 2.5, -0.7])
