@@ -526,3 +526,22 @@ def test_model_file_keys_of_other_tools_are_ignored_with_a_warning(tmp_path):
     path.write_text("units: m\npoints: [{id: a, xyz: [0,0,0], note: x}, {id: a, xyz: [1,0,0]}, {id: c, xyz: [0,1,0]}]\n")
     with pytest.warns(UserWarning), pytest.raises(TrackmeterError, match="'a' appears twice"):
         load_model(path)
+
+
+def test_videos_of_different_frame_sizes_are_refused_when_opened(tmp_path):
+    """Left and right frames of different sizes are no stereo pair: said when the source is
+    opened for a command (its frame size is asked before anything is written), not as a
+    failure of the first read."""
+    from trackmeter.cli.common import open_source_with_rig
+
+    paths = [tmp_path / "left.avi", tmp_path / "right.avi"]
+    img = np.random.default_rng(5).integers(0, 256, (48, 64), dtype=np.uint8)
+    for p, size in zip(paths, ((64, 48), (32, 24))):
+        vw = cv2.VideoWriter(str(p), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, size, isColor=True)
+        if not vw.isOpened():
+            pytest.skip("this OpenCV build cannot write MJPG")
+        for _ in range(3):
+            vw.write(cv2.cvtColor(cv2.resize(img, size), cv2.COLOR_GRAY2BGR))
+        vw.release()
+    with pytest.raises(TrackmeterError, match=r"differ in frame size: left.avi is 64x48 px, right.avi is 32x24 px"):
+        open_source_with_rig(f"video:{paths[0]},{paths[1]}", None)

@@ -273,7 +273,7 @@ def run(args: argparse.Namespace) -> int:
             # first frame need no warning of their own), and run.yaml says so too.
             writer.close("no frame", summary)
             detail = f": {src_status}" if src_status and src_status != "ended" else ""
-            detail += f": {source_warning}" if source_warning else ""
+            detail += f"; {source_warning}" if source_warning else ""
             raise TrackmeterError(f"source {args.source!r} delivered no frame{detail} (nothing tracked; "
                                   f"{args.out} holds an empty run)")
         if source_warning and source_warning != warning_at_open:

@@ -77,16 +77,29 @@ class VideoSource(Source):
     def frame_size(self) -> tuple[int, int] | None:
         """``(width, height)`` px of the left file's first frame, decoded once by a capture of
         its own (the stream is not disturbed), or None when it has no frame. Decoded rather
-        than taken from ``CAP_PROP_FRAME_WIDTH``: the size of what :meth:`read` delivers."""
+        than taken from ``CAP_PROP_FRAME_WIDTH``: the size of what :meth:`read` delivers.
+
+        Raises:
+            TrackmeterError: the right file's first frame has another size (no stereo pair).
+        """
         if self._frame_size is None:
-            cap = self._open(self.paths[0])
-            try:
-                ok, image = cap.read()
-            finally:
-                cap.release()
-            if ok and image is not None:
-                self._frame_size = (int(image.shape[1]), int(image.shape[0]))
+            sizes = [self._first_frame_size(path) for path in self.paths]
+            if None not in sizes and sizes[0] != sizes[1]:
+                raise TrackmeterError(self._size_mismatch(*sizes))  # type: ignore[arg-type]
+            self._frame_size = sizes[0]
         return self._frame_size
+
+    def _first_frame_size(self, path: Path) -> tuple[int, int] | None:
+        cap = self._open(path)
+        try:
+            ok, image = cap.read()
+        finally:
+            cap.release()
+        return (int(image.shape[1]), int(image.shape[0])) if ok and image is not None else None
+
+    def _size_mismatch(self, left: tuple[int, int], right: tuple[int, int]) -> str:
+        return (f"left and right videos differ in frame size: {self.paths[0].name} is {left[0]}x{left[1]} px, "
+                f"{self.paths[1].name} is {right[0]}x{right[1]} px")
 
     @staticmethod
     def _open(path: Path) -> cv2.VideoCapture:
@@ -113,8 +126,7 @@ class VideoSource(Source):
         self._last_t = t
         left, right = _grey(left), _grey(right)
         if left.shape != right.shape:
-            raise TrackmeterError(f"left and right videos differ in frame size: {self.paths[0].name} is "
-                                  f"{left.shape[1]}x{left.shape[0]} px, {self.paths[1].name} is {right.shape[1]}x{right.shape[0]} px")
+            raise TrackmeterError(self._size_mismatch(left.shape[::-1], right.shape[::-1]))
         if self.realtime:
             self._pacer.wait(t)
         frame = StereoFrame(index=self._count, t_s=t, left=left, right=right, cut=self._take_cut())
