@@ -77,6 +77,16 @@ def test_a_square_given_in_millimetres_is_warned_about(calib_dir: Path, tmp_path
         assert load_rig(tmp_path / "rig.yaml").baseline_m == pytest.approx(25 * 3.327, rel=0.003)
 
 
+def test_left_and_right_images_given_the_wrong_way_round_are_warned_about(calib_dir: Path, tmp_path: Path,
+                                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    """--left and --right exchanged calibrate fine, but the rig's right camera lies left of its
+    left one, which measure and track refuse: one warning says so at once, and how to fix it."""
+    assert main(_args(calib_dir, tmp_path / "rig.yaml", left="right*.jpg", right="left*.jpg")) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("trackmeter calibrate: warning: the right camera lies left"), err
+    assert "--left and --right" in err[0]
+
+
 def test_calibrate_pairs_by_frame_number(calib_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """9 left and 13 right images: the 9 with a partner of the same number pair up."""
     assert main(_args(calib_dir, tmp_path / "rig.yaml", left="left0*.jpg", right="right*.jpg")) == 0
