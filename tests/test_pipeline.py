@@ -417,3 +417,36 @@ def test_a_recording_carries_the_model_the_run_uses(tmp_path: Path, estec_rig) -
     assert index.model is not None
     assert index.model.ids == model.ids
     assert np.array_equal(index.model.points_body, model.points_body)
+
+
+def test_a_restart_while_recording_records_on_with_time_continued(tmp_path: Path, estec_rig) -> None:  # type: ignore[no-untyped-def]
+    """The source restarted (its time from 0 again) must not end the recording: the frames after
+    it are recorded too, their time carried on past the last one (as a looping source's is),
+    so the folder plays back whole."""
+    from trackmeter.data.sequence import index_sequence
+
+    pipe = Pipeline(CountingSource(30), RecordingEngine(), rig=estec_rig, record_dir=tmp_path / "rec")
+    with pipe:
+        pipe.run_until_end(20)
+        reply = pipe.call(RestartSource())
+        assert reply.ok and "recording" in reply.message
+        pipe.run_until_end(20)
+        stopped = pipe.call(SetRecording(None))
+    stats = pipe.recording_stats()
+    assert stopped.ok and stats.error is None and stats.frames_dropped == 0, stopped.message
+    index = index_sequence(tmp_path / "rec")
+    assert len(index) == stats.frames_written == 60
+    dt = np.diff(index.t_s)
+    assert np.all(dt > 0) and np.allclose(dt, 0.04, atol=1e-6)
+
+
+@pytest.mark.parametrize("where", ["/proc/no-such-dir/rec", "file"])
+def test_a_recording_folder_that_cannot_be_made_is_one_line_not_a_traceback(tmp_path: Path, estec_rig, caplog,
+                                                                           where: str) -> None:  # type: ignore[no-untyped-def]
+    (tmp_path / "file").write_text("x")
+    target = where if where.startswith("/") else str(tmp_path / "file" / "rec")
+    with Pipeline(CountingSource(10**6, delay_s=0.002), RecordingEngine(), rig=estec_rig) as pipe:
+        reply = pipe.call(SetRecording(target))
+        assert not pipe.latest().recording
+    assert not reply.ok and reply.message.startswith(f"cannot record to {target}:"), reply.message
+    assert not [r for r in caplog.records if r.exc_info], "a traceback was logged"

@@ -134,7 +134,12 @@ def _default_writer_factory(rig: StereoRig | None, model: Callable[[], Any | Non
 
 
 class _Recorder:
-    """Writes frames to a sequence folder on its own thread, from a bounded queue."""
+    """Writes frames to a sequence folder on its own thread, from a bounded queue.
+
+    A sequence's time only increases: when the stream's time goes back (the source restarted),
+    the frames after it are written with their time carried on past the last one by its frame
+    interval, as a looping source's are, so the folder plays back whole.
+    """
 
     _STOP = object()
 
@@ -147,6 +152,9 @@ class _Recorder:
         self.frames_written = 0
         self.frames_dropped = 0
         self.error: str | None = None
+        self._shift_s = 0.0  # added to the stream's time since its last restart
+        self._last_t_s: float | None = None  # last written time and interval, s
+        self._last_dt_s = 0.04
         self._thread = threading.Thread(target=self._run, name="trackmeter-recorder", daemon=True)
         self._thread.start()
 
@@ -175,7 +183,7 @@ class _Recorder:
             if self.error is not None:
                 continue
             try:
-                self._writer.write(item)
+                self._writer.write(self._carried_on(item))
                 with self._lock:
                     self.frames_written += 1
             except Exception as exc:  # disk full, permissions: report, keep the pipeline up
@@ -186,6 +194,17 @@ class _Recorder:
         except Exception as exc:
             self.error = self.error or f"closing the recording failed: {exc}"
             log.error("%s", self.error)
+
+    def _carried_on(self, frame: StereoFrame) -> StereoFrame:
+        t = frame.t_s + self._shift_s
+        if self._last_t_s is not None:
+            if t <= self._last_t_s:  # the stream started again
+                self._shift_s += self._last_t_s + self._last_dt_s - t
+                t = self._last_t_s + self._last_dt_s
+            else:
+                self._last_dt_s = t - self._last_t_s
+        self._last_t_s = t
+        return frame if t == frame.t_s else dataclasses.replace(frame, t_s=t)
 
     def close(self) -> None:
         """Write everything queued, close the folder, join the thread."""
@@ -578,7 +597,9 @@ class Pipeline:
                 self._source_status = None
                 self._acq_rate.reset()
                 self._cond.notify_all()
-            return CommandReply(True, "source restarted")
+            with self._record_lock:
+                recording = self._recorder is not None
+            return CommandReply(True, "source restarted" + ("; the recording goes on, its time carried on" if recording else ""))
         if isinstance(command, SetRecording):
             if command.directory is None:
                 stats = self._stop_recording()
@@ -586,7 +607,9 @@ class Pipeline:
                     return CommandReply(False, "not recording")
                 return CommandReply(stats.error is None and stats.frames_dropped == 0,
                                     f"recorded {stats.frames_written} frames to {stats.directory}"
-                                    + (f", {stats.frames_dropped} NOT recorded (disk too slow)" if stats.frames_dropped else "")
+                                    + (f", {stats.frames_dropped} NOT recorded"
+                                       + (" (after the failure)" if stats.error else " (disk too slow)")
+                                       if stats.frames_dropped else "")
                                     + (f"; {stats.error}" if stats.error else ""))
             self._start_recording(Path(command.directory))
             return CommandReply(True, f"recording to {command.directory}")
@@ -596,7 +619,10 @@ class Pipeline:
         with self._record_lock:
             if self._recorder is not None:
                 raise TrackmeterError(f"already recording to {self._recorder.directory}")
-        writer = self._writer_factory(directory)  # raises TrackmeterError on a bad folder
+        try:
+            writer = self._writer_factory(directory)  # raises TrackmeterError on a bad folder
+        except OSError as exc:  # no such parent, a file in the way, no permission
+            raise TrackmeterError(f"cannot record to {directory}: {exc.strerror or exc}") from None
         with self._record_lock:
             self._recorder = _Recorder(directory, writer, self._record_queue_frames)
 
