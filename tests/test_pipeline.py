@@ -450,3 +450,25 @@ def test_a_recording_folder_that_cannot_be_made_is_one_line_not_a_traceback(tmp_
         assert not pipe.latest().recording
     assert not reply.ok and reply.message.startswith(f"cannot record to {target}:"), reply.message
     assert not [r for r in caplog.records if r.exc_info], "a traceback was logged"
+
+
+def test_a_recording_that_fails_stops_and_says_why(tmp_path: Path) -> None:
+    """A writer failing (disk full) ends the recording: the snapshots stop saying 'recording'
+    (the console's REC mark and checkbox follow them), the folder is closed with what was
+    written, and the stats keep the reason."""
+
+    class FailingWriter(ListWriter):
+        def write(self, frame: StereoFrame) -> None:
+            if len(self.indices) == 4:
+                raise OSError(28, "No space left on device")
+            super().write(frame)
+
+    writers: list[FailingWriter] = []
+    # A paced source: the failure (early) comes well before the last frame's snapshot.
+    pipe = Pipeline(CountingSource(100, delay_s=0.005), RecordingEngine(), record_dir=tmp_path / "rec",
+                    writer_factory=lambda d: writers.append(FailingWriter(d)) or writers[-1])
+    with pipe:
+        snap = pipe.run_until_end(20)
+    stats = pipe.recording_stats()
+    assert not snap.recording and not stats.active
+    assert writers[0].closed and stats.frames_written == 4 and "No space left" in (stats.error or "")

@@ -189,6 +189,7 @@ class _Recorder:
             except Exception as exc:  # disk full, permissions: report, keep the pipeline up
                 self.error = f"recording failed: {exc}"
                 log.error("%s", self.error)
+                break  # the folder is closed with what it holds; later frames are counted, not kept
         try:
             self._writer.close()
         except Exception as exc:
@@ -206,14 +207,20 @@ class _Recorder:
         self._last_t_s = t
         return frame if t == frame.t_s else dataclasses.replace(frame, t_s=t)
 
+    @property
+    def failed(self) -> bool:
+        """The writer failed: the folder is closed, nothing more is recorded."""
+        return self.error is not None
+
     def close(self) -> None:
         """Write everything queued, close the folder, join the thread."""
-        self._queue.put(self._STOP)
+        if self._thread.is_alive():  # else it stopped at a failure (its queue may be full)
+            self._queue.put(self._STOP)
         self._thread.join()
 
     def stats(self, active: bool) -> RecordingStats:
         with self._lock:
-            return RecordingStats(str(self.directory), active, self.frames_queued, self.frames_written,
+            return RecordingStats(str(self.directory), active and not self.failed, self.frames_queued, self.frames_written,
                                   self.frames_dropped, self._queue.qsize(), self.error)
 
 
@@ -598,7 +605,7 @@ class Pipeline:
                 self._acq_rate.reset()
                 self._cond.notify_all()
             with self._record_lock:
-                recording = self._recorder is not None
+                recording = self._recorder is not None and not self._recorder.failed
             return CommandReply(True, "source restarted" + ("; the recording goes on, its time carried on" if recording else ""))
         if isinstance(command, SetRecording):
             if command.directory is None:
@@ -617,8 +624,11 @@ class Pipeline:
 
     def _start_recording(self, directory: Path) -> None:
         with self._record_lock:
-            if self._recorder is not None:
+            failed = self._recorder is not None and self._recorder.failed
+            if self._recorder is not None and not failed:
                 raise TrackmeterError(f"already recording to {self._recorder.directory}")
+        if failed:
+            self._stop_recording()  # a new recording after a failed one: the failed one's stats are kept
         try:
             writer = self._writer_factory(directory)  # raises TrackmeterError on a bad folder
         except OSError as exc:  # no such parent, a file in the way, no permission
@@ -662,7 +672,7 @@ class Pipeline:
             )
             paused, status = self._paused, self._source_status
         with self._record_lock:
-            recording = self._recorder is not None
+            recording = self._recorder is not None and not self._recorder.failed
         self._sequence += 1
         engine = self.engine
         return Snapshot(
