@@ -69,7 +69,8 @@ UNITS_PER_PX = 0.01
 SCENE3D_OFFSET = (-8.0, 0.0, -3.0)
 AUTO_METHODS = ("gabor", "centroid")
 # The operator widget each toggle command comes from (Console._mirror), by command name.
-_WIDGET_OF_COMMAND = {"SetAuto": "auto", "SetRecording": "record", "SetCase": "case"}
+_WIDGETS_OF_COMMAND = {"SetAuto": ("auto", "auto_count"), "SetRecording": ("record",), "SetCase": ("case",),
+                       "SetFilterCutoff": ("cutoff",)}
 SERIES_COLOURS = ("#e6194b", "#3cb44b", "#4363d8", "#111111")
 TRAIL_FRAMES = 12
 #: Line thickness of the operator targets' boxes drawn over the left image, image px.
@@ -462,7 +463,9 @@ class Console:
             self.restart_button = gui.add_button("Restart")
         with gui.add_folder("Targets"):
             self.auto_checkbox = gui.add_checkbox("Automatic selection", initial_value=False)
-            self.auto_count = gui.add_slider("Count", min=1, max=64, step=1, initial_value=16)
+            # Up to the tracker's limit: a larger count would be refused.
+            most = int(getattr(self.pipeline.engine, "max_targets", 64))
+            self.auto_count = gui.add_slider("Count", min=1, max=most, step=1, initial_value=min(16, most))
             self.auto_method = gui.add_dropdown("Method", AUTO_METHODS, initial_value="gabor")
             self.clear_button = gui.add_button("Clear targets")
             gui.add_markdown("Click the left image to add a target; shift- or ctrl-click removes the nearest.")
@@ -477,7 +480,9 @@ class Console:
             self.model_path = gui.add_text("Model file", initial_value="")
             self.load_model_button = gui.add_button("Load model")
         with gui.add_folder("Output", expand_by_default=False):
-            self.cutoff = gui.add_number("Filter cutoff (Hz)", initial_value=2.0, min=0.05, max=12.5, step=0.05)
+            engine = self.pipeline.engine
+            self.cutoff = gui.add_number("Filter cutoff (Hz)", initial_value=float(getattr(engine, "filter_cutoff_hz", 2.0)),
+                                         min=0.05, max=float(getattr(engine, "max_filter_cutoff_hz", 12.5)), step=0.05)
         with gui.add_folder("Recording", expand_by_default=False):
             self.record_dir = gui.add_text("Folder", initial_value=str(self.record_root / "recording"))
             self.record_checkbox = gui.add_checkbox("Record", initial_value=False)
@@ -720,7 +725,8 @@ class Console:
             if reply.ok and label.startswith(("SetAuto", "SetFilterCutoff", "SetPaused", "StepOnce")):
                 continue  # the UI shows the new state; no pop-up needed
             if not reply.ok:  # the widget the operator changed shows the tracker's state again
-                self._mirrored.pop(_WIDGET_OF_COMMAND.get(label, ""), None)
+                for name in _WIDGETS_OF_COMMAND.get(label, ()):
+                    self._mirrored.pop(name, None)
             title = label if reply.ok else f"{label}: refused"
             self._notify(client, title, reply.message or ("ok" if reply.ok else "refused"), reply.ok)
 
@@ -802,6 +808,10 @@ class Console:
         if self.pause_button.label != label:
             self.pause_button.label = label
         self._mirror("auto", self.auto_checkbox, snap.auto_enabled)
+        if snap.auto_count >= 1:
+            self._mirror("auto_count", self.auto_count, snap.auto_count)
+        if np.isfinite(snap.filter_cutoff_hz):
+            self._mirror("cutoff", self.cutoff, snap.filter_cutoff_hz)
         self._mirror("record", self.record_checkbox, snap.recording)
         if snap.pose.case in ("a", "b", "c"):
             self._mirror("case", self.case_dropdown, snap.pose.case)

@@ -126,3 +126,56 @@ def test_a_toggle_from_the_browser_is_not_undone_before_its_callback_runs() -> N
         assert con.auto_checkbox.value is False
     finally:
         running.stop()
+
+
+class _LimitsEngine(_AutoEngine):
+    """The double with the real engine's limits: at most ``max_targets`` automatic targets, and
+    an output-filter cutoff in (0, ``max_filter_cutoff_hz``]."""
+
+    max_targets = 20
+    auto_count = 6
+    filter_cutoff_hz = 2.0
+    max_filter_cutoff_hz = 11.875
+
+    def handle(self, command, frame):  # type: ignore[no-untyped-def]
+        from trackmeter.pipeline.snapshot import CommandReply, SetAuto, SetFilterCutoff
+
+        if isinstance(command, SetFilterCutoff):
+            if not 0 < command.cutoff_hz <= self.max_filter_cutoff_hz:
+                return CommandReply(False, "out of range")
+            self.filter_cutoff_hz = command.cutoff_hz
+            return CommandReply(True, "ok")
+        if isinstance(command, SetAuto) and command.count:
+            self.auto_count = command.count
+        return super().handle(command, frame)
+
+
+def test_the_count_and_cutoff_widgets_follow_the_tracker_and_its_limits() -> None:
+    """The Count slider ends at the tracker's max_targets (a larger value was refused while
+    the slider kept showing it), the cutoff field at the filter's limit, and both show the
+    tracker's value again after a refusal or a change made elsewhere."""
+    from trackmeter.pipeline.snapshot import SetAuto, SetFilterCutoff
+
+    running = start_console(CountingSource(100_000, delay_s=0.02), _LimitsEngine(), port=free_port())  # type: ignore[arg-type]
+    con = running.console
+
+    def pushes(n: int) -> None:
+        target = con.images_pushed + n
+        deadline = time.monotonic() + 20
+        while con.images_pushed < target:
+            assert time.monotonic() < deadline, "no pushes"
+            time.sleep(0.02)
+
+    try:
+        assert con.auto_count.max == 20 and con.cutoff.max == pytest.approx(11.875)
+        pushes(3)
+        assert con.auto_count.value == 6 and con.cutoff.value == pytest.approx(2.0)
+        running.pipeline.submit(SetAuto(True, 9)).result(10)  # elsewhere
+        pushes(5)
+        assert con.auto_count.value == 9
+        con.cutoff.value = 0.0  # typed by the operator, refused by the tracker
+        assert not con.submit(SetFilterCutoff(0.0), None, "SetFilterCutoff").result(10).ok
+        pushes(5)
+        assert con.cutoff.value == pytest.approx(2.0)
+    finally:
+        running.stop()

@@ -252,6 +252,21 @@ class Engine:
         return str(self.tracker.auto[2])
 
     @property
+    def max_targets(self) -> int:
+        """Most targets tracked at once (``tracker.max_targets``): automatic ones included."""
+        return self._max_targets
+
+    @property
+    def filter_cutoff_hz(self) -> float:
+        """The output filter's cutoff, Hz."""
+        return float(self.filter_params.cutoff_hz)
+
+    @property
+    def max_filter_cutoff_hz(self) -> float:
+        """Highest cutoff the output filter takes at this frame rate (0.95 of Nyquist), Hz."""
+        return 0.95 * 0.5 * self.rate_hz
+
+    @property
     def targets(self) -> tuple[TargetState, ...]:
         """Every target as it stands now (lost ones included): after the last step and any
         command since, e.g. a click's new target, measured on the frame the operator clicked."""
@@ -399,8 +414,9 @@ class Engine:
             self._reset_motion()
             return CommandReply(True, f"model with {len(self._given_model)} points loaded: case (b)")
         if isinstance(command, SetFilterCutoff):
-            if not command.cutoff_hz > 0:
-                return CommandReply(False, f"filter cutoff must be positive, got {command.cutoff_hz}")
+            if not 0 < command.cutoff_hz <= self.max_filter_cutoff_hz:
+                return CommandReply(False, f"filter cutoff must be in (0, {self.max_filter_cutoff_hz:g}] Hz "
+                                           f"(0.95 of half the {self.rate_hz:g} Hz frame rate), got {command.cutoff_hz:g}")
             self.filter_params = replace(self.filter_params, cutoff_hz=float(command.cutoff_hz))
             self._filter = PoseFilter(self.filter_params, self.rate_hz)
             return CommandReply(True, f"output filter cutoff {command.cutoff_hz:g} Hz")

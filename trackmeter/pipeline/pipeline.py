@@ -684,6 +684,7 @@ class Pipeline:
             auto_enabled=bool(getattr(engine, "auto_enabled", False)),
             auto_count=int(getattr(engine, "auto_count", 0)),
             auto_method=str(getattr(engine, "auto_method", "gabor")),
+            filter_cutoff_hz=float(getattr(engine, "filter_cutoff_hz", float("nan"))),
             paused=paused,
             recording=recording,
             source_status=status,

@@ -92,6 +92,7 @@ class Snapshot:
             ``velocity_m_s`` (3,), ``omega_rad_s`` (3,); None without truth or without a pose.
         timings: rates and latencies.
         auto_enabled, auto_count, auto_method: automatic feature selection settings.
+        filter_cutoff_hz: the output filter's cutoff, Hz (NaN when the engine has none).
         paused, recording: pipeline state.
         source_status: None while the source delivers; else what went wrong or "ended".
         sequence: increasing number of the snapshot.
@@ -107,6 +108,7 @@ class Snapshot:
     auto_enabled: bool = False
     auto_count: int = 0
     auto_method: str = "gabor"
+    filter_cutoff_hz: float = float("nan")
     paused: bool = False
     recording: bool = False
     source_status: str | None = None
