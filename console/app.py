@@ -848,6 +848,8 @@ class Console:
         state = "paused" if snap.paused else "running"
         source = (f"<b>Source: {escape(snap.source_status)}</b>" if snap.source_status
                   else "source delivering")
+        if snap.source_warning:
+            source += f" · <b>{escape(snap.source_warning)}</b>"
         lines = [f"<b>{state}</b> · frame {snap.frame.index if snap.frame else '-'} · auto "
                  f"{'on' if snap.auto_enabled else 'off'}" + (" · <b>● REC</b>" if snap.recording else ""),
                  source,

@@ -179,3 +179,27 @@ def test_the_count_and_cutoff_widgets_follow_the_tracker_and_its_limits() -> Non
         assert con.cutoff.value == pytest.approx(2.0)
     finally:
         running.stop()
+
+
+def test_what_the_source_skipped_is_shown_while_it_plays() -> None:
+    """A sequence folder's unreadable image is skipped while it plays (``Source.warning``):
+    the operator sees it in the status box, not only ``track``'s user at the end."""
+
+    class SkippingSource(CountingSource):
+        warning = None
+
+        def read(self):  # type: ignore[no-untyped-def]
+            frame = super().read()
+            if self.i == 20:
+                self.warning = "1 pair(s) with an unreadable image skipped (cam0/data/123.png: not an image)"
+            return frame
+
+    running = start_console(SkippingSource(100_000, delay_s=0.01), RecordingEngine(), port=free_port())  # type: ignore[arg-type]
+    try:
+        deadline = time.monotonic() + 20
+        while "unreadable image skipped" not in running.console.status_html.content:
+            assert time.monotonic() < deadline, running.console.status_html.content
+            time.sleep(0.05)
+        assert "123.png" in running.console.status_html.content
+    finally:
+        running.stop()

@@ -688,6 +688,7 @@ class Pipeline:
             paused=paused,
             recording=recording,
             source_status=status,
+            source_warning=getattr(self.source, "warning", None),
             sequence=self._sequence,
             model_ids=tuple(getattr(getattr(engine, "model", None), "ids", ()) or ()),
         )

@@ -95,6 +95,8 @@ class Snapshot:
         filter_cutoff_hz: the output filter's cutoff, Hz (NaN when the engine has none).
         paused, recording: pipeline state.
         source_status: None while the source delivers; else what went wrong or "ended".
+        source_warning: what the source skipped or doubts (``Source.warning``, e.g. unreadable
+            images of a sequence folder), None when nothing.
         sequence: increasing number of the snapshot.
         model_ids: the ids of the a-priori model's points (case b), empty without one: an
             operator binds a click to one of them (:class:`SelectPoint` ``target_id``).
@@ -112,6 +114,7 @@ class Snapshot:
     paused: bool = False
     recording: bool = False
     source_status: str | None = None
+    source_warning: str | None = None
     sequence: int = 0
     model_ids: tuple[str, ...] = ()
 

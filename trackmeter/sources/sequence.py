@@ -89,9 +89,8 @@ class SequenceSource(Source):
         parts = list(self.index.warnings)
         if self._skipped_on_read:
             parts.append(f"{self._skipped_on_read} pair(s) with an unreadable image skipped ({self._read_errors[-1]})")
-        if not parts:
-            return None
-        return ("skipped " + str(self.skipped) + ": " if self.skipped else "") + "; ".join(parts)
+        # Each part counts in its own unit (images, rows, pairs): no total in front of them.
+        return "; ".join(parts) if parts else None
 
     def __len__(self) -> int:
         return len(self.index)
