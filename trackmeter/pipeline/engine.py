@@ -297,10 +297,6 @@ class Engine:
         """Case (c): True while a model is being acquired."""
         return self._acquisition is not None
 
-    @property
-    def filter_cutoff_hz(self) -> float:
-        return self.filter_params.cutoff_hz
-
     # ------------------------------------------------------------------ state resets
 
     def _reset_motion(self) -> None:
