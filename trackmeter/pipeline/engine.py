@@ -43,6 +43,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -379,9 +380,11 @@ class Engine:
         if isinstance(command, ClearTargets):
             self.tracker.clear()
             self._operator_t = None
-            self._acquisition = None
+            # Case (c): the points being averaged went with the targets; acquire the next ones.
+            self._acquisition = _Acquisition() if self._case == "c" else None
             self._reset_motion()
-            return CommandReply(True, "all targets removed")
+            return CommandReply(True, "all targets removed" + (
+                "; the model acquisition starts again: hold the object still" if self._acquisition else ""))
         if isinstance(command, SetAuto):
             self.tracker.set_auto(command.enabled, command.count, command.method)
             enabled, count, method = self.tracker.auto
@@ -404,7 +407,9 @@ class Engine:
         if isinstance(command, LoadModel):
             from trackmeter.data.model import load_model
 
-            self._given_model = load_model(command.path)
+            if not command.path.strip():
+                return CommandReply(False, "no model file given")
+            self._given_model = load_model(Path(command.path.strip()).expanduser())
             self._case = "b"
             self._acquisition = None
             self._reset_motion()
