@@ -240,3 +240,10 @@ def test_plain_yaml_lists_are_matrices_too(tmp_path: Path, header: str) -> None:
         path.write_text(text.replace(f"K1: {rows(K1)}", bad))
         with pytest.raises(TrackmeterError, match=words):
             load_rig(path)
+
+
+def test_a_folder_given_as_the_rig_is_named_as_one(tmp_path: Path) -> None:
+    with pytest.raises(TrackmeterError, match="a folder, not a rig file"):
+        load_rig(tmp_path)
+    with pytest.raises(TrackmeterError, match="no such rig file"):
+        load_rig(tmp_path / "missing.yaml")

@@ -20,6 +20,8 @@ from trackmeter.errors import TrackmeterError
 
 
 def _open(path: Path) -> cv2.FileStorage:
+    if path.is_dir():
+        raise TrackmeterError(f"{path}: a folder, not a rig file")
     if not path.is_file():
         raise TrackmeterError(f"{path}: no such rig file")
     try:

@@ -222,7 +222,7 @@ class Engine:
         if chosen not in ("a", "b", "c"):
             raise TrackmeterError(f"model case must be a, b or c, got {chosen!r}")
         if chosen == "b" and model is None:
-            raise TrackmeterError("case (b) needs an a-priori model (--model or a source that carries one)")
+            raise TrackmeterError("case (b) needs an a-priori model (a model file, or a source that carries one)")
         self._given_model = model
         self._case: ModelCase = chosen
         self._gate = float(chi2.ppf(self.pose_params.outlier_probability, 3))
