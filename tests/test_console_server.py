@@ -5,6 +5,7 @@ No browser here (see ``tests/browser``); viser's server runs in-process on a fre
 
 from __future__ import annotations
 
+import functools
 import socket
 import time
 import urllib.request
@@ -75,6 +76,15 @@ def test_frames_that_do_not_match_the_rig_are_a_clear_error(opencv_sample_sequen
                                  f"726x512 (--rig {rig})"], err
 
 
+def _wait_for_pushes(con, n: int) -> None:  # type: ignore[no-untyped-def]
+    """Wait until the console has pushed ``n`` more images to the browser (20 s at most)."""
+    target = con.images_pushed + n
+    deadline = time.monotonic() + 20
+    while con.images_pushed < target:
+        assert time.monotonic() < deadline, "no pushes"
+        time.sleep(0.02)
+
+
 class _AutoEngine(RecordingEngine):
     """The test double, plus automatic selection: on with a count of 1 or more, refused with 0."""
 
@@ -98,13 +108,7 @@ def test_a_toggle_from_the_browser_is_not_undone_before_its_callback_runs() -> N
 
     running = start_console(CountingSource(100_000, delay_s=0.02), _AutoEngine(), port=free_port())  # type: ignore[arg-type]
     con = running.console
-
-    def pushes(n: int) -> None:
-        target = con.images_pushed + n
-        deadline = time.monotonic() + 20
-        while con.images_pushed < target:
-            assert time.monotonic() < deadline, "no pushes"
-            time.sleep(0.02)
+    pushes = functools.partial(_wait_for_pushes, con)
 
     try:
         pushes(3)
@@ -158,13 +162,7 @@ def test_the_count_and_cutoff_widgets_follow_the_tracker_and_its_limits() -> Non
 
     running = start_console(CountingSource(100_000, delay_s=0.02), _LimitsEngine(), port=free_port())  # type: ignore[arg-type]
     con = running.console
-
-    def pushes(n: int) -> None:
-        target = con.images_pushed + n
-        deadline = time.monotonic() + 20
-        while con.images_pushed < target:
-            assert time.monotonic() < deadline, "no pushes"
-            time.sleep(0.02)
+    pushes = functools.partial(_wait_for_pushes, con)
 
     try:
         assert con.auto_count.max == 20 and con.cutoff.max == pytest.approx(11.875)
