@@ -88,6 +88,10 @@ def box_segments(
     return np.concatenate([ends, np.full((len(ends), 2, 1), z)], axis=2).astype(np.float32)
 
 
+#: How far outside the image (px) a click ray may land and still be the edge pixel.
+EDGE_SLACK_PX = 0.5
+
+
 def ray_to_pixel(
     ray_origin: ArrayLike,
     ray_direction: ArrayLike,
@@ -121,9 +125,11 @@ def ray_to_pixel(
     rw, rh = render_size
     u = (x + rw / 2) * w / rw - 0.5
     v = (y + rh / 2) * h / rh - 0.5
-    if not (-0.5 <= u <= w - 0.5 and -0.5 <= v <= h - 0.5):
+    # The browser found the click on the image; its float32 ray, intersected again here, may
+    # land a hair outside the edge: up to EDGE_SLACK_PX out it is the edge pixel.
+    if not (-0.5 - EDGE_SLACK_PX <= u <= w - 0.5 + EDGE_SLACK_PX and -0.5 - EDGE_SLACK_PX <= v <= h - 0.5 + EDGE_SLACK_PX):
         return None
-    return float(u), float(v)
+    return float(min(max(u, -0.5), w - 0.5)), float(min(max(v, -0.5), h - 0.5))
 
 
 def to_rgb(grey: NDArray[np.uint8]) -> NDArray[np.uint8]:

@@ -70,6 +70,12 @@ def test_pixel_centre_convention_and_misses() -> None:
     assert ray_to_pixel((10, 0, -5), (0, 0, 1), ident, (0, 0, 0), SIZE, RENDER) is None  # beside the image
     assert ray_to_pixel((0, 0, -5), (0, 0, -1), ident, (0, 0, 0), SIZE, RENDER) is None  # pointing away
     assert ray_to_pixel((0, 0, -5), (1, 0, 0), ident, (0, 0, 0), SIZE, RENDER) is None  # parallel
+    # A click the browser found on the image's edge pixel, recomputed from its float32 ray a
+    # hair outside, is that edge pixel (it was dropped without an answer); farther out, a miss.
+    edge_x = float(pixel_to_plane([[-0.5, 0.0]], SIZE, RENDER)[0, 0])
+    px = RENDER[0] / SIZE[0]
+    assert ray_to_pixel((edge_x - 0.3 * px, 0, -5), (0, 0, 1), ident, (0, 0, 0), SIZE, RENDER) == pytest.approx((-0.5, 255.5))
+    assert ray_to_pixel((edge_x - 2.0 * px, 0, -5), (0, 0, 1), ident, (0, 0, 0), SIZE, RENDER) is None
 
 
 def test_overlays_mark_each_target_in_its_status_colour_at_its_pixel() -> None:
