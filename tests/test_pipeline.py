@@ -472,3 +472,15 @@ def test_a_recording_that_fails_stops_and_says_why(tmp_path: Path) -> None:
     stats = pipe.recording_stats()
     assert not snap.recording and not stats.active
     assert writers[0].closed and stats.frames_written == 4 and "No space left" in (stats.error or "")
+
+
+def test_the_totals_after_a_live_run_is_stopped_count_every_frame_read(tmp_path: Path) -> None:
+    """Stopped mid-stream (Ctrl-C on the console), the last published snapshot may lag the
+    frame the acquisition read last, which the recording holds: ``timings()`` has the totals."""
+    writers: list[ListWriter] = []
+    pipe = Pipeline(CountingSource(10**6, delay_s=0.002), RecordingEngine(), record_dir=tmp_path / "rec",
+                    writer_factory=lambda d: writers.append(ListWriter(d)) or writers[-1])
+    with pipe:
+        time.sleep(0.5)
+    stats = pipe.recording_stats()
+    assert stats.frames_dropped == 0 and pipe.timings().frames_read == stats.frames_written == len(writers[0].indices)

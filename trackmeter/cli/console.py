@@ -92,8 +92,7 @@ def _serve(args: argparse.Namespace, config: Any) -> int:
         raise
     print(f"TV-Trackmeter console: {running.url}   (Ctrl-C to stop)", flush=True)
     serve_forever(running)
-    snap = running.pipeline.latest()
-    t = snap.timings
+    t = running.pipeline.timings()  # the totals: the last snapshot may lag a frame read
     rec = running.pipeline.recording_stats()
     print(f"trackmeter console: stopped after {t.frames_read} frames read, {t.frames_processed} tracked, "
           f"{t.frames_dropped} dropped", file=sys.stderr)

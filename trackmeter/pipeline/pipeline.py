@@ -658,18 +658,27 @@ class Pipeline:
             except Exception:
                 log.exception("snapshot subscriber failed")
 
+    def timings(self) -> Timings:
+        """The counters and rates as they stand now: after :meth:`stop`, the run's totals (the
+        last published snapshot may lag a frame read but not yet tracked)."""
+        with self._cond:
+            return self._timings_locked(time.monotonic())
+
+    def _timings_locked(self, now: float) -> Timings:
+        return Timings(
+            acquisition_hz=self._acq_rate.rate_hz(now),
+            tracking_hz=self._trk_rate.rate_hz(now),
+            latency_ms=self._last_latency_ms,
+            step_ms=self._last_step_ms,
+            frames_read=self._frames_read,
+            frames_processed=self._frames_processed,
+            frames_dropped=self._frames_dropped,
+        )
+
     def _make_snapshot(self) -> Snapshot:
         now = time.monotonic()
         with self._cond:
-            timings = Timings(
-                acquisition_hz=self._acq_rate.rate_hz(now),
-                tracking_hz=self._trk_rate.rate_hz(now),
-                latency_ms=self._last_latency_ms,
-                step_ms=self._last_step_ms,
-                frames_read=self._frames_read,
-                frames_processed=self._frames_processed,
-                frames_dropped=self._frames_dropped,
-            )
+            timings = self._timings_locked(now)
             paused, status = self._paused, self._source_status
         with self._record_lock:
             recording = self._recorder is not None and not self._recorder.failed
