@@ -232,7 +232,12 @@ def test_a_bad_out_or_auto_is_refused_before_the_source_is_opened(monkeypatch, t
     used = tmp_path / "used"
     used.mkdir()
     (used / "run.yaml").write_text("status: complete\n")
+    sequence = tmp_path / "seq"  # a recording: its folder is no place for a run's files
+    for cam in ("cam0", "cam1"):
+        (sequence / cam).mkdir(parents=True)
+        (sequence / cam / "data.csv").write_text("#timestamp [ns],filename\n")
     for extra, message in ((["--auto", "4", "--out", str(a_file)], "not a folder"),
+                           (["--auto", "4", "--out", str(sequence)], "a sequence folder"),
                            (["--auto", "4", "--out", str(used)], "holds a run already"),
                            (["--auto", "4", "--out", str(a_file / "sub")], "not a writable folder"),
                            (["--auto", "33", "--out", str(tmp_path / "r")], "--auto must be in [1, 32]")):

@@ -78,14 +78,18 @@ def check_run_directory(directory: str | Path, overwrite: bool = False) -> Path:
     Called before a run opens its source, so a bad ``--out`` is the one line the user sees.
 
     Raises:
-        TrackmeterError: it is a file, holds a run already (without ``overwrite``), or its
-            nearest existing parent is not a folder this process may write in.
+        TrackmeterError: it is a file, holds a run already (without ``overwrite``), is a
+            sequence folder, or its nearest existing parent is not a folder this process may
+            write in.
     """
     path = Path(directory)
     if path.exists() and not path.is_dir():
         raise TrackmeterError(f"{path}: exists and is not a folder")
     if (path / "run.yaml").exists() and not overwrite:
         raise TrackmeterError(f"{path}: holds a run already (run.yaml); choose another --out or give --overwrite")
+    if any((root / "cam0" / "data.csv").is_file() for root in (path, path / "mav0")):
+        raise TrackmeterError(f"{path}: a sequence folder (cam0/, cam1/): a run's files do not go into a recording; "
+                              "choose another --out")
     existing = path.absolute()
     while not existing.exists():
         existing = existing.parent
