@@ -243,9 +243,9 @@ def run() -> dict[str, float]:
         out["step_ms_median"] = live["step_ms_median"]
         out["live_targets_measured"] = float(sum(1 for t in snap.targets if t.measured))
         out["live_pose_valid"] = float(snap.pose.valid)
-        total_read = pipe.latest().timings.frames_read
+        total_read = pipe.timings().frames_read  # the totals (the last snapshot may lag a frame read)
         out["recorded_fraction"] = rec.frames_written / total_read if total_read else float("nan")
-        out["record_not_recorded"] = float(rec.frames_dropped)
+        out["record_not_recorded"] = float(rec.frames_dropped + rec.frames_lost)
         _log(f"live: {out}")
         out.update(offline(tmp))
     return out

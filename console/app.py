@@ -772,7 +772,7 @@ class Console:
                 self.status_html.content = status_text
                 self.targets_md.content = targets_text
             self.record_md.content = (
-                f"{rec.directory}: {rec.frames_written} frames written, {rec.frames_dropped} not recorded"
+                f"{rec.directory}: {rec.frames_written} frames written, {rec.frames_dropped + rec.frames_lost} not recorded"
                 + (f", {rec.error}" if rec.error else "") if rec.directory else "not recording")
             self._sync_widgets(snap)
             self._update_scene3d(snap)

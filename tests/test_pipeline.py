@@ -484,3 +484,36 @@ def test_the_totals_after_a_live_run_is_stopped_count_every_frame_read(tmp_path:
         time.sleep(0.5)
     stats = pipe.recording_stats()
     assert stats.frames_dropped == 0 and pipe.timings().frames_read == stats.frames_written == len(writers[0].indices)
+
+
+def test_a_writer_failing_while_the_queue_is_full_neither_hangs_the_stop_nor_loses_a_count(tmp_path: Path) -> None:
+    """The stop (Ctrl-C, the Record box) waits for the recorder; a write failing while frames
+    wait in a full queue must not leave that wait hanging, and every frame offered is either
+    written or counted (the failed one and those queued behind it as lost to the failure)."""
+    from trackmeter.pipeline.pipeline import _Recorder
+
+    go = threading.Event()
+
+    class StuckThenFull:
+        def write(self, frame: StereoFrame) -> None:
+            go.wait(5)
+            raise OSError(28, "No space left on device")
+
+        def close(self) -> None:
+            pass
+
+    recorder = _Recorder(tmp_path / "rec", StuckThenFull(), max_frames=2)  # type: ignore[arg-type]
+    img = np.zeros((4, 6), np.uint8)
+    recorder.offer(StereoFrame(0, 0.0, img, img))
+    time.sleep(0.1)  # the writer holds frame 0
+    for i in range(1, 5):
+        recorder.offer(StereoFrame(i, 0.04 * i, img, img))  # 1, 2 queued; 3, 4 dropped (queue full)
+    closing = threading.Thread(target=recorder.close, daemon=True)
+    closing.start()
+    time.sleep(0.2)
+    go.set()
+    closing.join(5)
+    assert not closing.is_alive(), "close() hangs"
+    stats = recorder.stats(False)
+    assert stats.frames_written == 0 and stats.frames_dropped == 2 and stats.frames_lost == 3
+    assert "No space left" in (stats.error or "")

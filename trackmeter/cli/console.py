@@ -98,5 +98,5 @@ def _serve(args: argparse.Namespace, config: Any) -> int:
           f"{t.frames_dropped} dropped", file=sys.stderr)
     if rec.directory:
         print(f"trackmeter console: recorded {rec.frames_written} frames to {rec.directory}"
-              + (f", {rec.frames_dropped} NOT recorded" if rec.frames_dropped else ""), file=sys.stderr)
+              + rec.not_recorded(), file=sys.stderr)
     return 0

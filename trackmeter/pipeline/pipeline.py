@@ -111,6 +111,8 @@ class RecordingStats:
             one is counted, never lost silently.
         queue_depth: frames waiting to be written now.
         error: why the recording failed, else None.
+        frames_lost: frames not written because the writer had failed (the one it failed on
+            included).
     """
 
     directory: str | None = None
@@ -120,6 +122,12 @@ class RecordingStats:
     frames_dropped: int = 0
     queue_depth: int = 0
     error: str | None = None
+    frames_lost: int = 0
+
+    def not_recorded(self) -> str:
+        """``", N NOT recorded (why)"`` for each kind of frame not kept, else ``""``."""
+        return ((f", {self.frames_dropped} NOT recorded (disk too slow)" if self.frames_dropped else "")
+                + (f", {self.frames_lost} NOT recorded (the writer failed)" if self.frames_lost else ""))
 
 
 def _default_writer_factory(rig: StereoRig | None, model: Callable[[], Any | None] = lambda: None) -> WriterFactory:
@@ -136,21 +144,28 @@ def _default_writer_factory(rig: StereoRig | None, model: Callable[[], Any | Non
 class _Recorder:
     """Writes frames to a sequence folder on its own thread, from a bounded queue.
 
+    Every frame offered is written or counted: ``frames_dropped`` when the queue was full (the
+    disk too slow), ``frames_lost`` once the writer failed (disk full; the failed frame
+    included). A failure ends the recording at once (the folder closed with what it holds);
+    the thread still takes every frame queued, so a stop never waits on a full queue.
+
     A sequence's time only increases: when the stream's time goes back (the source restarted),
     the frames after it are written with their time carried on past the last one by its frame
-    interval, as a looping source's are, so the folder plays back whole.
+    interval, as a looping source's are. The jump itself is not marked in the folder: played
+    back, the scene jumps there without a cut, as in a recorded loop of the simulator.
     """
 
     _STOP = object()
 
     def __init__(self, directory: Path, writer: RecordWriter, max_frames: int) -> None:
         self.directory = directory
-        self._writer = writer
+        self._writer: RecordWriter | None = writer  # None once closed
         self._queue: queue.Queue[Any] = queue.Queue(maxsize=max_frames)
         self._lock = threading.Lock()
         self.frames_queued = 0
         self.frames_written = 0
         self.frames_dropped = 0
+        self.frames_lost = 0
         self.error: str | None = None
         self._shift_s = 0.0  # added to the stream's time since its last restart
         self._last_t_s: float | None = None  # last written time and interval, s
@@ -158,11 +173,16 @@ class _Recorder:
         self._thread = threading.Thread(target=self._run, name="trackmeter-recorder", daemon=True)
         self._thread.start()
 
+    @property
+    def failed(self) -> bool:
+        """The writer failed: the folder is closed, nothing more is recorded."""
+        return self.error is not None
+
     def offer(self, frame: StereoFrame) -> None:
-        """Queue ``frame`` without ever blocking; count it as dropped when the queue is full."""
-        if self.error is not None:
+        """Queue ``frame`` without ever blocking; count it when it cannot be kept."""
+        if self.failed:
             with self._lock:
-                self.frames_dropped += 1
+                self.frames_lost += 1
             return
         try:
             self._queue.put_nowait(frame)
@@ -176,22 +196,30 @@ class _Recorder:
                 log.warning("recorder queue full (disk too slow): frame %d and later ones not recorded", frame.index)
 
     def _run(self) -> None:
-        while True:
-            item = self._queue.get()
-            if item is self._STOP:
-                break
-            if self.error is not None:
+        while (item := self._queue.get()) is not self._STOP:
+            if self.failed:
+                with self._lock:
+                    self.frames_lost += 1
                 continue
             try:
+                assert self._writer is not None
                 self._writer.write(self._carried_on(item))
                 with self._lock:
                     self.frames_written += 1
             except Exception as exc:  # disk full, permissions: report, keep the pipeline up
+                with self._lock:
+                    self.frames_lost += 1
                 self.error = f"recording failed: {exc}"
                 log.error("%s", self.error)
-                break  # the folder is closed with what it holds; later frames are counted, not kept
+                self._close_writer()
+        self._close_writer()
+
+    def _close_writer(self) -> None:
+        writer, self._writer = self._writer, None
+        if writer is None:
+            return
         try:
-            self._writer.close()
+            writer.close()
         except Exception as exc:
             self.error = self.error or f"closing the recording failed: {exc}"
             log.error("%s", self.error)
@@ -207,21 +235,16 @@ class _Recorder:
         self._last_t_s = t
         return frame if t == frame.t_s else dataclasses.replace(frame, t_s=t)
 
-    @property
-    def failed(self) -> bool:
-        """The writer failed: the folder is closed, nothing more is recorded."""
-        return self.error is not None
-
     def close(self) -> None:
         """Write everything queued, close the folder, join the thread."""
-        if self._thread.is_alive():  # else it stopped at a failure (its queue may be full)
-            self._queue.put(self._STOP)
+        self._queue.put(self._STOP)  # the thread takes every item, failed or not: this returns
         self._thread.join()
 
     def stats(self, active: bool) -> RecordingStats:
         with self._lock:
-            return RecordingStats(str(self.directory), active and not self.failed, self.frames_queued, self.frames_written,
-                                  self.frames_dropped, self._queue.qsize(), self.error)
+            return RecordingStats(str(self.directory), active and not self.failed, self.frames_queued,
+                                  self.frames_written, self.frames_dropped, self._queue.qsize(), self.error,
+                                  self.frames_lost)
 
 
 class _RateMeter:
@@ -614,10 +637,7 @@ class Pipeline:
                     return CommandReply(False, "not recording")
                 return CommandReply(stats.error is None and stats.frames_dropped == 0,
                                     f"recorded {stats.frames_written} frames to {stats.directory}"
-                                    + (f", {stats.frames_dropped} NOT recorded"
-                                       + (" (after the failure)" if stats.error else " (disk too slow)")
-                                       if stats.frames_dropped else "")
-                                    + (f"; {stats.error}" if stats.error else ""))
+                                    + stats.not_recorded() + (f"; {stats.error}" if stats.error else ""))
             self._start_recording(Path(command.directory))
             return CommandReply(True, f"recording to {command.directory}")
         return self.engine.handle(command, self._last_frame)
@@ -697,10 +717,20 @@ class Pipeline:
             paused=paused,
             recording=recording,
             source_status=status,
-            source_warning=getattr(self.source, "warning", None),
+            source_warning=self._source_warning(),
             sequence=self._sequence,
             model_ids=tuple(getattr(getattr(engine, "model", None), "ids", ()) or ()),
         )
+
+    def _source_warning(self) -> str | None:
+        """The source's ``warning`` (read while the acquisition thread plays it): never the
+        reason a snapshot is not published."""
+        try:
+            warning = getattr(self.source, "warning", None)
+        except Exception:
+            log.exception("reading the source's warning failed")
+            return None
+        return str(warning) if warning else None
 
     def _model_in_use(self) -> Any | None:
         """The engine's a-priori model, else the one the source carries (None without)."""

@@ -141,8 +141,9 @@ class SequenceSource(Source):
                 right = read_grey(self.index.right_paths[pos], self.image_bits)
             except TrackmeterError as exc:
                 if self._loops == 0:
-                    self._skipped_on_read += 1
+                    # The message first: another thread may read ``warning`` in between.
                     self._read_errors.append(str(exc))
+                    self._skipped_on_read += 1
                 continue
             if left.shape != right.shape:
                 raise TrackmeterError(
