@@ -481,8 +481,12 @@ class Console:
             self.load_model_button = gui.add_button("Load model")
         with gui.add_folder("Output", expand_by_default=False):
             engine = self.pipeline.engine
-            self.cutoff = gui.add_number("Filter cutoff (Hz)", initial_value=float(getattr(engine, "filter_cutoff_hz", 2.0)),
-                                         min=0.05, max=float(getattr(engine, "max_filter_cutoff_hz", 12.5)), step=0.05)
+            # The field's range is the filter's (a slow source takes less than the 2 Hz default,
+            # which the filter clips), and viser refuses a start value outside the range.
+            top = float(getattr(engine, "max_filter_cutoff_hz", 12.5))
+            low = min(0.05, top)
+            start = min(max(float(getattr(engine, "filter_cutoff_hz", 2.0)), low), top)
+            self.cutoff = gui.add_number("Filter cutoff (Hz)", initial_value=start, min=low, max=top, step=0.05)
         with gui.add_folder("Recording", expand_by_default=False):
             self.record_dir = gui.add_text("Folder", initial_value=str(self.record_root / "recording"))
             self.record_checkbox = gui.add_checkbox("Record", initial_value=False)
@@ -810,8 +814,8 @@ class Console:
         self._mirror("auto", self.auto_checkbox, snap.auto_enabled)
         if snap.auto_count >= 1:
             self._mirror("auto_count", self.auto_count, snap.auto_count)
-        if np.isfinite(snap.filter_cutoff_hz):
-            self._mirror("cutoff", self.cutoff, snap.filter_cutoff_hz)
+        if np.isfinite(snap.filter_cutoff_hz):  # as the filter takes it (clipped to its range)
+            self._mirror("cutoff", self.cutoff, min(max(snap.filter_cutoff_hz, self.cutoff.min), self.cutoff.max))
         self._mirror("record", self.record_checkbox, snap.recording)
         if snap.pose.case in ("a", "b", "c"):
             self._mirror("case", self.case_dropdown, snap.pose.case)

@@ -201,3 +201,17 @@ def test_what_the_source_skipped_is_shown_while_it_plays() -> None:
         assert "123.png" in running.console.status_html.content
     finally:
         running.stop()
+
+
+def test_the_console_starts_when_the_filter_cutoff_lies_beyond_the_field_s_range() -> None:
+    """A slow source (4 Hz: the filter takes at most 1.9 Hz) with the default 2 Hz cutoff, which
+    the filter clips: viser refuses a number field whose start value is out of its range."""
+
+    class SlowSourceEngine(_LimitsEngine):
+        max_filter_cutoff_hz = 1.9
+
+    running = start_console(CountingSource(100_000, delay_s=0.02), SlowSourceEngine(), port=free_port())  # type: ignore[arg-type]
+    try:
+        assert running.console.cutoff.max == pytest.approx(1.9) and running.console.cutoff.value == pytest.approx(1.9)
+    finally:
+        running.stop()
