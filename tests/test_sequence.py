@@ -545,3 +545,8 @@ def test_videos_of_different_frame_sizes_are_refused_when_opened(tmp_path):
         vw.release()
     with pytest.raises(TrackmeterError, match=r"differ in frame size: left.avi is 64x48 px, right.avi is 32x24 px"):
         open_source_with_rig(f"video:{paths[0]},{paths[1]}", None)
+
+
+def test_a_sequence_has_truth_when_its_folder_gives_some(tmp_path):
+    assert SequenceSource(_write(tmp_path / "a", _frames(3))).has_truth
+    assert not SequenceSource(_write(tmp_path / "b", _frames(3, truth=False))).has_truth

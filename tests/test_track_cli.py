@@ -158,6 +158,14 @@ def test_select_model_points_alone_is_something_to_track_unless_the_source_has_n
     assert "nothing to track" in lines[-1] and "ground truth" in lines[-1], lines
     meta = yaml.safe_load((out / "run.yaml").read_text())
     assert meta["status"] == "nothing to track" and meta["summary"]["frames"] < 50
+    # A source whose truth starts later (a recording's ground truth may begin after frame 0):
+    # the repeating selection may still succeed, so the run goes on.
+    monkeypatch.setattr(TextureSource, "has_truth", True, raising=False)
+    fake_source(monkeypatch, estec_rig, n=20)
+    out = tmp_path / "run2"
+    main(["track", "--source", "fake", "--model", str(model), "--case", "b", "--select-model-points", "--out", str(out)])
+    meta = yaml.safe_load((out / "run.yaml").read_text())
+    assert meta["status"] == "complete" and meta["summary"]["frames"] == 20
 
 
 def test_a_refused_target_is_said_while_the_run_goes_on_with_the_others(tmp_path, capsys) -> None:

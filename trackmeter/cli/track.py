@@ -238,7 +238,8 @@ def run(args: argparse.Namespace) -> int:
                         sys.stderr.write("\r\033[K")  # over the progress line
                     print(f"trackmeter track: warning: {type(command).__name__}: {reply.message}", file=sys.stderr)
                     said.add(k)
-                    if isinstance(command, SelectPoint) or reply.message == NEEDS_TRUTH:
+                    # A source with truth from a later frame on may still let the points be selected.
+                    if isinstance(command, SelectPoint) or (reply.message == NEEDS_TRUTH and not source.has_truth):
                         for_good.add(k)
             starters = [k for k, c in enumerate(commands) if isinstance(c, (SelectPoint, SelectModelPoints))]
             state["nothing"] = args.auto is None and all(k in for_good for k in starters)

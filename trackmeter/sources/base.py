@@ -73,6 +73,12 @@ class Source(ABC):
         return cut
 
     @property
+    def has_truth(self) -> bool:
+        """Whether any frame may carry ground truth (:attr:`StereoFrame.truth`): a simulator,
+        a sequence folder with a ground-truth file (whose first frames may still have none)."""
+        return False
+
+    @property
     def frame_size(self) -> tuple[int, int] | None:
         """``(width, height)`` of the frames, px, known before the first :meth:`read`, or None
         when the source cannot tell. Commands check it against the rig's image size before

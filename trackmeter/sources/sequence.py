@@ -110,6 +110,10 @@ class SequenceSource(Source):
         return self._frame_size
 
     @property
+    def has_truth(self) -> bool:
+        return self.index.truth is not None and bool(self.index.truth.valid.any())
+
+    @property
     def n_frames(self) -> int:
         """Stereo pairs in one pass of the folder (as :attr:`Simulator.n_frames`)."""
         return len(self.index)

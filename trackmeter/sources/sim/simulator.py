@@ -119,6 +119,10 @@ class Simulator(Source):
         return self.true_rig.image_size
 
     @property
+    def has_truth(self) -> bool:
+        return True  # every frame: the simulated motion is the truth
+
+    @property
     def n_frames(self) -> int:
         """Frames in one pass of the scenario."""
         return self.scenario.n_frames
