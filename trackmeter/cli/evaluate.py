@@ -66,13 +66,14 @@ def run(args: argparse.Namespace) -> int:
     truth = load_truth(args.truth)
     estimate = load_estimate(args.estimate)
     result = evaluate(truth.series, estimate.series, params, estimate.t_start_s)
-    paired, n_est = result.association.matched, len(estimate.series)
-    if paired < 0.5 * n_est:
-        # The figures describe only the few poses that paired: clocks in other units or epochs?
-        t_t, t_e = truth.series.t_s, estimate.series.t_s
-        print(f"trackmeter evaluate: warning: only {paired} of {n_est} estimated poses paired with a truth pose "
-              f"within {params.tolerance_s:g} s (truth {t_t[0]:.6g}..{t_t[-1]:.6g} s, estimate {t_e[0]:.6g}.."
-              f"{t_e[-1]:.6g} s): timestamps in other units or from another clock?", file=sys.stderr)
+    t_t, t_e = truth.series.t_s, estimate.series.t_s
+    overlap = min(t_t[-1], t_e[-1]) - max(t_t[0], t_e[0])
+    longer = max(t_t[-1] - t_t[0], t_e[-1] - t_e[0])
+    if longer > 0 and overlap < 0.01 * longer:
+        # The figures then describe the few poses in the overlap: clocks in other units or epochs?
+        print(f"trackmeter evaluate: warning: the time spans barely overlap (truth {t_t[0]:.6g}..{t_t[-1]:.6g} s, "
+              f"estimate {t_e[0]:.6g}..{t_e[-1]:.6g} s; {result.association.matched} of {len(t_e)} estimated "
+              "poses paired): timestamps in other units or from another clock?", file=sys.stderr)
     if args.out:
         write_evaluation(result, args.out, truth.source, estimate.source, params.align, params.settle_s)
     if args.json:
