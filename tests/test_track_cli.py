@@ -200,6 +200,9 @@ def _model(tmp_path: Path, text: str) -> Path:
         # no attitude about their line: case (b)'s pose is undefined
         ("points:\n- {id: a, xyz: [0, 0, 0]}\n- {id: b, xyz: [1, 0, 0]}\n- {id: c, xyz: [2, 0, 0]}\n", [], "collinear"),
         ("points:\n- {id: a, xyz: [1, 2, 3]}\n- {id: b, xyz: [1, 2, 3]}\n- {id: c, xyz: [1, 2, 3]}\n", [], "collinear"),
+        # 0.1 mm off a 0.2 m line: the attitude about it is the noise's
+        ("points:\n- {id: a, xyz: [0, 0, 0]}\n- {id: b, xyz: [0.2, 0, 0]}\n- {id: c, xyz: [0.1, 0.0001, 0]}\n", [],
+         "collinear"),
         ("points:\n- {id: a, xyz: [0, 0, 0]}\n- {id: b, xyz: [1, 0, 0]}\n- {id: c, xyz: [0, 1, 0]}\n",
          ["--target", "zz=100,100"], "'zz' is not in the model"),
     ],

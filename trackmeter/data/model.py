@@ -31,6 +31,10 @@ from trackmeter.errors import TrackmeterError
 
 FloatArray = NDArray[np.float64]
 
+#: A model's points must spread off their best line by more than this fraction of their spread
+#: along it (singular values of the centred points): else they are (nearly) collinear.
+MIN_PLANARITY = 1e-3
+
 
 @dataclass(frozen=True, eq=False)
 class Model:
@@ -58,12 +62,13 @@ class Model:
             if i in seen:
                 raise TrackmeterError(f"model point id {i!r} appears twice")
             seen.add(i)
-        # Points on one line (or at one place) leave the attitude about that line undefined.
+        # Points on one line (or at one place) leave the attitude about that line undefined;
+        # within a thousandth of their extent of it, the stereo noise alone decides it.
         spread = np.linalg.svd(p - p.mean(axis=0), compute_uv=False)
-        if not spread[1] > 1e-9 * max(spread[0], 1e-300):
+        if not spread[1] > MIN_PLANARITY * max(spread[0], 1e-300):
             raise TrackmeterError(
-                f"a model's points must not all be collinear (or at one place): {len(ids)} points on one line "
-                "leave the attitude about it undefined"
+                f"a model's points must not all be (nearly) collinear or at one place: {len(ids)} points within "
+                f"{MIN_PLANARITY:g} of their extent of one line leave the attitude about it undefined"
             )
         p.flags.writeable = False
         object.__setattr__(self, "ids", ids)
