@@ -41,6 +41,7 @@ def run(args: argparse.Namespace) -> int:
     from trackmeter.cli.common import load_config_from_args, progress
     from trackmeter.core.calibration import calibrate_stereo, detect_corners, parse_pattern
     from trackmeter.data.images import expand_globs, pair_stereo_paths, read_grey
+    from trackmeter.core.stereo import check_side_by_side
     from trackmeter.data.rigfile import baseline_problem, save_rig, swapped_cameras
     from trackmeter.errors import TrackmeterError
 
@@ -90,9 +91,11 @@ def run(args: argparse.Namespace) -> int:
     implausible = baseline_problem(rig)
     if implausible:
         warnings.warn(f"{implausible}: --square is the side of one square in metres (25 mm is 0.025)", stacklevel=1)
-    if swapped_cameras(rig):
-        warnings.warn(f"the right camera lies left of the left one (T = {np.round(rig.T, 4).tolist()} m): measure and "
-                      "track refuse this rig; were --left and --right given the wrong way round?", stacklevel=1)
+    try:
+        check_side_by_side(rig)
+    except TrackmeterError as exc:  # written as calibrated, but measure and track refuse it
+        hint = "; were --left and --right given the wrong way round?" if swapped_cameras(rig) else ""
+        warnings.warn(f"{exc}; measure and track refuse this rig{hint}", stacklevel=1)
     return 0
 
 
