@@ -100,7 +100,9 @@ def ray_to_pixel(
     image_size: tuple[int, int],
     render_size: tuple[float, float],
 ) -> tuple[float, float] | None:
-    """The image pixel (u, v) a click ray hits, or None when it misses the image.
+    """The image pixel (u, v) a click ray hits, or None when it misses the image (by more than
+    :data:`EDGE_SLACK_PX`: a hit just outside is put on the image's border, ``-0.5`` or
+    ``W - 0.5``, where the tracker says why it refuses it).
 
     Args:
         ray_origin, ray_direction: (3,) the click ray in the world frame (viser's click event).
@@ -126,7 +128,7 @@ def ray_to_pixel(
     u = (x + rw / 2) * w / rw - 0.5
     v = (y + rh / 2) * h / rh - 0.5
     # The browser found the click on the image; its float32 ray, intersected again here, may
-    # land a hair outside the edge: up to EDGE_SLACK_PX out it is the edge pixel.
+    # land a hair outside the edge: up to EDGE_SLACK_PX out it is put on the border.
     if not (-0.5 - EDGE_SLACK_PX <= u <= w - 0.5 + EDGE_SLACK_PX and -0.5 - EDGE_SLACK_PX <= v <= h - 0.5 + EDGE_SLACK_PX):
         return None
     return float(min(max(u, -0.5), w - 0.5)), float(min(max(v, -0.5), h - 0.5))

@@ -709,7 +709,7 @@ def test_a_bound_models_pose_carries_the_bindings_error_until_three_apriori_poin
     assert sd_resting > 1.5 * sd_pinned
 
 
-def test_clearing_targets_while_acquiring_starts_the_acquisition_again_and_says_so(estec_rig, tmp_path) -> None:
+def test_clearing_targets_while_acquiring_starts_the_acquisition_again_and_says_so(estec_rig, tmp_path, monkeypatch) -> None:
     """Case (c): the points being averaged are gone with the targets; the acquisition starts
     again on the next ones (it ended silently, the pose then 'no model' for good)."""
     engine, tracker, _ = make_engine(estec_rig)
@@ -720,13 +720,5 @@ def test_clearing_targets_while_acquiring_starts_the_acquisition_again_and_says_
     reply = engine.handle(LoadModel("  "), None)
     assert not reply.ok and reply.message == "no model file given"
     (tmp_path / "m.yaml").write_text("points:\n- {id: a, xyz: [0, 0, 0]}\n- {id: b, xyz: [1, 0, 0]}\n- {id: c, xyz: [0, 1, 0]}\n")
-    import os
-    home = os.environ.get("HOME")
-    os.environ["HOME"] = str(tmp_path)
-    try:
-        assert engine.handle(LoadModel("~/m.yaml"), None).ok
-    finally:
-        if home is None:
-            del os.environ["HOME"]
-        else:
-            os.environ["HOME"] = home
+    monkeypatch.setenv("HOME", str(tmp_path))
+    assert engine.handle(LoadModel("~/m.yaml"), None).ok

@@ -235,6 +235,8 @@ def test_plain_yaml_lists_are_matrices_too(tmp_path: Path, header: str) -> None:
     np.testing.assert_array_equal(got.right.dist, rig.right.dist)
     np.testing.assert_allclose(got.R, rig.R, rtol=0, atol=1e-15)
     np.testing.assert_array_equal(got.T, rig.T)
+    path.write_text(text.replace(f"D1: {flat(rig.left.dist)}", "D1: []"))  # no distortion, as hand-written
+    np.testing.assert_array_equal(load_rig(path).left.dist, np.zeros(5))
     for bad, words in (("K1: hello", "'K1' is not a matrix"), ("K1: [[1, 2], [3]]", "'K1' is not a matrix"),
                        ("K1: {a: 1}", "'K1' is not a matrix")):
         path.write_text(text.replace(f"K1: {rows(K1)}", bad))

@@ -54,8 +54,8 @@ def _matrix(fs: cv2.FileStorage, key: str, path: Path, required: bool = True) ->
             values = np.array(_numbers(node), dtype=float)
         except (TypeError, ValueError):  # a string inside, or rows of unequal length
             raise not_matrix from None
-        if values.ndim > 2 or values.size == 0:
-            raise not_matrix
+        if values.ndim > 2:
+            raise not_matrix  # (an empty list is kept: "D1: []", no distortion)
         return values.reshape(3, 3) if key in _SQUARE_KEYS and values.size == 9 else values
     try:
         mat = node.mat()
