@@ -34,6 +34,7 @@ from trackmeter.core.targets import TargetState
 from trackmeter.core.transforms import matrix_to_quat_wxyz
 from trackmeter.data.motion_csv import STATES_COLUMNS, MotionCsvWriter
 from trackmeter.data.atomic import write_text_atomic
+from trackmeter.data.sequence import is_sequence_folder
 from trackmeter.data.trajectory import format_tum_line
 from trackmeter.errors import TrackmeterError
 
@@ -87,7 +88,7 @@ def check_run_directory(directory: str | Path, overwrite: bool = False) -> Path:
         raise TrackmeterError(f"{path}: exists and is not a folder")
     if (path / "run.yaml").exists() and not overwrite:
         raise TrackmeterError(f"{path}: holds a run already (run.yaml); choose another --out or give --overwrite")
-    if any((root / "cam0" / "data.csv").is_file() for root in (path, path / "mav0")):
+    if is_sequence_folder(path):
         raise TrackmeterError(f"{path}: a sequence folder (cam0/, cam1/): a run's files do not go into a recording; "
                               "choose another --out")
     existing = path.absolute()

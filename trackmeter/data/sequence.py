@@ -238,6 +238,19 @@ class SequenceIndex:
         return 1.0 / dt if dt > 0 else None
 
 
+def _sequence_root(directory: Path) -> Path | None:
+    for root in (directory, directory / "mav0"):
+        if (root / "cam0" / "data.csv").is_file() and (root / "cam1" / "data.csv").is_file():
+            return root
+    return None
+
+
+def is_sequence_folder(directory: str | Path) -> bool:
+    """Whether ``directory`` holds a sequence (``cam0``/``cam1`` with their ``data.csv``, or
+    the same below ``mav0``)."""
+    return _sequence_root(Path(directory)) is not None
+
+
 def find_sequence_root(directory: str | Path) -> Path:
     """``DIR`` or ``DIR/mav0``: the folder holding ``cam0`` and ``cam1``.
 
@@ -247,10 +260,10 @@ def find_sequence_root(directory: str | Path) -> Path:
     d = Path(directory)
     if not d.is_dir():
         raise TrackmeterError(f"{d}: no such sequence folder")
-    for root in (d, d / "mav0"):
-        if (root / "cam0" / "data.csv").is_file() and (root / "cam1" / "data.csv").is_file():
-            return root
-    raise TrackmeterError(f"{d}: not a sequence folder (expected cam0/data.csv and cam1/data.csv, or mav0/...)")
+    root = _sequence_root(d)
+    if root is None:
+        raise TrackmeterError(f"{d}: not a sequence folder (expected cam0/data.csv and cam1/data.csv, or mav0/...)")
+    return root
 
 
 def find_sequence_file(directory: str | Path, *names: str) -> Path | None:

@@ -437,6 +437,11 @@ class Pipeline:
                 self._snap_cond.wait(remaining)
             return self._snapshot
 
+    def _recording(self) -> bool:
+        """A recording is on and its writer has not failed."""
+        with self._record_lock:
+            return self._recorder is not None and not self._recorder.failed
+
     def recording_stats(self) -> RecordingStats:
         """Counters of the current (or last) recording."""
         with self._record_lock:
@@ -627,9 +632,8 @@ class Pipeline:
                 self._source_status = None
                 self._acq_rate.reset()
                 self._cond.notify_all()
-            with self._record_lock:
-                recording = self._recorder is not None and not self._recorder.failed
-            return CommandReply(True, "source restarted" + ("; the recording goes on, its time carried on" if recording else ""))
+            return CommandReply(True, "source restarted"
+                                + ("; the recording goes on, its time carried on" if self._recording() else ""))
         if isinstance(command, SetRecording):
             if command.directory is None:
                 stats = self._stop_recording()
@@ -700,8 +704,7 @@ class Pipeline:
         with self._cond:
             timings = self._timings_locked(now)
             paused, status = self._paused, self._source_status
-        with self._record_lock:
-            recording = self._recorder is not None and not self._recorder.failed
+        recording = self._recording()
         self._sequence += 1
         engine = self.engine
         return Snapshot(
