@@ -405,6 +405,8 @@ def check_side_by_side(rig: StereoRig) -> None:
     """
     P2 = rig.rectification.P2
     bx, by = float(P2[0, 3]), float(P2[1, 3])
+    if abs(by) <= abs(bx) and bx < 0:
+        return  # every measurement passes here: nothing else to do
     t = np.round(rig.T, 4).tolist()
     if abs(by) > abs(bx):
         raise TrackmeterError(
@@ -413,11 +415,10 @@ def check_side_by_side(rig: StereoRig) -> None:
             "right camera must lie to the right of the left one (T about (-baseline, 0, 0)); turn both "
             "images and the rig by 90 degrees"
         )
-    if bx >= 0:
-        raise TrackmeterError(
-            f"the right camera lies left of the left one (T = {t} m): left and right are swapped; "
-            "exchange the left and right images (and the rig's cameras)"
-        )
+    raise TrackmeterError(
+        f"the right camera lies left of the left one (T = {t} m): left and right are swapped; "
+        "exchange the left and right images (and the rig's cameras)"
+    )
 
 
 def depth_sigma(z_m: ArrayLike, focal_px: float, baseline_m: float, sigma_disparity_px: float) -> FloatArray:
