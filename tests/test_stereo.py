@@ -270,3 +270,21 @@ def test_matching_needs_the_right_camera_to_the_right(estec_rig: StereoRig) -> N
             measure_points(rig, img, img, [(300.0, 200.0)])
         with pytest.raises(TrackmeterError, match=words):
             Tracker(rig, TrackerParams(), FeatureParams(), MeasureParams())
+
+
+def test_point_sigma_is_a_number_for_rank_one_covariance(estec_rig: StereoRig) -> None:
+    """With no pixel noise the covariance is rank 1 (along the ray); on the camera's x = 0 and
+    y = 0 planes its rotated diagonal holds a zero that rounding can make -1e-26, and its square
+    root must be 0, not NaN (``measure`` printed ``sigma_m: null`` for an ok point)."""
+    rect = estec_rig.rectification
+    rng = np.random.default_rng(0)
+    n = 2000
+    p_cam = np.column_stack([np.zeros(n), rng.uniform(-1, 1, n), rng.uniform(1, 5, n)])
+    p_cam[n // 2 :, [0, 1]] = p_cam[n // 2 :, [1, 0]]
+    uv, d = rect.project_rectified(p_cam)
+    with np.errstate(invalid="raise"):
+        sigma = rect.point_sigma(uv, d, 0.05, 0.0)
+    assert np.all(np.isfinite(sigma)) and np.all(sigma >= 0)
+    # and the same numbers as the covariance wherever its diagonal is positive
+    diag = np.diagonal(rect.point_covariance(uv, d, 0.05, 0.0), axis1=1, axis2=2)
+    np.testing.assert_array_equal(sigma[diag > 0], np.sqrt(diag[diag > 0]))

@@ -75,7 +75,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from trackmeter.core.params import param
-from trackmeter.core.stereo import Rectification, StereoRig, check_side_by_side
+from trackmeter.core.stereo import Rectification, StereoRig, axis_sigmas, check_side_by_side
 from trackmeter.errors import TrackmeterError
 
 FloatArray = NDArray[np.float64]
@@ -1411,7 +1411,7 @@ def measure_points(
         right_rect[:, 0] -= disp[idx]
         right_uv[idx] = rect.unrectify_points(right_rect, 1)
         cov[idx] = rect.point_covariance(uv_rect[idx], disp[idx], sig_d[idx], params.sigma_uv_px)
-    sigma = np.sqrt(np.diagonal(cov, axis1=1, axis2=2))
+    sigma = axis_sigmas(cov)
     for arr in (uv, uv_rect, right_uv, xyz, cov, sigma):
         arr.flags.writeable = False  # rows are handed out as read-only views
 

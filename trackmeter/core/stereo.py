@@ -207,6 +207,14 @@ class StereoRig:
         return Rectification.of(self)
 
 
+def axis_sigmas(cov: ArrayLike) -> FloatArray:
+    """Per-axis standard deviations (..., 3) of covariances (..., 3, 3): the square roots of the
+    diagonals. A covariance of rank below 3 (e.g. a point's with no pixel noise, all along its
+    ray) rotated into another frame can hold a zero diagonal entry that rounding made slightly
+    negative; it is a zero, not a NaN. A NaN diagonal (nothing measured) stays NaN."""
+    return np.sqrt(np.maximum(np.diagonal(np.asarray(cov, dtype=float), axis1=-2, axis2=-1), 0.0))
+
+
 @dataclass(frozen=True, eq=False)
 class Rectification:
     """Rectified stereo geometry of a rig (OpenCV ``stereoRectify`` with ``alpha``).
@@ -389,8 +397,7 @@ class Rectification:
     ) -> FloatArray:
         """Per-axis standard deviation (N,3) in the left camera frame, m (sqrt of the diagonal of
         :meth:`point_covariance`)."""
-        C = self.point_covariance(uv_rect_left, disparity_px, sigma_disparity_px, sigma_uv_px)
-        return np.sqrt(np.diagonal(C, axis1=1, axis2=2))
+        return axis_sigmas(self.point_covariance(uv_rect_left, disparity_px, sigma_disparity_px, sigma_uv_px))
 
 
 def check_side_by_side(rig: StereoRig) -> None:
