@@ -89,18 +89,42 @@ def test_a_run_dir_evaluates_the_poses_of_its_trajectory_tum(capsys, sequence_an
     run = tmp_path / "run"
     write_states_csv(run / "states.csv", est)
     poses = ~declared_invalid
-    write_tum(tmp_path / "trajectory.tum", Trajectory(est.t_s[poses], est.position_m[poses], est.quat_wxyz[poses]))
+    write_tum(run / "trajectory.tum", Trajectory(est.t_s[poses], est.position_m[poses], est.quat_wxyz[poses]))
     code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
     assert code == 0, err
     from_run = json.loads(out)
-    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(tmp_path / "trajectory.tum"), "--json")
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run / "trajectory.tum"), "--json")
     assert code == 0, err
     from_tum = json.loads(out)
-    assert from_run["matched"] == from_tum["matched"] == n - 1
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run / "states.csv"), "--json")
+    assert code == 0, err
+    from_csv = json.loads(out)
+    assert from_run["matched"] == from_tum["matched"] == from_csv["matched"] == n - 1
     for key in ("position_m", "attitude_rad"):
         assert _flat(from_run[key]) == pytest.approx(_flat(from_tum[key]), abs=TUM_EPS)
+        assert _flat(from_csv[key]) == pytest.approx(_flat(from_tum[key]), abs=TUM_EPS)
     assert from_run["velocity_m_s"]["z"]["max"] == pytest.approx(0.001, abs=TUM_EPS)
     assert "velocity_m_s" not in from_tum
+
+
+def test_a_states_csv_without_a_trajectory_counts_only_its_valid_rows(capsys, sequence_and_run, tmp_path):
+    # Another producer may write a held or predicted pose in its valid-0 rows, with the rates
+    # empty: without a trajectory.tum that lists those poses as valid, they are not scored.
+    truth, seq, _ = sequence_and_run
+    n = len(truth)
+    held = (np.arange(n) >= 20) & (np.arange(n) < 30)
+    pos = np.where(held[:, None], [9.0, 9.0, 9.0], truth.position_m + [0.002, 0, 0])
+    nan3 = np.full((n, 3), np.nan)
+    est = MotionSeries(truth.t_s, ~held, pos, truth.quat_wxyz,
+                       np.where(held[:, None], nan3, truth.velocity_cam_m_s), np.where(held[:, None], nan3, truth.omega_body_rad_s))
+    run = tmp_path / "other"
+    write_states_csv(run / "states.csv", est)
+    for estimate in (run, run / "states.csv"):
+        code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(estimate), "--json")
+        assert code == 0, err
+        s = json.loads(out)
+        assert s["matched"] == n - 10
+        assert s["position_m"]["x"]["max"] == pytest.approx(0.002, abs=TUM_EPS)
 
 
 def _flat(tree, prefix=""):

@@ -5,7 +5,9 @@ Truth (``--truth``): a TUM file (velocities from a ``groundtruth.csv`` beside it
 timestamps agree), a ``groundtruth.csv`` file, or a sequence folder (its ``groundtruth.csv``,
 else ``groundtruth.tum``; ``DIR`` or ``DIR/mav0``).
 Estimate (``--estimate``): a TUM file, a ``states.csv`` file, or a ``track`` run directory
-(its ``states.csv`` rows with a pose, the poses of its ``trajectory.tum``, else that file).
+(its ``states.csv`` valid rows and the pose-only rows its ``trajectory.tum`` lists as valid
+poses, else that file); a ``states.csv`` file is read the same way, with the ``trajectory.tum``
+beside it.
 """
 
 from __future__ import annotations
@@ -63,21 +65,42 @@ def _rows_with_rates(series: MotionSeries) -> np.ndarray:
     return _finite_rows(series.velocity_cam_m_s) & _finite_rows(series.omega_body_rad_s)
 
 
-def _poses_of_run(states: MotionSeries) -> MotionSeries:
-    """The rows of a run's ``states.csv`` that carry a pose, all marked valid.
+def _poses_of_run(states: MotionSeries, declared_t_s: np.ndarray) -> MotionSeries:
+    """The rows of a run's ``states.csv`` that carry a valid pose, all marked valid.
 
-    Those are the valid rows and the rows a run writes with valid 0 while its rates are still
-    unknown (pose filled in, rates empty): the poses of its ``trajectory.tum``, so the two
-    files evaluate alike. A valid-0 row with every field filled in was declared invalid and is
-    left out. The rates of the pose-only rows stay NaN (left out of the velocity figures).
+    Those are the valid rows, and the rows a ``track`` run writes with valid 0 while its rates
+    are still unknown (pose filled in, rates empty) whose times its ``trajectory.tum`` lists as
+    valid poses (``declared_t_s``), so the two files evaluate alike. Any other valid-0 row is
+    left out, whatever it holds (another producer may write a held or predicted pose there).
+    The rates of the pose-only rows stay NaN (left out of the velocity figures).
     """
     pose = _finite_rows(states.position_m) & _finite_rows(states.quat_wxyz)
-    keep = states.valid | (pose & ~_rows_with_rates(states))
+    pose_only = pose & ~states.valid & ~_rows_with_rates(states)
+    if np.any(pose_only) and len(declared_t_s):
+        declared = np.zeros(len(states), bool)
+        a = associate(np.sort(np.asarray(declared_t_s, float)), states.t_s[pose_only], 1e-6)
+        declared[np.flatnonzero(pose_only)[a.index_est]] = True
+        pose_only &= declared
+    else:
+        pose_only[:] = False
+    keep = states.valid | pose_only
     with_rates = states.valid[keep][:, None]
     return MotionSeries(states.t_s[keep], np.ones(int(np.count_nonzero(keep)), bool), states.position_m[keep],
                         states.quat_wxyz[keep], np.where(with_rates, states.velocity_cam_m_s[keep], np.nan),
                         np.where(with_rates, states.omega_body_rad_s[keep], np.nan),
                         {k: a[keep] for k, a in states.extra.items()})
+
+
+def _declared_pose_times(run_dir: Path) -> np.ndarray:
+    """Times (s) of the valid poses the run's ``trajectory.tum`` lists; none when it has none
+    or it cannot be read."""
+    tum = run_dir / "trajectory.tum"
+    if not tum.is_file():
+        return np.zeros(0)
+    try:
+        return read_tum(tum).t_s
+    except TrackmeterError:
+        return np.zeros(0)
 
 
 def _with_rates_from(series: MotionSeries, csv_path: Path) -> MotionSeries | None:
@@ -139,7 +162,7 @@ def load_estimate(spec: str | Path) -> LoadedMotion:
         if (path / "states.csv").is_file():
             s = read_motion_csv(path / "states.csv")
             t_start = float(s.t_s[0])
-            s = _poses_of_run(s)
+            s = _poses_of_run(s, _declared_pose_times(path))
             if len(s) == 0:
                 raise TrackmeterError(f"{path / 'states.csv'}: no valid pose in the run")
             return LoadedMotion(s, str(path / "states.csv"), bool(np.any(_rows_with_rates(s))), t_start)
@@ -153,7 +176,7 @@ def load_estimate(spec: str | Path) -> LoadedMotion:
     if _looks_like_motion_csv(path):
         full = read_motion_csv(path)
         t_start = float(full.t_s[0])
-        s = _poses_of_run(full)
+        s = _poses_of_run(full, _declared_pose_times(path.parent))
     else:
         s = MotionSeries.from_trajectory(read_tum(path))
     if len(s) == 0:
