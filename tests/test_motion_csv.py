@@ -113,3 +113,22 @@ def test_tum_comments_anywhere_and_a_bom_read_as_numpy_loadtxt_reads_them(tmp_pa
     assert np.array_equal(got.t_s, reference[:, 0]) and np.array_equal(got.position_m, reference[:, 1:4])
     q = reference[:, [7, 4, 5, 6]]
     assert np.allclose(got.quat_wxyz, q / np.linalg.norm(q, axis=1, keepdims=True), atol=1e-12)
+
+
+def test_comment_lines_before_the_header_are_skipped(tmp_path: Path) -> None:
+    # Another renderer's groundtruth.csv may open with comments; the header is the first line
+    # naming the columns (with or without a leading '#', as EuRoC writes its headers).
+    s = _series()
+    plain = write_groundtruth_csv(tmp_path / "groundtruth.csv", s).read_text()
+    for i, prefix in enumerate(("# ground truth from another renderer\n", "#\n# made 2026-11-27, units SI\n\n")):
+        for header_hash in ("", "#"):
+            path = tmp_path / f"gt_{i}{len(header_hash)}.csv"
+            path.write_text(prefix + header_hash + plain)
+            got = read_motion_csv(path)
+            np.testing.assert_array_equal(got.position_m, s.position_m)
+            np.testing.assert_array_equal(got.omega_body_rad_s, s.omega_body_rad_s)
+    # a comment that names no columns is still not a header
+    path = tmp_path / "only_comment.csv"
+    path.write_text("# t x y z\n0 1 2 3\n")
+    with pytest.raises(TrackmeterError, match="header lacks"):
+        read_motion_csv(path)

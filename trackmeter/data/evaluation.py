@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from trackmeter.core.metrics import Evaluation, associate
-from trackmeter.data.motion_csv import MotionSeries, read_motion_csv
+from trackmeter.data.motion_csv import MotionSeries, header_fields, is_comment_line, read_motion_csv
 from trackmeter.data.atomic import write_text_atomic
 from trackmeter.data.sequence import find_sequence_file
 from trackmeter.data.trajectory import read_tum
@@ -41,8 +41,9 @@ def _looks_like_motion_csv(path: Path) -> bool:
     try:
         with open(path, encoding="utf-8") as f:
             for line in f:
-                if line.strip():
-                    return line.lstrip().lstrip("#").strip().startswith("t,")
+                if line.strip() and not is_comment_line(line):
+                    fields = header_fields(line)
+                    return len(fields) > 1 and "t" in fields
     except (OSError, UnicodeDecodeError):
         return False
     return False

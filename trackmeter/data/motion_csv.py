@@ -178,6 +178,19 @@ class MotionSeries:
 # --------------------------------------------------------------------------- reading
 
 
+def header_fields(line: str) -> list[str]:
+    """The column names of a motion CSV header line (a leading ``#``, as EuRoC writes its
+    headers, is not part of the first name)."""
+    return [h.strip().lstrip("#").strip() for h in line.strip().lstrip("\ufeff").split(",")]
+
+
+def is_comment_line(line: str) -> bool:
+    """A ``#`` line that is not a header: one that names no ``t`` column (e.g. a producer's
+    note above the header)."""
+    text = line.strip().lstrip("\ufeff")
+    return text.startswith("#") and "t" not in header_fields(text)
+
+
 def read_motion_csv(path: str | Path) -> MotionSeries:
     """Read a ``groundtruth.csv`` or ``states.csv`` (any column order; header required).
 
@@ -197,10 +210,12 @@ def read_motion_csv(path: str | Path) -> MotionSeries:
     except (OSError, UnicodeDecodeError) as exc:
         raise TrackmeterError(f"{path}: cannot read as text: {exc.__class__.__name__}") from None
     numbered = [(i, line.strip()) for i, line in enumerate(lines, 1) if line.strip()]
+    while numbered and is_comment_line(numbered[0][1]):
+        del numbered[0]
     if not numbered:
         raise TrackmeterError(f"{path}: empty file")
     header_line, header_text = numbered[0]
-    header = [h.strip().lstrip("#").strip() for h in header_text.split(",")]
+    header = header_fields(header_text)
     missing = [c for c in POSE_COLUMNS if c not in header]
     if missing:
         raise TrackmeterError(
