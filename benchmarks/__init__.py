@@ -39,3 +39,15 @@ def median_ms(
 def median_cpu_ms(fn: Callable[[], object], repeats: int = 101, warmup: int = 5) -> float:
     """Median CPU time of this thread per ``fn()`` call, ms (``time.thread_time``)."""
     return median_ms(fn, repeats, warmup, clock=time.thread_time)
+
+
+def main_of(module: str, doc: str | None, run: Callable[[], dict[str, float]], sort_keys: bool = False) -> None:
+    """``python -m benchmarks.<module>``: ``--help`` prints the module's docstring (a benchmark
+    may take minutes, so asking must not start it); otherwise run it and print its figures as
+    JSON."""
+    import argparse
+    import json
+
+    argparse.ArgumentParser(prog=f"python -m benchmarks.{module}", description=doc,
+                            formatter_class=argparse.RawDescriptionHelpFormatter).parse_args()
+    print(json.dumps(run(), indent=1, sort_keys=sort_keys))

@@ -51,7 +51,6 @@ of the corners that would carry case (b) over 20 s must be unbiased to about 1 m
 
 from __future__ import annotations
 
-import json
 import os
 import sys
 import time
@@ -294,4 +293,6 @@ def run() -> dict[str, float]:
 
 
 if __name__ == "__main__":
-    print(json.dumps(run(), indent=1))
+    from benchmarks import main_of
+
+    main_of("error_budget", __doc__, run)

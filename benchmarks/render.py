@@ -162,6 +162,6 @@ def run() -> dict[str, float]:
 
 
 if __name__ == "__main__":
-    import json
+    from benchmarks import main_of
 
-    print(json.dumps(run(), indent=2))
+    main_of("render", __doc__, run)

@@ -108,6 +108,7 @@ class Runner:
         log = self.log_dir / f"{name}.log"
         log.write_text(f"$ {step.command}\n# exit {proc.returncode}\n--- stdout\n{proc.stdout}\n--- stderr\n{proc.stderr}")
         last = next((line for line in reversed(proc.stderr.splitlines()) if line.strip()), "")
+        last = last.replace(f"{REPO}{os.sep}", "")  # the table names paths as the checkout does
         if proc.returncode == 0:
             step.status = "ok"
         elif "not built yet" in proc.stderr:

@@ -144,6 +144,6 @@ def run() -> dict[str, float]:
 
 
 if __name__ == "__main__":
-    import json
+    from benchmarks import main_of
 
-    print(json.dumps(run(), indent=2, sort_keys=True))
+    main_of("select", __doc__, run, sort_keys=True)

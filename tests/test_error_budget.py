@@ -61,3 +61,16 @@ def test_an_a_priori_oracle_with_a_bias_is_the_same_draw_moved_by_a_constant_per
     assert np.allclose(offsets[0, -1], 0.0)  # the automatic target: untouched
     sd = offsets[0, :-1].std(axis=0)
     assert 0.002 < sd[2] < 0.004 and np.all((0.0005 < sd[:2]) & (sd[:2] < 0.0015))
+
+
+def test_asking_a_standalone_benchmark_for_help_does_not_start_it() -> None:
+    # error_budget runs a 60 s chain and a dozen replays: --help must only print the docstring.
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    for module in ("error_budget", "render", "select"):
+        proc = subprocess.run([sys.executable, "-m", f"benchmarks.{module}", "--help"], capture_output=True, text=True,
+                              timeout=60, cwd=Path(__file__).resolve().parent.parent)
+        assert proc.returncode == 0, proc.stderr
+        assert proc.stdout.startswith(f"usage: python -m benchmarks.{module}") and "{" not in proc.stdout.splitlines()[0]
