@@ -32,7 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--estimate", required=True, metavar="TUM_OR_RUN_DIR", help="estimate: TUM file, states.csv or run directory")
     parser.add_argument("--align", choices=("none", "body"), help="none: same body frame; body: fit a constant body-frame offset (default from config)")
     parser.add_argument("--settle", type=float, metavar="S",
-                        help="seconds to skip from the start of the run (first states.csv row; for a TUM file its first pose)")
+                        help="seconds to skip from the start of the run (its first states.csv row, with a pose or not; for a TUM file, its first pose paired with the truth)")
     parser.add_argument("--tolerance", type=float, metavar="S", help="largest timestamp difference of a pair, s")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON (SI units)")
     parser.add_argument("--out", metavar="DIR", help="write errors.csv, summary.json, plots and report.md here")

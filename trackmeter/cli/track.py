@@ -17,7 +17,7 @@ Model cases (paper section 2.C):
 
 Examples:
   trackmeter track --source sim --auto 16 --out runs/estec_a
-  trackmeter track --source seq:runs/seq1 --case b --target bus_c0=312.5,201.0 ... --auto 16 --out runs/b
+  trackmeter track --source seq:runs/seq1 --case b --target bus_pxpypz=312.5,201.0 ... --auto 16 --out runs/b
   trackmeter track --source sim --case b --select-model-points --auto 16 --out runs/estec_b
 """
 
