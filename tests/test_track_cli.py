@@ -450,3 +450,16 @@ def test_a_model_without_bound_targets_runs_case_a_and_says_so(monkeypatch, tmp_
     assert "case (a)" not in capsys.readouterr().err
     meta = yaml.safe_load((out / "run.yaml").read_text())["source"]
     assert meta["case"] == "b" and meta["model"] == (str(model_path) if model_from == "--model" else "source")
+
+
+def test_the_first_frame_is_summarised_as_the_frame_its_targets_start_on(tmp_path, capsys) -> None:
+    # The commands act on frame 0 after its pose was estimated, so its own reason ("none is a
+    # target yet: target them by id") would ask for what --select-model-points did next.
+    out = tmp_path / "run"
+    assert main(["track", "--source", "sim", "--select-model-points", "--case", "b", "--max-frames", "3",
+                 "--out", str(out)]) == 0
+    summary = capsys.readouterr().out
+    assert "target them by id" not in summary
+    assert "invalid in 1 frames: the first frame" in summary
+    reasons = yaml.safe_load((out / "run.yaml").read_text())["summary"]["invalid_reasons"]
+    assert not any("target them by id" in r for r in reasons)

@@ -34,6 +34,10 @@ from trackmeter.cli.common import parse_uv
 from trackmeter.errors import TrackmeterError
 
 
+#: The summary's reason for an invalid first frame (its targets start on it, tracked from the next).
+FIRST_FRAME_REASON = "the first frame (its pose was estimated before the targets set on it; they are tracked from the next)"
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--source", required=True, metavar="SPEC",
                         help="sim, sim:SCENARIO, seq:DIR or DIR, video:LEFT,RIGHT, camera:I[,J]")
@@ -197,8 +201,11 @@ def run(args: argparse.Namespace) -> int:
                 return
             state["pending"] = None
             writer.write_frame(snap.frame.t_s, snap.targets, snap.pose, snap.timings.latency_ms)
+            first = state.setdefault("first_index", snap.frame.index) == snap.frame.index
             if not snap.pose.valid:
-                reason = snap.pose.reason or "?"
+                # The first frame's pose was estimated before the commands (--target, --auto,
+                # --select-model-points) acted on it: its reason would ask for what they did next.
+                reason = FIRST_FRAME_REASON if first else (snap.pose.reason or "?")
                 state["invalid"][reason] = state["invalid"].get(reason, 0) + 1
 
         def on_snapshot(snap: Snapshot) -> None:
