@@ -286,3 +286,20 @@ def test_stdout_closed_early_gives_no_traceback(sequence_and_run):
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=120) == 1
     assert err == ""
+
+
+@pytest.mark.parametrize("case, warned", [("a", True), ("c", True), ("b", False)])
+def test_a_case_a_or_c_run_compared_without_body_alignment_is_warned(capsys, sequence_and_run, case, warned):
+    # Such a run's body frame is its own: without --align body the position errors measure
+    # where its frame sits (hundreds of mm), which a newcomer takes for the tracking error.
+    _, seq, run = sequence_and_run
+    (run / "run.yaml").write_text(f"status: complete\nsource:\n  spec: sim\n  case: {case}\n")
+    for estimate in (run, run / "states.csv"):
+        code, _, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(estimate), "--json")
+        assert code == 0, err
+        assert ("--align body" in err) == warned, err
+    code, _, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--align", "body", "--json")
+    assert code == 0 and "warning" not in err, err
+    (run / "run.yaml").write_text("not: [valid")  # an unreadable run.yaml is no case, not an error
+    code, _, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
+    assert code == 0 and "warning" not in err, err

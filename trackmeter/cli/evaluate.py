@@ -74,6 +74,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"trackmeter evaluate: warning: the time spans barely overlap (truth {t_t[0]:.6g}..{t_t[-1]:.6g} s, "
               f"estimate {t_e[0]:.6g}..{t_e[-1]:.6g} s; {result.association.matched} of {len(t_e)} estimated "
               "poses paired): timestamps in other units or from another clock?", file=sys.stderr)
+    if params.align == "none" and estimate.case in ("a", "c"):
+        # Such a run's body frame is its own (three tracked points, or the acquired model):
+        # without the fitted offset the figures measure where its frame sits, not the tracking.
+        print(f"trackmeter evaluate: warning: the run was tracked in case ({estimate.case}), whose body frame is "
+              "not the truth's: compare with --align body", file=sys.stderr)
     if args.out:
         write_evaluation(result, args.out, truth.source, estimate.source, params.align, params.settle_s)
     if args.json:

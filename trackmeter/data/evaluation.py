@@ -14,10 +14,11 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from trackmeter.core.metrics import Evaluation, associate
 from trackmeter.data.motion_csv import MotionSeries, header_fields, is_comment_line, read_motion_csv
@@ -35,6 +36,7 @@ class LoadedMotion:
     source: str  # the file(s) read
     has_velocity: bool
     t_start_s: float | None = None  # start of a run (first states.csv row, valid or not)
+    case: str | None = None  # a track run's pose case ("a", "b", "c"; its run.yaml), else None
 
 
 def _looks_like_motion_csv(path: Path) -> bool:
@@ -159,6 +161,23 @@ def load_estimate(spec: str | Path) -> LoadedMotion:
         TrackmeterError: nothing readable there, a file in the wrong format, or no valid pose.
     """
     path = Path(spec)
+    loaded = _load_estimate(path)
+    run_dir = path if path.is_dir() else path.parent
+    return replace(loaded, case=_run_case(run_dir))
+
+
+def _run_case(run_dir: Path) -> str | None:
+    """The pose case a ``track`` run directory's ``run.yaml`` records; None when there is no
+    readable one."""
+    try:
+        meta = yaml.safe_load((run_dir / "run.yaml").read_text(encoding="utf-8"))
+        case = meta["source"]["case"]
+    except (OSError, UnicodeDecodeError, yaml.YAMLError, KeyError, TypeError):
+        return None
+    return case if case in ("a", "b", "c") else None
+
+
+def _load_estimate(path: Path) -> LoadedMotion:
     if path.is_dir():
         if (path / "states.csv").is_file():
             s = read_motion_csv(path / "states.csv")
