@@ -463,3 +463,12 @@ def test_the_first_frame_is_summarised_as_the_frame_its_targets_start_on(tmp_pat
     assert "invalid in 1 frames: the first frame" in summary
     reasons = yaml.safe_load((out / "run.yaml").read_text())["summary"]["invalid_reasons"]
     assert not any("target them by id" in r for r in reasons)
+
+
+def test_a_refusal_is_said_with_the_option_it_came_from(tmp_path, capsys) -> None:
+    out = tmp_path / "run"
+    assert main(["track", "--source", "sim", "--target", "p1=100000,5", "--target", "280,331", "--max-frames", "2",
+                 "--case", "a", "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "warning: --target p1=100000,5: refused at (100000.0, 5.0)" in err, err
+    assert "SelectPoint" not in err

@@ -38,6 +38,23 @@ from trackmeter.errors import TrackmeterError
 FIRST_FRAME_REASON = "the first frame (its pose was estimated before the targets set on it; they are tracked from the next)"
 
 
+def _option_of(command: Any) -> str:
+    """The command-line option a command came from, as the user typed it (for its warnings)."""
+    from trackmeter.pipeline.engine import SelectModelPoints
+    from trackmeter.pipeline.snapshot import AcquireModel, SelectPoint, SetAuto
+
+    if isinstance(command, SelectPoint):
+        named = f"{command.target_id}=" if command.target_id else ""
+        return f"--target {named}{command.u:g},{command.v:g}"
+    if isinstance(command, SelectModelPoints):
+        return "--select-model-points"
+    if isinstance(command, SetAuto):
+        return f"--auto {command.count}"
+    if isinstance(command, AcquireModel):
+        return "--case c (model acquisition)"
+    return type(command).__name__
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--source", required=True, metavar="SPEC",
                         help="sim, sim:SCENARIO, seq:DIR or DIR, video:LEFT,RIGHT, camera:I[,J]")
@@ -243,7 +260,7 @@ def run(args: argparse.Namespace) -> int:
                 if not reply.ok and reply.message not in (STOPPED, NOT_APPLIED):
                     if tty:
                         sys.stderr.write("\r\033[K")  # over the progress line
-                    print(f"trackmeter track: warning: {type(command).__name__}: {reply.message}", file=sys.stderr)
+                    print(f"trackmeter track: warning: {_option_of(command)}: {reply.message}", file=sys.stderr)
                     said.add(k)
                     # A source with truth from a later frame on may still let the points be selected.
                     if isinstance(command, SelectPoint) or (reply.message == NEEDS_TRUTH and not source.has_truth):
@@ -288,7 +305,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"trackmeter track: warning: {source_warning}", file=sys.stderr)
         for k, (command, reply) in enumerate(zip(commands, replies)):
             if not reply.ok and k not in said:
-                print(f"trackmeter track: warning: {type(command).__name__}: {reply.message}", file=sys.stderr)
+                print(f"trackmeter track: warning: {_option_of(command)}: {reply.message}", file=sys.stderr)
         if state.get("nothing"):
             writer.close("nothing to track", summary)
             why = " and ".join((["every --target was refused on the first frame"] if targets else [])

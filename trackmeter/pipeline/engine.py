@@ -455,7 +455,8 @@ class Engine:
             else:
                 made.append(pid)
         ok = len(made) >= self.pose_params.min_points
-        return CommandReply(ok, f"{len(made)} model points selected ({', '.join(made)}); {len(refused)} refused"
+        return CommandReply(ok, f"{len(made)} model points selected" + (f" ({', '.join(made)})" if made else "")
+                                + f"; {len(refused)} refused"
                                 + (f"; {len(hidden)} hidden ({', '.join(hidden)})" if hidden else ""))
 
     def _operator_watch(self, frame: StereoFrame) -> None:
