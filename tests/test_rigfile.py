@@ -179,21 +179,26 @@ def test_files_written_whole_get_ordinary_permissions(tmp_path, estec_rig):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "rig.yaml"]  # no temporary left
 
 
-def test_a_rig_with_its_cameras_swapped_is_warned_about(tmp_path: Path) -> None:
+def test_a_rig_with_its_cameras_swapped_loads_silently_and_is_refused_where_it_is_used(tmp_path: Path) -> None:
+    # Measuring and tracking refuse a swapped rig with the remedy (check_side_by_side); a
+    # warning at load as well said the same thing twice on every command.
     import dataclasses
     import warnings
+
+    from trackmeter.core.stereo import check_side_by_side
 
     rig = _rig()
     swapped = dataclasses.replace(rig, left=rig.right, right=rig.left, R=rig.R.T, T=-rig.R.T @ rig.T)
     vertical = dataclasses.replace(rig, T=np.array([0.001, -0.25, 0.0]))
     with warnings.catch_warnings():
-        warnings.simplefilter("error")  # the rigs as calibrated, horizontal or vertical: silent
+        warnings.simplefilter("error")
         load_rig(save_rig(rig, tmp_path / "rig.yaml"))
         load_rig(save_rig(vertical, tmp_path / "vertical.yaml"))
         for preset in sorted(RIGS_DIR.glob("*.yaml")):
             load_rig(preset)
-    with pytest.warns(UserWarning, match="right camera lies left of the left one"):
-        load_rig(save_rig(swapped, tmp_path / "swapped.yaml"))
+        loaded = load_rig(save_rig(swapped, tmp_path / "swapped.yaml"))
+    with pytest.raises(TrackmeterError, match="right camera lies left of the left one.*exchange the left and right"):
+        check_side_by_side(loaded)
 
 
 def test_a_rig_with_its_baseline_in_millimetres_is_warned_about(tmp_path: Path) -> None:

@@ -98,13 +98,11 @@ MAX_PLAUSIBLE_BASELINE_M = 10.0
 
 def load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> StereoRig:
     """Read a stereo rig from an OpenCV FileStorage file (see :func:`_load_rig`); warns when
-    its right camera lies left of its left one (:func:`swapped_cameras`) and when its baseline
-    is longer than :data:`MAX_PLAUSIBLE_BASELINE_M` (``T`` in millimetres: every depth would
-    come out 1000 times too far)."""
+    its baseline is longer than :data:`MAX_PLAUSIBLE_BASELINE_M` (``T`` in millimetres: every
+    depth would come out 1000 times too far). A rig that cannot be matched (swapped or vertical
+    cameras) loads; measuring and tracking refuse it with the remedy
+    (:func:`trackmeter.core.stereo.check_side_by_side`)."""
     rig = _load_rig(path, image_size)
-    if swapped_cameras(rig):
-        warnings.warn(f"{path}: the right camera lies left of the left one (T = {np.round(rig.T, 4).tolist()}): "
-                      "left and right are swapped, so no point can be matched", stacklevel=2)
     implausible = baseline_problem(rig)
     if implausible:
         warnings.warn(f"{path}: {implausible}", stacklevel=2)
