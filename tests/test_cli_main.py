@@ -62,3 +62,22 @@ def test_an_unknown_argument_is_reported_by_its_command(capsys):
         main(["simulate", "--out", "x", "--bogus", "1"])
     assert exit_info.value.code == 2
     assert capsys.readouterr().err == "trackmeter simulate: error: unrecognized arguments: --bogus 1 (see --help)\n"
+
+
+@pytest.mark.parametrize("argv, hint", [
+    (["measure", "--rig", "r", "--left", "a", "--right", "b", "--at", "-5,3"], "--at=-5,3"),
+    (["measure", "--rig", "r", "--left", "a", "--right", "b", "--at", "4,5", "--at", "-.5,3"], "--at=-.5,3"),
+    (["track", "--source", "sim", "--target", "1,2", "-5,3", "--out", "x"], "--target=-5,3"),
+])
+def test_a_negative_pixel_read_as_an_option_is_explained(capsys, argv, hint):
+    # argparse reads "--at -5,3" as an option named "-5,3"; the message must say how to write it.
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and hint in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_a_missing_value_that_is_not_negative_gets_no_such_hint(capsys):
+    with pytest.raises(SystemExit):
+        main(["evaluate", "--truth"])
+    assert "joined" not in capsys.readouterr().err

@@ -11,6 +11,7 @@ traceback.
 from __future__ import annotations
 
 import argparse
+import re
 import importlib
 import os
 import signal
@@ -39,8 +40,17 @@ class _Parser(argparse.ArgumentParser):
     #: name -> the subcommand's parser (top-level parser only), so an unknown argument is
     #: reported by the command it was given to.
     commands: dict[str, argparse.ArgumentParser]
+    #: the command line being parsed (for hints in error messages)
+    argv: list[str] = []
 
     def error(self, message: str) -> NoReturn:
+        missing = re.match(r"argument (--[\w-]+)(?:/-\w)?: expected (?:at least )?one argument", message)
+        if missing:
+            option = missing.group(1)
+            given = [b for a, b in zip(self.argv, self.argv[1:]) if a == option and re.match(r"-\.?\d", b)]
+            if given:
+                # argparse reads "--at -5,3" as an option "-5,3": the user's value was there.
+                message += f" (a value that starts with '-' must be joined to it: {option}={given[0]})"
         self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
 
 
@@ -121,9 +131,13 @@ def _warning_printer(command: str) -> Callable[..., None]:
 
 def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
+    _Parser.argv = list(sys.argv[1:] if argv is None else argv)
     args, unknown = parser.parse_known_args(argv)
     if unknown:
-        parser.commands.get(args.command, parser).error(f"unrecognized arguments: {' '.join(unknown)}")
+        negative = [u for u in unknown if re.match(r"-\.?\d", u)]
+        hint = (f" (a value that starts with '-' must be joined to its own option, e.g. --target={negative[0]})"
+                if negative else "")
+        parser.commands.get(args.command, parser).error(f"unrecognized arguments: {' '.join(unknown)}{hint}")
     if args.command is None:
         parser.print_help()
         return 2
