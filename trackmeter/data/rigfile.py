@@ -165,6 +165,10 @@ def _load_opencv_pair(path: Path, image_size: tuple[int, int] | None) -> StereoR
         intr, extr = partner("intrinsics"), path
     else:
         intr, extr = path, partner("extrinsics")
+    for needed in (intr, extr):
+        if needed != path and not needed.is_file():
+            raise TrackmeterError(f"{path}: OpenCV's {path.stem} file needs its {needed.stem} file beside it "
+                                  f"({needed}: no such file)")
     fi, fe = _open(intr), _open(extr)
     try:
         if image_size is None:
