@@ -500,6 +500,7 @@ def test_model_round_trip(tmp_path):
         ("points: [{id: a, xyz: [0,0,0]}, {id: b, xyz: [1,0]}, {id: c, xyz: [0,1,0]}]", r"points\[1\]\.xyz"),
         ("points: [{id: a, xyz: [0,0,0]}, {xyz: [1,0,0]}, {id: c, xyz: [0,1,0]}]", r"points\[1\]': missing key 'id'"),
         ("pts: []", "missing key 'points'"),
+        ("name: estec_mockup\nmaterials: []\nparts: []", "missing key 'points'.*simulator mock-up's geometry, not a model"),
         ("points: [{id: a, xyz: [0,0,0]}, {id: b, xyz: [1,0,.inf]}, {id: c, xyz: [0,1,0]}]", r"xyz\[2\]': expected a finite number"),
         ("points: [a, b, c]", r"points\[0\]"),
         ("points: [{id: a, xyz: [0,0,0]", "malformed YAML"),

@@ -140,7 +140,9 @@ def load_model(path: str | Path) -> Model:
     path = Path(path)
     data = read_yaml_mapping(path)
     if "points" not in data:
-        raise TrackmeterError(f"{path}: missing key 'points' (a list of {{id: NAME, xyz: [x, y, z]}})")
+        mockup = " (this is a simulator mock-up's geometry, not a model; a simulated sequence folder holds its model.yaml)" \
+            if "parts" in data or "materials" in data else ""
+        raise TrackmeterError(f"{path}: missing key 'points' (a list of {{id: NAME, xyz: [x, y, z]}}){mockup}")
     data = _drop_unknown_keys(data, path)
     entries = data["points"]
     if isinstance(entries, list):
