@@ -81,7 +81,9 @@ OPERATOR_MARKS_RESERVED = 4
 OVERLAY_Z = -0.01
 #: Colour of the measured 3D points in the 3D view: tracking, or measured again after a loss.
 POINT_COLOURS = {"tracking": (60, 230, 60), "other": (255, 200, 0)}
-STATUS_HEIGHT_EM = 23.0  # the live numbers' fixed height (see Console._status_html)
+#: The live numbers' fixed height (see Console._status_html): seven status lines, a pose reason
+#: wrapped to three lines, the six-row table and the attitude error, at line-height 1.45.
+STATUS_HEIGHT_EM = 25.5
 #: How often the publisher hands the C heap's free pages back to the system (see :func:`release_free_heap`).
 TRIM_EVERY_S = 10.0
 
