@@ -81,3 +81,18 @@ def test_a_missing_value_that_is_not_negative_gets_no_such_hint(capsys):
     with pytest.raises(SystemExit):
         main(["evaluate", "--truth"])
     assert "joined" not in capsys.readouterr().err
+
+
+def test_progress_off_a_terminal_is_a_plain_line_now_and_then(monkeypatch):
+    # A long run piped to a log must still say it is alive, without a redrawn bar's \r.
+    import io
+
+    from trackmeter.cli import common
+
+    clock = iter(float(t) for t in range(0, 1000, 10))  # 10 s a step
+    monkeypatch.setattr(common.time, "monotonic", lambda: next(clock))
+    log = io.StringIO()
+    assert list(common.progress(range(9), 9, "simulate estec", stream=log)) == list(range(9))
+    lines = log.getvalue().splitlines()
+    assert "\r" not in log.getvalue()
+    assert lines == ["simulate estec: 3/9 after 30 s", "simulate estec: 6/9 after 60 s", "simulate estec: 9/9 after 90 s"]

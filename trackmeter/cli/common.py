@@ -89,8 +89,20 @@ def parse_uv(text: str) -> tuple[float, float]:
         raise TrackmeterError(f"expected a pixel as U,V (two finite numbers), got {text!r}") from None
 
 
+#: Seconds between two progress lines when stderr is not a terminal (a log, a pipe).
+PLAIN_PROGRESS_S = 30.0
+
+
+def plain_progress_due(last_s: float, now_s: float) -> bool:
+    """Whether a progress line is due on a stream that is not a terminal: one every
+    :data:`PLAIN_PROGRESS_S` (a redrawn bar would fill a log), so a long run piped to a file
+    still says it is alive."""
+    return now_s - last_s >= PLAIN_PROGRESS_S
+
+
 def progress(items: Iterable[T], total: int | None, label: str, stream=None) -> Iterator[T]:  # type: ignore[no-untyped-def]
-    """Yield ``items`` while drawing a one-line progress bar on a terminal (silent otherwise).
+    """Yield ``items`` while drawing a one-line progress bar on a terminal; elsewhere (a log,
+    a pipe) a plain line every :data:`PLAIN_PROGRESS_S` seconds.
 
     ``stream`` defaults to the ``sys.stderr`` of the moment of the call (not of import), so
     redirected or captured stderr is honoured.
@@ -98,7 +110,14 @@ def progress(items: Iterable[T], total: int | None, label: str, stream=None) -> 
     if stream is None:
         stream = sys.stderr
     if not stream.isatty():
-        yield from items
+        start = last = time.monotonic()
+        for count, item in enumerate(items, 1):
+            yield item
+            now = time.monotonic()
+            if plain_progress_due(last, now):
+                last = now
+                stream.write(f"{label}: {count}{f'/{total}' if total else ''} after {now - start:.0f} s\n")
+                stream.flush()
         return
     start = time.monotonic()
     count = 0

@@ -30,7 +30,7 @@ import sys
 import time
 from typing import Any, Iterator
 
-from trackmeter.cli.common import parse_uv
+from trackmeter.cli.common import parse_uv, plain_progress_due
 from trackmeter.errors import TrackmeterError
 
 
@@ -209,8 +209,9 @@ def run(args: argparse.Namespace) -> int:
             "auto": args.auto,
         }
         writer = RunWriter(args.out, config_to_dict(config), source_info, overwrite=args.overwrite)
-        state = {"pending": None, "invalid": {}, "last_draw": 0.0, "t0": time.monotonic(), "status": None}
         tty = sys.stderr.isatty()
+        t0 = time.monotonic()
+        state = {"pending": None, "invalid": {}, "last_draw": 0.0 if tty else t0, "t0": t0, "status": None}
 
         def flush_pending() -> None:
             snap = state["pending"]
@@ -238,14 +239,15 @@ def run(args: argparse.Namespace) -> int:
                 flush_pending()
             state["pending"] = snap
             now = time.monotonic()
-            if tty and now - state["last_draw"] > 0.25:
+            if now - state["last_draw"] > 0.25 if tty else plain_progress_due(state["last_draw"], now):
                 state["last_draw"] = now
                 n = writer.frames
                 of = f"/{total}" if total else ""
                 fps = n / max(now - state["t0"], 1e-9)
                 ok = "valid" if snap.pose.valid else "INVALID"
-                sys.stderr.write(f"\rtrack: frame {n}{of}  {fps:5.1f} fps  pose {ok:7s}  "
-                                 f"targets {sum(t.measured for t in snap.targets):2d}/{len(snap.targets):2d}   ")
+                line = (f"track: frame {n}{of}  {fps:5.1f} fps  pose {ok:7s}  "
+                        f"targets {sum(t.measured for t in snap.targets):2d}/{len(snap.targets):2d}")
+                sys.stderr.write(f"\r{line}   " if tty else f"{line}\n")
                 sys.stderr.flush()
 
         # Without --auto only the --target points and --select-model-points can start a target:
