@@ -1,7 +1,9 @@
 """Compare an estimated trajectory with the ground truth (the paper's trial evaluation, section 4).
 
 Pairs poses by nearest timestamp (--tolerance), optionally fits the constant offset between the
-estimate's and the truth's body frames (--align body: cases a and c), skips a settle time, and
+estimate's and the truth's body frames (--align body: cases a and c; the estimate is then
+referred to the TRUE body frame, so its position error is that of the true body origin, lever
+arm of the attitude error included), skips a settle time, and
 reports position errors (camera frame; z = viewing axis), attitude errors (paper eq. 17 per axis,
 eq. 16 total), linear and angular velocity errors (body frame; only when the estimate is a run
 directory with states.csv and the truth has a groundtruth.csv) as RMS, max and 95th percentile,
