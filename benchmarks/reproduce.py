@@ -1,7 +1,7 @@
 """Reproduce the README results table from scratch: ``python -m benchmarks.reproduce``.
 
-Every figure comes from the project's own commands, run here as a user would run them (the CLI
-contracts of DESIGN.md section 6), in this order:
+Every figure comes from the project's own commands, run here as a user would run them (the
+README's commands), in this order:
 
 1. ``trackmeter simulate`` the scenarios into sequence folders (``estec``, ``harsh_light``,
    ``fast_tumble``, ``static_ranges``);

@@ -1,4 +1,4 @@
-"""Render a tumbling-satellite scenario to a stereo sequence folder (DESIGN.md section 6).
+"""Render a tumbling-satellite scenario to a stereo sequence folder (EuRoC layout).
 
 The folder holds the left and right images (cam0/, cam1/ with data.csv), rig.yaml,
 groundtruth.tum, groundtruth.csv, model.yaml (the mock-up's salient points) and scenario.yaml
