@@ -303,3 +303,19 @@ def test_a_case_a_or_c_run_compared_without_body_alignment_is_warned(capsys, seq
     (run / "run.yaml").write_text("not: [valid")  # an unreadable run.yaml is no case, not an error
     code, _, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
     assert code == 0 and "warning" not in err, err
+
+
+def test_a_truth_in_integer_nanoseconds_is_read_as_such_with_a_warning(capsys, sequence_and_run, tmp_path):
+    truth, seq, run = sequence_and_run
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq / "groundtruth.csv"), "--estimate", str(run), "--json")
+    assert code == 0, err
+    expected = json.loads(out)
+    lines = (seq / "groundtruth.csv").read_text().splitlines()
+    rows = [line.split(",") for line in lines[1:]]
+    ns_csv = tmp_path / "ns" / "groundtruth.csv"
+    ns_csv.parent.mkdir()
+    ns_csv.write_text("\n".join([lines[0]] + [",".join([str(round(float(r[0]) * 1e9))] + r[1:]) for r in rows]) + "\n")
+    code, out, err = _run(capsys, "evaluate", "--truth", str(ns_csv), "--estimate", str(run), "--json")
+    assert code == 0, err
+    assert "its times read as integer nanoseconds" in err and len(err.strip().splitlines()) == 1, err
+    assert _flat(json.loads(out)) == pytest.approx(_flat(expected), abs=1e-9)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 import subprocess
 import sys
 from pathlib import Path
@@ -551,3 +552,24 @@ def test_videos_of_different_frame_sizes_are_refused_when_opened(tmp_path):
 def test_a_sequence_has_truth_when_its_folder_gives_some(tmp_path):
     assert SequenceSource(_write(tmp_path / "a", _frames(3))).has_truth
     assert not SequenceSource(_write(tmp_path / "b", _frames(3, truth=False))).has_truth
+
+
+@pytest.mark.parametrize("t0_s", [0.0, 1403636579.7635555])
+def test_a_groundtruth_csv_in_integer_nanoseconds_is_read_as_such(tmp_path, t0_s):
+    # DESIGN.md: "integer nanoseconds only in EuRoC-style CSV files"; another renderer may take
+    # its groundtruth.csv for one. Read in seconds, its times would pair with no frame (or only
+    # with frame 0 at t = 0): the truth, and --select-model-points, silently gone.
+    frames = [replace(f, t_s=t0_s + f.t_s) for f in _frames(5)]
+    d = _write(tmp_path / "s", frames)
+    (d / "groundtruth.tum").unlink()
+    lines = (d / "groundtruth.csv").read_text().splitlines()
+    rows = [line.split(",") for line in lines[1:]]
+    ns = [str(int(round(float(r[0]) * 1e9))) for r in rows]
+    (d / "groundtruth.csv").write_text("\n".join([lines[0]] + [",".join([t] + r[1:]) for t, r in zip(ns, rows)]) + "\n")
+    with pytest.warns(UserWarning, match="groundtruth.csv: its times read as integer nanoseconds"):
+        src = SequenceSource(d)
+    for f in frames:
+        got = src.read()
+        assert got.truth is not None, f.index
+        np.testing.assert_allclose(got.truth.T_cam_body, f.truth.T_cam_body, atol=1e-12)
+        np.testing.assert_allclose(got.truth.omega_body_rad_s, f.truth.omega_body_rad_s, atol=1e-12)

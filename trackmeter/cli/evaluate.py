@@ -62,11 +62,12 @@ def _params(args: argparse.Namespace):  # type: ignore[no-untyped-def]
 
 def run(args: argparse.Namespace) -> int:
     from trackmeter.core.metrics import evaluate
-    from trackmeter.data.evaluation import format_summary, load_estimate, load_truth, write_evaluation
+    from trackmeter.data.evaluation import format_summary, in_seconds, load_estimate, load_truth, write_evaluation
 
     params = _params(args)
     truth = load_truth(args.truth)
     estimate = load_estimate(args.estimate)
+    truth, estimate = in_seconds(truth, estimate, params.tolerance_s)
     result = evaluate(truth.series, estimate.series, params, estimate.t_start_s)
     t_t, t_e = truth.series.t_s, estimate.series.t_s
     overlap = min(t_t[-1], t_e[-1]) - max(t_t[0], t_e[0])

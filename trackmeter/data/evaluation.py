@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -23,7 +24,7 @@ import yaml
 from trackmeter.core.metrics import Evaluation, associate
 from trackmeter.data.motion_csv import MotionSeries, header_fields, is_comment_line, read_motion_csv
 from trackmeter.data.atomic import write_text_atomic
-from trackmeter.data.sequence import find_sequence_file
+from trackmeter.data.sequence import find_sequence_file, seconds_if_nanoseconds
 from trackmeter.data.trajectory import read_tum
 from trackmeter.errors import TrackmeterError
 
@@ -202,6 +203,21 @@ def _load_estimate(path: Path) -> LoadedMotion:
     if len(s) == 0:
         raise TrackmeterError(f"{path}: no valid pose")
     return LoadedMotion(s, str(path), bool(np.any(_rows_with_rates(s))), t_start)
+
+
+def in_seconds(truth: LoadedMotion, estimate: LoadedMotion, tolerance_s: float) -> tuple[LoadedMotion, LoadedMotion]:
+    """``truth`` and ``estimate`` with times in seconds: one whose times are integers that pair
+    with the other's only as nanoseconds (a CSV written in EuRoC's integer nanoseconds) is
+    converted, with a warning naming it (:func:`trackmeter.data.sequence.seconds_if_nanoseconds`)."""
+    out = []
+    for this, other in ((truth, estimate), (estimate, truth)):
+        t, note = seconds_if_nanoseconds(other.series.t_s, this.series.t_s, tolerance_s, other.source)
+        if note:
+            warnings.warn(f"{this.source}: {note}", stacklevel=2)
+            start = None if this.t_start_s is None else this.t_start_s * 1e-9
+            this = replace(this, series=replace(this.series, t_s=t), t_start_s=start)
+        out.append(this)
+    return out[0], out[1]
 
 
 # --------------------------------------------------------------------------- paper figures

@@ -28,7 +28,8 @@ that plays a folder is :class:`trackmeter.sources.sequence.SequenceSource`.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
+import warnings
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Sequence
 
@@ -347,6 +348,24 @@ def pair_by_nearest(t_left: ArrayLike, t_right: ArrayLike, tolerance: float) -> 
     return [(i, int(j)) for i, j in enumerate(j_of_i) if i_of_j[j] == i and abs(a[i] - b[j]) <= tolerance]
 
 
+def seconds_if_nanoseconds(t_ref_s: ArrayLike, t: ArrayLike, tolerance_s: float, ref_name: str = "the reference"
+                           ) -> tuple[FloatArray, str | None]:
+    """Times ``t`` in seconds, given times ``t_ref_s`` (s) they should pair with: ``t`` itself,
+    or ``t * 1e-9`` with a note when ``t`` are integers that pair (nearest, within
+    ``tolerance_s``) with at most a few of ``t_ref_s`` as seconds and with at least twice as
+    many as nanoseconds (e.g. a ``groundtruth.csv`` written in EuRoC's integer nanoseconds:
+    it pairs with no frame in seconds, or only with one at t = 0)."""
+    t = np.asarray(t, dtype=float)
+    as_s = len(pair_by_nearest(t_ref_s, t, tolerance_s))
+    if as_s >= min(len(np.atleast_1d(t_ref_s)), len(t)) / 2 or not np.all(t == np.round(t)):
+        return t, None
+    as_ns = len(pair_by_nearest(t_ref_s, t * 1e-9, tolerance_s))
+    if as_ns <= max(2 * as_s, 1):
+        return t, None
+    return t * 1e-9, (f"its times read as integer nanoseconds ({as_ns} of its {len(t)} rows pair with {ref_name} so, "
+                      f"{as_s} as seconds)")
+
+
 def index_sequence(
     directory: str | Path, tolerance_s: float | None = None, *, read_rig: bool = True, read_model: bool = True
 ) -> SequenceIndex:
@@ -464,13 +483,21 @@ def _read_truth(path: Path | None, t_s: FloatArray, tolerance_s: float) -> Motio
     if path is None:
         return None
     series = read_motion_csv(path) if path.suffix == ".csv" else MotionSeries.from_trajectory(read_tum(path))
+    if path.suffix == ".csv":
+        # Frame times come from data.csv's nanoseconds; a producer may have written its
+        # groundtruth.csv EuRoC-style in integer nanoseconds too.
+        t_truth, note = seconds_if_nanoseconds(t_s, series.t_s, tolerance_s, "the frames")
+        if note:
+            warnings.warn(f"{path.name}: {note}", stacklevel=2)
+            series = replace(series, t_s=t_truth)
+    pairs = pair_by_nearest(t_s, series.t_s, tolerance_s)
     n = len(t_s)
     p = np.full((n, 3), np.nan)
     q = np.full((n, 4), np.nan)
     v = np.full((n, 3), np.nan)
     w = np.full((n, 3), np.nan)
     valid = np.zeros(n, dtype=bool)
-    for i, j in pair_by_nearest(t_s, series.t_s, tolerance_s):
+    for i, j in pairs:
         valid[i] = bool(series.valid[j])
         p[i], q[i] = series.position_m[j], series.quat_wxyz[j]
         v[i], w[i] = series.velocity_cam_m_s[j], series.omega_body_rad_s[j]
