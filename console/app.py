@@ -71,6 +71,10 @@ AUTO_METHODS = ("gabor", "centroid")
 # The operator widget each toggle command comes from (Console._mirror), by command name.
 _WIDGETS_OF_COMMAND = {"SetAuto": ("auto", "auto_count"), "SetRecording": ("record",), "SetCase": ("case",),
                        "SetFilterCutoff": ("cutoff",)}
+#: A typed filter cutoff is sent once the field has held it this long, s: viser sends every
+#: keystroke of a number field, and "0.5" passes 0, which the filter refuses (each accepted
+#: value also rebuilds the filter).
+EDIT_SETTLE_S = 0.8
 SERIES_COLOURS = ("#e6194b", "#3cb44b", "#4363d8", "#111111")
 TRAIL_FRAMES = 12
 #: Line thickness of the operator targets' boxes drawn over the left image, image px.
@@ -312,6 +316,7 @@ class Console:
         self._pushed_operator_ids: set[str] = set()
         # The tracker's state each operator widget last mirrored, by widget (see _mirror).
         self._mirrored: dict[str, Any] = {}
+        self._cutoff_edit: tuple[float, Any, float] | None = None  # (value, browser, when typed)
         self._build_scene()
         self._build_gui()
         server.on_client_connect(self._on_connect)
@@ -522,11 +527,26 @@ class Console:
         self.select_model_button.on_click(self._cb(lambda e: SelectModelPoints(repeat=True)))
         self.acquire_button.on_click(self._cb(lambda e: AcquireModel()))
         self.load_model_button.on_click(self._cb(lambda e: LoadModel(self.model_path.value.strip())))
-        self.cutoff.on_update(self._cb(lambda e: SetFilterCutoff(float(self.cutoff.value))))
+        self.cutoff.on_update(self._cutoff_typed)
         self.record_checkbox.on_update(self._cb(lambda e: SetRecording(
             self._fresh_record_dir() if self.record_checkbox.value else None)))
         self.right_checkbox.on_update(lambda e: setattr(self.right_image, "visible", bool(self.right_checkbox.value)))
         self.view_buttons.on_click(lambda e: self._choose_view(e.client, str(self.view_buttons.value)) if e.client else None)
+
+    def _cutoff_typed(self, event: Any) -> None:
+        """Remember the operator's cutoff; :meth:`_send_settled_edits` sends it once it stays."""
+        if getattr(event, "client", None) is None:
+            return  # the publisher showing the filter's value
+        with self._pending_lock:
+            self._cutoff_edit = (float(self.cutoff.value), event.client, time.monotonic())
+
+    def _send_settled_edits(self) -> None:
+        with self._pending_lock:
+            edit = self._cutoff_edit
+            if edit is None or time.monotonic() - edit[2] < EDIT_SETTLE_S:
+                return
+            self._cutoff_edit = None
+        self.submit(SetFilterCutoff(edit[0]), edit[1], "SetFilterCutoff")
 
     def _auto_command(self) -> Command:
         return SetAuto(bool(self.auto_checkbox.value), int(self.auto_count.value), str(self.auto_method.value))
@@ -683,6 +703,7 @@ class Console:
             try:
                 snap = self.pipeline.wait_snapshot(last_seq, min(period, 0.1))
                 self._flush_replies()
+                self._send_settled_edits()
                 self._frame_clients()
                 if snap is None:
                     if last_seq >= 0 and last_text_seq != last_seq:

@@ -179,6 +179,44 @@ def test_the_count_and_cutoff_widgets_follow_the_tracker_and_its_limits() -> Non
         running.stop()
 
 
+def test_a_typed_cutoff_is_sent_once_the_field_holds_it() -> None:
+    """viser sends every keystroke of a number field: typing "0.5" passed 0 (refused, and the
+    refusal put the old value back while the operator was still typing), and every accepted
+    keystroke rebuilt the output filter. The value is sent once the field has held it."""
+    import types
+
+    class Counting(_LimitsEngine):
+        sent: list[float] = []
+
+        def handle(self, command, frame):  # type: ignore[no-untyped-def]
+            from trackmeter.pipeline.snapshot import SetFilterCutoff
+
+            if isinstance(command, SetFilterCutoff):
+                self.sent.append(command.cutoff_hz)
+            return super().handle(command, frame)
+
+    engine = Counting()
+    running = start_console(CountingSource(100_000, delay_s=0.02), engine, port=free_port())  # type: ignore[arg-type]
+    con = running.console
+    browser = types.SimpleNamespace(add_notification=lambda *a, **k: None)
+    try:
+        _wait_for_pushes(con, 3)
+        for typed in (0.0, 0.0, 0.5):  # "0", "0.", "0.5", a keystroke every 0.1 s
+            con.cutoff.value = typed
+            con._cutoff_typed(types.SimpleNamespace(client=browser))
+            time.sleep(0.1)
+            assert con.cutoff.value == typed  # nothing put back while typing
+        deadline = time.monotonic() + 10
+        while engine.filter_cutoff_hz != 0.5:
+            assert time.monotonic() < deadline, engine.sent
+            time.sleep(0.05)
+        assert engine.sent == [0.5]
+        _wait_for_pushes(con, 5)
+        assert con.cutoff.value == pytest.approx(0.5)
+    finally:
+        running.stop()
+
+
 def test_what_the_source_skipped_is_shown_while_it_plays() -> None:
     """A sequence folder's unreadable image is skipped while it plays (``Source.warning``):
     the operator sees it in the status box, not only ``track``'s user at the end."""
