@@ -585,15 +585,26 @@ class Console:
 
     def _on_click(self, event: Any) -> None:
         uv = self._event_pixel(event)
-        if uv is None:
-            return
+        if uv is not None:
+            self._click_at(uv, event.client)
+
+    def _click_at(self, uv: tuple[float, float], client: Any) -> Future[CommandReply]:
+        """A target at left-image pixel ``uv``, named after the model point chosen in "Next
+        click is"; the choice is used up when the target is made, and stays for the next click
+        when the point is refused (refusals are common on a turning body)."""
         model_point = self.model_point_dropdown.value
-        if model_point != NEW_TARGET:
-            self.model_point_dropdown.value = NEW_TARGET  # one click per choice
-            self.submit(SelectPoint(uv[0], uv[1], model_point), event.client,
-                        f"Model point {model_point} at ({uv[0]:.0f}, {uv[1]:.0f})")
-            return
-        self.submit(SelectPoint(uv[0], uv[1]), event.client, f"Target at ({uv[0]:.0f}, {uv[1]:.0f})")
+        if model_point == NEW_TARGET:
+            return self.submit(SelectPoint(uv[0], uv[1]), client, f"Target at ({uv[0]:.0f}, {uv[1]:.0f})")
+        future = self.submit(SelectPoint(uv[0], uv[1], model_point), client,
+                             f"Model point {model_point} at ({uv[0]:.0f}, {uv[1]:.0f})")
+
+        def used_up(done: Future[CommandReply]) -> None:
+            if not done.cancelled() and done.exception() is None and done.result().ok \
+                    and self.model_point_dropdown.value == model_point:
+                self.model_point_dropdown.value = NEW_TARGET
+
+        future.add_done_callback(used_up)
+        return future
 
     def _on_remove_click(self, event: Any) -> None:
         uv = self._event_pixel(event)

@@ -217,6 +217,32 @@ def test_a_typed_cutoff_is_sent_once_the_field_holds_it() -> None:
         running.stop()
 
 
+def test_a_refused_click_keeps_the_model_point_chosen_for_the_next_one() -> None:
+    """"Next click is" names the next target after a model point; a refused click (common on a
+    turning body) must not use the choice up, or the retry makes an unnamed target."""
+    import types
+
+    from console.app import NEW_TARGET
+
+    running = start_console(CountingSource(100_000, delay_s=0.02), RecordingEngine(), port=free_port())  # type: ignore[arg-type]
+    con = running.console
+    browser = types.SimpleNamespace(add_notification=lambda *a, **k: None)
+    try:
+        _wait_for_pushes(con, 3)
+        con.model_point_dropdown.options = (NEW_TARGET, "m1")
+        con.model_point_dropdown.value = "m1"
+        assert not con._click_at((-5.0, 10.0), browser).result(10).ok  # refused: outside the image
+        _wait_for_pushes(con, 3)
+        assert con.model_point_dropdown.value == "m1"
+        assert con._click_at((50.0, 10.0), browser).result(10).ok
+        deadline = time.monotonic() + 10
+        while con.model_point_dropdown.value != NEW_TARGET:
+            assert time.monotonic() < deadline, "the choice stays after the target was made"
+            time.sleep(0.05)
+    finally:
+        running.stop()
+
+
 def test_what_the_source_skipped_is_shown_while_it_plays() -> None:
     """A sequence folder's unreadable image is skipped while it plays (``Source.warning``):
     the operator sees it in the status box, not only ``track``'s user at the end."""
