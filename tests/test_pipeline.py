@@ -517,3 +517,31 @@ def test_a_writer_failing_while_the_queue_is_full_neither_hangs_the_stop_nor_los
     stats = recorder.stats(False)
     assert stats.frames_written == 0 and stats.frames_dropped == 2 and stats.frames_lost == 3
     assert "No space left" in (stats.error or "")
+
+
+def test_clearing_the_targets_while_paused_leaves_no_pose_shown() -> None:
+    # The console showed "targets: 0 tracking" beside "pose valid (case b, 14 points)" until
+    # the next step: the published pose must not outlive the targets it came from.
+    class ValidPoseEngine(RecordingEngine):
+        def process(self, frame):  # type: ignore[no-untyped-def]
+            targets, _, errors = super().process(frame)
+            T = np.eye(4)
+            T[2, 3] = 3.5
+            return targets, PoseEstimate(True, None, "b", T, np.eye(6) * 1e-6, np.zeros(3), np.zeros(3), 3), errors
+
+    engine = ValidPoseEngine()
+    with Pipeline(CountingSource(10**6, delay_s=0.002), engine, paused=True) as pipe:
+        assert pipe.call(StepOnce()).ok  # a first frame for the click
+        snap = pipe.wait_snapshot(0, 5)
+        while snap is not None and not (snap.frame is not None and snap.pose.valid):
+            snap = pipe.wait_snapshot(snap.sequence, 5)
+        assert snap is not None and snap.pose.valid
+        assert pipe.call(SelectPoint(1.0, 2.0)).ok
+        assert pipe.call(ClearTargets()).ok
+        snap = pipe.latest()
+        deadline = time.monotonic() + 5
+        while snap.targets or snap.pose.valid:
+            assert time.monotonic() < deadline, (len(snap.targets), snap.pose)
+            snap = pipe.wait_snapshot(snap.sequence, 1) or pipe.latest()
+        assert "targets cleared" in (snap.pose.reason or "") and snap.pose.case == "b"
+        assert engine.processed == [0]  # no step taken meanwhile: the pose went with the clearing

@@ -50,6 +50,7 @@ from trackmeter.core.stereo import StereoRig
 from trackmeter.core.targets import TargetState
 from trackmeter.errors import TrackmeterError
 from trackmeter.pipeline.snapshot import (
+    ClearTargets,
     Command,
     CommandReply,
     PoseEstimate,
@@ -644,7 +645,13 @@ class Pipeline:
                                     + stats.not_recorded() + (f"; {stats.error}" if stats.error else ""))
             self._start_recording(Path(command.directory))
             return CommandReply(True, f"recording to {command.directory}")
-        return self.engine.handle(command, self._last_frame)
+        reply = self.engine.handle(command, self._last_frame)
+        if isinstance(command, ClearTargets) and reply.ok:
+            # The published pose went with the targets it came from (paused, no step would
+            # replace it: the console showed a valid pose beside no target).
+            self._last_pose = PoseEstimate.invalid("targets cleared", self._last_pose.case)
+            self._last_errors = None
+        return reply
 
     def _start_recording(self, directory: Path) -> None:
         with self._record_lock:
