@@ -891,6 +891,8 @@ class Console:
         lines = [f"<b>{state}</b> · frame {snap.frame.index if snap.frame else '-'} · auto "
                  f"{'on' if snap.auto_enabled else 'off'}" + (" · <b>● REC</b>" if snap.recording else ""),
                  source,
+                 # paused, no frame moves and no snapshot comes to lower the last rates
+                 "read – · tracking – (paused)" if snap.paused else
                  f"read {t.acquisition_hz:.1f} Hz · tracking {t.tracking_hz:.1f} Hz",
                  f"latency {t.latency_ms:.0f} ms · step {t.step_ms:.0f} ms",
                  f"dropped {t.frames_dropped} ({dropped_pct:.1f} %)",

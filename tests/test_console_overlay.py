@@ -172,6 +172,9 @@ def test_status_keeps_its_height_whatever_the_state() -> None:
     texts = [parse(h).text for h in htmls]
     assert "<camera> unplugged" in texts[3] and "pose invalid: fewer than 3 points" in texts[3]
     assert "COASTING" in texts[2] and "REC" in texts[2] and "v [mm/s]–––" in texts[1]
+    # Paused, no snapshot comes to lower the last rates: they are not shown as if still true.
+    assert "read – · tracking – (paused)" in texts[3] and "Hz" not in texts[3]
+    assert "read 0.0 Hz · tracking 0.0 Hz" in texts[0]
 
 
 def test_box_segments_outline_the_pixel_box_in_front_of_the_image() -> None:
