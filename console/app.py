@@ -39,7 +39,7 @@ from console.overlay import (STATUS_RGB, box_half_px, box_segments, draw_overlay
 from console.series import PLOTS, PlotData
 from trackmeter.core.stereo import StereoRig
 from trackmeter.pipeline.engine import SelectModelPoints
-from trackmeter.pipeline.pipeline import Pipeline
+from trackmeter.pipeline.pipeline import Pipeline, RecordingStats
 from trackmeter.pipeline.snapshot import (
     AcquireModel,
     ClearTargets,
@@ -809,9 +809,7 @@ class Console:
             if status_text is not None and targets_text is not None:
                 self.status_html.content = status_text
                 self.targets_md.content = targets_text
-            self.record_md.content = (
-                f"{rec.directory}: {rec.frames_written} frames written, {rec.frames_dropped + rec.frames_lost} not recorded"
-                + (f", {rec.error}" if rec.error else "") if rec.directory else "not recording")
+            self.record_md.content = self._recording_text(rec)
             self._sync_widgets(snap)
             self._update_scene3d(snap)
             if plots:
@@ -926,6 +924,15 @@ class Console:
                 f'line-height:1.45;padding:0 0.75rem">' + "<br>".join(lines)
                 + '<table style="border-collapse:collapse;font-variant-numeric:tabular-nums">'
                 + "".join(table) + f"</table>attitude error: {attitude_error}</div>")
+
+    @staticmethod
+    def _recording_text(rec: RecordingStats) -> str:
+        """The Recording folder's line: the recording going on, or that none is and the last one's counts."""
+        if not rec.directory:
+            return "not recording"
+        counts = (f"{rec.directory}: {rec.frames_written} frames written, {rec.frames_dropped + rec.frames_lost} "
+                  "not recorded" + (f", {rec.error}" if rec.error else ""))
+        return counts if rec.active else f"not recording (last: {counts})"
 
     @staticmethod
     def _targets_markdown(snap: Snapshot) -> str:

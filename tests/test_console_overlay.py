@@ -291,3 +291,14 @@ def test_operator_marks_move_pooled_boxes_by_position_only() -> None:
     # The next target reuses a parked box.
     marks.update([_target("p3", (110.0, 60.0)), _target("p9", (300.0, 300.0))], SIZE, RENDER)
     assert len(marks.slots) == 3
+
+
+def test_the_recording_line_says_when_nothing_is_recorded_any_more() -> None:
+    from console.app import Console
+    from trackmeter.pipeline.pipeline import RecordingStats
+
+    assert Console._recording_text(RecordingStats()) == "not recording"
+    on = RecordingStats("runs/rec", active=True, frames_written=120, frames_dropped=1)
+    assert Console._recording_text(on) == "runs/rec: 120 frames written, 1 not recorded"
+    off = RecordingStats("runs/rec", active=False, frames_written=253)
+    assert Console._recording_text(off) == "not recording (last: runs/rec: 253 frames written, 0 not recorded)"
