@@ -535,8 +535,8 @@ class Console:
 
     def _cutoff_typed(self, event: Any) -> None:
         """Remember the operator's cutoff; :meth:`_send_settled_edits` sends it once it stays."""
-        if getattr(event, "client", None) is None:
-            return  # the publisher showing the filter's value
+        if getattr(event, "client", None) is None or self.cutoff.value is None:
+            return  # the publisher showing the filter's value, or an emptied field
         with self._pending_lock:
             self._cutoff_edit = (float(self.cutoff.value), event.client, time.monotonic())
 

@@ -11,9 +11,9 @@ traceback.
 from __future__ import annotations
 
 import argparse
-import re
 import importlib
 import os
+import re
 import signal
 import sys
 import threading
