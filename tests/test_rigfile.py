@@ -255,3 +255,17 @@ def test_a_folder_given_as_the_rig_is_named_as_one(tmp_path: Path) -> None:
         load_rig(tmp_path)
     with pytest.raises(TrackmeterError, match="no such rig file"):
         load_rig(tmp_path / "missing.yaml")
+
+
+def test_a_preset_is_named_as_scenarios_are(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)  # no file of that name here
+    by_name = load_rig("estec_12mm")
+    by_path = load_rig(RIGS_DIR / "estec_12mm.yaml")
+    np.testing.assert_array_equal(by_name.left.K, by_path.left.K)
+    np.testing.assert_array_equal(by_name.T, by_path.T)
+    assert load_rig("estec_12mm.yaml").image_size == by_path.image_size
+    (tmp_path / "estec_12mm").write_text("not a rig")  # a file of that name wins over the preset
+    with pytest.raises(TrackmeterError, match="not an OpenCV FileStorage"):
+        load_rig("estec_12mm")
+    with pytest.raises(TrackmeterError, match=r"estec_21mm: no such rig file \(a file, or a preset: estec_12mm, "):
+        load_rig("estec_21mm")

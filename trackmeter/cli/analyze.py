@@ -27,7 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--source", default="sim:static_ranges", metavar="SPEC",
                         help="frames of a still target (default sim:static_ranges; seq:DIR or a folder)")
     parser.add_argument("--rig", metavar="RIG",
-                        help="stereo rig file (default: the source's own); OpenCV's intrinsics.yml or extrinsics.yml "
+                        help="stereo rig file or a preset's name (config/rigs/) (default: the source's own); OpenCV's intrinsics.yml or extrinsics.yml "
                              "(the other beside it) takes the size of the source's frames")
     parser.add_argument("--points", type=int, metavar="N", help="points selected per range (default from config)")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON (SI units)")

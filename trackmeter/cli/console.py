@@ -29,7 +29,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--port", type=int, default=8080, help="port to listen on (default 8080)")
     parser.add_argument("--record", metavar="DIR", help="record the incoming stereo stream to this sequence folder")
     parser.add_argument("--rig", metavar="RIG",
-                        help="stereo rig file to use instead of the source's own; OpenCV's intrinsics.yml or "
+                        help="stereo rig file or a preset's name (config/rigs/) to use instead of the source's own; OpenCV's intrinsics.yml or "
                              "extrinsics.yml (the other beside it) takes the size of the source's frames")
     parser.add_argument("--case", choices=("a", "b", "c"), help="model case at start (default: b when the source carries a model, else a; in case b a "
                              "target binds to a model point by id: Model > Next click is, in the page)")

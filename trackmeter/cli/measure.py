@@ -28,7 +28,7 @@ if TYPE_CHECKING:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rig", required=True, metavar="RIG",
-                        help="stereo rig file (OpenCV FileStorage YAML; or OpenCV's intrinsics.yml or extrinsics.yml, "
+                        help="stereo rig file or a preset's name (config/rigs/) (OpenCV FileStorage YAML; or OpenCV's intrinsics.yml or extrinsics.yml, "
                              "the other beside it, sized by the left image)")
     parser.add_argument("--left", required=True, metavar="IMG", help="left image (read as 8-bit grey)")
     parser.add_argument("--right", required=True, metavar="IMG", help="right image (read as 8-bit grey)")

@@ -59,7 +59,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--source", required=True, metavar="SPEC",
                         help="sim, sim:SCENARIO, seq:DIR or DIR, video:LEFT,RIGHT, camera:I[,J]")
     parser.add_argument("--rig", metavar="RIG",
-                        help="stereo rig file (default: the source's own rig); OpenCV's intrinsics.yml or "
+                        help="stereo rig file or a preset's name (config/rigs/) (default: the source's own rig); OpenCV's intrinsics.yml or "
                              "extrinsics.yml (the other beside it) takes the size of the source's frames")
     parser.add_argument("--model", metavar="MODEL",
                         help="model.yaml for case (b) (default: the source's own model); unused in cases (a) and (c)")

@@ -23,7 +23,12 @@ def _open(path: Path) -> cv2.FileStorage:
     if path.is_dir():
         raise TrackmeterError(f"{path}: a folder, not a rig file")
     if not path.is_file():
-        raise TrackmeterError(f"{path}: no such rig file")
+        presets = ""
+        if path.parent == Path("."):  # a bare name: perhaps a preset's, mistyped
+            from trackmeter.paths import RIGS_DIR
+
+            presets = f" (a file, or a preset: {', '.join(sorted(r.stem for r in RIGS_DIR.glob('*.yaml')))})"
+        raise TrackmeterError(f"{path}: no such rig file{presets}")
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except (cv2.error, SystemError):
@@ -102,7 +107,7 @@ def load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> Ste
     depth would come out 1000 times too far). A rig that cannot be matched (swapped or vertical
     cameras) loads; measuring and tracking refuse it with the remedy
     (:func:`trackmeter.core.stereo.check_side_by_side`)."""
-    rig = _load_rig(path, image_size)
+    rig = _load_rig(resolve_rig_path(path), image_size)
     implausible = baseline_problem(rig)
     if implausible:
         warnings.warn(f"{path}: {implausible}", stacklevel=2)
@@ -116,6 +121,17 @@ def baseline_problem(rig: StereoRig) -> str | None:
         return None
     return (f"baseline {rig.baseline_m:.4g} m (|T|): T must be in metres; if it is in millimetres (calibrated with "
             "the square size in mm), every depth and distance comes out 1000x too large")
+
+
+def resolve_rig_path(name_or_path: str | Path) -> Path:
+    """A rig file: an existing path, else a preset's name (``config/rigs/NAME[.yaml]``, as
+    scenarios are named); otherwise the path as given, so that reading it says what is wrong."""
+    from trackmeter.paths import RIGS_DIR
+
+    p = Path(name_or_path)
+    if p.exists() or p.parent != Path("."):
+        return p
+    return next((c for c in (RIGS_DIR / p.name, RIGS_DIR / f"{p.name}.yaml") if c.is_file()), p)
 
 
 def _load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> StereoRig:
