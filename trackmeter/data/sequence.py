@@ -351,10 +351,10 @@ def pair_by_nearest(t_left: ArrayLike, t_right: ArrayLike, tolerance: float) -> 
 def seconds_if_nanoseconds(t_ref_s: ArrayLike, t: ArrayLike, tolerance_s: float, ref_name: str = "the reference"
                            ) -> tuple[FloatArray, str | None]:
     """Times ``t`` in seconds, given times ``t_ref_s`` (s) they should pair with: ``t`` itself,
-    or ``t * 1e-9`` with a note when ``t`` are integers that pair (nearest, within
-    ``tolerance_s``) with at most a few of ``t_ref_s`` as seconds and with at least twice as
-    many as nanoseconds (e.g. a ``groundtruth.csv`` written in EuRoC's integer nanoseconds:
-    it pairs with no frame in seconds, or only with one at t = 0)."""
+    or ``t * 1e-9`` with a note when ``t`` are integers of which fewer than half pair (nearest,
+    within ``tolerance_s``) as seconds and more than twice as many as nanoseconds (e.g. a
+    ``groundtruth.csv`` written in EuRoC's integer nanoseconds: it pairs with no frame in
+    seconds, or only with one at t = 0)."""
     t = np.asarray(t, dtype=float)
     as_s = len(pair_by_nearest(t_ref_s, t, tolerance_s))
     if as_s >= min(len(np.atleast_1d(t_ref_s)), len(t)) / 2 or not np.all(t == np.round(t)):
