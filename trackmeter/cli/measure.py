@@ -10,7 +10,9 @@ fails a check is refused with its reason, never given a wrong number.
 --json prints a JSON list, one object per --at, in order:
   {"uv": [u, v], "ok": bool, "reason": str|null, "right_uv": [u, v], "disparity_px": d,
    "xyz_m": [x, y, z], "sigma_m": [sx, sy, sz], "score": s}
-(right_uv in the original right image; null where a refused point has no number).
+(right_uv in the original right image; disparity_px in the RECTIFIED images, d = f b / z plus
+the rectification's offset, so not u - right_u where the images are distorted or converge;
+null where a refused point has no number).
 
 example:
   trackmeter measure --rig config/rigs/estec_12mm.yaml --left l.png --right r.png \\
