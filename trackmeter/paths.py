@@ -31,3 +31,18 @@ DEFAULT_CONFIG = CONFIG_DIR / "default.yaml"
 RIGS_DIR = CONFIG_DIR / "rigs"
 SCENARIOS_DIR = CONFIG_DIR / "scenarios"
 MODELS_DIR = CONFIG_DIR / "models"
+
+
+def preset(name_or_path: str | Path, folder: Path) -> Path | None:
+    """``name_or_path`` as a preset in ``folder`` (``NAME`` or ``NAME.yaml``, e.g. a scenario or
+    a rig named on the command line): that file when ``name_or_path`` is a bare name that is
+    not itself a file here and the preset exists, else None."""
+    p = Path(name_or_path)
+    if p.is_file() or p.parent != Path("."):
+        return None
+    return next((c for c in (folder / p.name, folder / f"{p.name}.yaml") if c.is_file()), None)
+
+
+def preset_names(folder: Path) -> list[str]:
+    """The presets of ``folder`` (its ``*.yaml`` files' names), sorted."""
+    return sorted(f.stem for f in folder.glob("*.yaml"))

@@ -25,9 +25,9 @@ def _open(path: Path) -> cv2.FileStorage:
     if not path.is_file():
         presets = ""
         if path.parent == Path("."):  # a bare name: perhaps a preset's, mistyped
-            from trackmeter.paths import RIGS_DIR
+            from trackmeter.paths import RIGS_DIR, preset_names
 
-            presets = f" (a file, or a preset: {', '.join(sorted(r.stem for r in RIGS_DIR.glob('*.yaml')))})"
+            presets = f" (a file, or a preset: {', '.join(preset_names(RIGS_DIR))})"
         raise TrackmeterError(f"{path}: no such rig file{presets}")
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
@@ -126,12 +126,9 @@ def baseline_problem(rig: StereoRig) -> str | None:
 def resolve_rig_path(name_or_path: str | Path) -> Path:
     """A rig file: an existing path, else a preset's name (``config/rigs/NAME[.yaml]``, as
     scenarios are named); otherwise the path as given, so that reading it says what is wrong."""
-    from trackmeter.paths import RIGS_DIR
+    from trackmeter.paths import RIGS_DIR, preset
 
-    p = Path(name_or_path)
-    if p.exists() or p.parent != Path("."):
-        return p
-    return next((c for c in (RIGS_DIR / p.name, RIGS_DIR / f"{p.name}.yaml") if c.is_file()), p)
+    return preset(name_or_path, RIGS_DIR) or Path(name_or_path)
 
 
 def _load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> StereoRig:

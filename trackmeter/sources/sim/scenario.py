@@ -29,7 +29,7 @@ from trackmeter.core.dynamics import inertia_tensor
 from trackmeter.core.params import param
 from trackmeter.data.config import build_dataclass, read_yaml_mapping
 from trackmeter.errors import TrackmeterError
-from trackmeter.paths import MODELS_DIR, RIGS_DIR, SCENARIOS_DIR
+from trackmeter.paths import MODELS_DIR, RIGS_DIR, SCENARIOS_DIR, preset, preset_names
 from trackmeter.sources.sim.render import RenderParams
 
 FloatArray = NDArray[np.float64]
@@ -133,11 +133,10 @@ def resolve_scenario_path(name_or_path: str | Path) -> Path:
     p = Path(name_or_path)
     if p.is_file():
         return p
-    for candidate in (SCENARIOS_DIR / p.name, SCENARIOS_DIR / f"{p.name}.yaml"):
-        if p.parent == Path(".") and candidate.is_file():
-            return candidate
-    known = ", ".join(sorted(s.stem for s in SCENARIOS_DIR.glob("*.yaml")))
-    raise TrackmeterError(f"no scenario {str(name_or_path)!r} (a file, or one of: {known})")
+    found = preset(p, SCENARIOS_DIR)
+    if found is not None:
+        return found
+    raise TrackmeterError(f"no scenario {str(name_or_path)!r} (a file, or one of: {', '.join(preset_names(SCENARIOS_DIR))})")
 
 
 def load_scenario(name_or_path: str | Path) -> Scenario:
