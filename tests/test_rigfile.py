@@ -269,3 +269,53 @@ def test_a_preset_is_named_as_scenarios_are(tmp_path: Path, monkeypatch: pytest.
         load_rig("estec_12mm")
     with pytest.raises(TrackmeterError, match=r"estec_21mm: no such rig file \(a file, or a preset: estec_12mm, "):
         load_rig("estec_21mm")
+
+
+def test_an_empty_opencv_matrix_is_no_distortion(tmp_path: Path) -> None:
+    """``cv2.FileStorage`` writes an empty array as an ``!!opencv-matrix`` of 0 rows: no
+    distortion, as a hand-written ``D1: []`` is."""
+    rig = _rig()
+    path = tmp_path / "empty_d.yaml"
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    for key, value in (("image_width", 640), ("image_height", 480), ("K1", rig.left.K), ("D1", np.zeros((0, 0))),
+                       ("K2", rig.right.K), ("D2", rig.right.dist), ("R", rig.R), ("T", rig.T)):
+        fs.write(key, value)
+    fs.release()
+    assert "rows: 0" in path.read_text()
+    got = load_rig(path)
+    np.testing.assert_array_equal(got.left.dist, np.zeros(5))
+    np.testing.assert_array_equal(got.right.dist, rig.right.dist)
+
+
+def _kalibr_camchain(rig: StereoRig, model: str = "radtan") -> str:
+    """Kalibr's ``camchain.yaml`` of ``rig``: ``T_cn_cnm1`` maps cam0 points into cam1."""
+    def cam(c: Camera) -> str:
+        K = c.K
+        return (f"  camera_model: pinhole\n  distortion_coeffs: {[float(x) for x in c.dist[:4]]}\n"
+                f"  distortion_model: {model}\n  intrinsics: {[float(K[i, j]) for i, j in ((0, 0), (1, 1), (0, 2), (1, 2))]}\n"
+                f"  resolution: [{c.width}, {c.height}]\n  rostopic: /cam/image_raw\n")
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = rig.R, rig.T
+    rows = "".join(f"  - {[float(x) for x in r]}\n" for r in T)
+    return f"cam0:\n  cam_overlaps: [1]\n{cam(rig.left)}cam1:\n  T_cn_cnm1:\n{rows}  cam_overlaps: [0]\n{cam(rig.right)}"
+
+
+def test_a_kalibr_camchain_reads_as_the_same_rig(tmp_path: Path) -> None:
+    """Kalibr's stereo calibration (pinhole, radial-tangential ``[k1 k2 p1 p2]``, OpenCV's
+    model and order) is the same rig: ``R, T`` are ``T_cn_cnm1``'s rotation and translation."""
+    rig = _rig(n_dist=4)
+    path = tmp_path / "camchain-stereo.yaml"
+    path.write_text(_kalibr_camchain(rig))
+    got = load_rig(path)
+    assert got.image_size == rig.image_size
+    for a, b in ((got.left, rig.left), (got.right, rig.right)):
+        np.testing.assert_array_equal(a.K, b.K)
+        np.testing.assert_array_equal(a.dist[:4], b.dist)
+    np.testing.assert_array_equal(got.R, rig.R)
+    np.testing.assert_array_equal(got.T, rig.T)
+    path.write_text(_kalibr_camchain(rig, model="equidistant"))
+    with pytest.raises(TrackmeterError, match="Kalibr camera model pinhole/equidistant is not supported"):
+        load_rig(path)
+    path.write_text(_kalibr_camchain(rig).split("cam1:")[0])
+    with pytest.raises(TrackmeterError, match="Kalibr camchain needs cam0 and cam1"):
+        load_rig(path)

@@ -3,7 +3,8 @@
 Keys: ``image_width``, ``image_height``, ``K1``, ``D1``, ``K2``, ``D2``, ``R``, ``T`` (metres),
 optional ``rms_px``, ``E``, ``F``. OpenCV's stereo sample pair ``intrinsics.yml`` (``M1 D1 M2
 D2``) + ``extrinsics.yml`` (``R T ...``) is read too: give either file and the other is found
-beside it; that pair carries no image size, so pass ``image_size``.
+beside it; that pair carries no image size, so pass ``image_size``. So is Kalibr's
+``camchain.yaml`` (pinhole, radial-tangential), as real stereo data often comes with one.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import yaml
 
 from trackmeter.core.stereo import Camera, StereoRig
 from trackmeter.data.atomic import atomic_path
@@ -67,6 +69,8 @@ def _matrix(fs: cv2.FileStorage, key: str, path: Path, required: bool = True) ->
     except (cv2.error, SystemError):  # a mapping that is not an !!opencv-matrix, or a string
         raise not_matrix from None
     if mat is None:
+        if node.isMap() and node.getNode("rows").isInt() and int(node.getNode("rows").real()) == 0:
+            return np.zeros(0)  # cv2.FileStorage's form of an empty array ("D1: []")
         raise not_matrix
     return np.asarray(mat, dtype=float)
 
@@ -143,6 +147,9 @@ def _load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> St
         TrackmeterError: missing file, not FileStorage, a missing key or a malformed matrix.
     """
     path = Path(path)
+    camchain = _kalibr_camchain(path)
+    if camchain is not None:
+        return _load_kalibr(camchain, path)
     fs = _open(path)
     try:
         if fs.getNode("K1").empty() and (not fs.getNode("M1").empty() or not fs.getNode("R").empty()):
@@ -163,6 +170,62 @@ def _load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> St
         raise TrackmeterError(f"{path}: {exc}") from None
     finally:
         fs.release()
+
+
+def _kalibr_camchain(path: Path) -> dict | None:
+    """The file's contents when it is a Kalibr ``camchain.yaml`` (a mapping with ``cam0``), else
+    None (not YAML PyYAML reads, e.g. OpenCV's ``!!opencv-matrix`` tags, or another mapping)."""
+    if not path.is_file():
+        return None
+    try:
+        data = yaml.safe_load(without_directives(path.read_text(encoding="utf-8")))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return None
+    return data if isinstance(data, dict) and isinstance(data.get("cam0"), dict) else None
+
+
+def without_directives(text: str) -> str:
+    # OpenCV-style writers put a "%YAML:1.0" directive first, which PyYAML refuses.
+    return "\n".join(line for line in text.splitlines() if not line.startswith("%"))
+
+
+def pinhole_radtan_camera(entry: dict, distortion_key: str) -> Camera:
+    """A camera from a Kalibr or EuRoC calibration entry: ``camera_model`` pinhole,
+    ``intrinsics`` ``[fu, fv, cu, cv]``, ``resolution`` ``[w, h]`` and radial-tangential
+    coefficients ``[k1, k2, p1, p2]`` under ``distortion_key`` (OpenCV's model and order).
+
+    Raises:
+        TrackmeterError: another camera or distortion model (equidistant, omni, ...).
+        KeyError, TypeError, ValueError: a missing or malformed entry.
+    """
+    model, distortion = entry.get("camera_model", "pinhole"), entry.get("distortion_model", "radtan")
+    if model != "pinhole" or distortion not in ("radial-tangential", "radtan", "plumb_bob", "none"):
+        raise TrackmeterError(f"camera model {model}/{distortion} is not supported (pinhole with "
+                              "radial-tangential distortion is: OpenCV's model)")
+    fu, fv, cu, cv = (float(x) for x in entry["intrinsics"])
+    width, height = (int(x) for x in entry["resolution"])
+    dist = np.array([float(x) for x in entry.get(distortion_key) or [0.0, 0.0, 0.0, 0.0]])
+    return Camera(width, height, np.array([[fu, 0.0, cu], [0.0, fv, cv], [0.0, 0.0, 1.0]]), dist)
+
+
+def _load_kalibr(camchain: dict, path: Path) -> StereoRig:
+    """A stereo rig from Kalibr's ``camchain.yaml``: ``cam1``'s ``T_cn_cnm1`` (4x4) maps cam0
+    points into cam1, ``p_cam1 = R p_cam0 + T``: OpenCV's ``R, T``."""
+    cams = []
+    try:
+        if not isinstance(camchain.get("cam1"), dict):
+            raise TrackmeterError("a Kalibr camchain needs cam0 and cam1 (a stereo calibration)")
+        for name in ("cam0", "cam1"):
+            try:
+                cams.append(pinhole_radtan_camera(camchain[name], "distortion_coeffs"))
+            except TrackmeterError as exc:
+                raise TrackmeterError(f"{name}: Kalibr {exc}") from None
+        T_c1_c0 = np.array(camchain["cam1"]["T_cn_cnm1"], dtype=float).reshape(4, 4)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise TrackmeterError(f"{path}: not a usable Kalibr camchain ({exc.__class__.__name__}: {exc})") from None
+    except TrackmeterError as exc:
+        raise TrackmeterError(f"{path}: {exc}") from None
+    return StereoRig(cams[0], cams[1], T_c1_c0[:3, :3], T_c1_c0[:3, 3], name=path.stem)
 
 
 def _load_opencv_pair(path: Path, image_size: tuple[int, int] | None) -> StereoRig:

@@ -443,25 +443,15 @@ def read_euroc_rig(root: Path) -> tuple[StereoRig | None, str | None]:
     files = [root / cam / "sensor.yaml" for cam in CAMERAS]
     if not all(f.is_file() for f in files):
         return None, None
-    from trackmeter.core.stereo import Camera
+    from trackmeter.data.rigfile import pinhole_radtan_camera, without_directives
 
     cams = []
     poses = []
     for f in files:
         try:
-            # Some writers put an OpenCV-style "%YAML:1.0" directive first, which PyYAML refuses.
-            text = "\n".join(line for line in f.read_text(encoding="utf-8").splitlines() if not line.startswith("%"))
-            data = yaml.safe_load(text) or {}
-            if data.get("camera_model", "pinhole") != "pinhole" or data.get("distortion_model", "radial-tangential") not in (
-                "radial-tangential", "radtan", "plumb_bob"
-            ):
-                return None, f"{f}: camera model {data.get('camera_model')}/{data.get('distortion_model')} not supported; rig unknown"
-            fu, fv, cu, cv = (float(x) for x in data["intrinsics"])
-            width, height = (int(x) for x in data["resolution"])
-            dist = np.array([float(x) for x in data.get("distortion_coefficients", [0, 0, 0, 0])])
-            T_BS = np.array([float(x) for x in data["T_BS"]["data"]]).reshape(4, 4)
-            cams.append(Camera(width, height, np.array([[fu, 0.0, cu], [0.0, fv, cv], [0.0, 0.0, 1.0]]), dist))
-            poses.append(T_BS)
+            data = yaml.safe_load(without_directives(f.read_text(encoding="utf-8"))) or {}
+            cams.append(pinhole_radtan_camera(data, "distortion_coefficients"))
+            poses.append(np.array([float(x) for x in data["T_BS"]["data"]]).reshape(4, 4))
         except KeyError as exc:
             return None, f"{f}: no key {exc} in the camera calibration; rig unknown"
         except (OSError, UnicodeDecodeError, yaml.YAMLError, TypeError, ValueError, AttributeError) as exc:
