@@ -81,3 +81,42 @@ def opencv_sample_sequence(shared_data: Path, tmp_path_factory: pytest.TempPathF
             writer.write(StereoFrame(i, i / 25.0, read_grey(images / f"left0{i + 1}.jpg"),
                                      read_grey(images / f"right0{i + 1}.jpg")))
     return folder
+
+
+class FullDisk:
+    """``os`` as :mod:`trackmeter.data.atomic` sees it, on a disk with ``free`` bytes left: a
+    write takes what still fits, then the next one fails with ENOSPC (as a real full disk
+    does). ``free`` may be raised again to let writes through."""
+
+    def __init__(self, free: int) -> None:
+        import os
+
+        self._os = os
+        self.free = free
+
+    def __getattr__(self, name: str):  # type: ignore[no-untyped-def]
+        return getattr(self._os, name)
+
+    def write(self, fd: int, data) -> int:  # type: ignore[no-untyped-def]
+        import errno
+
+        if self.free <= 0:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        n = self._os.write(fd, bytes(data[: self.free]))
+        self.free -= n
+        return n
+
+
+@pytest.fixture
+def full_disk(monkeypatch: pytest.MonkeyPatch):  # type: ignore[no-untyped-def]
+    """Make the files written in whole pieces (:class:`trackmeter.data.atomic.AppendFile`:
+    run files, a recording's data.csv and truth) see a disk that fills: returns a function
+    ``fill(free_bytes)``."""
+    import trackmeter.data.atomic as atomic
+
+    def fill(free: int) -> FullDisk:
+        disk = FullDisk(free)
+        monkeypatch.setattr(atomic, "os", disk)
+        return disk
+
+    return fill

@@ -96,3 +96,17 @@ def test_progress_off_a_terminal_is_a_plain_line_now_and_then(monkeypatch):
     lines = log.getvalue().splitlines()
     assert "\r" not in log.getvalue()
     assert lines == ["simulate estec: 3/9 after 30 s", "simulate estec: 6/9 after 60 s", "simulate estec: 9/9 after 90 s"]
+
+
+def test_console_refuses_a_recording_folder_that_holds_files_before_the_source_opens(tmp_path, capsys):
+    import socket
+
+    (tmp_path / "rec").mkdir()
+    (tmp_path / "rec" / "groundtruth.csv").write_text("t,x\n")
+    with socket.socket() as s:  # a port nothing listens on, so the port check passes
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    code = main(["console", "--source", "sim", "--port", str(port), "--cpu-nice", "0", "--record", str(tmp_path / "rec")])
+    err = capsys.readouterr().err
+    assert code == 2 and "already holds files" in err and "opening" not in err, err
+    assert (tmp_path / "rec" / "groundtruth.csv").read_text() == "t,x\n"

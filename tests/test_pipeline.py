@@ -545,3 +545,29 @@ def test_clearing_the_targets_while_paused_leaves_no_pose_shown() -> None:
             snap = pipe.wait_snapshot(snap.sequence, 1) or pipe.latest()
         assert "targets cleared" in (snap.pose.reason or "") and snap.pose.case == "b"
         assert engine.processed == [0]  # no step taken meanwhile: the pose went with the clearing
+
+
+def test_an_interrupt_while_winding_down_waits_for_the_block_to_finish() -> None:
+    """Ctrl-C or SIGTERM inside the block (threads joining, files closing) is held and raised
+    after it, with the message; the handlers are given back; without one the block is silent."""
+    import os
+    import signal
+
+    from trackmeter.pipeline.pipeline import interrupts_deferred
+
+    before = (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM))
+    finished = []
+    with pytest.raises(KeyboardInterrupt, match="files are complete"):
+        with interrupts_deferred(lambda: "files are complete"):
+            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)  # the handlers run here, in the main thread
+            finished.append(True)
+    assert finished == [True]
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+    with interrupts_deferred():
+        pass
+    with pytest.raises(ValueError):  # the block's own error goes through unchanged
+        with interrupts_deferred():
+            raise ValueError("x")
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before

@@ -6,10 +6,14 @@ import math
 from pathlib import Path
 
 import numpy as np
+import pytest
 import yaml
 
-from trackmeter.data.rundir import RunWriter
-from trackmeter.data.motion_csv import STATES_COLUMNS
+from trackmeter.data.atomic import AppendFile
+from trackmeter.data.motion_csv import STATES_COLUMNS, read_motion_csv
+from trackmeter.data.rundir import RunWriter, check_run_directory
+from trackmeter.data.trajectory import read_tum
+from trackmeter.errors import TrackmeterError
 from trackmeter.pipeline.snapshot import PoseEstimate
 
 
@@ -82,3 +86,66 @@ def test_a_target_id_with_a_comma_or_quote_stays_one_csv_field(tmp_path: Path) -
     assert all(r["state"] == "tracking" and float(r["z"]) == 3.5 for r in rows)
     first = (tmp_path / "run" / "targets.csv").read_text().splitlines()[1]
     assert first.split(",")[1] == "plain"  # ordinary ids are written as before, unquoted
+
+
+def test_an_append_lands_whole_or_not_at_all(tmp_path: Path, full_disk) -> None:  # type: ignore[no-untyped-def]
+    path = tmp_path / "rows.csv"
+    f = AppendFile(path, "a,b\n")
+    f.append("1,2\n")
+    full_disk(5)  # room for one row and a bit of the next
+    f.append("3,4\n")
+    with pytest.raises(TrackmeterError, match=r"rows\.csv: cannot write \(No space left on device\)"):
+        f.append("5,6\n")
+    f.close()
+    assert path.read_text() == "a,b\n1,2\n3,4\n"
+
+
+def test_a_frame_that_cannot_be_written_whole_is_taken_back_from_every_file(tmp_path: Path, full_disk) -> None:  # type: ignore[no-untyped-def]
+    """A disk that fills mid-frame: the frame's states row and trajectory line (written before
+    its targets' rows failed) come out again, so every file holds the same whole frames."""
+    from trackmeter.core.targets import TargetState
+
+    writer = RunWriter(tmp_path / "run", {}, {"spec": "test"})
+    target = TargetState("t1", "auto", "tracking", np.array([10.0, 20.0]), np.array([5.0, 20.0]),
+                         np.array([0.1, 0.2, 3.5]), np.eye(3) * 1e-6, 0.97, np.array([10.0, 20.0]), (0.0, 0.0, 1.0, 1.0))
+    writer.write_frame(0.00, (target,), _pose(0.0))
+    before = {name: (tmp_path / "run" / name).read_text() for name in ("states.csv", "trajectory.tum", "targets.csv")}
+    disk = full_disk(0)
+    for free in range(0, 400, 7):  # the disk fills at every byte offset of the next frame
+        disk.free = free
+        try:
+            writer.write_frame(0.04, (target,), _pose(0.0))
+        except TrackmeterError as exc:
+            assert "No space left on device" in str(exc)
+            after = {name: (tmp_path / "run" / name).read_text() for name in before}
+            assert after == before and writer.frames == 1 and writer.valid_frames == 1
+        else:
+            break
+    else:
+        pytest.fail("the frame never fitted")
+    disk.free = 10**6
+    writer.close("complete")
+    states = read_motion_csv(tmp_path / "run" / "states.csv")
+    assert len(states) == 2 and len(read_tum(tmp_path / "run" / "trajectory.tum").t_s) == 2
+    assert len((tmp_path / "run" / "targets.csv").read_text().splitlines()) == 3
+
+
+def test_a_run_that_cannot_even_start_leaves_nothing(tmp_path: Path, full_disk) -> None:  # type: ignore[no-untyped-def]
+    full_disk(10)  # run.yaml is written (not through AppendFile), the CSV headers are not
+    with pytest.raises(TrackmeterError, match="No space left on device"):
+        RunWriter(tmp_path / "run", {}, {"spec": "test"})
+    assert not (tmp_path / "run").exists()
+    (tmp_path / "mine").mkdir()
+    with pytest.raises(TrackmeterError):
+        RunWriter(tmp_path / "mine", {}, {"spec": "test"})
+    assert (tmp_path / "mine").is_dir() and not any((tmp_path / "mine").iterdir())  # the user's folder stays
+
+
+def test_a_folder_with_a_runs_files_but_no_run_yaml_is_not_overwritten_silently(tmp_path: Path) -> None:
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "states.csv").write_text("my own\n")
+    with pytest.raises(TrackmeterError, match=r"holds states\.csv already .*--overwrite"):
+        check_run_directory(tmp_path / "mine")
+    assert check_run_directory(tmp_path / "mine", overwrite=True) == tmp_path / "mine"
+    with pytest.raises(TrackmeterError, match="name is empty"):
+        check_run_directory("")

@@ -15,8 +15,8 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from trackmeter.data.model import Model, load_model, save_model
-from trackmeter.data.motion_csv import GROUNDTRUTH_COLUMNS
-from trackmeter.data.sequence import SequenceWriter, index_sequence, pair_by_nearest
+from trackmeter.data.motion_csv import GROUNDTRUTH_COLUMNS, read_motion_csv
+from trackmeter.data.sequence import SequenceWriter, index_sequence, pair_by_nearest, seconds_to_ns
 from trackmeter.errors import TrackmeterError
 from trackmeter.sources import open_source
 from trackmeter.sources.base import GroundTruth, StereoFrame
@@ -386,6 +386,15 @@ def test_a_folder_named_like_a_scheme_is_pointed_to(tmp_path, monkeypatch):
     (tmp_path / "seq").mkdir()
     with pytest.raises(TrackmeterError, match=r"seq: needs a folder, as seq:DIR \(the folder 'seq' here: give ./seq\)"):
         open_source("seq")
+    for kind in ("video", "camera"):
+        (tmp_path / kind).mkdir()
+        with pytest.raises(TrackmeterError, match=rf"the folder '{kind}' here: give ./{kind}"):
+            open_source(kind)
+    # "sim" is the simulator even with a folder of that name here (a recording called sim/):
+    # the run goes on, but not silently on other data than the user meant.
+    (tmp_path / "sim").mkdir()
+    with pytest.warns(UserWarning, match=r"source 'sim' is the simulator; to play the folder 'sim' here, give ./sim"):
+        open_source("sim", render_ahead=False).close()
 
 
 def test_not_a_sequence_and_bad_specs(tmp_path):
@@ -573,3 +582,77 @@ def test_a_groundtruth_csv_in_integer_nanoseconds_is_read_as_such(tmp_path, t0_s
         assert got.truth is not None, f.index
         np.testing.assert_allclose(got.truth.T_cam_body, f.truth.T_cam_body, atol=1e-12)
         np.testing.assert_allclose(got.truth.omega_body_rad_s, f.truth.omega_body_rad_s, atol=1e-12)
+
+
+def test_a_recording_refuses_a_folder_that_holds_anything(tmp_path):
+    """A recording never overwrites or mixes with what a folder holds (an old groundtruth.csv
+    and images without their data.csv were overwritten and mixed before)."""
+    from trackmeter.data.sequence import check_record_directory
+
+    (tmp_path / "old" / "cam0" / "data").mkdir(parents=True)
+    (tmp_path / "old" / "groundtruth.csv").write_text("t,x\n")
+    with pytest.raises(TrackmeterError, match=r"cannot record to .*old: it already holds files; record into a new or empty"):
+        SequenceWriter(tmp_path / "old")
+    assert (tmp_path / "old" / "groundtruth.csv").read_text() == "t,x\n"
+    (tmp_path / "empty").mkdir()
+    assert check_record_directory(tmp_path / "empty") == tmp_path / "empty"
+    with pytest.raises(TrackmeterError, match="name is empty"):
+        check_record_directory("")
+
+
+def test_a_frame_the_disk_cannot_take_is_not_recorded_at_all(tmp_path, full_disk):
+    """A disk that fills mid-frame: neither camera's data.csv lists the frame, nor the truth
+    files, and its images are gone, so the folder plays back as the frames before."""
+    frames = _frames(3)
+    w = SequenceWriter(tmp_path / "rec")
+    w.write(frames[0])
+    disk = full_disk(0)
+    for free in range(0, 600, 11):
+        disk.free = free
+        try:
+            w.write(frames[1])
+            break
+        except TrackmeterError as exc:
+            assert "No space left on device" in str(exc)
+            assert sorted(p.name for p in (tmp_path / "rec").rglob("*.png")) == [f"{seconds_to_ns(frames[0].t_s)}.png"] * 2
+            assert not list((tmp_path / "rec").rglob("*.tmp"))
+            src = SequenceSource(tmp_path / "rec")
+            assert len(src) == 1 and len(read_motion_csv(tmp_path / "rec" / "groundtruth.csv")) == 1
+            src.close()
+    else:
+        pytest.fail("the frame never fitted")
+    disk.free = 10**6
+    w.write(frames[2])
+    w.close()
+    assert len(SequenceSource(tmp_path / "rec")) == 3
+
+
+def test_a_timestamp_beyond_64_bits_or_a_stray_byte_is_a_bad_row_not_a_crash(tmp_path):
+    d = _write(tmp_path / "s", _frames(4))
+    for cam in ("cam0", "cam1"):
+        text = (d / cam / "data.csv").read_text()
+        text = text.replace("40000000,40000000.png", "9223372036854775808,40000000.png")  # 2^63
+        (d / cam / "data.csv").write_bytes(text.encode() + b"\xff\xfe,junk\n")  # not UTF-8
+    with pytest.warns(UserWarning, match=r"4 malformed or cut-short data.csv row\(s\) ignored"):
+        src = SequenceSource(d)
+    assert len(src) == 3
+
+
+def test_a_video_ffmpeg_cannot_open_is_our_one_line_not_also_ffmpeg_s(tmp_path):
+    """A truncated mp4 (its index, the moov atom, never written): FFmpeg's own "moov atom not
+    found" used to be printed above the error line."""
+    good = tmp_path / "good.mp4"
+    vw = cv2.VideoWriter(str(good), cv2.VideoWriter_fourcc(*"mp4v"), 10.0, (64, 48), isColor=True)
+    if not vw.isOpened():
+        pytest.skip("this OpenCV build cannot write mp4v")
+    for k in range(5):
+        vw.write(np.full((48, 64, 3), 40 * k, np.uint8))
+    vw.release()
+    data = good.read_bytes()
+    cut = tmp_path / "cut.mp4"
+    cut.write_bytes(data[: data.find(b"moov") - 4] if b"moov" in data else data[: len(data) // 2])
+    env = {k: v for k, v in os.environ.items() if k != "OPENCV_FFMPEG_LOGLEVEL"}
+    proc = subprocess.run([sys.executable, "-m", "trackmeter.cli.main", "track", "--source", f"video:{cut},{good}",
+                           "--auto", "3", "--out", str(tmp_path / "run")], capture_output=True, text=True, env=env, timeout=120)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == [f"trackmeter track: error: {cut}: OpenCV cannot open this video file"], proc.stderr

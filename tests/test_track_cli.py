@@ -472,3 +472,23 @@ def test_a_refusal_is_said_with_the_option_it_came_from(tmp_path, capsys) -> Non
     err = capsys.readouterr().err
     assert "warning: --target p1=100000,5: refused at (100000.0, 5.0)" in err, err
     assert "SelectPoint" not in err
+
+
+def test_a_disk_that_fills_stops_the_run_with_whole_rows_and_says_so(monkeypatch, tmp_path, estec_rig, capsys,
+                                                                     full_disk) -> None:
+    """A full disk used to print a traceback per frame, leave half rows that evaluate refused
+    and run.yaml at "running"; now the run stops at the first frame that does not fit."""
+    fake_source(monkeypatch, estec_rig, n=40)
+    out = tmp_path / "run"
+    full_disk(900)  # the headers and about 20 rows
+    assert main(["track", "--source", "fake", "--auto", "8", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1, err
+    assert "targets.csv: cannot write (No space left on device): run stopped; run.yaml says so" in err or \
+        "states.csv: cannot write (No space left on device): run stopped; run.yaml says so" in err, err
+    meta = yaml.safe_load((out / "run.yaml").read_text())
+    frames = meta["summary"]["frames"]
+    assert meta["status"] == "write failed" and 0 < frames < 40
+    assert len(read_motion_csv(out / "states.csv")) == frames
+    tum = [line for line in (out / "trajectory.tum").read_text().splitlines() if not line.startswith("#")]
+    assert len(tum) == meta["summary"]["valid_frames"]

@@ -55,6 +55,10 @@ def run(args: argparse.Namespace) -> int:
     from console.server import check_port_free
 
     check_port_free(args.host, args.port)  # before the (slow) source opens
+    if args.record is not None:
+        from trackmeter.data.sequence import check_record_directory
+
+        check_record_directory(args.record)
     config = load_config_from_args(args)
     from trackmeter.pipeline.priority import raise_cpu_priority, restore_cpu_priority
 

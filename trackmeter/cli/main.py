@@ -145,8 +145,9 @@ def _main(argv: Sequence[str] | None) -> int:
     warnings.showwarning = _warning_printer(args.command)
     # A service manager's stop (SIGTERM) ends a run as Ctrl-C does: threads joined, files
     # complete, the console's raised CPU priority given back (killed outright, none of that).
-    previous = None
-    if threading.current_thread() is threading.main_thread():
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    if in_main_thread:
+        previous_int = signal.getsignal(signal.SIGINT)
         previous = signal.signal(signal.SIGTERM, _interrupt)
     try:
         return int(_command_module(args.command).run(args) or 0)
@@ -161,13 +162,17 @@ def _main(argv: Sequence[str] | None) -> int:
         print(f"trackmeter {args.command}: error: {_describe_os_error(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
+        if in_main_thread:  # the command has stopped: a second Ctrl-C must not cut its last line
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+            signal.signal(signal.SIGTERM, signal.SIG_IGN)
         # A command may say what it kept (KeyboardInterrupt("interrupted after ...")).
         print(f"trackmeter {args.command}: {exc.args[0] if exc.args else 'interrupted'}", file=sys.stderr)
         return 130
     finally:
         warnings.showwarning = shown_before
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+        if in_main_thread:
+            signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
+            signal.signal(signal.SIGINT, signal.SIG_DFL if previous_int is None else previous_int)
 
 
 if __name__ == "__main__":

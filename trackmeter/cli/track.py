@@ -28,7 +28,7 @@ import contextlib
 import logging
 import sys
 import time
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 from trackmeter.cli.common import parse_uv, plain_progress_due
 from trackmeter.errors import TrackmeterError
@@ -66,7 +66,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--target", action="extend", nargs="+", default=[], metavar="[ID=]U,V",
                         help="targets at left-image pixels U,V of the first frame, optionally named "
                         "(several may follow one --target, or repeat it)")
-    parser.add_argument("--auto", type=int, metavar="N", help="keep N automatically selected targets alive")
+    parser.add_argument("--auto", type=int, metavar="N",
+                        help="keep N targets alive, topping up with automatically selected ones (the --target and "
+                             "model points count among the N: 3 --target points with --auto 16 add up to 13)")
     parser.add_argument("--select-model-points", action="store_true",
                         help="case (b) on a source with ground truth: simulate the operator clicking every model "
                              "point visible in the first frame (at its true projection), and again whenever the "
@@ -128,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
     from trackmeter.data.model import load_model
     from trackmeter.data.rundir import RunWriter, check_run_directory
     from trackmeter.pipeline.engine import NEEDS_TRUTH, Engine, SelectModelPoints
-    from trackmeter.pipeline.pipeline import NOT_APPLIED, STOPPED, run_headless, source_log
+    from trackmeter.pipeline.pipeline import NOT_APPLIED, STOPPED, interrupts_deferred, run_headless, source_log
     from trackmeter.pipeline.snapshot import AcquireModel, SelectPoint, SetAuto, Snapshot
 
     config = load_config_from_args(args)
@@ -226,17 +228,22 @@ def run(args: argparse.Namespace) -> int:
                 reason = FIRST_FRAME_REASON if first else (snap.pose.reason or "?")
                 state["invalid"][reason] = state["invalid"].get(reason, 0) + 1
 
-        def on_snapshot(snap: Snapshot) -> None:
+        def on_snapshot(snap: Snapshot) -> bool:
+            """Write the frame before ``snap``'s; True (stop the run) when its files cannot be written."""
             state["status"] = snap.source_status
             frame = snap.frame
-            if frame is None:
-                return
+            if frame is None or state.get("write_error"):
+                return bool(state.get("write_error"))
             # A frame's row is written once the next frame arrives (or at the end): the
             # commands act on frame 0 after it was processed (--target, --auto), and the
             # snapshot they publish, not the first one, holds frame 0's targets.
             pending = state["pending"]
             if pending is not None and pending.frame.index != frame.index:
-                flush_pending()
+                try:
+                    flush_pending()
+                except TrackmeterError as exc:  # a full disk: the frames before are whole
+                    state["write_error"] = str(exc)
+                    return True
             state["pending"] = snap
             now = time.monotonic()
             if now - state["last_draw"] > 0.25 if tty else plain_progress_due(state["last_draw"], now):
@@ -249,6 +256,7 @@ def run(args: argparse.Namespace) -> int:
                         f"targets {sum(t.measured for t in snap.targets):2d}/{len(snap.targets):2d}")
                 sys.stderr.write(f"\r{line}   " if tty else f"{line}\n")
                 sys.stderr.flush()
+            return False
 
         # Without --auto only the --target points and --select-model-points can start a target:
         # when the tracker refuses every point, and the model points cannot be selected at all
@@ -272,63 +280,87 @@ def run(args: argparse.Namespace) -> int:
             return bool(state["nothing"])
 
         status = "complete"
+
+        def interrupted() -> str:
+            return f"interrupted after {writer.frames} frames; files in {args.out} are complete"
+
         try:
             # A failing source is said once, below, with the run's status (not also by the log).
             with _quiet(source_log):
                 last, replies = run_headless(feed, engine, on_snapshot=on_snapshot, commands=commands,
                                              realtime=args.source.startswith("camera"), rig=rig, on_replies=on_replies)
         except KeyboardInterrupt:
-            flush_pending()
-            writer.close("interrupted", _summary(engine, writer, state))
+            # The one line main prints for an interrupt, with what the user needs to know.
+            with interrupts_deferred(interrupted):  # a second Ctrl-C must not leave the files half-closed
+                _finish_writing(writer, flush_pending, state)
+                writer.close("interrupted", _summary(engine, writer, state))
+                if tty:
+                    sys.stderr.write("\n")
+                raise KeyboardInterrupt(interrupted()) from None
+        # Past here the run is written out: a Ctrl-C waits until run.yaml has its final status.
+        with interrupts_deferred(interrupted):
+            _finish_writing(writer, flush_pending, state)
             if tty:
                 sys.stderr.write("\n")
-            # The one line main prints for an interrupt, with what the user needs to know.
-            raise KeyboardInterrupt(f"interrupted after {writer.frames} frames; files in {args.out} are complete") from None
-        flush_pending()
-        if tty:
-            sys.stderr.write("\n")
-        src_status = last.source_status or state["status"]
-        summary = _summary(engine, writer, state)
-        summary["source_status"] = src_status
-        summary["dropped_frames"] = last.timings.frames_dropped
-        # What the source skipped while playing (unreadable images) is only known now.
-        source_warning = getattr(source, "warning", None)
-        if source_warning:
-            summary["source_warning"] = source_warning
-        if writer.frames == 0:
-            # Every image unreadable, an empty video: one line (the commands that waited for a
-            # first frame need no warning of their own), and run.yaml says so too.
-            writer.close("no frame", summary)
-            detail = f": {src_status}" if src_status and src_status != "ended" else ""
-            detail += f"; {source_warning}" if source_warning else ""
-            raise TrackmeterError(f"source {args.source!r} delivered no frame{detail} (nothing tracked; "
-                                  f"{args.out} holds an empty run)")
-        if source_warning and source_warning != warning_at_open:
-            print(f"trackmeter track: warning: {source_warning}", file=sys.stderr)
-        for k, (command, reply) in enumerate(zip(commands, replies)):
-            if not reply.ok and k not in said:
-                print(f"trackmeter track: warning: {_option_of(command)}: {reply.message}", file=sys.stderr)
-        if state.get("nothing"):
-            writer.close("nothing to track", summary)
-            why = " and ".join((["every --target was refused on the first frame"] if targets else [])
-                               + (["the source has no ground truth to select model points with"]
-                                  if args.select_model_points else []))
-            raise TrackmeterError(f"nothing to track: {why}, and there is no --auto (stopped after {writer.frames} "
-                                  f"frame{'s' if writer.frames != 1 else ''}; "
-                                  f"{args.out} holds {'them' if writer.frames != 1 else 'it'})")
-        if src_status and src_status != "ended":
-            status = "source failed"
-            print(f"trackmeter track: source stopped: {src_status}", file=sys.stderr)
-        writer.close(status, summary)
-        elapsed = time.monotonic() - state["t0"]
-        print(f"{writer.frames} frames in {elapsed:.1f} s ({writer.frames / max(elapsed, 1e-9):.1f} fps), "
-              f"{writer.valid_frames} valid poses"
-              + (f" ({writer.coasted_frames} coasted)" if writer.coasted_frames else "") + f", case ({case}) -> {args.out}")
-        for reason, count in sorted(state["invalid"].items(), key=lambda kv: -kv[1])[:5]:
-            print(f"  invalid in {count} frames: {reason}")
-        return 0 if status == "complete" else 2
+            if state.get("write_error"):
+                try:
+                    writer.close("write failed", _summary(engine, writer, state))
+                    kept = f"run.yaml says so, and the {writer.frames} frames before are whole in {args.out}"
+                except TrackmeterError:
+                    kept = f"run.yaml could not be updated (it says running); the {writer.frames} frames before are whole in {args.out}"
+                raise TrackmeterError(f"{state['write_error']}: run stopped; {kept}")
+            src_status = last.source_status or state["status"]
+            summary = _summary(engine, writer, state)
+            summary["source_status"] = src_status
+            summary["dropped_frames"] = last.timings.frames_dropped
+            # What the source skipped while playing (unreadable images) is only known now.
+            source_warning = getattr(source, "warning", None)
+            if source_warning:
+                summary["source_warning"] = source_warning
+            if writer.frames == 0:
+                # Every image unreadable, an empty video: one line (the commands that waited for a
+                # first frame need no warning of their own), and run.yaml says so too.
+                writer.close("no frame", summary)
+                detail = f": {src_status}" if src_status and src_status != "ended" else ""
+                detail += f"; {source_warning}" if source_warning else ""
+                raise TrackmeterError(f"source {args.source!r} delivered no frame{detail} (nothing tracked; "
+                                      f"{args.out} holds an empty run)")
+            if source_warning and source_warning != warning_at_open:
+                print(f"trackmeter track: warning: {source_warning}", file=sys.stderr)
+            for k, (command, reply) in enumerate(zip(commands, replies)):
+                if not reply.ok and k not in said:
+                    print(f"trackmeter track: warning: {_option_of(command)}: {reply.message}", file=sys.stderr)
+            if state.get("nothing"):
+                writer.close("nothing to track", summary)
+                why = " and ".join((["every --target was refused on the first frame"] if targets else [])
+                                   + (["the source has no ground truth to select model points with"]
+                                      if args.select_model_points else []))
+                raise TrackmeterError(f"nothing to track: {why}, and there is no --auto (stopped after {writer.frames} "
+                                      f"frame{'s' if writer.frames != 1 else ''}; "
+                                      f"{args.out} holds {'them' if writer.frames != 1 else 'it'})")
+            if src_status and src_status != "ended":
+                status = "source failed"
+                print(f"trackmeter track: source stopped: {src_status}", file=sys.stderr)
+            writer.close(status, summary)
+            elapsed = time.monotonic() - state["t0"]
+            print(f"{writer.frames} frames in {elapsed:.1f} s ({writer.frames / max(elapsed, 1e-9):.1f} fps), "
+                  f"{writer.valid_frames} valid poses"
+                  + (f" ({writer.coasted_frames} coasted)" if writer.coasted_frames else "") + f", case ({case}) -> {args.out}")
+            for reason, count in sorted(state["invalid"].items(), key=lambda kv: -kv[1])[:5]:
+                print(f"  invalid in {count} frames: {reason}")
+            return 0 if status == "complete" else 2
     finally:
         source.close()
+
+
+def _finish_writing(writer: Any, flush_pending: Callable[[], None], state: dict[str, Any]) -> None:
+    """Write the frame still pending, unless the files already failed (then it is dropped)."""
+    if state.get("write_error"):
+        return
+    try:
+        flush_pending()
+    except TrackmeterError as exc:
+        state["write_error"] = str(exc)
 
 
 def _summary(engine: Any, writer: Any, state: dict[str, Any]) -> dict[str, Any]:

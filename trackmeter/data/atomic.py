@@ -13,6 +13,8 @@ import tempfile
 from pathlib import Path
 from typing import Iterator
 
+from trackmeter.errors import TrackmeterError
+
 
 def _umask() -> int:
     mask = os.umask(0)
@@ -46,3 +48,62 @@ def write_text_atomic(path: str | Path, text: str) -> None:
     """Write ``text`` (UTF-8) to ``path`` atomically."""
     with atomic_path(path) as tmp:
         tmp.write_text(text, encoding="utf-8")
+
+
+class AppendFile:
+    """A file written in whole pieces while it grows (a CSV row, one frame's rows).
+
+    Each :meth:`append` lands whole or not at all: when the disk fills or the write fails
+    midway, the file is cut back to where the piece began, so a reader (or the run after a
+    failure) never finds half a row. Unbuffered: a piece is in the file when ``append``
+    returns, as a flushed write would be.
+
+    Args:
+        path: created, or truncated if it exists.
+        header: the first piece (e.g. a CSV header), written at once.
+
+    Raises:
+        TrackmeterError: the file cannot be created or a piece cannot be written, with the
+            path and the system's reason (``append`` leaves the file as before the piece).
+    """
+
+    def __init__(self, path: str | Path, header: str = "") -> None:
+        self.path = Path(path)
+        try:
+            self._fd: int | None = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666)
+        except OSError as exc:
+            raise TrackmeterError(f"{self.path}: cannot create ({exc.strerror or exc})") from None
+        self.size = 0
+        if header:
+            self.append(header)
+
+    def append(self, text: str) -> None:
+        """Write ``text`` (UTF-8) at the end, whole or not at all."""
+        if self._fd is None:
+            raise TrackmeterError(f"{self.path}: closed")
+        start = self.size
+        data = text.encode("utf-8")
+        view = memoryview(data)
+        try:
+            while view:  # a full disk may take part of a write before refusing the rest
+                view = view[os.write(self._fd, view):]
+        except OSError as exc:
+            self.truncate(start)
+            raise TrackmeterError(f"{self.path}: cannot write ({exc.strerror or exc})") from None
+        self.size = start + len(data)
+
+    def truncate(self, size: int) -> None:
+        """Cut the file back to ``size`` bytes (shrinking needs no free space)."""
+        if self._fd is None:
+            return
+        try:
+            os.ftruncate(self._fd, size)
+            os.lseek(self._fd, size, os.SEEK_SET)
+        except OSError:
+            return  # the pieces before are whole either way; the next append says what is wrong
+        self.size = size
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None

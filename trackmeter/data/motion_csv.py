@@ -27,12 +27,12 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
-from typing import IO, Any, Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
 
-from trackmeter.data.atomic import write_text_atomic
+from trackmeter.data.atomic import AppendFile, write_text_atomic
 from trackmeter.data.trajectory import Trajectory
 from trackmeter.errors import TrackmeterError
 
@@ -312,8 +312,9 @@ def write_states_csv(path: str | Path, series: MotionSeries, columns: Sequence[s
 
 
 class MotionCsvWriter:
-    """Append rows to a motion CSV while it is being produced; every row is written whole and
-    flushed, so a concurrent reader (or a crash) leaves only complete rows.
+    """Append rows to a motion CSV while it is being produced; every row is written whole or
+    not at all (:class:`~trackmeter.data.atomic.AppendFile`), so a concurrent reader, a crash
+    or a full disk leaves only complete rows.
 
     Usage::
 
@@ -343,9 +344,7 @@ class MotionCsvWriter:
         if len(set(self.columns)) != len(self.columns):
             raise TrackmeterError("motion CSV columns repeat a name")
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file: IO[str] | None = open(self.path, "w", encoding="utf-8", newline="\n")
-        self._file.write(",".join(self.columns) + "\n")
-        self._file.flush()
+        self._file: AppendFile | None = AppendFile(self.path, ",".join(self.columns) + "\n")
         self.rows_written = 0
 
     def write(self, **values: Any) -> None:
@@ -366,9 +365,20 @@ class MotionCsvWriter:
         if unknown:
             raise TrackmeterError(f"{self.path}: no column {', '.join(unknown)}")
         line = ",".join(format_csv_value(c, flat.get(c)) for c in self.columns) + "\n"
-        self._file.write(line)  # one write per row, then flush: readers see whole rows
-        self._file.flush()
+        self._file.append(line)  # whole or not at all: readers see whole rows
         self.rows_written += 1
+
+    @property
+    def size(self) -> int:
+        """Bytes written so far (header and whole rows): :meth:`truncate` goes back to it."""
+        return 0 if self._file is None else self._file.size
+
+    def truncate(self, size: int, rows: int) -> None:
+        """Cut the file back to ``size`` bytes, which held ``rows`` rows (undo a frame's row
+        when a file written beside it failed)."""
+        if self._file is not None:
+            self._file.truncate(size)
+            self.rows_written = rows
 
     def close(self) -> None:
         if self._file is not None:

@@ -13,19 +13,21 @@
     DIR/targets.csv      t,id,state,u,v,u_right,v_right,x,y,z,score  one row per target per frame
     DIR/run.yaml         config, source, versions; the summary once the run ends
 
-Every row is written whole and flushed at once, so an interrupted run (Ctrl-C, a source that
-fails) leaves complete, readable files; ``run.yaml`` is rewritten atomically (``status:
+Every row is written whole or not at all, and a frame goes into all three files or none, so an
+interrupted run (Ctrl-C, a source that fails, a disk that fills) leaves complete, readable
+files; ``run.yaml`` is rewritten atomically (``status:
 running`` at the start, the final status and summary at the end).
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import platform
 import sys
 import time
 from pathlib import Path
-from typing import Any, IO, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 import yaml
@@ -33,7 +35,7 @@ import yaml
 from trackmeter.core.targets import TargetState
 from trackmeter.core.transforms import matrix_to_quat_wxyz
 from trackmeter.data.motion_csv import STATES_COLUMNS, MotionCsvWriter
-from trackmeter.data.atomic import write_text_atomic
+from trackmeter.data.atomic import AppendFile, write_text_atomic
 from trackmeter.data.sequence import is_sequence_folder
 from trackmeter.data.trajectory import format_tum_line
 from trackmeter.errors import TrackmeterError
@@ -83,11 +85,17 @@ def check_run_directory(directory: str | Path, overwrite: bool = False) -> Path:
             sequence folder, or its nearest existing parent is not a folder this process may
             write in.
     """
+    if not str(directory).strip():
+        raise TrackmeterError("the run folder's name is empty")
     path = Path(directory)
     if path.exists() and not path.is_dir():
         raise TrackmeterError(f"{path}: exists and is not a folder")
     if (path / "run.yaml").exists() and not overwrite:
         raise TrackmeterError(f"{path}: holds a run already (run.yaml); choose another --out or give --overwrite")
+    others = [name for name in _RUN_FILES if (path / name).exists()]
+    if others and not overwrite:
+        raise TrackmeterError(f"{path}: holds {', '.join(others)} already (not from a run: no run.yaml); "
+                              "choose another --out or give --overwrite to replace them")
     if is_sequence_folder(path):
         raise TrackmeterError(f"{path}: a sequence folder (cam0/, cam1/): a run's files do not go into a recording; "
                               "choose another --out")
@@ -116,10 +124,31 @@ class RunWriter:
     def __init__(self, directory: str | Path, config: dict[str, Any], source: dict[str, Any],
                  overwrite: bool = False, extra: dict[str, Any] | None = None) -> None:
         self.directory = check_run_directory(directory, overwrite)
+        created = not self.directory.exists()
         try:
             self.directory.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise TrackmeterError(f"{self.directory}: cannot create: {exc.strerror}") from None
+        try:
+            self._open(config, source, extra)
+        except TrackmeterError:
+            # Nothing half-made left behind (e.g. a disk already full): the files this writer
+            # began, and the folder when it made it.
+            for name in _RUN_FILES:
+                (self.directory / name).unlink(missing_ok=True)
+            if created:
+                with contextlib.suppress(OSError):
+                    self.directory.rmdir()
+            raise
+        self.frames = 0
+        self.valid_frames = 0
+        # Valid poses carried on the motion model with no point measured (the states.csv
+        # columns are a contract, so the count goes to the summary, not a new column).
+        self.coasted_frames = 0
+        # Valid poses whose rates were not estimated yet (states.csv valid 0, pose filled in).
+        self.rates_pending_frames = 0
+
+    def _open(self, config: dict[str, Any], source: dict[str, Any], extra: dict[str, Any] | None) -> None:
         self._meta: dict[str, Any] = {
             "status": "running",
             "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
@@ -131,22 +160,15 @@ class RunWriter:
         }
         self._write_meta()
         self._states = MotionCsvWriter(self.directory / "states.csv", STATES_COLUMNS)
-        self._tum: IO[str] | None = open(self.directory / "trajectory.tum", "w", encoding="utf-8", newline="\n")
-        self._tum.write("# t tx ty tz qx qy qz qw  (T_cam_body)\n")
-        self._tum.flush()
-        self._targets: IO[str] | None = open(self.directory / "targets.csv", "w", encoding="utf-8", newline="\n")
-        self._targets.write(",".join(TARGETS_COLUMNS) + "\n")
-        self._targets.flush()
-        self.frames = 0
-        self.valid_frames = 0
-        # Valid poses carried on the motion model with no point measured (the states.csv
-        # columns are a contract, so the count goes to the summary, not a new column).
-        self.coasted_frames = 0
-        # Valid poses whose rates were not estimated yet (states.csv valid 0, pose filled in).
-        self.rates_pending_frames = 0
+        self._tum: AppendFile | None = AppendFile(self.directory / "trajectory.tum", "# t tx ty tz qx qy qz qw  (T_cam_body)\n")
+        self._targets: AppendFile | None = AppendFile(self.directory / "targets.csv", ",".join(TARGETS_COLUMNS) + "\n")
 
     def _write_meta(self) -> None:
-        write_text_atomic(self.directory / "run.yaml", yaml.safe_dump(self._meta, sort_keys=False, allow_unicode=True))
+        path = self.directory / "run.yaml"
+        try:
+            write_text_atomic(path, yaml.safe_dump(self._meta, sort_keys=False, allow_unicode=True))
+        except OSError as exc:
+            raise TrackmeterError(f"{path}: cannot write ({exc.strerror or exc})") from None
 
     def write_frame(self, t_s: float, targets: Sequence[TargetState], pose: Any, latency_ms: float = float("nan")) -> None:
         """Append one frame: a ``states.csv`` row, its targets, and the pose when valid.
@@ -155,8 +177,22 @@ class RunWriter:
         """
         if self._tum is None or self._targets is None:
             raise TrackmeterError(f"{self.directory}: run writer is closed")
+        # A frame is in all three files or in none: a write that fails (a full disk) takes
+        # back what this frame had written to the others.
+        sizes = (self._states.size, self._states.rows_written, self._tum.size, self._targets.size)
+        try:
+            self._write_frame(t_s, targets, pose, latency_ms)
+        except TrackmeterError:
+            self._states.truncate(sizes[0], sizes[1])
+            self._tum.truncate(sizes[2])
+            self._targets.truncate(sizes[3])
+            raise
+
+    def _write_frame(self, t_s: float, targets: Sequence[TargetState], pose: Any, latency_ms: float) -> None:
+        assert self._tum is not None and self._targets is not None
         n_tracked = sum(1 for s in targets if s.measured)
         n_lost = len(targets) - n_tracked
+        rates_known = False
         if pose.valid:
             p = pose.T_cam_body[:3, 3]
             q = matrix_to_quat_wxyz(pose.T_cam_body[:3, :3])
@@ -164,12 +200,7 @@ class RunWriter:
             self._states.write(t=t_s, valid=int(rates_known), position_m=p, quat_wxyz=q,
                                velocity_cam_m_s=pose.velocity_cam_m_s, omega_body_rad_s=pose.omega_body_rad_s,
                                n_tracked=n_tracked, n_lost=n_lost, latency_ms=latency_ms)
-            self._tum.write(format_tum_line(t_s, p, q) + "\n")
-            self._tum.flush()
-            self.valid_frames += 1
-            self.rates_pending_frames += not rates_known
-            if getattr(pose, "coasting_s", 0.0) > 0.0:
-                self.coasted_frames += 1
+            self._tum.append(format_tum_line(t_s, p, q) + "\n")
         else:
             self._states.write(t=t_s, valid=0, n_tracked=n_tracked, n_lost=n_lost, latency_ms=latency_ms)
         lines = []
@@ -180,9 +211,13 @@ class RunWriter:
                 _num(uvr[1], ".4f"), _num(x[0]), _num(x[1]), _num(x[2]), _num(s.score, ".5f"),
             ]) + "\n")
         if lines:
-            self._targets.write("".join(lines))  # one frame's rows in one write
-            self._targets.flush()
+            self._targets.append("".join(lines))  # one frame's rows in one write
         self.frames += 1
+        if pose.valid:
+            self.valid_frames += 1
+            self.rates_pending_frames += not rates_known
+            if getattr(pose, "coasting_s", 0.0) > 0.0:
+                self.coasted_frames += 1
 
     def close(self, status: str = "complete", summary: dict[str, Any] | None = None) -> None:
         """Close the files and rewrite ``run.yaml`` with the final status and summary."""

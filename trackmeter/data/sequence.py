@@ -31,7 +31,7 @@ import os
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import IO, TYPE_CHECKING, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import cv2
 import numpy as np
@@ -40,6 +40,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.transforms import matrix_to_quat_wxyz
+from trackmeter.data.atomic import AppendFile
 from trackmeter.data.images import data_bits, decode_image
 from trackmeter.data.model import Model, load_model, save_model
 from trackmeter.data.motion_csv import GROUNDTRUTH_COLUMNS, MotionCsvWriter, MotionSeries, read_motion_csv
@@ -74,12 +75,36 @@ def ns_to_seconds(ns: int | NDArray[np.int64]) -> float | FloatArray:
 # --------------------------------------------------------------------------- writing
 
 
+def check_record_directory(directory: str | Path) -> Path:
+    """``directory`` as a Path when a recording may go there: a new or empty folder under a
+    folder this process may write in. A folder that holds anything is refused, so a recording
+    never overwrites or mixes with what is there (an earlier recording, a run's files).
+
+    Raises:
+        TrackmeterError: an empty name, a file, a folder that is not empty, or no writable parent.
+    """
+    if not str(directory).strip():
+        raise TrackmeterError("cannot record to '': the folder's name is empty")
+    path = Path(directory)
+    if path.exists() and not path.is_dir():
+        raise TrackmeterError(f"cannot record to {path}: it is a file, not a folder")
+    if path.is_dir() and any(path.iterdir()):
+        what = "a sequence (cam0/data.csv)" if (path / "cam0" / "data.csv").exists() else "files"
+        raise TrackmeterError(f"cannot record to {path}: it already holds {what}; record into a new or empty folder")
+    existing = path.absolute()
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        raise TrackmeterError(f"cannot record to {path}: {existing} is not a writable folder")
+    return path
+
+
 class SequenceWriter:
     """Write a sequence folder frame by frame (DESIGN.md section 6 layout).
 
     Args:
-        directory: the folder (created; it may already exist, but must not already hold a
-            sequence: ``cam0/data.csv`` present is refused so a recording never mixes runs).
+        directory: the folder (created; it may already exist, but empty: see
+            :func:`check_record_directory`).
         rig: written to ``rig.yaml`` at once when given.
         model_points: a :class:`Model` or ``(name, xyz_body)`` pairs, written to ``model.yaml``.
         png_compression: None (OpenCV's default PNG settings: the fastest measured, since a
@@ -104,29 +129,24 @@ class SequenceWriter:
         model_points: Model | Sequence[tuple[str, ArrayLike]] | None = None,
         png_compression: int | None = None,
     ) -> None:
-        self.directory = Path(directory)
-        if (self.directory / "cam0" / "data.csv").exists():
-            raise TrackmeterError(f"{self.directory}: already holds a sequence (cam0/data.csv); choose an empty folder")
+        self.directory = check_record_directory(directory)
         if png_compression is not None and not 0 <= png_compression <= 9:
             raise TrackmeterError(f"PNG compression must be 0-9, got {png_compression}")
         # OpenCV 5's default PNG settings (fast filter, RLE, low level) measured fastest on noisy
         # 726x512 frames, ~2x faster than an explicit level 1 (which switches to all filters) and
         # no larger; an explicit level trades speed for size.
         self._png_params = [] if png_compression is None else [cv2.IMWRITE_PNG_COMPRESSION, int(png_compression)]
-        self._csv: dict[str, IO[str]] = {}
+        self._csv: dict[str, AppendFile] = {}
         for cam in CAMERAS:
             (self.directory / cam / "data").mkdir(parents=True, exist_ok=True)
         for cam in CAMERAS:
-            f = open(self.directory / cam / "data.csv", "w", encoding="utf-8", newline="\n")
-            f.write(DATA_CSV_HEADER + "\n")
-            f.flush()
-            self._csv[cam] = f
+            self._csv[cam] = AppendFile(self.directory / cam / "data.csv", DATA_CSV_HEADER + "\n")
         if rig is not None:
             save_rig(rig, self.directory / "rig.yaml")
         if model_points is not None:
             save_model(self.directory / "model.yaml", model_points)
         self._truth_csv: MotionCsvWriter | None = None
-        self._truth_tum: IO[str] | None = None
+        self._truth_tum: AppendFile | None = None
         self._last_ns: int | None = None
         self.frames_written = 0
 
@@ -138,14 +158,25 @@ class SequenceWriter:
         if self._last_ns is not None and ns <= self._last_ns:
             raise TrackmeterError(f"frame at {frame.t_s} s does not come after the previous one")
         name = f"{ns}.png"
-        for cam, image in zip(CAMERAS, (frame.left, frame.right)):
-            self._write_image(self.directory / cam / "data" / name, image)
-        for cam in CAMERAS:
-            f = self._csv[cam]
-            f.write(f"{ns},{name}\n")  # one write of a whole row, then flush
-            f.flush()
-        if frame.truth is not None:
-            self._write_truth(ns_to_seconds(ns), frame)
+        images = [self.directory / cam / "data" / name for cam in CAMERAS]
+        # A frame is recorded whole or not at all: when a write fails (a full disk), what this
+        # frame had written is taken back, and the frames before stay a playable sequence.
+        sizes = {cam: f.size for cam, f in self._csv.items()}
+        try:
+            for path, image in zip(images, (frame.left, frame.right)):
+                self._write_image(path, image)
+            for cam in CAMERAS:
+                self._csv[cam].append(f"{ns},{name}\n")
+            if frame.truth is not None:
+                self._write_truth(ns_to_seconds(ns), frame)
+        except (TrackmeterError, OSError) as exc:
+            for cam, size in sizes.items():  # (the truth's files take back their own rows)
+                self._csv[cam].truncate(size)
+            for path in images:
+                path.unlink(missing_ok=True)
+            if isinstance(exc, OSError):
+                raise TrackmeterError(f"{exc.filename or self.directory}: cannot write ({exc.strerror or exc})") from None
+            raise
         self._last_ns = ns
         self.frames_written += 1
 
@@ -157,9 +188,13 @@ class SequenceWriter:
         if not ok:  # pragma: no cover - PNG encoding of uint8 does not fail
             raise TrackmeterError(f"{path}: PNG encoding failed")
         tmp = path.with_name(f".{path.name}.tmp")
-        with open(tmp, "wb") as f:
-            f.write(buf.tobytes())
-        os.replace(tmp, path)
+        try:
+            with open(tmp, "wb") as f:
+                f.write(buf.tobytes())
+            os.replace(tmp, path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
 
     def _write_truth(self, t_s: float, frame: StereoFrame) -> None:
         truth = frame.truth
@@ -168,13 +203,21 @@ class SequenceWriter:
         q = matrix_to_quat_wxyz(T[:3, :3])
         if self._truth_csv is None:
             self._truth_csv = MotionCsvWriter(self.directory / "groundtruth.csv", GROUNDTRUTH_COLUMNS)
-            self._truth_tum = open(self.directory / "groundtruth.tum", "w", encoding="utf-8", newline="\n")
-            self._truth_tum.write("# t tx ty tz qx qy qz qw  (T_cam_body)\n")
+            self._truth_tum = AppendFile(self.directory / "groundtruth.tum", "# t tx ty tz qx qy qz qw  (T_cam_body)\n")
+        assert self._truth_tum is not None
+        csv_size, tum_size, rows = self._truth_csv.size, self._truth_tum.size, self._truth_csv.rows_written
+        try:
+            self._write_truth_rows(t_s, T, q, truth)
+        except TrackmeterError:
+            self._truth_csv.truncate(csv_size, rows)
+            self._truth_tum.truncate(tum_size)
+            raise
+
+    def _write_truth_rows(self, t_s: float, T: FloatArray, q: FloatArray, truth: Any) -> None:
+        assert self._truth_csv is not None and self._truth_tum is not None
         self._truth_csv.write(t=t_s, position_m=T[:3, 3], quat_wxyz=q, velocity_cam_m_s=truth.velocity_cam_m_s,
                               omega_body_rad_s=truth.omega_body_rad_s)
-        assert self._truth_tum is not None
-        self._truth_tum.write(format_tum_line(t_s, T[:3, 3], q) + "\n")
-        self._truth_tum.flush()
+        self._truth_tum.append(format_tum_line(t_s, T[:3, 3], q) + "\n")
 
     def close(self) -> None:
         """Close the files (idempotent)."""
@@ -293,8 +336,9 @@ def _read_data_csv(path: Path) -> tuple[list[tuple[int, Path]], int, int]:
     bad = missing = 0
     first_bad: str | None = None
     try:
-        text = path.read_text(encoding="utf-8-sig")  # a BOM from a spreadsheet is not a timestamp
-    except (OSError, UnicodeDecodeError) as exc:
+        # A BOM from a spreadsheet is not a timestamp; a stray byte spoils its row, not the file.
+        text = path.read_text(encoding="utf-8-sig", errors="replace")
+    except OSError as exc:
         raise TrackmeterError(f"{path}: cannot read: {exc.__class__.__name__}") from None
     lines = text.split("\n")
     # A last line without its newline may be a row cut short by a crash: count it as bad.
@@ -310,6 +354,8 @@ def _read_data_csv(path: Path) -> tuple[list[tuple[int, Path]], int, int]:
             if len(parts) < 2 or not parts[1]:
                 raise ValueError
             ns = int(parts[0])
+            if not -(2**63) <= ns < 2**63:  # not a time any clock writes; numpy's int64 cannot hold it
+                raise ValueError
         except ValueError:
             bad += 1
             first_bad = first_bad or s

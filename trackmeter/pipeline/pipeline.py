@@ -34,15 +34,17 @@
 from __future__ import annotations
 
 import collections
+import contextlib
 import dataclasses
 import logging
 import queue
+import signal
 import threading
 import time
 from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable, Protocol, Sequence
+from typing import Any, Callable, Iterable, Iterator, Protocol, Sequence
 
 import numpy as np
 
@@ -793,7 +795,7 @@ def run_headless(
     source: Source,
     engine: Engine,
     *,
-    on_snapshot: Callable[[Snapshot], None] | None = None,
+    on_snapshot: Callable[[Snapshot], bool | None] | None = None,
     commands: Iterable[Command] = (),
     realtime: bool = False,
     rig: StereoRig | None = None,
@@ -809,6 +811,7 @@ def run_headless(
         on_snapshot: called on the tracking thread with every published snapshot, in order.
             With ``realtime=False`` no frame is dropped, so that is one snapshot per frame
             (plus one per applied command and one at the end with ``source_status``).
+            Returning True ends the run there (e.g. its files can no longer be written).
         commands: sent before the first frame; engine commands act on frame 0 after it is
             processed (e.g. ``SelectPoint`` for ``--target``, ``SetAuto`` for ``--auto``).
         realtime: True for live sources (latest frame wins, drops counted).
@@ -826,7 +829,13 @@ def run_headless(
     """
     pipe = Pipeline(source, engine, rig=rig, drop_frames=realtime, record_dir=record_dir)
     if on_snapshot is not None:
-        pipe.subscribe(on_snapshot)
+        deliver = on_snapshot
+
+        def stop_when_asked(snapshot: Snapshot) -> None:
+            if deliver(snapshot):
+                pipe.request_stop()
+
+        pipe.subscribe(stop_when_asked)
     futures = [pipe.submit(c) for c in commands]
     if on_replies is not None:
         _when_all_replied(futures, lambda replies: on_replies(replies) and pipe.request_stop())
@@ -834,9 +843,40 @@ def run_headless(
     try:
         last = pipe.run_until_end(timeout_s)
     finally:
-        pipe.stop()
+        # A Ctrl-C (or a second one) while the threads wind down would leave the tracking
+        # thread publishing into files the caller is closing: it waits until they are joined.
+        with interrupts_deferred():
+            pipe.stop()
     replies = [f.result(0) if f.done() else CommandReply(False, NOT_APPLIED) for f in futures]
     return last, replies
+
+
+@contextlib.contextmanager
+def interrupts_deferred(message: Callable[[], str] | None = None) -> Iterator[None]:
+    """Hold SIGINT and SIGTERM off while the block runs (threads winding down, files being
+    closed) and raise KeyboardInterrupt (``message()`` its text) after it when one came.
+
+    Python runs signal handlers between bytecodes of the main thread, so a Ctrl-C landing in
+    ``Thread.join`` or half-way through closing a run's files would leave them half-done (a
+    run.yaml still "running", a frame published after its file was closed). Outside the main
+    thread (where no handler runs) the block simply runs.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+
+    def hold(signum: int, frame: object) -> None:
+        caught.append(signum)
+
+    previous = {sig: signal.signal(sig, hold) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    if caught:
+        raise KeyboardInterrupt(*([message()] if message is not None else []))
 
 
 def _when_all_replied(futures: list[Future[CommandReply]], callback: Callable[[list[CommandReply]], Any]) -> None:

@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 from trackmeter.core.stereo import StereoRig
@@ -51,7 +52,11 @@ def open_source(spec: str, rig_override: StereoRig | None = None, realtime: bool
     if not text:
         raise TrackmeterError("empty source SPEC (expected sim, sim:SCENARIO, seq:DIR, video:LEFT,RIGHT, camera:I[,J])")
     kind, _, arg = text.partition(":")
+    # A folder named after a kind ("sim", "seq", ...) is still that kind: say how to play it.
+    folder_hint = f" (the folder {text!r} here: give ./{text})" if kind == text and Path(text).is_dir() else ""
     if kind == "sim":
+        if folder_hint:
+            warnings.warn("source 'sim' is the simulator; to play the folder 'sim' here, give ./sim", stacklevel=2)
         from trackmeter.sources.sim.scenario import load_scenario
         from trackmeter.sources.sim.simulator import Simulator
 
@@ -60,13 +65,12 @@ def open_source(spec: str, rig_override: StereoRig | None = None, realtime: bool
                          render_ahead=render_ahead)
     if kind == "seq":
         if not arg:
-            hint = f" (the folder {text!r} here: give ./{text})" if Path(text).is_dir() else ""
-            raise TrackmeterError(f"seq: needs a folder, as seq:DIR{hint}")
+            raise TrackmeterError(f"seq: needs a folder, as seq:DIR{folder_hint}")
         return _open_sequence(arg, rig_override, realtime, loop, own_rig, own_model)
     if kind == "video":
         parts = [p.strip() for p in arg.split(",")]
         if len(parts) != 2 or not all(parts):
-            raise TrackmeterError(f"video: needs two files, as video:LEFT,RIGHT, got {spec!r}")
+            raise TrackmeterError(f"video: needs two files, as video:LEFT,RIGHT, got {spec!r}{folder_hint}")
         from trackmeter.sources.video import VideoSource
 
         return VideoSource(parts[0], parts[1], rig=rig_override, realtime=realtime, loop=loop)
@@ -79,7 +83,7 @@ def open_source(spec: str, rig_override: StereoRig | None = None, realtime: bool
             if any(d < 0 for d in devices):
                 raise ValueError
         except ValueError:
-            raise TrackmeterError(f"camera: needs one or two device numbers, as camera:0 or camera:0,1, got {spec!r}") from None
+            raise TrackmeterError(f"camera: needs one or two device numbers, as camera:0 or camera:0,1, got {spec!r}{folder_hint}") from None
         from trackmeter.sources.video import CameraSource
 
         return CameraSource(devices, rig=rig_override)

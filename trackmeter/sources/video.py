@@ -9,6 +9,7 @@ stamped with the wall clock (monotonic, from the first frame), taken after both 
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 import warnings
@@ -103,6 +104,9 @@ class VideoSource(Source):
 
     @staticmethod
     def _open(path: Path) -> cv2.VideoCapture:
+        # FFmpeg prints its own errors (e.g. "moov atom not found") above the one line that
+        # says what failed; only fatal ones stay (8, AV_LOG_FATAL). A user's own setting wins.
+        os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "8")
         cap = cv2.VideoCapture(str(path))
         if not cap.isOpened():
             cap.release()
