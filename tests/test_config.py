@@ -182,6 +182,27 @@ def test_an_empty_disparity_range_is_refused_naming_both_settings(tmp_path: Path
         load_config(_write(tmp_path, text))
 
 
+@pytest.mark.parametrize("text, words", [
+    ({"features": {"min_depth_m": 60.0, "max_depth_m": 50.0}}, r"'features': min_depth_m \(60\) must be below max_depth_m \(50\)"),
+    ({"tracker": {"min_search_px": 100.0, "max_search_px": 96.0}}, r"'tracker': min_search_px \(100\) must not exceed max_search_px \(96\)"),
+    ({"features": {"gabor_wavelengths_px": []}}, r"'features': gabor_wavelengths_px needs at least one wavelength"),
+])
+def test_crossed_or_empty_settings_are_refused_at_load_not_on_every_frame(tmp_path: Path, text: dict, words: str) -> None:
+    with pytest.raises(TrackmeterError, match=words):
+        load_config(_write(tmp_path, text))
+
+
+def test_a_number_in_exponent_notation_is_a_number(tmp_path: Path) -> None:
+    """PyYAML (YAML 1.1) reads ``1e3`` as a string; whoever wrote it meant a thousand."""
+    path = tmp_path / "c.yaml"
+    path.write_text("output_filter:\n  cutoff_hz: 1e3\nmeasure:\n  min_sigma_disparity_px: 2E-2\n")
+    config = load_config(path)
+    assert config.output_filter.cutoff_hz == 1000.0 and config.measure.min_sigma_disparity_px == 0.02
+    path.write_text("output_filter:\n  cutoff_hz: 1e3x\n")
+    with pytest.raises(TrackmeterError, match="expected a number"):
+        load_config(path)
+
+
 def test_choice_outside_the_list_is_refused(tmp_path: Path) -> None:
     with pytest.raises(TrackmeterError, match=r"'calibrate\.distortion_model': expected one of"):
         load_config(_write(tmp_path, {"calibrate": {"distortion_model": "fisheye"}}))

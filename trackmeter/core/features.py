@@ -73,6 +73,14 @@ class FeatureParams:
     stereo_refine: bool = param(False, "also confirm each selected point with the sub-pixel epipolar match (match_epipolar), not only its integer ZNCC profile along the line")
     stereo_min_span_px: float = param(64.0, "a disparity range given to the stereo check is widened to at least this span, px", min=1.0)
 
+    def __post_init__(self) -> None:
+        # Refused here, not on every selection of a running tracker, where they would fail far
+        # from the cause (an empty bank has no score; a crossed depth range no disparity).
+        if not self.gabor_wavelengths_px:
+            raise TrackmeterError("gabor_wavelengths_px needs at least one wavelength")
+        if not self.min_depth_m < self.max_depth_m:
+            raise TrackmeterError(f"min_depth_m ({self.min_depth_m:g}) must be below max_depth_m ({self.max_depth_m:g})")
+
 
 @lru_cache(maxsize=8)
 def gabor_bank(wavelengths_px: tuple[float, ...], orientations: int) -> tuple[tuple[tuple[NDArray, NDArray], ...], ...]:

@@ -169,6 +169,10 @@ class TrackerParams:
     )
     kalman: KalmanParams = field(default_factory=KalmanParams)
 
+    def __post_init__(self) -> None:
+        if not self.min_search_px <= self.max_search_px:
+            raise TrackmeterError(f"min_search_px ({self.min_search_px:g}) must not exceed max_search_px ({self.max_search_px:g})")
+
 
 @dataclass(eq=False)
 class _Target:

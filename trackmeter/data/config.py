@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import types
 import typing
 from dataclasses import dataclass, field
@@ -165,6 +166,10 @@ def _describe(tp: Any) -> str:
     return {float: "a number", int: "an integer", bool: "true or false", str: "a string"}.get(tp, str(tp))
 
 
+#: A number in exponent notation without a decimal point (``1e3``, ``-2E-4``).
+_EXPONENT_NUMBER = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+")
+
+
 def _convert(tp: Any, value: Any, meta: Mapping[str, Any], source: str, dotted: str) -> Any:
     def fail(expected: str | None = None) -> typing.NoReturn:
         raise TrackmeterError(f"{source}: '{dotted}': expected {expected or _describe(tp)}, got {value!r}")
@@ -213,6 +218,8 @@ def _convert(tp: Any, value: Any, meta: Mapping[str, Any], source: str, dotted: 
         _check_range(value, meta, source, dotted)
         return value
     if tp is float:
+        if isinstance(value, str) and _EXPONENT_NUMBER.fullmatch(value.strip()):
+            value = float(value)  # YAML 1.1 (PyYAML) reads 1e3 as a string; YAML 1.2 and people a number
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             fail()
         value = float(value)
