@@ -87,6 +87,23 @@ def test_left_and_right_images_given_the_wrong_way_round_are_warned_about(calib_
     assert "--left and --right" in err[0]
 
 
+def test_the_same_images_as_both_cameras_are_refused_and_nothing_is_written(calib_dir: Path, tmp_path: Path,
+                                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """The same files, or copies of them, as --left and --right calibrated to a "rig" 1e-9 m
+    wide, with a warning that changed with the rounding noise (swapped, or turned 90 degrees)."""
+    assert main(_args(calib_dir, tmp_path / "rig.yaml", left="left0[1-6].jpg", right="left0[1-6].jpg")) == 2
+    _one_error_line(capsys, "left01.jpg is given as both a left and a right image (6 of the 6 pairs)")
+    copies = tmp_path / "copies"
+    copies.mkdir()
+    for k in range(1, 7):
+        (copies / f"right0{k}.jpg").write_bytes((calib_dir / f"left0{k}.jpg").read_bytes())
+    args = _args(calib_dir, tmp_path / "rig.yaml", left="left0[1-6].jpg")
+    args[args.index("--right") + 1] = str(copies / "right*.jpg")
+    assert main(args) == 2
+    _one_error_line(capsys, "squares apart, at the same place: are --left and --right copies of the same images?")
+    assert not (tmp_path / "rig.yaml").exists()
+
+
 def test_calibrate_pairs_by_frame_number(calib_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """9 left and 13 right images: the 9 with a partner of the same number pair up."""
     assert main(_args(calib_dir, tmp_path / "rig.yaml", left="left0*.jpg", right="right*.jpg")) == 0

@@ -50,6 +50,10 @@ def run(args: argparse.Namespace) -> int:
     if not (math.isfinite(args.square) and args.square > 0):
         raise TrackmeterError(f"--square must be a positive length in metres, got {args.square}")
     pairs = pair_stereo_paths(expand_globs(args.left, "left images"), expand_globs(args.right, "right images"))
+    same = [left for left, right in pairs if left.resolve() == right.resolve()]
+    if same:
+        raise TrackmeterError(f"{same[0]} is given as both a left and a right image ({len(same)} of the {len(pairs)} "
+                              "pairs): --left and --right must name the two cameras' images")
 
     size: tuple[int, int] | None = None
     uv_left: list = []
@@ -74,6 +78,10 @@ def run(args: argparse.Namespace) -> int:
 
     result = calibrate_stereo(uv_left, uv_right, pattern, args.square, size, params)
     rig, std = result.rig, result.std
+    if rig.baseline_m < MIN_BASELINE_SQUARES * args.square:
+        # The same views twice (copies of one camera's images): no stereo rig to write.
+        raise TrackmeterError(f"the two cameras came out {rig.baseline_m / args.square:.2g} squares apart, at the same "
+                              "place: are --left and --right copies of the same images? (nothing written)")
     extra = {
         "E": result.E,
         "F": result.F,
@@ -97,6 +105,10 @@ def run(args: argparse.Namespace) -> int:
         hint = "; were --left and --right given the wrong way round?" if swapped_cameras(rig) else ""
         warnings.warn(f"{exc}; measure and track refuse this rig{hint}", stacklevel=1)
     return 0
+
+
+#: A calibrated baseline shorter than this many squares is no stereo rig: the same views twice.
+MIN_BASELINE_SQUARES = 1e-3
 
 
 def format_report(result: StereoCalibration, pairs: Sequence[tuple[Path, Path]], square: float, out_path: Path) -> str:
