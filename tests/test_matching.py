@@ -428,3 +428,20 @@ def test_tsukuba_bad1_rate_no_higher_than_sgbm(shared_data) -> None:  # type: ig
     assert fig["tsukuba_points"] > 150
     assert fig["tsukuba_bad1_rate"] <= fig["tsukuba_bad1_rate_sgbm"]
     assert fig["tsukuba_accept_rate"] > 0.6
+
+
+def test_the_same_image_twice_is_a_point_at_infinity_not_a_depth(shared_data) -> None:  # type: ignore[no-untyped-def]
+    """A disparity within 3 sigma of zero (the left image given as the right one too) is refused
+    as beyond the range; it came out "ok" at 4385 km. The same image shifted 4 px is measured."""
+    from trackmeter.core.stereo import Camera, StereoRig
+
+    left = cv2.imread(str(shared_data / "middlebury_tsukuba" / "img_left.png"), cv2.IMREAD_GRAYSCALE)
+    K = np.array([[400.0, 0.0, 192.0], [0.0, 400.0, 144.0], [0.0, 0.0, 1.0]])
+    rig = StereoRig(Camera(384, 288, K, np.zeros(5)), Camera(384, 288, K, np.zeros(5)), np.eye(3), np.array([-0.1, 0.0, 0.0]))
+    pts = [(100.0, 100.0), (200.0, 150.0), (250.0, 100.0)]
+    same = measure_points(rig, left, left, pts, MeasureParams())
+    assert [m.reason for m in same] == [M.REASON_BEYOND_RANGE] * 3
+    shifted = np.zeros_like(left)
+    shifted[:, :-4] = left[:, 4:]
+    for m in measure_points(rig, left, shifted, pts, MeasureParams()):
+        assert m.ok and abs(m.disparity_px - 4.0) < 0.05 and abs(m.xyz_m[2] - 10.0) < 0.15

@@ -1401,7 +1401,10 @@ def measure_points(
             est = sig_d[idx]
             sig_d[idx] = np.where(est == est, np.fmax(est, params.min_sigma_disparity_px), np.inf)
         xyz[idx] = rect.triangulate(uv_rect[idx], disp[idx])
-        at_infinity = [i for i in idx if not math.isfinite(xyz[i, 2])]  # disparity <= 0
+        # Disparity <= 0, or within 3 sigma of 0 (e.g. the same image given twice): the point
+        # may lie at infinity, and its "depth" would be any number the noise makes of it.
+        near_zero = (disp - rect.disparity_offset_px) <= 3.0 * np.where(np.isfinite(sig_d), sig_d, 0.0)
+        at_infinity = [i for i in idx if not math.isfinite(xyz[i, 2]) or near_zero[i]]
         for i in at_infinity:
             reasons[i] = REASON_BEYOND_RANGE
         if at_infinity:
