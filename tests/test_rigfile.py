@@ -125,6 +125,16 @@ def test_opencv_pair_needs_image_size_and_both_files(tmp_path: Path) -> None:
         load_rig(tmp_path / "intrinsics.yml", image_size=(640, 480))
 
 
+def test_an_opencv_pair_for_another_image_size_is_refused_by_its_principal_point(tmp_path: Path) -> None:
+    """The pair carries no size: frames half the calibrated size put the principal point
+    (330, 241) outside them, and every point was refused as "patch not inside image"."""
+    _write_opencv_pair(tmp_path, _rig())
+    with pytest.raises(TrackmeterError, match=r"principal point \(330\.2, 241\.5\) lies outside the 320x240 px frames: "
+                                              r"calibrated for another image size"):
+        load_rig(tmp_path / "intrinsics.yml", image_size=(320, 240))
+    assert load_rig(tmp_path / "intrinsics.yml", image_size=(640, 480)).image_size == (640, 480)
+
+
 # --------------------------------------------------------------------------- presets
 
 

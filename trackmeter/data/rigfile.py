@@ -252,6 +252,11 @@ def _load_opencv_pair(path: Path, image_size: tuple[int, int] | None) -> StereoR
         width, height = image_size
         left = Camera(width, height, _matrix(fi, "M1", intr), _matrix(fi, "D1", intr))
         right = Camera(width, height, _matrix(fi, "M2", intr), _matrix(fi, "D2", intr))
+        for cam in (left, right):
+            cx, cy = cam.K[0, 2], cam.K[1, 2]
+            if not (0 <= cx <= width and 0 <= cy <= height):  # the size is the frames', not the calibration's
+                raise TrackmeterError(f"{path}: the principal point ({cx:.1f}, {cy:.1f}) lies outside the {width}x{height} "
+                                      "px frames: calibrated for another image size")
         return StereoRig(left, right, _matrix(fe, "R", extr), _matrix(fe, "T", extr).ravel(), name=folder.name)
     finally:
         fi.release()
