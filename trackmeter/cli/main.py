@@ -146,6 +146,7 @@ def _main(argv: Sequence[str] | None) -> int:
     # A service manager's stop (SIGTERM) ends a run as Ctrl-C does: threads joined, files
     # complete, the console's raised CPU priority given back (killed outright, none of that).
     in_main_thread = threading.current_thread() is threading.main_thread()
+    interrupted = False
     if in_main_thread:
         previous_int = signal.getsignal(signal.SIGINT)
         previous = signal.signal(signal.SIGTERM, _interrupt)
@@ -162,6 +163,7 @@ def _main(argv: Sequence[str] | None) -> int:
         print(f"trackmeter {args.command}: error: {_describe_os_error(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
+        interrupted = True
         if in_main_thread:  # the command has stopped: a second Ctrl-C must not cut its last line
             signal.signal(signal.SIGINT, signal.SIG_IGN)
             signal.signal(signal.SIGTERM, signal.SIG_IGN)
@@ -170,7 +172,10 @@ def _main(argv: Sequence[str] | None) -> int:
         return 130
     finally:
         warnings.showwarning = shown_before
-        if in_main_thread:
+        # The process's own command line (argv None) stays deaf to signals after an interrupt
+        # until it exits: a second Ctrl-C would kill it in the interpreter's shutdown (-SIGINT
+        # instead of 130). A caller passing argv gets its handlers back.
+        if in_main_thread and not (interrupted and argv is None):
             signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
             signal.signal(signal.SIGINT, signal.SIG_DFL if previous_int is None else previous_int)
 

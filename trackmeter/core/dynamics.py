@@ -319,12 +319,15 @@ class CentreOfMassFit:
         v_cam: (3,) its velocity in the camera frame, m/s.
         cov: (9,9) covariance of ``(c_body, a_cam, v_cam)``, inflated by the fit's residual
             scale when the residuals exceed the pose covariances.
+        rss: the weighted residual ``sum_k w_k |p_k + R_k c - a - v tau_k|²`` (the given
+            position weights), m² times the weights' unit.
     """
 
     c_body: FloatArray
     a_cam: FloatArray
     v_cam: FloatArray
     cov: FloatArray
+    rss: float = float("nan")
 
     @property
     def speed_bound_m_s(self) -> float:
@@ -378,7 +381,8 @@ def fit_centre_of_mass(
     dof = 3 * n - 9
     scale2 = float(np.einsum("n,ni,ni->", w, r, r)) / dof if dof > 0 else 1.0
     cov = np.linalg.inv(H + prior) / w.max() * max(1.0, scale2)
-    return CentreOfMassFit(x[:3], x[3:6], x[6:], 0.5 * (cov + cov.T))
+    rss = float(np.einsum("n,ni,ni->", w, r, r))
+    return CentreOfMassFit(x[:3], x[3:6], x[6:], 0.5 * (cov + cov.T), rss)
 
 
 def coast_pose(

@@ -40,6 +40,12 @@ The price is lag when the twist changes: fed the TRUE poses, 'screw' errs by up 
 and 0.35 mm/s on estec (the precession turns omega; 'poly' 0.002 deg/s, 0.27 mm/s), and on the
 195 deg/s fast_tumble, whose window the 30 deg cap makes ~0.15 s long, by 8 deg/s (4 %) where
 the SO(3) chart of 'poly' wraps (errors of hundreds of deg/s).
+
+A constant twist is not how a free-floating target moves while it is approached: its centre of
+mass drifts in a straight line across its spin axis, and the screw fit turns that velocity with
+the body (:func:`free_body_velocity`). 'screw' therefore also fits the centre of mass moving in
+a straight line and takes that fit's velocity when it explains the window's positions clearly
+better (``free_body_rss_ratio``); 'free_body' always takes it (noisier over a short turn).
 """
 
 from __future__ import annotations
@@ -62,9 +68,10 @@ class VelocityParams:
     """Tunables of the velocity estimation."""
 
     method: str = param(
-        "screw", "'screw': causal polynomial fit on SE(3) (constant twist exact at order 1); 'poly': on SO(3) "
-        "and R^3 separately; 'difference': eq. 14 finite difference",
-        choices=("screw", "poly", "difference"),
+        "screw", "'screw': causal polynomial fit on SE(3) (constant twist exact at order 1); 'free_body': the "
+        "screw fit's angular velocity, and the origin's velocity from the centre of mass drifting in a straight "
+        "line while the body turns about it; 'poly': on SO(3) and R^3 separately; 'difference': eq. 14 finite difference",
+        choices=("screw", "free_body", "poly", "difference"),
     )
     screw_window_s: float = param(2.5, "screw: longest window of the fit, s", min=0.05)
     screw_order: int = param(1, "screw: degree of the polynomial in the twist chart (1 = constant twist)",
@@ -72,6 +79,15 @@ class VelocityParams:
     screw_max_angle_deg: float = param(
         30.0, "screw: the window reaches back no further than the body has turned this far, deg "
         "(a fast tumble gets a short window, and the chart never wraps)", min=1.0, max=170.0,
+    )
+    free_body_rss_ratio: float = param(
+        0.5, "screw: take the free-body velocity instead when its fit leaves less than this fraction of the "
+        "screw fit's position residual per degree of freedom, over a window of min_span_s at least (a body "
+        "drifting across its spin axis); 0: never", min=0.0, max=1.0,
+    )
+    lever_m: float = param(
+        0.5, "free_body (and screw's switch to it): prior 1-sigma of each coordinate of the centre of mass in the body frame (its distance "
+        "from the body origin), m", min=1e-3,
     )
     window_s: float = param(1.2, "poly: window of the attitude fit (angular velocity), s", min=0.05)
     order: int = param(2, "poly: degree of the attitude polynomial (1 = constant rate, 2 = constant acceleration)",
@@ -234,8 +250,8 @@ def se3_exp(x: ArrayLike) -> tuple[FloatArray, FloatArray]:
 
 def screw_rates(
     times_s: ArrayLike, R: ArrayLike, p: ArrayLike, order: int = 1, t_eval_s: float | None = None,
-    weights: ArrayLike | None = None,
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    weights: ArrayLike | None = None, return_rss: bool = False,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray] | tuple[FloatArray, FloatArray, FloatArray, FloatArray, float]:
     """Fit a polynomial to a window of poses in the twist chart of SE(3) and differentiate it.
 
     With ``T_ref`` the newest pose, ``x_k = log(T_ref^-1 T_k)`` (:func:`se3_log`) is fitted by a
@@ -254,10 +270,14 @@ def screw_rates(
         weights: optional (N,2) ``(w_position, w_rotation)`` per pose (:func:`block_weights`):
             ``rho`` is fitted with the position weights, ``theta`` with the rotation weights.
 
+        return_rss: also return the fit's position residual ``sum_k w_k |rho_k - rho(tau_k)|²``
+            (m², the position weights or 1; ``rho`` is the origin's displacement in the chart,
+            within a few per cent of its metres over the window's turn).
+
     Returns:
         ``(p_fit (3,), R_fit (3,3), v_cam (3,) m/s, omega_body (3,) rad/s)`` at ``t_eval_s``:
         ``v_cam`` is the body origin's velocity in the camera frame, ``omega_body`` the angular
-        velocity in the body frame (eq. 14 on the fitted curve).
+        velocity in the body frame (eq. 14 on the fitted curve); and the residual with ``return_rss``.
     """
     t = np.asarray(times_s, dtype=float)
     Rm = np.asarray(R, dtype=float).reshape(-1, 3, 3)
@@ -269,7 +289,8 @@ def screw_rates(
     tau = t - t_eval
     scale = max(float(np.max(np.abs(tau))), 1e-9)  # conditioning of the Vandermonde matrix
     Wc = None if weights is None else np.repeat(np.asarray(weights, dtype=float).reshape(-1, 2), 3, axis=1)
-    coef = weighted_polyfit(np.vander(tau / scale, deg + 1, increasing=True), X, Wc)
+    V = np.vander(tau / scale, deg + 1, increasing=True)
+    coef = weighted_polyfit(V, X, Wc)
 
     h = 1e-4 * scale
     # the fitted twist at 0, -h and +h, exponentiated in one scipy call (from_rotvec costs
@@ -280,7 +301,38 @@ def screw_rates(
     (R_fit, p_fit), (R_a, p_a), (R_b, p_b) = poses
     v = (p_b - p_a) / (2 * h)
     omega = rotation_from_matrix(R_a.T @ R_b).as_rotvec() / (2 * h)
-    return p_fit, R_fit, v, omega
+    if not return_rss:
+        return p_fit, R_fit, v, omega
+    w_pos = np.ones(len(t)) if weights is None else np.asarray(weights, dtype=float).reshape(-1, 2)[:, 0]
+    residual = X[:, :3] - V @ coef[:, :3]
+    return p_fit, R_fit, v, omega, float(np.einsum("n,ni,ni->", w_pos, residual, residual))
+
+
+def free_body_velocity(times_s: ArrayLike, R: ArrayLike, p: ArrayLike, omega_body: ArrayLike,
+                       position_weights: ArrayLike, lever_m: float) -> tuple[FloatArray, float] | None:
+    """The body origin's velocity (3,) m/s in the camera frame at the newest pose of a window, for
+    a free body: its centre of mass drifts in a straight line while it turns about it.
+
+    :func:`trackmeter.core.dynamics.fit_centre_of_mass` fits ``p_k + R_k c = a + v tau_k`` (``c``
+    the centre of mass in the body frame, prior ``c ~ N(0, lever_m² I)``); the origin
+    ``p = a + v tau - R c`` then moves at ``v_origin = v - R (omega_body x c)`` (``dR/dt =
+    R [omega]x``). A constant screw is the case of a centre on the screw axis moving along it,
+    so the fit holds it too; but a centre drifting across the spin axis — a free-floating
+    target approached while it tumbles — is not a constant body twist: the screw fit turns its
+    velocity with the body, an error of about ``tau (omega x v)`` for a window of mean age
+    ``tau``.
+
+    Returns:
+        ``(v_origin (3,) m/s, rss)``, ``rss`` the fit's weighted position residual (m², as
+        :func:`screw_rates`'s); None with fewer than 3 weighted poses.
+    """
+    from trackmeter.core.dynamics import fit_centre_of_mass
+
+    Rm = np.asarray(R, dtype=float).reshape(-1, 3, 3)
+    fit = fit_centre_of_mass(times_s, Rm, p, position_weights, lever_m)
+    if fit is None:
+        return None
+    return fit.v_cam - Rm[-1] @ np.cross(np.asarray(omega_body, dtype=float), fit.c_body), fit.rss
 
 
 class VelocityEstimator:
@@ -306,7 +358,7 @@ class VelocityEstimator:
         reporting."""
         if self.params.method == "difference":
             return len(self._t) >= 2
-        if self.params.method == "screw" and self._capped:
+        if self.params.method in ("screw", "free_body") and self._capped:
             return True
         return len(self._t) >= 2 and self._t[-1] - self._t[0] >= self.params.min_span_s - 1e-9
 
@@ -340,7 +392,7 @@ class VelocityEstimator:
         self._p.append(np.asarray(p_cam, dtype=float))
         self._w.append(block_weights(cov_pose)[0] if cov_pose is not None else np.full(2, np.nan))
         keep = 2 if self.params.method == "difference" else None
-        if self.params.method == "screw":
+        if self.params.method in ("screw", "free_body"):
             longest = self.params.screw_window_s
         else:
             longest = max(self.params.window_s, self.params.position_window_s)
@@ -356,7 +408,7 @@ class VelocityEstimator:
         Wp: FloatArray | None = np.array(self._w)
         if not self.params.weighted or not np.all(np.isfinite(Wp)):
             Wp = None  # equal weights: plain least squares
-        if self.params.method == "screw":
+        if self.params.method in ("screw", "free_body"):
             # Newest poses within screw_max_angle_deg of the newest attitude (angle from the trace).
             cos = (np.einsum("ij,nij->n", R[-1], R) - 1.0) / 2.0
             far = np.flatnonzero(cos < np.cos(np.radians(self.params.screw_max_angle_deg)))
@@ -364,8 +416,20 @@ class VelocityEstimator:
             self._capped = start > 0 and len(t) - start >= 3
             if len(t) - start < 2:  # turned further than the cap within one frame: the last two
                 start = len(t) - 2
-            _, _, v, omega = screw_rates(t[start:], R[start:], P[start:], self.params.screw_order,
-                                         weights=None if Wp is None else Wp[start:])
+            _, _, v, omega, rss = screw_rates(t[start:], R[start:], P[start:], self.params.screw_order,
+                                              weights=None if Wp is None else Wp[start:], return_rss=True)
+            always = self.params.method == "free_body"
+            n = len(t) - start
+            # Compared only over a window long enough to tell the paths apart (a few poses are
+            # fitted almost exactly by either), residual per degree of freedom (9 against 6).
+            compare = self.params.free_body_rss_ratio > 0 and t[-1] - t[start] >= self.params.min_span_s and n >= 6
+            if always or compare:
+                free = free_body_velocity(t[start:], R[start:], P[start:], omega,
+                                          np.ones(n) if Wp is None else Wp[start:, 0], self.params.lever_m)
+                # A free-floating body that drifts across its spin axis: the constant twist cannot
+                # follow its path (module docstring), and the straight-line centre fits it far better.
+                if free is not None and (always or free[1] / (3 * n - 9) < self.params.free_body_rss_ratio * rss / (3 * n - 6)):
+                    v = free[0]
             return v, omega
         rot = t >= t_s - self.params.window_s - 1e-9
         pos = t >= t_s - self.params.position_window_s - 1e-9
