@@ -206,3 +206,13 @@ def test_identical_frames_are_refused_with_a_reason_not_a_crash():
     assert all(float(s.sigma_m[2]) == 0.0 for s in stacks)
     with pytest.raises(TrackmeterError, match="scatter"):
         analyze_ranges(stacks, F_PX, B_M)
+
+
+def test_one_range_gives_a_parabola_but_no_r2_or_standard_error() -> None:
+    """A still object at one range is a valid analysis: k is sigma / z² there, but a curve
+    through the origin passes through one point exactly (R² 1 said nothing)."""
+    from trackmeter.core.error_analysis import fit_parabola
+
+    fit = fit_parabola([3.5], [0.004])
+    assert fit.k_per_m == pytest.approx(0.004 / 3.5**2)
+    assert math.isnan(fit.r2) and math.isnan(fit.k_std_per_m)

@@ -17,7 +17,6 @@ sigma_vs_range.png, error_density.png and report.md.
 from __future__ import annotations
 
 import argparse
-import json
 from dataclasses import replace
 
 from trackmeter.cli.common import load_config_from_args, progress
@@ -61,7 +60,9 @@ def run(args: argparse.Namespace) -> int:
     if args.out:
         write_analysis(result.analysis, summary, args.out)
     if args.json:
-        print(json.dumps(summary, indent=2))
+        from trackmeter.data.jsontext import json_text
+
+        print(json_text(summary))
     else:
         print(format_analysis(summary))
         if args.out:

@@ -22,7 +22,6 @@ paper's figures.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from dataclasses import replace
 
@@ -85,7 +84,9 @@ def run(args: argparse.Namespace) -> int:
     if args.out:
         write_evaluation(result, args.out, truth.source, estimate.source, params.align, params.settle_s)
     if args.json:
-        print(json.dumps(result.summary, indent=2))
+        from trackmeter.data.jsontext import json_text
+
+        print(json_text(result.summary))
     else:
         print(format_summary(result.summary, truth.source, estimate.source, params.align))
         if args.out:

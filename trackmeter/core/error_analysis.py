@@ -287,7 +287,8 @@ class ParabolaFit:
         k_per_m: the coefficient, 1/m (sigma in m for z in m).
         k_std_per_m: its standard error from the fit residuals, 1/m (NaN with one range).
         rms_residual_m: RMS of ``sigma_i - k z_i^2``, m.
-        r2: coefficient of determination of the through-origin fit, ``1 - SSR / sum sigma^2``.
+        r2: coefficient of determination of the through-origin fit, ``1 - SSR / sum sigma^2``
+            (NaN with one range).
     """
 
     k_per_m: float
@@ -314,7 +315,9 @@ def fit_parabola(range_m: ArrayLike, sigma_m: ArrayLike) -> ParabolaFit:
     ssr = float(np.dot(r, r))
     k_std = float(np.sqrt(ssr / (len(z) - 1) / np.dot(x, x))) if len(z) > 1 else float("nan")
     total = float(np.dot(s, s))
-    return ParabolaFit(k, k_std, float(np.sqrt(ssr / len(z))), 1.0 - ssr / total if total > 0 else float("nan"))
+    # One range: the curve through the origin passes through it exactly, an R² of 1 that says nothing.
+    r2 = 1.0 - ssr / total if total > 0 and len(z) > 1 else float("nan")
+    return ParabolaFit(k, k_std, float(np.sqrt(ssr / len(z))), r2)
 
 
 def subpixel_accuracy_px(k_per_m: float, focal_px: float, baseline_m: float) -> float:

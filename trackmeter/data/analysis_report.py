@@ -12,7 +12,6 @@ Millimetres only at this display edge; the JSON stays in SI units.
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -21,6 +20,7 @@ import numpy as np
 from trackmeter.core.error_analysis import DensityFit, ErrorAnalysis
 from trackmeter.data.evaluation import _save_figure
 from trackmeter.data.atomic import write_text_atomic
+from trackmeter.data.jsontext import json_text
 
 #: The paper's figures (sections 2.F-2.G): sigma_z at 3.5 m, sub-pixel accuracy.
 PAPER_SIGMA_Z_3P5_M = 0.004
@@ -130,7 +130,7 @@ def write_analysis(analysis: ErrorAnalysis, summary: dict, out_dir: str | Path) 
     """Write ``analysis.json``, ``ranges.csv``, the two plots and ``report.md`` into ``out_dir``."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(out / "analysis.json", json.dumps(summary, indent=2) + "\n")
+    write_text_atomic(out / "analysis.json", json_text(summary) + "\n")
     rows = ["range_m,n_points,n_samples,sigma_x_m,sigma_y_m,sigma_z_m,pred_sigma_x_m,pred_sigma_y_m,pred_sigma_z_m"]
     for r in analysis.ranges:
         rows.append(",".join(repr(float(v)) for v in (r.range_m, r.n_points, r.n_samples, *r.sigma_m, *r.predicted_sigma_m)))

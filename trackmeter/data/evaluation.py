@@ -12,7 +12,6 @@ beside it.
 
 from __future__ import annotations
 
-import json
 import math
 import warnings
 from dataclasses import dataclass, replace
@@ -24,6 +23,7 @@ import yaml
 from trackmeter.core.metrics import Evaluation, associate
 from trackmeter.data.motion_csv import MotionSeries, header_fields, is_comment_line, read_motion_csv
 from trackmeter.data.atomic import write_text_atomic
+from trackmeter.data.jsontext import json_text
 from trackmeter.data.sequence import find_sequence_file, seconds_if_nanoseconds
 from trackmeter.data.trajectory import read_tum
 from trackmeter.errors import TrackmeterError
@@ -364,7 +364,7 @@ def write_evaluation(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     s = evaluation.summary
-    write_text_atomic(out / "summary.json", json.dumps(s, indent=2) + "\n")
+    write_text_atomic(out / "summary.json", json_text(s) + "\n")
     write_text_atomic(out / "errors.csv", error_table_csv(evaluation))
     plots = plot_errors(evaluation, out)
     offset = ""
