@@ -185,7 +185,7 @@ def run(args: argparse.Namespace) -> int:
             if not binds:
                 print("trackmeter track: warning: case (b) but no model point is selected: the pose stays invalid "
                       "until 3 model points are tracked (give --target ID=U,V, or --select-model-points on a "
-                      "simulated source)", file=sys.stderr)
+                      "source with ground truth: a simulation, or a recording with its truth)", file=sys.stderr)
         if args.select_model_points and case != "b":
             raise TrackmeterError("--select-model-points needs case (b) and a model")
         engine = Engine(config, rig, model if case == "b" else None, case, rate_hz=source.rate_hz or 25.0,
@@ -348,9 +348,22 @@ def run(args: argparse.Namespace) -> int:
                   + (f" ({writer.coasted_frames} coasted)" if writer.coasted_frames else "") + f", case ({case}) -> {args.out}")
             for reason, count in sorted(state["invalid"].items(), key=lambda kv: -kv[1])[:5]:
                 print(f"  invalid in {count} frames: {reason}")
+            never = _auto_never_started(engine.tracker) if args.auto else None
+            if never:
+                print(f"trackmeter track: warning: {never}", file=sys.stderr)
             return 0 if status == "complete" else 2
     finally:
         source.close()
+
+
+def _auto_never_started(tracker: Any) -> str | None:
+    """One line when --auto started no target in the whole run, with its candidates' refusal
+    reasons (e.g. the images too dark for a point to be measured); None otherwise."""
+    stats, refusals = getattr(tracker, "stats", None), getattr(tracker, "auto_refusals", None)
+    if not isinstance(stats, dict) or stats.get("auto_added", 1) or not refusals:
+        return None
+    reasons = ", ".join(f"{reason} ({count})" for reason, count in refusals.most_common(3))
+    return f"--auto started no target: its candidates were refused: {reasons}"
 
 
 def _finish_writing(writer: Any, flush_pending: Callable[[], None], state: dict[str, Any]) -> None:

@@ -31,6 +31,7 @@ creation would carry a wrong 3D point from the start.
 
 from __future__ import annotations
 
+import collections
 import itertools
 import warnings
 from dataclasses import dataclass, field
@@ -71,6 +72,12 @@ FloatArray = NDArray[np.float64]
 _NAN2 = np.full(2, np.nan)
 _NAN3 = np.full(3, np.nan)
 _NAN33 = np.full((3, 3), np.nan)
+
+
+#: :attr:`Tracker.auto_refusals` reasons of automatic selection's own (the rest are
+#: :data:`trackmeter.core.matching.REASONS` and the target checks').
+NO_CANDIDATE = "no candidate point (black space, no texture, or no unique stereo match)"
+OFF_THE_BODY = "stereo match off the body's depth range"
 
 
 @dataclass(frozen=True)
@@ -276,7 +283,10 @@ class Tracker:
         self._free_slots: list[int] = []
         self.last_losses: dict[str, str] = {}
         self._last_top_up: int | None = None
-        self.stats = {"losses": 0, "recoveries": 0, "reanchors": 0, "added": 0}
+        self.stats = {"losses": 0, "recoveries": 0, "reanchors": 0, "added": 0, "auto_added": 0}
+        # Why automatic selection's candidates did not become targets (reason -> count): when it
+        # starts none at all (images too dark, no texture), the run can say why.
+        self.auto_refusals: collections.Counter[str] = collections.Counter()
         self._motion_gate = float(chi2.ppf(params.motion_gate_probability, 3))
         # The rigid motion (R (3,3), t (3,)) from the tracker's body frame to the camera at the
         # last step, fitted to the targets' first points (:meth:`_body_drift`); None: unknown.
@@ -1242,6 +1252,7 @@ class Tracker:
         # Ask for spares: the measurement may still refuse some (e.g. disparity too uncertain).
         pts = select_features(frame.left, frame.right, self.rig, 3 * need, self._auto_method, fp, exclude)
         if len(pts) == 0:
+            self.auto_refusals[NO_CANDIDATE] += 1
             return
         pts = np.asarray(pts, float).reshape(-1, 2)
         # One batched measurement of all the candidates (most of its cost is per call).
@@ -1252,8 +1263,14 @@ class Tracker:
             if added >= need or len(self._targets) >= p.max_targets:
                 break
             if rng is not None and not rng[0] <= m.disparity_px <= rng[1]:
+                self.auto_refusals[OFF_THE_BODY] += 1
                 continue  # a false stereo match: not at the body's depth
-            added += isinstance(self._create(frame, uv, m, None, "auto"), TargetState)
+            made = self._create(frame, uv, m, None, "auto")
+            if isinstance(made, TargetState):
+                added += 1
+                self.stats["auto_added"] += 1
+            else:
+                self.auto_refusals[made.reason] += 1
 
     def auto_disparity_range(self, candidates_px: Sequence[float] = ()) -> tuple[float, float] | None:
         """Disparities (low, high), rectified px, a new automatic point's measured disparity
