@@ -44,6 +44,17 @@ def atomic_path(path: str | Path, suffix: str = "") -> Iterator[Path]:
         raise
 
 
+def unwritable_ancestor(path: str | Path) -> Path | None:
+    """The nearest existing path at or above ``path`` when it is not a folder this process may
+    create files in; None when ``path`` (or the folders leading to it) can be made there."""
+    existing = Path(path).absolute()
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        return existing
+    return None
+
+
 def write_text_atomic(path: str | Path, text: str) -> None:
     """Write ``text`` (UTF-8) to ``path`` atomically."""
     with atomic_path(path) as tmp:

@@ -22,7 +22,6 @@ running`` at the start, the final status and summary at the end).
 from __future__ import annotations
 
 import contextlib
-import os
 import platform
 import sys
 import time
@@ -35,7 +34,7 @@ import yaml
 from trackmeter.core.targets import TargetState
 from trackmeter.core.transforms import matrix_to_quat_wxyz
 from trackmeter.data.motion_csv import STATES_COLUMNS, MotionCsvWriter
-from trackmeter.data.atomic import AppendFile, write_text_atomic
+from trackmeter.data.atomic import AppendFile, unwritable_ancestor, write_text_atomic
 from trackmeter.data.sequence import is_sequence_folder
 from trackmeter.data.trajectory import format_tum_line
 from trackmeter.errors import TrackmeterError
@@ -99,11 +98,9 @@ def check_run_directory(directory: str | Path, overwrite: bool = False) -> Path:
     if is_sequence_folder(path):
         raise TrackmeterError(f"{path}: a sequence folder (cam0/, cam1/): a run's files do not go into a recording; "
                               "choose another --out")
-    existing = path.absolute()
-    while not existing.exists():
-        existing = existing.parent
-    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
-        raise TrackmeterError(f"{path}: cannot create a run folder there ({existing} is not a writable folder)")
+    blocked = unwritable_ancestor(path)
+    if blocked is not None:
+        raise TrackmeterError(f"{path}: cannot create a run folder there ({blocked} is not a writable folder)")
     return path
 
 

@@ -40,7 +40,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.transforms import matrix_to_quat_wxyz
-from trackmeter.data.atomic import AppendFile
+from trackmeter.data.atomic import AppendFile, unwritable_ancestor
 from trackmeter.data.images import data_bits, decode_image
 from trackmeter.data.model import Model, load_model, save_model
 from trackmeter.data.motion_csv import GROUNDTRUTH_COLUMNS, MotionCsvWriter, MotionSeries, read_motion_csv
@@ -91,11 +91,9 @@ def check_record_directory(directory: str | Path) -> Path:
     if path.is_dir() and any(path.iterdir()):
         what = "a sequence (cam0/data.csv)" if (path / "cam0" / "data.csv").exists() else "files"
         raise TrackmeterError(f"cannot record to {path}: it already holds {what}; record into a new or empty folder")
-    existing = path.absolute()
-    while not existing.exists():
-        existing = existing.parent
-    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
-        raise TrackmeterError(f"cannot record to {path}: {existing} is not a writable folder")
+    blocked = unwritable_ancestor(path)
+    if blocked is not None:
+        raise TrackmeterError(f"cannot record to {path}: {blocked} is not a writable folder")
     return path
 
 
