@@ -85,6 +85,10 @@ class VelocityParams:
         "screw fit's position residual per degree of freedom, over a window of min_span_s at least (a body "
         "drifting across its spin axis); 0: never", min=0.0, max=1.0,
     )
+    free_body_min_bias_sigmas: float = param(
+        3.0, "screw: ... and when the error the screw fit would make, tau (omega x v), exceeds this many "
+        "standard deviations of the free-body fit's velocity (a slow drift keeps the less noisy screw fit)", min=0.0,
+    )
     lever_m: float = param(
         0.5, "free_body (and screw's switch to it): prior 1-sigma of each coordinate of the centre of mass in the body frame (its distance "
         "from the body origin), m", min=1e-3,
@@ -323,8 +327,11 @@ def free_body_velocity(times_s: ArrayLike, R: ArrayLike, p: ArrayLike, omega_bod
     ``tau``.
 
     Returns:
-        ``(v_origin (3,) m/s, rss)``, ``rss`` the fit's weighted position residual (m², as
-        :func:`screw_rates`'s); None with fewer than 3 weighted poses.
+        ``(v_origin (3,) m/s, rss, screw_bias_sigmas)``: ``rss`` the fit's weighted position
+        residual (m², as :func:`screw_rates`'s); ``screw_bias_sigmas`` the screw fit's expected
+        error ``tau (omega_cam x v)`` (``tau`` half the window) over the fitted ``v``'s standard
+        deviation (the largest of its covariance), i.e. how clearly the drift across the spin
+        axis is seen. None with fewer than 3 weighted poses.
     """
     from trackmeter.core.dynamics import fit_centre_of_mass
 
@@ -332,7 +339,12 @@ def free_body_velocity(times_s: ArrayLike, R: ArrayLike, p: ArrayLike, omega_bod
     fit = fit_centre_of_mass(times_s, Rm, p, position_weights, lever_m)
     if fit is None:
         return None
-    return fit.v_cam - Rm[-1] @ np.cross(np.asarray(omega_body, dtype=float), fit.c_body), fit.rss
+    omega = np.asarray(omega_body, dtype=float)
+    t = np.asarray(times_s, dtype=float)
+    bias = 0.5 * (t[-1] - t[0]) * np.linalg.norm(np.cross(Rm[-1] @ omega, fit.v_cam))
+    sigma_v = float(np.sqrt(max(np.linalg.eigvalsh(fit.cov[6:, 6:]).max(), 0.0)))
+    sigmas = bias / sigma_v if sigma_v > 0 else float("inf")
+    return fit.v_cam - Rm[-1] @ np.cross(omega, fit.c_body), fit.rss, float(sigmas)
 
 
 class VelocityEstimator:
@@ -428,7 +440,9 @@ class VelocityEstimator:
                                           np.ones(n) if Wp is None else Wp[start:, 0], self.params.lever_m)
                 # A free-floating body that drifts across its spin axis: the constant twist cannot
                 # follow its path (module docstring), and the straight-line centre fits it far better.
-                if free is not None and (always or free[1] / (3 * n - 9) < self.params.free_body_rss_ratio * rss / (3 * n - 6)):
+                if free is not None and (always or (
+                        free[1] / (3 * n - 9) < self.params.free_body_rss_ratio * rss / (3 * n - 6)
+                        and free[2] > self.params.free_body_min_bias_sigmas)):
                     v = free[0]
             return v, omega
         rot = t >= t_s - self.params.window_s - 1e-9
