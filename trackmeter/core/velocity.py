@@ -90,8 +90,8 @@ class VelocityParams:
         "standard deviations of the free-body fit's velocity (a slow drift keeps the less noisy screw fit)", min=0.0,
     )
     lever_m: float = param(
-        0.5, "free_body (and screw's switch to it): prior 1-sigma of each coordinate of the centre of mass in the body frame (its distance "
-        "from the body origin), m", min=1e-3,
+        0.5, "free_body (and screw's switch to it): prior 1-sigma of each coordinate of the centre of mass in "
+        "the body frame (its distance from the body origin), m", min=1e-3,
     )
     window_s: float = param(1.2, "poly: window of the attitude fit (angular velocity), s", min=0.05)
     order: int = param(2, "poly: degree of the attitude polynomial (1 = constant rate, 2 = constant acceleration)",
