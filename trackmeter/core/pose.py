@@ -182,7 +182,8 @@ class PoseParams:
         0.004, "coasting: 1-sigma error of the estimated body angular velocity, per axis, rad/s", min=0.0,
     )
     coast_lever_m: float = param(
-        0.5, "coasting: largest distance of the body origin from the centre of mass the body turns about, m",
+        0.5, "coasting (and the velocity's free-body fit): largest distance of the body origin from the centre "
+        "of mass the body turns about, m",
         min=0.0,
     )
     coast_rejoin_attitude_sigma_deg: float = param(

@@ -89,10 +89,6 @@ class VelocityParams:
         3.0, "screw: ... and when the error the screw fit would make, tau (omega x v), exceeds this many "
         "standard deviations of the free-body fit's velocity (a slow drift keeps the less noisy screw fit)", min=0.0,
     )
-    lever_m: float = param(
-        0.5, "free_body (and screw's switch to it): prior 1-sigma of each coordinate of the centre of mass in "
-        "the body frame (its distance from the body origin), m", min=1e-3,
-    )
     window_s: float = param(1.2, "poly: window of the attitude fit (angular velocity), s", min=0.05)
     order: int = param(2, "poly: degree of the attitude polynomial (1 = constant rate, 2 = constant acceleration)",
                        min=1, max=4)
@@ -354,8 +350,12 @@ class VelocityEstimator:
     (new model, case switch) or tracking restarts.
     """
 
-    def __init__(self, params: VelocityParams = VelocityParams()) -> None:
+    def __init__(self, params: VelocityParams = VelocityParams(), lever_m: float = 0.5) -> None:
+        """``lever_m``: prior 1-sigma of each coordinate of the centre of mass in the body frame
+        (its distance from the body origin), m, for the free-body fit (the engine passes
+        ``pose.coast_lever_m``, the same prior its coast fits with)."""
         self.params = params
+        self.lever_m = float(lever_m)
         self._t: deque[float] = deque()
         self._R: deque[FloatArray] = deque()
         self._p: deque[FloatArray] = deque()
@@ -437,7 +437,7 @@ class VelocityEstimator:
             compare = self.params.free_body_rss_ratio > 0 and t[-1] - t[start] >= self.params.min_span_s and n >= 6
             if always or compare:
                 free = free_body_velocity(t[start:], R[start:], P[start:], omega,
-                                          np.ones(n) if Wp is None else Wp[start:, 0], self.params.lever_m)
+                                          np.ones(n) if Wp is None else Wp[start:, 0], self.lever_m)
                 # A free-floating body that drifts across its spin axis: the constant twist cannot
                 # follow its path (module docstring), and the straight-line centre fits it far better.
                 if free is not None and (always or (

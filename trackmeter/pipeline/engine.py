@@ -329,7 +329,7 @@ class Engine:
         # binding, or joined through a pose resting on such points), and that error, (6,6).
         self._frame_error_ids: set[str] = set()
         self._frame_cov: FloatArray | None = None
-        self._velocity = VelocityEstimator(self.velocity_params)
+        self._velocity = VelocityEstimator(self.velocity_params, self.pose_params.coast_lever_m)
         self._filter = PoseFilter(self.filter_params, self.rate_hz)
         self._align_M = np.zeros((3, 3))
         self._align_t = np.zeros(3)
