@@ -52,6 +52,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -308,8 +309,16 @@ def screw_rates(
     return p_fit, R_fit, v, omega, float(np.einsum("n,ni,ni->", w_pos, residual, residual))
 
 
+class FreeBodyVelocity(NamedTuple):
+    """Result of :func:`free_body_velocity`."""
+
+    v_origin: FloatArray  #: (3,) the body origin's velocity in the camera frame, m/s
+    rss: float  #: the fit's weighted position residual, m² (as :func:`screw_rates`'s)
+    screw_bias_sigmas: float  #: the screw fit's expected error over the fitted velocity's sigma
+
+
 def free_body_velocity(times_s: ArrayLike, R: ArrayLike, p: ArrayLike, omega_body: ArrayLike,
-                       position_weights: ArrayLike, lever_m: float) -> tuple[FloatArray, float] | None:
+                       position_weights: ArrayLike, lever_m: float) -> FreeBodyVelocity | None:
     """The body origin's velocity (3,) m/s in the camera frame at the newest pose of a window, for
     a free body: its centre of mass drifts in a straight line while it turns about it.
 
@@ -323,9 +332,8 @@ def free_body_velocity(times_s: ArrayLike, R: ArrayLike, p: ArrayLike, omega_bod
     ``tau``.
 
     Returns:
-        ``(v_origin (3,) m/s, rss, screw_bias_sigmas)``: ``rss`` the fit's weighted position
-        residual (m², as :func:`screw_rates`'s); ``screw_bias_sigmas`` the screw fit's expected
-        error ``tau (omega_cam x v)`` (``tau`` half the window) over the fitted ``v``'s standard
+        :class:`FreeBodyVelocity`: ``screw_bias_sigmas`` is the screw fit's expected error
+        ``tau (omega_cam x v)`` (``tau`` half the window) over the fitted ``v``'s standard
         deviation (the largest of its covariance), i.e. how clearly the drift across the spin
         axis is seen. None with fewer than 3 weighted poses.
     """
@@ -340,7 +348,7 @@ def free_body_velocity(times_s: ArrayLike, R: ArrayLike, p: ArrayLike, omega_bod
     bias = 0.5 * (t[-1] - t[0]) * np.linalg.norm(np.cross(Rm[-1] @ omega, fit.v_cam))
     sigma_v = float(np.sqrt(max(np.linalg.eigvalsh(fit.cov[6:, 6:]).max(), 0.0)))
     sigmas = bias / sigma_v if sigma_v > 0 else float("inf")
-    return fit.v_cam - Rm[-1] @ np.cross(omega, fit.c_body), fit.rss, float(sigmas)
+    return FreeBodyVelocity(fit.v_cam - Rm[-1] @ np.cross(omega, fit.c_body), fit.rss, float(sigmas))
 
 
 class VelocityEstimator:
@@ -441,9 +449,9 @@ class VelocityEstimator:
                 # A free-floating body that drifts across its spin axis: the constant twist cannot
                 # follow its path (module docstring), and the straight-line centre fits it far better.
                 if free is not None and (always or (
-                        free[1] / (3 * n - 9) < self.params.free_body_rss_ratio * rss / (3 * n - 6)
-                        and free[2] > self.params.free_body_min_bias_sigmas)):
-                    v = free[0]
+                        free.rss / (3 * n - 9) < self.params.free_body_rss_ratio * rss / (3 * n - 6)
+                        and free.screw_bias_sigmas > self.params.free_body_min_bias_sigmas)):
+                    v = free.v_origin
             return v, omega
         rot = t >= t_s - self.params.window_s - 1e-9
         pos = t >= t_s - self.params.position_window_s - 1e-9
