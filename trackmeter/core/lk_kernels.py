@@ -1,0 +1,359 @@
+"""Compiled inner loops of the Lucas-Kanade fits in :mod:`trackmeter.core.patch_tracking`.
+
+Why compiled: a tracker step fits a dozen or two 8x8 patches, a few Gauss-Newton iterations
+each. Batched over the patches in numpy, each iteration is some forty numpy calls on arrays of
+a few hundred numbers, so what the fits cost was numpy's per-call overhead, not arithmetic:
+about a quarter of the tracking thread's time (``python -m benchmarks pipeline``,
+2026-11-27). Here every patch runs its own loop, compiled by numba (``cache=True``: compiled
+once per installation, then loaded in ~0.1 s).
+
+The arithmetic is the numpy code's, element for element and in the same precision: sample
+coordinates rounded to float32 (as :func:`~trackmeter.core.patch_tracking.bilinear` takes
+them), interpolation weights in float64 on float32 intensities, the sampled values rounded to
+float32, everything after in float64. Only the order of the sums differs (numpy sums pairwise,
+these sequentially), so results agree to ~1e-12 px, not to the bit; ``tests/test_lk_kernels.py``
+holds the numpy reference and checks them against it.
+
+The functions take and return plain arrays; :mod:`~trackmeter.core.patch_tracking` wraps them
+(templates, models, result types) and documents the maths.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+# Warp models of :func:`lk_warp`, as :func:`trackmeter.core.patch_tracking._refine_lk_warp` names them.
+MODEL_AFFINE = 0
+MODEL_SIMILARITY = 1
+MODEL_EUCLIDEAN = 2
+MODEL_DISPARITY_PLANE = 3
+
+_OPTIONS = dict(nogil=True, fastmath=False, error_model="numpy")
+
+
+def _jit(function):  # type: ignore[no-untyped-def]
+    """``numba.njit`` with its on-disk cache where one can be written (beside this file, else
+    the user's cache folder); without one (a read-only install and home), compiled per process."""
+    try:
+        return numba.njit(cache=True, **_OPTIONS)(function)
+    except RuntimeError:  # numba: "cannot cache function ...: no locator available"
+        return numba.njit(**_OPTIONS)(function)
+
+
+@_jit
+def _sample(img, x, y):
+    """Bilinear value of ``img`` (H,W) float32 at (x, y) (Python floats), and whether the point
+    lies inside ``[0, W-1] x [0, H-1]``; outside points are clamped to the border (as
+    :func:`~trackmeter.core.patch_tracking.bilinear`)."""
+    h, w = img.shape
+    xf = np.float32(x)
+    yf = np.float32(y)
+    inside = (xf >= 0) and (xf <= w - 1) and (yf >= 0) and (yf <= h - 1)
+    xmax = np.float32(w - 1.001)
+    ymax = np.float32(h - 1.001)
+    # NaN coordinates (a diverged fit) sample the corner: numpy's clip would pass them through
+    xc = xf if xf > 0 else np.float32(0.0)
+    yc = yf if yf > 0 else np.float32(0.0)
+    if xc > xmax:
+        xc = xmax
+    if yc > ymax:
+        yc = ymax
+    x0 = int(xc)
+    y0 = int(yc)
+    fx = np.float64(xc) - x0
+    fy = np.float64(yc) - y0
+    a = np.float64(img[y0, x0])
+    b = np.float64(img[y0, x0 + 1])
+    c = np.float64(img[y0 + 1, x0])
+    d = np.float64(img[y0 + 1, x0 + 1])
+    # float32 differences, as numpy subtracts the float32 quads before promoting
+    top = a + fx * np.float64(np.float32(b) - np.float32(a))
+    bottom = c + fx * np.float64(np.float32(d) - np.float32(c))
+    return np.float64(np.float32(top + fy * (bottom - top))), inside
+
+
+@_jit
+def _zncc_centred(tm, values):
+    """ZNCC of a zero-mean template ``tm`` (K,) float64 with ``values`` (K,) float64."""
+    k = values.shape[0]
+    mean = 0.0
+    for j in range(k):
+        mean += values[j]
+    mean /= k
+    saa = 0.0
+    sbb = 0.0
+    sab = 0.0
+    for j in range(k):
+        b = values[j] - mean
+        saa += tm[j] * tm[j]
+        sbb += b * b
+        sab += tm[j] * b
+    den = math.sqrt(saa * sbb)
+    return sab / den if den > 1e-9 else 0.0
+
+
+@_jit
+def _centre_and_gain(I, tm, err):
+    """``I`` (K,) minus its mean in place; the closed-form gain ``<I, tm> / <I, I>`` of the
+    zero-mean patch to the zero-mean template (0 on a flat patch) and the residual
+    ``err = gain I - tm`` written into ``err``."""
+    k = I.shape[0]
+    mean = 0.0
+    for j in range(k):
+        mean += I[j]
+    mean /= k
+    cov = 0.0
+    ivar = 0.0
+    for j in range(k):
+        I[j] -= mean
+        cov += I[j] * tm[j]
+        ivar += I[j] * I[j]
+    gain = cov / ivar if ivar > 1e-9 else 0.0
+    for j in range(k):
+        err[j] = I[j] * gain - tm[j]
+    return gain
+
+
+@_jit
+def lk_translation(image, stacked, values, gx, gy, ok, uv0, mask_x, mask_y, max_iterations, tolerance_px, max_shift_px):
+    """Translation LK with closed-form gain and ESM steps, one loop per patch.
+
+    ``image`` (M,H,W) float32: patch ``i`` is sampled in ``image[i]`` when ``stacked``, else in
+    ``image[0]``. ``values, gx, gy`` (N,n,n) float32 templates and their gradients, ``ok`` (N,),
+    ``uv0`` (N,2) start centres. Returns ``(uv (N,2), score (N,), converged (N,), iterations
+    (N,))`` as :func:`trackmeter.core.patch_tracking.refine_lk` documents them.
+    """
+    N, n, _ = values.shape
+    K = n * n
+    big_n = n + 4
+    half_big = (big_n - 1) / 2.0
+    half = (n - 1) / 2.0
+    uv = uv0.copy()
+    score = np.zeros(N)
+    converged = np.zeros(N, np.bool_)
+    iterations = np.zeros(N, np.int32)
+    tm = np.empty(K)
+    tn = np.empty(K)
+    g0 = np.empty(K)
+    g1 = np.empty(K)
+    big = np.empty((big_n, big_n))
+    I = np.empty(K)
+    err = np.empty(K)
+    jx = np.empty(K)
+    jy = np.empty(K)
+    final = np.empty(K)
+    for i in range(N):
+        img = image[i] if stacked else image[0]
+        mean = 0.0
+        for a in range(n):
+            for b in range(n):
+                mean += np.float64(values[i, a, b])
+        mean /= K
+        norm = 0.0
+        for a in range(n):
+            for b in range(n):
+                j = a * n + b
+                tm[j] = np.float64(values[i, a, b]) - mean
+                norm += tm[j] * tm[j]
+                g0[j] = np.float64(gx[i, a, b])
+                g1[j] = np.float64(gy[i, a, b])
+        norm = max(math.sqrt(norm), 1e-9)
+        for j in range(K):
+            tn[j] = tm[j] / norm
+        px = uv0[i, 0]
+        py = uv0[i, 1]
+        if ok[i]:
+            for _ in range(max_iterations):
+                cx = np.float32(px)
+                cy = np.float32(py)
+                inside = True
+                for a in range(big_n):
+                    yy = cy + np.float32(a - half_big)
+                    for b in range(big_n):
+                        v, ins = _sample(img, cx + np.float32(b - half_big), yy)
+                        big[a, b] = v
+                        inside = inside and ins
+                for a in range(n):
+                    for b in range(n):
+                        I[a * n + b] = big[a + 2, b + 2]
+                gain = _centre_and_gain(I, tm, err)
+                # ESM Jacobian, then projected off span{1, T} (variable projection)
+                mx = 0.0
+                my = 0.0
+                for a in range(n):
+                    for b in range(n):
+                        j = a * n + b
+                        ix = (8.0 * (big[a + 2, b + 3] - big[a + 2, b + 1]) - (big[a + 2, b + 4] - big[a + 2, b])) / 12.0
+                        iy = (8.0 * (big[a + 3, b + 2] - big[a + 1, b + 2]) - (big[a + 4, b + 2] - big[a, b + 2])) / 12.0
+                        jx[j] = 0.5 * (g0[j] + gain * ix) * mask_x
+                        jy[j] = 0.5 * (g1[j] + gain * iy) * mask_y
+                        mx += jx[j]
+                        my += jy[j]
+                mx /= K
+                my /= K
+                dx = 0.0
+                dy = 0.0
+                for j in range(K):
+                    jx[j] -= mx
+                    jy[j] -= my
+                    dx += jx[j] * tn[j]
+                    dy += jy[j] * tn[j]
+                hxx = 0.0
+                hyy = 0.0
+                hxy = 0.0
+                bx = 0.0
+                by = 0.0
+                for j in range(K):
+                    jx[j] -= dx * tn[j]
+                    jy[j] -= dy * tn[j]
+                    hxx += jx[j] * jx[j]
+                    hyy += jy[j] * jy[j]
+                    hxy += jx[j] * jy[j]
+                    bx += jx[j] * err[j]
+                    by += jy[j] * err[j]
+                det = hxx * hyy - hxy * hxy
+                if mask_y == 0.0:
+                    stepx = bx / hxx if hxx > 1e-9 else 0.0
+                    stepy = 0.0
+                elif det > 1e-12:
+                    stepx = (hyy * bx - hxy * by) / det
+                    stepy = (hxx * by - hxy * bx) / det
+                else:
+                    stepx = 0.0
+                    stepy = 0.0
+                px -= stepx
+                py -= stepy
+                iterations[i] += 1
+                step = max(abs(stepx), abs(stepy))
+                bad = (not inside) or max(abs(px - uv0[i, 0]), abs(py - uv0[i, 1])) > max_shift_px or gain <= 0
+                done = step < tolerance_px
+                if done or bad:
+                    converged[i] = done and not bad
+                    break
+        uv[i, 0] = px
+        uv[i, 1] = py
+        cx = np.float32(px)
+        cy = np.float32(py)
+        inside = True
+        for a in range(n):
+            yy = cy + np.float32(a - half)
+            for b in range(n):
+                v, ins = _sample(img, cx + np.float32(b - half), yy)
+                final[a * n + b] = v
+                inside = inside and ins
+        score[i] = _zncc_centred(tm, final)
+        converged[i] = converged[i] and inside and ok[i]
+    return uv, score, converged, iterations
+
+
+@_jit
+def _sample_warped(img, W, ox, oy, out):
+    """``out`` (K,) = ``img`` sampled at ``W[:2] @ (ox, oy, 1)`` (float64 coordinates rounded
+    to float32 by :func:`_sample`); whether all samples lie inside."""
+    inside = True
+    for j in range(ox.shape[0]):
+        x = W[0, 0] * ox[j] + W[0, 1] * oy[j] + W[0, 2]
+        y = W[1, 0] * ox[j] + W[1, 1] * oy[j] + W[1, 2]
+        v, ins = _sample(img, x, y)
+        out[j] = v
+        inside = inside and ins
+    return inside
+
+
+@_jit
+def lk_warp(image, stacked, tm, sd, hinv, ok, warp0, ox, oy, model, max_iterations, tolerance_px, max_shift_px):
+    """The inverse-compositional warp fits' iterations, one loop per patch.
+
+    ``tm`` (N,K) zero-mean templates, ``sd`` (N,K,P) their steepest-descent images projected
+    off span{1, T}, ``hinv`` (N,P,P) the inverse (damped) Gauss-Newton Hessians, ``ok`` (N,),
+    ``warp0`` (N,2,3) start warps, ``ox, oy`` (K,) the template's sample offsets from its centre,
+    ``model`` one of the ``MODEL_*`` constants. Returns ``(warp (N,2,3), score (N,), converged
+    (N,))`` as :func:`trackmeter.core.patch_tracking._refine_lk_warp` documents them.
+    """
+    N, K, P = sd.shape
+    n = int(round(math.sqrt(K)))
+    r = (n - 1) / 2.0
+    warp = np.empty((N, 2, 3))
+    score = np.zeros(N)
+    converged = np.zeros(N, np.bool_)
+    I = np.empty(K)
+    err = np.empty(K)
+    g = np.empty(P)
+    dp = np.empty(P)
+    W = np.empty((3, 3))
+    for i in range(N):
+        img = image[i] if stacked else image[0]
+        for a in range(2):
+            for b in range(3):
+                W[a, b] = warp0[i, a, b]
+        W[2, 0] = 0.0
+        W[2, 1] = 0.0
+        W[2, 2] = 1.0
+        sx = W[0, 2]
+        sy = W[1, 2]
+        if ok[i]:
+            for _ in range(max_iterations):
+                inside = _sample_warped(img, W, ox, oy, I)
+                gain = _centre_and_gain(I, tm[i], err)
+                for p in range(P):
+                    acc = 0.0
+                    for j in range(K):
+                        acc += sd[i, j, p] * err[j]
+                    g[p] = acc
+                for p in range(P):
+                    acc = 0.0
+                    for q in range(P):
+                        acc += hinv[i, p, q] * g[q]
+                    dp[p] = acc
+                # The increment D (in the model's group) as its linear part and translation.
+                if model == MODEL_AFFINE:
+                    d00, d10, d01, d11 = 1.0 + dp[0], dp[1], dp[2], 1.0 + dp[3]
+                    lin_step = max(max(abs(dp[0]), abs(dp[1])), max(abs(dp[2]), abs(dp[3])))
+                elif model == MODEL_SIMILARITY:
+                    d00 = d11 = 1.0 + dp[0]
+                    d10 = dp[1]
+                    d01 = -dp[1]
+                    lin_step = math.hypot(dp[0], dp[1])
+                elif model == MODEL_DISPARITY_PLANE:  # x' = (1+p1) x + p2 y
+                    d00, d01, d10, d11 = 1.0 + dp[0], dp[1], 0.0, 1.0
+                    lin_step = max(abs(dp[0]), abs(dp[1]))
+                else:  # a rotation by dp0 (exact, so the scale of warp0 is kept)
+                    c = math.cos(dp[0])
+                    s = math.sin(dp[0])
+                    d00, d01, d10, d11 = c, -s, s, c
+                    lin_step = abs(dp[0])
+                tx = dp[P - 2]
+                ty = dp[P - 1]
+                # W <- W D^-1, D^-1 = [[A^-1, -A^-1 t], [0, 1]]
+                ddet = d00 * d11 - d01 * d10
+                e00 = d11 / ddet
+                e01 = -d01 / ddet
+                e10 = -d10 / ddet
+                e11 = d00 / ddet
+                et0 = -(e00 * tx + e01 * ty)
+                et1 = -(e10 * tx + e11 * ty)
+                for a in range(2):
+                    w0 = W[a, 0]
+                    w1 = W[a, 1]
+                    W[a, 0] = w0 * e00 + w1 * e10
+                    W[a, 1] = w0 * e01 + w1 * e11
+                    W[a, 2] = w0 * et0 + w1 * et1 + W[a, 2]
+                step = max(abs(tx), abs(ty)) + r * lin_step
+                det = W[0, 0] * W[1, 1] - W[0, 1] * W[1, 0]
+                moved = max(abs(W[0, 2] - sx), abs(W[1, 2] - sy))
+                finite = math.isfinite(W[0, 0]) and math.isfinite(W[0, 1]) and math.isfinite(W[1, 0]) and math.isfinite(W[1, 1])
+                bad = (not inside) or moved > max_shift_px or not (det >= 0.5 and det <= 2.0) or gain <= 0 or not finite
+                done = step < tolerance_px
+                if done or bad:
+                    converged[i] = done and not bad
+                    break
+        for a in range(2):
+            for b in range(3):
+                warp[i, a, b] = W[a, b]
+        inside = _sample_warped(img, W, ox, oy, I)
+        score[i] = _zncc_centred(tm[i], I)
+        converged[i] = converged[i] and inside and ok[i]
+    return warp, score, converged
