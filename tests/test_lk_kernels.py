@@ -113,3 +113,21 @@ def test_compiles_without_a_writable_cache(monkeypatch: pytest.MonkeyPatch) -> N
         return 2.0 * x
 
     assert lk_kernels._jit(double)(1.5) == 3.0
+
+
+def test_warm_up_compiles_what_a_tracker_runs(estec_rig) -> None:  # type: ignore[no-untyped-def]
+    """After warm_up a tracker step compiles nothing more: a live pipeline calls it before the
+    source starts, so no frame waits for a compile (or a cache load)."""
+    from tests.test_tracking import add_all, interior_points, make_tracker
+    from trackmeter.core import lk_kernels
+    from trackmeter.sources.plane import PlaneScene, pose_translating
+
+    pt.warm_up()
+    compiled = {k: list(getattr(lk_kernels, k).signatures) for k in ("lk_translation", "lk_warp")}
+    scene = PlaneScene(estec_rig, pose_translating(3.5, (0.1, 0.05, 0.0), (0.0, 0.0, 0.2)), noise_sigma=1.0)
+    tracker = make_tracker(estec_rig)
+    f0 = scene.frame(0)
+    assert len(add_all(tracker, f0, interior_points(f0, 6))) >= 4
+    for k in range(1, 4):
+        tracker.step(scene.frame(k))
+    assert {k: list(getattr(lk_kernels, k).signatures) for k in compiled} == compiled

@@ -48,6 +48,7 @@ from typing import Any, Callable, Iterable, Iterator, Protocol, Sequence
 
 import numpy as np
 
+from trackmeter.core.patch_tracking import warm_up
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.targets import TargetState
 from trackmeter.errors import TrackmeterError
@@ -362,6 +363,7 @@ class Pipeline:
         if self._started:
             raise RuntimeError("pipeline already started")
         self._started = True
+        warm_up()  # before the source runs: its first frames are not dropped for a compile
         if self._initial_record_dir is not None:
             self._start_recording(self._initial_record_dir)
         self._trk_thread.start()
