@@ -131,3 +131,15 @@ def test_warm_up_compiles_what_a_tracker_runs(estec_rig) -> None:  # type: ignor
     for k in range(1, 4):
         tracker.step(scene.frame(k))
     assert {k: list(getattr(lk_kernels, k).signatures) for k in compiled} == compiled
+
+
+def test_no_patches_and_a_diverged_start() -> None:
+    """Zero patches give empty results (the warp fits reshaped them by -1 and raised); a NaN
+    start does not converge, where numpy's clamp passed the NaN to an index."""
+    img = texture(seed=7)
+    none = pt.make_templates(img, np.zeros((0, 2)), 8)
+    assert pt.refine_lk(img, none, np.zeros((0, 2))).uv.shape == (0, 2)
+    assert pt.refine_lk_similarity(img, none, np.zeros((0, 2, 3))).warp.shape == (0, 2, 3)
+    one = pt.make_templates(img, np.array([[60.0, 60.0]]), 8)
+    assert not pt.refine_lk(img, one, np.array([[np.nan, 60.0]])).converged[0]
+    assert not pt.refine_lk_similarity(img, one, np.array([[[np.nan, 0.0, 60.0], [0.0, 1.0, 60.0]]])).converged[0]

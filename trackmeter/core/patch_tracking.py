@@ -775,9 +775,9 @@ def _refine_lk_warp(
     N = len(templates.values)
     W0 = np.ascontiguousarray(np.asarray(warp0, dtype=np.float64).reshape(N, 2, 3))
     _, _, _, ox, oy = _patch_grid(n)
-    gx = templates.gx.reshape(N, -1).astype(np.float64)
-    gy = templates.gy.reshape(N, -1).astype(np.float64)
-    T = templates.values.reshape(N, -1).astype(np.float64)
+    gx = templates.gx.reshape(N, n * n).astype(np.float64)
+    gy = templates.gy.reshape(N, n * n).astype(np.float64)
+    T = templates.values.reshape(N, n * n).astype(np.float64)
     Tm = T - _row_mean(T)
     Tn = Tm / np.maximum(np.linalg.norm(Tm, axis=1, keepdims=True), 1e-9)
     if model == "affine":
