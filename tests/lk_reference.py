@@ -1,7 +1,8 @@
 """The numpy implementations of the Lucas-Kanade fits that
 :mod:`trackmeter.core.lk_kernels` compiles: vectorised over the patches, readable, and the
 reference ``tests/test_lk_kernels.py`` checks the compiled loops against. Kept as they were in
-:mod:`trackmeter.core.patch_tracking` before the loops were compiled (2026-11-27)."""
+:mod:`trackmeter.core.patch_tracking` before the loops were compiled (2026-11-27), but for the
+warp fits' precomputation, which both share (:func:`~trackmeter.core.patch_tracking.warp_steepest_descent`)."""
 
 from __future__ import annotations
 
@@ -14,12 +15,11 @@ from trackmeter.core.patch_tracking import (
     F32,
     LKResult,
     Templates,
-    _patch_grid,
-    _project_out,
     _row_mean,
     _zncc_centred,
     sample_patches,
     sample_warped,
+    warp_steepest_descent,
 )
 
 
@@ -36,6 +36,18 @@ def _retire(converged: NDArray[np.bool_], active: NDArray[np.bool_], idx: NDArra
     return idx[~stop]
 
 
+def _gain_and_residual(I: NDArray, Tm: NDArray) -> tuple[NDArray, NDArray]:
+    """Closed-form gain (k,) of the patches ``I`` (k,K) to the zero-mean templates ``Tm``
+    (the least-squares fit of ``gain (I - mean I)``; the bias drops out with the means) and
+    the residuals ``gain (I - mean I) - Tm`` (k,K)."""
+    Im = I - _row_mean(I)
+    cov = (Im * Tm).sum(1)
+    ivar = (Im * Im).sum(1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        gain = np.where(ivar > 1e-9, cov / ivar, 0.0)
+    return gain, Im * gain[:, None] - Tm
+
+
 def refine_lk_reference(
     image: F32,
     templates: Templates,
@@ -47,24 +59,8 @@ def refine_lk_reference(
     max_shift_px: float = 3.0,
     axis_mask: tuple[float, float] = (1.0, 1.0),
 ) -> LKResult:
-    """Lucas-Kanade on translation with closed-form gain and bias, ESM steps.
-
-    Minimises ``sum_x [ a (I(x + p) - mean I) - (T(x) - mean T) ]²`` over the translation
-    ``p``: at each iteration the patch ``I(x + p)`` is sampled (bilinear, exact weights), the
-    gain ``a`` is its least-squares fit to ``T`` (the bias drops out with the means), and the
-    Gauss-Newton step uses the ESM Jacobian ``J = (grad T + a grad I(x + p)) / 2``
-    (Benhimane & Malis, IROS 2004; Baker & Matthews 2004 for the IC family):
-    ``p <- p - (J^T J)^-1 J^T (I' - T)``.
-
-    Args:
-        image: float32 image (H,W) the patches are sampled from, or a stack (N,H,W) of one
-            small image per patch (e.g. rectified strips).
-        templates: N templates.
-        uv0: (N,2) start centres, px.
-        coord_map: optional sampling map (see :func:`sample_points`).
-        max_shift_px: a patch that moves farther than this from ``uv0`` did not converge.
-        axis_mask: (1, 0) to move along u only (e.g. along a rectified epipolar line).
-    """
+    """``patch_tracking.refine_lk`` in numpy (see its docstring); ``coord_map`` as
+    :func:`~trackmeter.core.patch_tracking.sample_points`'s."""
     n = templates.size
     p = np.asarray(uv0, dtype=np.float64).reshape(-1, 2).copy()
     p0 = p.copy()
@@ -90,15 +86,8 @@ def refine_lk_reference(
         big, inside = sample_patches(image if image.ndim == 2 else image[rows], p[rows], n + 4, coord_map)
         big = big.astype(np.float64)
         I = big[:, 2:-2, 2:-2].reshape(len(idx), -1)
-        Im = I - _row_mean(I)
         Tmi = Tm[rows]
-        # Closed-form gain: I' = gain (I - mean I) is the least-squares fit of the patch to the
-        # zero-mean template; the bias drops out with the means.
-        cov = (Im * Tmi).sum(1)
-        ivar = (Im * Im).sum(1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            gain = np.where(ivar > 1e-9, cov / ivar, 0.0)
-        err = Im * gain[:, None] - Tmi
+        gain, err = _gain_and_residual(I, Tmi)
         # ESM (Benhimane & Malis 2004): the mean of the template's and the warped image's
         # gradients gives second-order convergence (plain IC converges slowly on fine texture).
         ix = (8.0 * (big[:, 2:-2, 3:-1] - big[:, 2:-2, 1:-3]) - (big[:, 2:-2, 4:] - big[:, 2:-2, :-4])) / 12.0
@@ -149,42 +138,14 @@ def refine_lk_warp_reference(
     max_shift_px: float,
     hold_linear: NDArray[np.bool_] | None = None,
 ) -> AffineLKResult:
-    """Shared IC-LK loop of the warp fits: ``model`` "affine", "similarity", "euclidean" or
-    "disparity_plane" (:func:`fit_disparity_plane`).
-    Every increment ``D`` lies in the model's group, so ``W o D^-1`` stays in it.
-
-    ``hold_linear`` (N,): rows whose linear parameters are held at ``warp0``'s (their
-    steepest-descent images are zeroed, so their steps are 0 exactly): a translation fit of
-    those rows within the same batched call."""
+    """``patch_tracking._refine_lk_warp``'s iterations in numpy (see its docstring)."""
     n = templates.size
     N = len(templates.values)
     W = np.zeros((N, 3, 3))
     W[:, :2, :] = np.asarray(warp0, dtype=np.float64).reshape(N, 2, 3)
     W[:, 2, 2] = 1.0
     start = W[:, :2, 2].copy()
-    _, _, _, ox, oy = _patch_grid(n)
-    gx = templates.gx.reshape(N, -1).astype(np.float64)
-    gy = templates.gy.reshape(N, -1).astype(np.float64)
-    T = templates.values.reshape(N, -1).astype(np.float64)
-    Tm = T - _row_mean(T)
-    Tn = Tm / np.maximum(np.linalg.norm(Tm, axis=1, keepdims=True), 1e-9)
-    if model == "affine":
-        SD = np.stack([ox * gx, ox * gy, oy * gx, oy * gy, gx, gy], axis=-1)  # (N, n², 6)
-    elif model == "similarity":
-        SD = np.stack([ox * gx + oy * gy, ox * gy - oy * gx, gx, gy], axis=-1)  # (N, n², 4)
-    elif model == "euclidean":
-        SD = np.stack([ox * gy - oy * gx, gx, gy], axis=-1)  # (N, n², 3)
-    elif model == "disparity_plane":
-        SD = np.stack([ox * gx, oy * gx, gx, gy], axis=-1)  # (N, n², 4)
-    else:
-        raise ValueError(f"unknown warp model {model!r}")
-    P = SD.shape[-1]
-    if hold_linear is not None and P > 2:
-        SD[np.asarray(hold_linear, dtype=bool), :, : P - 2] = 0.0
-    SD = _project_out(SD, Tn)  # gain and bias solved in closed form (variable projection)
-    H = np.einsum("nki,nkj->nij", SD, SD)
-    damp = 1e-6 * np.trace(H, axis1=1, axis2=2)[:, None, None] * np.eye(P)
-    Hinv = np.linalg.inv(H + damp)
+    Tm, SD, Hinv = warp_steepest_descent(templates, model, hold_linear)
     active = templates.ok.copy()
     converged = np.zeros(N, bool)
     r = (n - 1) / 2.0
@@ -199,13 +160,7 @@ def refine_lk_warp_reference(
         Wi = W[rows]
         patches, inside = sample_warped(image if image.ndim == 2 else image[rows], Wi[:, :2, :], n)
         I = patches.reshape(len(idx), -1).astype(np.float64)
-        Im = I - _row_mean(I)
-        Tmi = Tm[rows]
-        cov = (Im * Tmi).sum(1)
-        ivar = (Im * Im).sum(1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            gain = np.where(ivar > 1e-9, cov / ivar, 0.0)
-        err = Im * gain[:, None] - Tmi
+        gain, err = _gain_and_residual(I, Tm[rows])
         dp = np.einsum("nij,nj->ni", Hinv[rows], np.einsum("nki,nk->ni", SD[rows], err))
         D = np.zeros((len(idx), 3, 3))
         D[:, 2, 2] = 1.0

@@ -76,23 +76,50 @@ def _sample(img, x, y):
 
 
 @_jit
-def _zncc_centred(tm, values):
-    """ZNCC of a zero-mean template ``tm`` (K,) float64 with ``values`` (K,) float64."""
+def _sample_square(img, px, py, out):
+    """``out`` (s,s) = the square patch of ``img`` centred at (px, py), sampled as
+    :func:`~trackmeter.core.patch_tracking.sample_patches` does (the centre rounded to float32,
+    plus the float32 offsets ``k - (s-1)/2``); whether all samples lie inside."""
+    side = out.shape[0]
+    half = (side - 1) / 2.0
+    cx = np.float32(px)
+    cy = np.float32(py)
+    inside = True
+    for a in range(side):
+        y = cy + np.float32(a - half)
+        for b in range(side):
+            v, ins = _sample(img, cx + np.float32(b - half), y)
+            out[a, b] = v
+            inside = inside and ins
+    return inside
+
+
+@_jit
+def _centred_products(tm, values):
+    """``values`` (K,) minus its mean, in place; then ``(<tm, tm>, <v, v>, <tm, v>)`` with the
+    zero-mean template ``tm`` (K,)."""
     k = values.shape[0]
     mean = 0.0
     for j in range(k):
         mean += values[j]
     mean /= k
-    saa = 0.0
-    sbb = 0.0
-    sab = 0.0
+    tt = 0.0
+    vv = 0.0
+    tv = 0.0
     for j in range(k):
-        b = values[j] - mean
-        saa += tm[j] * tm[j]
-        sbb += b * b
-        sab += tm[j] * b
-    den = math.sqrt(saa * sbb)
-    return sab / den if den > 1e-9 else 0.0
+        values[j] -= mean
+        tt += tm[j] * tm[j]
+        vv += values[j] * values[j]
+        tv += tm[j] * values[j]
+    return tt, vv, tv
+
+
+@_jit
+def _zncc_centred(tm, values):
+    """ZNCC of a zero-mean template ``tm`` (K,) with ``values`` (K,) (centred in place)."""
+    tt, vv, tv = _centred_products(tm, values)
+    den = math.sqrt(tt * vv)
+    return tv / den if den > 1e-9 else 0.0
 
 
 @_jit
@@ -100,19 +127,9 @@ def _centre_and_gain(I, tm, err):
     """``I`` (K,) minus its mean in place; the closed-form gain ``<I, tm> / <I, I>`` of the
     zero-mean patch to the zero-mean template (0 on a flat patch) and the residual
     ``err = gain I - tm`` written into ``err``."""
-    k = I.shape[0]
-    mean = 0.0
-    for j in range(k):
-        mean += I[j]
-    mean /= k
-    cov = 0.0
-    ivar = 0.0
-    for j in range(k):
-        I[j] -= mean
-        cov += I[j] * tm[j]
-        ivar += I[j] * I[j]
+    _, ivar, cov = _centred_products(tm, I)
     gain = cov / ivar if ivar > 1e-9 else 0.0
-    for j in range(k):
+    for j in range(I.shape[0]):
         err[j] = I[j] * gain - tm[j]
     return gain
 
@@ -129,8 +146,6 @@ def lk_translation(image, stacked, values, gx, gy, ok, uv0, mask_x, mask_y, max_
     N, n, _ = values.shape
     K = n * n
     big_n = n + 4
-    half_big = (big_n - 1) / 2.0
-    half = (n - 1) / 2.0
     uv = uv0.copy()
     score = np.zeros(N)
     converged = np.zeros(N, np.bool_)
@@ -144,7 +159,7 @@ def lk_translation(image, stacked, values, gx, gy, ok, uv0, mask_x, mask_y, max_
     err = np.empty(K)
     jx = np.empty(K)
     jy = np.empty(K)
-    final = np.empty(K)
+    final = np.empty((n, n))
     for i in range(N):
         img = image[i] if stacked else image[0]
         mean = 0.0
@@ -167,15 +182,7 @@ def lk_translation(image, stacked, values, gx, gy, ok, uv0, mask_x, mask_y, max_
         py = uv0[i, 1]
         if ok[i]:
             for _ in range(max_iterations):
-                cx = np.float32(px)
-                cy = np.float32(py)
-                inside = True
-                for a in range(big_n):
-                    yy = cy + np.float32(a - half_big)
-                    for b in range(big_n):
-                        v, ins = _sample(img, cx + np.float32(b - half_big), yy)
-                        big[a, b] = v
-                        inside = inside and ins
+                inside = _sample_square(img, px, py, big)
                 for a in range(n):
                     for b in range(n):
                         I[a * n + b] = big[a + 2, b + 2]
@@ -235,16 +242,8 @@ def lk_translation(image, stacked, values, gx, gy, ok, uv0, mask_x, mask_y, max_
                     break
         uv[i, 0] = px
         uv[i, 1] = py
-        cx = np.float32(px)
-        cy = np.float32(py)
-        inside = True
-        for a in range(n):
-            yy = cy + np.float32(a - half)
-            for b in range(n):
-                v, ins = _sample(img, cx + np.float32(b - half), yy)
-                final[a * n + b] = v
-                inside = inside and ins
-        score[i] = _zncc_centred(tm, final)
+        inside = _sample_square(img, px, py, final)
+        score[i] = _zncc_centred(tm, final.reshape(K))
         converged[i] = converged[i] and inside and ok[i]
     return uv, score, converged, iterations
 

@@ -753,27 +753,17 @@ def refine_lk_euclidean(
     return _refine_lk_warp(image, templates, warp0, "euclidean", max_iterations, tolerance_px, max_shift_px)
 
 
-def _refine_lk_warp(
-    image: F32,
-    templates: Templates,
-    warp0: NDArray,
-    model: str,
-    max_iterations: int,
-    tolerance_px: float,
-    max_shift_px: float,
-    hold_linear: NDArray[np.bool_] | None = None,
-) -> AffineLKResult:
-    """Shared IC-LK loop of the warp fits: ``model`` "affine", "similarity", "euclidean" or
-    "disparity_plane" (:func:`fit_disparity_plane`).
-    Every increment ``D`` lies in the model's group, so ``W o D^-1`` stays in it.
-
-    ``hold_linear`` (N,): rows whose linear parameters are held at ``warp0``'s (their
-    steepest-descent images are zeroed, so their steps are 0 exactly): a translation fit of
-    those rows within the same batched call. The steepest-descent images and the Hessians are
-    computed here, the iterations in :func:`trackmeter.core.lk_kernels.lk_warp`."""
+def warp_steepest_descent(
+    templates: Templates, model: str, hold_linear: NDArray[np.bool_] | None = None
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """What the inverse-compositional warp fits precompute from N templates (side n, K = n²):
+    the zero-mean templates ``Tm`` (N,K); the steepest-descent images ``grad T * dW/dp``
+    (N,K,P) of ``model`` (Baker & Matthews 2004, section 3.2), with ``hold_linear`` rows'
+    linear columns zeroed and every column projected off span{1, T} (the gain and bias are
+    solved in closed form: variable projection); and the inverse Gauss-Newton Hessians
+    (N,P,P), damped by 1e-6 of their trace so a textureless direction gives a zero step."""
     n = templates.size
     N = len(templates.values)
-    W0 = np.ascontiguousarray(np.asarray(warp0, dtype=np.float64).reshape(N, 2, 3))
     _, _, _, ox, oy = _patch_grid(n)
     gx = templates.gx.reshape(N, n * n).astype(np.float64)
     gy = templates.gy.reshape(N, n * n).astype(np.float64)
@@ -793,10 +783,35 @@ def _refine_lk_warp(
     P = SD.shape[-1]
     if hold_linear is not None and P > 2:
         SD[np.asarray(hold_linear, dtype=bool), :, : P - 2] = 0.0
-    SD = _project_out(SD, Tn)  # gain and bias solved in closed form (variable projection)
+    SD = _project_out(SD, Tn)
     H = np.einsum("nki,nkj->nij", SD, SD)
     damp = 1e-6 * np.trace(H, axis1=1, axis2=2)[:, None, None] * np.eye(P)
-    Hinv = np.linalg.inv(H + damp)
+    return Tm, SD, np.linalg.inv(H + damp)
+
+
+def _refine_lk_warp(
+    image: F32,
+    templates: Templates,
+    warp0: NDArray,
+    model: str,
+    max_iterations: int,
+    tolerance_px: float,
+    max_shift_px: float,
+    hold_linear: NDArray[np.bool_] | None = None,
+) -> AffineLKResult:
+    """Shared IC-LK loop of the warp fits: ``model`` "affine", "similarity", "euclidean" or
+    "disparity_plane" (:func:`fit_disparity_plane`).
+    Every increment ``D`` lies in the model's group, so ``W o D^-1`` stays in it.
+
+    ``hold_linear`` (N,): rows whose linear parameters are held at ``warp0``'s (their
+    steepest-descent images are zeroed, so their steps are 0 exactly): a translation fit of
+    those rows within the same batched call. The steepest-descent images and the Hessians come
+    from :func:`warp_steepest_descent`, the iterations from :func:`trackmeter.core.lk_kernels.lk_warp`."""
+    n = templates.size
+    N = len(templates.values)
+    W0 = np.ascontiguousarray(np.asarray(warp0, dtype=np.float64).reshape(N, 2, 3))
+    _, _, _, ox, oy = _patch_grid(n)
+    Tm, SD, Hinv = warp_steepest_descent(templates, model, hold_linear)
     warp, score, converged = lk_kernels.lk_warp(
         _image_stack(image), image.ndim == 3, np.ascontiguousarray(Tm), np.ascontiguousarray(SD), np.ascontiguousarray(Hinv),
         np.asarray(templates.ok, dtype=bool), W0, ox, oy, _LK_MODELS[model],
