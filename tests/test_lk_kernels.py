@@ -119,9 +119,13 @@ def test_warm_up_compiles_what_a_tracker_runs(estec_rig) -> None:  # type: ignor
     """After warm_up a tracker step compiles nothing more: a live pipeline calls it before the
     source starts, so no frame waits for a compile (or a cache load)."""
     from tests.test_tracking import add_all, interior_points, make_tracker
+    import numba
+
     from trackmeter.core import lk_kernels
     from trackmeter.sources.plane import PlaneScene, pose_translating
 
+    if numba.config.DISABLE_JIT:
+        pytest.skip("NUMBA_DISABLE_JIT=1: the loops run as Python, nothing is compiled")
     pt.warm_up()
     compiled = {k: list(getattr(lk_kernels, k).signatures) for k in ("lk_translation", "lk_warp")}
     scene = PlaneScene(estec_rig, pose_translating(3.5, (0.1, 0.05, 0.0), (0.0, 0.0, 0.2)), noise_sigma=1.0)
