@@ -5,14 +5,15 @@ each. Batched over the patches in numpy, each iteration is some forty numpy call
 a few hundred numbers, so what the fits cost was numpy's per-call overhead, not arithmetic:
 about a quarter of the tracking thread's time (``python -m benchmarks pipeline``,
 2026-11-27). Here every patch runs its own loop, compiled by numba (``cache=True``: compiled
-once per installation, then loaded in ~0.1 s).
+once per installation, about 3.5 s, then loaded from the cache in about 0.3 s;
+:func:`~trackmeter.core.patch_tracking.warm_up` does either before a live pipeline starts).
 
 The arithmetic is the numpy code's, element for element and in the same precision: sample
 coordinates rounded to float32 (as :func:`~trackmeter.core.patch_tracking.bilinear` takes
 them), interpolation weights in float64 on float32 intensities, the sampled values rounded to
 float32, everything after in float64. Only the order of the sums differs (numpy sums pairwise,
-these sequentially), so results agree to ~1e-12 px, not to the bit; ``tests/test_lk_kernels.py``
-holds the numpy reference and checks them against it.
+these sequentially), so the results agree to 1e-9 px, not to the bit: ``tests/test_lk_kernels.py``
+checks them against the numpy code, kept in ``tests/lk_reference.py``.
 
 The functions take and return plain arrays; :mod:`~trackmeter.core.patch_tracking` wraps them
 (templates, models, result types) and documents the maths.
@@ -21,9 +22,15 @@ The functions take and return plain arrays; :mod:`~trackmeter.core.patch_trackin
 from __future__ import annotations
 
 import math
+from typing import Any, Callable
 
 import numba
 import numpy as np
+from numpy.typing import NDArray
+
+F32 = NDArray[np.float32]
+F64 = NDArray[np.float64]
+Bools = NDArray[np.bool_]
 
 # Warp models of :func:`lk_warp`, as :func:`trackmeter.core.patch_tracking._refine_lk_warp` names them.
 MODEL_AFFINE = 0
@@ -34,7 +41,7 @@ MODEL_DISPARITY_PLANE = 3
 _OPTIONS = dict(nogil=True, fastmath=False, error_model="numpy")
 
 
-def _jit(function):  # type: ignore[no-untyped-def]
+def _jit(function: Callable[..., Any]) -> Any:
     """``numba.njit`` with its on-disk cache where one can be written (beside this file, else
     the user's cache folder); without one (a read-only install and home), compiled per process."""
     try:
@@ -44,7 +51,7 @@ def _jit(function):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def _sample(img, x, y):
+def _sample(img: F32, x: float, y: float) -> tuple[float, bool]:
     """Bilinear value of ``img`` (H,W) float32 at (x, y) (Python floats), and whether the point
     lies inside ``[0, W-1] x [0, H-1]``; outside points are clamped to the border (as
     :func:`~trackmeter.core.patch_tracking.bilinear`)."""
@@ -76,7 +83,7 @@ def _sample(img, x, y):
 
 
 @_jit
-def _sample_square(img, px, py, out):
+def _sample_square(img: F32, px: float, py: float, out: F64) -> bool:
     """``out`` (s,s) = the square patch of ``img`` centred at (px, py), sampled as
     :func:`~trackmeter.core.patch_tracking.sample_patches` does (the centre rounded to float32,
     plus the float32 offsets ``k - (s-1)/2``); whether all samples lie inside."""
@@ -95,7 +102,7 @@ def _sample_square(img, px, py, out):
 
 
 @_jit
-def _centred_products(tm, values):
+def _centred_products(tm: F64, values: F64) -> tuple[float, float, float]:
     """``values`` (K,) minus its mean, in place; then ``(<tm, tm>, <v, v>, <tm, v>)`` with the
     zero-mean template ``tm`` (K,)."""
     k = values.shape[0]
@@ -115,7 +122,7 @@ def _centred_products(tm, values):
 
 
 @_jit
-def _zncc_centred(tm, values):
+def _zncc_centred(tm: F64, values: F64) -> float:
     """ZNCC of a zero-mean template ``tm`` (K,) with ``values`` (K,) (centred in place)."""
     tt, vv, tv = _centred_products(tm, values)
     den = math.sqrt(tt * vv)
@@ -123,7 +130,7 @@ def _zncc_centred(tm, values):
 
 
 @_jit
-def _centre_and_gain(I, tm, err):
+def _centre_and_gain(I: F64, tm: F64, err: F64) -> float:
     """``I`` (K,) minus its mean in place; the closed-form gain ``<I, tm> / <I, I>`` of the
     zero-mean patch to the zero-mean template (0 on a flat patch) and the residual
     ``err = gain I - tm`` written into ``err``."""
@@ -135,7 +142,10 @@ def _centre_and_gain(I, tm, err):
 
 
 @_jit
-def lk_translation(image, stacked, values, gx, gy, ok, uv0, mask_x, mask_y, max_iterations, tolerance_px, max_shift_px):
+def lk_translation(
+    image: F32, stacked: bool, values: F32, gx: F32, gy: F32, ok: Bools, uv0: F64, mask_x: float, mask_y: float,
+    max_iterations: int, tolerance_px: float, max_shift_px: float,
+) -> tuple[F64, F64, Bools, NDArray[np.int32]]:
     """Translation LK with closed-form gain and ESM steps, one loop per patch.
 
     ``image`` (M,H,W) float32: patch ``i`` is sampled in ``image[i]`` when ``stacked``, else in
@@ -249,7 +259,7 @@ def lk_translation(image, stacked, values, gx, gy, ok, uv0, mask_x, mask_y, max_
 
 
 @_jit
-def _sample_warped(img, W, ox, oy, out):
+def _sample_warped(img: F32, W: F64, ox: F64, oy: F64, out: F64) -> bool:
     """``out`` (K,) = ``img`` sampled at ``W[:2] @ (ox, oy, 1)`` (float64 coordinates rounded
     to float32 by :func:`_sample`); whether all samples lie inside."""
     inside = True
@@ -263,7 +273,10 @@ def _sample_warped(img, W, ox, oy, out):
 
 
 @_jit
-def lk_warp(image, stacked, tm, sd, hinv, ok, warp0, ox, oy, model, max_iterations, tolerance_px, max_shift_px):
+def lk_warp(
+    image: F32, stacked: bool, tm: F64, sd: F64, hinv: F64, ok: Bools, warp0: F64, ox: F64, oy: F64, model: int,
+    max_iterations: int, tolerance_px: float, max_shift_px: float,
+) -> tuple[F64, F64, Bools]:
     """The inverse-compositional warp fits' iterations, one loop per patch.
 
     ``tm`` (N,K) zero-mean templates, ``sd`` (N,K,P) their steepest-descent images projected
