@@ -37,9 +37,10 @@ def assert_same_lk(got: pt.LKResult, ref: pt.LKResult) -> None:
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize("axis_mask", [(1.0, 1.0), (1.0, 0.0)])
-def test_translation_matches_numpy_reference(seed: int, axis_mask) -> None:
+@pytest.mark.parametrize("dtype", [np.float32, np.uint8])
+def test_translation_matches_numpy_reference(seed: int, axis_mask, dtype) -> None:
     I0 = texture(seed=seed)
-    I1 = moved(I0, 0.37 + seed * 0.4, -0.61, gain=1.3, bias=-20.0)
+    I1 = np.clip(moved(I0, 0.37 + seed * 0.4, -0.61, gain=1.3, bias=-20.0), 0, 255).astype(dtype)  # uint8: a camera frame
     pts = starts(24, I0.shape, seed)
     pts[0] = [3.0, 50.0]  # the template half outside: not ok, never iterates
     pts[1] = [9.0, 60.0]  # the search walks off the image
@@ -68,6 +69,7 @@ def test_warp_fits_match_numpy_reference(model: str) -> None:
     x = (np.cos(a) * (cols - c[0]) + np.sin(a) * (rows - c[1])) / s + c[0]
     y = (-np.sin(a) * (cols - c[0]) + np.cos(a) * (rows - c[1])) / s + c[1]
     I1 = (1.2 * ndimage.map_coordinates(I0, [y, x], order=3, mode="nearest") + 5).astype(np.float32)
+    I1 = np.clip(I1, 0, 255).astype(np.uint8) if model == "similarity" else I1  # the anchors' fit runs on camera frames
     pts = starts(20, I0.shape, 5)
     pts[0] = [2.0, 40.0]
     T = pt.make_templates(I0, pts, 8)

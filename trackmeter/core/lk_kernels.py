@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
 Bools = NDArray[np.bool_]
+Image = NDArray[np.float32] | NDArray[np.uint8]  # (H,W), or (M,H,W) for the fits
 
 # Warp models of :func:`lk_warp`, as :func:`trackmeter.core.patch_tracking._refine_lk_warp` names them.
 MODEL_AFFINE = 0
@@ -51,8 +52,8 @@ def _jit(function: Callable[..., Any]) -> Any:
 
 
 @_jit
-def _sample(img: F32, x: float, y: float) -> tuple[float, bool]:
-    """Bilinear value of ``img`` (H,W) float32 at (x, y) (Python floats), and whether the point
+def _sample(img: Image, x: float, y: float) -> tuple[float, bool]:
+    """Bilinear value of ``img`` (H,W) float32 or uint8 at (x, y), and whether the point
     lies inside ``[0, W-1] x [0, H-1]``; outside points are clamped to the border (as
     :func:`~trackmeter.core.patch_tracking.bilinear`)."""
     h, w = img.shape
@@ -83,7 +84,7 @@ def _sample(img: F32, x: float, y: float) -> tuple[float, bool]:
 
 
 @_jit
-def _sample_square(img: F32, px: float, py: float, out: F64) -> bool:
+def _sample_square(img: Image, px: float, py: float, out: F64) -> bool:
     """``out`` (s,s) = the square patch of ``img`` centred at (px, py), sampled as
     :func:`~trackmeter.core.patch_tracking.sample_patches` does (the centre rounded to float32,
     plus the float32 offsets ``k - (s-1)/2``); whether all samples lie inside."""
@@ -143,12 +144,12 @@ def _centre_and_gain(I: F64, tm: F64, err: F64) -> float:
 
 @_jit
 def lk_translation(
-    image: F32, stacked: bool, values: F32, gx: F32, gy: F32, ok: Bools, uv0: F64, mask_x: float, mask_y: float,
+    image: Image, stacked: bool, values: F32, gx: F32, gy: F32, ok: Bools, uv0: F64, mask_x: float, mask_y: float,
     max_iterations: int, tolerance_px: float, max_shift_px: float,
 ) -> tuple[F64, F64, Bools, NDArray[np.int32]]:
     """Translation LK with closed-form gain and ESM steps, one loop per patch.
 
-    ``image`` (M,H,W) float32: patch ``i`` is sampled in ``image[i]`` when ``stacked``, else in
+    ``image`` (M,H,W) float32 or uint8: patch ``i`` is sampled in ``image[i]`` when ``stacked``, else in
     ``image[0]``. ``values, gx, gy`` (N,n,n) float32 templates and their gradients, ``ok`` (N,),
     ``uv0`` (N,2) start centres. Returns ``(uv (N,2), score (N,), converged (N,), iterations
     (N,))`` as :func:`trackmeter.core.patch_tracking.refine_lk` documents them.
@@ -259,7 +260,7 @@ def lk_translation(
 
 
 @_jit
-def _sample_warped(img: F32, W: F64, ox: F64, oy: F64, out: F64) -> bool:
+def _sample_warped(img: Image, W: F64, ox: F64, oy: F64, out: F64) -> bool:
     """``out`` (K,) = ``img`` sampled at ``W[:2] @ (ox, oy, 1)`` (float64 coordinates rounded
     to float32 by :func:`_sample`); whether all samples lie inside."""
     inside = True
@@ -274,7 +275,7 @@ def _sample_warped(img: F32, W: F64, ox: F64, oy: F64, out: F64) -> bool:
 
 @_jit
 def lk_warp(
-    image: F32, stacked: bool, tm: F64, sd: F64, hinv: F64, ok: Bools, warp0: F64, ox: F64, oy: F64, model: int,
+    image: Image, stacked: bool, tm: F64, sd: F64, hinv: F64, ok: Bools, warp0: F64, ox: F64, oy: F64, model: int,
     max_iterations: int, tolerance_px: float, max_shift_px: float,
 ) -> tuple[F64, F64, Bools]:
     """The inverse-compositional warp fits' iterations, one loop per patch.

@@ -283,9 +283,12 @@ class LKResult:
     iterations: NDArray[np.int32]
 
 
-def _image_stack(image: F32) -> F32:
-    """``image`` (H,W) or (N,H,W) as a contiguous float32 stack (1 or N, H, W) for the compiled fits."""
-    image = _f32(image)
+def _image_stack(image: NDArray) -> NDArray:
+    """``image`` (H,W) or (N,H,W) as a contiguous stack (1 or N, H, W) for the compiled fits:
+    uint8 (a camera frame, sampled as it is: converting a whole frame per call cost more than
+    the fit) or float32 (anything else is converted)."""
+    image = np.asarray(image)
+    image = np.ascontiguousarray(image) if image.dtype == np.uint8 else _f32(image)
     return image[None] if image.ndim == 2 else image
 
 
@@ -826,11 +829,12 @@ def warm_up() -> None:
     frame of its first target and drop the frames behind it. The arguments have the types
     of the tracker's calls, so the specialisations made here are the ones it runs."""
     rng = np.random.default_rng(0)
-    image = rng.uniform(0, 255, (24, 24)).astype(np.float32)
+    frame = rng.integers(0, 256, (24, 24), dtype=np.uint8)  # a camera frame
     centre = np.array([[12.0, 12.0]])
-    templates = make_templates(image, centre, 8)
-    refine_lk(image, templates, centre)
-    refine_lk_similarity(image, templates, np.array([[[1.0, 0.0, 12.0], [0.0, 1.0, 12.0]]]))
+    templates = make_templates(frame, centre, 8)
+    for image in (frame, frame.astype(np.float32)[None]):  # and a stack of rectified strips
+        refine_lk(image, templates, centre)
+        refine_lk_similarity(image, templates, np.array([[[1.0, 0.0, 12.0], [0.0, 1.0, 12.0]]]))
 
 
 def refine_lk_translation(
