@@ -330,7 +330,7 @@ def refine_lk(
     loop is compiled (:func:`trackmeter.core.lk_kernels.lk_translation`).
 
     Args:
-        image: float32 image (H,W) the patches are sampled from, or a stack (N,H,W) of one
+        image: float32 or uint8 image (H,W) the patches are sampled from, or a stack (N,H,W) of one
             small image per patch (e.g. rectified strips).
         templates: N templates.
         uv0: (N,2) start centres, px.
