@@ -220,11 +220,13 @@ def test_a_slanted_plane_is_measured_at_the_patch_centre_not_its_texture(plane) 
         gu, gv = np.meshgrid(np.linspace(230, 500, 7), np.linspace(160, 350, 5))
         uv = np.column_stack([gu.ravel(), gv.ravel()]) + rng.uniform(-0.5, 0.5, (gu.size, 2))
         d_true = rect.focal_px * rect.baseline_m / (truth(uv) @ rect.R1.T)[:, 2]
-        for slanted in (False, True):
-            ms = measure_points(rig, left, right, uv, MeasureParams(subpixel_slanted=slanted))
+        runs = {sl: measure_points(rig, left, right, uv, MeasureParams(subpixel_slanted=sl)) for sl in (False, True)}
+        # the slanted fit changes what an accepted point measures, never which are accepted
+        assert [(m.ok, m.reason) for m in runs[True]] == [(m.ok, m.reason) for m in runs[False]]
+        for slanted, ms in runs.items():
             errors[slanted] += [m.disparity_px - d for m, d in zip(ms, d_true) if m.ok]
     shift, slanted = np.abs(errors[False]), np.abs(errors[True])
-    assert len(slanted) >= 0.9 * len(shift) > 50
+    assert len(slanted) > 50
     # measured: median 0.078 px with the shift fit, 0.016 px with the slanted fit
     assert np.median(slanted) < 0.4 * np.median(shift), (np.median(slanted), np.median(shift))
     assert np.median(slanted) < 0.03

@@ -67,6 +67,32 @@ def test_tracks_a_moving_turning_plate_in_both_images(scene, estec_rig) -> None:
     assert np.all(np.std(np.array(z3), axis=0) < 2.0)
 
 
+def test_a_targets_first_measurement_is_the_same_fit_as_its_later_ones(estec_rig) -> None:
+    # Every later frame measures a target with match_epipolar's translation fit; its first
+    # measurement must be the same kind of fit (the shift fit, not measure's slanted one), or
+    # its 3D point moves between its first frame and the next on every slanted face.
+    from trackmeter.core.matching import measure_points
+    from trackmeter.core.transforms import make_transform
+
+    R = cv2.Rodrigues(np.array([0.0, np.radians(55.0), 0.0]))[0]
+    plate = PlaneScene(estec_rig, lambda t: make_transform(R, np.array([0.0, 0.0, 3.5])), noise_sigma=1.0)
+    f0 = plate.frame(0)
+    pts = interior_points(f0, 10)
+    tr = make_tracker(estec_rig)
+    created = {i: r for i, uv in enumerate(pts) if isinstance(r := tr.add_target(f0, (float(uv[0]), float(uv[1]))), TargetState)}
+    assert len(created) >= 6
+    shift = measure_points(estec_rig, f0.left, f0.right, pts, MeasureParams(subpixel_slanted=False))
+    slanted = measure_points(estec_rig, f0.left, f0.right, pts, MeasureParams())
+    for i, t in created.items():
+        np.testing.assert_allclose(t.point_cam, shift[i].xyz_m, atol=1e-12)
+    assert max(abs(slanted[i].disparity_px - shift[i].disparity_px) for i in created) > 0.01
+    # ... and the next frame's translation fit agrees with it to well within its sigma.
+    for t in tr.step(plate.frame(1)):
+        if t.measured:
+            first = created[next(i for i, c in created.items() if c.id == t.id)]
+            assert abs(t.point_cam[2] - first.point_cam[2]) < 2.0 * np.sqrt(t.cov_cam[2, 2])
+
+
 def test_bad_clicks_are_refused_with_their_reason(scene, estec_rig) -> None:
     f0 = scene.frame(0)
     tr = make_tracker(estec_rig, max_targets=2)

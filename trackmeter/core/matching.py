@@ -1227,16 +1227,19 @@ def _match_many(
         [T_fine[j] for j in todo], [f[0] for f in fine],
         [found[j][1].position_px - (found[j][4] - strips[j][2]) for j in todo], params,
     )  # fmt: skip
+    # The numbers a point gets: the shift fit's, or the slanted fit's below. The checks keep
+    # judging the shift fit (its sigma is the aperture test, its disparity the depth-edge
+    # test's reference), so the slanted fit changes what an accepted point measures, never
+    # which points are accepted (the tracker's selection and the simulator's noise calibration
+    # are the shift fit's).
+    x_out, sigma_out, score_out = xs.copy(), sigmas.copy(), fit_scores.copy()
     if params.subpixel_slanted and params.subpixel == "gauss_newton":
-        # The accepted fits again, with the disparity's gradients across the patch: the position
-        # and its sigma become the centre's. Acceptance stays the shift fit's (its sigma is the
-        # aperture test); a slanted fit that fails leaves the shift fit's numbers.
         acc = [k for k in range(len(todo)) if fit_reasons[k] is None]
         if acc:
             xsl, ssl, csl, _ = refine_slanted([T_fine[todo[k]] for k in acc], [fine[k][0] for k in acc], xs[acc], params)
             for k, xk, sk, ck in zip(acc, xsl.tolist(), ssl.tolist(), csl.tolist()):
-                if math.isfinite(xk) and math.isfinite(sk):
-                    xs[k], sigmas[k], fit_scores[k] = xk, sk, ck
+                if math.isfinite(xk) and math.isfinite(sk):  # else the shift fit's numbers stand
+                    x_out[k], sigma_out[k], score_out[k] = xk, sk, ck
 
     # Stage 4: the wider-window check, the left-right check (on the left rows, resampled now
     # for the points still in), the depth-edge check.
@@ -1279,8 +1282,8 @@ def _match_many(
         d_lo, d_hi, c_first, _, l_first, _ = strips[j]
         S, sm, lo, hi, f_first, _ = found[j]
         l_ok = lok[lrow_of[j]]
-        x, sigma, score = float(xs[k]), float(sigmas[k]), float(fit_scores[k])
-        d = bx - f_first - x
+        score = float(fit_scores[k])
+        d = bx - f_first - float(xs[k])  # the shift fit's, for the checks
 
         # Left-right check: the right patch at the integer match, searched along the left row.
         d0 = bx - c_first - sm.integer_position
@@ -1302,7 +1305,7 @@ def _match_many(
         if j in edge_samples and not _edge_decide(*edge_samples[j], d, params):
             out[j] = _Match(REASON_DEPTH_EDGE, score=score)
             continue
-        out[j] = _Match(None, d, sigma, score)
+        out[j] = _Match(None, bx - f_first - float(x_out[k]), float(sigma_out[k]), float(score_out[k]))
     return out  # type: ignore[return-value]
 
 

@@ -34,7 +34,7 @@ from __future__ import annotations
 import collections
 import itertools
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Collection, Sequence
 
 import numpy as np
@@ -266,7 +266,12 @@ class Tracker:
         self.rig = rig
         self.params = params
         self.features = features
-        self.measure = measure
+        # A target's first measurement is the same kind of fit as every later one (the
+        # translation fit of match_epipolar): with measure's slanted fit its 3D point would move
+        # between its first frame and the next on every slanted face, and a model grown from it
+        # with it. Measured (estec, 20 s, three noise seeds): case (a) lateral error 1.28 mm
+        # (median of the maxima) with the shift fit, 1.89 mm with the slanted one.
+        self.measure = replace(measure, subpixel_slanted=False)
         self.rect = rig.rectification
         # Rectified → original remap tables, interpolated bilinearly at the sampled points (the
         # tables are smooth: far cheaper than projecting thousands of points every frame).
