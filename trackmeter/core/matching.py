@@ -49,7 +49,7 @@ disparity where the patch's texture is, not at its centre: on a plane 60° from 
 sight at 3.5 m, a median 0.078 px off (3 mm of depth), 2.9 times its own sigma (RMS). With
 ``subpixel_slanted`` (the default) each accepted shift fit is refined once more with the
 disparity's horizontal and vertical gradients across the patch (:func:`refine_slanted`, a
-Gaussian prior holding them near zero where noise hides them): 0.017 px there, and the same
+Gaussian prior holding them near zero where noise hides them): 0.016 px there, and the same
 0.010 px as the shift fit on a fronto-parallel plane (``benchmarks/measure.py``,
 ``plane<deg>_*``).
 
@@ -977,8 +977,8 @@ def refine_slanted(
 
     Measured (2026-11-27): on a band-limited texture on a plane at 3.5 m rendered exactly
     through the paper's rig, 1 grey level of noise, the median disparity error at 0/45/60/70°
-    of slant is 0.010/0.010/0.017/0.033 px, where the shift fit gives 0.010/0.040/0.078/0.099
-    px; with 6 grey levels 0.063/0.051/0.053/0.066 against 0.063/0.059/0.090/0.124 px. The
+    of slant is 0.010/0.010/0.016/0.033 px, where the shift fit gives 0.010/0.040/0.078/0.099
+    px; with 6 grey levels 0.063/0.051/0.051/0.067 against 0.063/0.059/0.090/0.124 px. The
     estec mock-up's single-point depth sigma at 3.5 m (the simulator's calibration, 4 mm as
     the paper's) is 4.01 mm with ``sg`` = 0.03 px/px, 3.82 with 0.01, 5.65 with 0.1, 6.25
     without the prior and 3.82 with the shift fit alone.
