@@ -1228,20 +1228,6 @@ def _match_many(
         [T_fine[j] for j in todo], [f[0] for f in fine],
         [found[j][1].position_px - (found[j][4] - strips[j][2]) for j in todo], params,
     )  # fmt: skip
-    # The numbers a point gets: the shift fit's, or the slanted fit's below. The checks keep
-    # judging the shift fit (its sigma is the aperture test, its disparity the depth-edge
-    # test's reference), so the slanted fit changes what an accepted point measures, never
-    # which points are accepted (the tracker's selection and the simulator's noise calibration
-    # are the shift fit's).
-    x_out, sigma_out, score_out = xs.copy(), sigmas.copy(), fit_scores.copy()
-    if params.subpixel_slanted and params.subpixel == "gauss_newton":
-        acc = [k for k in range(len(todo)) if fit_reasons[k] is None]
-        if acc:
-            xsl, ssl, csl, _ = refine_slanted([T_fine[todo[k]] for k in acc], [fine[k][0] for k in acc], xs[acc], params)
-            for k, xk, sk, ck in zip(acc, xsl.tolist(), ssl.tolist(), csl.tolist()):
-                if math.isfinite(xk) and math.isfinite(sk):  # else the shift fit's numbers stand
-                    x_out[k], sigma_out[k], score_out[k] = xk, sk, ck
-
     # Stage 4: the wider-window check, the left-right check (on the left rows, resampled now
     # for the points still in), the depth-edge check.
     # The checks are independent, so each one's samples are taken for all the points it sees
@@ -1271,6 +1257,7 @@ def _match_many(
         left, [lmx[lrow_of[j]] for _, j in kept], [lmy[lrow_of[j]] for _, j in kept], None, cv2.INTER_LINEAR
     )
     edge: dict[int, Any] = {}
+    accepted: list[tuple[int, int]] = []  # (k, j) of the points every check accepts
     if params.edge_shift_px > 0:
         for k, j in kept:
             edge[j] = _edge_blocks(rect, geo[j][0], geo[j][1], geo[j][2] - found[j][4] - float(xs[k]), params)
@@ -1283,8 +1270,8 @@ def _match_many(
         d_lo, d_hi, c_first, _, l_first, _ = strips[j]
         S, sm, lo, hi, f_first, _ = found[j]
         l_ok = lok[lrow_of[j]]
-        score = float(fit_scores[k])
-        d = bx - f_first - float(xs[k])  # the shift fit's, for the checks
+        x, sigma, score = float(xs[k]), float(sigmas[k]), float(fit_scores[k])
+        d = bx - f_first - x
 
         # Left-right check: the right patch at the integer match, searched along the left row.
         d0 = bx - c_first - sm.integer_position
@@ -1306,7 +1293,19 @@ def _match_many(
         if j in edge_samples and not _edge_decide(*edge_samples[j], d, params):
             out[j] = _Match(REASON_DEPTH_EDGE, score=score)
             continue
-        out[j] = _Match(None, bx - f_first - float(x_out[k]), float(sigma_out[k]), float(score_out[k]))
+        out[j] = _Match(None, d, sigma, score)
+        accepted.append((k, j))
+    if accepted and params.subpixel_slanted and params.subpixel == "gauss_newton":
+        # The accepted points' numbers become the slanted fit's (where it converges). The checks
+        # above judged the shift fit (its sigma is the aperture test, its disparity the depth-edge
+        # test's reference), so the slanted fit changes what an accepted point measures, never
+        # which points are accepted (the tracker's selection and the simulator's noise
+        # calibration are the shift fit's).
+        xsl, ssl, csl, _ = refine_slanted([T_fine[j] for _, j in accepted], [fine[k][0] for k, _ in accepted],
+                                          xs[[k for k, _ in accepted]], params)
+        for (_, j), xk, sk, ck in zip(accepted, xsl.tolist(), ssl.tolist(), csl.tolist()):
+            if math.isfinite(xk) and math.isfinite(sk):  # else the shift fit's numbers stand
+                out[j] = _Match(None, geo[j][2] - found[j][4] - xk, sk, ck)
     return out  # type: ignore[return-value]
 
 
