@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import subprocess
 import sys
+
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -211,6 +214,7 @@ def _write(path, text):
         (lambda d: (_write(d / "t.png", "\x89PNG\r\n\x1a\n\x00\x00garbage"), d / "t.png"), ""),
         (lambda d: (_write(d / "t.tum", "5.0 0 0 3 0 0 0 1\n"), None), "no overlapping timestamps"),
         (lambda d: (d / "missing.tum", None), "no such file"),
+        (lambda d: (Path(os.devnull), None), "not a regular file"),
         (lambda d: ((d / "emptydir").mkdir(), d / "emptydir"), "no groundtruth"),
         # a run's states.csv given as the truth, without one valid pose
         (lambda d: (_write(d / "s.csv", ",".join(STATES_COLUMNS) + "\n0.0,0" + "," * (len(STATES_COLUMNS) - 2) + "\n"),
@@ -237,6 +241,12 @@ def test_bad_estimate_run_dirs(capsys, tmp_path):
     assert code == 2 and "no valid pose" in err
     code, _, err = _run(capsys, "evaluate", "--truth", str(truth), "--estimate", str(truth), "--tolerance", "-1")
     assert code == 2 and "--tolerance" in err
+
+
+def test_an_estimate_that_is_no_regular_file_is_named_as_such(capsys, tmp_path):
+    truth = _tum(tmp_path / "t.tum", tumbling_truth())
+    code, _, err = _run(capsys, "evaluate", "--truth", str(truth), "--estimate", os.devnull)
+    assert code == 2 and err.count("\n") == 1 and "not a regular file" in err
 
 
 def test_console_script_exit_code(tmp_path):

@@ -123,6 +123,15 @@ def _with_rates_from(series: MotionSeries, csv_path: Path) -> MotionSeries | Non
                         rates.velocity_cam_m_s[it], rates.omega_body_rad_s[it])
 
 
+def _require_file(path: Path) -> None:
+    """A ``--truth`` or ``--estimate`` that is not a folder must be a regular file (not a
+    device or a pipe: both would read as empty and be reported as having no poses)."""
+    if not path.exists():
+        raise TrackmeterError(f"{path}: no such file or folder")
+    if not path.is_file():
+        raise TrackmeterError(f"{path}: not a regular file or folder")
+
+
 def load_truth(spec: str | Path) -> LoadedMotion:
     """Read ``--truth`` (see the module docstring).
 
@@ -142,8 +151,7 @@ def load_truth(spec: str | Path) -> LoadedMotion:
             return LoadedMotion(s, str(found), s.has_velocity)
         s = MotionSeries.from_trajectory(read_tum(found))
         return LoadedMotion(s, str(found), False)
-    if not path.is_file():
-        raise TrackmeterError(f"{path}: no such file or folder")
+    _require_file(path)
     series = _read_pose_file(path)
     if len(series) == 0:  # e.g. a run's states.csv that never had a pose
         raise TrackmeterError(f"{path}: no valid pose")
@@ -191,8 +199,7 @@ def _load_estimate(path: Path) -> LoadedMotion:
             s = MotionSeries.from_trajectory(read_tum(path / "trajectory.tum"))
             return LoadedMotion(s, str(path / "trajectory.tum"), False)
         raise TrackmeterError(f"{path}: not a run directory (no states.csv or trajectory.tum)")
-    if not path.is_file():
-        raise TrackmeterError(f"{path}: no such file or folder")
+    _require_file(path)
     t_start = None
     if _looks_like_motion_csv(path):
         full = read_motion_csv(path)
