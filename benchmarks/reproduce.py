@@ -108,7 +108,9 @@ class Runner:
         log = self.log_dir / f"{name}.log"
         log.write_text(f"$ {step.command}\n# exit {proc.returncode}\n--- stdout\n{proc.stdout}\n--- stderr\n{proc.stderr}")
         last = next((line for line in reversed(proc.stderr.splitlines()) if line.strip()), "")
-        last = last.replace(f"{REPO}{os.sep}", "")  # the table names paths as the checkout does
+        # The table names paths inside the output folder (work/..., logs/...), wherever --out
+        # put it, and others as the checkout does.
+        last = last.replace(f"{self.out}{os.sep}", "").replace(f"{REPO}{os.sep}", "")
         if proc.returncode == 0:
             step.status = "ok"
         elif "not built yet" in proc.stderr:

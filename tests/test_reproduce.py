@@ -27,6 +27,8 @@ def test_failing_command_is_failed_with_its_message(tmp_path):
     assert step.status == "failed" and "no such file" in step.reason
     assert r.json_of(step) is None
     assert (tmp_path / "evaluate_bad.log").read_text().startswith("$ trackmeter evaluate")
+    # the table names the path inside the output folder, wherever --out put it
+    assert f"{tmp_path}" not in step.reason and "no.tum" in step.reason
 
 
 def test_evaluation_rows_show_max_and_rms_in_display_units():
