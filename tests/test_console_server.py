@@ -279,3 +279,37 @@ def test_the_console_starts_when_the_filter_cutoff_lies_beyond_the_field_s_range
         assert running.console.cutoff.max == pytest.approx(1.9) and running.console.cutoff.value == pytest.approx(1.9)
     finally:
         running.stop()
+
+
+@pytest.mark.parametrize("burst_s", [(0.0, 0.0, 0.001, 0.01, 0.05, 0.2, 0.5)])
+def test_signals_repeated_while_stopping_end_cleanly_with_the_recording_whole(tmp_path, burst_s) -> None:
+    """A SIGTERM sent twice (a wrapper and a service manager) or Ctrl-C pressed again while the
+    console winds down: one clean stop, its summary, the recording complete; no traceback."""
+    import re
+    import signal
+    import subprocess
+    import sys
+
+    from trackmeter.data.sequence import index_sequence
+
+    port, record = free_port(), tmp_path / "rec"
+    proc = subprocess.Popen([sys.executable, "-m", "trackmeter.cli.main", "console", "--port", str(port), "--cpu-nice", "0",
+                             "--record", str(record)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        csv = record / "cam0" / "data.csv"
+        while not csv.exists() or len(csv.read_text().splitlines()) < 10:
+            assert proc.poll() is None and time.monotonic() < deadline, "the console ended or never recorded"
+            time.sleep(0.2)
+        for i, pause_s in enumerate(burst_s):
+            time.sleep(pause_s)
+            proc.send_signal(signal.SIGTERM if i % 2 == 0 else signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0 and "Traceback" not in err, err
+    assert "trackmeter console: stopped after" in err
+    recorded = re.search(r"recorded (\d+) frames", err)
+    assert recorded, err
+    index = index_sequence(record)
+    assert len(index.t_s) == int(recorded.group(1)) >= 10 and index.skipped == 0

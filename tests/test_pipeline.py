@@ -571,3 +571,18 @@ def test_an_interrupt_while_winding_down_waits_for_the_block_to_finish() -> None
         with interrupts_deferred():
             raise ValueError("x")
     assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+    # A process already stopping only notes a later signal: the block's then ends quietly,
+    # handed to that handler, not raised.
+    noted: list[int] = []
+    try:
+        signal.signal(signal.SIGTERM, lambda signum, frame: noted.append(signum))
+        with interrupts_deferred(lambda: "never said"):
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)
+        assert noted == [signal.SIGTERM]
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        with interrupts_deferred(lambda: "never said"):
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)
+    finally:
+        signal.signal(signal.SIGTERM, before[1])

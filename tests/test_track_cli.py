@@ -264,8 +264,10 @@ def test_unknown_source_is_one_line(tmp_path, capsys) -> None:
     assert "unknown source" in err and len(err.strip().splitlines()) == 1
 
 
-def test_sigterm_ends_a_run_as_ctrl_c_does(tmp_path) -> None:
-    # A service manager stops a run with SIGTERM: the files must be complete, as after Ctrl-C.
+@pytest.mark.parametrize("signals", [("SIGTERM",), ("SIGTERM", "SIGTERM", "SIGINT")])
+def test_sigterm_ends_a_run_as_ctrl_c_does(tmp_path, signals) -> None:
+    # A service manager stops a run with SIGTERM: the files must be complete, as after Ctrl-C,
+    # also when the signal comes again while the run winds down (a wrapper passing it on).
     import signal
     import subprocess
     import sys
@@ -279,7 +281,9 @@ def test_sigterm_ends_a_run_as_ctrl_c_does(tmp_path) -> None:
         while not (out / "states.csv").exists() or len((out / "states.csv").read_text().splitlines()) < 4:
             assert proc.poll() is None and time.monotonic() < deadline, "track ended or never wrote a frame"
             time.sleep(0.2)
-        proc.send_signal(signal.SIGTERM)
+        for name in signals:
+            proc.send_signal(getattr(signal, name))
+            time.sleep(0.01)
         _, err = proc.communicate(timeout=60)
     finally:
         proc.kill()

@@ -11,6 +11,7 @@ traceback.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import os
 import re
@@ -79,7 +80,26 @@ def _command_module(name: str):  # type: ignore[no-untyped-def]
 
 
 def _interrupt(signum: int, frame: object) -> None:
+    """The first Ctrl-C or SIGTERM stops the command (KeyboardInterrupt); any later one is
+    only noted. A second signal arrives while the command winds down (Ctrl-C pressed twice;
+    a wrapper such as ``timeout`` passing on the SIGTERM a service manager also sends):
+    raised again, it would cut the wind-down short (a recording or a run left half-closed)
+    or land inside the interpreter's own lock handling (``RuntimeError: release unlocked
+    lock``)."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        if signal.getsignal(sig) is _interrupt:
+            signal.signal(sig, _already_stopping)
     raise KeyboardInterrupt
+
+
+def _already_stopping(signum: int, frame: object) -> None:
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        if signal.getsignal(sig) is _already_stopping:
+            signal.signal(sig, signal.SIG_IGN)  # said once is enough
+    # os.write, not print: the signal may land while the main thread is inside a print to
+    # stderr, and a re-entered buffered write raises.
+    with contextlib.suppress(OSError):
+        os.write(2, b"trackmeter: stopping already; the files are being completed\n")
 
 
 def _describe_os_error(exc: OSError) -> str:
@@ -150,6 +170,8 @@ def _main(argv: Sequence[str] | None) -> int:
     if in_main_thread:
         previous_int = signal.getsignal(signal.SIGINT)
         previous = signal.signal(signal.SIGTERM, _interrupt)
+        if previous_int is signal.default_int_handler:  # an inherited SIG_IGN (nohup, `cmd &`) stays
+            signal.signal(signal.SIGINT, _interrupt)
     try:
         return int(_command_module(args.command).run(args) or 0)
     except TrackmeterError as exc:
@@ -173,11 +195,17 @@ def _main(argv: Sequence[str] | None) -> int:
     finally:
         warnings.showwarning = shown_before
         # The process's own command line (argv None) stays deaf to signals after an interrupt
-        # until it exits: a second Ctrl-C would kill it in the interpreter's shutdown (-SIGINT
-        # instead of 130). A caller passing argv gets its handlers back.
-        if in_main_thread and not (interrupted and argv is None):
-            signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
-            signal.signal(signal.SIGINT, signal.SIG_DFL if previous_int is None else previous_int)
+        # (or a stop the command took as its normal end, as the console does) until it exits:
+        # a second Ctrl-C would kill it in the interpreter's shutdown (-SIGINT instead of its
+        # exit code). A caller passing argv gets its handlers back.
+        if in_main_thread:
+            signalled = interrupted or signal.getsignal(signal.SIGTERM) is not _interrupt
+            if signalled and argv is None:
+                signal.signal(signal.SIGINT, signal.SIG_IGN)
+                signal.signal(signal.SIGTERM, signal.SIG_IGN)
+            else:
+                signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
+                signal.signal(signal.SIGINT, signal.SIG_DFL if previous_int is None else previous_int)
 
 
 if __name__ == "__main__":

@@ -856,12 +856,15 @@ def run_headless(
 @contextlib.contextmanager
 def interrupts_deferred(message: Callable[[], str] | None = None) -> Iterator[None]:
     """Hold SIGINT and SIGTERM off while the block runs (threads winding down, files being
-    closed) and raise KeyboardInterrupt (``message()`` its text) after it when one came.
+    closed) and, when one came, hand it after the block to the handler it found there; a
+    KeyboardInterrupt that handler raises (Python's own Ctrl-C handler, or a SIGTERM left at
+    its default, which would kill) is raised with ``message()`` as its text.
 
     Python runs signal handlers between bytecodes of the main thread, so a Ctrl-C landing in
     ``Thread.join`` or half-way through closing a run's files would leave them half-done (a
-    run.yaml still "running", a frame published after its file was closed). Outside the main
-    thread (where no handler runs) the block simply runs.
+    run.yaml still "running", a frame published after its file was closed). A handler that
+    ignores the signal (the command line's, once the process is already stopping) keeps
+    ignoring it. Outside the main thread (where no handler runs) the block simply runs.
     """
     if threading.current_thread() is not threading.main_thread():
         yield
@@ -877,8 +880,17 @@ def interrupts_deferred(message: Callable[[], str] | None = None) -> Iterator[No
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    if caught:
-        raise KeyboardInterrupt(*([message()] if message is not None else []))
+    if not caught:
+        return
+    handler = previous[caught[0]]
+    if handler == signal.SIG_IGN:
+        return
+    try:
+        if not callable(handler):  # SIG_DFL (or unknown): stop, as Ctrl-C would
+            raise KeyboardInterrupt
+        handler(caught[0], None)
+    except KeyboardInterrupt:
+        raise KeyboardInterrupt(*([message()] if message is not None else [])) from None
 
 
 def _when_all_replied(futures: list[Future[CommandReply]], callback: Callable[[list[CommandReply]], Any]) -> None:
