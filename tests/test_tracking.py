@@ -309,3 +309,31 @@ def test_a_new_target_starts_at_the_image_velocity_the_rigid_motion_gives_it(sce
         sigma_v = float(np.sqrt(kf.P[2, 2]))
         assert miss[rigid] < 3.0 * sigma_v, (rigid, miss[rigid], sigma_v)  # the std is honest
     assert miss[True] < 3.0 and miss[True] < miss[False] / 3.0, miss
+
+
+def test_at_a_low_frame_rate_a_wide_window_is_searched_near_the_prediction_first(estec_rig) -> None:
+    """At 6.25 Hz a new target's first window (velocity unknown: 50 px/s, 1000 px/s² a priori) is
+    +-60 px; on a texture that repeats every ~6 px down the image it holds many peaks alike and
+    the target is lost as ambiguous. Searched near its prediction first (+-4 px), a slow
+    target is found there, on its own surface point."""
+    from trackmeter.sources.plane import plate_texture
+
+    period = 15  # texels, about 6 image px at 3.5 m; random across, so the stereo match stays unique
+    base = plate_texture((768, 1024), seed=4)
+    texture = np.tile(base[:period], (768 // period + 1, 1))[:768]
+    scene = PlaneScene(estec_rig, pose_translating(3.5, (0.0, 0.01, 0.0), (0.0, 0.0, 0.0)), texture=texture,
+                       rate_hz=6.25, noise_sigma=1.0)
+    f0, f1 = scene.frame(0), scene.frame(1)
+    points = interior_points(f0, 8)
+    for near_px in (0.0, 4.0):
+        tr = make_tracker(estec_rig, near_first_px=near_px, recover_lost=False)
+        ids = add_all(tr, f0, points)
+        assert len(ids) >= 6
+        body = {t.id: scene.surface_points(0, t.uv[None])[0] for t in tr.targets}
+        states = tr.step(f1)
+        ambiguous = [t.id for t in states if "ambiguous" in str(t.lost_reason)]
+        tracked = [float(np.linalg.norm(t.uv - scene.project(1, body[t.id][None])[0][0])) for t in states if t.status != "lost"]
+        if near_px == 0.0:
+            assert len(ambiguous) == len(ids)
+        else:
+            assert ambiguous == [] and len(tracked) >= len(ids) // 2 and max(tracked) < 0.3, (states, tracked)
