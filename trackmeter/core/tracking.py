@@ -746,7 +746,7 @@ class Tracker:
         lateral error from 1.28 to 1.62 mm (median of three noise seeds, 20 s)."""
         p = self.params
         above = p.near_first_settled_above_px if t.age_frames >= SETTLED_FRAMES else p.near_first_new_above_px
-        if p.near_first_px <= 0 or not np.any(half > above):
+        if p.near_first_px <= 0 or max(float(half[0]), float(half[1])) <= above:  # floats: run per target per frame
             return None
         near = zncc_search(fc.left, t.current.values[0], pred, np.minimum(half, p.near_first_px))
         if near is None or np.any(np.abs(near[0] - pred) > p.near_first_px - 1.0):
