@@ -219,13 +219,7 @@ def test_malformed_rig_file_raises_one_line(case: str, tmp_path: Path, calib_dir
 
 @pytest.mark.parametrize("case", ["missing", "broken_yaml", "bad_shape"])
 def test_malformed_rig_file_on_the_command_line(case: str, tmp_path: Path, calib_dir: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """Through a command that takes --rig; skipped while no such command is built."""
-    import inspect
-
-    import trackmeter.cli.measure as measure_cli
-
-    if "not_built_yet" in inspect.getsource(measure_cli):
-        pytest.skip("trackmeter measure is not built yet")
+    """Through a command that takes --rig."""
     path = _malformed_rigs(tmp_path, calib_dir)[case]
     left = str(calib_dir / "left01.jpg")
     right = str(calib_dir / "right01.jpg")

@@ -16,12 +16,6 @@ if TYPE_CHECKING:
 T = TypeVar("T")
 
 
-def not_built_yet(name: str) -> int:
-    """A subcommand whose engine has not landed yet: say so and exit 2."""
-    print(f"trackmeter {name}: not built yet", file=sys.stderr)
-    return 2
-
-
 def load_config_from_args(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     from trackmeter.data.config import load_config
 
