@@ -284,7 +284,8 @@ def test_the_console_starts_when_the_filter_cutoff_lies_beyond_the_field_s_range
 @pytest.mark.parametrize("burst_s", [(0.0, 0.0, 0.001, 0.01, 0.05, 0.2, 0.5)])
 def test_signals_repeated_while_stopping_end_cleanly_with_the_recording_whole(tmp_path, burst_s) -> None:
     """A SIGTERM sent twice (a wrapper and a service manager) or Ctrl-C pressed again while the
-    console winds down: one clean stop, its summary, the recording complete; no traceback."""
+    console winds down: one clean stop, its summary, the recording complete; no traceback. The
+    first is a SIGHUP: a closed terminal or a dropped ssh session stops it as cleanly."""
     import re
     import signal
     import subprocess
@@ -303,7 +304,7 @@ def test_signals_repeated_while_stopping_end_cleanly_with_the_recording_whole(tm
             time.sleep(0.2)
         for i, pause_s in enumerate(burst_s):
             time.sleep(pause_s)
-            proc.send_signal(signal.SIGTERM if i % 2 == 0 else signal.SIGINT)
+            proc.send_signal((signal.SIGHUP, signal.SIGTERM, signal.SIGINT)[i % 3])
         _, err = proc.communicate(timeout=60)
     finally:
         proc.kill()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 from pathlib import Path
 
@@ -264,10 +265,11 @@ def test_unknown_source_is_one_line(tmp_path, capsys) -> None:
     assert "unknown source" in err and len(err.strip().splitlines()) == 1
 
 
-@pytest.mark.parametrize("signals", [("SIGTERM",), ("SIGTERM", "SIGTERM", "SIGINT")])
+@pytest.mark.parametrize("signals", [("SIGTERM",), ("SIGTERM", "SIGTERM", "SIGINT"), ("SIGHUP", "SIGTERM")])
 def test_sigterm_ends_a_run_as_ctrl_c_does(tmp_path, signals) -> None:
     # A service manager stops a run with SIGTERM: the files must be complete, as after Ctrl-C,
     # also when the signal comes again while the run winds down (a wrapper passing it on).
+    # A closed terminal or a dropped ssh session (SIGHUP) ends it the same way.
     import signal
     import subprocess
     import sys
@@ -294,6 +296,80 @@ def test_sigterm_ends_a_run_as_ctrl_c_does(tmp_path, signals) -> None:
     meta = yaml.safe_load((out / "run.yaml").read_text())
     assert meta["status"] == "interrupted"
     assert len(read_motion_csv(out / "states.csv")) == meta["summary"]["frames"] >= 3
+
+
+def test_a_run_whose_terminal_closed_stops_cleanly(tmp_path) -> None:
+    # An ssh session drops: the terminal goes away (writes to it fail) and SIGHUP comes. The
+    # run must complete its files and exit as interrupted, its last lines lost, not an error.
+    import os
+    import pty
+    import signal
+    import subprocess
+    import sys
+    import threading
+    import time
+
+    out = tmp_path / "run"
+    terminal, its_other_end = pty.openpty()
+    proc = subprocess.Popen([sys.executable, "-m", "trackmeter.cli.main", "track", "--source", "sim", "--auto", "4",
+                             "--out", str(out)], stdin=its_other_end, stdout=its_other_end, stderr=its_other_end,
+                            start_new_session=True)
+    os.close(its_other_end)
+    shown: list[bytes] = []
+
+    def read_the_terminal() -> None:  # a terminal reads what it is given, or the run would block on it
+        with contextlib.suppress(OSError):
+            while chunk := os.read(terminal, 4096):
+                shown.append(chunk)
+
+    reader = threading.Thread(target=read_the_terminal, daemon=True)
+    reader.start()
+    try:
+        deadline = time.monotonic() + 120
+        while not (out / "states.csv").exists() or len((out / "states.csv").read_text().splitlines()) < 4:
+            assert proc.poll() is None and time.monotonic() < deadline, b"".join(shown).decode(errors="replace")
+            time.sleep(0.2)
+        os.close(terminal)
+        proc.send_signal(signal.SIGHUP)
+        assert proc.wait(timeout=60) == 130
+    finally:
+        proc.kill()
+    meta = yaml.safe_load((out / "run.yaml").read_text())
+    assert meta["status"] == "interrupted"
+    assert len(read_motion_csv(out / "states.csv")) == meta["summary"]["frames"] >= 3
+
+
+def test_a_run_under_nohup_keeps_ignoring_sighup(tmp_path) -> None:
+    # nohup starts a command with SIGHUP ignored so that it outlives its terminal: the stop
+    # handler must not take that over.
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "trackmeter.cli.main", "track", "--source", "sim", "--auto", "4",
+                             "--out", str(out)], stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN))
+    try:
+        deadline = time.monotonic() + 120
+
+        def frames_written() -> int:
+            return len((out / "states.csv").read_text().splitlines()) if (out / "states.csv").exists() else 0
+
+        while frames_written() < 4:
+            assert proc.poll() is None and time.monotonic() < deadline, "track ended or never wrote a frame"
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGHUP)
+        after_hup = frames_written()
+        while frames_written() < after_hup + 5:
+            assert proc.poll() is None and time.monotonic() < deadline, "SIGHUP stopped a run started under nohup"
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130 and "interrupted after" in err, err
 
 
 # --------------------------------------------------------------------------- rig and frame size

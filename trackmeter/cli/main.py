@@ -19,9 +19,10 @@ import signal
 import sys
 import threading
 import warnings
-from typing import Callable, NoReturn, Sequence, TextIO
+from typing import Any, Callable, NoReturn, Sequence, TextIO
 
 from trackmeter.errors import TrackmeterError
+from trackmeter.signals import STOP_SIGNALS, takes_over
 
 #: name -> one-line help. The module ``trackmeter.cli.<name>`` implements it.
 COMMANDS: dict[str, str] = {
@@ -80,26 +81,79 @@ def _command_module(name: str):  # type: ignore[no-untyped-def]
 
 
 def _interrupt(signum: int, frame: object) -> None:
-    """The first Ctrl-C or SIGTERM stops the command (KeyboardInterrupt); any later one is
-    only noted. A second signal arrives while the command winds down (Ctrl-C pressed twice;
-    a wrapper such as ``timeout`` passing on the SIGTERM a service manager also sends):
+    """The first Ctrl-C, SIGTERM or SIGHUP stops the command (KeyboardInterrupt); any later
+    one is only noted. A second signal arrives while the command winds down (Ctrl-C pressed
+    twice; a wrapper such as ``timeout`` passing on the SIGTERM a service manager also sends):
     raised again, it would cut the wind-down short (a recording or a run left half-closed)
     or land inside the interpreter's own lock handling (``RuntimeError: release unlocked
     lock``)."""
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        if signal.getsignal(sig) is _interrupt:
-            signal.signal(sig, _already_stopping)
+    _swap_handlers(_interrupt, _already_stopping)
+    if signum == getattr(signal, "SIGHUP", None):
+        _outlive_the_terminal()
     raise KeyboardInterrupt
 
 
 def _already_stopping(signum: int, frame: object) -> None:
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        if signal.getsignal(sig) is _already_stopping:
-            signal.signal(sig, signal.SIG_IGN)  # said once is enough
+    _swap_handlers(_already_stopping, _ignore_repeat)  # said once is enough
     # os.write, not print: the signal may land while the main thread is inside a print to
     # stderr, and a re-entered buffered write raises.
     with contextlib.suppress(OSError):
         os.write(2, b"trackmeter: stopping already; the files are being completed\n")
+
+
+def _ignore_repeat(signum: int, frame: object) -> None:
+    """A stop signal once the command has stopped or said so: nothing to do. A Python
+    handler, not SIG_IGN: signals of a burst already pending when the handler is swapped
+    are still delivered to Python, which reports one that finds SIG_IGN as a traceback
+    ("Signal 15 ignored due to race condition")."""
+
+
+def _swap_handlers(installed: object, replacement: Callable[[int, object], None] | signal.Handlers) -> None:
+    """Replace ``installed`` by ``replacement`` wherever it handles a stop signal."""
+    for sig in STOP_SIGNALS:
+        if signal.getsignal(sig) is installed:
+            signal.signal(sig, replacement)
+
+
+class _ForgivingStream:
+    """A text stream whose writes and flushes may fail silently: after a hang-up the terminal
+    is usually gone (writes raise EIO), and a command's last lines must not turn a clean
+    stop, its files already complete, into an error. Output redirected to a file still
+    gets them."""
+
+    def __init__(self, stream: TextIO) -> None:
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        try:
+            return self._stream.write(text)
+        except (OSError, ValueError):
+            return len(text)
+
+    def flush(self) -> None:
+        with contextlib.suppress(OSError, ValueError):
+            self._stream.flush()
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._stream, name)
+
+
+_streams_before_hangup: tuple[TextIO, TextIO] | None = None
+
+
+def _outlive_the_terminal() -> None:
+    global _streams_before_hangup
+    if _streams_before_hangup is None:
+        _streams_before_hangup = (sys.stdout, sys.stderr)
+        sys.stdout = _ForgivingStream(sys.stdout)  # type: ignore[assignment]
+        sys.stderr = _ForgivingStream(sys.stderr)  # type: ignore[assignment]
+
+
+def _restore_streams() -> None:
+    global _streams_before_hangup
+    if _streams_before_hangup is not None:
+        sys.stdout, sys.stderr = _streams_before_hangup
+        _streams_before_hangup = None
 
 
 def _describe_os_error(exc: OSError) -> str:
@@ -167,11 +221,13 @@ def _main(argv: Sequence[str] | None) -> int:
     # complete, the console's raised CPU priority given back (killed outright, none of that).
     in_main_thread = threading.current_thread() is threading.main_thread()
     interrupted = False
+    previous: dict[int, Any] = {}  # the handlers found, of the signals taken over
     if in_main_thread:
-        previous_int = signal.getsignal(signal.SIGINT)
-        previous = signal.signal(signal.SIGTERM, _interrupt)
-        if previous_int is signal.default_int_handler:  # an inherited SIG_IGN (nohup, `cmd &`) stays
-            signal.signal(signal.SIGINT, _interrupt)
+        for sig in STOP_SIGNALS:
+            found = signal.getsignal(sig)
+            if takes_over(sig, found):
+                previous[sig] = found
+                signal.signal(sig, _interrupt)
     try:
         return int(_command_module(args.command).run(args) or 0)
     except TrackmeterError as exc:
@@ -187,8 +243,7 @@ def _main(argv: Sequence[str] | None) -> int:
     except KeyboardInterrupt as exc:
         interrupted = True
         if in_main_thread:  # the command has stopped: a second Ctrl-C must not cut its last line
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
-            signal.signal(signal.SIGTERM, signal.SIG_IGN)
+            _ignore_stop_signals(previous)
         # A command may say what it kept (KeyboardInterrupt("interrupted after ...")).
         print(f"trackmeter {args.command}: {exc.args[0] if exc.args else 'interrupted'}", file=sys.stderr)
         return 130
@@ -199,13 +254,18 @@ def _main(argv: Sequence[str] | None) -> int:
         # a second Ctrl-C would kill it in the interpreter's shutdown (-SIGINT instead of its
         # exit code). A caller passing argv gets its handlers back.
         if in_main_thread:
-            signalled = interrupted or signal.getsignal(signal.SIGTERM) is not _interrupt
+            signalled = interrupted or any(signal.getsignal(sig) is not _interrupt for sig in previous)
             if signalled and argv is None:
-                signal.signal(signal.SIGINT, signal.SIG_IGN)
-                signal.signal(signal.SIGTERM, signal.SIG_IGN)
+                _ignore_stop_signals(previous)
             else:
-                signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
-                signal.signal(signal.SIGINT, signal.SIG_DFL if previous_int is None else previous_int)
+                for sig, handler in previous.items():
+                    signal.signal(sig, signal.SIG_DFL if handler is None else handler)
+                _restore_streams()  # a caller in the same process gets its own streams back
+
+
+def _ignore_stop_signals(taken_over: dict[int, Any]) -> None:
+    for sig in taken_over:
+        signal.signal(sig, _ignore_repeat)
 
 
 if __name__ == "__main__":

@@ -52,6 +52,7 @@ from trackmeter.core.patch_tracking import warm_up
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.targets import TargetState
 from trackmeter.errors import TrackmeterError
+from trackmeter.signals import STOP_SIGNALS
 from trackmeter.pipeline.snapshot import (
     ClearTargets,
     Command,
@@ -855,8 +856,8 @@ def run_headless(
 
 @contextlib.contextmanager
 def interrupts_deferred(message: Callable[[], str] | None = None) -> Iterator[None]:
-    """Hold SIGINT and SIGTERM off while the block runs (threads winding down, files being
-    closed) and, when one came, hand it after the block to the handler it found there; a
+    """Hold the stop signals (SIGINT, SIGTERM, SIGHUP) off while the block runs (threads
+    winding down, files being closed) and, when one came, hand it after the block to the handler it found there; a
     KeyboardInterrupt that handler raises (Python's own Ctrl-C handler, or a SIGTERM left at
     its default, which would kill) is raised with ``message()`` as its text.
 
@@ -874,7 +875,7 @@ def interrupts_deferred(message: Callable[[], str] | None = None) -> Iterator[No
     def hold(signum: int, frame: object) -> None:
         caught.append(signum)
 
-    previous = {sig: signal.signal(sig, hold) for sig in (signal.SIGINT, signal.SIGTERM)}
+    previous = {sig: signal.signal(sig, hold) for sig in STOP_SIGNALS}
     try:
         yield
     finally:
