@@ -17,14 +17,15 @@ see the same thing and a browser that connects late gets the current state at on
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import ctypes.util
 import logging
 import threading
 import time
 from collections import deque
-from html import escape
 from concurrent.futures import Future
+from html import escape
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +36,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from console.overlay import (STATUS_RGB, box_half_px, box_segments, draw_overlays, nearest_target,
-                             node_rgb_for, pixel_to_plane, ray_to_pixel, to_rgb)
+                             image_view, node_rgb_for, pixel_to_plane, ray_to_pixel, to_rgb)
 from console.series import PLOTS, PlotData
 from trackmeter.core.stereo import StereoRig
 from trackmeter.pipeline.engine import SelectModelPoints
@@ -71,6 +72,19 @@ AUTO_METHODS = ("gabor", "centroid")
 # The operator widget each toggle command comes from (Console._mirror), by command name.
 _WIDGETS_OF_COMMAND = {"SetAuto": ("auto", "auto_count"), "SetRecording": ("record",), "SetCase": ("case",),
                        "SetFilterCutoff": ("cutoff",)}
+#: What a command's pop-up is titled: the control the operator used, not the command's class.
+_COMMAND_TITLES = {"SetAuto": "Automatic selection", "SetRecording": "Record", "SetCase": "Case",
+                   "SetFilterCutoff": "Filter cutoff", "ClearTargets": "Clear targets", "RemoveTarget": "Remove target",
+                   "AcquireModel": "Acquire model", "LoadModel": "Load model", "SetPaused": "Pause",
+                   "StepOnce": "Step", "RestartSource": "Restart", "ResetTracking": "Reset tracking",
+                   "SelectModelPoints": "Click the model points"}
+
+
+def _pixel_text(uv: tuple[float, float]) -> str:
+    """``(u, v)`` to the whole pixel; a click on the border (-0.5) reads 0, not "-0"."""
+    return f"({round(uv[0])}, {round(uv[1])})"
+
+
 #: A typed filter cutoff is sent once the field has held it this long, s: viser sends every
 #: keystroke of a number field, and "0.5" passes 0, which the filter refuses (each accepted
 #: value also rebuilds the filter).
@@ -296,6 +310,7 @@ class Console:
         self._pending: deque[tuple[Future[CommandReply], Any, str]] = deque()
         self._pending_lock = threading.Lock()
         self._views: dict[int, list[Any]] = {}  # client id -> [client, preset, aspect framed for]
+        self._popups: dict[int, Any] = {}  # client id -> the pop-up it shows last
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._unsubscribe: Any = None
@@ -594,9 +609,9 @@ class Console:
         when the point is refused (refusals are common on a turning body)."""
         model_point = self.model_point_dropdown.value
         if model_point == NEW_TARGET:
-            return self.submit(SelectPoint(uv[0], uv[1]), client, f"Target at ({uv[0]:.0f}, {uv[1]:.0f})")
+            return self.submit(SelectPoint(uv[0], uv[1]), client, f"Target at {_pixel_text(uv)}")
         future = self.submit(SelectPoint(uv[0], uv[1], model_point), client,
-                             f"Model point {model_point} at ({uv[0]:.0f}, {uv[1]:.0f})")
+                             f"Model point {model_point} at {_pixel_text(uv)}")
 
         def used_up(done: Future[CommandReply]) -> None:
             if not done.cancelled() and done.exception() is None and done.result().ok \
@@ -615,7 +630,7 @@ class Console:
         if target is None:
             self._notify(event.client, "Nothing to remove", "there are no targets", ok=False)
             return
-        self.submit(RemoveNearest(uv[0], uv[1]), event.client, f"Remove target near ({uv[0]:.0f}, {uv[1]:.0f})")
+        self.submit(RemoveNearest(uv[0], uv[1]), event.client, f"Remove target near {_pixel_text(uv)}")
 
     def _event_pixel(self, event: Any) -> tuple[float, float] | None:
         if self._image_size is None:
@@ -624,14 +639,24 @@ class Console:
                             self._image_size, self.render_size)
 
     def _notify(self, client: Any, title: str, body: str, ok: bool) -> None:
+        """Answer ``client`` with a pop-up, which replaces the one it showed before: pop-ups
+        stack from the view's top-left corner, and a stack of them (quick clicks, several
+        refused) would cover the image there and catch the clicks meant for it."""
         self.notifications.append((title, body))
         if client is None:
             return
         try:
-            client.add_notification(title, body, auto_close_seconds=4.0 if ok else 8.0,
-                                    color="green" if ok else "red")
+            shown = client.add_notification(title, body, auto_close_seconds=4.0 if ok else 8.0,
+                                            color="green" if ok else "red")
         except Exception as exc:  # the browser went away
             log.debug("notification not sent: %s", exc)
+            return
+        with self._pending_lock:
+            before = self._popups.get(client.client_id)
+            self._popups[client.client_id] = shown
+        if before is not None:
+            with contextlib.suppress(Exception):  # closed already, or the browser went away
+                before.remove()
 
     # ------------------------------------------------------------------ clients and views
     def _on_connect(self, client: viser.ClientHandle) -> None:
@@ -643,6 +668,7 @@ class Console:
     def _on_disconnect(self, client: viser.ClientHandle) -> None:
         with self._pending_lock:
             self._views.pop(client.client_id, None)
+            self._popups.pop(client.client_id, None)
 
     def _frame_clients(self) -> None:
         with self._pending_lock:
@@ -682,15 +708,12 @@ class Console:
                 client.camera.position = (mid, 0.0, -14.5)
                 client.camera.look_at = (mid, 0.0, 0.0)
             else:
-                # Fit the whole image in the view (height and width), with a small margin.
-                tan_half = np.tan(np.radians(50.0) / 2)
                 try:
                     aspect = float(client.camera.aspect)
                 except (AssertionError, ZeroDivisionError):
                     aspect = 16 / 9
-                d = 1.04 * max((rh / 2) / tan_half, (rw / 2) / (tan_half * aspect))
-                client.camera.position = (0.0, 0.0, -d)
-                client.camera.look_at = (0.0, 0.0, 0.0)
+                client.camera.position, client.camera.look_at = image_view(self.render_size, aspect,
+                                                                           np.radians(50.0))
 
     # ------------------------------------------------------------------ snapshots
     def _on_snapshot(self, snap: Snapshot) -> None:
@@ -765,7 +788,8 @@ class Console:
             if not reply.ok:  # the widget the operator changed shows the tracker's state again
                 for name in _WIDGETS_OF_COMMAND.get(label, ()):
                     self._mirrored.pop(name, None)
-            title = label if reply.ok else f"{label}: refused"
+            title = _COMMAND_TITLES.get(label, label)
+            title = title if reply.ok else f"{title}: refused"
             self._notify(client, title, reply.message or ("ok" if reply.ok else "refused"), reply.ok)
 
     def _push(self, snap: Snapshot, plots: bool, text: bool = True) -> None:

@@ -88,6 +88,37 @@ def box_segments(
     return np.concatenate([ends, np.full((len(ends), 2, 1), z)], axis=2).astype(np.float32)
 
 
+#: Of the view the image preset leaves around the image, at least this fraction of the image's
+#: half-extent on the axis that limits it.
+VIEW_MARGIN = 0.04
+
+
+def image_view(render_size: tuple[float, float], aspect: float, fov_y_rad: float) -> tuple[
+        tuple[float, float, float], tuple[float, float, float]]:
+    """The browser camera's ``(position, look_at)`` that shows the whole left image (centred
+    on the scene origin, facing -z; see the module docstring) in a view of ``aspect`` (width
+    / height) and vertical field of view ``fov_y_rad``, with up along -y.
+
+    The image fills the view along the axis that limits it, leaving :data:`VIEW_MARGIN`; the
+    room left over on the other axis is put above and to the left of the image, not split
+    around it: the browser's pop-ups (a click's answer) stack from the view's top-left corner
+    and would otherwise lie over the image and catch the clicks meant for it.
+
+    With the camera at ``(cx, cy, -d)`` looking along +z, the view spans ``d tan(fov/2)`` up
+    and down and ``aspect`` times that sideways; the image's right and bottom edges are put at
+    the limiting axis's margin from the view's.
+    """
+    rw, rh = render_size
+    tan_half = float(np.tan(fov_y_rad / 2.0))
+    d = (1.0 + VIEW_MARGIN) * max((rh / 2) / tan_half, (rw / 2) / (tan_half * aspect))
+    half_h = d * tan_half
+    half_w = half_h * aspect
+    gap = min(half_w - rw / 2, half_h - rh / 2)  # the limiting axis's margin, >= 0
+    cx = rw / 2 - half_w + gap
+    cy = rh / 2 - half_h + gap
+    return (cx, cy, -d), (cx, cy, 0.0)
+
+
 #: How far outside the image (px) a click ray may land and still be the edge pixel.
 EDGE_SLACK_PX = 0.5
 

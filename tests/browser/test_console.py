@@ -159,7 +159,7 @@ def test_malformed_model_file_loaded_from_the_ui_is_refused_and_the_console_goes
     wait_for(lambda: len(running_console.console.notifications) > n_notes, 10, "the console's answer")
     title, body = running_console.console.notifications[-1]
     assert title.endswith("refused") and "model.yaml" in body, (title, body)
-    page.get_by_text("LoadModel: refused", exact=False).first.wait_for(timeout=10_000)  # shown in the page
+    page.get_by_text("Load model: refused", exact=False).first.wait_for(timeout=10_000)  # shown in the page
     time.sleep(0.5)  # the notification slides in
     page.screenshot(path=str(artifacts / "07_malformed_model.png"))
     done = running_console.pipeline.latest().timings.frames_processed
