@@ -313,6 +313,38 @@ def test_data_csv_with_no_usable_row_says_what_a_row_must_be(tmp_path):
         SequenceSource(d)
 
 
+def test_a_header_without_its_hash_is_a_header_not_a_bad_row(tmp_path):
+    d = _write(tmp_path / "s", _frames(3))
+    for cam in ("cam0", "cam1"):
+        rows = (d / cam / "data.csv").read_text().splitlines()
+        (d / cam / "data.csv").write_text("\n".join(["timestamp,filename"] + rows[1:]) + "\n")
+    index = index_sequence(d)
+    assert len(index) == 3 and index.warnings == () and index.skipped == 0
+
+
+def test_a_data_csv_without_rows_says_so(tmp_path):
+    d = _write(tmp_path / "s", _frames(3))
+    (d / "cam1" / "data.csv").write_text("#timestamp [ns],filename\n")
+    with pytest.raises(TrackmeterError, match=r"cam1.data\.csv: lists no image"):
+        index_sequence(d)
+
+
+@pytest.mark.parametrize("unit_ns, what", [(1000, "microseconds"), (40_000_000, "frame numbers")])
+def test_timestamps_in_another_unit_than_nanoseconds_are_warned(tmp_path, unit_ns, what):
+    # microseconds (25 kHz read as ns) or frame numbers (1 GHz): the motion model would be
+    # given intervals a thousand times too short and tracking fails without saying why.
+    d = _write(tmp_path / "s", _frames(4))
+    for cam in ("cam0", "cam1"):
+        rows = (d / cam / "data.csv").read_text().splitlines()
+        scaled = [rows[0]] + [f"{int(r.split(',')[0]) // unit_ns},{r.split(',')[1]}" for r in rows[1:]]
+        (d / cam / "data.csv").write_text("\n".join(scaled) + "\n")
+    index = index_sequence(d)
+    assert len(index) == 4
+    (warning,) = [w for w in index.warnings if "nanoseconds" in w]
+    assert "Hz" in warning
+    assert index_sequence(_write(tmp_path / "ns", _frames(4))).warnings == ()
+
+
 def test_unreadable_image_skipped_at_read(tmp_path):
     d = _write(tmp_path / "s", _frames(3))
     (d / "cam1" / "data" / "40000000.png").write_bytes(b"not a png")

@@ -28,6 +28,7 @@ that plays a folder is :class:`trackmeter.sources.sequence.SequenceSource`.
 from __future__ import annotations
 
 import os
+import re
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -324,6 +325,11 @@ def find_sequence_file(directory: str | Path, *names: str) -> Path | None:
     return None
 
 
+#: Above this frame rate a sequence's timestamps are taken for another unit than nanoseconds
+#: (microseconds give 25 kHz for a 25 Hz camera, frame numbers 1 GHz), and warned about.
+MAX_PLAUSIBLE_RATE_HZ = 2000.0
+
+
 def _read_data_csv(path: Path) -> tuple[list[tuple[int, Path]], int, int]:
     """Rows ``(ns, image path)`` of one camera's data.csv, plus counts of bad rows and missing files.
 
@@ -343,11 +349,16 @@ def _read_data_csv(path: Path) -> tuple[list[tuple[int, Path]], int, int]:
     complete, tail = lines[:-1], lines[-1]
     if tail.strip():
         bad += 1
+    header_allowed = True
     for line in complete:
         s = line.strip()
         if not s or s.startswith("#"):
             continue
         parts = [p.strip() for p in s.split(",")]
+        if header_allowed:  # the first row may be a header written without EuRoC's '#'
+            header_allowed = False
+            if re.fullmatch(r"[A-Za-z_ \[\]()]+", parts[0]):
+                continue
         try:
             if len(parts) < 2 or not parts[1]:
                 raise ValueError
@@ -433,6 +444,11 @@ def index_sequence(
     t_right = np.array([e[0] for e in right], dtype=np.int64)
     if tolerance_s is None:
         tolerance_s = 0.25 * float(ns_to_seconds(np.median(np.diff(t_left)))) if len(t_left) > 1 else 1e-3
+    for cam, entries, missing in (("cam0", left, miss_l), ("cam1", right, miss_r)):
+        if not entries:
+            path = root / cam / "data.csv"
+            raise TrackmeterError(f"{path}: none of the {missing} image(s) it lists exists" if missing
+                                  else f"{path}: lists no image")
     pairs = pair_by_nearest(ns_to_seconds(t_left), ns_to_seconds(t_right), tolerance_s)
     unpaired = (len(left) - len(pairs)) + (len(right) - len(pairs))
     warnings: list[str] = []
@@ -445,6 +461,10 @@ def index_sequence(
     if not pairs:
         raise TrackmeterError(f"{directory}: no stereo pair (left and right timestamps within {tolerance_s * 1e3:.3g} ms)")
     t_s = ns_to_seconds(np.array([t_left[i] for i, _ in pairs], dtype=np.int64))
+    if len(t_s) > 1 and (dt := float(np.median(np.diff(t_s)))) > 0 and 1.0 / dt > MAX_PLAUSIBLE_RATE_HZ:
+        warnings.append(f"frames {dt * 1e6:.4g} µs apart ({1.0 / dt:.0f} Hz): data.csv timestamps are "
+                        "nanoseconds; are these microseconds or frame numbers? (tracking would take "
+                        "the motion between frames as that fast)")
     rig_file = find_sequence_file(directory, "rig.yaml")
     rig: StereoRig | None = None
     if not read_rig:
