@@ -329,3 +329,48 @@ def test_a_truth_in_integer_nanoseconds_is_read_as_such_with_a_warning(capsys, s
     assert code == 0, err
     assert "its times read as integer nanoseconds" in err and len(err.strip().splitlines()) == 1, err
     assert _flat(json.loads(out)) == pytest.approx(_flat(expected), abs=1e-9)
+
+
+def _report_files(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+
+
+def test_a_disk_that_fills_leaves_the_earlier_report_whole_and_no_part_of_the_new(capsys, sequence_and_run, full_disk):
+    _, seq, run = sequence_and_run
+    out = run.parent / "report"
+    assert _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--out", str(out))[0] == 0
+    before = _report_files(out)
+    assert {"summary.json", "errors.csv", "report.md", "position_error.png"} <= set(before)
+    full_disk(20_000)  # room for the text files, not for the plots as well
+    code, _, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--align", "body",
+                        "--out", str(out))
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "No space left on device" in err, err
+    assert str(out) in err
+    assert _report_files(out) == before  # every file the earlier report's, nothing beside them
+
+
+def test_out_refuses_a_sequence_folder_and_a_file(capsys, sequence_and_run):
+    _, seq, run = sequence_and_run
+    recording = run.parent / "recording"
+    for cam in ("cam0", "cam1"):
+        (recording / cam).mkdir(parents=True)
+        (recording / cam / "data.csv").write_text("#timestamp [ns],filename\n")
+    a_file = run.parent / "file.txt"
+    a_file.write_text("x")
+    for out, message in ((recording, "a sequence folder"), (a_file, "not a folder")):
+        code, _, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--out", str(out))
+        assert code == 2 and message in err and len(err.strip().splitlines()) == 1, err
+    assert sorted(p.name for p in recording.iterdir()) == ["cam0", "cam1"]
+
+
+def test_a_run_replaced_with_overwrite_loses_its_old_evaluation(capsys, tmp_path):
+    seq = tmp_path / "seq"
+    assert main(["simulate", "--duration", "0.25", "--out", str(seq)]) == 0
+    run = tmp_path / "run"
+    assert main(["track", "--source", str(seq), "--select-model-points", "--out", str(run)]) == 0
+    assert main(["evaluate", "--truth", str(seq), "--estimate", str(run), "--out", str(run)]) == 0
+    assert (run / "report.md").is_file() and (run / "position_error.png").is_file()
+    assert main(["track", "--source", str(seq), "--auto", "4", "--out", str(run), "--overwrite"]) == 0
+    capsys.readouterr()
+    assert not any((run / name).exists() for name in ("report.md", "summary.json", "errors.csv", "position_error.png"))
+    assert (run / "states.csv").is_file() and (run / "run.yaml").is_file()

@@ -61,9 +61,12 @@ def _params(args: argparse.Namespace):  # type: ignore[no-untyped-def]
 
 def run(args: argparse.Namespace) -> int:
     from trackmeter.core.metrics import evaluate
-    from trackmeter.data.evaluation import format_summary, in_seconds, load_estimate, load_truth, write_evaluation
+    from trackmeter.data.evaluation import (check_report_directory, format_summary, in_seconds, load_estimate,
+                                             load_truth, write_evaluation)
 
     params = _params(args)
+    if args.out:
+        check_report_directory(args.out)  # before the work, which may take a while
     truth = load_truth(args.truth)
     estimate = load_estimate(args.estimate)
     truth, estimate = in_seconds(truth, estimate, params.tolerance_s)

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from trackmeter.core.error_analysis import DensityFit, ErrorAnalysis
-from trackmeter.data.evaluation import _save_figure
+from trackmeter.data.evaluation import save_figure
 from trackmeter.data.atomic import write_text_atomic
 from trackmeter.data.jsontext import json_text
 
@@ -100,7 +100,7 @@ def _plot(analysis: ErrorAnalysis, out: Path) -> list[Path]:
     fig.suptitle(f"single-point sigma vs range (paper Fig. 3); sigma_d = {analysis.sigma_disparity_px:.4f} px")
     fig.tight_layout()
     p1 = out / "sigma_vs_range.png"
-    _save_figure(fig, p1)
+    save_figure(fig, p1)
     plt.close(fig)
 
     def panel(ax, d: DensityFit, scale: float, unit: str, title: str) -> None:  # type: ignore[no-untyped-def]
@@ -121,7 +121,7 @@ def _plot(analysis: ErrorAnalysis, out: Path) -> list[Path]:
     fig.suptitle("error probability density (paper Fig. 2)")
     fig.tight_layout()
     p2 = out / "error_density.png"
-    _save_figure(fig, p2)
+    save_figure(fig, p2)
     plt.close(fig)
     return [p1, p2]
 

@@ -11,7 +11,7 @@ import contextlib
 import os
 import tempfile
 from pathlib import Path
-from typing import Iterator
+from typing import Iterator, Mapping
 
 from trackmeter.errors import TrackmeterError
 
@@ -42,6 +42,41 @@ def atomic_path(path: str | Path, suffix: str = "") -> Iterator[Path]:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def write_files_atomic(contents: Mapping[Path, bytes]) -> None:
+    """Write several files as one piece of work (a report's summary, table and plots).
+
+    Each is first written whole to a temporary file beside it; only when every one is whole
+    are they renamed over their targets. On a failure while writing (a disk that fills) the
+    temporaries are removed and every target is left as it was: an earlier report stays
+    whole, not mixed with half of the new one.
+
+    Raises:
+        TrackmeterError: a file could not be written (naming it and the OS's reason).
+    """
+    written: list[tuple[Path, Path]] = []  # (temporary, target)
+    target = None
+    try:
+        for target, data in contents.items():
+            target.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp_name = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.")
+            written.append((Path(tmp_name), target))
+            try:
+                view = memoryview(data)
+                while view:
+                    view = view[os.write(fd, view):]
+            finally:
+                os.close(fd)
+            os.chmod(tmp_name, 0o666 & ~_umask())
+    except BaseException as exc:
+        for tmp, _ in written:
+            tmp.unlink(missing_ok=True)
+        if isinstance(exc, OSError):
+            raise TrackmeterError(f"{target}: cannot write: {exc.strerror or exc}") from None
+        raise
+    for tmp, target in written:
+        os.replace(tmp, target)
 
 
 def unwritable_ancestor(path: str | Path) -> Path | None:

@@ -22,9 +22,9 @@ import yaml
 
 from trackmeter.core.metrics import Evaluation, associate
 from trackmeter.data.motion_csv import MotionSeries, header_fields, is_comment_line, read_motion_csv
-from trackmeter.data.atomic import write_text_atomic
+from trackmeter.data.atomic import unwritable_ancestor, write_files_atomic
 from trackmeter.data.jsontext import json_text
-from trackmeter.data.sequence import find_sequence_file, seconds_if_nanoseconds
+from trackmeter.data.sequence import find_sequence_file, is_sequence_folder, seconds_if_nanoseconds
 from trackmeter.data.trajectory import read_tum
 from trackmeter.errors import TrackmeterError
 
@@ -312,9 +312,9 @@ def error_table_csv(evaluation: Evaluation) -> str:
     return ",".join(cols) + "\n" + "".join(",".join(repr(float(v)) for v in row) + "\n" for row in table)
 
 
-def plot_errors(evaluation: Evaluation, out_dir: Path) -> list[Path]:
+def render_error_plots(evaluation: Evaluation) -> dict[str, bytes]:
     """PNG plots of the errors against time, one panel per axis (the paper's Figs. 6 and 7),
-    in mm, deg, mm/s and deg/s, with the paper's ± bounds dashed. Returns the files written."""
+    in mm, deg, mm/s and deg/s, with the paper's ± bounds dashed: file name -> PNG bytes."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -332,7 +332,7 @@ def plot_errors(evaluation: Evaluation, out_dir: Path) -> list[Path]:
     groups = [("position_m", e.position_m), ("attitude_rad", e.attitude_rad)]
     if e.velocity_m_s is not None and e.omega_rad_s is not None:
         groups += [("velocity_m_s", e.velocity_m_s), ("omega_rad_s", e.omega_rad_s)]
-    written = []
+    plots = {}
     for group, values in groups:
         title, unit, scale = _DISPLAY[group]
         fig, axes = plt.subplots(3, 1, figsize=(8, 6.5), sharex=True)
@@ -346,34 +346,57 @@ def plot_errors(evaluation: Evaluation, out_dir: Path) -> list[Path]:
         axes[0].set_title(f"{title} error (estimate - truth); dashed: paper at 3.5 m (z = viewing axis)")
         axes[-1].set_xlabel("time since the first evaluated pose [s]")
         fig.tight_layout()
-        path = out_dir / f"{group.split('_')[0]}_error.png"
-        _save_figure(fig, path)
+        plots[f"{group.split('_')[0]}_error.png"] = figure_png(fig)
         plt.close(fig)
-        written.append(path)
-    return written
+    return plots
 
 
-def _save_figure(fig, path: Path) -> None:  # type: ignore[no-untyped-def]
-    """Save a matplotlib figure atomically (temporary name, then rename)."""
-    tmp = path.with_name(f".{path.stem}.tmp.png")
-    try:
-        fig.savefig(tmp, dpi=110)
-        tmp.replace(path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+def figure_png(fig) -> bytes:  # type: ignore[no-untyped-def]
+    """A matplotlib figure as PNG bytes (written to disk by the caller, with its other files)."""
+    import io
+
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=110)
+    return buffer.getvalue()
+
+
+def save_figure(fig, path: Path) -> None:  # type: ignore[no-untyped-def]
+    """Save a matplotlib figure as a PNG, atomically."""
+    write_files_atomic({Path(path): figure_png(fig)})
+
+
+#: The files ``write_evaluation`` puts in its folder (a report of a run is stale once the run
+#: is replaced: ``track --overwrite`` removes them).
+REPORT_FILES = ("summary.json", "errors.csv", "report.md", "position_error.png", "attitude_error.png",
+                "velocity_error.png", "omega_error.png")
+
+
+def check_report_directory(directory: str | Path) -> Path:
+    """``directory`` as a Path when a report can be written there; nothing is created.
+
+    Raises:
+        TrackmeterError: it is a file, a sequence folder (a recording is not mixed with
+            reports), or its nearest existing parent is not a folder this process may write in.
+    """
+    path = Path(directory)
+    if path.exists() and not path.is_dir():
+        raise TrackmeterError(f"{path}: exists and is not a folder")
+    if is_sequence_folder(path):
+        raise TrackmeterError(f"{path}: a sequence folder (cam0/, cam1/): a report does not go into a recording; "
+                              "choose another --out")
+    blocked = unwritable_ancestor(path)
+    if blocked is not None:
+        raise TrackmeterError(f"{path}: cannot create a report folder there ({blocked} is not a writable folder)")
+    return path
 
 
 def write_evaluation(
     evaluation: Evaluation, out_dir: str | Path, truth: str, estimate: str, align: str, settle_s: float
 ) -> list[Path]:
     """Write ``summary.json``, ``errors.csv``, the PNG plots and ``report.md`` into ``out_dir``."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = check_report_directory(out_dir)
     s = evaluation.summary
-    write_text_atomic(out / "summary.json", json_text(s) + "\n")
-    write_text_atomic(out / "errors.csv", error_table_csv(evaluation))
-    plots = plot_errors(evaluation, out)
+    plots = render_error_plots(evaluation)
     offset = ""
     if evaluation.body_offset is not None:
         from scipy.spatial.transform import Rotation
@@ -410,6 +433,8 @@ below); angular velocity errors are in the body frame (eq. 14).
 
 ## Plots
 
-""" + "".join(f"![{p.stem}]({p.name})\n" for p in plots)
-    write_text_atomic(out / "report.md", report)
-    return [out / "summary.json", out / "errors.csv", *plots, out / "report.md"]
+""" + "".join(f"![{Path(name).stem}]({name})\n" for name in plots)
+    files = {out / "summary.json": (json_text(s) + "\n").encode(), out / "errors.csv": error_table_csv(evaluation).encode(),
+             **{out / name: png for name, png in plots.items()}, out / "report.md": report.encode()}
+    write_files_atomic(files)
+    return list(files)

@@ -137,6 +137,11 @@ class RunWriter:
                 with contextlib.suppress(OSError):
                     self.directory.rmdir()
             raise
+        if overwrite:  # a report of the run replaced would describe the new one wrongly
+            from trackmeter.data.evaluation import REPORT_FILES
+
+            for name in REPORT_FILES:
+                (self.directory / name).unlink(missing_ok=True)
         self.frames = 0
         self.valid_frames = 0
         # Valid poses carried on the motion model with no point measured (the states.csv
