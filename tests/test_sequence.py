@@ -533,6 +533,17 @@ def test_model_round_trip(tmp_path):
     assert np.array_equal(back.point("tip"), m.points_body[2])
 
 
+def test_model_ids_that_look_like_numbers_are_read_as_written(tmp_path):
+    # YAML 1.1 reads 010 as octal 8 and 0x1f as 31: an id is a name, so it is its text, and
+    # --target 010=U,V must find it.
+    path = tmp_path / "model.yaml"
+    path.write_text("points:\n- {id: 010, xyz: [0, 0, 0]}\n- {id: 0x1f, xyz: [0.1, 0, 0]}\n"
+                    "- {id: 1.50, xyz: [0, 0.1, 0]}\n- {id: 7, xyz: [0, 0, 0.1]}\n")
+    model = load_model(path)
+    assert model.ids == ("010", "0x1f", "1.50", "7")
+    assert np.allclose(model.point("010"), 0.0) and np.allclose(model.points_body[1], [0.1, 0, 0])
+
+
 @pytest.mark.parametrize(
     "text, match",
     [
@@ -542,6 +553,9 @@ def test_model_round_trip(tmp_path):
         ("points: [{id: a, xyz: [0,0,0]}, {id: b, xyz: [1,0]}, {id: c, xyz: [0,1,0]}]", r"points\[1\]\.xyz"),
         ("points: [{id: a, xyz: [0,0,0]}, {xyz: [1,0,0]}, {id: c, xyz: [0,1,0]}]", r"points\[1\]': missing key 'id'"),
         ("pts: []", "missing key 'points'"),
+        ("points: [{id: '', xyz: [0,0,0]}, {id: b, xyz: [1,0,0]}, {id: c, xyz: [0,1,0]}]", r"points\[0\]\.id: empty"),
+        ("points: [{id: a, xyz: [0,0,0]}, {id: b=c, xyz: [1,0,0]}, {id: c, xyz: [0,1,0]}]",
+         r"points\[1\]\.id 'b=c'.*'='"),
         ("name: estec_mockup\nmaterials: []\nparts: []", "missing key 'points'.*simulator mock-up's geometry, not a model"),
         ("points: [{id: a, xyz: [0,0,0]}, {id: b, xyz: [1,0,.inf]}, {id: c, xyz: [0,1,0]}]", r"xyz\[2\]': expected a finite number"),
         ("points: [a, b, c]", r"points\[0\]"),

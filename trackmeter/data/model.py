@@ -8,7 +8,8 @@ YAML, metres, body frame::
       - {id: antenna_tip, xyz: [0.0, 0.0, 1.2]}
 
 The a-priori model of pose case (b) (paper section 2.C) needs at least three points that are
-not collinear; ids are strings (numbers are read as their text) and must be unique. Other
+not collinear; ids are strings (numbers are read as written: ``010`` is "010", not 8), unique,
+not empty and without ``=`` (``--target ID=U,V`` names them). Other
 keys (``units: m``, a point's ``note``), which files from other tools carry, are ignored
 with one warning naming them; every check of ``points`` itself stays.
 """
@@ -127,6 +128,50 @@ def _drop_unknown_keys(data: dict[str, Any], path: Path) -> dict[str, Any]:
     return out
 
 
+class _IntAsWritten(int):
+    """An integer that remembers its text in the file (``010``, ``0x1f``, ``1_000``)."""
+
+    text: str
+
+
+class _FloatAsWritten(float):
+    """A float that remembers its text in the file (``1.50``, ``1e3``)."""
+
+    text: str
+
+
+class _ModelLoader(yaml.SafeLoader):
+    """A SafeLoader whose numbers keep their text: a point's id is a name, and YAML 1.1
+    would read ``010`` as 8 and ``0x1f`` as 31, which ``--target 010=U,V`` could never name."""
+
+
+def _as_written(kind: type) -> Any:
+    construct = {_IntAsWritten: yaml.SafeLoader.construct_yaml_int,
+                 _FloatAsWritten: yaml.SafeLoader.construct_yaml_float}[kind]
+
+    def build(loader: yaml.SafeLoader, node: yaml.ScalarNode) -> Any:
+        value = kind(construct(loader, node))
+        value.text = str(node.value)
+        return value
+
+    return build
+
+
+_ModelLoader.add_constructor("tag:yaml.org,2002:int", _as_written(_IntAsWritten))
+_ModelLoader.add_constructor("tag:yaml.org,2002:float", _as_written(_FloatAsWritten))
+
+
+def _check_ids(ids: Sequence[str], path: Path) -> None:
+    """Ids ``--target ID=U,V`` can name: not empty, no '=', no space around them."""
+    for i, name in enumerate(ids):
+        if not name.strip():
+            raise TrackmeterError(f"{path}: 'points[{i}].id: empty (a point needs a name)")
+        if "=" in name:
+            raise TrackmeterError(f"{path}: 'points[{i}].id {name!r} contains '=' (--target ID=U,V could not name it)")
+        if name != name.strip():
+            raise TrackmeterError(f"{path}: 'points[{i}].id {name!r} begins or ends with a space")
+
+
 def load_model(path: str | Path) -> Model:
     """Read a model file.
 
@@ -138,7 +183,7 @@ def load_model(path: str | Path) -> Model:
             ``id`` or ``xyz``, a non-numeric coordinate, fewer than 3 points, a repeated id.
     """
     path = Path(path)
-    data = read_yaml_mapping(path)
+    data = read_yaml_mapping(path, _ModelLoader)
     if "points" not in data:
         mockup = " (this is a simulator mock-up's geometry, not a model; a simulated sequence folder holds its model.yaml)" \
             if "parts" in data or "materials" in data else ""
@@ -151,9 +196,13 @@ def load_model(path: str | Path) -> Model:
                 for key in ("id", "xyz"):
                     if key not in entry:
                         raise TrackmeterError(f"{path}: 'points[{i}]': missing key '{key}'")
+                if isinstance(entry["id"], (_IntAsWritten, _FloatAsWritten)):
+                    entry["id"] = entry["id"].text  # a name: the text written, not the number read
     parsed = build_dataclass(_ModelFile, data, source=str(path))
+    ids = tuple(str(e.id) for e in parsed.points)
+    _check_ids(ids, path)
     try:
-        return Model(tuple(str(e.id) for e in parsed.points), np.array([e.xyz for e in parsed.points], dtype=float).reshape(-1, 3))
+        return Model(ids, np.array([e.xyz for e in parsed.points], dtype=float).reshape(-1, 3))
     except TrackmeterError as exc:
         raise TrackmeterError(f"{path}: {exc}") from None
 
