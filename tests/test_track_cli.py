@@ -544,6 +544,10 @@ def test_the_first_frame_is_summarised_as_the_frame_its_targets_start_on(tmp_pat
     assert "invalid in 1 frames: the first frame" in summary
     reasons = yaml.safe_load((out / "run.yaml").read_text())["summary"]["invalid_reasons"]
     assert not any("target them by id" in r for r in reasons)
+    # The 2 valid poses have no rates yet (states.csv valid 0): the line says so, not only "2 valid".
+    states = read_motion_csv(out / "states.csv")
+    pending = int(np.sum(~states.valid & np.isfinite(states.position_m[:, 0])))
+    assert pending == 2 and f"2 valid poses, {pending} of them before the rates were known" in summary
 
 
 def test_a_refusal_is_said_with_the_option_it_came_from(tmp_path, capsys) -> None:

@@ -345,7 +345,10 @@ def run(args: argparse.Namespace) -> int:
             elapsed = time.monotonic() - state["t0"]
             print(f"{writer.frames} frames in {elapsed:.1f} s ({writer.frames / max(elapsed, 1e-9):.1f} fps), "
                   f"{writer.valid_frames} valid poses"
-                  + (f" ({writer.coasted_frames} coasted)" if writer.coasted_frames else "") + f", case ({case}) -> {args.out}")
+                  + (f" ({writer.coasted_frames} coasted)" if writer.coasted_frames else "")
+                  + (f", {writer.rates_pending_frames} of them before the rates were known (states.csv valid 0)"
+                     if writer.rates_pending_frames else "")
+                  + f", case ({case}) -> {args.out}")
             for reason, count in sorted(state["invalid"].items(), key=lambda kv: -kv[1])[:5]:
                 print(f"  invalid in {count} frames: {reason}")
             never = _auto_never_started(engine.tracker) if args.auto else None
