@@ -98,6 +98,27 @@ def test_progress_off_a_terminal_is_a_plain_line_now_and_then(monkeypatch):
     assert lines == ["simulate estec: 3/9 after 30 s", "simulate estec: 6/9 after 60 s", "simulate estec: 9/9 after 90 s"]
 
 
+def test_progress_eta_on_a_terminal_leaves_out_the_start_up(monkeypatch):
+    # The first item carries the start-up (a renderer warming up: 6 s), the others 0.1 s each:
+    # an ETA from the mean since the start said 489 s for a 15 s job.
+    import io
+    import re
+
+    from trackmeter.cli import common
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    times = iter([0.0, 6.0] + [6.0 + 0.1 * k for k in range(1, 100)])
+    monkeypatch.setattr(common.time, "monotonic", lambda: next(times))
+    screen = Terminal()
+    assert list(common.progress(range(100), 100, "simulate", stream=screen)) == list(range(100))
+    etas = [float(x) for x in re.findall(r"eta\s+([\d.]+)s", screen.getvalue())]
+    assert "eta     -" in screen.getvalue().split("\r")[1]  # one item done: no rate known yet
+    assert etas[0] == pytest.approx(9.8) and etas[-1] == pytest.approx(0.0)  # after 2 of 100: 98 more at 0.1 s
+
+
 def test_console_refuses_a_recording_folder_that_holds_files_before_the_source_opens(tmp_path, capsys):
     import socket
 

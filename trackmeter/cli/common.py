@@ -114,15 +114,18 @@ def progress(items: Iterable[T], total: int | None, label: str, stream=None) -> 
                 stream.flush()
         return
     start = time.monotonic()
+    first_done = start
     count = 0
     for count, item in enumerate(items, 1):
         yield item
-        elapsed = time.monotonic() - start
+        now = time.monotonic()
+        elapsed = now - start
+        if count == 1:
+            first_done = now  # the first item carries the start-up: the rate is taken after it
         if total:
-            frac = count / total
-            bar = "#" * int(30 * frac)
-            eta = elapsed / frac - elapsed if frac > 0 else 0.0
-            stream.write(f"\r{label} [{bar:<30}] {count}/{total} {elapsed:5.1f}s eta {eta:5.1f}s")
+            bar = "#" * int(30 * count / total)
+            eta = f"{(now - first_done) / (count - 1) * (total - count):5.1f}s" if count > 1 else "    -"
+            stream.write(f"\r{label} [{bar:<30}] {count}/{total} {elapsed:5.1f}s eta {eta}")
         else:
             stream.write(f"\r{label} {count} {elapsed:5.1f}s")
         stream.flush()
