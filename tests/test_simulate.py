@@ -79,7 +79,12 @@ def test_simulate_refuses_a_used_folder_and_bad_input(tmp_path, capsys):
     assert main(["simulate", "--scenario", str(bad), "--out", str(tmp_path / "c")]) == 2
     err = capsys.readouterr().err
     assert "omega0_body_deg_s[2]" in err and len(err.strip().splitlines()) == 1
-    assert not (tmp_path / "a").exists() and not (tmp_path / "c").exists()
+    behind = tmp_path / "behind.yaml"
+    behind.write_text("position0_m: [0, 0, -3.5]\n")  # a sequence of noise only
+    assert main(["simulate", "--scenario", str(behind), "--out", str(tmp_path / "d")]) == 2
+    err = capsys.readouterr().err
+    assert "'position0_m'" in err and "behind the camera" in err and len(err.strip().splitlines()) == 1
+    assert not any((tmp_path / name).exists() for name in "acd")
 
 
 def test_simulate_unwritable_out_is_one_line_and_exit_2(capsys):

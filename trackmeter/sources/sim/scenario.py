@@ -89,6 +89,9 @@ class Scenario:
         inertia_tensor(self.inertia_kg_m2)  # raises with the reason when not a physical body
         if np.linalg.norm(self.attitude0_wxyz) < 1e-9:
             raise TrackmeterError("'attitude0_wxyz' must be a non-zero quaternion")
+        if not self.position0_m[2] > 0:
+            raise TrackmeterError(f"'position0_m': z = {self.position0_m[2]:g} m puts the body at or behind the camera "
+                                  "(z is the viewing axis, forward)")
         if np.linalg.norm(self.sun_dir_cam) < 1e-9:
             raise TrackmeterError("'sun_dir_cam' must be a non-zero direction")
         if self.approach_to_m is not None and self.approach_s <= 0:
