@@ -545,7 +545,7 @@ class Console:
         self.cutoff.on_update(self._cutoff_typed)
         self.record_checkbox.on_update(self._cb(lambda e: SetRecording(
             self._fresh_record_dir() if self.record_checkbox.value else None)))
-        self.right_checkbox.on_update(lambda e: setattr(self.right_image, "visible", bool(self.right_checkbox.value)))
+        self.right_checkbox.on_update(lambda e: self._show_right_image(bool(self.right_checkbox.value)))
         self.view_buttons.on_click(lambda e: self._choose_view(e.client, str(self.view_buttons.value)) if e.client else None)
 
     def _cutoff_typed(self, event: Any) -> None:
@@ -686,6 +686,15 @@ class Console:
                 except Exception as exc:
                     log.debug("client view not set: %s", exc)
 
+    def _show_right_image(self, shown: bool) -> None:
+        """Show or hide the right image; the views on the image preset are framed again (by
+        the publisher, :meth:`_frame_clients`) to hold it, or the left image alone."""
+        self.right_image.visible = shown
+        with self._pending_lock:
+            for view in self._views.values():
+                if view[1] == "image":
+                    view[2] = None
+
     def _choose_view(self, client: Any, preset: str) -> None:
         with self._pending_lock:
             view = self._views.get(client.client_id)
@@ -712,8 +721,11 @@ class Console:
                     aspect = float(client.camera.aspect)
                 except (AssertionError, ZeroDivisionError):
                     aspect = 16 / 9
-                client.camera.position, client.camera.look_at = image_view(self.render_size, aspect,
-                                                                           np.radians(50.0))
+                span, centre = self.render_size, (0.0, 0.0)
+                if self.right_image.visible:  # both images, side by side
+                    right_x = float(self.right_image.position[0])
+                    span, centre = (right_x + rw, rh), (right_x / 2, 0.0)
+                client.camera.position, client.camera.look_at = image_view(span, aspect, np.radians(50.0), centre)
 
     # ------------------------------------------------------------------ snapshots
     def _on_snapshot(self, snap: Snapshot) -> None:

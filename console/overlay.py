@@ -93,11 +93,14 @@ def box_segments(
 VIEW_MARGIN = 0.04
 
 
-def image_view(render_size: tuple[float, float], aspect: float, fov_y_rad: float) -> tuple[
+def image_view(render_size: tuple[float, float], aspect: float, fov_y_rad: float,
+               centre: tuple[float, float] = (0.0, 0.0)) -> tuple[
         tuple[float, float, float], tuple[float, float, float]]:
     """The browser camera's ``(position, look_at)`` that shows the whole left image (centred
-    on the scene origin, facing -z; see the module docstring) in a view of ``aspect`` (width
-    / height) and vertical field of view ``fov_y_rad``, with up along -y.
+    on the scene origin, facing -z; see the module docstring), or any rectangle of
+    ``render_size`` centred on ``centre`` in the plane z = 0 (both images side by side), in a
+    view of ``aspect`` (width / height) and vertical field of view ``fov_y_rad``, with up
+    along -y.
 
     The image fills the view along the axis that limits it, leaving :data:`VIEW_MARGIN`; the
     room left over on the other axis is put above and to the left of the image, not split
@@ -114,8 +117,8 @@ def image_view(render_size: tuple[float, float], aspect: float, fov_y_rad: float
     half_h = d * tan_half
     half_w = half_h * aspect
     gap = min(half_w - rw / 2, half_h - rh / 2)  # the limiting axis's margin, >= 0
-    cx = rw / 2 - half_w + gap
-    cy = rh / 2 - half_h + gap
+    cx = centre[0] + rw / 2 - half_w + gap
+    cy = centre[1] + rh / 2 - half_h + gap
     return (cx, cy, -d), (cx, cy, 0.0)
 
 

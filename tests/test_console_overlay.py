@@ -328,3 +328,12 @@ def test_image_view_shows_the_whole_image_with_the_spare_room_top_left(viewport)
     assert limiting_extent == pytest.approx(limiting_view / (1 + VIEW_MARGIN), rel=1e-9)
     assert gap_right == pytest.approx(gap_bottom, abs=1e-6) and gap_right > 0
     assert left >= gap_right - 1e-6 and top >= gap_bottom - 1e-6
+
+
+def test_image_view_of_a_rectangle_off_the_origin_is_the_same_view_moved_with_it() -> None:
+    # Both images side by side: the left at the origin, the right 0.2 beyond its edge.
+    span, centre = (2 * 7.26 + 0.2, 5.12), ((7.26 + 0.2) / 2, 0.0)
+    (px, py, pz), (lx, ly, lz) = image_view(span, 1.2, np.radians(50.0), centre)
+    (qx, qy, qz), (mx, my, mz) = image_view(span, 1.2, np.radians(50.0))
+    assert (px - qx, py - qy, pz - qz) == pytest.approx((centre[0], centre[1], 0.0))
+    assert (lx - mx, ly - my, lz - mz) == pytest.approx((centre[0], centre[1], 0.0))

@@ -194,3 +194,19 @@ def test_a_click_named_after_a_model_point_binds_that_point(
     wait_for(lambda: con.model_point_dropdown.value == "a new target", 5, "the choice used up by one click")
     wait_for(lambda: "corner_b" in con.last_pushed_target_ids, 5, "the target in a pushed image")
     page.screenshot(path=str(artifacts / "08_model_point_clicked.png"))
+
+
+def test_showing_the_right_image_frames_both_images(page_and_client: Any, running_console: Any, artifacts: Path) -> None:
+    # The right image lies beside the left one: the image preset must move to hold the pair
+    # (it stayed on the left image alone, the right one off the view).
+    page, client = page_and_client
+    con = running_console.console
+    right_x = float(con.right_image.position[0])
+    page.get_by_label("Show right image").click()
+    wait_for(lambda: con.right_image.visible and abs(client.camera.look_at[0] - right_x / 2) < 0.5, 10,
+             "the view centred between both images")
+    time.sleep(1.0)
+    page.screenshot(path=str(artifacts / "09_right_image_shown.png"))
+    page.get_by_label("Show right image").click()
+    wait_for(lambda: not con.right_image.visible and abs(client.camera.look_at[0]) < 0.5, 10,
+             "the view back on the left image")
