@@ -131,3 +131,20 @@ def test_console_refuses_a_recording_folder_that_holds_files_before_the_source_o
     err = capsys.readouterr().err
     assert code == 2 and "already holds files" in err and "opening" not in err, err
     assert (tmp_path / "rec" / "groundtruth.csv").read_text() == "t,x\n"
+
+
+def test_only_the_report_of_a_signal_found_ignored_is_dropped():
+    # CPython reports a signal it caught just before its handler became SIG_IGN as an
+    # unraisable error with a traceback; a command that ignores repeated stop signals on
+    # purpose drops that report, and only that one.
+    from types import SimpleNamespace
+
+    from trackmeter.cli.main import _without_signal_race_reports
+
+    seen = []
+    hook = _without_signal_race_reports(seen.append)
+    race = SimpleNamespace(exc_value=OSError("Signal 15 ignored due to race condition"))
+    other = SimpleNamespace(exc_value=OSError("something else"))
+    hook(race)
+    hook(other)
+    assert seen == [other]

@@ -94,18 +94,28 @@ def _interrupt(signum: int, frame: object) -> None:
 
 
 def _already_stopping(signum: int, frame: object) -> None:
-    _swap_handlers(_already_stopping, _ignore_repeat)  # said once is enough
+    _swap_handlers(_already_stopping, signal.SIG_IGN)  # said once is enough
     # os.write, not print: the signal may land while the main thread is inside a print to
     # stderr, and a re-entered buffered write raises.
     with contextlib.suppress(OSError):
         os.write(2, b"trackmeter: stopping already; the files are being completed\n")
 
 
-def _ignore_repeat(signum: int, frame: object) -> None:
-    """A stop signal once the command has stopped or said so: nothing to do. A Python
-    handler, not SIG_IGN: signals of a burst already pending when the handler is swapped
-    are still delivered to Python, which reports one that finds SIG_IGN as a traceback
-    ("Signal 15 ignored due to race condition")."""
+def _without_signal_race_reports(hook: Callable[[Any], object]) -> Callable[[Any], None]:
+    """``sys.unraisablehook`` minus CPython's report of a signal that found SIG_IGN: a signal
+    of a burst, already caught by the interpreter when its handler became SIG_IGN, is then
+    ignored and reported as an unraisable error with a traceback ("Signal 15 ignored due to
+    race condition"). That is the ignoring the command wants. SIG_IGN itself must stay: the
+    interpreter's shutdown resets Python handlers to the default, and a late signal would
+    then kill the process (exit -2) where an ignored one does not."""
+
+    def report(unraisable: Any) -> None:
+        exc = getattr(unraisable, "exc_value", None)
+        if isinstance(exc, OSError) and "ignored due to race condition" in str(exc):
+            return
+        hook(unraisable)
+
+    return report
 
 
 def _swap_handlers(installed: object, replacement: Callable[[int, object], None] | signal.Handlers) -> None:
@@ -222,12 +232,14 @@ def _main(argv: Sequence[str] | None) -> int:
     in_main_thread = threading.current_thread() is threading.main_thread()
     interrupted = False
     previous: dict[int, Any] = {}  # the handlers found, of the signals taken over
+    unraisable_hook = sys.unraisablehook
     if in_main_thread:
         for sig in STOP_SIGNALS:
             found = signal.getsignal(sig)
             if takes_over(sig, found):
                 previous[sig] = found
                 signal.signal(sig, _interrupt)
+        sys.unraisablehook = _without_signal_race_reports(unraisable_hook)
     try:
         return int(_command_module(args.command).run(args) or 0)
     except TrackmeterError as exc:
@@ -261,11 +273,12 @@ def _main(argv: Sequence[str] | None) -> int:
                 for sig, handler in previous.items():
                     signal.signal(sig, signal.SIG_DFL if handler is None else handler)
                 _restore_streams()  # a caller in the same process gets its own streams back
+                sys.unraisablehook = unraisable_hook
 
 
 def _ignore_stop_signals(taken_over: dict[int, Any]) -> None:
     for sig in taken_over:
-        signal.signal(sig, _ignore_repeat)
+        signal.signal(sig, signal.SIG_IGN)
 
 
 if __name__ == "__main__":
