@@ -22,9 +22,9 @@ import yaml
 
 from trackmeter.core.metrics import Evaluation, associate
 from trackmeter.data.motion_csv import MotionSeries, header_fields, is_comment_line, read_motion_csv
-from trackmeter.data.atomic import unwritable_ancestor, write_files_atomic
+from trackmeter.data.atomic import write_files_atomic
 from trackmeter.data.jsontext import json_text
-from trackmeter.data.sequence import find_sequence_file, is_sequence_folder, seconds_if_nanoseconds
+from trackmeter.data.sequence import check_output_folder, find_sequence_file, seconds_if_nanoseconds
 from trackmeter.data.trajectory import read_tum
 from trackmeter.errors import TrackmeterError
 
@@ -378,16 +378,7 @@ def check_report_directory(directory: str | Path) -> Path:
         TrackmeterError: it is a file, a sequence folder (a recording is not mixed with
             reports), or its nearest existing parent is not a folder this process may write in.
     """
-    path = Path(directory)
-    if path.exists() and not path.is_dir():
-        raise TrackmeterError(f"{path}: exists and is not a folder")
-    if is_sequence_folder(path):
-        raise TrackmeterError(f"{path}: a sequence folder (cam0/, cam1/): a report does not go into a recording; "
-                              "choose another --out")
-    blocked = unwritable_ancestor(path)
-    if blocked is not None:
-        raise TrackmeterError(f"{path}: cannot create a report folder there ({blocked} is not a writable folder)")
-    return path
+    return check_output_folder(directory, "reports", "a report folder")
 
 
 def write_evaluation(

@@ -34,8 +34,8 @@ import yaml
 from trackmeter.core.targets import TargetState
 from trackmeter.core.transforms import matrix_to_quat_wxyz
 from trackmeter.data.motion_csv import STATES_COLUMNS, MotionCsvWriter
-from trackmeter.data.atomic import AppendFile, unwritable_ancestor, write_text_atomic
-from trackmeter.data.sequence import is_sequence_folder
+from trackmeter.data.atomic import AppendFile, write_text_atomic
+from trackmeter.data.sequence import check_output_folder
 from trackmeter.data.trajectory import format_tum_line
 from trackmeter.errors import TrackmeterError
 
@@ -87,21 +87,13 @@ def check_run_directory(directory: str | Path, overwrite: bool = False) -> Path:
     if not str(directory).strip():
         raise TrackmeterError("the run folder's name is empty")
     path = Path(directory)
-    if path.exists() and not path.is_dir():
-        raise TrackmeterError(f"{path}: exists and is not a folder")
     if (path / "run.yaml").exists() and not overwrite:
         raise TrackmeterError(f"{path}: holds a run already (run.yaml); choose another --out or give --overwrite")
     others = [name for name in _RUN_FILES if (path / name).exists()]
     if others and not overwrite:
         raise TrackmeterError(f"{path}: holds {', '.join(others)} already (not from a run: no run.yaml); "
                               "choose another --out or give --overwrite to replace them")
-    if is_sequence_folder(path):
-        raise TrackmeterError(f"{path}: a sequence folder (cam0/, cam1/): a run's files do not go into a recording; "
-                              "choose another --out")
-    blocked = unwritable_ancestor(path)
-    if blocked is not None:
-        raise TrackmeterError(f"{path}: cannot create a run folder there ({blocked} is not a writable folder)")
-    return path
+    return check_output_folder(path, "a run's files", "a run folder")
 
 
 class RunWriter:

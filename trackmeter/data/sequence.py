@@ -294,6 +294,30 @@ def is_sequence_folder(directory: str | Path) -> bool:
     return _sequence_root(Path(directory)) is not None
 
 
+def check_output_folder(directory: str | Path, contents: str, folder: str) -> Path:
+    """``directory`` as a Path when a command's output may go there; nothing is created.
+
+    Args:
+        contents, folder: what the messages call the output (``"a run's files"``, ``"a run
+            folder"``).
+
+    Raises:
+        TrackmeterError: it is a file, a sequence folder (a recording is not mixed with
+            other files), or its nearest existing parent is not a folder this process may
+            write in.
+    """
+    path = Path(directory)
+    if path.exists() and not path.is_dir():
+        raise TrackmeterError(f"{path}: exists and is not a folder")
+    if is_sequence_folder(path):
+        raise TrackmeterError(f"{path}: a sequence folder (cam0/, cam1/): {contents} do not go into a recording; "
+                              "choose another --out")
+    blocked = unwritable_ancestor(path)
+    if blocked is not None:
+        raise TrackmeterError(f"{path}: cannot create {folder} there ({blocked} is not a writable folder)")
+    return path
+
+
 def find_sequence_root(directory: str | Path) -> Path:
     """``DIR`` or ``DIR/mav0``: the folder holding ``cam0`` and ``cam1``.
 
