@@ -145,10 +145,7 @@ class _ModelLoader(yaml.SafeLoader):
     would read ``010`` as 8 and ``0x1f`` as 31, which ``--target 010=U,V`` could never name."""
 
 
-def _as_written(kind: type) -> Any:
-    construct = {_IntAsWritten: yaml.SafeLoader.construct_yaml_int,
-                 _FloatAsWritten: yaml.SafeLoader.construct_yaml_float}[kind]
-
+def _as_written(kind: type, construct: Any) -> Any:
     def build(loader: yaml.SafeLoader, node: yaml.ScalarNode) -> Any:
         value = kind(construct(loader, node))
         value.text = str(node.value)
@@ -157,19 +154,19 @@ def _as_written(kind: type) -> Any:
     return build
 
 
-_ModelLoader.add_constructor("tag:yaml.org,2002:int", _as_written(_IntAsWritten))
-_ModelLoader.add_constructor("tag:yaml.org,2002:float", _as_written(_FloatAsWritten))
+_ModelLoader.add_constructor("tag:yaml.org,2002:int", _as_written(_IntAsWritten, yaml.SafeLoader.construct_yaml_int))
+_ModelLoader.add_constructor("tag:yaml.org,2002:float", _as_written(_FloatAsWritten, yaml.SafeLoader.construct_yaml_float))
 
 
 def _check_ids(ids: Sequence[str], path: Path) -> None:
     """Ids ``--target ID=U,V`` can name: not empty, no '=', no space around them."""
     for i, name in enumerate(ids):
         if not name.strip():
-            raise TrackmeterError(f"{path}: 'points[{i}].id: empty (a point needs a name)")
+            raise TrackmeterError(f"{path}: points[{i}].id: empty (a point needs a name)")
         if "=" in name:
-            raise TrackmeterError(f"{path}: 'points[{i}].id {name!r} contains '=' (--target ID=U,V could not name it)")
+            raise TrackmeterError(f"{path}: points[{i}].id {name!r} contains '=' (--target ID=U,V could not name it)")
         if name != name.strip():
-            raise TrackmeterError(f"{path}: 'points[{i}].id {name!r} begins or ends with a space")
+            raise TrackmeterError(f"{path}: points[{i}].id {name!r} begins or ends with a space")
 
 
 def load_model(path: str | Path) -> Model:
