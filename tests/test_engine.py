@@ -297,41 +297,6 @@ def test_new_points_join_the_model_with_true_body_coordinates(estec_rig) -> None
     assert engine.stats.model_points_joined == 4
 
 
-@pytest.mark.parametrize("join_min_inliers", [3, 4])
-def test_new_targets_join_only_through_a_pose_that_could_single_out_a_wrong_point(estec_rig, join_min_inliers: int) -> None:
-    """pose.join_min_inliers: with only three grown points measured, a wrong one bends the pose
-    without standing out, so a new target does not join through it (default 4); it joins once a
-    fourth model point is measured again. Three a-priori points are enough (their positions are
-    given, not grown through earlier poses)."""
-    from dataclasses import replace
-
-    config = load_config()
-    config = replace(config, pose=replace(config.pose, join_min_inliers=join_min_inliers))
-    engine, tracker, pts, ids = growing_engine(estec_rig, config)
-    assert {"a1", "a2", "a3", "a4"} <= set(engine.model_ids)
-    tracker.force_lost = set(ids[:10]) | {"a4"}
-    extra = body_points(16)[14:]
-    tracker.body["a5"] = extra[0]
-    tracker.active["a5"] = "tracking"
-    results = run(engine, range(10, 14))
-    assert all(pose.valid for _, pose, _ in results) and results[0][1].n_points == 3
-    assert ("a5" in engine.model_ids) == (join_min_inliers <= 3)
-
-    tracker.force_lost.discard("a4")
-    tracker.active["a4"] = "tracking"
-    run(engine, range(14, 17))
-    assert "a5" in engine.model_ids
-
-    # Three a-priori points alone: the new target joins.
-    tracker.force_lost = set(ids[3:]) | {"a5"}
-    tracker.active.update({pid: "tracking" for pid in ids[:3]})
-    tracker.body["a6"] = extra[1]
-    tracker.active["a6"] = "tracking"
-    results = run(engine, range(17, 21))
-    assert any(pose.valid and pose.n_points == 3 for _, pose, _ in results)
-    assert "a6" in engine.model_ids
-
-
 @pytest.mark.parametrize("correlated", [False, True])
 def test_grown_point_keeps_its_share_of_the_pose_error(estec_rig, correlated: bool) -> None:
     """pose.model_pose_error_correlated: a grown point observed over 50 frames through poses

@@ -115,12 +115,6 @@ class PoseParams:
     join_after_frames: int = param(
         1, "a new target joins the model after this many consecutive consistent frames", min=1
     )
-    join_min_inliers: int = param(
-        4, "new targets join the model only through a pose fitted to at least this many consistent model points "
-        "(or to a-priori points only, or to the whole model when it has fewer): a wrong point among three bends "
-        "the pose without standing out, and points joining through that pose would keep its error in the model",
-        min=3,
-    )
     model_pose_error_correlated: bool = param(
         False, "a grown model point's share of the pose error is common to all its observations and is not "
         "averaged away (fuse_point_correlated): points grown through drifting poses stay as uncertain as "

@@ -21,8 +21,7 @@ Per frame (:meth:`Engine.process`):
 4. Model upkeep while the pose is known: measured (not a-priori) model points are averaged
    (information-weighted) so the model sharpens as the body turns; new targets consistent for
    ``join_after_frames`` frames join the model with their body coordinates from the pose, so
-   the model grows as new faces come into view (paper 2.D); only through a pose that could
-   single out a wrong point (``join_min_inliers``, :meth:`Engine._may_grow`). With ``pose.slide_sigma_m_per_sqrt_s``
+   the model grows as new faces come into view (paper 2.D). With ``pose.slide_sigma_m_per_sqrt_s``
    a grown point is a random walk on the surface (a tracked pixel wanders): its covariance grows
    with the time since its last refinement, so it follows its target and weighs less in the pose.
    Losing one of the three frame points of case (a) changes nothing: the frame lives on in the
@@ -857,7 +856,7 @@ class Engine:
                     m.t_s = t_s
         # Candidates: measured targets not yet in the model.
         new = [tid for tid in measured if tid not in self._model]
-        if not new or not self._may_grow(ids, inliers):
+        if not new:
             return
         b_obs, cm_obs, L_obs = observe([measured[tid] for tid in new])
         cov_obs = cm_obs + L_obs @ np.swapaxes(L_obs, -1, -2)
@@ -887,21 +886,6 @@ class Engine:
                 self._seen_t[tid] = t_s
                 del self._candidates[tid]
                 self.stats.model_points_joined += 1
-
-    def _may_grow(self, ids: list[str], inliers: NDArray[np.bool_]) -> bool:
-        """Whether new targets may join the model through this frame's fit of ``ids`` (``inliers``).
-
-        A point joins with its body coordinates from this pose, so it keeps this pose's error
-        for good, and the next poses rest on it. Through a fit of three grown points a wrong one
-        (a target slid onto another surface) bends the pose without standing out: three points
-        leave only their three distances to check, loosened by the grown points' own uncertainty.
-        So points join through ``pose.join_min_inliers`` points, or through a-priori points only
-        (given, so their distances check the pose tightly), or through the whole model when it
-        has fewer (case (a)'s first frame: nothing else could ever join)."""
-        used = [pid for pid, ok in zip(ids, inliers) if ok]
-        if len(used) >= min(self.pose_params.join_min_inliers, len(self._model)):
-            return True
-        return all(self._model[pid].fixed for pid in used)
 
     def _hold_frame(self, held: dict[str, tuple[FloatArray, FloatArray]]) -> None:
         """Case (a): undo the rigid part of this frame's model refinement (:func:`hold_frame`), so
