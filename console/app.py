@@ -166,6 +166,50 @@ def release_free_heap() -> bool:
     return True
 
 
+def add_plot(gui: viser.GuiApi, title: str, labels: tuple[str, ...]) -> viser.GuiUplotHandle:
+    """One live time plot as the console shows it: x the frame time in s, a line per label."""
+    series = (viser.uplot.Series(label="t [s]"),) + tuple(
+        viser.uplot.Series(label=lab, stroke=SERIES_COLOURS[i % len(SERIES_COLOURS)], width=1.5)
+        for i, lab in enumerate(labels))
+    data = (np.array([0.0, 1e-3]),) + tuple(np.zeros(2) for _ in labels)
+    return gui.add_uplot(data, series, title=title, aspect=1.6,
+                         scales={"x": viser.uplot.Scale(time=False, auto=True)})
+
+
+def uplot_data(arrays: tuple[NDArray[np.float64], ...]) -> tuple[NDArray[np.float64] | list[float | None], ...]:
+    """A plot window's arrays (``console.series``: NaN marks a gap) as uPlot must get them.
+
+    uPlot breaks a line only at ``null``. A NaN goes to ``Path2D.lineTo``, which ignores it, so
+    the line runs straight from the point before to the point after; a NaN first value even
+    empties the auto-ranged y axis. A Float64Array cannot hold ``null``, so a y array with NaN
+    travels as a list with None there (msgpack nil, ``null`` in the browser); the others stay
+    numpy (sent as binary). No NaN reaches the browser. The x array never has NaN.
+    """
+    out: list[NDArray[np.float64] | list[float | None]] = [arrays[0]]
+    for a in arrays[1:]:
+        if np.isnan(a).any():
+            out.append([None if v != v else v for v in a.tolist()])  # v != v: NaN
+        else:
+            out.append(a)
+    return tuple(out)
+
+
+def set_uplot_data(handle: viser.GuiUplotHandle, data: tuple[NDArray[np.float64] | list[float | None], ...]) -> None:
+    """Show ``data`` (:func:`uplot_data`) in the browsers' plot ``handle``.
+
+    viser's ``.data`` setter casts every element to a float64 array (None becomes NaN again, and
+    the line is joined across the gap), so data holding None is stored in the handle's props
+    and queued for the browsers as that setter does it, minus the cast (viser 1.1; checked by
+    tests/browser/test_plots.py). A browser that connects later gets the stored props, gaps
+    included.
+    """
+    if all(isinstance(a, np.ndarray) for a in data):
+        handle.data = data  # type: ignore[assignment]
+        return
+    handle._impl.props.data = data  # type: ignore[assignment]
+    handle._queue_update("data", data)
+
+
 def _wxyz(R: np.ndarray) -> tuple[float, float, float, float]:
     q = Rotation.from_matrix(R).as_quat(scalar_first=True)
     return tuple(float(x) for x in q)  # type: ignore[return-value]
@@ -517,14 +561,7 @@ class Console:
             self.view_buttons = gui.add_button_group("Preset", ("image", "3D", "both"))
             self.right_checkbox = gui.add_checkbox("Show right image", initial_value=False)
         with gui.add_folder("Plots", expand_by_default=True):
-            self.uplots = {}
-            for name, (title, labels) in PLOTS.items():
-                series = (viser.uplot.Series(label="t [s]"),) + tuple(
-                    viser.uplot.Series(label=lab, stroke=SERIES_COLOURS[i % len(SERIES_COLOURS)], width=1.5)
-                    for i, lab in enumerate(labels))
-                data = (np.array([0.0, 1e-3]),) + tuple(np.zeros(2) for _ in labels)
-                self.uplots[name] = gui.add_uplot(data, series, title=title, aspect=1.6,
-                                                  scales={"x": viser.uplot.Scale(time=False, auto=True)})
+            self.uplots = {name: add_plot(gui, title, labels) for name, (title, labels) in PLOTS.items()}
         # Last in the panel: its height follows the number of targets, which changes every few
         # frames, and nothing below it can move.
         with gui.add_folder("Target list"):
@@ -852,7 +889,7 @@ class Console:
                 for name, window in self.plots.windows.items():
                     if self._plot_version.get(name) != window.version and len(window) >= 2:
                         self._plot_version[name] = window.version
-                        self.uplots[name].data = window.arrays()
+                        set_uplot_data(self.uplots[name], uplot_data(window.arrays()))
         self._pushed_operator_ids = {t.id for t in snap.targets if t.origin == "operator"}
         if left_rgb is None:
             return

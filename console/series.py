@@ -2,8 +2,22 @@
 
 The tracking thread appends one row per snapshot (a cheap ``deque.append``); the console's
 publisher turns the window into the tuple of 1-D arrays uPlot wants, at its own rate. Rows are
-only appended when the values exist (a valid pose, known errors), so the arrays never hold NaN
-(uPlot's auto-range does not survive NaN).
+only appended when the values exist (a valid pose, known errors).
+
+A plot must not join the last point before a stretch without values to the first point after
+it: the straight line would say the pose was there when it was not. So :meth:`SeriesWindow.arrays`
+puts one separator row between two rows that lie on either side of a gap: its time is between
+theirs and its values are NaN. A gap is
+
+- a frame whose values did not exist (:meth:`SeriesWindow.mark_gap`: pose invalid, error
+  unknown, a non-finite value, a discontinuous stream), or
+- more time between two consecutive rows than :data:`GAP_FACTOR` times the window's usual row
+  spacing (frames that never reached the plot).
+
+NaN is only the "no value" of this module: uPlot breaks a line only at ``null`` (a NaN is drawn
+as a line straight across, and a NaN at the start of an array empties its auto-ranged y axis),
+so the console hands uPlot ``null`` for it (``console.app.uplot_data``). The separator is never
+the first or the last row.
 """
 
 from __future__ import annotations
@@ -29,6 +43,14 @@ PLOTS: dict[str, tuple[str, tuple[str, ...]]] = {
     "err_omega": ("Angular speed error [deg/s]", ("wx", "wy", "wz")),
 }
 
+#: Plots fed from the pose (a gap in all of them while the pose is invalid).
+POSE_PLOTS = ("position", "attitude", "velocity", "omega")
+
+#: Two consecutive rows further apart than this many times the window's median spacing have
+#: a gap between them. A frame or two dropped under load (2-3x) keeps its line; a pause in the
+#: rows the snapshots did not explain (seconds at 25 Hz) does not.
+GAP_FACTOR = 5.0
+
 
 class SeriesWindow:
     """The last ``maxlen`` rows ``(t, v1, ..., vk)``; thread-safe append and read."""
@@ -36,6 +58,9 @@ class SeriesWindow:
     def __init__(self, n_values: int, maxlen: int = 1000) -> None:
         self.n_values = n_values
         self._rows: collections.deque[NDArray[np.float64]] = collections.deque(maxlen=maxlen)
+        # Parallel to _rows (same maxlen, appended together): the row follows a gap.
+        self._after_gap: collections.deque[bool] = collections.deque(maxlen=maxlen)
+        self._gap_pending = False
         self._lock = threading.Lock()
         self.version = 0
 
@@ -44,25 +69,55 @@ class SeriesWindow:
         row[0] = t_s
         row[1:] = np.asarray(values, dtype=float).reshape(-1)
         if not np.all(np.isfinite(row)):
+            # The value does not exist at this frame (e.g. a velocity not yet estimated): the
+            # line must not run through it.
+            self.mark_gap()
             return
         with self._lock:
             if self._rows and t_s <= self._rows[-1][0]:
-                self._rows.clear()  # the source restarted: time went back
+                # The source restarted: time went back. The old rows are of another run.
+                self._rows.clear()
+                self._after_gap.clear()
+                self._gap_pending = False
             self._rows.append(row)
+            self._after_gap.append(self._gap_pending)
+            self._gap_pending = False
             self.version += 1
+
+    def mark_gap(self) -> None:
+        """A frame without values here: the next row starts a new line. (No version bump: the
+        plot changes only when that row comes.)"""
+        with self._lock:
+            self._gap_pending = True
 
     def clear(self) -> None:
         with self._lock:
             self._rows.clear()
+            self._after_gap.clear()
+            self._gap_pending = False
             self.version += 1
 
     def __len__(self) -> int:
         return len(self._rows)
 
     def arrays(self) -> tuple[NDArray[np.float64], ...]:
-        """``(t, v1, ..., vk)`` as 1-D arrays (empty arrays before the first row)."""
+        """``(t, v1, ..., vk)`` as 1-D arrays (empty arrays before the first row), with a
+        separator row (its time midway, its values NaN) at each gap; ``t`` stays increasing."""
         with self._lock:
             rows = np.array(self._rows) if self._rows else np.zeros((0, self.n_values + 1))
+            after_gap = np.fromiter(self._after_gap, bool, len(self._after_gap))
+        if len(rows) >= 2:
+            t = rows[:, 0]
+            dt = np.diff(t)
+            gap = after_gap[1:].copy()  # a flag on the oldest row has nothing before it to cut
+            usual = dt[~gap]
+            if usual.size:
+                gap |= dt > GAP_FACTOR * float(np.median(usual))
+            where = np.flatnonzero(gap)  # gap between rows where and where + 1
+            if where.size:
+                separators = np.full((where.size, self.n_values + 1), np.nan)
+                separators[:, 0] = (t[where] + t[where + 1]) / 2.0
+                rows = np.insert(rows, where + 1, separators, axis=0)
         return tuple(np.ascontiguousarray(rows[:, i]) for i in range(self.n_values + 1))
 
 
@@ -71,12 +126,24 @@ class PlotData:
 
     def __init__(self, maxlen: int = 1000) -> None:
         self.windows = {name: SeriesWindow(len(labels), maxlen) for name, (_, labels) in PLOTS.items()}
+        # (index, t) of the frame last added: the pipeline publishes a frame again after a
+        # command or a status change, and that is not a new sample (nor a gap).
+        self._last_frame: tuple[int, float] | None = None
 
     def add(self, snap: Snapshot) -> None:
-        """Append the pose, velocities and errors of ``snap`` (called on the tracking thread)."""
+        """Append the pose, velocities and errors of ``snap`` (called on the tracking thread);
+        a value the frame does not have marks a gap in its plot."""
         if snap.frame is None:
             return
+        key = (snap.frame.index, snap.frame.t_s)
+        if key == self._last_frame:
+            return
+        self._last_frame = key
         t = snap.frame.t_s
+        if snap.frame.cut:
+            # The stream is discontinuous before this frame (a restart, a new pass of a loop).
+            for w in self.windows.values():
+                w.mark_gap()
         pose = snap.pose
         if pose.valid:
             T = np.asarray(pose.T_cam_body)
@@ -84,18 +151,29 @@ class PlotData:
             self.windows["attitude"].append(t, np.degrees(Rotation.from_matrix(T[:3, :3]).as_rotvec()))
             self.windows["velocity"].append(t, np.asarray(pose.velocity_cam_m_s) * 1e3)
             self.windows["omega"].append(t, np.degrees(pose.omega_body_rad_s))
-        e = snap.errors
-        if e:
-            if "position_m" in e:
-                self.windows["err_position"].append(t, np.asarray(e["position_m"]) * 1e3)
-            if "attitude_rad" in e and "attitude_total_rad" in e:
-                self.windows["err_attitude"].append(
-                    t, np.degrees(np.r_[np.asarray(e["attitude_rad"]).reshape(3), float(e["attitude_total_rad"])]))  # type: ignore[arg-type]
-            if "velocity_m_s" in e:
-                self.windows["err_velocity"].append(t, np.asarray(e["velocity_m_s"]) * 1e3)
-            if "omega_rad_s" in e:
-                self.windows["err_omega"].append(t, np.degrees(e["omega_rad_s"]))
+        else:
+            for name in POSE_PLOTS:
+                self.windows[name].mark_gap()
+        e = snap.errors or {}
+        if "position_m" in e:
+            self.windows["err_position"].append(t, np.asarray(e["position_m"]) * 1e3)
+        else:
+            self.windows["err_position"].mark_gap()
+        if "attitude_rad" in e and "attitude_total_rad" in e:
+            self.windows["err_attitude"].append(
+                t, np.degrees(np.r_[np.asarray(e["attitude_rad"]).reshape(3), float(e["attitude_total_rad"])]))  # type: ignore[arg-type]
+        else:
+            self.windows["err_attitude"].mark_gap()
+        if "velocity_m_s" in e:
+            self.windows["err_velocity"].append(t, np.asarray(e["velocity_m_s"]) * 1e3)
+        else:
+            self.windows["err_velocity"].mark_gap()
+        if "omega_rad_s" in e:
+            self.windows["err_omega"].append(t, np.degrees(e["omega_rad_s"]))
+        else:
+            self.windows["err_omega"].mark_gap()
 
     def clear(self) -> None:
+        self._last_frame = None
         for w in self.windows.values():
             w.clear()

@@ -26,7 +26,7 @@ from console.overlay import (  # noqa: E402
     image_view,
     ray_to_pixel,
 )
-from console.series import PlotData, SeriesWindow  # noqa: E402
+from console.series import PLOTS, PlotData, SeriesWindow  # noqa: E402
 from trackmeter.core.targets import TargetState  # noqa: E402
 from trackmeter.pipeline.snapshot import PoseEstimate, Snapshot, Timings  # noqa: E402
 from trackmeter.sources.base import GroundTruth, StereoFrame  # noqa: E402
@@ -124,6 +124,91 @@ def test_plot_data_from_a_snapshot_in_display_units() -> None:
     assert data.windows["omega"].arrays()[2][0] == pytest.approx(2.0)
     assert [a[0] for a in data.windows["err_attitude"].arrays()][1:] == pytest.approx([0.1, 0.2, 0.3, 0.4])
     assert len(data.windows["position"]) == 1  # the invalid pose added no row
+
+
+def test_series_window_breaks_the_line_at_a_gap_and_only_there() -> None:
+    """A separator row (time between its neighbours, values NaN) stands at each gap: a marked
+    frame without values, or a pause far longer than the usual spacing; a dropped frame is no gap."""
+    w = SeriesWindow(2)
+    dt = 0.04
+    for i in range(10):
+        w.append(i * dt, [i, -i])
+    w.mark_gap()  # frame 10 had no value
+    w.append(11 * dt, [11, -11])
+    w.append(13 * dt, [13, -13])  # frame 12 never came: 2x the spacing, still one line
+    w.append(13 * dt + 3.0, [99, -99])  # 3 s without rows and without a word: a gap
+    w.append(14 * dt + 3.0, [100, -100])
+    w.append(15 * dt + 3.0, [np.nan, 1.0])  # a value that does not exist is a gap too
+    w.append(16 * dt + 3.0, [101, -101])
+    t, a, b = w.arrays()
+    assert np.all(np.diff(t) > 0)
+    cut = np.flatnonzero(np.isnan(a))
+    assert cut.tolist() == [10, 13, 16] and np.all(np.isnan(b[cut])) and np.all(np.isfinite(t))
+    for k in cut:  # each separator lies strictly between the rows it separates
+        assert t[k - 1] < t[k] < t[k + 1]
+    assert a[cut - 1].tolist() == [9.0, 13.0, 100.0] and a[cut + 1].tolist() == [11.0, 99.0, 101.0]
+    # Without gaps nothing is inserted, and a gap is never the first or the last row.
+    w2 = SeriesWindow(1, maxlen=3)
+    w2.mark_gap()
+    for i in range(5):
+        w2.append(i * dt, [i])
+        if i == 1:
+            w2.mark_gap()
+    w2.mark_gap()
+    assert w2.arrays()[1].tolist() == [2.0, 3.0, 4.0]
+    w2.append(5 * dt, [5.0])  # the mark before frame 5 shows once frame 5 is there
+    assert np.isnan(w2.arrays()[1]).tolist() == [False, False, True, False]
+
+
+def _plot_data_over(invalid: range, n_frames: int, publish_twice: bool = False) -> PlotData:
+    """Frames at 25 Hz, with a valid pose and known errors except in ``invalid``."""
+    T = np.eye(4)
+    T[:3, 3] = (0.1, -0.2, 3.5)
+    img = np.zeros((4, 4), np.uint8)
+    errors = {"position_m": np.zeros(3), "attitude_rad": np.zeros(3), "attitude_total_rad": 0.0,
+              "velocity_m_s": np.zeros(3), "omega_rad_s": np.zeros(3)}
+    valid = PoseEstimate(True, None, "a", T, np.eye(6), np.zeros(3), np.zeros(3), 5)
+    data = PlotData()
+    for i in range(n_frames):
+        frame = StereoFrame(i, i / 25.0, img, img, GroundTruth(T, np.zeros(3), np.zeros(3)))
+        snap = (Snapshot(frame, (), PoseEstimate.invalid("lost"), None, Timings()) if i in invalid
+                else Snapshot(frame, (), valid, errors, Timings()))  # type: ignore[arg-type]
+        data.add(snap)
+        if publish_twice:
+            data.add(snap)  # the pipeline publishes the frame again after a command
+    return data
+
+
+def test_plot_data_breaks_every_plot_while_the_pose_is_invalid() -> None:
+    """3 s of invalid pose (and no errors) at 25 Hz: one break in every plot, between the last
+    frame before and the first after, and none elsewhere."""
+    invalid = range(20, 95)
+    for name, window in _plot_data_over(invalid, 120).windows.items():
+        t, *values = window.arrays()
+        assert len(t) == 120 - len(invalid) + 1, name
+        assert np.flatnonzero(np.isnan(values[0])).tolist() == [20], name
+        assert t[19] == pytest.approx(19 / 25.0) and t[21] == pytest.approx(95 / 25.0), name
+        assert all(np.isnan(v[20]) for v in values) and np.all(np.diff(t) > 0), name
+
+
+def test_a_frame_published_again_neither_adds_a_sample_nor_clears_the_plot() -> None:
+    """After a click the pipeline publishes the same frame again: that is no new sample (nor a
+    step back in time, which would clear the plot as a restarted source does)."""
+    once, twice = _plot_data_over(range(20, 95), 120), _plot_data_over(range(20, 95), 120, publish_twice=True)
+    for name in PLOTS:
+        a, b = once.windows[name].arrays(), twice.windows[name].arrays()
+        assert len(b[0]) == len(a[0]) == 46 and all(np.array_equal(x, y, equal_nan=True) for x, y in zip(a, b)), name
+
+
+def test_uplot_data_sends_a_gap_as_null_and_everything_else_as_arrays() -> None:
+    from console.app import uplot_data
+
+    t = np.array([0.0, 0.04, 1.0, 2.0])
+    x = np.array([1.0, 2.0, np.nan, 3.0])
+    z = np.array([3.5, 3.5, 3.6, 3.7])
+    out = uplot_data((t, x, z))
+    assert out[0] is t and out[2] is z  # binary, as before
+    assert out[1] == [1.0, 2.0, None, 3.0]  # uPlot's null: the line breaks there
 
 
 def test_status_keeps_its_height_whatever_the_state() -> None:
