@@ -337,3 +337,58 @@ def test_at_a_low_frame_rate_a_wide_window_is_searched_near_the_prediction_first
             assert len(ambiguous) == len(ids)
         else:
             assert ambiguous == [] and len(tracked) >= len(ids) // 2 and max(tracked) < 0.3, (states, tracked)
+
+
+def test_track_blur_smooths_the_temporal_fits_and_not_the_search(scene, estec_rig) -> None:
+    """tracker.track_blur_sigma_px: the sub-pixel fits and their templates use the left image
+    smoothed by that Gaussian (cv2.GaussianBlur), the integer search its unblurred patch."""
+    from trackmeter.core.patch_tracking import make_templates
+
+    f0 = scene.frame(0)
+    tr = make_tracker(estec_rig, track_blur_sigma_px=1.0)
+    fc = tr._frame(f0)
+    np.testing.assert_allclose(fc.track, cv2.GaussianBlur(f0.left.astype(np.float32), (0, 0), 1.0), atol=1e-4)
+    assert fc.left is not fc.track and np.array_equal(fc.left, f0.left)
+    uv = interior_points(f0, 1)
+    state = tr.add_target(f0, (float(uv[0, 0]), float(uv[0, 1])))
+    assert isinstance(state, TargetState)
+    t = tr._targets[state.id]
+    np.testing.assert_allclose(t.search, make_templates(f0.left, uv, 8).values[0])
+    np.testing.assert_allclose(t.current.values, make_templates(fc.track, uv, 8).values)
+    plain = make_tracker(estec_rig)._frame(f0)
+    assert plain.track is plain.left  # off by default: the fits use the image itself
+
+
+@pytest.mark.parametrize("sigma_px", [0.7, 1.0])
+def test_with_track_blur_a_moving_turning_plate_is_tracked_as_closely(scene, estec_rig, sigma_px: float) -> None:
+    f0 = scene.frame(0)
+    tr = make_tracker(estec_rig, track_blur_sigma_px=sigma_px)
+    ids = add_all(tr, f0, interior_points(f0, 8))
+    body = {t.id: scene.surface_points(0, t.uv[None])[0] for t in tr.targets}
+    worst = 0.0
+    for k in range(1, 31):
+        states = tr.step(scene.frame(k))
+        assert sum(t.status == "tracking" for t in states) >= len(ids) - 1
+        for t in states:
+            if t.status != "lost":
+                worst = max(worst, float(np.linalg.norm(t.uv - scene.project(k, body[t.id][None])[0][0])))
+    assert worst < 0.15
+
+
+def test_track_blur_steadies_the_anchor_fits_scale(estec_rig) -> None:
+    """Image noise makes an 8x8 patch's similarity fit find a scale change the plate does not
+    have; smoothing before the fit (sigma 1 px) cuts its 95th percentile by a fifth on a plate
+    translating at 3.5 m under 2.5 grey levels of noise (measured: 0.024 -> 0.019)."""
+    scene = PlaneScene(estec_rig, pose_translating(3.5, (0.03, 0.01, 0.0)), noise_sigma=2.5, n_frames=40)
+    f0 = scene.frame(0)
+    pts = interior_points(f0, 20)
+    p95 = {}
+    for sigma_px in (0.0, 1.0):
+        tr = make_tracker(estec_rig, track_blur_sigma_px=sigma_px)
+        add_all(tr, f0, pts)
+        deviation = []
+        for k in range(1, 26):
+            tr.step(scene.frame(k))
+            deviation += [abs(np.sqrt(abs(np.linalg.det(t.anchor_lin))) - 1.0) for t in tr._targets.values() if t.status != "lost"]
+        p95[sigma_px] = float(np.percentile(deviation, 95))
+    assert p95[1.0] < 0.85 * p95[0.0], p95

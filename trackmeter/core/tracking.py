@@ -37,6 +37,7 @@ import warnings
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Collection, Sequence
 
+import cv2
 import numpy as np
 from filterpy.kalman import KalmanFilter
 from numpy.typing import NDArray
@@ -179,6 +180,10 @@ class TrackerParams:
     rigid_velocity_sigma_px_s: float = param(
         10.0, "std added to that prediction's median miss on the settled targets, px/s", min=0.0,
     )
+    track_blur_sigma_px: float = param(
+        0.0, "std of a Gaussian smoothing of the left image for the frame-to-frame sub-pixel fits and their templates, "
+        "px (0: none; the integer search and the stereo match always use the image itself)", min=0.0,
+    )
     lost_keep_frames: int = param(10, "frames a lost automatic target is kept before it is replaced", min=0)
     auto: bool = param(False, "automatic feature selection on at start")
     auto_interval_frames: int = param(5, "automatic selection tops up at most every this many frames", min=1)
@@ -203,6 +208,7 @@ class _Target:
     anchor: Templates  # one target's templates (leading axis of length 1)
     current: Templates
     t_s: float
+    search: NDArray[np.float32]  # (size,size) the current patch of the unblurred image: the integer search's template
     status: TargetStatus = "tracking"
     uv: FloatArray = field(default_factory=lambda: _NAN2.copy())
     uv_right: FloatArray = field(default_factory=lambda: _NAN2.copy())
@@ -263,6 +269,7 @@ class _FrameCache:
     index: int
     left: NDArray[np.uint8]
     right: NDArray[np.uint8]
+    track: NDArray  # the left image the temporal fits use
 
 
 class Tracker:
@@ -394,9 +401,19 @@ class Tracker:
 
     # ------------------------------------------------------------------ frames
 
+    def _templates(self, fc: _FrameCache, uv: FloatArray) -> tuple[Templates, NDArray[np.float32]]:
+        """The templates at ``uv`` (N,2) for the sub-pixel fits (from the possibly smoothed image)
+        and the (N,size,size) patches of the image itself for the integer search."""
+        fit = make_templates(fc.track, uv, self.params.patch_size)
+        search = fit.values if fc.track is fc.left else make_templates(fc.left, uv, self.params.patch_size).values
+        return fit, search
+
     def _frame(self, frame: StereoFrame) -> _FrameCache:
         # uint8 as delivered: the samplers gather from it and convert only what they read.
-        return _FrameCache(frame.index, np.ascontiguousarray(frame.left), np.ascontiguousarray(frame.right))
+        left = np.ascontiguousarray(frame.left)
+        sig = self.params.track_blur_sigma_px
+        track = cv2.GaussianBlur(left.astype(np.float32), (0, 0), sig) if sig > 0 else left
+        return _FrameCache(frame.index, left, np.ascontiguousarray(frame.right), track)
 
     # ------------------------------------------------------------------ adding targets
 
@@ -497,10 +514,10 @@ class Tracker:
         if reason is not None:
             return Refusal(key, reason)
         tid = target_id or self._new_id(origin)
-        tmpl = make_templates(fc.left, uvf[None], self.params.patch_size)
+        tmpl, search = self._templates(fc, uvf[None])
         v0, sv = self._velocity_guess(uvf, np.asarray(meas.xyz_m, float))
         kf = kf_mod.make_filter(uvf, self.params.kalman, velocity_px_s=v0, velocity_sigma_px_s=sv)
-        t = _Target(tid, origin, kf, tmpl, tmpl, frame.t_s, uv=uvf.copy(), predicted_uv=uvf.copy())
+        t = _Target(tid, origin, kf, tmpl, tmpl, frame.t_s, search[0], uv=uvf.copy(), predicted_uv=uvf.copy())
         self._new_anchor(t, frame.index)
         t.slot = self._new_slot()
         t.disparity_px = float(meas.disparity_px)
@@ -642,7 +659,7 @@ class Tracker:
         starts: list[FloatArray] = []
         for i, (t, centre) in enumerate(zip(targets, centres)):
             # The current template is the last verified appearance of the target.
-            found = zncc_search(fc.left, t.current.values[0], centre, half)
+            found = zncc_search(fc.left, t.search, centre, half)
             if found is None:
                 out[i] = (False, "search window outside the image")
                 continue
@@ -697,7 +714,8 @@ class Tracker:
         t.kf = kf_mod.make_filter(uv, p.kalman, velocity_px_s=v0, velocity_sigma_px_s=sv)
         t.score = float(res.score[r])
         t.anchor_lin = res.anchor_lin[r].copy()
-        t.current = make_templates(fc.left, uv[None], p.patch_size)
+        t.current, search = self._templates(fc, uv[None])
+        t.search = search[0]
         t.status = "recovered"
         t.lost_reason = None
         t.lost_frames = 0
@@ -710,7 +728,7 @@ class Tracker:
         """The drift-free sub-pixel fit (:func:`track_patches`) of targets ``ts`` from ``starts`` (N,2)."""
         p = self.params
         return track_patches(
-            fc.left,
+            fc.track,
             _stack([t.anchor for t in ts]),
             np.array([t.anchor_lin for t in ts]),
             _stack([t.current for t in ts]),
@@ -748,7 +766,7 @@ class Tracker:
         above = p.near_first_settled_above_px if t.age_frames >= SETTLED_FRAMES else p.near_first_new_above_px
         if p.near_first_px <= 0 or max(float(half[0]), float(half[1])) <= above:  # floats: run per target per frame
             return None
-        near = zncc_search(fc.left, t.current.values[0], pred, np.minimum(half, p.near_first_px))
+        near = zncc_search(fc.left, t.search, pred, np.minimum(half, p.near_first_px))
         if near is None or np.any(np.abs(near[0] - pred) > p.near_first_px - 1.0):
             return None
         _, best, second = near
@@ -796,7 +814,7 @@ class Tracker:
             if not np.all(np.isfinite(pred)):
                 self._lose(t, "prediction diverged")
                 continue
-            found = self._search_near_first(fc, t, pred, half) or zncc_search(fc.left, t.current.values[0], pred, half)
+            found = self._search_near_first(fc, t, pred, half) or zncc_search(fc.left, t.search, pred, half)
             if found is None:
                 self._lose(t, "left the image")
                 continue
@@ -893,12 +911,13 @@ class Tracker:
             # Template strategy: refresh the current template where the anchor confirmed the
             # match; re-anchor on this verified match when the anchor no longer fits.
             if final:
-                new = make_templates(fc.left, np.array([t.uv for t, _ in final]), p.patch_size)
+                new, raw = self._templates(fc, np.array([t.uv for t, _ in final]))
                 for k, (t, anch) in enumerate(final):
                     if not new.ok[k]:
                         continue
                     one = new.select(np.array([k]))
                     t.current = one
+                    t.search = raw[k]
                     if not anch:
                         self._new_anchor(t, frame.index)
                         t.anchor = one
