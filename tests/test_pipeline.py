@@ -20,11 +20,14 @@ from trackmeter.core.targets import TargetState
 from trackmeter.errors import TrackmeterError
 from trackmeter.pipeline.pipeline import Pipeline, run_headless
 from trackmeter.pipeline.snapshot import (
+    AcquireModel,
     ClearTargets,
     CommandReply,
+    LoadModel,
     PoseEstimate,
     RestartSource,
     SelectPoint,
+    SetCase,
     SetPaused,
     SetRecording,
     StepOnce,
@@ -545,6 +548,41 @@ def test_clearing_the_targets_while_paused_leaves_no_pose_shown() -> None:
             snap = pipe.wait_snapshot(snap.sequence, 1) or pipe.latest()
         assert "targets cleared" in (snap.pose.reason or "") and snap.pose.case == "b"
         assert engine.processed == [0]  # no step taken meanwhile: the pose went with the clearing
+
+
+@pytest.mark.parametrize("command", [SetCase("a"), AcquireModel(), LoadModel("model.yaml")])
+def test_changing_the_model_case_while_paused_leaves_no_old_pose_shown(command) -> None:  # type: ignore[no-untyped-def]
+    # The console kept "pose valid (case b)" after the operator chose case (a) until the next
+    # step: the engine has dropped that motion, so the published pose must not outlive it.
+    class CaseEngine(RecordingEngine):
+        case = "b"
+
+        def handle(self, command, frame):  # type: ignore[no-untyped-def]
+            self.commands.append((type(command).__name__, None if frame is None else frame.index))
+            self.case = {"SetCase": getattr(command, "case", None), "AcquireModel": "c", "LoadModel": "b"}[type(command).__name__]
+            return CommandReply(True, f"model case ({self.case})")
+
+        def process(self, frame):  # type: ignore[no-untyped-def]
+            targets, _, errors = super().process(frame)
+            T = np.eye(4)
+            T[2, 3] = 3.5
+            return targets, PoseEstimate(True, None, self.case, T, np.eye(6) * 1e-6, np.zeros(3), np.zeros(3), 3), errors
+
+    engine = CaseEngine()
+    with Pipeline(CountingSource(10**6, delay_s=0.002), engine, paused=True) as pipe:
+        assert pipe.call(StepOnce()).ok
+        snap = pipe.wait_snapshot(0, 5)
+        while snap is not None and not (snap.frame is not None and snap.pose.valid):
+            snap = pipe.wait_snapshot(snap.sequence, 5)
+        assert snap is not None and snap.pose.valid and snap.pose.case == "b"
+        assert pipe.call(command).ok
+        snap = pipe.latest()
+        deadline = time.monotonic() + 5
+        while snap.pose.valid:
+            assert time.monotonic() < deadline, snap.pose
+            snap = pipe.wait_snapshot(snap.sequence, 1) or pipe.latest()
+        assert snap.pose.case == engine.case and f"model case ({engine.case})" in (snap.pose.reason or "")
+        assert engine.processed == [0]
 
 
 def test_an_interrupt_while_winding_down_waits_for_the_block_to_finish() -> None:

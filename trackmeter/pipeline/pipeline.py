@@ -54,11 +54,14 @@ from trackmeter.core.targets import TargetState
 from trackmeter.errors import TrackmeterError
 from trackmeter.signals import STOP_SIGNALS
 from trackmeter.pipeline.snapshot import (
+    AcquireModel,
     ClearTargets,
     Command,
     CommandReply,
+    LoadModel,
     PoseEstimate,
     RestartSource,
+    SetCase,
     SetPaused,
     SetRecording,
     Snapshot,
@@ -656,6 +659,11 @@ class Pipeline:
             # replace it: the console showed a valid pose beside no target).
             self._last_pose = PoseEstimate.invalid("targets cleared", self._last_pose.case)
             self._last_errors = None
+        elif isinstance(command, _CASE_COMMANDS) and reply.ok:
+            # The engine dropped the motion of the case it left: so goes the pose of that case.
+            case = getattr(self.engine, "case", self._last_pose.case)
+            self._last_pose = PoseEstimate.invalid(f"model case ({case}) from the next frame", case)
+            self._last_errors = None
         return reply
 
     def _start_recording(self, directory: Path) -> None:
@@ -779,6 +787,8 @@ class Pipeline:
 
 
 _PIPELINE_COMMANDS = (SetPaused, StepOnce, RestartSource, SetRecording)
+#: Engine commands that start the motion estimation over in a model case (paper 2.C).
+_CASE_COMMANDS = (SetCase, AcquireModel, LoadModel)
 
 
 def _is_pipeline_command(command: Command) -> bool:
