@@ -329,3 +329,23 @@ def test_a_kalibr_camchain_reads_as_the_same_rig(tmp_path: Path) -> None:
     path.write_text(_kalibr_camchain(rig).split("cam1:")[0])
     with pytest.raises(TrackmeterError, match="Kalibr camchain needs cam0 and cam1"):
         load_rig(path)
+
+
+@pytest.mark.parametrize("value", [".nan", ".inf", "-.inf", "726.5", "abc", "[726]"])
+def test_an_image_size_that_is_no_whole_number_is_refused_by_its_key(tmp_path: Path, value: str) -> None:
+    """``image_width: .nan`` raised Python's ValueError (a traceback from the command line),
+    ``.inf`` an OverflowError; 726.5 was cut to 726 and a string was ignored, the size then
+    taken from the frames without a word."""
+    path = save_rig(_rig(), tmp_path / "rig.yaml")
+    text = path.read_text()
+    assert "image_width: 640\n" in text
+    path.write_text(text.replace("image_width: 640\n", f"image_width: {value}\n"))
+    for size in (None, (640, 480)):
+        with pytest.raises(TrackmeterError, match=r"rig\.yaml: key 'image_width' must be a whole number of pixels"):
+            load_rig(path, image_size=size)
+
+
+def test_an_image_size_written_as_a_whole_float_reads(tmp_path: Path) -> None:
+    path = save_rig(_rig(), tmp_path / "rig.yaml")
+    path.write_text(path.read_text().replace("image_width: 640\n", "image_width: 640.\n"))
+    assert load_rig(path).image_size == (640, 480)

@@ -9,6 +9,7 @@ beside it; that pair carries no image size, so pass ``image_size``. So is Kalibr
 
 from __future__ import annotations
 
+import math
 import warnings
 from pathlib import Path
 
@@ -93,6 +94,22 @@ def _scalar(fs: cv2.FileStorage, key: str) -> float | None:
     return float(node.real())
 
 
+def _image_size_scalar(fs: cv2.FileStorage, key: str, path: Path) -> int | None:
+    """``key``'s whole number of pixels (``640`` or ``640.``); None when the key is absent.
+
+    Raises:
+        TrackmeterError: the key holds anything else (NaN, a fraction, a string, a list).
+    """
+    node = fs.getNode(key)
+    if node.empty() or node.isNone():
+        return None
+    value = float(node.real()) if node.isReal() or node.isInt() else math.nan
+    if not (math.isfinite(value) and value == round(value)):
+        shown = node.string() if node.isString() else (value if node.isReal() or node.isInt() else "not a number")
+        raise TrackmeterError(f"{path}: key '{key}' must be a whole number of pixels, got {shown!r}")
+    return int(value)
+
+
 def swapped_cameras(rig: StereoRig) -> bool:
     """True when the right camera's centre lies left of the left camera (a horizontal rig whose
     files or cameras were swapped): every disparity is then negative and nothing matches."""
@@ -154,8 +171,8 @@ def _load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> St
     try:
         if fs.getNode("K1").empty() and (not fs.getNode("M1").empty() or not fs.getNode("R").empty()):
             return _load_opencv_pair(path, image_size)
-        width = _scalar(fs, "image_width")
-        height = _scalar(fs, "image_height")
+        width = _image_size_scalar(fs, "image_width", path)
+        height = _image_size_scalar(fs, "image_height", path)
         if width is None or height is None:
             if image_size is None:
                 raise TrackmeterError(f"{path}: missing key 'image_width'/'image_height'")
