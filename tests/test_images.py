@@ -85,6 +85,25 @@ def test_non_image_raises(tmp_path: Path, content: bytes) -> None:
         read_grey(path)
 
 
+@pytest.mark.parametrize("keep", [20, 3000])
+def test_a_cut_short_png_is_one_error_and_nothing_from_opencv(tmp_path: Path, capfd: pytest.CaptureFixture[str],
+                                                             keep: int) -> None:
+    """A PNG cut short (a copy that stopped, a crash while writing) made OpenCV's decoder log
+    "[ WARN:0@...] global grfmt_png.cpp:793 readFromStreamOrBuffer PNG input buffer is
+    incomplete" (and an [ERROR ...] line for a cut header) on the process's stderr, before
+    the command's own one-line error."""
+    rng = np.random.default_rng(1)
+    ok, buf = cv2.imencode(".png", rng.integers(0, 256, (60, 80), dtype=np.uint8))
+    path = tmp_path / "cut.png"
+    path.write_bytes(buf.tobytes()[:keep])
+    level = cv2.utils.logging.getLogLevel()
+    capfd.readouterr()
+    with pytest.raises(TrackmeterError, match="not an image"):
+        read_grey(path)
+    assert capfd.readouterr().err == ""
+    assert cv2.utils.logging.getLogLevel() == level  # OpenCV's own logging is given back
+
+
 def test_missing_file_raises(tmp_path: Path) -> None:
     with pytest.raises(TrackmeterError, match="no such image"):
         read_grey(tmp_path / "nope.png")

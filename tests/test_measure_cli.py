@@ -161,6 +161,17 @@ def test_non_image_file(pair, capsys) -> None:  # type: ignore[no-untyped-def]
     _one_error_line(capsys, "missing.png")
 
 
+def test_a_cut_short_png_is_one_line_on_the_process_stderr(pair, capfd) -> None:  # type: ignore[no-untyped-def]
+    """OpenCV's decoder wrote its own [ WARN ...] line to the process's stderr (where capsys
+    does not look) before the command's error."""
+    *_, folder = pair
+    (folder / "cut.png").write_bytes((folder / "left.png").read_bytes()[:3000])
+    capfd.readouterr()
+    assert _run(folder, "--at", "1,1", left="cut.png") == 2
+    err = capfd.readouterr().err
+    assert err.splitlines() == [f"trackmeter measure: error: {folder / 'cut.png'}: not an image file OpenCV can decode"]
+
+
 @pytest.mark.parametrize("at", ["1", "1,2,3", "a,b", "1;2", "", "nan,100", "100,inf", "-inf,1"])
 def test_bad_at(pair, capsys, at: str) -> None:  # type: ignore[no-untyped-def]
     *_, folder = pair

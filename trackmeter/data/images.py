@@ -9,11 +9,13 @@ globs into an ordered list of left/right pairs.
 
 from __future__ import annotations
 
+import contextlib
 import glob
 import re
+import threading
 import warnings
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Iterable, Iterator, Sequence
 
 import cv2
 import numpy as np
@@ -22,12 +24,37 @@ from numpy.typing import NDArray
 from trackmeter.errors import TrackmeterError
 
 
+_quiet_lock = threading.Lock()
+_quiet_users = 0
+_quiet_saved_level = 0
+
+
+@contextlib.contextmanager
+def _opencv_quiet() -> Iterator[None]:
+    """OpenCV's own logging off while the block runs, then as it was. Threads may decode at
+    once: the first to enter saves the level, the last to leave restores it."""
+    global _quiet_users, _quiet_saved_level
+    with _quiet_lock:
+        if _quiet_users == 0:
+            _quiet_saved_level = cv2.utils.logging.getLogLevel()
+            cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+        _quiet_users += 1
+    try:
+        yield
+    finally:
+        with _quiet_lock:
+            _quiet_users -= 1
+            if _quiet_users == 0:
+                cv2.utils.logging.setLogLevel(_quiet_saved_level)
+
+
 def decode_image(path: str | Path) -> NDArray[np.generic]:
     """The image file as OpenCV decodes it, unchanged (any depth and channel count).
 
     The bytes are decoded with ``cv2.imdecode`` rather than ``cv2.imread`` because the latter
-    prints its own warning on stderr for unreadable files; here the caller gets one
-    :class:`TrackmeterError` instead.
+    prints its own warning on stderr for unreadable files, and with OpenCV's logging off
+    because its decoders log too (a PNG cut short: "[ WARN:0@...] ... PNG input buffer is
+    incomplete"); here the caller gets one :class:`TrackmeterError` instead.
 
     Raises:
         TrackmeterError: missing file, unreadable file, or a file that is not a decodable image.
@@ -39,7 +66,8 @@ def decode_image(path: str | Path) -> NDArray[np.generic]:
         data = np.fromfile(str(path), dtype=np.uint8)
     except OSError as exc:
         raise TrackmeterError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    with _opencv_quiet():
+        image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if image is None:
         raise TrackmeterError(f"{path}: not an image file OpenCV can decode")
     return image
