@@ -104,6 +104,17 @@ def test_the_same_images_as_both_cameras_are_refused_and_nothing_is_written(cali
     assert not (tmp_path / "rig.yaml").exists()
 
 
+def test_a_full_disk_is_an_error_not_an_empty_rig_file(calib_dir: Path, tmp_path: Path, full_disk,  # type: ignore[no-untyped-def]
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    """cv2.FileStorage does not report a failed write: on a full disk calibrate exited 0 and
+    left an empty rig.yaml (measured on a full tmpfs)."""
+    out = tmp_path / "rig.yaml"
+    full_disk(100)
+    assert main(_args(calib_dir, out)) == 2
+    _one_error_line(capsys, "rig.yaml", "No space left on device")
+    assert list(tmp_path.iterdir()) == []  # neither the rig nor a temporary file
+
+
 def test_calibrate_pairs_by_frame_number(calib_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """9 left and 13 right images: the 9 with a partner of the same number pair up."""
     assert main(_args(calib_dir, tmp_path / "rig.yaml", left="left0*.jpg", right="right*.jpg")) == 0

@@ -92,6 +92,16 @@ def _write_opencv_pair(folder: Path, rig: StereoRig, intrinsics: str = "intrinsi
     fs.release()
 
 
+def test_a_save_on_a_full_disk_raises_and_leaves_the_old_file(tmp_path: Path, full_disk) -> None:  # type: ignore[no-untyped-def]
+    path = save_rig(_rig(), tmp_path / "rig.yaml")
+    before = path.read_bytes()
+    full_disk(100)
+    with pytest.raises(TrackmeterError, match="rig.yaml: cannot write: No space left on device"):
+        save_rig(_rig(rms=0.5), path)
+    assert path.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rig.yaml"]
+
+
 @pytest.mark.parametrize("which", ["intrinsics.yml", "extrinsics.yml"])
 def test_reads_opencv_stereo_sample_pair(tmp_path: Path, which: str) -> None:
     rig = _rig(14, rms=None)  # stereo_calib.cpp's rational model: OpenCV writes 14 coefficients

@@ -18,7 +18,7 @@ import numpy as np
 import yaml
 
 from trackmeter.core.stereo import Camera, StereoRig
-from trackmeter.data.atomic import atomic_path
+from trackmeter.data.atomic import write_files_atomic
 from trackmeter.errors import TrackmeterError
 
 
@@ -283,11 +283,16 @@ def _load_opencv_pair(path: Path, image_size: tuple[int, int] | None) -> StereoR
 def save_rig(rig: StereoRig, path: str | Path, extra: dict[str, np.ndarray | float] | None = None) -> Path:
     """Write ``rig`` as OpenCV FileStorage YAML, atomically (temp file, then rename).
 
-    ``extra`` adds keys such as ``E``, ``F`` or per-parameter standard deviations.
+    ``extra`` adds keys such as ``E``, ``F`` or per-parameter standard deviations. The text is
+    made in memory and written by :func:`write_files_atomic`: ``cv2.FileStorage`` writing a
+    file itself does not report a failed write (a full disk left an empty rig file).
+
+    Raises:
+        TrackmeterError: the file could not be written (a full disk), the old one left as it was.
     """
     path = Path(path)
-    with atomic_path(path, suffix=".yaml") as tmp:  # OpenCV picks YAML by the extension
-        fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
+    fs = cv2.FileStorage(".yaml", cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)  # YAML by the extension
+    try:
         fs.write("image_width", int(rig.left.width))
         fs.write("image_height", int(rig.left.height))
         fs.write("K1", rig.left.K)
@@ -300,5 +305,8 @@ def save_rig(rig: StereoRig, path: str | Path, extra: dict[str, np.ndarray | flo
             fs.write("rms_px", float(rig.rms_px))
         for key, value in (extra or {}).items():
             fs.write(key, np.asarray(value, dtype=float) if not np.isscalar(value) else float(value))
+    except BaseException:
         fs.release()
+        raise
+    write_files_atomic({path: fs.releaseAndGetString().encode("utf-8")})
     return path
