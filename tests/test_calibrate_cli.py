@@ -172,6 +172,29 @@ def test_images_of_different_sizes(calib_dir: Path, shared_data: Path, tmp_path:
     _one_error_line(capsys, "384x288")
 
 
+@pytest.mark.parametrize("kind", ["folder", "empty", "under_a_file"])
+def test_an_out_that_cannot_be_the_rig_file_is_refused_before_the_work(calib_dir: Path, tmp_path: Path, kind: str,
+                                                                      monkeypatch: pytest.MonkeyPatch,
+                                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """--out naming a folder failed only after the whole calibration, with the temporary
+    file's name ('/x/.out.1jew20fn.yaml -> out: Is a directory'); an empty --out said
+    'Device or resource busy'."""
+    import trackmeter.core.calibration as calibration
+
+    def no_work(*args, **kwargs):  # type: ignore[no-untyped-def]
+        raise AssertionError("the corners were searched for before --out was checked")
+
+    monkeypatch.setattr(calibration, "detect_corners", no_work)
+    (tmp_path / "notes.txt").write_text("x")
+    out, words = {"folder": (tmp_path, ("is a folder", "rig.yaml")),
+                  "empty": ("", ("--out", "empty")),
+                  "under_a_file": (tmp_path / "notes.txt" / "rig.yaml", ("notes.txt", "not a writable folder"))}[kind]
+    assert main(_args(calib_dir, out)) == 2
+    line = _one_error_line(capsys, *words)
+    assert ".yaml ->" not in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]
+
+
 def test_bad_config_value(calib_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     cfg = tmp_path / "c.yaml"
     cfg.write_text("calibrate:\n  distortion_model: fisheye\n")

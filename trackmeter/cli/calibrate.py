@@ -49,6 +49,7 @@ def run(args: argparse.Namespace) -> int:
     pattern = parse_pattern(args.pattern)
     if not (math.isfinite(args.square) and args.square > 0):
         raise TrackmeterError(f"--square must be a positive length in metres, got {args.square}")
+    _check_out(args.out)  # before the work, which takes a while
     pairs = pair_stereo_paths(expand_globs(args.left, "left images"), expand_globs(args.right, "right images"))
     same = [left for left, right in pairs if left.resolve() == right.resolve()]
     if same:
@@ -105,6 +106,26 @@ def run(args: argparse.Namespace) -> int:
         hint = "; were --left and --right given the wrong way round?" if swapped_cameras(rig) else ""
         warnings.warn(f"{exc}; measure and track refuse this rig{hint}", stacklevel=1)
     return 0
+
+
+def _check_out(out: str) -> None:
+    """Refuse an ``--out`` the rig file cannot be written to: an empty name, a folder, or a
+    place under a file or an unwritable folder; nothing is created.
+
+    Raises:
+        TrackmeterError: naming the path and why.
+    """
+    from trackmeter.data.atomic import unwritable_ancestor
+    from trackmeter.errors import TrackmeterError
+
+    if not out.strip():
+        raise TrackmeterError("--out: the rig file's name is empty")
+    path = Path(out)
+    if path.is_dir():
+        raise TrackmeterError(f"--out {path}: is a folder; give the rig file's name, e.g. {path / 'rig.yaml'}")
+    blocked = unwritable_ancestor(path.parent)
+    if blocked is not None:
+        raise TrackmeterError(f"--out {path}: cannot write the rig file there ({blocked} is not a writable folder)")
 
 
 #: A calibrated baseline shorter than this many squares is no stereo rig: the same views twice.
