@@ -137,3 +137,66 @@ def test_analyze_takes_the_frame_size_for_an_opencv_pair_rig(opencv_sample_seque
     assert code == 2 and captured.err.strip().splitlines() == [
         "trackmeter analyze: error: no usable range for the error analysis (frames from t=0.000 s: "
         "no point has 5 good measurements at this range)"], captured.err
+
+
+@pytest.fixture(scope="module")
+def still_sequence(tmp_path_factory):
+    """8 noisy frames of one textured plane at 3.8 m (no ground truth: one range); analyze
+    runs on it in about a second."""
+    import numpy as np
+
+    from benchmarks.measure import estec_plane
+    from trackmeter.data.sequence import SequenceWriter
+    from trackmeter.sources.base import StereoFrame
+
+    rig, left, right, _ = estec_plane(seed=5)
+    folder = tmp_path_factory.mktemp("still") / "seq"
+    rng = np.random.default_rng(0)
+
+    def noisy(image):  # type: ignore[no-untyped-def]
+        return np.clip(image + rng.normal(0, 2.5, image.shape), 0, 255).astype(np.uint8)
+
+    with SequenceWriter(folder, rig=rig) as writer:
+        for i in range(8):
+            writer.write(StereoFrame(i, i / 25.0, noisy(left), noisy(right)))
+    return folder
+
+
+@pytest.mark.parametrize("kind", ["file", "sequence", "under_a_file"])
+def test_an_out_that_cannot_hold_the_report_is_refused_before_the_work(still_sequence, tmp_path, monkeypatch,
+                                                                       capsys, kind):
+    """--out was first tried after the whole analysis: a file gave 'X: File exists', a place
+    under a file 'Not a directory', and a sequence folder took the report among its images
+    (evaluate refuses all three up front)."""
+    import trackmeter.pipeline.analysis as analysis
+
+    def no_work(*args, **kwargs):  # type: ignore[no-untyped-def]
+        raise AssertionError("the analysis ran before --out was checked")
+
+    monkeypatch.setattr(analysis, "run_error_analysis", no_work)
+    (tmp_path / "notes.txt").write_text("x")
+    out, words = {"file": (tmp_path / "notes.txt", ("notes.txt", "not a folder")),
+                  "sequence": (still_sequence, ("a sequence folder",)),
+                  "under_a_file": (tmp_path / "notes.txt" / "report", ("notes.txt", "not a writable folder"))}[kind]
+    code = main(["analyze", "--source", str(still_sequence), "--points", "5", "--out", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    assert err[0].startswith("trackmeter analyze: error: ")
+    for word in words:
+        assert word in err[0], err[0]
+    assert not any(p.name.endswith((".json", ".md")) for p in still_sequence.iterdir())
+
+
+def test_a_report_is_written_whole_or_not_at_all(still_sequence, tmp_path, full_disk, capsys):
+    """On a full disk analysis.json and ranges.csv were left in --out without the plots and
+    report.md they go with (seen on a full tmpfs)."""
+    out = tmp_path / "report"
+    out.mkdir()
+    (out / "analysis.json").write_text('{"earlier": true}\n')
+    full_disk(3000)
+    code = main(["analyze", "--source", str(still_sequence), "--points", "5", "--out", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    assert "No space left on device" in err[0]
+    assert sorted(p.name for p in out.iterdir()) == ["analysis.json"]  # the earlier report's file, as it was
+    assert (out / "analysis.json").read_text() == '{"earlier": true}\n'

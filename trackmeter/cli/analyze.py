@@ -45,6 +45,10 @@ def run(args: argparse.Namespace) -> int:
         if args.points < 3:
             raise TrackmeterError(f"--points must be at least 3, got {args.points}")
         params = replace(params, points_per_range=args.points)
+    if args.out:
+        from trackmeter.data.evaluation import check_report_directory
+
+        check_report_directory(args.out)  # before the work, which may take a while
     # --rig is read once the source is open: it may take its size from the source's frames.
     with open_source_with_rig(args.source, args.rig, own_model=False) as source:
         rig = source.rig

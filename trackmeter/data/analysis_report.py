@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from trackmeter.core.error_analysis import DensityFit, ErrorAnalysis
-from trackmeter.data.evaluation import save_figure
-from trackmeter.data.atomic import write_text_atomic
+from trackmeter.data.atomic import write_files_atomic
+from trackmeter.data.evaluation import check_report_directory, figure_png
 from trackmeter.data.jsontext import json_text
 
 #: The paper's figures (sections 2.F-2.G): sigma_z at 3.5 m, sub-pixel accuracy.
@@ -72,7 +72,8 @@ def format_analysis(summary: dict) -> str:
     return "\n".join(lines)
 
 
-def _plot(analysis: ErrorAnalysis, out: Path) -> list[Path]:
+def _plot(analysis: ErrorAnalysis) -> dict[str, bytes]:
+    """The two figures as PNG bytes, by file name."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -99,8 +100,7 @@ def _plot(analysis: ErrorAnalysis, out: Path) -> list[Path]:
         ax.legend(fontsize=7)
     fig.suptitle(f"single-point sigma vs range (paper Fig. 3); sigma_d = {analysis.sigma_disparity_px:.4f} px")
     fig.tight_layout()
-    p1 = out / "sigma_vs_range.png"
-    save_figure(fig, p1)
+    sigma_png = figure_png(fig)
     plt.close(fig)
 
     def panel(ax, d: DensityFit, scale: float, unit: str, title: str) -> None:  # type: ignore[no-untyped-def]
@@ -120,22 +120,24 @@ def _plot(analysis: ErrorAnalysis, out: Path) -> list[Path]:
     panel(axes[1], analysis.density, 1.0, "depth error / sigma_z", "all ranges, normalised")
     fig.suptitle("error probability density (paper Fig. 2)")
     fig.tight_layout()
-    p2 = out / "error_density.png"
-    save_figure(fig, p2)
+    density_png = figure_png(fig)
     plt.close(fig)
-    return [p1, p2]
+    return {"sigma_vs_range.png": sigma_png, "error_density.png": density_png}
 
 
 def write_analysis(analysis: ErrorAnalysis, summary: dict, out_dir: str | Path) -> list[Path]:
-    """Write ``analysis.json``, ``ranges.csv``, the two plots and ``report.md`` into ``out_dir``."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(out / "analysis.json", json_text(summary) + "\n")
+    """Write ``analysis.json``, ``ranges.csv``, the two plots and ``report.md`` into ``out_dir``,
+    as one piece of work: all of them whole, or (a full disk) none, an earlier report kept.
+
+    Raises:
+        TrackmeterError: ``out_dir`` cannot hold a report (:func:`check_report_directory`), or
+            a file could not be written.
+    """
+    out = check_report_directory(out_dir)
     rows = ["range_m,n_points,n_samples,sigma_x_m,sigma_y_m,sigma_z_m,pred_sigma_x_m,pred_sigma_y_m,pred_sigma_z_m"]
     for r in analysis.ranges:
         rows.append(",".join(repr(float(v)) for v in (r.range_m, r.n_points, r.n_samples, *r.sigma_m, *r.predicted_sigma_m)))
-    write_text_atomic(out / "ranges.csv", "\n".join(rows) + "\n")
-    plots = _plot(analysis, out)
+    plots = _plot(analysis)
     s = summary
     ok_sigma = s["sigma_z_at_3p5_m"] <= PAPER_SIGMA_Z_3P5_M
     ok_sd = s["sigma_disparity_px"] <= PAPER_SIGMA_DISPARITY_PX
@@ -160,5 +162,7 @@ the measured disparity sigma over that limit has median {s.get('measured_over_no
 ![sigma vs range](sigma_vs_range.png)
 ![error density](error_density.png)
 """
-    write_text_atomic(out / "report.md", report)
-    return [out / "analysis.json", out / "ranges.csv", *plots, out / "report.md"]
+    files = {out / "analysis.json": (json_text(summary) + "\n").encode(), out / "ranges.csv": ("\n".join(rows) + "\n").encode(),
+             **{out / name: png for name, png in plots.items()}, out / "report.md": report.encode()}
+    write_files_atomic(files)
+    return list(files)
