@@ -349,6 +349,18 @@ def test_a_disk_that_fills_leaves_the_earlier_report_whole_and_no_part_of_the_ne
     assert _report_files(out) == before  # every file the earlier report's, nothing beside them
 
 
+def test_a_report_folder_the_full_disk_left_empty_is_not_left_behind(capsys, sequence_and_run, full_disk):
+    """A new --out folder (and the folders made to reach it) stayed behind, empty, when the
+    disk filled while the report was written."""
+    _, seq, run = sequence_and_run
+    parent = run.parent / "reports"
+    full_disk(20_000)
+    code, _, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--out",
+                        str(parent / "new" / "report"))
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "No space left on device" in err, err
+    assert not parent.exists()
+
+
 def test_out_refuses_a_sequence_folder_and_a_file(capsys, sequence_and_run):
     _, seq, run = sequence_and_run
     recording = run.parent / "recording"

@@ -50,16 +50,19 @@ def write_files_atomic(contents: Mapping[Path, bytes]) -> None:
     Each is first written whole to a temporary file beside it; only when every one is whole
     are they renamed over their targets. On a failure while writing (a disk that fills) the
     temporaries are removed and every target is left as it was: an earlier report stays
-    whole, not mixed with half of the new one.
+    whole, not mixed with half of the new one; folders made for the files are removed again.
 
     Raises:
         TrackmeterError: a file could not be written (naming it and the OS's reason).
     """
     written: list[tuple[Path, Path]] = []  # (temporary, target)
+    made: list[Path] = []  # folders this call created, outermost first
     target = None
     try:
         for target, data in contents.items():
+            missing = [d for d in (target.parent, *target.parent.parents) if not d.exists()]
             target.parent.mkdir(parents=True, exist_ok=True)
+            made += [d for d in reversed(missing) if d not in made]
             fd, tmp_name = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.")
             written.append((Path(tmp_name), target))
             try:
@@ -72,6 +75,11 @@ def write_files_atomic(contents: Mapping[Path, bytes]) -> None:
     except BaseException as exc:
         for tmp, _ in written:
             tmp.unlink(missing_ok=True)
+        for folder in reversed(made):  # innermost first; only while empty
+            try:
+                folder.rmdir()
+            except OSError:
+                break
         if isinstance(exc, OSError):
             raise TrackmeterError(f"{target}: cannot write: {exc.strerror or exc}") from None
         raise
