@@ -115,6 +115,21 @@ def test_tum_comments_anywhere_and_a_bom_read_as_numpy_loadtxt_reads_them(tmp_pa
     assert np.allclose(got.quat_wxyz, q / np.linalg.norm(q, axis=1, keepdims=True), atol=1e-12)
 
 
+def test_comment_lines_among_the_rows_are_skipped(tmp_path: Path) -> None:
+    """A '#' line after the header (a note where a recording was resumed) was read as a row:
+    'expected 14 values, got 1'. data.csv and TUM files skip such lines; so does a motion CSV,
+    Windows line endings and blank lines included."""
+    s = _series()
+    plain = write_groundtruth_csv(tmp_path / "groundtruth.csv", s).read_text().splitlines()
+    lines = [plain[0], plain[1], "# resumed here", "", plain[2], "  #, ,", *plain[3:]]
+    path = tmp_path / "commented.csv"
+    path.write_bytes(("\r\n".join(lines) + "\r\n").encode())
+    got = read_motion_csv(path)
+    np.testing.assert_array_equal(got.t_s, s.t_s)
+    np.testing.assert_array_equal(got.position_m, s.position_m)
+    np.testing.assert_array_equal(got.omega_body_rad_s, s.omega_body_rad_s)
+
+
 def test_comment_lines_before_the_header_are_skipped(tmp_path: Path) -> None:
     # Another renderer's groundtruth.csv may open with comments; the header is the first line
     # naming the columns (with or without a leading '#', as EuRoC writes its headers).

@@ -195,8 +195,9 @@ def read_motion_csv(path: str | Path) -> MotionSeries:
     """Read a ``groundtruth.csv`` or ``states.csv`` (any column order; header required).
 
     Columns ``t,x,y,z,qw,qx,qy,qz`` are required; missing velocity columns read as NaN,
-    a missing ``valid`` column as all valid. Empty fields and ``nan`` read as NaN. Rows are
-    kept in file order and must not go back in time.
+    a missing ``valid`` column as all valid. Empty fields and ``nan`` read as NaN. Blank lines
+    and ``#`` lines (comments) are skipped. Rows are kept in file order and must not go back in
+    time.
 
     Raises:
         TrackmeterError: naming the file (and line) when it is missing, empty, has no header
@@ -224,8 +225,9 @@ def read_motion_csv(path: str | Path) -> MotionSeries:
         )
     if len(set(header)) != len(header):
         raise TrackmeterError(f"{path}:{header_line}: repeated column in the header")
-    values = np.empty((len(numbered) - 1, len(header)))
-    for r, (number, text) in enumerate(numbered[1:]):
+    rows = [(number, text) for number, text in numbered[1:] if not text.startswith("#")]  # comments, as in data.csv
+    values = np.empty((len(rows), len(header)))
+    for r, (number, text) in enumerate(rows):
         fields = text.split(",")
         if len(fields) != len(header):
             raise TrackmeterError(f"{path}:{number}: expected {len(header)} values, got {len(fields)}")
