@@ -359,3 +359,24 @@ def test_an_image_size_written_as_a_whole_float_reads(tmp_path: Path) -> None:
     path = save_rig(_rig(), tmp_path / "rig.yaml")
     path.write_text(path.read_text().replace("image_width: 640\n", "image_width: 640.\n"))
     assert load_rig(path).image_size == (640, 480)
+
+
+@pytest.mark.parametrize("edit, words", [
+    (("resolution: [640, 480]", "resolution: [.inf, 480]"), "cam0: Kalibr 'resolution' must be two whole numbers of pixels"),
+    (("resolution: [640, 480]", "resolution: [640.5, 480]"), "cam0: Kalibr 'resolution' must be two whole numbers of pixels"),
+    (("resolution: [640, 480]", "resolution: [640]"), "cam0: Kalibr 'resolution' must be two whole numbers of pixels"),
+    (("  - [0.0, 0.0, 0.0, 1.0]\n", "  - [0.0, 0.0, 1.0]\n"), "'T_cn_cnm1' must be a 4x4 matrix"),
+    (("-0.2801", "1e400"), "camchain-stereo.yaml: .*T has non-finite values"),
+])
+def test_a_malformed_kalibr_camchain_is_one_error_naming_the_file(tmp_path: Path, edit: tuple[str, str],
+                                                                   words: str) -> None:
+    """A resolution of .inf raised Python's OverflowError (a traceback from the command line),
+    640.5 was cut to 640, a T_cn_cnm1 row too short gave numpy's 'inhomogeneous shape' text,
+    and a non-finite T was refused without the file's name."""
+    path = tmp_path / "camchain-stereo.yaml"
+    text = _kalibr_camchain(_rig(n_dist=4))
+    assert edit[0] in text
+    path.write_text(text.replace(edit[0], edit[1], 1))
+    with pytest.raises(TrackmeterError, match=words) as info:
+        load_rig(path)
+    assert str(info.value).startswith(str(path))

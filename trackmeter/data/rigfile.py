@@ -212,7 +212,8 @@ def pinhole_radtan_camera(entry: dict, distortion_key: str) -> Camera:
     coefficients ``[k1, k2, p1, p2]`` under ``distortion_key`` (OpenCV's model and order).
 
     Raises:
-        TrackmeterError: another camera or distortion model (equidistant, omni, ...).
+        TrackmeterError: another camera or distortion model (equidistant, omni, ...), or a
+            ``resolution`` that is not two whole numbers.
         KeyError, TypeError, ValueError: a missing or malformed entry.
     """
     model, distortion = entry.get("camera_model", "pinhole"), entry.get("distortion_model", "radtan")
@@ -220,9 +221,16 @@ def pinhole_radtan_camera(entry: dict, distortion_key: str) -> Camera:
         raise TrackmeterError(f"camera model {model}/{distortion} is not supported (pinhole with "
                               "radial-tangential distortion is: OpenCV's model)")
     fu, fv, cu, cv = (float(x) for x in entry["intrinsics"])
-    width, height = (int(x) for x in entry["resolution"])
+    size = entry["resolution"]
+    if not (isinstance(size, (list, tuple)) and len(size) == 2 and all(_whole_pixels(x) for x in size)):
+        raise TrackmeterError(f"'resolution' must be two whole numbers of pixels [width, height], got {size!r}")
+    width, height = (int(x) for x in size)
     dist = np.array([float(x) for x in entry.get(distortion_key) or [0.0, 0.0, 0.0, 0.0]])
     return Camera(width, height, np.array([[fu, 0.0, cu], [0.0, fv, cv], [0.0, 0.0, 1.0]]), dist)
+
+
+def _whole_pixels(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value == round(value)
 
 
 def _load_kalibr(camchain: dict, path: Path) -> StereoRig:
@@ -237,12 +245,15 @@ def _load_kalibr(camchain: dict, path: Path) -> StereoRig:
                 cams.append(pinhole_radtan_camera(camchain[name], "distortion_coeffs"))
             except TrackmeterError as exc:
                 raise TrackmeterError(f"{name}: Kalibr {exc}") from None
-        T_c1_c0 = np.array(camchain["cam1"]["T_cn_cnm1"], dtype=float).reshape(4, 4)
+        try:
+            T_c1_c0 = np.array(camchain["cam1"]["T_cn_cnm1"], dtype=float).reshape(4, 4)
+        except (TypeError, ValueError):
+            raise TrackmeterError("cam1: 'T_cn_cnm1' must be a 4x4 matrix of numbers (4 rows of 4)") from None
+        return StereoRig(cams[0], cams[1], T_c1_c0[:3, :3], T_c1_c0[:3, 3], name=path.stem)
     except (KeyError, TypeError, ValueError) as exc:
         raise TrackmeterError(f"{path}: not a usable Kalibr camchain ({exc.__class__.__name__}: {exc})") from None
     except TrackmeterError as exc:
         raise TrackmeterError(f"{path}: {exc}") from None
-    return StereoRig(cams[0], cams[1], T_c1_c0[:3, :3], T_c1_c0[:3, 3], name=path.stem)
 
 
 def _load_opencv_pair(path: Path, image_size: tuple[int, int] | None) -> StereoRig:
