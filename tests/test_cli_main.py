@@ -148,3 +148,29 @@ def test_only_the_report_of_a_signal_found_ignored_is_dropped():
     hook(race)
     hook(other)
     assert seen == [other]
+
+
+def _error_line(capsys: pytest.CaptureFixture[str]) -> str:
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]
+
+
+def test_a_folder_where_a_file_is_expected_and_a_file_where_a_folder_is_are_named_so(tmp_path, capsys):
+    """A folder given as --left said 'no such image file', as --config or --model
+    "cannot read: [Errno 21] Is a directory: '...'"; a file given as seq:FILE said 'no such
+    sequence folder', as if nothing were there."""
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    a_file = tmp_path / "notes.txt"
+    a_file.write_text("x\n")
+    rig = "estec_12mm"
+    assert main(["measure", "--rig", rig, "--left", str(folder), "--right", str(folder), "--at", "1,1"]) == 2
+    assert _error_line(capsys) == f"trackmeter measure: error: {folder}: a folder, not an image file"
+    assert main(["measure", "--config", str(folder), "--rig", rig, "--left", str(a_file), "--right", str(a_file),
+                 "--at", "1,1"]) == 2
+    assert _error_line(capsys) == f"trackmeter measure: error: {folder}: a folder, not a file"
+    assert main(["track", "--source", f"seq:{a_file}", "--auto", "4", "--out", str(tmp_path / "run")]) == 2
+    assert _error_line(capsys) == f"trackmeter track: error: {a_file}: a file, not a sequence folder"
+    assert not (tmp_path / "run").exists()

@@ -90,6 +90,8 @@ def read_yaml_mapping(path: Path, loader: type[yaml.SafeLoader] = yaml.SafeLoade
         text = Path(path).read_text(encoding="utf-8")
     except FileNotFoundError:
         raise TrackmeterError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise TrackmeterError(f"{path}: a folder, not a file") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise TrackmeterError(f"{path}: cannot read: {exc}") from None
     try:

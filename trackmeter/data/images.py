@@ -60,6 +60,8 @@ def decode_image(path: str | Path) -> NDArray[np.generic]:
         TrackmeterError: missing file, unreadable file, or a file that is not a decodable image.
     """
     path = Path(path)
+    if path.is_dir():
+        raise TrackmeterError(f"{path}: a folder, not an image file")
     if not path.is_file():
         raise TrackmeterError(f"{path}: no such image file")
     try:

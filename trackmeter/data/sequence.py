@@ -325,6 +325,8 @@ def find_sequence_root(directory: str | Path) -> Path:
         TrackmeterError: no such folder, or neither layout found.
     """
     d = Path(directory)
+    if d.exists() and not d.is_dir():
+        raise TrackmeterError(f"{d}: a file, not a sequence folder")
     if not d.is_dir():
         raise TrackmeterError(f"{d}: no such sequence folder")
     root = _sequence_root(d)
