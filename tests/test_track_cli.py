@@ -62,6 +62,15 @@ def test_parse_target() -> None:
         parse_target("=1,2")
 
 
+@pytest.mark.parametrize("text", ["id=", "a=b=1,2", "a=1,2,3", "foo", "nan,1", "a= ,2"])
+def test_a_malformed_target_is_quoted_as_given(text: str) -> None:
+    """'--target id=' said "expected a pixel as U,V (two finite numbers), got ''" and
+    '--target a=b=1,2' "... got 'b=1,2'": the text after the first '=', not what was typed."""
+    with pytest.raises(TrackmeterError) as info:
+        parse_target(text)
+    assert str(info.value) == f"--target {text!r}: expected [ID=]U,V, a pixel's U,V two finite numbers"
+
+
 def test_run_directory_contract(monkeypatch, tmp_path, estec_rig, capsys) -> None:
     fake_source(monkeypatch, estec_rig, n=6)
     out = tmp_path / "run"

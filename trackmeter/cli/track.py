@@ -85,11 +85,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def parse_target(text: str) -> tuple[str | None, tuple[float, float]]:
     """``"[ID=]U,V"`` → ``(id or None, (u, v))``."""
     name, sep, rest = text.partition("=")
-    if not sep:
-        return None, parse_uv(text)
-    if not name.strip():
+    if sep and not name.strip():
         raise TrackmeterError(f"--target: empty id in {text!r} (expected ID=U,V)")
-    return name.strip(), parse_uv(rest)
+    try:
+        uv = parse_uv(rest if sep else text)
+    except TrackmeterError:  # quoted whole, as typed (not just what follows the '=')
+        raise TrackmeterError(f"--target {text!r}: expected [ID=]U,V, a pixel's U,V two finite numbers") from None
+    return (name.strip() if sep else None), uv
 
 
 class _Limited:
