@@ -380,3 +380,20 @@ def test_a_malformed_kalibr_camchain_is_one_error_naming_the_file(tmp_path: Path
     with pytest.raises(TrackmeterError, match=words) as info:
         load_rig(path)
     assert str(info.value).startswith(str(path))
+
+
+@pytest.mark.parametrize("form", ["opencv", "plain"])
+def test_a_rig_file_saved_with_a_byte_order_mark_reads(tmp_path: Path, form: str) -> None:
+    """A rig file saved by a Windows editor starts with a UTF-8 byte order mark: OpenCV's
+    parser then said 'not an OpenCV FileStorage file' (data.csv, TUM, model and config files
+    with one read)."""
+    rig = _rig()
+    path = save_rig(rig, tmp_path / "rig.yaml")
+    text = path.read_text()
+    if form == "plain":
+        text = "\n".join(line for line in text.splitlines() if not line.startswith(("%", "---")))
+    path.write_bytes(b"\xef\xbb\xbf" + text.replace("\n", "\r\n").encode())
+    back = load_rig(path)
+    np.testing.assert_array_equal(back.left.K, rig.left.K)
+    np.testing.assert_array_equal(back.T, rig.T)
+    assert back.image_size == rig.image_size

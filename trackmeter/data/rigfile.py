@@ -33,7 +33,15 @@ def _open(path: Path) -> cv2.FileStorage:
             presets = f" (a file, or a preset: {', '.join(preset_names(RIGS_DIR))})"
         raise TrackmeterError(f"{path}: no such rig file{presets}")
     try:
-        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+        with open(path, "rb") as f:
+            bom = f.read(3) == b"\xef\xbb\xbf"
+        if bom:  # saved by a Windows editor: OpenCV's parser refuses the mark, so read the text after it
+            text = path.read_bytes()[3:].decode("utf-8")
+            fs = cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
+        else:
+            fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except (OSError, UnicodeDecodeError):
+        raise TrackmeterError(f"{path}: cannot read as a text file") from None
     except (cv2.error, SystemError):
         # OpenCV 5's binding wraps the parser's cv2.error in a SystemError.
         raise TrackmeterError(f"{path}: not an OpenCV FileStorage file (YAML/XML)") from None
