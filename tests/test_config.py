@@ -265,3 +265,13 @@ def test_build_dataclass_is_generic() -> None:
         build_dataclass(Outer, {"inner": {"n": "four"}}, source="m.yaml")
     with pytest.raises(TrackmeterError, match=r"'values\[1\]'"):
         build_dataclass(Outer, {"values": [1, "b"]}, source="m.yaml")
+
+
+def test_a_binary_file_given_as_yaml_is_named_so(tmp_path: Path) -> None:
+    """A binary file given as --config, --model or --scenario said "cannot read: 'utf-8'
+    codec can't decode byte 0x89 in position 0: invalid start byte"."""
+    path = tmp_path / "image.png"
+    path.write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR\xff\xfe")
+    with pytest.raises(TrackmeterError) as info:
+        read_yaml_mapping(path)
+    assert str(info.value) == f"{path}: not a text file (YAML is UTF-8 text)"

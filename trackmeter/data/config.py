@@ -92,8 +92,10 @@ def read_yaml_mapping(path: Path, loader: type[yaml.SafeLoader] = yaml.SafeLoade
         raise TrackmeterError(f"{path}: no such file") from None
     except IsADirectoryError:
         raise TrackmeterError(f"{path}: a folder, not a file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise TrackmeterError(f"{path}: cannot read: {exc}") from None
+    except UnicodeDecodeError:
+        raise TrackmeterError(f"{path}: not a text file (YAML is UTF-8 text)") from None
+    except OSError as exc:
+        raise TrackmeterError(f"{path}: cannot read: {exc.strerror or exc}") from None
     try:
         data = yaml.load(text, Loader=loader)  # noqa: S506 (a SafeLoader)
     except yaml.YAMLError as exc:
