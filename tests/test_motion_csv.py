@@ -99,6 +99,16 @@ def test_bad_files_raise_one_line(tmp_path, text, message):
     assert "\n" not in str(info.value) and str(path) in str(info.value)
 
 
+def test_timestamps_that_go_backwards_are_named_by_time(tmp_path: Path) -> None:
+    """'motion series: timestamps go backwards' did not say where, in a file of thousands of rows."""
+    rows = [f"{t},1,2,3,1,0,0,0,0,0,0,0,0,0" for t in (0.0, 0.04, 0.08, 0.06, 0.12)]
+    path = tmp_path / "groundtruth.csv"
+    path.write_text(",".join(GROUNDTRUTH_COLUMNS) + "\n" + "\n".join(rows) + "\n")
+    with pytest.raises(TrackmeterError, match=r"groundtruth\.csv: motion series: timestamps go backwards: "
+                                              r"t = 0\.06 s after 0\.08 s"):
+        read_motion_csv(path)
+
+
 def test_tum_comments_anywhere_and_a_bom_read_as_numpy_loadtxt_reads_them(tmp_path: Path) -> None:
     from trackmeter.data.trajectory import read_tum
 

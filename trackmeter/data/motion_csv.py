@@ -95,7 +95,8 @@ class MotionSeries:
         if not np.all(np.isfinite(t)):
             raise TrackmeterError("motion series: non-finite timestamp")
         if np.any(np.diff(t) < 0):
-            raise TrackmeterError("motion series: timestamps go backwards")
+            i = int(np.argmax(np.diff(t) < 0))
+            raise TrackmeterError(f"motion series: timestamps go backwards: t = {t[i + 1]:.9g} s after {t[i]:.9g} s")
         if not (np.all(np.isfinite(p[valid])) and np.all(np.isfinite(q[valid]))):
             raise TrackmeterError("motion series: a valid row has a non-finite pose")
         norms = np.linalg.norm(q[valid], axis=1)
