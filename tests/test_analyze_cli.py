@@ -200,3 +200,25 @@ def test_a_report_is_written_whole_or_not_at_all(still_sequence, tmp_path, full_
     assert "No space left on device" in err[0]
     assert sorted(p.name for p in out.iterdir()) == ["analysis.json"]  # the earlier report's file, as it was
     assert (out / "analysis.json").read_text() == '{"earlier": true}\n'
+
+
+def test_unreadable_frames_are_said(still_sequence, tmp_path, capsys):
+    """Frames skipped for an unreadable image were not mentioned: with all of them unreadable
+    the one line said only 'no usable range ... (the source gave no frames)'."""
+    import shutil
+
+    folder = tmp_path / "seq"
+    shutil.copytree(still_sequence, folder)
+    images = sorted((folder / "cam0" / "data").glob("*.png"))
+    images[3].write_bytes(b"")
+    code = main(["analyze", "--source", str(folder), "--points", "5"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 0
+    assert err == [f"trackmeter analyze: warning: 1 pair(s) with an unreadable image skipped ({images[3]}: not an image "
+                   "file OpenCV can decode)"]
+    for image in images:
+        image.write_bytes(b"")
+    code = main(["analyze", "--source", str(folder), "--points", "5"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    assert err[0].startswith("trackmeter analyze: error: no usable range") and "8 pair(s) with an unreadable image" in err[0]

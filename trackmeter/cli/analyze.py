@@ -17,6 +17,7 @@ sigma_vs_range.png, error_density.png and report.md.
 from __future__ import annotations
 
 import argparse
+import warnings
 from dataclasses import replace
 
 from trackmeter.cli.common import load_config_from_args, progress
@@ -31,6 +32,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--points", type=int, metavar="N", help="points selected per range (default from config)")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON (SI units)")
     parser.add_argument("--out", metavar="DIR", help="write analysis.json, ranges.csv, plots and report.md here")
+
+
+def _skipped_while_reading(source: object, warning_at_open: str | None) -> str | None:
+    """What the source skipped while it was read (pairs with an unreadable image), when it
+    says more than it did when opened; else None."""
+    warning = getattr(source, "warning", None)
+    return warning if warning and warning != warning_at_open else None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -55,10 +63,20 @@ def run(args: argparse.Namespace) -> int:
         if rig is None:
             raise TrackmeterError(f"source {args.source!r} carries no rig: give --rig")
         total = getattr(source, "n_frames", None)
-        result = run_error_analysis(
-            source, rig, config.measure, params,
-            progress=lambda frames: progress(frames, total if isinstance(total, int) else None, "analyze"),
-        )
+        warning_at_open = getattr(source, "warning", None)  # said by the source already
+        try:
+            result = run_error_analysis(
+                source, rig, config.measure, params,
+                progress=lambda frames: progress(frames, total if isinstance(total, int) else None, "analyze"),
+            )
+        except TrackmeterError as exc:
+            skipped = _skipped_while_reading(source, warning_at_open)
+            if skipped:  # e.g. every image unreadable: "the source gave no frames" alone does not say why
+                raise TrackmeterError(f"{exc}; {skipped}") from None
+            raise
+        skipped = _skipped_while_reading(source, warning_at_open)
+        if skipped:
+            warnings.warn(skipped, stacklevel=1)
     summary = result.to_dict()
     summary["source"] = args.source
     if args.out:
