@@ -281,3 +281,46 @@ def test_row_mean_is_numpys_mean_bit_for_bit() -> None:
     ref = (ref[0] * (ref[1] - ref[1].mean(1, keepdims=True))).sum(1) / np.sqrt(
         (ref[0] ** 2).sum(1) * ((ref[1] - ref[1].mean(1, keepdims=True)) ** 2).sum(1))
     np.testing.assert_array_equal(pt.zncc(a, b), ref)
+
+
+def _blurred_pair(shift: tuple[float, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(image 0, image 1 = image 0 moved by ``shift``, their Gaussian-smoothed copies (sigma 0.7))."""
+    I0 = smooth_texture((160, 160), sigma=1.5, seed=5)
+    I1 = ndimage.shift(I0, (shift[1], shift[0]), order=5, mode="nearest").astype(np.float32)
+    return I0, I1, cv2.GaussianBlur(I0, (0, 0), 0.7), cv2.GaussianBlur(I1, (0, 0), 0.7)
+
+
+def test_raw_recheck_takes_the_translation_refit_on_the_image_itself() -> None:
+    """track_patches with raw_image: the anchored position and score are those of
+    refine_lk_translation on the unsmoothed image, started from the smoothed fit's warp."""
+    pts = np.array([[50.0, 50.0], [90.0, 70.0], [70.0, 110.0]])
+    I0, I1, S0, S1 = _blurred_pair((0.4, -0.3))
+    anchor, raw_anchor = pt.make_templates(S0, pts, 8), pt.make_templates(I0, pts, 8)
+    lin = np.repeat(np.eye(2)[None], len(pts), 0)
+    kw = dict(anchor_min_score=0.9, drift_tolerance_px=0.25, anchor_tolerance_px=1e-3)
+    smoothed = pt.track_patches(S1, anchor, lin, anchor, np.round(pts + [0.4, -0.3]), **kw)
+    res = pt.track_patches(S1, anchor, lin, anchor, np.round(pts + [0.4, -0.3]), raw_image=I1, raw_anchor=raw_anchor,
+                           raw_current=raw_anchor, raw_tolerance_px=0.25, **kw)
+    assert smoothed.anchored.all() and res.anchored.all()
+    W = np.concatenate([smoothed.anchor_lin, smoothed.uv[:, :, None]], axis=2)
+    ref = pt.refine_lk_translation(I1, raw_anchor, W, max_iterations=8, tolerance_px=1e-3, max_shift_px=2.0)
+    np.testing.assert_allclose(res.uv, ref.uv, atol=1e-9)
+    np.testing.assert_allclose(res.score, ref.score, atol=1e-9)
+    np.testing.assert_allclose(res.uv - pts, np.broadcast_to([0.4, -0.3], pts.shape), atol=0.06)  # bilinear LK on 8x8
+
+
+def test_raw_recheck_fails_a_fit_the_image_itself_puts_elsewhere() -> None:
+    """Where the image itself puts the patch farther than raw_tolerance_px from the smoothed
+    fit (here: the unsmoothed image is the smoothed one moved by 1 px), neither the anchor nor
+    the current template counts as a match."""
+    pts = np.array([[50.0, 50.0], [90.0, 70.0]])
+    I0, I1, S0, S1 = _blurred_pair((0.2, 0.1))
+    raw_moved = ndimage.shift(I1, (0.0, 1.0), order=5, mode="nearest").astype(np.float32)
+    anchor, raw_anchor = pt.make_templates(S0, pts, 8), pt.make_templates(I0, pts, 8)
+    lin = np.repeat(np.eye(2)[None], len(pts), 0)
+    res = pt.track_patches(S1, anchor, lin, anchor, np.round(pts), anchor_min_score=0.9, drift_tolerance_px=0.25,
+                           raw_image=raw_moved, raw_anchor=raw_anchor, raw_current=raw_anchor, raw_tolerance_px=0.25)
+    assert not res.anchored.any() and not res.converged.any()
+    agrees = pt.track_patches(S1, anchor, lin, anchor, np.round(pts), anchor_min_score=0.9, drift_tolerance_px=0.25,
+                              raw_image=raw_moved, raw_anchor=raw_anchor, raw_current=raw_anchor, raw_tolerance_px=1.5)
+    assert agrees.anchored.all()

@@ -336,7 +336,7 @@ def test_at_a_low_frame_rate_a_wide_window_is_searched_near_the_prediction_first
         if near_px == 0.0:
             assert len(ambiguous) == len(ids)
         else:
-            assert ambiguous == [] and len(tracked) >= len(ids) // 2 and max(tracked) < 0.3, (states, tracked)
+            assert ambiguous == [] and len(tracked) >= len(ids) // 2 and max(tracked) < 0.5, (states, tracked)  # not a period (6 px) off
 
 
 def test_track_blur_smooths_the_temporal_fits_and_not_the_search(scene, estec_rig) -> None:
@@ -355,8 +355,9 @@ def test_track_blur_smooths_the_temporal_fits_and_not_the_search(scene, estec_ri
     t = tr._targets[state.id]
     np.testing.assert_allclose(t.search, make_templates(f0.left, uv, 8).values[0])
     np.testing.assert_allclose(t.current.values, make_templates(fc.track, uv, 8).values)
-    plain = make_tracker(estec_rig)._frame(f0)
-    assert plain.track is plain.left  # off by default: the fits use the image itself
+    plain = make_tracker(estec_rig, track_blur_sigma_px=0.0)._frame(f0)
+    assert plain.track is plain.left  # 0: the fits use the image itself
+    np.testing.assert_allclose(t.anchor_raw.values, make_templates(f0.left, uv, 8).values)  # for the re-check
 
 
 @pytest.mark.parametrize("sigma_px", [0.7, 1.0])

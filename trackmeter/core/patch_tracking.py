@@ -421,6 +421,10 @@ def track_patches(
     expected_scale: NDArray | None = None,
     max_scale_error: float = np.inf,
     predicted_lin: NDArray | None = None,
+    raw_image: F32 | None = None,
+    raw_anchor: Templates | None = None,
+    raw_current: Templates | None = None,
+    raw_tolerance_px: float = np.inf,
 ) -> PatchTrack:
     """Sub-pixel positions of N targets near ``uv0`` (N,2) (e.g. integer ZNCC search results).
 
@@ -437,6 +441,18 @@ def track_patches(
     the anchor no longer fits (appearance changed: a glint, a large turn), the CURRENT template
     (last frame's patch) is refined by translation LK (:func:`refine_lk`) instead; the caller
     re-anchors on that match once the rest of the step verified it.
+
+    ``raw_image`` (with ``raw_anchor`` and ``raw_current``, the same templates taken from it):
+    ``image`` is a smoothed copy of it (:class:`~trackmeter.core.tracking.TrackerParams`
+    ``track_blur_sigma_px``), and every fit is refined once more on the image itself, the
+    anchor's by translation with the smoothed fit's linear part held
+    (:func:`refine_lk_translation`), the current template's by :func:`refine_lk`. The result
+    is that refinement's position and ZNCC; where it does not converge or lands farther than
+    ``raw_tolerance_px`` from the smoothed fit, the fit is taken as failed (an anchor: not
+    anchored; the current template: not converged). Smoothing steadies the similarity fit's
+    scale on 8x8 patches, but a broad bright structure (a glint) weighs more in a smoothed
+    patch than in the image's fine texture and can pull the fit along; the refinement on the
+    image itself is held by that texture, as an unsmoothed tracker is.
 
     ``anchor_warp="plane"``: where ``predicted_lin`` (N,2,2) is finite (the anchor → image
     linear map PREDICTED from the body's motion and the surface plane, :func:`plane_jacobian`),
@@ -475,13 +491,27 @@ def track_patches(
     scale = np.sqrt(np.abs(np.linalg.det(la.warp[:, :, :2])))
     fit_ok = la.converged & (np.abs(scale / expect - 1.0) <= max_scale_error)
     anchored = fit_ok & (la.score >= anchor_min_score) & (moved <= 1.0 + drift_tolerance_px)
-    uv = np.where(anchored[:, None], la.uv, np.nan)
-    score = np.where(anchored, la.score, np.nan)
+    a_uv, a_score = la.uv.copy(), la.score.copy()
+    if raw_image is not None and raw_anchor is not None and anchored.any():
+        rows = np.flatnonzero(anchored)
+        lf = refine_lk_translation(raw_image, raw_anchor.select(rows), la.warp[rows], max_iterations=8,
+                                   tolerance_px=anchor_tolerance_px, max_shift_px=2.0)
+        ok = lf.converged & (np.abs(lf.uv - la.uv[rows]).max(1) <= raw_tolerance_px)
+        a_uv[rows[ok]] = lf.uv[ok]
+        a_score[rows[ok]] = lf.score[ok]
+        anchored[rows[~ok]] = False
+    uv = np.where(anchored[:, None], a_uv, np.nan)
+    score = np.where(anchored, a_score, np.nan)
     converged = anchored.copy()
     out_lin = np.where(anchored[:, None, None], la.warp[:, :, :2], np.eye(2))
     rest = np.flatnonzero(~anchored)
     if len(rest):
         lc = refine_lk(image, current.select(rest), uv0[rest], max_iterations=8, tolerance_px=0.01)
+        if raw_image is not None and raw_current is not None:
+            lr = refine_lk(raw_image, raw_current.select(rest), lc.uv, max_iterations=8, tolerance_px=0.01)
+            near = np.abs(lr.uv - lc.uv).max(1) <= raw_tolerance_px
+            lc = LKResult(np.where(near[:, None], lr.uv, lc.uv), np.where(near, lr.score, lc.score),
+                          lc.converged & lr.converged & near, lc.iterations)
         uv[rest] = lc.uv
         score[rest] = lc.score
         # A re-anchor is only safe where the anchor still converged to the same spot (its score

@@ -181,8 +181,12 @@ class TrackerParams:
         10.0, "std added to that prediction's median miss on the settled targets, px/s", min=0.0,
     )
     track_blur_sigma_px: float = param(
-        0.0, "std of a Gaussian smoothing of the left image for the frame-to-frame sub-pixel fits and their templates, "
+        0.7, "std of a Gaussian smoothing of the left image for the frame-to-frame sub-pixel fits and their templates, "
         "px (0: none; the integer search and the stereo match always use the image itself)", min=0.0,
+    )
+    track_blur_recheck_px: float = param(
+        0.25, "with the smoothing, each sub-pixel fit is refined again on the image itself and must land within this "
+        "of the smoothed fit, else it failed, px (0: no re-check)", min=0.0,
     )
     lost_keep_frames: int = param(10, "frames a lost automatic target is kept before it is replaced", min=0)
     auto: bool = param(False, "automatic feature selection on at start")
@@ -235,6 +239,8 @@ class _Target:
     plane_m: FloatArray = field(default_factory=lambda: _NAN3.copy())  # their median
     anchor_body: tuple[int, FloatArray, FloatArray] | None = None  # (body frame generation, body → anchor camera)
     body_point: FloatArray = field(default_factory=lambda: _NAN3.copy())  # first 3D point, tracker's body frame
+    anchor_raw: Templates | None = None  # the anchor from the image itself (None: ``anchor`` is)
+    current_raw: Templates | None = None  # the current template from the image itself (None: ``current`` is)
 
     def state(self) -> TargetState:
         lost = self.status == "lost"
@@ -401,12 +407,12 @@ class Tracker:
 
     # ------------------------------------------------------------------ frames
 
-    def _templates(self, fc: _FrameCache, uv: FloatArray) -> tuple[Templates, NDArray[np.float32]]:
+    def _templates(self, fc: _FrameCache, uv: FloatArray) -> tuple[Templates, Templates]:
         """The templates at ``uv`` (N,2) for the sub-pixel fits (from the possibly smoothed image)
-        and the (N,size,size) patches of the image itself for the integer search."""
+        and those of the image itself (its values: the integer search's templates)."""
         fit = make_templates(fc.track, uv, self.params.patch_size)
-        search = fit.values if fc.track is fc.left else make_templates(fc.left, uv, self.params.patch_size).values
-        return fit, search
+        raw = fit if fc.track is fc.left else make_templates(fc.left, uv, self.params.patch_size)
+        return fit, raw
 
     def _frame(self, frame: StereoFrame) -> _FrameCache:
         # uint8 as delivered: the samplers gather from it and convert only what they read.
@@ -517,7 +523,9 @@ class Tracker:
         tmpl, search = self._templates(fc, uvf[None])
         v0, sv = self._velocity_guess(uvf, np.asarray(meas.xyz_m, float))
         kf = kf_mod.make_filter(uvf, self.params.kalman, velocity_px_s=v0, velocity_sigma_px_s=sv)
-        t = _Target(tid, origin, kf, tmpl, tmpl, frame.t_s, search[0], uv=uvf.copy(), predicted_uv=uvf.copy())
+        t = _Target(tid, origin, kf, tmpl, tmpl, frame.t_s, search.values[0], uv=uvf.copy(), predicted_uv=uvf.copy())
+        t.anchor_raw = search
+        t.current_raw = search
         self._new_anchor(t, frame.index)
         t.slot = self._new_slot()
         t.disparity_px = float(meas.disparity_px)
@@ -715,7 +723,8 @@ class Tracker:
         t.score = float(res.score[r])
         t.anchor_lin = res.anchor_lin[r].copy()
         t.current, search = self._templates(fc, uv[None])
-        t.search = search[0]
+        t.search = search.values[0]
+        t.current_raw = search
         t.status = "recovered"
         t.lost_reason = None
         t.lost_frames = 0
@@ -727,6 +736,7 @@ class Tracker:
     def _fit_patches(self, fc: _FrameCache, ts: list[_Target], starts: FloatArray) -> PatchTrack:
         """The drift-free sub-pixel fit (:func:`track_patches`) of targets ``ts`` from ``starts`` (N,2)."""
         p = self.params
+        recheck = fc.track is not fc.left and p.track_blur_recheck_px > 0
         return track_patches(
             fc.track,
             _stack([t.anchor for t in ts]),
@@ -740,6 +750,10 @@ class Tracker:
             expected_scale=self._expected_scale(ts),
             max_scale_error=p.anchor_max_scale_error,
             predicted_lin=self._predicted_lin(ts) if p.anchor_warp == "plane" else None,
+            raw_image=fc.left if recheck else None,
+            raw_anchor=_stack([t.anchor_raw if t.anchor_raw is not None else t.anchor for t in ts]) if recheck else None,
+            raw_current=_stack([t.current_raw if t.current_raw is not None else t.current for t in ts]) if recheck else None,
+            raw_tolerance_px=p.track_blur_recheck_px,
         )
 
     # ------------------------------------------------------------------ the step
@@ -917,10 +931,12 @@ class Tracker:
                         continue
                     one = new.select(np.array([k]))
                     t.current = one
-                    t.search = raw[k]
+                    t.search = raw.values[k]
+                    t.current_raw = raw.select(np.array([k]))
                     if not anch:
                         self._new_anchor(t, frame.index)
                         t.anchor = one
+                        t.anchor_raw = raw.select(np.array([k]))
                         t.anchor_lin = np.eye(2)
                         t.anchor_z_m = float(t.point_cam[2])
                         t.reanchors += 1
