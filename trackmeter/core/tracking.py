@@ -212,7 +212,9 @@ class _Target:
     anchor: Templates  # one target's templates (leading axis of length 1)
     current: Templates
     t_s: float
-    search: NDArray[np.float32]  # (size,size) the current patch of the unblurred image: the integer search's template
+    # The current template from the image itself (``current``'s values when the fits are not
+    # smoothed): the integer search's template, and the re-check's (track_blur_recheck_px).
+    current_raw: Templates
     status: TargetStatus = "tracking"
     uv: FloatArray = field(default_factory=lambda: _NAN2.copy())
     uv_right: FloatArray = field(default_factory=lambda: _NAN2.copy())
@@ -240,7 +242,11 @@ class _Target:
     anchor_body: tuple[int, FloatArray, FloatArray] | None = None  # (body frame generation, body → anchor camera)
     body_point: FloatArray = field(default_factory=lambda: _NAN3.copy())  # first 3D point, tracker's body frame
     anchor_raw: Templates | None = None  # the anchor from the image itself (None: ``anchor`` is)
-    current_raw: Templates | None = None  # the current template from the image itself (None: ``current`` is)
+
+    @property
+    def search(self) -> NDArray[np.float32]:
+        """(size,size) the integer search's template: the current patch of the image itself."""
+        return self.current_raw.values[0]
 
     def state(self) -> TargetState:
         lost = self.status == "lost"
@@ -523,9 +529,8 @@ class Tracker:
         tmpl, search = self._templates(fc, uvf[None])
         v0, sv = self._velocity_guess(uvf, np.asarray(meas.xyz_m, float))
         kf = kf_mod.make_filter(uvf, self.params.kalman, velocity_px_s=v0, velocity_sigma_px_s=sv)
-        t = _Target(tid, origin, kf, tmpl, tmpl, frame.t_s, search.values[0], uv=uvf.copy(), predicted_uv=uvf.copy())
+        t = _Target(tid, origin, kf, tmpl, tmpl, frame.t_s, search, uv=uvf.copy(), predicted_uv=uvf.copy())
         t.anchor_raw = search
-        t.current_raw = search
         self._new_anchor(t, frame.index)
         t.slot = self._new_slot()
         t.disparity_px = float(meas.disparity_px)
@@ -722,9 +727,7 @@ class Tracker:
         t.kf = kf_mod.make_filter(uv, p.kalman, velocity_px_s=v0, velocity_sigma_px_s=sv)
         t.score = float(res.score[r])
         t.anchor_lin = res.anchor_lin[r].copy()
-        t.current, search = self._templates(fc, uv[None])
-        t.search = search.values[0]
-        t.current_raw = search
+        t.current, t.current_raw = self._templates(fc, uv[None])
         t.status = "recovered"
         t.lost_reason = None
         t.lost_frames = 0
@@ -752,7 +755,7 @@ class Tracker:
             predicted_lin=self._predicted_lin(ts) if p.anchor_warp == "plane" else None,
             raw_image=fc.left if recheck else None,
             raw_anchor=_stack([t.anchor_raw if t.anchor_raw is not None else t.anchor for t in ts]) if recheck else None,
-            raw_current=_stack([t.current_raw if t.current_raw is not None else t.current for t in ts]) if recheck else None,
+            raw_current=_stack([t.current_raw for t in ts]) if recheck else None,
             raw_tolerance_px=p.track_blur_recheck_px,
         )
 
@@ -931,7 +934,6 @@ class Tracker:
                         continue
                     one = new.select(np.array([k]))
                     t.current = one
-                    t.search = raw.values[k]
                     t.current_raw = raw.select(np.array([k]))
                     if not anch:
                         self._new_anchor(t, frame.index)
