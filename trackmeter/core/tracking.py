@@ -215,6 +215,7 @@ class _Target:
     # The current template from the image itself (``current``'s values when the fits are not
     # smoothed): the integer search's template, and the re-check's (track_blur_recheck_px).
     current_raw: Templates
+    anchor_raw: Templates  # the anchor from the image itself (``anchor`` when the fits are not smoothed)
     status: TargetStatus = "tracking"
     uv: FloatArray = field(default_factory=lambda: _NAN2.copy())
     uv_right: FloatArray = field(default_factory=lambda: _NAN2.copy())
@@ -241,7 +242,6 @@ class _Target:
     plane_m: FloatArray = field(default_factory=lambda: _NAN3.copy())  # their median
     anchor_body: tuple[int, FloatArray, FloatArray] | None = None  # (body frame generation, body → anchor camera)
     body_point: FloatArray = field(default_factory=lambda: _NAN3.copy())  # first 3D point, tracker's body frame
-    anchor_raw: Templates | None = None  # the anchor from the image itself (None: ``anchor`` is)
 
     @property
     def search(self) -> NDArray[np.float32]:
@@ -529,8 +529,7 @@ class Tracker:
         tmpl, search = self._templates(fc, uvf[None])
         v0, sv = self._velocity_guess(uvf, np.asarray(meas.xyz_m, float))
         kf = kf_mod.make_filter(uvf, self.params.kalman, velocity_px_s=v0, velocity_sigma_px_s=sv)
-        t = _Target(tid, origin, kf, tmpl, tmpl, frame.t_s, search, uv=uvf.copy(), predicted_uv=uvf.copy())
-        t.anchor_raw = search
+        t = _Target(tid, origin, kf, tmpl, tmpl, frame.t_s, search, search, uv=uvf.copy(), predicted_uv=uvf.copy())
         self._new_anchor(t, frame.index)
         t.slot = self._new_slot()
         t.disparity_px = float(meas.disparity_px)
@@ -754,7 +753,7 @@ class Tracker:
             max_scale_error=p.anchor_max_scale_error,
             predicted_lin=self._predicted_lin(ts) if p.anchor_warp == "plane" else None,
             raw_image=fc.left if recheck else None,
-            raw_anchor=_stack([t.anchor_raw if t.anchor_raw is not None else t.anchor for t in ts]) if recheck else None,
+            raw_anchor=_stack([t.anchor_raw for t in ts]) if recheck else None,
             raw_current=_stack([t.current_raw for t in ts]) if recheck else None,
             raw_tolerance_px=p.track_blur_recheck_px,
         )
@@ -933,12 +932,11 @@ class Tracker:
                     if not new.ok[k]:
                         continue
                     one = new.select(np.array([k]))
-                    t.current = one
-                    t.current_raw = raw.select(np.array([k]))
+                    one_raw = one if raw is new else raw.select(np.array([k]))
+                    t.current, t.current_raw = one, one_raw
                     if not anch:
                         self._new_anchor(t, frame.index)
-                        t.anchor = one
-                        t.anchor_raw = raw.select(np.array([k]))
+                        t.anchor, t.anchor_raw = one, one_raw
                         t.anchor_lin = np.eye(2)
                         t.anchor_z_m = float(t.point_cam[2])
                         t.reanchors += 1
