@@ -198,6 +198,18 @@ class PoseParams:
         0.3, "when points are measured again after coasting, the output moves from the coasted pose onto the "
         "measured one with this time constant (no jump), s (0: at once)", min=0.0,
     )
+    handover_hold: bool = param(
+        False, "when measured model points are lost, move the survivors' body coordinates by the rigid part "
+        "of their recent residuals (handover_offset), so the pose fitted to them alone stays where the "
+        "whole set had it instead of jumping",
+    )
+    handover_window_s: float = param(
+        0.5, "time constant of the running mean of each point's residual that handover_hold uses, s", min=0.04,
+    )
+    handover_probability: float = param(
+        0.99, "handover_hold moves the survivors only when their disagreement with the whole set passes this "
+        "chi-square (6 dof) probability (Hausman's test); smaller ones are noise", min=0.0, max=0.9999999,
+    )
     max_recoveries_per_frame: int = param(4, "re-lock attempts per frame at most (bounds the step time)", min=0)
     recovery_margin_px: float = param(8.0, "a projected model point must lie this far inside both images, px",
                                       min=0.0)
@@ -634,9 +646,67 @@ def hold_frame(b_before: ArrayLike, b_after: ArrayLike, cov_before: ArrayLike) -
         ``(R (3,3), t (3,))`` to apply as ``R b_after + t``; the identity when fewer than three
         points or a (nearly) collinear set leave the rotation undetermined.
     """
-    a = np.asarray(b_before, dtype=float).reshape(-1, 3)
-    b = np.asarray(b_after, dtype=float).reshape(-1, 3)
-    C = np.asarray(cov_before, dtype=float).reshape(-1, 3, 3)
+    return _rigid_part(b_after, b_before, cov_before)
+
+
+def handover_offset(
+    b_model: ArrayLike, b_observed: ArrayLike, cov: ArrayLike, survivors: ArrayLike
+) -> tuple[FloatArray, FloatArray, float]:
+    """The rigid motion of the points still measured after a loss that keeps the pose where it was.
+
+    A pose fitted to a set of model points sits where their body coordinates, on the whole, put
+    it. Grown points carry the errors of the poses they were averaged through, so a subset of
+    them fitted alone gives a pose a little off the whole set's, and when many points are lost at
+    once the output jumps by that offset (estec case a, 60 s: 10 mm as 9 of 27 points went).
+
+    The points' recent mean observations in the body frame, ``o_i = mean R^T (p_i - t)`` (a short
+    running mean, so one frame's noise hardly enters), show it: the generalised least-squares
+    fit ``o ≈ D_X b`` (:func:`solve_pose`, the points' full covariances) over the whole set
+    (``D_A``) and over the survivors (``D_S``) are the two poses relative to the current one,
+    ``T D_A`` and ``T D_S``. Moving the survivors by ``D = D_A^-1 D_S`` makes the pose fitted to
+    them alone ``T D_A``, the whole set's; their shape is untouched.
+
+    Most losses are of a point or two, and then ``D`` is mostly the noise of the running means:
+    applied every time it would walk the frame about. ``D_S`` is the less efficient estimate of
+    the same pose, so ``D_S - D_A`` has covariance ``cov_S - cov_A`` when the model is right
+    (Hausman's test); its squared Mahalanobis length, chi-square with 6 degrees of freedom,
+    says whether the survivors really disagree with the whole set.
+
+    Args:
+        b_model: (N,3) body coordinates of the points measured in the last frame, m.
+        b_observed: (N,3) their recent mean observations in the body frame, m.
+        cov: (N,3,3) covariances weighting each ``b_observed - b_model`` (model plus
+            measurement, body frame), m².
+        survivors: indices into the N of the points still measured, at least 3.
+
+    Returns:
+        ``(R (3,3), t (3,), d2)``: apply ``R b + t`` to the survivors; ``d2`` the Hausman
+        statistic of ``D_S - D_A`` (position m and rotation vector, with the covariances
+        :func:`solve_pose` gives from ``cov``).
+
+    Raises:
+        TrackmeterError: fewer than 3 survivors or a degenerate (collinear) set.
+    """
+    b = np.asarray(b_model, dtype=float).reshape(-1, 3)
+    o = np.asarray(b_observed, dtype=float).reshape(-1, 3)
+    C = np.asarray(cov, dtype=float).reshape(-1, 3, 3)
+    k = np.asarray(survivors, dtype=int)
+    identity = (np.eye(3), np.zeros(3))
+    R_a, t_a, cov_a = solve_pose(b, o, C, None, identity, 4)
+    R_s, t_s, cov_s = solve_pose(b[k], o[k], C[k], None, identity, 4)
+    d = np.concatenate([t_s - t_a, Rotation.from_matrix(R_s @ R_a.T).as_rotvec()])
+    w, V = np.linalg.eigh(0.5 * (cov_s - cov_a + (cov_s - cov_a).T))
+    keep = w > 1e-12 * max(float(w.max()), 1e-300)  # directions the lost points did not inform carry no test
+    d2 = float(np.sum((V[:, keep].T @ d) ** 2 / w[keep]))
+    return R_a.T @ R_s, R_a.T @ (t_s - t_a), d2
+
+
+def _rigid_part(b_from: ArrayLike, b_to: ArrayLike, cov: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """Weighted least-squares rigid ``(R, t)`` with ``b_to ≈ R b_from + t`` (weights
+    ``3 / trace(cov_i)``); the identity when it is undetermined (< 3 points, collinear)."""
+    a = np.asarray(b_to, dtype=float).reshape(-1, 3)
+    b = np.asarray(b_from, dtype=float).reshape(-1, 3)
+    C = np.asarray(cov, dtype=float).reshape(-1, 3, 3)
     if len(a) < 3:
         return np.eye(3), np.zeros(3)
     w = 3.0 / np.maximum(np.trace(C, axis1=1, axis2=2), 1e-18)
