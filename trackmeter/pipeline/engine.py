@@ -54,9 +54,11 @@ from scipy.stats import chi2
 from trackmeter.core.dynamics import coast_pose, fit_centre_of_mass
 from trackmeter.core.output_filter import FilterParams, PoseFilter
 from trackmeter.core.pose import (
+    PoseFit,
     PoseParams,
     choose_frame_points,
     fuse_point_correlated,
+    handover_offset,
     hold_frame,
     position_jacobians,
     robust_pose,
@@ -159,6 +161,7 @@ class EngineStats:
     operator_reselections: int = 0  # the repeating simulated operator clicked the model points again
     stream_cuts: int = 0  # frames after which the stream jumped (StereoFrame.cut): tracking started over
     models_bound_progressively: int = 0  # case (b): a-priori models bound through a provisional frame
+    handovers_held: int = 0  # losses of measured points after which the survivors were moved (pose.handover_hold)
 
 
 class Engine:
@@ -337,6 +340,12 @@ class Engine:
         self._anchor_H = np.zeros((6, 6))
         self._anchor_g = np.zeros(6)
         self._anchor_t: float | None = None
+        # pose.handover_hold: running mean of each inlier's body-frame residual and its last
+        # measurement's covariance in the body frame (id -> ((3,) m, (3,3) m²)), the time of their
+        # last update, and the inliers of the last fit (None: no fit last frame).
+        self._residual_mean: dict[str, tuple[FloatArray, FloatArray]] = {}
+        self._residual_t: float | None = None
+        self._prev_inliers: set[str] | None = None
         # Case (b) progressive binding: whether a pose in the a-priori frame was ever had (or the
         # model was bound), and the provisional case-(a) engine tracking until then.
         self._bound = False
@@ -753,6 +762,7 @@ class Engine:
 
     def _fit(self, frame: StereoFrame, measured: dict[str, TargetState]
              ) -> tuple[tuple[FloatArray, FloatArray, FloatArray, int, list[str]] | None, str | None]:
+        prev_inliers, self._prev_inliers = self._prev_inliers, None  # set again by a pose this frame
         ids = [i for i in measured if i in self._model]
         if not self._model:
             return None, "no model" if self._case != "a" else "case (a): no frame yet"
@@ -799,6 +809,9 @@ class Engine:
         outliers = [ids[n] for n in np.flatnonzero(~fit.inliers)]
         self._pending_reject.update(outliers)
         self.stats.outliers_rejected += len(outliers)
+        if self.pose_params.handover_hold and prev_inliers is not None:
+            fit = self._hold_handover(frame.t_s, ids, fit, prev_inliers, P, C)
+            cov = fit.cov + self._frame_cov if resting else fit.cov
         R, t = fit.R_cam_body, fit.t_cam_body
         self._last_fit = (R, t, cov)
         hold = self._case == "a" and self.pose_params.frame_hold
@@ -811,6 +824,9 @@ class Engine:
         if held:
             self._hold_frame(held)
         self._anchor(frame.t_s, R, t, ids, fit.inliers, measured)
+        if self.pose_params.handover_hold:
+            self._track_residuals(frame.t_s, R, t, [i for n, i in enumerate(ids) if fit.inliers[n]], measured,
+                                  fresh=prev_inliers is None)
         return (R, t, cov, int(fit.inliers.sum()), outliers), None
 
     def _update_model(self, R: FloatArray, t: FloatArray, cov: FloatArray, scale2: float, ids: list[str],
@@ -896,13 +912,78 @@ class Engine:
             return
         R_h, t_h = hold_frame(np.array([held[i][0] for i in ids]), np.array([self._model[i].b for i in ids]),
                               np.array([held[i][1] for i in ids]))
+        self._move_points(ids, R_h, t_h)
+
+    def _move_points(self, ids: list[str], R: FloatArray, t: FloatArray) -> None:
+        """Move model points rigidly, ``b <- R b + t``, their covariances and pose-error factors with them."""
         for i in ids:
             m = self._model[i]
-            m.b = R_h @ m.b + t_h
-            m.cov = R_h @ m.cov @ R_h.T
+            m.b = R @ m.b + t
+            m.cov = R @ m.cov @ R.T
             if m.cm is not None:
-                m.cm = R_h @ m.cm @ R_h.T
-            m.L = R_h @ m.L
+                m.cm = R @ m.cm @ R.T
+            m.L = R @ m.L
+
+    def _hold_handover(self, t_s: float, ids: list[str], fit: PoseFit, prev_inliers: set[str], P: FloatArray,
+                       C: FloatArray) -> PoseFit:
+        """``pose.handover_hold``: after measured model points were lost since the last frame (or
+        rejected), move the survivors so their recent mean observations put the pose where the
+        whole set's did (:func:`handover_offset`) and fit the pose again: no jump.
+        A-priori points among the inliers hold the frame themselves: nothing is moved then.
+
+        ``P``, ``C``: (N,3) and (N,3,3) the measured points and covariances of ``ids``."""
+        now = [ids[n] for n in np.flatnonzero(fit.inliers)]
+        if prev_inliers <= set(now) or any(self._model[i].fixed for i in now):
+            return fit
+        before = [i for i in self._residual_mean if i in self._model]
+        survivors = [k for k, i in enumerate(before) if i in now]
+        if len(survivors) < 3 or len(survivors) == len(before):
+            return fit
+        b = np.array([self._model[i].b for i in before])
+        observed = b + np.array([self._residual_mean[i][0] for i in before])
+        cov = np.array([self._model_cov(self._model[i], t_s) + self._residual_mean[i][1] for i in before])
+        try:
+            R_d, t_d, d2 = handover_offset(b, observed, cov, np.array(survivors))
+        except (TrackmeterError, np.linalg.LinAlgError):
+            return fit
+        if d2 <= chi2.ppf(self.pose_params.handover_probability, 6):
+            return fit
+        moved = [before[k] for k in survivors]
+        self._move_points(moved, R_d, t_d)
+        for k in survivors:
+            i = before[k]
+            self._residual_mean[i] = (observed[k] - self._model[i].b, self._residual_mean[i][1])
+        inl = fit.inliers
+        b_all = np.array([self._model[i].b for i in ids])
+        Cb_all = np.array([self._model_cov(self._model[i], t_s) for i in ids])
+        try:
+            R2, t2, cov2 = solve_pose(b_all[inl], P[inl], C[inl], Cb_all[inl], (fit.R_cam_body, fit.t_cam_body),
+                                      self.pose_params.refine_iterations)
+        except (TrackmeterError, np.linalg.LinAlgError):
+            return fit
+        self.stats.handovers_held += 1
+        return replace(fit, R_cam_body=R2, t_cam_body=t2, cov=cov2 * fit.scale2)
+
+    def _track_residuals(self, t_s: float, R: FloatArray, t: FloatArray, inliers: list[str],
+                         measured: dict[str, TargetState], fresh: bool) -> None:
+        """Update the running mean (time constant ``pose.handover_window_s``) of each inlier's
+        body-frame residual ``R^T (p - t) - b`` after this frame's model update; points not among
+        the inliers are forgotten, and after a frame without a pose the means start over."""
+        keep = [i for i in inliers if i in self._model]
+        if not keep:
+            self._residual_mean, self._prev_inliers = {}, set()
+            return
+        obs = (np.array([measured[i].point_cam for i in keep], float) - t) @ R
+        r = obs - np.array([self._model[i].b for i in keep])
+        C_body = R.T @ np.array([measured[i].cov_cam for i in keep], float) @ R
+        dt = 0.0 if self._residual_t is None or fresh else max(0.0, t_s - self._residual_t)
+        a = 1.0 - float(np.exp(-dt / self.pose_params.handover_window_s))
+        old = {} if fresh else self._residual_mean
+        self._residual_mean = {
+            i: (r[n] if i not in old else old[i][0] + a * (r[n] - old[i][0]), C_body[n]) for n, i in enumerate(keep)
+        }
+        self._residual_t = t_s
+        self._prev_inliers = set(keep)
 
     def _slide_cov(self, m: _ModelPoint, t_s: float) -> FloatArray:
         """(3,3) how far a grown point may have slid on the surface since its last refinement: a
