@@ -199,9 +199,9 @@ class PoseParams:
         "measured one with this time constant (no jump), s (0: at once)", min=0.0,
     )
     handover_hold: bool = param(
-        False, "when measured model points are lost, move the survivors' body coordinates by the rigid part "
-        "of their recent residuals (handover_offset), so the pose fitted to them alone stays where the "
-        "whole set had it instead of jumping",
+        False, "when measured model points are lost, move the survivors' body coordinates rigidly so the pose "
+        "fitted to them alone, on their recent mean observations, is the whole set's (handover_offset): "
+        "no jump",
     )
     handover_window_s: float = param(
         0.5, "time constant of the running mean of each point's residual that handover_hold uses, s", min=0.04,
@@ -646,7 +646,16 @@ def hold_frame(b_before: ArrayLike, b_after: ArrayLike, cov_before: ArrayLike) -
         ``(R (3,3), t (3,))`` to apply as ``R b_after + t``; the identity when fewer than three
         points or a (nearly) collinear set leave the rotation undetermined.
     """
-    return _rigid_part(b_after, b_before, cov_before)
+    a = np.asarray(b_before, dtype=float).reshape(-1, 3)
+    b = np.asarray(b_after, dtype=float).reshape(-1, 3)
+    C = np.asarray(cov_before, dtype=float).reshape(-1, 3, 3)
+    if len(a) < 3:
+        return np.eye(3), np.zeros(3)
+    w = 3.0 / np.maximum(np.trace(C, axis1=1, axis2=2), 1e-18)
+    try:
+        return absolute_orientation(a, b, w)
+    except TrackmeterError:
+        return np.eye(3), np.zeros(3)
 
 
 def handover_offset(
@@ -700,17 +709,3 @@ def handover_offset(
     d2 = float(np.sum((V[:, keep].T @ d) ** 2 / w[keep]))
     return R_a.T @ R_s, R_a.T @ (t_s - t_a), d2
 
-
-def _rigid_part(b_from: ArrayLike, b_to: ArrayLike, cov: ArrayLike) -> tuple[FloatArray, FloatArray]:
-    """Weighted least-squares rigid ``(R, t)`` with ``b_to ≈ R b_from + t`` (weights
-    ``3 / trace(cov_i)``); the identity when it is undetermined (< 3 points, collinear)."""
-    a = np.asarray(b_to, dtype=float).reshape(-1, 3)
-    b = np.asarray(b_from, dtype=float).reshape(-1, 3)
-    C = np.asarray(cov, dtype=float).reshape(-1, 3, 3)
-    if len(a) < 3:
-        return np.eye(3), np.zeros(3)
-    w = 3.0 / np.maximum(np.trace(C, axis1=1, axis2=2), 1e-18)
-    try:
-        return absolute_orientation(a, b, w)
-    except TrackmeterError:
-        return np.eye(3), np.zeros(3)
