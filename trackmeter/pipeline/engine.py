@@ -932,8 +932,8 @@ class Engine:
         A-priori points among the inliers hold the frame themselves: nothing is moved then.
 
         ``P``, ``C``: (N,3) and (N,3,3) the measured points and covariances of ``ids``."""
-        now = [ids[n] for n in np.flatnonzero(fit.inliers)]
-        if prev_inliers <= set(now) or any(self._model[i].fixed for i in now):
+        now = {ids[n] for n in np.flatnonzero(fit.inliers)}
+        if prev_inliers <= now or any(self._model[i].fixed for i in now):
             return fit
         before = [i for i in self._residual_mean if i in self._model]
         survivors = [k for k, i in enumerate(before) if i in now]
