@@ -7,7 +7,8 @@ case a, whose body frame is its own), as the largest absolute error and the RMS 
    tracker follows 16 automatic targets (case b: plus the model points an operator would click,
    :class:`~trackmeter.pipeline.engine.SelectModelPoints`), the engine estimates pose,
    velocities and filters. Rendering and tracking are slow on this machine, so the run covers
-   the first ``TRACKMETER_ACCURACY_S`` seconds of the scenario (default 20; 60 is the whole trial).
+   the first ``TRACKMETER_ACCURACY_S`` seconds of the scenario (default 20; 60 is the whole trial;
+   figure ``estec_duration_s``).
    Each case runs under ``TRACKMETER_ACCURACY_SEEDS`` sensor-noise seeds (default 3: the
    scenario's own seed and the next two) and every figure is the MEDIAN over them
    (:func:`median_over_runs`), with each ``_max_`` figure's values per seed beside it.
@@ -463,6 +464,7 @@ def run() -> dict[str, Any]:
                 _log(f"chain case {case}, noise seed +{offset}: {_maxima(runs[-1])}")
             out.update(median_over_runs(runs))
             out[f"estec_{case}_noise_seeds"] = float(len(runs))
+            out["estec_duration_s"] = seconds
         except Exception as exc:  # the chain depends on every layer: report, never invent
             _log(f"chain case {case} failed: {type(exc).__name__}: {exc}")
             out[f"estec_{case}_failed"] = 1.0

@@ -209,22 +209,22 @@ BENCHMARK_ROWS: dict[tuple[str, str], tuple[str, str, float, str, int]] = {
     ("tracker", "false_locks_harsh_light"): ("false locks (> 2 px off the point measured), harsh_light", "—", 1.0, "", 0),
     ("tracker", "false_locks_pixel_harsh_light"): ("false locks against the centre-pixel surface point, harsh_light", "—", 1.0, "", 0),
     ("select", "select_ms_4"): ("automatic selection of 4 points (Gabor bank + stereo check)", "—", 1.0, "ms", 1),
-    ("accuracy", "estec_b_pos_lateral_max_mm"): ("whole chain, estec case (b), first TRACKMETER_ACCURACY_S s, median over noise seeds: position error, lateral (max)", "±3 mm", 1.0, "mm", 2),
-    ("accuracy", "estec_b_pos_depth_max_mm"): ("whole chain, estec case (b), first TRACKMETER_ACCURACY_S s, median over noise seeds: position error, viewing axis (max)", "±5 mm", 1.0, "mm", 2),
-    ("accuracy", "estec_b_att_view_max_deg"): ("whole chain, estec case (b), first TRACKMETER_ACCURACY_S s, median over noise seeds: attitude error about the viewing axis (max)", "±0.5°", 1.0, "°", 3),
-    ("accuracy", "estec_b_att_other_max_deg"): ("whole chain, estec case (b), first TRACKMETER_ACCURACY_S s, median over noise seeds: attitude error about the other axes (max)", "±1°", 1.0, "°", 3),
-    ("accuracy", "estec_b_vel_lateral_max_mm_s"): ("whole chain, estec case (b), first TRACKMETER_ACCURACY_S s, median over noise seeds: linear speed error, lateral (max)", "±2 mm/s", 1.0, "mm/s", 2),
-    ("accuracy", "estec_b_vel_depth_max_mm_s"): ("whole chain, estec case (b), first TRACKMETER_ACCURACY_S s, median over noise seeds: linear speed error, viewing axis (max)", "±3.5 mm/s", 1.0, "mm/s", 2),
-    ("accuracy", "estec_b_omega_max_deg_s"): ("whole chain, estec case (b), first TRACKMETER_ACCURACY_S s, median over noise seeds: angular speed error (max)", "±0.75°/s", 1.0, "°/s", 3),
-    ("accuracy", "estec_b_valid_fraction"): ("whole chain, estec case (b), first TRACKMETER_ACCURACY_S s, median over noise seeds: valid poses", "—", 100.0, "%", 1),
-    ("accuracy", "estec_a_pos_lateral_max_mm"): ("whole chain, estec case (a), first TRACKMETER_ACCURACY_S s, median over noise seeds: position error, lateral (max)", "±3 mm", 1.0, "mm", 2),
-    ("accuracy", "estec_a_pos_depth_max_mm"): ("whole chain, estec case (a), first TRACKMETER_ACCURACY_S s, median over noise seeds: position error, viewing axis (max)", "±5 mm", 1.0, "mm", 2),
-    ("accuracy", "estec_a_att_view_max_deg"): ("whole chain, estec case (a), first TRACKMETER_ACCURACY_S s, median over noise seeds: attitude error about the viewing axis (max)", "±0.5°", 1.0, "°", 3),
-    ("accuracy", "estec_a_att_other_max_deg"): ("whole chain, estec case (a), first TRACKMETER_ACCURACY_S s, median over noise seeds: attitude error about the other axes (max)", "±1°", 1.0, "°", 3),
-    ("accuracy", "estec_a_vel_lateral_max_mm_s"): ("whole chain, estec case (a), first TRACKMETER_ACCURACY_S s, median over noise seeds: linear speed error, lateral (max)", "±2 mm/s", 1.0, "mm/s", 2),
-    ("accuracy", "estec_a_vel_depth_max_mm_s"): ("whole chain, estec case (a), first TRACKMETER_ACCURACY_S s, median over noise seeds: linear speed error, viewing axis (max)", "±3.5 mm/s", 1.0, "mm/s", 2),
-    ("accuracy", "estec_a_omega_max_deg_s"): ("whole chain, estec case (a), first TRACKMETER_ACCURACY_S s, median over noise seeds: angular speed error (max)", "±0.75°/s", 1.0, "°/s", 3),
-    ("accuracy", "estec_a_valid_fraction"): ("whole chain, estec case (a), first TRACKMETER_ACCURACY_S s, median over noise seeds: valid poses", "—", 100.0, "%", 1),
+    ("accuracy", "estec_b_pos_lateral_max_mm"): ("whole chain, estec case (b), first {estec_duration_s} s, median over noise seeds: position error, lateral (max)", "±3 mm", 1.0, "mm", 2),
+    ("accuracy", "estec_b_pos_depth_max_mm"): ("whole chain, estec case (b), first {estec_duration_s} s, median over noise seeds: position error, viewing axis (max)", "±5 mm", 1.0, "mm", 2),
+    ("accuracy", "estec_b_att_view_max_deg"): ("whole chain, estec case (b), first {estec_duration_s} s, median over noise seeds: attitude error about the viewing axis (max)", "±0.5°", 1.0, "°", 3),
+    ("accuracy", "estec_b_att_other_max_deg"): ("whole chain, estec case (b), first {estec_duration_s} s, median over noise seeds: attitude error about the other axes (max)", "±1°", 1.0, "°", 3),
+    ("accuracy", "estec_b_vel_lateral_max_mm_s"): ("whole chain, estec case (b), first {estec_duration_s} s, median over noise seeds: linear speed error, lateral (max)", "±2 mm/s", 1.0, "mm/s", 2),
+    ("accuracy", "estec_b_vel_depth_max_mm_s"): ("whole chain, estec case (b), first {estec_duration_s} s, median over noise seeds: linear speed error, viewing axis (max)", "±3.5 mm/s", 1.0, "mm/s", 2),
+    ("accuracy", "estec_b_omega_max_deg_s"): ("whole chain, estec case (b), first {estec_duration_s} s, median over noise seeds: angular speed error (max)", "±0.75°/s", 1.0, "°/s", 3),
+    ("accuracy", "estec_b_valid_fraction"): ("whole chain, estec case (b), first {estec_duration_s} s, median over noise seeds: valid poses", "—", 100.0, "%", 1),
+    ("accuracy", "estec_a_pos_lateral_max_mm"): ("whole chain, estec case (a), first {estec_duration_s} s, median over noise seeds: position error, lateral (max)", "±3 mm", 1.0, "mm", 2),
+    ("accuracy", "estec_a_pos_depth_max_mm"): ("whole chain, estec case (a), first {estec_duration_s} s, median over noise seeds: position error, viewing axis (max)", "±5 mm", 1.0, "mm", 2),
+    ("accuracy", "estec_a_att_view_max_deg"): ("whole chain, estec case (a), first {estec_duration_s} s, median over noise seeds: attitude error about the viewing axis (max)", "±0.5°", 1.0, "°", 3),
+    ("accuracy", "estec_a_att_other_max_deg"): ("whole chain, estec case (a), first {estec_duration_s} s, median over noise seeds: attitude error about the other axes (max)", "±1°", 1.0, "°", 3),
+    ("accuracy", "estec_a_vel_lateral_max_mm_s"): ("whole chain, estec case (a), first {estec_duration_s} s, median over noise seeds: linear speed error, lateral (max)", "±2 mm/s", 1.0, "mm/s", 2),
+    ("accuracy", "estec_a_vel_depth_max_mm_s"): ("whole chain, estec case (a), first {estec_duration_s} s, median over noise seeds: linear speed error, viewing axis (max)", "±3.5 mm/s", 1.0, "mm/s", 2),
+    ("accuracy", "estec_a_omega_max_deg_s"): ("whole chain, estec case (a), first {estec_duration_s} s, median over noise seeds: angular speed error (max)", "±0.75°/s", 1.0, "°/s", 3),
+    ("accuracy", "estec_a_valid_fraction"): ("whole chain, estec case (a), first {estec_duration_s} s, median over noise seeds: valid poses", "—", 100.0, "%", 1),
     ("accuracy", "harsh_light_b_valid_fraction"): ("whole chain, harsh_light case (b), first TRACKMETER_HARSH_S s: valid poses", "—", 100.0, "%", 1),
     ("accuracy", "harsh_light_b_valid_fraction_occluded"): ("whole chain, harsh_light case (b): valid poses while the panel passes (6-14 s)", "—", 100.0, "%", 1),
     ("accuracy", "harsh_light_b_valid_fraction_occluded_once_valid"): ("whole chain, harsh_light case (b): valid poses while the panel passes, from the first valid pose on (stays valid)", "—", 100.0, "%", 1),
@@ -285,11 +285,19 @@ def _per_seed(figures: dict, key: str) -> list[float]:
     return values
 
 
+def _with_duration(capability: str, figures: dict | None) -> str:
+    """The capability with ``{estec_duration_s}`` replaced by the seconds the benchmark ran
+    (its ``estec_duration_s`` figure), or by the variable that sets them where it has none."""
+    seconds = (figures or {}).get("estec_duration_s")
+    return capability.replace("{estec_duration_s}", "TRACKMETER_ACCURACY_S" if seconds is None else f"{float(seconds):g}")
+
+
 def benchmark_rows(results: dict | None, step: Step | None, names: list[str], not_built: list[str]) -> list[str]:
     rows = []
     for (bench, key), (capability, paper, scale, unit, digits) in BENCHMARK_ROWS.items():
         if bench not in names:
             continue
+        capability = _with_duration(capability, results.get(bench) if results is not None else None)
         if results is not None and bench in results and key in results[bench]:
             value = results[bench][key]  # null: not finite in that run
             ours = _fmt(None if value is None else float(value), scale, digits, unit)

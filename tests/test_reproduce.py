@@ -65,6 +65,17 @@ def test_accuracy_figures_are_medians_over_seeds_with_each_seed_shown():
     assert "| 2.00 mm (median of 3.00, 1.00, 2.00) |" in depth
 
 
+def test_accuracy_rows_name_the_seconds_the_chain_ran():
+    figures = {"estec_b_pos_lateral_max_mm": 2.0, "estec_duration_s": 20.0}
+    rows = benchmark_rows({"accuracy": figures}, Step("b", [], status="ok"), ["accuracy"], [])
+    lateral = next(r for r in rows if "case (b)" in r and "lateral (max)" in r)
+    assert "first 20 s," in lateral and "TRACKMETER" not in lateral
+    # a run without the figure says what sets it, never a made-up number
+    rows = benchmark_rows({"accuracy": {"estec_b_pos_lateral_max_mm": 2.0}}, Step("b", [], status="ok"), ["accuracy"], [])
+    lateral = next(r for r in rows if "case (b)" in r and "lateral (max)" in r)
+    assert "first TRACKMETER_ACCURACY_S s," in lateral
+
+
 def test_readme_table_is_replaced_between_the_markers_only(tmp_path):
     from benchmarks.reproduce import README_BEGIN, README_END, update_readme
 
