@@ -22,8 +22,9 @@ case a, whose body frame is its own), as the largest absolute error and the RMS 
    6 s to 14 s (harsh_light's occlusion): largest errors, and the largest frame-to-frame pose
    jump at a loss or a re-appearance, in sigmas of the pose covariance.
 3. ``harsh_light_b_*`` / ``harsh_light_a_*`` — the whole chain through the occlusion (6-14 s)
-   and the glints of ``harsh_light`` (first ``TRACKMETER_HARSH_S`` seconds, default 20): valid
-   fraction, over the whole run and while the panel passes (``valid_fraction_occluded``; and
+   and the glints of ``harsh_light`` (first ``TRACKMETER_HARSH_S`` seconds, default 20; figure
+   ``harsh_light_duration_s``): valid fraction, over the whole run and while the panel passes
+   (``valid_fraction_occluded``; and
    ``valid_fraction_occluded_once_valid``: the same from the first valid pose on, i.e. whether
    the pose, once there, stays valid through the occlusion),
    losses and recoveries, and the largest frame-to-frame pose jump at a loss or a recovery
@@ -473,6 +474,7 @@ def run() -> dict[str, Any]:
         for case in ("b", "a"):
             try:
                 out.update(harsh_light_figures(case, harsh_s))
+                out["harsh_light_duration_s"] = harsh_s
             except Exception as exc:
                 _log(f"chain harsh_light case {case} failed: {type(exc).__name__}: {exc}")
                 out[f"harsh_light_{case}_failed"] = 1.0

@@ -225,11 +225,11 @@ BENCHMARK_ROWS: dict[tuple[str, str], tuple[str, str, float, str, int]] = {
     ("accuracy", "estec_a_vel_depth_max_mm_s"): ("whole chain, estec case (a), first {estec_duration_s} s, median over noise seeds: linear speed error, viewing axis (max)", "±3.5 mm/s", 1.0, "mm/s", 2),
     ("accuracy", "estec_a_omega_max_deg_s"): ("whole chain, estec case (a), first {estec_duration_s} s, median over noise seeds: angular speed error (max)", "±0.75°/s", 1.0, "°/s", 3),
     ("accuracy", "estec_a_valid_fraction"): ("whole chain, estec case (a), first {estec_duration_s} s, median over noise seeds: valid poses", "—", 100.0, "%", 1),
-    ("accuracy", "harsh_light_b_valid_fraction"): ("whole chain, harsh_light case (b), first TRACKMETER_HARSH_S s: valid poses", "—", 100.0, "%", 1),
+    ("accuracy", "harsh_light_b_valid_fraction"): ("whole chain, harsh_light case (b), first {harsh_light_duration_s} s: valid poses", "—", 100.0, "%", 1),
     ("accuracy", "harsh_light_b_valid_fraction_occluded"): ("whole chain, harsh_light case (b): valid poses while the panel passes (6-14 s)", "—", 100.0, "%", 1),
     ("accuracy", "harsh_light_b_valid_fraction_occluded_once_valid"): ("whole chain, harsh_light case (b): valid poses while the panel passes, from the first valid pose on (stays valid)", "—", 100.0, "%", 1),
     ("accuracy", "harsh_light_b_max_jump_sigma_at_loss_or_recovery"): ("harsh_light case (b): largest pose jump at a loss or recovery, in pose sigmas", "—", 1.0, "σ", 2),
-    ("accuracy", "harsh_light_a_valid_fraction"): ("whole chain, harsh_light case (a), first TRACKMETER_HARSH_S s: valid poses", "—", 100.0, "%", 1),
+    ("accuracy", "harsh_light_a_valid_fraction"): ("whole chain, harsh_light case (a), first {harsh_light_duration_s} s: valid poses", "—", 100.0, "%", 1),
     ("accuracy", "harsh_light_a_valid_fraction_occluded"): ("whole chain, harsh_light case (a): valid poses while the panel passes (6-14 s)", "—", 100.0, "%", 1),
     ("accuracy", "harsh_light_a_valid_fraction_occluded_once_valid"): ("whole chain, harsh_light case (a): valid poses while the panel passes, from the first valid pose on (stays valid)", "—", 100.0, "%", 1),
     ("accuracy", "harsh_light_a_max_jump_sigma_at_loss_or_recovery"): ("harsh_light case (a): largest pose jump at a loss or recovery, in pose sigmas", "—", 1.0, "σ", 2),
@@ -285,11 +285,16 @@ def _per_seed(figures: dict, key: str) -> list[float]:
     return values
 
 
+DURATION_FIGURES = {"estec_duration_s": "TRACKMETER_ACCURACY_S", "harsh_light_duration_s": "TRACKMETER_HARSH_S"}
+
+
 def _with_duration(capability: str, figures: dict | None) -> str:
-    """The capability with ``{estec_duration_s}`` replaced by the seconds the benchmark ran
-    (its ``estec_duration_s`` figure), or by the variable that sets them where it has none."""
-    seconds = (figures or {}).get("estec_duration_s")
-    return capability.replace("{estec_duration_s}", "TRACKMETER_ACCURACY_S" if seconds is None else f"{float(seconds):g}")
+    """The capability with ``{estec_duration_s}`` (``{harsh_light_duration_s}``) replaced by the
+    seconds the benchmark ran (that figure), or by the variable that sets them where it has none."""
+    for key, variable in DURATION_FIGURES.items():
+        seconds = (figures or {}).get(key)
+        capability = capability.replace("{" + key + "}", variable if seconds is None else f"{float(seconds):g}")
+    return capability
 
 
 def benchmark_rows(results: dict | None, step: Step | None, names: list[str], not_built: list[str]) -> list[str]:

@@ -74,6 +74,9 @@ def test_accuracy_rows_name_the_seconds_the_chain_ran():
     rows = benchmark_rows({"accuracy": {"estec_b_pos_lateral_max_mm": 2.0}}, Step("b", [], status="ok"), ["accuracy"], [])
     lateral = next(r for r in rows if "case (b)" in r and "lateral (max)" in r)
     assert "first TRACKMETER_ACCURACY_S s," in lateral
+    rows = benchmark_rows({"accuracy": {"harsh_light_b_valid_fraction": 0.5, "harsh_light_duration_s": 30.0}},
+                          Step("b", [], status="ok"), ["accuracy"], [])
+    assert any("harsh_light case (b), first 30 s: valid poses | — | 50.0 % |" in r for r in rows)
 
 
 def test_readme_table_is_replaced_between_the_markers_only(tmp_path):
