@@ -393,3 +393,62 @@ def test_track_blur_steadies_the_anchor_fits_scale(estec_rig) -> None:
             deviation += [abs(np.sqrt(abs(np.linalg.det(t.anchor_lin))) - 1.0) for t in tr._targets.values() if t.status != "lost"]
         p95[sigma_px] = float(np.percentile(deviation, 95))
     assert p95[1.0] < 0.85 * p95[0.0], p95
+
+
+def test_a_stored_target_is_re_found_on_its_own_texture_later(scene, estec_rig) -> None:
+    """``detach`` keeps a target whole; ``restore_many`` re-finds it frames later where it is
+    predicted (its own templates, the anchor confirming, the stereo match re-made), under its
+    id and origin; predicted where its texture is not, it is refused and not added."""
+    f0 = scene.frame(0)
+    tr = make_tracker(estec_rig, recover_lost=False)
+    add_all(tr, f0, interior_points(f0, 6))
+    for k in (1, 2):
+        tr.step(scene.frame(k))
+    victim = next(t for t in tr.targets if t.status == "tracking")
+    body = scene.surface_points(2, victim.uv[None])
+    stored = tr.detach(victim.id)
+    assert stored is not None and stored.id == victim.id and tr.detach(victim.id) is None
+    assert victim.id not in {t.id for t in tr.targets}
+    for k in range(3, 13):  # 0.4 s later: moved some 15 px and turned 4.6 deg
+        tr.step(scene.frame(k))
+    f12 = scene.frame(12)
+    true_uv, _ = scene.project(12, body)
+    T = scene.T_cam_body(12)
+    p_true = T[:3, :3] @ body[0] + T[:3, 3]
+    assert np.linalg.norm(true_uv[0] - victim.uv) > 10  # far from where it was dropped
+    far = tr.restore_many([(stored, tuple(true_uv[0] + 60.0), p_true, None)], f12)[0]
+    assert isinstance(far, Refusal) and victim.id not in {t.id for t in tr.targets}
+    found = tr.restore_many([(stored, tuple(true_uv[0] + 1.5), p_true, None)], f12)[0]
+    assert isinstance(found, TargetState) and found.id == victim.id and found.status == "recovered"
+    assert found.origin == victim.origin
+    assert np.linalg.norm(found.uv - true_uv[0]) < 0.2
+    assert np.linalg.norm(found.point_cam - p_true) < 0.02
+    # tracked on like any other target
+    states = {t.id: t for t in tr.step(scene.frame(13))}
+    assert states[victim.id].status == "tracking"
+    again = tr.restore_many([(stored, tuple(true_uv[0]), p_true, None)], scene.frame(13))[0]
+    assert isinstance(again, Refusal) and "exists" in again.reason
+
+
+def test_the_top_up_hands_over_the_lost_automatic_targets_it_removes(estec_sim_frames) -> None:
+    """Lost automatic targets dropped after ``lost_keep_frames`` are handed over whole, once,
+    through ``take_removed`` (and forgotten at the next step by a tracker no one asks)."""
+    rig, frames = estec_sim_frames
+    tr = make_tracker(rig, lost_keep_frames=2, recover_lost=False, auto=True, auto_interval_frames=1)
+    tr.step(frames[0])
+    alive = [t for t in tr.targets if t.status == "tracking"]
+    assert len(alive) >= 3
+    victim = alive[0]
+    left = frames[1].left.copy()
+    u, v = np.round(victim.uv).astype(int)
+    left[max(v - 12, 0) : v + 13, max(u - 12, 0) : u + 13] = 0
+    tr.step(StereoFrame(1, frames[1].t_s, left, frames[1].right))
+    assert {t.id: t.status for t in tr.targets}[victim.id] == "lost"
+    removed: dict = {}
+    for k in range(2, 6):
+        removed.update(tr.take_removed())
+        tr.step(frames[k])
+    assert victim.id in removed and victim.id not in {t.id for t in tr.targets}
+    assert removed[victim.id].id == victim.id
+    tr.step(frames[6])
+    assert victim.id not in tr.take_removed()  # handed over once

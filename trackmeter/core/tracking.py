@@ -40,7 +40,7 @@ from typing import TYPE_CHECKING, Collection, Sequence
 import cv2
 import numpy as np
 from filterpy.kalman import KalmanFilter
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from scipy.stats import chi2
 
 from trackmeter.core import kalman as kf_mod
@@ -266,6 +266,16 @@ class _Target:
         )
 
 
+@dataclass(frozen=True)
+class StoredTarget:
+    """A removed target kept whole (its templates, its anchor) so that it can be re-found later
+    where it should be (:meth:`Tracker.restore_many`): the same surface texture, not whatever
+    lies at that pixel then. Opaque outside the tracker; ``id`` is the target's."""
+
+    id: str
+    target: "_Target" = field(repr=False)
+
+
 def _stack(ts: list[Templates]) -> Templates:
     return Templates(
         np.concatenate([t.values for t in ts]),
@@ -320,6 +330,9 @@ class Tracker:
         self._ref_v = np.full((0, 0), np.nan)
         self._free_slots: list[int] = []
         self.last_losses: dict[str, str] = {}
+        # Lost automatic targets the top-up removed in the last step, whole (:meth:`take_removed`;
+        # each step starts it over, so nothing piles up where no one takes them).
+        self._removed: dict[str, StoredTarget] = {}
         self._last_top_up: int | None = None
         self.stats = {"losses": 0, "recoveries": 0, "reanchors": 0, "added": 0, "auto_added": 0}
         # Why automatic selection's candidates did not become targets (reason -> count): when it
@@ -372,6 +385,83 @@ class Tracker:
         self._forget_distances(t)
         self._free_slots.append(t.slot)
         return True
+
+    def detach(self, target_id: str) -> StoredTarget | None:
+        """Remove a target and return it whole (None when there was none of that id)."""
+        t = self._targets.get(target_id)
+        if t is None:
+            return None
+        self.remove_target(target_id)
+        t.slot = -1
+        return StoredTarget(target_id, t)
+
+    def take_removed(self) -> dict[str, StoredTarget]:
+        """The lost automatic targets the last step's top-up removed, whole (each once)."""
+        out, self._removed = self._removed, {}
+        return out
+
+    def restore_many(
+        self, requests: Sequence[tuple[StoredTarget, tuple[float, float], ArrayLike, ArrayLike | None]], frame: StereoFrame
+    ) -> list[TargetState | Refusal]:
+        """Re-find stored targets, ``requests = [(stored, uv_predicted, point_cam_predicted (3,),
+        image_warp)]``, as a lost target is re-found (:meth:`relock_many`: its own templates
+        searched within ``recover_search_px`` of the prediction, the drift-free anchor must
+        confirm, stereo re-match), but without the rigid-distance check: a target stored long
+        ago has no reference distances to the targets tracked now, so the caller judges the 3D
+        point (e.g. against a model through the pose). The search for the right-image match is
+        centred on the predicted point's disparity.
+
+        ``image_warp`` (2,2) or None: the linear map of the image around the point from the
+        target's last tracked frame to this one, predicted (e.g. from the body's rotation since).
+        Given, the anchor fit starts from the anchor's warp then composed with it, AT the
+        predicted pixel (no integer search: the last template, unwarped, matches a patch turned
+        since poorly), so the prediction must be good to about a pixel.
+
+        A target re-found is tracked again under its id; one not found is not added (its
+        ``stored`` handle stays usable)."""
+        results: list[TargetState | Refusal | None] = [None] * len(requests)
+        targets: list[_Target] = []
+        centres: list[FloatArray] = []
+        slots: list[int] = []
+        given: list[bool] = []
+        lin_before: list[FloatArray] = []
+        for k, (stored, uv_predicted, point_cam, image_warp) in enumerate(requests):
+            uvf = np.asarray(uv_predicted, dtype=float).reshape(2)
+            key = (float(uvf[0]), float(uvf[1]))
+            if stored.id in self._targets:
+                results[k] = Refusal(key, f"a target named {stored.id!r} exists")
+                continue
+            if len(self._targets) >= self.params.max_targets:
+                results[k] = Refusal(key, f"target limit reached ({self.params.max_targets} targets)")
+                continue
+            t = stored.target
+            P = np.asarray(point_cam, dtype=float).reshape(3)
+            if not (np.all(np.isfinite(P)) and P[2] > 0):
+                results[k] = Refusal(key, "predicted point is not in front of the camera")
+                continue
+            t.status, t.point_cam = "lost", P.copy()
+            t.disparity_px = float(self.rect.project_rectified(P[None])[1][0])
+            lin_before.append(t.anchor_lin.copy())
+            warp = None if image_warp is None else np.asarray(image_warp, dtype=float).reshape(2, 2)
+            given.append(warp is not None and bool(np.all(np.isfinite(warp))))
+            if given[-1]:
+                t.anchor_lin = warp @ t.anchor_lin
+            t.slot = self._new_slot()
+            self._targets[t.id] = t
+            targets.append(t)
+            centres.append(uvf)
+            slots.append(k)
+        if targets:
+            outcomes = self._try_recover(self._frame(frame), frame, targets, np.array(centres), check_rigid=False,
+                                         at_centre=np.array(given))
+            for k, t, uvf, lin, (ok, reason) in zip(slots, targets, centres, lin_before, outcomes):
+                if ok:
+                    results[k] = t.state()
+                else:
+                    self.remove_target(t.id)
+                    t.slot, t.anchor_lin = -1, lin
+                    results[k] = Refusal((float(uvf[0]), float(uvf[1])), reason or "not found")
+        return results  # type: ignore[return-value]
 
     def _forget_distances(self, t: _Target) -> None:
         if 0 <= t.slot < len(self._ref_d):
@@ -633,12 +723,27 @@ class Tracker:
     # ------------------------------------------------------------------ recovery
 
     def _try_recover(
-        self, fc: _FrameCache, frame: StereoFrame, targets: list[_Target], centres: FloatArray
+        self, fc: _FrameCache, frame: StereoFrame, targets: list[_Target], centres: FloatArray, check_rigid: bool = True,
+        at_centre: NDArray[np.bool_] | None = None,
     ) -> list[tuple[bool, str | None]]:
         """Re-find lost ``targets`` near ``centres`` (N,2) (the step batches the same pieces for
-        its own lost targets); returns ``(recovered, why not)`` per target."""
+        its own lost targets); returns ``(recovered, why not)`` per target. ``check_rigid``: the
+        re-found point must keep its reference distances (:meth:`_rigid_recheck`). ``at_centre``
+        (N,): the sub-pixel fit starts at the centre itself, no integer search (a prediction
+        good to a pixel, with the anchor's warp predicted too)."""
         centres = np.asarray(centres, dtype=float).reshape(-1, 2)
-        out, found_i, starts = self._recover_search(fc, targets, centres)
+        if at_centre is None:
+            out, found_i, starts = self._recover_search(fc, targets, centres)
+        else:
+            searched = np.flatnonzero(~np.asarray(at_centre, bool))
+            out_s, found_s, starts_s = self._recover_search(fc, [targets[i] for i in searched], centres[searched])
+            out = [(False, None)] * len(targets)
+            for i, o in zip(searched, out_s):
+                out[i] = o
+            start_of = {int(searched[k]): st for k, st in zip(found_s, starts_s)}
+            start_of.update({int(i): centres[i] for i in np.flatnonzero(at_centre)})
+            found_i = sorted(start_of)
+            starts = [start_of[i] for i in found_i]
         if not found_i:
             return out
         found = [targets[i] for i in found_i]
@@ -650,7 +755,7 @@ class Tracker:
         m = self._stereo(fc, res.uv[refined], lo, span)
         for j, k in enumerate(refined):
             i = found_i[k]
-            out[i] = self._recover_accept(fc, frame, targets[i], centres[i], res, k, m, j)
+            out[i] = self._recover_accept(fc, frame, targets[i], centres[i], res, k, m, j, check_rigid)
         return out
 
     def _recover_disparities(self, targets: list[_Target]) -> tuple[FloatArray, NDArray]:
@@ -701,6 +806,7 @@ class Tracker:
 
     def _recover_accept(
         self, fc: _FrameCache, frame: StereoFrame, t: _Target, centre: FloatArray, res: PatchTrack, r: int, m, j: int,  # type: ignore[no-untyped-def]
+        check_rigid: bool = True,
     ) -> tuple[bool, str | None]:
         """Finish re-finding ``t`` from row ``r`` of the patch fit and row ``j`` of the stereo match."""
         p = self.params
@@ -708,7 +814,7 @@ class Tracker:
             return False, m.reason[j]
         # Without a model, a look-alike elsewhere on the body is the danger: the recovered
         # 3D point must keep its old distances to the targets tracked now (rigid body).
-        why = self._rigid_recheck(t, m, j)
+        why = self._rigid_recheck(t, m, j) if check_rigid else None
         if why is None and p.body_check:
             P = self.rect.triangulate(m.uv_rect_left[j : j + 1], m.disparity_px[j : j + 1])
             drift = self._body_offsets_px(P, t.body_point[None])[0]
@@ -805,6 +911,7 @@ class Tracker:
         p = self.params
         fc = self._frame(frame)
         self.last_losses = {}
+        self._removed = {}
         self._delta = None
         self._step_dt_s = frame.t_s - self._last_step_t_s if self._last_step_t_s is not None else 0.0
         self._last_step_t_s = frame.t_s
@@ -1323,7 +1430,9 @@ class Tracker:
             return
         for t in list(self._targets.values()):
             if t.origin == "auto" and t.status == "lost" and t.lost_frames >= p.lost_keep_frames:
-                self.remove_target(t.id)
+                stored = self.detach(t.id)
+                if stored is not None:
+                    self._removed[t.id] = stored
         alive = sum(1 for t in self._targets.values() if t.status != "lost")
         need = min(self._auto_count - alive, p.max_targets - len(self._targets))
         if need <= 0:
