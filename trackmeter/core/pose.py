@@ -128,6 +128,11 @@ class PoseParams:
     recover_model_points: bool = param(
         True, "re-lock lost model points at their projection through the current pose (paper 2.D)"
     )
+    relock_stored: bool = param(
+        False, "a grown model point whose target was dropped is re-locked by searching for that target's own "
+        "templates (the same surface texture) at its projection, and only where they are not found re-made from "
+        "whatever lies there (a loop closure: the texture the point was grown from, not the model's drift)"
+    )
     recovery_interval_frames: int = param(5, "frames between two re-lock attempts of one model point", min=1)
     max_model_points: int = param(
         64, "grown model points kept (re-locked by measurement at their projection after their target was "

@@ -53,6 +53,7 @@ from scipy.stats import chi2
 
 from trackmeter.core.dynamics import coast_pose, fit_centre_of_mass
 from trackmeter.core.output_filter import FilterParams, PoseFilter
+from trackmeter.core.patch_tracking import plane_jacobian
 from trackmeter.core.pose import (
     PoseFit,
     PoseParams,
@@ -162,6 +163,7 @@ class EngineStats:
     stream_cuts: int = 0  # frames after which the stream jumped (StereoFrame.cut): tracking started over
     models_bound_progressively: int = 0  # case (b): a-priori models bound through a provisional frame
     handovers_held: int = 0  # losses of measured points after which the survivors were moved (pose.handover_hold)
+    stored_relocks: int = 0  # grown points re-locked on their own stored target (pose.relock_stored)
 
 
 class Engine:
@@ -318,6 +320,11 @@ class Engine:
         self._seen_t: dict[str, float] = {}
         self._frame_t_s = 0.0  # time of the frame being processed, s
         self._lost_since: dict[str, int] = {}
+        # pose.relock_stored: the dropped targets of grown model points, whole, with the pose of
+        # the last frame each was measured in (id -> (StoredTarget, (R, t) or None)), and that
+        # pose for every model point measured (id -> (R, t)).
+        self._stored: dict[str, tuple[Any, tuple[FloatArray, FloatArray] | None]] = {}
+        self._pose_when_seen: dict[str, tuple[FloatArray, FloatArray]] = {}
         self._coast: tuple[float, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray] | None = None
         # Coasting output: the last output pose with settled rates (t, R, p, cov, v_cam, omega_body),
         # whether the last output was coasted, and the offset being blended out after a coast.
@@ -492,6 +499,7 @@ class Engine:
         if point is not None and not point.fixed and target_id not in self._frame_ids:
             del self._model[target_id]
         self._candidates.pop(target_id, None)
+        self._stored.pop(target_id, None)
         if self._provisional is not None:
             self._provisional._forget(target_id)
 
@@ -824,6 +832,9 @@ class Engine:
         if held:
             self._hold_frame(held)
         self._anchor(frame.t_s, R, t, ids, fit.inliers, measured)
+        if self.pose_params.relock_stored:
+            for n in np.flatnonzero(fit.inliers):
+                self._pose_when_seen[ids[n]] = (R, t)
         if self.pose_params.handover_hold:
             self._track_residuals(frame.t_s, R, t, [i for n, i in enumerate(ids) if fit.inliers[n]], measured,
                                   fresh=prev_inliers is None)
@@ -1058,6 +1069,8 @@ class Engine:
         for pid in measured:
             if pid in self._model:  # only model points compete for a place (the dict stays bounded)
                 self._seen_t[pid] = frame.t_s
+        keep = self.pose_params.relock_stored
+        removed = self.tracker.take_removed() if keep and hasattr(self.tracker, "take_removed") else {}
         for t in targets:
             m = self._model.get(t.id)
             if t.status != "lost" or t.origin != "model" or m is None or m.fixed:
@@ -1065,8 +1078,19 @@ class Engine:
                 continue
             since = self._lost_since.setdefault(t.id, frame.index)
             if frame.index - since >= self._lost_keep_frames:
-                self.tracker.remove_target(t.id)
+                if keep:
+                    removed[t.id] = self.tracker.detach(t.id)
+                else:
+                    self.tracker.remove_target(t.id)
                 self._lost_since.pop(t.id, None)
+        for pid, stored in removed.items():
+            m = self._model.get(pid)
+            # The first target of a point is the texture it was grown from: a target re-made
+            # at its projection since (where that was not found) does not replace it.
+            if m is not None and not m.fixed and stored is not None:
+                self._stored.setdefault(pid, (stored, self._pose_when_seen.get(pid)))
+        for pid in [p for p in self._pose_when_seen if p not in self._model]:
+            del self._pose_when_seen[pid]
         grown = [pid for pid, m in self._model.items()
                  if not m.fixed and pid not in self._frame_ids and pid not in self._keep_ids]
         excess = len(grown) - self.pose_params.max_model_points
@@ -1076,6 +1100,7 @@ class Engine:
                 if pid not in measured:
                     del self._model[pid]
                     self._seen_t.pop(pid, None)
+                    self._stored.pop(pid, None)
 
     def _carried_pose(self, t_s: float) -> tuple[FloatArray, FloatArray, FloatArray] | None:
         """The last valid pose carried forward to ``t_s`` at its last velocities (constant twist:
@@ -1275,12 +1300,16 @@ class Engine:
         states = {s.id: s for s in self.tracker.targets}
         # Re-made targets of grown points must leave the operator room to click.
         room = len(states) < self._max_targets - p.operator_reserve_targets
+        # A stored target re-found is worth a slot more than a lost one kept for its own
+        # recovery: counted against the targets tracked only (within the tracker's limit).
+        room_stored = (len(states) < self._max_targets and sum(1 for s in states.values() if s.status != "lost")
+                       < self._max_targets - p.operator_reserve_targets)
         todo: list[tuple[str, bool]] = []
         for pid, m in self._model.items():
             s = states.get(pid)
             if s is not None and s.status == "lost":
                 todo.append((pid, True))
-            elif s is None and not carried and (m.fixed or room):
+            elif s is None and (m.fixed or room or (room_stored and pid in self._stored)) and (not carried or pid in self._stored):
                 todo.append((pid, False))
         if not todo:
             return
@@ -1308,7 +1337,7 @@ class Engine:
             self._last_attempt[pid] = frame.index
             chosen.append((pid, is_target, x_cam, (float(uv_l[0]), float(uv_l[1]))))
         self.stats.relock_attempts += len(chosen)
-        k = 0
+        k, restored = 0, False
         while k < len(chosen):
             end = k + 1
             if chosen[k][1]:
@@ -1316,16 +1345,53 @@ class Engine:
                     end += 1
                 results = self.tracker.relock_many([(pid, uv) for pid, _, _, uv in chosen[k:end]], frame)
             else:
-                results = [self.tracker.add_target(frame, chosen[k][3], chosen[k][0], "model")]
+                result, restored = self._remake(frame, chosen[k][0], chosen[k][2], chosen[k][3], (R, t), carried)
+                results = [result]
             for (pid, is_target, x_cam, _), result in zip(chosen[k:end], results):
-                self._judge_recovery(pid, is_target, x_cam, result, R, cov)
-            k = end
+                kept = self._judge_recovery(pid, is_target, x_cam, result, R, cov)
+                if kept and restored:
+                    # Its stored target is tracked again (stored anew if it is dropped again).
+                    del self._stored[pid]
+                    self.stats.stored_relocks += 1
+            k, restored = end, False
+
+    def _remake(self, frame: StereoFrame, pid: str, x_cam: FloatArray, uv: tuple[float, float],
+                pose: tuple[FloatArray, FloatArray], carried: bool) -> tuple[TargetState | Refusal, bool]:
+        """A target for model point ``pid`` without one, predicted at ``x_cam`` (3,), left pixel
+        ``uv``, through ``pose`` ``(R_cam_body, t_cam_body)``: its stored target re-found
+        (``pose.relock_stored``), else (through a measured pose only) a new target at that
+        pixel. Returns the tracker's answer and whether it is the stored target's."""
+        stored = self._stored.get(pid)
+        if stored is not None:
+            target, then = stored
+            warp = None if then is None else self._image_warp_since(then, pose, self._model[pid].b)
+            result = self.tracker.restore_many([(target, uv, x_cam, warp)], frame)[0]
+            if isinstance(result, TargetState):
+                return result, True
+            if carried:
+                return result, False
+        return self.tracker.add_target(frame, uv, pid, "model"), False
+
+    def _image_warp_since(self, then: tuple[FloatArray, FloatArray], now: tuple[FloatArray, FloatArray],
+                          b: FloatArray) -> FloatArray:
+        """(2,2) the linear map of the left image around body point ``b`` (3,) from the pose
+        ``then`` to the pose ``now`` (``(R_cam_body, t_cam_body)`` each), its surface taken
+        face-on to the line of sight then (its normal is not known): the rotation about the
+        line of sight and the scale are the body's, the foreshortening a guess."""
+        R0, t0 = then
+        R1, t1 = now
+        X0 = R0 @ b + t0
+        R_rel = R1 @ R0.T
+        m = X0 / float(X0 @ X0)  # the plane through X0 facing the camera: m . X = 1
+        uv0 = self.rig.left.project(X0[None])[0]
+        return plane_jacobian(self.rig.left.K, R_rel[None], (t1 - R_rel @ t0)[None], m[None], uv0[None])[0]
 
     def _judge_recovery(self, pid: str, is_target: bool, x_cam: FloatArray, result: TargetState | Refusal,
-                        R: FloatArray, cov: FloatArray) -> None:
-        """Keep a re-locked model point only where the pose ``(R, cov)`` puts it (``x_cam``)."""
+                        R: FloatArray, cov: FloatArray) -> bool:
+        """Keep a re-locked model point only where the pose ``(R, cov)`` puts it (``x_cam``);
+        whether it was kept."""
         if isinstance(result, Refusal):
-            return
+            return False
         self._recovered_any = True
         m = self._model[pid]
         r = np.asarray(result.point_cam, float) - x_cam
@@ -1337,8 +1403,9 @@ class Engine:
                 self._pending_reject.add(pid)
             else:
                 self.tracker.remove_target(pid)
-        else:
-            self.stats.recoveries += 1
+            return False
+        self.stats.recoveries += 1
+        return True
 
     # ------------------------------------------------------------------ errors
 
