@@ -418,7 +418,11 @@ def test_a_stored_target_is_re_found_on_its_own_texture_later(scene, estec_rig) 
     assert np.linalg.norm(true_uv[0] - victim.uv) > 10  # far from where it was dropped
     far = tr.restore_many([(stored, tuple(true_uv[0] + 60.0), p_true, None)], f12)[0]
     assert isinstance(far, Refusal) and victim.id not in {t.id for t in tr.targets}
+    before = dataclasses.replace(stored.target)
     found = tr.restore_many([(stored, tuple(true_uv[0] + 1.5), p_true, None)], f12)[0]
+    # the handle is left as stored (a caller refusing the re-find can try it again)
+    for name in ("status", "uv", "point_cam", "anchor_lin", "current", "kf", "slot"):
+        assert getattr(stored.target, name) is getattr(before, name), name
     assert isinstance(found, TargetState) and found.id == victim.id and found.status == "recovered"
     assert found.origin == victim.origin
     assert np.linalg.norm(found.uv - true_uv[0]) < 0.2

@@ -32,6 +32,7 @@ creation would carry a wrong 3D point from the start.
 from __future__ import annotations
 
 import collections
+import copy
 import itertools
 import warnings
 from dataclasses import dataclass, field, replace
@@ -417,14 +418,14 @@ class Tracker:
         predicted pixel (no integer search: the last template, unwarped, matches a patch turned
         since poorly), so the prediction must be good to about a pixel.
 
-        A target re-found is tracked again under its id; one not found is not added (its
-        ``stored`` handle stays usable)."""
+        A target re-found is tracked again under its id; one not found is not added. Either
+        way the ``stored`` handle is left as it was (a re-found target the caller then removes,
+        e.g. as a look-alike, can be tried again from it)."""
         results: list[TargetState | Refusal | None] = [None] * len(requests)
         targets: list[_Target] = []
         centres: list[FloatArray] = []
         slots: list[int] = []
         given: list[bool] = []
-        lin_before: list[FloatArray] = []
         for k, (stored, uv_predicted, point_cam, image_warp) in enumerate(requests):
             uvf = np.asarray(uv_predicted, dtype=float).reshape(2)
             key = (float(uvf[0]), float(uvf[1]))
@@ -434,14 +435,15 @@ class Tracker:
             if len(self._targets) >= self.params.max_targets:
                 results[k] = Refusal(key, f"target limit reached ({self.params.max_targets} targets)")
                 continue
-            t = stored.target
+            # Each attempt works on a copy (the tracker rebinds a target's fields, never writes
+            # into them), so the handle stays as it was stored whatever becomes of the attempt.
+            t = copy.copy(stored.target)
             P = np.asarray(point_cam, dtype=float).reshape(3)
             if not (np.all(np.isfinite(P)) and P[2] > 0):
                 results[k] = Refusal(key, "predicted point is not in front of the camera")
                 continue
             t.status, t.point_cam = "lost", P.copy()
             t.disparity_px = float(self.rect.project_rectified(P[None])[1][0])
-            lin_before.append(t.anchor_lin.copy())
             warp = None if image_warp is None else np.asarray(image_warp, dtype=float).reshape(2, 2)
             given.append(warp is not None and bool(np.all(np.isfinite(warp))))
             if given[-1]:
@@ -454,12 +456,11 @@ class Tracker:
         if targets:
             outcomes = self._try_recover(self._frame(frame), frame, targets, np.array(centres), check_rigid=False,
                                          at_centre=np.array(given))
-            for k, t, uvf, lin, (ok, reason) in zip(slots, targets, centres, lin_before, outcomes):
+            for k, t, uvf, (ok, reason) in zip(slots, targets, centres, outcomes):
                 if ok:
                     results[k] = t.state()
                 else:
                     self.remove_target(t.id)
-                    t.slot, t.anchor_lin = -1, lin
                     results[k] = Refusal((float(uvf[0]), float(uvf[1])), reason or "not found")
         return results  # type: ignore[return-value]
 
