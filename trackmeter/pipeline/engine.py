@@ -1302,8 +1302,8 @@ class Engine:
         room = len(states) < self._max_targets - p.operator_reserve_targets
         # A stored target re-found is worth a slot more than a lost one kept for its own
         # recovery: counted against the targets tracked only (within the tracker's limit).
-        room_stored = (len(states) < self._max_targets and sum(1 for s in states.values() if s.status != "lost")
-                       < self._max_targets - p.operator_reserve_targets)
+        room_stored = bool(self._stored) and len(states) < self._max_targets and (
+            sum(1 for s in states.values() if s.status != "lost") < self._max_targets - p.operator_reserve_targets)
         todo: list[tuple[str, bool]] = []
         for pid, m in self._model.items():
             s = states.get(pid)
