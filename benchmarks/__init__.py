@@ -6,16 +6,52 @@ same run so the machine's noise cancels. Progress goes to stderr; the JSON objec
 ``{NAME: {figure: value}}`` to stdout (and ``--out``): every value one number, ``null`` where
 it is not finite (strict JSON: no NaN), a per-seed or per-bin series as numbered figures
 (``..._seed0``, ``..._bin0_...``).
+
+The benchmarks that run the tracking engine (``accuracy``, ``error_budget``) use
+config/default.yaml, or a YAML file layered over it (as ``--config`` does for the commands)
+named by the environment variable ``TRACKMETER_BENCH_CONFIG``: how an opt-in setting of
+docs/results.md is measured on the same chain, e.g.
+``TRACKMETER_BENCH_CONFIG=smooth.yaml TRACKMETER_ACCURACY_SEEDS=7 python -m benchmarks accuracy``.
+``benchmarks.reproduce`` (the README table) always runs the defaults.
 """
 
 from __future__ import annotations
 
+import os
 import statistics
 import time
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
+
+if TYPE_CHECKING:
+    from trackmeter.data.config import Config
 
 #: Benchmarks in the order ``python -m benchmarks`` runs them.
 NAMES: tuple[str, ...] = ("measure", "render", "select", "tracker", "accuracy", "pipeline", "soak", "console", "sequence_write")
+
+
+#: Environment variable naming a YAML file layered over config/default.yaml for the benchmarks
+#: that run the engine (:func:`bench_config`).
+CONFIG_ENV = "TRACKMETER_BENCH_CONFIG"
+
+
+def bench_config() -> Config:
+    """The configuration a benchmark runs the engine with: the defaults, or the file named by
+    :data:`CONFIG_ENV` layered over them.
+
+    Raises:
+        TrackmeterError: the file cannot be read or holds a bad key or value (the message
+            names the variable).
+    """
+    from trackmeter.data.config import Config, load_config
+    from trackmeter.errors import TrackmeterError
+
+    path = os.environ.get(CONFIG_ENV, "")
+    if not path:
+        return Config()
+    try:
+        return load_config(path)
+    except TrackmeterError as exc:
+        raise TrackmeterError(f"{CONFIG_ENV}: {exc}") from exc
 
 
 def median_ms(
@@ -48,6 +84,15 @@ def main_of(module: str, doc: str | None, run: Callable[[], dict[str, float]], s
     import argparse
     import json
 
+    import sys
+
+    from trackmeter.errors import TrackmeterError
+
     argparse.ArgumentParser(prog=f"python -m benchmarks.{module}", description=doc,
                             formatter_class=argparse.RawDescriptionHelpFormatter).parse_args()
-    print(json.dumps(run(), indent=1, sort_keys=sort_keys))
+    try:
+        figures = run()
+    except TrackmeterError as exc:  # bad input (e.g. TRACKMETER_BENCH_CONFIG): one line, no traceback
+        print(f"python -m benchmarks.{module}: error: {exc}", file=sys.stderr)
+        sys.exit(2)
+    print(json.dumps(figures, indent=1, sort_keys=sort_keys))

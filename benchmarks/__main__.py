@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 from benchmarks import NAMES
+from trackmeter.errors import TrackmeterError
 
 
 def figures_for_json(name: str, figures: dict) -> dict[str, float | None]:
@@ -55,8 +56,12 @@ def main(argv: list[str] | None = None) -> int:
         start = time.perf_counter()
         # stdout carries the JSON alone: whatever a benchmark's libraries print (viser's banner)
         # goes to stderr with the progress.
-        with contextlib.redirect_stdout(sys.stderr):
-            results[name] = figures_for_json(name, module.run())
+        try:
+            with contextlib.redirect_stdout(sys.stderr):
+                results[name] = figures_for_json(name, module.run())
+        except TrackmeterError as exc:  # bad input (e.g. TRACKMETER_BENCH_CONFIG): one line, no traceback
+            print(f"python -m benchmarks: error: {name}: {exc}", file=sys.stderr)
+            return 2
         print(f"[benchmarks] {name} done in {time.perf_counter() - start:.1f} s", file=sys.stderr, flush=True)
     text = json.dumps(results, indent=2, sort_keys=True, allow_nan=False)
     print(text)

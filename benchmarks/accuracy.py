@@ -36,6 +36,10 @@ Figures (mm, deg, mm/s, deg/s; z is the viewing axis): ``<prefix>_pos_lateral_ma
 ``pos_depth_max_mm`` (z), ``att_view_max_deg`` (about z), ``att_other_max_deg`` (about x, y),
 ``vel_lateral_max_mm_s``, ``vel_depth_max_mm_s``, ``omega_max_deg_s`` (largest component, body
 frame), each also as ``_rms_``; ``valid_fraction``; ``seconds`` evaluated.
+
+The engine runs config/default.yaml, or a YAML file over it named by ``TRACKMETER_BENCH_CONFIG``
+(:func:`benchmarks.bench_config`): the opt-in settings of docs/results.md are measured so, e.g.
+``TRACKMETER_BENCH_CONFIG=smooth.yaml TRACKMETER_ACCURACY_SEEDS=7 TRACKMETER_HARSH_S=0``.
 """
 
 from __future__ import annotations
@@ -47,10 +51,10 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks import CONFIG_ENV, bench_config
 from trackmeter.core.metrics import EvaluateParams, evaluate
 from trackmeter.core.targets import Refusal, TargetState
 from trackmeter.core.transforms import matrix_to_quat_wxyz
-from trackmeter.data.config import Config
 from trackmeter.data.motion_csv import MotionSeries
 
 SETTLE_S = 2.0
@@ -287,7 +291,7 @@ def run_geometric(case: str, velocity_method: str | None = None, occlusion_s: tu
     sim = Simulator("estec")
     pts, normals = face_points(sim.mockup)
     tracker = GeometricTracker(sim.rig, pts, normals, occlusion_s=occlusion_s)
-    config = Config()  # the dataclass defaults (= config/default.yaml, checked by tests/test_config.py)
+    config = bench_config()  # config/default.yaml unless TRACKMETER_BENCH_CONFIG names a file over it
     if velocity_method is not None:
         config = replace(config, velocity=replace(config.velocity, method=velocity_method))
     model = Model(tuple(tracker.ids), pts) if case == "b" else None
@@ -345,7 +349,7 @@ def run_chain(case: str, seconds: float, scenario: str = "estec", seed_offset: i
 
     spec = load_scenario(scenario)
     sim = Simulator(dataclasses.replace(spec, seed=spec.seed + seed_offset) if seed_offset else spec)
-    engine = Engine(Config(), sim.rig, sim.model if case == "b" else None, case, rate_hz=sim.rate_hz or 25.0)
+    engine = Engine(bench_config(), sim.rig, sim.model if case == "b" else None, case, rate_hz=sim.rate_hz or 25.0)
     n = min(len(sim), int(round(seconds * (sim.rate_hz or 25.0))) + 1)
     truth_rows, est_rows = [], []
     start = time.perf_counter()
@@ -435,6 +439,9 @@ def median_over_runs(runs: list[dict[str, float]]) -> dict[str, float]:
 
 
 def run() -> dict[str, Any]:
+    bench_config()  # a bad TRACKMETER_BENCH_CONFIG is refused before any work
+    if os.environ.get(CONFIG_ENV):
+        _log(f"configuration: config/default.yaml with {os.environ[CONFIG_ENV]} over it ({CONFIG_ENV})")
     out: dict[str, Any] = {}
     for case, align in (("b", "none"), ("a", "body")):
         truth, est = run_geometric(case)

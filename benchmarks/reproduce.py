@@ -38,6 +38,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from benchmarks import CONFIG_ENV
+
 REPO = Path(__file__).resolve().parent.parent
 PAPER_VIEW_NOTE = "paper's viewing axis was y, ours is z"
 
@@ -98,8 +100,11 @@ class Runner:
         print(f"[reproduce] run    {name}: {step.command}", file=sys.stderr, flush=True)
         start = time.monotonic()
         try:
+            # The table is the default configuration's: an opt-in file meant for one benchmark
+            # (TRACKMETER_BENCH_CONFIG) must not slip into it from the caller's environment.
+            base = {k: v for k, v in os.environ.items() if k != CONFIG_ENV}
             proc = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=timeout_s,
-                                  env={**os.environ, **env} if env else None)
+                                  env={**base, **(env or {})})
         except subprocess.TimeoutExpired:
             step.status, step.reason = "failed", f"timed out after {timeout_s:.0f} s"
             return step
