@@ -83,7 +83,6 @@ def main_of(module: str, doc: str | None, run: Callable[[], dict[str, float]], s
     JSON."""
     import argparse
     import json
-
     import sys
 
     from trackmeter.errors import TrackmeterError

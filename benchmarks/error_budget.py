@@ -3,7 +3,9 @@
 ``python -m benchmarks.error_budget`` (a diagnostic, not in ``python -m benchmarks``' list: it
 runs the slow chain). The ``estec`` chain of ``benchmarks/accuracy.py`` (case b, 16 automatic
 targets plus the model points an operator clicks) is run once for ``TRACKMETER_BUDGET_S``
-seconds (default 60) and what the tracker handed the engine each frame is recorded. The engine is
+seconds (default 60; the configuration as :func:`benchmarks.bench_config`, i.e. a YAML named by
+``TRACKMETER_BENCH_CONFIG`` over the defaults) and what the tracker handed the engine each frame
+is recorded. The engine is
 then run again on that record (:class:`Replay`: the recorded targets; re-locks refused, the
 record already holds what they gave) with measurements replaced by oracles built from the
 renderer's surface truth under each target (:meth:`Simulator.surface_points`):
