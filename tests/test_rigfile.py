@@ -397,3 +397,49 @@ def test_a_rig_file_saved_with_a_byte_order_mark_reads(tmp_path: Path, form: str
     np.testing.assert_array_equal(back.left.K, rig.left.K)
     np.testing.assert_array_equal(back.T, rig.T)
     assert back.image_size == rig.image_size
+
+
+def test_a_plain_yaml_rig_in_pyyamls_own_block_style_reads(tmp_path: Path) -> None:
+    """``yaml.safe_dump`` of a rig's numbers writes nested lists as zero-indented ``- - x``
+    blocks, which OpenCV's parser refuses: the file is plain YAML all the same and reads as
+    the same rig (README: "plain YAML lists are read too")."""
+    import yaml
+
+    rig = _rig()
+    data = {"image_width": 640, "image_height": 480, "K1": rig.left.K.tolist(), "D1": rig.left.dist.tolist(),
+            "K2": rig.right.K.tolist(), "D2": rig.right.dist.tolist(), "R": rig.R.tolist(), "T": rig.T.tolist()}
+    path = tmp_path / "block.yaml"
+    path.write_text(yaml.safe_dump(data))
+    assert "- - " in path.read_text()  # the form OpenCV refuses
+    got = load_rig(path)
+    np.testing.assert_array_equal(got.left.K, rig.left.K)
+    np.testing.assert_array_equal(got.right.dist, rig.right.dist)
+    np.testing.assert_array_equal(got.R, rig.R)
+    np.testing.assert_array_equal(got.T, rig.T)
+    assert got.image_size == (640, 480)
+    path.write_text("K1:\n- - 1\n  - oops: [\n")  # neither parser reads it: still one clear line
+    with pytest.raises(TrackmeterError, match="not an OpenCV FileStorage file"):
+        load_rig(path)
+
+
+def test_one_file_holding_opencvs_intrinsics_and_extrinsics_reads_alone(tmp_path: Path) -> None:
+    """``M1 D1 M2 D2`` and ``R T`` written into one file (with or without the image size) need
+    no partner file."""
+    rig = _rig(5, rms=None)
+    path = tmp_path / "rig.yaml"
+    for with_size in (True, False):
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+        if with_size:
+            fs.write("image_width", 640)
+            fs.write("image_height", 480)
+        for key, value in (("M1", rig.left.K), ("D1", rig.left.dist.reshape(1, -1)), ("M2", rig.right.K),
+                           ("D2", rig.right.dist.reshape(1, -1)), ("R", rig.R), ("T", rig.T.reshape(3, 1))):
+            fs.write(key, value)
+        fs.release()
+        got = load_rig(path) if with_size else load_rig(path, image_size=(640, 480))
+        np.testing.assert_array_equal(got.left.K, rig.left.K)
+        np.testing.assert_array_equal(got.right.K, rig.right.K)
+        np.testing.assert_array_equal(got.T, rig.T)
+        assert got.image_size == (640, 480)
+    with pytest.raises(TrackmeterError, match="no image size"):
+        load_rig(path)

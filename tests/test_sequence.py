@@ -175,6 +175,35 @@ def test_mav0_layout_finds_rig_model_and_truth_in_dir_first(tmp_path, estec_rig)
     assert load_truth(d).source == str(d / "mav0" / "groundtruth.csv")
 
 
+def test_a_folders_rig_without_an_image_size_takes_the_frames(tmp_path, estec_rig):
+    """A rig that carries no image size (OpenCV's intrinsics.yml + extrinsics.yml from its
+    stereo_calib sample, or a rig.yaml without image_width/height) reads with the size of the
+    folder's frames, as ``--rig`` with the same files does."""
+    frames = _frames(3)
+    K = np.array([[30.0, 0.0, 15.5], [0.0, 30.0, 11.5], [0.0, 0.0, 1.0]])
+    rig = replace(estec_rig, left=replace(estec_rig.left, width=32, height=24, K=K),
+                  right=replace(estec_rig.right, width=32, height=24, K=K))
+    d = _write(tmp_path / "seq", frames, rig=rig)
+    text = (d / "rig.yaml").read_text()
+    stripped = "\n".join(line for line in text.splitlines() if not line.startswith("image_"))
+    (d / "rig.yaml").write_text(stripped + "\n")
+    assert index_sequence(d).rig.image_size == (32, 24)
+    (d / "rig.yaml").unlink()
+    fs = cv2.FileStorage(str(d / "intrinsics.yml"), cv2.FILE_STORAGE_WRITE)
+    for key, value in (("M1", rig.left.K), ("D1", rig.left.dist.reshape(1, -1)), ("M2", rig.right.K),
+                       ("D2", rig.right.dist.reshape(1, -1))):
+        fs.write(key, value)
+    fs.release()
+    fs = cv2.FileStorage(str(d / "extrinsics.yml"), cv2.FILE_STORAGE_WRITE)
+    fs.write("R", rig.R)
+    fs.write("T", rig.T.reshape(3, 1))
+    fs.release()
+    got = index_sequence(d).rig
+    assert got is not None and got.image_size == (32, 24)
+    np.testing.assert_array_equal(got.left.K, rig.left.K)
+    np.testing.assert_array_equal(got.T, rig.T)
+
+
 def test_frame_times_are_the_nanoseconds_correctly_rounded(tmp_path):
     """t = ns / 1e9, not ns * 1e-9 (120000000 ns -> 0.12000000000000001 s): a frame's time in
     the index, in groundtruth.* and as written by the simulator are the same float."""

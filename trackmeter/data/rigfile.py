@@ -3,12 +3,14 @@
 Keys: ``image_width``, ``image_height``, ``K1``, ``D1``, ``K2``, ``D2``, ``R``, ``T`` (metres),
 optional ``rms_px``, ``E``, ``F``. OpenCV's stereo sample pair ``intrinsics.yml`` (``M1 D1 M2
 D2``) + ``extrinsics.yml`` (``R T ...``) is read too: give either file and the other is found
-beside it; that pair carries no image size, so pass ``image_size``. So is Kalibr's
-``camchain.yaml`` (pinhole, radial-tangential), as real stereo data often comes with one.
+beside it (or one file holding both halves); that pair carries no image size, so pass
+``image_size``. So is Kalibr's ``camchain.yaml`` (pinhole, radial-tangential), as real stereo
+data often comes with one. Matrices may be plain YAML lists, in any style PyYAML reads.
 """
 
 from __future__ import annotations
 
+import json
 import math
 import warnings
 from pathlib import Path
@@ -32,6 +34,7 @@ def _open(path: Path) -> cv2.FileStorage:
 
             presets = f" (a file, or a preset: {', '.join(preset_names(RIGS_DIR))})"
         raise TrackmeterError(f"{path}: no such rig file{presets}")
+    not_filestorage = TrackmeterError(f"{path}: not an OpenCV FileStorage file (YAML/XML)")
     try:
         with open(path, "rb") as f:
             bom = f.read(3) == b"\xef\xbb\xbf"
@@ -44,10 +47,25 @@ def _open(path: Path) -> cv2.FileStorage:
         raise TrackmeterError(f"{path}: cannot read as a text file") from None
     except (cv2.error, SystemError):
         # OpenCV 5's binding wraps the parser's cv2.error in a SystemError.
-        raise TrackmeterError(f"{path}: not an OpenCV FileStorage file (YAML/XML)") from None
+        fs = _plain_yaml(path)
+        if fs is None:
+            raise not_filestorage from None
     if not fs.isOpened():
-        raise TrackmeterError(f"{path}: not an OpenCV FileStorage file (YAML/XML)")
+        raise not_filestorage
     return fs
+
+
+def _plain_yaml(path: Path) -> cv2.FileStorage | None:
+    """The file as FileStorage when it is plain YAML that OpenCV's parser refuses but PyYAML
+    reads (``yaml.safe_dump`` writes nested lists as zero-indented ``- - x`` blocks), via the
+    JSON form OpenCV does read; None when it is not a mapping of plain values."""
+    try:
+        data = yaml.safe_load(without_directives(path.read_text(encoding="utf-8-sig")))
+        if not isinstance(data, dict):
+            return None
+        return cv2.FileStorage(json.dumps(data, allow_nan=False), cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
+    except (OSError, UnicodeDecodeError, yaml.YAMLError, TypeError, ValueError, cv2.error, SystemError):
+        return None
 
 
 #: Keys whose matrix is 3x3: a flat list of nine numbers is read row by row.
@@ -273,7 +291,18 @@ def _load_opencv_pair(path: Path, image_size: tuple[int, int] | None) -> StereoR
         names = [stem + path.suffix] + [stem + s for s in (".yml", ".yaml", ".xml") if s != path.suffix]
         return next((folder / n for n in names if (folder / n).is_file()), folder / names[0])
 
-    if path.name.startswith("extrinsics"):
+    fs = _open(path)
+    try:
+        # One file holding both halves (M1 D1 M2 D2 and R T) needs no partner.
+        whole = not fs.getNode("M1").empty() and not fs.getNode("R").empty()
+        if whole and image_size is None:
+            width, height = _image_size_scalar(fs, "image_width", path), _image_size_scalar(fs, "image_height", path)
+            image_size = (width, height) if width is not None and height is not None else None
+    finally:
+        fs.release()
+    if whole:
+        intr, extr = path, path
+    elif path.name.startswith("extrinsics"):
         intr, extr = partner("intrinsics"), path
     else:
         intr, extr = path, partner("extrinsics")
@@ -284,7 +313,8 @@ def _load_opencv_pair(path: Path, image_size: tuple[int, int] | None) -> StereoR
     fi, fe = _open(intr), _open(extr)
     try:
         if image_size is None:
-            raise TrackmeterError(f"{path}: OpenCV's intrinsics/extrinsics pair has no image size; give it")
+            raise TrackmeterError(f"{path}: OpenCV's intrinsics/extrinsics (M1 D1 M2 D2 R T) have no image size; "
+                                  "give it (image_width, image_height)")
         width, height = image_size
         left = Camera(width, height, _matrix(fi, "M1", intr), _matrix(fi, "D1", intr))
         right = Camera(width, height, _matrix(fi, "M2", intr), _matrix(fi, "D2", intr))

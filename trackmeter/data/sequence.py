@@ -15,6 +15,8 @@ Real EuRoC folders (``DIR/mav0/cam0/...`` with a ``sensor.yaml`` per camera and 
 hold a pinhole radial-tangential calibration, else it is unknown (None) unless the caller gives one.
 With that layout ``rig.yaml``, ``model.yaml`` and ``groundtruth.*`` are looked for in ``DIR``
 first, then in ``DIR/mav0`` (:func:`find_sequence_file`, also used by ``evaluate --truth DIR``).
+In place of ``rig.yaml`` a folder may carry OpenCV's stereo sample pair (``intrinsics.yml`` +
+``extrinsics.yml``); a rig file without an image size takes the frames'.
 
 :class:`SequenceWriter` appends frames while they arrive (the simulator, the pipeline's
 recorder): each image is encoded in memory, written to a hidden temporary file and renamed,
@@ -27,12 +29,13 @@ that plays a folder is :class:`trackmeter.sources.sequence.SequenceSource`.
 
 from __future__ import annotations
 
+import itertools
 import os
 import re
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import TYPE_CHECKING, Any, Iterable, Sequence
 
 import cv2
 import numpy as np
@@ -491,12 +494,12 @@ def index_sequence(
         warnings.append(f"frames {dt * 1e6:.4g} µs apart ({1.0 / dt:.0f} Hz): data.csv timestamps are "
                         "nanoseconds; are these microseconds or frame numbers? (tracking would take "
                         "the motion between frames as that fast)")
-    rig_file = find_sequence_file(directory, "rig.yaml")
+    rig_file = find_sequence_file(directory, *RIG_FILE_NAMES)
     rig: StereoRig | None = None
     if not read_rig:
         pass
     elif rig_file is not None:
-        rig = load_rig(rig_file)
+        rig = load_rig(rig_file, image_size=_first_frame_size(left[i][1] for i, _ in pairs))
     else:
         rig, problem = read_euroc_rig(root)
         if problem:
@@ -516,6 +519,23 @@ def index_sequence(
         warnings=tuple(warnings),
         tolerance_s=float(tolerance_s),
     )
+
+
+#: A folder's rig, in order of preference: DESIGN.md's ``rig.yaml``, else OpenCV's stereo
+#: sample pair (``intrinsics.yml`` + ``extrinsics.yml``, found from either).
+RIG_FILE_NAMES = ("rig.yaml", "intrinsics.yml", "intrinsics.yaml", "intrinsics.xml")
+
+
+def _first_frame_size(paths: Iterable[Path], tries: int = 3) -> tuple[int, int] | None:
+    """``(width, height)`` of the first decodable of the first few ``paths``, for a rig file
+    that carries no image size (the rig reader asks for it only then); None when none decodes."""
+    for path in itertools.islice(paths, tries):
+        try:
+            image = decode_image(path)
+        except TrackmeterError:
+            continue
+        return int(image.shape[1]), int(image.shape[0])
+    return None
 
 
 def read_euroc_rig(root: Path) -> tuple[StereoRig | None, str | None]:
