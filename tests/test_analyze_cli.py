@@ -222,3 +222,31 @@ def test_unreadable_frames_are_said(still_sequence, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1, err
     assert err[0].startswith("trackmeter analyze: error: no usable range") and "8 pair(s) with an unreadable image" in err[0]
+
+
+def test_a_target_that_moves_without_ground_truth_is_warned_about(still_sequence, tmp_path, capsys):
+    """Without ground truth the whole source is one range, so a moving target was analysed
+    silently: the surface under each fixed pixel changes, and its motion was reported as
+    measurement noise (a tumbling simulation: sigma_z 16.5 mm against 1.8 predicted). The
+    points' image motion between the range's first and last frames (pyramidal Lucas-Kanade)
+    says so; the still sequence says nothing."""
+    import numpy as np
+
+    from trackmeter.data.images import read_grey
+    from trackmeter.data.sequence import SequenceWriter, index_sequence
+    from trackmeter.sources.base import StereoFrame
+
+    code = main(["analyze", "--source", str(still_sequence), "--points", "5", "--json"])
+    assert code == 0 and capsys.readouterr().err == ""
+    index = index_sequence(still_sequence)
+    folder = tmp_path / "moving"
+    with SequenceWriter(folder, rig=index.rig) as writer:
+        for i, (left, right) in enumerate(zip(index.left_paths, index.right_paths)):
+            shift = (i, i // 2)  # rows, columns: 7 px down and 3 px right by the last frame
+            writer.write(StereoFrame(i, i / 25.0, np.roll(read_grey(left), shift, axis=(0, 1)),
+                                     np.roll(read_grey(right), shift, axis=(0, 1))))
+    code = main(["analyze", "--source", str(folder), "--points", "5", "--json"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 0 and len(err) == 1, err
+    assert err[0].startswith("trackmeter analyze: warning: frames from t=0.000 s: the points moved 7.") and \
+        "needs a still target" in err[0], err

@@ -77,6 +77,8 @@ def run(args: argparse.Namespace) -> int:
         skipped = _skipped_while_reading(source, warning_at_open)
         if skipped:
             warnings.warn(skipped, stacklevel=1)
+        for line in result.moving_ranges:
+            warnings.warn(line, stacklevel=1)
     summary = result.to_dict()
     summary["source"] = args.source
     if args.out:

@@ -43,6 +43,10 @@ class AnalyzeParams:
     max_abs_residual_sigmas: float = param(
         8.0, "residuals beyond this many robust sigmas are mismatches, not noise: left out and counted", min=2.0
     )
+    max_still_motion_px: float = param(
+        1.0, "a range whose points move more than this in the left image (median, first to last frame) is "
+        "warned about: its scatter is the target's motion, not measurement noise, px", min=0.0,
+    )
 
 
 # --------------------------------------------------------------------------- per range

@@ -55,6 +55,8 @@ class RangeMeasurements:
             source can say (the simulator's ``surface_points``), else None.
         noise_sigma_disparity_px: (P,) the disparity sigma that the image noise measured over
             the range's frames allows each patch (Cramer-Rao bound, NaN when unknown).
+        image_motion_px: median image motion of the points from the range's first to its last
+            left frame (:func:`image_motion_px`), px; NaN when it cannot be told.
     """
 
     t_s: FloatArray
@@ -66,6 +68,7 @@ class RangeMeasurements:
     true_range_m: float
     true_xyz_m: FloatArray | None = None
     noise_sigma_disparity_px: FloatArray | None = None
+    image_motion_px: float = float("nan")
 
 
 @dataclass(frozen=True, eq=False)
@@ -79,6 +82,7 @@ class AnalysisRun:
     skipped_ranges: tuple[str, ...] = field(default_factory=tuple)
     gross_sigmas: float = 8.0
     min_samples: int = 5
+    moving_ranges: tuple[str, ...] = field(default_factory=tuple)  # one line each: the target moved
 
     def to_dict(self) -> dict[str, object]:
         d = self.analysis.to_dict()
@@ -113,6 +117,7 @@ class AnalysisRun:
                 entry["n_frames"] = len(m.t_s)
                 entry["n_selected"] = len(m.uv)
                 entry["refused"] = dict(m.refusals)
+                entry["image_motion_px"] = m.image_motion_px
                 pr = per_range[self.measurements.index(m)]
                 if pr is not None:
                     entry["noise_limited_sigma_disparity_px"], entry["measured_over_noise_limit_median"] = pr
@@ -211,7 +216,26 @@ def measure_range(
     if surface_points is not None and truth is not None and P > 0:
         p_body = np.asarray(surface_points(first.index, uv), dtype=float).reshape(-1, 3)
         true_xyz = apply_transform(truth.T_cam_body, p_body)
-    return RangeMeasurements(np.array([fr.t_s for fr in frames]), uv, xyz, sig, sd, refusals, true_range, true_xyz, noise_sd)
+    motion = image_motion_px(first.left, frames[-1].left, uv) if F >= 2 else float("nan")
+    return RangeMeasurements(np.array([fr.t_s for fr in frames]), uv, xyz, sig, sd, refusals, true_range, true_xyz, noise_sd,
+                             motion)
+
+
+def image_motion_px(first: NDArray[np.uint8], last: NDArray[np.uint8], uv: FloatArray) -> float:
+    """Median displacement, px, of the pixels ``uv`` (P,2) from image ``first`` to ``last``
+    (pyramidal Lucas-Kanade, ``cv2.calcOpticalFlowPyrLK``, 21 px window, 3 levels: up to about
+    30 px), over the points it tracks; NaN when it tracks none.
+
+    The analysis measures fixed pixels frame after frame, which is only the scatter of repeated
+    measurements of one surface point while the target stands still."""
+    if len(uv) == 0:
+        return float("nan")
+    p0 = np.asarray(uv, dtype=np.float32).reshape(-1, 1, 2)
+    p1, status, _ = cv2.calcOpticalFlowPyrLK(first, last, p0, None, winSize=(21, 21), maxLevel=3)
+    ok = status.reshape(-1).astype(bool)
+    if not ok.any():
+        return float("nan")
+    return float(np.median(np.linalg.norm((p1 - p0).reshape(-1, 2)[ok], axis=1)))
 
 
 def _noise_limited_sigmas(
@@ -277,6 +301,7 @@ def run_error_analysis(
     measured: list[RangeMeasurements] = []
     stats: list[RangeStatistics] = []
     skipped: list[str] = []
+    moving: list[str] = []
     n_ranges = n_frames = 0
     for group in split_ranges(stream):
         m = measure_range(group, rig, measure, params, getattr(source, "surface_points", None))
@@ -293,6 +318,9 @@ def run_error_analysis(
             continue
         measured.append(m)
         stats.append(st)
+        if m.image_motion_px > params.max_still_motion_px:
+            moving.append(f"{label}: the points moved {m.image_motion_px:.1f} px (median, first to last frame): "
+                          "the analysis needs a still target; this range's scatter is mostly that motion")
     if not stats:
         if not skipped:
             detail = "the source gave no frames"
@@ -316,4 +344,5 @@ def run_error_analysis(
         tuple(skipped),
         params.max_abs_residual_sigmas,
         params.min_samples,
+        tuple(moving),
     )
