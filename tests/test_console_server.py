@@ -76,6 +76,16 @@ def test_frames_that_do_not_match_the_rig_are_a_clear_error(opencv_sample_sequen
                                  f"726x512 (--rig {rig})"], err
 
 
+def test_a_bad_source_is_one_line_on_stderr(tmp_path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Bad input is one line on stderr (DESIGN.md section 6): the CPU priority's and the
+    "opening" notes came first. "opening" is progress, shown on a terminal only; the priority
+    is said once the source is open (it is raised before, so the source's threads inherit it)."""
+    missing = tmp_path / "nonexistent"
+    code = main(["console", "--source", str(missing), "--port", str(free_port()), "--cpu-nice", "-1"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and err[0].startswith(f"trackmeter console: error: unknown source '{missing}'"), err
+
+
 def _wait_for_pushes(con, n: int) -> None:  # type: ignore[no-untyped-def]
     """Wait until the console has pushed ``n`` more images to the browser (20 s at most)."""
     target = con.images_pushed + n

@@ -87,11 +87,18 @@ def test_simulate_refuses_a_used_folder_and_bad_input(tmp_path, capsys):
     assert not any((tmp_path / name).exists() for name in "acd")
 
 
-def test_simulate_unwritable_out_is_one_line_and_exit_2(capsys):
-    """An --out the OS refuses: one line naming the path and the reason, exit 2, no traceback."""
+def test_simulate_unwritable_out_is_one_line_and_exit_2(tmp_path, capsys):
+    """An --out the OS refuses: one line naming the path the user gave (not the hidden
+    DIR.partial it is written into) and the reason, exit 2, no traceback."""
     assert main(["simulate", "--duration", "0.04", "--out", "/proc/nope"]) == 2
     err = capsys.readouterr().err
-    assert err == "trackmeter simulate: error: /proc/nope.partial: No such file or directory\n"
+    assert err == "trackmeter simulate: error: /proc/nope: No such file or directory\n"
+    (tmp_path / "a_file").write_text("")
+    out = tmp_path / "a_file" / "seq"
+    assert main(["simulate", "--duration", "0.04", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"trackmeter simulate: error: {out}: cannot create a sequence folder there "
+                   f"({tmp_path / 'a_file'} is not a writable folder)\n")
 
 
 def test_simulate_reads_its_config(tmp_path, capsys):

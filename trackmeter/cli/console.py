@@ -66,21 +66,21 @@ def run(args: argparse.Namespace) -> int:
     if args.cpu_nice:
         # Before the source opens: its threads and the simulator's render worker inherit it.
         priority = raise_cpu_priority(args.cpu_nice)
-        print(f"trackmeter console: {priority.message}", file=sys.stderr, flush=True)
     try:
-        return _serve(args, config)
+        return _serve(args, config, priority.message if priority is not None else None)
     finally:
         if priority is not None:
             restore_cpu_priority(priority)  # the autogroup is the terminal session's: give it back
 
 
-def _serve(args: argparse.Namespace, config: Any) -> int:
+def _serve(args: argparse.Namespace, config: Any, priority_note: str | None = None) -> int:
     from console.server import serve_forever, start_console
     from trackmeter.cli.common import open_source_with_rig
     from trackmeter.errors import TrackmeterError
     from trackmeter.pipeline.engine import Engine
 
-    print(f"trackmeter console: opening {args.source} ...", file=sys.stderr, flush=True)
+    if sys.stderr.isatty():  # progress while a slow source opens; a bad one is then the only line
+        print(f"trackmeter console: opening {args.source} ...", file=sys.stderr, flush=True)
     # --rig is read once the source is open (it may take its size from the source's frames),
     # and frames of another size than the rig's are refused before the console starts.
     source = open_source_with_rig(args.source, args.rig, realtime=True, loop=True)
@@ -94,6 +94,8 @@ def _serve(args: argparse.Namespace, config: Any) -> int:
     except BaseException:
         source.close()
         raise
+    if priority_note:
+        print(f"trackmeter console: {priority_note}", file=sys.stderr, flush=True)
     print(f"TV-Trackmeter console: {running.url}   (Ctrl-C to stop)", flush=True)
     serve_forever(running)
     t = running.pipeline.timings()  # the totals: the last snapshot may lag a frame read

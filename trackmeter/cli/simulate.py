@@ -33,6 +33,7 @@ def run(args: argparse.Namespace) -> int:
 
     from trackmeter.cli.common import load_config_from_args, progress
     from trackmeter.data.config import config_to_dict
+    from trackmeter.data.atomic import unwritable_ancestor
     from trackmeter.data.sequence import SequenceWriter
     from trackmeter.errors import TrackmeterError
     from trackmeter.sources.sim.scenario import load_scenario
@@ -44,6 +45,9 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise TrackmeterError(f"{out}: exists and is not an empty folder; choose a new --out")
+    blocked = unwritable_ancestor(out)
+    if blocked is not None:
+        raise TrackmeterError(f"{out}: cannot create a sequence folder there ({blocked} is not a writable folder)")
     scenario = load_scenario(args.scenario)
     if args.duration is not None:
         if not (args.duration > 0 and math.isfinite(args.duration)):
@@ -74,6 +78,11 @@ def run(args: argparse.Namespace) -> int:
         if out.exists():
             out.rmdir()  # empty, checked above
         partial.rename(out)
+    except OSError as exc:
+        shutil.rmtree(partial, ignore_errors=True)
+        if exc.filename2 is None and str(exc.filename) == str(partial):  # OUT is the user's name for it
+            raise TrackmeterError(f"{out}: {exc.strerror or exc}") from None
+        raise
     except BaseException:
         shutil.rmtree(partial, ignore_errors=True)
         raise
