@@ -424,7 +424,8 @@ def test_a_plain_yaml_rig_in_pyyamls_own_block_style_reads(tmp_path: Path) -> No
 
 def test_one_file_holding_opencvs_intrinsics_and_extrinsics_reads_alone(tmp_path: Path) -> None:
     """``M1 D1 M2 D2`` and ``R T`` written into one file (with or without the image size) need
-    no partner file."""
+    no partner file; its own size goes before the frames' (a mismatch is then refused where
+    frames meet the rig)."""
     rig = _rig(5, rms=None)
     path = tmp_path / "rig.yaml"
     for with_size in (True, False):
@@ -436,7 +437,7 @@ def test_one_file_holding_opencvs_intrinsics_and_extrinsics_reads_alone(tmp_path
                            ("D2", rig.right.dist.reshape(1, -1)), ("R", rig.R), ("T", rig.T.reshape(3, 1))):
             fs.write(key, value)
         fs.release()
-        got = load_rig(path) if with_size else load_rig(path, image_size=(640, 480))
+        got = load_rig(path, image_size=(320, 240)) if with_size else load_rig(path, image_size=(640, 480))
         np.testing.assert_array_equal(got.left.K, rig.left.K)
         np.testing.assert_array_equal(got.right.K, rig.right.K)
         np.testing.assert_array_equal(got.T, rig.T)

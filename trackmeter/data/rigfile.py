@@ -295,9 +295,9 @@ def _load_opencv_pair(path: Path, image_size: tuple[int, int] | None) -> StereoR
     try:
         # One file holding both halves (M1 D1 M2 D2 and R T) needs no partner.
         whole = not fs.getNode("M1").empty() and not fs.getNode("R").empty()
-        if whole and image_size is None:
+        if whole:  # its own size, when it has one, before the frames' (a mismatch is then told)
             width, height = _image_size_scalar(fs, "image_width", path), _image_size_scalar(fs, "image_height", path)
-            image_size = (width, height) if width is not None and height is not None else None
+            image_size = (width, height) if width is not None and height is not None else image_size
     finally:
         fs.release()
     if whole:
