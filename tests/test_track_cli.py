@@ -307,6 +307,17 @@ def test_sigterm_ends_a_run_as_ctrl_c_does(tmp_path, signals) -> None:
     assert len(read_motion_csv(out / "states.csv")) == meta["summary"]["frames"] >= 3
 
 
+#: ``python -c`` this, then ``FILE`` and the command's arguments: the command line, with every
+#: thread's stack written to FILE on SIGUSR1 (a hung child's terminal is gone, so not there).
+_WITH_STACK_DUMP = (
+    "import faulthandler, signal, sys\n"
+    "dump = open(sys.argv.pop(1), 'w')\n"
+    "faulthandler.register(signal.SIGUSR1, file=dump, all_threads=True)\n"
+    "from trackmeter.cli.main import main\n"
+    "sys.exit(main())\n"
+)
+
+
 def test_a_run_whose_terminal_closed_stops_cleanly(tmp_path) -> None:
     # An ssh session drops: the terminal goes away (writes to it fail) and SIGHUP comes. The
     # run must complete its files and exit as interrupted, its last lines lost, not an error.
@@ -319,8 +330,9 @@ def test_a_run_whose_terminal_closed_stops_cleanly(tmp_path) -> None:
     import time
 
     out = tmp_path / "run"
+    stacks = tmp_path / "stacks.txt"  # where the run's threads are dumped if it does not stop
     terminal, its_other_end = pty.openpty()
-    proc = subprocess.Popen([sys.executable, "-m", "trackmeter.cli.main", "track", "--source", "sim", "--auto", "4",
+    proc = subprocess.Popen([sys.executable, "-c", _WITH_STACK_DUMP, str(stacks), "track", "--source", "sim", "--auto", "4",
                              "--out", str(out)], stdin=its_other_end, stdout=its_other_end, stderr=its_other_end,
                             start_new_session=True)
     os.close(its_other_end)
@@ -340,7 +352,13 @@ def test_a_run_whose_terminal_closed_stops_cleanly(tmp_path) -> None:
             time.sleep(0.2)
         os.close(terminal)
         proc.send_signal(signal.SIGHUP)
-        assert proc.wait(timeout=60) == 130
+        try:
+            code = proc.wait(timeout=60)
+        except subprocess.TimeoutExpired:  # say where it hangs: every thread's stack
+            proc.send_signal(signal.SIGUSR1)
+            time.sleep(2)
+            pytest.fail("no exit 60 s after the hang-up; its threads:\n" + stacks.read_text(errors="replace"))
+        assert code == 130
     finally:
         proc.kill()
     meta = yaml.safe_load((out / "run.yaml").read_text())
