@@ -308,9 +308,13 @@ def test_sigterm_ends_a_run_as_ctrl_c_does(tmp_path, signals) -> None:
 
 
 #: ``python -c`` this, then ``FILE`` and the command's arguments: the command line, with every
-#: thread's stack written to FILE on SIGUSR1 (a hung child's terminal is gone, so not there).
+#: thread's stack written to FILE on SIGUSR1 (a hung child's terminal is gone, so not there),
+#: and SIGHUP's default action, as a shell on a terminal starts a command: run under ``nohup``,
+#: pytest passes on SIGHUP ignored, which the command rightly leaves ignored (it ran on, found
+#: by the stacks).
 _WITH_STACK_DUMP = (
     "import faulthandler, signal, sys\n"
+    "signal.signal(signal.SIGHUP, signal.SIG_DFL)\n"
     "dump = open(sys.argv.pop(1), 'w')\n"
     "faulthandler.register(signal.SIGUSR1, file=dump, all_threads=True)\n"
     "from trackmeter.cli.main import main\n"
