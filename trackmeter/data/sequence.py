@@ -528,7 +528,8 @@ RIG_FILE_NAMES = ("rig.yaml", "intrinsics.yml", "intrinsics.yaml", "intrinsics.x
 
 def _first_frame_size(paths: Iterable[Path], tries: int = 3) -> tuple[int, int] | None:
     """``(width, height)`` of the first decodable of the first few ``paths``, for a rig file
-    that carries no image size (the rig reader asks for it only then); None when none decodes."""
+    that carries no image size (the rig reader uses it only then; one decode per index, read
+    whatever the rig holds to keep the reader's interface plain); None when none decodes."""
     for path in itertools.islice(paths, tries):
         try:
             image = decode_image(path)
