@@ -60,7 +60,9 @@ def test_run_dir_against_sequence_json_is_exact(capsys, sequence_and_run, tmp_pa
     code, out, err = _run(capsys, "evaluate", "--truth", str(seq / "groundtruth.tum"), "--estimate", str(run), "--json")
     assert code == 0, err
     s = json.loads(out)
-    assert list(s) == ["matched", "unmatched", "position_m", "attitude_rad", "velocity_m_s", "omega_rad_s", "speed_score"]
+    assert list(s) == ["matched", "unmatched", "position_m", "attitude_rad", "velocity_m_s", "omega_rad_s", "speed_score",
+                       "settings"]
+    assert s["settings"]["truth"].startswith(str(seq / "groundtruth.tum")) and s["settings"]["estimate"] == str(run / "states.csv")
     assert s["matched"] == 59 and s["unmatched"] == 1  # the invalid frame
     assert s["position_m"]["x"] == pytest.approx({"rms": 0.002, "max": 0.002, "p95": 0.002}, abs=TUM_EPS)
     assert s["position_m"]["y"]["max"] < TUM_EPS
@@ -74,7 +76,9 @@ def test_run_dir_against_sequence_json_is_exact(capsys, sequence_and_run, tmp_pa
     # The sequence folder as --truth (its exact groundtruth.csv) gives the same figures.
     code, out2, _ = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
     assert code == 0
-    assert _flat(json.loads(out2)) == pytest.approx(_flat(s), abs=TUM_EPS)
+    s2 = json.loads(out2)
+    assert s2.pop("settings")["truth"] == str(seq / "groundtruth.csv") and s.pop("settings")
+    assert _flat(s2) == pytest.approx(_flat(s), abs=TUM_EPS)
 
 
 def test_a_run_dir_evaluates_the_poses_of_its_trajectory_tum(capsys, sequence_and_run, tmp_path):
@@ -153,8 +157,30 @@ def test_bare_tum_files_give_pose_metrics_only_and_out_dir(capsys, tmp_path):
     np.testing.assert_allclose(csv[:, 3], -0.004, atol=1e-9)
     report = (out_dir / "report.md").read_text()
     assert "±5 mm" in report and "viewing" in report
+    # summary.json says what was compared and how, so it reads alone (as --json prints it)
+    assert s["settings"] == {"truth": str(tmp_path / "a" / "truth.tum"), "estimate": str(tmp_path / "b" / "est.tum"),
+                             "align": "none", "settle_s": 0.0, "tolerance_s": 0.01, "case": None}
     assert (out_dir / "position_error.png").stat().st_size > 1000
     assert (out_dir / "attitude_error.png").is_file()
+
+
+def test_the_report_names_the_body_axes_of_the_angular_velocity(capsys, sequence_and_run, tmp_path):
+    """omega is in the body frame (DESIGN.md section 3), whose axes are not the camera's lateral
+    and viewing axes: the paper table names them as body axes."""
+    truth, seq, run = sequence_and_run
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--out", str(tmp_path / "r"))
+    assert code == 0, err
+    rows = [line for line in (tmp_path / "r" / "report.md").read_text().splitlines() if line.startswith("| angular")]
+    assert [row.split("|")[2].strip() for row in rows] == ["x body", "y body", "z body"]
+    velocity = [line for line in (tmp_path / "r" / "report.md").read_text().splitlines() if line.startswith("| linear")]
+    assert [row.split("|")[2].strip() for row in velocity] == ["x lateral", "y lateral", "z viewing"]
+
+
+def test_help_says_the_linear_velocity_is_in_the_camera_frame(capsys):
+    with pytest.raises(SystemExit):
+        main(["evaluate", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "linear velocity errors (camera frame" in text and "angular velocity errors (body frame" in text
 
 
 def test_an_estimate_mostly_unpaired_is_warned_about_with_both_spans(capsys, tmp_path):
@@ -328,7 +354,9 @@ def test_a_truth_in_integer_nanoseconds_is_read_as_such_with_a_warning(capsys, s
     code, out, err = _run(capsys, "evaluate", "--truth", str(ns_csv), "--estimate", str(run), "--json")
     assert code == 0, err
     assert "its times read as integer nanoseconds" in err and len(err.strip().splitlines()) == 1, err
-    assert _flat(json.loads(out)) == pytest.approx(_flat(expected), abs=1e-9)
+    got = json.loads(out)
+    assert got.pop("settings")["truth"] == str(ns_csv) and expected.pop("settings")
+    assert _flat(got) == pytest.approx(_flat(expected), abs=1e-9)
 
 
 def _report_files(folder: Path) -> dict[str, bytes]:

@@ -89,6 +89,8 @@ def test_writer_refuses_unknown_column(tmp_path):
         (",".join(GROUNDTRUTH_COLUMNS) + "\n1,1,2,3,1,0,0,0,0,0,0,0,0,0\n0,1,2,3,1,0,0,0,0,0,0,0,0,0\n", "backwards"),
         (",".join(GROUNDTRUTH_COLUMNS) + "\n0,1,2,3,0,0,0,0,0,0,0,0,0,0\n", "zero quaternion"),
         ("1.0 0 0 0 0 0 0 1\n", "header lacks"),  # a TUM file is not a motion CSV
+        # TUM's header comment with commas: the file is a TUM trajectory, and the message says so
+        ("#,t,tx,ty,tz,qx,qy,qz,qw\n0.04,0,0,3.5,0,0,0,1\n", "TUM trajectory, whose fields are separated by spaces"),
     ],
 )
 def test_bad_files_raise_one_line(tmp_path, text, message):

@@ -5,18 +5,20 @@ estimate's and the truth's body frames (--align body: cases a and c; the estimat
 referred to the TRUE body frame, so its position error is that of the true body origin, lever
 arm of the attitude error included), skips a settle time, and
 reports position errors (camera frame; z = viewing axis), attitude errors (paper eq. 17 per axis,
-eq. 16 total), linear and angular velocity errors (body frame; only when the estimate is a run
-directory with states.csv and the truth has a groundtruth.csv) as RMS, max and 95th percentile,
-plus the SPEED challenge score.
+eq. 16 total), linear velocity errors (camera frame, of the body origin) and angular velocity
+errors (body frame, paper eq. 14) - both only when the estimate is a run directory with
+states.csv and the truth has a groundtruth.csv - as RMS, max and 95th percentile, plus the
+SPEED challenge score.
 
   --truth    TUM file, groundtruth.csv, or a sequence folder
   --estimate TUM file, states.csv, or a `trackmeter track` run directory
 
 "matched" counts the evaluated pairs; "unmatched" the estimated poses with no truth pose within
 the tolerance plus the truth poses inside the estimate's time span with no estimate (frames the
-run has no valid pose for). --json prints the summary in SI units; --out DIR also writes
-errors.csv, summary.json, PNG plots of the errors against time and report.md beside the
-paper's figures.
+run has no valid pose for). --json prints the summary in SI units, with the settings it was
+made with ("settings": truth, estimate, align, settle_s, tolerance_s, the run's case); --out DIR
+also writes errors.csv, summary.json (the same), PNG plots of the errors against time and
+report.md beside the paper's figures.
 """
 
 from __future__ import annotations
@@ -84,12 +86,14 @@ def run(args: argparse.Namespace) -> int:
         # without the fitted offset the figures measure where its frame sits, not the tracking.
         print(f"trackmeter evaluate: warning: the run was tracked in case ({estimate.case}), whose body frame is "
               "not the truth's: compare with --align body", file=sys.stderr)
+    settings = {"truth": truth.source, "estimate": estimate.source, "align": params.align,
+                "settle_s": params.settle_s, "tolerance_s": params.tolerance_s, "case": estimate.case}
     if args.out:
-        write_evaluation(result, args.out, truth.source, estimate.source, params.align, params.settle_s)
+        write_evaluation(result, args.out, settings)
     if args.json:
         from trackmeter.data.jsontext import json_text
 
-        print(json_text(result.summary))
+        print(json_text({**result.summary, "settings": settings}))
     else:
         print(format_summary(result.summary, truth.source, estimate.source, params.align))
         if args.out:

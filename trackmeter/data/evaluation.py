@@ -16,6 +16,7 @@ import math
 import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import yaml
@@ -276,11 +277,13 @@ def paper_table(summary: dict) -> str:
         "| error | axis (ours) | paper (3.5 m) | ours max | ours p95 | ours RMS | within paper |",
         "| --- | --- | --- | --- | --- | --- | --- |",
     ]
-    axis_note = {"x": "x lateral", "y": "y lateral", "z": "z viewing"}
+    camera_axes = {"x": "x lateral", "y": "y lateral", "z": "z viewing"}
+    body_axes = {"x": "x body", "y": "y body", "z": "z body"}  # omega_body: not the camera's axes
     for group, bounds in PAPER_BOUNDS.items():
         if group not in summary:
             continue
         title, unit, scale = _DISPLAY[group]
+        axis_note = body_axes if group == "omega_rad_s" else camera_axes
         for axis, bound in bounds.items():
             st = summary[group][axis]
             if group == "omega_rad_s":
@@ -381,12 +384,16 @@ def check_report_directory(directory: str | Path) -> Path:
     return check_output_folder(directory, "reports", "a report folder")
 
 
-def write_evaluation(
-    evaluation: Evaluation, out_dir: str | Path, truth: str, estimate: str, align: str, settle_s: float
-) -> list[Path]:
-    """Write ``summary.json``, ``errors.csv``, the PNG plots and ``report.md`` into ``out_dir``."""
+def write_evaluation(evaluation: Evaluation, out_dir: str | Path, settings: dict[str, Any]) -> list[Path]:
+    """Write ``summary.json``, ``errors.csv``, the PNG plots and ``report.md`` into ``out_dir``.
+
+    ``settings`` says what was compared and how (``truth``, ``estimate``, ``align``,
+    ``settle_s``, ``tolerance_s``, ``case``): ``summary.json`` carries it under ``"settings"``,
+    so the file reads alone.
+    """
     out = check_report_directory(out_dir)
     s = evaluation.summary
+    truth, estimate, align, settle_s = (settings[k] for k in ("truth", "estimate", "align", "settle_s"))
     plots = render_error_plots(evaluation)
     offset = ""
     if evaluation.body_offset is not None:
@@ -425,7 +432,7 @@ below); angular velocity errors are in the body frame (eq. 14).
 ## Plots
 
 """ + "".join(f"![{Path(name).stem}]({name})\n" for name in plots)
-    files = {out / "summary.json": (json_text(s) + "\n").encode(), out / "errors.csv": error_table_csv(evaluation).encode(),
+    files = {out / "summary.json": (json_text({**s, "settings": settings}) + "\n").encode(), out / "errors.csv": error_table_csv(evaluation).encode(),
              **{out / name: png for name, png in plots.items()}, out / "report.md": report.encode()}
     write_files_atomic(files)
     return list(files)

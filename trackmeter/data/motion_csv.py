@@ -220,9 +220,13 @@ def read_motion_csv(path: str | Path) -> MotionSeries:
     header = header_fields(header_text)
     missing = [c for c in POSE_COLUMNS if c not in header]
     if missing:
+        # TUM's header comment written with commas: a TUM file, told so rather than a CSV's columns
+        tum_names = {"tx", "ty", "tz", "qx", "qy", "qz", "qw"} <= set(header)
         raise TrackmeterError(
-            f"{path}:{header_line}: not a motion CSV: header lacks {','.join(missing)} "
-            f"(expected {','.join(GROUNDTRUTH_COLUMNS)})"
+            f"{path}:{header_line}: " + (
+                "reads as a TUM trajectory, whose fields are separated by spaces (t tx ty tz qx qy qz qw), "
+                "but this one uses commas" if tum_names else
+                f"not a motion CSV: header lacks {','.join(missing)} (expected {','.join(GROUNDTRUTH_COLUMNS)})")
         )
     if len(set(header)) != len(header):
         raise TrackmeterError(f"{path}:{header_line}: repeated column in the header")
