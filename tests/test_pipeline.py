@@ -152,6 +152,48 @@ def test_latest_frame_wins_and_every_drop_is_counted() -> None:
     assert snap.source_status == "ended"
 
 
+class CutSource(CountingSource):
+    """CountingSource whose frame ``cut_at`` starts a new pass (``StereoFrame.cut``)."""
+
+    def __init__(self, n: int, cut_at: int, **kwargs) -> None:  # type: ignore[no-untyped-def]
+        super().__init__(n, **kwargs)
+        self.cut_at = cut_at
+
+    def read(self) -> StereoFrame | None:
+        frame = super().read()
+        if frame is not None and frame.index == self.cut_at:
+            frame = dataclasses.replace(frame, cut=True)
+        return frame
+
+
+def test_a_dropped_frame_that_starts_a_new_pass_hands_its_cut_on() -> None:
+    """A looping source's first frame of a new pass may be dropped (latest frame wins): the
+    frame tracked after it must still say the stream jumped, or tracking carries on across
+    the jump (a pose 'valid' but off by a whole loop)."""
+    release, go = threading.Event(), threading.Event()
+    engine = RecordingEngine(block_first=release)
+    cuts: dict[int, bool] = {}
+    original = engine.process
+
+    def process(frame):  # type: ignore[no-untyped-def]
+        cuts[frame.index] = frame.cut
+        return original(frame)
+
+    engine.process = process  # type: ignore[method-assign]
+    source = CutSource(60, cut_at=30, gate=go, gate_from=1)
+    with Pipeline(source, engine) as pipe:
+        assert engine.entered.wait(5)
+        go.set()
+        for _ in range(500):
+            if source.reads == 60:
+                break
+            threading.Event().wait(0.01)
+        release.set()
+        pipe.run_until_end(10)
+    assert engine.processed == [0, 59]
+    assert cuts == {0: False, 59: True}
+
+
 def test_lossless_mode_tracks_every_frame_in_order() -> None:
     engine = RecordingEngine()
     seen: list[int] = []

@@ -514,6 +514,9 @@ class Pipeline:
                         self._cond.wait()
                 if self._slot is not None:
                     self._frames_dropped += 1
+                    if self._slot[0].cut and not frame.cut:
+                        # The dropped frame began a new pass: the jump is still before this one
+                        frame = dataclasses.replace(frame, cut=True)
                 self._slot = (frame, t_read)
                 self._cond.notify_all()
 
