@@ -127,6 +127,15 @@ class ListWriter:
         self.closed = True
 
 
+def _wait_for_reads(source: CountingSource, n: int) -> None:
+    """Wait (5 s at most) until ``source`` has delivered ``n`` frames; fail if it has not."""
+    for _ in range(500):
+        if source.reads == n:
+            break
+        threading.Event().wait(0.01)
+    assert source.reads == n
+
+
 def test_latest_frame_wins_and_every_drop_is_counted() -> None:
     release, go = threading.Event(), threading.Event()
     engine = RecordingEngine(block_first=release)
@@ -136,11 +145,7 @@ def test_latest_frame_wins_and_every_drop_is_counted() -> None:
         # The tracker is stuck in frame 0 while the source runs to its end: the slot keeps
         # only the newest frame and never blocks the source.
         go.set()
-        for _ in range(500):
-            if source.reads == 60:
-                break
-            threading.Event().wait(0.01)
-        assert source.reads == 60
+        _wait_for_reads(source, 60)
         release.set()
         snap = pipe.run_until_end(10)
     t = snap.timings
@@ -184,10 +189,7 @@ def test_a_dropped_frame_that_starts_a_new_pass_hands_its_cut_on() -> None:
     with Pipeline(source, engine) as pipe:
         assert engine.entered.wait(5)
         go.set()
-        for _ in range(500):
-            if source.reads == 60:
-                break
-            threading.Event().wait(0.01)
+        _wait_for_reads(source, 60)
         release.set()
         pipe.run_until_end(10)
     assert engine.processed == [0, 59]
