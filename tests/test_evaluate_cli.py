@@ -324,21 +324,60 @@ def test_stdout_closed_early_gives_no_traceback(sequence_and_run):
     assert err == ""
 
 
-@pytest.mark.parametrize("case, warned", [("a", True), ("c", True), ("b", False)])
-def test_a_case_a_or_c_run_compared_without_body_alignment_is_warned(capsys, sequence_and_run, case, warned):
-    # Such a run's body frame is its own: without --align body the position errors measure
-    # where its frame sits (hundreds of mm), which a newcomer takes for the tracking error.
-    _, seq, run = sequence_and_run
+@pytest.fixture()
+def run_in_own_body_frame(tmp_path):
+    """A sequence and a run whose poses are the truth's exactly, referred to a body frame of its
+    own (rotated 30 deg, origin 0.2 m away), as a case (a) or (c) run's are."""
+    truth = tumbling_truth()
+    seq = tmp_path / "seq"
+    write_groundtruth_csv(seq / "groundtruth.csv", truth)
+    R_true_own = Rotation.from_rotvec([0.3, -0.4, 0.2])
+    t_true_own = np.array([0.1, -0.15, 0.08])
+    R = Rotation.from_quat(truth.quat_wxyz, scalar_first=True)
+    est = MotionSeries(truth.t_s, np.ones(len(truth), bool), truth.position_m + R.apply(t_true_own),
+                       (R * R_true_own).as_quat(scalar_first=True), np.full((len(truth), 3), np.nan),
+                       np.full((len(truth), 3), np.nan), {})
+    run = tmp_path / "run"
+    write_states_csv(run / "states.csv", est)
+    return seq, run
+
+
+@pytest.mark.parametrize("case", ["a", "c"])
+def test_a_case_a_or_c_run_is_aligned_to_the_true_body_by_default(capsys, run_in_own_body_frame, tmp_path, case):
+    # Such a run's body frame is its own: compared as it is, its position errors measure where
+    # that frame sits (hundreds of mm), which a newcomer takes for the tracking error.
+    seq, run = run_in_own_body_frame
     (run / "run.yaml").write_text(f"status: complete\nsource:\n  spec: sim\n  case: {case}\n")
     for estimate in (run, run / "states.csv"):
-        code, _, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(estimate), "--json")
-        assert code == 0, err
-        assert ("--align body" in err) == warned, err
-    code, _, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--align", "body", "--json")
-    assert code == 0 and "warning" not in err, err
-    (run / "run.yaml").write_text("not: [valid")  # an unreadable run.yaml is no case, not an error
-    code, _, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
-    assert code == 0 and "warning" not in err, err
+        code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(estimate), "--json")
+        assert code == 0 and err == "", err
+        s = json.loads(out)
+        assert s["settings"]["align"] == "body" and s["settings"]["case"] == case
+        assert s["position_m"]["norm"]["max"] < 1e-6 and s["attitude_rad"]["total"]["max"] < 1e-6
+    # Asked for explicitly, "none" is done as asked, with the warning.
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--align", "none", "--json")
+    assert code == 0 and "--align body" in err, err
+    s = json.loads(out)
+    assert s["settings"]["align"] == "none" and s["position_m"]["norm"]["max"] > 0.1
+    # So is a config's choice.
+    config = tmp_path / "evaluate.yaml"
+    config.write_text("evaluate:\n  align: none\n")
+    code, out, err = _run(capsys, "evaluate", "--config", str(config), "--truth", str(seq), "--estimate", str(run), "--json")
+    assert code == 0 and "--align body" in err, err
+    assert json.loads(out)["settings"]["align"] == "none"
+
+
+@pytest.mark.parametrize("run_yaml", ["status: complete\nsource:\n  spec: sim\n  case: b\n", "not: [valid", None])
+def test_a_case_b_run_or_one_of_unknown_case_is_compared_as_it_is_by_default(capsys, run_in_own_body_frame, run_yaml):
+    # Case (b)'s body frame is the model's, the truth's own: no offset is fitted (nor for a run
+    # whose case is unknown: an unreadable run.yaml is no case, not an error).
+    seq, run = run_in_own_body_frame
+    if run_yaml is not None:
+        (run / "run.yaml").write_text(run_yaml)
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
+    assert code == 0 and err == "", err
+    s = json.loads(out)
+    assert s["settings"]["align"] == "none" and s["position_m"]["norm"]["max"] > 0.1
 
 
 def test_a_truth_in_integer_nanoseconds_is_read_as_such_with_a_warning(capsys, sequence_and_run, tmp_path):

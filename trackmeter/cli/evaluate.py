@@ -1,9 +1,10 @@
 """Compare an estimated trajectory with the ground truth (the paper's trial evaluation, section 4).
 
 Pairs poses by nearest timestamp (--tolerance), optionally fits the constant offset between the
-estimate's and the truth's body frames (--align body: cases a and c; the estimate is then
-referred to the TRUE body frame, so its position error is that of the true body origin, lever
-arm of the attitude error included), skips a settle time, and
+estimate's and the truth's body frames (--align body; by default for a run tracked in case a or c,
+as its run.yaml says, whose body frame is its own; the estimate is then referred to the TRUE body
+frame, so its position error is that of the true body origin, lever arm of the attitude error
+included), skips a settle time, and
 reports position errors (camera frame; z = viewing axis), attitude errors (paper eq. 17 per axis,
 eq. 16 total), linear velocity errors (camera frame, of the body origin) and angular velocity
 errors (body frame, paper eq. 14) - both only when the estimate is a run directory with
@@ -33,7 +34,8 @@ from trackmeter.cli.common import load_config_from_args
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--truth", required=True, metavar="TUM", help="ground truth: TUM file, groundtruth.csv or sequence folder")
     parser.add_argument("--estimate", required=True, metavar="TUM_OR_RUN_DIR", help="estimate: TUM file, states.csv or run directory")
-    parser.add_argument("--align", choices=("none", "body"), help="none: same body frame; body: fit a constant body-frame offset (default from config)")
+    parser.add_argument("--align", choices=("none", "body"), help="none: same body frame; body: fit a constant body-frame offset "
+                        "(default from config: auto, body for a run tracked in case a or c, none otherwise)")
     parser.add_argument("--settle", type=float, metavar="S",
                         help="seconds to skip from the start of the run (its first states.csv row, with a pose or not; for a TUM file, its first pose paired with the truth)")
     parser.add_argument("--tolerance", type=float, metavar="S", help="largest timestamp difference of a pair, s")
@@ -62,7 +64,7 @@ def _params(args: argparse.Namespace):  # type: ignore[no-untyped-def]
 
 
 def run(args: argparse.Namespace) -> int:
-    from trackmeter.core.metrics import evaluate
+    from trackmeter.core.metrics import evaluate, resolve_align
     from trackmeter.data.evaluation import (check_report_directory, format_summary, in_seconds, load_estimate,
                                              load_truth, write_evaluation)
 
@@ -72,6 +74,7 @@ def run(args: argparse.Namespace) -> int:
     truth = load_truth(args.truth)
     estimate = load_estimate(args.estimate)
     truth, estimate = in_seconds(truth, estimate, params.tolerance_s)
+    params = replace(params, align=resolve_align(params.align, estimate.case))
     result = evaluate(truth.series, estimate.series, params, estimate.t_start_s)
     t_t, t_e = truth.series.t_s, estimate.series.t_s
     overlap = min(t_t[-1], t_e[-1]) - max(t_t[0], t_e[0])

@@ -48,9 +48,27 @@ class EvaluateParams:
         min=0.0, max=1e6,
     )
     align: str = param(
-        "none", "frame relation: none (same body frame) or body (fit a constant body-frame offset)",
-        choices=("none", "body"),
+        "auto",
+        "frame relation: none (same body frame), body (fit a constant body-frame offset), or auto "
+        "(body for a case (a) or (c) run, whose body frame is its own; none otherwise)",
+        choices=("auto", "none", "body"),
     )
+
+
+def resolve_align(align: str, case: str | None) -> Literal["none", "body"]:
+    """The frame relation ``align`` means for a run of pose ``case`` ("a", "b", "c" or None when
+    unknown): "auto" is "body" for cases (a) and (c), whose body frame is defined by the run
+    itself (three tracked points, or the model acquired while the target held still), and
+    "none" otherwise (case (b)'s body frame is its a-priori model's, which is the truth's).
+
+    Raises:
+        TrackmeterError: ``align`` is not "auto", "none" or "body".
+    """
+    if align == "auto":
+        return "body" if case in ("a", "c") else "none"
+    if align not in ("none", "body"):
+        raise TrackmeterError(f"align must be 'auto', 'none' or 'body', got {align!r}")
+    return align  # type: ignore[return-value]
 
 
 class PoseTrack(Protocol):
@@ -377,8 +395,10 @@ def evaluate(
     estimate: PoseTrack,
     params: EvaluateParams = EvaluateParams(),
     t_start_s: float | None = None,
+    case: str | None = None,
 ) -> Evaluation:
-    """Associate, align (``params.align``), skip ``params.settle_s``, and measure the errors.
+    """Associate, align (``params.align``, "auto" resolved for the run's pose ``case`` by
+    :func:`resolve_align`), skip ``params.settle_s``, and measure the errors.
 
     The settle time counts from ``t_start_s`` (the start of the run, e.g. the first row of a
     ``states.csv`` whether or not it had a pose) or, when None, from the first paired pose.
@@ -389,9 +409,7 @@ def evaluate(
     Raises:
         TrackmeterError: no pair within the tolerance, or nothing left after the settle time.
     """
-    align: Literal["none", "body"] = params.align  # type: ignore[assignment]
-    if align not in ("none", "body"):
-        raise TrackmeterError(f"align must be 'none' or 'body', got {align!r}")
+    align = resolve_align(params.align, case)
     assoc = associate(truth.t_s, estimate.t_s, params.tolerance_s)
     if assoc.matched == 0:
         raise TrackmeterError(
