@@ -149,3 +149,17 @@ def test_a_folder_with_a_runs_files_but_no_run_yaml_is_not_overwritten_silently(
     assert check_run_directory(tmp_path / "mine", overwrite=True) == tmp_path / "mine"
     with pytest.raises(TrackmeterError, match="name is empty"):
         check_run_directory("")
+
+
+@pytest.mark.parametrize("where", ["/proc/no-such-run", "/proc/no-such/run"])
+def test_a_folder_the_filesystem_refuses_is_told_before_the_run_even_as_root(where: str) -> None:
+    # /proc refuses a new folder whoever asks; the permission bits let root (CI runs as root)
+    # through, so only asking the filesystem tells it before the source is opened.
+    with pytest.raises(TrackmeterError, match=r"cannot create a run folder there \(/proc is not a writable folder\)"):
+        check_run_directory(where)
+
+
+def test_the_write_check_leaves_nothing_behind(tmp_path: Path) -> None:
+    assert check_run_directory(tmp_path / "new" / "run") == tmp_path / "new" / "run"
+    assert check_run_directory(tmp_path) == tmp_path
+    assert list(tmp_path.iterdir()) == []

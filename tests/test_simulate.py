@@ -92,7 +92,7 @@ def test_simulate_unwritable_out_is_one_line_and_exit_2(tmp_path, capsys):
     DIR.partial it is written into) and the reason, exit 2, no traceback."""
     assert main(["simulate", "--duration", "0.04", "--out", "/proc/nope"]) == 2
     err = capsys.readouterr().err
-    assert err == "trackmeter simulate: error: /proc/nope: No such file or directory\n"
+    assert err == "trackmeter simulate: error: /proc/nope: cannot create a sequence folder there (/proc is not a writable folder)\n"
     (tmp_path / "a_file").write_text("")
     out = tmp_path / "a_file" / "seq"
     assert main(["simulate", "--duration", "0.04", "--out", str(out)]) == 2

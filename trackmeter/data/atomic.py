@@ -95,6 +95,12 @@ def unwritable_ancestor(path: str | Path) -> Path | None:
         existing = existing.parent
     if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
         return existing
+    # The permission bits do not tell all: root may write anywhere by them, and /proc or a
+    # read-only mount still refuses. A folder made and removed at once asks the filesystem.
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".trackmeter-write-check-", dir=existing))
+    except OSError:
+        return existing
     return None
 
 
