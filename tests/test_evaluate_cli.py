@@ -365,6 +365,9 @@ def test_a_case_a_or_c_run_is_aligned_to_the_true_body_by_default(capsys, run_in
     code, out, err = _run(capsys, "evaluate", "--config", str(config), "--truth", str(seq), "--estimate", str(run), "--json")
     assert code == 0 and "--align body" in err, err
     assert json.loads(out)["settings"]["align"] == "none"
+    code, out, err = _run(capsys, "evaluate", "--config", str(config), "--truth", str(seq), "--estimate", str(run),
+                          "--align", "auto", "--json")
+    assert code == 0 and err == "" and json.loads(out)["settings"]["align"] == "body", err
 
 
 @pytest.mark.parametrize("run_yaml", ["status: complete\nsource:\n  spec: sim\n  case: b\n", "not: [valid", None])

@@ -34,8 +34,9 @@ from trackmeter.cli.common import load_config_from_args
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--truth", required=True, metavar="TUM", help="ground truth: TUM file, groundtruth.csv or sequence folder")
     parser.add_argument("--estimate", required=True, metavar="TUM_OR_RUN_DIR", help="estimate: TUM file, states.csv or run directory")
-    parser.add_argument("--align", choices=("none", "body"), help="none: same body frame; body: fit a constant body-frame offset "
-                        "(default from config: auto, body for a run tracked in case a or c, none otherwise)")
+    parser.add_argument("--align", choices=("none", "body", "auto"),
+                        help="none: same body frame; body: fit a constant body-frame offset; auto: body for a run "
+                        "tracked in case a or c (its run.yaml says), none otherwise (default from config: auto)")
     parser.add_argument("--settle", type=float, metavar="S",
                         help="seconds to skip from the start of the run (its first states.csv row, with a pose or not; for a TUM file, its first pose paired with the truth)")
     parser.add_argument("--tolerance", type=float, metavar="S", help="largest timestamp difference of a pair, s")
