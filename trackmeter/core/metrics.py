@@ -395,10 +395,10 @@ def evaluate(
     estimate: PoseTrack,
     params: EvaluateParams = EvaluateParams(),
     t_start_s: float | None = None,
-    case: str | None = None,
 ) -> Evaluation:
-    """Associate, align (``params.align``, "auto" resolved for the run's pose ``case`` by
-    :func:`resolve_align`), skip ``params.settle_s``, and measure the errors.
+    """Associate, align (``params.align``; "auto", whose meaning depends on the run's pose case,
+    is "none" here: resolve it first with :func:`resolve_align`), skip ``params.settle_s``, and
+    measure the errors.
 
     The settle time counts from ``t_start_s`` (the start of the run, e.g. the first row of a
     ``states.csv`` whether or not it had a pose) or, when None, from the first paired pose.
@@ -409,7 +409,7 @@ def evaluate(
     Raises:
         TrackmeterError: no pair within the tolerance, or nothing left after the settle time.
     """
-    align = resolve_align(params.align, case)
+    align = resolve_align(params.align, None)
     assoc = associate(truth.t_s, estimate.t_s, params.tolerance_s)
     if assoc.matched == 0:
         raise TrackmeterError(
