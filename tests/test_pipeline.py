@@ -324,6 +324,28 @@ def test_pause_and_step_read_exactly_one_frame() -> None:
         assert snap is not None and not snap.paused
 
 
+def test_a_restart_while_paused_shows_the_first_frame_and_stays_paused() -> None:
+    # The operator pressed Restart on a paused console: the image must not keep showing the
+    # frame from before the restart (with its targets) as if nothing had happened.
+    engine = RecordingEngine()
+    source = CountingSource(10**6, delay_s=0.002)
+    with Pipeline(source, engine, paused=True) as pipe:
+        for _ in range(3):
+            assert pipe.call(StepOnce()).ok
+        _wait_for_reads(source, 3)
+        reply = pipe.call(RestartSource())
+        assert reply.ok and "first frame" in reply.message, reply.message
+        _wait_for_reads(source, 4)
+        snap = pipe.latest()
+        for _ in range(500):
+            if snap.frame is not None and snap.frame.index == 0 and engine.processed[-1:] == [0]:
+                break
+            snap = pipe.wait_snapshot(snap.sequence, 0.01) or pipe.latest()
+        assert snap.paused and snap.frame is not None and snap.frame.index == 0
+        threading.Event().wait(0.1)
+        assert source.reads == 4 and engine.processed == [0, 1, 2, 0]  # still paused: nothing more read
+
+
 def test_snapshots_are_immutable_and_never_change_after_publishing() -> None:
     engine = RecordingEngine()
     with Pipeline(CountingSource(10**6), engine) as pipe:

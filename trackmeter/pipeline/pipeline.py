@@ -643,8 +643,12 @@ class Pipeline:
                 self._source_done = False
                 self._source_status = None
                 self._acq_rate.reset()
+                # Paused, the page would go on showing the frame from before the restart with
+                # its targets, as if nothing had happened: step to the first frame instead.
+                paused = self._paused
+                self._steps = 1 if paused else 0
                 self._cond.notify_all()
-            return CommandReply(True, "source restarted"
+            return CommandReply(True, "source restarted" + ("; paused at its first frame" if paused else "")
                                 + ("; the recording goes on, its time carried on" if self._recording() else ""))
         if isinstance(command, SetRecording):
             if command.directory is None:
