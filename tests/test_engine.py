@@ -216,6 +216,18 @@ def test_fewer_than_three_points_is_invalid_with_reason(estec_rig) -> None:
     assert np.all(np.isnan(pose.T_cam_body))
 
 
+def test_case_a_with_fewer_than_three_of_its_frame_points_says_so(estec_rig) -> None:
+    # Case (a) has no model to speak of: its body frame is made of tracked points.
+    engine, tracker, _ = make_engine(estec_rig, with_model=False, case="a")
+    out = run(engine, range(30))
+    assert out[-1][1].valid
+    tracker.force_lost = {f"m{i}" for i in range(10)}
+    _, pose, _ = engine.process(frame_at(30))
+    # (it coasts on its motion model for a while, saying why)
+    assert "only 2 of the body frame's points measured (3 needed)" in pose.reason, pose.reason
+    assert "model points" not in pose.reason
+
+
 def test_three_points_with_a_gross_mismatch_give_no_pose(estec_rig) -> None:
     """With exactly 3 model points no outlier can be rejected; a gross mismatch (a corner
     matched 275 mm too deep) must make the pose invalid with the reason, never bend it."""

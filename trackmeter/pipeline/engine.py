@@ -775,7 +775,9 @@ class Engine:
         if not self._model:
             return None, "no model" if self._case != "a" else "case (a): no frame yet"
         if len(ids) < self.pose_params.min_points:
-            return None, f"only {len(ids)} model points measured ({self.pose_params.min_points} needed)"
+            # Case (a)'s "model" is its body frame's tracked points: no model to the operator.
+            points = "model points" if self._case != "a" else "of the body frame's points"
+            return None, f"only {len(ids)} {points} measured ({self.pose_params.min_points} needed)"
         b = np.array([self._model[i].b for i in ids])
         Cb = np.array([self._model_cov(self._model[i], frame.t_s) for i in ids])
         P = np.array([measured[i].point_cam for i in ids])
