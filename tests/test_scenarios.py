@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from trackmeter.core.dynamics import symmetric_precession_rate
 from trackmeter.core.transforms import apply_transform, matrix_to_quat_wxyz, omega_body_between
+from trackmeter.data.config import load_config
 from trackmeter.errors import TrackmeterError
 from trackmeter.paths import SCENARIOS_DIR
 from trackmeter.sources import open_source
@@ -56,7 +59,7 @@ def test_estec_is_the_papers_trial(sims):
     assert np.allclose(L, L[0], atol=1e-9 * np.linalg.norm(L[0]))
 
 
-@pytest.mark.parametrize("name", ["estec", "fast_tumble", "approach", "harsh_light"])
+@pytest.mark.parametrize("name", ["estec", "fast_tumble", "approach", "harsh_light", "hold_release"])
 def test_truth_rates_are_the_derivatives_of_the_truth_pose(sims, name):
     sim = sims[name]
     for i in (0, sim.n_frames // 3, sim.n_frames - 2):
@@ -115,6 +118,27 @@ def test_static_ranges_hold_still_at_each_range(sims):
         assert np.linalg.norm(g.T_cam_body[:3, 3]) == pytest.approx(sim.static_range_of(i))
         assert np.all(g.velocity_cam_m_s == 0) and np.all(g.omega_body_rad_s == 0)
     assert [sim.static_range_of(k * sc.frames_per_range) for k in range(len(sc.static_ranges_m))] == list(sc.static_ranges_m)
+
+
+def test_hold_release_holds_still_then_moves_as_estec_from_its_start(sims):
+    # Case (c)'s scenario: the model is acquired while a manipulator holds the target still
+    # (pose.still_time_s), then the target is released into the estec trial's motion.
+    sim, estec = sims["hold_release"], sims["estec"]
+    release = sim.scenario.release_s
+    assert release >= 2 * load_config().pose.still_time_s
+    k = int(round(release * sim.rate_hz))  # the frame of the release: the motion's first
+    for i in range(k + 1):
+        g = sim.truth(i)
+        assert np.array_equal(g.T_cam_body, estec.truth(0).T_cam_body)
+        if i < k:
+            assert np.all(g.velocity_cam_m_s == 0) and np.all(g.omega_body_rad_s == 0)
+    for j in (0, 1, 25, 200):
+        g, e = sim.truth(k + j), estec.truth(j)
+        np.testing.assert_allclose(g.T_cam_body, e.T_cam_body, atol=1e-8)  # two integrations' tolerance
+        np.testing.assert_allclose(g.omega_body_rad_s, e.omega_body_rad_s, atol=1e-10)
+        np.testing.assert_allclose(g.velocity_cam_m_s, e.velocity_cam_m_s, atol=1e-12)
+    with pytest.raises(TrackmeterError, match="release_s"):
+        dataclasses.replace(sim.scenario, release_s=-1.0)
 
 
 def test_harsh_light_has_a_low_sun_and_a_passing_occluder(sims):

@@ -78,6 +78,10 @@ class Scenario:
         (), "If set, the target is held still (no rotation) at each of these ranges along position0_m's direction in turn, m."
     )
     frames_per_range: int = param(25, "Frames per static range.", min=1)
+    release_s: float = param(
+        0.0, "The target is held still (no rotation, no drift) at its initial pose until this time, then released "
+        "into its motion (rotation, drift, approach), which starts then as it would at t = 0, s.", min=0.0,
+    )
     sun_dir_cam: tuple[float, float, float] = param((0.3, -0.5, -0.8), "Direction toward the sun, camera frame (normalised).")
     occluders: tuple[OccluderSpec, ...] = param((), "Panels passing in front of the target.")
     render: RenderParams = field(default_factory=RenderParams)
@@ -96,6 +100,8 @@ class Scenario:
             raise TrackmeterError("'sun_dir_cam' must be a non-zero direction")
         if self.approach_to_m is not None and self.approach_s <= 0:
             raise TrackmeterError("'approach_s' must be positive when 'approach_to_m' is set")
+        if not self.release_s >= 0:
+            raise TrackmeterError(f"'release_s' must be >= 0 s, got {self.release_s}")
         if any(r <= 0 for r in self.static_ranges_m):
             raise TrackmeterError("'static_ranges_m' must all be positive")
         if not self.static_ranges_m and self.duration_s <= 0:

@@ -97,7 +97,8 @@ class Simulator(Source):
         self._rotation: FreeRotation | None = None
         if not sc.static_ranges_m:
             self._rotation = integrate_free_rotation(
-                sc.inertia_kg_m2, self._q0, np.asarray(sc.omega0_body_deg_s, dtype=float) * DEG, max(sc.span_s, 1e-6)
+                sc.inertia_kg_m2, self._q0, np.asarray(sc.omega0_body_deg_s, dtype=float) * DEG,
+                max(sc.span_s - sc.release_s, 1e-6),
             )
         self._translation = Translation(
             sc.position0_m, sc.velocity_m_s,
@@ -153,10 +154,12 @@ class Simulator(Source):
             direction = direction / np.linalg.norm(direction)
             T = make_transform(quat_wxyz_to_matrix(self._q0), direction * sc.static_ranges_m[k])
             return GroundTruth(T, np.zeros(3), np.zeros(3))
-        t = self.time_of(i)
+        t = self.time_of(i) - sc.release_s  # the motion's own time: it starts at the release
         assert self._rotation is not None
-        q, w = self._rotation.state(min(t, self._rotation.duration_s))
-        p, v = self._translation.at(t)
+        q, w = self._rotation.state(min(max(t, 0.0), self._rotation.duration_s))
+        p, v = self._translation.at(max(t, 0.0))
+        if t < 0:  # held still
+            w, v = np.zeros(3), np.zeros(3)
         return GroundTruth(make_transform(quat_wxyz_to_matrix(q), p), v, w)
 
     def static_range_of(self, index: int) -> float | None:
