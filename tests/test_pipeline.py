@@ -659,26 +659,32 @@ def test_an_interrupt_while_winding_down_waits_for_the_block_to_finish() -> None
 
     from trackmeter.pipeline.pipeline import interrupts_deferred
 
-    before = (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM))
-    finished = []
-    with pytest.raises(KeyboardInterrupt, match="files are complete"):
-        with interrupts_deferred(lambda: "files are complete"):
-            os.kill(os.getpid(), signal.SIGINT)
-            os.kill(os.getpid(), signal.SIGTERM)
-            time.sleep(0.05)  # the handlers run here, in the main thread
-            finished.append(True)
-    assert finished == [True]
-    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
-    with interrupts_deferred():
-        pass
-    with pytest.raises(ValueError):  # the block's own error goes through unchanged
-        with interrupts_deferred():
-            raise ValueError("x")
-    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
-    # A process already stopping only notes a later signal: the block's then ends quietly,
-    # handed to that handler, not raised.
-    noted: list[int] = []
+    inherited = (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM))
     try:
+        # The handlers of a command started at a terminal. A process started in the
+        # background by a shell without job control (CI under nohup ... &, say) inherits
+        # SIGINT ignored, and then the block rightly ends quietly (checked below with SIGTERM).
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        before = (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM))
+        finished = []
+        with pytest.raises(KeyboardInterrupt, match="files are complete"):
+            with interrupts_deferred(lambda: "files are complete"):
+                os.kill(os.getpid(), signal.SIGINT)
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(0.05)  # the handlers run here, in the main thread
+                finished.append(True)
+        assert finished == [True]
+        assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+        with interrupts_deferred():
+            pass
+        with pytest.raises(ValueError):  # the block's own error goes through unchanged
+            with interrupts_deferred():
+                raise ValueError("x")
+        assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+        # A process already stopping only notes a later signal: the block's then ends quietly,
+        # handed to that handler, not raised.
+        noted: list[int] = []
         signal.signal(signal.SIGTERM, lambda signum, frame: noted.append(signum))
         with interrupts_deferred(lambda: "never said"):
             os.kill(os.getpid(), signal.SIGTERM)
@@ -689,4 +695,5 @@ def test_an_interrupt_while_winding_down_waits_for_the_block_to_finish() -> None
             os.kill(os.getpid(), signal.SIGTERM)
             time.sleep(0.05)
     finally:
-        signal.signal(signal.SIGTERM, before[1])
+        signal.signal(signal.SIGINT, inherited[0])
+        signal.signal(signal.SIGTERM, inherited[1])
