@@ -24,6 +24,7 @@ import logging
 import threading
 import time
 from collections import deque
+from collections.abc import Callable, Coroutine
 from concurrent.futures import Future
 from html import escape
 from pathlib import Path
@@ -78,6 +79,23 @@ _COMMAND_TITLES = {"SetAuto": "Automatic selection", "SetRecording": "Record", "
                    "AcquireModel": "Acquire model", "LoadModel": "Load model", "SetPaused": "Pause",
                    "StepOnce": "Step", "RestartSource": "Restart", "ResetTracking": "Reset tracking",
                    "SelectModelPoints": "Click the model points"}
+
+
+def _on_event_loop(callback: Callable[[Any], None]) -> Callable[[Any], Coroutine[Any, Any, None]]:
+    """``callback`` as a coroutine function, so that viser runs it on its event loop at once.
+
+    viser stores a browser's new value on the widget, then hands a plain callback to a thread
+    pool: on a loaded machine it ran later, after a push had put the tracker's old value back
+    on the widget, and read and sent that (a cutoff typed just as the previous one was refused
+    was lost). Run on the loop, the callback reads the value that arrived, and callbacks run in
+    the order their messages came. ``callback`` must only read widgets and enqueue (it runs on
+    the loop, which must never block).
+    """
+
+    async def on_loop(event: Any) -> None:
+        callback(event)
+
+    return on_loop
 
 
 def _pixel_text(uv: tuple[float, float]) -> str:
@@ -579,7 +597,7 @@ class Console:
         self.select_model_button.on_click(self._cb(lambda e: SelectModelPoints(repeat=True)))
         self.acquire_button.on_click(self._cb(lambda e: AcquireModel()))
         self.load_model_button.on_click(self._cb(lambda e: LoadModel(self.model_path.value.strip())))
-        self.cutoff.on_update(self._cutoff_typed)
+        self.cutoff.on_update(_on_event_loop(self._cutoff_typed))
         self.record_checkbox.on_update(self._cb(lambda e: SetRecording(
             self._fresh_record_dir() if self.record_checkbox.value else None)))
         self.right_checkbox.on_update(lambda e: self._show_right_image(bool(self.right_checkbox.value)))
@@ -626,7 +644,7 @@ class Console:
             if command is not None:
                 self.submit(command, event.client, type(command).__name__)
 
-        return callback
+        return _on_event_loop(callback)
 
     def submit(self, command: Command, client: Any = None, label: str = "") -> Future[CommandReply]:
         """Send ``command`` to the pipeline; its reply becomes a notification for ``client``."""
@@ -919,7 +937,9 @@ class Console:
         self._mirror("auto", self.auto_checkbox, snap.auto_enabled)
         if snap.auto_count >= 1:
             self._mirror("auto_count", self.auto_count, snap.auto_count)
-        if np.isfinite(snap.filter_cutoff_hz):  # as the filter takes it (clipped to its range)
+        if np.isfinite(snap.filter_cutoff_hz) and self._cutoff_edit is None:
+            # As the filter takes it (clipped to its range); not while the operator's value waits
+            # to settle (:meth:`_send_settled_edits`): the field keeps what they typed.
             self._mirror("cutoff", self.cutoff, min(max(snap.filter_cutoff_hz, self.cutoff.min), self.cutoff.max))
         self._mirror("record", self.record_checkbox, snap.recording)
         if snap.pose.case in ("a", "b", "c"):

@@ -9,6 +9,8 @@ import functools
 import socket
 import time
 import urllib.request
+from concurrent.futures import Future
+from typing import Any
 
 import pytest
 
@@ -223,6 +225,78 @@ def test_a_typed_cutoff_is_sent_once_the_field_holds_it() -> None:
         assert engine.sent == [0.5]
         _wait_for_pushes(con, 5)
         assert con.cutoff.value == pytest.approx(0.5)
+    finally:
+        running.stop()
+
+
+class _HeldExecutor:
+    """Stands in for viser's callback thread pool: runs nothing until :meth:`release`, as a
+    pool whose workers are all busy would (a loaded 2-core machine)."""
+
+    def __init__(self) -> None:
+        self.held: list[tuple[Any, tuple[Any, ...]]] = []
+
+    def submit(self, fn, *args):  # type: ignore[no-untyped-def]
+        self.held.append((fn, args))
+        future: Future[Any] = Future()
+        return future
+
+    def release(self) -> None:
+        for fn, args in self.held:
+            fn(*args)
+        self.held.clear()
+
+
+def _browser_sets(running, handle, value) -> None:  # type: ignore[no-untyped-def]
+    """What viser does with a browser's new value: its own message handler, on its event loop."""
+    import asyncio
+
+    from viser._messages import GuiUpdateMessage
+
+    gui = running.server.gui
+    message = GuiUpdateMessage(handle._impl.uuid, {"value": value})
+    asyncio.run_coroutine_threadsafe(gui._handle_gui_updates(7, message), gui._event_loop).result(10)
+
+
+def test_a_value_typed_as_a_refusal_puts_the_old_one_back_is_the_value_sent() -> None:
+    """A refusal shows the tracker's value on the widget again. The operator's next value,
+    typed just then, arrived while viser's callback for it waited for a worker thread; the push
+    put the old value on the widget and the callback, reading the widget, sent that: the typed
+    value was silently lost (an outside console probe: "3.3 after a run of bad values was not
+    applied"). The value is the one that arrived, and a field being edited is not reset."""
+    import types
+
+    class Counting(_LimitsEngine):
+        sent: list[float] = []
+
+        def handle(self, command, frame):  # type: ignore[no-untyped-def]
+            from trackmeter.pipeline.snapshot import SetFilterCutoff
+
+            if isinstance(command, SetFilterCutoff):
+                self.sent.append(command.cutoff_hz)
+            return super().handle(command, frame)
+
+    engine = Counting()
+    running = start_console(CountingSource(100_000, delay_s=0.02), engine, port=free_port())  # type: ignore[arg-type]
+    con = running.console
+    held = _HeldExecutor()
+    running.server.gui._thread_executor = held  # type: ignore[assignment]
+    running.server._connected_clients[7] = types.SimpleNamespace(add_notification=lambda *a, **k: None)  # type: ignore[index,assignment]
+    try:
+        _wait_for_pushes(con, 3)
+        assert con.cutoff.value == pytest.approx(2.0)
+        _browser_sets(running, con.cutoff, 3.3)
+        con._mirrored.pop("cutoff", None)  # what a refusal of the value before it does
+        _wait_for_pushes(con, 5)
+        held.release()
+        deadline = time.monotonic() + 10
+        while not engine.sent:
+            assert time.monotonic() < deadline, "nothing sent"
+            time.sleep(0.05)
+        time.sleep(0.3)
+        assert engine.sent == [pytest.approx(3.3)]
+        _wait_for_pushes(con, 5)
+        assert engine.filter_cutoff_hz == pytest.approx(3.3) and con.cutoff.value == pytest.approx(3.3)
     finally:
         running.stop()
 
