@@ -208,6 +208,12 @@ def test_choice_outside_the_list_is_refused(tmp_path: Path) -> None:
         load_config(_write(tmp_path, {"calibrate": {"distortion_model": "fisheye"}}))
 
 
+@pytest.mark.parametrize("path", sorted(p for p in DEFAULT_CONFIG.parent.rglob("*.yaml") if p.parent.name != "rigs"),
+                         ids=lambda p: p.name)  # the rigs are OpenCV FileStorage files, read apart
+def test_the_fast_loader_reads_every_shipped_file_as_the_python_one_does(path: Path) -> None:
+    assert read_yaml_mapping(path) == yaml.load(path.read_text(encoding="utf-8"), Loader=yaml.SafeLoader)  # noqa: S506
+
+
 def test_malformed_yaml_is_refused(tmp_path: Path) -> None:
     path = tmp_path / "bad.yaml"
     path.write_text("measure:\n  patch_size: [8\n")

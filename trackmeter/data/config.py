@@ -83,9 +83,15 @@ def config_to_dict(config: Any) -> dict[str, Any]:
     return plain(dataclasses.asdict(config))
 
 
-def read_yaml_mapping(path: Path, loader: type[yaml.SafeLoader] = yaml.SafeLoader) -> dict[str, Any]:
+#: libyaml's safe loader where PyYAML was built with it: the same resolvers and constructors as
+#: :class:`yaml.SafeLoader`, scanned in C. The pure-Python scanner took 60 ms over the comments
+#: of ``config/default.yaml``, which every command and every engine built reads.
+FAST_SAFE_LOADER: type[Any] = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
+
+def read_yaml_mapping(path: Path, loader: type[Any] = FAST_SAFE_LOADER) -> dict[str, Any]:
     """Read a YAML file whose top level is a mapping (an empty file is an empty mapping),
-    with ``loader`` (a :class:`yaml.SafeLoader` or a subclass of it)."""
+    with ``loader`` (:data:`FAST_SAFE_LOADER`, a :class:`yaml.SafeLoader` or a subclass of it)."""
     try:
         text = Path(path).read_text(encoding="utf-8")
     except FileNotFoundError:
