@@ -166,6 +166,21 @@ class _LimitsEngine(_AutoEngine):
         return super().handle(command, frame)
 
 
+class _CutoffsSentEngine(_LimitsEngine):
+    """:class:`_LimitsEngine` that also lists every cutoff sent to it, in order (``sent``)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.sent: list[float] = []
+
+    def handle(self, command, frame):  # type: ignore[no-untyped-def]
+        from trackmeter.pipeline.snapshot import SetFilterCutoff
+
+        if isinstance(command, SetFilterCutoff):
+            self.sent.append(command.cutoff_hz)
+        return super().handle(command, frame)
+
+
 def test_the_count_and_cutoff_widgets_follow_the_tracker_and_its_limits() -> None:
     """The Count slider ends at the tracker's max_targets (a larger value was refused while
     the slider kept showing it), the cutoff field at the filter's limit, and both show the
@@ -197,17 +212,7 @@ def test_a_typed_cutoff_is_sent_once_the_field_holds_it() -> None:
     keystroke rebuilt the output filter. The value is sent once the field has held it."""
     import types
 
-    class Counting(_LimitsEngine):
-        sent: list[float] = []
-
-        def handle(self, command, frame):  # type: ignore[no-untyped-def]
-            from trackmeter.pipeline.snapshot import SetFilterCutoff
-
-            if isinstance(command, SetFilterCutoff):
-                self.sent.append(command.cutoff_hz)
-            return super().handle(command, frame)
-
-    engine = Counting()
+    engine = _CutoffsSentEngine()
     running = start_console(CountingSource(100_000, delay_s=0.02), engine, port=free_port())  # type: ignore[arg-type]
     con = running.console
     browser = types.SimpleNamespace(add_notification=lambda *a, **k: None)
@@ -266,17 +271,7 @@ def test_a_value_typed_as_a_refusal_puts_the_old_one_back_is_the_value_sent() ->
     applied"). The value is the one that arrived, and a field being edited is not reset."""
     import types
 
-    class Counting(_LimitsEngine):
-        sent: list[float] = []
-
-        def handle(self, command, frame):  # type: ignore[no-untyped-def]
-            from trackmeter.pipeline.snapshot import SetFilterCutoff
-
-            if isinstance(command, SetFilterCutoff):
-                self.sent.append(command.cutoff_hz)
-            return super().handle(command, frame)
-
-    engine = Counting()
+    engine = _CutoffsSentEngine()
     running = start_console(CountingSource(100_000, delay_s=0.02), engine, port=free_port())  # type: ignore[arg-type]
     con = running.console
     held = _HeldExecutor()
