@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from scipy.spatial.transform import Rotation
 
 from trackmeter.cli.main import main
@@ -267,6 +268,24 @@ def test_bad_estimate_run_dirs(capsys, tmp_path):
     assert code == 2 and "no valid pose" in err
     code, _, err = _run(capsys, "evaluate", "--truth", str(truth), "--estimate", str(truth), "--tolerance", "-1")
     assert code == 2 and "--tolerance" in err
+
+
+def test_a_run_without_a_valid_pose_says_why_its_poses_were_invalid(capsys, tmp_path):
+    """An outside probe got "no valid pose in the run" for a case (b) run that bound no model
+    point: true, but the reason `track` gave for most of its frames, kept in run.yaml, says what
+    to do about it."""
+    truth = _tum(tmp_path / "t.tum", tumbling_truth())
+    run = tmp_path / "run"
+    _write(run / "states.csv", ",".join(STATES_COLUMNS) + "\n0.0,0" + "," * (len(STATES_COLUMNS) - 2) + "\n")
+    reasons = {"the first frame": 1, "case (b): binding the model: none is a target yet: target them by id": 4}
+    _write(run / "run.yaml", yaml.safe_dump({"source": {"case": "b"}, "summary": {"invalid_reasons": reasons}}))
+    code, _, err = _run(capsys, "evaluate", "--truth", str(truth), "--estimate", str(run))
+    assert code == 2 and err.count("\n") == 1
+    assert err.strip().endswith("no valid pose in the run (4 of its 5 frames: case (b): binding the model: "
+                                "none is a target yet: target them by id)"), err
+    _write(run / "run.yaml", "summary: [unreadable\n")  # no reasons to give: the plain message
+    code, _, err = _run(capsys, "evaluate", "--truth", str(truth), "--estimate", str(run))
+    assert code == 2 and err.strip().endswith("no valid pose in the run"), err
 
 
 def test_an_estimate_that_is_no_regular_file_is_named_as_such(capsys, tmp_path):

@@ -176,15 +176,37 @@ def load_estimate(spec: str | Path) -> LoadedMotion:
     return replace(loaded, case=_run_case(run_dir))
 
 
+def _run_meta(run_dir: Path, *keys: str) -> Any:
+    """``run.yaml[keys[0]][keys[1]]...`` of a ``track`` run directory; None when there is no
+    readable one or it lacks the key."""
+    try:
+        value = yaml.safe_load((run_dir / "run.yaml").read_text(encoding="utf-8"))
+        for key in keys:
+            value = value[key]
+    except (OSError, UnicodeDecodeError, yaml.YAMLError, KeyError, TypeError, IndexError):
+        return None
+    return value
+
+
 def _run_case(run_dir: Path) -> str | None:
     """The pose case a ``track`` run directory's ``run.yaml`` records; None when there is no
     readable one."""
-    try:
-        meta = yaml.safe_load((run_dir / "run.yaml").read_text(encoding="utf-8"))
-        case = meta["source"]["case"]
-    except (OSError, UnicodeDecodeError, yaml.YAMLError, KeyError, TypeError):
-        return None
+    case = _run_meta(run_dir, "source", "case")
     return case if case in ("a", "b", "c") else None
+
+
+def _why_no_valid_pose(run_dir: Path) -> str:
+    """The reason ``track`` gave most often for an invalid pose (run.yaml's summary), as
+    ``" (N of its M frames: REASON)"``, or ``""`` when it gave none: what to change is in
+    that reason, not in evaluate's message."""
+    reasons = _run_meta(run_dir, "summary", "invalid_reasons")
+    if not isinstance(reasons, dict):
+        return ""
+    counts = {str(k): v for k, v in reasons.items() if isinstance(v, int) and not isinstance(v, bool) and v > 0}
+    if not counts:
+        return ""
+    reason = max(counts, key=lambda k: counts[k])
+    return f" ({counts[reason]} of its {sum(counts.values())} frames: {reason})"
 
 
 def _load_estimate(path: Path) -> LoadedMotion:
@@ -194,7 +216,7 @@ def _load_estimate(path: Path) -> LoadedMotion:
             t_start = float(s.t_s[0])
             s = _poses_of_run(s, _declared_pose_times(path))
             if len(s) == 0:
-                raise TrackmeterError(f"{path / 'states.csv'}: no valid pose in the run")
+                raise TrackmeterError(f"{path / 'states.csv'}: no valid pose in the run{_why_no_valid_pose(path)}")
             return LoadedMotion(s, str(path / "states.csv"), bool(np.any(_rows_with_rates(s))), t_start)
         if (path / "trajectory.tum").is_file():
             s = MotionSeries.from_trajectory(read_tum(path / "trajectory.tum"))
