@@ -5,12 +5,13 @@ No browser here (see ``tests/browser``); viser's server runs in-process on a fre
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import socket
 import time
 import urllib.request
 from concurrent.futures import Future
-from typing import Any
+from typing import Any, Iterator
 
 import pytest
 
@@ -246,10 +247,33 @@ class _HeldExecutor:
         future: Future[Any] = Future()
         return future
 
+    @classmethod
+    def installed_in(cls, running) -> "_HeldExecutor":  # type: ignore[no-untyped-def]
+        """One in place of ``running``'s viser pool, with a stand-in browser (client id 7)."""
+        import types
+
+        held = cls()
+        running.server.gui._thread_executor = held
+        running.server._connected_clients[7] = types.SimpleNamespace(add_notification=lambda *a, **k: None)
+        return held
+
     def release(self) -> None:
         for fn, args in self.held:
             fn(*args)
         self.held.clear()
+
+
+@contextlib.contextmanager
+def _console_with_held_pool(engine) -> Iterator[tuple[Any, _HeldExecutor]]:  # type: ignore[no-untyped-def]
+    """A console on ``engine`` whose viser callback pool runs nothing until released, after
+    its first pushes; stopped on leaving."""
+    running = start_console(CountingSource(100_000, delay_s=0.02), engine, port=free_port())
+    try:
+        held = _HeldExecutor.installed_in(running)
+        _wait_for_pushes(running.console, 3)
+        yield running, held
+    finally:
+        running.stop()
 
 
 def _browser_sets(running, handle, value) -> None:  # type: ignore[no-untyped-def]
@@ -269,16 +293,9 @@ def test_a_value_typed_as_a_refusal_puts_the_old_one_back_is_the_value_sent() ->
     put the old value on the widget and the callback, reading the widget, sent that: the typed
     value was silently lost (an outside console probe: "3.3 after a run of bad values was not
     applied"). The value is the one that arrived, and a field being edited is not reset."""
-    import types
-
     engine = _CutoffsSentEngine()
-    running = start_console(CountingSource(100_000, delay_s=0.02), engine, port=free_port())  # type: ignore[arg-type]
-    con = running.console
-    held = _HeldExecutor()
-    running.server.gui._thread_executor = held  # type: ignore[assignment]
-    running.server._connected_clients[7] = types.SimpleNamespace(add_notification=lambda *a, **k: None)  # type: ignore[index,assignment]
-    try:
-        _wait_for_pushes(con, 3)
+    with _console_with_held_pool(engine) as (running, held):
+        con = running.console
         assert con.cutoff.value == pytest.approx(2.0)
         _browser_sets(running, con.cutoff, 3.3)
         con._mirrored.pop("cutoff", None)  # what a refusal of the value before it does
@@ -292,8 +309,22 @@ def test_a_value_typed_as_a_refusal_puts_the_old_one_back_is_the_value_sent() ->
         assert engine.sent == [pytest.approx(3.3)]
         _wait_for_pushes(con, 5)
         assert engine.filter_cutoff_hz == pytest.approx(3.3) and con.cutoff.value == pytest.approx(3.3)
-    finally:
-        running.stop()
+
+
+def test_a_toggle_is_sent_in_the_order_it_came_without_waiting_for_a_worker_thread() -> None:
+    """The switches' callbacks run on viser's event loop as their messages arrive: with every
+    worker thread busy, "Automatic selection" on, then off, reaches the tracker at once and in
+    that order (from the pool, two quick toggles could also run in either order)."""
+    engine = _AutoEngine()
+    with _console_with_held_pool(engine) as (running, held):
+        con = running.console
+        _browser_sets(running, con.auto_checkbox, True)
+        _wait_for_pushes(con, 3)
+        assert engine.auto_enabled and running.pipeline.latest().auto_enabled
+        _browser_sets(running, con.auto_checkbox, False)
+        _wait_for_pushes(con, 3)
+        assert not engine.auto_enabled and con.auto_checkbox.value is False
+        assert not held.held  # nothing waited for the pool
 
 
 def test_a_refused_click_keeps_the_model_point_chosen_for_the_next_one() -> None:
