@@ -87,9 +87,10 @@ def _on_event_loop(callback: Callable[[Any], None]) -> Callable[[Any], Coroutine
     viser stores a browser's new value on the widget, then hands a plain callback to a thread
     pool: on a loaded machine it ran later, after a push had put the tracker's old value back
     on the widget, and read and sent that (a cutoff typed just as the previous one was refused
-    was lost). Run on the loop, the callback reads the value that arrived, and callbacks run in
-    the order their messages came. ``callback`` must only read widgets and enqueue (it runs on
-    the loop, which must never block).
+    was lost); and two clicks handed to the pool could reach the tracker the other way round.
+    Run on the loop, the callback reads the value that arrived, and callbacks run in the order
+    their messages came (viser's own advice for stateful gestures). ``callback`` must only read
+    widgets and the latest snapshot and enqueue: it runs on the loop, which must never block.
     """
 
     async def on_loop(event: Any) -> None:
@@ -444,9 +445,9 @@ class Console:
         self.operator_marks = _OperatorMarks(scene, "/left/operator_marks", self.patch_px)
         if self._image_size is not None:
             self.operator_marks.reserve(OPERATOR_MARKS_RESERVED, self._image_size, self.render_size)
-        self.left_image.on_click(self._on_click)
+        self.left_image.on_click(_on_event_loop(self._on_click))
         for modifier in ("shift", "cmd/ctrl", "alt"):
-            self.left_image.on_click(modifier=modifier)(self._on_remove_click)
+            self.left_image.on_click(modifier=modifier)(_on_event_loop(self._on_remove_click))
 
         root = scene.add_frame("/scene3d", show_axes=False, position=SCENE3D_OFFSET)
         self.scene3d = root

@@ -327,6 +327,44 @@ def test_a_toggle_is_sent_in_the_order_it_came_without_waiting_for_a_worker_thre
         assert not held.held  # nothing waited for the pool
 
 
+def _browser_clicks(running, uv, modifier=None) -> None:  # type: ignore[no-untyped-def]
+    """What viser does with a click on the left image at pixel ``uv``: its own message handler,
+    with a ray straight onto the image plane."""
+    import asyncio
+
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+    from viser._messages import SceneNodeClickMessage
+
+    from console.overlay import pixel_to_plane
+
+    con = running.console
+    R = Rotation.from_quat(np.asarray(con.left_image.wxyz, dtype=float), scalar_first=True).as_matrix()
+    x, y = pixel_to_plane([uv], con._image_size, con.render_size)[0]
+    origin = R @ np.array([x, y, -1.0]) + np.asarray(con.left_image.position, dtype=float)
+    message = SceneNodeClickMessage("/left", None, tuple(origin), tuple(R @ np.array([0.0, 0.0, 1.0])), (0.5, 0.5),
+                                    modifier)
+    scene = running.server.scene
+    asyncio.run_coroutine_threadsafe(scene._handle_node_click_updates(7, message), scene._event_loop).result(10)
+
+
+def test_a_click_and_a_remove_click_reach_the_tracker_in_the_order_they_came() -> None:
+    """Clicks on the image are handled on viser's event loop as they arrive (viser's own advice
+    for stateful gestures): from its thread pool, a click and a shift-click right after it
+    could reach the tracker the other way round, removing before adding."""
+    engine = RecordingEngine()
+    with _console_with_held_pool(engine) as (running, held):
+        running.server.scene._thread_executor = held  # type: ignore[assignment]
+        _browser_clicks(running, (3.0, 2.0))  # the test source's frames are 6 x 4 px
+        _browser_clicks(running, (3.0, 2.0), "shift")
+        deadline = time.monotonic() + 10
+        while sum(name in ("SelectPoint", "RemoveNearest") for name, _ in engine.commands) < 2:
+            assert time.monotonic() < deadline and not held.held, engine.commands
+            time.sleep(0.05)
+        assert [name for name, _ in engine.commands if name in ("SelectPoint", "RemoveNearest")] == [
+            "SelectPoint", "RemoveNearest"]
+
+
 def test_a_refused_click_keeps_the_model_point_chosen_for_the_next_one() -> None:
     """"Next click is" names the next target after a model point; a refused click (common on a
     turning body) must not use the choice up, or the retry makes an unnamed target."""
