@@ -228,6 +228,15 @@ def test_case_a_with_fewer_than_three_of_its_frame_points_says_so(estec_rig) -> 
     assert "model points" not in pose.reason
 
 
+def test_case_a_before_its_frame_says_what_it_waits_for(estec_rig) -> None:
+    # An outside reader took "0 points tracked for at least 12 frames yet" for a count of
+    # frames; the reason names what the frame waits for, then how many points have it so far.
+    engine, _, _ = make_engine(estec_rig, with_model=False, case="a")
+    _, pose, _ = engine.process(frame_at(0))
+    assert not pose.valid
+    assert pose.reason == "case (a): waiting for 3 points tracked for 12 frames to define the frame (0 so far)", pose.reason
+
+
 def test_three_points_with_a_gross_mismatch_give_no_pose(estec_rig) -> None:
     """With exactly 3 model points no outlier can be rejected; a gross mismatch (a corner
     matched 275 mm too deep) must make the pose invalid with the reason, never bend it."""

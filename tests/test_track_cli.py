@@ -572,7 +572,7 @@ def test_the_first_frame_is_summarised_as_the_frame_its_targets_start_on(tmp_pat
                  "--out", str(out)]) == 0
     summary = capsys.readouterr().out
     assert "target them by id" not in summary
-    assert "invalid in 1 frames: the first frame" in summary
+    assert "invalid in 1 frame: the first frame (the targets set on it are tracked from the next frame)" in summary
     reasons = yaml.safe_load((out / "run.yaml").read_text())["summary"]["invalid_reasons"]
     assert not any("target them by id" in r for r in reasons)
     # The 2 valid poses have no rates yet (states.csv valid 0): the line says so, not only "2 valid".

@@ -35,7 +35,7 @@ from trackmeter.errors import TrackmeterError
 
 
 #: The summary's reason for an invalid first frame (its targets start on it, tracked from the next).
-FIRST_FRAME_REASON = "the first frame (its pose was estimated before the targets set on it; they are tracked from the next)"
+FIRST_FRAME_REASON = "the first frame (the targets set on it are tracked from the next frame)"
 
 
 def _option_of(command: Any) -> str:
@@ -354,7 +354,7 @@ def run(args: argparse.Namespace) -> int:
                      if writer.rates_pending_frames else "")
                   + f", case ({case}) -> {args.out}")
             for reason, count in sorted(state["invalid"].items(), key=lambda kv: -kv[1])[:5]:
-                print(f"  invalid in {count} frames: {reason}")
+                print(f"  invalid in {count} frame{'s' if count != 1 else ''}: {reason}")
             never = _auto_never_started(engine.tracker) if args.auto else None
             if never:
                 print(f"trackmeter track: warning: {never}", file=sys.stderr)

@@ -701,7 +701,7 @@ class Engine:
         min_age = self.pose_params.frame_min_age_frames
         ids = [i for i, s in measured.items() if s.age_frames >= min_age]
         if len(ids) < 3:
-            return (f"case (a): {len(ids)} points tracked for at least {min_age} frames yet, 3 needed to define the frame"
+            return (f"case (a): waiting for 3 points tracked for {min_age} frames to define the frame ({len(ids)} so far)"
                     if min_age else f"case (a): {len(ids)} measured points, 3 needed to define the frame")
         P = np.array([measured[i].point_cam for i in ids])
         triple = choose_frame_points(P, self.pose_params.min_triangle_m)
