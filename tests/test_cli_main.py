@@ -174,3 +174,16 @@ def test_a_folder_where_a_file_is_expected_and_a_file_where_a_folder_is_are_name
     assert main(["track", "--source", f"seq:{a_file}", "--auto", "4", "--out", str(tmp_path / "run")]) == 2
     assert _error_line(capsys) == f"trackmeter track: error: {a_file}: a file, not a sequence folder"
     assert not (tmp_path / "run").exists()
+
+
+def test_the_console_stop_line_accounts_for_every_frame_read() -> None:
+    # An outside probe added the stop line's figures up: 20910 read, 19431 tracked, 1478
+    # dropped, one short. That one was read and waiting for the tracker when it stopped.
+    from trackmeter.cli.console import stop_line
+    from trackmeter.pipeline.snapshot import Timings
+
+    line = stop_line(Timings(frames_read=20910, frames_processed=19431, frames_dropped=1478))
+    assert line == ("trackmeter console: stopped after 20910 frames read, 19431 tracked, 1478 dropped, "
+                    "1 read but not yet tracked when it stopped")
+    assert stop_line(Timings(frames_read=1485, frames_processed=1485, frames_dropped=0)) == (
+        "trackmeter console: stopped after 1485 frames read, 1485 tracked, 0 dropped")

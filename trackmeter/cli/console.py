@@ -19,7 +19,18 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from trackmeter.pipeline.snapshot import Timings
+
+
+def stop_line(t: Timings) -> str:
+    """The console's last line: every frame read is tracked, dropped (the tracker was still busy
+    with an earlier one) or, at most one, read and waiting for the tracker when it stopped."""
+    waiting = t.frames_read - t.frames_processed - t.frames_dropped
+    return (f"trackmeter console: stopped after {t.frames_read} frames read, {t.frames_processed} tracked, "
+            f"{t.frames_dropped} dropped" + (f", {waiting} read but not yet tracked when it stopped" if waiting else ""))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -98,10 +109,9 @@ def _serve(args: argparse.Namespace, config: Any, priority_note: str | None = No
         print(f"trackmeter console: {priority_note}", file=sys.stderr, flush=True)
     print(f"TV-Trackmeter console: {running.url}   (Ctrl-C to stop)", flush=True)
     serve_forever(running)
-    t = running.pipeline.timings()  # the totals: the last snapshot may lag a frame read
     rec = running.pipeline.recording_stats()
-    print(f"trackmeter console: stopped after {t.frames_read} frames read, {t.frames_processed} tracked, "
-          f"{t.frames_dropped} dropped", file=sys.stderr)
+    # The totals: the last snapshot may lag a frame read.
+    print(stop_line(running.pipeline.timings()), file=sys.stderr)
     if rec.directory:
         print(f"trackmeter console: recorded {rec.frames_written} frames to {rec.directory}"
               + rec.not_recorded(), file=sys.stderr)
