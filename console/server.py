@@ -19,6 +19,7 @@ import numpy as np
 import viser
 
 from console.app import Console, pin_mmap_threshold
+from trackmeter.core.patch_tracking import warm_up
 from trackmeter.errors import TrackmeterError
 from trackmeter.pipeline.pipeline import Engine, Pipeline
 from trackmeter.sources.base import Source
@@ -100,6 +101,11 @@ def start_console(
         TrackmeterError: the port is taken; a recording folder that cannot be used.
     """
     pin_mmap_threshold()
+    # Compile the tracker's fits (about 15 s the first time after an install, then loaded from
+    # numba's cache) before the server listens: a page opened during the compile was starved,
+    # and viser's client drops an image still loading when the next arrives, so it stayed
+    # black; the pipeline's own warm-up then finds them compiled.
+    warm_up()
     server = start_server(host, port)
     pipeline = Pipeline(source, engine, drop_frames=True, record_dir=record_dir)
     try:

@@ -462,3 +462,20 @@ def test_signals_repeated_while_stopping_end_cleanly_with_the_recording_whole(tm
     assert recorded, err
     index = index_sequence(record)
     assert len(index.t_s) == int(recorded.group(1)) >= 10 and index.skipped == 0
+
+
+def test_the_fits_are_compiled_before_a_browser_can_connect(monkeypatch) -> None:
+    # The first console after an install compiled the fits for ~15 s with the server already
+    # listening; a page opened then (the README's first command) stayed black: viser's client
+    # cancels an image still loading when the next arrives, and the starved page never caught up.
+    import console.server as server_module
+
+    calls: list[str] = []
+    real_start_server = server_module.start_server
+    monkeypatch.setattr(server_module, "warm_up", lambda: calls.append("warm_up"), raising=False)
+    monkeypatch.setattr(server_module, "start_server", lambda *a, **k: (calls.append("listen"), real_start_server(*a, **k))[1])
+    running = start_console(CountingSource(100_000, delay_s=0.02), RecordingEngine(), port=free_port())  # type: ignore[arg-type]
+    try:
+        assert calls[:2] == ["warm_up", "listen"], calls
+    finally:
+        running.stop()
