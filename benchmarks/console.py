@@ -62,6 +62,7 @@ import numpy as np
 WARMUP_S = 10.0
 MEASURE_S = float(os.environ.get("TRACKMETER_BENCH_LIVE_S", "30"))
 N_CLICKS = 9
+CONNECT_S = 60.0  # how long the page may take to open its websocket
 CLICKS_MAX_S = 80.0  # the click phase's share of the 5-minute budget
 CLICK_SLACK_PX = 2.0  # a click candidate is accepted by the tracker on a ring this far around it too
 CLICK_INSIDE_PX = 15.0  # ... and lies at least this far inside the lit body (from black space)
@@ -409,7 +410,9 @@ def run() -> dict[str, float]:
             page.on("websocket", on_ws)
             before = set(running.server.get_clients())
             page.goto(running.url)
-            _poll(page, lambda: set(running.server.get_clients()) - before, 30)
+            if not _poll(page, lambda: set(running.server.get_clients()) - before, CONNECT_S):
+                # A browser starved of CPU may not open its websocket at all: say so, not StopIteration.
+                raise RuntimeError(f"the browser did not connect to the console within {CONNECT_S:.0f} s")
             client_id = next(iter(set(running.server.get_clients()) - before))
             client = running.server.get_clients()[client_id]
             _log(f"browser connected: warm-up {WARMUP_S:.0f} s, measure {MEASURE_S:.0f} s")
