@@ -41,9 +41,9 @@ competes for the cores as it is; N > 0 runs Chromium's processes at nice N, a st
 operator's browser on another machine, reported as ``browser_nice``), ``TRACKMETER_BENCH_CONSOLE_SOURCE`` (default ``sim``; ``plate`` replays one
 pre-rendered frame of a textured plate at 25 Hz, which takes the renderer's CPU out of the
 figures), ``TRACKMETER_BENCH_LIVE_S`` (default 30), ``TRACKMETER_BENCH_CPU_NICE`` (default: what
-``trackmeter console`` does, ``--cpu-nice``'s default: the process and its session's autogroup
-at nice -10, see :mod:`trackmeter.pipeline.priority`; 0 leaves the priority alone, a stand-in
-for an operator without the privilege). ``cpu_nice`` is the value asked for and
+``trackmeter console`` does, ``--cpu-nice``'s default, 0: the priority left alone; -10 runs the
+process and its session's autogroup at nice -10, see :mod:`trackmeter.pipeline.priority`, as in
+the README table's run). ``cpu_nice`` is the value asked for and
 ``cpu_priority_raised`` 1 when the system allowed it.
 """
 

@@ -46,12 +46,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "target binds to a model point by id: Model > Next click is, in the page)")
     parser.add_argument("--publish-hz", type=float, default=12.0, help="browser update rate, Hz (default 12)")
     parser.add_argument("--cpu-nice", type=int, default=DEFAULT_CPU_NICE, metavar="N",
-                        help=f"run tracking at this CPU priority, -20..19, ahead of a browser on the same machine "
-                             f"(default {DEFAULT_CPU_NICE}; needs root or CAP_SYS_NICE, else it says so and runs as is; "
-                             f"0: leave the priority alone)")
+                        help=f"run tracking at this CPU priority, -20..19 (default {DEFAULT_CPU_NICE}: leave it alone). "
+                             f"A negative N (e.g. -10) puts tracking ahead of other programs: for a tracking machine "
+                             f"whose browser is elsewhere; a browser on the same, busy machine may then not get the CPU "
+                             f"to load the page. Needs root or CAP_SYS_NICE, else it says so and runs as is")
 
 
-DEFAULT_CPU_NICE = -10
+#: 0: a raised priority starved a browser on the same two cores whenever the host was slow
+#: (docs/results.md, "Why the browser took a whole core, and --cpu-nice"); the operator asks for it.
+DEFAULT_CPU_NICE = 0
 
 
 def run(args: argparse.Namespace) -> int:

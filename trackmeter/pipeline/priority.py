@@ -8,6 +8,8 @@ CPUs equally. Chromium starts in a session of its own, so on two cores it gets o
 tracker's whole process (tracking, publishing, and the simulator's renderer) the other, whatever
 their ``nice``. Measured (``benchmarks/console.py``'s setup, ``sim`` source, one headless
 Chromium): 8-17 Hz tracking at equal priority, 25.0 Hz with the tracker's session at nice -10.
+The other side of it: on a slow host a browser beside a tracker at nice -10 may not get the CPU
+to open the page at all, so ``trackmeter console`` raises it only when asked (``--cpu-nice``).
 
 :func:`raise_cpu_priority` lowers the nice value of every thread of this process (threads
 started later inherit it from the thread that starts them) and of the session's autogroup; a
