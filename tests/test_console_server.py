@@ -50,10 +50,10 @@ def test_an_out_of_range_cpu_priority_is_a_clear_error(capsys: pytest.CaptureFix
 
 
 def test_the_cpu_priority_is_left_alone_unless_asked_for(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """A raised priority starves a browser on the same machine when the host is slow (a
-    headless Chromium at nice -10 beside it did not open its websocket within 60 s in 3 runs
-    of 4, docs/results.md), so raising it is the operator's choice (--cpu-nice N), not the
-    default."""
+    """A raised priority starves a browser on the same machine when the host is slow (the
+    console benchmark's Chromium, in the console's session, did not open its websocket within
+    60 s in 3 runs of 4 at nice -10; one in its own session took 3-19 s a screenshot,
+    docs/results.md), so raising it is the operator's choice (--cpu-nice N), not the default."""
     import trackmeter.pipeline.priority as priority
 
     asked: list[int] = []
