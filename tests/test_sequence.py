@@ -731,3 +731,20 @@ def test_a_video_ffmpeg_cannot_open_is_our_one_line_not_also_ffmpeg_s(tmp_path):
                            "--auto", "3", "--out", str(tmp_path / "run")], capture_output=True, text=True, env=env, timeout=120)
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines() == [f"trackmeter track: error: {cut}: OpenCV cannot open this video file"], proc.stderr
+
+
+def test_a_broken_optional_ground_truth_is_warned_and_left_out(tmp_path):
+    """groundtruth.* is optional: one that cannot be read stops nothing that does not need it
+    (as a folder's broken rig.yaml stops nothing given --rig); it is named, with its line."""
+    d = _write(tmp_path / "s", _frames(4))
+    (d / "groundtruth.csv").write_text("x,y\n")
+    with pytest.warns(UserWarning, match=r"groundtruth\.csv:1: not a motion CSV.*; ground truth not used"):
+        src = SequenceSource(d)
+    f = src.read()
+    assert f is not None and f.truth is None
+    (d / "groundtruth.csv").unlink()
+    tum = (d / "groundtruth.tum").read_text().splitlines()
+    (d / "groundtruth.tum").write_text("\n".join(tum[:2] + ["0.2 1 2"] + tum[2:]) + "\n")
+    with pytest.warns(UserWarning, match=r"groundtruth\.tum:\d+: .*; ground truth not used"):
+        assert SequenceSource(d).read().truth is None
+

@@ -463,9 +463,10 @@ def index_sequence(
             the user gives another (``--rig``, ``--model``): a broken file there then stops nothing.
 
     Raises:
-        TrackmeterError: not a sequence folder, unreadable CSV or rig/model/truth file, or no
+        TrackmeterError: not a sequence folder, unreadable CSV or rig/model file, or no
             stereo pair at all. Missing images and unpaired timestamps are not errors: they
-            are skipped, counted in ``skipped`` and described in ``warnings``.
+            are skipped, counted in ``skipped`` and described in ``warnings``; nor is a
+            ground-truth file that cannot be read (``truth`` None, the reason in ``warnings``).
     """
     root = find_sequence_root(directory)
     (left, bad_l, miss_l), (right, bad_r, miss_r) = (_read_data_csv(root / cam / "data.csv") for cam in CAMERAS)
@@ -506,7 +507,13 @@ def index_sequence(
             warnings.append(problem)
     model_file = find_sequence_file(directory, "model.yaml") if read_model else None
     model = load_model(model_file) if model_file is not None else None
-    truth = _read_truth(find_sequence_file(directory, "groundtruth.csv", "groundtruth.tum"), t_s, tolerance_s)
+    try:
+        truth = _read_truth(find_sequence_file(directory, "groundtruth.csv", "groundtruth.tum"), t_s, tolerance_s)
+    except TrackmeterError as exc:
+        # Optional, and most runs (tracking a real sequence) do not need it: told, not fatal,
+        # as a broken rig.yaml is not when another rig is given.
+        truth = None
+        warnings.append(f"{exc}; ground truth not used")
     return SequenceIndex(
         root=root,
         t_s=t_s,
