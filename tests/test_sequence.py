@@ -748,3 +748,35 @@ def test_a_broken_optional_ground_truth_is_warned_and_left_out(tmp_path):
     with pytest.warns(UserWarning, match=r"groundtruth\.tum:\d+: .*; ground truth not used"):
         assert SequenceSource(d).read().truth is None
 
+
+def test_a_home_folder_in_a_spec_is_expanded(tmp_path, monkeypatch):
+    """The shell does not expand '~' after 'seq:' or 'video:'; the source does."""
+    monkeypatch.setenv("HOME", str(tmp_path))
+    _write(tmp_path / "s", _frames(3))
+    assert len(open_source("seq:~/s")) == 3
+    assert len(open_source("~/s")) == 3
+    with pytest.raises(TrackmeterError, match=rf"{tmp_path}/a\.avi: no such video file"):
+        open_source("video:~/a.avi,~/b.avi")
+
+
+def _video(path: Path, n: int, fps: float = 10.0) -> Path:
+    img = np.random.default_rng(4).integers(0, 256, (48, 64), dtype=np.uint8)
+    vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (64, 48), isColor=True)
+    if not vw.isOpened():
+        pytest.skip("this OpenCV build cannot write MJPG")
+    for _ in range(n):
+        vw.write(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
+    vw.release()
+    return path
+
+
+def test_a_video_pair_that_cannot_be_a_stereo_pair_is_told(tmp_path):
+    left = _video(tmp_path / "left.avi", 3)
+    with pytest.raises(TrackmeterError, match=r"video: LEFT and RIGHT are the same file"):
+        open_source(f"video:{left},{left}")
+    (tmp_path / "folder").mkdir()
+    with pytest.raises(TrackmeterError, match=r"folder: a folder, not a video file"):
+        open_source(f"video:{left},{tmp_path / 'folder'}")
+    slow = _video(tmp_path / "slow.avi", 3, fps=5.0)
+    with pytest.warns(UserWarning, match=r"frame rates differ \(left\.avi: 10 Hz, slow\.avi: 5 Hz\)"):
+        open_source(f"video:{left},{slow}").close()

@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import os
 import warnings
 from pathlib import Path
 
@@ -52,6 +53,8 @@ def open_source(spec: str, rig_override: StereoRig | None = None, realtime: bool
     if not text:
         raise TrackmeterError("empty source SPEC (expected sim, sim:SCENARIO, seq:DIR, video:LEFT,RIGHT, camera:I[,J])")
     kind, _, arg = text.partition(":")
+    # The shell expands a leading '~' only at the start of a word, not after "seq:".
+    arg = ",".join(os.path.expanduser(part.strip()) for part in arg.split(",")) if kind == "video" else os.path.expanduser(arg)
     # A folder named after a kind ("sim", "seq", ...) is still that kind: say how to play it.
     folder_hint = f" (the folder {text!r} here: give ./{text})" if kind == text and Path(text).is_dir() else ""
     if kind == "sim":
@@ -88,8 +91,8 @@ def open_source(spec: str, rig_override: StereoRig | None = None, realtime: bool
 
         return CameraSource(devices, rig=rig_override)
     # A bare folder (DESIGN.md: "seq:DIR or a bare DIR"). Windows drive letters never reach here.
-    if Path(text).is_dir():
-        return _open_sequence(text, rig_override, realtime, loop, own_rig, own_model)
+    if Path(os.path.expanduser(text)).is_dir():
+        return _open_sequence(os.path.expanduser(text), rig_override, realtime, loop, own_rig, own_model)
     raise TrackmeterError(
         f"unknown source {spec!r}: expected sim, sim:SCENARIO, seq:DIR, an existing folder, video:LEFT,RIGHT, camera:I[,J]"
     )

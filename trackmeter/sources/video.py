@@ -38,34 +38,46 @@ class VideoSource(Source):
     """Stereo frames from two video files.
 
     Args:
-        left, right: video files OpenCV can decode (same frame count and size).
+        left, right: video files OpenCV can decode (same frame count, frame rate and size:
+            frames pair by position; other counts or rates are warned about).
         rig: the rig of the cameras that recorded them (videos carry none).
         realtime: play at the file's frame rate; else as fast as decoded.
         loop: start again at the end (timestamps keep increasing).
 
     Raises:
-        TrackmeterError: a file that is missing or that OpenCV cannot open.
+        TrackmeterError: a file that is missing, a folder, the same file twice, or one that
+            OpenCV cannot open.
     """
 
     def __init__(self, left: str | Path, right: str | Path, rig: StereoRig | None = None,
                  realtime: bool = False, loop: bool = False) -> None:
         self.paths = (Path(left), Path(right))
         for p in self.paths:
+            if p.is_dir():
+                raise TrackmeterError(f"{p}: a folder, not a video file (a sequence folder plays as seq:DIR)")
             if not p.is_file():
                 raise TrackmeterError(f"{p}: no such video file")
+        if self.paths[0].resolve() == self.paths[1].resolve():
+            raise TrackmeterError(f"video: LEFT and RIGHT are the same file ({self.paths[0]}): a stereo pair needs both cameras' videos")
         self.rig = rig
         self.realtime = realtime
         self.loop = loop
         self._caps = [self._open(p) for p in self.paths]
-        fps = float(self._caps[0].get(cv2.CAP_PROP_FPS) or 0.0)
-        self.rate_hz = fps if fps > 0 else None
+        rates = [float(cap.get(cv2.CAP_PROP_FPS) or 0.0) for cap in self._caps]
+        self.rate_hz = rates[0] if rates[0] > 0 else None
         counts = [int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0) for cap in self._caps]
-        #: One line on what does not match between the files (None when nothing found).
-        self.warning: str | None = None
+        problems = []
+        # Frames pair by position: files at other rates pair frames of other times.
+        if min(rates) > 0 and abs(rates[0] - rates[1]) > 1e-3 * max(rates):
+            problems.append(f"the frame rates differ ({self.paths[0].name}: {rates[0]:.4g} Hz, "
+                            f"{self.paths[1].name}: {rates[1]:.4g} Hz): frames pair by position, not by time")
         if min(counts) > 0 and counts[0] != counts[1]:
-            # Frames pair by position, so the longer file's tail is never played.
-            self.warning = (f"the videos differ in length ({self.paths[0].name}: {counts[0]} frames, "
+            # The longer file's tail is never played.
+            problems.append(f"the videos differ in length ({self.paths[0].name}: {counts[0]} frames, "
                             f"{self.paths[1].name}: {counts[1]}): the stream ends with the shorter")
+        #: One line on what does not match between the files (None when nothing found).
+        self.warning: str | None = "; ".join(problems) or None
+        if self.warning:
             warnings.warn(self.warning, stacklevel=2)
         self._pacer = Pacer()
         self._count = 0
