@@ -780,3 +780,16 @@ def test_a_video_pair_that_cannot_be_a_stereo_pair_is_told(tmp_path):
     slow = _video(tmp_path / "slow.avi", 3, fps=5.0)
     with pytest.warns(UserWarning, match=r"frame rates differ \(left\.avi: 10 Hz, slow\.avi: 5 Hz\)"):
         open_source(f"video:{left},{slow}").close()
+
+
+def test_a_data_csv_whose_images_are_all_missing_names_the_path_it_looked_for(tmp_path):
+    """A filename column written relative to the camera folder ('data/<ns>.png') is looked for
+    one folder too deep: the message shows where, so the cause is plain."""
+    d = _write(tmp_path / "s", _frames(3))
+    for cam in ("cam0", "cam1"):
+        csv = d / cam / "data.csv"
+        lines = csv.read_text().splitlines()
+        csv.write_text("\n".join([lines[0]] + [row.replace(",", ",data/") for row in lines[1:]]) + "\n")
+    with pytest.raises(TrackmeterError, match=r"none of the 3 image\(s\) it lists exists "
+                                              rf"\(the first looked for: {d}/cam0/data/data/\d+\.png\)"):
+        SequenceSource(d)

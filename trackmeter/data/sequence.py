@@ -359,8 +359,9 @@ def find_sequence_file(directory: str | Path, *names: str) -> Path | None:
 MAX_PLAUSIBLE_RATE_HZ = 2000.0
 
 
-def _read_data_csv(path: Path) -> tuple[list[tuple[int, Path]], int, int]:
-    """Rows ``(ns, image path)`` of one camera's data.csv, plus counts of bad rows and missing files.
+def _read_data_csv(path: Path) -> tuple[list[tuple[int, Path]], int, int, Path | None]:
+    """Rows ``(ns, image path)`` of one camera's data.csv, counts of bad rows and missing files,
+    and the first missing file's path (None when none is missing).
 
     A row is ``timestamp_ns,filename``; columns after those two (other tools' extras) are
     ignored. A file with rows but none usable is refused, quoting its first row.
@@ -368,6 +369,7 @@ def _read_data_csv(path: Path) -> tuple[list[tuple[int, Path]], int, int]:
     entries: list[tuple[int, Path]] = []
     bad = missing = 0
     first_bad: str | None = None
+    first_missing: Path | None = None
     try:
         # A BOM from a spreadsheet is not a timestamp; a stray byte spoils its row, not the file.
         text = path.read_text(encoding="utf-8-sig", errors="replace")
@@ -401,13 +403,14 @@ def _read_data_csv(path: Path) -> tuple[list[tuple[int, Path]], int, int]:
         image = path.parent / "data" / parts[1]
         if not image.is_file():
             missing += 1
+            first_missing = first_missing or image
             continue
         entries.append((ns, image))
     if first_bad is not None and not entries and not missing:
         raise TrackmeterError(f"{path}: no usable row: expected 'timestamp_ns,filename' with an integer "
                               f"timestamp in nanoseconds, got {first_bad[:80]!r}")
     entries.sort(key=lambda e: e[0])
-    return entries, bad, missing
+    return entries, bad, missing, first_missing
 
 
 def pair_by_nearest(t_left: ArrayLike, t_right: ArrayLike, tolerance: float) -> list[tuple[int, int]]:
@@ -469,16 +472,17 @@ def index_sequence(
             ground-truth file that cannot be read (``truth`` None, the reason in ``warnings``).
     """
     root = find_sequence_root(directory)
-    (left, bad_l, miss_l), (right, bad_r, miss_r) = (_read_data_csv(root / cam / "data.csv") for cam in CAMERAS)
+    (left, bad_l, miss_l, gone_l), (right, bad_r, miss_r, gone_r) = (_read_data_csv(root / cam / "data.csv") for cam in CAMERAS)
     t_left = np.array([e[0] for e in left], dtype=np.int64)
     t_right = np.array([e[0] for e in right], dtype=np.int64)
     if tolerance_s is None:
         tolerance_s = 0.25 * float(ns_to_seconds(np.median(np.diff(t_left)))) if len(t_left) > 1 else 1e-3
-    for cam, entries, missing in (("cam0", left, miss_l), ("cam1", right, miss_r)):
+    for cam, entries, missing, gone in (("cam0", left, miss_l, gone_l), ("cam1", right, miss_r, gone_r)):
         if not entries:
             path = root / cam / "data.csv"
-            raise TrackmeterError(f"{path}: none of the {missing} image(s) it lists exists" if missing
-                                  else f"{path}: lists no image")
+            # The path looked for shows a filename column written relative to another folder.
+            raise TrackmeterError(f"{path}: none of the {missing} image(s) it lists exists (the first looked for: {gone})"
+                                  if missing else f"{path}: lists no image")
     pairs = pair_by_nearest(ns_to_seconds(t_left), ns_to_seconds(t_right), tolerance_s)
     unpaired = (len(left) - len(pairs)) + (len(right) - len(pairs))
     warnings: list[str] = []
