@@ -428,6 +428,21 @@ def test_an_opencv_pair_rig_takes_the_size_of_the_source_frames(opencv_sample_ri
     meta = yaml.safe_load((out / "run.yaml").read_text())
     assert meta["status"] == "complete" and meta["summary"]["frames"] == 3
     assert len(read_motion_csv(out / "states.csv")) == 3
+    # run.yaml names the rig file as given (it said "intrinsics", the file's stem)
+    assert meta["source"]["rig"] == str(opencv_sample_rig / "intrinsics.yml")
+
+
+def test_run_yaml_says_the_rig_came_with_the_source(opencv_sample_rig, opencv_sample_sequence, tmp_path, capsys) -> None:
+    import shutil
+
+    folder = tmp_path / "seq"
+    shutil.copytree(opencv_sample_sequence, folder)
+    for name in ("intrinsics.yml", "extrinsics.yml"):
+        shutil.copy(opencv_sample_rig / name, folder / name)
+    out = tmp_path / "run"
+    code = main(["track", "--source", f"seq:{folder}", "--auto", "4", "--out", str(out)])
+    assert code == 0, capsys.readouterr().err
+    assert yaml.safe_load((out / "run.yaml").read_text())["source"]["rig"] == "the source's (seq)"  # its name
 
 
 def test_an_image_unreadable_mid_sequence_is_reported_at_the_end_and_in_run_yaml(opencv_sample_rig, opencv_sample_sequence,

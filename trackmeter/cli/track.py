@@ -205,7 +205,7 @@ def run(args: argparse.Namespace) -> int:
         feed = _Limited(source, args.max_frames) if args.max_frames else source
         source_info = {
             "spec": args.source,
-            "rig": rig.name or (args.rig or "source"),
+            "rig": args.rig or (f"the source's ({rig.name})" if rig.name else "the source's"),
             "rate_hz": source.rate_hz,
             "model": model_label if case == "b" else None,  # the model used, None when none was
             "model_available": model_label,  # given or carried, used or not
