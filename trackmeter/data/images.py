@@ -68,11 +68,25 @@ def decode_image(path: str | Path) -> NDArray[np.generic]:
         data = np.fromfile(str(path), dtype=np.uint8)
     except OSError as exc:
         raise TrackmeterError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    if _png_cut_short(data):
+        # libpng prints its own "libpng error: ..." line for this on stderr, whatever OpenCV's
+        # logging level: told here without decoding.
+        raise TrackmeterError(f"{path}: not an image file OpenCV can decode (a PNG file cut short)")
     with _opencv_quiet():
         image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if image is None:
         raise TrackmeterError(f"{path}: not an image file OpenCV can decode")
     return image
+
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def _png_cut_short(data: NDArray[np.uint8]) -> bool:
+    """True for a PNG file (by its signature) without its closing IEND chunk anywhere: cut
+    short. Bytes after the IEND chunk (some writers leave them) do not count against it."""
+    head = data[: len(_PNG_SIGNATURE)].tobytes()
+    return head == _PNG_SIGNATURE and data.tobytes().rfind(b"IEND") < 0
 
 
 #: The sample depths 16-bit files are told apart by (:func:`data_bits`).
