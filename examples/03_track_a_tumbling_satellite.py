@@ -1,11 +1,13 @@
 """03 · Track a tumbling satellite and estimate its motion (paper sections 2.B-2.E).
 
 The tracking thread's whole per-frame logic, called in a plain loop: the first 5 s of the
-simulated ESTEC approach, 16 automatic targets (Gabor features, stereo-checked), pose case
-(a) (no model: the body frame from three tracked points), velocities by the paper's eq. 14
-and the output filter. Every second it prints the pose, the velocities and their errors
-against the simulator's ground truth (case a's frame is its own, so the errors are taken after
-an online body alignment, as ``trackmeter evaluate --align body`` does).
+simulated ESTEC trial (the ``estec`` scenario, the mock-up tumbling at 3.5 m), 16 automatic
+targets (Gabor features, stereo-checked), pose case (a) (no model: the body frame from three
+tracked points), velocities by a screw fit (paper section 2.E) and the output filter. Every
+second it prints the body origin's position (m), its speed |v| (mm/s) and the angular speed
+|omega| (deg/s) once the rates are known, and the position and attitude errors against the
+simulator's ground truth (case a's frame is its own, so the errors are taken after an online
+body alignment, as ``trackmeter evaluate --align body`` does).
 
 The same engine runs in the pipeline's tracking thread under ``trackmeter track`` and
 ``trackmeter console``.

@@ -1,7 +1,7 @@
 """04 · Record a stereo stream, track it headless, evaluate against ground truth.
 
 What ``trackmeter simulate``, ``trackmeter track`` and ``trackmeter evaluate`` do, through the
-library: 3 s of the simulated approach are written to a sequence folder (EuRoC layout, with
+library: 3 s of the simulated ESTEC trial are written to a sequence folder (EuRoC layout, with
 its rig and ground truth), played back through the pipeline's two threads (acquisition and
 tracking, no frame dropped off-line) with 16 automatic targets, and the estimated motion is
 compared with the truth after a 2 s settling time, aligning the case-(a) body frame first.
@@ -33,7 +33,7 @@ SECONDS = 3.0
 
 def main() -> None:
     with tempfile.TemporaryDirectory(prefix="trackmeter-example-") as tmp:  # removed at the end
-        record_replay_evaluate(Path(tmp) / "approach")
+        record_replay_evaluate(Path(tmp) / "estec")
 
 
 def record_replay_evaluate(folder: Path) -> None:

@@ -17,7 +17,10 @@ Model cases (paper section 2.C):
 
 Examples:
   trackmeter track --source sim --auto 16 --out runs/estec_a
-  trackmeter track --source seq:runs/seq1 --case b --target bus_pxpypz=312.5,201.0 ... --auto 16 --out runs/b
+  trackmeter track --source sim --target bus_pxmypz=329.5,159.8 bus_mxpymz=385.1,348.6 \\
+      bus_mxmypz=211.9,87.7 bus_mxmymz=175.4,358.3 wing_north_c3=571.9,233.7 --auto 16 --out runs/b
+    (five of the mock-up's corners where estec's first frame shows them: case (b) needs three
+    measured at once, and a corner's patch is often lost as the faces around it turn)
   trackmeter track --source sim --case b --select-model-points --auto 16 --out runs/estec_b
 """
 
@@ -162,7 +165,7 @@ def run(args: argparse.Namespace) -> int:
         if rig is None:
             raise TrackmeterError(f"source {args.source!r} carries no stereo rig: give --rig")
         if model is None and args.case in (None, "b"):
-            model = getattr(source, "model", None)
+            model = source.model
         model_label = args.model or ("source" if model is not None else None)
         binds = any(i for i, _ in targets) or args.select_model_points
         # Case (b) needs targets bound to model point ids: without one its pose could never be
