@@ -60,7 +60,7 @@ def make_engine(source: Any, case: str = "a", live_errors: bool = True) -> Any:
     from trackmeter.data.config import load_config
     from trackmeter.pipeline.engine import Engine
 
-    return Engine(load_config(), source.rig, model=getattr(source, "model", None), case=case,  # type: ignore[arg-type]
+    return Engine(load_config(), source.rig, model=source.model, case=case,  # type: ignore[arg-type]
                   rate_hz=source.rate_hz, live_errors=live_errors)
 
 

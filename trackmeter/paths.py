@@ -1,4 +1,4 @@
-"""Where the project's own resources live (``config/``, ``static/``).
+"""Where the project's own resources live (``config/``).
 
 ``config/`` sits at the top of the repository (DESIGN.md names ``config/default.yaml``). A
 checkout or an editable install reads it there, so an edit takes effect at once; a wheel
@@ -26,7 +26,6 @@ def _config_dir() -> Path:
 
 
 CONFIG_DIR = _config_dir()
-STATIC_DIR = PROJECT_ROOT / "static"
 DEFAULT_CONFIG = CONFIG_DIR / "default.yaml"
 RIGS_DIR = CONFIG_DIR / "rigs"
 SCENARIOS_DIR = CONFIG_DIR / "scenarios"

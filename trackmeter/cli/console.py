@@ -101,7 +101,7 @@ def _serve(args: argparse.Namespace, config: Any, priority_note: str | None = No
     try:
         if source.rig is None:
             raise TrackmeterError(f"source {args.source} carries no stereo rig: give one with --rig")
-        engine = Engine(config, source.rig, model=getattr(source, "model", None), case=args.case,
+        engine = Engine(config, source.rig, model=source.model, case=args.case,
                         rate_hz=source.rate_hz)
         running = start_console(source, engine, host=args.host, port=args.port, record_dir=args.record,
                                 source_label=args.source, publish_hz=args.publish_hz)

@@ -765,7 +765,7 @@ class Pipeline:
     def _model_in_use(self) -> Any | None:
         """The engine's a-priori model, else the one the source carries (None without)."""
         model = getattr(self.engine, "model", None)
-        return model if model is not None else getattr(self.source, "model", None)
+        return model if model is not None else self.source.model
 
     # ------------------------------------------------------------------ headless runs
     def run_until_end(self, timeout_s: float | None = None) -> Snapshot:

@@ -9,11 +9,15 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
 from trackmeter.core.stereo import StereoRig
+
+if TYPE_CHECKING:
+    from trackmeter.data.model import Model
 
 
 @dataclass(frozen=True, eq=False)
@@ -60,10 +64,14 @@ class Source(ABC):
         rig: the stereo rig of the images when the source carries one (simulator scenario,
             a sequence's ``rig.yaml``), else None. A command given ``--rig`` replaces it.
         rate_hz: nominal frame rate, Hz, or None when unknown.
+        model: the body model the source carries (a scenario's mock-up points, a sequence
+            folder's ``model.yaml``), else None: case (b)'s a-priori model unless a command is
+            given ``--model``.
     """
 
     rig: StereoRig | None = None
     rate_hz: float | None = None
+    model: Model | None = None
     # Set by a source whose next frame follows a restart() or starts a new pass of a loop.
     _cut: bool = False
 
