@@ -636,3 +636,30 @@ def test_auto_that_never_starts_a_target_says_why(monkeypatch, tmp_path, estec_r
             "(black space, no texture, or no unique stereo match) (") in err, err
     meta = yaml.safe_load((tmp_path / "run" / "run.yaml").read_text())
     assert meta["summary"]["tracker"]["auto_added"] == 0
+
+
+def test_a_countdown_is_one_reason_in_the_summary(tmp_path, capsys, monkeypatch) -> None:
+    """Case (c)'s "hold still (1.9 s left)" was counted as a reason of its own at every tenth of
+    a second (23 entries in run.yaml; the five printed covered 16 of 56 invalid frames)."""
+    from trackmeter.cli.track import summary_reason
+
+    assert summary_reason("acquiring a model: hold still (1.9 s left)") == \
+        summary_reason("acquiring a model: hold still (0.1 s left)") == "acquiring a model: hold still (counting down)"
+    assert summary_reason("case (b): binding the model: 2 of its points located") == \
+        "case (b): binding the model: 2 of its points located"
+    import trackmeter.cli.track as track_cli
+
+    monkeypatch.setattr(track_cli, "SUMMARY_REASONS", 1)  # the reasons not printed are counted
+    out = tmp_path / "run"
+    code = main(["track", "--source", "sim:hold_release", "--case", "c", "--auto", "16", "--max-frames", "40",
+                 "--out", str(out)])
+    printed = capsys.readouterr().out
+    assert code == 0
+    reasons = yaml.safe_load((out / "run.yaml").read_text())["summary"]["invalid_reasons"]
+    countdowns = [r for r in reasons if "hold still" in r]
+    assert countdowns == ["acquiring a model: hold still (counting down)"], reasons
+    assert reasons[countdowns[0]] >= 20
+    assert "s left" not in printed
+    others = len(reasons) - 1
+    rest = sum(sorted(reasons.values())[:-1])
+    assert others >= 1 and f"invalid in {rest} more frame{'s' if rest != 1 else ''} for {others} other reason(s)" in printed, printed

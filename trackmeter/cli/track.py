@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
+import re
 import sys
 import time
 from typing import Any, Callable, Iterator
@@ -39,6 +40,17 @@ from trackmeter.errors import TrackmeterError
 
 #: The summary's reason for an invalid first frame (its targets start on it, tracked from the next).
 FIRST_FRAME_REASON = "the first frame (the targets set on it are tracked from the next frame)"
+
+#: How many invalid-pose reasons the closing summary prints (run.yaml keeps them all).
+SUMMARY_REASONS = 5
+
+_COUNTDOWN = re.compile(r"\(\d+(?:\.\d+)? s left\)")
+
+
+def summary_reason(reason: str) -> str:
+    """``reason`` as the run's summary counts it: a countdown ("hold still (1.9 s left)", case
+    (c)'s acquisition) is one reason whatever its seconds, not one per tenth of a second."""
+    return _COUNTDOWN.sub("(counting down)", reason)
 
 
 def _option_of(command: Any) -> str:
@@ -232,7 +244,7 @@ def run(args: argparse.Namespace) -> int:
             if not snap.pose.valid:
                 # The first frame's pose was estimated before the commands (--target, --auto,
                 # --select-model-points) acted on it: its reason would ask for what they did next.
-                reason = FIRST_FRAME_REASON if first else (snap.pose.reason or "?")
+                reason = FIRST_FRAME_REASON if first else summary_reason(snap.pose.reason or "?")
                 state["invalid"][reason] = state["invalid"].get(reason, 0) + 1
 
         def on_snapshot(snap: Snapshot) -> bool:
@@ -356,8 +368,13 @@ def run(args: argparse.Namespace) -> int:
                   + (f", {writer.rates_pending_frames} of them before the rates were known (states.csv valid 0)"
                      if writer.rates_pending_frames else "")
                   + f", case ({case}) -> {args.out}")
-            for reason, count in sorted(state["invalid"].items(), key=lambda kv: -kv[1])[:5]:
+            ranked = sorted(state["invalid"].items(), key=lambda kv: -kv[1])
+            for reason, count in ranked[:SUMMARY_REASONS]:
                 print(f"  invalid in {count} frame{'s' if count != 1 else ''}: {reason}")
+            if len(ranked) > SUMMARY_REASONS:
+                rest = sum(count for _, count in ranked[SUMMARY_REASONS:])
+                print(f"  invalid in {rest} more frame{'s' if rest != 1 else ''} for {len(ranked) - SUMMARY_REASONS} "
+                      "other reason(s): run.yaml lists them all")
             never = _auto_never_started(engine.tracker) if args.auto else None
             if never:
                 print(f"trackmeter track: warning: {never}", file=sys.stderr)
