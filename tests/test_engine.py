@@ -659,6 +659,24 @@ def test_case_b_waiting_for_an_untargeted_model_says_what_the_operator_must_do(e
     assert "binding the model" in out[-1][1].reason and "none is a target" not in out[-1][1].reason
 
 
+def test_case_b_waiting_on_a_lost_model_target_says_to_target_more_points(estec_rig) -> None:
+    """Case (b) with three model points targeted and one lost before it was located (an
+    outside probe's run: a corner lost on the second frame, 0 valid poses in 125 frames and
+    only "2 of its points located ... (3 needed)"): the reason names the lost one and says
+    what would help."""
+    pts = body_points(14)
+    model = Model(("A0", "A1", "A2", "A3"), pts[:4])
+    tracker = FakeTracker(estec_rig, pts, ["A0", "A1", "A2", "A3"] + [f"g{i}" for i in range(10)], noise=False)
+    del tracker.active["A3"]
+    tracker.force_lost = {"A2"}
+    engine = Engine(load_config(), estec_rig, model, "b", tracker=tracker, rate_hz=1 / DT)
+    out = run(engine, range(30))
+    assert not any(pose.valid for _, pose, _ in out)
+    reason = out[-1][1].reason
+    assert "binding the model: 2 of its points located" in reason
+    assert "A2 is lost before it was located: target more of its points" in reason, reason
+
+
 @pytest.mark.parametrize("progressive", [True, False])
 def test_case_b_binds_a_model_whose_points_are_seen_two_then_one_at_a_time(estec_rig, progressive: bool) -> None:
     """pose.bind_progressively: never three a-priori points at once (A0 and A1 for 1.6 s, then

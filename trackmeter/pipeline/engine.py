@@ -634,6 +634,14 @@ class Engine:
             # The operator's next step, which the count alone does not say: nothing binds a model
             # whose points nobody has targeted.
             reason += "; none is a target yet: target them by id"
+        elif len(located) < need:
+            # A model point's target lost before the provisional frame located it (a corner's
+            # patch often is, as the faces around it turn) counts for nothing: say which, and
+            # what would help, since waiting alone may never bind the model.
+            gone = sorted(t.id for t in out_targets if t.id in inner._keep_ids and not t.measured and t.id not in located)
+            if gone:
+                reason += (f"; {', '.join(gone)} {'is' if len(gone) == 1 else 'are'} lost before "
+                           f"{'it was' if len(gone) == 1 else 'they were'} located: target more of its points")
         if len(located) >= need:
             refused = self._bind(inner, located)
             reason = refused if refused is not None else f"case (b): model bound through {len(located)} of its points"
