@@ -57,7 +57,13 @@ def test_analyze_static_ranges_recovers_the_parabola(tmp_path, capsys):
     assert s["density_normalised"]["sigma"] == pytest.approx(1.0, abs=0.1)
     for name in ("analysis.json", "ranges.csv", "sigma_vs_range.png", "error_density.png", "report.md"):
         assert (out / name).stat().st_size > 100
-    assert "0.07 px" in (out / "report.md").read_text()
+    report = (out / "report.md").read_text()
+    assert "0.07 px" in report
+    # Each row names the range as the skipped ones are named (the target origin's true range),
+    # beside the measured depth of its points (the table showed only the latter).
+    rows = report[report.index("origin [m]"):].splitlines()[1:4]
+    assert [float(row.split()[0]) for row in rows] == [2.5, 3.5, 5.0]
+    assert [float(row.split()[1]) for row in rows] == pytest.approx([r["range_m"] for r in ranges], abs=1e-3)
 
 
 def test_analyze_bad_source_is_one_line(tmp_path, capsys):

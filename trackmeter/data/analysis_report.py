@@ -30,7 +30,7 @@ PAPER_SIGMA_DISPARITY_PX = 0.07
 def format_analysis(summary: dict) -> str:
     """Human-readable summary (mm, px)."""
     lines = [
-        f"{'range [m]':>10}{'points':>8}{'samples':>9}{'sx [mm]':>10}{'sy [mm]':>10}{'sz [mm]':>10}"
+        f"{'origin [m]':>10}{'range [m]':>10}{'points':>8}{'samples':>9}{'sx [mm]':>10}{'sy [mm]':>10}{'sz [mm]':>10}"
         f"{'pred sz [mm]':>14}{'sd [px]':>9}{'true rms z [mm]':>17}{'bias z [mm]':>13}{'gross':>7}"
     ]
     for r in summary["ranges"]:
@@ -40,13 +40,16 @@ def format_analysis(summary: dict) -> str:
             f"{te['rms_m']['z'] * 1e3:>17.3f}{te['bias_rms_m']['z'] * 1e3:>13.3f}{te['n_gross']:>4d}/{te['n_points']:<3d}"
             if te else f"{'-':>17}{'-':>13}{'-':>7}"
         )
+        origin = r.get("true_range_m", float("nan"))
         lines.append(
-            f"{r['range_m']:>10.3f}{r['n_points']:>8d}{r['n_samples']:>9d}{s['x'] * 1e3:>10.3f}"
+            (f"{origin:>10.3f}" if origin == origin else f"{'-':>10}")
+            + f"{r['range_m']:>10.3f}{r['n_points']:>8d}{r['n_samples']:>9d}{s['x'] * 1e3:>10.3f}"
             f"{s['y'] * 1e3:>10.3f}{s['z'] * 1e3:>10.3f}{p['z'] * 1e3:>14.3f}{r['sigma_disparity_px']:>9.4f}" + truth
         )
     lines.append(
-        "(sigma: repeated-measurement standard deviation; pred: error propagation with the matcher's sigma_d; "
-        "sd: eq. 2 at that range;\n true rms/bias: against the simulator's surface points, gross mismatches (gross/points) left out)"
+        "(origin: the target origin's true range, as the skipped ranges are named, '-' without ground truth; "
+        "range: the mean measured depth of the range's points;\n sigma: repeated-measurement standard deviation; "
+        "pred: error propagation with the matcher's sigma_d; sd: eq. 2 at that range;\n true rms/bias: against the simulator's surface points, gross mismatches (gross/points) left out)"
     )
     fz = summary["fit"]["z"]
     lines.append(
