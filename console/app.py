@@ -553,7 +553,7 @@ class Console:
             self.auto_count = gui.add_slider("Count", min=1, max=most, step=1, initial_value=min(16, most))
             self.auto_method = gui.add_dropdown("Method", AUTO_METHODS, initial_value="gabor")
             self.clear_button = gui.add_button("Clear targets")
-            gui.add_markdown("Click the left image to add a target; shift- or ctrl-click removes the nearest.")
+            gui.add_markdown("Click the left image to add a target; shift-, ctrl- or alt-click removes the nearest.")
         with gui.add_folder("Model", expand_by_default=False):
             self.case_dropdown = gui.add_dropdown("Case", ("a", "b", "c"), initial_value="a")
             # Case (b) binds targets to the a-priori model by id: the operator names the next

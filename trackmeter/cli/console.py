@@ -2,8 +2,9 @@
 
 Starts the acquisition and tracking threads on SPEC (default: the ``estec`` scenario, a
 tumbling satellite mock-up rendered live) and a web console at http://HOST:PORT: the left
-camera image (click to add a target, shift-click to remove the nearest), the tracked patches,
-the 3D point cloud, the estimated pose, live plots and every control of the pipeline.
+camera image (click to add a target, shift-, ctrl- or alt-click to remove the nearest), the
+tracked patches, the 3D point cloud, the estimated pose, live plots and every control of the
+pipeline.
 Runs until Ctrl-C, then stops cleanly (threads joined, recording closed).
 
 The console binds to 127.0.0.1 (this machine only) unless --host says otherwise; a port
