@@ -688,9 +688,10 @@ class Engine:
                     continue
                 B = np.array([inner._model[i].b for i in common])
                 P = np.array([points[i][0] for i in common])
-                C = np.array([points[i][1] + inner._model[i].cov for i in common]) + floor
+                C = np.array([points[i][1] for i in common]) + floor
+                Cb = np.array([inner._model[i].cov for i in common])
                 try:
-                    R, t, cov = solve_pose(B, P, C, None, None, p.refine_iterations)
+                    R, t, cov = solve_pose(B, P, C, Cb, None, p.refine_iterations)
                 except (TrackmeterError, np.linalg.LinAlgError):
                     continue
                 if not _sigmas_within(cov, p.max_attitude_sigma_deg, p.max_position_sigma_m):
