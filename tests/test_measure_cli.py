@@ -169,7 +169,8 @@ def test_a_cut_short_png_is_one_line_on_the_process_stderr(pair, capfd) -> None:
     capfd.readouterr()
     assert _run(folder, "--at", "1,1", left="cut.png") == 2
     err = capfd.readouterr().err
-    assert err.splitlines() == [f"trackmeter measure: error: {folder / 'cut.png'}: not an image file OpenCV can decode"]
+    assert err.splitlines() == [f"trackmeter measure: error: {folder / 'cut.png'}: not an image file OpenCV can decode "
+                                "(a PNG file cut short)"]
 
 
 @pytest.mark.parametrize("at", ["1", "1,2,3", "a,b", "1;2", "", "nan,100", "100,inf", "-inf,1"])
