@@ -36,7 +36,7 @@ import viser.uplot
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from console.overlay import (STATUS_RGB, box_half_px, box_segments, draw_overlays, nearest_target,
+from console.overlay import (STATUS_RGB, box_half_px, box_segments, draw_overlays,
                              image_view, node_rgb_for, pixel_to_plane, ray_to_pixel, to_rgb)
 from console.series import PLOTS, PlotData
 from trackmeter.core.stereo import StereoRig
@@ -681,11 +681,9 @@ class Console:
         uv = self._event_pixel(event)
         if uv is None:
             return
-        snap = self.pipeline.latest()
-        target = nearest_target(snap.targets, uv)
-        if target is None:
-            self._notify(event.client, "Nothing to remove", "there are no targets", ok=False)
-            return
+        # Not judged against the last published frame: a click's target may not be made there
+        # yet (the tracker a frame behind), and the remove that follows it would be refused.
+        # The tracker has every command in order and answers "no target near" itself.
         self.submit(RemoveNearest(uv[0], uv[1]), event.client, f"Remove target near {_pixel_text(uv)}")
 
     def _event_pixel(self, event: Any) -> tuple[float, float] | None:

@@ -248,14 +248,3 @@ def draw_overlays(
         label = t.id if t.origin != "operator" else f"{t.id}*"
         cv2.putText(rgb, label, (c[0] + h + 3, c[1] - h), font, 0.38 * max(scale, 1.0), colour, 1, cv2.LINE_AA)
     return rgb
-
-
-def nearest_target(targets: Sequence[TargetState], uv: tuple[float, float]) -> TargetState | None:
-    """The target whose pixel is nearest to ``uv`` (None without targets)."""
-    best, best_d = None, np.inf
-    for t in targets:
-        if np.all(np.isfinite(t.uv)):
-            d = float(np.hypot(t.uv[0] - uv[0], t.uv[1] - uv[1]))
-            if d < best_d:
-                best, best_d = t, d
-    return best

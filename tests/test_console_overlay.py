@@ -19,7 +19,6 @@ from console.overlay import (  # noqa: E402
     box_segments,
     displayed_rgb,
     draw_overlays,
-    nearest_target,
     node_rgb_for,
     pixel_to_plane,
     VIEW_MARGIN,
@@ -91,8 +90,6 @@ def test_overlays_mark_each_target_in_its_status_colour_at_its_pixel() -> None:
         assert np.any(np.all(patch == STATUS_RGB[t.status], axis=1)), t.id
         if t.id != "a1":  # (a1's trail ends at its pixel)
             assert not np.any(img[v, u]), "the centre pixel itself stays visible"
-    assert nearest_target(targets, (590.0, 70.0)).id == "m3"  # type: ignore[union-attr]
-    assert nearest_target([], (0.0, 0.0)) is None
 
 
 def test_series_window_keeps_the_last_rows_skips_nan_and_restarts() -> None:
