@@ -644,7 +644,7 @@ class Engine:
         inner._pending_reject = set()
         need = self.pose_params.min_points
         if inner._model:
-            self._locate_from_earlier_frames(inner)
+            self._locate_from_earlier_frames(inner, {t.id for t in out_targets if t.measured})
         located = [pid for pid in self._given_model.ids if pid in inner._model]
         reason = (f"case (b): binding the model: {len(located)} of its points located in a provisional frame "
                   f"({need} needed)")
@@ -666,19 +666,21 @@ class Engine:
         self._operator_watch(frame)
         return out_targets, PoseEstimate.invalid(reason, self._case), None
 
-    def _locate_from_earlier_frames(self, inner: "Engine") -> None:
-        """Locate, in the provisional frame of ``inner``, a-priori points whose targets were lost
-        before that frame existed (it needs points tracked for ``frame_min_age_frames``; a
-        corner's patch is often lost sooner): from the latest remembered frame that measured
-        the point and at least ``min_points`` points of the provisional model, whose pose
-        ``T_cam_prov`` then is solved from those (:func:`trackmeter.core.pose.solve_pose`, refused
-        as a pose is). The point joins the provisional model ``R^T (p - t)``, its covariance its
-        measurement's plus that pose's; :meth:`_bind` judges it with the others."""
+    def _locate_from_earlier_frames(self, inner: "Engine", measured_now: set[str]) -> None:
+        """Locate, in the provisional frame of ``inner``, a-priori points not measured now whose
+        targets were lost before that frame existed (it needs points tracked for
+        ``frame_min_age_frames``; a corner's patch is often lost sooner), each from the latest
+        remembered frame that measured it with at least ``min_points`` points of the
+        provisional model, whose pose ``T_cam_prov`` then is solved from those
+        (:func:`trackmeter.core.pose.solve_pose`, refused as a pose is; one try a frame). The
+        point joins the provisional model ``R^T (p - t)``, its covariance its measurement's plus
+        that pose's; :meth:`_bind` judges it with the others. Points measured now join as the
+        provisional engine joins any point."""
         assert self._given_model is not None
         p = self.pose_params
         floor = p.point_sigma_floor_m**2 * np.eye(3)
         for pid in self._given_model.ids:
-            if pid in inner._model:
+            if pid in inner._model or pid in measured_now:
                 continue
             for t_s, points in reversed(self._binding_frames):
                 if pid not in points:
@@ -693,9 +695,9 @@ class Engine:
                 try:
                     R, t, cov = solve_pose(B, P, C, Cb, None, p.refine_iterations)
                 except (TrackmeterError, np.linalg.LinAlgError):
-                    continue
+                    break
                 if not _sigmas_within(cov, p.max_attitude_sigma_deg, p.max_position_sigma_m):
-                    continue
+                    break
                 x, cx = points[pid]
                 b = R.T @ (x - t)
                 inner._model[pid] = _ModelPoint(b, R.T @ (cx + floor + _position_cov(cov, b, R)) @ R, False, t_s=t_s)
