@@ -85,8 +85,11 @@ _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 def _png_cut_short(data: NDArray[np.uint8]) -> bool:
     """True for a PNG file (by its signature) without its closing IEND chunk anywhere: cut
     short. Bytes after the IEND chunk (some writers leave them) do not count against it."""
-    head = data[: len(_PNG_SIGNATURE)].tobytes()
-    return head == _PNG_SIGNATURE and data.tobytes().rfind(b"IEND") < 0
+    if data[: len(_PNG_SIGNATURE)].tobytes() != _PNG_SIGNATURE:
+        return False
+    # A whole file ends in its IEND chunk (12 bytes): its tail says so without copying the
+    # whole file, read once a frame; only a file without it there is searched throughout.
+    return b"IEND" not in data[-64:].tobytes() and data.tobytes().rfind(b"IEND") < 0
 
 
 #: The sample depths 16-bit files are told apart by (:func:`data_bits`).

@@ -91,8 +91,9 @@ def open_source(spec: str, rig_override: StereoRig | None = None, realtime: bool
 
         return CameraSource(devices, rig=rig_override)
     # A bare folder (DESIGN.md: "seq:DIR or a bare DIR"). Windows drive letters never reach here.
-    if Path(os.path.expanduser(text)).is_dir():
-        return _open_sequence(os.path.expanduser(text), rig_override, realtime, loop, own_rig, own_model)
+    folder = os.path.expanduser(text)
+    if Path(folder).is_dir():
+        return _open_sequence(folder, rig_override, realtime, loop, own_rig, own_model)
     raise TrackmeterError(
         f"unknown source {spec!r}: expected sim, sim:SCENARIO, seq:DIR, an existing folder, video:LEFT,RIGHT, camera:I[,J]"
     )
