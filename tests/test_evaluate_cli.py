@@ -420,6 +420,39 @@ def test_a_truth_in_integer_nanoseconds_is_read_as_such_with_a_warning(capsys, s
     assert _flat(got) == pytest.approx(_flat(expected), abs=1e-9)
 
 
+def test_both_trajectories_in_epoch_nanoseconds_are_read_as_such(capsys, sequence_and_run, tmp_path):
+    # EuRoC-style TUM files on both sides (integer nanoseconds since the epoch): nothing pairs
+    # them as seconds against the other, yet --settle and --tolerance are in seconds, so each
+    # is told by its own numbers (an outside evaluator's probe: --settle 2 was read as 2 ns).
+    truth, seq, run = sequence_and_run
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq / "groundtruth.tum"), "--estimate", str(run),
+                          "--settle", "0.5", "--json")
+    assert code == 0, err
+    expected = json.loads(out)
+    epoch_ns = 1_403_636_579_763_555_584
+    files = []
+    for name, source in (("truth.tum", seq / "groundtruth.tum"), ("est.tum", run / "trajectory.tum")):
+        if name == "est.tum":  # the run's valid poses, as trajectory.tum holds them
+            lines = [" ".join([f"{float(r[0]):.9f}", *r[2:5], r[6], r[7], r[8], r[5]])
+                     for r in (line.split(",") for line in (run / "states.csv").read_text().splitlines()[1:])
+                     if r[1] == "1"]
+        else:
+            lines = [line for line in source.read_text().splitlines() if line and not line.startswith("#")]
+        rows = [line.split() for line in lines]
+        path = tmp_path / "ns" / name
+        path.parent.mkdir(exist_ok=True)
+        path.write_text("".join(" ".join([str(epoch_ns + round(float(r[0]) * 1e9))] + r[1:]) + "\n" for r in rows))
+        files.append(path)
+    code, out, err = _run(capsys, "evaluate", "--truth", str(files[0]), "--estimate", str(files[1]),
+                          "--settle", "0.5", "--json")
+    assert code == 0, err
+    assert err.count("its times read as integer nanoseconds") == 2, err
+    got = json.loads(out)
+    assert got["matched"] == expected["matched"] < 59  # the settle counted in seconds
+    for group in ("position_m", "attitude_rad"):
+        assert _flat(got[group]) == pytest.approx(_flat(expected[group]), abs=1e-6)
+
+
 def _report_files(folder: Path) -> dict[str, bytes]:
     return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
 

@@ -236,9 +236,10 @@ def _load_estimate(path: Path) -> LoadedMotion:
 
 
 def in_seconds(truth: LoadedMotion, estimate: LoadedMotion, tolerance_s: float) -> tuple[LoadedMotion, LoadedMotion]:
-    """``truth`` and ``estimate`` with times in seconds: one whose times are integers that pair
-    with the other's only as nanoseconds (a CSV written in EuRoC's integer nanoseconds) is
-    converted, with a warning naming it (:func:`trackmeter.data.sequence.seconds_if_nanoseconds`)."""
+    """``truth`` and ``estimate`` with times in seconds: one whose times can only be integer
+    nanoseconds (EuRoC's epoch nanoseconds, on either side or both), or are integers that pair
+    with the other's only as nanoseconds, is converted, with a warning naming it
+    (:func:`trackmeter.data.sequence.seconds_if_nanoseconds`)."""
     out = []
     for this, other in ((truth, estimate), (estimate, truth)):
         t, note = seconds_if_nanoseconds(other.series.t_s, this.series.t_s, tolerance_s, other.source)

@@ -435,14 +435,39 @@ def pair_by_nearest(t_left: ArrayLike, t_right: ArrayLike, tolerance: float) -> 
     return [(i, int(j)) for i, j in enumerate(j_of_i) if i_of_j[j] == i and abs(a[i] - b[j]) <= tolerance]
 
 
+#: Integer times at least this large are nanoseconds, not seconds: 1e15 s is 30 million years,
+#: 1e15 ns eleven days (EuRoC's epoch nanoseconds are about 1.4e18).
+NANOSECONDS_AT_LEAST = 1e15
+#: Integer times whose median step between poses is at least this are nanoseconds too: as
+#: seconds, poses more than a day apart; as nanoseconds, 10 kHz or slower.
+NANOSECOND_STEP_AT_LEAST = 1e5
+
+
+def looks_like_nanoseconds(t: ArrayLike) -> bool:
+    """True when the times ``t`` (N,), whatever they are paired with, can only be integer
+    nanoseconds (EuRoC's unit): integers at least :data:`NANOSECONDS_AT_LEAST`, or with a
+    median step of at least :data:`NANOSECOND_STEP_AT_LEAST`."""
+    t = np.asarray(t, dtype=float).reshape(-1)
+    if len(t) == 0 or not np.all(np.isfinite(t)) or not np.all(t == np.round(t)):
+        return False
+    if float(np.max(np.abs(t))) >= NANOSECONDS_AT_LEAST:
+        return True
+    steps = np.diff(np.unique(t))
+    return len(steps) > 0 and float(np.median(steps)) >= NANOSECOND_STEP_AT_LEAST
+
+
 def seconds_if_nanoseconds(t_ref_s: ArrayLike, t: ArrayLike, tolerance_s: float, ref_name: str = "the reference"
                            ) -> tuple[FloatArray, str | None]:
     """Times ``t`` in seconds, given times ``t_ref_s`` (s) they should pair with: ``t`` itself,
-    or ``t * 1e-9`` with a note when ``t`` are integers of which fewer than half pair (nearest,
+    or ``t * 1e-9`` with a note when ``t`` can only be nanoseconds
+    (:func:`looks_like_nanoseconds`), or are integers of which fewer than half pair (nearest,
     within ``tolerance_s``) as seconds and more than twice as many as nanoseconds (e.g. a
     ``groundtruth.csv`` written in EuRoC's integer nanoseconds: it pairs with no frame in
     seconds, or only with one at t = 0)."""
     t = np.asarray(t, dtype=float)
+    if looks_like_nanoseconds(t):
+        return t * 1e-9, (f"its times read as integer nanoseconds ({t.min():.0f} to {t.max():.0f}: as seconds, "
+                          f"too large or too far apart)")
     as_s = len(pair_by_nearest(t_ref_s, t, tolerance_s))
     if as_s >= min(len(np.atleast_1d(t_ref_s)), len(t)) / 2 or not np.all(t == np.round(t)):
         return t, None
