@@ -86,7 +86,7 @@ def test_writer_refuses_unknown_column(tmp_path):
         (",".join(GROUNDTRUTH_COLUMNS) + "\n", "no rows"),
         (",".join(GROUNDTRUTH_COLUMNS) + "\n0,1,2,3,1,0,0,0,0,0,0,0,0\n", "expected 14 values"),
         (",".join(GROUNDTRUTH_COLUMNS) + "\n0,1,2,3,1,0,0,zero,0,0,0,0,0,0\n", "not a number"),
-        (",".join(GROUNDTRUTH_COLUMNS) + "\n1,1,2,3,1,0,0,0,0,0,0,0,0,0\n0,1,2,3,1,0,0,0,0,0,0,0,0,0\n", "backwards"),
+        (",".join(GROUNDTRUTH_COLUMNS) + "\n1,1,2,3,1,0,0,0,0,0,0,0,0,0\n0,1,2,3,1,0,0,0,0,0,0,0,0,0\n", "time order"),
         (",".join(GROUNDTRUTH_COLUMNS) + "\n0,1,2,3,0,0,0,0,0,0,0,0,0,0\n", "zero quaternion"),
         ("1.0 0 0 0 0 0 0 1\n", "header lacks"),  # a TUM file is not a motion CSV
         # TUM's header comment with commas: the file is a TUM trajectory, and the message says so
@@ -106,8 +106,9 @@ def test_timestamps_that_go_backwards_are_named_by_time(tmp_path: Path) -> None:
     rows = [f"{t},1,2,3,1,0,0,0,0,0,0,0,0,0" for t in (0.0, 0.04, 0.08, 0.06, 0.12)]
     path = tmp_path / "groundtruth.csv"
     path.write_text(",".join(GROUNDTRUTH_COLUMNS) + "\n" + "\n".join(rows) + "\n")
-    with pytest.raises(TrackmeterError, match=r"groundtruth\.csv: motion series: timestamps go backwards: "
-                                              r"t = 0\.06 s after 0\.08 s"):
+    # and by its line, in the file's words rather than the internal series' (an outside probe)
+    with pytest.raises(TrackmeterError, match=r"groundtruth\.csv:5: t = 0\.06 s after 0\.08 s on the line "
+                                              r"before: rows must be in time order$"):
         read_motion_csv(path)
 
 

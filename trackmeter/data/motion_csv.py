@@ -246,6 +246,11 @@ def read_motion_csv(path: str | Path) -> MotionSeries:
         raise TrackmeterError(f"{path}: no rows after the header")
     col = {name: values[:, i] for i, name in enumerate(header)}
     n = len(values)
+    back = np.flatnonzero(np.diff(col["t"]) < 0)
+    if len(back):
+        i = int(back[0])
+        raise TrackmeterError(f"{path}:{rows[i + 1][0]}: t = {col['t'][i + 1]:.9g} s after {col['t'][i]:.9g} s on "
+                              f"the line before: rows must be in time order")
 
     def stack(names: Sequence[str]) -> FloatArray:
         return np.column_stack([col.get(c, np.full(n, np.nan)) for c in names])
