@@ -176,6 +176,8 @@ def test_select_model_points_alone_is_something_to_track_unless_the_source_has_n
     main(["track", "--source", "fake", "--model", str(model), "--case", "b", "--select-model-points", "--out", str(out)])
     meta = yaml.safe_load((out / "run.yaml").read_text())
     assert meta["status"] == "complete" and meta["summary"]["frames"] == 20
+    # run.yaml says how its targets came (it held "targets: []" and nothing else; an outside probe)
+    assert meta["source"]["select_model_points"] is True and meta["source"]["targets"] == []
 
 
 def test_a_refused_target_is_said_while_the_run_goes_on_with_the_others(tmp_path, capsys) -> None:

@@ -228,6 +228,7 @@ def run(args: argparse.Namespace) -> int:
             "case_reason": case_reason,
             "targets": [f"{i + '=' if i else ''}{u:g},{v:g}" for i, (u, v) in targets],
             "auto": args.auto,
+            "select_model_points": bool(args.select_model_points),
         }
         writer = RunWriter(args.out, config_to_dict(config), source_info, overwrite=args.overwrite)
         tty = sys.stderr.isatty()
