@@ -166,6 +166,21 @@ def test_dropped_poses_are_counted_unmatched():
     assert s["matched"] == 55 and s["unmatched"] == 3
 
 
+def test_unmatched_counts_the_same_span_as_matched_after_the_settle():
+    # "matched" counts pairs after the settle time; "unmatched" counted gaps before it too, so a
+    # run that dropped frames while settling reported them beside pairs that left them out (an
+    # outside evaluator's probe).
+    truth = tumbling_truth()
+    keep = np.ones(60, bool)
+    keep[[3, 4, 40]] = False  # two dropped while settling, one after
+    est = MotionSeries(truth.t_s[keep], np.ones(57, bool), truth.position_m[keep], truth.quat_wxyz[keep],
+                       truth.velocity_cam_m_s[keep], truth.omega_body_rad_s[keep])
+    settle = float(truth.t_s[10] - truth.t_s[0])
+    s = evaluate(truth, est, EvaluateParams(settle_s=settle)).summary
+    assert s["matched"] == 49 and s["unmatched"] == 1
+    assert evaluate(truth, est).summary["unmatched"] == 3  # no settle: every gap
+
+
 def test_estimates_outside_truth_and_duplicates_stay_unmatched():
     a = associate([0.0, 1.0, 2.0], [-0.5, 0.999, 1.0, 1.002, 2.0, 3.0], tolerance_s=0.01)
     assert a.index_truth.tolist() == [1, 2] and a.index_est.tolist() == [2, 4]

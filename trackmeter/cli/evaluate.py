@@ -16,7 +16,7 @@ SPEED challenge score.
 
 "matched" counts the evaluated pairs; "unmatched" the estimated poses with no truth pose within
 the tolerance plus the truth poses inside the estimate's time span with no estimate (frames the
-run has no valid pose for). --json prints the summary in SI units, with the settings it was
+run has no valid pose for), both after the settle time, as the pairs are. --json prints the summary in SI units, with the settings it was
 made with ("settings": truth, estimate, align, settle_s, tolerance_s, the run's case); --out DIR
 also writes errors.csv, summary.json (the same), PNG plots of the errors against time and
 report.md beside the paper's figures.

@@ -22,7 +22,7 @@ axis (the paper's viewing axis was y). Units SI: m, rad, m/s, rad/s.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal, Protocol
 
 import numpy as np
@@ -368,7 +368,7 @@ class Evaluation:
     Attributes:
         summary: the JSON summary (:func:`summarize`).
         errors: per-frame errors after settling.
-        association: the pairing (before the settle cut).
+        association: the pairs after the settle time, and the poses left without a partner there.
         body_offset: ``(R_bodytrue_bodyest, t_X)`` with ``--align body``, else None.
     """
 
@@ -423,6 +423,16 @@ def evaluate(
     if not np.any(keep):
         raise TrackmeterError(f"no paired poses left after the settle time of {params.settle_s:g} s")
     it, ie = it[keep], ie[keep]
+    # The poses left without a partner, counted over the span the pairs are: after the settle.
+    t_from = t0 + params.settle_s
+    paired_est = np.zeros(len(estimate.t_s), dtype=bool)
+    paired_est[assoc.index_est] = True
+    paired_truth = np.zeros(len(truth.t_s), dtype=bool)
+    paired_truth[assoc.index_truth] = True
+    in_span = ((truth.t_s >= estimate.t_s[0] - params.tolerance_s) & (truth.t_s <= estimate.t_s[-1] + params.tolerance_s))
+    assoc = replace(assoc, index_truth=it, index_est=ie, dt_s=assoc.dt_s[keep],
+                    unmatched_est=int(np.count_nonzero(~paired_est & (estimate.t_s >= t_from))),
+                    unmatched_truth=int(np.count_nonzero(in_span & ~paired_truth & (truth.t_s >= t_from))))
 
     v_t, w_t = _rates(truth, it)
     v_e, w_e = _rates(estimate, ie)
