@@ -389,6 +389,24 @@ def test_a_case_a_or_c_run_is_aligned_to_the_true_body_by_default(capsys, run_in
     assert code == 0 and err == "" and json.loads(out)["settings"]["align"] == "body", err
 
 
+def test_a_run_whose_body_frame_started_anew_is_aligned_with_a_warning(capsys, run_in_own_body_frame):
+    # A case (a) run starts its body frame anew at a cut in its source (a recorded loop, a
+    # restart) and after a total loss; one --align body offset fitted to all of them measures
+    # how those frames differ too, which nothing said.
+    seq, run = run_in_own_body_frame
+    (run / "run.yaml").write_text("status: complete\nsource:\n  spec: sim\n  case: a\n"
+                                  "summary:\n  engine:\n    stream_cuts: 2\n    frames_redefined: 1\n")
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
+    assert code == 0 and json.loads(out)["settings"]["align"] == "body"
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "defined its body frame 4 times" in lines[0] and "one offset" in lines[0], err
+    # with the frame defined once, nothing to say; --align none is told otherwise (above)
+    (run / "run.yaml").write_text("status: complete\nsource:\n  spec: sim\n  case: a\n"
+                                  "summary:\n  engine:\n    stream_cuts: 0\n    frames_redefined: 0\n")
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
+    assert code == 0 and err == "", err
+
+
 @pytest.mark.parametrize("run_yaml", ["status: complete\nsource:\n  spec: sim\n  case: b\n", "not: [valid", None])
 def test_a_case_b_run_or_one_of_unknown_case_is_compared_as_it_is_by_default(capsys, run_in_own_body_frame, run_yaml):
     # Case (b)'s body frame is the model's, the truth's own: no offset is fitted (nor for a run

@@ -60,13 +60,14 @@ class CountingSource(Source):
         if self.delay_s:
             time.sleep(self.delay_s)  # a live source's pace
         img = np.full((4, 6), self.i % 256, np.uint8)
-        frame = StereoFrame(self.i, self.i / 25.0, img, img.copy())
+        frame = StereoFrame(self.i, self.i / 25.0, img, img.copy(), cut=self._take_cut())
         self.i += 1
         self.reads += 1
         return frame
 
     def restart(self) -> None:
         self.i = 0
+        self._cut = True
 
     def close(self) -> None:
         self.closed = True
@@ -442,6 +443,42 @@ def test_recording_that_cannot_keep_up_counts_what_it_could_not_keep(tmp_path: P
     assert writer.indices == sorted(writer.indices)
 
 
+def test_a_cut_the_recorder_could_not_keep_marks_the_next_frame_it_keeps(tmp_path: Path) -> None:
+    # The frame that starts a new pass, dropped by a recorder behind the stream (its queue
+    # full), takes its cut with it: the jump is still between the frames kept.
+    from trackmeter.pipeline.pipeline import _Recorder
+
+    gate = threading.Event()
+    writer = ListWriter(tmp_path, slow=gate)
+    writer.cuts = []  # type: ignore[attr-defined]
+    original = writer.write
+
+    def write(frame: StereoFrame) -> None:
+        original(frame)
+        writer.cuts.append(frame.cut)  # type: ignore[attr-defined]
+
+    writer.write = write  # type: ignore[method-assign]
+    recorder = _Recorder(tmp_path, writer, max_frames=1)
+    img = np.zeros((4, 6), np.uint8)
+    frames = [StereoFrame(i, i / 25.0, img, img, cut=(i == 2)) for i in range(4)]
+    recorder.offer(frames[0])
+    for _ in range(500):  # the thread has taken frame 0 and waits in the writer
+        if recorder._queue.empty():
+            break
+        time.sleep(0.01)
+    recorder.offer(frames[1])  # queued
+    recorder.offer(frames[2])  # the queue is full: dropped, with its cut
+    gate.set()
+    for _ in range(500):
+        if len(writer.indices) == 2:
+            break
+        time.sleep(0.01)
+    recorder.offer(frames[3])
+    recorder.close()
+    assert writer.indices == [0, 1, 3] and recorder.frames_dropped == 1
+    assert writer.cuts == [False, False, True]  # type: ignore[attr-defined]
+
+
 def test_recording_toggled_by_command(tmp_path: Path) -> None:
     writers: list[ListWriter] = []
     pipe = Pipeline(CountingSource(10**6, delay_s=0.002), RecordingEngine(), writer_factory=lambda d: writers.append(ListWriter(d)) or writers[-1])
@@ -507,6 +544,9 @@ def test_a_restart_while_recording_records_on_with_time_continued(tmp_path: Path
     assert len(index) == stats.frames_written == 60
     dt = np.diff(index.t_s)
     assert np.all(dt > 0) and np.allclose(dt, 0.04, atol=1e-6)
+    # and the jump is marked where it is (cuts.csv), so a replay starts over there as the live
+    # run did (unmarked, the replay tracked across it as motion; an outside console probe)
+    assert index.cuts == (30,)
 
 
 @pytest.mark.parametrize("where", ["/proc/no-such-dir/rec", "file"])

@@ -118,6 +118,29 @@ def test_loop_and_restart_keep_time_increasing(tmp_path):
     assert [src2.read() is not None for _ in range(4)] == [True, True, True, False]
 
 
+def test_a_recorded_loop_plays_back_with_its_cuts(tmp_path):
+    # A looping source recorded across its new pass (or a restart): the frames after it come
+    # with the time carried on, and the scene jumps there. Unmarked, a replay tracked across the
+    # jump as if the body had moved (an outside console probe: 16.9 deg median attitude error).
+    d = _write(tmp_path / "s", _frames(3))
+    src = SequenceSource(d, loop=True)
+    looped = [src.read() for _ in range(7)]
+    rec = _write(tmp_path / "rec", looped)
+    assert (rec / "cuts.csv").read_text().splitlines()[1:] == [str(seconds_to_ns(looped[i].t_s)) for i in (3, 6)]
+    index = index_sequence(rec)
+    assert index.cuts == (3, 6)
+    again = SequenceSource(rec)
+    assert [f.cut for f in (again.read() for _ in range(7))] == [False, False, False, True, False, False, True]
+    # played in a loop, the folder's own cuts and the loop's both mark the frame they start
+    replay = SequenceSource(rec, loop=True)
+    assert [f.cut for f in (replay.read() for _ in range(9))] == [False, False, False, True, False, False, True,
+                                                                  True, False]
+    # a cuts.csv that cannot be read is optional: warned about, not fatal
+    (rec / "cuts.csv").write_text("#timestamp [ns]\nnot a number\n")
+    index = index_sequence(rec)
+    assert index.cuts == () and any("cuts.csv" in w for w in index.warnings), index.warnings
+
+
 def test_euroc_mav0_layout_with_sensor_yaml(tmp_path):
     """Real EuRoC: mav0/cam0, mav0/cam1, sensor.yaml, no rig.yaml, extra columns absent."""
     root = tmp_path / "MH_01" / "mav0"

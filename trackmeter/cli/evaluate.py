@@ -85,6 +85,13 @@ def run(args: argparse.Namespace) -> int:
         print(f"trackmeter evaluate: warning: the time spans barely overlap (truth {t_t[0]:.6g}..{t_t[-1]:.6g} s, "
               f"estimate {t_e[0]:.6g}..{t_e[-1]:.6g} s; {result.association.matched} of {len(t_e)} estimated "
               "poses paired): timestamps in other units or from another clock?", file=sys.stderr)
+    cuts, redefined = estimate.restarts
+    if params.align == "body" and estimate.case in ("a", "c") and cuts + redefined:
+        # Each start defines the body frame anew (case (c) acquires its model again): one
+        # offset fitted to all of them measures how those frames differ as well.
+        print(f"trackmeter evaluate: warning: the run defined its body frame {1 + cuts + redefined} times "
+              f"({cuts} cut(s) in its source: a loop or a restart; {redefined} after a total loss), and one offset "
+              "is fitted to all of them, so the figures include how those frames differ", file=sys.stderr)
     if params.align == "none" and estimate.case in ("a", "c"):
         # Such a run's body frame is its own (three tracked points, or the acquired model):
         # without the fitted offset the figures measure where its frame sits, not the tracking.

@@ -39,6 +39,9 @@ class LoadedMotion:
     has_velocity: bool
     t_start_s: float | None = None  # start of a run (first states.csv row, valid or not)
     case: str | None = None  # a track run's pose case ("a", "b", "c"; its run.yaml), else None
+    # a track run's starts over at a cut in its source and case (a)'s new frames after a total
+    # loss (its run.yaml's summary): (stream_cuts, frames_redefined)
+    restarts: tuple[int, int] = (0, 0)
 
 
 def _looks_like_motion_csv(path: Path) -> bool:
@@ -173,7 +176,9 @@ def load_estimate(spec: str | Path) -> LoadedMotion:
     path = Path(spec)
     loaded = _load_estimate(path)
     run_dir = path if path.is_dir() else path.parent
-    return replace(loaded, case=_run_case(run_dir))
+    counts = [_run_meta(run_dir, "summary", "engine", key) for key in ("stream_cuts", "frames_redefined")]
+    restarts = tuple(c if isinstance(c, int) and not isinstance(c, bool) and c > 0 else 0 for c in counts)
+    return replace(loaded, case=_run_case(run_dir), restarts=(restarts[0], restarts[1]))
 
 
 def _run_meta(run_dir: Path, *keys: str) -> Any:

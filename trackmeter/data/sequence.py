@@ -57,6 +57,11 @@ if TYPE_CHECKING:  # the writer only reads attributes of a frame; data must not 
 
 FloatArray = NDArray[np.float64]
 DATA_CSV_HEADER = "#timestamp [ns],filename"
+#: A sequence's cuts (an extension of the EuRoC layout; other tools ignore it): the frames at
+#: which the scene jumps, each the first of a new pass of a looping source or of a restart,
+#: recorded so that a replay starts over there as the live run did (DESIGN.md's frame ``cut``).
+CUTS_FILE = "cuts.csv"
+CUTS_CSV_HEADER = "#timestamp [ns] of each frame that starts a new pass (the scene jumps there)"
 CAMERAS = ("cam0", "cam1")
 
 
@@ -120,8 +125,9 @@ class SequenceWriter:
                 w.write(frame)
 
     Frames carrying ``truth`` add rows to ``groundtruth.csv`` and ``groundtruth.tum``
-    (created at the first such frame). Timestamps must increase (equal nanoseconds would
-    overwrite an image).
+    (created at the first such frame). A frame marked ``cut`` after the first adds its
+    timestamp to ``cuts.csv`` (:data:`CUTS_FILE`, created at the first cut). Timestamps must
+    increase (equal nanoseconds would overwrite an image).
     """
 
     def __init__(
@@ -149,6 +155,7 @@ class SequenceWriter:
             save_model(self.directory / "model.yaml", model_points)
         self._truth_csv: MotionCsvWriter | None = None
         self._truth_tum: AppendFile | None = None
+        self._cuts: AppendFile | None = None
         self._last_ns: int | None = None
         self.frames_written = 0
 
@@ -164,16 +171,24 @@ class SequenceWriter:
         # A frame is recorded whole or not at all: when a write fails (a full disk), what this
         # frame had written is taken back, and the frames before stay a playable sequence.
         sizes = {cam: f.size for cam, f in self._csv.items()}
+        cuts_size = None if self._cuts is None else self._cuts.size
         try:
             for path, image in zip(images, (frame.left, frame.right)):
                 self._write_image(path, image)
             for cam in CAMERAS:
                 self._csv[cam].append(f"{ns},{name}\n")
+            if frame.cut and self.frames_written:
+                if self._cuts is None:
+                    self._cuts = AppendFile(self.directory / CUTS_FILE, CUTS_CSV_HEADER + "\n")
+                    cuts_size = self._cuts.size
+                self._cuts.append(f"{ns}\n")
             if frame.truth is not None:
                 self._write_truth(ns_to_seconds(ns), frame)
         except (TrackmeterError, OSError) as exc:
             for cam, size in sizes.items():  # (the truth's files take back their own rows)
                 self._csv[cam].truncate(size)
+            if self._cuts is not None and cuts_size is not None:
+                self._cuts.truncate(cuts_size)
             for path in images:
                 path.unlink(missing_ok=True)
             if isinstance(exc, OSError):
@@ -231,6 +246,9 @@ class SequenceWriter:
         if self._truth_tum is not None:
             self._truth_tum.close()
             self._truth_tum = None
+        if self._cuts is not None:
+            self._cuts.close()
+            self._cuts = None
 
     def __enter__(self) -> SequenceWriter:
         return self
@@ -257,6 +275,8 @@ class SequenceIndex:
             the tolerance), from ``groundtruth.csv`` or else ``groundtruth.tum``; None when
             the folder has neither.
         skipped: number of images (left and right) that are not part of any pair.
+        cuts: increasing positions of the pairs that start a new pass (``cuts.csv``: the
+            scene jumps there; a recording made across a looping source's new pass).
         warnings: one human-readable line per kind of problem found (empty when clean).
         tolerance_s: the pairing tolerance used, s.
     """
@@ -271,6 +291,7 @@ class SequenceIndex:
     skipped: int = 0
     warnings: tuple[str, ...] = field(default_factory=tuple)
     tolerance_s: float = 0.0
+    cuts: tuple[int, ...] = ()
 
     def __len__(self) -> int:
         return len(self.t_s)
@@ -543,7 +564,14 @@ def index_sequence(
         # as a broken rig.yaml is not when another rig is given.
         truth = None
         warnings.append(f"{exc}; ground truth not used")
+    pair_ns = np.array([t_left[i] for i, _ in pairs], dtype=np.int64)
+    try:
+        cuts = _read_cuts(find_sequence_file(directory, CUTS_FILE), pair_ns)
+    except TrackmeterError as exc:
+        cuts = ()  # optional, as the ground truth is
+        warnings.append(f"{exc}; its cuts not used")
     return SequenceIndex(
+        cuts=cuts,
         root=root,
         t_s=t_s,
         left_paths=tuple(left[i][1] for i, _ in pairs),
@@ -555,6 +583,31 @@ def index_sequence(
         warnings=tuple(warnings),
         tolerance_s=float(tolerance_s),
     )
+
+
+def _read_cuts(path: Path | None, pair_ns: NDArray[np.int64]) -> tuple[int, ...]:
+    """The positions among the pairs at ``pair_ns`` (N,) of the timestamps ``path``
+    (:data:`CUTS_FILE`, one integer nanosecond a line, ``#`` lines skipped) lists, in order;
+    () without the file. A timestamp of no pair (its images missing) marks the next pair."""
+    if path is None:
+        return ()
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise TrackmeterError(f"{path}: cannot read ({exc.__class__.__name__})") from None
+    cuts: set[int] = set()
+    for number, line in enumerate(lines, 1):
+        text = line.split(",")[0].strip()
+        if not text or text.startswith("#"):
+            continue
+        try:
+            ns = int(text)
+        except ValueError:
+            raise TrackmeterError(f"{path}:{number}: not an integer timestamp in nanoseconds: {text[:40]!r}") from None
+        position = int(np.searchsorted(pair_ns, ns))
+        if position < len(pair_ns):
+            cuts.add(position)
+    return tuple(sorted(cuts))
 
 
 #: A folder's rig, in order of preference: DESIGN.md's ``rig.yaml``, else OpenCV's stereo

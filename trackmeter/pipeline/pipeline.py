@@ -159,8 +159,9 @@ class _Recorder:
 
     A sequence's time only increases: when the stream's time goes back (the source restarted),
     the frames after it are written with their time carried on past the last one by its frame
-    interval, as a looping source's are. The jump itself is not marked in the folder: played
-    back, the scene jumps there without a cut, as in a recorded loop of the simulator.
+    interval, as a looping source's are. The jump itself is marked: the frame that starts a new
+    pass (``StereoFrame.cut``; the next kept one when that frame is not) is listed in the
+    folder's ``cuts.csv``, so played back the replay starts over there as the live run did.
     """
 
     _STOP = object()
@@ -175,6 +176,7 @@ class _Recorder:
         self.frames_dropped = 0
         self.frames_lost = 0
         self.error: str | None = None
+        self._cut_dropped = False  # the last frame not kept started a new pass (offer's thread only)
         self._shift_s = 0.0  # added to the stream's time since its last restart
         self._last_t_s: float | None = None  # last written time and interval, s
         self._last_dt_s = 0.04
@@ -192,11 +194,16 @@ class _Recorder:
             with self._lock:
                 self.frames_lost += 1
             return
+        if self._cut_dropped and not frame.cut:
+            # A new pass began on a frame not kept: the jump is before this one.
+            frame = dataclasses.replace(frame, cut=True)
         try:
             self._queue.put_nowait(frame)
+            self._cut_dropped = False
             with self._lock:
                 self.frames_queued += 1
         except queue.Full:
+            self._cut_dropped = frame.cut
             with self._lock:
                 self.frames_dropped += 1
                 first = self.frames_dropped == 1

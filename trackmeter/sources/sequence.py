@@ -56,6 +56,7 @@ class SequenceSource(Source):
         self.rig = rig if rig is not None else self.index.rig
         self.rate_hz = self.index.rate_hz
         self.model: Model | None = self.index.model
+        self._cuts = frozenset(self.index.cuts)  # where a recorded scene jumps (cuts.csv)
         self.realtime = realtime
         self.loop = loop
         self._skipped_on_read = 0
@@ -164,7 +165,8 @@ class SequenceSource(Source):
             t = float(self.index.t_s[pos]) + self._loops * self._period_s
             if self.realtime:
                 self._pacer.wait(t)
-            frame = StereoFrame(index=self._count, t_s=t, left=left, right=right, truth=self.truth_at(pos), cut=self._take_cut())
+            frame = StereoFrame(index=self._count, t_s=t, left=left, right=right, truth=self.truth_at(pos),
+                                cut=self._take_cut() or pos in self._cuts)
             self._count += 1
             return frame
 
