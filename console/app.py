@@ -413,6 +413,16 @@ class Console:
             self._thread.join(5)
         if self._unsubscribe is not None:
             self._unsubscribe()
+        # The page keeps what it was last sent ("running · frame N · REC") once the server is
+        # gone, with only viser's small disconnected icon to tell: say it, before the server stops.
+        status = getattr(self, "status_html", None)
+        if status is not None:
+            try:
+                status.content = ('<div style="padding:0 0.75rem"><b>stopped</b>: the console server was shut '
+                                  'down; reload this page once it runs again</div>')
+                self.server.flush()
+            except Exception:  # a server already stopped: nothing to tell
+                log.debug("could not show the stop on the page", exc_info=True)
 
     # ------------------------------------------------------------------ scene
     @property

@@ -88,6 +88,20 @@ def test_a_failing_source_is_shown_and_the_console_stays_up() -> None:
     assert not running.pipeline.running and img_source.closed
 
 
+def test_a_stopped_console_says_so_on_the_page() -> None:
+    # The page kept its last status ("running · frame N · REC") after the server stopped, with
+    # only viser's small disconnected icon to tell (an outside console probe).
+    running = start_console(CountingSource(100_000, delay_s=0.02), RecordingEngine(), port=free_port())  # type: ignore[arg-type]
+    try:
+        deadline = time.monotonic() + 20
+        while "running" not in running.console.status_html.content:
+            assert time.monotonic() < deadline, running.console.status_html.content
+            time.sleep(0.05)
+    finally:
+        running.stop()
+    assert "stopped" in running.console.status_html.content and "running" not in running.console.status_html.content
+
+
 def test_frames_that_do_not_match_the_rig_are_a_clear_error(opencv_sample_sequence, capsys: pytest.CaptureFixture[str]) -> None:
     from pathlib import Path
 
