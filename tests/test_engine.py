@@ -249,6 +249,26 @@ def test_three_points_with_a_gross_mismatch_give_no_pose(estec_rig) -> None:
     assert pose.valid and pose.n_points == 3
 
 
+def test_a_configured_cutoff_above_what_the_filter_takes_is_warned(estec_rig) -> None:
+    # output_filter.cutoff_hz 50 at 25 frames a second filters at 11.875 Hz (0.95 of Nyquist),
+    # which the console's field showed with nothing said (an outside console probe).
+    from dataclasses import replace
+
+    from trackmeter.data.model import Model as _Model
+
+    config = load_config()
+    config = replace(config, output_filter=replace(config.output_filter, cutoff_hz=50.0))
+    model = _Model(("a", "b", "c"), body_points(3))
+    with pytest.warns(UserWarning, match=r"output_filter\.cutoff_hz 50 Hz is above the 11\.875 Hz"):
+        engine = Engine(config, estec_rig, model, "b", rate_hz=25.0)
+    assert engine.filter_cutoff_hz == 50.0 and engine.max_filter_cutoff_hz == pytest.approx(11.875)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Engine(load_config(), estec_rig, model, "b", rate_hz=25.0)  # the default 2 Hz: nothing said
+
+
 def test_case_b_needs_a_model(estec_rig) -> None:
     from trackmeter.errors import TrackmeterError
 

@@ -41,6 +41,7 @@ Per frame (:meth:`Engine.process`):
 
 from __future__ import annotations
 
+import warnings
 from collections import deque
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -226,6 +227,11 @@ class Engine:
         self._lost_keep_frames = tracker_params.lost_keep_frames
         self._max_targets = tracker_params.max_targets
         self.rate_hz = float(rate_hz) if rate_hz else 25.0
+        if self.filter_params.cutoff_hz > self.max_filter_cutoff_hz:
+            # design_lowpass clips it, so it filters at that; a console field shows it clipped
+            warnings.warn(f"output_filter.cutoff_hz {self.filter_params.cutoff_hz:g} Hz is above the "
+                          f"{self.max_filter_cutoff_hz:g} Hz the filter takes at {self.rate_hz:g} frames a second "
+                          f"(0.95 of Nyquist): it filters at {self.max_filter_cutoff_hz:g} Hz", stacklevel=2)
         self.live_errors = bool(live_errors)
         chosen: ModelCase = case or ("b" if model is not None else "a")
         if chosen not in ("a", "b", "c"):
