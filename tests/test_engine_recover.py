@@ -132,3 +132,41 @@ def test_a_grown_point_is_re_locked_on_the_surface_point_it_was_grown_from(estec
         assert index - seen_index > 1  # dropped in between
         off.append(np.linalg.norm(sim.surface_points(index, uv[None])[0] - sim.surface_points(seen_index, seen_uv[None])[0]))
     assert np.all(np.isfinite(off)) and max(off) < 0.002, off  # m (a re-made target: anywhere)
+
+
+def test_an_unnamed_click_refused_where_it_is_goes_to_a_trackable_corner_nearby(estec_sim_frames) -> None:  # type: ignore[no-untyped-def]
+    # On estec's first frame most clicks on the mock-up are refused (200 on its lit part: 37
+    # accepted; an outside console probe: 1 of 6 "obvious" clicks). A trackable corner a few
+    # pixels away is where the operator meant; a click named after a model point stays put.
+    from dataclasses import replace
+
+    from trackmeter.pipeline.snapshot import SelectPoint
+
+    rig, frames = estec_sim_frames
+    config = load_config()
+    plain = Engine(replace(config, tracker=replace(config.tracker, click_snap_px=0.0)), rig, None, "a", rate_hz=25)
+    snapping = Engine(config, rig, None, "a", rate_hz=25)
+    frame = frames[0]
+    for engine in (plain, snapping):
+        engine.process(frame)
+    lit = np.argwhere(frame.left[::7, ::7] > 60) * 7  # (v, u) on a coarse grid, fixed
+    tried = 0
+    for v, u in lit:
+        refused = plain.handle(SelectPoint(float(u), float(v)), frame)
+        if refused.ok:
+            plain.tracker.remove_target(refused.target_id)
+            continue
+        tried += 1
+        reply = snapping.handle(SelectPoint(float(u), float(v)), frame)
+        if reply.ok:
+            break
+        assert reply.message == refused.message  # nothing found nearby: the refusal as it was
+    else:
+        pytest.fail(f"no refused click of {tried} was put on a corner nearby")
+    assert "px to a trackable corner (where asked: " in reply.message
+    assert refused.message.split(": ", 1)[1] in reply.message
+    target = next(t for t in snapping.targets if t.id == reply.target_id)
+    assert 0 < np.hypot(target.uv[0] - u, target.uv[1] - v) == pytest.approx(reply.moved_px, abs=1e-6)
+    assert reply.moved_px <= config.tracker.click_snap_px
+    named = snapping.handle(SelectPoint(float(u), float(v), "p_named"), frame)
+    assert not named.ok and named.message == refused.message

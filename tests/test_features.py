@@ -210,3 +210,18 @@ def test_a_disparity_range_narrows_the_search_but_not_below_the_minimum_span(pla
     for bad in [(10.0,), (5.0, 1.0), (np.nan, 3.0)]:
         with pytest.raises(TrackmeterError, match="disparity_range_px"):
             select_features(f.left, f.right, estec_rig, 3, "gabor", params, disparity_range_px=bad)  # type: ignore[arg-type]
+
+
+def test_corners_near_a_click_are_opencv_s_corners_there_nearest_first() -> None:
+    # A bright square on black: its four corners are the only Shi-Tomasi corners (OpenCV's own
+    # cv2.goodFeaturesToTrack), and a click beside one finds it first, one farther away none.
+    img = np.zeros((80, 100), np.uint8)
+    img[20:50, 30:70] = 200
+    found = ft.corners_near(img, (32.0, 23.0), radius_px=6.0)
+    assert len(found) >= 1 and np.hypot(*(found[0] - [30, 20])) < 1.5, found
+    assert np.all(np.diff(np.hypot(found[:, 0] - 32, found[:, 1] - 23)) >= 0)
+    reference = cv2.goodFeaturesToTrack(img, 8, 0.05, 2, blockSize=5).reshape(-1, 2)
+    assert min(np.hypot(*(reference - found[0]).T)) < 1e-6  # one of OpenCV's corners, as it found it
+    assert len(ft.corners_near(img, (50.0, 35.0), radius_px=6.0)) == 0  # mid-square: nothing
+    assert len(ft.corners_near(img, (-40.0, 300.0), radius_px=6.0)) == 0  # off the image
+    assert len(ft.corners_near(img, (32.0, 23.0), radius_px=0.0)) == 0

@@ -191,6 +191,17 @@ def test_a_refused_target_is_said_while_the_run_goes_on_with_the_others(tmp_path
     assert meta["status"] == "complete" and meta["summary"]["frames"] == 4
 
 
+def test_a_target_put_on_a_corner_near_the_pixel_given_is_said(tmp_path, capsys) -> None:
+    # 434,84 on estec's first frame: refused where it is (disparity too uncertain), trackable
+    # 3.2 px away (tracker.click_snap_px); the run tracks it, and says where it was put.
+    out = tmp_path / "run"
+    assert main(["track", "--source", "sim", "--target", "434,84", "--max-frames", "2", "--case", "a",
+                 "--out", str(out)]) == 0
+    notes = [line for line in capsys.readouterr().err.splitlines() if "--target 434,84" in line]
+    assert len(notes) == 1 and notes[0].startswith("trackmeter track: note: --target 434,84: target p1 at "), notes
+    assert "px to a trackable corner (where asked: " in notes[0]
+
+
 def test_max_frames(monkeypatch, tmp_path, estec_rig) -> None:
     fake_source(monkeypatch, estec_rig, n=10)
     out = tmp_path / "run"

@@ -295,6 +295,12 @@ def run(args: argparse.Namespace) -> int:
                     # A source with truth from a later frame on may still let the points be selected.
                     if isinstance(command, SelectPoint) or (reply.message == NEEDS_TRUTH and not source.has_truth):
                         for_good.add(k)
+                elif reply.ok and reply.moved_px > 0 and k not in said:
+                    # Put on a trackable corner near the pixel given, not on it: say where.
+                    if tty:
+                        sys.stderr.write("\r\033[K")
+                    print(f"trackmeter track: note: {_option_of(command)}: {reply.message}", file=sys.stderr)
+                    said.add(k)
             starters = [k for k, c in enumerate(commands) if isinstance(c, (SelectPoint, SelectModelPoints))]
             state["nothing"] = args.auto is None and all(k in for_good for k in starters)
             return bool(state["nothing"])

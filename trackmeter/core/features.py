@@ -451,6 +451,38 @@ def _candidates_shi_tomasi(left: NDArray, mask: NDArray[np.uint8], params: Featu
     return np.zeros((0, 2)) if pts is None else pts.reshape(-1, 2).astype(float)
 
 
+def corners_near(image: NDArray, uv: ArrayLike, radius_px: float, limit: int = 4,
+                 quality: float = 0.05) -> FloatArray:
+    """Shi-Tomasi corners (``cv2.goodFeaturesToTrack``, 5 px blocks) within ``radius_px`` of
+    the pixel ``uv`` (2,) of a grey ``image``, nearest first, at most ``limit``: (K, 2) px.
+
+    Where an operator's click is refused (a patch without a unique stereo match, an edge that
+    would slide along itself), a corner a few pixels away often is trackable: these are the
+    places to try instead. ``quality`` is relative to the strongest corner in the neighbourhood.
+    """
+    u, v = (float(x) for x in np.asarray(uv, dtype=float).reshape(2))
+    img = np.asarray(image)
+    h, w = img.shape[:2]
+    if radius_px <= 0 or not (np.isfinite(u) and np.isfinite(v)) or not (-radius_px <= u < w + radius_px
+                                                                       and -radius_px <= v < h + radius_px):
+        return np.zeros((0, 2))
+    margin = int(np.ceil(radius_px)) + 4  # the corner measure looks 2-3 px around each pixel
+    x0, y0 = max(int(u) - margin, 0), max(int(v) - margin, 0)
+    x1, y1 = min(int(u) + margin + 1, w), min(int(v) + margin + 1, h)
+    if x1 - x0 < 5 or y1 - y0 < 5:
+        return np.zeros((0, 2))
+    crop = np.ascontiguousarray(img[y0:y1, x0:x1], dtype=np.uint8)
+    yy, xx = np.mgrid[y0:y1, x0:x1]
+    mask = (((xx - u) ** 2 + (yy - v) ** 2) <= radius_px**2).astype(np.uint8) * 255
+    pts = cv2.goodFeaturesToTrack(crop, maxCorners=4 * int(limit), qualityLevel=quality, minDistance=2,
+                                  mask=mask, blockSize=5)
+    if pts is None:
+        return np.zeros((0, 2))
+    pts = pts.reshape(-1, 2).astype(float) + [x0, y0]
+    order = np.argsort(np.hypot(pts[:, 0] - u, pts[:, 1] - v), kind="stable")
+    return pts[order[: int(limit)]]
+
+
 def _candidates_centroid(left: NDArray, mask: NDArray[np.uint8], params: FeatureParams, limit: int) -> FloatArray:
     bright = (np.asarray(left) > params.black_level).astype(np.uint8)
     n_labels, labels, stats, centroids = cv2.connectedComponentsWithStats(bright, connectivity=8)

@@ -190,6 +190,11 @@ class TrackerParams:
         "of the smoothed fit, else it failed, px (0: no re-check)", min=0.0,
     )
     lost_keep_frames: int = param(10, "frames a lost automatic target is kept before it is replaced", min=0)
+    click_snap_px: float = param(
+        5.0, "an operator's unnamed target refused where it was clicked is put on the nearest trackable corner "
+        "within this many px, and the reply says so (0: never; a target named after a model point never)",
+        min=0.0, max=50.0,
+    )
     auto: bool = param(False, "automatic feature selection on at start")
     auto_interval_frames: int = param(5, "automatic selection tops up at most every this many frames", min=1)
     auto_disparity_margin_px: float = param(

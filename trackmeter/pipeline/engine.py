@@ -53,6 +53,7 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from trackmeter.core.dynamics import coast_pose, fit_centre_of_mass
+from trackmeter.core.features import corners_near
 from trackmeter.core.output_filter import FilterParams, PoseFilter
 from trackmeter.core.patch_tracking import plane_jacobian
 from trackmeter.core.pose import (
@@ -226,6 +227,7 @@ class Engine:
         tracker_params = getattr(config, "tracker", None) or TrackerParams()
         self._lost_keep_frames = tracker_params.lost_keep_frames
         self._max_targets = tracker_params.max_targets
+        self._click_snap_px = float(getattr(tracker_params, "click_snap_px", 0.0))
         self.rate_hz = float(rate_hz) if rate_hz else 25.0
         if self.filter_params.cutoff_hz > self.max_filter_cutoff_hz:
             # design_lowpass clips it, so it filters at that; a console field shows it clipped
@@ -383,17 +385,33 @@ class Engine:
         except TrackmeterError as exc:
             return CommandReply(False, str(exc))
 
+    def _snap_click(self, frame: StereoFrame, command: SelectPoint, refusal: Refusal
+                    ) -> tuple[TargetState | Refusal, float, str]:
+        """An unnamed point refused where it is: a target on the nearest trackable corner within
+        ``tracker.click_snap_px`` (:func:`trackmeter.core.features.corners_near`), how far it
+        moved (px) and the note saying so and why; else the refusal as it was, 0, ""."""
+        if self._click_snap_px <= 0 or refusal.reason.startswith(("target limit", "outside image")):
+            return refusal, 0.0, ""
+        for corner in corners_near(frame.left, (command.u, command.v), self._click_snap_px):
+            result = self.tracker.add_target(frame, (float(corner[0]), float(corner[1])), None, "operator")
+            if not isinstance(result, Refusal):
+                moved = float(np.hypot(corner[0] - command.u, corner[1] - command.v))
+                return result, moved, f", moved {moved:.1f} px to a trackable corner (where asked: {refusal.reason})"
+        return refusal, 0.0, ""
+
     def _handle(self, command: Command, frame: StereoFrame | None) -> CommandReply:
         if isinstance(command, SelectPoint):
             if frame is None:
                 return CommandReply(False, "no frame yet")
             result = self.tracker.add_target(frame, (command.u, command.v), command.target_id, "operator")
+            moved_px, note = 0.0, ""
+            if isinstance(result, Refusal) and command.target_id is None:
+                result, moved_px, note = self._snap_click(frame, command, result)
             if isinstance(result, Refusal):
                 return CommandReply(False, f"refused at ({command.u:.1f}, {command.v:.1f}): {result.reason}")
-            note = ""
             if self._case == "b" and command.target_id is not None and command.target_id not in self._model:
                 note = " (not a model point: it joins the model once the pose is known)"
-            return CommandReply(True, f"target {result.id} at {result.point_cam[2]:.3f} m{note}", result.id)
+            return CommandReply(True, f"target {result.id} at {result.point_cam[2]:.3f} m{note}", result.id, moved_px)
         if isinstance(command, SelectModelPoints):
             reply = self._select_model_points(frame)
             self._operator_t = (frame.t_s if frame is not None else 0.0) if command.repeat else None

@@ -121,11 +121,14 @@ class Snapshot:
 
 @dataclass(frozen=True)
 class CommandReply:
-    """The answer to a command: ``ok`` or not, and a one-line message for the operator."""
+    """The answer to a command: ``ok`` or not, and a one-line message for the operator;
+    ``target_id`` the target a point selection made, ``moved_px`` how far from the pixel asked
+    for it was put (``tracker.click_snap_px``: a refused pixel's trackable corner nearby)."""
 
     ok: bool
     message: str = ""
     target_id: str | None = None
+    moved_px: float = 0.0
 
 
 @dataclass(frozen=True, eq=False)
