@@ -70,16 +70,21 @@ def test_the_cpu_priority_is_left_alone_unless_asked_for(tmp_path, monkeypatch: 
     assert asked == [-10]
 
 
+def _wait_for_status(running, text: str, timeout_s: float = 20.0) -> None:  # type: ignore[no-untyped-def]
+    """Wait until the console's status box shows ``text``; fail with what it shows instead."""
+    deadline = time.monotonic() + timeout_s
+    while text not in running.console.status_html.content:
+        assert time.monotonic() < deadline, running.console.status_html.content
+        time.sleep(0.05)
+
+
 def test_a_failing_source_is_shown_and_the_console_stays_up() -> None:
     port = free_port()
     img_source = CountingSource(40, fail_at=25)
     running = start_console(img_source, RecordingEngine(), port=port)  # type: ignore[arg-type]
     try:
         assert running.url == f"http://127.0.0.1:{port}"
-        deadline = time.monotonic() + 20
-        while "source failed: camera unplugged" not in running.console.status_html.content:
-            assert time.monotonic() < deadline, running.console.status_html.content
-            time.sleep(0.05)
+        _wait_for_status(running, "source failed: camera unplugged")
         assert running.pipeline.running
         with urllib.request.urlopen(running.url, timeout=10) as response:
             assert response.status == 200
@@ -93,10 +98,7 @@ def test_a_stopped_console_says_so_on_the_page() -> None:
     # only viser's small disconnected icon to tell (an outside console probe).
     running = start_console(CountingSource(100_000, delay_s=0.02), RecordingEngine(), port=free_port())  # type: ignore[arg-type]
     try:
-        deadline = time.monotonic() + 20
-        while "running" not in running.console.status_html.content:
-            assert time.monotonic() < deadline, running.console.status_html.content
-            time.sleep(0.05)
+        _wait_for_status(running, "running")
     finally:
         running.stop()
     assert "stopped" in running.console.status_html.content and "running" not in running.console.status_html.content
@@ -457,10 +459,7 @@ def test_what_the_source_skipped_is_shown_while_it_plays() -> None:
 
     running = start_console(SkippingSource(100_000, delay_s=0.01), RecordingEngine(), port=free_port())  # type: ignore[arg-type]
     try:
-        deadline = time.monotonic() + 20
-        while "unreadable image skipped" not in running.console.status_html.content:
-            assert time.monotonic() < deadline, running.console.status_html.content
-            time.sleep(0.05)
+        _wait_for_status(running, "unreadable image skipped")
         assert "123.png" in running.console.status_html.content
     finally:
         running.stop()
