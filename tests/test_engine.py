@@ -697,36 +697,6 @@ def test_case_b_waiting_on_a_lost_model_target_says_to_target_more_points(estec_
     assert "A2 is lost before it was located: target more of its points" in reason, reason
 
 
-def test_case_b_locates_a_model_point_lost_before_the_provisional_frame_existed(estec_rig) -> None:
-    """Three model points targeted, one lost after its first frame: the provisional frame needs
-    points tracked for frame_min_age_frames, so it could not locate that one while it was
-    measured, and the model never bound (an outside probe's run). Its first frame's point,
-    taken into the provisional frame through that frame's pose from the points measured with
-    it, locates it: the model binds and the pose is exact (no noise)."""
-    pts = body_points(14)
-    model = Model(("A0", "A1", "A2", "A3"), pts[:4])
-    tracker = FakeTracker(estec_rig, pts, ["A0", "A1", "A2", "A3"] + [f"g{i}" for i in range(10)], noise=False)
-    del tracker.active["A3"]
-    del tracker.active["A2"]
-    engine = Engine(load_config(), estec_rig, model, "b", tracker=tracker, rate_hz=1 / DT)
-    out = run(engine, [0])
-    # A2 is targeted on frame 0 after its step (a command), measured there, lost from frame 1.
-    tracker._states += (tracker._measure("A2", frame_at(0).t_s),)
-    tracker.active["A2"] = "lost"
-    out += run(engine, range(1, 40))
-    assert not out[5][1].valid and "A2 is lost before it was located" in out[5][1].reason
-    valid = [k for k, (_, pose, _) in enumerate(out) if pose.valid]
-    assert valid, out[-1][1].reason
-    assert all(pose.valid for _, pose, _ in out[valid[0]:])
-    assert engine.stats.models_bound_progressively == 1
-    _, pose, errors = out[-1]
-    assert pose.case == "b" and "A2" in engine.model_ids
-    # As in test_case_b_binds_a_model_whose_points_are_seen_two_then_one_at_a_time: the
-    # position within the screw fit's lag on this motion, the attitude exact.
-    np.testing.assert_allclose(errors["position_m"], 0, atol=1e-4)
-    np.testing.assert_allclose(errors["attitude_rad"], 0, atol=1e-9)
-
-
 @pytest.mark.parametrize("progressive", [True, False])
 def test_case_b_binds_a_model_whose_points_are_seen_two_then_one_at_a_time(estec_rig, progressive: bool) -> None:
     """pose.bind_progressively: never three a-priori points at once (A0 and A1 for 1.6 s, then

@@ -120,10 +120,6 @@ class SelectModelPoints(Command):
 _NO_POSE_ERROR = np.zeros((3, 6))
 
 
-#: Frames of measured points remembered while case (b) waits to bind its model (2 s at 25 Hz).
-BINDING_MEMORY_FRAMES = 50
-
-
 @dataclass
 class _ModelPoint:
     b: FloatArray  # (3,) body frame, m
@@ -369,12 +365,6 @@ class Engine:
         # model was bound), and the provisional case-(a) engine tracking until then.
         self._bound = False
         self._provisional: Engine | None = None
-        # ... and, while binding is pending, the measured points of each recent frame as the
-        # tracker left them (targets made by commands after the frame's step included):
-        # (t_s, {id: ((3,) point_cam m, (3,3) cov m²)}), for a-priori points lost before the
-        # provisional frame could locate them.
-        self._binding_frames: deque[tuple[float, dict[str, tuple[FloatArray, FloatArray]]]] = deque(
-            maxlen=BINDING_MEMORY_FRAMES)
 
     # ------------------------------------------------------------------ commands
 
@@ -547,12 +537,6 @@ class Engine:
             # would carry new points into it, so the body frame would change silently.
             self._start_over()
             self.stats.stream_cuts += 1
-        if self._binding_pending() and self.tracker.targets:
-            # The last frame's targets as the tracker holds them now: those the commands made
-            # after its step (an operator's model points, automatic ones) are measured there.
-            self._binding_frames.append((self._frame_t_s, {
-                t.id: (np.asarray(t.point_cam, float), np.asarray(t.cov_cam, float)) for t in self.tracker.targets
-                if t.measured and np.all(np.isfinite(t.point_cam)) and np.all(np.isfinite(t.cov_cam))}))
         reject = self._pending_reject
         self._pending_reject = set()
         targets = self.tracker.step(frame, reject_ids=reject)
@@ -667,8 +651,6 @@ class Engine:
         self._pending_reject |= inner._pending_reject
         inner._pending_reject = set()
         need = self.pose_params.min_points
-        if inner._model:
-            self._locate_from_earlier_frames(inner, {t.id for t in out_targets if t.measured})
         located = [pid for pid in self._given_model.ids if pid in inner._model]
         reason = (f"case (b): binding the model: {len(located)} of its points located in a provisional frame "
                   f"({need} needed)")
@@ -689,43 +671,6 @@ class Engine:
             reason = refused if refused is not None else f"case (b): model bound through {len(located)} of its points"
         self._operator_watch(frame)
         return out_targets, PoseEstimate.invalid(reason, self._case), None
-
-    def _locate_from_earlier_frames(self, inner: "Engine", measured_now: set[str]) -> None:
-        """Locate, in the provisional frame of ``inner``, a-priori points not measured now whose
-        targets were lost before that frame existed (it needs points tracked for
-        ``frame_min_age_frames``; a corner's patch is often lost sooner), each from the latest
-        remembered frame that measured it with at least ``min_points`` points of the
-        provisional model, whose pose ``T_cam_prov`` then is solved from those
-        (:func:`trackmeter.core.pose.solve_pose`, refused as a pose is; one try a frame). The
-        point joins the provisional model ``R^T (p - t)``, its covariance its measurement's plus
-        that pose's; :meth:`_bind` judges it with the others. Points measured now join as the
-        provisional engine joins any point."""
-        assert self._given_model is not None
-        p = self.pose_params
-        floor = p.point_sigma_floor_m**2 * np.eye(3)
-        for pid in self._given_model.ids:
-            if pid in inner._model or pid in measured_now:
-                continue
-            for t_s, points in reversed(self._binding_frames):
-                if pid not in points:
-                    continue
-                common = [i for i in points if i != pid and i in inner._model]
-                if len(common) < p.min_points:
-                    continue
-                B = np.array([inner._model[i].b for i in common])
-                P = np.array([points[i][0] for i in common])
-                C = np.array([points[i][1] for i in common]) + floor
-                Cb = np.array([inner._model[i].cov for i in common])
-                try:
-                    R, t, cov = solve_pose(B, P, C, Cb, None, p.refine_iterations)
-                except (TrackmeterError, np.linalg.LinAlgError):
-                    break
-                if not _sigmas_within(cov, p.max_attitude_sigma_deg, p.max_position_sigma_m):
-                    break
-                x, cx = points[pid]
-                b = R.T @ (x - t)
-                inner._model[pid] = _ModelPoint(b, R.T @ (cx + floor + _position_cov(cov, b, R)) @ R, False, t_s=t_s)
-                break
 
     def _bind(self, inner: "Engine", located: list[str]) -> str | None:
         """Carry the provisional model of ``inner`` into the a-priori frame through the a-priori
