@@ -69,9 +69,11 @@ NEW_TARGET = "a new target"
 UNITS_PER_PX = 0.01
 #: Where the 3D view (the left camera frame) sits in the scene, left of the image.
 SCENE3D_OFFSET = (-8.0, 0.0, -3.0)
+#: The automatic selection methods offered (paper 2.B); a configured other one (``features.method``,
+#: e.g. ``shi_tomasi``) is offered too.
 AUTO_METHODS = ("gabor", "centroid")
 # The operator widget each toggle command comes from (Console._mirror), by command name.
-_WIDGETS_OF_COMMAND = {"SetAuto": ("auto", "auto_count"), "SetRecording": ("record",), "SetCase": ("case",),
+_WIDGETS_OF_COMMAND = {"SetAuto": ("auto", "auto_count", "auto_method"), "SetRecording": ("record",), "SetCase": ("case",),
                        "SetFilterCutoff": ("cutoff",)}
 #: What a command's pop-up is titled: the control the operator used, not the command's class.
 _COMMAND_TITLES = {"SetAuto": "Automatic selection", "SetRecording": "Record", "SetCase": "Case",
@@ -561,7 +563,9 @@ class Console:
             # Up to the tracker's limit: a larger count would be refused.
             most = int(getattr(self.pipeline.engine, "max_targets", 64))
             self.auto_count = gui.add_slider("Count", min=1, max=most, step=1, initial_value=min(16, most))
-            self.auto_method = gui.add_dropdown("Method", AUTO_METHODS, initial_value="gabor")
+            method = str(getattr(self.pipeline.engine, "auto_method", AUTO_METHODS[0]))
+            methods = AUTO_METHODS if method in AUTO_METHODS else (*AUTO_METHODS, method)
+            self.auto_method = gui.add_dropdown("Method", methods, initial_value=method)
             self.clear_button = gui.add_button("Clear targets")
             gui.add_markdown("Click the left image to add a target; shift-, ctrl- or alt-click removes the nearest.")
         with gui.add_folder("Model", expand_by_default=False):
@@ -946,6 +950,8 @@ class Console:
         self._mirror("auto", self.auto_checkbox, snap.auto_enabled)
         if snap.auto_count >= 1:
             self._mirror("auto_count", self.auto_count, snap.auto_count)
+        if snap.auto_method in self.auto_method.options:
+            self._mirror("auto_method", self.auto_method, snap.auto_method)
         if np.isfinite(snap.filter_cutoff_hz) and self._cutoff_edit is None:
             # As the filter takes it (clipped to its range); not while the operator's value waits
             # to settle (:meth:`_send_settled_edits`): the field keeps what they typed.

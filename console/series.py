@@ -31,7 +31,7 @@ from scipy.spatial.transform import Rotation
 
 from trackmeter.pipeline.snapshot import Snapshot
 
-#: Plot name → (title, series labels, unit). The x axis is the frame time, s.
+#: Plot name → (title with its unit, series labels). The x axis is the frame time, s.
 PLOTS: dict[str, tuple[str, tuple[str, ...]]] = {
     "position": ("Position, camera frame [m]", ("x", "y", "z (depth)")),
     "attitude": ("Attitude, rotation vector [deg]", ("rx", "ry", "rz")),

@@ -70,6 +70,25 @@ def test_the_cpu_priority_is_left_alone_unless_asked_for(tmp_path, monkeypatch: 
     assert asked == [-10]
 
 
+def test_the_console_draws_the_configured_patch_size(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # tracker.patch_size from --config: the boxes were drawn 8 px whatever it said (an outside
+    # code review).
+    import console.server as server_mod
+    from trackmeter.errors import TrackmeterError
+
+    seen: dict[str, object] = {}
+
+    def fake_start(source, engine, **kwargs):  # type: ignore[no-untyped-def]
+        seen.update(kwargs)
+        raise TrackmeterError("stop here (test)")
+
+    monkeypatch.setattr(server_mod, "start_console", fake_start)
+    config = tmp_path / "c.yaml"
+    config.write_text("tracker:\n  patch_size: 12\n")
+    assert main(["console", "--source", "sim", "--config", str(config), "--port", str(free_port())]) == 2
+    assert seen["patch_px"] == 12
+
+
 def _wait_for_status(running, text: str, timeout_s: float = 20.0) -> None:  # type: ignore[no-untyped-def]
     """Wait until the console's status box shows ``text``; fail with what it shows instead."""
     deadline = time.monotonic() + timeout_s
@@ -217,6 +236,34 @@ class _CutoffsSentEngine(_LimitsEngine):
         if isinstance(command, SetFilterCutoff):
             self.sent.append(command.cutoff_hz)
         return super().handle(command, frame)
+
+
+def test_the_method_widget_shows_the_configured_method_and_a_toggle_keeps_it() -> None:
+    # features.method from --config (centroid, shi_tomasi) was shown as "gabor", and the first
+    # tick of "Automatic selection" sent "gabor", replacing it (an outside code review).
+    from trackmeter.pipeline.snapshot import SetAuto
+
+    class _MethodEngine(_LimitsEngine):
+        auto_method = "shi_tomasi"
+
+        def handle(self, command, frame):  # type: ignore[no-untyped-def]
+            if isinstance(command, SetAuto):
+                self.sent_method = command.method
+                if command.method:
+                    self.auto_method = command.method
+            return super().handle(command, frame)
+
+    engine = _MethodEngine()
+    running = start_console(CountingSource(100_000, delay_s=0.02), engine, port=free_port())  # type: ignore[arg-type]
+    con = running.console
+    try:
+        assert con.auto_method.value == "shi_tomasi" and "shi_tomasi" in con.auto_method.options
+        assert con._auto_command().method == "shi_tomasi"
+        running.pipeline.submit(SetAuto(True, 6, "centroid")).result(10)  # changed elsewhere
+        _wait_for_pushes(con, 4)
+        assert con.auto_method.value == "centroid"
+    finally:
+        running.stop()
 
 
 def test_the_count_and_cutoff_widgets_follow_the_tracker_and_its_limits() -> None:

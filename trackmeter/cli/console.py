@@ -105,7 +105,8 @@ def _serve(args: argparse.Namespace, config: Any, priority_note: str | None = No
         engine = Engine(config, source.rig, model=source.model, case=args.case,
                         rate_hz=source.rate_hz)
         running = start_console(source, engine, host=args.host, port=args.port, record_dir=args.record,
-                                source_label=args.source, publish_hz=args.publish_hz)
+                                source_label=args.source, publish_hz=args.publish_hz,
+                                patch_px=config.tracker.patch_size)
     except BaseException:
         source.close()
         raise

@@ -623,11 +623,6 @@ def fuse_point_correlated(
     return b, 0.5 * (Cm + np.swapaxes(Cm, -1, -2)), A @ L_old + B @ L_new
 
 
-def pose_between_models(model_from: FloatArray, model_to: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """``(R, t)`` with ``model_to ≈ R model_from + t`` (unweighted Kabsch), (N,3) each, N >= 3."""
-    return absolute_orientation(model_to, model_from)
-
-
 def hold_frame(b_before: ArrayLike, b_after: ArrayLike, cov_before: ArrayLike) -> tuple[FloatArray, FloatArray]:
     """Case (a): the rigid motion that puts refined model points back into the frame they were in.
 

@@ -391,11 +391,6 @@ def figure_png(fig) -> bytes:  # type: ignore[no-untyped-def]
     return buffer.getvalue()
 
 
-def save_figure(fig, path: Path) -> None:  # type: ignore[no-untyped-def]
-    """Save a matplotlib figure as a PNG, atomically."""
-    write_files_atomic({Path(path): figure_png(fig)})
-
-
 #: The files ``write_evaluation`` puts in its folder (a report of a run is stale once the run
 #: is replaced: ``track --overwrite`` removes them).
 REPORT_FILES = ("summary.json", "errors.csv", "report.md", "position_error.png", "attitude_error.png",

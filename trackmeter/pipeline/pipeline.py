@@ -46,8 +46,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Protocol, Sequence
 
-import numpy as np
-
 from trackmeter.core.patch_tracking import warm_up
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.targets import TargetState
@@ -222,9 +220,9 @@ class _Recorder:
                 with self._lock:
                     self.frames_written += 1
             except Exception as exc:  # disk full, permissions: report, keep the pipeline up
-                with self._lock:
+                with self._lock:  # stats() reads the counts and the error together
                     self.frames_lost += 1
-                self.error = f"recording failed: {exc}"
+                    self.error = f"recording failed: {exc}"
                 log.error("%s", self.error)
                 self._close_writer()
         self._close_writer()
@@ -236,7 +234,8 @@ class _Recorder:
         try:
             writer.close()
         except Exception as exc:
-            self.error = self.error or f"closing the recording failed: {exc}"
+            with self._lock:
+                self.error = self.error or f"closing the recording failed: {exc}"
             log.error("%s", self.error)
 
     def _carried_on(self, frame: StereoFrame) -> StereoFrame:
@@ -934,11 +933,3 @@ def _when_all_replied(futures: list[Future[CommandReply]], callback: Callable[[l
         callback([])
     for f in futures:
         f.add_done_callback(one_done)
-
-
-def snapshot_points(snapshot: Snapshot) -> tuple[np.ndarray, list[str]]:
-    """(N,3) camera-frame points of the measured targets of ``snapshot`` and their ids."""
-    measured = [t for t in snapshot.targets if t.measured and np.all(np.isfinite(t.point_cam))]
-    if not measured:
-        return np.zeros((0, 3)), []
-    return np.array([t.point_cam for t in measured], dtype=np.float64), [t.id for t in measured]

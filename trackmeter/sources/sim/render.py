@@ -160,16 +160,6 @@ class _View:
         return int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1
 
 
-@dataclass
-class _Item:
-    face: Face
-    surface: Surface
-    side: float
-    depth: float
-    roi: tuple[int, int, int, int]
-    index: int
-
-
 class _Geom:
     """Faces as stacked arrays, for vectorised visibility, projection and shadow tests."""
 
