@@ -72,6 +72,14 @@ def test_analyze_bad_source_is_one_line(tmp_path, capsys):
     assert code == 2 and err.count("\n") == 1 and "Traceback" not in err
 
 
+@pytest.mark.parametrize("points, expected", [("2", "[3, 1000], got 2"), ("5000", "[3, 1000], got 5000")])
+def test_points_is_held_to_the_range_of_its_config_key(tmp_path, capsys, points, expected):
+    # --points 5000 was taken although analyze.points_per_range goes to 1000 (an outside review).
+    code = main(["analyze", "--source", str(tmp_path / "nowhere"), "--points", points])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and err == [f"trackmeter analyze: error: --points: expected a value in {expected}"], err
+
+
 def test_split_ranges_groups_frames_by_true_pose():
     import numpy as np
 

@@ -270,6 +270,17 @@ def test_bad_estimate_run_dirs(capsys, tmp_path):
     assert code == 2 and "--tolerance" in err
 
 
+@pytest.mark.parametrize("option, value", [("--settle", "inf"), ("--settle", "nan"), ("--settle", "-1"),
+                                           ("--tolerance", "100"), ("--tolerance", "nan")])
+def test_options_are_held_to_the_range_their_config_key_has(capsys, sequence_and_run, option, value):
+    # --tolerance 100 and --settle inf were taken although evaluate.tolerance_s goes to 10 s and
+    # settle_s to 1e6 s (an outside code review): an option is checked as its key in a --config.
+    _, seq, run = sequence_and_run
+    code, _, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), option, value)
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and f"{option}: expected a value in [" in lines[0], err
+
+
 def test_a_run_without_a_valid_pose_says_why_its_poses_were_invalid(capsys, tmp_path):
     """An outside probe got "no valid pose in the run" for a case (b) run that bound no model
     point: true, but the reason `track` gave for most of its frames, kept in run.yaml, says what

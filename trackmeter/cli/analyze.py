@@ -50,9 +50,11 @@ def run(args: argparse.Namespace) -> int:
     config = load_config_from_args(args)
     params = config.analyze
     if args.points is not None:
-        if args.points < 3:
-            raise TrackmeterError(f"--points must be at least 3, got {args.points}")
-        params = replace(params, points_per_range=args.points)
+        from trackmeter.core.error_analysis import AnalyzeParams
+        from trackmeter.data.config import check_option
+
+        params = replace(params, points_per_range=check_option(AnalyzeParams, "points_per_range", args.points,
+                                                                "--points"))
     if args.out:
         from trackmeter.data.evaluation import check_report_directory
 

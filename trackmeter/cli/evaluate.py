@@ -46,21 +46,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _params(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     from trackmeter.core.metrics import EvaluateParams
-    from trackmeter.errors import TrackmeterError
+    from trackmeter.data.config import check_option
 
-    config = load_config_from_args(args)
-    params = getattr(config, "evaluate", EvaluateParams())
+    params = load_config_from_args(args).evaluate
     changes = {}
     if args.align is not None:
         changes["align"] = args.align
     if args.settle is not None:
-        if not args.settle >= 0:
-            raise TrackmeterError(f"--settle must be >= 0 s, got {args.settle}")
-        changes["settle_s"] = args.settle
+        changes["settle_s"] = check_option(EvaluateParams, "settle_s", args.settle, "--settle")
     if args.tolerance is not None:
-        if not args.tolerance >= 0:
-            raise TrackmeterError(f"--tolerance must be >= 0 s, got {args.tolerance}")
-        changes["tolerance_s"] = args.tolerance
+        changes["tolerance_s"] = check_option(EvaluateParams, "tolerance_s", args.tolerance, "--tolerance")
     return replace(params, **changes)
 
 

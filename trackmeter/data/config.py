@@ -250,6 +250,26 @@ def _convert(tp: Any, value: Any, meta: Mapping[str, Any], source: str, dotted: 
     fail()
 
 
+def check_option(params_type: type, name: str, value: Any, option: str) -> Any:
+    """``value`` of the command-line ``option`` that sets ``params_type``'s field ``name``, held
+    to that field's range or choices (:func:`trackmeter.core.params.param`) as a ``--config``
+    key is; a number must be finite.
+
+    Raises:
+        TrackmeterError: ``"OPTION: expected a value in [lo, hi], got V"`` and the like.
+    """
+    meta = next(f.metadata for f in dataclasses.fields(params_type) if f.name == name)
+    if isinstance(value, float) and not math.isfinite(value):
+        lo, hi = meta.get("min"), meta.get("max")
+        raise TrackmeterError(f"{option}: expected a value in [{lo if lo is not None else '-inf'}, "
+                              f"{hi if hi is not None else 'inf'}], got {value!r}")
+    try:
+        _check_range(value, meta, option, "")
+    except TrackmeterError as exc:
+        raise TrackmeterError(str(exc).replace(f"{option}: '': ", f"{option}: ", 1)) from None
+    return value
+
+
 def _check_range(value: float, meta: Mapping[str, Any], source: str, dotted: str) -> None:
     lo, hi = meta.get("min"), meta.get("max")
     if lo is not None and value < lo or hi is not None and value > hi:
