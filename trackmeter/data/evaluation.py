@@ -39,8 +39,8 @@ class LoadedMotion:
     has_velocity: bool
     t_start_s: float | None = None  # start of a run (first states.csv row, valid or not)
     case: str | None = None  # a track run's pose case ("a", "b", "c"; its run.yaml), else None
-    # a track run's starts over at a cut in its source and case (a)'s new frames after a total
-    # loss (its run.yaml's summary): (stream_cuts, frames_redefined)
+    # how often a track run started its body frame anew (its run.yaml's summary): at a cut in
+    # its source, and case (a)'s new frames after a total loss: (stream_cuts, frames_redefined)
     restarts: tuple[int, int] = (0, 0)
 
 
