@@ -374,6 +374,8 @@ class Console:
         self._trails: dict[str, deque[tuple[float, float]]] = {}
         self._pending: deque[tuple[Future[CommandReply], Any, str]] = deque()
         self._pending_lock = threading.Lock()
+        # A click named after a model point, until its reply: the choice it used (_click_at).
+        self._model_point_clicks: dict[Future[CommandReply], str] = {}
         self._views: dict[int, list[Any]] = {}  # client id -> [client, preset, aspect framed for]
         self._popups: dict[int, Any] = {}  # client id -> the pop-up it shows last
         self._stop = threading.Event()
@@ -682,13 +684,8 @@ class Console:
             return self.submit(SelectPoint(uv[0], uv[1]), client, f"Target at {_pixel_text(uv)}")
         future = self.submit(SelectPoint(uv[0], uv[1], model_point), client,
                              f"Model point {model_point} at {_pixel_text(uv)}")
-
-        def used_up(done: Future[CommandReply]) -> None:
-            if not done.cancelled() and done.exception() is None and done.result().ok \
-                    and self.model_point_dropdown.value == model_point:
-                self.model_point_dropdown.value = NEW_TARGET
-
-        future.add_done_callback(used_up)
+        with self._pending_lock:  # used up by the publisher once the target is made (_flush_replies)
+            self._model_point_clicks[future] = model_point
         return future
 
     def _on_remove_click(self, event: Any) -> None:
@@ -863,6 +860,10 @@ class Console:
                 reply = future.result(0)
             except Exception as exc:
                 reply = CommandReply(False, f"{type(exc).__name__}: {exc}")
+            with self._pending_lock:
+                model_point = self._model_point_clicks.pop(future, None)
+            if reply.ok and model_point is not None and self.model_point_dropdown.value == model_point:
+                self.model_point_dropdown.value = NEW_TARGET  # the choice is used up; a refusal keeps it
             if reply.ok and label.startswith(("SetAuto", "SetFilterCutoff", "SetPaused", "StepOnce")):
                 continue  # the UI shows the new state; no pop-up needed
             if not reply.ok:  # the widget the operator changed shows the tracker's state again
