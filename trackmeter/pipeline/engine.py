@@ -223,7 +223,7 @@ class Engine:
         tracker_params = getattr(config, "tracker", None) or TrackerParams()
         self._lost_keep_frames = tracker_params.lost_keep_frames
         self._max_targets = tracker_params.max_targets
-        self._click_snap_px = float(getattr(tracker_params, "click_snap_px", 0.0))
+        self._click_snap_px = float(tracker_params.click_snap_px)
         self.rate_hz = float(rate_hz) if rate_hz else 25.0
         if self.filter_params.cutoff_hz > self.max_filter_cutoff_hz:
             # design_lowpass clips it, so it filters at that; a console field shows it clipped
