@@ -259,22 +259,19 @@ def check_option(params_type: type, name: str, value: Any, option: str) -> Any:
         TrackmeterError: ``"OPTION: expected a value in [lo, hi], got V"`` and the like.
     """
     meta = next(f.metadata for f in dataclasses.fields(params_type) if f.name == name)
-    if isinstance(value, float) and not math.isfinite(value):
-        lo, hi = meta.get("min"), meta.get("max")
-        raise TrackmeterError(f"{option}: expected a value in [{lo if lo is not None else '-inf'}, "
-                              f"{hi if hi is not None else 'inf'}], got {value!r}")
-    try:
-        _check_range(value, meta, option, "")
-    except TrackmeterError as exc:
-        raise TrackmeterError(str(exc).replace(f"{option}: '': ", f"{option}: ", 1)) from None
+    _check_range(value, meta, option, "", finite=True)
     return value
 
 
-def _check_range(value: float, meta: Mapping[str, Any], source: str, dotted: str) -> None:
+def _check_range(value: float, meta: Mapping[str, Any], source: str, dotted: str, finite: bool = False) -> None:
+    """Raise when ``value`` is outside ``meta``'s bounds or choices (or, with ``finite``, not a
+    finite number); the message names ``source: 'dotted'``, or ``source`` alone without a key."""
+    where = f"{source}: '{dotted}'" if dotted else source
     lo, hi = meta.get("min"), meta.get("max")
-    if lo is not None and value < lo or hi is not None and value > hi:
+    infinite = finite and isinstance(value, float) and not math.isfinite(value)
+    if infinite or lo is not None and value < lo or hi is not None and value > hi:
         bounds = f"[{lo if lo is not None else '-inf'}, {hi if hi is not None else 'inf'}]"
-        raise TrackmeterError(f"{source}: '{dotted}': expected a value in {bounds}, got {value!r}")
+        raise TrackmeterError(f"{where}: expected a value in {bounds}, got {value!r}")
     choices = meta.get("choices")
     if choices is not None and value not in choices:
-        raise TrackmeterError(f"{source}: '{dotted}': expected one of {', '.join(map(repr, choices))}, got {value!r}")
+        raise TrackmeterError(f"{where}: expected one of {', '.join(map(repr, choices))}, got {value!r}")
