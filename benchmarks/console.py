@@ -42,7 +42,7 @@ operator's browser on another machine, reported as ``browser_nice``), ``TRACKMET
 pre-rendered frame of a textured plate at 25 Hz, which takes the renderer's CPU out of the
 figures), ``TRACKMETER_BENCH_LIVE_S`` (default 30), ``TRACKMETER_BENCH_CPU_NICE`` (default: what
 ``trackmeter console`` does, ``--cpu-nice``'s default, 0: the priority left alone; -10 runs the
-process and its session's autogroup at nice -10, see :mod:`trackmeter.pipeline.priority`, as in
+process and its session's autogroup at nice -10, see :mod:`trackmeter.priority`, as in
 the README table's run). ``cpu_nice`` is the value asked for and
 ``cpu_priority_raised`` 1 when the system allowed it.
 """
@@ -82,9 +82,9 @@ def _log(msg: str) -> None:
 def console_priority() -> tuple[int, Any]:
     """Raise the CPU priority as ``trackmeter console`` does (before the source opens), or as
     ``TRACKMETER_BENCH_CPU_NICE`` says; returns the nice value asked for and the
-    :class:`PriorityChange` (None: left alone) for :func:`~trackmeter.pipeline.priority.restore_cpu_priority`."""
+    :class:`PriorityChange` (None: left alone) for :func:`~trackmeter.priority.restore_cpu_priority`."""
     from trackmeter.cli.console import DEFAULT_CPU_NICE
-    from trackmeter.pipeline.priority import raise_cpu_priority
+    from trackmeter.priority import raise_cpu_priority
 
     nice = int(os.environ.get("TRACKMETER_BENCH_CPU_NICE", DEFAULT_CPU_NICE))
     if nice == 0:
@@ -368,7 +368,7 @@ def run() -> dict[str, float]:
     from console.overlay import STATUS_RGB, box_half_px, displayed_rgb, node_rgb_for
     from console.server import start_console
     from tests.browser.conftest import CHROMIUM_ARGS, VIEWPORT, free_port, main_canvas_box, pixel_to_screen
-    from trackmeter.pipeline.priority import restore_cpu_priority
+    from trackmeter.priority import restore_cpu_priority
     from trackmeter.pipeline.snapshot import RemoveTarget, SetAuto
     from trackmeter.sources import open_source
 

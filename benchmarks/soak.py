@@ -153,7 +153,7 @@ class _ConsoleRun:
         finally:
             self.running.stop()
             if self._priority is not None:
-                from trackmeter.pipeline.priority import restore_cpu_priority
+                from trackmeter.priority import restore_cpu_priority
 
                 restore_cpu_priority(self._priority)
 

@@ -54,7 +54,7 @@ def test_the_cpu_priority_is_left_alone_unless_asked_for(tmp_path, monkeypatch: 
     console benchmark's Chromium, in the console's session, did not open its websocket within
     60 s in 3 runs of 4 at nice -10; one in its own session took 3-19 s a screenshot,
     docs/results.md), so raising it is the operator's choice (--cpu-nice N), not the default."""
-    import trackmeter.pipeline.priority as priority
+    import trackmeter.priority as priority
 
     asked: list[int] = []
 

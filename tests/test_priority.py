@@ -1,4 +1,4 @@
-"""CPU priority of the live pipeline (trackmeter.pipeline.priority): set, refused, restored."""
+"""CPU priority of the live pipeline (trackmeter.priority): set, refused, restored."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import threading
 
 import pytest
 
-from trackmeter.pipeline import priority as pr
+from trackmeter import priority as pr
 
 
 class _FakeOS:

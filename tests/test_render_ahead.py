@@ -116,7 +116,7 @@ def test_the_pipe_holds_a_whole_frame_where_the_system_allows(short_estec):
 
 def test_the_worker_runs_in_a_session_of_its_own(short_estec):
     # Autogroup scheduling shares the CPUs between sessions: the camera stand-in must not take
-    # its CPU out of the tracking process's share (trackmeter.pipeline.priority).
+    # its CPU out of the tracking process's share (trackmeter.priority).
     import os
 
     ahead = RenderAhead(short_estec, (726, 512))

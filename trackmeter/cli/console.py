@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
 
         check_record_directory(args.record)
     config = load_config_from_args(args)
-    from trackmeter.pipeline.priority import raise_cpu_priority, restore_cpu_priority
+    from trackmeter.priority import raise_cpu_priority, restore_cpu_priority
 
     priority = None
     if args.cpu_nice:

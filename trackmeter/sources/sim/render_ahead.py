@@ -113,7 +113,7 @@ def worker_main(stdin: IO[bytes] | None = None, stdout: IO[bytes] | None = None)
     if stdin is None:
         import cv2
 
-        from trackmeter.pipeline.priority import autogroup_follows_nice
+        from trackmeter.priority import autogroup_follows_nice
 
         # One thread: the worker renders ahead, so its CPU per frame matters, not its latency;
         # OpenCV's thread pool costs a few % more CPU (same images) and competes with the reader.
