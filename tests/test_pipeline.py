@@ -737,3 +737,40 @@ def test_an_interrupt_while_winding_down_waits_for_the_block_to_finish() -> None
     finally:
         signal.signal(signal.SIGINT, inherited[0])
         signal.signal(signal.SIGTERM, inherited[1])
+
+
+def test_a_frame_read_before_a_restart_never_reaches_the_tracker_after_it(tmp_path: Path) -> None:
+    # The acquisition thread had read frame 3 when the Restart was applied: that frame is of the
+    # stream before the restart and must not be tracked after it (it would be tracked as the
+    # restarted stream's first frame, and the real first frame then taken for a jump back).
+    engine = RecordingEngine()
+    source = CountingSource(10**6, delay_s=0.002)
+    with Pipeline(source, engine, paused=True, writer_factory=ListWriter) as pipe:
+        for _ in range(3):
+            assert pipe.call(StepOnce()).ok
+        _wait_for_reads(source, 3)
+        assert pipe.call(SetRecording(tmp_path / "rec")).ok
+        recorder = pipe._recorder
+        assert recorder is not None
+        offer = recorder.offer
+        restarted: list[CommandReply] = []
+
+        def offer_then_restart(frame: StereoFrame) -> None:
+            # Between the read and the hand-over to the tracker: the operator's Restart lands.
+            if frame.index == 3 and not restarted:
+                restarted.append(pipe.submit(RestartSource()).result(5))
+            offer(frame)
+
+        recorder.offer = offer_then_restart  # type: ignore[method-assign]
+        assert pipe.call(StepOnce()).ok
+        _wait_for_reads(source, 5)  # frame 3, then the restarted stream's frame 0
+        for _ in range(500):
+            if engine.processed[-1:] == [0] and len(engine.processed) > 3:
+                break
+            threading.Event().wait(0.01)
+        assert restarted and restarted[0].ok, restarted
+        assert engine.processed == [0, 1, 2, 0], engine.processed
+        snap = pipe.latest()
+        assert snap.timings.frames_read == 5
+        # Not tracked, so counted as dropped; the recording kept it (it was read).
+        assert snap.timings.frames_dropped == 1

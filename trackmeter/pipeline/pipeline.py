@@ -345,6 +345,7 @@ class Pipeline:
         self._frames_read = 0
         self._frames_processed = 0
         self._frames_dropped = 0
+        self._source_generation = 0  # counts restarts; see _acquire_loop
         self._acq_rate = _RateMeter()
         self._trk_rate = _RateMeter()
 
@@ -496,16 +497,19 @@ class Pipeline:
                     return
                 if self._paused:
                     self._steps -= 1
+            # The stream a frame comes from: a Restart applied between this read and the hand-over
+            # below makes the frame (or the end, or the failure) one of the stream before it.
             try:
                 with self._source_lock:
+                    generation = self._source_generation
                     frame = self.source.read()
             except Exception as exc:  # a failing camera must not take the process down
                 message = str(exc) if isinstance(exc, TrackmeterError) else f"{type(exc).__name__}: {exc}"
                 source_log.error("source failed: %s", message)
-                self._source_finished(f"source failed: {message}")
+                self._source_finished(f"source failed: {message}", generation)
                 continue
             if frame is None:
-                self._source_finished("ended")
+                self._source_finished("ended", generation)
                 continue
             t_read = time.monotonic()
             with self._record_lock:
@@ -515,6 +519,9 @@ class Pipeline:
             with self._cond:
                 self._frames_read += 1
                 self._acq_rate.tick(t_read)
+                if generation != self._source_generation:
+                    self._frames_dropped += 1  # read before a restart: recorded, not tracked
+                    continue
                 if not self.drop_frames:
                     while self._slot is not None and not self._stop:
                         self._cond.wait()
@@ -526,8 +533,10 @@ class Pipeline:
                 self._slot = (frame, t_read)
                 self._cond.notify_all()
 
-    def _source_finished(self, status: str) -> None:
+    def _source_finished(self, status: str, generation: int) -> None:
         with self._cond:
+            if generation != self._source_generation:
+                return  # the stream that ended or failed was restarted meanwhile
             self._source_done = True
             self._source_status = status
             self._steps = 0
@@ -554,8 +563,10 @@ class Pipeline:
             for command in commands:
                 self._apply(command)
                 changed = True
-                if isinstance(command, RestartSource):
+                if isinstance(command, RestartSource) and item is not None:
                     item = None  # a frame of the stream before the restart
+                    with self._cond:
+                        self._frames_dropped += 1
             if commands and self._refresh_targets() and item is not None:
                 # The answer to a click (its target on the frame the operator clicked) is shown
                 # now, not one tracking step later.
@@ -644,7 +655,11 @@ class Pipeline:
         if isinstance(command, RestartSource):
             with self._source_lock:
                 self.source.restart()
+                with self._cond:
+                    self._source_generation += 1
             with self._cond:
+                if self._slot is not None:
+                    self._frames_dropped += 1  # a frame of the stream before the restart
                 self._slot = None
                 self._source_done = False
                 self._source_status = None
