@@ -272,6 +272,32 @@ def test_matching_needs_the_right_camera_to_the_right(estec_rig: StereoRig) -> N
             Tracker(rig, TrackerParams(), FeatureParams(), MeasureParams())
 
 
+@pytest.mark.parametrize(
+    ("R", "T", "words"),
+    [
+        # Where the right camera's centre is (-R^T T in the left camera's frame, y down) is what
+        # the message says, not the direction the rectified projection happens to carry.
+        (np.diag([-1.0, -1.0, 1.0]), [-0.193, 0.0, 0.0], "lies left of the left one"),
+        (np.eye(3), [0.0, -0.193, 0.0], "lies below the left one"),
+        (np.eye(3), [0.0, 0.193, 0.0], "lies above the left one"),
+        (np.eye(3), [-0.01, 0.0, -0.193], "lies in front of the left one"),
+        (np.eye(3), [-0.01, 0.0, 0.193], "lies behind the left one"),
+        (np.diag([-1.0, -1.0, 1.0]), [0.193, 0.0, 0.0], "turned 180 deg about its viewing axis"),
+    ],
+)
+def test_a_rig_that_cannot_be_matched_is_described_by_where_its_right_camera_is(
+        estec_rig: StereoRig, R: np.ndarray, T: list[float], words: str) -> None:
+    import dataclasses
+
+    from trackmeter.core.stereo import check_side_by_side
+
+    rig = dataclasses.replace(estec_rig, R=np.asarray(R, float), T=np.asarray(T, float))
+    with pytest.raises(TrackmeterError, match=words) as caught:
+        check_side_by_side(rig)
+    centre = np.round(-rig.R.T @ rig.T, 3).tolist()
+    assert str(centre) in str(caught.value), caught.value
+
+
 def test_point_sigma_is_a_number_for_rank_one_covariance(estec_rig: StereoRig) -> None:
     """With no pixel noise the covariance is rank 1 (along the ray); on the camera's x = 0 and
     y = 0 planes its rotated diagonal holds a zero that rounding can make -1e-26, and its square

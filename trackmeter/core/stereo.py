@@ -13,6 +13,8 @@ Projection and distortion go through OpenCV (``projectPoints``, ``undistortPoint
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -406,26 +408,45 @@ def check_side_by_side(rig: StereoRig) -> None:
     same rectified ROW with a positive disparity ``d = u_left - u_right`` (the stereo matcher
     searches rows, and depth is ``f b / d``).
 
+    A rig whose right camera lies mostly in front of or behind the left one is refused too.
     A vertical rig rectifies to equal columns (``P2[1,3]`` carries the baseline, ``P2[0,3]`` is
     0): a row search finds look-alikes at made-up depths. A swapped rig (right camera at -x:
     the images or the cameras exchanged) gives every depth negative.
     """
     P2 = rig.rectification.P2
     bx, by = float(P2[0, 3]), float(P2[1, 3])
-    if abs(by) <= abs(bx) and bx < 0:
+    centre = -rig.R.T @ rig.T
+    # A baseline mostly along the viewing axis puts the epipoles inside the images: rectified
+    # rows then fan out from them and a few pixels hold the whole scene's disparity.
+    along_axis = abs(float(centre[2])) > float(np.hypot(centre[0], centre[1]))
+    if abs(by) <= abs(bx) and bx < 0 and not along_axis:
         return  # every measurement passes here: nothing else to do
-    t = np.round(rig.T, 4).tolist()
-    if abs(by) > abs(bx):
-        raise TrackmeterError(
-            f"the rig is not side by side (T = {t} m: the right camera lies mostly "
-            f"{'below' if by < 0 else 'above'} the left one): matching searches along rectified rows, so the "
-            "right camera must lie to the right of the left one (T about (-baseline, 0, 0)); turn both "
-            "images and the rig by 90 degrees"
-        )
-    raise TrackmeterError(
-        f"the right camera lies left of the left one (T = {t} m): left and right are swapped; "
-        "exchange the left and right images (and the rig's cameras)"
-    )
+    raise TrackmeterError(_not_side_by_side_reason(rig))
+
+
+def _not_side_by_side_reason(rig: StereoRig) -> str:
+    """Why ``rig`` cannot be matched, told by where its right camera is: its centre
+    ``-R^T T`` in the left camera's frame (x right, y down, z forward), and its turn about the
+    viewing axis against the left camera."""
+    centre = -rig.R.T @ rig.T
+    at = f"its centre at {np.round(centre, 3).tolist()} m in the left camera's frame, x right, y down"
+    cx, cy, cz = (float(v) for v in centre)
+    if abs(cz) > math.hypot(cx, cy):
+        return (f"the rig is not side by side: the right camera lies {'in front of' if cz > 0 else 'behind'} "
+                f"the left one ({at}); matching needs the right camera beside the left one, "
+                "T about (-baseline, 0, 0)")
+    if abs(cy) > abs(cx):
+        return (f"the rig is not side by side: the right camera lies {'below' if cy > 0 else 'above'} the "
+                f"left one ({at}); matching searches along rectified rows, so the right camera must lie "
+                "to the right of the left one (T about (-baseline, 0, 0)); turn both images and the rig "
+                "by 90 degrees")
+    if cx < 0:
+        return (f"the right camera lies left of the left one ({at}): left and right are swapped; exchange "
+                "the left and right images (and the rig's cameras)")
+    # Beside it, on the right, yet rectification does not put it there: it is turned round.
+    roll_deg = math.degrees(math.atan2(float(rig.R[1, 0]), float(rig.R[0, 0])))
+    return (f"the right camera lies right of the left one ({at}) but is turned {abs(roll_deg):.0f} deg about "
+            "its viewing axis against it (R): turn the right images to match the left ones and R with them")
 
 
 def depth_sigma(z_m: ArrayLike, focal_px: float, baseline_m: float, sigma_disparity_px: float) -> FloatArray:
