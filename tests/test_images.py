@@ -8,7 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from trackmeter.data.images import data_bits, expand_globs, pair_stereo_paths, read_grey, read_grey_pair
+from trackmeter.data.images import (data_bits, expand_globs, pair_stereo_paths, read_grey, read_grey_pair,
+                                    to_grey_u8)
 from trackmeter.errors import TrackmeterError
 
 
@@ -141,3 +142,25 @@ def test_pairing_by_number_and_by_order(tmp_path: Path) -> None:
         pair_stereo_paths(left[:1], right)
     with pytest.raises(TrackmeterError, match="share a frame number"):
         pair_stereo_paths(_touch(tmp_path, "l1.png"), _touch(tmp_path, "r2.png"))
+
+
+@pytest.mark.parametrize("scale", [1.0, 255.0, 65535.0])
+def test_float_images_are_read_on_the_scale_their_values_are_in(scale: float) -> None:
+    # A float TIFF saved from 8-bit data holds 0-255: clipped to [0, 1] it read as white, and
+    # every point was "textureless" with nothing said.
+    grey = np.arange(0, 256, dtype=np.uint8).reshape(16, 16)
+    image = (grey.astype(np.float32) / 255.0) * np.float32(scale)
+    np.testing.assert_array_equal(to_grey_u8(image), grey)
+
+
+def test_a_float_image_with_a_few_values_over_one_is_still_a_unit_image() -> None:
+    # A high-dynamic-range image on [0, 1] may hold a highlight above 1: it saturates there.
+    image = np.full((32, 32), 0.5, np.float32)
+    image[0, :3] = 3.0  # 0.3 % of the pixels
+    out = to_grey_u8(image)
+    assert out[5, 5] == 128 and out[0, 0] == 255
+
+
+def test_float_images_beyond_sixteen_bit_are_refused() -> None:
+    with pytest.raises(TrackmeterError, match="float"):
+        to_grey_u8(np.full((8, 8), 1e6, np.float32), "x.tif")

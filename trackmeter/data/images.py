@@ -122,7 +122,8 @@ def read_grey(path: str | Path, bits: int | None = None) -> NDArray[np.uint8]:
 
     Colour is converted with OpenCV's luminance weights (``cvtColor``, BGR→GRAY), an alpha
     channel is dropped, 16-bit images keep the top 8 of their ``bits`` data bits (default:
-    their own :func:`data_bits`) and float images (e.g. EXR) are clipped to [0, 1] and scaled to [0, 255].
+    their own :func:`data_bits`) and float images (e.g. EXR) are read on [0, 1], or on 0-255 or
+    0-65535 when their values are (:func:`_float_scale`).
 
     Raises:
         TrackmeterError: missing file, unreadable file, or a file that is not a decodable image.
@@ -150,7 +151,8 @@ def to_grey_u8(image: NDArray[np.generic], name: str = "image", bits: int = 16) 
         shift = min(max(int(bits), 8), 16) - 8
         img = np.minimum(img >> shift, 255).astype(np.uint8)
     elif img.dtype in (np.float32, np.float64):
-        img = np.clip(np.nan_to_num(img) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+        scale = _float_scale(img, name)
+        img = np.clip(np.nan_to_num(img) * (255.0 / scale) + 0.5, 0, 255).astype(np.uint8)
     elif img.dtype != np.uint8:
         raise TrackmeterError(f"{name}: unsupported pixel type {img.dtype}")
     if img.ndim == 3 and img.shape[2] == 3:
@@ -160,6 +162,25 @@ def to_grey_u8(image: NDArray[np.generic], name: str = "image", bits: int = 16) 
     elif img.ndim != 2:
         raise TrackmeterError(f"{name}: unsupported image layout {img.shape}")
     return np.ascontiguousarray(img)
+
+
+#: Full scales a float image's values may be on: [0, 1] (OpenEXR, most float TIFFs), the 8-bit
+#: and the 16-bit ranges (a float TIFF saved from integer data keeps its numbers).
+FLOAT_FULL_SCALES = (1.0, 255.0, 65535.0)
+
+
+def _float_scale(img: NDArray[np.floating], name: str) -> float:
+    """The full scale of a float image's values (:data:`FLOAT_FULL_SCALES`): [0, 1] unless more
+    than 1 % of its pixels are above 1.5 (a high-dynamic-range image's highlights over 1
+    saturate), then the smallest range that holds its largest value."""
+    finite = img[np.isfinite(img)]
+    if finite.size == 0 or np.count_nonzero(finite > 1.5) <= 0.01 * finite.size:
+        return 1.0
+    largest = float(finite.max())
+    for scale in FLOAT_FULL_SCALES[1:]:
+        if largest <= scale + 0.5:
+            return scale
+    raise TrackmeterError(f"{name}: float pixel values up to {largest:.4g}: expected [0, 1], 0-255 or 0-65535")
 
 
 def _natural_key(path: Path) -> list[object]:
