@@ -164,3 +164,15 @@ def test_a_float_image_with_a_few_values_over_one_is_still_a_unit_image() -> Non
 def test_float_images_beyond_sixteen_bit_are_refused() -> None:
     with pytest.raises(TrackmeterError, match="float"):
         to_grey_u8(np.full((8, 8), 1e6, np.float32), "x.tif")
+
+
+def test_a_pair_of_different_sample_depths_is_warned_about(tmp_path: Path) -> None:
+    # Scaled alike (as a pair must be), a 12-bit left beside a full 16-bit right reads black,
+    # and every point came back "too dark" with nothing said.
+    rng = np.random.default_rng(1)
+    left = rng.integers(0, 4096, (20, 30), dtype=np.uint16)
+    right = rng.integers(0, 65536, (20, 30), dtype=np.uint16)
+    cv2.imwrite(str(tmp_path / "l.png"), left)
+    cv2.imwrite(str(tmp_path / "r.png"), right)
+    with pytest.warns(UserWarning, match="12-bit.*16-bit"):
+        read_grey_pair(tmp_path / "l.png", tmp_path / "r.png")

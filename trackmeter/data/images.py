@@ -137,6 +137,12 @@ def read_grey_pair(left: str | Path, right: str | Path) -> tuple[NDArray[np.uint
     :func:`data_bits`)."""
     images = [decode_image(left), decode_image(right)]
     bits = data_bits(images)
+    own = [data_bits([image]) for image in images]
+    # Warned only where it blacks one image out (at most 15 grey levels of 256): one image of a
+    # pair may well be darker than the other.
+    if all(image.dtype == np.uint16 for image in images) and abs(own[0] - own[1]) >= 4:
+        warnings.warn(f"{left} looks {own[0]}-bit and {right} {own[1]}-bit: both are read as "
+                      f"{bits}-bit (a pair is scaled alike), so the {min(own)}-bit one is dark", stacklevel=2)
     return to_grey_u8(images[0], str(left), bits), to_grey_u8(images[1], str(right), bits)
 
 
