@@ -676,3 +676,23 @@ def test_a_countdown_is_one_reason_in_the_summary(tmp_path, capsys, monkeypatch)
     others = len(reasons) - 1
     rest = sum(sorted(reasons.values())[:-1])
     assert others >= 1 and f"invalid in {rest} more frame{'s' if rest != 1 else ''} for {others} other reason(s)" in printed, printed
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--source", "{tmp}/no_such_folder"], "no_such_folder"),
+        (["--rig", "{tmp}/no_such_rig.yaml"], "no_such_rig.yaml"),
+        (["--model", "{tmp}/no_such_model.yaml", "--case", "b"], "no_such_model.yaml"),
+    ],
+)
+def test_a_missing_input_is_named_before_nothing_to_track(tmp_path, capsys, opencv_sample_sequence,
+                                                          extra, message) -> None:  # type: ignore[no-untyped-def]
+    # An outside probe forgot --auto and gave a wrong path: it was told "nothing to track", and
+    # only after adding --auto that the path does not exist.
+    args = ["track", "--source", str(opencv_sample_sequence), *[a.format(tmp=tmp_path) for a in extra],
+            "--out", str(tmp_path / "run")]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert message in err and "nothing to track" not in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "run").exists()

@@ -161,8 +161,6 @@ def run(args: argparse.Namespace) -> int:
         raise TrackmeterError(f"{len(targets)} --target points but at most {most} targets are tracked (tracker.max_targets)")
     if args.max_frames is not None and args.max_frames < 1:
         raise TrackmeterError(f"--max-frames must be at least 1, got {args.max_frames}")
-    if not targets and args.auto is None and not args.select_model_points:
-        raise TrackmeterError("nothing to track: give --target [ID=]U,V, --auto N and/or --select-model-points")
     check_run_directory(args.out, args.overwrite)  # before the source: its notes would come first
     model = load_model(args.model) if args.model else None
 
@@ -176,6 +174,9 @@ def run(args: argparse.Namespace) -> int:
         rig = source.rig
         if rig is None:
             raise TrackmeterError(f"source {args.source!r} carries no stereo rig: give --rig")
+        # After the inputs are read: a wrong path is the error to fix first.
+        if not targets and args.auto is None and not args.select_model_points:
+            raise TrackmeterError("nothing to track: give --target [ID=]U,V, --auto N and/or --select-model-points")
         if model is None and args.case in (None, "b"):
             model = source.model
         model_label = args.model or ("source" if model is not None else None)
