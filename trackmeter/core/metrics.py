@@ -41,7 +41,8 @@ class EvaluateParams:
     """Tunables of ``trackmeter evaluate``."""
 
     tolerance_s: float = param(
-        0.01, "largest |t_estimate - t_truth| for two poses to be paired, s", min=0.0, max=10.0
+        # At least 1 us: times read from nanoseconds as float seconds differ by a few 1e-7 s.
+        0.01, "largest |t_estimate - t_truth| for two poses to be paired, s", min=1e-6, max=10.0
     )
     settle_s: float = param(
         0.0, "seconds skipped from the start of the run (else the first paired pose) before errors count, s",
