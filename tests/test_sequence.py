@@ -637,6 +637,23 @@ def test_model_file_keys_of_other_tools_are_ignored_with_a_warning(tmp_path):
         load_model(path)
 
 
+def test_a_model_written_in_millimetres_is_warned_about(tmp_path):
+    # An outside probe's model of a 0.7 m box in mm: no pose ever, and nothing said (a rig's T in
+    # mm is warned about). No satellite's points lie 100 m apart; a metre-sized one in mm does.
+    path = tmp_path / "model.yaml"
+    path.write_text("points:\n  - {id: a, xyz: [0, 0, 0]}\n  - {id: b, xyz: [700, 0, 0]}\n"
+                    "  - {id: c, xyz: [0, 600, 0]}\n")
+    with pytest.warns(UserWarning, match="metres.*millimetres"):
+        load_model(path)
+    path.write_text("points:\n  - {id: a, xyz: [0, 0, 0]}\n  - {id: b, xyz: [30, 0, 0]}\n"
+                    "  - {id: c, xyz: [0, 2, 0]}\n")  # a 30 m solar array: metres
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_model(path)
+
+
 def test_videos_of_different_frame_sizes_are_refused_when_opened(tmp_path):
     """Left and right frames of different sizes are no stereo pair: said when the source is
     opened for a command (its frame size is asked before anything is written), not as a

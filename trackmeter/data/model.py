@@ -169,6 +169,12 @@ def _check_ids(ids: Sequence[str], path: Path) -> None:
             raise TrackmeterError(f"{path}: points[{i}].id {name!r} begins or ends with a space")
 
 
+#: A model whose points span more than this (m) is taken for one written in millimetres
+#: (DESIGN.md: metres): a geostationary satellite's arrays span tens of metres, and any body
+#: from 10 cm up in mm spans more.
+MAX_PLAUSIBLE_MODEL_SPAN_M = 100.0
+
+
 def load_model(path: str | Path) -> Model:
     """Read a model file.
 
@@ -199,9 +205,14 @@ def load_model(path: str | Path) -> Model:
     ids = tuple(str(e.id) for e in parsed.points)
     _check_ids(ids, path)
     try:
-        return Model(ids, np.array([e.xyz for e in parsed.points], dtype=float).reshape(-1, 3))
+        model = Model(ids, np.array([e.xyz for e in parsed.points], dtype=float).reshape(-1, 3))
     except TrackmeterError as exc:
         raise TrackmeterError(f"{path}: {exc}") from None
+    span = float(np.ptp(model.points_body, axis=0).max())
+    if span > MAX_PLAUSIBLE_MODEL_SPAN_M:
+        warnings.warn(f"{path}: the points span {span:.4g} m: a model is in metres; if it is in millimetres, no pose "
+                      "will fit the tracked points", stacklevel=2)
+    return model
 
 
 def model_to_yaml(model: Model, name: str = "") -> str:
