@@ -185,6 +185,24 @@ def test_noise_limited_disparity_sigma_matches_monte_carlo_of_the_shift_estimato
     assert np.mean(temporal_noise_variance(stack)) == pytest.approx(noise**2, rel=0.03)
 
 
+def test_temporal_noise_is_not_the_light_changing():
+    """A still target under light that changes slowly (an outside probe's renderer: the gain
+    swinging by +-60 % over the sequence) must give the sensor noise, not the brightness swing:
+    the plain variance over frames took it for noise and put the limit 5 times too high."""
+    from trackmeter.core.error_analysis import temporal_noise_variance
+
+    rng = np.random.default_rng(3)
+    texture = rng.uniform(40, 200, size=(24, 32))
+    frames = 40
+    gain = 1.0 + 0.6 * np.sin(np.linspace(0.0, 2.0, frames))  # a slow swing, 40 frames
+    noise = 2.0
+    stack = gain[:, None, None] * texture[None] + rng.normal(scale=noise, size=(frames, *texture.shape))
+    assert np.mean(temporal_noise_variance(stack)) == pytest.approx(noise**2, rel=0.1)
+    # Two frames: what differs between them is all there is to go on.
+    pair = texture[None] + rng.normal(scale=noise, size=(2, *texture.shape))
+    assert np.mean(temporal_noise_variance(pair)) == pytest.approx(noise**2, rel=0.1)
+
+
 def test_point_disparity_sigma_is_eq2_per_point():
     from trackmeter.core.error_analysis import point_disparity_sigma
 

@@ -214,10 +214,15 @@ def truth_errors(points_cam_m: ArrayLike, true_points_cam_m: ArrayLike, gross_si
 
 
 def temporal_noise_variance(images: ArrayLike) -> FloatArray:
-    """Per-pixel variance over a stack of images of a still scene, grey levels².
+    """Per-pixel variance of the sensor noise over a stack of images of a still scene, grey levels².
 
     What changes from frame to frame of a still target is the sensor noise (read and shot
-    noise), so the unbiased variance over frames estimates its variance at each pixel.
+    noise) and, outside a laboratory, the light. The light changes slowly, so the noise is taken
+    from the second differences in time, ``e_t = x_(t+1) - 2 x_t + x_(t-1)``, in which a
+    brightness that changes linearly cancels exactly (and a smooth swing nearly): for white noise
+    of variance s² each has variance 6 s², so ``s² = sum e_t² / (6 (F - 2))`` (von Neumann's
+    successive-difference idea, one order up). With two frames, ``(x_2 - x_1)² / 2``. The plain
+    variance over frames counted a ±60 % swing of the light as noise (5 times the true s²).
 
     Args:
         images: (F, H, W) grey images, F >= 2.
@@ -225,7 +230,10 @@ def temporal_noise_variance(images: ArrayLike) -> FloatArray:
     stack = np.asarray(images, dtype=float)
     if stack.ndim != 3 or stack.shape[0] < 2:
         raise TrackmeterError(f"temporal noise needs (frames >= 2, H, W) images, got {stack.shape}")
-    return np.var(stack, axis=0, ddof=1)
+    if stack.shape[0] == 2:
+        return 0.5 * (stack[1] - stack[0]) ** 2
+    second = stack[2:] - 2.0 * stack[1:-1] + stack[:-2]
+    return np.sum(second * second, axis=0) / (6.0 * (stack.shape[0] - 2))
 
 
 def noise_limited_disparity_sigma(patch: ArrayLike, noise_variance: float) -> float:
