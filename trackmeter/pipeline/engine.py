@@ -147,6 +147,9 @@ class _Acquisition:
     points: dict[str, list[FloatArray]] = field(default_factory=dict)
     covs: dict[str, list[FloatArray]] = field(default_factory=dict)
     frames: int = 0
+    #: The reason the last acquisition was started over (the object moved), said until this one
+    #: has seen the object still: a restarted one cannot tell stillness for its first frames.
+    moved: str | None = None
 
 
 @dataclass
@@ -764,16 +767,23 @@ class Engine:
             acq.points.setdefault(tid, []).append(np.asarray(tgt.point_cam, float))
             acq.covs.setdefault(tid, []).append(np.asarray(tgt.cov_cam, float))
         # Still? Each point's samples must scatter about their mean as their covariance says.
+        checked = False
         for tid, pts in acq.points.items():
             if len(pts) < 3:
                 continue
+            checked = True
             P = np.array(pts)
             C = np.array(acq.covs[tid])
             r = P - P.mean(axis=0)
             d2 = float(np.mean(np.einsum("ni,nij,nj->n", r, np.linalg.inv(C), r)))
             if d2 > p.still_max_d2:
-                self._acquisition = _Acquisition()
-                return f"acquiring a model: the object moved (point {tid}); hold it still"
+                moved = f"acquiring a model: the object moved (point {tid}); hold it still"
+                self._acquisition = _Acquisition(moved=moved)
+                return moved
+        if checked:
+            acq.moved = None
+        elif acq.moved is not None:
+            return acq.moved
         elapsed = frame.t_s - acq.t_start
         if elapsed < p.still_time_s:
             return f"acquiring a model: hold still ({p.still_time_s - elapsed:.1f} s left)"
