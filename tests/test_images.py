@@ -144,21 +144,42 @@ def test_pairing_by_number_and_by_order(tmp_path: Path) -> None:
         pair_stereo_paths(_touch(tmp_path, "l1.png"), _touch(tmp_path, "r2.png"))
 
 
-@pytest.mark.parametrize("scale", [1.0, 255.0, 65535.0])
-def test_float_images_are_read_on_the_scale_their_values_are_in(scale: float) -> None:
+@pytest.mark.parametrize("full_scale", [255.0, 65535.0])
+def test_float_images_of_whole_numbers_are_integer_data(full_scale: float) -> None:
     # A float TIFF saved from 8-bit data holds 0-255: clipped to [0, 1] it read as white, and
-    # every point was "textureless" with nothing said.
+    # every point was "textureless" with nothing said (an outside probe).
     grey = np.arange(0, 256, dtype=np.uint8).reshape(16, 16)
-    image = (grey.astype(np.float32) / 255.0) * np.float32(scale)
+    image = np.round(grey.astype(np.float64) * (full_scale / 255.0)).astype(np.float32)
     np.testing.assert_array_equal(to_grey_u8(image), grey)
 
 
-def test_a_float_image_with_a_few_values_over_one_is_still_a_unit_image() -> None:
-    # A high-dynamic-range image on [0, 1] may hold a highlight above 1: it saturates there.
-    image = np.full((32, 32), 0.5, np.float32)
-    image[0, :3] = 3.0  # 0.3 % of the pixels
+def test_float_images_on_the_unit_range_saturate_their_highlights() -> None:
+    # A scene-linear image with 2 % of its pixels at 8.0 (a glint) is still on [0, 1].
+    rng = np.random.default_rng(2)
+    image = rng.uniform(0.05, 0.9, size=(50, 50)).astype(np.float32)
+    image.flat[::50] = 8.0
     out = to_grey_u8(image)
-    assert out[5, 5] == 128 and out[0, 0] == 255
+    np.testing.assert_array_equal(out, np.clip(np.round(image * 255.0), 0, 255).astype(np.uint8))
+
+
+def test_a_small_target_on_black_sky_in_whole_numbers_keeps_its_grey_levels() -> None:
+    image = np.zeros((100, 100), np.float32)
+    image[45:54, 45:54] = np.arange(81, dtype=np.float32).reshape(9, 9) + 100.0  # 0.81 % of the pixels
+    out = to_grey_u8(image)
+    assert out[0, 0] == 0 and out[45, 45] == 100 and out[53, 53] == 180
+
+
+def test_a_pair_of_float_images_is_scaled_alike(tmp_path: Path) -> None:
+    # The dark image of a pair of whole-number images (all 0 and 1, no target) stays black: it
+    # is read on the range the other says, not on [0, 1] by itself.
+    lit = np.zeros((20, 30), np.float32)
+    lit[5:10, 5:10] = 200.0
+    dark = np.zeros((20, 30), np.float32)
+    dark[0, :5] = 1.0
+    cv2.imwrite(str(tmp_path / "l.tif"), lit)
+    cv2.imwrite(str(tmp_path / "r.tif"), dark)
+    left, right = read_grey_pair(tmp_path / "l.tif", tmp_path / "r.tif")
+    assert left[7, 7] == 200 and right.max() <= 1
 
 
 def test_float_images_beyond_sixteen_bit_are_refused() -> None:

@@ -356,6 +356,18 @@ def test_twelve_bit_images_in_sixteen_bit_files_play_scaled_alike_in_every_frame
     assert SequenceSource(_write(tmp_path / "eight", frames)).image_bits == 8
 
 
+def test_a_sequence_whose_cameras_store_different_sample_depths_is_warned_about(tmp_path):
+    # 12-bit left beside full 16-bit right, scaled alike: the left reads black (at most 15 grey
+    # levels), and every point is refused as black sky with nothing said.
+    frames = _frames(3)
+    d = _write(tmp_path / "s", frames)
+    for cam, side, shift in (("cam0", "left", 4), ("cam1", "right", 8)):
+        for k, path in enumerate(sorted((d / cam / "data").glob("*.png"), key=lambda q: int(q.stem))):
+            cv2.imwrite(str(path), getattr(frames[k], side).astype(np.uint16) << shift)
+    with pytest.warns(UserWarning, match="12-bit.*16-bit"):
+        assert SequenceSource(d).image_bits == 16
+
+
 def test_data_csv_with_no_usable_row_says_what_a_row_must_be(tmp_path):
     d = _write(tmp_path / "s", _frames(3))
     rows = (d / "cam0" / "data.csv").read_text().splitlines()

@@ -106,15 +106,36 @@ def data_bits(images: Iterable[NDArray[np.generic]]) -> int:
     256 for 12-bit data), so the depth is told from the values. The rule only changes images
     that would otherwise be that dark; decide it once per sequence or stereo pair (from
     several images, each with a lit target), so every frame is scaled alike.
+
+    A float image of whole numbers (a float TIFF saved from integer data) counts as
+    integer data too, from 8 bits up (:func:`_whole_number_max`); other float images are on
+    [0, 1] and do not count.
     """
-    largest = -1
+    largest16 = largest_float = -1
     for image in images:
         img = np.asarray(image)
         if img.dtype == np.uint16 and img.size:
-            largest = max(largest, int(img.max()))
-    if largest < 0:
-        return 8
-    return next(b for b in SAMPLE_BITS if largest < 2**b)
+            largest16 = max(largest16, int(img.max()))
+        elif img.dtype in (np.float32, np.float64):
+            whole = _whole_number_max(img)
+            if whole is not None:
+                largest_float = max(largest_float, int(min(whole, 2.0**16)))
+    bits = 8
+    if largest16 >= 0:
+        bits = next(b for b in SAMPLE_BITS if largest16 < 2**b)
+    if largest_float >= 0:
+        bits = max(bits, next((b for b in (8, *SAMPLE_BITS) if largest_float < 2**b), 16))
+    return bits
+
+
+def _whole_number_max(img: NDArray[np.floating]) -> float | None:
+    """The largest value of a float image whose finite values are all whole numbers (integer
+    data stored as float: a dark frame of it holds only 0 and 1), else None (an image on
+    [0, 1], whose grey levels are fractions)."""
+    finite = img[np.isfinite(img)]
+    if finite.size == 0 or not np.array_equal(finite, np.round(finite)):
+        return None
+    return float(finite.max())
 
 
 def read_grey(path: str | Path, bits: int | None = None) -> NDArray[np.uint8]:
@@ -122,8 +143,9 @@ def read_grey(path: str | Path, bits: int | None = None) -> NDArray[np.uint8]:
 
     Colour is converted with OpenCV's luminance weights (``cvtColor``, BGR→GRAY), an alpha
     channel is dropped, 16-bit images keep the top 8 of their ``bits`` data bits (default:
-    their own :func:`data_bits`) and float images (e.g. EXR) are read on [0, 1], or on 0-255 or
-    0-65535 when their values are (:func:`_float_scale`).
+    their own :func:`data_bits`) and float images (e.g. EXR) on [0, 1] are scaled to [0, 255]
+    (highlights above 1 saturate); a float image of whole numbers is integer data, read as
+    :func:`data_bits` says.
 
     Raises:
         TrackmeterError: missing file, unreadable file, or a file that is not a decodable image.
@@ -140,24 +162,32 @@ def read_grey_pair(left: str | Path, right: str | Path) -> tuple[NDArray[np.uint
     own = [data_bits([image]) for image in images]
     # Warned only where it blacks one image out (at most 15 grey levels of 256): one image of a
     # pair may well be darker than the other.
-    if all(image.dtype == np.uint16 for image in images) and abs(own[0] - own[1]) >= 4:
+    if all(image.dtype != np.uint8 for image in images) and abs(own[0] - own[1]) >= 4:
         warnings.warn(f"{left} looks {own[0]}-bit and {right} {own[1]}-bit: both are read as "
                       f"{bits}-bit (a pair is scaled alike), so the {min(own)}-bit one is dark", stacklevel=2)
     return to_grey_u8(images[0], str(left), bits), to_grey_u8(images[1], str(right), bits)
 
 
-def to_grey_u8(image: NDArray[np.generic], name: str = "image", bits: int = 16) -> NDArray[np.uint8]:
+def to_grey_u8(image: NDArray[np.generic], name: str = "image", bits: int | None = None) -> NDArray[np.uint8]:
     """Convert a decoded image ((H,W), (H,W,1), (H,W,3) BGR or (H,W,4) BGRA; any depth) to 8-bit
-    grey. A 16-bit image's data are its low ``bits`` bits (:func:`data_bits`): its top 8 of
-    them are kept, larger values saturate at 255."""
+    grey. A 16-bit image's data are its low ``bits`` bits (:func:`data_bits`; None: 16): its
+    top 8 of them are kept, larger values saturate at 255. A float image is on [0, 1] unless it
+    holds whole numbers (integer data, on the range of ``bits`` or its own, the larger)."""
     img = np.asarray(image)
     if img.ndim == 3 and img.shape[2] == 1:
         img = img[:, :, 0]
     if img.dtype == np.uint16:
-        shift = min(max(int(bits), 8), 16) - 8
+        shift = min(max(int(bits if bits is not None else 16), 8), 16) - 8
         img = np.minimum(img >> shift, 255).astype(np.uint8)
     elif img.dtype in (np.float32, np.float64):
-        scale = _float_scale(img, name)
+        whole = _whole_number_max(img)
+        if whole is not None and whole > 65535:
+            raise TrackmeterError(f"{name}: float pixel values up to {whole:.6g}: expected [0, 1], or whole numbers "
+                                  "up to 65535")
+        # Whole numbers: integer data, on the range of ``bits`` (the pair's or sequence's, at
+        # least its own); else [0, 1], where a high-dynamic-range image's highlights saturate.
+        own = data_bits([img])
+        scale = 1.0 if whole is None else float(2 ** max(own, int(bits) if bits is not None else own) - 1)
         img = np.clip(np.nan_to_num(img) * (255.0 / scale) + 0.5, 0, 255).astype(np.uint8)
     elif img.dtype != np.uint8:
         raise TrackmeterError(f"{name}: unsupported pixel type {img.dtype}")
@@ -168,25 +198,6 @@ def to_grey_u8(image: NDArray[np.generic], name: str = "image", bits: int = 16) 
     elif img.ndim != 2:
         raise TrackmeterError(f"{name}: unsupported image layout {img.shape}")
     return np.ascontiguousarray(img)
-
-
-#: Full scales a float image's values may be on: [0, 1] (OpenEXR, most float TIFFs), the 8-bit
-#: and the 16-bit ranges (a float TIFF saved from integer data keeps its numbers).
-FLOAT_FULL_SCALES = (1.0, 255.0, 65535.0)
-
-
-def _float_scale(img: NDArray[np.floating], name: str) -> float:
-    """The full scale of a float image's values (:data:`FLOAT_FULL_SCALES`): [0, 1] unless more
-    than 1 % of its pixels are above 1.5 (a high-dynamic-range image's highlights over 1
-    saturate), then the smallest range that holds its largest value."""
-    finite = img[np.isfinite(img)]
-    if finite.size == 0 or np.count_nonzero(finite > 1.5) <= 0.01 * finite.size:
-        return 1.0
-    largest = float(finite.max())
-    for scale in FLOAT_FULL_SCALES[1:]:
-        if largest <= scale + 0.5:
-            return scale
-    raise TrackmeterError(f"{name}: float pixel values up to {largest:.4g}: expected [0, 1], 0-255 or 0-65535")
 
 
 def _natural_key(path: Path) -> list[object]:

@@ -705,7 +705,14 @@ def sequence_data_bits(index: SequenceIndex, samples: int = 3) -> int:
     for pos in positions:
         for path in (index.left_paths[pos], index.right_paths[pos]):
             try:
-                images.append(decode_image(path))
+                images.append((path, decode_image(path)))
             except TrackmeterError:
                 continue
-    return data_bits(images)
+    bits = data_bits([image for _, image in images])
+    own = [(data_bits([image]), path) for path, image in images if image.dtype != np.uint8]
+    if own and max(own)[0] - min(own)[0] >= 4:
+        # Where the joint scaling blacks images out (at most 15 grey levels of 256).
+        (low, low_path), (high, high_path) = min(own), max(own)
+        warnings.warn(f"{low_path} looks {low}-bit and {high_path} {high}-bit: the sequence is read as {bits}-bit "
+                      f"(every frame scaled alike), so the {low}-bit images are dark", stacklevel=2)
+    return bits
