@@ -774,3 +774,23 @@ def test_a_frame_read_before_a_restart_never_reaches_the_tracker_after_it(tmp_pa
         assert snap.timings.frames_read == 5
         # Not tracked, so counted as dropped; the recording kept it (it was read).
         assert snap.timings.frames_dropped == 1
+
+
+def test_a_lossless_pipeline_drops_the_frames_read_before_a_restart_too() -> None:
+    # Lossless (run_headless, track): the acquisition thread waits for the slot with frame 2 in
+    # hand while the tracker, busy on frame 0, has frame 1 waiting and a Restart queued. Neither
+    # old frame may be tracked after the restart (code review: frame 2 was, 10 runs in 10).
+    gate = threading.Event()
+    engine = RecordingEngine(block_first=gate)
+    source = CountingSource(5)
+    with Pipeline(source, engine, drop_frames=False) as pipe:
+        assert engine.entered.wait(5)
+        _wait_for_reads(source, 3)  # frame 1 in the slot, frame 2 waiting for it
+        threading.Event().wait(0.05)
+        restart = pipe.submit(RestartSource())
+        gate.set()
+        assert restart.result(5).ok
+        snap = pipe.run_until_end(10)
+    assert engine.processed == [0, 0, 1, 2, 3, 4], engine.processed
+    t = snap.timings
+    assert t.frames_read == 8 and t.frames_processed == 6 and t.frames_dropped == 2, t

@@ -525,6 +525,9 @@ class Pipeline:
                 if not self.drop_frames:
                     while self._slot is not None and not self._stop:
                         self._cond.wait()
+                    if generation != self._source_generation:
+                        self._frames_dropped += 1  # restarted while it waited for the slot
+                        continue
                 if self._slot is not None:
                     self._frames_dropped += 1
                     if self._slot[0].cut and not frame.cut:
@@ -653,22 +656,23 @@ class Pipeline:
                 self._cond.notify_all()
             return CommandReply(True, "stepping one frame")
         if isinstance(command, RestartSource):
+            # One step under both locks: no frame of the restarted stream can be read (nor a
+            # waiting old one handed over) between the restart and the state it starts from.
             with self._source_lock:
                 self.source.restart()
                 with self._cond:
                     self._source_generation += 1
-            with self._cond:
-                if self._slot is not None:
-                    self._frames_dropped += 1  # a frame of the stream before the restart
-                self._slot = None
-                self._source_done = False
-                self._source_status = None
-                self._acq_rate.reset()
-                # Paused, the page would go on showing the frame from before the restart with
-                # its targets, as if nothing had happened: step to the first frame instead.
-                paused = self._paused
-                self._steps = 1 if paused else 0
-                self._cond.notify_all()
+                    if self._slot is not None:
+                        self._frames_dropped += 1  # a frame of the stream before the restart
+                    self._slot = None
+                    self._source_done = False
+                    self._source_status = None
+                    self._acq_rate.reset()
+                    # Paused, the page would go on showing the frame from before the restart with
+                    # its targets, as if nothing had happened: step to the first frame instead.
+                    paused = self._paused
+                    self._steps = 1 if paused else 0
+                    self._cond.notify_all()
             return CommandReply(True, "source restarted" + ("; paused at its first frame" if paused else "")
                                 + ("; the recording goes on, its time carried on" if self._recording() else ""))
         if isinstance(command, SetRecording):
