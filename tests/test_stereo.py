@@ -277,7 +277,9 @@ def test_matching_needs_the_right_camera_to_the_right(estec_rig: StereoRig) -> N
     [
         # Where the right camera's centre is (-R^T T in the left camera's frame, y down) is what
         # the message says, not the direction the rectified projection happens to carry.
-        (np.diag([-1.0, -1.0, 1.0]), [-0.193, 0.0, 0.0], "lies left of the left one"),
+        (np.eye(3), [0.193, 0.0, 0.0], "lies left of the left one"),
+        # Left of it AND turned round: exchanging alone would give the same rig back (code review).
+        (np.diag([-1.0, -1.0, 1.0]), [-0.193, 0.0, 0.0], "turned 180 deg about its viewing axis.*then exchange"),
         (np.eye(3), [0.0, -0.193, 0.0], "lies below the left one"),
         (np.eye(3), [0.0, 0.193, 0.0], "lies above the left one"),
         (np.eye(3), [-0.01, 0.0, -0.193], "lies in front of the left one"),

@@ -416,8 +416,9 @@ def check_side_by_side(rig: StereoRig) -> None:
     P2 = rig.rectification.P2
     bx, by = float(P2[0, 3]), float(P2[1, 3])
     centre = -rig.R.T @ rig.T
-    # A baseline mostly along the viewing axis puts the epipoles inside the images: rectified
-    # rows then fan out from them and a few pixels hold the whole scene's disparity.
+    # A baseline more along the viewing axis than across it: rectification would turn both
+    # views by more than 45 deg toward the baseline, and what disparity there is grows with the
+    # distance from the epipole more than with nearness (a choice of bound, not a field of view).
     along_axis = abs(float(centre[2])) > float(np.hypot(centre[0], centre[1]))
     if abs(by) <= abs(bx) and bx < 0 and not along_axis:
         return  # every measurement passes here: nothing else to do
@@ -429,7 +430,8 @@ def _not_side_by_side_reason(rig: StereoRig) -> str:
     ``-R^T T`` in the left camera's frame (x right, y down, z forward), and its turn about the
     viewing axis against the left camera."""
     centre = -rig.R.T @ rig.T
-    at = f"its centre at {np.round(centre, 3).tolist()} m in the left camera's frame, x right, y down"
+    at = f"its centre at {(np.round(centre, 3) + 0.0).tolist()} m in the left camera's frame, x right, y down"
+    roll_deg = math.degrees(math.atan2(float(rig.R[1, 0]), float(rig.R[0, 0])))
     cx, cy, cz = (float(v) for v in centre)
     if abs(cz) > math.hypot(cx, cy):
         return (f"the rig is not side by side: the right camera lies {'in front of' if cz > 0 else 'behind'} "
@@ -440,11 +442,14 @@ def _not_side_by_side_reason(rig: StereoRig) -> str:
                 f"left one ({at}); matching searches along rectified rows, so the right camera must lie "
                 "to the right of the left one (T about (-baseline, 0, 0)); turn both images and the rig "
                 "by 90 degrees")
+    if cx < 0 and abs(roll_deg) > 90.0:
+        return (f"the right camera lies left of the left one ({at}) and is turned {abs(roll_deg):.0f} deg about "
+                "its viewing axis against it (R): turn the right images to match the left ones and R with them, "
+                "then exchange the left and right images (and the rig's cameras)")
     if cx < 0:
         return (f"the right camera lies left of the left one ({at}): left and right are swapped; exchange "
                 "the left and right images (and the rig's cameras)")
     # Beside it, on the right, yet rectification does not put it there: it is turned round.
-    roll_deg = math.degrees(math.atan2(float(rig.R[1, 0]), float(rig.R[0, 0])))
     return (f"the right camera lies right of the left one ({at}) but is turned {abs(roll_deg):.0f} deg about "
             "its viewing axis against it (R): turn the right images to match the left ones and R with them")
 

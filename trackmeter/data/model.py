@@ -171,7 +171,7 @@ def _check_ids(ids: Sequence[str], path: Path) -> None:
 
 #: A model whose points span more than this (m) is taken for one written in millimetres
 #: (DESIGN.md: metres): a geostationary satellite's arrays span tens of metres, and any body
-#: from 10 cm up in mm spans more.
+#: over 10 cm in mm spans more.
 MAX_PLAUSIBLE_MODEL_SPAN_M = 100.0
 
 

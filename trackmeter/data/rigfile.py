@@ -140,7 +140,7 @@ def swapped_cameras(rig: StereoRig) -> bool:
     """True when the right camera's centre lies left of the left camera (a horizontal rig whose
     files or cameras were swapped): every disparity is then negative and nothing matches."""
     centre = -rig.R.T @ rig.T  # the right camera's optical centre in the left camera frame
-    return bool(centre[0] < 0 and abs(centre[0]) > abs(centre[1]))
+    return bool(centre[0] < 0 and abs(centre[0]) > max(abs(centre[1]), abs(centre[2])))
 
 
 #: A baseline longer than this (m) is taken for one written in millimetres (DESIGN.md: ``T`` in
