@@ -1,8 +1,9 @@
 """The direction of imports inside ``trackmeter/`` (DESIGN.md section 2), read from the source.
 
 Bottom to top: core, data, sources (and the simulator), pipeline, cli. A module imports only
-from its own layer and the ones below it; the package's top-level helpers (``errors``,
-``paths``, ``signals``, ``priority``) sit below them all. Nothing in ``trackmeter`` imports
+from its own layer and the ones below it; the package's top-level helpers sit at the layer
+their work belongs to (``errors`` below them all, ``paths`` with data, ``signals`` and
+``priority`` with the sources: core does no I/O). Nothing in ``trackmeter`` imports
 ``console`` or ``viser``, except the one command that starts the console. Imports inside
 functions count (a lazy import still ties the layers together); imports under
 ``if TYPE_CHECKING:`` do not (they never run).
@@ -19,8 +20,11 @@ PACKAGE = Path(__file__).resolve().parents[1] / "trackmeter"
 
 #: Rank of each layer: a module may import from a rank at most its own.
 LAYER_RANK = {"core": 1, "data": 2, "sources": 3, "pipeline": 4, "cli": 5}
-#: errors.py, paths.py, signals.py, priority.py and the package's __init__.
+#: The package's top-level helpers: the error type (pure) under everything; where the files
+#: are, with the data layer; the process's signals and CPU priority (operating-system state,
+#: not pure computation) with the sources. Anything else at the top (__init__) under everything.
 TOP_LEVEL_RANK = 0
+HELPER_RANK = {"errors": 0, "paths": 2, "signals": 3, "priority": 3}
 #: ``trackmeter console`` is where the library meets the console: its command module starts it.
 MAY_IMPORT_CONSOLE = {"trackmeter.cli.console"}
 
@@ -34,7 +38,7 @@ def rank_of(module: str) -> int | None:
         return TOP_LEVEL_RANK
     if parts[1] == "__main__":
         return LAYER_RANK["cli"]  # ``python -m trackmeter`` runs the command line
-    return LAYER_RANK.get(parts[1], TOP_LEVEL_RANK)
+    return LAYER_RANK.get(parts[1], HELPER_RANK.get(parts[1], TOP_LEVEL_RANK))
 
 
 def module_name(path: Path) -> str:
@@ -125,3 +129,5 @@ def test_the_check_sees_lazy_relative_and_console_imports() -> None:
     assert imported_modules(source, "trackmeter.core.pose")[-1] == (9, "trackmeter.core.transforms")
     assert upward_imports("import console.server\n", "trackmeter.cli.console") == []
     assert upward_imports("from trackmeter.cli import main\n", "trackmeter.__main__") == []
+    assert upward_imports("from trackmeter.priority import raise_cpu_priority\n", "trackmeter.core.pose")
+    assert upward_imports("from trackmeter.errors import TrackmeterError\n", "trackmeter.core.pose") == []
