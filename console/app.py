@@ -642,9 +642,12 @@ class Console:
         base = Path(self.record_dir.value.strip() or str(self.record_root / "recording"))
         # Never mix two recordings in one folder: add a suffix when it already holds one.
         candidate, n = base, 1
-        while (candidate / "cam0" / "data.csv").exists():
-            n += 1
-            candidate = base.with_name(f"{base.name}-{n}")
+        try:
+            while (candidate / "cam0" / "data.csv").exists():
+                n += 1
+                candidate = base.with_name(f"{base.name}-{n}")
+        except OSError:
+            pass  # a name the file system refuses: the recorder refuses it, with the reason
         return str(candidate)
 
     def _cb(self, make: Any) -> Any:

@@ -576,3 +576,22 @@ def test_the_fits_are_compiled_before_a_browser_can_connect(monkeypatch) -> None
         assert calls[:2] == ["warm_up", "listen"], calls
     finally:
         running.stop()
+
+
+def test_a_recording_folder_name_the_file_system_refuses_is_answered_not_a_traceback(tmp_path) -> None:
+    # An outside probe typed a 300-letter folder name and ticked Record: OSError in the
+    # callback (a traceback in the log), no answer, and the box stayed ticked.
+    from trackmeter.pipeline.snapshot import SetRecording
+
+    running = start_console(CountingSource(100_000, delay_s=0.02), RecordingEngine(), port=free_port())  # type: ignore[arg-type]
+    con = running.console
+    try:
+        con.record_dir.value = str(tmp_path / ("L" * 300))
+        folder = con._fresh_record_dir()
+        assert folder == con.record_dir.value
+        reply = con.submit(SetRecording(folder), None, "SetRecording").result(10)
+        assert not reply.ok and "too long" in reply.message, reply.message
+        _wait_for_pushes(con, 3)
+        assert con.record_checkbox.value is False
+    finally:
+        running.stop()

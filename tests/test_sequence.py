@@ -725,6 +725,10 @@ def test_a_recording_refuses_a_folder_that_holds_anything(tmp_path):
     assert check_record_directory(tmp_path / "empty") == tmp_path / "empty"
     with pytest.raises(TrackmeterError, match="name is empty"):
         check_record_directory("")
+    # A name longer than the file system takes (an outside console probe typed 300 letters:
+    # OSError from deep inside, a traceback in the console's log and a ticked Record box).
+    with pytest.raises(TrackmeterError, match="cannot record to .*too long"):
+        check_record_directory(tmp_path / ("L" * 300))
 
 
 def test_a_frame_the_disk_cannot_take_is_not_recorded_at_all(tmp_path, full_disk):

@@ -95,11 +95,14 @@ def check_record_directory(directory: str | Path) -> Path:
     if not str(directory).strip():
         raise TrackmeterError("cannot record to '': the folder's name is empty")
     path = Path(directory)
-    if path.exists() and not path.is_dir():
-        raise TrackmeterError(f"cannot record to {path}: it is a file, not a folder")
-    if path.is_dir() and any(path.iterdir()):
-        what = "a sequence (cam0/data.csv)" if (path / "cam0" / "data.csv").exists() else "files"
-        raise TrackmeterError(f"cannot record to {path}: it already holds {what}; record into a new or empty folder")
+    try:
+        if path.exists() and not path.is_dir():
+            raise TrackmeterError(f"cannot record to {path}: it is a file, not a folder")
+        if path.is_dir() and any(path.iterdir()):
+            what = "a sequence (cam0/data.csv)" if (path / "cam0" / "data.csv").exists() else "files"
+            raise TrackmeterError(f"cannot record to {path}: it already holds {what}; record into a new or empty folder")
+    except OSError as exc:  # a name too long, a folder that cannot be listed
+        raise TrackmeterError(f"cannot record to {path}: {exc.strerror or exc}") from None
     blocked = unwritable_ancestor(path)
     if blocked is not None:
         raise TrackmeterError(f"cannot record to {path}: {blocked} is not a writable folder")
