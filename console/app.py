@@ -106,9 +106,9 @@ def _pixel_text(uv: tuple[float, float]) -> str:
     return f"({round(uv[0])}, {round(uv[1])})"
 
 
-#: A typed filter cutoff is sent once the field has held it this long, s: viser sends every
-#: keystroke of a number field, and "0.5" passes 0, which the filter refuses (each accepted
-#: value also rebuilds the filter).
+#: A typed filter cutoff or target count is sent once the field has held it this long, s:
+#: viser sends every keystroke of a number field, and "0.5" passes 0, which the filter refuses
+#: (each accepted value also rebuilds the filter), "16" passes 1.
 EDIT_SETTLE_S = 0.8
 SERIES_COLOURS = ("#e6194b", "#3cb44b", "#4363d8", "#111111")
 TRAIL_FRAMES = 12
@@ -398,7 +398,9 @@ class Console:
         self._pushed_operator_ids: set[str] = set()
         # The tracker's state each operator widget last mirrored, by widget (see _mirror).
         self._mirrored: dict[str, Any] = {}
-        self._cutoff_edit: tuple[float, Any, float] | None = None  # (value, browser, when typed)
+        # Typed values waiting to settle, by widget: (command maker, browser, when typed).
+        self._edits: dict[str, tuple[Any, Any, float]] = {}
+        self.edit_callbacks: dict[str, Any] = {}
         self._build_scene()
         self._build_gui()
         server.on_client_connect(self._on_connect)
@@ -606,7 +608,8 @@ class Console:
         self.restart_button.on_click(self._cb(lambda e: RestartSource()))
         self.clear_button.on_click(self._cb(lambda e: ClearTargets()))
         self.auto_checkbox.on_update(self._cb(lambda e: self._auto_command()))
-        self.auto_count.on_update(self._cb(lambda e: self._auto_command() if self.auto_checkbox.value else None))
+        self.auto_count.on_update(self._typed("auto_count", lambda: self._auto_command() if self.auto_checkbox.value
+                                              else None))
         self.auto_method.on_update(self._cb(lambda e: self._auto_command() if self.auto_checkbox.value else None))
         self.case_dropdown.on_update(self._cb(lambda e: SetCase(self.case_dropdown.value)))  # type: ignore[arg-type]
         # The simulated operator: clicks every model point in view at its true projection, and again
@@ -614,26 +617,36 @@ class Console:
         self.select_model_button.on_click(self._cb(lambda e: SelectModelPoints(repeat=True)))
         self.acquire_button.on_click(self._cb(lambda e: AcquireModel()))
         self.load_model_button.on_click(self._cb(lambda e: LoadModel(self.model_path.value.strip())))
-        self.cutoff.on_update(_on_event_loop(self._cutoff_typed))
+        self.cutoff.on_update(self._typed("cutoff", lambda: None if self.cutoff.value is None
+                                          else SetFilterCutoff(float(self.cutoff.value))))
         self.record_checkbox.on_update(self._cb(lambda e: SetRecording(
             self._fresh_record_dir() if self.record_checkbox.value else None)))
         self.right_checkbox.on_update(lambda e: self._show_right_image(bool(self.right_checkbox.value)))
         self.view_buttons.on_click(lambda e: self._choose_view(e.client, str(self.view_buttons.value)) if e.client else None)
 
-    def _cutoff_typed(self, event: Any) -> None:
-        """Remember the operator's cutoff; :meth:`_send_settled_edits` sends it once it stays."""
-        if getattr(event, "client", None) is None or self.cutoff.value is None:
-            return  # the publisher showing the filter's value, or an emptied field
-        with self._pending_lock:
-            self._cutoff_edit = (float(self.cutoff.value), event.client, time.monotonic())
+    def _typed(self, name: str, make: Any) -> Any:
+        """A viser callback for a field the operator types into: remember that ``name`` was
+        edited; :meth:`_send_settled_edits` sends ``make()`` (read then) once it stays."""
+
+        def callback(event: Any) -> None:
+            if getattr(event, "client", None) is None:
+                return  # the publisher showing the tracker's value
+            with self._pending_lock:
+                self._edits[name] = (make, event.client, time.monotonic())
+
+        self.edit_callbacks[name] = callback  # as viser calls it (tests type through it)
+        return _on_event_loop(callback)
 
     def _send_settled_edits(self) -> None:
+        now = time.monotonic()
         with self._pending_lock:
-            edit = self._cutoff_edit
-            if edit is None or time.monotonic() - edit[2] < EDIT_SETTLE_S:
-                return
-            self._cutoff_edit = None
-        self.submit(SetFilterCutoff(edit[0]), edit[1], "SetFilterCutoff")
+            settled = [(name, edit) for name, edit in self._edits.items() if now - edit[2] >= EDIT_SETTLE_S]
+            for name, _ in settled:
+                del self._edits[name]
+        for _, (make, client, _) in settled:
+            command = make()  # None: an emptied field, or a count with selection off
+            if command is not None:
+                self.submit(command, client, type(command).__name__)
 
     def _auto_command(self) -> Command:
         return SetAuto(bool(self.auto_checkbox.value), int(self.auto_count.value), str(self.auto_method.value))
@@ -952,11 +965,11 @@ class Console:
         if self.pause_button.label != label:
             self.pause_button.label = label
         self._mirror("auto", self.auto_checkbox, snap.auto_enabled)
-        if snap.auto_count >= 1:
+        if snap.auto_count >= 1 and "auto_count" not in self._edits:
             self._mirror("auto_count", self.auto_count, snap.auto_count)
         if snap.auto_method in self.auto_method.options:
             self._mirror("auto_method", self.auto_method, snap.auto_method)
-        if np.isfinite(snap.filter_cutoff_hz) and self._cutoff_edit is None:
+        if np.isfinite(snap.filter_cutoff_hz) and "cutoff" not in self._edits:
             # As the filter takes it (clipped to its range); not while the operator's value waits
             # to settle (:meth:`_send_settled_edits`): the field keeps what they typed.
             self._mirror("cutoff", self.cutoff, min(max(snap.filter_cutoff_hz, self.cutoff.min), self.cutoff.max))

@@ -305,7 +305,7 @@ def test_a_typed_cutoff_is_sent_once_the_field_holds_it() -> None:
         _wait_for_pushes(con, 3)
         for typed in (0.0, 0.0, 0.5):  # "0", "0.", "0.5", a keystroke every 0.1 s
             con.cutoff.value = typed
-            con._cutoff_typed(types.SimpleNamespace(client=browser))
+            con.edit_callbacks["cutoff"](types.SimpleNamespace(client=browser))
             time.sleep(0.1)
             assert con.cutoff.value == typed  # nothing put back while typing
         deadline = time.monotonic() + 10
@@ -315,6 +315,46 @@ def test_a_typed_cutoff_is_sent_once_the_field_holds_it() -> None:
         assert engine.sent == [0.5]
         _wait_for_pushes(con, 5)
         assert con.cutoff.value == pytest.approx(0.5)
+    finally:
+        running.stop()
+
+
+def test_a_typed_count_is_sent_once_the_field_holds_it() -> None:
+    """Typing 16 into Count sent 1 and then 16 (an outside probe: eleven refusals for one long
+    number typed): like the cutoff, the count is sent once the field holds it."""
+    import types
+
+    from trackmeter.pipeline.snapshot import SetAuto
+
+    class _CountsSentEngine(_LimitsEngine):
+        def __init__(self) -> None:
+            super().__init__()
+            self.counts: list[int] = []
+
+        def handle(self, command, frame):  # type: ignore[no-untyped-def]
+            if isinstance(command, SetAuto):
+                self.counts.append(command.count)
+            return super().handle(command, frame)
+
+    engine = _CountsSentEngine()
+    running = start_console(CountingSource(100_000, delay_s=0.02), engine, port=free_port())  # type: ignore[arg-type]
+    con = running.console
+    browser = types.SimpleNamespace(add_notification=lambda *a, **k: None)
+    try:
+        _wait_for_pushes(con, 3)
+        assert con.submit(SetAuto(True, 6), None, "SetAuto").result(10).ok
+        engine.counts.clear()
+        con.auto_checkbox.value = True
+        for typed in (1, 16):  # "1", "16"
+            con.auto_count.value = typed
+            con.edit_callbacks["auto_count"](types.SimpleNamespace(client=browser))
+            time.sleep(0.1)
+            assert con.auto_count.value == typed
+        deadline = time.monotonic() + 10
+        while engine.auto_count != 16:
+            assert time.monotonic() < deadline, engine.counts
+            time.sleep(0.05)
+        assert engine.counts == [16]
     finally:
         running.stop()
 
