@@ -464,6 +464,8 @@ class Console:
         self.left_image.on_click(_on_event_loop(self._on_click))
         for modifier in ("shift", "cmd/ctrl", "alt"):
             self.left_image.on_click(modifier=modifier)(_on_event_loop(self._on_remove_click))
+        # Every click is answered: one on the right image says where targets are set.
+        self.right_image.on_click(_on_event_loop(self._on_right_click))
 
         root = scene.add_frame("/scene3d", show_axes=False, position=SCENE3D_OFFSET)
         self.scene3d = root
@@ -703,6 +705,11 @@ class Console:
         with self._pending_lock:  # used up by the publisher once the target is made (_flush_replies)
             self._model_point_clicks[future] = model_point
         return future
+
+    def _on_right_click(self, event: Any) -> None:
+        self._notify(getattr(event, "client", None), "Click on the right image",
+                     "targets are set on the left image: click there (the right image shows each "
+                     "target's match)", False)
 
     def _on_remove_click(self, event: Any) -> None:
         uv = self._event_pixel(event)

@@ -635,3 +635,20 @@ def test_a_recording_folder_name_the_file_system_refuses_is_answered_not_a_trace
         assert con.record_checkbox.value is False
     finally:
         running.stop()
+
+
+def test_a_click_on_the_right_image_is_answered() -> None:
+    # The README: every click that arrives is answered. One on the right image got nothing (an
+    # outside console probe); targets are set on the left image, and the answer says so.
+    import types
+
+    running = start_console(CountingSource(100_000, delay_s=0.02), RecordingEngine(), port=free_port())  # type: ignore[arg-type]
+    con = running.console
+    shown: list[tuple[str, str]] = []
+    browser = types.SimpleNamespace(client_id=7, add_notification=lambda title, body, **k: shown.append((title, body)))
+    try:
+        con._on_right_click(types.SimpleNamespace(client=browser))
+        assert shown and "left image" in shown[0][1], shown
+        assert con.notifications[-1] == shown[0]
+    finally:
+        running.stop()
