@@ -170,3 +170,28 @@ def test_an_unnamed_click_refused_where_it_is_goes_to_a_trackable_corner_nearby(
     assert reply.moved_px <= config.tracker.click_snap_px
     named = snapping.handle(SelectPoint(float(u), float(v), "p_named"), frame)
     assert not named.ok and named.message == refused.message
+
+
+def test_a_second_click_on_a_target_is_refused_not_a_duplicate(estec_sim_frames) -> None:  # type: ignore[no-untyped-def]
+    # An outside console probe clicked (300, 260) twice on a paused frame: two operator targets
+    # on one pixel, one patch tracked twice, adding nothing to the pose.
+    from trackmeter.pipeline.snapshot import SelectPoint
+
+    rig, frames = estec_sim_frames
+    engine = Engine(load_config(), rig, None, "a", rate_hz=25)
+    frame = frames[0]
+    engine.process(frame)
+    lit = np.argwhere(frame.left[::7, ::7] > 60) * 7
+    for v, u in lit:
+        first = engine.handle(SelectPoint(float(u), float(v)), frame)
+        if first.ok:
+            break
+    else:
+        pytest.fail("no click accepted")
+    target = next(t for t in engine.targets if t.id == first.target_id)
+    again = engine.handle(SelectPoint(float(target.uv[0]) + 1.0, float(target.uv[1])), frame)
+    assert not again.ok and f"target {first.target_id} is already there" in again.message, again.message
+    assert [t.id for t in engine.targets] == [first.target_id]
+    # Named after a model point, the click binds that name (a model point may sit on a target).
+    named = engine.handle(SelectPoint(float(target.uv[0]), float(target.uv[1]), "p_named"), frame)
+    assert "already there" not in named.message

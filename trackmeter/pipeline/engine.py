@@ -227,6 +227,7 @@ class Engine:
         self._lost_keep_frames = tracker_params.lost_keep_frames
         self._max_targets = tracker_params.max_targets
         self._click_snap_px = float(tracker_params.click_snap_px)
+        self._patch_px = int(tracker_params.patch_size)
         self.rate_hz = float(rate_hz) if rate_hz else 25.0
         if self.filter_params.cutoff_hz > self.max_filter_cutoff_hz:
             # design_lowpass clips it, so it filters at that; a console field shows it clipped
@@ -386,16 +387,35 @@ class Engine:
         if self._click_snap_px <= 0 or refusal.reason.startswith(("target limit", "outside image")):
             return refusal, 0.0, ""
         for corner in corners_near(frame.left, (command.u, command.v), self._click_snap_px):
+            if self._target_at((float(corner[0]), float(corner[1]))) is not None:
+                continue  # tracked already
             result = self.tracker.add_target(frame, (float(corner[0]), float(corner[1])), None, "operator")
             if not isinstance(result, Refusal):
                 moved = float(np.hypot(corner[0] - command.u, corner[1] - command.v))
                 return result, moved, f", moved {moved:.1f} px to a trackable corner (where asked: {refusal.reason})"
         return refusal, 0.0, ""
 
+    def _target_at(self, uv: tuple[float, float]) -> tuple[str, float] | None:
+        """The tracked target whose patch centre lies within half a patch of ``uv`` (id, px), if
+        any: a new unnamed target there would track the same patch twice."""
+        reach = 0.5 * self._patch_px
+        best: tuple[str, float] | None = None
+        for t in self.tracker.targets:
+            if t.status == "lost" or not np.all(np.isfinite(t.uv)):
+                continue
+            d = float(np.hypot(t.uv[0] - uv[0], t.uv[1] - uv[1]))
+            if d <= reach and (best is None or d < best[1]):
+                best = (t.id, d)
+        return best
+
     def _handle(self, command: Command, frame: StereoFrame | None) -> CommandReply:
         if isinstance(command, SelectPoint):
             if frame is None:
                 return CommandReply(False, "no frame yet")
+            there = self._target_at((command.u, command.v)) if command.target_id is None else None
+            if there is not None:
+                return CommandReply(False, f"refused at ({command.u:.1f}, {command.v:.1f}): target {there[0]} is "
+                                           f"already there ({there[1]:.1f} px away)")
             result = self.tracker.add_target(frame, (command.u, command.v), command.target_id, "operator")
             moved_px, note = 0.0, ""
             if isinstance(result, Refusal) and command.target_id is None:
