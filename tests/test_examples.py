@@ -13,7 +13,7 @@ EXAMPLES = sorted((Path(__file__).resolve().parent.parent / "examples").glob("[0
 
 #: A line each example must print (what it shows).
 PROMISES = {
-    "01_measure_a_point.py": ["refused: too dark (black sky)", "error ["],
+    "01_measure_a_point.py": ["refused: too dark (black sky or deep shadow)", "error ["],
     "02_pose_from_points.py": ["case (a): origin", "outliers rejected: [5]"],
     "03_track_a_tumbling_satellite.py": ["automatic selection on (16 targets, gabor)", "errors: position"],
     "04_record_replay_evaluate.py": ["frames tracked", "after 2 s,"],

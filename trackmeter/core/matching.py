@@ -54,7 +54,7 @@ Gaussian prior holding them near zero where noise hides them): 0.016 px there, a
 ``plane<deg>_*``).
 
 Checks (a refused point has ``ok=False`` and a reason from :data:`REASONS`, never a number):
-outside the image, patch not inside the image, too dark (black sky), textureless, no texture
+outside the image, patch not inside the image, too dark (black sky or deep shadow), textureless, no texture
 along the epipolar line, search window outside the right image, beyond the disparity range
 (peak at the edge of the search), low score, ambiguous (a second peak outside the main lobe
 nearly as good), sub-pixel refinement failed (or its refined score low), disparity too
@@ -91,7 +91,7 @@ FloatArray = NDArray[np.float64]
 
 REASON_OUTSIDE_IMAGE = "outside image"
 REASON_PATCH_OUTSIDE = "patch not inside image"
-REASON_TOO_DARK = "too dark (black sky)"
+REASON_TOO_DARK = "too dark (black sky or deep shadow)"
 REASON_TEXTURELESS = "textureless"
 REASON_NO_EPIPOLAR_TEXTURE = "no texture along epipolar line"
 REASON_SEARCH_OUTSIDE = "search window outside right image"
