@@ -40,6 +40,7 @@ from console.overlay import (STATUS_RGB, box_half_px, box_segments, draw_overlay
                              image_view, node_rgb_for, pixel_to_plane, ray_to_pixel, to_rgb)
 from console.series import PLOTS, PlotData
 from trackmeter.core.stereo import StereoRig
+from trackmeter.core.tracking import REMOVE_NEAREST_PX
 from trackmeter.pipeline.engine import SelectModelPoints
 from trackmeter.pipeline.pipeline import Pipeline, RecordingStats
 from trackmeter.pipeline.snapshot import (
@@ -573,7 +574,8 @@ class Console:
             methods = AUTO_METHODS if method in AUTO_METHODS else (*AUTO_METHODS, method)
             self.auto_method = gui.add_dropdown("Method", methods, initial_value=method)
             self.clear_button = gui.add_button("Clear targets")
-            gui.add_markdown("Click the left image to add a target; shift-, ctrl- or alt-click removes the nearest.")
+            gui.add_markdown("Click the left image to add a target; shift-, ctrl- or alt-click removes the nearest "
+                             f"within {REMOVE_NEAREST_PX:g} px.")
         with gui.add_folder("Model", expand_by_default=False):
             self.case_dropdown = gui.add_dropdown("Case", ("a", "b", "c"), initial_value="a")
             # Case (b) binds targets to the a-priori model by id: the operator names the next
@@ -717,7 +719,7 @@ class Console:
             return
         # Not judged against the last published frame: a click's target may not be made there
         # yet (the tracker a frame behind), and the remove that follows it would be refused.
-        # The tracker has every command in order and answers "no target near" itself.
+        # The tracker has every command in order and answers "no target within 20 px" itself.
         self.submit(RemoveNearest(uv[0], uv[1]), event.client, f"Remove target near {_pixel_text(uv)}")
 
     def _event_pixel(self, event: Any) -> tuple[float, float] | None:

@@ -76,6 +76,9 @@ _NAN3 = np.full(3, np.nan)
 _NAN33 = np.full((3, 3), np.nan)
 
 
+#: How far from a target a remove-click may land, px (:meth:`Tracker.remove_nearest`).
+REMOVE_NEAREST_PX = 20.0
+
 #: :attr:`Tracker.auto_refusals` reasons of automatic selection's own (the rest are
 #: :data:`trackmeter.core.matching.REASONS` and the target checks').
 NO_CANDIDATE = "no candidate point (black space, no texture, or no unique stereo match)"
@@ -487,7 +490,7 @@ class Tracker:
         self._free_slots.extend(range(n + grow - 1, n, -1))
         return n
 
-    def remove_nearest(self, uv: tuple[float, float], max_distance_px: float = 20.0) -> str | None:
+    def remove_nearest(self, uv: tuple[float, float], max_distance_px: float = REMOVE_NEAREST_PX) -> str | None:
         """Remove the target whose left pixel is nearest to ``uv`` (within ``max_distance_px``)."""
         best, best_d = None, max_distance_px
         for t in self._targets.values():

@@ -437,7 +437,9 @@ class Engine:
         if isinstance(command, RemoveNearest):
             tid = self.tracker.remove_nearest((command.u, command.v))
             if tid is None:
-                return CommandReply(False, f"no target near ({command.u:.0f}, {command.v:.0f})")
+                from trackmeter.core.tracking import REMOVE_NEAREST_PX
+
+                return CommandReply(False, f"no target within {REMOVE_NEAREST_PX:g} px of ({command.u:.0f}, {command.v:.0f})")
             self._forget(tid)
             return CommandReply(True, f"removed {tid}", tid)
         if isinstance(command, ClearTargets):
