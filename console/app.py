@@ -569,7 +569,9 @@ class Console:
             self.auto_checkbox = gui.add_checkbox("Automatic selection", initial_value=False)
             # Up to the tracker's limit: a larger count would be refused.
             most = int(getattr(self.pipeline.engine, "max_targets", 64))
-            self.auto_count = gui.add_slider("Count", min=1, max=most, step=1, initial_value=min(16, most))
+            self.auto_count = gui.add_slider("Count", min=1, max=most, step=1, initial_value=min(16, most),
+                                             hint="Automatic selection tops the tracked targets (all of them) up "
+                                                  "to this many; a lower count removes none")
             method = str(getattr(self.pipeline.engine, "auto_method", AUTO_METHODS[0]))
             methods = AUTO_METHODS if method in AUTO_METHODS else (*AUTO_METHODS, method)
             self.auto_method = gui.add_dropdown("Method", methods, initial_value=method)
