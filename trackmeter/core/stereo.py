@@ -14,7 +14,6 @@ Projection and distortion go through OpenCV (``projectPoints``, ``undistortPoint
 from __future__ import annotations
 
 import math
-
 from dataclasses import dataclass, field
 from functools import cached_property
 
