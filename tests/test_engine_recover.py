@@ -175,7 +175,7 @@ def test_an_unnamed_click_refused_where_it_is_goes_to_a_trackable_corner_nearby(
 def test_a_second_click_on_a_target_is_refused_not_a_duplicate(estec_sim_frames) -> None:  # type: ignore[no-untyped-def]
     # An outside console probe clicked (300, 260) twice on a paused frame: two operator targets
     # on one pixel, one patch tracked twice, adding nothing to the pose.
-    from trackmeter.pipeline.snapshot import SelectPoint
+    from trackmeter.pipeline.snapshot import SelectPoint, SetAuto
 
     rig, frames = estec_sim_frames
     engine = Engine(load_config(), rig, None, "a", rate_hz=25)
@@ -192,6 +192,12 @@ def test_a_second_click_on_a_target_is_refused_not_a_duplicate(estec_sim_frames)
     again = engine.handle(SelectPoint(float(target.uv[0]) + 1.0, float(target.uv[1])), frame)
     assert not again.ok and f"target {first.target_id} is already there" in again.message, again.message
     assert [t.id for t in engine.targets] == [first.target_id]
+    # On an automatic target, a click is the operator taking that point: not refused.
+    engine.handle(SetAuto(True, 4, None), frame)
+    engine.process(frames[1])
+    auto = next(t for t in engine.targets if t.origin == "auto" and t.status == "tracking")
+    taken = engine.handle(SelectPoint(float(auto.uv[0]), float(auto.uv[1])), frames[1])
+    assert "already there" not in taken.message, taken.message
     # Named after a model point, the click binds that name (a model point may sit on a target).
     named = engine.handle(SelectPoint(float(target.uv[0]), float(target.uv[1]), "p_named"), frame)
     assert "already there" not in named.message

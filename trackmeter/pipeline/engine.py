@@ -396,12 +396,14 @@ class Engine:
         return refusal, 0.0, ""
 
     def _target_at(self, uv: tuple[float, float]) -> tuple[str, float] | None:
-        """The tracked target whose patch centre lies within half a patch of ``uv`` (id, px), if
-        any: a new unnamed target there would track the same patch twice."""
+        """The operator's (or a model point's) tracked target whose patch centre lies within
+        half a patch of ``uv`` (id, px), if any: a new unnamed target there would track the same
+        patch twice. An automatic target does not count: a click on it is the operator taking
+        that point for their own (kept whatever automatic selection does)."""
         reach = 0.5 * self._patch_px
         best: tuple[str, float] | None = None
         for t in self.tracker.targets:
-            if t.status == "lost" or not np.all(np.isfinite(t.uv)):
+            if t.origin == "auto" or t.status == "lost" or not np.all(np.isfinite(t.uv)):
                 continue
             d = float(np.hypot(t.uv[0] - uv[0], t.uv[1] - uv[1]))
             if d <= reach and (best is None or d < best[1]):
