@@ -223,18 +223,18 @@ class _LimitsEngine(_AutoEngine):
         return super().handle(command, frame)
 
 
-class _CutoffsSentEngine(_LimitsEngine):
-    """:class:`_LimitsEngine` that also lists every cutoff sent to it, in order (``sent``)."""
+class _SentEngine(_LimitsEngine):
+    """:class:`_LimitsEngine` that also lists what each command of one kind carried, in order
+    (``sent``): ``field`` of every ``kind`` handled."""
 
-    def __init__(self) -> None:
+    def __init__(self, kind: str = "SetFilterCutoff", field: str = "cutoff_hz") -> None:
         super().__init__()
-        self.sent: list[float] = []
+        self.kind, self.field = kind, field
+        self.sent: list[Any] = []
 
     def handle(self, command, frame):  # type: ignore[no-untyped-def]
-        from trackmeter.pipeline.snapshot import SetFilterCutoff
-
-        if isinstance(command, SetFilterCutoff):
-            self.sent.append(command.cutoff_hz)
+        if type(command).__name__ == self.kind:
+            self.sent.append(getattr(command, self.field))
         return super().handle(command, frame)
 
 
@@ -297,7 +297,7 @@ def test_a_typed_cutoff_is_sent_once_the_field_holds_it() -> None:
     keystroke rebuilt the output filter. The value is sent once the field has held it."""
     import types
 
-    engine = _CutoffsSentEngine()
+    engine = _SentEngine()
     running = start_console(CountingSource(100_000, delay_s=0.02), engine, port=free_port())  # type: ignore[arg-type]
     con = running.console
     browser = types.SimpleNamespace(add_notification=lambda *a, **k: None)
@@ -326,24 +326,14 @@ def test_a_typed_count_is_sent_once_the_field_holds_it() -> None:
 
     from trackmeter.pipeline.snapshot import SetAuto
 
-    class _CountsSentEngine(_LimitsEngine):
-        def __init__(self) -> None:
-            super().__init__()
-            self.counts: list[int] = []
-
-        def handle(self, command, frame):  # type: ignore[no-untyped-def]
-            if isinstance(command, SetAuto):
-                self.counts.append(command.count)
-            return super().handle(command, frame)
-
-    engine = _CountsSentEngine()
+    engine = _SentEngine("SetAuto", "count")
     running = start_console(CountingSource(100_000, delay_s=0.02), engine, port=free_port())  # type: ignore[arg-type]
     con = running.console
     browser = types.SimpleNamespace(add_notification=lambda *a, **k: None)
     try:
         _wait_for_pushes(con, 3)
         assert con.submit(SetAuto(True, 6), None, "SetAuto").result(10).ok
-        engine.counts.clear()
+        engine.sent.clear()
         con.auto_checkbox.value = True
         for typed in (1, 16):  # "1", "16"
             con.auto_count.value = typed
@@ -352,9 +342,9 @@ def test_a_typed_count_is_sent_once_the_field_holds_it() -> None:
             assert con.auto_count.value == typed
         deadline = time.monotonic() + 10
         while engine.auto_count != 16:
-            assert time.monotonic() < deadline, engine.counts
+            assert time.monotonic() < deadline, engine.sent
             time.sleep(0.05)
-        assert engine.counts == [16]
+        assert engine.sent == [16]
     finally:
         running.stop()
 
@@ -417,7 +407,7 @@ def test_a_value_typed_as_a_refusal_puts_the_old_one_back_is_the_value_sent() ->
     put the old value on the widget and the callback, reading the widget, sent that: the typed
     value was silently lost (an outside console probe: "3.3 after a run of bad values was not
     applied"). The value is the one that arrived, and a field being edited is not reset."""
-    engine = _CutoffsSentEngine()
+    engine = _SentEngine()
     with _console_with_held_pool(engine) as (running, held):
         con = running.console
         assert con.cutoff.value == pytest.approx(2.0)
