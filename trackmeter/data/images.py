@@ -111,7 +111,8 @@ def data_bits(images: Iterable[NDArray[np.generic]]) -> int:
     integer data too, from 8 bits up (:func:`_whole_number_max`); other float images are on
     [0, 1] and do not count.
     """
-    largest16 = largest_float = -1
+    largest16 = -1
+    bits = 8
     for image in images:
         img = np.asarray(image)
         if img.dtype == np.uint16 and img.size:
@@ -119,13 +120,16 @@ def data_bits(images: Iterable[NDArray[np.generic]]) -> int:
         elif img.dtype in (np.float32, np.float64):
             whole = _whole_number_max(img)
             if whole is not None:
-                largest_float = max(largest_float, int(min(whole, 2.0**16)))
-    bits = 8
+                bits = max(bits, _float_data_bits(whole))
     if largest16 >= 0:
-        bits = next(b for b in SAMPLE_BITS if largest16 < 2**b)
-    if largest_float >= 0:
-        bits = max(bits, next((b for b in (8, *SAMPLE_BITS) if largest_float < 2**b), 16))
+        bits = max(bits, next(b for b in SAMPLE_BITS if largest16 < 2**b))
     return bits
+
+
+def _float_data_bits(largest: float) -> int:
+    """The sample depth of integer data stored as float whose largest value is ``largest``:
+    the smallest of 8 and :data:`SAMPLE_BITS` that holds it (16 beyond)."""
+    return next((b for b in (8, *SAMPLE_BITS) if largest < 2**b), 16)
 
 
 def _whole_number_max(img: NDArray[np.floating]) -> float | None:
@@ -158,14 +162,22 @@ def read_grey_pair(left: str | Path, right: str | Path) -> tuple[NDArray[np.uint
     """:func:`read_grey` of a stereo pair, both 16-bit images scaled alike (their joint
     :func:`data_bits`)."""
     images = [decode_image(left), decode_image(right)]
-    bits = data_bits(images)
-    own = [data_bits([image]) for image in images]
-    # Warned only where it blacks one image out (at most 15 grey levels of 256): one image of a
-    # pair may well be darker than the other.
-    if all(image.dtype != np.uint8 for image in images) and abs(own[0] - own[1]) >= 4:
-        warnings.warn(f"{left} looks {own[0]}-bit and {right} {own[1]}-bit: both are read as "
-                      f"{bits}-bit (a pair is scaled alike), so the {min(own)}-bit one is dark", stacklevel=2)
+    bits = joint_data_bits([(str(left), images[0]), (str(right), images[1])], "a pair is scaled alike")
     return to_grey_u8(images[0], str(left), bits), to_grey_u8(images[1], str(right), bits)
+
+
+def joint_data_bits(named_images: Sequence[tuple[str, NDArray[np.generic]]], why: str) -> int:
+    """:func:`data_bits` of images read alike (a pair, a sequence), from ``(name, image)``
+    pairs; warns, saying ``why`` they are scaled alike, when their own depths differ by 4 bits
+    or more: the joint scaling then blacks the shallower ones out (at most 15 grey levels of
+    256). A smaller difference is one image darker than another."""
+    own = [(data_bits([image]), name) for name, image in named_images if image.dtype != np.uint8]
+    bits = max((b for b, _ in own), default=8)
+    if own and bits - min(own)[0] >= 4:
+        (low, low_name), (high, high_name) = min(own), max(own)
+        warnings.warn(f"{low_name} looks {low}-bit and {high_name} {high}-bit: all are read as {bits}-bit ({why}), "
+                      f"so the {low}-bit ones are dark", stacklevel=3)
+    return bits
 
 
 def to_grey_u8(image: NDArray[np.generic], name: str = "image", bits: int | None = None) -> NDArray[np.uint8]:
@@ -186,8 +198,11 @@ def to_grey_u8(image: NDArray[np.generic], name: str = "image", bits: int | None
                                   "up to 65535")
         # Whole numbers: integer data, on the range of ``bits`` (the pair's or sequence's, at
         # least its own); else [0, 1], where a high-dynamic-range image's highlights saturate.
-        own = data_bits([img])
-        scale = 1.0 if whole is None else float(2 ** max(own, int(bits) if bits is not None else own) - 1)
+        if whole is None:
+            scale = 1.0
+        else:
+            own = _float_data_bits(whole)
+            scale = float(2 ** max(own, int(bits) if bits is not None else own) - 1)
         img = np.clip(np.nan_to_num(img) * (255.0 / scale) + 0.5, 0, 255).astype(np.uint8)
     elif img.dtype != np.uint8:
         raise TrackmeterError(f"{name}: unsupported pixel type {img.dtype}")

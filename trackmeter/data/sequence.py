@@ -45,7 +45,7 @@ from numpy.typing import ArrayLike, NDArray
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.transforms import matrix_to_quat_wxyz
 from trackmeter.data.atomic import AppendFile, unwritable_ancestor
-from trackmeter.data.images import data_bits, decode_image
+from trackmeter.data.images import decode_image, joint_data_bits
 from trackmeter.data.model import Model, load_model, save_model
 from trackmeter.data.motion_csv import GROUNDTRUTH_COLUMNS, MotionCsvWriter, MotionSeries, read_motion_csv
 from trackmeter.data.rigfile import load_rig, save_rig
@@ -708,14 +708,7 @@ def sequence_data_bits(index: SequenceIndex, samples: int = 3) -> int:
     for pos in positions:
         for path in (index.left_paths[pos], index.right_paths[pos]):
             try:
-                images.append((path, decode_image(path)))
+                images.append((str(path), decode_image(path)))
             except TrackmeterError:
                 continue
-    bits = data_bits([image for _, image in images])
-    own = [(data_bits([image]), path) for path, image in images if image.dtype != np.uint8]
-    if own and max(own)[0] - min(own)[0] >= 4:
-        # Where the joint scaling blacks images out (at most 15 grey levels of 256).
-        (low, low_path), (high, high_path) = min(own), max(own)
-        warnings.warn(f"{low_path} looks {low}-bit and {high_path} {high}-bit: the sequence is read as {bits}-bit "
-                      f"(every frame scaled alike), so the {low}-bit images are dark", stacklevel=2)
-    return bits
+    return joint_data_bits(images, "every frame of a sequence is scaled alike")
