@@ -519,15 +519,13 @@ class Pipeline:
             with self._cond:
                 self._frames_read += 1
                 self._acq_rate.tick(t_read)
-                if generation != self._source_generation:
-                    self._frames_dropped += 1  # read before a restart: recorded, not tracked
-                    continue
                 if not self.drop_frames:
-                    while self._slot is not None and not self._stop:
+                    while self._slot is not None and not self._stop and generation == self._source_generation:
                         self._cond.wait()
-                    if generation != self._source_generation:
-                        self._frames_dropped += 1  # restarted while it waited for the slot
-                        continue
+                if generation != self._source_generation:
+                    # Read before a restart (or restarted while it waited): recorded, not tracked.
+                    self._frames_dropped += 1
+                    continue
                 if self._slot is not None:
                     self._frames_dropped += 1
                     if self._slot[0].cut and not frame.cut:
