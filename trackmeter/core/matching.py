@@ -99,6 +99,7 @@ REASON_BEYOND_RANGE = "beyond disparity range"
 REASON_LOW_SCORE = "low score"
 REASON_AMBIGUOUS = "ambiguous (second peak)"
 REASON_REPETITIVE = "ambiguous (repetitive texture)"
+REASON_UNSEEN_RIVAL = "ambiguous (its texture repeats where the search left the right image)"
 REASON_LEFT_RIGHT = "left-right inconsistent"
 REASON_SUBPIXEL = "sub-pixel refinement failed"
 REASON_UNCERTAIN = "disparity too uncertain"
@@ -119,6 +120,7 @@ REASONS: tuple[str, ...] = (
     REASON_UNCERTAIN,
     REASON_REPETITIVE,
     REASON_LEFT_RIGHT,
+    REASON_UNSEEN_RIVAL,
     REASON_DEPTH_EDGE,
 )
 
@@ -1290,6 +1292,10 @@ def _match_many(
                 if abs(d_back - d0) > params.left_right_tolerance_px:
                     out[j] = _Match(REASON_LEFT_RIGHT, score=score)
                     continue
+        searched = (bx - c_first - hi, bx - c_first - lo)  # the disparities the search could see
+        if _rival_unseen(Lrow, l_ok, bx - l_first, d0, searched, (d_lo, d_hi), sm.score - params.uniqueness_margin, P):
+            out[j] = _Match(REASON_UNSEEN_RIVAL, score=score)
+            continue
         if j in edge_samples and not _edge_decide(*edge_samples[j], d, params):
             out[j] = _Match(REASON_DEPTH_EDGE, score=score)
             continue
@@ -1307,6 +1313,40 @@ def _match_many(
             if math.isfinite(xk) and math.isfinite(sk):  # else the shift fit's numbers stand
                 out[j] = _Match(None, geo[j][2] - found[j][4] - xk, sk, ck)
     return out  # type: ignore[return-value]
+
+
+def _rival_unseen(
+    Lrow: NDArray[np.uint8], l_ok: NDArray[np.bool_] | None, t0: int, d: int, searched: tuple[int, int],
+    full: tuple[int, int], threshold: float, P: int,
+) -> bool:
+    """Whether the left patch's own texture repeats at an offset the search could not see.
+
+    Where the disparity range reaches past the right image's edge (or the rectified image's
+    crop), the search sees only part of it: a second peak there is never compared, and on a
+    repeated texture (a chessboard, a grid of cells) the best VISIBLE peak can be one period
+    off the true match, which lies beyond the edge (a rational-model rig rectified with a 10 %
+    zoom: 5 of 517 chessboard corners matched two squares off, scores 0.98). A rival at
+    disparity ``d + k`` means the right image repeats with period ``k`` there, and so does the
+    left one, which still shows it: the patch (at column ``t0`` of its left row ``Lrow``) is
+    matched against the row at offsets ``+-k`` for every unsearched ``d + k`` of the ``full``
+    range, outside the patch's own main lobe, and a score above ``threshold`` (the match's less
+    the uniqueness margin, the second-peak rule) refuses the point.
+    """
+    lo_cut = range(full[0] - d, searched[0] - d)  # negative offsets, cut at the low end
+    hi_cut = range(searched[1] - d + 1, full[1] - d + 1)
+    if not lo_cut and not hi_cut:
+        return False
+    scores = cv2.matchTemplate(Lrow, np.ascontiguousarray(Lrow[:, t0 : t0 + P]), cv2.TM_CCOEFF_NORMED).ravel()
+    if l_ok is not None:
+        scores = np.where(_windows_ok(l_ok, P)[: scores.size], scores, -np.inf)
+    left_end, right_end = _main_lobe(scores, t0, 0, scores.size - 1)
+    for cut in (lo_cut, hi_cut):
+        k = np.abs(np.asarray(cut))
+        for cols in (t0 + k, t0 - k):
+            cols = cols[(cols >= 0) & (cols < scores.size) & ((cols < left_end) | (cols > right_end))]
+            if cols.size and float(scores[cols].max()) > threshold:
+                return True
+    return False
 
 
 _EDGE_REACH = 3  # integer disparities the depth-edge check searches either side of round(d)
