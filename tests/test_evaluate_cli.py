@@ -429,9 +429,27 @@ def test_a_case_b_run_or_one_of_unknown_case_is_compared_as_it_is_by_default(cap
     if run_yaml is not None:
         (run / "run.yaml").write_text(run_yaml)
     code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
-    assert code == 0 and err == "", err
+    assert code == 0, err
     s = json.loads(out)
     assert s["settings"]["align"] == "none" and s["position_m"]["norm"]["max"] > 0.1
+    # The run's own frame (30 deg off) is not taken for the truth's in silence where the case
+    # is unknown (a bare trajectory, a lost run.yaml); a case (b) run's frame is the model's.
+    if s["settings"]["case"] is None:
+        assert "off by 31 deg (RMS)" in err and "--align body" in err and err.count("\n") == 1
+    else:
+        assert err == "", err
+
+
+def test_an_estimate_of_unknown_case_near_the_truth_is_not_warned_about(capsys, tmp_path):
+    truth = tumbling_truth()
+    seq, run = tmp_path / "seq", tmp_path / "run"
+    write_groundtruth_csv(seq / "groundtruth.csv", truth)
+    R = Rotation.from_quat(truth.quat_wxyz, scalar_first=True) * Rotation.from_rotvec([0.0, 0.01, 0.0])
+    est = MotionSeries(truth.t_s, np.ones(len(truth), bool), truth.position_m + 0.002,
+                       R.as_quat(scalar_first=True), np.full((len(truth), 3), np.nan), np.full((len(truth), 3), np.nan), {})
+    write_states_csv(run / "states.csv", est)
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run / "states.csv"), "--json")
+    assert code == 0 and err == "", err
 
 
 def test_a_truth_in_integer_nanoseconds_is_read_as_such_with_a_warning(capsys, sequence_and_run, tmp_path):

@@ -25,10 +25,15 @@ report.md beside the paper's figures.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from dataclasses import replace
 
 from trackmeter.cli.common import load_config_from_args
+
+#: An estimate of unknown case whose attitude is off by more than this (RMS) is told about
+#: --align body: tracking errors are tenths of a degree, a frame of its own tens of degrees.
+UNKNOWN_CASE_OFFSET_RAD = math.radians(10.0)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -92,6 +97,13 @@ def run(args: argparse.Namespace) -> int:
         # without the fitted offset the figures measure where its frame sits, not the tracking.
         print(f"trackmeter evaluate: warning: the run was tracked in case ({estimate.case}), whose body frame is "
               "not the truth's: compare with --align body", file=sys.stderr)
+    attitude_rms_rad = result.summary.get("attitude_rad", {}).get("total", {}).get("rms", 0.0)
+    if params.align == "none" and estimate.case is None and attitude_rms_rad > UNKNOWN_CASE_OFFSET_RAD:
+        # A bare trajectory does not say whose body frame it is in: a case (a) or (c) run's
+        # own frame, compared as it is, reads as errors of tens of degrees and centimetres.
+        print(f"trackmeter evaluate: warning: the attitude is off by {math.degrees(attitude_rms_rad):.0f} deg (RMS); if "
+              "the estimate is in a body frame of its own (tracked in case a or c), compare with --align body",
+              file=sys.stderr)
     settings = {"truth": truth.source, "estimate": estimate.source, "align": params.align,
                 "settle_s": params.settle_s, "tolerance_s": params.tolerance_s, "case": estimate.case}
     if args.out:
