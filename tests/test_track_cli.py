@@ -696,3 +696,19 @@ def test_a_missing_input_is_named_before_nothing_to_track(tmp_path, capsys, open
     err = capsys.readouterr().err
     assert message in err and "nothing to track" not in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "run").exists()
+
+
+def test_an_interrupt_while_starting_says_nothing_was_written(monkeypatch, tmp_path, capsys) -> None:
+    # The source's opening (or a model's reading, the fits' loading) takes seconds: a Ctrl-C then
+    # left no folder and said only "interrupted", and the user went looking for the files.
+    import trackmeter.cli.common as common
+
+    def interrupted(*args, **kwargs):  # type: ignore[no-untyped-def]
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(common, "open_source_with_rig", interrupted)
+    out = tmp_path / "run"
+    assert main(["track", "--source", "sim", "--auto", "4", "--out", str(out)]) == 130
+    err = capsys.readouterr().err
+    assert err == f"trackmeter track: interrupted while starting; nothing was written to {out}\n"
+    assert not out.exists()

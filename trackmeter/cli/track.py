@@ -144,6 +144,18 @@ def _total_frames(source: Any, max_frames: int | None) -> int | None:
 
 
 def run(args: argparse.Namespace) -> int:
+    started: list[bool] = []  # the run folder was made
+    try:
+        return _run(args, started)
+    except KeyboardInterrupt as exc:
+        if exc.args or started:  # said what it kept
+            raise
+        # Opening a source, reading a model and loading the compiled fits take seconds: an
+        # interrupt then leaves no folder, and the user should not go looking for one.
+        raise KeyboardInterrupt(f"interrupted while starting; nothing was written to {args.out}") from None
+
+
+def _run(args: argparse.Namespace, started: list[bool]) -> int:
     from trackmeter.cli.common import load_config_from_args, open_source_with_rig
     from trackmeter.data.config import config_to_dict
     from trackmeter.data.model import load_model
@@ -232,6 +244,7 @@ def run(args: argparse.Namespace) -> int:
             "select_model_points": bool(args.select_model_points),
         }
         writer = RunWriter(args.out, config_to_dict(config), source_info, overwrite=args.overwrite)
+        started.append(True)
         tty = sys.stderr.isatty()
         t0 = time.monotonic()
         state = {"pending": None, "invalid": {}, "last_draw": 0.0 if tty else t0, "t0": t0, "status": None}
