@@ -334,6 +334,11 @@ def test_outside_the_image_and_patch_not_inside_are_refused() -> None:
     assert _reason(left, right, (float("nan"), 10.0)) == M.REASON_OUTSIDE_IMAGE
     assert _reason(left, right, (1.0, 20.0)) == M.REASON_PATCH_OUTSIDE
     assert _reason(left, right, (50.0, H - 2.0)) == M.REASON_PATCH_OUTSIDE
+    # the same rule as the rectified image's: on this identity rig nothing is cropped
+    for u in np.arange(0.0, 12.0, 0.25):
+        assert _reason(left, right, (u, 20.0)) != M.REASON_PATCH_CROPPED
+        assert _reason(left, right, (W - 1.0 - u, 20.0)) != M.REASON_PATCH_CROPPED
+
 
 
 def test_disparity_beyond_the_search_range_is_refused() -> None:

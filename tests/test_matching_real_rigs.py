@@ -78,3 +78,12 @@ def test_no_accepted_corner_is_matched_to_a_look_alike(board_views: list, ration
     assert wrong == 0
     assert unseen > 0  # the corners whose true match the rectification cropped are refused, named
     assert accepted > 0.6 * sum(len(v[2]) for v in board_views)
+
+
+def test_a_patch_in_the_border_the_rectification_crops_says_so(board_views: list, rational_rig: StereoRig) -> None:
+    # "patch not inside image" for a pixel 10 px inside the image the user sees read as a wrong
+    # claim (an outside probe's --at 10,10): the zoomed rectification has cropped it.
+    left, right = board_views[0][:2]
+    h, w = left.shape
+    m = M.measure_points(rational_rig, left, right, [(10.0, 10.0), (12.0, h / 2), (1.0, 1.0)])
+    assert [x.reason for x in m] == [M.REASON_PATCH_CROPPED, M.REASON_PATCH_CROPPED, M.REASON_PATCH_OUTSIDE]

@@ -91,6 +91,7 @@ FloatArray = NDArray[np.float64]
 
 REASON_OUTSIDE_IMAGE = "outside image"
 REASON_PATCH_OUTSIDE = "patch not inside image"
+REASON_PATCH_CROPPED = "patch in the border the rectification crops"
 REASON_TOO_DARK = "too dark (black sky or deep shadow)"
 REASON_TEXTURELESS = "textureless"
 REASON_NO_EPIPOLAR_TEXTURE = "no texture along epipolar line"
@@ -109,6 +110,7 @@ REASON_DEPTH_EDGE = "depth edge inside the patch"
 REASONS: tuple[str, ...] = (
     REASON_OUTSIDE_IMAGE,
     REASON_PATCH_OUTSIDE,
+    REASON_PATCH_CROPPED,
     REASON_TOO_DARK,
     REASON_TEXTURELESS,
     REASON_NO_EPIPOLAR_TEXTURE,
@@ -1597,6 +1599,10 @@ def measure_points(
         reasons[i], scores[i] = m.reason, m.score
         if m.reason is None:
             disp[i], sig_d[i] = m.disparity_px, m.sigma_px
+        elif m.reason == REASON_PATCH_OUTSIDE and _patch_inside(uv[i], params.patch_size, W, H):
+            # Inside the image the user sees: say why it is refused (alpha 0 keeps only pixels
+            # both rectified views hold, so a distorted or zoomed rig loses a border).
+            reasons[i] = REASON_PATCH_CROPPED
 
     right_uv = np.full((n, 2), np.nan)
     xyz = np.full((n, 3), np.nan)
@@ -1639,6 +1645,17 @@ def measure_points(
             )
         out.append(pm)
     return tuple(out)
+
+
+def _patch_inside(uv: FloatArray, patch_size: int, width: int, height: int) -> bool:
+    """Whether the ``patch_size`` square centred on ``uv`` (2,) lies inside a width x height
+    image with room for its samples' interpolation (Lanczos-4 reaches 4 pixels past a cell;
+    one more for the rectification's rounding): a patch refused that far inside was refused
+    by the rectified geometry, not by the image's edge."""
+    half = 0.5 * (patch_size - 1)
+    bx, by = math.floor(float(uv[0]) - half), math.floor(float(uv[1]) - half)
+    m = 5
+    return bx >= m and by >= m and bx + patch_size + m < width and by + patch_size + m < height
 
 
 def _frozen_nan(*shape: int) -> FloatArray:
