@@ -503,6 +503,20 @@ def test_case_c_acquires_a_model_while_still(estec_rig, monkeypatch) -> None:
     np.testing.assert_allclose(pose.T_cam_body[:3, 3], centroid, atol=0.002)
 
 
+def test_case_c_given_at_the_start_acquires_without_being_asked_again(estec_rig, monkeypatch) -> None:
+    # `trackmeter console --case c` left the engine in case (c) with no acquisition: "no model"
+    # through the whole hold (an outside probe); `track` had sent AcquireModel itself.
+    import sys
+
+    monkeypatch.setattr(sys.modules[__name__], "OMEGA", np.zeros(3))
+    monkeypatch.setattr(sys.modules[__name__], "V", np.zeros(3))
+    engine, _, _ = make_engine(estec_rig, case="c", with_model=False)
+    assert engine.case == "c" and engine.acquiring
+    outs = run(engine, range(0, 70))
+    assert "hold still" in (outs[10][1].reason or "")
+    assert any(o[1].valid for o in outs) and not engine.acquiring
+
+
 def test_case_c_refuses_a_moving_object(estec_rig) -> None:
     engine, _, _ = make_engine(estec_rig, with_model=False)
     engine.handle(AcquireModel(), None)
@@ -600,6 +614,25 @@ def test_repeating_operator_clicks_again_after_a_total_loss(estec_rig, repeat: b
     outs = run(engine, range(25 + dark, 25 + dark + wait))
     assert outs[-1][1].valid == repeat
     assert (engine.stats.operator_reselections > 0) == repeat
+
+
+def test_the_repeating_operator_clicks_at_once_after_a_restart(estec_rig) -> None:
+    # A restarted stream's clock starts again at 0: the operator waited for the time of its
+    # last clicks (40 s into the old stream) to come round again, with no pose meanwhile.
+    from dataclasses import replace
+
+    from trackmeter.pipeline.engine import SelectModelPoints
+
+    engine, tracker, _ = make_engine(estec_rig)
+    tracker.active.clear()
+    start = 1000
+    assert engine.handle(SelectModelPoints(repeat=True), frame_at(start)).ok
+    outs = run(engine, range(start, start + 10))
+    assert outs[-1][1].valid
+    tracker.active.clear()
+    engine.process(replace(frame_at(0), cut=True))  # the restart: every target dropped
+    outs = run(engine, range(1, 40))
+    assert outs[-1][1].valid and engine.stats.operator_reselections >= 1
 
 
 def test_a_cut_in_the_stream_starts_tracking_over(estec_rig) -> None:

@@ -244,7 +244,8 @@ class Engine:
         self._case: ModelCase = chosen
         self._gate = float(chi2.ppf(self.pose_params.outlier_probability, 3))
         self.stats = EngineStats()
-        self._acquisition: _Acquisition | None = None
+        # Case (c) from the start acquires at once, as when it is chosen later (SetCase).
+        self._acquisition: _Acquisition | None = _Acquisition() if chosen == "c" else None
         self._operator_t: float | None = None  # the repeating simulated operator's last clicks, s
         # Model points never forgotten for room (a provisional frame's a-priori points, located
         # one at a time, must all still be there when the model is bound).
@@ -543,6 +544,10 @@ class Engine:
         self.tracker.clear()
         self._acquisition = _Acquisition() if self._case == "c" else None
         self._reset_motion()
+        if self._operator_t is not None:
+            # A new stream's clock starts again: its first frame would wait for the time of
+            # the last clicks to come round again (a Restart at 40 s: 40 s without a pose).
+            self._operator_t = -np.inf
 
     def _forget(self, target_id: str) -> None:
         """A target the operator removed: drop its measured model point and candidacy."""
