@@ -596,6 +596,22 @@ def test_select_model_points_skips_a_hidden_point(estec_rig) -> None:
 
 
 @pytest.mark.parametrize("repeat", [False, True])
+def test_the_model_points_refused_say_why_and_whether_they_are_clicked_again(estec_rig, repeat: bool) -> None:
+    # "0 model points selected; 17 refused" in red, with no reason, read as the end of it while
+    # the repeating operator went on clicking (an outside console probe).
+    from trackmeter.pipeline.engine import SelectModelPoints
+
+    pts = body_points(12)
+    ids = [f"m{i}" for i in range(12)]
+    tracker = FakeTracker(estec_rig, pts[:2], ids[:2])  # the others fall on black space
+    engine = Engine(load_config(), estec_rig, Model(tuple(ids), pts), "b", tracker=tracker, rate_hz=1 / DT)
+    reply = engine.handle(SelectModelPoints(repeat=repeat), frame_at(0))
+    assert not reply.ok
+    assert "2 model points selected (m0, m1); 10 refused (10 black space)" in reply.message
+    assert ("clicked again after each" in reply.message) == repeat
+
+
+@pytest.mark.parametrize("repeat", [False, True])
 def test_repeating_operator_clicks_again_after_a_total_loss(estec_rig, repeat: bool) -> None:
     """Every model point lost for longer than the coast (no pose to re-lock them through): only
     an operator who clicks again brings the pose back, ``operator_reselect_s`` after the loss."""

@@ -42,7 +42,7 @@ Per frame (:meth:`Engine.process`):
 from __future__ import annotations
 
 import warnings
-from collections import deque
+from collections import Counter, deque
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -431,6 +431,10 @@ class Engine:
         if isinstance(command, SelectModelPoints):
             reply = self._select_model_points(frame)
             self._operator_t = (frame.t_s if frame is not None else 0.0) if command.repeat else None
+            if command.repeat and not reply.ok and reply.message != NEEDS_TRUTH:
+                # Refused now is not refused for good: say that it goes on.
+                return replace(reply, message=f"{reply.message}; clicked again after each "
+                                              f"{self.pose_params.operator_reselect_s:g} s without a pose")
             return reply
         if isinstance(command, RemoveTarget):
             if not self.tracker.remove_target(command.target_id):
@@ -516,15 +520,16 @@ class Engine:
                 self.tracker.remove_target(pid)  # clicked again where the lost one should be
             result = self.tracker.add_target(frame, (float(ul[0]), float(ul[1])), pid, "operator")
             if isinstance(result, Refusal):
-                refused.append(pid)
+                refused.append(result.reason)
             elif not np.linalg.norm(np.asarray(result.point_cam, float) - x) <= self.pose_params.operator_hidden_m:
                 self.tracker.remove_target(pid)
                 hidden.append(pid)
             else:
                 made.append(pid)
         ok = len(made) >= self.pose_params.min_points
+        why = Counter(refused).most_common()
         return CommandReply(ok, f"{len(made)} model points selected" + (f" ({', '.join(made)})" if made else "")
-                                + f"; {len(refused)} refused"
+                                + f"; {len(refused)} refused" + (f" ({', '.join(f'{n} {r}' for r, n in why)})" if why else "")
                                 + (f"; {len(hidden)} hidden ({', '.join(hidden)})" if hidden else ""))
 
     def _operator_watch(self, frame: StereoFrame) -> None:
