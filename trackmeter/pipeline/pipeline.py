@@ -113,7 +113,8 @@ class RecordingStats:
         active: True while recording.
         frames_queued: frames handed to the recorder.
         frames_written: frames on disk.
-        frames_dropped: frames that did not fit the recorder's queue (disk too slow); each
+        frames_dropped: frames that did not fit the recorder's queue (its writes too slow: the
+            disk, or a CPU busy elsewhere, which encodes the PNGs); each
             one is counted, never lost silently.
         queue_depth: frames waiting to be written now.
         error: why the recording failed, else None.
@@ -132,7 +133,7 @@ class RecordingStats:
 
     def not_recorded(self) -> str:
         """``", N NOT recorded (why)"`` for each kind of frame not kept, else ``""``."""
-        return ((f", {self.frames_dropped} NOT recorded (disk too slow)" if self.frames_dropped else "")
+        return ((f", {self.frames_dropped} NOT recorded (the writer fell behind: disk or CPU too slow)" if self.frames_dropped else "")
                 + (f", {self.frames_lost} NOT recorded (the writer failed)" if self.frames_lost else ""))
 
 
@@ -151,7 +152,7 @@ class _Recorder:
     """Writes frames to a sequence folder on its own thread, from a bounded queue.
 
     Every frame offered is written or counted: ``frames_dropped`` when the queue was full (the
-    disk too slow), ``frames_lost`` once the writer failed (disk full; the failed frame
+    writer too slow), ``frames_lost`` once the writer failed (disk full; the failed frame
     included). A failure ends the recording at once (the folder closed with what it holds);
     the thread still takes every frame queued, so a stop never waits on a full queue.
 
@@ -206,7 +207,9 @@ class _Recorder:
                 self.frames_dropped += 1
                 first = self.frames_dropped == 1
             if first:  # once per recording; the count is in the stats
-                log.warning("recorder queue full (disk too slow): frame %d and later ones not recorded", frame.index)
+                # Not "and later ones": the queue drains and takes frames again (gaps, not a cut-off).
+                log.warning("recorder queue full (the writer fell behind: disk or CPU too slow): frame %d not "
+                            "recorded, nor others while it stays full", frame.index)
 
     def _run(self) -> None:
         while (item := self._queue.get()) is not self._STOP:
