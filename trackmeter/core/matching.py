@@ -165,6 +165,10 @@ class MeasureParams:
         32, "width of the wider window that decides between strong peaks (repetitive texture), px; 0 = off", min=0, max=255
     )
     context_height_px: int = param(16, "height of that window, px", min=1, max=255)
+    unseen_rival_check: bool = param(
+        True, "refuse a point whose texture repeats (by the left row) at a disparity the search could not see, "
+        "beyond the right image's edge or the rectification's crop: a look-alike may be the match seen"
+    )
     context_window: float = param(
         0.25, "peaks scoring within this ZNCC of the best are re-scored with the wider window", min=0.0, max=2.0
     )
@@ -1295,7 +1299,8 @@ def _match_many(
                     out[j] = _Match(REASON_LEFT_RIGHT, score=score)
                     continue
         searched = (bx - c_first - hi, bx - c_first - lo)  # the disparities the search could see
-        if _rival_unseen(Lrow, l_ok, bx - l_first, d0, searched, (d_lo, d_hi), sm.score - params.uniqueness_margin, P):
+        if params.unseen_rival_check and _rival_unseen(Lrow, l_ok, bx - l_first, d0, searched, (d_lo, d_hi),
+                                                        sm.score - params.uniqueness_margin, P):
             out[j] = _Match(REASON_UNSEEN_RIVAL, score=score)
             continue
         if j in edge_samples and not _edge_decide(*edge_samples[j], d, params):
