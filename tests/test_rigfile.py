@@ -444,3 +444,13 @@ def test_one_file_holding_opencvs_intrinsics_and_extrinsics_reads_alone(tmp_path
         assert got.image_size == (640, 480)
     with pytest.raises(TrackmeterError, match="no image size"):
         load_rig(path)
+
+
+@pytest.mark.parametrize("text", ["- 1\n- 2\n", "%YAML:1.0\n---\n- 3\n", "[1, 2]\n"])
+def test_a_rig_file_that_is_a_list_is_refused_in_one_line(tmp_path: Path, text: str) -> None:
+    # Every key lookup on a list asserted inside OpenCV: a 21-line cv2.error traceback from
+    # measure, track, analyze and console (an outside probe); a scalar was already refused.
+    path = tmp_path / "rig.yaml"
+    path.write_text(text)
+    with pytest.raises(TrackmeterError, match="rig.yaml: not (a mapping of keys|an OpenCV FileStorage file)"):
+        load_rig(path)

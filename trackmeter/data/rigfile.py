@@ -52,6 +52,9 @@ def _open(path: Path) -> cv2.FileStorage:
             raise not_filestorage from None
     if not fs.isOpened():
         raise not_filestorage
+    if not fs.root().isMap():  # a list or a scalar: every key lookup would assert inside OpenCV
+        raise TrackmeterError(f"{path}: not a mapping of keys (image_width, K1, ...): a rig file's top level "
+                              "must be key: value pairs")
     return fs
 
 
