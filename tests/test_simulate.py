@@ -64,14 +64,19 @@ def test_simulate_refuses_a_used_folder_and_bad_input(tmp_path, capsys):
     assert main(["simulate", "--duration", "0.04", "--out", str(used)]) == 2
     assert "not an empty folder" in capsys.readouterr().err
     assert (used / "x").read_text() == "keep me"
-    for duration in ("-1", "inf", "nan"):
+    # 1e300 s integrated its whole motion before the first frame, silently, until interrupted
+    for duration in ("-1", "inf", "nan", "3600.5", "1e300"):
         assert main(["simulate", "--duration", duration, "--out", str(tmp_path / "a")]) == 2
         err = capsys.readouterr().err
         assert "--duration" in err and len(err.strip().splitlines()) == 1
+        assert not (tmp_path / "a").exists()
     endless = tmp_path / "endless.yaml"
     endless.write_text("duration_s: .inf\n")
     assert main(["simulate", "--scenario", str(endless), "--out", str(tmp_path / "a")]) == 2
     assert "'duration_s': expected a finite number" in capsys.readouterr().err
+    endless.write_text("duration_s: 1.0e+300\n")
+    assert main(["simulate", "--scenario", str(endless), "--out", str(tmp_path / "a")]) == 2
+    assert "'duration_s'" in capsys.readouterr().err
     assert main(["simulate", "--scenario", "nope", "--out", str(tmp_path / "b")]) == 2
     assert "no scenario 'nope'" in capsys.readouterr().err
     bad = tmp_path / "bad.yaml"

@@ -14,7 +14,6 @@ examples:
 from __future__ import annotations
 
 import argparse
-import math
 import shutil
 import sys
 from pathlib import Path
@@ -36,7 +35,7 @@ def run(args: argparse.Namespace) -> int:
     from trackmeter.data.atomic import unwritable_ancestor
     from trackmeter.data.sequence import SequenceWriter
     from trackmeter.errors import TrackmeterError
-    from trackmeter.sources.sim.scenario import load_scenario
+    from trackmeter.sources.sim.scenario import MAX_DURATION_S, load_scenario
     from trackmeter.sources.sim.simulator import Simulator
 
     # Nothing the simulator does is configured there (the scenario is), but a --config that
@@ -50,8 +49,9 @@ def run(args: argparse.Namespace) -> int:
         raise TrackmeterError(f"{out}: cannot create a sequence folder there ({blocked} is not a writable folder)")
     scenario = load_scenario(args.scenario)
     if args.duration is not None:
-        if not (args.duration > 0 and math.isfinite(args.duration)):
-            raise TrackmeterError(f"--duration must be a positive number of seconds, got {args.duration}")
+        if not (0 < args.duration <= MAX_DURATION_S):
+            raise TrackmeterError(f"--duration must be a positive number of seconds, at most {MAX_DURATION_S:g} (an hour), "
+                                  f"got {args.duration:g}")
         scenario = scenario.with_duration(args.duration)
     partial = out.with_name(out.name + ".partial")
     if partial.exists() or partial.is_symlink():

@@ -35,6 +35,10 @@ from trackmeter.sources.sim.render import RenderParams
 FloatArray = NDArray[np.float64]
 
 
+#: The longest scenario, s: its motion is integrated whole before the first frame (an hour
+#: takes ~2 s; 1e300 s ran silently until interrupted).
+MAX_DURATION_S = 3600.0
+
 @dataclass(frozen=True)
 class OccluderSpec:
     """A flat panel passing between the rig and the target (``occluders[i]``).
@@ -86,7 +90,9 @@ class Scenario:
     occluders: tuple[OccluderSpec, ...] = param((), "Panels passing in front of the target.")
     render: RenderParams = field(default_factory=RenderParams)
     rate_hz: float = param(25.0, "Frame rate, Hz.", min=0.1, max=10000.0)
-    duration_s: float = param(60.0, "Length of the sequence, s (static_ranges: ranges x frames_per_range frames).", min=0.0)
+    duration_s: float = param(60.0, "Length of the sequence, s (static_ranges: ranges x frames_per_range frames); at "
+                              "most an hour (90 000 frames at 25 Hz: the whole motion is integrated before the first)",
+                              min=0.0, max=MAX_DURATION_S)
     seed: int = param(0, "Seed of everything random (noise, glints), combined with the frame index.", min=0)
 
     def __post_init__(self) -> None:
@@ -125,8 +131,8 @@ class Scenario:
     def with_duration(self, duration_s: float) -> Scenario:
         """The same scenario cut (or extended) to ``duration_s``; static ranges keep all ranges
         with fewer frames each."""
-        if duration_s <= 0:
-            raise TrackmeterError(f"duration must be positive, got {duration_s}")
+        if not 0 < duration_s <= MAX_DURATION_S:
+            raise TrackmeterError(f"duration must be positive and at most {MAX_DURATION_S:g} s (an hour), got {duration_s:g}")
         if self.static_ranges_m:
             per = max(1, int(round(duration_s * self.rate_hz / len(self.static_ranges_m))))
             return dataclasses.replace(self, frames_per_range=per, duration_s=per * len(self.static_ranges_m) / self.rate_hz)
