@@ -156,9 +156,12 @@ def test_glob_matching_nothing(calib_dir: Path, tmp_path: Path, capsys: pytest.C
     _one_error_line(capsys, "no left images match")
 
 
-def test_non_positive_square(calib_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+@pytest.mark.parametrize("square", ["-0.02", "0", "nan", "1e-300", "1e9"])
+def test_an_impossible_square_is_refused_in_one_line(calib_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                     square: str) -> None:
+    # 1e-300 passed and underflowed in OpenCV's float32 board points: a cv2.error traceback
     args = _args(calib_dir, tmp_path / "rig.yaml")
-    args[args.index("--square") + 1] = "-0.02"
+    args[args.index("--square") + 1] = square
     assert main(args) == 2
     _one_error_line(capsys, "--square")
 

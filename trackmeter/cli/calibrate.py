@@ -47,8 +47,10 @@ def run(args: argparse.Namespace) -> int:
 
     params = load_config_from_args(args).calibrate
     pattern = parse_pattern(args.pattern)
-    if not (math.isfinite(args.square) and args.square > 0):
-        raise TrackmeterError(f"--square must be a positive length in metres, got {args.square}")
+    if not (MIN_SQUARE_M <= args.square <= MAX_SQUARE_M):  # NaN fails too
+        # 1e-300 m passed and underflowed in OpenCV's float32 board points (a cv2.error traceback).
+        raise TrackmeterError(f"--square must be a length in metres from {MIN_SQUARE_M:g} to {MAX_SQUARE_M:g}, "
+                              f"got {args.square:g}")
     _check_out(args.out)  # before the work, which takes a while
     pairs = pair_stereo_paths(expand_globs(args.left, "left images"), expand_globs(args.right, "right images"))
     same = [left for left, right in pairs if left.resolve() == right.resolve()]
@@ -130,6 +132,10 @@ def _check_out(out: str) -> None:
 
 #: A calibrated baseline shorter than this many squares is no stereo rig: the same views twice.
 MIN_BASELINE_SQUARES = 1e-3
+
+#: The --square sizes accepted, m (a 0.1 mm square to a 100 m one: anything else is a typo; a
+#: size in millimetres, 25 for 0.025, passes and is warned about by the baseline it gives).
+MIN_SQUARE_M, MAX_SQUARE_M = 1e-4, 100.0
 
 
 def format_report(result: StereoCalibration, pairs: Sequence[tuple[Path, Path]], square: float, out_path: Path) -> str:

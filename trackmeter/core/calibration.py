@@ -80,7 +80,7 @@ def parse_pattern(text: str) -> tuple[int, int]:
     """``"9x6"`` → ``(9, 6)``: inner corners per row (columns) and per column (rows).
 
     Raises:
-        TrackmeterError: not two integers ≥ 2 separated by ``x``.
+        TrackmeterError: not two integers ≥ 3 separated by ``x``.
     """
     parts = text.lower().replace("×", "x").split("x")
     try:
@@ -89,8 +89,8 @@ def parse_pattern(text: str) -> tuple[int, int]:
         cols, rows = int(parts[0]), int(parts[1])
     except ValueError:
         raise TrackmeterError(f"expected the pattern as COLSxROWS inner corners (e.g. 9x6), got {text!r}") from None
-    if cols < 2 or rows < 2:
-        raise TrackmeterError(f"a chessboard pattern needs at least 2x2 inner corners, got {text!r}")
+    if cols < 3 or rows < 3:  # OpenCV's findChessboardCorners asserts on fewer
+        raise TrackmeterError(f"a chessboard pattern needs at least 3x3 inner corners, got {text!r}")
     return cols, rows
 
 
