@@ -712,3 +712,12 @@ def test_an_interrupt_while_starting_says_nothing_was_written(monkeypatch, tmp_p
     err = capsys.readouterr().err
     assert err == f"trackmeter track: interrupted while starting; nothing was written to {out}\n"
     assert not out.exists()
+
+
+def test_a_target_id_given_twice_is_refused_before_the_run(tmp_path, capsys) -> None:
+    # It was a warning after the first frame and a run that went on (an outside CLI probe).
+    out = tmp_path / "run"
+    assert main(["track", "--source", "sim", "--target", "p1=329.5,159.8", "p1=385.1,348.6", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err == "trackmeter track: error: --target id 'p1' given twice: each target's id names one point\n"
+    assert not out.exists()

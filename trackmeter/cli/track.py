@@ -169,6 +169,10 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
     most = config.tracker.max_targets
     if args.auto is not None and not 1 <= args.auto <= most:
         raise TrackmeterError(f"--auto must be in [1, {most}] (tracker.max_targets), got {args.auto}")
+    named = [i for i, _ in targets if i is not None]
+    twice = sorted({i for i in named if named.count(i) > 1})
+    if twice:  # known before the source opens: not a warning after the first frame
+        raise TrackmeterError(f"--target id {twice[0]!r} given twice: each target's id names one point")
     if len(targets) > most:
         raise TrackmeterError(f"{len(targets)} --target points but at most {most} targets are tracked (tracker.max_targets)")
     if args.max_frames is not None and args.max_frames < 1:
