@@ -97,6 +97,10 @@ def run(args: argparse.Namespace) -> int:
         # without the fitted offset the figures measure where its frame sits, not the tracking.
         print(f"trackmeter evaluate: warning: the run was tracked in case ({estimate.case}), whose body frame is "
               "not the truth's: compare with --align body", file=sys.stderr)
+    if estimate.status == "running":
+        # The writer never closed it: killed, or still being written (its summary is missing).
+        print("trackmeter evaluate: warning: the run's run.yaml says it is still running: it was killed (or is "
+              "still being written), so it may end early and its summary is missing", file=sys.stderr)
     attitude_rms_rad = result.summary.get("attitude_rad", {}).get("total", {}).get("rms", 0.0)
     if params.align == "none" and estimate.case is None and attitude_rms_rad > UNKNOWN_CASE_OFFSET_RAD:
         # A bare trajectory does not say whose body frame it is in: a case (a) or (c) run's

@@ -42,6 +42,7 @@ class LoadedMotion:
     # how often a track run started its body frame anew (its run.yaml's summary): at a cut in
     # its source, and case (a)'s new frames after a total loss: (stream_cuts, frames_redefined)
     restarts: tuple[int, int] = (0, 0)
+    status: str | None = None  # a track run's run.yaml status ("complete", "interrupted", "running", ...)
 
 
 def _looks_like_motion_csv(path: Path) -> bool:
@@ -178,7 +179,9 @@ def load_estimate(spec: str | Path) -> LoadedMotion:
     run_dir = path if path.is_dir() else path.parent
     counts = [_run_meta(run_dir, "summary", "engine", key) for key in ("stream_cuts", "frames_redefined")]
     restarts = tuple(c if isinstance(c, int) and not isinstance(c, bool) and c > 0 else 0 for c in counts)
-    return replace(loaded, case=_run_case(run_dir), restarts=(restarts[0], restarts[1]))
+    status = _run_meta(run_dir, "status")
+    return replace(loaded, case=_run_case(run_dir), restarts=(restarts[0], restarts[1]),
+                   status=status if isinstance(status, str) else None)
 
 
 def _run_meta(run_dir: Path, *keys: str) -> Any:
