@@ -39,7 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="left-image pixels to measure (several may follow one --at, or repeat it; write --at=-5,3 "
         "for a negative u)",
     )
-    parser.add_argument("--patch", type=int, metavar="N", help="patch side, px (default: measure.patch_size, 8)")
+    parser.add_argument("--patch", type=int, metavar="N", help="patch side, px, 3 to 63, odd or even (default: measure.patch_size, 8)")
     parser.add_argument("--json", action="store_true", help="print a JSON list instead of a table")
 
 

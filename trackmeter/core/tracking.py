@@ -186,7 +186,8 @@ class TrackerParams:
     )
     track_blur_sigma_px: float = param(
         0.0, "std of a Gaussian smoothing of the left image for the frame-to-frame sub-pixel fits and their templates, "
-        "px (0: none; the integer search and the stereo match always use the image itself)", min=0.0,
+        "px (0: none; the integer search and the stereo match always use the image itself; at most 5: wider "
+        "smooths an 8x8 patch flat, and 1e6 took minutes a frame)", min=0.0, max=5.0,
     )
     track_blur_recheck_px: float = param(
         0.25, "with the smoothing, each sub-pixel fit is refined again on the image itself and must land within this "
