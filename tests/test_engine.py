@@ -609,6 +609,11 @@ def test_the_model_points_refused_say_why_and_whether_they_are_clicked_again(est
     assert not reply.ok
     assert "2 model points selected (m0, m1); 10 refused (10 black space)" in reply.message
     assert ("clicked again after each" in reply.message) == repeat
+    # where clicking again cannot help it says nothing of the kind, and is not armed
+    engine, _, _ = make_engine(estec_rig, case="a")
+    reply = engine.handle(SelectModelPoints(repeat=repeat), frame_at(0))
+    assert not reply.ok and reply.message == "selecting model points needs case (b) with a model"
+    assert engine._operator_t is None
 
 
 @pytest.mark.parametrize("repeat", [False, True])

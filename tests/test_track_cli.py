@@ -721,3 +721,14 @@ def test_a_target_id_given_twice_is_refused_before_the_run(tmp_path, capsys) -> 
     err = capsys.readouterr().err
     assert err == "trackmeter track: error: --target id 'p1' given twice: each target's id names one point\n"
     assert not out.exists()
+
+
+def test_an_unnamed_target_does_not_take_a_name_given_later(tmp_path, capsys) -> None:
+    # The unnamed target was made first and took p1, and the later p1=... was refused after
+    # the first frame as "a target named 'p1' exists" (a code review).
+    out = tmp_path / "run"
+    assert main(["track", "--source", "sim", "--case", "a", "--target", "329.5,159.8", "p1=385.1,348.6",
+                 "--max-frames", "2", "--out", str(out)]) == 0
+    assert "exists" not in capsys.readouterr().err
+    ids = {row["id"] for row in csv.DictReader((out / "targets.csv").open())}
+    assert "p1" in ids and len(ids) == 2

@@ -56,7 +56,7 @@ def summary_reason(reason: str) -> str:
 def _option_of(command: Any) -> str:
     """The command-line option a command came from, as the user typed it (for its warnings)."""
     from trackmeter.pipeline.engine import SelectModelPoints
-    from trackmeter.pipeline.snapshot import AcquireModel, SelectPoint, SetAuto
+    from trackmeter.pipeline.snapshot import SelectPoint, SetAuto
 
     if isinstance(command, SelectPoint):
         named = f"{command.target_id}=" if command.target_id else ""
@@ -65,8 +65,6 @@ def _option_of(command: Any) -> str:
         return "--select-model-points"
     if isinstance(command, SetAuto):
         return f"--auto {command.count}"
-    if isinstance(command, AcquireModel):
-        return "--case c (model acquisition)"
     return type(command).__name__
 
 
@@ -162,7 +160,7 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
     from trackmeter.data.rundir import RunWriter, check_run_directory
     from trackmeter.pipeline.engine import NEEDS_TRUTH, Engine, SelectModelPoints
     from trackmeter.pipeline.pipeline import NOT_APPLIED, STOPPED, interrupts_deferred, run_headless, source_log
-    from trackmeter.pipeline.snapshot import AcquireModel, SelectPoint, SetAuto, Snapshot
+    from trackmeter.pipeline.snapshot import SelectPoint, SetAuto, Snapshot
 
     config = load_config_from_args(args)
     targets = [parse_target(t) for t in args.target]
@@ -226,13 +224,13 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
             raise TrackmeterError("--select-model-points needs case (b) and a model")
         engine = Engine(config, rig, model if case == "b" else None, case, rate_hz=source.rate_hz or 25.0,
                         live_errors=False)  # the run directory holds no errors: evaluate makes them
-        commands: list[Any] = [SelectPoint(uv[0], uv[1], tid) for tid, uv in targets]
+        # The named targets first: an unnamed one is given the next free id (p1, p2, ...), which
+        # must not take a name given later on the command line.
+        commands: list[Any] = [SelectPoint(uv[0], uv[1], tid) for tid, uv in sorted(targets, key=lambda x: x[0] is None)]
         if args.select_model_points:
             commands.insert(0, SelectModelPoints(repeat=True))
         if args.auto is not None:
             commands.append(SetAuto(True, args.auto, None))
-        if case == "c":
-            commands.append(AcquireModel())
         total = _total_frames(source, args.max_frames)
         feed = _Limited(source, args.max_frames) if args.max_frames else source
         source_info = {
@@ -247,8 +245,8 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
             "auto": args.auto,
             "select_model_points": bool(args.select_model_points),
         }
+        started.append(True)  # from here on the folder may exist (RunWriter makes it first)
         writer = RunWriter(args.out, config_to_dict(config), source_info, overwrite=args.overwrite)
-        started.append(True)
         tty = sys.stderr.isatty()
         t0 = time.monotonic()
         state = {"pending": None, "invalid": {}, "last_draw": 0.0 if tty else t0, "t0": t0, "status": None}

@@ -98,6 +98,7 @@ FloatArray = NDArray[np.float64]
 #: The reply of :class:`SelectModelPoints` on a frame without ground truth (a source that has
 #: none never will: the command cannot start a target there).
 NEEDS_TRUTH = "selecting model points needs a frame with ground truth (a simulated source, or a recording with its truth)"
+NEEDS_CASE_B = "selecting model points needs case (b) with a model"
 
 
 @dataclass(frozen=True, eq=False)
@@ -430,8 +431,11 @@ class Engine:
             return CommandReply(True, f"target {result.id} at {result.point_cam[2]:.3f} m{note}", result.id, moved_px)
         if isinstance(command, SelectModelPoints):
             reply = self._select_model_points(frame)
-            self._operator_t = (frame.t_s if frame is not None else 0.0) if command.repeat else None
-            if command.repeat and not reply.ok and reply.message != NEEDS_TRUTH:
+            # Not armed where clicking again cannot help (no case (b)): a later switch to it
+            # would start clicks nobody asked for then.
+            watch = command.repeat and reply.message != NEEDS_CASE_B
+            self._operator_t = (frame.t_s if frame is not None else 0.0) if watch else None
+            if watch and not reply.ok and reply.message != NEEDS_TRUTH:
                 # Refused now is not refused for good: say that it goes on.
                 return replace(reply, message=f"{reply.message}; clicked again after each "
                                               f"{self.pose_params.operator_reselect_s:g} s without a pose")
@@ -504,7 +508,7 @@ class Engine:
         if frame is None or frame.truth is None:
             return CommandReply(False, NEEDS_TRUTH)
         if self._given_model is None or self._case != "b":
-            return CommandReply(False, "selecting model points needs case (b) with a model")
+            return CommandReply(False, NEEDS_CASE_B)
         T = np.asarray(frame.truth.T_cam_body, float)
         X = self._given_model.points_body @ T[:3, :3].T + T[:3, 3]
         uv_l, uv_r = self.rig.project(X)
