@@ -54,14 +54,16 @@ Gaussian prior holding them near zero where noise hides them): 0.016 px there, a
 ``plane<deg>_*``).
 
 Checks (a refused point has ``ok=False`` and a reason from :data:`REASONS`, never a number):
-outside the image, patch not inside the image, too dark (black sky or deep shadow), textureless, no texture
+outside the image, patch not inside the image (or inside it but in the border the
+rectification crops), too dark (black sky or deep shadow), textureless, no texture
 along the epipolar line, search window outside the right image, beyond the disparity range
 (peak at the edge of the search), low score, ambiguous (a second peak outside the main lobe
 nearly as good), sub-pixel refinement failed (or its refined score low), disparity too
 uncertain (the fit's own standard deviation is large: the aperture problem along the epipolar
 line), repetitive texture (a wider window, allowed to be foreshortened, does not prefer the
 best peak over the other strong ones: see :func:`_context_decide`), left-right inconsistent
-(matching the right patch back along the left row lands elsewhere), depth edge inside the
+(matching the right patch back along the left row lands elsewhere), a look-alike where the
+search left the right image (:func:`_rival_unseen`; ``unseen_rival_check``), depth edge inside the
 patch (windows shifted a few pixels each way disagree with the patch's disparity by more than
 a plane allows: see :func:`_edge_decide`).
 
