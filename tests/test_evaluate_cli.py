@@ -570,3 +570,24 @@ def test_a_run_its_writer_never_closed_is_warned_about(capsys, run_in_own_body_f
     assert code == 0
     assert ("still running: it was killed" in err) == (status == "running"), err
     assert len(err.strip().splitlines()) == (status == "running")
+
+
+def test_errors_csv_leaves_an_unknown_value_empty_as_the_run_files_do(capsys, tmp_path):
+    # errors.csv wrote Python's "nan" where states.csv and targets.csv leave a field empty (an
+    # outside evaluator's reading): a frame whose rates were not estimated yet.
+    truth = tumbling_truth()
+    seq, run = tmp_path / "seq", tmp_path / "run"
+    write_groundtruth_csv(seq / "groundtruth.csv", truth)
+    v, w = truth.velocity_cam_m_s.copy(), truth.omega_body_rad_s.copy()
+    v[:5], w[:5] = np.nan, np.nan
+    est = MotionSeries(truth.t_s, np.ones(len(truth), bool), truth.position_m, truth.quat_wxyz, v, w, {})
+    write_states_csv(run / "states.csv", est)
+    code, _, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run / "states.csv"),
+                        "--out", str(tmp_path / "report"))
+    assert code == 0, err
+    text = (tmp_path / "report" / "errors.csv").read_text()
+    assert "nan" not in text.lower()
+    rows = [line.split(",") for line in text.splitlines()[1:]]
+    header = text.splitlines()[0].split(",")
+    assert all(len(r) == len(header) for r in rows)
+    assert any(r[header.index("evx")] == "" for r in rows) and rows[-1][header.index("evx")] != ""

@@ -343,7 +343,10 @@ def error_table_csv(evaluation: Evaluation) -> str:
     cols.append("speed_score")
     data.append(e.speed_score[:, None])
     table = np.hstack(data)
-    return ",".join(cols) + "\n" + "".join(",".join(repr(float(v)) for v in row) + "\n" for row in table)
+    # A value not known (a frame's rates before the fit has them) is an empty field, as in
+    # states.csv and targets.csv, not Python's "nan" that some CSV readers take for text.
+    return ",".join(cols) + "\n" + "".join(",".join(repr(float(v)) if math.isfinite(v) else "" for v in row) + "\n"
+                                           for row in table)
 
 
 def render_error_plots(evaluation: Evaluation) -> dict[str, bytes]:
