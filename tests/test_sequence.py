@@ -409,6 +409,15 @@ def test_timestamps_in_another_unit_than_nanoseconds_are_warned(tmp_path, unit_n
     assert index_sequence(_write(tmp_path / "ns", _frames(4))).warnings == ()
 
 
+def test_an_unfinished_simulation_is_warned_about(tmp_path):
+    # After a kill -9, `simulate`'s OUT.partial (66 of 250 frames) was tracked as a complete
+    # sequence without a word (an outside CLI probe).
+    index = index_sequence(_write(tmp_path / "sim.partial", _frames(3)))
+    assert len(index) == 3
+    assert [w for w in index.warnings if "unfinished simulation" in w and "may end early" in w]
+    assert index_sequence(_write(tmp_path / "sim", _frames(3))).warnings == ()
+
+
 def test_unreadable_image_skipped_at_read(tmp_path):
     d = _write(tmp_path / "s", _frames(3))
     (d / "cam1" / "data" / "40000000.png").write_bytes(b"not a png")

@@ -535,6 +535,10 @@ def index_sequence(
     pairs = pair_by_nearest(ns_to_seconds(t_left), ns_to_seconds(t_right), tolerance_s)
     unpaired = (len(left) - len(pairs)) + (len(right) - len(pairs))
     warnings: list[str] = []
+    if Path(directory).name.endswith(".partial"):
+        # `trackmeter simulate` writes into DIR.partial and renames it only when complete: this
+        # one was stopped (killed) before, and reads as a shorter, complete-looking sequence.
+        warnings.append("an unfinished simulation ('.partial': stopped before it was complete), it may end early")
     if miss_l or miss_r:
         warnings.append(f"{miss_l + miss_r} image(s) listed in data.csv are missing (cam0: {miss_l}, cam1: {miss_r})")
     if bad_l or bad_r:
