@@ -246,7 +246,7 @@ class Engine:
         self._gate = float(chi2.ppf(self.pose_params.outlier_probability, 3))
         self.stats = EngineStats()
         # Case (c) from the start acquires at once, as when it is chosen later (SetCase).
-        self._acquisition: _Acquisition | None = _Acquisition() if chosen == "c" else None
+        self._acquisition: _Acquisition | None = self._fresh_acquisition()
         self._operator_t: float | None = None  # the repeating simulated operator's last clicks, s
         # Model points never forgotten for room (a provisional frame's a-priori points, located
         # one at a time, must all still be there when the model is bound).
@@ -457,7 +457,7 @@ class Engine:
             self.tracker.clear()
             self._operator_t = None
             # Case (c): the points being averaged went with the targets; acquire the next ones.
-            self._acquisition = _Acquisition() if self._case == "c" else None
+            self._acquisition = self._fresh_acquisition()
             self._reset_motion()
             return CommandReply(True, "all targets removed" + (
                 "; the model acquisition starts again: hold the object still" if self._acquisition else ""))
@@ -471,7 +471,7 @@ class Engine:
             if command.case == "b" and self._given_model is None:
                 return CommandReply(False, "case (b) needs an a-priori model: load one first")
             self._case = command.case
-            self._acquisition = _Acquisition() if command.case == "c" else None
+            self._acquisition = self._fresh_acquisition()
             self._reset_motion()
             extra = ": hold the object still to acquire the model" if command.case == "c" else ""
             return CommandReply(True, f"model case ({command.case}){extra}")
@@ -547,11 +547,16 @@ class Engine:
             self.stats.operator_reselections += 1
             self._select_model_points(frame)
 
+    def _fresh_acquisition(self) -> _Acquisition | None:
+        """A model acquisition starting now in case (c) (the points held still from here on),
+        None in the other cases."""
+        return _Acquisition() if self._case == "c" else None
+
     def _start_over(self) -> None:
         """Drop every target, the working model and the motion history; the settings (case,
         given model, automatic selection, the simulated operator) stay."""
         self.tracker.clear()
-        self._acquisition = _Acquisition() if self._case == "c" else None
+        self._acquisition = self._fresh_acquisition()
         self._reset_motion()
         if self._operator_t is not None:
             # A new stream's clock starts again: its first frame would wait for the time of
