@@ -163,3 +163,31 @@ def test_the_write_check_leaves_nothing_behind(tmp_path: Path) -> None:
     assert check_run_directory(tmp_path / "new" / "run") == tmp_path / "new" / "run"
     assert check_run_directory(tmp_path) == tmp_path
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_written_attitude_keeps_its_quaternion_sign_as_the_body_turns_past_half_a_turn(tmp_path: Path) -> None:
+    """q and -q are the same rotation; qw >= 0 on every line would flip all four components where
+    a tumble passes 180 deg. Each written quaternion is the sign nearer the one written before (the
+    first with qw >= 0), so a plot or a finite difference of the file sees no jump; the rotations
+    are unchanged (scipy's)."""
+    from dataclasses import replace
+
+    from scipy.spatial.transform import Rotation
+
+    angles = np.radians(np.arange(0.0, 400.0, 10.0))
+    R = Rotation.from_rotvec(angles[:, None] * np.array([0.0, 0.6, 0.8])).as_matrix()
+    writer = RunWriter(tmp_path / "run", {}, {"spec": "test"})
+    for i, R_i in enumerate(R):
+        T = np.eye(4)
+        T[:3, :3] = R_i
+        pose = PoseEstimate.invalid("gap") if i == 20 else replace(_pose(0.0), T_cam_body=T)
+        writer.write_frame(0.04 * i, (), pose)
+    writer.close("complete")
+    traj = read_tum(tmp_path / "run" / "trajectory.tum")
+    q = traj.quat_wxyz
+    assert q[0, 0] > 0.0
+    assert np.all(np.sum(q[1:] * q[:-1], axis=1) > 0.9)  # neighbours on one side, across the gap too
+    kept = np.delete(np.arange(len(R)), 20)
+    np.testing.assert_allclose(Rotation.from_quat(q, scalar_first=True).as_matrix(), R[kept], atol=1e-9)
+    states = read_motion_csv(tmp_path / "run" / "states.csv")
+    np.testing.assert_allclose(states.quat_wxyz[kept], q, atol=1e-9)

@@ -858,3 +858,19 @@ def test_a_data_csv_whose_images_are_all_missing_names_the_path_it_looked_for(tm
     with pytest.raises(TrackmeterError, match=r"none of the 3 image\(s\) it lists exists "
                                               rf"\(the first looked for: {d}/cam0/data/data/\d+\.png\)"):
         SequenceSource(d)
+
+
+def test_a_written_ground_truth_keeps_its_quaternion_sign_past_half_a_turn(tmp_path):
+    """As trajectory.tum (test_rundir): each truth quaternion takes the sign nearer the one before,
+    so groundtruth.csv/.tum have no flip where the tumble passes 180 deg; rotations unchanged."""
+    frames = _frames(40)
+    angles = np.radians(np.arange(40) * 10.0)
+    R = Rotation.from_rotvec(angles[:, None] * np.array([0.6, 0.0, 0.8])).as_matrix()
+    for f, R_i in zip(frames, R):
+        f.truth.T_cam_body[:3, :3] = R_i
+    d = _write(tmp_path / "seq", frames)
+    q = read_motion_csv(d / "groundtruth.csv").quat_wxyz
+    assert q[0, 0] > 0.0 and np.all(np.sum(q[1:] * q[:-1], axis=1) > 0.9)
+    np.testing.assert_allclose(Rotation.from_quat(q, scalar_first=True).as_matrix(), R, atol=1e-9)
+    tum = np.loadtxt(d / "groundtruth.tum")
+    np.testing.assert_allclose(tum[:, [7, 4, 5, 6]], q, atol=1e-9)

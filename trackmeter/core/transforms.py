@@ -61,6 +61,20 @@ def matrix_to_quat_wxyz(R: ArrayLike) -> FloatArray:
     return np.asarray(q, dtype=float)
 
 
+def quat_sign_nearest(quat_wxyz: ArrayLike, reference_wxyz: ArrayLike | None) -> FloatArray:
+    """``q`` or ``-q`` (the same rotation), whichever is nearer ``reference_wxyz``; shapes (4,).
+
+    A series written one quaternion at a time with ``w >= 0`` flips all four components where
+    the rotation passes half a turn; choosing each sign against the one written before keeps the
+    series continuous (for a plot, or a finite difference as in eq. 14). ``reference_wxyz`` None
+    returns ``q`` as given.
+    """
+    q = np.asarray(quat_wxyz, dtype=float)
+    if reference_wxyz is not None and float(np.dot(q, np.asarray(reference_wxyz, dtype=float))) < 0.0:
+        return -q
+    return q
+
+
 def quat_multiply(q1_wxyz: ArrayLike, q2_wxyz: ArrayLike) -> FloatArray:
     """Hamilton product ``q1 ⊗ q2`` of (possibly non-unit) quaternions, shapes (4,) or (N,4).
 

@@ -32,7 +32,7 @@ import numpy as np
 import yaml
 
 from trackmeter.core.targets import TargetState
-from trackmeter.core.transforms import matrix_to_quat_wxyz
+from trackmeter.core.transforms import matrix_to_quat_wxyz, quat_sign_nearest
 from trackmeter.data.motion_csv import STATES_COLUMNS, MotionCsvWriter
 from trackmeter.data.atomic import AppendFile, write_text_atomic
 from trackmeter.data.sequence import check_output_folder
@@ -141,6 +141,8 @@ class RunWriter:
         self.coasted_frames = 0
         # Valid poses whose rates were not estimated yet (states.csv valid 0, pose filled in).
         self.rates_pending_frames = 0
+        # The quaternion last written: each next one takes the sign nearer it (no flips in the files).
+        self._last_quat_wxyz: np.ndarray | None = None
 
     def _open(self, config: dict[str, Any], source: dict[str, Any], extra: dict[str, Any] | None) -> None:
         self._meta: dict[str, Any] = {
@@ -189,7 +191,7 @@ class RunWriter:
         rates_known = False
         if pose.valid:
             p = pose.T_cam_body[:3, 3]
-            q = matrix_to_quat_wxyz(pose.T_cam_body[:3, :3])
+            q = quat_sign_nearest(matrix_to_quat_wxyz(pose.T_cam_body[:3, :3]), self._last_quat_wxyz)
             rates_known = bool(np.all(np.isfinite(pose.velocity_cam_m_s)) and np.all(np.isfinite(pose.omega_body_rad_s)))
             self._states.write(t=t_s, valid=int(rates_known), position_m=p, quat_wxyz=q,
                                velocity_cam_m_s=pose.velocity_cam_m_s, omega_body_rad_s=pose.omega_body_rad_s,
@@ -208,6 +210,7 @@ class RunWriter:
             self._targets.append("".join(lines))  # one frame's rows in one write
         self.frames += 1
         if pose.valid:
+            self._last_quat_wxyz = q
             self.valid_frames += 1
             self.rates_pending_frames += not rates_known
             if getattr(pose, "coasting_s", 0.0) > 0.0:

@@ -43,7 +43,7 @@ import yaml
 from numpy.typing import ArrayLike, NDArray
 
 from trackmeter.core.stereo import StereoRig
-from trackmeter.core.transforms import matrix_to_quat_wxyz
+from trackmeter.core.transforms import matrix_to_quat_wxyz, quat_sign_nearest
 from trackmeter.data.atomic import AppendFile, unwritable_ancestor
 from trackmeter.data.images import decode_image, joint_data_bits
 from trackmeter.data.model import Model, load_model, save_model
@@ -158,6 +158,7 @@ class SequenceWriter:
             save_model(self.directory / "model.yaml", model_points)
         self._truth_csv: MotionCsvWriter | None = None
         self._truth_tum: AppendFile | None = None
+        self._last_truth_quat_wxyz: FloatArray | None = None  # the next one takes the sign nearer it
         self._cuts: AppendFile | None = None
         self._last_ns: int | None = None
         self.frames_written = 0
@@ -220,7 +221,7 @@ class SequenceWriter:
         truth = frame.truth
         assert truth is not None
         T = np.asarray(truth.T_cam_body, dtype=float)
-        q = matrix_to_quat_wxyz(T[:3, :3])
+        q = quat_sign_nearest(matrix_to_quat_wxyz(T[:3, :3]), self._last_truth_quat_wxyz)
         if self._truth_csv is None:
             self._truth_csv = MotionCsvWriter(self.directory / "groundtruth.csv", GROUNDTRUTH_COLUMNS)
             self._truth_tum = AppendFile(self.directory / "groundtruth.tum", "# t tx ty tz qx qy qz qw  (T_cam_body)\n")
@@ -232,6 +233,7 @@ class SequenceWriter:
             self._truth_csv.truncate(csv_size, rows)
             self._truth_tum.truncate(tum_size)
             raise
+        self._last_truth_quat_wxyz = q
 
     def _write_truth_rows(self, t_s: float, T: FloatArray, q: FloatArray, truth: Any) -> None:
         assert self._truth_csv is not None and self._truth_tum is not None
