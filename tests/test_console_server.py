@@ -135,6 +135,33 @@ def test_frames_that_do_not_match_the_rig_are_a_clear_error(opencv_sample_sequen
                                  f"726x512 (--rig {rig})"], err
 
 
+def test_a_broken_model_in_the_folder_is_warned_and_left_out_unless_case_b_is_asked_for(
+        opencv_sample_sequence, opencv_sample_rig, tmp_path, monkeypatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """The console runs cases (a) and (c) without a model: a folder's broken model.yaml is a
+    warning then (the operator can still track), and one clear line with --case b."""
+    import shutil
+
+    import console.server
+
+    folder = tmp_path / "seq"
+    shutil.copytree(opencv_sample_sequence, folder)
+    (folder / "model.yaml").write_text("points: [oops\n")
+    served: list[Any] = []
+
+    def serve_briefly(running: Any) -> None:
+        served.append(running.pipeline.engine.case)
+        running.stop()
+
+    monkeypatch.setattr(console.server, "serve_forever", serve_briefly)
+    rig = ["--rig", str(opencv_sample_rig / "intrinsics.yml")]
+    assert main(["console", "--source", str(folder), *rig, "--port", str(free_port()), "--cpu-nice", "0"]) == 0
+    err = capsys.readouterr().err
+    assert served == ["a"] and "model.yaml: malformed YAML" in err and "model not used" in err, err
+    code = main(["console", "--source", str(folder), *rig, "--case", "b", "--port", str(free_port()), "--cpu-nice", "0"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "model.yaml" in err[0], err
+
+
 def test_a_bad_source_is_one_line_on_stderr(tmp_path, capsys: pytest.CaptureFixture[str]) -> None:
     """Bad input is one line on stderr (DESIGN.md section 6): the CPU priority's and the
     "opening" notes came first. "opening" is progress, shown on a terminal only; the priority

@@ -529,7 +529,8 @@ def test_a_broken_rig_or_model_in_the_folder_stops_nothing_the_user_replaced(ope
                                                                             tmp_path, capsys) -> None:
     """DESIGN.md section 6: the folder's rig.yaml is used unless --rig is given, its model.yaml
     for case (b) unless --model is given; a broken one the user replaced (or case a, which
-    needs none) must not stop the run, and one that would be used is still one clear line."""
+    needs none, also when (a) is the default because no target is bound) must not stop the
+    run, and one that would be used is still one clear line."""
     import shutil
 
     folder = tmp_path / "seq"
@@ -544,10 +545,18 @@ def test_a_broken_rig_or_model_in_the_folder_stops_nothing_the_user_replaced(ope
         assert code == 0, capsys.readouterr().err
         assert yaml.safe_load((out / "run.yaml").read_text())["status"] == "complete"
     capsys.readouterr()
-    for k, args in enumerate([rig, ["--model", str(tmp_path / "model.yaml")]]):
+    # The default case with no target bound to a model point is (a): the model is not needed.
+    out = tmp_path / "run_default"
+    assert main(["track", "--source", f"seq:{folder}", *rig, "--auto", "4", "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "model.yaml" in err and "malformed YAML" in err and "model not used" in err and "Traceback" not in err
+    meta = yaml.safe_load((out / "run.yaml").read_text())
+    assert meta["status"] == "complete" and meta["source"]["case"] == "a"
+    for k, args in enumerate([[*rig, "--case", "b"], [*rig, "--target", "p1=300,200"],
+                              ["--model", str(tmp_path / "model.yaml")]]):
         code = main(["track", "--source", f"seq:{folder}", *args, "--auto", "4", "--out", str(tmp_path / f"bad{k}")])
         err = capsys.readouterr().err.strip().splitlines()
-        assert code == 2 and len(err) == 1 and ("model.yaml" if k == 0 else "rig.yaml") in err[0], err
+        assert code == 2 and len(err) == 1 and ("model.yaml" if k < 2 else "rig.yaml") in err[0], err
         assert not (tmp_path / f"bad{k}").exists()
 
 

@@ -23,7 +23,7 @@ def load_config_from_args(args: argparse.Namespace):  # type: ignore[no-untyped-
 
 
 def open_source_with_rig(spec: str, rig_path: str | None, realtime: bool = False, loop: bool = False,
-                         own_model: bool = True) -> Source:
+                         own_model: bool = True, model_optional: bool = False) -> Source:
     """Open the source SPEC for a command that measures on its frames, with its rig checked.
 
     The rig is the file ``rig_path`` (``--rig``) when given, else the one the source carries.
@@ -40,6 +40,8 @@ def open_source_with_rig(spec: str, rig_path: str | None, realtime: bool = False
         own_model: False: the source's own model (a sequence folder's ``model.yaml``) is not
             read (``--model`` given, or a command that needs none). With ``rig_path``, the
             folder's ``rig.yaml`` is not read either: a broken file there stops nothing.
+        model_optional: the command may run without the source's model: one that cannot be
+            read is warned about and left out.
 
     Returns:
         The open source, its ``rig`` replaced by ``rig_path``'s when given (may still be None
@@ -52,7 +54,8 @@ def open_source_with_rig(spec: str, rig_path: str | None, realtime: bool = False
     from trackmeter.data.rigfile import load_rig
     from trackmeter.sources import open_source
 
-    source = open_source(spec, realtime=realtime, loop=loop, own_rig=not rig_path, own_model=own_model)
+    source = open_source(spec, realtime=realtime, loop=loop, own_rig=not rig_path, own_model=own_model,
+                         model_optional=model_optional)
     try:
         size = source.frame_size
         if rig_path:

@@ -98,7 +98,9 @@ def _serve(args: argparse.Namespace, config: Any, priority_note: str | None = No
         print(f"trackmeter console: opening {args.source} ...", file=sys.stderr, flush=True)
     # --rig is read once the source is open (it may take its size from the source's frames),
     # and frames of another size than the rig's are refused before the console starts.
-    source = open_source_with_rig(args.source, args.rig, realtime=True, loop=True)
+    # Cases (a) and (c) need no model: unless case (b) is asked for, a source's model that
+    # cannot be read is warned about and the console runs without it.
+    source = open_source_with_rig(args.source, args.rig, realtime=True, loop=True, model_optional=args.case != "b")
     try:
         if source.rig is None:
             raise TrackmeterError(f"source {args.source} carries no stereo rig: give one with --rig")

@@ -180,9 +180,13 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
 
     # The rig is read once the source is open (a rig file may need its frame size) and checked
     # against its frames here, before the run folder is made.
-    # The folder's own model only when it may be used: not with --model, nor in case (a) or (c).
+    # The folder's own model only when it may be used: not with --model, nor in case (a) or (c);
+    # and when the default case would run (a) anyway (no target bound to it), a broken one is
+    # only warned about.
+    binds = any(i for i, _ in targets) or args.select_model_points
     source = open_source_with_rig(args.source, args.rig, realtime=args.source.startswith("camera"),
-                                  own_model=model is None and args.case in (None, "b"))
+                                  own_model=model is None and args.case in (None, "b"),
+                                  model_optional=args.case is None and not binds)
     warning_at_open = getattr(source, "warning", None)  # shown by the source already
     try:
         rig = source.rig
@@ -194,7 +198,6 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
         if model is None and args.case in (None, "b"):
             model = source.model
         model_label = args.model or ("source" if model is not None else None)
-        binds = any(i for i, _ in targets) or args.select_model_points
         # Case (b) needs targets bound to model point ids: without one its pose could never be
         # valid, so a model alone does not choose it.
         case = args.case or ("b" if model is not None and binds else "a")

@@ -505,7 +505,8 @@ def seconds_if_nanoseconds(t_ref_s: ArrayLike, t: ArrayLike, tolerance_s: float,
 
 
 def index_sequence(
-    directory: str | Path, tolerance_s: float | None = None, *, read_rig: bool = True, read_model: bool = True
+    directory: str | Path, tolerance_s: float | None = None, *, read_rig: bool = True, read_model: bool = True,
+    model_optional: bool = False,
 ) -> SequenceIndex:
     """Index a sequence folder: pair its images, read its rig, model and ground truth.
 
@@ -515,6 +516,9 @@ def index_sequence(
             Default: a quarter of the median left frame interval (1 ms when unknown).
         read_rig, read_model: False leaves the folder's rig (model) unread and None, e.g. when
             the user gives another (``--rig``, ``--model``): a broken file there then stops nothing.
+        model_optional: the caller may run without the model (e.g. case (a) unless a target is
+            bound to it): a ``model.yaml`` that cannot be read is described in ``warnings`` and
+            ``model`` is None, as a broken ground truth is.
 
     Raises:
         TrackmeterError: not a sequence folder, unreadable CSV or rig/model file, or no
@@ -565,7 +569,13 @@ def index_sequence(
         if problem:
             warnings.append(problem)
     model_file = find_sequence_file(directory, "model.yaml") if read_model else None
-    model = load_model(model_file) if model_file is not None else None
+    model: Model | None = None
+    try:
+        model = load_model(model_file) if model_file is not None else None
+    except TrackmeterError as exc:
+        if not model_optional:
+            raise
+        warnings.append(f"{exc}; model not used")
     try:
         truth = _read_truth(find_sequence_file(directory, "groundtruth.csv", "groundtruth.tum"), t_s, tolerance_s)
     except TrackmeterError as exc:

@@ -30,7 +30,8 @@ DEFAULT_SCENARIO = "estec"
 
 
 def open_source(spec: str, rig_override: StereoRig | None = None, realtime: bool = False, loop: bool = False,
-                render_ahead: bool = True, *, own_rig: bool = True, own_model: bool = True) -> Source:
+                render_ahead: bool = True, *, own_rig: bool = True, own_model: bool = True,
+                model_optional: bool = False) -> Source:
     """Open the source a SPEC string names.
 
     Args:
@@ -44,6 +45,8 @@ def open_source(spec: str, rig_override: StereoRig | None = None, realtime: bool
         own_rig, own_model: False: a sequence folder's ``rig.yaml`` (``model.yaml``) is not
             read, its ``rig`` (``model``) None — the caller brings another or needs none, and a
             broken file there must not stop it.
+        model_optional: the caller may run without the source's model: a sequence folder's
+            ``model.yaml`` that cannot be read is warned about and left out, not an error.
 
     Raises:
         TrackmeterError: a malformed SPEC, a missing file or folder, a camera that cannot be
@@ -69,7 +72,7 @@ def open_source(spec: str, rig_override: StereoRig | None = None, realtime: bool
     if kind == "seq":
         if not arg:
             raise TrackmeterError(f"seq: needs a folder, as seq:DIR{folder_hint}")
-        return _open_sequence(arg, rig_override, realtime, loop, own_rig, own_model)
+        return _open_sequence(arg, rig_override, realtime, loop, own_rig, own_model, model_optional)
     if kind == "video":
         parts = [p.strip() for p in arg.split(",")]
         if len(parts) != 2 or not all(parts):
@@ -93,14 +96,15 @@ def open_source(spec: str, rig_override: StereoRig | None = None, realtime: bool
     # A bare folder (DESIGN.md: "seq:DIR or a bare DIR"). Windows drive letters never reach here.
     folder = os.path.expanduser(text)
     if Path(folder).is_dir():
-        return _open_sequence(folder, rig_override, realtime, loop, own_rig, own_model)
+        return _open_sequence(folder, rig_override, realtime, loop, own_rig, own_model, model_optional)
     raise TrackmeterError(
         f"unknown source {spec!r}: expected sim, sim:SCENARIO, seq:DIR, an existing folder, video:LEFT,RIGHT, camera:I[,J]"
     )
 
 
 def _open_sequence(directory: str, rig: StereoRig | None, realtime: bool, loop: bool, own_rig: bool = True,
-                   own_model: bool = True) -> Source:
+                   own_model: bool = True, model_optional: bool = False) -> Source:
     from trackmeter.sources.sequence import SequenceSource
 
-    return SequenceSource(directory, rig=rig, realtime=realtime, loop=loop, read_rig=own_rig, read_model=own_model)
+    return SequenceSource(directory, rig=rig, realtime=realtime, loop=loop, read_rig=own_rig, read_model=own_model,
+                          model_optional=model_optional)

@@ -30,6 +30,8 @@ class SequenceSource(Source):
         tolerance_s: left/right pairing tolerance (default: a quarter frame interval).
         read_rig, read_model: False leaves the folder's ``rig.yaml`` (``model.yaml``) unread:
             the user brings another, or needs none. With ``rig`` given, ``rig.yaml`` is not read.
+        model_optional: a ``model.yaml`` that cannot be read is warned about and left out
+            (``model`` None) instead of refusing the folder: the caller can run without it.
 
     Attributes:
         index: the :class:`SequenceIndex` (paths, times, truth).
@@ -49,9 +51,11 @@ class SequenceSource(Source):
         tolerance_s: float | None = None,
         read_rig: bool = True,
         read_model: bool = True,
+        model_optional: bool = False,
     ) -> None:
         self.index: SequenceIndex = index_sequence(
-            directory, tolerance_s, read_rig=read_rig and rig is None, read_model=read_model
+            directory, tolerance_s, read_rig=read_rig and rig is None, read_model=read_model,
+            model_optional=model_optional,
         )
         self.rig = rig if rig is not None else self.index.rig
         self.rate_hz = self.index.rate_hz
