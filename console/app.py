@@ -24,7 +24,7 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Coroutine
+from collections.abc import Callable, Coroutine, Sequence
 from concurrent.futures import Future
 from html import escape
 from pathlib import Path
@@ -36,10 +36,11 @@ import viser.uplot
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from console.overlay import (STATUS_RGB, box_half_px, box_segments, draw_overlays,
+from console.overlay import (STATUS_RGB, LostTargets, box_half_px, box_segments, draw_overlays,
                              image_view, node_rgb_for, pixel_to_plane, ray_to_pixel, to_rgb)
 from console.series import PLOTS, PlotData
 from trackmeter.core.stereo import StereoRig
+from trackmeter.core.targets import TargetState
 from trackmeter.core.tracking import REMOVE_NEAREST_PX
 from trackmeter.pipeline.engine import SelectModelPoints
 from trackmeter.pipeline.pipeline import Pipeline, RecordingStats
@@ -394,6 +395,7 @@ class Console:
         # (time.monotonic(), target ids shown) of the recent image pushes (benchmarks/console.py).
         self.image_pushes: deque[tuple[float, tuple[str, ...]]] = deque(maxlen=200)
         self._last_frame_index: int | None = None
+        self._lost_targets = LostTargets()  # a lost target's mark is left out after a while
         self._plot_version: dict[str, int] = {}
         self._omega_shown = False
         self._pushed_operator_ids: set[str] = set()
@@ -903,6 +905,7 @@ class Console:
     def _push(self, snap: Snapshot, plots: bool, text: bool = True) -> None:
         frame = snap.frame
         left_rgb = right_rgb = None
+        drawn = self._lost_targets.shown(snap.targets, frame.t_s) if frame is not None else list(snap.targets)
         if frame is not None:
             for t in snap.targets:
                 if t.status != "lost" and np.all(np.isfinite(t.uv)):
@@ -915,7 +918,7 @@ class Console:
                     del self._trails[tid]
             self._last_frame_index = frame.index
         if frame is not None:
-            left_rgb = draw_overlays(to_rgb(frame.left), snap.targets, self._trails, self.patch_px,
+            left_rgb = draw_overlays(to_rgb(frame.left), drawn, self._trails, self.patch_px,
                                      operator_boxes=False)
             if self.right_image.visible:
                 right_rgb = to_rgb(frame.right)
@@ -937,7 +940,7 @@ class Console:
                 self.left_image.image = left_rgb
                 if right_rgb is not None:
                     self.right_image.image = right_rgb
-            self._update_operator_overlay(snap)
+            self._update_operator_overlay(drawn)
             if status_text is not None and targets_text is not None:
                 self.status_html.content = status_text
                 self.targets_md.content = targets_text
@@ -961,10 +964,10 @@ class Console:
         # One assignment, so a reader never pairs these ids with an older push time.
         self.last_push = (self.last_pushed_time, snap.sequence, self.last_pushed_target_ids)
 
-    def _update_operator_overlay(self, snap: Snapshot) -> None:
-        """The operator's targets as boxes (status colour) and ``id*`` labels over the left image."""
+    def _update_operator_overlay(self, targets: Sequence[TargetState]) -> None:
+        """The operator's ``targets`` as boxes (status colour) and ``id*`` labels over the left image."""
         if self._image_size is not None:
-            self.operator_marks.update([t for t in snap.targets if t.origin == "operator"], self._image_size,
+            self.operator_marks.update([t for t in targets if t.origin == "operator"], self._image_size,
                                        self.render_size)
 
     def _sync_widgets(self, snap: Snapshot) -> None:

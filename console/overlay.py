@@ -34,6 +34,35 @@ PREDICTED_RGB = (255, 80, 255)
 TRAIL_RGB = (0, 220, 255)
 
 
+#: How long a lost target stays drawn at its last good pixel, s of frame time: long enough to
+#: see where it was lost (and a re-lock a few frames later), short enough that a mark does not
+#: sit on a part of the image the tumbling body has long turned away from.
+LOST_SHOWN_S = 1.5
+
+
+class LostTargets:
+    """Which targets to draw: the measured ones, and a lost one for :data:`LOST_SHOWN_S` of frame
+    time after it was lost (its ``uv`` is the last good pixel; the targets table still lists it).
+
+    Frame time, not the wall clock: a paused console keeps its marks. A frame time earlier than a
+    loss (the source restarted) counts the loss from that frame.
+    """
+
+    def __init__(self, shown_s: float = LOST_SHOWN_S) -> None:
+        self.shown_s = shown_s
+        self.since: dict[str, float] = {}  # target id -> frame time it was first seen lost
+
+    def shown(self, targets: Sequence[TargetState], t_s: float) -> list[TargetState]:
+        """The ``targets`` of the frame at ``t_s`` (s) to draw, in their order."""
+        since = {}
+        for t in targets:
+            if t.status == "lost":
+                first = self.since.get(t.id, t_s)
+                since[t.id] = first if first <= t_s else t_s
+        self.since = since
+        return [t for t in targets if t.status != "lost" or t_s - since[t.id] <= self.shown_s]
+
+
 # three.js's ACES filmic tone mapping (the fit in its shader chunk tonemapping_pars_fragment,
 # after Stephen Hill's RRT + ODT fit), which viser's client applies to every scene node but images.
 _ACES_IN = np.array([[0.59719, 0.35458, 0.04823], [0.07600, 0.90834, 0.01566], [0.02840, 0.13383, 0.83777]])

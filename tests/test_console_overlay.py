@@ -15,7 +15,9 @@ from scipy.spatial.transform import Rotation
 pytest.importorskip("viser")
 
 from console.overlay import (  # noqa: E402
+    LOST_SHOWN_S,
     STATUS_RGB,
+    LostTargets,
     box_segments,
     displayed_rgb,
     draw_overlays,
@@ -90,6 +92,23 @@ def test_overlays_mark_each_target_in_its_status_colour_at_its_pixel() -> None:
         assert np.any(np.all(patch == STATUS_RGB[t.status], axis=1)), t.id
         if t.id != "a1":  # (a1's trail ends at its pixel)
             assert not np.any(img[v, u]), "the centre pixel itself stays visible"
+
+
+def test_a_lost_target_is_drawn_at_its_last_pixel_for_a_while_then_left_out() -> None:
+    """A lost target's uv is its last good pixel: drawn there just after the loss (where it went),
+    but not for ever, when the body has turned on and that pixel shows something else. Frame time,
+    so a paused console keeps the mark; a restart (time going back) starts the count again."""
+    lost = LostTargets()
+    op_lost, auto_ok = _target("op", (400.0, 300.0), "lost"), _target("a1", (100.0, 120.0), "tracking", "auto")
+    assert [t.id for t in lost.shown([op_lost, auto_ok], 10.0)] == ["op", "a1"]
+    assert [t.id for t in lost.shown([op_lost, auto_ok], 10.0 + 0.5 * LOST_SHOWN_S)] == ["op", "a1"]
+    assert [t.id for t in lost.shown([op_lost, auto_ok], 10.0 + 1.01 * LOST_SHOWN_S)] == ["a1"]
+    assert [t.id for t in lost.shown([op_lost, auto_ok], 0.04)] == ["op", "a1"]  # a restart: time went back
+    # Re-locked, then lost again: a new loss, drawn again.
+    assert [t.id for t in lost.shown([_target("op", (410.0, 300.0), "recovered")], 20.0)] == ["op"]
+    assert [t.id for t in lost.shown([op_lost], 20.04)] == ["op"]
+    assert lost.shown([op_lost], 20.04 + 1.01 * LOST_SHOWN_S) == []
+    assert lost.shown([], 30.0) == [] and not lost.since  # forgotten once gone
 
 
 def test_series_window_keeps_the_last_rows_skips_nan_and_restarts() -> None:

@@ -13,6 +13,7 @@ import urllib.request
 from concurrent.futures import Future
 from typing import Any, Iterator
 
+import numpy as np
 import pytest
 
 pytest.importorskip("viser")
@@ -95,6 +96,30 @@ def _wait_for_status(running, text: str, timeout_s: float = 20.0) -> None:  # ty
     while text not in running.console.status_html.content:
         assert time.monotonic() < deadline, running.console.status_html.content
         time.sleep(0.05)
+
+
+def test_a_lost_operator_box_leaves_the_image_a_while_after_the_loss() -> None:
+    """A target lost for good (its uv the last good pixel) is not marked there for ever: after
+    LOST_SHOWN_S of frame time its box is parked (console.overlay.LostTargets)."""
+    from console.overlay import LOST_SHOWN_S
+    from trackmeter.core.targets import TargetState
+
+    nan2 = np.full(2, np.nan)
+    engine = RecordingEngine()
+    engine.targets = [TargetState("p1", "operator", "lost", np.array([3.0, 2.0]), nan2, np.full(3, np.nan),
+                                  np.full((3, 3), np.nan), float("nan"), nan2, (0, 0, 1, 1), "test")]
+    frames = int(25 * (LOST_SHOWN_S + 1.0))  # CountingSource: 25 frames a second
+    running = start_console(CountingSource(frames, delay_s=0.02), engine, port=free_port())  # type: ignore[arg-type]
+    try:
+        marks = running.console.operator_marks
+        deadline = time.monotonic() + 20.0
+        while "p1" not in marks.of_target and len(engine.processed) < frames:
+            time.sleep(0.005)
+        _wait_for_status(running, "ended")
+        time.sleep(0.3)  # the last push
+        assert "p1" not in marks.of_target and time.monotonic() < deadline
+    finally:
+        running.stop()
 
 
 def test_a_failing_source_is_shown_and_the_console_stays_up() -> None:
