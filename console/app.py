@@ -396,6 +396,7 @@ class Console:
         self.image_pushes: deque[tuple[float, tuple[str, ...]]] = deque(maxlen=200)
         self._last_frame_index: int | None = None
         self._lost_targets = LostTargets()  # a lost target's mark is left out after a while
+        self._counts_from: tuple[int, int] | None = None  # frames read and dropped at the last Restart
         self._plot_version: dict[str, int] = {}
         self._omega_shown = False
         self._pushed_operator_ids: set[str] = set()
@@ -893,6 +894,9 @@ class Console:
                 model_point = self._model_point_clicks.pop(future, None)
             if reply.ok and model_point is not None and self.model_point_dropdown.value == model_point:
                 self.model_point_dropdown.value = NEW_TARGET  # the choice is used up; a refusal keeps it
+            if reply.ok and label.startswith("RestartSource"):
+                timings = self.pipeline.timings()  # the new stream's frames are counted from here
+                self._counts_from = (timings.frames_read, timings.frames_dropped)
             if reply.ok and label.startswith(("SetAuto", "SetFilterCutoff", "SetPaused", "StepOnce")):
                 continue  # the UI shows the new state; no pop-up needed
             if not reply.ok:  # the widget the operator changed shows the tracker's state again
@@ -928,7 +932,7 @@ class Console:
                         h = self.patch_px // 2
                         right_rgb[max(v - h, 0):v + h + 1, [max(u - h, 0), min(u + h, right_rgb.shape[1] - 1)]] = (60, 230, 60)
                         right_rgb[[max(v - h, 0), min(v + h, right_rgb.shape[0] - 1)], max(u - h, 0):u + h + 1] = (60, 230, 60)
-        status_text = self._status_html(snap) if text else None
+        status_text = self._status_html(snap, self._counts_from) if text else None
         targets_text = self._targets_markdown(snap) if text else None
         rec = self.pipeline.recording_stats()
         with self.server.atomic():
@@ -1008,18 +1012,26 @@ class Console:
             widget.value = state
 
     @staticmethod
-    def _status_html(snap: Snapshot) -> str:
+    def _status_html(snap: Snapshot, counts_from: tuple[int, int] | None = None) -> str:
         """The live numbers as HTML in a box of fixed height (:data:`STATUS_HEIGHT_EM`).
 
         Its height must not follow the content: a panel that grows when the pose becomes valid
         or a line wraps moves the buttons below under the operator's cursor, and a browser's
         click never finds them still. Every state fills the same rows, a dash where there is
         nothing to say; a long reason scrolls inside the box.
+
+        ``counts_from``: the frames read and dropped when the source was last restarted (by
+        the operator; None before): the share dropped is counted from there, the total beside it.
         """
         t = snap.timings
         n_track = sum(1 for x in snap.targets if x.measured)
         n_lost = sum(1 for x in snap.targets if not x.measured)
-        dropped_pct = 100.0 * t.frames_dropped / t.frames_read if t.frames_read else 0.0
+        read0, dropped0 = counts_from or (0, 0)
+        read, dropped = t.frames_read - read0, t.frames_dropped - dropped0
+        dropped_pct = 100.0 * dropped / read if read > 0 else 0.0
+        dropped_line = f"dropped {dropped} ({dropped_pct:.1f} %)"
+        if counts_from is not None:
+            dropped_line += f" since Restart · {t.frames_dropped} in all"
         state = "paused" if snap.paused else "running"
         source = (f"<b>Source: {escape(snap.source_status)}</b>" if snap.source_status
                   else "source delivering")
@@ -1032,7 +1044,7 @@ class Console:
                  "read – · tracking – (paused)" if snap.paused else
                  f"read {t.acquisition_hz:.1f} Hz · tracking {t.tracking_hz:.1f} Hz",
                  f"latency {t.latency_ms:.0f} ms · step {t.step_ms:.0f} ms",
-                 f"dropped {t.frames_dropped} ({dropped_pct:.1f} %)",
+                 dropped_line,
                  f"targets: <b>{n_track} tracking</b>, {n_lost} lost"]
         pose = snap.pose
         rows: dict[str, Any] = dict.fromkeys(("p [m]", "rotvec [°]", "v [mm/s]", "ω [°/s]", "error [mm]"))

@@ -122,6 +122,19 @@ def test_a_lost_operator_box_leaves_the_image_a_while_after_the_loss() -> None:
         running.stop()
 
 
+def test_after_a_restart_the_dropped_share_counts_from_it() -> None:
+    from trackmeter.pipeline.snapshot import RestartSource
+
+    running = start_console(CountingSource(100_000, delay_s=0.005), RecordingEngine(), port=free_port())  # type: ignore[arg-type]
+    try:
+        _wait_for_status(running, "running")
+        assert "since Restart" not in running.console.status_html.content
+        running.console.submit(RestartSource()).result(10)
+        _wait_for_status(running, "since Restart")
+    finally:
+        running.stop()
+
+
 def test_a_failing_source_is_shown_and_the_console_stays_up() -> None:
     port = free_port()
     img_source = CountingSource(40, fail_at=25)
