@@ -191,3 +191,27 @@ def test_a_written_attitude_keeps_its_quaternion_sign_as_the_body_turns_past_hal
     np.testing.assert_allclose(Rotation.from_quat(q, scalar_first=True).as_matrix(), R[kept], atol=1e-9)
     states = read_motion_csv(tmp_path / "run" / "states.csv")
     np.testing.assert_allclose(states.quat_wxyz[kept], q, atol=1e-9)
+
+
+def test_a_second_run_cannot_write_into_a_folder_a_run_is_writing_even_with_overwrite(tmp_path: Path) -> None:
+    """Two `track --overwrite` into one folder at once truncated each other's files (NUL holes,
+    rows of both runs, run.yaml saying complete): the folder is locked while a run writes it.
+    The lock goes with the writer (closed, or its process gone), so a later run may overwrite."""
+    import subprocess
+    import sys
+
+    first = RunWriter(tmp_path / "run", {}, {"spec": "first"})
+    first.write_frame(0.0, (), _pose(0.0))
+    with pytest.raises(TrackmeterError, match="another run is writing"):
+        RunWriter(tmp_path / "run", {}, {"spec": "second"}, overwrite=True)
+    # Another process is refused too (flock is per open file, not per process).
+    code = ("import sys; from trackmeter.data.rundir import RunWriter; from trackmeter.errors import TrackmeterError\n"
+            "try:\n    RunWriter(sys.argv[1], {}, {'spec': 'other'}, overwrite=True)\n"
+            "except TrackmeterError as e:\n    print(e); sys.exit(3)\n")
+    proc = subprocess.run([sys.executable, "-c", code, str(tmp_path / "run")], capture_output=True, text=True)
+    assert proc.returncode == 3 and "another run is writing" in proc.stdout, proc.stdout + proc.stderr
+    first.write_frame(0.04, (), _pose(0.0))
+    first.close("complete")
+    assert yaml.safe_load((tmp_path / "run" / "run.yaml").read_text())["source"]["spec"] == "first"
+    assert len(read_tum(tmp_path / "run" / "trajectory.tum").t_s) == 2
+    RunWriter(tmp_path / "run", {}, {"spec": "third"}, overwrite=True).close("complete")

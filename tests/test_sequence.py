@@ -874,3 +874,26 @@ def test_a_written_ground_truth_keeps_its_quaternion_sign_past_half_a_turn(tmp_p
     np.testing.assert_allclose(Rotation.from_quat(q, scalar_first=True).as_matrix(), R, atol=1e-9)
     tum = np.loadtxt(d / "groundtruth.tum")
     np.testing.assert_allclose(tum[:, [7, 4, 5, 6]], q, atol=1e-9)
+
+
+def test_two_recordings_into_one_new_folder_at_once_do_not_mix(tmp_path, monkeypatch):
+    """Both pass the empty-folder check before either writes: the second is refused by the
+    folder's lock, and the first's recording stays whole."""
+    import trackmeter.data.sequence as sequence
+
+    frames = _frames(4)
+    real_check = sequence.check_record_directory
+    with SequenceWriter(tmp_path / "rec") as first:
+        first.write(frames[0])
+        checks = iter([lambda d: Path(d)])  # the second's first check ran before the first wrote
+        monkeypatch.setattr(sequence, "check_record_directory", lambda d: next(checks, real_check)(d))
+        with pytest.raises(TrackmeterError, match="another recording is writing"):
+            SequenceWriter(tmp_path / "rec")
+        monkeypatch.setattr(sequence, "check_record_directory", real_check)
+        for f in frames[1:]:
+            first.write(f)
+    src, read = SequenceSource(tmp_path / "rec"), []
+    while (f := src.read()) is not None:
+        read.append(f)
+    for a, b in zip(read, frames, strict=True):
+        _assert_same(a, b)

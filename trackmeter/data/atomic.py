@@ -104,6 +104,43 @@ def unwritable_ancestor(path: str | Path) -> Path | None:
     return None
 
 
+class FolderLock:
+    """An exclusive lock on a folder while one writer fills it (``flock`` on the folder itself:
+    no lock file is left behind, and the kernel drops the lock with the process).
+
+    Two writers that truncate and append the same files interleave them (holes of NUL bytes,
+    rows of both); the second is refused instead. Where ``fcntl`` is missing (not POSIX) the
+    lock is a no-op.
+
+    Raises:
+        TrackmeterError: another writer holds the folder (``what`` names it in the message).
+    """
+
+    def __init__(self, folder: str | Path, what: str) -> None:
+        self.folder = Path(folder)
+        self._fd: int | None = None
+        try:
+            import fcntl
+        except ImportError:  # pragma: no cover - not POSIX
+            return
+        fd = os.open(self.folder, os.O_RDONLY)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise TrackmeterError(f"{self.folder}: {what} is writing there now; wait for it to end or "
+                                  "choose another folder") from None
+        except OSError:  # a filesystem without flock (some network mounts): write unlocked
+            os.close(fd)
+            return
+        self._fd = fd
+
+    def release(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)  # closing the descriptor drops the lock
+            self._fd = None
+
+
 def write_text_atomic(path: str | Path, text: str) -> None:
     """Write ``text`` (UTF-8) to ``path`` atomically."""
     with atomic_path(path) as tmp:

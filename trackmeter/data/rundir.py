@@ -34,7 +34,7 @@ import yaml
 from trackmeter.core.targets import TargetState
 from trackmeter.core.transforms import matrix_to_quat_wxyz, quat_sign_nearest
 from trackmeter.data.motion_csv import STATES_COLUMNS, MotionCsvWriter
-from trackmeter.data.atomic import AppendFile, write_text_atomic
+from trackmeter.data.atomic import AppendFile, FolderLock, write_text_atomic
 from trackmeter.data.sequence import check_output_folder
 from trackmeter.data.trajectory import format_tum_line
 from trackmeter.errors import TrackmeterError
@@ -119,8 +119,16 @@ class RunWriter:
         except OSError as exc:
             raise TrackmeterError(f"{self.directory}: cannot create: {exc.strerror}") from None
         try:
+            self._lock: FolderLock | None = FolderLock(self.directory, "another run")
+        except TrackmeterError:
+            if created:
+                with contextlib.suppress(OSError):
+                    self.directory.rmdir()
+            raise
+        try:
             self._open(config, source, extra)
         except TrackmeterError:
+            self._release_lock()
             # Nothing half-made left behind (e.g. a disk already full): the files this writer
             # began, and the folder when it made it.
             for name in _RUN_FILES:
@@ -233,7 +241,15 @@ class RunWriter:
         # Keep config last: the summary is what a reader looks for first.
         config = self._meta.pop("config")
         self._meta["config"] = config
-        self._write_meta()
+        try:
+            self._write_meta()
+        finally:
+            self._release_lock()
+
+    def _release_lock(self) -> None:
+        if self._lock is not None:
+            self._lock.release()
+            self._lock = None
 
     def __enter__(self) -> RunWriter:
         return self

@@ -44,7 +44,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.transforms import matrix_to_quat_wxyz, quat_sign_nearest
-from trackmeter.data.atomic import AppendFile, unwritable_ancestor
+from trackmeter.data.atomic import AppendFile, FolderLock, unwritable_ancestor
 from trackmeter.data.images import decode_image, joint_data_bits
 from trackmeter.data.model import Model, load_model, save_model
 from trackmeter.data.motion_csv import GROUNDTRUTH_COLUMNS, MotionCsvWriter, MotionSeries, read_motion_csv
@@ -148,6 +148,18 @@ class SequenceWriter:
         # no larger; an explicit level trades speed for size.
         self._png_params = [] if png_compression is None else [cv2.IMWRITE_PNG_COMPRESSION, int(png_compression)]
         self._csv: dict[str, AppendFile] = {}
+        try:
+            self.directory.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise TrackmeterError(f"cannot record to {self.directory}: {exc.strerror or exc}") from None
+        # Two recordings started into one new folder at once would truncate each other's files:
+        # the second is refused, and the folder checked again under the lock.
+        self._lock: FolderLock | None = FolderLock(self.directory, "another recording")
+        try:
+            check_record_directory(self.directory)
+        except TrackmeterError:
+            self._lock.release()
+            raise
         for cam in CAMERAS:
             (self.directory / cam / "data").mkdir(parents=True, exist_ok=True)
         for cam in CAMERAS:
@@ -254,6 +266,9 @@ class SequenceWriter:
         if self._cuts is not None:
             self._cuts.close()
             self._cuts = None
+        if self._lock is not None:
+            self._lock.release()
+            self._lock = None
 
     def __enter__(self) -> SequenceWriter:
         return self
