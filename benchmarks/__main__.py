@@ -34,7 +34,12 @@ def figures_for_json(name: str, figures: dict) -> dict[str, float | None]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__)
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="Run from the repository's root (the benchmarks folder is not installed with the package).\n"
+               "Long ones: soak runs 10 minutes of live pipeline by design; accuracy took 5-13 minutes on the\n"
+               "project's 2-core machine; console drives a headless Chromium (the Debian package chromium)\n"
+               "through Playwright. The figures and their goals: README.md's results table.")
     parser.add_argument("names", nargs="*", metavar="NAME", help=f"benchmarks to run (default: all): {', '.join(NAMES)}")
     parser.add_argument("--out", type=Path, help="also write the JSON to this file")
     args = parser.parse_args(argv)

@@ -454,3 +454,29 @@ def test_a_rig_file_that_is_a_list_is_refused_in_one_line(tmp_path: Path, text: 
     path.write_text(text)
     with pytest.raises(TrackmeterError, match="rig.yaml: not (a mapping of keys|an OpenCV FileStorage file)"):
         load_rig(path)
+
+
+def test_the_plain_yaml_rig_of_the_presets_readme_reads_and_measures_tsukuba(tmp_path: Path, shared_data: Path) -> None:
+    """config/rigs/README.md shows a hand-written plain-YAML rig: it must read as written, and
+    its Tsukuba point measure the disparity the README quotes and the ground truth gives
+    (disp_gt.pgm: value / 16, integer-valued)."""
+    import re
+
+    from trackmeter.core.matching import MeasureParams, measure_points
+    from trackmeter.data.images import read_grey_pair
+
+    text = (RIGS_DIR / "README.md").read_text(encoding="utf-8")
+    block = re.search(r"```yaml\n(.*?)```", text, re.S)
+    quoted = re.search(r"--at 150,150` then measures a point\s+([\d.]+) px of disparity \(([\d.]+) m\)", text)
+    assert block is not None and quoted is not None
+    (tmp_path / "tsukuba.yaml").write_text(block.group(1))
+    rig = load_rig(tmp_path / "tsukuba.yaml")
+    folder = shared_data / "middlebury_tsukuba"
+    left, right = read_grey_pair(folder / "img_left.png", folder / "img_right.png")
+    m = measure_points(rig, left, right, np.array([[150.0, 150.0]]), MeasureParams())[0]
+    assert m.ok
+    disparity = m.disparity_px
+    assert disparity == pytest.approx(float(quoted.group(1)), abs=0.05)
+    assert m.xyz_m[2] == pytest.approx(615.0 * 0.1 / disparity) == pytest.approx(float(quoted.group(2)), abs=0.005)
+    truth = cv2.imread(str(folder / "disp_gt.pgm"), cv2.IMREAD_UNCHANGED)[150, 150] / 16.0
+    assert abs(disparity - truth) < 1.0

@@ -5,7 +5,9 @@ pixel is 0,0). Its patch (default 8x8) is matched along the epipolar line of the
 (ZNCC, sub-pixel Gauss-Newton fit), checked (texture, uniqueness, left-right consistency,
 range) and triangulated into the left camera frame (x right, y down, z along the viewing
 axis), with its standard deviation per axis from the stereo error propagation. A point that
-fails a check is refused with its reason, never given a wrong number.
+fails a check is refused with its reason rather than given a doubtful number. The checks
+cannot see everything: at an occluding contour over untextured background a patch may be
+accepted a pixel or more off (measured on the Tsukuba pair, docs/results.md).
 
 --json prints a JSON list, one object per --at, in order:
   {"uv": [u, v], "ok": bool, "reason": str|null, "right_uv": [u, v], "disparity_px": d,
