@@ -410,3 +410,65 @@ def test_the_default_keeps_the_screw_fit_on_a_constant_twist_and_a_slow_drift() 
             if want is not None:
                 np.testing.assert_array_equal(got[0], want[0])
                 np.testing.assert_array_equal(got[1], want[1])
+
+
+def test_twist_change_point_is_chows_f_of_direct_weighted_fits() -> None:
+    """The prefix-sum scan equals Chow's F computed from separate weighted least-squares line
+    fits (weighted_polyfit) at every split, and finds a hinge where it is."""
+    from trackmeter.core.velocity import twist_change_point, weighted_polyfit
+
+    rng = np.random.default_rng(3)
+    t = np.sort(rng.uniform(0.0, 2.5, 60))
+    X = np.outer(t, [0.01, -0.02, 0.005]) + 0.003 + rng.normal(0.0, 1e-3, (60, 3))
+    W = rng.uniform(0.5, 2.0, (60, 3)) * 1e6
+
+    def rss(a: int, b: int) -> float:
+        V = np.vander(t[a:b] - t[-1], 2, increasing=True)
+        coef = weighted_polyfit(V, X[a:b], W[a:b])
+        return float(np.sum(W[a:b] * (X[a:b] - V @ coef) ** 2))
+
+    F, s = twist_change_point(t, X, W, min_span_s=0.4)
+    n, m = X.shape
+    expected = []
+    for k in range(2, n - 1):
+        if t[k] - t[0] >= 0.4 and t[-1] - t[k] >= 0.4:
+            two = rss(0, k) + rss(k, n)
+            expected.append(((rss(0, n) - two) / (2 * m) / (two / (m * n - 4 * m)), k))
+    F_ref, s_ref = max(expected)
+    assert s == s_ref and F == pytest.approx(F_ref, rel=1e-6)
+    assert F < 10.0  # one straight line: no change
+
+    hinge = X + np.outer(np.maximum(t - 1.6, 0.0), [0.05, 0.0, 0.0])  # starts turning at 1.6 s
+    F, s = twist_change_point(t, hinge, W, min_span_s=0.4)
+    assert F > 200.0 and abs(t[s] - 1.6) < 0.1
+    assert twist_change_point(t[:5], X[:5], W[:5], min_span_s=0.4) == (0.0, 0)  # too short to split
+
+
+def test_a_release_from_rest_is_followed_within_a_second_not_after_the_whole_window() -> None:
+    """Held still, then released at 3.6 deg/s (the paper's case (c), hold_release): one constant
+    twist over the 2.5 s window lags the step by seconds; the change test cuts the window at the
+    release. A steady spin with the same noise is never cut (its rates bit for bit unchanged)."""
+    t = np.arange(200) * 0.04
+    omega = np.radians([1.0, -2.0, 2.8])  # 3.6 deg/s
+    spin = np.clip(t - 4.0, 0.0, None)
+    R0 = Rotation.from_rotvec([0.3, -0.2, 0.5])
+    sigma_rad = np.radians(0.03)
+    cov = np.diag([1e-7] * 3 + [sigma_rad**2] * 3)
+
+    def run(params: VelocityParams, moving: np.ndarray) -> np.ndarray:
+        est = VelocityEstimator(params)
+        out = []
+        noise = np.random.default_rng(11)
+        for k in range(len(t)):
+            R = (R0 * Rotation.from_rotvec(np.outer(moving, omega)[k]) * Rotation.from_rotvec(noise.normal(0, sigma_rad, 3))).as_matrix()
+            rates = est.update(t[k], R, np.array([0.0, 0.0, 3.5]) + noise.normal(0, 3e-4, 3), cov)
+            out.append(np.full(3, np.nan) if rates is None else rates[1])
+        return np.array(out)
+
+    released, held_window = run(VelocityParams(), spin), run(VelocityParams(change_f=0.0), spin)
+    after = (t >= 4.6) & (t <= 6.0)
+    err = np.degrees(np.linalg.norm(released[after] - omega, axis=1))
+    err_window = np.degrees(np.linalg.norm(held_window[after] - omega, axis=1))
+    assert err.max() < 0.6 and err_window.max() > 2.0, (err.max(), err_window.max())
+    steady = t  # spinning the whole time
+    np.testing.assert_array_equal(run(VelocityParams(), steady), run(VelocityParams(change_f=0.0), steady))

@@ -107,6 +107,15 @@ class VelocityParams:
         "rates after a short loss are fitted across it, not from the few poses since; a longer gap "
         "restarts the estimator, s", min=0.0,
     )
+    change_f: float = param(
+        300.0, "screw: a change of the spin (a release from rest, a capture attempt's push) cuts the window: "
+        "when two constant angular velocities, before and after some pose, explain the window's attitudes "
+        "better than one by this Chow F statistic, the poses before are dropped; 0: never. Measured 23-98 "
+        "at most on 20 s of estec and harsh_light in cases (a) and (b) (no change; pose errors are "
+        "correlated in time, so F runs well above its table), 406 0.32 s and 1153 0.40 s after a release "
+        "from rest (hold_release). The attitudes only: a body drifting across its spin axis is no "
+        "constant twist in position, and free_body_rss_ratio handles that", min=0.0,
+    )
     weighted: bool = param(
         True, "weight each pose of the window by its covariance (rotation and position parts "
         "separately): a pose measured from few points counts for little",
@@ -309,6 +318,62 @@ def screw_rates(
     return p_fit, R_fit, v, omega, float(np.einsum("n,ni,ni->", w_pos, residual, residual))
 
 
+def twist_change_point(times_s: ArrayLike, X: ArrayLike, weights: ArrayLike | None = None,
+                       min_span_s: float = 0.4) -> tuple[float, int]:
+    """The strongest change of a linear trend in ``X`` over time: Chow's F test at every split.
+
+    One straight line per column of ``X`` over the whole window against two, one before pose
+    ``s`` and one from it (G. C. Chow, "Tests of equality between sets of coefficients in two
+    linear regressions", Econometrica 28, 1960):
+    ``F = ((RSS_1 - RSS_2) / k) / (RSS_2 / (M N - 2 k))``, ``k = 2 M`` coefficients per line set,
+    weighted least squares (the residual sums of all ``M`` columns). Each split leaves at least
+    ``min_span_s`` on both sides; the sums of every split come from prefix sums, so the scan
+    costs one pass.
+
+    Args:
+        times_s: (N,) increasing times, s.
+        X: (N,M) data, e.g. the twist coordinates of :func:`screw_rates` (a constant twist is a
+            straight line in them).
+        weights: (N,M) inverse variances per entry (None: equal).
+        min_span_s: shortest span of either segment, s.
+
+    Returns:
+        ``(F, s)``: the largest F and the index of the first pose after that split; ``(0.0, 0)``
+        when no split leaves both segments long enough (or they fit exactly).
+    """
+    t = np.asarray(times_s, dtype=float)
+    Xm = np.asarray(X, dtype=float).reshape(len(t), -1)
+    n, m = Xm.shape
+    W = np.ones_like(Xm) if weights is None else np.broadcast_to(np.asarray(weights, dtype=float), Xm.shape)
+    W = W / max(float(W.max()), 1e-300)  # one scale for all: F is scale-free, the columns keep their weights
+    Xm = Xm - (W * Xm).sum(axis=0) / np.maximum(W.sum(axis=0), 1e-300)  # centred: less cancellation
+    tau = (t - t[-1]) / max(t[-1] - t[0], 1e-9)
+    T = tau[:, None]
+    parts = np.stack([W, W * T, W * T * T, W * Xm, W * T * Xm, W * Xm * Xm])  # (6,N,M)
+    cum = np.concatenate([np.zeros((6, 1, m)), np.cumsum(parts, axis=1)], axis=1)  # (6,N+1,M)
+
+    def rss(total: NDArray[np.float64]) -> NDArray[np.float64]:  # (6,...,M) sums -> (...,) residual
+        s0, s1, s2, sy, sty, syy = total
+        det = s0 * s2 - s1 * s1
+        with np.errstate(divide="ignore", invalid="ignore"):
+            fit = np.where(det > 0, (s2 * sy * sy - 2 * s1 * sy * sty + s0 * sty * sty) / det, 0.0)
+        return np.maximum(syy - fit, 0.0).sum(axis=-1)
+
+    split = np.arange(n + 1)
+    ok = (t[np.minimum(split, n - 1)] - t[0] >= min_span_s) & (t[-1] - t[np.minimum(split, n - 1)] >= min_span_s)
+    ok &= (split >= 2) & (split <= n - 2)
+    candidates = np.flatnonzero(ok)
+    dof = m * n - 4 * m
+    if len(candidates) == 0 or dof <= 0:
+        return 0.0, 0
+    one = rss(cum[:, n])
+    two = rss(cum[:, candidates]) + rss(cum[:, [n]] - cum[:, candidates])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        F = np.where(two > 0, ((one - two) / (2 * m)) / (two / dof), 0.0)
+    best = int(np.argmax(F))
+    return float(F[best]), int(candidates[best])
+
+
 class FreeBodyVelocity(NamedTuple):
     """Result of :func:`free_body_velocity`."""
 
@@ -396,6 +461,18 @@ class VelocityEstimator:
         self._p.clear()
         self._w.clear()
 
+    def _change_cut(self, t: FloatArray, R: FloatArray, Wp: FloatArray | None, start: int) -> int:
+        """How many of the window's oldest poses to drop because the spin changed after them
+        (:func:`twist_change_point` on the attitudes of the screw fit's window from ``start``, in
+        the newest pose's chart; ``change_f``), 0 when it did not."""
+        span = self.params.min_span_s
+        if self.params.change_f <= 0 or len(t) - start < 12 or t[-1] - t[start] < 2 * span:
+            return 0
+        phi = rotation_from_matrix(np.einsum("ji,njk->nik", R[-1], R[start:])).as_rotvec()  # log(R_ref^T R_k)
+        W = None if Wp is None else np.repeat(Wp[start:, 1:], 3, axis=1)
+        F, split = twist_change_point(t[start:], phi, W, span)
+        return start + split if F > self.params.change_f else 0
+
     def update(self, t_s: float, R_cam_body: ArrayLike, p_cam: ArrayLike, cov_pose: ArrayLike | None = None
                ) -> tuple[FloatArray, FloatArray] | None:
         """Add a pose; return ``(v_cam m/s, omega_body rad/s)``, or None until two poses are known.
@@ -433,6 +510,13 @@ class VelocityEstimator:
             cos = (np.einsum("ij,nij->n", R[-1], R) - 1.0) / 2.0
             far = np.flatnonzero(cos < np.cos(np.radians(self.params.screw_max_angle_deg)))
             start = int(far[-1]) + 1 if len(far) else 0
+            cut = self._change_cut(t, R, Wp, start)
+            if cut:  # the motion changed: the poses before it belong to another twist, for good
+                for _ in range(cut):
+                    self._t.popleft(), self._R.popleft(), self._p.popleft(), self._w.popleft()
+                t, R, P = t[cut:], R[cut:], P[cut:]
+                Wp = None if Wp is None else Wp[cut:]
+                start = 0
             self._capped = start > 0 and len(t) - start >= 3
             if len(t) - start < 2:  # turned further than the cap within one frame: the last two
                 start = len(t) - 2
