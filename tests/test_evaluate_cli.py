@@ -61,7 +61,7 @@ def test_run_dir_against_sequence_json_is_exact(capsys, sequence_and_run, tmp_pa
     code, out, err = _run(capsys, "evaluate", "--truth", str(seq / "groundtruth.tum"), "--estimate", str(run), "--json")
     assert code == 0, err
     s = json.loads(out)
-    assert list(s) == ["matched", "unmatched", "position_m", "attitude_rad", "velocity_m_s", "omega_rad_s", "speed_score",
+    assert list(s) == ["matched", "unmatched", "pose_coverage", "position_m", "attitude_rad", "velocity_m_s", "omega_rad_s", "speed_score",
                        "settings"]
     assert s["settings"]["truth"].startswith(str(seq / "groundtruth.tum")) and s["settings"]["estimate"] == str(run / "states.csv")
     assert s["matched"] == 59 and s["unmatched"] == 1  # the invalid frame
@@ -591,3 +591,27 @@ def test_errors_csv_leaves_an_unknown_value_empty_as_the_run_files_do(capsys, tm
     header = text.splitlines()[0].split(",")
     assert all(len(r) == len(header) for r in rows)
     assert any(r[header.index("evx")] == "" for r in rows) and rows[-1][header.index("evx")] != ""
+
+
+def test_frames_of_the_run_without_a_pose_count_as_unmatched_and_say_the_share_covered(capsys, tmp_path):
+    """A run that had no pose for long stretches (harsh_light case (b) before its model binds)
+    read "unmatched 0": only truth frames inside the span of the estimate's poses were counted.
+    A run folder knows its own span (its states.csv rows): every truth frame in it after the
+    settle without a pose is unmatched, and the share of them with one is said."""
+    truth = tumbling_truth()  # t = 2.0, 2.08, ...
+    valid = (truth.t_s >= 3.0 - 1e-9) & (truth.t_s <= 4.0 + 1e-9)
+    est = MotionSeries(truth.t_s, valid, np.where(valid[:, None], truth.position_m, np.nan),
+                       np.where(valid[:, None], truth.quat_wxyz, np.nan),
+                       truth.velocity_cam_m_s, truth.omega_body_rad_s)
+    write_states_csv(tmp_path / "run" / "states.csv", est)
+    write_groundtruth_csv(tmp_path / "gt.csv", truth)
+    args = ("evaluate", "--truth", str(tmp_path / "gt.csv"), "--estimate", str(tmp_path / "run"), "--settle", "0.5")
+    code, out, err = _run(capsys, *args, "--json")
+    assert code == 0, err
+    s = json.loads(out)
+    after = truth.t_s >= 2.5 - 1e-9
+    assert s["matched"] == int(np.count_nonzero(valid & after))
+    assert s["unmatched"] == int(np.count_nonzero(~valid & after))
+    assert s["pose_coverage"] == pytest.approx(np.count_nonzero(valid & after) / np.count_nonzero(after))
+    code, out, err = _run(capsys, *args)
+    assert f"{100 * s['pose_coverage']:.1f} % of the run's frames after the settle have a pose" in out

@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
     estimate = load_estimate(args.estimate)
     truth, estimate = in_seconds(truth, estimate, params.tolerance_s)
     params = replace(params, align=resolve_align(params.align, estimate.case))
-    result = evaluate(truth.series, estimate.series, params, estimate.t_start_s)
+    result = evaluate(truth.series, estimate.series, params, estimate.t_start_s, estimate.t_end_s)
     t_t, t_e = truth.series.t_s, estimate.series.t_s
     overlap = min(t_t[-1], t_e[-1]) - max(t_t[0], t_e[0])
     longer = max(t_t[-1] - t_t[0], t_e[-1] - t_e[0])

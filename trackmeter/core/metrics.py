@@ -338,14 +338,16 @@ def _axes(e: FloatArray, total_name: str, total: FloatArray) -> dict[str, dict[s
 def summarize(errors: MotionErrors, association: Association) -> dict[str, object]:
     """The ``trackmeter evaluate --json`` summary (SI units; DESIGN.md section 6):
 
-    ``{"matched", "unmatched", "position_m": {x,y,z,norm}, "attitude_rad": {x,y,z,total},
-    ["velocity_m_s": {x,y,z,norm}, "omega_rad_s": {x,y,z,norm},] "speed_score"}``, each
-    leaf ``{"rms", "max", "p95"}``; velocity entries only when velocity errors exist, over
-    the samples where both sides have one.
+    ``{"matched", "unmatched", "pose_coverage", "position_m": {x,y,z,norm}, "attitude_rad":
+    {x,y,z,total}, ["velocity_m_s": {x,y,z,norm}, "omega_rad_s": {x,y,z,norm},] "speed_score"}``,
+    each leaf ``{"rms", "max", "p95"}``; velocity entries only when velocity errors exist, over
+    the samples where both sides have one. ``pose_coverage``: of the truth poses in the
+    compared span, the share paired with an estimate (``matched / (matched + unmatched_truth)``).
     """
     out: dict[str, object] = {
         "matched": int(len(errors.t_s)),
         "unmatched": int(association.unmatched),
+        "pose_coverage": len(errors.t_s) / max(len(errors.t_s) + association.unmatched_truth, 1),
         "position_m": _axes(errors.position_m, "norm", np.linalg.norm(errors.position_m, axis=1)),
         "attitude_rad": _axes(errors.attitude_rad, "total", errors.attitude_total_rad),
     }
@@ -396,6 +398,7 @@ def evaluate(
     estimate: PoseTrack,
     params: EvaluateParams = EvaluateParams(),
     t_start_s: float | None = None,
+    t_end_s: float | None = None,
 ) -> Evaluation:
     """Associate, align (``params.align``; "auto", whose meaning depends on the run's pose case,
     is "none" here: resolve it first with :func:`resolve_align`), skip ``params.settle_s``, and
@@ -403,6 +406,9 @@ def evaluate(
 
     The settle time counts from ``t_start_s`` (the start of the run, e.g. the first row of a
     ``states.csv`` whether or not it had a pose) or, when None, from the first paired pose.
+    Truth poses without an estimate (``unmatched``, and ``pose_coverage``: the share of truth
+    poses after the settle that have one) are counted over the run, from ``t_start_s`` to
+    ``t_end_s`` (its last row), or over the estimate's own span where those are None.
 
     Velocity metrics need finite ``velocity_cam_m_s`` and ``omega_body_rad_s`` on both
     sides (for the paired samples); otherwise only pose metrics are computed.
@@ -430,7 +436,9 @@ def evaluate(
     paired_est[assoc.index_est] = True
     paired_truth = np.zeros(len(truth.t_s), dtype=bool)
     paired_truth[assoc.index_truth] = True
-    in_span = ((truth.t_s >= estimate.t_s[0] - params.tolerance_s) & (truth.t_s <= estimate.t_s[-1] + params.tolerance_s))
+    span_from = estimate.t_s[0] if t_start_s is None else min(estimate.t_s[0], t_start_s)
+    span_to = estimate.t_s[-1] if t_end_s is None else max(estimate.t_s[-1], t_end_s)
+    in_span = (truth.t_s >= span_from - params.tolerance_s) & (truth.t_s <= span_to + params.tolerance_s)
     assoc = replace(assoc, index_truth=it, index_est=ie, dt_s=assoc.dt_s[keep],
                     unmatched_est=int(np.count_nonzero(~paired_est & (estimate.t_s >= t_from))),
                     unmatched_truth=int(np.count_nonzero(in_span & ~paired_truth & (truth.t_s >= t_from))))
