@@ -160,3 +160,22 @@ def test_comment_lines_before_the_header_are_skipped(tmp_path: Path) -> None:
     path.write_text("# t x y z\n0 1 2 3\n")
     with pytest.raises(TrackmeterError, match="header lacks"):
         read_motion_csv(path)
+
+
+def test_a_field_of_thousands_of_nul_bytes_is_quoted_short(tmp_path) -> None:
+    """Two writers that clobbered a file left NUL holes; the error quoted the whole field (60 KB
+    on one line). It is cut, with its length said."""
+    from trackmeter.data.motion_csv import read_motion_csv
+    from trackmeter.data.trajectory import read_tum
+    from trackmeter.errors import TrackmeterError
+
+    path = tmp_path / "states.csv"
+    path.write_text("t,x,y,z,qw,qx,qy,qz\n0.0,0,0,1,1,0,0,0\n" + "\x00" * 20000 + "0.04,0,0,1,1,0,0,0\n")
+    with pytest.raises(TrackmeterError) as err:
+        read_motion_csv(path)
+    assert len(str(err.value)) - len(str(path)) < 120 and "20004 characters" in str(err.value), str(err.value)
+    tum = tmp_path / "t.tum"
+    tum.write_text("0 0 0 1 0 0 0 1\n" + "x" * 5000 + " 0 0 1 0 0 0 1 0\n")
+    with pytest.raises(TrackmeterError) as err:
+        read_tum(tum)
+    assert len(str(err.value)) - len(str(tum)) < 150, str(err.value)[:300]

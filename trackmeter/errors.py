@@ -11,3 +11,15 @@ from __future__ import annotations
 
 class TrackmeterError(Exception):
     """Bad input or an unusable resource, with a one-line, user-facing message."""
+
+
+def quoted(text: str, limit: int = 40) -> str:
+    """``text`` quoted for a one-line message, its quoted form cut near ``limit`` characters with
+    the length said: a corrupt file's field (thousands of NUL bytes, each quoted as 4) must not
+    become the whole screen."""
+    if len(repr(text)) <= limit + 2:
+        return repr(text)
+    head = text[:limit]
+    while len(repr(head)) > limit + 2:
+        head = head[:-1]
+    return f"{head!r}... ({len(text)} characters)"

@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 
 from trackmeter.data.atomic import AppendFile, write_text_atomic
 from trackmeter.data.trajectory import Trajectory
-from trackmeter.errors import TrackmeterError
+from trackmeter.errors import TrackmeterError, quoted
 
 FloatArray = NDArray[np.float64]
 
@@ -241,7 +241,7 @@ def read_motion_csv(path: str | Path) -> MotionSeries:
             try:
                 values[r, c] = float(f) if f else math.nan
             except ValueError:
-                raise TrackmeterError(f"{path}:{number}: not a number in column {header[c]!r}: {f!r}") from None
+                raise TrackmeterError(f"{path}:{number}: not a number in column {header[c]!r}: {quoted(f)}") from None
     if len(values) == 0:
         raise TrackmeterError(f"{path}: no rows after the header")
     col = {name: values[:, i] for i, name in enumerate(header)}

@@ -50,7 +50,7 @@ from trackmeter.data.model import Model, load_model, save_model
 from trackmeter.data.motion_csv import GROUNDTRUTH_COLUMNS, MotionCsvWriter, MotionSeries, read_motion_csv
 from trackmeter.data.rigfile import load_rig, save_rig
 from trackmeter.data.trajectory import format_tum_line, read_tum
-from trackmeter.errors import TrackmeterError
+from trackmeter.errors import TrackmeterError, quoted
 
 if TYPE_CHECKING:  # the writer only reads attributes of a frame; data must not import sources
     from trackmeter.sources.base import StereoFrame
@@ -449,7 +449,7 @@ def _read_data_csv(path: Path) -> tuple[list[tuple[int, Path]], int, int, Path |
         entries.append((ns, image))
     if first_bad is not None and not entries and not missing:
         raise TrackmeterError(f"{path}: no usable row: expected 'timestamp_ns,filename' with an integer "
-                              f"timestamp in nanoseconds, got {first_bad[:80]!r}")
+                              f"timestamp in nanoseconds, got {quoted(first_bad, 80)}")
     entries.sort(key=lambda e: e[0])
     return entries, bad, missing, first_missing
 
@@ -637,7 +637,7 @@ def _read_cuts(path: Path | None, pair_ns: NDArray[np.int64]) -> tuple[int, ...]
         try:
             ns = int(text)
         except ValueError:
-            raise TrackmeterError(f"{path}:{number}: not an integer timestamp in nanoseconds: {text[:40]!r}") from None
+            raise TrackmeterError(f"{path}:{number}: not an integer timestamp in nanoseconds: {quoted(text)}") from None
         position = int(np.searchsorted(pair_ns, ns))
         if position < len(pair_ns):
             cuts.add(position)

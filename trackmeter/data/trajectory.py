@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from trackmeter.data.atomic import write_text_atomic
-from trackmeter.errors import TrackmeterError
+from trackmeter.errors import TrackmeterError, quoted
 
 FloatArray = NDArray[np.float64]
 
@@ -73,7 +73,7 @@ def read_tum(path: str | Path) -> Trajectory:
         try:
             rows.append([float(x) for x in fields])
         except ValueError:
-            raise TrackmeterError(f"{path}:{number}: not a number in {text!r}") from None
+            raise TrackmeterError(f"{path}:{number}: not a number in {quoted(text, 80)}") from None
     if not rows:
         raise TrackmeterError(f"{path}: no poses in the file")
     data = np.array(rows)
