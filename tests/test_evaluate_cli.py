@@ -615,3 +615,31 @@ def test_frames_of_the_run_without_a_pose_count_as_unmatched_and_say_the_share_c
     assert s["pose_coverage"] == pytest.approx(np.count_nonzero(valid & after) / np.count_nonzero(after))
     code, out, err = _run(capsys, *args)
     assert f"{100 * s['pose_coverage']:.1f} % of the run's frames after the settle have a pose" in out
+
+
+def test_a_run_of_the_simulator_is_evaluated_against_its_scenario_s_motion(capsys, tmp_path):
+    """`track --source sim` saves no ground truth: `--truth sim[:SCENARIO]` takes the scenario's
+    motion at its frame times (no rendering), the same truth `simulate` writes."""
+    from trackmeter.sources.sim.simulator import Simulator
+
+    run = tmp_path / "run"
+    assert main(["track", "--source", "sim", "--auto", "12", "--max-frames", "40", "--out", str(run)]) == 0
+    capsys.readouterr()
+    sim = Simulator("estec")
+    n = 40
+    truth = MotionSeries(np.array([sim.time_of(i) for i in range(n)]), np.ones(n, bool),
+                         np.array([sim.truth(i).T_cam_body[:3, 3] for i in range(n)]),
+                         Rotation.from_matrix([sim.truth(i).T_cam_body[:3, :3] for i in range(n)]).as_quat(scalar_first=True),
+                         np.array([sim.truth(i).velocity_cam_m_s for i in range(n)]),
+                         np.array([sim.truth(i).omega_body_rad_s for i in range(n)]))
+    write_groundtruth_csv(tmp_path / "gt.csv", truth)
+    code, out_sim, err = _run(capsys, "evaluate", "--truth", "sim", "--estimate", str(run), "--json")
+    assert code == 0, err
+    code, out_file, err = _run(capsys, "evaluate", "--truth", str(tmp_path / "gt.csv"), "--estimate", str(run), "--json")
+    assert code == 0, err
+    a, b = json.loads(out_sim), json.loads(out_file)
+    assert a["matched"] == b["matched"] > 0
+    assert a["position_m"]["norm"]["max"] == pytest.approx(b["position_m"]["norm"]["max"], abs=1e-8)
+    assert a["omega_rad_s"]["norm"]["rms"] == pytest.approx(b["omega_rad_s"]["norm"]["rms"], abs=1e-8)
+    code, out, err = _run(capsys, "evaluate", "--truth", "sim:no_such_scenario", "--estimate", str(run))
+    assert code == 2 and "no_such_scenario" in err

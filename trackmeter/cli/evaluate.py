@@ -37,14 +37,18 @@ UNKNOWN_CASE_OFFSET_RAD = math.radians(10.0)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--truth", required=True, metavar="TUM", help="ground truth: TUM file, groundtruth.csv or sequence folder")
+    parser.add_argument("--truth", required=True, metavar="TUM",
+                        help="ground truth: TUM file, groundtruth.csv or sequence folder; or sim[:SCENARIO], the "
+                        "scenario's motion, for a run of the sim source (which keeps no ground truth)")
     parser.add_argument("--estimate", required=True, metavar="TUM_OR_RUN_DIR", help="estimate: TUM file, states.csv or run directory")
     parser.add_argument("--align", choices=("none", "body", "auto"),
                         help="none: same body frame; body: fit a constant body-frame offset; auto: body for a run "
                         "tracked in case a or c (its run.yaml says), none otherwise (default from config: auto)")
     parser.add_argument("--settle", type=float, metavar="S",
-                        help="seconds to skip from the start of the run (its first states.csv row, with a pose or not; for a TUM file, its first pose paired with the truth)")
-    parser.add_argument("--tolerance", type=float, metavar="S", help="largest timestamp difference of a pair, s")
+                        help="seconds to skip from the start of the run (its first states.csv row, with a pose or not; "
+                        "for a TUM file, its first pose paired with the truth); default from config: 0")
+    parser.add_argument("--tolerance", type=float, metavar="S",
+                        help="largest timestamp difference of a pair, s (default from config: 0.01)")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON (SI units)")
     parser.add_argument("--out", metavar="DIR", help="write errors.csv, summary.json, plots and report.md here")
 
@@ -64,15 +68,33 @@ def _params(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     return replace(params, **changes)
 
 
+def _load_truth(spec: str):  # type: ignore[no-untyped-def]
+    """``--truth``: a file or folder (:func:`trackmeter.data.evaluation.load_truth`), or, where
+    no such path exists, ``sim`` / ``sim:SCENARIO``: the scenario's motion (a ``track --source
+    sim`` run keeps no ground truth; this is the one ``trackmeter simulate`` would write)."""
+    from pathlib import Path
+
+    from trackmeter.data.evaluation import LoadedMotion, load_truth
+
+    kind, _, name = spec.partition(":")
+    if kind != "sim" or Path(spec).exists():
+        return load_truth(spec)
+    from trackmeter.sources import DEFAULT_SCENARIO
+    from trackmeter.sources.sim.simulator import scenario_truth
+
+    scenario = name or DEFAULT_SCENARIO
+    return LoadedMotion(scenario_truth(scenario), f"sim:{scenario} (the scenario's motion)", True)
+
+
 def run(args: argparse.Namespace) -> int:
     from trackmeter.core.metrics import evaluate, resolve_align
     from trackmeter.data.evaluation import (check_report_directory, format_summary, in_seconds, load_estimate,
-                                             load_truth, write_evaluation)
+                                             write_evaluation)
 
     params = _params(args)
     if args.out:
         check_report_directory(args.out)  # before the work, which may take a while
-    truth = load_truth(args.truth)
+    truth = _load_truth(args.truth)
     estimate = load_estimate(args.estimate)
     truth, estimate = in_seconds(truth, estimate, params.tolerance_s)
     params = replace(params, align=resolve_align(params.align, estimate.case))

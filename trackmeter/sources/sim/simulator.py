@@ -23,7 +23,8 @@ from scipy.spatial.transform import Rotation
 
 from trackmeter.core.dynamics import FreeRotation, Translation, integrate_free_rotation
 from trackmeter.core.stereo import StereoRig
-from trackmeter.core.transforms import make_transform, quat_wxyz_to_matrix
+from trackmeter.core.transforms import make_transform, matrix_to_quat_wxyz, quat_wxyz_to_matrix
+from trackmeter.data.motion_csv import MotionSeries
 from trackmeter.data.model import Model
 from trackmeter.data.rigfile import load_rig
 from trackmeter.errors import TrackmeterError
@@ -251,3 +252,17 @@ class Simulator(Source):
         if self._ahead is not None:
             self._ahead.close()
             self._ahead = None
+
+
+def scenario_truth(scenario: Scenario | str) -> MotionSeries:
+    """The scenario's motion at its frame times: the ground truth ``trackmeter simulate`` writes
+    (``groundtruth.csv``), without rendering a frame; for evaluating a run of the ``sim`` source,
+    which keeps none. One pass of the scenario (a looping source's later passes repeat it)."""
+    sim = Simulator(scenario)
+    truths = [sim.truth(i) for i in range(sim.n_frames)]
+    T = np.array([g.T_cam_body for g in truths], dtype=float).reshape(-1, 4, 4)
+    return MotionSeries(
+        np.array([sim.time_of(i) for i in range(sim.n_frames)]), np.ones(sim.n_frames, dtype=bool), T[:, :3, 3],
+        matrix_to_quat_wxyz(T[:, :3, :3]), np.array([g.velocity_cam_m_s for g in truths], dtype=float),
+        np.array([g.omega_body_rad_s for g in truths], dtype=float),
+    )
