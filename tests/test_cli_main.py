@@ -187,3 +187,5 @@ def test_the_console_stop_line_accounts_for_every_frame_read() -> None:
                     "1 read but not yet tracked when it stopped")
     assert stop_line(Timings(frames_read=1485, frames_processed=1485, frames_dropped=0)) == (
         "trackmeter console: stopped after 1485 frames read, 1485 tracked, 0 dropped")
+    assert stop_line(Timings(frames_read=1, frames_processed=1)) == (
+        "trackmeter console: stopped after 1 frame read, 1 tracked, 0 dropped")

@@ -458,6 +458,26 @@ def test_run_yaml_says_the_rig_came_with_the_source(opencv_sample_rig, opencv_sa
     assert yaml.safe_load((out / "run.yaml").read_text())["source"]["rig"] == "the source's (seq)"  # its name
 
 
+def test_a_rate_from_nanosecond_timestamps_is_written_as_the_rate_it_is(opencv_sample_rig, shared_data, tmp_path,
+                                                                      capsys) -> None:
+    """50 frames at 25 Hz have a median interval that computes as 24.99999999999998 Hz."""
+    from trackmeter.data.images import read_grey
+    from trackmeter.data.sequence import SequenceWriter
+    from trackmeter.sources.base import StereoFrame
+    from trackmeter.sources.sequence import SequenceSource
+
+    left, right = (read_grey(shared_data / "stereo_calib_opencv" / f"{side}01.jpg") for side in ("left", "right"))
+    with SequenceWriter(tmp_path / "seq") as writer:
+        for i in range(50):
+            writer.write(StereoFrame(i, 100.0 + i / 25.0, left, right))
+    assert SequenceSource(tmp_path / "seq").rate_hz != 25.0  # the float the intervals give
+    out = tmp_path / "run"
+    code = main(["track", "--source", str(tmp_path / "seq"), "--rig", str(opencv_sample_rig / "intrinsics.yml"),
+                 "--auto", "4", "--max-frames", "2", "--out", str(out)])
+    assert code == 0, capsys.readouterr().err
+    assert "rate_hz: 25.0\n" in (out / "run.yaml").read_text()
+
+
 def test_an_image_unreadable_mid_sequence_is_reported_at_the_end_and_in_run_yaml(opencv_sample_rig, opencv_sample_sequence,
                                                                                    tmp_path, capsys) -> None:
     import shutil
@@ -684,7 +704,7 @@ def test_a_countdown_is_one_reason_in_the_summary(tmp_path, capsys, monkeypatch)
     assert "s left" not in printed
     others = len(reasons) - 1
     rest = sum(sorted(reasons.values())[:-1])
-    assert others >= 1 and f"invalid in {rest} more frame{'s' if rest != 1 else ''} for {others} other reason(s)" in printed, printed
+    assert others >= 1 and f"invalid in {rest} more frame{'s' if rest != 1 else ''} for {others} other reason{'s' if others != 1 else ''}" in printed, printed
 
 
 @pytest.mark.parametrize(

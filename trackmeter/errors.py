@@ -23,3 +23,8 @@ def quoted(text: str, limit: int = 40) -> str:
     while len(repr(head)) > limit + 2:
         head = head[:-1]
     return f"{head!r}... ({len(text)} characters)"
+
+
+def counted(n: int, noun: str, plural: str | None = None) -> str:
+    """``"1 frame"``, ``"2 frames"``: a count with its noun in the right number."""
+    return f"{n} {noun if n == 1 else plural or noun + 's'}"

@@ -22,6 +22,8 @@ import argparse
 import sys
 from typing import TYPE_CHECKING, Any
 
+from trackmeter.errors import counted
+
 if TYPE_CHECKING:
     from trackmeter.pipeline.snapshot import Timings
 
@@ -30,7 +32,7 @@ def stop_line(t: Timings) -> str:
     """The console's last line: every frame read is tracked, dropped (the tracker was still busy
     with an earlier one) or, at most one, read and waiting for the tracker when it stopped."""
     waiting = t.frames_read - t.frames_processed - t.frames_dropped
-    return (f"trackmeter console: stopped after {t.frames_read} frames read, {t.frames_processed} tracked, "
+    return (f"trackmeter console: stopped after {counted(t.frames_read, 'frame')} read, {t.frames_processed} tracked, "
             f"{t.frames_dropped} dropped" + (f", {waiting} read but not yet tracked when it stopped" if waiting else ""))
 
 

@@ -35,7 +35,7 @@ import time
 from typing import Any, Callable, Iterator
 
 from trackmeter.cli.common import parse_uv, plain_progress_due
-from trackmeter.errors import TrackmeterError
+from trackmeter.errors import TrackmeterError, counted
 
 
 #: The summary's reason for an invalid first frame (its targets start on it, tracked from the next).
@@ -238,8 +238,9 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
         feed = _Limited(source, args.max_frames) if args.max_frames else source
         source_info = {
             "spec": args.source,
-            "rig": args.rig or (f"the source's ({rig.name})" if rig.name else "the source's"),
-            "rate_hz": source.rate_hz,
+            "rig": args.rig or (f"the source's ({rig.name})" if rig.name and rig.name != "rig" else "the source's"),
+            # from the frames' median interval: 24.99999999999998 says no more than 25 does
+            "rate_hz": None if source.rate_hz is None else float(f"{source.rate_hz:.9g}"),
             "model": model_label if case == "b" else None,  # the model used, None when none was
             "model_available": model_label,  # given or carried, used or not
             "case": case,
@@ -380,27 +381,27 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
                 why = " and ".join((["every --target was refused on the first frame"] if targets else [])
                                    + (["the source has no ground truth to select model points with"]
                                       if args.select_model_points else []))
-                raise TrackmeterError(f"nothing to track: {why}, and there is no --auto (stopped after {writer.frames} "
-                                      f"frame{'s' if writer.frames != 1 else ''}; "
+                raise TrackmeterError(f"nothing to track: {why}, and there is no --auto (stopped after "
+                                      f"{counted(writer.frames, 'frame')}; "
                                       f"{args.out} holds {'them' if writer.frames != 1 else 'it'})")
             if src_status and src_status != "ended":
                 status = "source failed"
                 print(f"trackmeter track: source stopped: {src_status}", file=sys.stderr)
             writer.close(status, summary)
             elapsed = time.monotonic() - state["t0"]
-            print(f"{writer.frames} frames in {elapsed:.1f} s ({writer.frames / max(elapsed, 1e-9):.1f} fps), "
-                  f"{writer.valid_frames} valid poses"
+            print(f"{counted(writer.frames, 'frame')} in {elapsed:.1f} s ({writer.frames / max(elapsed, 1e-9):.1f} fps), "
+                  f"{counted(writer.valid_frames, 'valid pose')}"
                   + (f" ({writer.coasted_frames} coasted)" if writer.coasted_frames else "")
                   + (f", {writer.rates_pending_frames} of them before the rates were known (states.csv valid 0)"
                      if writer.rates_pending_frames else "")
                   + f", case ({case}) -> {args.out}")
             ranked = sorted(state["invalid"].items(), key=lambda kv: -kv[1])
             for reason, count in ranked[:SUMMARY_REASONS]:
-                print(f"  invalid in {count} frame{'s' if count != 1 else ''}: {reason}")
+                print(f"  invalid in {counted(count, 'frame')}: {reason}")
             if len(ranked) > SUMMARY_REASONS:
                 rest = sum(count for _, count in ranked[SUMMARY_REASONS:])
-                print(f"  invalid in {rest} more frame{'s' if rest != 1 else ''} for {len(ranked) - SUMMARY_REASONS} "
-                      "other reason(s): run.yaml lists them all")
+                print(f"  invalid in {counted(rest, 'more frame')} for "
+                      f"{counted(len(ranked) - SUMMARY_REASONS, 'other reason')}: run.yaml lists them all")
             never = _auto_never_started(engine.tracker) if args.auto else None
             if never:
                 print(f"trackmeter track: warning: {never}", file=sys.stderr)

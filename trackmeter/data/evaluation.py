@@ -27,7 +27,7 @@ from trackmeter.data.atomic import write_files_atomic
 from trackmeter.data.jsontext import json_text
 from trackmeter.data.sequence import check_output_folder, find_sequence_file, seconds_if_nanoseconds
 from trackmeter.data.trajectory import read_tum
-from trackmeter.errors import TrackmeterError
+from trackmeter.errors import TrackmeterError, counted
 
 
 @dataclass(frozen=True, eq=False)
@@ -287,7 +287,7 @@ def format_summary(summary: dict, truth: str = "", estimate: str = "", align: st
     lines = []
     if truth or estimate:
         lines.append(f"truth:    {truth}\nestimate: {estimate}\nalign:    {align}")
-    lines.append(f"matched {summary['matched']} pose(s), unmatched {summary['unmatched']}; "
+    lines.append(f"matched {counted(summary['matched'], 'pose')}, unmatched {summary['unmatched']}; "
                  f"{100 * summary['pose_coverage']:.1f} % of the run's frames after the settle have a pose")
     lines.append(f"{'error':<40}{'axis':>6}{'rms':>10}{'p95':>10}{'max':>10}")
     for group, (title, unit, scale) in _DISPLAY.items():
