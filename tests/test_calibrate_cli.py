@@ -175,6 +175,30 @@ def test_images_of_different_sizes(calib_dir: Path, shared_data: Path, tmp_path:
     _one_error_line(capsys, "384x288")
 
 
+def test_an_existing_rig_file_is_not_replaced_without_overwrite(calib_dir: Path, tmp_path: Path,
+                                                                monkeypatch: pytest.MonkeyPatch,
+                                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """A calibration is an afternoon's work: calibrate --out onto an existing file replaced it
+    silently (track, simulate and --record all refuse). Refused before the work, unless
+    --overwrite."""
+    import trackmeter.core.calibration as calibration
+
+    out = tmp_path / "precious.yaml"
+    out.write_text("keep me\n")
+    real = calibration.detect_corners
+
+    def no_work(*args, **kwargs):  # type: ignore[no-untyped-def]
+        raise AssertionError("the corners were searched for before --out was checked")
+
+    monkeypatch.setattr(calibration, "detect_corners", no_work)
+    assert main(_args(calib_dir, out)) == 2
+    _one_error_line(capsys, "precious.yaml", "exists", "--overwrite")
+    assert out.read_text() == "keep me\n"
+    monkeypatch.setattr(calibration, "detect_corners", real)
+    assert main([*_args(calib_dir, out), "--overwrite"]) == 0
+    assert load_rig(out).image_size == (640, 480)
+
+
 @pytest.mark.parametrize("kind", ["folder", "empty", "under_a_file"])
 def test_an_out_that_cannot_be_the_rig_file_is_refused_before_the_work(calib_dir: Path, tmp_path: Path, kind: str,
                                                                       monkeypatch: pytest.MonkeyPatch,

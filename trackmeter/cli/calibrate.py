@@ -33,6 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pattern", required=True, metavar="COLSxROWS", help="chessboard inner corners, e.g. 9x6")
     parser.add_argument("--square", required=True, type=float, metavar="METRES", help="side of one chessboard square, m")
     parser.add_argument("--out", default="rig.yaml", metavar="RIG", help="rig file to write (default: rig.yaml)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing rig file at --out")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -51,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
         # 1e-300 m passed and underflowed in OpenCV's float32 board points (a cv2.error traceback).
         raise TrackmeterError(f"--square must be a length in metres from {MIN_SQUARE_M:g} to {MAX_SQUARE_M:g}, "
                               f"got {args.square:g}")
-    _check_out(args.out)  # before the work, which takes a while
+    _check_out(args.out, args.overwrite)  # before the work, which takes a while
     pairs = pair_stereo_paths(expand_globs(args.left, "left images"), expand_globs(args.right, "right images"))
     same = [left for left, right in pairs if left.resolve() == right.resolve()]
     if same:
@@ -110,9 +111,10 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _check_out(out: str) -> None:
-    """Refuse an ``--out`` the rig file cannot be written to: an empty name, a folder, or a
-    place under a file or an unwritable folder; nothing is created.
+def _check_out(out: str, overwrite: bool = False) -> None:
+    """Refuse an ``--out`` the rig file cannot be written to: an empty name, a folder, a file
+    that exists (a calibration is not replaced without ``overwrite``), or a place under a file
+    or an unwritable folder; nothing is created.
 
     Raises:
         TrackmeterError: naming the path and why.
@@ -125,6 +127,8 @@ def _check_out(out: str) -> None:
     path = Path(out)
     if path.is_dir():
         raise TrackmeterError(f"--out {path}: is a folder; give the rig file's name, e.g. {path / 'rig.yaml'}")
+    if path.exists() and not overwrite:
+        raise TrackmeterError(f"--out {path}: exists (an earlier calibration?); choose another --out or give --overwrite")
     blocked = unwritable_ancestor(path.parent)
     if blocked is not None:
         raise TrackmeterError(f"--out {path}: cannot write the rig file there ({blocked} is not a writable folder)")
