@@ -625,6 +625,7 @@ def test_a_run_of_the_simulator_is_evaluated_against_its_scenario_s_motion(capsy
     run = tmp_path / "run"
     assert main(["track", "--source", "sim", "--auto", "12", "--max-frames", "40", "--out", str(run)]) == 0
     capsys.readouterr()
+    assert yaml.safe_load((run / "run.yaml").read_text())["source"]["scenario"] == "estec"  # for the check below
     sim = Simulator("estec")
     n = 40
     truth = MotionSeries(np.array([sim.time_of(i) for i in range(n)]), np.ones(n, bool),
@@ -634,7 +635,7 @@ def test_a_run_of_the_simulator_is_evaluated_against_its_scenario_s_motion(capsy
                          np.array([sim.truth(i).omega_body_rad_s for i in range(n)]))
     write_groundtruth_csv(tmp_path / "gt.csv", truth)
     code, out_sim, err = _run(capsys, "evaluate", "--truth", "sim", "--estimate", str(run), "--json")
-    assert code == 0, err
+    assert code == 0 and "not the one the run was tracked on" not in err, err
     code, out_file, err = _run(capsys, "evaluate", "--truth", str(tmp_path / "gt.csv"), "--estimate", str(run), "--json")
     assert code == 0, err
     a, b = json.loads(out_sim), json.loads(out_file)
@@ -643,3 +644,29 @@ def test_a_run_of_the_simulator_is_evaluated_against_its_scenario_s_motion(capsy
     assert a["omega_rad_s"]["norm"]["rms"] == pytest.approx(b["omega_rad_s"]["norm"]["rms"], abs=1e-8)
     code, out, err = _run(capsys, "evaluate", "--truth", "sim:no_such_scenario", "--estimate", str(run))
     assert code == 2 and "no_such_scenario" in err
+
+
+def test_a_truth_of_another_sequence_than_the_run_s_is_warned_about(capsys, tmp_path):
+    """evaluate --truth harsh_light's folder on a run tracked on estec's gave plausible figures
+    (7.8 mm, 6 deg) without a word. A run's run.yaml names the folder (and the scenario) it was
+    tracked on; a truth from elsewhere is warned about, the same scenario rendered twice is not."""
+    truth = tumbling_truth()
+    seqs = {}
+    for name, scenario in (("estec_seq", "estec"), ("harsh_seq", "harsh_light"), ("estec_again", "estec")):
+        folder = tmp_path / name
+        write_groundtruth_csv(folder / "groundtruth.csv", truth)
+        (folder / "scenario.yaml").write_text(f"name: {scenario}\n")
+        seqs[name] = folder
+    run = tmp_path / "run"
+    write_states_csv(run / "states.csv", truth)
+    (run / "run.yaml").write_text(yaml.safe_dump({"status": "complete", "source": {
+        "spec": "estec_seq", "case": "b", "folder": str(seqs["estec_seq"]), "scenario": "estec"}}))
+    for name, warned in (("estec_seq", False), ("estec_again", False), ("harsh_seq", True)):
+        code, out, err = _run(capsys, "evaluate", "--truth", str(seqs[name]), "--estimate", str(run))
+        assert code == 0, err
+        assert ("not the one the run was tracked on" in err) == warned, (name, err)
+    (seqs["harsh_seq"] / "scenario.yaml").unlink()  # a real sequence: folders differ, no scenario to tell
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seqs["harsh_seq"]), "--estimate", str(run))
+    assert code == 0 and "not the one the run was tracked on" in err and str(seqs["estec_seq"]) in err
+    code, out, err = _run(capsys, "evaluate", "--truth", "sim:harsh_light", "--estimate", str(run))
+    assert "not the one the run was tracked on" in err

@@ -86,6 +86,41 @@ def _load_truth(spec: str):  # type: ignore[no-untyped-def]
     return LoadedMotion(scenario_truth(scenario), f"sim:{scenario} (the scenario's motion)", True)
 
 
+def _other_sequence(truth_spec: str, estimate_spec: str) -> str | None:
+    """Why the truth looks like another sequence than the one the run was tracked on (its
+    run.yaml's ``source.folder`` and ``source.scenario``), or None: scenarios that differ, or,
+    where one is unknown, folders that differ (the same scenario simulated twice is the same
+    motion)."""
+    from pathlib import Path
+
+    import yaml
+
+    from trackmeter.data.sequence import sequence_identity
+
+    estimate = Path(estimate_spec)
+    run_dir = estimate if estimate.is_dir() else estimate.parent
+    try:
+        source = yaml.safe_load((run_dir / "run.yaml").read_text(encoding="utf-8"))["source"]
+        run_folder, run_scenario = source.get("folder"), source.get("scenario")
+    except (OSError, UnicodeDecodeError, yaml.YAMLError, KeyError, TypeError, AttributeError):
+        return None
+    kind, _, name = truth_spec.partition(":")
+    if kind == "sim" and not Path(truth_spec).exists():
+        from trackmeter.sources import DEFAULT_SCENARIO
+
+        truth_folder, truth_scenario = None, name or DEFAULT_SCENARIO
+    else:
+        path = Path(truth_spec)
+        truth_folder, truth_scenario = sequence_identity(path if path.is_dir() else path.parent)
+    run_said = f"{run_folder or 'the simulator'}" + (f", scenario {run_scenario}" if run_scenario else "")
+    truth_said = f"{truth_folder or 'the simulator'}" + (f", scenario {truth_scenario}" if truth_scenario else "")
+    if run_scenario and truth_scenario:
+        return None if run_scenario == truth_scenario else f"{truth_said}; the run: {run_said}"
+    if run_folder and truth_folder and Path(run_folder).resolve() != truth_folder:
+        return f"{truth_said}; the run: {run_said}"
+    return None
+
+
 def run(args: argparse.Namespace) -> int:
     from trackmeter.core.metrics import evaluate, resolve_align
     from trackmeter.data.evaluation import (check_report_directory, format_summary, in_seconds, load_estimate,
@@ -119,6 +154,10 @@ def run(args: argparse.Namespace) -> int:
         # without the fitted offset the figures measure where its frame sits, not the tracking.
         print(f"trackmeter evaluate: warning: the run was tracked in case ({estimate.case}), whose body frame is "
               "not the truth's: compare with --align body", file=sys.stderr)
+    other = _other_sequence(args.truth, args.estimate)
+    if other:
+        print(f"trackmeter evaluate: warning: the truth is not the one the run was tracked on ({other}, its "
+              "run.yaml): the figures would compare two different motions", file=sys.stderr)
     if estimate.status == "running":
         # The writer never closed it: killed, or still being written (its summary is missing).
         print("trackmeter evaluate: warning: the run's run.yaml says it is still running: it was killed (or is "

@@ -248,6 +248,7 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
             "targets": [f"{i + '=' if i else ''}{u:g},{v:g}" for i, (u, v) in targets],
             "auto": args.auto,
             "select_model_points": bool(args.select_model_points),
+            **_source_identity(source),
         }
         started.append(True)  # from here on the folder may exist (RunWriter makes it first)
         writer = RunWriter(args.out, config_to_dict(config), source_info, overwrite=args.overwrite)
@@ -408,6 +409,19 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
             return 0 if status == "complete" else 2
     finally:
         source.close()
+
+
+def _source_identity(source: Any) -> dict[str, str]:
+    """run.yaml's record of which sequence (folder, scenario) the run saw, for evaluate to tell a
+    truth of another one: a sequence folder's resolved path and scenario, the simulator's scenario."""
+    from trackmeter.data.sequence import sequence_identity
+
+    index = getattr(source, "index", None)
+    if index is not None and getattr(index, "root", None) is not None:
+        folder, scenario = sequence_identity(index.root)
+        return {"folder": str(folder), **({"scenario": scenario} if scenario else {})}
+    scenario = getattr(getattr(source, "scenario", None), "name", None)
+    return {"scenario": scenario} if isinstance(scenario, str) else {}
 
 
 def _auto_never_started(tracker: Any) -> str | None:

@@ -362,6 +362,20 @@ def check_output_folder(directory: str | Path, contents: str, folder: str) -> Pa
     return path
 
 
+def sequence_identity(directory: str | Path) -> tuple[Path, str | None]:
+    """What tells a sequence folder from another: ``(DIR resolved (the folder above mav0/ for
+    that layout), the name of the scenario it was simulated from (its scenario.yaml) or None)``.
+    Recorded in a run's run.yaml, so that evaluate can tell a truth of another sequence."""
+    d = Path(directory).resolve()
+    if d.name == "mav0" and not (d / "scenario.yaml").is_file():
+        d = d.parent
+    try:
+        name = yaml.safe_load((d / "scenario.yaml").read_text(encoding="utf-8")).get("name")
+    except (OSError, UnicodeDecodeError, yaml.YAMLError, AttributeError):
+        name = None
+    return d, name if isinstance(name, str) else None
+
+
 def find_sequence_root(directory: str | Path) -> Path:
     """``DIR`` or ``DIR/mav0``: the folder holding ``cam0`` and ``cam1``.
 
