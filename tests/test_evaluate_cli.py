@@ -670,3 +670,13 @@ def test_a_truth_of_another_sequence_than_the_run_s_is_warned_about(capsys, tmp_
     assert code == 0 and "not the one the run was tracked on" in err and str(seqs["estec_seq"]) in err
     code, out, err = _run(capsys, "evaluate", "--truth", "sim:harsh_light", "--estimate", str(run))
     assert "not the one the run was tracked on" in err
+
+
+def test_a_settle_time_longer_than_the_run_says_how_long_the_run_is(capsys, tmp_path):
+    truth = tumbling_truth()
+    _tum(tmp_path / "truth.tum", truth)
+    _tum(tmp_path / "est.tum", truth)
+    code, out, err = _run(capsys, "evaluate", "--truth", str(tmp_path / "truth.tum"), "--estimate", str(tmp_path / "est.tum"),
+                          "--settle", "1000")
+    span = truth.t_s[-1] - truth.t_s[0]
+    assert code == 2 and f"the paired poses end {span:.3g} s after the start" in err, err

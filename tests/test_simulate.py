@@ -157,3 +157,31 @@ def test_a_leftover_partial_is_replaced_only_when_it_is_ours(tmp_path, capsys):
     (leftover / ".rig.yaml.x1y2").write_text("half")
     assert main(["simulate", "--duration", "0.04", "--out", str(tmp_path / "b")]) == 0
     assert not leftover.exists() and (tmp_path / "b" / "cam0" / "data.csv").is_file()
+
+
+def test_an_interrupted_simulation_says_what_it_removed_and_a_scenario_file_is_named(tmp_path, capsys, monkeypatch):
+    """Ctrl-C said only 'interrupted' (an outside probe): the unfinished DIR.partial is removed,
+    and that is said. A scenario given as a file printed only its name: key."""
+    import shutil
+
+    from trackmeter.data.sequence import SequenceWriter
+    from trackmeter.paths import SCENARIOS_DIR
+
+    mine = tmp_path / "my_scen.yaml"
+    shutil.copy(SCENARIOS_DIR / "estec.yaml", mine)
+    assert main(["simulate", "--scenario", str(mine), "--duration", "0.08", "--out", str(tmp_path / "a")]) == 0
+    assert f"of scenario estec ({mine}) to" in capsys.readouterr().out
+    real_write = SequenceWriter.write
+    calls = []
+
+    def write_then_interrupt(self, frame):  # type: ignore[no-untyped-def]
+        calls.append(frame.index)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real_write(self, frame)
+
+    monkeypatch.setattr(SequenceWriter, "write", write_then_interrupt)
+    assert main(["simulate", "--duration", "0.2", "--out", str(tmp_path / "b")]) == 130
+    err = capsys.readouterr().err
+    assert f"the unfinished {tmp_path / 'b.partial'} was removed; nothing was written to {tmp_path / 'b'}" in err
+    assert not (tmp_path / "b.partial").exists() and not (tmp_path / "b").exists()

@@ -83,11 +83,16 @@ def run(args: argparse.Namespace) -> int:
         if exc.filename2 is None and str(exc.filename) == str(partial):  # OUT is the user's name for it
             raise TrackmeterError(f"{out}: {exc.strerror or exc}") from None
         raise
+    except KeyboardInterrupt:
+        shutil.rmtree(partial, ignore_errors=True)
+        raise KeyboardInterrupt(f"interrupted: the unfinished {partial} was removed; nothing was written to {out}") from None
     except BaseException:
         shutil.rmtree(partial, ignore_errors=True)
         raise
     finally:
         sim.close()
+    # A scenario given as a file is named by its name: key; say which file it was.
+    named = scenario.name if Path(args.scenario).suffix.lower() not in (".yaml", ".yml") else f"{scenario.name} ({args.scenario})"
     print(f"wrote {sim.n_frames} frames ({sim.n_frames / sim.rate_hz:.2f} s at {sim.rate_hz:g} Hz) of "
-          f"scenario {scenario.name} to {out}", file=sys.stdout)
+          f"scenario {named} to {out}", file=sys.stdout)
     return 0

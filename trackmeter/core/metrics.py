@@ -428,7 +428,8 @@ def evaluate(
     t0 = float(t_paired[0]) if t_start_s is None else float(t_start_s)
     keep = t_paired >= t0 + params.settle_s
     if not np.any(keep):
-        raise TrackmeterError(f"no paired poses left after the settle time of {params.settle_s:g} s")
+        raise TrackmeterError(f"no paired poses left after the settle time of {params.settle_s:g} s (the paired "
+                              f"poses end {float(t_paired[-1]) - t0:.3g} s after the start)")
     it, ie = it[keep], ie[keep]
     # The poses left without a partner, counted over the span the pairs are: after the settle.
     t_from = t0 + params.settle_s
