@@ -480,7 +480,9 @@ while True:
         proc.wait()
     index = index_sequence(out)
     assert len(index) >= 5
-    src = SequenceSource(out)
+    assert any("not closed" in w for w in index.warnings)  # killed: told when read
+    with pytest.warns(UserWarning, match="not closed"):
+        src = SequenceSource(out)
     n = sum(1 for _ in iter(src.read, None))
     assert n == len(index) and src._skipped_on_read == 0
     assert index.truth is not None and np.all(index.truth.valid[:-1])
@@ -757,7 +759,8 @@ def test_a_frame_the_disk_cannot_take_is_not_recorded_at_all(tmp_path, full_disk
             assert "No space left on device" in str(exc)
             assert sorted(p.name for p in (tmp_path / "rec").rglob("*.png")) == [f"{seconds_to_ns(frames[0].t_s)}.png"] * 2
             assert not list((tmp_path / "rec").rglob("*.tmp"))
-            src = SequenceSource(tmp_path / "rec")
+            with pytest.warns(UserWarning, match="not closed"):  # still being written
+                src = SequenceSource(tmp_path / "rec")
             assert len(src) == 1 and len(read_motion_csv(tmp_path / "rec" / "groundtruth.csv")) == 1
             src.close()
     else:
@@ -898,3 +901,19 @@ def test_two_recordings_into_one_new_folder_at_once_do_not_mix(tmp_path, monkeyp
         read.append(f)
     for a, b in zip(read, frames, strict=True):
         _assert_same(a, b)
+
+
+def test_a_recording_never_closed_is_told_from_a_complete_one_when_read(tmp_path):
+    """A recording killed mid-way holds whole frames up to the last and read as complete (an
+    outside probe: console --record, kill -9). Its writer's mark stays; reading warns."""
+    frames = _frames(3)
+    writer = SequenceWriter(tmp_path / "killed")
+    for f in frames:
+        writer.write(f)  # never closed, as under kill -9
+    with pytest.warns(UserWarning, match="not closed"):
+        warning = SequenceSource(tmp_path / "killed").warning
+    assert warning is not None and "not closed" in warning
+    writer.close()
+    assert SequenceSource(tmp_path / "killed").warning is None
+    d = _write(tmp_path / "closed", frames)
+    assert SequenceSource(d).warning is None and not any(p.name.startswith(".") for p in d.iterdir())

@@ -109,6 +109,11 @@ def check_record_directory(directory: str | Path) -> Path:
     return path
 
 
+#: A file a :class:`SequenceWriter` keeps in its folder until it is closed: a recording killed
+#: mid-way (its frames whole up to the last) is then told from a complete one when read.
+UNFINISHED_MARK = ".trackmeter-unfinished"
+
+
 class SequenceWriter:
     """Write a sequence folder frame by frame (DESIGN.md section 6 layout).
 
@@ -160,6 +165,8 @@ class SequenceWriter:
         except TrackmeterError:
             self._lock.release()
             raise
+        self._mark: Path | None = self.directory / UNFINISHED_MARK
+        self._mark.write_text("a trackmeter recording in progress (removed when it is closed)\n", encoding="utf-8")
         for cam in CAMERAS:
             (self.directory / cam / "data").mkdir(parents=True, exist_ok=True)
         for cam in CAMERAS:
@@ -266,6 +273,9 @@ class SequenceWriter:
         if self._cuts is not None:
             self._cuts.close()
             self._cuts = None
+        if self._mark is not None:
+            self._mark.unlink(missing_ok=True)  # after every file is closed: the folder is whole
+            self._mark = None
         if self._lock is not None:
             self._lock.release()
             self._lock = None
@@ -574,6 +584,9 @@ def index_sequence(
         # `trackmeter simulate` writes into DIR.partial and renames it only when complete: this
         # one was stopped (killed) before, and reads as a shorter, complete-looking sequence.
         warnings.append("an unfinished simulation ('.partial': stopped before it was complete), it may end early")
+    elif (root / UNFINISHED_MARK).exists():
+        # A recording whose writer never closed it: killed, or still being written.
+        warnings.append("a recording that was not closed (its writer was killed, or is still writing): it may end early")
     if miss_l or miss_r:
         warnings.append(f"{miss_l + miss_r} image(s) listed in data.csv are missing (cam0: {miss_l}, cam1: {miss_r})")
     if bad_l or bad_r:
