@@ -707,3 +707,27 @@ def test_a_click_on_the_right_image_is_answered() -> None:
         assert con.notifications[-1] == shown[0]
     finally:
         running.stop()
+
+
+def test_a_recording_that_lost_frames_ends_the_console_with_exit_code_1(tmp_path, monkeypatch,
+                                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    """A script that records with the console must be able to tell a cut-short recording: the
+    console said so on stderr but exited 0 (an outside probe, on a full tmpfs)."""
+    import console.server
+    from trackmeter.data.sequence import SequenceWriter
+
+    def failing_write(self, frame):  # type: ignore[no-untyped-def]
+        raise TrackmeterError(f"{self.directory}: cannot write (No space left on device)")
+
+    def serve_until_failed(running: Any) -> None:
+        deadline = time.monotonic() + 30.0
+        while running.pipeline.recording_stats().error is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        running.stop()
+
+    monkeypatch.setattr(SequenceWriter, "write", failing_write)
+    monkeypatch.setattr(console.server, "serve_forever", serve_until_failed)
+    code = main(["console", "--source", "sim", "--port", str(free_port()), "--cpu-nice", "0",
+                 "--record", str(tmp_path / "rec")])
+    err = capsys.readouterr().err
+    assert code == 1 and "NOT recorded" in err, err

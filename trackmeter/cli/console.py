@@ -5,7 +5,8 @@ tumbling satellite mock-up rendered live) and a web console at http://HOST:PORT:
 camera image (click to add a target, shift-, ctrl- or alt-click to remove the nearest), the
 tracked patches, the 3D point cloud, the estimated pose, live plots and every control of the
 pipeline.
-Runs until Ctrl-C, then stops cleanly (threads joined, recording closed).
+Runs until Ctrl-C, then stops cleanly (threads joined, recording closed); the exit code is 1
+when a recording lost frames (the writer failed or fell behind), as the last line says.
 
 The console binds to 127.0.0.1 (this machine only) unless --host says otherwise; a port
 already in use is an error (exit 2), never a silent move to another port.
@@ -122,6 +123,8 @@ def _serve(args: argparse.Namespace, config: Any, priority_note: str | None = No
     # The totals: the last snapshot may lag a frame read.
     print(stop_line(running.pipeline.timings()), file=sys.stderr)
     if rec.directory:
-        print(f"trackmeter console: recorded {rec.frames_written} frames to {rec.directory}"
+        print(f"trackmeter console: recorded {counted(rec.frames_written, 'frame')} to {rec.directory}"
               + rec.not_recorded(), file=sys.stderr)
+        if rec.error or rec.frames_dropped or rec.frames_lost:
+            return 1  # a script that records must be able to tell a recording cut short
     return 0
