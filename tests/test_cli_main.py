@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import sys
 
 import pytest
 
@@ -189,3 +190,28 @@ def test_the_console_stop_line_accounts_for_every_frame_read() -> None:
         "trackmeter console: stopped after 1485 frames read, 1485 tracked, 0 dropped")
     assert stop_line(Timings(frames_read=1, frames_processed=1)) == (
         "trackmeter console: stopped after 1 frame read, 1 tracked, 0 dropped")
+
+
+def test_the_command_line_stays_deaf_to_stop_signals_once_its_command_has_returned(tmp_path, monkeypatch):
+    """A SIGTERM right after a run completed (files whole, run.yaml 'complete') killed the
+    process in the interpreter's shutdown: exit 143, as if it had failed (an outside probe).
+    The process's own command line (argv None) ignores stop signals once its command returned;
+    a caller passing argv gets its handlers back."""
+    import signal
+
+    from tests.test_metrics import tumbling_truth
+    from trackmeter.data.trajectory import Trajectory, write_tum
+
+    truth = tumbling_truth()
+    write_tum(tmp_path / "t.tum", Trajectory(truth.t_s, truth.position_m, truth.quat_wxyz))
+    args = ["evaluate", "--truth", str(tmp_path / "t.tum"), "--estimate", str(tmp_path / "t.tum")]
+    before = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        assert main(args) == 0
+        assert {sig: signal.getsignal(sig) for sig in before} == before
+        monkeypatch.setattr(sys, "argv", ["trackmeter", *args])
+        assert main() == 0
+        assert signal.getsignal(signal.SIGTERM) is signal.SIG_IGN and signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)

@@ -230,7 +230,6 @@ def _main(argv: Sequence[str] | None) -> int:
     # A service manager's stop (SIGTERM) ends a run as Ctrl-C does: threads joined, files
     # complete, the console's raised CPU priority given back (killed outright, none of that).
     in_main_thread = threading.current_thread() is threading.main_thread()
-    interrupted = False
     previous: dict[int, Any] = {}  # the handlers found, of the signals taken over
     unraisable_hook = sys.unraisablehook
     if in_main_thread:
@@ -253,7 +252,6 @@ def _main(argv: Sequence[str] | None) -> int:
         print(f"trackmeter {args.command}: error: {_describe_os_error(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
-        interrupted = True
         if in_main_thread:  # the command has stopped: a second Ctrl-C must not cut its last line
             _ignore_stop_signals(previous)
         # A command may say what it kept (KeyboardInterrupt("interrupted after ...")).
@@ -261,13 +259,12 @@ def _main(argv: Sequence[str] | None) -> int:
         return 130
     finally:
         warnings.showwarning = shown_before
-        # The process's own command line (argv None) stays deaf to signals after an interrupt
-        # (or a stop the command took as its normal end, as the console does) until it exits:
-        # a second Ctrl-C would kill it in the interpreter's shutdown (-SIGINT instead of its
-        # exit code). A caller passing argv gets its handlers back.
+        # The process's own command line (argv None) stays deaf to stop signals once its
+        # command returned, until it exits: the command is done (its files complete), and a
+        # signal now would kill it in the interpreter's shutdown (-SIGTERM, -SIGINT instead of
+        # its exit code). A caller passing argv gets its handlers back.
         if in_main_thread:
-            signalled = interrupted or any(signal.getsignal(sig) is not _interrupt for sig in previous)
-            if signalled and argv is None:
+            if argv is None:
                 _ignore_stop_signals(previous)
             else:
                 for sig, handler in previous.items():
