@@ -568,7 +568,7 @@ def test_a_run_its_writer_never_closed_is_warned_about(capsys, run_in_own_body_f
     (run / "run.yaml").write_text(f"status: {status}\nsource:\n  spec: sim\n  case: a\n")
     code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
     assert code == 0
-    assert ("still running: it was killed" in err) == (status == "running"), err
+    assert ("still running: it was killed, its disk filled" in err) == (status == "running"), err
     assert len(err.strip().splitlines()) == (status == "running")
 
 

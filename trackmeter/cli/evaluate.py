@@ -159,9 +159,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"trackmeter evaluate: warning: the truth is not the one the run was tracked on ({other}, its "
               "run.yaml): the figures would compare two different motions", file=sys.stderr)
     if estimate.status == "running":
-        # The writer never closed it: killed, or still being written (its summary is missing).
-        print("trackmeter evaluate: warning: the run's run.yaml says it is still running: it was killed (or is "
-              "still being written), so it may end early and its summary is missing", file=sys.stderr)
+        # The writer never closed it: killed, a disk that filled (track then says run.yaml could
+        # not be updated), or still being written; its summary is missing.
+        print("trackmeter evaluate: warning: the run's run.yaml says it is still running: it was killed, its disk "
+              "filled, or it is still being written, so it may end early and its summary is missing", file=sys.stderr)
     attitude_rms_rad = result.summary.get("attitude_rad", {}).get("total", {}).get("rms", 0.0)
     if params.align == "none" and estimate.case is None and attitude_rms_rad > UNKNOWN_CASE_OFFSET_RAD:
         # A bare trajectory does not say whose body frame it is in: a case (a) or (c) run's
