@@ -4,8 +4,9 @@ Six points of a rigid body are "measured" in the camera frame with noise like th
 rig's at 3.5 m (depth sigma 4 mm, lateral 0.5 mm: the depth error grows with z², paper eqs.
 1-2), one of them slid 3 cm onto another surface. Then:
 
-- case (a), no model: the body frame of the first three points (origin at the first, x
-  toward the second, xy-plane through the third), output at their centroid;
+- case (a), no model: the body frame of the first three points, its axes as the paper builds
+  them (x from the first toward the second, xy-plane through the third) and its origin, the
+  output position, at their centroid;
 - case (b), a-priori model: the robust weighted least-squares pose over every point
   (LMedS over triples, then Mahalanobis-gated generalised least squares) rejects the slid
   point and gives the pose with its 6x6 covariance.
@@ -38,7 +39,7 @@ def main() -> None:
 
     # Case (a): the frame the first three points define (its own body frame, not the model's).
     R_a, origin = three_point_body_frame(*measured[:3])
-    print(f"case (a): origin {np.round(origin, 4)} m, attitude (wxyz) {np.round(matrix_to_quat_wxyz(R_a), 4)}")
+    print(f"case (a): origin (the centroid) {np.round(origin, 4)} m, attitude (wxyz) {np.round(matrix_to_quat_wxyz(R_a), 4)}")
 
     # Case (b): the model's frame, robust to the slid point.
     fit = robust_pose(model, measured, covs)

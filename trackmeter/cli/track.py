@@ -7,8 +7,9 @@ and simulated sources are processed frame by frame as fast as possible (no frame
 cameras run live. Ends at the end of the source or on Ctrl-C, with complete files either way.
 
 Model cases (paper section 2.C):
-  a  no model: the body frame from three tracked points (origin at their centroid, x toward
-     the second, xy-plane through the third); redundant points carry it when one is lost
+  a  no model: the body frame from three tracked points (x from the first toward the second,
+     xy-plane through the third; origin at their centroid); redundant points carry it when one
+     is lost
   b  a-priori model (--model, or the source's own model.yaml): targets named by model point
      id (--target ID=U,V) bind to it; automatic targets join it once the pose is known.
      Chosen by default only when a target is bound to a model point (--target ID=U,V or
