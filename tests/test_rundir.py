@@ -215,3 +215,29 @@ def test_a_second_run_cannot_write_into_a_folder_a_run_is_writing_even_with_over
     assert yaml.safe_load((tmp_path / "run" / "run.yaml").read_text())["source"]["spec"] == "first"
     assert len(read_tum(tmp_path / "run" / "trajectory.tum").t_s) == 2
     RunWriter(tmp_path / "run", {}, {"spec": "third"}, overwrite=True).close("complete")
+
+
+def test_the_run_folder_s_lock_is_dropped_whatever_closing_or_opening_fails(tmp_path: Path, monkeypatch) -> None:
+    """A close whose flush fails, or an open that fails after the lock, must not keep the folder
+    locked for the life of the process (the console runs for hours)."""
+    import trackmeter.data.rundir as rundir
+
+    writer = RunWriter(tmp_path / "run", {}, {"spec": "first"})
+
+    def failing_close() -> None:
+        raise TrackmeterError("flush failed")
+
+    monkeypatch.setattr(writer._states, "close", failing_close)
+    with pytest.raises(TrackmeterError, match="flush failed"):
+        writer.close("complete")
+    RunWriter(tmp_path / "run", {}, {"spec": "second"}, overwrite=True).close("complete")  # not locked
+
+    def failing_open(self, *args) -> None:  # type: ignore[no-untyped-def]
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(rundir.RunWriter, "_open", failing_open)
+    with pytest.raises(OSError):
+        RunWriter(tmp_path / "new", {}, {"spec": "third"})
+    assert not (tmp_path / "new").exists()  # made by it, removed by it
+    monkeypatch.undo()
+    RunWriter(tmp_path / "new", {}, {"spec": "fourth"}).close("complete")

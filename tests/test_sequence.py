@@ -917,3 +917,16 @@ def test_a_recording_never_closed_is_told_from_a_complete_one_when_read(tmp_path
     assert SequenceSource(tmp_path / "killed").warning is None
     d = _write(tmp_path / "closed", frames)
     assert SequenceSource(d).warning is None and not any(p.name.startswith(".") for p in d.iterdir())
+
+
+def test_a_writer_that_fails_after_taking_the_folder_leaves_nothing_and_no_lock(tmp_path):
+    """A bad model (or a full disk) after the lock left cam0/, cam1/, the mark and a held lock:
+    the console's next Record into that folder was refused for the life of the process."""
+    for folder, existed in ((tmp_path / "new", False), (tmp_path / "empty", True)):
+        if existed:
+            folder.mkdir()
+        with pytest.raises(Exception):
+            SequenceWriter(folder, model_points=[("a", [1.0, 2.0])])  # a point of two coordinates
+        assert (folder.exists() and not any(folder.iterdir())) if existed else not folder.exists()
+        with SequenceWriter(folder) as again:  # not refused: nothing held, nothing left
+            again.write(_frames(1)[0])

@@ -157,6 +157,16 @@ def test_a_leftover_partial_is_replaced_only_when_it_is_ours(tmp_path, capsys):
     (leftover / ".rig.yaml.x1y2").write_text("half")
     assert main(["simulate", "--duration", "0.04", "--out", str(tmp_path / "b")]) == 0
     assert not leftover.exists() and (tmp_path / "b" / "cam0" / "data.csv").is_file()
+    # A .partial another simulate is still writing (its writer holds the folder) is not taken.
+    from trackmeter.data.sequence import SequenceWriter
+    from trackmeter.sources.base import StereoFrame
+
+    with SequenceWriter(tmp_path / "c.partial") as running:
+        assert main(["simulate", "--duration", "0.04", "--out", str(tmp_path / "c")]) == 2
+        assert "another simulate (or recording) is writing there now" in capsys.readouterr().err
+        assert (tmp_path / "c.partial" / "cam0" / "data.csv").is_file() and not (tmp_path / "c").exists()
+        img = np.zeros((8, 8), np.uint8)
+        running.write(StereoFrame(0, 0.0, img, img))  # its folder still its own
 
 
 def test_an_interrupted_simulation_says_what_it_removed_and_a_scenario_file_is_named(tmp_path, capsys, monkeypatch):

@@ -32,7 +32,7 @@ def run(args: argparse.Namespace) -> int:
 
     from trackmeter.cli.common import load_config_from_args, progress
     from trackmeter.data.config import config_to_dict
-    from trackmeter.data.atomic import unwritable_ancestor
+    from trackmeter.data.atomic import FolderLock, unwritable_ancestor
     from trackmeter.data.sequence import SequenceWriter
     from trackmeter.errors import TrackmeterError
     from trackmeter.sources.sim.scenario import MAX_DURATION_S, load_scenario
@@ -56,13 +56,18 @@ def run(args: argparse.Namespace) -> int:
     partial = out.with_name(out.name + ".partial")
     if partial.exists() or partial.is_symlink():
         # Left over from a run of this command that was killed outright: replaced, but only
-        # when it holds nothing a sequence writer would not have written.
+        # when it holds nothing a sequence writer would not have written, and no writer holds
+        # it (another simulate to the same --out, still running: its lock refuses this one).
         ours = {"cam0", "cam1", "groundtruth.csv", "groundtruth.tum", "model.yaml", "rig.yaml", "scenario.yaml"}
         if partial.is_symlink() or not partial.is_dir() or any(
                 p.name not in ours and not p.name.startswith(".") for p in partial.iterdir()):
             raise TrackmeterError(f"{partial}: exists and is not a sequence this command left unfinished; "
                                   "move it away or choose another --out")
-        shutil.rmtree(partial)
+        lock = FolderLock(partial, "another simulate (or recording)")
+        try:
+            shutil.rmtree(partial)
+        finally:
+            lock.release()
     # Rendering ahead in a worker overlaps it with this process's image encoding and writing.
     sim = Simulator(scenario, render_ahead=True)
     try:

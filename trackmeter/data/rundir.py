@@ -113,29 +113,31 @@ class RunWriter:
     def __init__(self, directory: str | Path, config: dict[str, Any], source: dict[str, Any],
                  overwrite: bool = False, extra: dict[str, Any] | None = None) -> None:
         self.directory = check_run_directory(directory, overwrite)
-        created = not self.directory.exists()
         try:
-            self.directory.mkdir(parents=True, exist_ok=True)
+            self.directory.mkdir(parents=True)
+            created = True  # by this writer: the one thing it may remove again
+        except FileExistsError:
+            created = False
         except OSError as exc:
             raise TrackmeterError(f"{self.directory}: cannot create: {exc.strerror}") from None
+        # Refused by the lock: the folder is another writer's now, whoever made it; left alone.
+        self._lock: FolderLock | None = FolderLock(self.directory, "another run")
         try:
-            self._lock: FolderLock | None = FolderLock(self.directory, "another run")
+            check_run_directory(self.directory, overwrite)  # again, now that no one else writes
         except TrackmeterError:
-            if created:
-                with contextlib.suppress(OSError):
-                    self.directory.rmdir()
+            self._release_lock()
             raise
         try:
             self._open(config, source, extra)
-        except TrackmeterError:
-            self._release_lock()
+        except BaseException:
             # Nothing half-made left behind (e.g. a disk already full): the files this writer
-            # began, and the folder when it made it.
+            # began, and the folder when it made it; the lock last.
             for name in _RUN_FILES:
                 (self.directory / name).unlink(missing_ok=True)
             if created:
                 with contextlib.suppress(OSError):
                     self.directory.rmdir()
+            self._release_lock()
             raise
         if overwrite:  # a report of the run replaced would describe the new one wrongly
             from trackmeter.data.evaluation import REPORT_FILES
@@ -228,6 +230,13 @@ class RunWriter:
         """Close the files and rewrite ``run.yaml`` with the final status and summary."""
         if self._tum is None:
             return
+        try:
+            self._close(status, summary)
+        finally:
+            self._release_lock()
+
+    def _close(self, status: str, summary: dict[str, Any] | None) -> None:
+        assert self._tum is not None
         self._states.close()
         self._tum.close()
         if self._targets is not None:
@@ -241,10 +250,7 @@ class RunWriter:
         # Keep config last: the summary is what a reader looks for first.
         config = self._meta.pop("config")
         self._meta["config"] = config
-        try:
-            self._write_meta()
-        finally:
-            self._release_lock()
+        self._write_meta()
 
     def _release_lock(self) -> None:
         if self._lock is not None:

@@ -29,9 +29,11 @@ that plays a folder is :class:`trackmeter.sources.sequence.SequenceSource`.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import os
 import re
+import shutil
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -153,34 +155,65 @@ class SequenceWriter:
         # no larger; an explicit level trades speed for size.
         self._png_params = [] if png_compression is None else [cv2.IMWRITE_PNG_COMPRESSION, int(png_compression)]
         self._csv: dict[str, AppendFile] = {}
-        try:
-            self.directory.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise TrackmeterError(f"cannot record to {self.directory}: {exc.strerror or exc}") from None
-        # Two recordings started into one new folder at once would truncate each other's files:
-        # the second is refused, and the folder checked again under the lock.
-        self._lock: FolderLock | None = FolderLock(self.directory, "another recording")
-        try:
-            check_record_directory(self.directory)
-        except TrackmeterError:
-            self._lock.release()
-            raise
-        self._mark: Path | None = self.directory / UNFINISHED_MARK
-        self._mark.write_text("a trackmeter recording in progress (removed when it is closed)\n", encoding="utf-8")
-        for cam in CAMERAS:
-            (self.directory / cam / "data").mkdir(parents=True, exist_ok=True)
-        for cam in CAMERAS:
-            self._csv[cam] = AppendFile(self.directory / cam / "data.csv", DATA_CSV_HEADER + "\n")
-        if rig is not None:
-            save_rig(rig, self.directory / "rig.yaml")
-        if model_points is not None:
-            save_model(self.directory / "model.yaml", model_points)
+        self._mark: Path | None = None
         self._truth_csv: MotionCsvWriter | None = None
         self._truth_tum: AppendFile | None = None
         self._last_truth_quat_wxyz: FloatArray | None = None  # the next one takes the sign nearer it
         self._cuts: AppendFile | None = None
         self._last_ns: int | None = None
         self.frames_written = 0
+        try:
+            self.directory.mkdir(parents=True)
+            created = True  # by this writer: the one thing it may remove again
+        except FileExistsError:
+            created = False
+        except OSError as exc:
+            raise TrackmeterError(f"cannot record to {self.directory}: {exc.strerror or exc}") from None
+        # Two recordings started into one new folder at once would truncate each other's files:
+        # the second is refused (the folder is the other's then, whoever made it: left alone),
+        # and the folder checked again under the lock.
+        self._lock: FolderLock | None = FolderLock(self.directory, "another recording")
+        try:
+            check_record_directory(self.directory)
+        except TrackmeterError:
+            self._release_lock()
+            raise
+        try:
+            self._mark = self.directory / UNFINISHED_MARK
+            self._mark.write_text("a trackmeter recording in progress (removed when it is closed)\n", encoding="utf-8")
+            for cam in CAMERAS:
+                (self.directory / cam / "data").mkdir(parents=True, exist_ok=True)
+            for cam in CAMERAS:
+                self._csv[cam] = AppendFile(self.directory / cam / "data.csv", DATA_CSV_HEADER + "\n")
+            if rig is not None:
+                save_rig(rig, self.directory / "rig.yaml")
+            if model_points is not None:
+                save_model(self.directory / "model.yaml", model_points)
+        except BaseException as exc:
+            # Nothing half-made left: the folder was empty when checked under the lock, so all
+            # in it is this writer's (and the folder too when it made it); the lock last.
+            for f in self._csv.values():
+                with contextlib.suppress(Exception):
+                    f.close()
+            self._csv = {}
+            for child in list(self.directory.iterdir()):
+                if child.is_dir():
+                    shutil.rmtree(child, ignore_errors=True)
+                else:
+                    child.unlink(missing_ok=True)
+            if created:
+                with contextlib.suppress(OSError):
+                    self.directory.rmdir()
+            self._mark = None
+            self._release_lock()
+            if isinstance(exc, OSError):
+                raise TrackmeterError(f"cannot record to {self.directory}: {exc.strerror or exc}") from None
+            raise
+
+    def _release_lock(self) -> None:
+        if self._lock is not None:
+            self._lock.release()
+            self._lock = None
 
     def write(self, frame: StereoFrame) -> None:
         """Append one stereo frame (and its ground truth when it has one)."""
@@ -261,7 +294,13 @@ class SequenceWriter:
         self._truth_tum.append(format_tum_line(t_s, T[:3, 3], q) + "\n")
 
     def close(self) -> None:
-        """Close the files (idempotent)."""
+        """Close the files (idempotent); the folder's lock is dropped whatever fails."""
+        try:
+            self._close_files()
+        finally:
+            self._release_lock()
+
+    def _close_files(self) -> None:
         for f in self._csv.values():
             f.close()
         self._csv = {}
@@ -276,9 +315,6 @@ class SequenceWriter:
         if self._mark is not None:
             self._mark.unlink(missing_ok=True)  # after every file is closed: the folder is whole
             self._mark = None
-        if self._lock is not None:
-            self._lock.release()
-            self._lock = None
 
     def __enter__(self) -> SequenceWriter:
         return self
