@@ -635,7 +635,7 @@ def test_a_run_of_the_simulator_is_evaluated_against_its_scenario_s_motion(capsy
                          np.array([sim.truth(i).omega_body_rad_s for i in range(n)]))
     write_groundtruth_csv(tmp_path / "gt.csv", truth)
     code, out_sim, err = _run(capsys, "evaluate", "--truth", "sim", "--estimate", str(run), "--json")
-    assert code == 0 and "not the one the run was tracked on" not in err, err
+    assert code == 0 and "may not be of the sequence the run was tracked on" not in err, err
     code, out_file, err = _run(capsys, "evaluate", "--truth", str(tmp_path / "gt.csv"), "--estimate", str(run), "--json")
     assert code == 0, err
     a, b = json.loads(out_sim), json.loads(out_file)
@@ -656,6 +656,9 @@ def test_a_truth_of_another_sequence_than_the_run_s_is_warned_about(capsys, tmp_
         folder = tmp_path / name
         write_groundtruth_csv(folder / "groundtruth.csv", truth)
         (folder / "scenario.yaml").write_text(f"name: {scenario}\n")
+        for cam in ("cam0", "cam1"):  # what makes it a sequence folder (images left out)
+            (folder / cam).mkdir()
+            (folder / cam / "data.csv").write_text("#timestamp [ns],filename\n")
         seqs[name] = folder
     run = tmp_path / "run"
     write_states_csv(run / "states.csv", truth)
@@ -664,12 +667,22 @@ def test_a_truth_of_another_sequence_than_the_run_s_is_warned_about(capsys, tmp_
     for name, warned in (("estec_seq", False), ("estec_again", False), ("harsh_seq", True)):
         code, out, err = _run(capsys, "evaluate", "--truth", str(seqs[name]), "--estimate", str(run))
         assert code == 0, err
-        assert ("not the one the run was tracked on" in err) == warned, (name, err)
+        assert ("may not be of the sequence the run was tracked on" in err) == warned, (name, err)
     (seqs["harsh_seq"] / "scenario.yaml").unlink()  # a real sequence: folders differ, no scenario to tell
     code, out, err = _run(capsys, "evaluate", "--truth", str(seqs["harsh_seq"]), "--estimate", str(run))
-    assert code == 0 and "not the one the run was tracked on" in err and str(seqs["estec_seq"]) in err
+    assert code == 0 and "may not be of the sequence the run was tracked on" in err and str(seqs["estec_seq"]) in err
     code, out, err = _run(capsys, "evaluate", "--truth", "sim:harsh_light", "--estimate", str(run))
-    assert "not the one the run was tracked on" in err
+    assert "may not be of the sequence the run was tracked on" in err
+    # The forms that name the same scenario, and a truth file kept outside any sequence folder.
+    from trackmeter.paths import SCENARIOS_DIR
+
+    for spec in ("sim", "sim:estec", f"sim:{SCENARIOS_DIR / 'estec.yaml'}"):
+        code, out, err = _run(capsys, "evaluate", "--truth", spec, "--estimate", str(run))
+        assert "may not be" not in err, (spec, err)
+    elsewhere = tmp_path / "elsewhere"
+    write_groundtruth_csv(elsewhere / "reference.csv", truth)
+    code, out, err = _run(capsys, "evaluate", "--truth", str(elsewhere / "reference.csv"), "--estimate", str(run))
+    assert code == 0 and "may not be" not in err, err
 
 
 def test_a_settle_time_longer_than_the_run_says_how_long_the_run_is(capsys, tmp_path):

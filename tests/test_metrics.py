@@ -278,3 +278,25 @@ def test_velocity_statistics_skip_samples_without_velocity():
     assert S(s, "omega_rad_s", "norm")["max"] == 0.0
     none = evaluate(truth, with_pose(truth, v=np.full((60, 3), np.nan), w=w)).summary
     assert "velocity_m_s" not in none and "omega_rad_s" not in none
+
+
+def test_pose_coverage_counts_the_run_s_frames_whatever_the_truth_s_rate() -> None:
+    """The share of the run's frames after the settle with a pose: a truth sampled twice as
+    densely as the frames (mocap, EuRoC's 200 Hz) must not halve it; without the frames (a
+    TUM estimate) it is unknown (None)."""
+    from trackmeter.core.metrics import EvaluateParams, evaluate
+
+    truth = tumbling_truth()  # every 0.08 s from 2.0 s
+    frames = truth.t_s[::2]  # the run: every 0.16 s
+    has_pose = np.ones(len(frames), bool)
+    has_pose[5:10] = False  # five frames without a pose
+    est = MotionSeries(frames[has_pose], np.ones(int(has_pose.sum()), bool), truth.position_m[::2][has_pose],
+                       truth.quat_wxyz[::2][has_pose], truth.velocity_cam_m_s[::2][has_pose],
+                       truth.omega_body_rad_s[::2][has_pose])
+    params = EvaluateParams(settle_s=0.0)
+    ev = evaluate(truth, est, params, float(frames[0]), frames)
+    assert ev.summary["pose_coverage"] == pytest.approx(has_pose.sum() / len(frames))
+    assert evaluate(truth, est, params).summary["pose_coverage"] is None
+    settled = evaluate(truth, est, EvaluateParams(settle_s=1.0), float(frames[0]), frames)
+    after = frames >= frames[0] + 1.0 - 1e-9
+    assert settled.summary["pose_coverage"] == pytest.approx((has_pose & after).sum() / after.sum())

@@ -11,12 +11,16 @@ errors (body frame, paper eq. 14) - both only when the estimate is a run directo
 states.csv and the truth has a groundtruth.csv - as RMS, max and 95th percentile, plus the
 SPEED challenge score.
 
-  --truth    TUM file, groundtruth.csv, or a sequence folder
+  --truth    TUM file, groundtruth.csv, or a sequence folder; sim[:SCENARIO] for a run of the
+             sim source: the scenario's motion (a path of that name, if one exists, comes first)
   --estimate TUM file, states.csv, or a `trackmeter track` run directory
 
 "matched" counts the evaluated pairs; "unmatched" the estimated poses with no truth pose within
-the tolerance plus the truth poses inside the estimate's time span with no estimate (frames the
-run has no valid pose for), both after the settle time, as the pairs are. --json prints the summary in SI units, with the settings it was
+the tolerance plus the truth poses inside the run's time span (a run directory or states.csv:
+all its rows; a TUM file: its poses) with no estimate, both after the settle time, as the pairs
+are; the run's frames after the settle that have a pose are given as a percentage (not for a
+TUM estimate, which does not list its frames). A warning says when the run's run.yaml names
+another sequence or scenario than the truth's. --json prints the summary in SI units, with the settings it was
 made with ("settings": truth, estimate, align, settle_s, tolerance_s, the run's case); --out DIR
 also writes errors.csv, summary.json (the same), PNG plots of the errors against time and
 report.md beside the paper's figures.
@@ -28,8 +32,13 @@ import argparse
 import math
 import sys
 from dataclasses import replace
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 from trackmeter.cli.common import load_config_from_args
+
+if TYPE_CHECKING:
+    from trackmeter.data.evaluation import LoadedMotion
 
 #: An estimate of unknown case whose attitude is off by more than this (RMS) is told about
 #: --align body: tracking errors are tenths of a degree, a frame of its own tens of degrees.
@@ -68,34 +77,41 @@ def _params(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     return replace(params, **changes)
 
 
-def _load_truth(spec: str):  # type: ignore[no-untyped-def]
+def _sim_scenario(spec: str) -> str | None:
+    """The scenario ``--truth sim`` / ``sim:SCENARIO`` names (a name or a file), or None when
+    ``spec`` is no such form or is the path of something that exists (a folder named sim)."""
+    kind, _, name = spec.partition(":")
+    if kind != "sim" or Path(spec).exists():
+        return None
+    from trackmeter.sources import DEFAULT_SCENARIO
+
+    return name or DEFAULT_SCENARIO
+
+
+def _load_truth(spec: str) -> LoadedMotion:
     """``--truth``: a file or folder (:func:`trackmeter.data.evaluation.load_truth`), or, where
     no such path exists, ``sim`` / ``sim:SCENARIO``: the scenario's motion (a ``track --source
     sim`` run keeps no ground truth; this is the one ``trackmeter simulate`` would write)."""
-    from pathlib import Path
-
     from trackmeter.data.evaluation import LoadedMotion, load_truth
 
-    kind, _, name = spec.partition(":")
-    if kind != "sim" or Path(spec).exists():
+    scenario = _sim_scenario(spec)
+    if scenario is None:
         return load_truth(spec)
-    from trackmeter.sources import DEFAULT_SCENARIO
     from trackmeter.sources.sim.simulator import scenario_truth
 
-    scenario = name or DEFAULT_SCENARIO
     return LoadedMotion(scenario_truth(scenario), f"sim:{scenario} (the scenario's motion)", True)
 
 
 def _other_sequence(truth_spec: str, estimate_spec: str) -> str | None:
-    """Why the truth looks like another sequence than the one the run was tracked on (its
+    """Why the truth may be of another sequence than the one the run was tracked on (its
     run.yaml's ``source.folder`` and ``source.scenario``), or None: scenarios that differ, or,
-    where one is unknown, folders that differ (the same scenario simulated twice is the same
-    motion)."""
-    from pathlib import Path
-
+    where one is unknown, sequence folders that differ (the same scenario simulated twice is
+    the same motion; a truth file outside any sequence folder says nothing of its sequence)."""
     import yaml
 
-    from trackmeter.data.sequence import sequence_identity
+    from trackmeter.data.sequence import is_sequence_folder, sequence_identity
+    from trackmeter.errors import TrackmeterError
+    from trackmeter.sources.sim.scenario import load_scenario
 
     estimate = Path(estimate_spec)
     run_dir = estimate if estimate.is_dir() else estimate.parent
@@ -104,14 +120,21 @@ def _other_sequence(truth_spec: str, estimate_spec: str) -> str | None:
         run_folder, run_scenario = source.get("folder"), source.get("scenario")
     except (OSError, UnicodeDecodeError, yaml.YAMLError, KeyError, TypeError, AttributeError):
         return None
-    kind, _, name = truth_spec.partition(":")
-    if kind == "sim" and not Path(truth_spec).exists():
-        from trackmeter.sources import DEFAULT_SCENARIO
-
-        truth_folder, truth_scenario = None, name or DEFAULT_SCENARIO
+    truth_folder: Path | None = None
+    truth_scenario: str | None = None
+    scenario = _sim_scenario(truth_spec)
+    if scenario is not None:
+        try:
+            truth_scenario = load_scenario(scenario).name  # a file's name: key, as the run recorded it
+        except TrackmeterError:
+            return None
     else:
         path = Path(truth_spec)
-        truth_folder, truth_scenario = sequence_identity(path if path.is_dir() else path.parent)
+        folder = path if path.is_dir() else path.parent
+        for candidate in (folder, folder.parent):  # DIR, or DIR/mav0 holding the truth
+            if is_sequence_folder(candidate):
+                truth_folder, truth_scenario = sequence_identity(candidate)
+                break
     run_said = f"{run_folder or 'the simulator'}" + (f", scenario {run_scenario}" if run_scenario else "")
     truth_said = f"{truth_folder or 'the simulator'}" + (f", scenario {truth_scenario}" if truth_scenario else "")
     if run_scenario and truth_scenario:
@@ -133,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
     estimate = load_estimate(args.estimate)
     truth, estimate = in_seconds(truth, estimate, params.tolerance_s)
     params = replace(params, align=resolve_align(params.align, estimate.case))
-    result = evaluate(truth.series, estimate.series, params, estimate.t_start_s, estimate.t_end_s)
+    result = evaluate(truth.series, estimate.series, params, estimate.t_start_s, estimate.frame_times_s)
     t_t, t_e = truth.series.t_s, estimate.series.t_s
     overlap = min(t_t[-1], t_e[-1]) - max(t_t[0], t_e[0])
     longer = max(t_t[-1] - t_t[0], t_e[-1] - t_e[0])
@@ -156,8 +179,8 @@ def run(args: argparse.Namespace) -> int:
               "not the truth's: compare with --align body", file=sys.stderr)
     other = _other_sequence(args.truth, args.estimate)
     if other:
-        print(f"trackmeter evaluate: warning: the truth is not the one the run was tracked on ({other}, its "
-              "run.yaml): the figures would compare two different motions", file=sys.stderr)
+        print(f"trackmeter evaluate: warning: the truth may not be of the sequence the run was tracked on ({other}, "
+              "its run.yaml): if so, the figures compare two different motions", file=sys.stderr)
     if estimate.status == "running":
         # The writer never closed it: killed, a disk that filled (track then says run.yaml could
         # not be updated), or still being written; its summary is missing.

@@ -96,8 +96,9 @@ class Association:
         index_truth, index_est: (M,) indices of the paired samples, in time order.
         dt_s: (M,) ``t_est - t_truth`` of each pair, s.
         unmatched_est: estimated poses with no truth pose within the tolerance.
-        unmatched_truth: truth poses inside the estimate's time span (widened by the tolerance)
-            with no estimate — frames the estimator dropped.
+        unmatched_truth: truth poses inside the compared span (the run's, else the estimate's;
+            widened by the tolerance) with no estimate: frames without a pose, and, when the
+            truth is sampled more densely than the run's frames, the truth samples between them.
     """
 
     index_truth: IntArray
@@ -335,19 +336,20 @@ def _axes(e: FloatArray, total_name: str, total: FloatArray) -> dict[str, dict[s
     return out
 
 
-def summarize(errors: MotionErrors, association: Association) -> dict[str, object]:
+def summarize(errors: MotionErrors, association: Association, pose_coverage: float | None = None) -> dict[str, object]:
     """The ``trackmeter evaluate --json`` summary (SI units; DESIGN.md section 6):
 
     ``{"matched", "unmatched", "pose_coverage", "position_m": {x,y,z,norm}, "attitude_rad":
     {x,y,z,total}, ["velocity_m_s": {x,y,z,norm}, "omega_rad_s": {x,y,z,norm},] "speed_score"}``,
     each leaf ``{"rms", "max", "p95"}``; velocity entries only when velocity errors exist, over
-    the samples where both sides have one. ``pose_coverage``: of the truth poses in the
-    compared span, the share paired with an estimate (``matched / (matched + unmatched_truth)``).
+    the samples where both sides have one. ``pose_coverage``: of the run's frames after the
+    settle (inside the truth's span), the share with a pose paired with the truth; None (null)
+    when the estimate does not list its frames (a TUM file).
     """
     out: dict[str, object] = {
         "matched": int(len(errors.t_s)),
         "unmatched": int(association.unmatched),
-        "pose_coverage": len(errors.t_s) / max(len(errors.t_s) + association.unmatched_truth, 1),
+        "pose_coverage": pose_coverage,
         "position_m": _axes(errors.position_m, "norm", np.linalg.norm(errors.position_m, axis=1)),
         "attitude_rad": _axes(errors.attitude_rad, "total", errors.attitude_total_rad),
     }
@@ -398,7 +400,7 @@ def evaluate(
     estimate: PoseTrack,
     params: EvaluateParams = EvaluateParams(),
     t_start_s: float | None = None,
-    t_end_s: float | None = None,
+    frame_times_s: ArrayLike | None = None,
 ) -> Evaluation:
     """Associate, align (``params.align``; "auto", whose meaning depends on the run's pose case,
     is "none" here: resolve it first with :func:`resolve_align`), skip ``params.settle_s``, and
@@ -406,9 +408,10 @@ def evaluate(
 
     The settle time counts from ``t_start_s`` (the start of the run, e.g. the first row of a
     ``states.csv`` whether or not it had a pose) or, when None, from the first paired pose.
-    Truth poses without an estimate (``unmatched``, and ``pose_coverage``: the share of truth
-    poses after the settle that have one) are counted over the run, from ``t_start_s`` to
-    ``t_end_s`` (its last row), or over the estimate's own span where those are None.
+    ``frame_times_s`` (the run's frames, a ``states.csv``'s rows with a pose or not) gives the
+    run's span, over which truth poses without an estimate are counted (``unmatched``; else over
+    the estimate's own span), and ``pose_coverage``: the share of those frames after the settle
+    that have a pose paired with the truth.
 
     Velocity metrics need finite ``velocity_cam_m_s`` and ``omega_body_rad_s`` on both
     sides (for the paired samples); otherwise only pose metrics are computed.
@@ -437,8 +440,15 @@ def evaluate(
     paired_est[assoc.index_est] = True
     paired_truth = np.zeros(len(truth.t_s), dtype=bool)
     paired_truth[assoc.index_truth] = True
-    span_from = estimate.t_s[0] if t_start_s is None else min(estimate.t_s[0], t_start_s)
-    span_to = estimate.t_s[-1] if t_end_s is None else max(estimate.t_s[-1], t_end_s)
+    frames = None if frame_times_s is None else np.asarray(frame_times_s, dtype=float).reshape(-1)
+    span_from, span_to = estimate.t_s[0], estimate.t_s[-1]
+    coverage = None
+    if frames is not None and len(frames):
+        span_from, span_to = min(span_from, frames[0]), max(span_to, frames[-1])
+        tol = params.tolerance_s
+        counted_frames = np.count_nonzero((frames >= t_from - 1e-9) & (frames >= truth.t_s[0] - tol)
+                                          & (frames <= truth.t_s[-1] + tol))
+        coverage = min(len(it) / counted_frames, 1.0) if counted_frames else None
     in_span = (truth.t_s >= span_from - params.tolerance_s) & (truth.t_s <= span_to + params.tolerance_s)
     assoc = replace(assoc, index_truth=it, index_est=ie, dt_s=assoc.dt_s[keep],
                     unmatched_est=int(np.count_nonzero(~paired_est & (estimate.t_s >= t_from))),
@@ -455,4 +465,4 @@ def evaluate(
     if v_t is None or w_t is None or v_e is None or w_e is None:
         v_t = w_t = v_e = w_e = None
     errors = motion_errors(truth.t_s[it], q_t, p_t, q_e, p_e, v_t, v_e, w_t, w_e)
-    return Evaluation(summarize(errors, assoc), errors, assoc, offset)
+    return Evaluation(summarize(errors, assoc, coverage), errors, assoc, offset)

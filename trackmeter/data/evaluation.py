@@ -38,7 +38,7 @@ class LoadedMotion:
     source: str  # the file(s) read
     has_velocity: bool
     t_start_s: float | None = None  # start of a run (first states.csv row, valid or not)
-    t_end_s: float | None = None  # end of a run (last states.csv row, valid or not)
+    frame_times_s: np.ndarray | None = None  # a run's frames (every states.csv row, valid or not)
     case: str | None = None  # a track run's pose case ("a", "b", "c"; its run.yaml), else None
     # how often a track run started its body frame anew (its run.yaml's summary): at a cut in
     # its source, and case (a)'s new frames after a total loss: (stream_cuts, frames_redefined)
@@ -222,26 +222,27 @@ def _load_estimate(path: Path) -> LoadedMotion:
     if path.is_dir():
         if (path / "states.csv").is_file():
             s = read_motion_csv(path / "states.csv")
-            t_start, t_end = float(s.t_s[0]), float(s.t_s[-1])
+            t_start, frames = float(s.t_s[0]), s.t_s.copy()
             s = _poses_of_run(s, _declared_pose_times(path))
             if len(s) == 0:
                 raise TrackmeterError(f"{path / 'states.csv'}: no valid pose in the run{_why_no_valid_pose(path)}")
-            return LoadedMotion(s, str(path / "states.csv"), bool(np.any(_rows_with_rates(s))), t_start, t_end)
+            return LoadedMotion(s, str(path / "states.csv"), bool(np.any(_rows_with_rates(s))), t_start,
+                                frame_times_s=frames)
         if (path / "trajectory.tum").is_file():
             s = MotionSeries.from_trajectory(read_tum(path / "trajectory.tum"))
             return LoadedMotion(s, str(path / "trajectory.tum"), False)
         raise TrackmeterError(f"{path}: not a run directory (no states.csv or trajectory.tum)")
     _require_file(path)
-    t_start = t_end = None
+    t_start = frames = None
     if _looks_like_motion_csv(path):
         full = read_motion_csv(path)
-        t_start, t_end = float(full.t_s[0]), float(full.t_s[-1])
+        t_start, frames = float(full.t_s[0]), full.t_s.copy()
         s = _poses_of_run(full, _declared_pose_times(path.parent))
     else:
         s = MotionSeries.from_trajectory(read_tum(path))
     if len(s) == 0:
         raise TrackmeterError(f"{path}: no valid pose")
-    return LoadedMotion(s, str(path), bool(np.any(_rows_with_rates(s))), t_start, t_end)
+    return LoadedMotion(s, str(path), bool(np.any(_rows_with_rates(s))), t_start, frame_times_s=frames)
 
 
 def in_seconds(truth: LoadedMotion, estimate: LoadedMotion, tolerance_s: float) -> tuple[LoadedMotion, LoadedMotion]:
@@ -255,8 +256,8 @@ def in_seconds(truth: LoadedMotion, estimate: LoadedMotion, tolerance_s: float) 
         if note:
             warnings.warn(f"{this.source}: {note}", stacklevel=2)
             start = None if this.t_start_s is None else this.t_start_s * 1e-9
-            end = None if this.t_end_s is None else this.t_end_s * 1e-9
-            this = replace(this, series=replace(this.series, t_s=t), t_start_s=start, t_end_s=end)
+            frames = None if this.frame_times_s is None else this.frame_times_s * 1e-9
+            this = replace(this, series=replace(this.series, t_s=t), t_start_s=start, frame_times_s=frames)
         out.append(this)
     return out[0], out[1]
 
@@ -287,8 +288,10 @@ def format_summary(summary: dict, truth: str = "", estimate: str = "", align: st
     lines = []
     if truth or estimate:
         lines.append(f"truth:    {truth}\nestimate: {estimate}\nalign:    {align}")
-    lines.append(f"matched {counted(summary['matched'], 'pose')}, unmatched {summary['unmatched']}; "
-                 f"{100 * summary['pose_coverage']:.1f} % of the run's frames after the settle have a pose")
+    coverage = summary.get("pose_coverage")
+    lines.append(f"matched {counted(summary['matched'], 'pose')}, unmatched {summary['unmatched']}"
+                 + (f"; {100 * coverage:.1f} % of the run's frames after the settle have a pose"
+                    if coverage is not None else ""))
     lines.append(f"{'error':<40}{'axis':>6}{'rms':>10}{'p95':>10}{'max':>10}")
     for group, (title, unit, scale) in _DISPLAY.items():
         if group not in summary:
@@ -438,12 +441,14 @@ def write_evaluation(evaluation: Evaluation, out_dir: str | Path, settings: dict
             f"[{rv[0]:.3f}, {rv[1]:.3f}, {rv[2]:.3f}] deg, translation "
             f"[{t[0] * 1e3:.2f}, {t[1] * 1e3:.2f}, {t[2] * 1e3:.2f}] mm.\n"
         )
+    coverage = ("" if s.get("pose_coverage") is None
+                else f"; frames after the settle with a pose: {100 * s['pose_coverage']:.1f} %")
     report = f"""# Trajectory evaluation
 
 - truth: `{truth}`
 - estimate: `{estimate}`
 - alignment: `{align}`; settle time skipped: {settle_s:g} s
-- matched poses: {s['matched']}; unmatched: {s['unmatched']}; frames after the settle with a pose: {100 * s['pose_coverage']:.1f} %
+- matched poses: {s['matched']}; unmatched: {s['unmatched']}{coverage}
 - SPEED score (mean orientation error [rad] + relative position error): {s['speed_score']:.6f}
 {offset}
 ## Ours beside the paper
