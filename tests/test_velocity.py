@@ -430,8 +430,8 @@ def test_twist_change_point_is_chows_f_of_direct_weighted_fits() -> None:
     F, s = twist_change_point(t, X, W, min_span_s=0.4)
     n, m = X.shape
     expected = []
-    for k in range(2, n - 1):
-        if t[k] - t[0] >= 0.4 and t[-1] - t[k] >= 0.4:
+    for k in range(2, n - 1):  # the old segment is poses 0..k-1, the new one k..n-1
+        if t[k - 1] - t[0] >= 0.4 and t[-1] - t[k] >= 0.4:
             two = rss(0, k) + rss(k, n)
             expected.append(((rss(0, n) - two) / (2 * m) / (two / (m * n - 4 * m)), k))
     F_ref, s_ref = max(expected)
@@ -442,6 +442,7 @@ def test_twist_change_point_is_chows_f_of_direct_weighted_fits() -> None:
     F, s = twist_change_point(t, hinge, W, min_span_s=0.4)
     assert F > 200.0 and abs(t[s] - 1.6) < 0.1
     assert twist_change_point(t[:5], X[:5], W[:5], min_span_s=0.4) == (0.0, 0)  # too short to split
+    assert twist_change_point(t, np.outer(t, [0.01, -0.02, 0.005]), W)[0] == 0.0  # one exact line: no F of rounding
 
 
 def test_a_release_from_rest_is_followed_within_a_second_not_after_the_whole_window() -> None:

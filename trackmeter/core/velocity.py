@@ -114,7 +114,8 @@ class VelocityParams:
         "at most on 20 s of estec and harsh_light in cases (a) and (b) (no change; pose errors are "
         "correlated in time, so F runs well above its table), 406 0.32 s and 1153 0.40 s after a release "
         "from rest (hold_release). The attitudes only: a body drifting across its spin axis is no "
-        "constant twist in position, and free_body_rss_ratio handles that", min=0.0,
+        "constant twist in position, and free_body_rss_ratio handles that. Each side of a split spans "
+        "min_span_s at least (and 0.2 s)", min=0.0,
     )
     weighted: bool = param(
         True, "weight each pose of the window by its covariance (rotation and position parts "
@@ -359,14 +360,15 @@ def twist_change_point(times_s: ArrayLike, X: ArrayLike, weights: ArrayLike | No
             fit = np.where(det > 0, (s2 * sy * sy - 2 * s1 * sy * sty + s0 * sty * sty) / det, 0.0)
         return np.maximum(syy - fit, 0.0).sum(axis=-1)
 
-    split = np.arange(n + 1)
-    ok = (t[np.minimum(split, n - 1)] - t[0] >= min_span_s) & (t[-1] - t[np.minimum(split, n - 1)] >= min_span_s)
-    ok &= (split >= 2) & (split <= n - 2)
-    candidates = np.flatnonzero(ok)
+    split = np.arange(2, n - 1)  # the first pose after the split; two poses at least on each side
+    ok = (t[split - 1] - t[0] >= min_span_s) & (t[-1] - t[split] >= min_span_s)
+    candidates = split[ok]
     dof = m * n - 4 * m
     if len(candidates) == 0 or dof <= 0:
         return 0.0, 0
     one = rss(cum[:, n])
+    if one <= 1e-12 * float(cum[5, n].sum()):  # one line fits to rounding: nothing to split
+        return 0.0, 0
     two = rss(cum[:, candidates]) + rss(cum[:, [n]] - cum[:, candidates])
     with np.errstate(divide="ignore", invalid="ignore"):
         F = np.where(two > 0, ((one - two) / (2 * m)) / (two / dof), 0.0)
@@ -465,7 +467,9 @@ class VelocityEstimator:
         """How many of the window's oldest poses to drop because the spin changed after them
         (:func:`twist_change_point` on the attitudes of the screw fit's window from ``start``, in
         the newest pose's chart; ``change_f``), 0 when it did not."""
-        span = self.params.min_span_s
+        # Each side at least min_span_s, and never under 0.2 s (5 poses at 25 Hz): F of two
+        # segments of a couple of poses is mostly noise.
+        span = max(self.params.min_span_s, 0.2)
         if self.params.change_f <= 0 or len(t) - start < 12 or t[-1] - t[start] < 2 * span:
             return 0
         phi = rotation_from_matrix(np.einsum("ji,njk->nik", R[-1], R[start:])).as_rotvec()  # log(R_ref^T R_k)
