@@ -206,12 +206,15 @@ def test_the_command_line_stays_deaf_to_stop_signals_once_its_command_has_return
     write_tum(tmp_path / "t.tum", Trajectory(truth.t_s, truth.position_m, truth.quat_wxyz))
     args = ["evaluate", "--truth", str(tmp_path / "t.tum"), "--estimate", str(tmp_path / "t.tum")]
     before = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    hook, streams = sys.unraisablehook, (sys.stdout, sys.stderr)
     try:
         assert main(args) == 0
         assert {sig: signal.getsignal(sig) for sig in before} == before
         monkeypatch.setattr(sys, "argv", ["trackmeter", *args])
         assert main() == 0
         assert signal.getsignal(signal.SIGTERM) is signal.SIG_IGN and signal.getsignal(signal.SIGINT) is signal.SIG_IGN
-    finally:
+    finally:  # main(argv=None) is the process's own command line: it leaves these for the exit
         for sig, handler in before.items():
             signal.signal(sig, handler)
+        sys.unraisablehook = hook
+        sys.stdout, sys.stderr = streams

@@ -115,6 +115,7 @@ def test_a_lost_operator_box_leaves_the_image_a_while_after_the_loss() -> None:
         deadline = time.monotonic() + 20.0
         while "p1" not in marks.of_target and len(engine.processed) < frames:
             time.sleep(0.005)
+        assert "p1" in marks.of_target, "the lost box was never shown"  # just after the loss it is
         _wait_for_status(running, "ended")
         time.sleep(0.3)  # the last push
         assert "p1" not in marks.of_target and time.monotonic() < deadline
@@ -131,6 +132,11 @@ def test_after_a_restart_the_dropped_share_counts_from_it() -> None:
         assert "since Restart" not in running.console.status_html.content
         running.console.submit(RestartSource()).result(10)
         _wait_for_status(running, "since Restart")
+        import re
+
+        since, total = (int(x) for x in re.search(r"dropped (\d+) \([\d.]+ %\) since Restart · (\d+) in all",
+                                                   running.console.status_html.content).groups())
+        assert 0 <= since <= total
     finally:
         running.stop()
 
