@@ -239,12 +239,9 @@ def _main(argv: Sequence[str] | None) -> int:
                 previous[sig] = found
                 signal.signal(sig, _interrupt)
         sys.unraisablehook = _without_signal_race_reports(unraisable_hook)
-    code = 1  # what a stop signal during the exit reports if the command raised something unforeseen
     try:
-        code = int(_command_module(args.command).run(args) or 0)
-        return code
+        return int(_command_module(args.command).run(args) or 0)
     except TrackmeterError as exc:
-        code = 2
         print(f"trackmeter {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except BrokenPipeError:
@@ -252,11 +249,9 @@ def _main(argv: Sequence[str] | None) -> int:
     except OSError as exc:
         # A path the user named that cannot be written or read (unwritable --out, full disk):
         # their input or their system, not a bug, so one line like any other bad input.
-        code = 2
         print(f"trackmeter {args.command}: error: {_describe_os_error(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
-        code = 130
         if in_main_thread:  # the command has stopped: a second Ctrl-C must not cut its last line
             _ignore_stop_signals(previous)
         # A command may say what it kept (KeyboardInterrupt("interrupted after ...")).
@@ -264,14 +259,15 @@ def _main(argv: Sequence[str] | None) -> int:
         return 130
     finally:
         warnings.showwarning = shown_before
-        # The process's own command line (argv None), once its command returned, answers a
-        # stop signal by exiting at once with the command's exit code: the command is done (its
-        # files complete), and the signal's default would kill it in the interpreter's shutdown
-        # (-SIGTERM instead of its code); ignored, it could not stop a shutdown that hangs. A
-        # caller passing argv gets its handlers back.
+        # The process's own command line (argv None) stays deaf to stop signals once its
+        # command returned, until it exits: the command is done (its files complete), and a
+        # signal now would kill it in the interpreter's shutdown (-SIGTERM, -SIGINT instead of
+        # its exit code). SIG_IGN, not a Python handler that exits: the shutdown resets Python
+        # handlers to the default, so a late signal would kill it all the same (measured: a
+        # SIGHUP of a burst, exit -1). A caller passing argv gets its handlers back.
         if in_main_thread:
             if argv is None:
-                _exit_on_stop_signals(previous, code)
+                _ignore_stop_signals(previous)
             else:
                 for sig, handler in previous.items():
                     signal.signal(sig, signal.SIG_DFL if handler is None else handler)
@@ -282,17 +278,6 @@ def _main(argv: Sequence[str] | None) -> int:
 def _ignore_stop_signals(taken_over: dict[int, Any]) -> None:
     for sig in taken_over:
         signal.signal(sig, signal.SIG_IGN)
-
-
-def _exit_on_stop_signals(taken_over: dict[int, Any], code: int) -> None:
-    def exit_now(signum: int, frame: Any) -> None:
-        for stream in (sys.stdout, sys.stderr):
-            with contextlib.suppress(Exception):
-                stream.flush()
-        os._exit(code)
-
-    for sig in taken_over:
-        signal.signal(sig, exit_now)
 
 
 if __name__ == "__main__":
