@@ -506,6 +506,7 @@ def test_a_folder_named_like_a_scheme_is_pointed_to(tmp_path, monkeypatch):
 
 def test_not_a_sequence_and_bad_specs(tmp_path):
     (tmp_path / "empty").mkdir()
+    (tmp_path / "a_file.avi").write_bytes(b"not a folder")
     for spec, match in [
         (f"seq:{tmp_path / 'nothing'}", "no such sequence folder"),
         (f"seq:{tmp_path / 'empty'}", "not a sequence folder"),
@@ -513,6 +514,7 @@ def test_not_a_sequence_and_bad_specs(tmp_path):
         ("", "empty source"),
         ("bogus:1", "unknown source 'bogus:1': expected sim"),
         ("nosuchdir", "unknown source 'nosuchdir': no such folder"),
+        (str(tmp_path / "a_file.avi"), "a file, not a sequence folder"),
         ("video:only_one.avi", "two files"),
         (f"video:{tmp_path / 'a.avi'},{tmp_path / 'b.avi'}", "no such video"),
         ("camera:x", "device numbers"),

@@ -34,7 +34,7 @@ def run(args: argparse.Namespace) -> int:
     from trackmeter.data.config import config_to_dict
     from trackmeter.data.atomic import FolderLock, unwritable_ancestor
     from trackmeter.data.sequence import SequenceWriter
-    from trackmeter.errors import TrackmeterError
+    from trackmeter.errors import TrackmeterError, counted
     from trackmeter.sources.sim.scenario import MAX_DURATION_S, load_scenario
     from trackmeter.sources.sim.simulator import Simulator
 
@@ -90,7 +90,8 @@ def run(args: argparse.Namespace) -> int:
         raise
     except KeyboardInterrupt:
         shutil.rmtree(partial, ignore_errors=True)
-        raise KeyboardInterrupt(f"interrupted: the unfinished {partial} was removed; nothing was written to {out}") from None
+        left = f"the unfinished {partial} could not all be removed" if partial.exists() else f"the unfinished {partial} was removed"
+        raise KeyboardInterrupt(f"interrupted: {left}; nothing was written to {out}") from None
     except BaseException:
         shutil.rmtree(partial, ignore_errors=True)
         raise
@@ -98,6 +99,6 @@ def run(args: argparse.Namespace) -> int:
         sim.close()
     # A scenario given as a file is named by its name: key; say which file it was.
     named = scenario.name if Path(args.scenario).suffix.lower() not in (".yaml", ".yml") else f"{scenario.name} ({args.scenario})"
-    print(f"wrote {sim.n_frames} frames ({sim.n_frames / sim.rate_hz:.2f} s at {sim.rate_hz:g} Hz) of "
+    print(f"wrote {counted(sim.n_frames, 'frame')} ({sim.n_frames / sim.rate_hz:.2f} s at {sim.rate_hz:g} Hz) of "
           f"scenario {named} to {out}", file=sys.stdout)
     return 0

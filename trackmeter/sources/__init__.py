@@ -97,6 +97,9 @@ def open_source(spec: str, rig_override: StereoRig | None = None, realtime: bool
     folder = os.path.expanduser(text)
     if Path(folder).is_dir():
         return _open_sequence(folder, rig_override, realtime, loop, own_rig, own_model, model_optional)
+    if ":" not in text and Path(folder).exists():  # a file where a folder would be played
+        raise TrackmeterError(f"unknown source {spec!r}: a file, not a sequence folder (two videos play as "
+                              "video:LEFT,RIGHT)")
     if ":" not in text:  # no kind given: it can only be meant as a folder, and there is none
         raise TrackmeterError(f"unknown source {spec!r}: no such folder ({Path(folder).absolute()}), and not one of "
                               "sim, sim:SCENARIO, seq:DIR, video:LEFT,RIGHT, camera:I[,J]")

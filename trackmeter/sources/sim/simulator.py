@@ -259,7 +259,10 @@ def scenario_truth(scenario: Scenario | str) -> MotionSeries:
     (``groundtruth.csv``), without rendering a frame; for evaluating a run of the ``sim`` source,
     which keeps none. One pass of the scenario (a looping source's later passes repeat it)."""
     sim = Simulator(scenario)
-    truths = [sim.truth(i) for i in range(sim.n_frames)]
+    try:
+        truths = [sim.truth(i) for i in range(sim.n_frames)]
+    finally:
+        sim.close()
     T = np.array([g.T_cam_body for g in truths], dtype=float).reshape(-1, 4, 4)
     return MotionSeries(
         np.array([sim.time_of(i) for i in range(sim.n_frames)]), np.ones(sim.n_frames, dtype=bool), T[:, :3, 3],
