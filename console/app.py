@@ -396,7 +396,6 @@ class Console:
         self.image_pushes: deque[tuple[float, tuple[str, ...]]] = deque(maxlen=200)
         self._last_frame_index: int | None = None
         self._lost_targets = LostTargets()  # a lost target's mark is left out after a while
-        self._counts_from: tuple[int, int] | None = None  # frames read and dropped at the last Restart
         self._plot_version: dict[str, int] = {}
         self._omega_shown = False
         self._pushed_operator_ids: set[str] = set()
@@ -894,9 +893,6 @@ class Console:
                 model_point = self._model_point_clicks.pop(future, None)
             if reply.ok and model_point is not None and self.model_point_dropdown.value == model_point:
                 self.model_point_dropdown.value = NEW_TARGET  # the choice is used up; a refusal keeps it
-            if reply.ok and label.startswith("RestartSource"):
-                timings = self.pipeline.timings()  # the new stream's frames are counted from here
-                self._counts_from = (timings.frames_read, timings.frames_dropped)
             if reply.ok and label.startswith(("SetAuto", "SetFilterCutoff", "SetPaused", "StepOnce")):
                 continue  # the UI shows the new state; no pop-up needed
             if not reply.ok:  # the widget the operator changed shows the tracker's state again
@@ -932,7 +928,7 @@ class Console:
                         h = self.patch_px // 2
                         right_rgb[max(v - h, 0):v + h + 1, [max(u - h, 0), min(u + h, right_rgb.shape[1] - 1)]] = (60, 230, 60)
                         right_rgb[[max(v - h, 0), min(v + h, right_rgb.shape[0] - 1)], max(u - h, 0):u + h + 1] = (60, 230, 60)
-        status_text = self._status_html(snap, self._counts_from) if text else None
+        status_text = self._status_html(snap) if text else None
         targets_text = self._targets_markdown(snap) if text else None
         rec = self.pipeline.recording_stats()
         with self.server.atomic():
@@ -1012,7 +1008,7 @@ class Console:
             widget.value = state
 
     @staticmethod
-    def _status_html(snap: Snapshot, counts_from: tuple[int, int] | None = None) -> str:
+    def _status_html(snap: Snapshot) -> str:
         """The live numbers as HTML in a box of fixed height (:data:`STATUS_HEIGHT_EM`).
 
         Its height must not follow the content: a panel that grows when the pose becomes valid
@@ -1020,12 +1016,12 @@ class Console:
         click never finds them still. Every state fills the same rows, a dash where there is
         nothing to say; a long reason scrolls inside the box.
 
-        ``counts_from``: the frames read and dropped when the source was last restarted (by
-        the operator; None before): the share dropped is counted from there, the total beside it.
+        After a restart of the source the share dropped counts from it, the total beside it.
         """
         t = snap.timings
         n_track = sum(1 for x in snap.targets if x.measured)
         n_lost = sum(1 for x in snap.targets if not x.measured)
+        counts_from = t.counts_at_restart
         read0, dropped0 = counts_from or (0, 0)
         read, dropped = t.frames_read - read0, t.frames_dropped - dropped0
         dropped_pct = 100.0 * dropped / read if read > 0 else 0.0

@@ -282,13 +282,15 @@ def test_status_keeps_its_height_whatever_the_state() -> None:
 
 def test_dropped_frames_are_counted_from_the_last_restart_with_the_total_beside() -> None:
     """After a Restart the operator asks how the new stream goes: the share dropped counts from
-    the restart (frames read and dropped then, ``counts_from``); the total since the start stays."""
+    the restart (frames read and dropped then, Timings.counts_at_restart); the total stays."""
     from console.app import Console
 
     snap = Snapshot(None, (), PoseEstimate.invalid("x"), None,
                     Timings(frames_read=1200, frames_processed=1150, frames_dropped=50))
     assert "dropped 50 (4.2 %)" in Console._status_html(snap)
-    text = Console._status_html(snap, counts_from=(1000, 48))
+    from dataclasses import replace
+
+    text = Console._status_html(replace(snap, timings=replace(snap.timings, counts_at_restart=(1000, 48))))
     assert "dropped 2 (1.0 %) since Restart · 50 in all" in text
 
 

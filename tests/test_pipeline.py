@@ -334,8 +334,12 @@ def test_a_restart_while_paused_shows_the_first_frame_and_stays_paused() -> None
         for _ in range(3):
             assert pipe.call(StepOnce()).ok
         _wait_for_reads(source, 3)
+        assert pipe.timings().counts_at_restart is None
         reply = pipe.call(RestartSource())
         assert reply.ok and "first frame" in reply.message, reply.message
+        t = pipe.timings()  # the new stream's frames are counted from here (the console's share dropped)
+        assert t.counts_at_restart is not None and 3 <= t.counts_at_restart[0] <= t.frames_read
+        assert t.counts_at_restart[1] == t.frames_dropped
         _wait_for_reads(source, 4)
         snap = pipe.latest()
         for _ in range(500):

@@ -348,6 +348,7 @@ class Pipeline:
         self._frames_read = 0
         self._frames_processed = 0
         self._frames_dropped = 0
+        self._counts_at_restart: tuple[int, int] | None = None
         self._source_generation = 0  # counts restarts; see _acquire_loop
         self._acq_rate = _RateMeter()
         self._trk_rate = _RateMeter()
@@ -665,6 +666,7 @@ class Pipeline:
                     self._source_generation += 1
                     if self._slot is not None:
                         self._frames_dropped += 1  # a frame of the stream before the restart
+                    self._counts_at_restart = (self._frames_read, self._frames_dropped)
                     self._slot = None
                     self._source_done = False
                     self._source_status = None
@@ -750,6 +752,7 @@ class Pipeline:
             frames_read=self._frames_read,
             frames_processed=self._frames_processed,
             frames_dropped=self._frames_dropped,
+            counts_at_restart=self._counts_at_restart,
         )
 
     def _make_snapshot(self) -> Snapshot:

@@ -68,6 +68,8 @@ class Timings:
         latency_ms: from the frame leaving the source to its pose being published.
         step_ms: time of the last tracking step.
         frames_read, frames_processed, frames_dropped: counters since start.
+        counts_at_restart: ``(frames_read, frames_dropped)`` when the source was last restarted
+            (the stream's share dropped counts from there), None before any restart.
     """
 
     acquisition_hz: float = 0.0
@@ -77,6 +79,7 @@ class Timings:
     frames_read: int = 0
     frames_processed: int = 0
     frames_dropped: int = 0
+    counts_at_restart: tuple[int, int] | None = None
 
 
 @dataclass(frozen=True, eq=False)
