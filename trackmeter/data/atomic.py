@@ -11,7 +11,7 @@ import contextlib
 import os
 import tempfile
 from pathlib import Path
-from typing import Iterator, Mapping
+from typing import Callable, Iterator, Mapping
 
 from trackmeter.errors import TrackmeterError
 
@@ -142,6 +142,34 @@ class FolderLock:
         if self._fd is not None:
             os.close(self._fd)  # closing the descriptor drops the lock
             self._fd = None
+
+
+def claim_folder(folder: Path, writer: str, recheck: Callable[[], object], cannot_create: str
+                 ) -> tuple[FolderLock, bool]:
+    """Make ``folder`` (and its parents) unless it exists, lock it (:class:`FolderLock`, ``writer``
+    naming the other writer in a refusal), and run ``recheck`` under the lock: whatever another
+    writer did before the lock is seen. Returns ``(lock, created)``: ``created`` when this call
+    made the folder, the one thing its writer may remove again; refused by the lock, the folder
+    is the other writer's, whoever made it, and is left alone.
+
+    Raises:
+        TrackmeterError: the folder cannot be made (``cannot_create`` then the reason), another
+            writer holds it, or ``recheck`` raised it (the lock released).
+    """
+    try:
+        folder.mkdir(parents=True)
+        created = True
+    except FileExistsError:
+        created = False
+    except OSError as exc:
+        raise TrackmeterError(f"{cannot_create}: {exc.strerror or exc}") from None
+    lock = FolderLock(folder, writer)
+    try:
+        recheck()
+    except BaseException:
+        lock.release()
+        raise
+    return lock, created
 
 
 def write_text_atomic(path: str | Path, text: str) -> None:

@@ -34,7 +34,7 @@ import yaml
 from trackmeter.core.targets import TargetState
 from trackmeter.core.transforms import matrix_to_quat_wxyz, quat_sign_nearest
 from trackmeter.data.motion_csv import STATES_COLUMNS, MotionCsvWriter
-from trackmeter.data.atomic import AppendFile, FolderLock, write_text_atomic
+from trackmeter.data.atomic import AppendFile, FolderLock, claim_folder, write_text_atomic
 from trackmeter.data.sequence import check_output_folder
 from trackmeter.data.trajectory import format_tum_line
 from trackmeter.errors import TrackmeterError
@@ -113,20 +113,9 @@ class RunWriter:
     def __init__(self, directory: str | Path, config: dict[str, Any], source: dict[str, Any],
                  overwrite: bool = False, extra: dict[str, Any] | None = None) -> None:
         self.directory = check_run_directory(directory, overwrite)
-        try:
-            self.directory.mkdir(parents=True)
-            created = True  # by this writer: the one thing it may remove again
-        except FileExistsError:
-            created = False
-        except OSError as exc:
-            raise TrackmeterError(f"{self.directory}: cannot create: {exc.strerror}") from None
-        # Refused by the lock: the folder is another writer's now, whoever made it; left alone.
-        self._lock: FolderLock | None = FolderLock(self.directory, "another run")
-        try:
-            check_run_directory(self.directory, overwrite)  # again, now that no one else writes
-        except TrackmeterError:
-            self._release_lock()
-            raise
+        lock, created = claim_folder(self.directory, "another run", lambda: check_run_directory(self.directory, overwrite),
+                                     f"{self.directory}: cannot create")
+        self._lock: FolderLock | None = lock
         try:
             self._open(config, source, extra)
         except BaseException:

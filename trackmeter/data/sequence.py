@@ -46,7 +46,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.transforms import matrix_to_quat_wxyz, quat_sign_nearest
-from trackmeter.data.atomic import AppendFile, FolderLock, unwritable_ancestor
+from trackmeter.data.atomic import AppendFile, FolderLock, claim_folder, unwritable_ancestor
 from trackmeter.data.images import decode_image, joint_data_bits
 from trackmeter.data.model import Model, load_model, save_model
 from trackmeter.data.motion_csv import GROUNDTRUTH_COLUMNS, MotionCsvWriter, MotionSeries, read_motion_csv
@@ -162,22 +162,11 @@ class SequenceWriter:
         self._cuts: AppendFile | None = None
         self._last_ns: int | None = None
         self.frames_written = 0
-        try:
-            self.directory.mkdir(parents=True)
-            created = True  # by this writer: the one thing it may remove again
-        except FileExistsError:
-            created = False
-        except OSError as exc:
-            raise TrackmeterError(f"cannot record to {self.directory}: {exc.strerror or exc}") from None
         # Two recordings started into one new folder at once would truncate each other's files:
-        # the second is refused (the folder is the other's then, whoever made it: left alone),
-        # and the folder checked again under the lock.
-        self._lock: FolderLock | None = FolderLock(self.directory, "another recording")
-        try:
-            check_record_directory(self.directory)
-        except TrackmeterError:
-            self._release_lock()
-            raise
+        # the second is refused, and the folder checked again under the lock.
+        lock, created = claim_folder(self.directory, "another recording",
+                                     lambda: check_record_directory(self.directory), f"cannot record to {self.directory}")
+        self._lock: FolderLock | None = lock
         try:
             self._mark = self.directory / UNFINISHED_MARK
             self._mark.write_text("a trackmeter recording in progress (removed when it is closed)\n", encoding="utf-8")
