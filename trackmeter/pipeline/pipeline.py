@@ -522,6 +522,7 @@ class Pipeline:
                 recorder.offer(frame)
             with self._cond:
                 self._frames_read += 1
+                read_after_restart = generation != self._source_generation  # counted after the restart's tally
                 self._acq_rate.tick(t_read)
                 if not self.drop_frames:
                     while self._slot is not None and not self._stop and generation == self._source_generation:
@@ -529,6 +530,7 @@ class Pipeline:
                 if generation != self._source_generation:
                     # Read before a restart (or restarted while it waited): recorded, not tracked.
                     self._frames_dropped += 1
+                    self._old_stream_counted(read=read_after_restart)
                     continue
                 if self._slot is not None:
                     self._frames_dropped += 1
@@ -572,6 +574,7 @@ class Pipeline:
                     item = None  # a frame of the stream before the restart
                     with self._cond:
                         self._frames_dropped += 1
+                        self._old_stream_counted(read=False)
             if commands and self._refresh_targets() and item is not None:
                 # The answer to a click (its target on the frame the operator clicked) is shown
                 # now, not one tracking step later.
@@ -714,6 +717,14 @@ class Pipeline:
             raise TrackmeterError(f"cannot record to {directory}: {exc.strerror or exc}") from None
         with self._record_lock:
             self._recorder = _Recorder(directory, writer, self._record_queue_frames)
+
+    def _old_stream_counted(self, read: bool) -> None:
+        """A frame of the stream before the last restart, dropped (and read, ``read``) after the
+        restart tallied the counters (``Timings.counts_at_restart``): it goes to that tally, so
+        the new stream's share dropped holds the new stream's frames only. Under ``_cond``."""
+        if self._counts_at_restart is not None:
+            frames_read, frames_dropped = self._counts_at_restart
+            self._counts_at_restart = (frames_read + int(read), frames_dropped + 1)
 
     def _stop_recording(self) -> RecordingStats | None:
         with self._record_lock:
