@@ -300,3 +300,13 @@ def test_pose_coverage_counts_the_run_s_frames_whatever_the_truth_s_rate() -> No
     settled = evaluate(truth, est, EvaluateParams(settle_s=1.0), float(frames[0]), frames)
     after = frames >= frames[0] + 1.0 - 1e-9
     assert settled.summary["pose_coverage"] == pytest.approx((has_pose & after).sum() / after.sum())
+    # A truth sparser than the frames, or with a gap (mocap), counts the run's poses all the same.
+    sparse = MotionSeries(truth.t_s[::5], np.ones(len(truth.t_s[::5]), bool), truth.position_m[::5],
+                          truth.quat_wxyz[::5], truth.velocity_cam_m_s[::5], truth.omega_body_rad_s[::5])
+    keep = np.ones(len(truth.t_s), bool)
+    keep[20:40] = False
+    gappy = MotionSeries(truth.t_s[keep], keep[keep], truth.position_m[keep], truth.quat_wxyz[keep],
+                         truth.velocity_cam_m_s[keep], truth.omega_body_rad_s[keep])
+    for other in (sparse, gappy):
+        ev = evaluate(other, est, params, float(frames[0]), frames)
+        assert ev.summary["pose_coverage"] == pytest.approx(has_pose.sum() / len(frames), abs=0.02)

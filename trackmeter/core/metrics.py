@@ -343,8 +343,8 @@ def summarize(errors: MotionErrors, association: Association, pose_coverage: flo
     {x,y,z,total}, ["velocity_m_s": {x,y,z,norm}, "omega_rad_s": {x,y,z,norm},] "speed_score"}``,
     each leaf ``{"rms", "max", "p95"}``; velocity entries only when velocity errors exist, over
     the samples where both sides have one. ``pose_coverage``: of the run's frames after the
-    settle (inside the truth's span), the share with a pose paired with the truth; None (null)
-    when the estimate does not list its frames (a TUM file).
+    settle (inside the truth's span), the share with a pose; None (null) when the estimate does
+    not list its frames (a TUM file).
     """
     out: dict[str, object] = {
         "matched": int(len(errors.t_s)),
@@ -411,7 +411,7 @@ def evaluate(
     ``frame_times_s`` (the run's frames, a ``states.csv``'s rows with a pose or not) gives the
     run's span, over which truth poses without an estimate are counted (``unmatched``; else over
     the estimate's own span), and ``pose_coverage``: the share of those frames after the settle
-    that have a pose paired with the truth.
+    (inside the truth's span) that have a pose.
 
     Velocity metrics need finite ``velocity_cam_m_s`` and ``omega_body_rad_s`` on both
     sides (for the paired samples); otherwise only pose metrics are computed.
@@ -446,9 +446,14 @@ def evaluate(
     if frames is not None and len(frames):
         span_from, span_to = min(span_from, frames[0]), max(span_to, frames[-1])
         tol = params.tolerance_s
-        counted_frames = np.count_nonzero((frames >= t_from - 1e-9) & (frames >= truth.t_s[0] - tol)
-                                          & (frames <= truth.t_s[-1] + tol))
-        coverage = min(len(it) / counted_frames, 1.0) if counted_frames else None
+
+        def in_window(t: FloatArray) -> int:  # after the settle, within the truth's span
+            return int(np.count_nonzero((t >= t_from - 1e-9) & (t >= truth.t_s[0] - tol) & (t <= truth.t_s[-1] + tol)))
+
+        counted_frames = in_window(frames)
+        # The run's own poses, not the pairs: a truth sparser than the frames, or with gaps
+        # (mocap), must not read as frames without a pose.
+        coverage = min(in_window(estimate.t_s) / counted_frames, 1.0) if counted_frames else None
     in_span = (truth.t_s >= span_from - params.tolerance_s) & (truth.t_s <= span_to + params.tolerance_s)
     assoc = replace(assoc, index_truth=it, index_est=ie, dt_s=assoc.dt_s[keep],
                     unmatched_est=int(np.count_nonzero(~paired_est & (estimate.t_s >= t_from))),
