@@ -241,3 +241,24 @@ def test_the_run_folder_s_lock_is_dropped_whatever_closing_or_opening_fails(tmp_
     assert not (tmp_path / "new").exists()  # made by it, removed by it
     monkeypatch.undo()
     RunWriter(tmp_path / "new", {}, {"spec": "fourth"}).close("complete")
+
+
+def test_an_overwrite_that_cannot_start_leaves_the_earlier_run_whole(tmp_path: Path, monkeypatch) -> None:
+    """--overwrite whose new run.yaml cannot be written (a full disk) removed the earlier run's
+    files, which it had not touched yet, leaving nothing (a code review). Only what the new
+    writer began is taken back."""
+    import trackmeter.data.rundir as rundir
+
+    first = RunWriter(tmp_path / "run", {}, {"spec": "first"})
+    first.write_frame(0.0, (), _pose(0.0))
+    first.close("complete")
+    (tmp_path / "run" / "notes.txt").write_text("mine")
+    before = {p.name: p.read_bytes() for p in (tmp_path / "run").iterdir()}
+
+    def full(self) -> None:  # type: ignore[no-untyped-def]
+        raise TrackmeterError("run.yaml: cannot write (No space left on device)")
+
+    monkeypatch.setattr(rundir.RunWriter, "_write_meta", full)
+    with pytest.raises(TrackmeterError, match="No space"):
+        RunWriter(tmp_path / "run", {}, {"spec": "second"}, overwrite=True)
+    assert {p.name: p.read_bytes() for p in (tmp_path / "run").iterdir()} == before

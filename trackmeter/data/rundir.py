@@ -116,13 +116,15 @@ class RunWriter:
         lock, created = claim_folder(self.directory, "another run", lambda: check_run_directory(self.directory, overwrite),
                                      f"{self.directory}: cannot create")
         self._lock: FolderLock | None = lock
+        self._begun: list[Path] = []  # the files this writer wrote or truncated, in order
         try:
             self._open(config, source, extra)
         except BaseException:
             # Nothing half-made left behind (e.g. a disk already full): the files this writer
-            # began, and the folder when it made it; the lock last.
-            for name in _RUN_FILES:
-                (self.directory / name).unlink(missing_ok=True)
+            # began, not an earlier run's it was to replace (--overwrite), and the folder when it
+            # made it; the lock last.
+            for path in self._begun:
+                path.unlink(missing_ok=True)
             if created:
                 with contextlib.suppress(OSError):
                     self.directory.rmdir()
@@ -153,9 +155,14 @@ class RunWriter:
             **(extra or {}),
             "config": config,
         }
-        self._write_meta()
+        self._write_meta()  # atomic: the earlier run.yaml stays whole until this one is
+        self._begun.append(self.directory / "run.yaml")
+        # Each file counts as begun before it is opened: opening truncates it.
+        self._begun.append(self.directory / "states.csv")
         self._states = MotionCsvWriter(self.directory / "states.csv", STATES_COLUMNS)
+        self._begun.append(self.directory / "trajectory.tum")
         self._tum: AppendFile | None = AppendFile(self.directory / "trajectory.tum", "# t tx ty tz qx qy qz qw  (T_cam_body)\n")
+        self._begun.append(self.directory / "targets.csv")
         self._targets: AppendFile | None = AppendFile(self.directory / "targets.csv", ",".join(TARGETS_COLUMNS) + "\n")
 
     def _write_meta(self) -> None:

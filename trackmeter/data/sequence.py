@@ -167,29 +167,35 @@ class SequenceWriter:
         lock, created = claim_folder(self.directory, "another recording",
                                      lambda: check_record_directory(self.directory), f"cannot record to {self.directory}")
         self._lock: FolderLock | None = lock
+        made: list[Path] = []  # what this writer creates here, each named before it is made
         try:
             self._mark = self.directory / UNFINISHED_MARK
+            made.append(self._mark)
             self._mark.write_text("a trackmeter recording in progress (removed when it is closed)\n", encoding="utf-8")
             for cam in CAMERAS:
+                if not (self.directory / cam).exists():
+                    made.append(self.directory / cam)
                 (self.directory / cam / "data").mkdir(parents=True, exist_ok=True)
             for cam in CAMERAS:
                 self._csv[cam] = AppendFile(self.directory / cam / "data.csv", DATA_CSV_HEADER + "\n")
             if rig is not None:
+                made.append(self.directory / "rig.yaml")
                 save_rig(rig, self.directory / "rig.yaml")
             if model_points is not None:
+                made.append(self.directory / "model.yaml")
                 save_model(self.directory / "model.yaml", model_points)
         except BaseException as exc:
-            # Nothing half-made left: the folder was empty when checked under the lock, so all
-            # in it is this writer's (and the folder too when it made it); the lock last.
+            # Nothing half-made left: what this writer made (and the folder when it made it;
+            # only what it made, should the filesystem not lock), the lock last.
             for f in self._csv.values():
                 with contextlib.suppress(Exception):
                     f.close()
             self._csv = {}
-            for child in list(self.directory.iterdir()):
-                if child.is_dir():
-                    shutil.rmtree(child, ignore_errors=True)
+            for path in made:
+                if path.is_dir():
+                    shutil.rmtree(path, ignore_errors=True)
                 else:
-                    child.unlink(missing_ok=True)
+                    path.unlink(missing_ok=True)
             if created:
                 with contextlib.suppress(OSError):
                     self.directory.rmdir()
