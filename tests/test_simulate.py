@@ -195,3 +195,26 @@ def test_an_interrupted_simulation_says_what_it_removed_and_a_scenario_file_is_n
     err = capsys.readouterr().err
     assert f"the unfinished {tmp_path / 'b.partial'} was removed; nothing was written to {tmp_path / 'b'}" in err
     assert not (tmp_path / "b.partial").exists() and not (tmp_path / "b").exists()
+
+
+def test_a_simulate_refused_by_another_s_partial_leaves_it_whole(tmp_path, capsys, monkeypatch):
+    """Two simulate --out X started together: both find no X.partial, one makes and locks it,
+    the other's writer is refused, and its clean-up removed the winner's folder (a code review).
+    The loser now takes back nothing: the folder was never its own."""
+    from trackmeter.data.sequence import SequenceWriter
+    from trackmeter.sources.sim import simulator
+
+    held = []
+    real_init = simulator.Simulator.__init__
+
+    def init_then_the_other_starts(self, *args, **kwargs):  # type: ignore[no-untyped-def]
+        real_init(self, *args, **kwargs)
+        if not held:
+            held.append(SequenceWriter(tmp_path / "x.partial"))  # the other simulate, first to its writer
+
+    monkeypatch.setattr(simulator.Simulator, "__init__", init_then_the_other_starts)
+    assert main(["simulate", "--duration", "0.04", "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err
+    assert "x.partial" in err and ("already holds a sequence" in err or "is writing there now" in err), err
+    assert (tmp_path / "x.partial" / "cam0" / "data.csv").is_file() and not (tmp_path / "x").exists()
+    held[0].close()

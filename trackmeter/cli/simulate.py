@@ -70,8 +70,12 @@ def run(args: argparse.Namespace) -> int:
             lock.release()
     # Rendering ahead in a worker overlaps it with this process's image encoding and writing.
     sim = Simulator(scenario, render_ahead=True)
+    # The folder's lock, held from the writer's start until the folder is renamed or removed:
+    # without it, what this run takes back could be another simulate's that won the folder.
+    lock: FolderLock | None = None
     try:
         with SequenceWriter(partial, rig=sim.true_rig, model_points=sim.model) as writer:
+            lock = writer.detach_lock()
             (partial / "scenario.yaml").write_text(
                 "# the scenario this sequence was rendered from\n"
                 + yaml.safe_dump(config_to_dict(scenario), sort_keys=False), encoding="utf-8")
@@ -84,18 +88,24 @@ def run(args: argparse.Namespace) -> int:
             out.rmdir()  # empty, checked above
         partial.rename(out)
     except OSError as exc:
-        shutil.rmtree(partial, ignore_errors=True)
+        if lock is not None:  # the folder is this run's: take it back
+            shutil.rmtree(partial, ignore_errors=True)
         if exc.filename2 is None and str(exc.filename) == str(partial):  # OUT is the user's name for it
             raise TrackmeterError(f"{out}: {exc.strerror or exc}") from None
         raise
     except KeyboardInterrupt:
+        if lock is None:
+            raise KeyboardInterrupt(f"interrupted; nothing was written to {out}") from None
         shutil.rmtree(partial, ignore_errors=True)
         left = f"the unfinished {partial} could not all be removed" if partial.exists() else f"the unfinished {partial} was removed"
         raise KeyboardInterrupt(f"interrupted: {left}; nothing was written to {out}") from None
     except BaseException:
-        shutil.rmtree(partial, ignore_errors=True)
+        if lock is not None:
+            shutil.rmtree(partial, ignore_errors=True)
         raise
     finally:
+        if lock is not None:
+            lock.release()
         sim.close()
     # A scenario given as a file is named by its name: key; say which file it was.
     named = scenario.name if Path(args.scenario).suffix.lower() not in (".yaml", ".yml") else f"{scenario.name} ({args.scenario})"

@@ -210,6 +210,12 @@ class SequenceWriter:
             self._lock.release()
             self._lock = None
 
+    def detach_lock(self) -> FolderLock | None:
+        """Hand the folder's lock to the caller, who releases it: :meth:`close` then does not
+        (``simulate`` holds its folder until it is renamed into place or removed)."""
+        lock, self._lock = self._lock, None
+        return lock
+
     def write(self, frame: StereoFrame) -> None:
         """Append one stereo frame (and its ground truth when it has one)."""
         if not self._csv:
