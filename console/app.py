@@ -396,6 +396,9 @@ class Console:
         self.image_pushes: deque[tuple[float, tuple[str, ...]]] = deque(maxlen=200)
         self._last_frame_index: int | None = None
         self._lost_targets = LostTargets()  # a lost target's mark is left out after a while
+        # Ids of targets not drawn (lost too long): a shift-click does not remove what it cannot
+        # see. Set by the publisher, read by the click handler: one reference, replaced whole.
+        self._hidden_ids: frozenset[str] = frozenset()
         self._plot_version: dict[str, int] = {}
         self._omega_shown = False
         self._pushed_operator_ids: set[str] = set()
@@ -724,7 +727,8 @@ class Console:
         # Not judged against the last published frame: a click's target may not be made there
         # yet (the tracker a frame behind), and the remove that follows it would be refused.
         # The tracker has every command in order and answers "no target within 20 px" itself.
-        self.submit(RemoveNearest(uv[0], uv[1]), event.client, f"Remove target near {_pixel_text(uv)}")
+        self.submit(RemoveNearest(uv[0], uv[1], exclude=tuple(self._hidden_ids)), event.client,
+                    f"Remove target near {_pixel_text(uv)}")
 
     def _event_pixel(self, event: Any) -> tuple[float, float] | None:
         if self._image_size is None:
@@ -906,6 +910,7 @@ class Console:
         frame = snap.frame
         left_rgb = right_rgb = None
         drawn = self._lost_targets.shown(snap.targets, frame.t_s) if frame is not None else list(snap.targets)
+        self._hidden_ids = frozenset(t.id for t in snap.targets) - {t.id for t in drawn}
         if frame is not None:
             for t in snap.targets:
                 if t.status != "lost" and np.all(np.isfinite(t.uv)):

@@ -119,6 +119,8 @@ def test_a_lost_operator_box_leaves_the_image_a_while_after_the_loss() -> None:
         _wait_for_status(running, "ended")
         time.sleep(0.3)  # the last push
         assert "p1" not in marks.of_target and time.monotonic() < deadline
+        # ... and a shift-click there does not remove what the operator cannot see.
+        assert running.console._hidden_ids == {"p1"}
     finally:
         running.stop()
 

@@ -131,7 +131,7 @@ class FakeTracker:
         self._states = tuple(x for x in self._states if x.id != tid)
         return self.active.pop(tid, None) is not None
 
-    def remove_nearest(self, uv):
+    def remove_nearest(self, uv, exclude=()):
         return None
 
     def clear(self):

@@ -218,6 +218,9 @@ def test_pose_outliers_are_dropped_and_targets_managed(scene, estec_rig) -> None
     states = {t.id: t for t in tr.step(scene.frame(1), reject_ids={ids[0]})}
     assert states[ids[0]].status == "lost" and "pose" in states[ids[0]].lost_reason
     second = tr.targets[1]
+    # A target the operator cannot see (the console no longer draws it) is passed over.
+    assert tr.remove_nearest(tuple(second.uv + 3.0), exclude={second.id}) != second.id
+    assert second.id in [t.id for t in tr.targets]
     assert tr.remove_nearest(tuple(second.uv + 3.0)) == second.id
     assert tr.remove_target("nope") is False
     with pytest.raises(TrackmeterError):

@@ -499,10 +499,14 @@ class Tracker:
         self._free_slots.extend(range(n + grow - 1, n, -1))
         return n
 
-    def remove_nearest(self, uv: tuple[float, float], max_distance_px: float = REMOVE_NEAREST_PX) -> str | None:
-        """Remove the target whose left pixel is nearest to ``uv`` (within ``max_distance_px``)."""
+    def remove_nearest(self, uv: tuple[float, float], max_distance_px: float = REMOVE_NEAREST_PX,
+                       exclude: Collection[str] = ()) -> str | None:
+        """Remove the target whose left pixel is nearest to ``uv`` (within ``max_distance_px``),
+        passing over the ids in ``exclude`` (targets the operator cannot see)."""
         best, best_d = None, max_distance_px
         for t in self._targets.values():
+            if t.id in exclude:
+                continue
             d = float(np.hypot(*(t.uv - np.asarray(uv, float))))
             if d <= best_d:
                 best, best_d = t.id, d

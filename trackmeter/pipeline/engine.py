@@ -446,7 +446,7 @@ class Engine:
             self._forget(command.target_id)
             return CommandReply(True, f"removed {command.target_id}", command.target_id)
         if isinstance(command, RemoveNearest):
-            tid = self.tracker.remove_nearest((command.u, command.v))
+            tid = self.tracker.remove_nearest((command.u, command.v), exclude=command.exclude)
             if tid is None:
                 from trackmeter.core.tracking import REMOVE_NEAREST_PX
 

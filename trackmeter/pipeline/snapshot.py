@@ -157,10 +157,12 @@ class RemoveTarget(Command):
 
 @dataclass(frozen=True, eq=False)
 class RemoveNearest(Command):
-    """Remove the target nearest to a left-image pixel."""
+    """Remove the target nearest to a left-image pixel; not one of ``exclude`` (the console's
+    lost targets it no longer draws: the operator cannot see them to aim at)."""
 
     u: float
     v: float
+    exclude: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True, eq=False)
