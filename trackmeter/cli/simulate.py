@@ -63,11 +63,11 @@ def run(args: argparse.Namespace) -> int:
                 p.name not in ours and not p.name.startswith(".") for p in partial.iterdir()):
             raise TrackmeterError(f"{partial}: exists and is not a sequence this command left unfinished; "
                                   "move it away or choose another --out")
-        lock = FolderLock(partial, "another simulate (or recording)")
+        leftover = FolderLock(partial, "another simulate (or recording)")
         try:
             shutil.rmtree(partial)
         finally:
-            lock.release()
+            leftover.release()
     # Rendering ahead in a worker overlaps it with this process's image encoding and writing.
     sim = Simulator(scenario, render_ahead=True)
     # The folder's lock, held from the writer's start until the folder is renamed or removed:
