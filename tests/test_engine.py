@@ -839,3 +839,40 @@ def test_clearing_targets_while_acquiring_starts_the_acquisition_again_and_says_
     (tmp_path / "m.yaml").write_text("points:\n- {id: a, xyz: [0, 0, 0]}\n- {id: b, xyz: [1, 0, 0]}\n- {id: c, xyz: [0, 1, 0]}\n")
     monkeypatch.setenv("HOME", str(tmp_path))
     assert engine.handle(LoadModel("~/m.yaml"), None).ok
+
+
+def test_the_a_priori_model_points_keep_the_trackers_strict_anchor_fit(estec_rig) -> None:
+    """Case (b): the a-priori model's points are the tracker's strict_anchor_ids when it steps
+    (their refused anchor fits are never refitted with the scale held), also while a
+    provisional case-(a) engine on the same tracker carries the frame; case (a) has none."""
+    engine, tracker, _ = make_engine(estec_rig, n=5, case="b")
+    model_ids = frozenset(f"m{i}" for i in range(5))
+    seen = []
+    step = tracker.step
+
+    def spy(frame, reject_ids=()):  # type: ignore[no-untyped-def]
+        seen.append(tracker.strict_anchor_ids)
+        return step(frame, reject_ids)
+
+    tracker.step = spy
+    run(engine, range(3))
+    assert seen == [model_ids] * 3
+    assert engine.handle(SetCase("a"), None).ok
+    run(engine, range(3, 5))
+    assert seen[3:] == [frozenset()] * 2
+
+
+def test_the_strict_anchor_ids_hold_while_the_model_binds_on_the_simulator() -> None:
+    """The same on estec's first frames through the real tracker: case (b) binds its model
+    through a provisional case-(a) engine on the same tracker, which must not clear them."""
+    from trackmeter.pipeline.engine import SelectModelPoints
+    from trackmeter.sources.sim.simulator import Simulator
+
+    sim = Simulator("estec")
+    engine = Engine(load_config(), sim.rig, sim.model, "b", rate_hz=sim.rate_hz)
+    frame = sim.read()
+    engine.process(frame)
+    assert engine.handle(SelectModelPoints(), frame).ok
+    for _ in range(3):
+        engine.process(sim.read())
+        assert engine.tracker.strict_anchor_ids == frozenset(sim.model.ids)

@@ -324,3 +324,34 @@ def test_raw_recheck_fails_a_fit_the_image_itself_puts_elsewhere() -> None:
     agrees = pt.track_patches(S1, anchor, lin, anchor, np.round(pts), anchor_min_score=0.9, drift_tolerance_px=0.25,
                               raw_image=raw_moved, raw_anchor=raw_anchor, raw_current=raw_anchor, raw_tolerance_px=1.5)
     assert agrees.anchored.all()
+
+
+def test_scale_fallback_refits_a_refused_anchor_with_its_scale_held() -> None:
+    """track_patches(scale_fallback=...): an anchor similarity fit refused by the scale check
+    (here a check of 1e-6, which any free scale fails) is fitted again with the scale held at
+    the expected one, the result being refine_lk_euclidean's from the start rescaled to it;
+    rows without the fallback stay refused (neither anchored nor, since the anchor does not
+    confirm the current template, converged)."""
+    pts = np.array([[50.0, 50.0], [90.0, 70.0], [70.0, 110.0]])
+    shift = (0.4, -0.3)
+    I0 = smooth_texture((160, 160), sigma=1.5, seed=5)
+    I1 = ndimage.shift(I0, (shift[1], shift[0]), order=5, mode="nearest").astype(np.float32)
+    anchor = pt.make_templates(I0, pts, 8)
+    lin = np.repeat(np.eye(2)[None], len(pts), 0) * 0.97  # last frame's warp, a scale off
+    starts = np.round(pts + shift)
+    expect = np.array([1.0, 1.02, 0.99])
+    kw = dict(anchor_min_score=0.9, drift_tolerance_px=0.25, anchor_tolerance_px=1e-3, expected_scale=expect,
+              max_scale_error=1e-6)
+    refused = pt.track_patches(I1, anchor, lin, anchor, starts, **kw)
+    assert not refused.anchored.any() and not refused.converged.any()
+    res = pt.track_patches(I1, anchor, lin, anchor, starts, scale_fallback=np.array([True, True, False]), **kw)
+    assert res.anchored.tolist() == [True, True, False] and res.converged.tolist() == [True, True, False]
+    W0 = np.concatenate([lin[:2] * expect[:2, None, None] / 0.97, starts[:2, :, None]], axis=2)
+    ref = pt.refine_lk_euclidean(I1, anchor.select(np.arange(2)), W0, max_iterations=8, tolerance_px=1e-3, max_shift_px=2.0)
+    np.testing.assert_allclose(res.uv[:2], ref.uv, atol=1e-9)
+    np.testing.assert_allclose(res.anchor_lin[:2], ref.warp[:, :, :2], atol=1e-9)
+    np.testing.assert_allclose(np.sqrt(np.linalg.det(res.anchor_lin[:2])), expect[:2], rtol=1e-9)  # held
+    np.testing.assert_allclose(res.uv[0] - pts[0], shift, atol=0.06)  # bilinear LK on 8x8, scale right
+    every = pt.track_patches(I1, anchor, lin, anchor, starts, scale_fallback=True, **kw)
+    assert every.anchored.all()
+    np.testing.assert_allclose(every.uv[:2], res.uv[:2], atol=1e-12)

@@ -459,3 +459,33 @@ def test_the_top_up_hands_over_the_lost_automatic_targets_it_removes(estec_sim_f
     assert removed[victim.id].id == victim.id
     tr.step(frames[6])
     assert victim.id not in tr.take_removed()  # handed over once
+
+
+@pytest.mark.parametrize("fallback, refitted", [("operator", {"operator"}), ("all", {"operator", "auto"}), ("none", set())])
+def test_the_scale_held_anchor_refit_goes_to_the_targets_it_is_set_for(scene, estec_rig, monkeypatch, fallback, refitted
+                                                                        ) -> None:
+    """tracker.anchor_scale_fallback: which targets' refused anchor fits track_patches refits
+    with the scale held (its scale_fallback row mask): the operator's, every target's, none;
+    never those of Tracker.strict_anchor_ids. And the step hands that mask to track_patches."""
+    import trackmeter.core.tracking as tracking
+
+    f0 = scene.frame(0)
+    tr = make_tracker(estec_rig, anchor_scale_fallback=fallback)
+    ids = add_all(tr, f0, interior_points(f0, 4))
+    tr.strict_anchor_ids = frozenset(ids[:1])  # an a-priori model point: never refitted
+    tr.set_auto(True, count=6, method="gabor")
+    tr.step(scene.frame(1))
+    ts = list(tr._targets.values())
+    assert {t.origin for t in ts} == {"operator", "auto"}
+    assert tr._scale_fallback_rows(ts).tolist() == [t.origin in refitted and t.id != ids[0] for t in ts]
+    seen: list[np.ndarray] = []
+
+    def spy(*args, **kwargs):  # type: ignore[no-untyped-def]
+        seen.append(kwargs["scale_fallback"])
+        return real(*args, **kwargs)
+
+    real = tracking.track_patches
+    monkeypatch.setattr(tracking, "track_patches", spy)
+    live = [t for t in ts if t.status != "lost"]
+    tr.step(scene.frame(2))
+    assert seen and seen[0][: len(live)].tolist() == tr._scale_fallback_rows(live).tolist()

@@ -425,6 +425,7 @@ def track_patches(
     raw_anchor: Templates | None = None,
     raw_current: Templates | None = None,
     raw_tolerance_px: float = np.inf,
+    scale_fallback: bool | NDArray[np.bool_] = False,
 ) -> PatchTrack:
     """Sub-pixel positions of N targets near ``uv0`` (N,2) (e.g. integer ZNCC search results).
 
@@ -453,6 +454,13 @@ def track_patches(
     scale on 8x8 patches, but a broad bright structure (a glint) weighs more in a smoothed
     patch than in the image's fine texture and can pull the fit along; the refinement on the
     image itself is held by that texture, as an unsmoothed tracker is.
+
+    ``scale_fallback`` (bool, or (N,) bool per row; ``anchor_warp="similarity"`` only): an
+    anchor fit refused (not converged, or its scale off ``expected_scale``) is fitted again
+    with the scale held at the expected one (:func:`refine_lk_euclidean`), and that fit is
+    checked as any anchor fit is (score, distance from the search result). An 8x8 patch holds
+    its scale loosely, and the free scale is what most often fails a fit one frame after its
+    anchor was made, on sharp texture; the operator's targets are then lost at once.
 
     ``anchor_warp="plane"``: where ``predicted_lin`` (N,2,2) is finite (the anchor → image
     linear map PREDICTED from the body's motion and the surface plane, :func:`plane_jacobian`),
@@ -484,12 +492,16 @@ def track_patches(
         fits = np.where(known, _PLANE_FITS[anchor_warp], "similarity")
     W0 = np.concatenate([lin, uv0[:, :, None]], axis=2)
     la = _fit_anchors(image, anchor, W0, fits, anchor_tolerance_px)
-    moved = np.abs(la.uv - uv0).max(1)
     # A fit whose scale disagrees with the one the target's depth change implies has slid along
     # a texture that does not move with the centre point (a depth edge, a glint): it is not a
     # match, neither for the position nor to confirm a re-anchor.
     scale = np.sqrt(np.abs(np.linalg.det(la.warp[:, :, :2])))
     fit_ok = la.converged & (np.abs(scale / expect - 1.0) <= max_scale_error)
+    refit = ~fit_ok & np.broadcast_to(np.asarray(scale_fallback, dtype=bool), (N,))
+    if anchor_warp == "similarity" and refit.any():
+        la, held = _scale_held_refit(image, anchor, W0, la, refit, expect, anchor_tolerance_px)
+        fit_ok = fit_ok | held
+    moved = np.abs(la.uv - uv0).max(1)
     anchored = fit_ok & (la.score >= anchor_min_score) & (moved <= 1.0 + drift_tolerance_px)
     a_uv, a_score = la.uv.copy(), la.score.copy()
     if raw_image is not None and raw_anchor is not None and anchored.any():
@@ -1004,6 +1016,33 @@ _ANCHOR_FITS = {"affine": refine_lk_affine, "similarity": refine_lk_similarity, 
 
 #: anchor warps whose linear part is predicted, and the fit of the rows with a prediction
 _PLANE_FITS = {"plane": "translation"}
+
+
+def _scale_held_refit(
+    image: F32, anchor: Templates, W0: FloatArray, la: AffineLKResult, refit: NDArray[np.bool_],
+    expect: FloatArray, tolerance_px: float,
+) -> tuple[AffineLKResult, NDArray[np.bool_]]:
+    """The anchor similarity fits ``la`` of rows ``refit`` (N,), refused (not converged, or their
+    scale off the depth-implied one), fitted again with the scale held at the depth-implied
+    ``expect`` (N,): :func:`refine_lk_euclidean` from ``W0`` (N,2,3) rescaled to it. Returns
+    ``la`` with the rows whose refit converged replaced, and those rows (N,) (their scale is the
+    expected one by construction).
+
+    An 8x8 patch holds its scale loosely (a one-frame-old anchor fits 0.80-1.06 on estec, see
+    docs/results.md), where the stereo depth gives it to 0.1 %: the held fit asks whether the
+    anchor is still there without the free scale that lets a similarity fit wander."""
+    rows = np.flatnonzero(refit)
+    lin = W0[rows, :, :2]
+    start = W0[rows].copy()
+    start[:, :, :2] = lin * (expect[rows] / np.sqrt(np.maximum(np.abs(np.linalg.det(lin)), 1e-12)))[:, None, None]
+    fit = refine_lk_euclidean(image, anchor.select(rows), start, max_iterations=8, tolerance_px=tolerance_px, max_shift_px=2.0)
+    took = np.zeros(len(la.score), bool)
+    took[rows[fit.converged]] = True
+    warp, score, converged = la.warp.copy(), la.score.copy(), la.converged.copy()
+    warp[took] = fit.warp[fit.converged]
+    score[took] = fit.score[fit.converged]
+    converged[took] = True
+    return AffineLKResult(warp=warp, score=score, converged=converged), took
 
 
 def _fit_anchors(image: F32, anchor: Templates, W0: FloatArray, fits: NDArray, tolerance_px: float) -> AffineLKResult:

@@ -125,6 +125,11 @@ class TrackerParams:
     anchor_max_scale_error: float = param(
         0.2, "anchor fit rejected when its scale differs from the depth-implied one by more than this fraction", min=0.0,
     )
+    anchor_scale_fallback: str = param(
+        "operator", "an anchor similarity fit refused (not converged, or its scale off the depth-implied one) is fitted "
+        "again with that scale held, for the operator's targets (not the a-priori model's points), all, or none",
+        choices=("operator", "all", "none"),
+    )
     near_first_px: float = param(
         4.0, "a wide search window is first searched this far around the prediction; a unique good match there, "
         "off the near window's border, is taken, else the whole window is searched, px (0: off)", min=0.0,
@@ -338,6 +343,12 @@ class Tracker:
         # tables are smooth: far cheaper than projecting thousands of points every frame).
         self._maps = tuple(complex_map(*m) for m in self.rect.maps)
         self._targets: dict[str, _Target] = {}
+        #: Targets whose refused anchor fits are never refitted with the scale held
+        #: (``anchor_scale_fallback``): the a-priori model's points, set by the engine. A model
+        #: corner kept on a held fit holds the body frame where its appearance slid it: on the
+        #: 60 s estec case-(b) run the attitude error about the lateral axes grew from 0.89 to
+        #: 1.55 deg (docs/results.md, Tracking).
+        self.strict_anchor_ids: frozenset[str] = frozenset()
         self._counter = itertools.count(1)
         self._auto = bool(params.auto)
         self._auto_count = features.count
@@ -884,7 +895,13 @@ class Tracker:
             raw_anchor=_stack([t.anchor_raw for t in ts]) if recheck else None,
             raw_current=_stack([t.current_raw for t in ts]) if recheck else None,
             raw_tolerance_px=p.track_blur_recheck_px,
+            scale_fallback=self._scale_fallback_rows(ts),
         )
+
+    def _scale_fallback_rows(self, ts: Sequence[_Target]) -> NDArray[np.bool_]:
+        """Which of ``ts`` get the scale-held anchor refit (``anchor_scale_fallback``), (N,)."""
+        mode = self.params.anchor_scale_fallback  # "operator" is an origin; "none" is none
+        return np.array([mode in ("all", t.origin) and t.id not in self.strict_anchor_ids for t in ts], dtype=bool)
 
     # ------------------------------------------------------------------ the step
 

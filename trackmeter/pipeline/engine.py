@@ -575,6 +575,13 @@ class Engine:
 
     # ------------------------------------------------------------------ per frame
 
+    def _a_priori_ids(self) -> frozenset[str]:
+        """The a-priori model's point ids while the pose uses it (case (b)), else none: the
+        targets the tracker keeps on the strict anchor fit (``Tracker.strict_anchor_ids``)."""
+        if self._case == "b" and self._given_model is not None:
+            return frozenset(self._given_model.ids)
+        return frozenset()
+
     def process(self, frame: StereoFrame) -> tuple[tuple[TargetState, ...], PoseEstimate, dict | None]:
         """Track one frame; returns ``(targets, pose, errors)`` (see the module docstring)."""
         if frame.cut:
@@ -585,6 +592,8 @@ class Engine:
             self.stats.stream_cuts += 1
         reject = self._pending_reject
         self._pending_reject = set()
+        # Set here, by the engine that steps the tracker: a provisional case-(a) engine shares it.
+        self.tracker.strict_anchor_ids = self._a_priori_ids()
         targets = self.tracker.step(frame, reject_ids=reject)
         self.stats.frames += 1
         return self._after_step(frame, targets)
