@@ -843,8 +843,7 @@ def test_clearing_targets_while_acquiring_starts_the_acquisition_again_and_says_
 
 def test_the_a_priori_model_points_keep_the_trackers_strict_anchor_fit(estec_rig) -> None:
     """Case (b): the a-priori model's points are the tracker's strict_anchor_ids when it steps
-    (their refused anchor fits are never refitted with the scale held), also while a
-    provisional case-(a) engine on the same tracker carries the frame; case (a) has none."""
+    (their refused anchor fits are never refitted with the scale held); case (a) has none."""
     engine, tracker, _ = make_engine(estec_rig, n=5, case="b")
     model_ids = frozenset(f"m{i}" for i in range(5))
     seen = []
@@ -863,16 +862,25 @@ def test_the_a_priori_model_points_keep_the_trackers_strict_anchor_fit(estec_rig
 
 
 def test_the_strict_anchor_ids_hold_while_the_model_binds_on_the_simulator() -> None:
-    """The same on estec's first frames through the real tracker: case (b) binds its model
-    through a provisional case-(a) engine on the same tracker, which must not clear them."""
-    from trackmeter.pipeline.engine import SelectModelPoints
+    """The same on estec through the real tracker, with two model points targeted (fewer than
+    the three a pose needs): case (b) then carries a provisional case-(a) engine on the same
+    tracker, which must not clear them."""
+    from trackmeter.pipeline.snapshot import SelectPoint, SetAuto
     from trackmeter.sources.sim.simulator import Simulator
 
     sim = Simulator("estec")
     engine = Engine(load_config(), sim.rig, sim.model, "b", rate_hz=sim.rate_hz)
     frame = sim.read()
     engine.process(frame)
-    assert engine.handle(SelectModelPoints(), frame).ok
+    T = np.asarray(frame.truth.T_cam_body)
+    bound = 0
+    for pid, b in zip(sim.model.ids, sim.model.points_body):
+        uv, _ = sim.rig.project((T[:3, :3] @ b + T[:3, 3])[None])
+        if bound < 2 and engine.handle(SelectPoint(float(uv[0, 0]), float(uv[0, 1]), pid), frame).ok:
+            bound += 1
+    assert bound == 2
+    assert engine.handle(SetAuto(True, 8, "gabor"), frame).ok
     for _ in range(3):
         engine.process(sim.read())
         assert engine.tracker.strict_anchor_ids == frozenset(sim.model.ids)
+    assert engine._provisional is not None

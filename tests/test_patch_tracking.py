@@ -355,3 +355,28 @@ def test_scale_fallback_refits_a_refused_anchor_with_its_scale_held() -> None:
     every = pt.track_patches(I1, anchor, lin, anchor, starts, scale_fallback=True, **kw)
     assert every.anchored.all()
     np.testing.assert_allclose(every.uv[:2], res.uv[:2], atol=1e-12)
+
+
+def test_a_held_refit_below_the_anchor_score_confirms_the_current_template_only_where_known() -> None:
+    """A held refit that converges but scores below anchor_min_score is not taken as the
+    position; it confirms the current template's match (the re-anchor path) as any anchor fit
+    does. It is made for the similarity rows of anchor_warp "plane" (no prediction), and not
+    where the depth-implied scale is unknown (NaN): no scale to hold."""
+    pts = np.array([[50.0, 50.0], [90.0, 70.0], [70.0, 110.0]])
+    shift = (0.4, -0.3)
+    I0 = smooth_texture((160, 160), sigma=1.5, seed=5)
+    I1 = ndimage.shift(I0, (shift[1], shift[0]), order=5, mode="nearest").astype(np.float32)
+    anchor = pt.make_templates(I0, pts, 8)
+    lin = np.repeat(np.eye(2)[None], len(pts), 0)
+    starts = np.round(pts + shift)
+    kw = dict(anchor_min_score=0.999999, drift_tolerance_px=0.25, anchor_tolerance_px=1e-3, max_scale_error=1e-6)
+    without = pt.track_patches(I1, anchor, lin, anchor, starts, expected_scale=np.ones(3), **kw)
+    assert not without.converged.any()
+    res = pt.track_patches(I1, anchor, lin, anchor, starts, expected_scale=np.array([1.0, 1.0, np.nan]),
+                           scale_fallback=True, **kw)
+    assert res.converged.tolist() == [True, True, False] and not res.anchored.any()
+    current = pt.refine_lk(I1, anchor.select(np.arange(2)), starts[:2], max_iterations=8, tolerance_px=0.01)
+    np.testing.assert_allclose(res.uv[:2], current.uv, atol=1e-12)  # the current template's position
+    plane = pt.track_patches(I1, anchor, lin, anchor, starts, expected_scale=np.ones(3), scale_fallback=True,
+                             anchor_warp="plane", predicted_lin=np.full((3, 2, 2), np.nan), **kw)
+    assert plane.converged.all()

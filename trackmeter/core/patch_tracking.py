@@ -455,12 +455,15 @@ def track_patches(
     patch than in the image's fine texture and can pull the fit along; the refinement on the
     image itself is held by that texture, as an unsmoothed tracker is.
 
-    ``scale_fallback`` (bool, or (N,) bool per row; ``anchor_warp="similarity"`` only): an
-    anchor fit refused (not converged, or its scale off ``expected_scale``) is fitted again
-    with the scale held at the expected one (:func:`refine_lk_euclidean`), and that fit is
-    checked as any anchor fit is (score, distance from the search result). An 8x8 patch holds
-    its scale loosely, and the free scale is what most often fails a fit one frame after its
-    anchor was made, on sharp texture; the operator's targets are then lost at once.
+    ``scale_fallback`` (bool, or (N,) bool per row; rows fitted by the similarity warp whose
+    ``expected_scale`` is known): an anchor fit refused (not converged, or its scale off
+    ``expected_scale``) is fitted again with the scale held at the expected one
+    (:func:`refine_lk_euclidean`), and that fit counts as any anchor fit does: taken where it
+    scores ``anchor_min_score`` within the distance from the search result, and otherwise,
+    converged, it may confirm the current template's match (the re-anchor above, within
+    ``drift_tolerance_px``). An 8x8 patch holds its scale loosely, and the free scale is what
+    most often fails a fit one to three frames after its anchor was made, on sharp texture;
+    the operator's targets are then lost at once.
 
     ``anchor_warp="plane"``: where ``predicted_lin`` (N,2,2) is finite (the anchor → image
     linear map PREDICTED from the body's motion and the surface plane, :func:`plane_jacobian`),
@@ -476,10 +479,11 @@ def track_patches(
     uv0 = np.asarray(uv0, dtype=np.float64).reshape(N, 2)
     lin = np.asarray(anchor_lin, dtype=np.float64).reshape(N, 2, 2)
     expect = np.ones(N) if expected_scale is None else np.asarray(expected_scale, dtype=np.float64).reshape(N)
-    expect = np.where(np.isfinite(expect) & (expect > 0), expect, 1.0)
+    scale_known = np.isfinite(expect) & (expect > 0) & (expected_scale is not None)
+    expect = np.where(scale_known, expect, 1.0)
     if expected_scale is not None and anchor_warp == "euclidean":
         # The fit keeps the start's scale: start from the depth-implied one.
-        lin = lin * (expect / np.sqrt(np.maximum(np.abs(np.linalg.det(lin)), 1e-12)))[:, None, None]
+        lin = _with_scale(lin, expect)
     if anchor_warp not in _ANCHOR_FITS and anchor_warp not in _PLANE_FITS:
         raise ValueError(f"anchor_warp must be one of {sorted(_ANCHOR_FITS) + sorted(_PLANE_FITS)}, not {anchor_warp!r}")
     fits = np.full(N, anchor_warp, dtype=object)
@@ -497,8 +501,10 @@ def track_patches(
     # match, neither for the position nor to confirm a re-anchor.
     scale = np.sqrt(np.abs(np.linalg.det(la.warp[:, :, :2])))
     fit_ok = la.converged & (np.abs(scale / expect - 1.0) <= max_scale_error)
-    refit = ~fit_ok & np.broadcast_to(np.asarray(scale_fallback, dtype=bool), (N,))
-    if anchor_warp == "similarity" and refit.any():
+    # Only where a similarity fit ran (plane mode: the rows without a prediction) and the depth
+    # gives the scale to hold.
+    refit = ~fit_ok & np.broadcast_to(np.asarray(scale_fallback, dtype=bool), (N,)) & (fits == "similarity") & scale_known
+    if refit.any():
         la, held = _scale_held_refit(image, anchor, W0, la, refit, expect, anchor_tolerance_px)
         fit_ok = fit_ok | held
     moved = np.abs(la.uv - uv0).max(1)
@@ -1018,9 +1024,19 @@ _ANCHOR_FITS = {"affine": refine_lk_affine, "similarity": refine_lk_similarity, 
 _PLANE_FITS = {"plane": "translation"}
 
 
+def _with_scale(lin: FloatArray, scale: FloatArray) -> FloatArray:
+    """Linear warps ``lin`` (N,2,2) rescaled to the scale ``scale`` (N,) (sqrt |det|)."""
+    return lin * (scale / np.sqrt(np.maximum(np.abs(np.linalg.det(lin)), 1e-12)))[:, None, None]
+
+
 def _scale_held_refit(
-    image: F32, anchor: Templates, W0: FloatArray, la: AffineLKResult, refit: NDArray[np.bool_],
-    expect: FloatArray, tolerance_px: float,
+    image: F32,
+    anchor: Templates,
+    W0: FloatArray,
+    la: AffineLKResult,
+    refit: NDArray[np.bool_],
+    expect: FloatArray,
+    tolerance_px: float,
 ) -> tuple[AffineLKResult, NDArray[np.bool_]]:
     """The anchor similarity fits ``la`` of rows ``refit`` (N,), refused (not converged, or their
     scale off the depth-implied one), fitted again with the scale held at the depth-implied
@@ -1028,14 +1044,15 @@ def _scale_held_refit(
     ``la`` with the rows whose refit converged replaced, and those rows (N,) (their scale is the
     expected one by construction).
 
-    An 8x8 patch holds its scale loosely (a one-frame-old anchor fits 0.80-1.06 on estec, see
-    docs/results.md), where the stereo depth gives it to 0.1 %: the held fit asks whether the
-    anchor is still there without the free scale that lets a similarity fit wander."""
+    An 8x8 patch holds its scale loosely (one frame after their anchors, 200 estec corners fit
+    0.80-1.06, 5th-95th percentile; the operator's targets lost in docs/results.md's "How long
+    an operator's target lasts" 0.71-0.88), where the stereo depth gives it to 0.1 %: the held
+    fit asks whether the anchor is still there without the free scale that lets a similarity
+    fit wander."""
     rows = np.flatnonzero(refit)
-    lin = W0[rows, :, :2]
     start = W0[rows].copy()
-    start[:, :, :2] = lin * (expect[rows] / np.sqrt(np.maximum(np.abs(np.linalg.det(lin)), 1e-12)))[:, None, None]
-    fit = refine_lk_euclidean(image, anchor.select(rows), start, max_iterations=8, tolerance_px=tolerance_px, max_shift_px=2.0)
+    start[:, :, :2] = _with_scale(start[:, :, :2], expect[rows])
+    fit = _fit_anchors(image, anchor.select(rows), start, np.full(len(rows), "euclidean", dtype=object), tolerance_px)
     took = np.zeros(len(la.score), bool)
     took[rows[fit.converged]] = True
     warp, score, converged = la.warp.copy(), la.score.copy(), la.converged.copy()

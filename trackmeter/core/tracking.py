@@ -900,8 +900,9 @@ class Tracker:
 
     def _scale_fallback_rows(self, ts: Sequence[_Target]) -> NDArray[np.bool_]:
         """Which of ``ts`` get the scale-held anchor refit (``anchor_scale_fallback``), (N,)."""
-        mode = self.params.anchor_scale_fallback  # "operator" is an origin; "none" is none
-        return np.array([mode in ("all", t.origin) and t.id not in self.strict_anchor_ids for t in ts], dtype=bool)
+        mode = self.params.anchor_scale_fallback
+        return np.array([(mode == "all" or (mode == "operator" and t.origin == "operator")) and t.id not in self.strict_anchor_ids
+                         for t in ts], dtype=bool)
 
     # ------------------------------------------------------------------ the step
 
