@@ -216,7 +216,7 @@ BENCHMARK_ROWS: dict[tuple[str, str], tuple[str, str, float, str, int]] = {
     ("operator", "operator_tracked_fraction_estec"): ("operator's clicked targets: frames tracked, estec (2 s after 8 clicks, median of 5 draws)", "—", 100.0, "%", 1),
     ("operator", "operator_tracked_ratio_estec"): ("the same, over the run without the scale-held anchor refit (same run)", "—", 1.0, "x", 2),
     ("operator", "operator_tracked_fraction_harsh_light"): ("operator's clicked targets: frames tracked, harsh_light", "—", 100.0, "%", 1),
-    ("operator", "operator_false_frames_estec"): ("operator's clicked targets: frames > 2 px off their surface point, estec", "—", 1.0, "", 0),
+    ("operator", "operator_false_frames_estec"): ("operator's clicked targets: frames > 2 px off their surface point before a first loss, estec", "—", 1.0, "", 0),
     ("select", "select_ms_4"): ("automatic selection of 4 points (Gabor bank + stereo check)", "—", 1.0, "ms", 1),
     ("accuracy", "estec_b_pos_lateral_max_mm"): ("whole chain, estec case (b), first {estec_duration_s} s, median over noise seeds: position error, lateral (max)", "±3 mm", 1.0, "mm", 2),
     ("accuracy", "estec_b_pos_depth_max_mm"): ("whole chain, estec case (b), first {estec_duration_s} s, median over noise seeds: position error, viewing axis (max)", "±5 mm", 1.0, "mm", 2),

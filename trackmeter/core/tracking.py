@@ -127,7 +127,7 @@ class TrackerParams:
     )
     anchor_scale_fallback: str = param(
         "operator", "an anchor similarity fit refused (not converged, or its scale off the depth-implied one) is fitted "
-        "again with that scale held, for the operator's targets (not the a-priori model's points), all, or none",
+        "again with that scale held: for the operator's targets, all targets, or none (never the a-priori model's points)",
         choices=("operator", "all", "none"),
     )
     near_first_px: float = param(
