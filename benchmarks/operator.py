@@ -18,12 +18,12 @@ Figures, medians over the seeds ``SEEDS``:
   the click to their first loss (a recovered target may be on another point), marked tracking
   more than 2 px from the true image of the surface point under the pixel they were made at
   (``Simulator.surface_points``); summed over the seeds.
+- ``operator_error_median_px_<scenario>`` (and ``..._none``): the median distance of those
+  frames from that true image, px.
 - ``operator_pose_lateral_max_mm_<scenario>`` / ``..._depth_...`` (and ``..._none``; per seed
   ``..._seed<i>``): the largest position error of the case-(a) pose over the 2 s, lateral (x or
   y) and along the viewing axis, after the engine's online body alignment: the clicked targets
   are among the pose's points, so what their refitted frames do to it shows here.
-- ``operator_error_median_px_<scenario>`` (and ``..._none``): the median distance of those
-  frames from that true image, px.
 """
 
 from __future__ import annotations
