@@ -427,19 +427,35 @@ def test_unreadable_image_skipped_at_read(tmp_path):
     assert src.skipped == 1 and "unreadable" in src.warning
 
 
-def test_a_frame_of_another_size_mid_sequence_fails_the_source_by_name(tmp_path):
+def test_a_pair_of_another_size_mid_sequence_is_skipped_and_named(tmp_path):
     """The rig's calibration holds for one image size (checked against the first frame when
-    the source opens); a later pair of another size is no frame of this camera: the source
-    fails there with the file named, instead of tracking garbage."""
-    d = _write(tmp_path / "s", _frames(3))
+    the source opens); a later pair of another size, or whose left and right images differ,
+    is no frame of this rig. One such file in a long recording must not end the run (it did:
+    the source failed there): it is skipped like an unreadable image, counted and named in
+    the source's warning, and the frames after it play."""
+    d = _write(tmp_path / "s", _frames(5))
     small = np.zeros((12, 16), np.uint8)
     for cam in ("cam0", "cam1"):
-        cv2.imwrite(str(d / cam / "data" / "80000000.png"), small)
+        cv2.imwrite(str(d / cam / "data" / "40000000.png"), small)
+    cv2.imwrite(str(d / "cam1" / "data" / "120000000.png"), small)  # the right one only
     src = SequenceSource(d)
     assert src.frame_size == (32, 24)
-    assert src.read() is not None and src.read() is not None
-    with pytest.raises(TrackmeterError, match=r"80000000.png is 16x12 px.*32x24"):
-        src.read()
+    got = [f.t_s for f in iter(src.read, None)]
+    assert got == [0.0, 0.08, 0.16]
+    assert src.skipped == 2
+    assert src.warning is not None and src.warning.startswith("2 pair(s) of another image size skipped (")
+    assert "120000000.png 16x12 px" in src.warning  # the last one, named
+    src.restart()  # a second pass counts nothing twice
+    assert len([f for f in iter(src.read, None)]) == 3 and src.skipped == 2
+
+
+def test_a_looping_folder_with_no_playable_pair_ends_instead_of_spinning(tmp_path):
+    d = _write(tmp_path / "s", _frames(3))
+    for path in (d / "cam0" / "data").iterdir():
+        path.write_bytes(b"not a png")
+    src = SequenceSource(d, loop=True)
+    assert src.read() is None
+    assert src.skipped == 3 and "3 pair(s) with an unreadable image skipped" in src.warning
 
 
 def test_writer_refuses_existing_sequence_and_bad_images(tmp_path):

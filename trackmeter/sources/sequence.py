@@ -36,7 +36,8 @@ class SequenceSource(Source):
     Attributes:
         index: the :class:`SequenceIndex` (paths, times, truth).
         model: the folder's ``model.yaml`` as a :class:`Model`, or None.
-        skipped: images not played (missing, unpaired, unreadable rows or files), counted.
+        skipped: images not played (missing, unpaired, unreadable rows or files, pairs of
+            another image size), counted.
         image_bits: the sample depth of its 16-bit images (8 for 8-bit ones), the same for
             every frame.
         warning: one line saying what was skipped and why, or None when nothing was.
@@ -65,6 +66,9 @@ class SequenceSource(Source):
         self.loop = loop
         self._skipped_on_read = 0
         self._read_errors: list[str] = []
+        self._skipped_for_size = 0
+        self._size_errors: list[str] = []
+        self._skipped_positions: set[int] = set()  # counted once across loops and restarts
         self._pacer = Pacer()
         self._pos = 0
         self._loops = 0
@@ -87,13 +91,15 @@ class SequenceSource(Source):
 
     @property
     def skipped(self) -> int:
-        return self.index.skipped + self._skipped_on_read
+        return self.index.skipped + self._skipped_on_read + self._skipped_for_size
 
     @property
     def warning(self) -> str | None:
         parts = list(self.index.warnings)
         if self._skipped_on_read:
             parts.append(f"{self._skipped_on_read} pair(s) with an unreadable image skipped ({self._read_errors[-1]})")
+        if self._skipped_for_size:
+            parts.append(f"{self._skipped_for_size} pair(s) of another image size skipped ({self._size_errors[-1]})")
         # Each part counts in its own unit (images, rows, pairs): no total in front of them.
         return "; ".join(parts) if parts else None
 
@@ -135,7 +141,7 @@ class SequenceSource(Source):
         )
 
     def read(self) -> StereoFrame | None:
-        while True:
+        for _ in range(len(self.index) + 1):
             if self._pos >= len(self.index):
                 if not self.loop:
                     return None
@@ -149,23 +155,22 @@ class SequenceSource(Source):
                 left = read_grey(self.index.left_paths[pos], self.image_bits)
                 right = read_grey(self.index.right_paths[pos], self.image_bits)
             except TrackmeterError as exc:
-                if self._loops == 0:
+                if pos not in self._skipped_positions:
+                    self._skipped_positions.add(pos)
                     # The message first: another thread may read ``warning`` in between.
                     self._read_errors.append(str(exc))
                     self._skipped_on_read += 1
                 continue
-            if left.shape != right.shape:
-                raise TrackmeterError(
-                    f"left and right images differ in size: {self.index.left_paths[pos]} is "
-                    f"{left.shape[1]}x{left.shape[0]} px, {self.index.right_paths[pos]} is {right.shape[1]}x{right.shape[0]} px"
-                )
-            size = self.frame_size
-            if size is not None and (left.shape[1], left.shape[0]) != size:
-                # The rig (checked against the first frame) is calibrated for one image size.
-                raise TrackmeterError(
-                    f"{self.index.left_paths[pos]} is {left.shape[1]}x{left.shape[0]} px, the sequence's first "
-                    f"frame {size[0]}x{size[1]} px: one camera's frames have one size"
-                )
+            mismatch = self._size_mismatch(pos, left.shape, right.shape)
+            if mismatch is not None:
+                # A truncated or foreign image in a long recording is no frame of this rig (its
+                # calibration holds for one image size): skip it like an unreadable one, counted
+                # and named, rather than end the run on it or track garbage.
+                if pos not in self._skipped_positions:
+                    self._skipped_positions.add(pos)
+                    self._size_errors.append(mismatch)
+                    self._skipped_for_size += 1
+                continue
             t = float(self.index.t_s[pos]) + self._loops * self._period_s
             if self.realtime:
                 self._pacer.wait(t)
@@ -173,6 +178,18 @@ class SequenceSource(Source):
                                 cut=self._take_cut() or pos in self._cuts)
             self._count += 1
             return frame
+        return None  # a whole pass without one playable pair: a loop would spin for ever
+
+    def _size_mismatch(self, pos: int, left_shape: tuple[int, ...], right_shape: tuple[int, ...]) -> str | None:
+        """Why the ``pos``-th pair is not of this sequence's image size, or None when it is."""
+        left_path, right_path = self.index.left_paths[pos], self.index.right_paths[pos]
+        if left_shape != right_shape:
+            return (f"{left_path} is {left_shape[1]}x{left_shape[0]} px, {right_path} "
+                    f"{right_shape[1]}x{right_shape[0]} px")
+        size = self.frame_size
+        if size is not None and (left_shape[1], left_shape[0]) != size:
+            return f"{left_path} is {left_shape[1]}x{left_shape[0]} px, the first frame {size[0]}x{size[1]} px"
+        return None
 
     def restart(self) -> None:
         self._pos = 0
