@@ -88,6 +88,27 @@ def test_twelve_bit_pair_in_sixteen_bit_files_measures_like_the_eight_bit_one(pa
     assert twelve == eight and all(o["ok"] for o in twelve)
 
 
+def test_an_underexposed_pair_measures_as_the_normal_one(pair, tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    """The same pair at 0.15 of its grey levels (an underexposed camera): measured after the
+    exposure gain (config section ``exposure``), as `track` does, within three sigmas of the
+    normal pair's figures (the dim pair's quantisation is noise the gain cannot undo); refused
+    as textureless without it."""
+    _, left, right, _, folder = pair
+    ats = ("--at", "300.3,250.6", "--at", "420,180.25", "--json")
+    assert _run(folder, *ats) == 0
+    normal = json.loads(capsys.readouterr().out)
+    for name, image in (("left.png", left), ("right.png", right)):
+        cv2.imwrite(str(tmp_path / name), np.rint(image * 0.15).astype(np.uint8))
+    assert _run(tmp_path, *ats) == 0
+    dim = json.loads(capsys.readouterr().out)
+    assert all(o["ok"] for o in dim)
+    for o, n in zip(dim, normal):
+        np.testing.assert_allclose(o["xyz_m"], n["xyz_m"], atol=3 * max(n["sigma_m"]))
+    (tmp_path / "off.yaml").write_text("exposure:\n  reference_grey: 0\n")
+    assert _run(tmp_path, *ats, "--config", str(tmp_path / "off.yaml")) == 0
+    assert [o["reason"] for o in json.loads(capsys.readouterr().out)] == ["textureless"] * 2
+
+
 def test_table_and_patch_option(pair, capsys) -> None:  # type: ignore[no-untyped-def]
     *_, folder = pair
     assert _run(folder, "--at", "300.3,250.6", "--at", "1,1", "--patch", "11") == 0

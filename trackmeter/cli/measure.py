@@ -50,13 +50,15 @@ def run(args: argparse.Namespace) -> int:
     import json
 
     from trackmeter.cli.common import parse_uv
+    from trackmeter.core.exposure import expose_pair
     from trackmeter.core.matching import measure_points, measurements_to_json
     from trackmeter.data.config import load_config
     from trackmeter.data.images import read_grey_pair
     from trackmeter.data.rigfile import load_rig
     from trackmeter.errors import TrackmeterError
 
-    params = load_config(args.config).measure
+    config = load_config(args.config)
+    params = config.measure
     if args.patch is not None:
         if not 3 <= args.patch <= 63:
             raise TrackmeterError(f"--patch must be a patch side between 3 and 63 px, got {args.patch}")
@@ -73,7 +75,10 @@ def run(args: argparse.Namespace) -> int:
                 f"{path}: image is {image.shape[1]}x{image.shape[0]} px but the rig {args.rig} is {W}x{H}"
             )
 
-    results = measure_points(rig, images[0], images[1], uv, params)
+    # An underexposed pair is brought to the grey levels the matcher's gates are set for, as
+    # the tracking engine does (config section exposure).
+    left, right, _ = expose_pair(images[0], images[1], config.exposure)
+    results = measure_points(rig, left, right, uv, params)
     if args.json:
         print(json.dumps(measurements_to_json(results), allow_nan=False))
         return 0

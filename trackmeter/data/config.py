@@ -27,6 +27,7 @@ import yaml
 from trackmeter.core.calibration import CalibrationParams
 from trackmeter.core.matching import MeasureParams
 from trackmeter.core.error_analysis import AnalyzeParams
+from trackmeter.core.exposure import ExposureParams
 from trackmeter.core.features import FeatureParams
 from trackmeter.core.metrics import EvaluateParams
 from trackmeter.core.output_filter import FilterParams
@@ -50,6 +51,7 @@ class Config:
     output_filter: FilterParams = field(default_factory=FilterParams)
     tracker: TrackerParams = field(default_factory=TrackerParams)
     features: FeatureParams = field(default_factory=FeatureParams)
+    exposure: ExposureParams = field(default_factory=ExposureParams)
 
 
 def load_config(user_file: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> Config:

@@ -53,6 +53,7 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from trackmeter.core.dynamics import coast_pose, fit_centre_of_mass
+from trackmeter.core.exposure import ExposureParams, expose_pair
 from trackmeter.core.features import corners_near
 from trackmeter.core.output_filter import FilterParams, PoseFilter
 from trackmeter.core.patch_tracking import plane_jacobian
@@ -170,6 +171,7 @@ class EngineStats:
     models_bound_progressively: int = 0  # case (b): a-priori models bound through a provisional frame
     handovers_held: int = 0  # losses of measured points after which the survivors were moved (pose.handover_hold)
     stored_relocks: int = 0  # grown points re-locked on their own stored target (pose.relock_stored)
+    frames_gained: int = 0  # underexposed frames brought up by a gain (config section exposure)
 
 
 class Engine:
@@ -208,6 +210,9 @@ class Engine:
         self.pose_params: PoseParams = getattr(config, "pose", None) or PoseParams()
         self.velocity_params: VelocityParams = getattr(config, "velocity", None) or VelocityParams()
         self.filter_params: FilterParams = getattr(config, "output_filter", None) or FilterParams()
+        self.exposure_params: ExposureParams = getattr(config, "exposure", None) or ExposureParams()
+        self.gain = 1.0  # the exposure gain of the last frame processed
+        self._exposed_last: tuple[StereoFrame, StereoFrame] | None = None  # (as delivered, as tracked)
         if tracker is None:
             from trackmeter.core.features import FeatureParams
             from trackmeter.core.matching import MeasureParams
@@ -377,9 +382,24 @@ class Engine:
     def handle(self, command: Command, frame: StereoFrame | None) -> CommandReply:
         """Apply one command; ``frame`` is the last processed frame (the one the operator saw)."""
         try:
-            return self._handle(command, frame)
+            return self._handle(command, self._exposed(frame) if frame is not None else None)
         except TrackmeterError as exc:
             return CommandReply(False, str(exc))
+
+    def _exposed(self, frame: StereoFrame, count: bool = False) -> StereoFrame:
+        """``frame`` as the tracker sees it: an underexposed pair multiplied by its exposure gain
+        (:mod:`trackmeter.core.exposure`), else ``frame`` itself. A command on the frame just
+        processed gets the same images (kept, not recomputed); ``count``: a frame processed."""
+        last = self._exposed_last
+        if last is not None and last[0] is frame:
+            return last[1]
+        left, right, gain = expose_pair(frame.left, frame.right, self.exposure_params)
+        exposed = frame if gain == 1.0 else replace(frame, left=left, right=right)
+        if count:
+            self.gain = gain
+            self.stats.frames_gained += gain > 1.0
+        self._exposed_last = (frame, exposed)
+        return exposed
 
     def _snap_click(self, frame: StereoFrame, command: SelectPoint, refusal: Refusal
                     ) -> tuple[TargetState | Refusal, float, str]:
@@ -584,6 +604,7 @@ class Engine:
 
     def process(self, frame: StereoFrame) -> tuple[tuple[TargetState, ...], PoseEstimate, dict | None]:
         """Track one frame; returns ``(targets, pose, errors)`` (see the module docstring)."""
+        frame = self._exposed(frame, count=True)
         if frame.cut:
             # The scene jumped (a looping source's new pass, a restart): a model grown before
             # would re-lock onto whatever lies where its points were, and the coasted pose
