@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     from trackmeter.data.config import Config
 
 #: Benchmarks in the order ``python -m benchmarks`` runs them.
-NAMES: tuple[str, ...] = ("measure", "render", "select", "tracker", "operator", "accuracy", "pipeline", "soak", "console", "sequence_write")
+NAMES: tuple[str, ...] = ("measure", "render", "select", "tracker", "operator", "accuracy", "looks", "pipeline", "soak", "console", "sequence_write")
 
 
 #: Environment variable naming a YAML file layered over config/default.yaml for the benchmarks

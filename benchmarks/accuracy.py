@@ -47,7 +47,7 @@ from __future__ import annotations
 import os
 import sys
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
@@ -56,6 +56,10 @@ from trackmeter.core.metrics import EvaluateParams, evaluate
 from trackmeter.core.targets import Refusal, TargetState
 from trackmeter.core.transforms import matrix_to_quat_wxyz
 from trackmeter.data.motion_csv import MotionSeries
+
+if TYPE_CHECKING:
+    from trackmeter.data.config import Config
+    from trackmeter.sources.base import StereoFrame
 
 SETTLE_S = 2.0
 SIGMA_Z_AT_3P5_M = 0.004
@@ -336,10 +340,16 @@ def _jump_sigma(prev_T: np.ndarray, T: np.ndarray, cov: np.ndarray, prev_true: n
 
 
 def run_chain(case: str, seconds: float, scenario: str = "estec", seed_offset: int = 0,
-              body_frames: list[int] | None = None) -> tuple[MotionSeries, MotionSeries, dict[str, float]]:
+              body_frames: list[int] | None = None, frames: Sequence[StereoFrame] | None = None,
+              look: Callable[[StereoFrame], StereoFrame] | None = None, config: Config | None = None,
+              ) -> tuple[MotionSeries, MotionSeries, dict[str, float]]:
     """The whole chain on ``scenario`` with its noise seed plus ``seed_offset``: truth, estimate, extras.
     ``body_frames``, when given, receives each frame's body-frame definition (0, then one more
-    at every case-(a) redefinition after a total loss) for :func:`figures_per_body_frame`."""
+    at every case-(a) redefinition after a total loss) for :func:`figures_per_body_frame`.
+    ``frames``: the scenario's frames rendered already (several runs on one rendering);
+    ``look``: what each frame is made to look like before the engine sees it (its truth kept),
+    e.g. another renderer's or camera's images (:mod:`benchmarks.looks`); ``config``: the
+    engine's configuration instead of :func:`benchmarks.bench_config`'s."""
     import dataclasses
 
     from trackmeter.pipeline.engine import Engine, SelectModelPoints
@@ -349,7 +359,7 @@ def run_chain(case: str, seconds: float, scenario: str = "estec", seed_offset: i
 
     spec = load_scenario(scenario)
     sim = Simulator(dataclasses.replace(spec, seed=spec.seed + seed_offset) if seed_offset else spec)
-    engine = Engine(bench_config(), sim.rig, sim.model if case == "b" else None, case, rate_hz=sim.rate_hz or 25.0)
+    engine = Engine(config or bench_config(), sim.rig, sim.model if case == "b" else None, case, rate_hz=sim.rate_hz or 25.0)
     n = min(len(sim), int(round(seconds * (sim.rate_hz or 25.0))) + 1)
     truth_rows, est_rows = [], []
     start = time.perf_counter()
@@ -359,9 +369,11 @@ def run_chain(case: str, seconds: float, scenario: str = "estec", seed_offset: i
     coast_start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # last measured pose: T_true, T_est, cov
     coast_z, coasted, longest = [0.0], 0, 0.0
     for k in range(n):
-        frame = sim.read()
+        frame = (frames[k] if k < len(frames) else None) if frames is not None else sim.read()
         if frame is None:
             break
+        if look is not None:
+            frame = look(frame)
         t0 = time.perf_counter()
         targets, pose, _ = engine.process(frame)
         step_s.append(time.perf_counter() - t0)

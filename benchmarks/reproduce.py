@@ -251,6 +251,10 @@ BENCHMARK_ROWS: dict[tuple[str, str], tuple[str, str, float, str, int]] = {
     ("accuracy", "harsh_light_a_pos_lateral_max_mm"): ("harsh_light case (a): position error, lateral (max)", "±3 mm", 1.0, "mm", 2),
     ("accuracy", "harsh_light_a_pos_depth_max_mm"): ("harsh_light case (a): position error, viewing axis (max)", "±5 mm", 1.0, "mm", 2),
     ("accuracy", "harsh_light_a_att_other_max_deg"): ("harsh_light case (a): attitude error about the other axes (max)", "±1°", 1.0, "°", 3),
+    ("looks", "looks_underexposed_a_valid_fraction"): ("whole chain on underexposed images (estec's first {looks_duration_s} s at 0.35 of their grey levels, noise added), case (a): valid poses", "—", 100.0, "%", 1),
+    ("looks", "looks_underexposed_a_valid_fraction_gain_off"): ("the same without the exposure gain (same run)", "—", 100.0, "%", 1),
+    ("looks", "looks_underexposed_b_valid_fraction"): ("whole chain on underexposed images, case (b): valid poses", "—", 100.0, "%", 1),
+    ("looks", "looks_underexposed_b_valid_fraction_gain_off"): ("the same without the exposure gain (same run)", "—", 100.0, "%", 1),
     ("render", "stereo_fps"): ("simulator: stereo frames rendered per second", "—", 1.0, "fps", 1),
     ("pipeline", "live_rate_hz"): ("live pipeline rate, 16 targets", "6.25 Hz (6 points)", 1.0, "Hz", 2),
     ("pipeline", "dropped_fraction"): ("live pipeline dropped frames", "—", 100.0, "%", 2),
@@ -294,7 +298,8 @@ def _per_seed(figures: dict, key: str) -> list[float]:
     return values
 
 
-DURATION_FIGURES = {"estec_duration_s": "TRACKMETER_ACCURACY_S", "harsh_light_duration_s": "TRACKMETER_HARSH_S"}
+DURATION_FIGURES = {"estec_duration_s": "TRACKMETER_ACCURACY_S", "harsh_light_duration_s": "TRACKMETER_HARSH_S",
+                    "looks_duration_s": "TRACKMETER_LOOKS_S"}
 
 
 def _with_duration(capability: str, figures: dict | None) -> str:
