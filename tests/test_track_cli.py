@@ -25,14 +25,14 @@ TARGETS_HEADER = "t,id,state,u,v,u_right,v_right,x,y,z,score"
 class TextureSource(Source):
     """Static random texture seen by the paper's rig; raises after ``fail_after`` frames."""
 
-    def __init__(self, rig, n: int = 6, fail_after: int | None = None) -> None:
+    def __init__(self, rig, n: int = 6, fail_after: int | None = None, brightness: float = 1.0) -> None:
         self.rig = rig
         self.rate_hz = 25.0
         self.model = None
         self._n, self._k, self._fail = n, 0, fail_after
         rng = np.random.default_rng(0)
         w, h = rig.image_size
-        self._img = (rng.random((h, w)) * 200 + 30).astype(np.uint8)
+        self._img = ((rng.random((h, w)) * 200 + 30) * brightness).astype(np.uint8)
 
     def __len__(self) -> int:
         return self._n
@@ -94,6 +94,19 @@ def test_run_directory_contract(monkeypatch, tmp_path, estec_rig, capsys) -> Non
     # An existing run is not overwritten by accident.
     assert main(["track", "--source", "fake", "--auto", "8", "--out", str(out)]) == 2
     assert "holds a run already" in capsys.readouterr().err
+
+
+def test_an_underexposed_source_is_said_with_its_gain(monkeypatch, tmp_path, estec_rig, capsys) -> None:
+    fake_source(monkeypatch, estec_rig, n=4, brightness=0.25)  # brightest pixels near 57 grey
+    out = tmp_path / "run"
+    assert main(["track", "--source", "fake", "--auto", "8", "--out", str(out)]) == 0
+    notes = [line for line in capsys.readouterr().err.splitlines() if "underexposed" in line]
+    assert len(notes) == 1 and notes[0].startswith("trackmeter track: note: 4 frames underexposed") and "2.2" in notes[0]
+    engine = yaml.safe_load((out / "run.yaml").read_text())["summary"]["engine"]
+    assert engine["frames_gained"] == 4 and 2.2 < engine["largest_gain"] < 2.3  # 128 / 57
+    fake_source(monkeypatch, estec_rig, n=4)
+    assert main(["track", "--source", "fake", "--auto", "8", "--out", str(tmp_path / "normal")]) == 0
+    assert "underexposed" not in capsys.readouterr().err
 
 
 def test_targets_given_on_the_command_line_are_in_the_first_frames_rows(tmp_path) -> None:
@@ -497,9 +510,34 @@ def test_an_image_unreadable_mid_sequence_is_reported_at_the_end_and_in_run_yaml
     assert meta["summary"]["frames"] == 2 and "unreadable" in meta["summary"]["source_warning"]
 
 
-def test_a_source_failing_mid_run_is_said_once(opencv_sample_rig, opencv_sample_sequence, tmp_path) -> None:
+def test_a_source_failing_mid_run_is_said_once(estec_rig, tmp_path) -> None:
     """As a user runs it (a process of its own, logging as it is by default): the failure is
     one line of track's, not also the pipeline's log line; the frames before it are kept."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "run"
+    code = f"""
+import trackmeter.sources as sources
+from trackmeter.cli.main import main
+from trackmeter.data.rigfile import load_rig
+from tests.test_track_cli import TextureSource
+rig = load_rig({str(REPO / "config" / "rigs" / "estec_12mm.yaml")!r})
+sources.open_source = lambda spec, rig_override=None, **_: TextureSource(rig, n=10, fail_after=2)
+raise SystemExit(main(["track", "--source", "fake", "--auto", "4", "--out", {str(out)!r}]))
+"""
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert done.returncode == 2, done.stderr
+    said = [line for line in done.stderr.splitlines() if "camera unplugged" in line]
+    assert len(said) == 1 and said[0].startswith("trackmeter track: source stopped: source failed:"), done.stderr
+    assert yaml.safe_load((out / "run.yaml").read_text())["status"] == "source failed"
+    assert len(read_motion_csv(out / "states.csv")) == 2
+
+
+def test_a_pair_of_another_size_mid_sequence_is_skipped_and_said_once(opencv_sample_rig, opencv_sample_sequence,
+                                                                      tmp_path) -> None:
+    """Another camera's frame (or a truncated one) in a recording: skipped and named at the
+    end, the run goes on and completes (it ended the run with 'source failed' before)."""
     import shutil
     import subprocess
     import sys
@@ -509,17 +547,18 @@ def test_a_source_failing_mid_run_is_said_once(opencv_sample_rig, opencv_sample_
     folder = tmp_path / "seq"
     shutil.copytree(opencv_sample_sequence, folder)
     for cam in ("cam0", "cam1"):
-        last = sorted((folder / cam / "data").iterdir())[-1]
-        cv2.imwrite(str(last), cv2.resize(cv2.imread(str(last)), (320, 240)))  # another camera's frame
+        second = sorted((folder / cam / "data").iterdir())[1]
+        cv2.imwrite(str(second), cv2.resize(cv2.imread(str(second)), (320, 240)))  # another camera's frame
     out = tmp_path / "run"
     done = subprocess.run([sys.executable, "-m", "trackmeter.cli.main", "track", "--source", f"seq:{folder}",
                            "--rig", str(opencv_sample_rig / "intrinsics.yml"), "--auto", "4", "--out", str(out)],
                           capture_output=True, text=True, timeout=120)
-    assert done.returncode == 2, done.stderr
+    assert done.returncode == 0, done.stderr
     said = [line for line in done.stderr.splitlines() if "320x240" in line]
-    assert len(said) == 1 and said[0].startswith("trackmeter track: source stopped: source failed:"), done.stderr
-    assert yaml.safe_load((out / "run.yaml").read_text())["status"] == "source failed"
-    assert len(read_motion_csv(out / "states.csv")) == 2
+    assert len(said) == 1 and said[0].startswith("trackmeter track: warning: 1 pair(s) of another image size skipped"), done.stderr
+    meta = yaml.safe_load((out / "run.yaml").read_text())
+    assert meta["status"] == "complete" and "another image size" in meta["summary"]["source_warning"]
+    assert len(read_motion_csv(out / "states.csv")) == 2  # the folder's 3 pairs but the skipped one
 
 
 @pytest.mark.parametrize("rig_from", ["--rig", "rig.yaml"])

@@ -404,6 +404,11 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
                 rest = sum(count for _, count in ranked[SUMMARY_REASONS:])
                 print(f"  invalid in {counted(rest, 'more frame')} for "
                       f"{counted(len(ranked) - SUMMARY_REASONS, 'other reason')}: run.yaml lists them all")
+            gained = engine.stats.frames_gained
+            if gained:
+                print(f"trackmeter track: note: {counted(gained, 'frame')} underexposed (the left image's brightest "
+                      f"pixels below grey {engine.exposure_params.reference_grey:g}), tracked at a gain of up to "
+                      f"{engine.stats.largest_gain:.2f} (config section exposure)", file=sys.stderr)
             never = _auto_never_started(engine.tracker) if args.auto else None
             if never:
                 print(f"trackmeter track: warning: {never}", file=sys.stderr)

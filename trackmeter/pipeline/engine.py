@@ -172,6 +172,7 @@ class EngineStats:
     handovers_held: int = 0  # losses of measured points after which the survivors were moved (pose.handover_hold)
     stored_relocks: int = 0  # grown points re-locked on their own stored target (pose.relock_stored)
     frames_gained: int = 0  # underexposed frames brought up by a gain (config section exposure)
+    largest_gain: float = 1.0  # the largest such gain
 
 
 class Engine:
@@ -398,6 +399,7 @@ class Engine:
         if count:
             self.gain = gain
             self.stats.frames_gained += gain > 1.0
+            self.stats.largest_gain = max(self.stats.largest_gain, gain)
         self._exposed_last = (frame, exposed)
         return exposed
 
