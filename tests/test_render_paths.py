@@ -1,6 +1,11 @@
-"""The renderer's fast paths equal the plain ones bit for bit: one 4-channel warp of (radiance,
-alpha) against two 1-channel warps, in-place compositing against NumPy's, and the remap of only
-the image box that can see drawn canvas pixels against the remap of the whole image."""
+"""The renderer's fast paths equal the plain ones: one 4-channel warp of (radiance, alpha)
+against two 1-channel warps, in-place compositing against NumPy's, and the remap of only the
+image box that can see drawn canvas pixels against the remap of the whole image.
+
+Bit for bit on some CPUs; on others OpenCV's vectorised 4-channel and 1-channel warps round
+differently, and 143 of 384192 canvas pixels came out a float32 ulp or two apart (3e-8 of a
+radiance near 1, 2026-12-02): the canvases are held to 1e-6, the 8-bit images they make to at
+most one grey level in a handful of pixels (identical on both hosts seen)."""
 
 from __future__ import annotations
 
@@ -54,11 +59,13 @@ def test_fast_compositing_equals_plain(estec_pair, pose, monkeypatch) -> None:  
         a, _ = fast.radiance_canvas(side, T, sun)
         b, _ = plain.radiance_canvas(side, T, sun)
         assert (a > 0).mean() > 0.05
-        assert np.array_equal(a, b)
+        np.testing.assert_allclose(a, b, rtol=0.0, atol=1e-6)
     # whole images, noise seeded the same
     fa = fast.render(T, sun, np.random.default_rng(3))
     pa = plain.render(T, sun, np.random.default_rng(3))
-    assert np.array_equal(fa[0], pa[0]) and np.array_equal(fa[1], pa[1])
+    for f, p in zip(fa[:2], pa[:2]):
+        diff = np.abs(f.astype(int) - p.astype(int))
+        assert diff.max() <= 1 and np.count_nonzero(diff) <= 10
 
 
 def test_image_box_holds_every_pixel_that_sees_the_canvas_box(estec_rig) -> None:  # type: ignore[no-untyped-def]
