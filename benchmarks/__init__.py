@@ -7,7 +7,7 @@ same run so the machine's noise cancels. Progress goes to stderr; the JSON objec
 it is not finite (strict JSON: no NaN), a per-seed or per-bin series as numbered figures
 (``..._seed0``, ``..._bin0_...``).
 
-The benchmarks that run the tracking engine (``accuracy``, ``operator``, ``error_budget``) use
+The benchmarks that run the tracking engine (``accuracy``, ``looks``, ``operator``, ``error_budget``) use
 config/default.yaml, or a YAML file layered over it (as ``--config`` does for the commands)
 named by the environment variable ``TRACKMETER_BENCH_CONFIG``: how an opt-in setting of
 docs/results.md is measured on the same chain, e.g.
