@@ -369,7 +369,10 @@ def run_chain(case: str, seconds: float, scenario: str = "estec", seed_offset: i
     coast_start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # last measured pose: T_true, T_est, cov
     coast_z, coasted, longest = [0.0], 0, 0.0
     for k in range(n):
-        frame = (frames[k] if k < len(frames) else None) if frames is not None else sim.read()
+        if frames is None:
+            frame = sim.read()
+        else:
+            frame = frames[k] if k < len(frames) else None
         if frame is None:
             break
         if look is not None:

@@ -47,7 +47,10 @@ class ExposureParams:
 
 def grey_percentiles(image: NDArray[np.uint8], percentiles: tuple[float, ...]) -> tuple[int, ...]:
     """The grey levels at ``percentiles`` (0-100) of a uint8 image: the smallest level at or
-    below which that share of its pixels lies (from its 256-bin histogram, exact for uint8)."""
+    below which that share of its pixels lies (NumPy's ``percentile(..., method="inverted_cdf")``).
+
+    From its 256-bin histogram, exact for uint8: it runs on every frame, and on a 726x512
+    image it takes 0.14 ms where ``np.percentile`` takes 1.6 ms (2026-12-02)."""
     hist = cv2.calcHist([np.ascontiguousarray(image)], [0], None, [256], [0, 256]).ravel()
     cumulative = np.cumsum(hist, dtype=np.float64)
     total = cumulative[-1]
