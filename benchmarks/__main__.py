@@ -37,9 +37,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m benchmarks", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="Run from the repository's root (the benchmarks folder is not installed with the package).\n"
-               "Long ones: soak runs 10 minutes of live pipeline by design; accuracy took 5-13 minutes on the\n"
-               "project's 2-core machine; console drives a headless Chromium (the Debian package chromium)\n"
-               "through Playwright. The figures and their goals: README.md's results table.")
+               "Long ones: soak runs 10 minutes of live pipeline by design; accuracy took 3-13 minutes on the\n"
+               "project's 2-core machines (172 s on 2026-12-02's), looks about 2; console drives a headless\n"
+               "Chromium (the Debian package chromium) through Playwright. The figures and their goals:\n"
+               "README.md's results table.")
     parser.add_argument("names", nargs="*", metavar="NAME", help=f"benchmarks to run (default: all): {', '.join(NAMES)}")
     parser.add_argument("--out", type=Path, help="also write the JSON to this file")
     args = parser.parse_args(argv)
