@@ -73,6 +73,12 @@ class PoseParams:
         25.0, "a pose whose inlier residual exceeds this chi-square per degree of freedom (after the robust "
         "scale) is refused: with 3 points a gross mismatch cannot be rejected, only detected", min=1.0,
     )
+    bind_sigma_floor_m: float = param(
+        0.003, "case (b) progressive binding: isotropic std added to each located a-priori point's "
+        "covariance when the binding's residual is TESTED against max_residual_per_dof (not when it is "
+        "fitted): a corner's patch measures the faces around it, an error averaging over frames does "
+        "not remove, m", min=0.0,
+    )
     frame_min_age_frames: int = param(
         12, "case (a): only points tracked for at least this many frames define the frame and the first model",
         min=0,

@@ -773,7 +773,9 @@ class Engine:
         except (TrackmeterError, np.linalg.LinAlgError) as exc:
             return f"case (b): binding the model: {exc}"
         r = P - (B @ R.T + t)
-        d2 = float(np.einsum("ni,nij,nj->", r, np.linalg.inv(C), r))
+        # Tested with the corners' own error added (pose.bind_sigma_floor_m), fitted without it.
+        C_test = C + p.bind_sigma_floor_m**2 * np.eye(3)
+        d2 = float(np.einsum("ni,nij,nj->", r, np.linalg.inv(C_test), r))
         dof = 3 * len(located) - 6
         if dof > 0 and d2 / dof > p.max_residual_per_dof:
             return (f"case (b): binding the model: its located points disagree with the model (chi-square "
