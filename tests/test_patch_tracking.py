@@ -244,53 +244,29 @@ def test_match_epipolar_per_point_span_equals_separate_calls(estec_rig) -> None:
 
 
 def test_zncc_search_matches_a_numpy_reference() -> None:
-    # the windows (on the template's sub-pixel grid, bilinear), best position and second local
-    # maximum against a direct numpy / scipy formulation
+    # the window, best position and second local maximum against a direct numpy formulation
     rng = np.random.default_rng(5)
     img = cv2.GaussianBlur(rng.random((80, 90)).astype(np.float32), (0, 0), 1.2)
     img[:, 60:] = 0.5  # a flat part: scores of -1/0 and windows clipped at the border
-    for k in range(60):
+    for k in range(40):
         c = rng.uniform([-5, -5], [95, 85])
-        if k % 3 == 0:
-            c = np.round(c) + 0.5  # an 8x8 patch's centre on whole pixels: no interpolation
-        tuv = c if k % 2 else c + rng.uniform(-3, 3, size=2)  # the template sampled elsewhere
         half = rng.uniform(1, 12, size=2)
-        tmpl = img[20 + k % 30 : 28 + k % 30, 10 + k % 40 : 18 + k % 40]
-        got = pt.zncc_search(img, tmpl, c, half, None if k % 2 else tuv)
-        du, dv = (tuv[0] - 3.5) % 1.0, (tuv[1] - 3.5) % 1.0
+        tmpl = img[20 + k % 30 : 28 + k % 30, 10 + k : 18 + k]
+        got = pt.zncc_search(img, tmpl, c, half)
         x0 = max(int(np.floor(c[0] - half[0] - 3.5)), 0)
-        x1 = min(int(np.ceil(c[0] + half[0] + 3.5)) + 1, 90 - (du > 0))
+        x1 = min(int(np.ceil(c[0] + half[0] + 3.5)) + 1, 90)
         y0 = max(int(np.floor(c[1] - half[1] - 3.5)), 0)
-        y1 = min(int(np.ceil(c[1] + half[1] + 3.5)) + 1, 80 - (dv > 0))
+        y1 = min(int(np.ceil(c[1] + half[1] + 3.5)) + 1, 80)
         if x1 - x0 < 8 or y1 - y0 < 8:
             assert got is None
             continue
-        yy, xx = np.mgrid[y0:y1, x0:x1].astype(np.float64)
-        roi = ndimage.map_coordinates(img.astype(np.float64), [yy + dv, xx + du], order=1).astype(np.float32)
-        res = cv2.matchTemplate(roi, tmpl, cv2.TM_CCOEFF_NORMED)
+        res = cv2.matchTemplate(img[y0:y1, x0:x1], tmpl, cv2.TM_CCOEFF_NORMED)
         i, j = np.unravel_index(np.argmax(res), res.shape)
         peaks = res >= ndimage.maximum_filter(res, size=3, mode="nearest")
         peaks[max(i - 4, 0) : i + 5, max(j - 4, 0) : j + 5] = False
-        np.testing.assert_allclose(got[0], [x0 + du + j + 3.5, y0 + dv + i + 3.5], atol=1e-9)
-        assert got[1] == pytest.approx(float(res[i, j]), abs=1e-4)  # float32 interpolation
-        assert got[2] == pytest.approx(float(np.max(res, where=peaks, initial=-1.0)), abs=1e-4)
-
-
-def test_zncc_search_finds_an_unmoved_patch_where_it_was_sampled() -> None:
-    """A template sampled at a sub-pixel point is found at exactly that point in the same image
-    (ZNCC 1), and at the point plus the shift in an image moved by whole pixels."""
-    img = smooth_texture((120, 120), sigma=0.8, seed=2)
-    rng = np.random.default_rng(0)
-    for _ in range(20):
-        uv = rng.uniform(30, 90, size=2)
-        tmpl = pt.make_templates(img, uv[None], 8)
-        assert tmpl.centres[0].tolist() == uv.tolist()
-        got = pt.zncc_search(img, tmpl.values[0], uv + rng.uniform(-2, 2, size=2), np.array([6.0, 6.0]), uv)
-        np.testing.assert_allclose(got[0], uv, atol=1e-9)
-        assert got[1] == pytest.approx(1.0, abs=1e-5)
-        moved = np.roll(img, (2, -3), axis=(0, 1))
-        got = pt.zncc_search(moved, tmpl.values[0], uv, np.array([6.0, 6.0]), uv)
-        np.testing.assert_allclose(got[0], uv + [-3, 2], atol=1e-9)
+        np.testing.assert_array_equal(got[0], [x0 + j + 3.5, y0 + i + 3.5])
+        assert got[1] == float(res[i, j])
+        assert got[2] == float(np.max(res, where=peaks, initial=-1.0))
 
 
 def test_row_mean_is_numpys_mean_bit_for_bit() -> None:

@@ -193,8 +193,6 @@ class Templates:
         gx, gy: (N,n,n) central-difference gradients, per px.
         hessian_inv: (N,2,2) inverse Gauss-Newton Hessian of the zero-mean template.
         ok: (N,) the template lay inside the image and has texture (a regular Hessian).
-        centres: (N,2) where in the image each was sampled, px (its sub-pixel phase is the one
-            :func:`zncc_search` compares it at).
     """
 
     values: F32
@@ -202,15 +200,13 @@ class Templates:
     gy: F32
     hessian_inv: FloatArray
     ok: NDArray[np.bool_]
-    centres: FloatArray
 
     @property
     def size(self) -> int:
         return int(self.values.shape[-1])
 
     def select(self, index: NDArray) -> "Templates":
-        return Templates(self.values[index], self.gx[index], self.gy[index], self.hessian_inv[index], self.ok[index],
-                         self.centres[index])
+        return Templates(self.values[index], self.gx[index], self.gy[index], self.hessian_inv[index], self.ok[index])
 
 
 def make_templates(image: F32, centres: NDArray, size: int, coord_map: CoordMap | None = None) -> Templates:
@@ -222,7 +218,7 @@ def make_templates(image: F32, centres: NDArray, size: int, coord_map: CoordMap 
     values = np.ascontiguousarray(big[:, 2:-2, 2:-2])
     gx = (8.0 * (big[:, 2:-2, 3:-1] - big[:, 2:-2, 1:-3]) - (big[:, 2:-2, 4:] - big[:, 2:-2, :-4])) / 12.0
     gy = (8.0 * (big[:, 3:-1, 2:-2] - big[:, 1:-3, 2:-2]) - (big[:, 4:, 2:-2] - big[:, :-4, 2:-2])) / 12.0
-    return Templates(values, gx, gy, *_hessian(gx, gy, inside), np.array(centres, dtype=np.float64).reshape(-1, 2))
+    return Templates(values, gx, gy, *_hessian(gx, gy, inside))
 
 
 def _hessian(gx: F32, gy: F32, inside: NDArray[np.bool_]) -> tuple[FloatArray, NDArray[np.bool_]]:
@@ -353,23 +349,14 @@ _KERNEL_3X3 = np.ones((3, 3), np.uint8)
 
 
 def zncc_search(
-    image: F32, template: F32, centre: NDArray, half_size: NDArray, template_uv: NDArray | None = None
+    image: F32, template: F32, centre: NDArray, half_size: NDArray
 ) -> tuple[FloatArray, float, float] | None:
-    """Best ZNCC position of ``template`` (n,n) among windows around ``centre`` (2,), one pixel apart.
+    """Best integer ZNCC position of ``template`` (n,n) in a window around ``centre`` (2,).
 
     The window covers centres ``centre ± half_size`` (2,) px, clipped to the image. Returns
     ``(uv (2,), best score, best score of the other local maxima)``
-    or None when the window is smaller than the template.
-
-    The windows are taken on the TEMPLATE's sub-pixel grid: centred at ``template_uv`` (2,),
-    the point the template was sampled around (default ``centre``), plus whole pixels, the
-    image resampled bilinearly at that fractional offset as the template was. So a patch that
-    did not move is compared with itself, sample for sample (ZNCC 1 where the image is the
-    same), and LK starts from where it was. Windows on the image's own pixel grid put an 8x8
-    patch's centre half a pixel from a target made at a pixel: on the real Tsukuba pair given
-    again, unmoved, that start lost two targets of twelve ("did not converge"), moved one 0.06
-    px, and let a look-alike 9.5 px away outscore a third's own place (its interpolated
-    template against raw windows).
+    or None when the window is smaller than the template. The returned centre is offset from
+    an integer grid by the template's own sub-pixel offset, so LK can start from it.
     """
     n = template.shape[0]
     h, w = image.shape
@@ -377,24 +364,13 @@ def zncc_search(
     # Python floats and math.floor/ceil: the same integers as numpy's, without numpy's per-call cost
     cu, cv = float(centre[0]), float(centre[1])
     hu, hv = float(half_size[0]), float(half_size[1])
-    pu, pv = (cu, cv) if template_uv is None else (float(template_uv[0]), float(template_uv[1]))
-    du, dv = (pu - half) - math.floor(pu - half), (pv - half) - math.floor(pv - half)
     x0 = max(math.floor(cu - hu - half), 0)
     x1 = min(math.ceil(cu + hu + half) + 1, w)
     y0 = max(math.floor(cv - hv - half), 0)
     y1 = min(math.ceil(cv + hv + half) + 1, h)
-    # a fractional offset reads one more column (row) for the interpolation
-    if du:
-        x1 = min(x1, w - 1)
-    if dv:
-        y1 = min(y1, h - 1)
     if x1 - x0 < n or y1 - y0 < n:
         return None
-    roi = np.asarray(image[y0 : y1 + (1 if dv else 0), x0 : x1 + (1 if du else 0)], dtype=np.float32)
-    if du:  # bilinear, as separable passes (the template's own interpolation)
-        roi = roi[:, :-1] + np.float32(du) * (roi[:, 1:] - roi[:, :-1])
-    if dv:
-        roi = roi[:-1] + np.float32(dv) * (roi[1:] - roi[:-1])
+    roi = np.asarray(image[y0:y1, x0:x1], dtype=np.float32)
     res = cv2.matchTemplate(roi, np.asarray(template, dtype=np.float32), cv2.TM_CCOEFF_NORMED)
     _, best, _, loc = cv2.minMaxLoc(res)
     j, i = loc
@@ -407,7 +383,7 @@ def zncc_search(
     # masked maximum by cv2.minMaxLoc (the score holds no NaN: OpenCV's normed scores are finite)
     # is np.max(res, where=peaks, initial=-1.0) at a fraction of its per-call cost.
     second = max(cv2.minMaxLoc(res, peaks.view(np.uint8))[1], -1.0) if peaks.any() else -1.0
-    uv = np.array([x0 + du + j + half, y0 + dv + i + half])
+    uv = np.array([x0 + j + half, y0 + i + half])
     return uv, float(best), second
 
 

@@ -263,11 +263,6 @@ class _Target:
         """(size,size) the integer search's template: the current patch of the image itself."""
         return self.current_raw.values[0]
 
-    @property
-    def search_uv(self) -> FloatArray:
-        """(2,) where :attr:`search` was sampled, px."""
-        return self.current_raw.centres[0]
-
     def state(self) -> TargetState:
         lost = self.status == "lost"
         return TargetState(
@@ -303,7 +298,6 @@ def _stack(ts: list[Templates]) -> Templates:
         np.concatenate([t.gy for t in ts]),
         np.concatenate([t.hessian_inv for t in ts]),
         np.concatenate([t.ok for t in ts]),
-        np.concatenate([t.centres for t in ts]),
     )
 
 
@@ -838,7 +832,7 @@ class Tracker:
         starts: list[FloatArray] = []
         for i, (t, centre) in enumerate(zip(targets, centres)):
             # The current template is the last verified appearance of the target.
-            found = zncc_search(fc.left, t.search, centre, half, t.search_uv)
+            found = zncc_search(fc.left, t.search, centre, half)
             if found is None:
                 out[i] = (False, "search window outside the image")
                 continue
@@ -957,7 +951,7 @@ class Tracker:
         above = p.near_first_settled_above_px if t.age_frames >= SETTLED_FRAMES else p.near_first_new_above_px
         if p.near_first_px <= 0 or max(float(half[0]), float(half[1])) <= above:  # floats: run per target per frame
             return None
-        near = zncc_search(fc.left, t.search, pred, np.minimum(half, p.near_first_px), t.search_uv)
+        near = zncc_search(fc.left, t.search, pred, np.minimum(half, p.near_first_px))
         if near is None or np.any(np.abs(near[0] - pred) > p.near_first_px - 1.0):
             return None
         _, best, second = near
@@ -1006,7 +1000,7 @@ class Tracker:
             if not np.all(np.isfinite(pred)):
                 self._lose(t, "prediction diverged")
                 continue
-            found = self._search_near_first(fc, t, pred, half) or zncc_search(fc.left, t.search, pred, half, t.search_uv)
+            found = self._search_near_first(fc, t, pred, half) or zncc_search(fc.left, t.search, pred, half)
             if found is None:
                 self._lose(t, "left the image")
                 continue
