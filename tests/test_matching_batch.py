@@ -131,36 +131,3 @@ def test_measure_points_batch_is_one_by_one_through_the_paper_rig(plane) -> None
     single = [measure_points(rig, left, right, p[None], params)[0] for p in pts]
     assert sum(m.ok for m in single) > 100
     _assert_same(batch, single)
-
-
-@pytest.mark.parametrize("scene", ["tsukuba", "estec_plane"])
-def test_refine_disparities_gives_measure_points_disparity_from_any_start_in_its_basin(plane, scene: str) -> None:  # type: ignore[no-untyped-def]
-    """The tracker's per-frame stereo re-fit is measure_points' shift fit: started up to 0.4 px
-    off, on the same images, it lands on the disparity measure_points gave (to the fit's stopping step) (the real Tsukuba
-    pair; the paper's rig with distortion and a rotated right camera)."""
-    from trackmeter.core.matching import refine_disparities
-
-    if scene == "tsukuba":
-        left, right, gt = load_tsukuba()
-        rig = identity_rig(left.shape[1], left.shape[0])
-        uv = tsukuba_grid(left, gt)[:60] + np.array([0.3, -0.2])  # sub-pixel centres too
-    else:
-        rig, left, right, _ = plane
-        W, H = rig.image_size
-        g = np.mgrid[200:W - 200:61, 150:H - 150:53].reshape(2, -1).T.astype(float)
-        uv = g + np.array([0.37, 0.81])
-    params = MeasureParams(subpixel_slanted=False)
-    ms = measure_points(rig, left, right, uv, params)
-    ok = [i for i, m in enumerate(ms) if m.ok]
-    assert len(ok) >= 20
-    rect = rig.rectification
-    d_ref = np.array([ms[i].disparity_px for i in ok])
-    uv_rect = np.array([ms[i].uv_rect for i in ok])
-    offsets = np.random.default_rng(1).uniform(-0.4, 0.4, len(ok))
-    d, why = refine_disparities(rect, left, right, uv_rect, d_ref + offsets, params)
-    assert all(w is None for w in why)
-    # to the Gauss-Newton fit's stopping step (subpixel_tolerance_px: 0.001 px)
-    np.testing.assert_allclose(d, d_ref, atol=params.subpixel_tolerance_px)
-    # one start pixel further off is outside the fit's reach: refused, not a number
-    d_far, why_far = refine_disparities(rect, left, right, uv_rect[:3], d_ref[:3] + 3.0, params)
-    assert all(w is not None for w in why_far) and np.all(np.isnan(d_far))

@@ -78,7 +78,7 @@ spares them the wider window (measure_points ~22 % faster on those candidates).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any, Sequence
 
 import cv2
@@ -924,86 +924,6 @@ def refine_positions(
     bad = np.array([r is not None for r in reasons], bool)
     x[bad], sigma[bad] = np.nan, np.nan
     return x, sigma, score, reasons
-
-
-def refine_disparities(
-    rect: Rectification,
-    left: NDArray[np.uint8],
-    right: NDArray[np.uint8],
-    uv_rect: ArrayLike,
-    disparity_px: ArrayLike,
-    params: MeasureParams,
-) -> tuple[FloatArray, list[str | None]]:
-    """The sub-pixel disparities :func:`measure_points` would fit at rectified left points
-    whose disparity is already known to within a pixel (e.g. a tracker's match of this frame).
-
-    The same samples and fit as the shift fit of :func:`measure_points`: the P x P patch
-    centred exactly on each point and the right row around ``x - d`` (``FINE_MARGIN_PX``
-    columns each side, on the patch's own sub-pixel phase), both resampled with Lanczos-4, and
-    the 1D B-spline Gauss-Newton fit of :func:`refine_positions` started at ``d``. With the
-    margin past the B-spline prefilter's reach, the result does not depend on where the strip
-    starts, so a point measured by :func:`measure_points` and re-fitted here on the same images
-    gets the same disparity (to the fit's stopping step, ``subpixel_tolerance_px``), whatever
-    the start within its basin.
-
-    Only the fit is run: none of the checks, and neither ``params.min_score`` nor
-    ``params.max_sigma_disparity_px`` refuses a point (the caller has its own gates).
-
-    Args:
-        rect: the rig's rectification.
-        left, right: (H, W) uint8 ORIGINAL images.
-        uv_rect: (m, 2) rectified left pixels.
-        disparity_px: (m,) start disparities, rectified px.
-        params: measurement tunables (patch size, interpolation, Gauss-Newton steps).
-
-    Returns:
-        ``(disparity_px, reasons)``: (m,) refined disparities (NaN where refused) and per point
-        None or why not (:data:`REASON_PATCH_OUTSIDE`, :data:`REASON_SEARCH_OUTSIDE`,
-        :data:`REASON_SUBPIXEL`: the fit left the pixel around its start or found no match).
-    """
-    uv = np.asarray(uv_rect, dtype=float).reshape(-1, 2)
-    d0 = np.asarray(disparity_px, dtype=float).reshape(-1)
-    m = len(uv)
-    P = params.patch_size
-    W, H = rect.rig.image_size
-    half = 0.5 * (P - 1)
-    mg = FINE_MARGIN_PX
-    reasons: list[str | None] = [None] * m
-    out = np.full(m, np.nan)
-    patches, strips, starts, firsts, todo = [], [], [], [], []
-    for j in range(m):
-        x0, y0, d = float(uv[j, 0]) - half, float(uv[j, 1]) - half, float(d0[j])
-        if not (math.isfinite(x0) and math.isfinite(y0) and math.isfinite(d)):
-            reasons[j] = REASON_SUBPIXEL
-            continue
-        bx, by = math.floor(x0), math.floor(y0)
-        if bx < 0 or by < 0 or bx + P >= W or by + P >= H:
-            reasons[j] = REASON_PATCH_OUTSIDE
-            continue
-        first = math.floor(bx - d) - mg  # the strip's first grid column
-        last = first + P + 2 * mg  # its last (one past the fit's reach each side)
-        if first < 0 or last > W - 2:
-            reasons[j] = REASON_SEARCH_OUTSIDE
-            continue
-        frac = x0 - bx
-        patches.append((x0, y0, P, P))
-        strips.append((first + frac, y0, last - first + 1, P))
-        starts.append(bx - d - first)
-        firsts.append(first)
-        todo.append(j)
-    if not todo:
-        return out, reasons
-    T = sample_rectified_blocks(rect, left, 0, patches)
-    S = sample_rectified_blocks(rect, right, 1, strips)
-    loose = replace(params, min_score=-1.0, max_sigma_disparity_px=math.inf)
-    xs, _, _, fit_reasons = refine_positions([t for t, _ in T], [s for s, _ in S], starts, loose)
-    for k, j in enumerate(todo):
-        if fit_reasons[k] is not None or (T[k][1] is not None and not T[k][1].all()) or (
-                S[k][1] is not None and not S[k][1].all()):
-            reasons[j] = fit_reasons[k] or REASON_PATCH_OUTSIDE
-            continue
-        out[j] = math.floor(float(uv[j, 0]) - half) - firsts[k] - float(xs[k])
-    return out, reasons
 
 
 def _strip_coefficients(

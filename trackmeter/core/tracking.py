@@ -47,7 +47,7 @@ from scipy.stats import chi2
 from trackmeter.core import kalman as kf_mod
 from trackmeter.core.features import FeatureParams, select_features
 from trackmeter.core.kalman import KalmanParams
-from trackmeter.core.matching import MeasureParams, measure_points, refine_disparities
+from trackmeter.core.matching import MeasureParams, measure_points
 from trackmeter.core.params import param
 from trackmeter.core.patch_tracking import (
     PatchTrack,
@@ -721,18 +721,9 @@ class Tracker:
     # ------------------------------------------------------------------ stereo
 
     def _stereo(self, fc: _FrameCache, uv: FloatArray, d_low: FloatArray, span: int | NDArray):  # type: ignore[no-untyped-def]
-        """The right-image match of left pixels ``uv`` (N,2) within ``d_low .. d_low + span``:
-        :func:`match_epipolar` searches and checks it (score, uniqueness, its 2D fit's
-        convergence and epipolar residual), then the disparity is re-fitted as
-        :func:`measure_points` fits it (:func:`refine_disparities`), so a target's every
-        measurement comes from the estimator of its first. The 2D bilinear fit alone measured
-        other disparities on the same images: a target's 3D point moved between its first frame
-        and the next of a still scene (identical frames of the Tsukuba pair: two targets of
-        eight lost by the rigid-motion check), and on estec's rendered frames its depth was a
-        median 3.6-6.7 mm off the surface truth against 2.6-3.7 mm (docs/results.md, Tracking)."""
         p = self.params
         cl = self.rect.rectify_points(uv, 0)
-        m = match_epipolar(
+        return match_epipolar(
             fc.left,
             fc.right,
             self._maps[0],
@@ -745,20 +736,6 @@ class Tracker:
             uniqueness_margin=p.uniqueness_margin,
             epipolar_tolerance_px=p.epipolar_tolerance_px,
         )
-        ok = np.array([r is None for r in m.reason], dtype=bool)
-        if not ok.any():
-            return m
-        d, why = refine_disparities(self.rect, fc.left, fc.right, m.uv_rect_left[ok], m.disparity_px[ok], self.measure)
-        disparity = m.disparity_px.copy()
-        right = m.uv_rect_right.copy()
-        reason = list(m.reason)
-        for k, i in enumerate(np.flatnonzero(ok).tolist()):
-            if why[k] is not None:
-                reason[i] = f"stereo re-fit: {why[k]}"
-                continue
-            disparity[i] = d[k]
-            right[i] = (m.uv_rect_left[i, 0] - d[k], m.uv_rect_left[i, 1])
-        return replace(m, uv_rect_right=right, disparity_px=disparity, reason=reason)
 
     def _set_stereo(self, ts: list[_Target], m, idx: NDArray) -> None:  # type: ignore[no-untyped-def]
         """Triangulate matches ``idx`` of ``m`` (batched) into targets ``ts``."""
