@@ -264,3 +264,37 @@ def test_a_target_that_moves_without_ground_truth_is_warned_about(still_sequence
     assert code == 0 and len(err) == 1, err
     assert err[0].startswith("trackmeter analyze: warning: frames from t=0.000 s: the points moved 7.") and \
         "needs a still target" in err[0], err
+
+
+def test_an_underexposed_still_target_is_measured_at_the_engines_gain(still_sequence, tmp_path, capsys):
+    """The still sequence at 12 % of its brightness: `measure` and the tracking engine multiply
+    such a pair by the exposure gain (config section exposure), `analyze` refused every point
+    ("no usable range"). It now measures each range at one gain (its first left image's), says
+    so, and finds the points a sigma like the bright sequence's."""
+    import json
+
+    import numpy as np
+
+    from trackmeter.data.images import read_grey
+    from trackmeter.data.sequence import SequenceWriter, index_sequence
+    from trackmeter.sources.base import StereoFrame
+
+    index = index_sequence(still_sequence)
+    folder = tmp_path / "dark"
+    with SequenceWriter(folder, rig=index.rig) as writer:
+        for i, (left, right) in enumerate(zip(index.left_paths, index.right_paths)):
+            dark = [np.round(read_grey(p) * 0.12).astype(np.uint8) for p in (left, right)]
+            writer.write(StereoFrame(i, i / 25.0, dark[0], dark[1]))
+    assert main(["analyze", "--source", str(still_sequence), "--points", "5", "--json"]) == 0
+    bright = json.loads(capsys.readouterr().out)
+    code = main(["analyze", "--source", str(folder), "--points", "5", "--json"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    err = captured.err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("trackmeter analyze: note: 1 of 1 range(s) underexposed"), err
+    dark = json.loads(captured.out)
+    (entry,) = dark["ranges"]
+    assert entry["n_points"] == 5 and entry["exposure_gain"] == 4.0  # max_gain: 0.12 x 4 is still dim
+    assert bright["ranges"][0]["exposure_gain"] == 1.0
+    z_dark, z_bright = entry["sigma_m"]["z"], bright["ranges"][0]["sigma_m"]["z"]
+    assert 0.3 < z_dark / z_bright < 3.0, (z_dark, z_bright)

@@ -12,7 +12,9 @@ ground truth the whole source is one range. The true error of each point (its "t
 "bias" columns) needs the true 3D point at that pixel, which only the simulator source knows
 (its renderer's surface); a sequence folder's ground truth is the pose alone, so those columns
 are left empty there. A range where fewer than 3 points are measured often enough is skipped
-with its reason (static_ranges' 7 and 10 m with the 12 mm rig).
+with its reason (static_ranges' 7 and 10 m with the 12 mm rig). An underexposed range is
+measured as `measure` and `track` see it: multiplied by the exposure gain of its first left
+image (config section exposure; one gain per range), said on stderr.
 
 --json prints the summary (SI units); --out DIR writes analysis.json, ranges.csv,
 sigma_vs_range.png, error_density.png and report.md.
@@ -21,6 +23,7 @@ sigma_vs_range.png, error_density.png and report.md.
 from __future__ import annotations
 
 import argparse
+import sys
 import warnings
 from dataclasses import replace
 
@@ -74,6 +77,7 @@ def run(args: argparse.Namespace) -> int:
             result = run_error_analysis(
                 source, rig, config.measure, params,
                 progress=lambda frames: progress(frames, total if isinstance(total, int) else None, "analyze"),
+                exposure=config.exposure,
             )
         except TrackmeterError as exc:
             skipped = _skipped_while_reading(source, warning_at_open)
@@ -85,6 +89,11 @@ def run(args: argparse.Namespace) -> int:
             warnings.warn(skipped, stacklevel=1)
         for line in result.moving_ranges:
             warnings.warn(line, stacklevel=1)
+        gained = [g for g in result.exposure_gains if g != 1.0]
+        if gained:
+            print(f"trackmeter analyze: note: {len(gained)} of {len(result.exposure_gains)} range(s) underexposed (the left image's brightest pixels "
+                  f"below grey {config.exposure.reference_grey:g}), measured at a gain of up to {max(gained):.2f} "
+                  "(config section exposure)", file=sys.stderr)
     summary = result.to_dict()
     summary["source"] = args.source
     if args.out:

@@ -12,7 +12,7 @@ sky); then every frame of that range measures them with the stereo matcher
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Iterable, Iterator
 
 import cv2
@@ -30,6 +30,7 @@ from trackmeter.core.error_analysis import (
     temporal_noise_variance,
     truth_errors,
 )
+from trackmeter.core.exposure import ExposureParams, apply_gain, exposure_gain
 from trackmeter.core.matching import MeasureParams, measure_points
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.transforms import apply_transform
@@ -57,6 +58,8 @@ class RangeMeasurements:
             the range's frames allows each patch (Cramer-Rao bound, NaN when unknown).
         image_motion_px: median image motion of the points from the range's first to its last
             left frame (:func:`image_motion_px`), px; NaN when it cannot be told.
+        exposure_gain: the gain every frame of the range was multiplied by before it was
+            measured (:mod:`trackmeter.core.exposure`; 1: normally exposed).
     """
 
     t_s: FloatArray
@@ -69,6 +72,7 @@ class RangeMeasurements:
     true_xyz_m: FloatArray | None = None
     noise_sigma_disparity_px: FloatArray | None = None
     image_motion_px: float = float("nan")
+    exposure_gain: float = 1.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -83,6 +87,7 @@ class AnalysisRun:
     gross_sigmas: float = 8.0
     min_samples: int = 5
     moving_ranges: tuple[str, ...] = field(default_factory=tuple)  # one line each: the target moved
+    exposure_gains: tuple[float, ...] = field(default_factory=tuple)  # every range read, skipped ones too
 
     def to_dict(self) -> dict[str, object]:
         d = self.analysis.to_dict()
@@ -118,6 +123,7 @@ class AnalysisRun:
                 entry["n_selected"] = len(m.uv)
                 entry["refused"] = dict(m.refusals)
                 entry["image_motion_px"] = m.image_motion_px
+                entry["exposure_gain"] = m.exposure_gain
                 pr = per_range[self.measurements.index(m)]
                 if pr is not None:
                     entry["noise_limited_sigma_disparity_px"], entry["measured_over_noise_limit_median"] = pr
@@ -281,8 +287,14 @@ def run_error_analysis(
     measure: MeasureParams,
     params: AnalyzeParams,
     progress: Callable[[Iterable[StereoFrame]], Iterable[StereoFrame]] | None = None,
+    exposure: ExposureParams | None = None,
 ) -> AnalysisRun:
     """Read ``source`` to its end and run the error analysis over its ranges.
+
+    ``exposure``: an underexposed range is measured as the tracking engine and ``measure`` see
+    it, every frame multiplied by the gain :func:`~trackmeter.core.exposure.exposure_gain` finds
+    for the range's first left image (one gain per range, so the frame-to-frame noise the
+    analysis measures is the images' own); None: the images as they are.
 
     Ranges where fewer than 3 points have ``params.min_samples`` good measurements are skipped
     and named in :attr:`AnalysisRun.skipped_ranges` (e.g. the target too small far away).
@@ -303,8 +315,15 @@ def run_error_analysis(
     skipped: list[str] = []
     moving: list[str] = []
     n_ranges = n_frames = 0
+    gains: list[float] = []
     for group in split_ranges(stream):
+        gain = exposure_gain(group[0].left, exposure) if exposure is not None else 1.0
+        gains.append(gain)
+        if gain != 1.0:
+            group = [replace(f, left=apply_gain(f.left, gain), right=apply_gain(f.right, gain)) for f in group]
         m = measure_range(group, rig, measure, params, getattr(source, "surface_points", None))
+        if gain != 1.0:
+            m = replace(m, exposure_gain=gain)
         n_ranges += 1
         n_frames += len(m.t_s)
         label = f"{m.true_range_m:.2f} m" if np.isfinite(m.true_range_m) else f"frames from t={m.t_s[0]:.3f} s"
@@ -345,4 +364,5 @@ def run_error_analysis(
         params.max_abs_residual_sigmas,
         params.min_samples,
         tuple(moving),
+        tuple(gains),
     )
