@@ -801,8 +801,9 @@ def test_a_progressive_binding_stands_a_corners_bias_but_not_a_gross_mismatch(es
     vertex over the first 3 s of three noise seeds), an error no averaging over frames removes:
     a progressive binding with an a-priori point located 15 mm deep over 40 frames (its
     covariance shrunk by them) binds (pose.bind_sigma_floor_m is added where the binding's
-    residual is tested; harsh_light case (b) was refused so for 14 s, chi-square 32 per degree
-    of freedom), while one matched 275 mm deep is refused with the reason."""
+    residual is tested; harsh_light case (b), with a tracker stereo fit tried on 2026-12-02, was
+    refused so for 14 s, chi-square 32 per degree of freedom), while one matched 275 mm deep is
+    refused with the reason."""
     pts = body_points(14)
     apriori = ["A0", "A1", "A2", "A3"]
     model = Model(tuple(apriori), pts[:4])

@@ -91,9 +91,9 @@ def run(args: argparse.Namespace) -> int:
             warnings.warn(line, stacklevel=1)
         gained = [g for g in result.exposure_gains if g != 1.0]
         if gained:
-            print(f"trackmeter analyze: note: {len(gained)} of {len(result.exposure_gains)} range(s) underexposed (the left image's brightest pixels "
-                  f"below grey {config.exposure.reference_grey:g}), measured at a gain of up to {max(gained):.2f} "
-                  "(config section exposure)", file=sys.stderr)
+            print(f"trackmeter analyze: note: {len(gained)} of {len(result.exposure_gains)} range(s) underexposed "
+                  f"(the left image's brightest pixels below grey {config.exposure.reference_grey:g}), measured at a "
+                  f"gain of up to {max(gained):.2f} (config section exposure)", file=sys.stderr)
     summary = result.to_dict()
     summary["source"] = args.source
     if args.out:
