@@ -86,7 +86,8 @@ def opencv_sample_sequence(shared_data: Path, tmp_path_factory: pytest.TempPathF
 class FullDisk:
     """``os`` as :mod:`trackmeter.data.atomic` sees it, on a disk with ``free`` bytes left: a
     write takes what still fits, then the next one fails with ENOSPC (as a real full disk
-    does). ``free`` may be raised again to let writes through."""
+    does), and a file removed gives its bytes back. ``free`` may be raised again to let writes
+    through."""
 
     def __init__(self, free: int) -> None:
         import os
@@ -105,6 +106,11 @@ class FullDisk:
         n = self._os.write(fd, bytes(data[: self.free]))
         self.free -= n
         return n
+
+    def unlink(self, path, *args, **kwargs):  # type: ignore[no-untyped-def]
+        size = self._os.stat(path).st_size
+        self._os.unlink(path, *args, **kwargs)
+        self.free += size  # a removed file's space is free again
 
 
 @pytest.fixture

@@ -262,3 +262,63 @@ def test_an_overwrite_that_cannot_start_leaves_the_earlier_run_whole(tmp_path: P
     with pytest.raises(TrackmeterError, match="No space"):
         RunWriter(tmp_path / "run", {}, {"spec": "second"}, overwrite=True)
     assert {p.name: p.read_bytes() for p in (tmp_path / "run").iterdir()} == before
+
+
+def test_the_final_run_yaml_is_written_in_the_space_held_for_it(tmp_path: Path, monkeypatch) -> None:
+    """A disk the rows filled left run.yaml saying "running" (its final write failed too). The
+    writer holds a reserve of at least the first run.yaml's size from the start; on ENOSPC it
+    is released and run.yaml written in its place; a run that ends well removes it too."""
+    import errno
+
+    import trackmeter.data.rundir as rundir
+
+    writer = RunWriter(tmp_path / "run", {"big": "x" * 5000}, {"spec": "test"})
+    reserve = tmp_path / "run" / rundir.RESERVE_NAME
+    first = (tmp_path / "run" / "run.yaml").stat().st_size
+    assert reserve.stat().st_size >= first + 16 * 1024
+    writer.write_frame(0.0, (), _pose(0.0))
+    real = rundir.write_text_atomic
+    tries = []
+
+    def full_unless_released(path, text):  # type: ignore[no-untyped-def]
+        tries.append(reserve.exists())
+        if reserve.exists():  # the disk is full until the reserve gives its space back
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real(path, text)
+
+    monkeypatch.setattr(rundir, "write_text_atomic", full_unless_released)
+    writer.close("write failed", {"note": "disk full"})
+    assert tries == [True, False]
+    meta = yaml.safe_load((tmp_path / "run" / "run.yaml").read_text())
+    assert meta["status"] == "write failed" and meta["summary"]["frames"] == 1
+    assert not reserve.exists()
+    monkeypatch.undo()
+    other = RunWriter(tmp_path / "other", {}, {"spec": "test"})
+    other.close("complete")
+    assert sorted(p.name for p in (tmp_path / "other").iterdir()) == ["run.yaml", "states.csv", "targets.csv",
+                                                                       "trajectory.tum"]
+
+
+def test_a_run_that_fills_a_real_disk_ends_with_its_status(tmp_path: Path, capsys) -> None:
+    """On a real full disk (a 160 KB tmpfs; skipped where mounting is not allowed) `track`
+    stops at the first frame that does not fit, every row before it whole, and run.yaml says
+    "write failed" with the summary (before: "running")."""
+    import subprocess
+
+    from trackmeter.cli.main import main
+
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=160k", "tmpfs", str(disk)], capture_output=True).returncode:
+        pytest.skip("mounting a tmpfs is not allowed here")
+    try:
+        out = disk / "run"
+        code = main(["track", "--source", "sim", "--auto", "8", "--max-frames", "150", "--out", str(out)])
+        err = capsys.readouterr().err
+        assert code == 2 and "No space left on device): run stopped; run.yaml says so" in err, err
+        meta = yaml.safe_load((out / "run.yaml").read_text())
+        assert meta["status"] == "write failed" and 0 < meta["summary"]["frames"] < 150
+        assert len(read_motion_csv(out / "states.csv")) == meta["summary"]["frames"]
+        assert not (out / ".run.yaml.reserve").exists()
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], capture_output=True)

@@ -690,9 +690,18 @@ def test_a_disk_that_fills_stops_the_run_with_whole_rows_and_says_so(monkeypatch
                                                                      full_disk) -> None:
     """A full disk used to print a traceback per frame, leave half rows that evaluate refused
     and run.yaml at "running"; now the run stops at the first frame that does not fit."""
+    import trackmeter.data.rundir as rundir
+
     fake_source(monkeypatch, estec_rig, n=40)
     out = tmp_path / "run"
-    full_disk(900)  # the headers and about 20 rows
+    disk = full_disk(900)  # the headers and about 20 rows
+
+    class HeldOnTheDisk(rundir.SpaceReserve):  # the run's reserve for run.yaml comes on top
+        def __init__(self, path, size: int) -> None:  # type: ignore[no-untyped-def]
+            disk.free += size
+            super().__init__(path, size)
+
+    monkeypatch.setattr(rundir, "SpaceReserve", HeldOnTheDisk)
     assert main(["track", "--source", "fake", "--auto", "8", "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1, err

@@ -178,6 +178,46 @@ def write_text_atomic(path: str | Path, text: str) -> None:
         tmp.write_text(text, encoding="utf-8")
 
 
+class SpaceReserve:
+    """A file of ``size`` bytes held so that a last small file can still be written once the disk
+    is full: a run's final ``run.yaml`` (its status and summary) after its rows filled the disk.
+
+    The bytes are written (not a sparse file, which holds no blocks), so the file system has
+    given them to this file; :meth:`release` removes it and gives them back. A run that stops
+    on a full disk releases it and writes ``run.yaml`` in the space it held.
+
+    Raises:
+        TrackmeterError: the reserve cannot be written (the disk is full already), with the
+            path and the system's reason; nothing is left behind.
+    """
+
+    def __init__(self, path: str | Path, size: int) -> None:
+        self.path: Path | None = Path(path)
+        chunk = bytes(min(size, 1 << 16))
+        try:
+            fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666)
+        except OSError as exc:
+            raise TrackmeterError(f"{self.path}: cannot create ({exc.strerror or exc})") from None
+        try:
+            left = size
+            while left > 0:
+                left -= os.write(fd, chunk[:left])
+        except OSError as exc:
+            os.close(fd)
+            self.release()
+            raise TrackmeterError(f"{path}: cannot write ({exc.strerror or exc})") from None
+        os.close(fd)
+
+    def release(self) -> bool:
+        """Remove the file (its space is free again); whether it was still held."""
+        if self.path is None:
+            return False
+        path, self.path = self.path, None
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(path)
+        return True
+
+
 class AppendFile:
     """A file written in whole pieces while it grows (a CSV row, one frame's rows).
 

@@ -22,6 +22,7 @@ running`` at the start, the final status and summary at the end).
 from __future__ import annotations
 
 import contextlib
+import errno
 import platform
 import sys
 import time
@@ -34,7 +35,7 @@ import yaml
 from trackmeter.core.targets import TargetState
 from trackmeter.core.transforms import matrix_to_quat_wxyz, quat_sign_nearest
 from trackmeter.data.motion_csv import STATES_COLUMNS, MotionCsvWriter
-from trackmeter.data.atomic import AppendFile, FolderLock, claim_folder, write_text_atomic
+from trackmeter.data.atomic import AppendFile, FolderLock, SpaceReserve, claim_folder, write_text_atomic
 from trackmeter.data.sequence import check_output_folder
 from trackmeter.data.trajectory import format_tum_line
 from trackmeter.errors import TrackmeterError
@@ -43,6 +44,11 @@ from trackmeter.errors import TrackmeterError
 TARGETS_COLUMNS: tuple[str, ...] = ("t", "id", "state", "u", "v", "u_right", "v_right", "x", "y", "z", "score")
 
 _RUN_FILES = ("trajectory.tum", "states.csv", "targets.csv", "run.yaml")
+# Held while a run is written, released for the final run.yaml when the disk is full.
+RESERVE_NAME = ".run.yaml.reserve"
+# Bytes held beyond the first run.yaml's size: the final one adds the status, the summary (its
+# invalid reasons, tracker and engine counts: about 2 KB on estec) and the finish time.
+RESERVE_EXTRA_BYTES = 32 * 1024
 
 
 def _num(value: float, fmt: str = ".9f") -> str:
@@ -117,6 +123,7 @@ class RunWriter:
                                      f"{self.directory}: cannot create")
         self._lock: FolderLock | None = lock
         self._begun: list[Path] = []  # the files this writer wrote or truncated, in order
+        self._reserve: SpaceReserve | None = None
         try:
             self._open(config, source, extra)
         except BaseException:
@@ -155,8 +162,12 @@ class RunWriter:
             **(extra or {}),
             "config": config,
         }
-        self._write_meta()  # atomic: the earlier run.yaml stays whole until this one is
+        text = self._write_meta()  # atomic: the earlier run.yaml stays whole until this one is
         self._begun.append(self.directory / "run.yaml")
+        # A disk the rows fill would leave run.yaml saying "running": the space its final
+        # version needs is held from the start (tests/test_rundir.py fills a real one).
+        self._begun.append(self.directory / RESERVE_NAME)
+        self._reserve = SpaceReserve(self.directory / RESERVE_NAME, len(text.encode("utf-8")) + RESERVE_EXTRA_BYTES)
         # Each file counts as begun before it is opened: opening truncates it.
         self._begun.append(self.directory / "states.csv")
         self._states = MotionCsvWriter(self.directory / "states.csv", STATES_COLUMNS)
@@ -165,12 +176,21 @@ class RunWriter:
         self._begun.append(self.directory / "targets.csv")
         self._targets: AppendFile | None = AppendFile(self.directory / "targets.csv", ",".join(TARGETS_COLUMNS) + "\n")
 
-    def _write_meta(self) -> None:
+    def _write_meta(self) -> str:
+        """Write run.yaml from ``self._meta``; returns the text written. On a full disk the
+        space reserve, if still held, is released and the write tried once more."""
         path = self.directory / "run.yaml"
+        text = yaml.safe_dump(self._meta, sort_keys=False, allow_unicode=True)
         try:
-            write_text_atomic(path, yaml.safe_dump(self._meta, sort_keys=False, allow_unicode=True))
+            try:
+                write_text_atomic(path, text)
+            except OSError as exc:
+                if exc.errno not in (errno.ENOSPC, errno.EDQUOT) or self._reserve is None or not self._reserve.release():
+                    raise
+                write_text_atomic(path, text)
         except OSError as exc:
             raise TrackmeterError(f"{path}: cannot write ({exc.strerror or exc})") from None
+        return text
 
     def write_frame(self, t_s: float, targets: Sequence[TargetState], pose: Any, latency_ms: float = float("nan")) -> None:
         """Append one frame: a ``states.csv`` row, its targets, and the pose when valid.
@@ -229,6 +249,8 @@ class RunWriter:
         try:
             self._close(status, summary)
         finally:
+            if self._reserve is not None:
+                self._reserve.release()
             self._release_lock()
 
     def _close(self, status: str, summary: dict[str, Any] | None) -> None:
