@@ -309,7 +309,12 @@ def test_a_run_that_fills_a_real_disk_ends_with_its_status(tmp_path: Path, capsy
 
     disk = tmp_path / "disk"
     disk.mkdir()
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=160k", "tmpfs", str(disk)], capture_output=True).returncode:
+    try:
+        mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=160k", "tmpfs", str(disk)],
+                                 capture_output=True).returncode == 0
+    except OSError:  # no mount command
+        mounted = False
+    if not mounted:
         pytest.skip("mounting a tmpfs is not allowed here")
     try:
         out = disk / "run"
