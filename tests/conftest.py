@@ -86,8 +86,8 @@ def opencv_sample_sequence(shared_data: Path, tmp_path_factory: pytest.TempPathF
 class FullDisk:
     """``os`` as :mod:`trackmeter.data.atomic` sees it, on a disk with ``free`` bytes left: a
     write takes what still fits, then the next one fails with ENOSPC (as a real full disk
-    does), and a file removed gives its bytes back. ``free`` may be raised again to let writes
-    through."""
+    does), and a file removed or cut gives its bytes back. ``free`` may be raised again to let
+    writes through."""
 
     def __init__(self, free: int) -> None:
         import os
@@ -111,6 +111,11 @@ class FullDisk:
         size = self._os.stat(path).st_size
         self._os.unlink(path, *args, **kwargs)
         self.free += size  # a removed file's space is free again
+
+    def ftruncate(self, fd: int, size: int) -> None:
+        before = self._os.fstat(fd).st_size
+        self._os.ftruncate(fd, size)
+        self.free += max(before - size, 0)  # and so is a cut file's
 
 
 @pytest.fixture

@@ -327,3 +327,15 @@ def test_a_run_that_fills_a_real_disk_ends_with_its_status(tmp_path: Path, capsy
         assert not (out / ".run.yaml.reserve").exists()
     finally:
         subprocess.run(["umount", "-l", str(disk)], capture_output=True)
+
+
+def test_a_reserve_the_disk_cannot_hold_is_refused_and_leaves_nothing(tmp_path: Path, full_disk) -> None:
+    from trackmeter.data.atomic import SpaceReserve
+
+    disk = full_disk(1000)
+    with pytest.raises(TrackmeterError, match=r"\.reserve: cannot write \(No space left on device\)"):
+        SpaceReserve(tmp_path / ".reserve", 4000)
+    assert not (tmp_path / ".reserve").exists() and disk.free == 1000  # its part given back
+    held = SpaceReserve(tmp_path / ".reserve", 600)
+    assert (tmp_path / ".reserve").stat().st_size == 600 and disk.free == 400
+    assert held.release() and not held.release() and disk.free == 1000

@@ -193,20 +193,14 @@ class SpaceReserve:
 
     def __init__(self, path: str | Path, size: int) -> None:
         self.path: Path | None = Path(path)
-        chunk = bytes(min(size, 1 << 16))
+        held = AppendFile(self.path)
         try:
-            fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666)
-        except OSError as exc:
-            raise TrackmeterError(f"{self.path}: cannot create ({exc.strerror or exc})") from None
-        try:
-            left = size
-            while left > 0:
-                left -= os.write(fd, chunk[:left])
-        except OSError as exc:
-            os.close(fd)
+            held.append("\0" * size)
+        except TrackmeterError:
             self.release()
-            raise TrackmeterError(f"{path}: cannot write ({exc.strerror or exc})") from None
-        os.close(fd)
+            raise
+        finally:
+            held.close()
 
     def release(self) -> bool:
         """Remove the file (its space is free again); whether it was still held."""
