@@ -150,6 +150,15 @@ class TrackerParams:
         0.05, "the epipolar match must beat every other peak on its line by this ZNCC", min=0.0, max=2.0
     )
     epipolar_tolerance_px: float = param(1.0, "largest vertical offset of the right match from the rectified row, px", min=0.0)
+    stereo_row_fit: bool = param(
+        False, "a tracked disparity is the shift fit along the rectified row that measure makes (the 2D fit kept for "
+        "the epipolar check) instead of the 2D fit's, whose vertical freedom leaks into it on oblique texture"
+    )
+    still_camera_fits: bool = param(
+        False, "start the sub-pixel fits at the prediction where the search agrees with it, search the stereo strip "
+        "from a whole disparity, and take a new target's first 3D point from the tracker's own stereo match: a still "
+        "camera's sharp images keep their targets"
+    )
     sigma_disparity_px: float = param(0.1, "std of a tracked sub-pixel disparity, px (paper: 0.07)", min=0.0)
     sigma_uv_px: float = param(0.05, "std of a tracked left-image position, px", min=0.0)
     min_gradient_eig: float = param(
@@ -659,6 +668,14 @@ class Tracker:
         t.point_cam = np.asarray(meas.xyz_m, float).copy()
         t.cov_cam = np.asarray(meas.cov_m, float).copy()
         t.uv_right = np.asarray(meas.right_uv, float).copy()
+        # Its first 3D point from the tracker's own stereo match, as every later one: measure's
+        # match (a strip sampled otherwise) differs from it by up to 0.2 px of disparity on a
+        # sharp image, which the rigid-motion check saw, one frame on, as the point moving.
+        if self.params.still_camera_fits:
+            ss = self.params.stereo_search_px
+            m = self._stereo(fc, uvf[None], np.array([t.disparity_px - ss]), np.array([2 * ss]))
+            if m.reason[0] is None:
+                self._set_stereo([t], m, np.array([0]))
         if self._body is not None:
             R, tvec = self._body
             t.body_point = R.T @ (t.point_cam - tvec)
@@ -735,6 +752,8 @@ class Tracker:
             min_score=p.stereo_min_score,
             uniqueness_margin=p.uniqueness_margin,
             epipolar_tolerance_px=p.epipolar_tolerance_px,
+            row_fit=self.measure if p.stereo_row_fit else None,
+            whole_disparity=p.still_camera_fits,
         )
 
     def _set_stereo(self, ts: list[_Target], m, idx: NDArray) -> None:  # type: ignore[no-untyped-def]
@@ -989,7 +1008,12 @@ class Tracker:
                 self._lose(t, f"ambiguous in the search window (scores {best:.2f}, {second:.2f})")
                 continue
             searched.append(t)
-            starts.append(uv0)
+            # The search puts the patch's centre on a half-pixel grid, up to 0.7 px from where
+            # the target is; a prediction the search agrees with is nearer: on a still sharp
+            # image the anchor's similarity fit, started 0.7 px off, used up its iterations
+            # short of converging and the target was lost.
+            near = p.still_camera_fits and float(np.max(np.abs(np.asarray(uv0) - pred))) <= 0.5
+            starts.append(pred.copy() if near else uv0)
         # Lost targets due for recovery (where they were lost, no model) join the same batched
         # fit and stereo match: each batched call has a fixed cost that dwarfs a few patches.
         due = [t for t in lost if p.recover_lost and t.lost_frames % p.recover_interval_frames == 0]
