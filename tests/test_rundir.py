@@ -11,7 +11,7 @@ import yaml
 
 from trackmeter.data.atomic import AppendFile
 from trackmeter.data.motion_csv import STATES_COLUMNS, read_motion_csv
-from trackmeter.data.rundir import RunWriter, check_run_directory
+from trackmeter.data.rundir import RESERVE_NAME, RunWriter, check_run_directory
 from trackmeter.data.trajectory import read_tum
 from trackmeter.errors import TrackmeterError
 from trackmeter.pipeline.snapshot import PoseEstimate
@@ -324,7 +324,7 @@ def test_a_run_that_fills_a_real_disk_ends_with_its_status(tmp_path: Path, capsy
         meta = yaml.safe_load((out / "run.yaml").read_text())
         assert meta["status"] == "write failed" and 0 < meta["summary"]["frames"] < 150
         assert len(read_motion_csv(out / "states.csv")) == meta["summary"]["frames"]
-        assert not (out / ".run.yaml.reserve").exists()
+        assert not (out / RESERVE_NAME).exists()
     finally:
         subprocess.run(["umount", "-l", str(disk)], capture_output=True)
 
