@@ -411,3 +411,31 @@ def test_the_row_fit_measures_an_oblique_plates_disparity_better_than_the_2d_fit
         assert ok.sum() >= 30
         errors[name] = float(np.median(np.abs(m.disparity_px - d_true)[ok]))
     assert errors["row"] < 0.9 * errors["2d"], errors
+
+
+def test_a_whole_disparity_strip_matches_the_same_whatever_the_last_disparitys_fraction(shared_data) -> None:  # type: ignore[no-untyped-def]
+    """``whole_disparity``: the right strip is sampled at a phase the left point sets, so the
+    same match comes out of a search from 3.3 px and from 3.7 px; from the fraction itself
+    the bilinear strip is another resampling of a sharp image, and the match moves."""
+    from trackmeter.core.patch_tracking import match_epipolar, rectified_to_original
+    from trackmeter.core.stereo import Camera, Rectification, StereoRig
+
+    left = cv2.imread(str(shared_data / "middlebury_tsukuba" / "img_left.png"), cv2.IMREAD_GRAYSCALE)
+    right = cv2.imread(str(shared_data / "middlebury_tsukuba" / "img_right.png"), cv2.IMREAD_GRAYSCALE)
+    K = np.array([[615.0, 0.0, 192.0], [0.0, 615.0, 144.0], [0.0, 0.0, 1.0]])
+    rig = StereoRig(Camera(384, 288, K, np.zeros(5)), Camera(384, 288, K, np.zeros(5)), np.eye(3), np.array([-0.1, 0.0, 0.0]))
+    rect = Rectification.of(rig)
+    maps = (rectified_to_original(rect, 0), rectified_to_original(rect, 1))
+    pts = cv2.goodFeaturesToTrack(left, 30, 0.05, 10).reshape(-1, 2).astype(float)
+    disp = {}
+    for whole in (False, True):
+        for low in (3.3, 3.7):  # Tsukuba's disparities are 5-14 px
+            m = match_epipolar(left.astype(np.float32), right.astype(np.float32), *maps, rect.rectify_points(pts, 0),
+                               np.full(len(pts), low), 12, 8, min_score=0.8, uniqueness_margin=0.05,
+                               epipolar_tolerance_px=1.0, whole_disparity=whole)
+            ok = np.array([r is None for r in m.reason])
+            disp[whole, low] = np.where(ok, m.disparity_px, np.nan)
+    both = np.isfinite(disp[True, 3.3]) & np.isfinite(disp[True, 3.7])
+    assert both.sum() >= 15
+    np.testing.assert_array_equal(disp[True, 3.3][both], disp[True, 3.7][both])
+    assert np.nanmax(np.abs(disp[False, 3.3] - disp[False, 3.7])) > 0.01

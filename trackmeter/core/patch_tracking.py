@@ -604,9 +604,10 @@ def match_epipolar(
     the row fit (``measure``'s own 0.149). Where the row fit fails the 2D fit's disparity stands.
 
     ``whole_disparity``: the searched range starts at a whole disparity (``disparity_low_px``
-    rounded down, the span widened to keep its top), so the right strip samples the image at a sub-pixel phase set by
-    the left point alone, not by the last disparity: on the sharp Tsukuba pair, resampled at
-    another phase, the same match moved by up to 0.1 px from frame to frame.
+    rounded down, the span widened to keep its top), so the right strip samples the image at a
+    sub-pixel phase set by the left point alone, not by the last disparity: on the sharp
+    Tsukuba pair, resampled at another phase, the same match moved by up to 0.1 px from frame
+    to frame.
 
     Args:
         left, right: float32 ORIGINAL images.

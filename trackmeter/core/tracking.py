@@ -83,6 +83,9 @@ REMOVE_NEAREST_PX = 20.0
 #: :data:`trackmeter.core.matching.REASONS` and the target checks').
 NO_CANDIDATE = "no candidate point (black space, no texture, or no unique stereo match)"
 OFF_THE_BODY = "stereo match off the body's depth range"
+#: How far (each axis) the integer search's best window may lie from the point the template was
+#: made around while the point stays where it was: half a pixel, the search's grid.
+SEARCH_CELL_PX = 0.5
 #: Frames a target must have been tracked before its filter's velocity counts as measured.
 SETTLED_FRAMES = 3
 
@@ -1012,7 +1015,7 @@ class Tracker:
             # the target is; a prediction the search agrees with is nearer: on a still sharp
             # image the anchor's similarity fit, started 0.7 px off, used up its iterations
             # short of converging and the target was lost.
-            near = p.still_camera_fits and float(np.max(np.abs(np.asarray(uv0) - pred))) <= 0.5
+            near = p.still_camera_fits and float(np.max(np.abs(np.asarray(uv0) - pred))) <= SEARCH_CELL_PX
             starts.append(pred.copy() if near else uv0)
         # Lost targets due for recovery (where they were lost, no model) join the same batched
         # fit and stereo match: each batched call has a fixed cost that dwarfs a few patches.
