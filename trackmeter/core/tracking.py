@@ -36,7 +36,7 @@ import copy
 import itertools
 import warnings
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Collection, Sequence
+from typing import TYPE_CHECKING, Any, Collection, Sequence
 
 import cv2
 import numpy as np
@@ -650,8 +650,11 @@ class Tracker:
 
     def _create(
         self, frame: StereoFrame, uvf: FloatArray, meas, target_id: str | None, origin: TargetOrigin,  # type: ignore[no-untyped-def]
+        first: tuple[Any, int] | None = None,
     ) -> TargetState | Refusal:
-        """A new target at ``uvf`` (2,) from its measurement ``meas`` (:func:`measure_points`), or the refusal."""
+        """A new target at ``uvf`` (2,) from its measurement ``meas`` (:func:`measure_points`), or the refusal.
+        ``first``: its first stereo match (an :class:`EpipolarMatch` and the row) where
+        ``still_camera_fits`` asks for one and the caller batched it (:meth:`_first_matches`)."""
         key = (float(uvf[0]), float(uvf[1]))
         if not meas.ok:
             return Refusal(key, str(meas.reason))
@@ -675,10 +678,9 @@ class Tracker:
         # match (a strip sampled otherwise) differs from it by up to 0.2 px of disparity on a
         # sharp image, which the rigid-motion check saw, one frame on, as the point moving.
         if self.params.still_camera_fits:
-            ss = self.params.stereo_search_px
-            m = self._stereo(fc, uvf[None], np.array([t.disparity_px - ss]), np.array([2 * ss]))
-            if m.reason[0] is None:
-                self._set_stereo([t], m, np.array([0]))
+            m, j = first if first is not None else (self._first_matches(fc, uvf[None], np.array([t.disparity_px])), 0)
+            if m.reason[j] is None:
+                self._set_stereo([t], m, np.array([j]))
         if self._body is not None:
             R, tvec = self._body
             t.body_point = R.T @ (t.point_cam - tvec)
@@ -758,6 +760,12 @@ class Tracker:
             row_fit=self.measure if p.stereo_row_fit else None,
             whole_disparity=p.still_camera_fits,
         )
+
+    def _first_matches(self, fc: _FrameCache, uv: FloatArray, disparity_px: FloatArray):  # type: ignore[no-untyped-def]
+        """New targets' first stereo matches at left pixels ``uv`` (N,2), one batched
+        :meth:`_stereo` around their measured disparities (N,), as a tracked target's next is."""
+        ss = self.params.stereo_search_px
+        return self._stereo(fc, uv, np.asarray(disparity_px, float) - ss, np.full(len(uv), 2 * ss))
 
     def _set_stereo(self, ts: list[_Target], m, idx: NDArray) -> None:  # type: ignore[no-untyped-def]
         """Triangulate matches ``idx`` of ``m`` (batched) into targets ``ts``."""
@@ -1516,14 +1524,20 @@ class Tracker:
         # One batched measurement of all the candidates (most of its cost is per call).
         meas = measure_points(self.rig, frame.left, frame.right, pts, self.measure)
         rng = self.auto_disparity_range([m.disparity_px for m in meas])
+        firsts = None
+        if p.still_camera_fits:  # one batched stereo match for the measured candidates' first points
+            rows = [i for i, m in enumerate(meas) if m.ok]
+            if rows:
+                matched = self._first_matches(fc, pts[rows], np.array([meas[i].disparity_px for i in rows]))
+                firsts = {i: (matched, k) for k, i in enumerate(rows)}
         added = 0
-        for uv, m in zip(pts, meas):
+        for i, (uv, m) in enumerate(zip(pts, meas)):
             if added >= need or len(self._targets) >= p.max_targets:
                 break
             if rng is not None and not rng[0] <= m.disparity_px <= rng[1]:
                 self.auto_refusals[OFF_THE_BODY] += 1
                 continue  # a false stereo match: not at the body's depth
-            made = self._create(frame, uv, m, None, "auto")
+            made = self._create(frame, uv, m, None, "auto", firsts.get(i) if firsts else None)
             if isinstance(made, TargetState):
                 added += 1
                 self.stats["auto_added"] += 1
