@@ -1526,7 +1526,7 @@ class Tracker:
         rng = self.auto_disparity_range([m.disparity_px for m in meas])
         firsts = None
         if p.still_camera_fits:  # one batched stereo match for the measured candidates' first points
-            rows = [i for i, m in enumerate(meas) if m.ok]
+            rows = [i for i, m in enumerate(meas) if m.ok and (rng is None or rng[0] <= m.disparity_px <= rng[1])]
             if rows:
                 matched = self._first_matches(fc, pts[rows], np.array([meas[i].disparity_px for i in rows]))
                 firsts = {i: (matched, k) for k, i in enumerate(rows)}
