@@ -673,7 +673,7 @@ def match_epipolar(
     u_right = x_first + lk.uv[:, 0]
     v_right = cl[:, 1] + (lk.uv[:, 1] - margin - half)
     if row_fit is not None and N:
-        x_row, _, _, _ = refine_positions(list(templates.values), list(core.astype(np.float32)),
+        x_row, _, _, _ = refine_positions(list(templates.values), list(strip[:, margin:-margin, :]),
                                           np.clip(lk.uv[:, 0] - half, 0.0, width - size), _any_fit(row_fit))
         u_right = np.where(np.isfinite(x_row), x_first + x_row + half, u_right)
     disparity = cl[:, 0] - u_right
