@@ -36,7 +36,7 @@ import viser.uplot
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from console.overlay import (STATUS_RGB, LostTargets, box_half_px, box_segments, draw_overlays,
+from console.overlay import (PORTRAIT_BAND, STATUS_RGB, LostTargets, box_half_px, box_segments, draw_overlays,
                              image_view, node_rgb_for, pixel_to_plane, ray_to_pixel, to_rgb)
 from console.series import PLOTS, PlotData
 from trackmeter.core.stereo import StereoRig
@@ -823,7 +823,8 @@ class Console:
                 if self.right_image.visible:  # both images, side by side
                     right_x = float(self.right_image.position[0])
                     span, centre = (right_x + rw, rh), (right_x / 2, 0.0)
-                client.camera.position, client.camera.look_at = image_view(span, aspect, np.radians(50.0), centre)
+                band = PORTRAIT_BAND if aspect < 1.0 else 1.0  # a phone held upright: above its panel
+                client.camera.position, client.camera.look_at = image_view(span, aspect, np.radians(50.0), centre, band)
 
     # ------------------------------------------------------------------ snapshots
     def _on_snapshot(self, snap: Snapshot) -> None:

@@ -121,9 +121,14 @@ def box_segments(
 #: half-extent on the axis that limits it.
 VIEW_MARGIN = 0.04
 
+#: A view narrower than it is tall frames the image in this top fraction of its height: on a
+#: phone (viser's mobile layout, under 576 CSS px wide) the control panel is a sheet over the
+#: bottom of the view, up to 60 % of its height, and an image framed at the bottom lay under it.
+PORTRAIT_BAND = 0.4
+
 
 def image_view(render_size: tuple[float, float], aspect: float, fov_y_rad: float,
-               centre: tuple[float, float] = (0.0, 0.0)) -> tuple[
+               centre: tuple[float, float] = (0.0, 0.0), band: float = 1.0) -> tuple[
         tuple[float, float, float], tuple[float, float, float]]:
     """The browser camera's ``(position, look_at)`` that shows the whole left image (centred
     on the scene origin, facing -z; see the module docstring), or any rectangle of
@@ -136,18 +141,25 @@ def image_view(render_size: tuple[float, float], aspect: float, fov_y_rad: float
     around it: the browser's pop-ups (a click's answer) stack from the view's top-left corner
     and would otherwise lie over the image and catch the clicks meant for it.
 
+    ``band`` (0, 1]: frame the image within the top ``band`` of the view's height instead of
+    all of it (:data:`PORTRAIT_BAND`: the room a phone's control sheet leaves); the band is then
+    the view above, spare room and margin included.
+
     With the camera at ``(cx, cy, -d)`` looking along +z, the view spans ``d tan(fov/2)`` up
     and down and ``aspect`` times that sideways; the image's right and bottom edges are put at
-    the limiting axis's margin from the view's.
+    the limiting axis's margin from the band's.
     """
+    if not 0.0 < band <= 1.0:
+        raise ValueError(f"band must be in (0, 1], got {band}")
     rw, rh = render_size
     tan_half = float(np.tan(fov_y_rad / 2.0))
-    d = (1.0 + VIEW_MARGIN) * max((rh / 2) / tan_half, (rw / 2) / (tan_half * aspect))
+    d = (1.0 + VIEW_MARGIN) * max((rh / 2) / (tan_half * band), (rw / 2) / (tan_half * aspect))
     half_h = d * tan_half
     half_w = half_h * aspect
-    gap = min(half_w - rw / 2, half_h - rh / 2)  # the limiting axis's margin, >= 0
+    gap = min(half_w - rw / 2, band * half_h - rh / 2)  # the limiting axis's margin, >= 0
     cx = centre[0] + rw / 2 - half_w + gap
-    cy = centre[1] + rh / 2 - half_h + gap
+    # The band's bottom edge lies 2 band half_h below the view's top edge (cy - half_h; up is -y).
+    cy = centre[1] + rh / 2 + half_h - 2 * band * half_h + gap
     return (cx, cy, -d), (cx, cy, 0.0)
 
 

@@ -23,6 +23,7 @@ from console.overlay import (  # noqa: E402
     draw_overlays,
     node_rgb_for,
     pixel_to_plane,
+    PORTRAIT_BAND,
     VIEW_MARGIN,
     image_view,
     ray_to_pixel,
@@ -443,6 +444,38 @@ def test_image_view_shows_the_whole_image_with_the_spare_room_top_left(viewport)
     assert limiting_extent == pytest.approx(limiting_view / (1 + VIEW_MARGIN), rel=1e-9)
     assert gap_right == pytest.approx(gap_bottom, abs=1e-6) and gap_right > 0
     assert left >= gap_right - 1e-6 and top >= gap_bottom - 1e-6
+
+
+@pytest.mark.parametrize("viewport", [(390, 844), (412, 915), (600, 900), (275, 900)])
+def test_image_view_in_a_band_keeps_the_image_in_the_top_of_the_view(viewport) -> None:  # type: ignore[no-untyped-def]
+    # A phone held upright: viser lays its control panel over the bottom of the view, so the
+    # image goes in the top PORTRAIT_BAND of the view's height, filling the band's limiting
+    # axis, its spare room top-left as before.
+    import cv2
+
+    width, height = viewport
+    render_size, fov, band = (7.26, 5.12), np.radians(50.0), PORTRAIT_BAND
+    position, look_at = image_view(render_size, width / height, fov, band=band)
+    assert np.allclose(np.subtract(look_at, position)[:2], 0.0) and look_at[2] > position[2]
+    f = (height / 2) / np.tan(fov / 2)
+    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]])
+    rw, rh = render_size
+    corners = np.array([[-rw / 2, -rh / 2, 0], [rw / 2, -rh / 2, 0], [rw / 2, rh / 2, 0], [-rw / 2, rh / 2, 0]])
+    uv, _ = cv2.projectPoints(corners, np.zeros(3), -np.asarray(position, dtype=float), K, None)
+    (left, top), (right, bottom) = uv.reshape(-1, 2).min(axis=0), uv.reshape(-1, 2).max(axis=0)
+    band_px = band * height
+    gap_right, gap_bottom = width - right, band_px - bottom
+    limiting_extent, limiting_view = min((right - left, width), (bottom - top, band_px), key=lambda e: e[1] / e[0])
+    assert limiting_extent == pytest.approx(limiting_view / (1 + VIEW_MARGIN), rel=1e-9)
+    assert gap_right == pytest.approx(gap_bottom, abs=1e-6) and gap_right > 0
+    assert left >= gap_right - 1e-6 and top >= gap_bottom - 1e-6
+    assert (right - left) / (bottom - top) == pytest.approx(rw / rh)
+
+
+def test_image_view_refuses_a_band_outside_the_view() -> None:
+    for band in (0.0, -0.1, 1.5):
+        with pytest.raises(ValueError, match="band"):
+            image_view((7.26, 5.12), 0.5, np.radians(50.0), band=band)
 
 
 def test_image_view_of_a_rectangle_off_the_origin_is_the_same_view_moved_with_it() -> None:

@@ -135,10 +135,11 @@ def artifacts() -> Path:
     return ARTIFACTS
 
 
-def open_page(browser: Any, running: Any) -> tuple[Any, Any]:
-    """A new browser page on the console, connected; returns (page, viser client handle)."""
+def open_page(browser: Any, running: Any, viewport: dict[str, int] | None = None) -> tuple[Any, Any]:
+    """A new browser page on the console (``viewport`` CSS px, :data:`VIEWPORT` by default),
+    connected; returns (page, viser client handle)."""
     before = set(running.server.get_clients())
-    page = browser.new_context(viewport=VIEWPORT).new_page()
+    page = browser.new_context(viewport=viewport or VIEWPORT).new_page()
     page.goto(running.url)
     (client_id,) = wait_for(lambda: tuple(set(running.server.get_clients()) - before)[:1], 30,
                             "the browser's websocket connection")

@@ -212,3 +212,29 @@ def test_showing_the_right_image_frames_both_images(page_and_client: Any, runnin
     page.get_by_label("Show right image").click()
     wait_for(lambda: not con.right_image.visible and abs(client.camera.look_at[0]) < 0.5, 10,
              "the view back on the left image")
+
+
+def test_on_a_phone_held_upright_the_image_is_above_the_control_sheet(browser: Any, running_console: Any,
+                                                                      artifacts: Path) -> None:
+    # Under 576 CSS px wide viser lays its control panel over the bottom of the view, up to
+    # 60 % of its height; the image was framed at the view's bottom, under that sheet.
+    from console.overlay import PORTRAIT_BAND
+
+    phone = {"width": 390, "height": 844}
+    page, client = open_page(browser, running_console, viewport=phone)
+    try:
+        w, h = running_console.console._image_size
+        corners = [(2.0, h - 3.0), (w - 3.0, h - 3.0)]
+        wait_for(lambda: max(pixel_to_screen(running_console, client, page, uv)[1] for uv in corners)
+                 < PORTRAIT_BAND * phone["height"], 10, "the image framed in the top of the view")
+        time.sleep(1.0)
+        page.screenshot(path=str(artifacts / "10_phone_upright.png"))
+        # Nothing lies over the image's centre and bottom corners: the page's own hit test
+        # there finds the 3D canvas, not the control sheet (the top-left corner is left out:
+        # software WebGL's own warning sits there in a headless browser).
+        for uv in [(w / 2, h / 2), *corners]:
+            x, y = pixel_to_screen(running_console, client, page, uv)
+            tag = page.evaluate("([x, y]) => document.elementFromPoint(x, y)?.tagName", [x, y])
+            assert tag == "CANVAS", (uv, (x, y), tag)
+    finally:
+        page.context.close()
