@@ -422,39 +422,19 @@ def test_the_recording_line_says_when_nothing_is_recorded_any_more() -> None:
     assert Console._recording_text(off) == "not recording (last: runs/rec: 253 frames written, 0 not recorded)"
 
 
-@pytest.mark.parametrize("viewport", [(1070, 900), (1920, 700), (600, 900), (1029.6, 726)])
-def test_image_view_shows_the_whole_image_with_the_spare_room_top_left(viewport) -> None:  # type: ignore[no-untyped-def]
+@pytest.mark.parametrize("viewport, band", [
+    ((1070, 900), 1.0), ((1920, 700), 1.0), ((600, 900), 1.0), ((1029.6, 726), 1.0),
+    # A phone held upright: viser lays its control panel over the bottom of the view, so the
+    # image goes in the top PORTRAIT_BAND of the view's height.
+    ((390, 844), PORTRAIT_BAND), ((412, 915), PORTRAIT_BAND), ((600, 900), PORTRAIT_BAND), ((275, 900), PORTRAIT_BAND),
+])
+def test_image_view_shows_the_whole_image_in_its_band_with_the_spare_room_top_left(viewport, band) -> None:  # type: ignore[no-untyped-def]
     # The browser's view as an OpenCV pinhole of the viewport's pixels (square pixels, the
     # vertical field of view given), camera axes along the world's: up is -y, forward +z.
     import cv2
 
     width, height = viewport
     render_size, fov = (7.26, 5.12), np.radians(50.0)
-    position, look_at = image_view(render_size, width / height, fov)
-    assert np.allclose(np.subtract(look_at, position)[:2], 0.0) and look_at[2] > position[2]
-    f = (height / 2) / np.tan(fov / 2)
-    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]])
-    rw, rh = render_size
-    corners = np.array([[-rw / 2, -rh / 2, 0], [rw / 2, -rh / 2, 0], [rw / 2, rh / 2, 0], [-rw / 2, rh / 2, 0]])
-    uv, _ = cv2.projectPoints(corners, np.zeros(3), -np.asarray(position, dtype=float), K, None)
-    (left, top), (right, bottom) = uv.reshape(-1, 2).min(axis=0), uv.reshape(-1, 2).max(axis=0)
-    gap_right, gap_bottom = width - right, height - bottom
-    # Fills the limiting axis but for the margin; the other axis's spare room is all top-left.
-    limiting_extent, limiting_view = min((right - left, width), (bottom - top, height), key=lambda e: e[1] / e[0])
-    assert limiting_extent == pytest.approx(limiting_view / (1 + VIEW_MARGIN), rel=1e-9)
-    assert gap_right == pytest.approx(gap_bottom, abs=1e-6) and gap_right > 0
-    assert left >= gap_right - 1e-6 and top >= gap_bottom - 1e-6
-
-
-@pytest.mark.parametrize("viewport", [(390, 844), (412, 915), (600, 900), (275, 900)])
-def test_image_view_in_a_band_keeps_the_image_in_the_top_of_the_view(viewport) -> None:  # type: ignore[no-untyped-def]
-    # A phone held upright: viser lays its control panel over the bottom of the view, so the
-    # image goes in the top PORTRAIT_BAND of the view's height, filling the band's limiting
-    # axis, its spare room top-left as before.
-    import cv2
-
-    width, height = viewport
-    render_size, fov, band = (7.26, 5.12), np.radians(50.0), PORTRAIT_BAND
     position, look_at = image_view(render_size, width / height, fov, band=band)
     assert np.allclose(np.subtract(look_at, position)[:2], 0.0) and look_at[2] > position[2]
     f = (height / 2) / np.tan(fov / 2)
@@ -465,6 +445,7 @@ def test_image_view_in_a_band_keeps_the_image_in_the_top_of_the_view(viewport) -
     (left, top), (right, bottom) = uv.reshape(-1, 2).min(axis=0), uv.reshape(-1, 2).max(axis=0)
     band_px = band * height
     gap_right, gap_bottom = width - right, band_px - bottom
+    # Fills the band's limiting axis but for the margin; the other axis's spare room is all top-left.
     limiting_extent, limiting_view = min((right - left, width), (bottom - top, band_px), key=lambda e: e[1] / e[0])
     assert limiting_extent == pytest.approx(limiting_view / (1 + VIEW_MARGIN), rel=1e-9)
     assert gap_right == pytest.approx(gap_bottom, abs=1e-6) and gap_right > 0
