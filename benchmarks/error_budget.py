@@ -2,7 +2,8 @@
 
 ``python -m benchmarks.error_budget`` (a diagnostic, not in ``python -m benchmarks``' list: it
 runs the slow chain). The ``estec`` chain of ``benchmarks/accuracy.py`` (case b, 16 automatic
-targets plus the model points an operator clicks) is run once for ``TRACKMETER_BUDGET_S``
+targets plus the model points an operator clicks; another scenario, by name or file, with
+``TRACKMETER_BUDGET_SCENARIO``) is run once for ``TRACKMETER_BUDGET_S``
 seconds (default 60; the configuration as :func:`benchmarks.bench_config`, i.e. a YAML named by
 ``TRACKMETER_BENCH_CONFIG`` over the defaults) and what the tracker handed the engine each frame
 is recorded. The engine is
@@ -21,7 +22,12 @@ renderer's surface truth under each target (:meth:`Simulator.surface_points`):
 - ``*_anchored`` (``recorded``, ``oracle_apriori``, and ``oracle_apriori_bias1mm`` / ``_bias2mm``:
   the a-priori oracle with a constant bias per point, sigma 1 or 2 mm in depth, a third of it
   across): the engine pulls its grown model onto the a-priori points' frame whenever they are
-  seen (``pose.anchor_time_s`` 0.5 s, ``anchor_memory_s`` 1 s; :data:`ANCHORED`).
+  seen (``pose.anchor_time_s`` 0.5 s, ``anchor_memory_s`` 1 s; :data:`ANCHORED`);
+- ``joint_*`` (``recorded``, ``oracle_apriori``, ``oracle_auto_pinned``, ``oracle_all``; pose
+  figures only): the same measurements given to :func:`joint_fit`, every pose and grown point
+  estimated at once over the whole run (offline, non-causal: the most a window of joint
+  estimation, a bundle adjustment, could do with them), started from the replay's poses and
+  judged on the frames the replay had a pose for.
 
 Figures ``<variant>_<span>s_<metric>`` for spans 20, 40, 60 s (``benchmarks.accuracy.figures``,
 metrics as ``estec_b_*``), plus measurement statistics of the chain: ``slide_median_mm_1s`` /
@@ -49,6 +55,10 @@ grown model pulled onto them meet both position goals, with the targets still sl
 bias 1 mm 1.08 / 1.79 and 5.05 / 6.58; bias 2 mm 1.63 / 1.92 and 4.81 / 6.69. A measurement
 of the corners that would carry case (b) over 20 s must be unbiased to about 1 mm in depth
 (0.03 px of disparity at 3.5 m) and a third of that across; the patch measures them 4-15 mm off.
+Joint (2026-12-03, 20 s, lateral / depth mm, engine against joint fit): recorded 2.53 / 6.14 and
+2.95 / 7.67, oracle_apriori 1.57 / 4.15 and 2.56 / 4.16, oracle_auto_pinned 1.85 / 3.17 and
+1.52 / 4.81, oracle_all 0.31 / 1.00 and 0.37 / 1.14: a joint estimate over the whole run does not
+undo biased or sliding measurements (docs/results.md, "A tumble four times estec's").
 """
 
 from __future__ import annotations
@@ -136,7 +146,7 @@ def record(seconds: float, scenario: str = "estec") -> dict[str, Any]:
             break
         _, pose, _ = engine.process(frame)
         if k == 0:
-            engine.handle(SelectModelPoints(), frame)
+            engine.handle(SelectModelPoints(repeat=True), frame)  # as the accuracy chain's operator
             engine.handle(SetAuto(True, MAX_POINTS, None), frame)
         gt = frame.truth
         truth.append((frame.t_s, gt.T_cam_body, gt.velocity_cam_m_s, gt.omega_body_rad_s))
@@ -207,6 +217,143 @@ def replay(rec: dict[str, Any], frames: list[tuple[TargetState, ...]], config: C
     return _series(truth_rows), _series(est_rows)
 
 
+def joint_fit(frames: list[tuple[TargetState, ...]], apriori: dict[str, np.ndarray],
+              T_init: list[np.ndarray | None], huber_sigmas: float = 2.0, max_iterations: int = 30
+              ) -> list[np.ndarray | None]:
+    """Every pose and every grown point estimated at once from all frames' 3D measurements: a
+    bundle adjustment of 3D points, offline and non-causal, the most any window of joint
+    estimation could take from the same measurements.
+
+    Minimises ``sum rho(|L_i^T (R_k X_j + t_k - y_i)|^2)`` over the poses ``(R_k, t_k)`` of
+    the frames with 3 or more measurements and the body coordinates ``X_j`` of the targets
+    measured in 3 or more of them; ``y_i`` a measurement (camera frame, m), ``L_i L_i^T`` the
+    inverse of its covariance, ``rho`` Huber's loss at ``huber_sigmas`` (on the whitened
+    3-vector's length), the a-priori points' ``X_j`` held at the model's (they fix the frame;
+    without any in a run the gauge would be free). Each point starts at the median of its
+    measurements carried into the body by the starting poses.
+
+    Args:
+        frames: per frame, the targets as the tracker gave them (``point_cam``, ``cov_cam``).
+        apriori: model id -> body coordinates (3,), m.
+        T_init: per frame a starting ``T_cam_body`` (4, 4), or None; a frame without one
+            starts from the nearest frame's.
+
+    Returns:
+        Per frame the fitted ``T_cam_body``, None where it was not fitted.
+    """
+    from scipy.sparse import coo_matrix, identity
+    from scipy.sparse.linalg import spsolve
+    from scipy.spatial.transform import Rotation
+
+    known = [k for k, T in enumerate(T_init) if T is not None]
+    if not known:
+        return [None] * len(frames)
+    start = [T_init[k] if T_init[k] is not None else T_init[min(known, key=lambda j: abs(j - k))]
+             for k in range(len(frames))]
+    rows: list[tuple[int, str, np.ndarray, np.ndarray]] = []  # frame, id, y (3,), L^T (3, 3)
+    for k, targets in enumerate(frames):
+        for tg in targets:
+            if not (tg.measured and np.all(np.isfinite(tg.point_cam))):
+                continue
+            w, V = np.linalg.eigh(0.5 * (np.asarray(tg.cov_cam, float) + np.asarray(tg.cov_cam, float).T))
+            if not (np.all(np.isfinite(w)) and w.max() > 0.0):
+                continue
+            rows.append((k, tg.id, np.asarray(tg.point_cam, float), (V / np.sqrt(np.clip(w, w.max() * 1e-6, None))).T))
+    seen: dict[str, list[np.ndarray]] = {}
+    for k, tid, y, _ in rows:
+        if tid not in apriori:
+            seen.setdefault(tid, []).append(start[k][:3, :3].T @ (y - start[k][:3, 3]))
+    grown = {tid: np.median(v, axis=0) for tid, v in seen.items() if len(v) >= 3}
+    rows = [r for r in rows if r[1] in apriori or r[1] in grown]
+    per_frame = np.bincount([r[0] for r in rows], minlength=len(frames))
+    fitted = [k for k in range(len(frames)) if per_frame[k] >= 3]
+    rows = [r for r in rows if per_frame[r[0]] >= 3]
+    pose_of = {k: i for i, k in enumerate(fitted)}
+    point_of = {tid: i for i, tid in enumerate(sorted(grown))}
+    n_pose = 6 * len(fitted)
+    frame_i = np.array([pose_of[r[0]] for r in rows])
+    point_i = np.array([point_of.get(r[1], -1) for r in rows])
+    fixed = np.array([apriori[r[1]] if r[1] in apriori else np.zeros(3) for r in rows])
+    y = np.array([r[2] for r in rows]).reshape(-1, 3)
+    Lt = np.array([r[3] for r in rows]).reshape(-1, 3, 3)
+
+    # Gauss-Newton on the normal equations, solved directly (sparse), with Huber's weights
+    # re-computed each step (IRLS): least_squares' 'trf' over an LSMR solve took over 2000
+    # evaluations on 100 frames and stopped on its step size, far from converged.
+    R = np.array([start[k][:3, :3] for k in fitted])
+    t = np.array([start[k][:3, 3] for k in fitted])
+    X = np.array([grown[tid] for tid in sorted(grown)]).reshape(-1, 3)
+    is_grown = point_i >= 0
+    n_rows = len(rows)
+    cols_pose = 6 * frame_i[:, None] + np.arange(6)  # (n, 6)
+    cols_point = n_pose + 3 * np.maximum(point_i, 0)[:, None] + np.arange(3)  # (n, 3)
+    for _ in range(max_iterations):
+        Xb = np.where(is_grown[:, None], X[np.maximum(point_i, 0)], fixed)
+        RX = np.einsum("nij,nj->ni", R[frame_i], Xb)
+        r = np.einsum("nij,nj->ni", Lt, RX + t[frame_i] - y)  # whitened, (n, 3)
+        norm = np.linalg.norm(r, axis=1)
+        weight = np.sqrt(np.where(norm <= huber_sigmas, 1.0, huber_sigmas / np.maximum(norm, 1e-12)))
+        skew = np.zeros((n_rows, 3, 3))  # d(R X)/d(turn) = -[R X]x
+        skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = RX[:, 2], -RX[:, 1], RX[:, 0]
+        skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = -RX[:, 2], RX[:, 1], -RX[:, 0]
+        J_pose = np.concatenate([Lt @ skew, Lt], axis=2) * weight[:, None, None]  # (n, 3, 6)
+        J_point = (Lt @ R[frame_i]) * weight[:, None, None]  # (n, 3, 3)
+        row_ids = np.arange(3 * n_rows).reshape(n_rows, 3)
+        J = coo_matrix((np.concatenate([J_pose.ravel(), J_point[is_grown].ravel()]),
+                        (np.concatenate([np.repeat(row_ids, 6, axis=1).ravel(),
+                                         np.repeat(row_ids[is_grown], 3, axis=1).ravel()]),
+                         np.concatenate([np.broadcast_to(cols_pose[:, None, :], (n_rows, 3, 6)).ravel(),
+                                         np.broadcast_to(cols_point[is_grown][:, None, :], (int(is_grown.sum()), 3, 3)).ravel()]))),
+                       shape=(3 * n_rows, n_pose + 3 * len(grown))).tocsr()
+        H = (J.T @ J + 1e-9 * identity(J.shape[1])).tocsc()  # the tiny ridge: a pose no point fixes
+        step = -spsolve(H, J.T @ (r * weight[:, None]).ravel())
+        turns = step[:n_pose].reshape(-1, 6)
+        R = Rotation.from_rotvec(turns[:, :3]).as_matrix() @ R
+        t = t + turns[:, 3:]
+        X = X + step[n_pose:].reshape(-1, 3)
+        if np.max(np.abs(step)) < 1e-9:
+            break
+    out: list[np.ndarray | None] = [None] * len(frames)
+    for k, i in pose_of.items():
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R[i], t[i]
+        out[k] = T
+    return out
+
+
+def _poses(series: Any) -> list[np.ndarray | None]:
+    """A MotionSeries' poses as ``T_cam_body`` (4, 4), None where not valid."""
+    from trackmeter.core.transforms import quat_wxyz_to_matrix
+
+    out: list[np.ndarray | None] = []
+    for ok, p, q in zip(series.valid, series.position_m, series.quat_wxyz):
+        T = None
+        if ok:
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = quat_wxyz_to_matrix(q), p
+        out.append(T)
+    return out
+
+
+def _series_of_poses(t_s: np.ndarray, poses: list[np.ndarray | None]) -> Any:
+    nan3 = np.full(3, np.nan)
+    return _series([(t, T is not None, (T if T is not None else np.eye(4), nan3, nan3)) for t, T in zip(t_s, poses)])
+
+
+def _span_figures(name: str, truth: Any, est: Any) -> dict[str, float]:
+    """``<name>_<span>s_<metric>_max_<unit>`` for each span the run covers."""
+    out: dict[str, float] = {}
+    for s in SPANS_S:
+        if truth.t_s[-1] < s - 0.1:
+            break
+        f = figures(_span(truth, s), _span(est, s), "none", "x")
+        for m in METRICS:
+            for key, value in f.items():
+                if key.startswith(f"x_{m}_max_"):
+                    out[f"{name}_{s:.0f}s_{key[2:]}"] = value
+    return out
+
+
 def _span(series: Any, s: float) -> Any:
     m = series.t_s <= s + 1e-6
     return type(series)(series.t_s[m], series.valid[m], series.position_m[m], series.quat_wxyz[m],
@@ -258,11 +405,14 @@ def measurement_stats(rec: dict[str, Any]) -> dict[str, float]:
 # the a-priori points' frame whenever they are seen (off in the default configuration).
 ANCHORED = dict(anchor_time_s=0.5, anchor_memory_s=1.0)
 
+#: The variants whose measurements are also given to :func:`joint_fit` (``joint_<variant>_*``).
+JOINT = ("recorded", "oracle_apriori", "oracle_auto_pinned", "oracle_all")
+
 
 def run() -> dict[str, float]:
     seconds = float(os.environ.get("TRACKMETER_BUDGET_S", "60"))
     base = bench_config()  # before the long recording: a bad TRACKMETER_BENCH_CONFIG is refused at once
-    rec = record(seconds)
+    rec = record(seconds, os.environ.get("TRACKMETER_BUDGET_SCENARIO", "estec"))
     out = measurement_stats(rec)
     anchored = replace(base, pose=replace(base.pose, **ANCHORED))
     oracle_apriori = dict(apriori=True, auto=False, pinned=False)
@@ -284,14 +434,13 @@ def run() -> dict[str, float]:
             diffs = [np.linalg.norm(T[:3, 3] - p) for T, p, ok in zip(rec["poses"], est.position_m, est.valid)
                      if T is not None and ok]
             out["replay_max_diff_mm"] = float(max(diffs) * 1e3) if diffs else float("nan")
-        for s in SPANS_S:
-            if truth.t_s[-1] < s - 0.1:
-                break
-            f = figures(_span(truth, s), _span(est, s), "none", "x")
-            for m in METRICS:
-                for key, value in f.items():
-                    if key.startswith(f"x_{m}_max_"):
-                        out[f"{name}_{s:.0f}s_{key[2:]}"] = value
+        out.update(_span_figures(name, truth, est))
+        if name in JOINT:
+            # The joint fit on the same measurements, from the engine's poses, judged on the
+            # frames the engine had a pose for (its rates are not estimated: pose figures only).
+            fitted = joint_fit(frames, rec["apriori"], _poses(est))
+            joint = [T if ok else None for T, ok in zip(fitted, est.valid)]
+            out.update(_span_figures(f"joint_{name}", truth, _series_of_poses(est.t_s, joint)))
         _log(f"{name} done")
     return out
 
