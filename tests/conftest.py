@@ -86,7 +86,8 @@ def opencv_sample_sequence(shared_data: Path, tmp_path_factory: pytest.TempPathF
 class FullDisk:
     """``os`` as :mod:`trackmeter.data.atomic` sees it, on a disk with ``free`` bytes left: a
     write takes what still fits, then the next one fails with ENOSPC (as a real full disk
-    does), and a file removed or cut gives its bytes back. ``free`` may be raised again to let
+    does), and a file removed or cut gives its bytes back, a removed file still open when its
+    last descriptor closes (as a POSIX file system does). ``free`` may be raised again to let
     writes through."""
 
     def __init__(self, free: int) -> None:
@@ -94,6 +95,19 @@ class FullDisk:
 
         self._os = os
         self.free = free
+        self._inode_of: dict[int, int] = {}  # open descriptor -> its file's inode
+        self._unlinked_open: dict[int, int] = {}  # inode removed while open -> its bytes
+
+    def open(self, path, flags, *args, **kwargs):  # type: ignore[no-untyped-def]
+        fd = self._os.open(path, flags, *args, **kwargs)
+        self._inode_of[fd] = self._os.fstat(fd).st_ino
+        return fd
+
+    def close(self, fd: int) -> None:
+        inode = self._inode_of.pop(fd, None)
+        self._os.close(fd)
+        if inode in self._unlinked_open and inode not in self._inode_of.values():
+            self.free += self._unlinked_open.pop(inode)
 
     def __getattr__(self, name: str):  # type: ignore[no-untyped-def]
         return getattr(self._os, name)
@@ -108,9 +122,12 @@ class FullDisk:
         return n
 
     def unlink(self, path, *args, **kwargs):  # type: ignore[no-untyped-def]
-        size = self._os.stat(path).st_size
+        st = self._os.stat(path)
         self._os.unlink(path, *args, **kwargs)
-        self.free += size  # a removed file's space is free again
+        if st.st_ino in self._inode_of.values():
+            self._unlinked_open[st.st_ino] = st.st_size
+        else:
+            self.free += st.st_size  # a removed file's space is free again
 
     def ftruncate(self, fd: int, size: int) -> None:
         before = self._os.fstat(fd).st_size

@@ -272,17 +272,21 @@ def test_the_final_run_yaml_is_written_in_the_space_held_for_it(tmp_path: Path, 
 
     import trackmeter.data.rundir as rundir
 
+    import os
+
     writer = RunWriter(tmp_path / "run", {"big": "x" * 5000}, {"spec": "test"})
-    reserve = tmp_path / "run" / rundir.RESERVE_NAME
+    reserve = writer._reserve
+    assert reserve is not None and reserve.held
     first = (tmp_path / "run" / "run.yaml").stat().st_size
-    assert reserve.stat().st_size >= first + 16 * 1024
+    assert os.fstat(reserve._fd).st_size >= first + 16 * 1024  # type: ignore[arg-type]
+    assert not (tmp_path / "run" / rundir.RESERVE_NAME).exists()  # held by a descriptor, not a name
     writer.write_frame(0.0, (), _pose(0.0))
     real = rundir.write_text_atomic
     tries = []
 
     def full_unless_released(path, text):  # type: ignore[no-untyped-def]
-        tries.append(reserve.exists())
-        if reserve.exists():  # the disk is full until the reserve gives its space back
+        tries.append(reserve.held)
+        if reserve.held:  # the disk is full until the reserve gives its space back
             raise OSError(errno.ENOSPC, "No space left on device")
         real(path, text)
 
@@ -291,12 +295,39 @@ def test_the_final_run_yaml_is_written_in_the_space_held_for_it(tmp_path: Path, 
     assert tries == [True, False]
     meta = yaml.safe_load((tmp_path / "run" / "run.yaml").read_text())
     assert meta["status"] == "write failed" and meta["summary"]["frames"] == 1
-    assert not reserve.exists()
+    assert not reserve.held
     monkeypatch.undo()
     other = RunWriter(tmp_path / "other", {}, {"spec": "test"})
     other.close("complete")
     assert sorted(p.name for p in (tmp_path / "other").iterdir()) == ["run.yaml", "states.csv", "targets.csv",
                                                                        "trajectory.tum"]
+
+
+def test_a_run_killed_outright_leaves_only_its_files(tmp_path: Path) -> None:
+    """SIGKILL (the OOM killer, ``kill -9``) gives a run no time to tidy up: the space reserve
+    must not be a file left behind in the run folder (it was: a hidden 38 KB
+    ``.run.yaml.reserve``), and the frames written before the kill stay readable."""
+    import signal
+    import subprocess
+    import sys
+
+    out = tmp_path / "run"
+    child = (
+        "import os, signal, sys\n"
+        "sys.path[:0] = [sys.argv[2]]\n"
+        "from tests.test_rundir import _pose\n"
+        "from trackmeter.data.rundir import RunWriter\n"
+        "writer = RunWriter(sys.argv[1], {'big': 'x' * 5000}, {'spec': 'test'})\n"
+        "for k in range(3):\n"
+        "    writer.write_frame(0.04 * k, (), _pose(0.0))\n"
+        "os.kill(os.getpid(), signal.SIGKILL)\n"
+    )
+    root = str(Path(__file__).resolve().parents[1])
+    proc = subprocess.run([sys.executable, "-c", child, str(out), root], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr
+    assert sorted(p.name for p in out.iterdir()) == ["run.yaml", "states.csv", "targets.csv", "trajectory.tum"]
+    assert yaml.safe_load((out / "run.yaml").read_text())["status"] == "running"
+    assert len(read_motion_csv(out / "states.csv")) == 3
 
 
 def test_a_run_that_fills_a_real_disk_ends_with_its_status(tmp_path: Path, capsys) -> None:
@@ -337,5 +368,5 @@ def test_a_reserve_the_disk_cannot_hold_is_refused_and_leaves_nothing(tmp_path: 
         SpaceReserve(tmp_path / ".reserve", 4000)
     assert not (tmp_path / ".reserve").exists() and disk.free == 1000  # its part given back
     held = SpaceReserve(tmp_path / ".reserve", 600)
-    assert (tmp_path / ".reserve").stat().st_size == 600 and disk.free == 400
+    assert not (tmp_path / ".reserve").exists() and disk.free == 400  # held by a descriptor, not a name
     assert held.release() and not held.release() and disk.free == 1000

@@ -179,12 +179,14 @@ def write_text_atomic(path: str | Path, text: str) -> None:
 
 
 class SpaceReserve:
-    """A file of ``size`` bytes held so that a last small file can still be written once the disk
+    """``size`` bytes of disk held so that a last small file can still be written once the disk
     is full: a run's final ``run.yaml`` (its status and summary) after its rows filled the disk.
 
     The bytes are written (not a sparse file, which holds no blocks), so the file system has
-    given them to this file; :meth:`release` removes it and gives them back. A run that stops
-    on a full disk releases it and writes ``run.yaml`` in the space it held.
+    given them to the file; then its name is removed and only an open descriptor holds them.
+    :meth:`release` closes it and gives them back. A run that stops on a full disk releases
+    it and writes ``run.yaml`` in the space it held; a process killed outright (SIGKILL, the
+    OOM killer) has its descriptors closed by the kernel, so nothing is left in the folder.
 
     Raises:
         TrackmeterError: the reserve cannot be written (the disk is full already), with the
@@ -192,23 +194,30 @@ class SpaceReserve:
     """
 
     def __init__(self, path: str | Path, size: int) -> None:
-        self.path: Path | None = Path(path)
-        held = AppendFile(self.path)
+        self._fd: int | None = None
+        path = Path(path)
+        held = AppendFile(path)
         try:
             held.append("\0" * size)
-        except TrackmeterError:
-            self.release()
-            raise
+            self._fd = os.open(path, os.O_RDONLY)
+        except OSError as exc:
+            raise TrackmeterError(f"{path}: cannot open ({exc.strerror or exc})") from None
         finally:
             held.close()
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(path)
+
+    @property
+    def held(self) -> bool:
+        """Whether the space is still held (not released)."""
+        return self._fd is not None
 
     def release(self) -> bool:
-        """Remove the file (its space is free again); whether it was still held."""
-        if self.path is None:
+        """Give the space back; whether it was still held."""
+        if self._fd is None:
             return False
-        path, self.path = self.path, None
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(path)
+        fd, self._fd = self._fd, None
+        os.close(fd)
         return True
 
 

@@ -44,7 +44,8 @@ from trackmeter.errors import TrackmeterError
 TARGETS_COLUMNS: tuple[str, ...] = ("t", "id", "state", "u", "v", "u_right", "v_right", "x", "y", "z", "score")
 
 _RUN_FILES = ("trajectory.tum", "states.csv", "targets.csv", "run.yaml")
-# Held while a run is written, released for the final run.yaml when the disk is full.
+# Held while a run is written, released for the final run.yaml when the disk is full; the
+# name is the reserve's only while it is written (then an open descriptor holds its space).
 RESERVE_NAME = ".run.yaml.reserve"
 # Bytes held beyond the first run.yaml's size: the final one adds the status, the summary (its
 # invalid reasons, tracker and engine counts: about 2 KB on estec) and the finish time.
@@ -166,7 +167,6 @@ class RunWriter:
         self._begun.append(self.directory / "run.yaml")
         # A disk the rows fill would leave run.yaml saying "running": the space its final
         # version needs is held from the start (tests/test_rundir.py fills a real one).
-        self._begun.append(self.directory / RESERVE_NAME)
         self._reserve = SpaceReserve(self.directory / RESERVE_NAME, len(text.encode("utf-8")) + RESERVE_EXTRA_BYTES)
         # Each file counts as begun before it is opened: opening truncates it.
         self._begun.append(self.directory / "states.csv")
