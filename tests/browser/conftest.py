@@ -151,8 +151,13 @@ def open_page(browser: Any, running: Any, viewport: dict[str, int] | None = None
 
 
 def main_canvas_box(page: Any) -> dict[str, float]:
-    boxes = [c.bounding_box() for c in page.locator("canvas").all()]
-    boxes = [b for b in boxes if b]
+    """The largest canvas's box on the page (CSS px). One question to the page for all its
+    canvases (the plots have theirs): each waits for a frame of software WebGL, seconds on a
+    busy host, where a locator's box per canvas took 10-20 s."""
+    boxes = page.evaluate("() => Array.from(document.querySelectorAll('canvas'), (c) => {"
+                          " const r = c.getBoundingClientRect();"
+                          " return {x: r.x, y: r.y, width: r.width, height: r.height}; })")
+    boxes = [b for b in boxes if b["width"] > 0 and b["height"] > 0]  # hidden ones have no box
     return max(boxes, key=lambda b: b["width"] * b["height"])
 
 
