@@ -37,7 +37,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from console.overlay import (PORTRAIT_BAND, STATUS_RGB, LostTargets, box_half_px, box_segments, draw_overlays,
-                             image_view, node_rgb_for, pixel_to_plane, ray_to_pixel, to_rgb)
+                             image_view, node_rgb_for, pixel_to_plane, ray_to_pixel, to_rgb, view_in_band)
 from console.series import PLOTS, PlotData
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.targets import TargetState
@@ -802,29 +802,37 @@ class Console:
 
     def _apply_view(self, client: Any, preset: str) -> None:
         rw, rh = self.render_size
+        fov = np.radians(50.0)
+        up = (0.0, -1.0, 0.0)
+        try:
+            aspect = float(client.camera.aspect)
+        except (AssertionError, ZeroDivisionError):
+            aspect = 16 / 9
+        portrait = aspect < 1.0  # a phone held upright: its control sheet covers the view's bottom
+        band = PORTRAIT_BAND if portrait else 1.0
+        right_x = float(self.right_image.position[0]) if self.right_image.visible else None
         with client.atomic():
-            client.camera.up_direction = (0.0, -1.0, 0.0)
-            client.camera.fov = np.radians(50.0)
+            client.camera.up_direction = up
+            client.camera.fov = fov
             if preset == "3D":
                 ox, oy, oz = SCENE3D_OFFSET
-                client.camera.position = (ox - 1.2, oy - 1.0, oz - 1.5)
-                client.camera.look_at = (ox, oy, oz + 3.5)
+                position, look_at = (ox - 1.2, oy - 1.0, oz - 1.5), (ox, oy, oz + 3.5)
+                if portrait:
+                    position, look_at = view_in_band(position, look_at, up, aspect, fov, band)
             elif preset == "both":
                 # The rig's scene (satellite ~3.5 m ahead, so near z = 0.5 here) left of the image.
-                mid = (SCENE3D_OFFSET[0] - 1.5 + rw / 2) / 2
-                client.camera.position = (mid, 0.0, -14.5)
-                client.camera.look_at = (mid, 0.0, 0.0)
+                left = SCENE3D_OFFSET[0] - 1.5
+                mid = (left + rw / 2) / 2
+                position, look_at = (mid, 0.0, -14.5), (mid, 0.0, 0.0)
+                if portrait:  # the scene and the image(s) fitted into the band, as the image preset does
+                    right = (right_x if right_x is not None else 0.0) + rw / 2
+                    position, look_at = image_view((right - left, rh), aspect, fov, ((left + right) / 2, 0.0), band)
             else:
-                try:
-                    aspect = float(client.camera.aspect)
-                except (AssertionError, ZeroDivisionError):
-                    aspect = 16 / 9
                 span, centre = self.render_size, (0.0, 0.0)
-                if self.right_image.visible:  # both images, side by side
-                    right_x = float(self.right_image.position[0])
+                if right_x is not None:  # both images, side by side
                     span, centre = (right_x + rw, rh), (right_x / 2, 0.0)
-                band = PORTRAIT_BAND if aspect < 1.0 else 1.0  # a phone held upright: above its panel
-                client.camera.position, client.camera.look_at = image_view(span, aspect, np.radians(50.0), centre, band)
+                position, look_at = image_view(span, aspect, fov, centre, band)
+            client.camera.position, client.camera.look_at = position, look_at
 
     # ------------------------------------------------------------------ snapshots
     def _on_snapshot(self, snap: Snapshot) -> None:

@@ -163,6 +163,49 @@ def image_view(render_size: tuple[float, float], aspect: float, fov_y_rad: float
     return (cx, cy, -d), (cx, cy, 0.0)
 
 
+def view_in_band(position: ArrayLike, look_at: ArrayLike, up: ArrayLike, aspect: float, fov_y_rad: float,
+                 band: float, reference_aspect: float = 16 / 9) -> tuple[
+        tuple[float, float, float], tuple[float, float, float]]:
+    """A 3D view ``(position, look_at)``, made for a view of ``reference_aspect`` (width /
+    height), moved so that what it showed around ``look_at`` shows within the top ``band`` of
+    the view's height in a view of ``aspect`` (a phone held upright, whose control sheet covers
+    the rest: :data:`PORTRAIT_BAND`).
+
+    The camera turns down about its horizontal axis by ``alpha = atan((1 - band) tan(fov/2))``,
+    so that ``look_at`` appears at the band's centre, not the view's, and backs away along its
+    line of sight until the rectangle the reference view showed at ``look_at``'s distance ``D``
+    (half-extents ``h = D tan(fov/2)`` up and ``reference_aspect h`` across, square to the
+    line of sight) fits the band: with ``t = tan(fov/2)``, a point ``y`` up that rectangle lies
+    ``D' cos(alpha) - y sin(alpha)`` deep along the new axis and ``D' sin(alpha) + y cos(alpha)``
+    above it, which bounds ``D'`` by its top corners against the view's sides and top and its
+    bottom edge against the band's. It never comes nearer than ``D``: a view at least as wide
+    as ``reference_aspect`` with ``band`` 1 is returned unchanged.
+    """
+    if not 0.0 < band <= 1.0:
+        raise ValueError(f"band must be in (0, 1], got {band}")
+    P, C = np.asarray(position, dtype=float), np.asarray(look_at, dtype=float)
+    sight = C - P
+    distance = float(np.linalg.norm(sight))
+    forward = sight / distance
+    up_v = np.asarray(up, dtype=float)
+    up_on_screen = up_v - forward * float(forward @ up_v)
+    up_on_screen /= np.linalg.norm(up_on_screen)
+    t = float(np.tan(fov_y_rad / 2.0))
+    tilt = np.arctan((1.0 - band) * t)
+    c, s = float(np.cos(tilt)), float(np.sin(tilt))
+    h = distance * t
+    w = h * reference_aspect
+    b = 1.0 - 2.0 * band  # the band's bottom edge, in the view's normalised height (-1 bottom, 1 top)
+    distance_new = max(distance,
+                       (w / (t * aspect) + h * s) / c,  # the top corners inside the sides
+                       h * (c + t * s) / (t * c - s),  # the top edge below the view's top
+                       h * (c + b * t * s) / (s - b * t * c))  # the bottom edge above the band's
+    P_new = C - forward * distance_new
+    axis = c * forward - s * up_on_screen  # below the target: it shows above the centre
+    L_new = P_new + axis * distance
+    return (float(P_new[0]), float(P_new[1]), float(P_new[2])), (float(L_new[0]), float(L_new[1]), float(L_new[2]))
+
+
 #: How far outside the image (px) a click ray may land and still be the edge pixel.
 EDGE_SLACK_PX = 0.5
 

@@ -27,6 +27,7 @@ from console.overlay import (  # noqa: E402
     VIEW_MARGIN,
     image_view,
     ray_to_pixel,
+    view_in_band,
 )
 from console.series import PLOTS, PlotData, SeriesWindow  # noqa: E402
 from trackmeter.core.targets import TargetState  # noqa: E402
@@ -451,6 +452,52 @@ def test_image_view_shows_the_whole_image_in_its_band_with_the_spare_room_top_le
     assert gap_right == pytest.approx(gap_bottom, abs=1e-6) and gap_right > 0
     assert left >= gap_right - 1e-6 and top >= gap_bottom - 1e-6
     assert (right - left) / (bottom - top) == pytest.approx(rw / rh)
+
+
+def _project(position, look_at, up, viewport, fov, points):  # type: ignore[no-untyped-def]
+    """The browser's look-at camera as an OpenCV pinhole of the viewport's pixels: ``points``
+    (n, 3) to pixels (n, 2)."""
+    import cv2
+
+    z = np.subtract(look_at, position)
+    z /= np.linalg.norm(z)
+    u = np.asarray(up, float) - z * (z @ np.asarray(up, float))
+    y = -u / np.linalg.norm(u)  # image rows grow down, against the view's up
+    R = np.array([np.cross(y, z), y, z])
+    width, height = viewport
+    f = (height / 2) / np.tan(fov / 2)
+    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]])
+    uv, _ = cv2.projectPoints(np.asarray(points, float), cv2.Rodrigues(R)[0], -R @ np.asarray(position, float), K, None)
+    return uv.reshape(-1, 2), R
+
+
+@pytest.mark.parametrize("viewport", [(390, 844), (412, 915), (600, 900), (275, 900)])
+def test_a_3d_view_moved_into_the_band_shows_what_the_wide_view_showed_centred_in_it(viewport) -> None:  # type: ignore[no-untyped-def]
+    fov, up = np.radians(50.0), (0.0, -1.0, 0.0)
+    position, look_at = (-9.2, -1.0, -4.5), (-8.0, 0.0, 0.5)  # the console's 3D preset
+    width, height = viewport
+    moved = view_in_band(position, look_at, up, width / height, fov, PORTRAIT_BAND)
+    (centre,), _ = _project(*moved, up, viewport, fov, [look_at])
+    assert centre == pytest.approx((width / 2, PORTRAIT_BAND * height / 2), abs=1e-6)
+    # The rectangle a 16:9 view showed at the target's distance, square to its line of sight,
+    # fills the band along its limiting axis, inside it along the other.
+    _, R_wide = _project(position, look_at, up, (1600, 900), fov, [look_at])
+    h = np.linalg.norm(np.subtract(look_at, position)) * np.tan(fov / 2)
+    corners = [np.add(look_at, sx * h * 16 / 9 * R_wide[0] + sy * h * R_wide[1]) for sx in (-1, 1) for sy in (-1, 1)]
+    uv, _ = _project(*moved, up, viewport, fov, corners)
+    (left, top), (right, bottom) = uv.min(axis=0), uv.max(axis=0)
+    band_px = PORTRAIT_BAND * height
+    assert left >= -1e-6 and right <= width + 1e-6 and top >= -1e-6 and bottom <= band_px + 1e-6
+    assert min(left, width - right, top, band_px - bottom) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_a_view_as_wide_as_the_reference_and_the_whole_band_is_left_as_it_is() -> None:
+    position, look_at = (-9.2, -1.0, -4.5), (-8.0, 0.0, 0.5)
+    for aspect in (16 / 9, 2.5):
+        moved = view_in_band(position, look_at, (0.0, -1.0, 0.0), aspect, np.radians(50.0), 1.0)
+        assert np.allclose(moved, (position, look_at))
+    with pytest.raises(ValueError, match="band"):
+        view_in_band(position, look_at, (0.0, -1.0, 0.0), 0.5, np.radians(50.0), 0.0)
 
 
 def test_image_view_refuses_a_band_outside_the_view() -> None:
