@@ -245,6 +245,8 @@ def joint_fit(frames: list[tuple[TargetState, ...]], apriori: dict[str, np.ndarr
     from scipy.sparse.linalg import spsolve
     from scipy.spatial.transform import Rotation
 
+    from trackmeter.core.transforms import make_transform
+
     known = [k for k, T in enumerate(T_init) if T is not None]
     if not known:
         return [None] * len(frames)
@@ -315,24 +317,16 @@ def joint_fit(frames: list[tuple[TargetState, ...]], apriori: dict[str, np.ndarr
             break
     out: list[np.ndarray | None] = [None] * len(frames)
     for k, i in pose_of.items():
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = R[i], t[i]
-        out[k] = T
+        out[k] = make_transform(R[i], t[i])
     return out
 
 
 def _poses(series: Any) -> list[np.ndarray | None]:
     """A MotionSeries' poses as ``T_cam_body`` (4, 4), None where not valid."""
-    from trackmeter.core.transforms import quat_wxyz_to_matrix
+    from trackmeter.core.transforms import transform_from_pose
 
-    out: list[np.ndarray | None] = []
-    for ok, p, q in zip(series.valid, series.position_m, series.quat_wxyz):
-        T = None
-        if ok:
-            T = np.eye(4)
-            T[:3, :3], T[:3, 3] = quat_wxyz_to_matrix(q), p
-        out.append(T)
-    return out
+    return [transform_from_pose(p, q) if ok else None
+            for ok, p, q in zip(series.valid, series.position_m, series.quat_wxyz)]
 
 
 def _series_of_poses(t_s: np.ndarray, poses: list[np.ndarray | None]) -> Any:
