@@ -310,6 +310,42 @@ def test_lost_model_point_is_relocked_at_its_projection(estec_rig) -> None:
     del k
 
 
+@pytest.mark.parametrize("remake_after_s", [0.0, 0.4])
+def test_a_lost_a_priori_target_is_remade_at_its_projection_after_a_while(estec_rig, remake_after_s: float) -> None:
+    """pose.apriori_remake_after_s: an a-priori point's target that its own template no longer
+    finds is, once lost that long, dropped and measured afresh at its projection through the
+    measured pose (paper 2.D); at 0 it is only ever searched for with its old template."""
+    from dataclasses import replace
+
+    config = load_config()
+    config = replace(config, pose=replace(config.pose, apriori_remake_after_s=remake_after_s))
+    pts = body_points(12)
+    ids = [f"m{i}" for i in range(12)]
+    tracker = FakeTracker(estec_rig, pts, ids)
+    engine = Engine(config, estec_rig, Model(tuple(ids), pts), None, tracker=tracker, rate_hz=1 / DT)
+    made_at: list[int] = []
+    add_target = tracker.add_target
+
+    def add_and_note(frame, uv, target_id=None, origin="operator"):  # type: ignore[no-untyped-def]
+        made_at.append(frame.index)
+        return add_target(frame, uv, target_id, origin)
+
+    tracker.add_target = add_and_note  # type: ignore[method-assign]
+    run(engine, range(10))
+    tracker.force_lost = {"m5"}  # from frame 10 on its template finds nothing
+    run(engine, range(10, 40))
+    remade = [(k, uv) for k, (tid, uv, origin) in zip(made_at, tracker.added) if tid == "m5" and origin == "model"]
+    assert any(tid == "m5" for tid, _ in tracker.relocks)  # its own template was tried first
+    if remake_after_s == 0.0:
+        assert not remade
+        return
+    k, uv = remade[0]
+    assert 10 + round(remake_after_s / DT) <= k <= 10 + round(remake_after_s / DT) + config.pose.recovery_interval_frames
+    T = true_pose(k * DT)
+    uv_true = estec_rig.project((T[:3, :3] @ pts[5] + T[:3, 3])[None])[0][0]
+    assert np.linalg.norm(np.asarray(uv) - uv_true) < 1.0
+
+
 def test_missing_model_point_is_measured_at_its_projection(estec_rig) -> None:
     engine, tracker, _ = make_engine(estec_rig)
     del tracker.active["m7"]

@@ -140,6 +140,11 @@ class PoseParams:
         "whatever lies there (a loop closure: the texture the point was grown from, not the model's drift)"
     )
     recovery_interval_frames: int = param(5, "frames between two re-lock attempts of one model point", min=1)
+    apriori_remake_after_s: float = param(
+        1.0, "an a-priori model point's target lost this long is re-made at its projection through a measured "
+        "pose (its old template, of another view, is given up), s; 0: kept and searched for with its own "
+        "template only", min=0.0,
+    )
     max_model_points: int = param(
         64, "grown model points kept (re-locked by measurement at their projection after their target was "
         "dropped); beyond this the longest unseen go", min=3,

@@ -1194,10 +1194,12 @@ class Engine:
         removed = self.tracker.take_removed() if keep and hasattr(self.tracker, "take_removed") else {}
         for t in targets:
             m = self._model.get(t.id)
-            if t.status != "lost" or t.origin != "model" or m is None or m.fixed:
+            if t.status != "lost" or m is None or (t.origin != "model" and not m.fixed):
                 self._lost_since.pop(t.id, None)
                 continue
             since = self._lost_since.setdefault(t.id, frame.index)
+            if m.fixed:
+                continue  # re-made through a measured pose (_recover), never just dropped
             if frame.index - since >= self._lost_keep_frames:
                 if keep:
                     removed[t.id] = self.tracker.detach(t.id)
@@ -1416,7 +1418,10 @@ class Engine:
         Lost targets are searched for with their own (anchor) templates; model points without a
         target are measured at their projection, which is only safe through a measured pose:
         through a ``carried`` one (coasting after a loss) a wrong prediction would measure
-        whatever surface lies there, so only template re-locks are tried."""
+        whatever surface lies there, so only template re-locks are tried. An a-priori point's
+        target lost ``pose.apriori_remake_after_s`` is given up and measured afresh there: its
+        template is of a view that seldom comes back (estec: most corners unmeasured after 20 s
+        while 9-14 of them stay in view)."""
         p = self.pose_params
         states = {s.id: s for s in self.tracker.targets}
         # Re-made targets of grown points must leave the operator room to click.
@@ -1426,10 +1431,16 @@ class Engine:
         room_stored = bool(self._stored) and len(states) < self._max_targets and (
             sum(1 for s in states.values() if s.status != "lost") < self._max_targets - p.operator_reserve_targets)
         todo: list[tuple[str, bool]] = []
+        # An a-priori point's target lost this long was made in another view: measured afresh.
+        remake_after = p.apriori_remake_after_s * self.rate_hz
+        stale: set[str] = set()
         for pid, m in self._model.items():
             s = states.get(pid)
             if s is not None and s.status == "lost":
-                todo.append((pid, True))
+                if (m.fixed and not carried and remake_after > 0
+                        and frame.index - self._lost_since.get(pid, frame.index) >= remake_after):
+                    stale.add(pid)
+                todo.append((pid, pid not in stale))
             elif s is None and (m.fixed or room or (room_stored and pid in self._stored)) and (not carried or pid in self._stored):
                 todo.append((pid, False))
         if not todo:
@@ -1456,6 +1467,9 @@ class Engine:
                     and margin <= uv_r[0] <= w - 1 - margin and margin <= uv_r[1] <= h - 1 - margin):
                 continue
             self._last_attempt[pid] = frame.index
+            if pid in stale:
+                self.tracker.remove_target(pid)
+                self._lost_since.pop(pid, None)
             chosen.append((pid, is_target, x_cam, (float(uv_l[0]), float(uv_l[1]))))
         self.stats.relock_attempts += len(chosen)
         k, restored = 0, False
