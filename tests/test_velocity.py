@@ -473,3 +473,41 @@ def test_a_release_from_rest_is_followed_within_a_second_not_after_the_whole_win
     assert err.max() < 0.6 and err_window.max() > 2.0, (err.max(), err_window.max())
     steady = t  # spinning the whole time
     np.testing.assert_array_equal(run(VelocityParams(), steady), run(VelocityParams(change_f=0.0), steady))
+
+
+@pytest.mark.parametrize("method", ["screw", "poly"])
+def test_a_moved_body_frame_is_not_read_as_motion(method: str) -> None:
+    """VelocityEstimator.move_body_frame: poses fitted to a body frame moved by ``D`` mid-window
+    (``T_cam_new = T_cam_old D``) give the rates of the new frame, as if every pose had been in
+    it (closed form: omega_new = R_d^T omega_old, v_new = v_old + omega_cam x (R t_d)); without
+    the move the step reads as a velocity."""
+    t = np.arange(40) * 0.04
+    R, p = constant_rate(t)
+    Rd = Rotation.from_rotvec([0.002, -0.001, 0.003]).as_matrix()
+    td = np.array([0.003, -0.002, 0.004])
+    R_new = R @ Rd
+    p_new = p + np.einsum("nij,j->ni", R, td)
+    moved, unmoved, reference = (VelocityEstimator(VelocityParams(method=method)) for _ in range(3))
+    for k in range(len(t)):
+        before = k < 30
+        for est in (moved, unmoved):
+            out = est.update(t[k], R[k] if before else R_new[k], p[k] if before else p_new[k])
+        if k == 29:
+            moved.move_body_frame(Rd, td)
+        ref = reference.update(t[k], R_new[k], p_new[k])
+    v_moved, w_moved = moved.update(t[-1] + 0.04, *_next_new(t[-1] + 0.04, Rd, td))
+    v_unmoved, _ = unmoved.update(t[-1] + 0.04, *_next_new(t[-1] + 0.04, Rd, td))
+    v_ref, w_ref = reference.update(t[-1] + 0.04, *_next_new(t[-1] + 0.04, Rd, td))
+    np.testing.assert_allclose(w_moved, w_ref, atol=1e-12)
+    np.testing.assert_allclose(v_moved, v_ref, atol=1e-12)
+    np.testing.assert_allclose(w_ref, Rd.T @ OMEGA, atol=1e-6)
+    if method == "poly":  # the origin moves in a straight line while the body turns: not a screw
+        R_last, _ = _next_new(t[-1] + 0.04, np.eye(3), np.zeros(3))
+        np.testing.assert_allclose(v_ref, V + np.cross(R_last @ OMEGA, R_last @ td), atol=1e-4)
+    assert np.linalg.norm(v_unmoved - v_ref) > 1e-4  # the 5 mm step read as a velocity
+    del out, ref
+
+
+def _next_new(t_s: float, Rd: np.ndarray, td: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    R, p = constant_rate(np.array([t_s]))
+    return R[0] @ Rd, p[0] + R[0] @ td

@@ -103,6 +103,10 @@ class PoseParams:
         0.0, "case (b): time constant with which the grown model is moved onto the a-priori points' frame "
         "as the a-priori points seen reveal its drift, s (0: never)", min=0.0,
     )
+    anchor_moves_history: bool = param(
+        True, "case (b): each step of the anchoring also moves the poses the velocities (and the coast's "
+        "centre of mass) are fitted to, so that a correction of the frame is not read as motion"
+    )
     anchor_memory_s: float = param(
         1.0, "case (b): how long the a-priori points' evidence of the grown model's drift is remembered "
         "(exponential forgetting), s", min=0.04,

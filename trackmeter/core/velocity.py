@@ -456,6 +456,20 @@ class VelocityEstimator:
         return (np.array(self._t, dtype=float), np.array(self._R, dtype=float).reshape(-1, 3, 3),
                 np.array(self._p, dtype=float).reshape(-1, 3), np.array(self._w, dtype=float).reshape(-1, 2))
 
+    def move_body_frame(self, R_old_new: ArrayLike, t_old_new: ArrayLike) -> None:
+        """Re-express the window's poses in a new body frame: ``T_cam_new = T_cam_old T_old_new``
+        (``R <- R R_old_new``, ``p <- p + R t_old_new``, ``t_old_new`` in m in the old body frame).
+
+        Why: a correction of the body frame (the engine moving its grown model onto the a-priori
+        points) changes the poses that follow by ``T_old_new`` without any motion; left in the
+        window's older poses, the fit would read that step as a velocity."""
+        Rd = np.asarray(R_old_new, dtype=float)
+        td = np.asarray(t_old_new, dtype=float)
+        for k in range(len(self._R)):
+            R = self._R[k]
+            self._p[k] = self._p[k] + R @ td
+            self._R[k] = R @ Rd
+
     def reset(self) -> None:
         self._capped = False
         self._t.clear()

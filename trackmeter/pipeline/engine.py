@@ -352,6 +352,7 @@ class Engine:
         self._com_cache: tuple[float, float | None] | None = None
         # Measured poses (t, R, p, position weight) for the centre-of-mass fit, this body frame.
         self._com_history: deque[tuple[float, FloatArray, FloatArray, float]] = deque()
+        self._frame_move: tuple[FloatArray, FloatArray] | None = None  # set by _anchor, see _move_history
         self._coasting = False
         self._blend: tuple[float, FloatArray, FloatArray] | None = None
         # Model points whose body coordinates share one rigid error of the frame they were
@@ -682,6 +683,7 @@ class Engine:
         self._last_valid_t = frame.t_s
         rates = self._velocity.update(frame.t_s, R, t, cov)
         self._remember_for_com(frame.t_s, R, t, cov)
+        self._move_history()
         v, w = rates if rates is not None else (np.full(3, np.nan), np.full(3, np.nan))
         self._coast = (frame.t_s, R, t, cov, np.asarray(v, float), np.asarray(w, float))
         R_f, t_f = self._filter.update(frame.t_s, R, t, v if rates else None, w if rates else None)
@@ -1180,6 +1182,32 @@ class Engine:
                 continue
             m.b = R_s.T @ (m.b - step[:3])
         self._anchor_g -= self._anchor_H @ step
+        if p.anchor_moves_history:
+            # The poses fitted from now on differ from the earlier ones by what moving the grown
+            # points did to this frame's pose (not the step itself: the a-priori points held
+            # their place in the fit), without any motion of the body.
+            used = [i for n, i in enumerate(ids) if inliers[n]]
+            try:
+                R2, t2, _ = solve_pose(
+                    np.array([self._model[i].b for i in used]), np.array([measured[i].point_cam for i in used]),
+                    np.array([measured[i].cov_cam for i in used]),
+                    np.array([self._model_cov(self._model[i], t_s) for i in used]), (R, t), 2)
+            except (TrackmeterError, np.linalg.LinAlgError):
+                return
+            # Applied once this frame's pose (fitted before the move) has joined the history.
+            self._frame_move = (R.T @ R2, R.T @ (t2 - t))
+
+    def _move_history(self) -> None:
+        """Re-express the poses the velocities and the coast's centre of mass are fitted to in
+        the body frame :meth:`_anchor` moved the grown model to (``T_cam_new = T_cam_old D``)."""
+        if self._frame_move is None:
+            return
+        R_d, t_d = self._frame_move
+        self._frame_move = None
+        self._velocity.move_body_frame(R_d, t_d)
+        h = self._com_history
+        for k, (t_k, R_k, p_k, w_k) in enumerate(h):
+            h[k] = (t_k, R_k @ R_d, p_k + R_k @ t_d, w_k)
 
     # ------------------------------------------------------------------ recovery
 
