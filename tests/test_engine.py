@@ -396,6 +396,17 @@ def test_grown_point_keeps_its_share_of_the_pose_error(estec_rig, correlated: bo
         assert np.trace(m.cov) < 0.5 * share
 
 
+def offset_grown_model(engine, pts, ids, angle_deg: float, t_d) -> None:  # type: ignore[no-untyped-def]
+    """Move :func:`growing_engine`'s grown points off their true body coordinates by a rigid
+    offset (``angle_deg`` about a lateral axis, ``t_d`` m), as a drifted model would be."""
+    R_d = Rotation.from_rotvec(np.radians(angle_deg) * np.array([0.6, -0.8, 0.0])).as_matrix()
+    for i, tid in enumerate(ids[10:], start=10):
+        engine._model[tid].b = R_d @ pts[i] + np.asarray(t_d, float)
+    # The evidence gathered so far spoke of the model before it was moved here by hand.
+    engine._anchor_H[:] = 0.0
+    engine._anchor_g[:] = 0.0
+
+
 @pytest.mark.parametrize("anchor_time_s", [0.0, 0.2])
 def test_grown_model_is_moved_onto_the_a_priori_frame(estec_rig, anchor_time_s: float) -> None:
     """pose.anchor_time_s: grown points that joined through a pose off by a small rigid
@@ -407,13 +418,7 @@ def test_grown_model_is_moved_onto_the_a_priori_frame(estec_rig, anchor_time_s: 
     config = load_config()
     config = replace(config, pose=replace(config.pose, model_refine=False, anchor_time_s=anchor_time_s))
     engine, _, pts, ids = growing_engine(estec_rig, config)
-    R_d = Rotation.from_rotvec(np.radians(0.03) * np.array([0.6, -0.8, 0.0])).as_matrix()
-    t_d = np.array([0.0004, -0.0003, 0.0002])
-    for i, tid in enumerate(ids[10:], start=10):
-        engine._model[tid].b = R_d @ pts[i] + t_d
-    # The evidence gathered so far spoke of the model before it was moved here by hand.
-    engine._anchor_H[:] = 0.0
-    engine._anchor_g[:] = 0.0
+    offset_grown_model(engine, pts, ids, 0.03, [0.0004, -0.0003, 0.0002])
     before = max(np.linalg.norm(engine._model[tid].b - pts[i]) for i, tid in enumerate(ids[10:], start=10))
     out = run(engine, range(10, 110))
     assert all(pose.valid and not pose.outlier_ids for _, pose, _ in out)
@@ -435,12 +440,7 @@ def _velocity_errors_while_anchoring(estec_rig, moves_history: bool, offset: boo
     engine, _, pts, ids = growing_engine(estec_rig, config)
     run(engine, range(10, 40))  # the velocity window fills
     if offset:
-        R_d = Rotation.from_rotvec(np.radians(0.1) * np.array([0.6, -0.8, 0.0])).as_matrix()
-        t_d = np.array([0.0016, -0.0012, 0.0])
-        for i, tid in enumerate(ids[10:], start=10):
-            engine._model[tid].b = R_d @ pts[i] + t_d
-        engine._anchor_H[:] = 0.0
-        engine._anchor_g[:] = 0.0
+        offset_grown_model(engine, pts, ids, 0.1, [0.0016, -0.0012, 0.0])
     out = run(engine, range(40, 100))
     return [float(np.linalg.norm(pose.velocity_cam_m_s - V)) for _, pose, _ in out if pose.valid]
 
