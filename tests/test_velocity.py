@@ -491,10 +491,10 @@ def test_a_moved_body_frame_is_not_read_as_motion(method: str) -> None:
     for k in range(len(t)):
         before = k < 30
         for est in (moved, unmoved):
-            out = est.update(t[k], R[k] if before else R_new[k], p[k] if before else p_new[k])
+            est.update(t[k], R[k] if before else R_new[k], p[k] if before else p_new[k])
         if k == 29:
             moved.move_body_frame(Rd, td)
-        ref = reference.update(t[k], R_new[k], p_new[k])
+        reference.update(t[k], R_new[k], p_new[k])
     v_moved, w_moved = moved.update(t[-1] + 0.04, *_next_new(t[-1] + 0.04, Rd, td))
     v_unmoved, _ = unmoved.update(t[-1] + 0.04, *_next_new(t[-1] + 0.04, Rd, td))
     v_ref, w_ref = reference.update(t[-1] + 0.04, *_next_new(t[-1] + 0.04, Rd, td))
@@ -505,7 +505,6 @@ def test_a_moved_body_frame_is_not_read_as_motion(method: str) -> None:
         R_last, _ = _next_new(t[-1] + 0.04, np.eye(3), np.zeros(3))
         np.testing.assert_allclose(v_ref, V + np.cross(R_last @ OMEGA, R_last @ td), atol=1e-4)
     assert np.linalg.norm(v_unmoved - v_ref) > 1e-4  # the 5 mm step read as a velocity
-    del out, ref
 
 
 def _next_new(t_s: float, Rd: np.ndarray, td: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
