@@ -325,6 +325,29 @@ def test_pause_and_step_read_exactly_one_frame() -> None:
         assert snap is not None and not snap.paused
 
 
+def test_every_stepped_frame_is_tracked_even_when_the_steps_come_faster_than_the_tracker() -> None:
+    # The operator pressing Step three times asked for three frames: a step's frame waits for the
+    # tracker rather than replace one it has not taken (the latest-frame-wins drop is for live play).
+    release, camera = threading.Event(), threading.Event()
+    engine = RecordingEngine(block_first=release)
+    source = CountingSource(10**6, gate=camera)
+    with Pipeline(source, engine, paused=True) as pipe:
+        for _ in range(3):  # all three steps taken while the camera is still delivering frame 0
+            assert pipe.call(StepOnce()).ok
+        camera.set()
+        assert engine.entered.wait(5)  # a frame in the tracker, which is held there
+        _wait_for_reads(source, 3)  # the other two read meanwhile: one in the slot, one waiting
+        threading.Event().wait(0.05)
+        assert pipe.timings().frames_dropped == 0
+        release.set()
+        for _ in range(500):
+            if len(engine.processed) == 3:
+                break
+            threading.Event().wait(0.01)
+        assert engine.processed == [0, 1, 2]
+        assert pipe.timings().frames_dropped == 0
+
+
 def test_a_restart_while_paused_shows_the_first_frame_and_stays_paused() -> None:
     # The operator pressed Restart on a paused console: the image must not keep showing the
     # frame from before the restart (with its targets) as if nothing had happened.

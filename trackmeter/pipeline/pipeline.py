@@ -12,7 +12,7 @@
   one replaces it (latest frame wins) and the old one is counted as dropped: the source is never
   blocked and memory never grows. For offline runs (a recorded sequence read as fast as
   possible), ``drop_frames=False`` makes the acquisition wait for the slot instead, so every
-  frame is tracked.
+  frame is tracked. A frame read for a step (paused) waits likewise: the operator asked for it.
 - The tracking thread owns the :class:`Engine` (all tracker state). It takes the newest frame,
   calls ``engine.process(frame)``, publishes an immutable :class:`Snapshot`, and between frames
   applies the queued :class:`Command` objects in the order they were sent, resolving each
@@ -499,7 +499,8 @@ class Pipeline:
                     self._cond.wait()
                 if self._stop:
                     return
-                if self._paused:
+                stepped = self._paused  # the operator asked for this very frame
+                if stepped:
                     self._steps -= 1
             # The stream a frame comes from: a Restart applied between this read and the hand-over
             # below makes the frame (or the end, or the failure) one of the stream before it.
@@ -524,7 +525,7 @@ class Pipeline:
                 self._frames_read += 1
                 read_after_restart = generation != self._source_generation  # counted after the restart's tally
                 self._acq_rate.tick(t_read)
-                if not self.drop_frames:
+                if not self.drop_frames or stepped:
                     while self._slot is not None and not self._stop and generation == self._source_generation:
                         self._cond.wait()
                 if generation != self._source_generation:
