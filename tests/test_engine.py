@@ -464,7 +464,7 @@ def test_an_anchoring_step_that_moves_nothing_moves_no_history(estec_rig) -> Non
     held at zero (a prior that trusts the grown model entirely) that is no move at all, however
     the engine's own fit of the frame (its robust weights, its outlier test) differs from the
     re-fit: on noisy measurements the old move took that difference for the step's and moved
-    the history by up to 0.1 mm a frame (harsh_light: 0.07 mm median against 0.02 mm for the step)."""
+    the history 25 um here (harsh_light: 0.07 mm a frame median, against 0.02 mm for the step)."""
     from dataclasses import replace
 
     config = load_config()
