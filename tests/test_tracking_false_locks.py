@@ -4,6 +4,8 @@ selection refusing new points whose stereo match puts them off the body's depth.
 
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -135,3 +137,24 @@ def test_body_check_loses_a_target_that_crept_from_its_first_point(estec_rig) ->
         bad = tr._body_drift(live)
         assert list(bad) == ([crept.id] if lost else []), bad
     crept.point_cam = P[2]
+
+
+def test_candidates_the_measurement_refuses_are_counted_by_its_reason_not_as_off_the_body(estec_rig) -> None:
+    # With targets on the body, new points must lie within their disparities (the test above).
+    # A candidate the measurement itself refuses has no disparity (NaN) and is refused for the
+    # measurement's reason; it is not a stereo match off the body, and `track`'s line on an
+    # --auto that started nothing names the reasons counted here.
+    from trackmeter.core.matching import REASON_UNCERTAIN
+    from trackmeter.core.tracking import OFF_THE_BODY
+
+    scene = PlaneScene(estec_rig, pose_translating(3.5, (0.0, 0.0, 0.0)), noise_sigma=1.0)
+    frame = scene.frame(0)
+    tr = make_tracker(estec_rig, max_targets=40)
+    assert len(add_all(tr, frame, corners(frame.left, 6))) >= 4
+    # Every new measurement now too uncertain: the top-up's candidates are all refused.
+    tr.measure = dataclasses.replace(tr.measure, max_sigma_disparity_px=1e-6)
+    tr.set_auto(True, count=12, method="gabor")
+    tr.step(scene.frame(1))
+    assert tr.stats["auto_added"] == 0
+    assert tr.auto_refusals[REASON_UNCERTAIN] > 0, dict(tr.auto_refusals)
+    assert tr.auto_refusals[OFF_THE_BODY] == 0, dict(tr.auto_refusals)

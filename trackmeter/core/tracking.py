@@ -1534,7 +1534,8 @@ class Tracker:
         for i, (uv, m) in enumerate(zip(pts, meas)):
             if added >= need or len(self._targets) >= p.max_targets:
                 break
-            if rng is not None and not rng[0] <= m.disparity_px <= rng[1]:
+            # A refused measurement has no disparity (NaN, outside any range): _create gives its reason.
+            if m.ok and rng is not None and not rng[0] <= m.disparity_px <= rng[1]:
                 self.auto_refusals[OFF_THE_BODY] += 1
                 continue  # a false stereo match: not at the body's depth
             made = self._create(frame, uv, m, None, "auto", firsts.get(i) if firsts else None)
