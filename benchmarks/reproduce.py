@@ -184,7 +184,7 @@ def evaluation_rows(label: str, summary: dict | None, steps: list[Step], command
     for capability, paper, group, axes, scale, unit, digits in spec:
         if missing:
             ours = missing
-        elif summary is None or group not in summary:
+        elif summary is None or summary.get(group) is None:
             ours = "— (no velocities in the run)"
         else:
             mx = max(summary[group][a]["max"] for a in axes)

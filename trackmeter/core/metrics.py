@@ -340,9 +340,10 @@ def summarize(errors: MotionErrors, association: Association, pose_coverage: flo
     """The ``trackmeter evaluate --json`` summary (SI units; DESIGN.md section 6):
 
     ``{"matched", "unmatched", "pose_coverage", "position_m": {x,y,z,norm}, "attitude_rad":
-    {x,y,z,total}, ["velocity_m_s": {x,y,z,norm}, "omega_rad_s": {x,y,z,norm},] "speed_score"}``,
-    each leaf ``{"rms", "max", "p95"}``; velocity entries only when velocity errors exist, over
-    the samples where both sides have one. ``pose_coverage``: of the run's frames after the
+    {x,y,z,total}, "velocity_m_s": {x,y,z,norm}, "omega_rad_s": {x,y,z,norm}, "speed_score"}``,
+    each leaf ``{"rms", "max", "p95"}``; the velocity entries over the samples where both sides
+    have one, None (null) where there are none (every key is always there: a script reading the
+    JSON need not guess its shape). ``pose_coverage``: of the run's frames after the
     settle (inside the truth's span), the share with a pose; None (null) when the estimate does
     not list its frames (a TUM file).
     """
@@ -354,6 +355,7 @@ def summarize(errors: MotionErrors, association: Association, pose_coverage: flo
         "attitude_rad": _axes(errors.attitude_rad, "total", errors.attitude_total_rad),
     }
     for key, e in (("velocity_m_s", errors.velocity_m_s), ("omega_rad_s", errors.omega_rad_s)):
+        out[key] = None
         if e is None:
             continue
         finite = e[np.all(np.isfinite(e), axis=1)]  # rows where both sides had a velocity

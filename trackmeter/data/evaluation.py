@@ -294,7 +294,7 @@ def format_summary(summary: dict, truth: str = "", estimate: str = "", align: st
                     if coverage is not None else ""))
     lines.append(f"{'error':<40}{'axis':>6}{'rms':>10}{'p95':>10}{'max':>10}")
     for group, (title, unit, scale) in _DISPLAY.items():
-        if group not in summary:
+        if summary.get(group) is None:
             continue
         for axis, st in summary[group].items():
             lines.append(
@@ -302,7 +302,7 @@ def format_summary(summary: dict, truth: str = "", estimate: str = "", align: st
                 f"{st['rms'] * scale:>10.3f}{st['p95'] * scale:>10.3f}{st['max'] * scale:>10.3f}"
             )
     lines.append(f"SPEED score (mean of angle [rad] + |dt|/|t|): {summary['speed_score']:.6f}")
-    if "velocity_m_s" not in summary:
+    if summary.get("velocity_m_s") is None:
         lines.append("(no velocity errors: they need velocities on both sides, paired after the settle time: a "
                      "run's states.csv, once its rates settled, and a groundtruth.csv)")
     return "\n".join(lines)
@@ -317,7 +317,7 @@ def paper_table(summary: dict) -> str:
     camera_axes = {"x": "x lateral", "y": "y lateral", "z": "z viewing"}
     body_axes = {"x": "x body", "y": "y body", "z": "z body"}  # omega_body: not the camera's axes
     for group, bounds in PAPER_BOUNDS.items():
-        if group not in summary:
+        if summary.get(group) is None:
             continue
         title, unit, scale = _DISPLAY[group]
         axis_note = body_axes if group == "omega_rad_s" else camera_axes
