@@ -208,6 +208,12 @@ def test_an_estimate_mostly_unpaired_is_warned_about_with_both_spans(capsys, tmp
         code, out, err = _run(capsys, "evaluate", "--truth", str(tmp_path / truth_file), "--estimate",
                               str(tmp_path / "truth.tum"))
         assert code == 0 and err == "", (truth_file, err)
+    # Nor for a short run (here a single pose) within a long truth, every pose of it paired.
+    one = MotionSeries.from_trajectory(Trajectory(t[5:6], truth.position_m[5:6], truth.quat_wxyz[5:6]))
+    _tum(tmp_path / "one.tum", one)
+    code, out, err = _run(capsys, "evaluate", "--truth", str(tmp_path / "truth.tum"), "--estimate",
+                          str(tmp_path / "one.tum"), "--settle", "0")
+    assert code == 0 and "matched 1 pose" in out and err == "", err
 
 
 def test_align_body_recovers_offset_through_the_cli(capsys, tmp_path):
