@@ -65,6 +65,16 @@ def test_an_unknown_argument_is_reported_by_its_command(capsys):
     assert capsys.readouterr().err == "trackmeter simulate: error: unrecognized arguments: --bogus 1 (see --help)\n"
 
 
+def test_no_command_is_one_line_naming_the_commands(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main([])
+    assert exit_info.value.code == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert captured.err.startswith("trackmeter: error: a command is needed: console, calibrate, measure, simulate, track, evaluate")
+    assert captured.err.endswith("(see --help)\n") and captured.err.count("\n") == 1
+
+
 @pytest.mark.parametrize("argv, hint", [
     (["measure", "--rig", "r", "--left", "a", "--right", "b", "--at", "-5,3"], "--at=-5,3"),
     (["measure", "--rig", "r", "--left", "a", "--right", "b", "--at", "4,5", "--at", "-.5,3"], "--at=-.5,3"),

@@ -223,8 +223,7 @@ def _main(argv: Sequence[str] | None) -> int:
                 if negative else "")
         parser.commands.get(args.command, parser).error(f"unrecognized arguments: {' '.join(unknown)}{hint}")
     if args.command is None:
-        parser.print_help()
-        return 2
+        parser.error(f"a command is needed: {', '.join(COMMANDS)}")
     shown_before = warnings.showwarning
     warnings.showwarning = _warning_printer(args.command)
     # A service manager's stop (SIGTERM) ends a run as Ctrl-C does: threads joined, files
