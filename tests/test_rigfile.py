@@ -355,6 +355,46 @@ def test_an_image_size_that_is_no_whole_number_is_refused_by_its_key(tmp_path: P
             load_rig(path, image_size=size)
 
 
+def test_r_written_as_a_rotation_vector_reads_as_its_matrix(tmp_path: Path) -> None:
+    """OpenCV's stereo functions take R as a 3x3 matrix or a rotation vector (Rodrigues); a rig
+    written by another tool with the vector reads as the same rig."""
+    rig = _rig()
+    path = save_rig(rig, tmp_path / "rig.yaml")
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    keys = {k: fs.getNode(k).mat() for k in ("K1", "D1", "K2", "D2", "T")}
+    fs.release()
+    out = cv2.FileStorage(str(tmp_path / "rotvec.yaml"), cv2.FILE_STORAGE_WRITE)
+    out.write("image_width", 640)
+    out.write("image_height", 480)
+    for k, v in keys.items():
+        out.write(k, v)
+    out.write("R", cv2.Rodrigues(rig.R)[0])  # (3, 1)
+    out.release()
+    loaded = load_rig(tmp_path / "rotvec.yaml")
+    np.testing.assert_allclose(loaded.R, rig.R, atol=1e-12)
+    np.testing.assert_allclose(loaded.R, Rotation.from_rotvec([0.01, -0.02, 0.005]).as_matrix(), atol=1e-12)
+
+
+def test_a_k_whose_last_row_is_not_0_0_1_is_refused(tmp_path: Path) -> None:
+    """OpenCV reads fx, fy, cx, cy of K and ignores its last row: a K scaled as a whole (last row
+    [0 0 2]) was taken as the unscaled one without a word."""
+    path = save_rig(_rig(), tmp_path / "rig.yaml")
+    src = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    out = cv2.FileStorage(str(tmp_path / "scaled.yaml"), cv2.FILE_STORAGE_WRITE)
+    out.write("image_width", 640)
+    out.write("image_height", 480)
+    for k in ("D1", "K2", "D2", "R", "T"):
+        out.write(k, src.getNode(k).mat())
+    scaled = 2.0 * src.getNode("K1").mat()
+    out.write("K1", scaled)
+    src.release()
+    out.release()
+    with pytest.raises(TrackmeterError, match=r"scaled\.yaml: K's last row must be \[0, 0, 1\], got \[0\., 0\., 2\.\]"):
+        load_rig(tmp_path / "scaled.yaml")
+    with pytest.raises(TrackmeterError, match="K's last row must be"):
+        Camera(640, 480, scaled)
+
+
 def test_an_image_size_written_as_a_whole_float_reads(tmp_path: Path) -> None:
     path = save_rig(_rig(), tmp_path / "rig.yaml")
     path.write_text(path.read_text().replace("image_width: 640\n", "image_width: 640.\n"))

@@ -108,6 +108,10 @@ class Camera:
         object.__setattr__(self, "dist", dist if dist.size else np.zeros(5))
         if self.K[0, 0] <= 0 or self.K[1, 1] <= 0:
             raise TrackmeterError("K must have positive focal lengths")
+        if not np.array_equal(self.K[2], [0.0, 0.0, 1.0]):
+            # A pinhole K's last row is [0 0 1]; OpenCV reads only fx, fy, cx, cy (and the skew)
+            # and would ignore any other, e.g. a K scaled as a whole for a resized image.
+            raise TrackmeterError(f"K's last row must be [0, 0, 1], got {np.array2string(self.K[2], separator=', ')}")
 
     @property
     def image_size(self) -> tuple[int, int]:

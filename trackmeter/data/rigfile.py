@@ -4,7 +4,8 @@ Keys: ``image_width``, ``image_height``, ``K1``, ``D1``, ``K2``, ``D2``, ``R``, 
 optional ``rms_px``, ``E``, ``F``. OpenCV's stereo sample pair ``intrinsics.yml`` (``M1 D1 M2
 D2``) + ``extrinsics.yml`` (``R T ...``) is read too: give either file and the other is found
 beside it (or one file holding both halves); that pair carries no image size, so pass
-``image_size``. So is Kalibr's ``camchain.yaml`` (pinhole, radial-tangential), as real stereo
+``image_size``. ``R`` may be a rotation vector (3 numbers, ``cv2.Rodrigues``) instead of a
+3x3 matrix, as OpenCV's stereo functions take it. So is Kalibr's ``camchain.yaml`` (pinhole, radial-tangential), as real stereo
 data often comes with one. Matrices may be plain YAML lists, in any style PyYAML reads.
 """
 
@@ -103,6 +104,16 @@ def _matrix(fs: cv2.FileStorage, key: str, path: Path, required: bool = True) ->
             return np.zeros(0)  # cv2.FileStorage's form of an empty array ("D1: []")
         raise not_matrix
     return np.asarray(mat, dtype=float)
+
+
+def _rotation(fs: cv2.FileStorage, path: Path) -> np.ndarray:
+    """Key ``R``: a 3x3 matrix, or a rotation vector (3 numbers, axis times angle in radians:
+    ``cv2.Rodrigues``), the other form OpenCV's own stereo functions take."""
+    R = _matrix(fs, "R", path)
+    assert R is not None
+    if R.size == 3 and np.all(np.isfinite(R)):
+        return cv2.Rodrigues(R.reshape(3, 1))[0]
+    return R
 
 
 def _numbers(node: cv2.FileNode) -> list | float | str:
@@ -209,7 +220,7 @@ def _load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> St
         left = Camera(int(width), int(height), _matrix(fs, "K1", path), _matrix(fs, "D1", path))
         right = Camera(int(width), int(height), _matrix(fs, "K2", path), _matrix(fs, "D2", path))
         rms = _scalar(fs, "rms_px")
-        return StereoRig(left, right, _matrix(fs, "R", path), _matrix(fs, "T", path).ravel(), rms_px=rms, name=path.stem)
+        return StereoRig(left, right, _rotation(fs, path), _matrix(fs, "T", path).ravel(), rms_px=rms, name=path.stem)
     except TrackmeterError as exc:
         if str(exc).startswith(str(path)):
             raise
@@ -326,7 +337,7 @@ def _load_opencv_pair(path: Path, image_size: tuple[int, int] | None) -> StereoR
             if not (0 <= cx <= width and 0 <= cy <= height):  # the size is the frames', not the calibration's
                 raise TrackmeterError(f"{path}: the principal point ({cx:.1f}, {cy:.1f}) lies outside the {width}x{height} "
                                       "px frames: calibrated for another image size")
-        return StereoRig(left, right, _matrix(fe, "R", extr), _matrix(fe, "T", extr).ravel(), name=folder.name)
+        return StereoRig(left, right, _rotation(fe, extr), _matrix(fe, "T", extr).ravel(), name=folder.name)
     finally:
         fi.release()
         fe.release()
