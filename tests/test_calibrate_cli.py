@@ -92,7 +92,7 @@ def test_the_same_images_as_both_cameras_are_refused_and_nothing_is_written(cali
     """The same files, or copies of them, as --left and --right calibrated to a "rig" 1e-9 m
     wide, with a warning that changed with the rounding noise (swapped, or turned 90 degrees)."""
     assert main(_args(calib_dir, tmp_path / "rig.yaml", left="left0[1-6].jpg", right="left0[1-6].jpg")) == 2
-    _one_error_line(capsys, "left01.jpg is given as both a left and a right image (6 of the 6 pairs)")
+    _one_error_line(capsys, "left01.jpg is given as both a left and a right image (6 of the 6 left images)")
     copies = tmp_path / "copies"
     copies.mkdir()
     for k in range(1, 7):
@@ -124,6 +124,17 @@ def test_calibrate_pairs_by_frame_number(calib_dir: Path, tmp_path: Path, capsys
 
 
 # --------------------------------------------------------------------------- bad input: calibrate
+
+
+def test_a_left_pattern_that_also_matches_the_right_images_is_said_so(calib_dir: Path, tmp_path: Path,
+                                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    """'*.jpg' for the left camera matches the right camera's files too; it was refused as
+    "their names carry no frame numbers", which they do."""
+    out = tmp_path / "rig.yaml"
+    assert main(_args(calib_dir, out, left="*.jpg", right="right*.jpg")) == 2
+    _one_error_line(capsys, "right01.jpg is given as both a left and a right image (13 of the 26 left images): "
+                            "--left and --right must name the two cameras' images")
+    assert not out.exists()
 
 
 def test_no_corners_found(shared_data: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

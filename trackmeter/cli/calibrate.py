@@ -53,11 +53,15 @@ def run(args: argparse.Namespace) -> int:
         raise TrackmeterError(f"--square must be a length in metres from {MIN_SQUARE_M:g} to {MAX_SQUARE_M:g}, "
                               f"got {args.square:g}")
     _check_out(args.out, args.overwrite)  # before the work, which takes a while
-    pairs = pair_stereo_paths(expand_globs(args.left, "left images"), expand_globs(args.right, "right images"))
-    same = [left for left, right in pairs if left.resolve() == right.resolve()]
+    lefts, rights = expand_globs(args.left, "left images"), expand_globs(args.right, "right images")
+    # Before pairing: a left pattern that also matches the right camera's files (dir/*.jpg) would
+    # otherwise be refused for whatever the pairing makes of the mixture.
+    on_right = {p.resolve() for p in rights}
+    same = [p for p in lefts if p.resolve() in on_right]
     if same:
-        raise TrackmeterError(f"{same[0]} is given as both a left and a right image ({len(same)} of the {len(pairs)} "
-                              "pairs): --left and --right must name the two cameras' images")
+        raise TrackmeterError(f"{same[0]} is given as both a left and a right image ({len(same)} of the {len(lefts)} left "
+                              "images): --left and --right must name the two cameras' images")
+    pairs = pair_stereo_paths(lefts, rights)
 
     size: tuple[int, int] | None = None
     uv_left: list = []
