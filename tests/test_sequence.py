@@ -293,6 +293,20 @@ def test_euroc_sensor_yaml_gives_the_rig(tmp_path):
 # --------------------------------------------------------------------------- bad input
 
 
+def test_rows_repeated_in_data_csv_are_said_to_be_repeats_not_images_without_a_partner(tmp_path):
+    frames = _frames(4)
+    d = _write(tmp_path / "s", frames)
+    for cam in ("cam0", "cam1"):  # data.csv appended to twice: every row but the header repeated
+        text = (d / cam / "data.csv").read_text()
+        header, rows = text.split("\n", 1)
+        (d / cam / "data.csv").write_text(header + "\n" + rows + rows)
+    with pytest.warns(UserWarning, match="repeating an earlier timestamp"):
+        src = SequenceSource(d)
+    assert len(src) == 4 and src.skipped == 8
+    assert "8 data.csv row(s) repeating an earlier timestamp skipped (cam0: 4, cam1: 4)" in src.warning
+    assert "without a partner" not in src.warning
+
+
 def test_missing_images_and_unpaired_timestamps_are_skipped_counted_and_reported(tmp_path):
     frames = _frames(8)
     d = _write(tmp_path / "s", frames)

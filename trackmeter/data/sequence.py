@@ -616,6 +616,11 @@ def index_sequence(
                                   if missing else f"{path}: lists no image")
     pairs = pair_by_nearest(ns_to_seconds(t_left), ns_to_seconds(t_right), tolerance_s)
     unpaired = (len(left) - len(pairs)) + (len(right) - len(pairs))
+    # A row repeating an earlier timestamp (a data.csv appended to twice) finds no partner of
+    # its own: said as what it is, apart from the images without a partner.
+    repeats_l, repeats_r = len(t_left) - len(np.unique(t_left)), len(t_right) - len(np.unique(t_right))
+    repeated = min(repeats_l + repeats_r, unpaired)
+    unpaired -= repeated
     warnings: list[str] = []
     if Path(directory).name.endswith(".partial"):
         # `trackmeter simulate` writes into DIR.partial and renames it only when complete: this
@@ -628,6 +633,9 @@ def index_sequence(
         warnings.append(f"{miss_l + miss_r} image(s) listed in data.csv are missing (cam0: {miss_l}, cam1: {miss_r})")
     if bad_l or bad_r:
         warnings.append(f"{bad_l + bad_r} malformed or cut-short data.csv row(s) ignored (cam0: {bad_l}, cam1: {bad_r})")
+    if repeated:
+        warnings.append(f"{repeated} data.csv row(s) repeating an earlier timestamp skipped (cam0: {repeats_l}, "
+                        f"cam1: {repeats_r})")
     if unpaired:
         warnings.append(f"{unpaired} image(s) without a partner within {tolerance_s * 1e3:.3g} ms skipped")
     if not pairs:
@@ -677,7 +685,7 @@ def index_sequence(
         rig=rig,
         model=model,
         truth=truth,
-        skipped=miss_l + miss_r + bad_l + bad_r + unpaired,
+        skipped=miss_l + miss_r + bad_l + bad_r + repeated + unpaired,
         warnings=tuple(warnings),
         tolerance_s=float(tolerance_s),
     )
