@@ -677,6 +677,38 @@ def test_bad_model_files_name_the_problem(tmp_path, text, match):
         load_model(path)
 
 
+def test_a_model_path_that_is_a_pipe_or_too_large_is_refused_without_reading_it(tmp_path):
+    """The console loads a model on its tracking thread: a pipe without a writer blocked it for
+    ever (the image froze, Pause did nothing) and /dev/zero filled the memory (12 GB in 5 s)."""
+    import threading
+
+    fifo = tmp_path / "model.yaml"
+    os.mkfifo(fifo)
+    outcome: list[BaseException] = []
+
+    def load() -> None:
+        try:
+            load_model(fifo)
+        except BaseException as exc:  # noqa: BLE001 (handed to the test's thread)
+            outcome.append(exc)
+
+    reader = threading.Thread(target=load, daemon=True)
+    reader.start()
+    reader.join(timeout=10.0)
+    if reader.is_alive():  # the old code: unblock its open() so that the thread can end
+        os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
+    assert not reader.is_alive() and len(outcome) == 1
+    assert isinstance(outcome[0], TrackmeterError)
+    assert str(outcome[0]) == f"{fifo}: not a regular file (a device, a pipe or a socket): YAML is read from a file"
+    with pytest.raises(TrackmeterError, match="not a regular file"):
+        load_model("/dev/zero")
+    huge = tmp_path / "huge.yaml"
+    with open(huge, "wb") as f:  # sparse: no disk used
+        f.truncate(17 * 2**20)
+    with pytest.raises(TrackmeterError, match=r"huge\.yaml: 17 MiB, too large for a YAML file \(at most 16 MiB\)"):
+        load_model(huge)
+
+
 def test_model_file_keys_of_other_tools_are_ignored_with_a_warning(tmp_path):
     """DESIGN.md's format is ``points: [{id, xyz}, ...]``; a file from another tool may carry
     more (``units``, a point's ``note``): read, with one warning naming what was ignored."""

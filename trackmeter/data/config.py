@@ -15,7 +15,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import re
+import stat
 import types
 import typing
 from dataclasses import dataclass, field
@@ -91,9 +93,30 @@ def config_to_dict(config: Any) -> dict[str, Any]:
 FAST_SAFE_LOADER: type[Any] = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
 
+#: Largest YAML file read (settings, scenarios, models: a few kB to a few hundred kB).
+MAX_YAML_BYTES = 16 * 2**20
+
+
 def read_yaml_mapping(path: Path, loader: type[Any] = FAST_SAFE_LOADER) -> dict[str, Any]:
     """Read a YAML file whose top level is a mapping (an empty file is an empty mapping),
-    with ``loader`` (:data:`FAST_SAFE_LOADER`, a :class:`yaml.SafeLoader` or a subclass of it)."""
+    with ``loader`` (:data:`FAST_SAFE_LOADER`, a :class:`yaml.SafeLoader` or a subclass of it).
+
+    Only a regular file of at most :data:`MAX_YAML_BYTES` is read: a pipe with no writer would
+    block the reading thread for ever (the console's tracking thread, loading a model) and a
+    device such as ``/dev/zero`` would fill the memory."""
+    try:
+        info = os.stat(path)
+    except FileNotFoundError:
+        raise TrackmeterError(f"{path}: no such file") from None
+    except OSError as exc:
+        raise TrackmeterError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    if stat.S_ISDIR(info.st_mode):
+        raise TrackmeterError(f"{path}: a folder, not a file")
+    if not stat.S_ISREG(info.st_mode):
+        raise TrackmeterError(f"{path}: not a regular file (a device, a pipe or a socket): YAML is read from a file")
+    if info.st_size > MAX_YAML_BYTES:
+        raise TrackmeterError(f"{path}: {info.st_size / 2**20:.0f} MiB, too large for a YAML file "
+                              f"(at most {MAX_YAML_BYTES // 2**20} MiB)")
     try:
         text = Path(path).read_text(encoding="utf-8")
     except FileNotFoundError:
