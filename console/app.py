@@ -195,8 +195,11 @@ def add_plot(gui: viser.GuiApi, title: str, labels: tuple[str, ...]) -> viser.Gu
         viser.uplot.Series(label=lab, stroke=SERIES_COLOURS[i % len(SERIES_COLOURS)], width=1.5)
         for i, lab in enumerate(labels))
     data = (np.array([0.0, 1e-3]),) + tuple(np.zeros(2) for _ in labels)
-    return gui.add_uplot(data, series, title=title, aspect=1.6,
-                         scales={"x": viser.uplot.Scale(time=False, auto=True)})
+    handle = gui.add_uplot(data, series, title=title, aspect=1.6,
+                           scales={"x": viser.uplot.Scale(time=False, auto=True)})
+    # viser needs rows to make the plot; no values yet (no pose): null, not a line at 0.
+    set_uplot_data(handle, uplot_data((data[0],) + tuple(np.full(2, np.nan) for _ in labels)))
+    return handle
 
 
 def uplot_data(arrays: tuple[NDArray[np.float64], ...]) -> tuple[NDArray[np.float64] | list[float | None], ...]:

@@ -139,3 +139,37 @@ def test_a_plot_draws_no_line_across_a_gap_and_keeps_its_auto_range(browser: Any
         _assert_broken_at_the_gap_and_auto_ranged(_inspect(late, len(data[0])), data)
     finally:
         late.context.close()
+
+
+_LINE_PIXELS_JS = """(title) => {
+  const tps = (window.__viserTestpoints || {}).uplots || {};
+  const entry = Object.values(tps).find(
+      e => (e.chart.root.querySelector('.u-title') || {}).textContent === title);
+  if (!entry) return null;
+  const u = entry.chart, bb = u.bbox;
+  const img = u.ctx.getImageData(bb.left, bb.top, bb.width, bb.height).data;
+  let line = 0;
+  for (let k = 0; k < img.length; k += 4) {
+    const r = img[k], g = img[k + 1], b = img[k + 2], a = img[k + 3];
+    if (a >= 60 && Math.max(r, g, b) - Math.min(r, g, b) >= 60) line += 1;  // a series colour
+  }
+  return {n: u.data[0].length, line: line};
+}"""
+
+
+def test_a_plot_with_no_data_yet_draws_no_line(browser: Any, plot_server: Any) -> None:
+    """Before the first valid pose a plot holds only its placeholder row pair; drawn as zeros it
+    showed a flat line at 0, read as a measured 0 (an operator probe's finding)."""
+    from console.app import add_plot
+
+    title = "Empty test [m]"
+    add_plot(plot_server.server.gui, title, LABELS)
+    page, _ = open_page(browser, plot_server)
+    try:
+        page.get_by_text(title).first.scroll_into_view_if_needed()
+        wait_for(lambda: page.evaluate(_LINE_PIXELS_JS, title) is not None, 30, "the empty plot in the browser")
+        page.wait_for_timeout(300)  # uPlot draws on the next animation frame
+        state = page.evaluate(_LINE_PIXELS_JS, title)
+        assert state["line"] == 0, state
+    finally:
+        page.context.close()
