@@ -4,9 +4,9 @@ Keys: ``image_width``, ``image_height``, ``K1``, ``D1``, ``K2``, ``D2``, ``R``, 
 optional ``rms_px``, ``E``, ``F``. OpenCV's stereo sample pair ``intrinsics.yml`` (``M1 D1 M2
 D2``) + ``extrinsics.yml`` (``R T ...``) is read too: give either file and the other is found
 beside it (or one file holding both halves); that pair carries no image size, so pass
-``image_size``. ``R`` may be a rotation vector (3 numbers, ``cv2.Rodrigues``) instead of a
-3x3 matrix, as OpenCV's stereo functions take it. So is Kalibr's ``camchain.yaml`` (pinhole, radial-tangential), as real stereo
-data often comes with one. Matrices may be plain YAML lists, in any style PyYAML reads.
+``image_size``. So is Kalibr's ``camchain.yaml`` (pinhole, radial-tangential), as real stereo
+data often comes with one. Matrices may be plain YAML lists, in any style PyYAML reads; ``R``
+may be a rotation vector (3 numbers, ``cv2.Rodrigues``), as OpenCV's stereo functions take it.
 """
 
 from __future__ import annotations
