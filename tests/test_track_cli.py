@@ -285,6 +285,7 @@ def test_a_bad_out_or_auto_is_refused_before_the_source_is_opened(monkeypatch, t
         (sequence / cam / "data.csv").write_text("#timestamp [ns],filename\n")
     for extra, message in ((["--auto", "4", "--out", str(a_file)], "not a folder"),
                            (["--auto", "4", "--out", str(sequence)], "a sequence folder"),
+                           (["--auto", "4", "--out", str(sequence / "cam0" / "data")], "inside a sequence's cam0/"),
                            (["--auto", "4", "--out", str(used)], "holds a run already"),
                            (["--auto", "4", "--out", str(a_file / "sub")], "not a writable folder"),
                            (["--auto", "33", "--out", str(tmp_path / "r")], "--auto must be in [1, 32]")):

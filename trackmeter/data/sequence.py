@@ -393,9 +393,9 @@ def check_output_folder(directory: str | Path, contents: str, folder: str) -> Pa
             folder"``).
 
     Raises:
-        TrackmeterError: it is a file, a sequence folder (a recording is not mixed with
-            other files), or its nearest existing parent is not a folder this process may
-            write in.
+        TrackmeterError: it is a file, a sequence folder or inside one of its camera folders
+            (a recording is not mixed with other files), or its nearest existing parent is not
+            a folder this process may write in.
     """
     path = Path(directory)
     if path.exists() and not path.is_dir():
@@ -403,6 +403,11 @@ def check_output_folder(directory: str | Path, contents: str, folder: str) -> Pa
     if is_sequence_folder(path):
         raise TrackmeterError(f"{path}: a sequence folder (cam0/, cam1/): {contents} do not go into a recording; "
                               "choose another --out")
+    # Nor among a camera's images (SEQ/cam0/data): a folder beside the recording is fine.
+    for inner, outer in zip((path, *path.parents), path.parents):
+        if inner.name in CAMERAS and is_sequence_folder(outer):
+            raise TrackmeterError(f"{path}: inside a sequence's {inner.name}/ (its images): {contents} do not go "
+                                  "into a recording; choose another --out")
     blocked = unwritable_ancestor(path)
     if blocked is not None:
         raise TrackmeterError(f"{path}: cannot create {folder} there ({blocked} is not a writable folder)")
