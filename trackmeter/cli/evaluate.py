@@ -165,7 +165,7 @@ def run(args: argparse.Namespace) -> int:
         # The figures then describe the few poses in the overlap: clocks in other units or epochs?
         # (A short run, or a single pose, within a long truth pairs all its poses: nothing to say.)
         print(f"trackmeter evaluate: warning: the time spans barely overlap (truth {t_t[0]:.6g}..{t_t[-1]:.6g} s, "
-              f"estimate {t_e[0]:.6g}..{t_e[-1]:.6g} s; {result.association.matched} of {len(t_e)} estimated "
+              f"estimate {t_e[0]:.6g}..{t_e[-1]:.6g} s; {assoc.matched} of {len(t_e)} estimated "
               "poses paired): timestamps in other units or from another clock?", file=sys.stderr)
     cuts, redefined = estimate.restarts
     if params.align == "body" and estimate.case in ("a", "c") and cuts + redefined:
