@@ -355,6 +355,16 @@ def test_an_image_size_that_is_no_whole_number_is_refused_by_its_key(tmp_path: P
             load_rig(path, image_size=size)
 
 
+@pytest.mark.parametrize("value", ["true", "false", "0", "3"])
+def test_an_image_size_too_small_for_any_camera_is_refused_with_the_yaml_hint(tmp_path: Path, value: str) -> None:
+    """OpenCV's parser reads ``image_width: true`` as 1 (and ``false`` as 0): the rig loaded as a
+    1 px wide camera and only a confusing size mismatch with the frames said anything was wrong."""
+    path = save_rig(_rig(), tmp_path / "rig.yaml")
+    path.write_text(path.read_text().replace("image_width: 640\n", f"image_width: {value}\n"))
+    with pytest.raises(TrackmeterError, match=r"rig\.yaml: key 'image_width' must be at least 16 px, got \d .*true/false"):
+        load_rig(path)
+
+
 def test_r_written_as_a_rotation_vector_reads_as_its_matrix(tmp_path: Path) -> None:
     """OpenCV's stereo functions take R as a 3x3 matrix or a rotation vector (Rodrigues); a rig
     written by another tool with the vector reads as the same rig."""

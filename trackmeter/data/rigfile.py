@@ -134,11 +134,16 @@ def _scalar(fs: cv2.FileStorage, key: str) -> float | None:
     return float(node.real())
 
 
+#: No camera image is narrower than this (px); a smaller size in a rig file is a typo or a boolean.
+MIN_IMAGE_SIZE_PX = 16
+
+
 def _image_size_scalar(fs: cv2.FileStorage, key: str, path: Path) -> int | None:
     """``key``'s whole number of pixels (``640`` or ``640.``); None when the key is absent.
 
     Raises:
-        TrackmeterError: the key holds anything else (NaN, a fraction, a string, a list).
+        TrackmeterError: the key holds anything else (NaN, a fraction, a string, a list) or
+            fewer than :data:`MIN_IMAGE_SIZE_PX` pixels.
     """
     node = fs.getNode(key)
     if node.empty() or node.isNone():
@@ -147,6 +152,10 @@ def _image_size_scalar(fs: cv2.FileStorage, key: str, path: Path) -> int | None:
     if not (math.isfinite(value) and value == round(value)):
         shown = node.string() if node.isString() else (value if node.isReal() or node.isInt() else "not a number")
         raise TrackmeterError(f"{path}: key '{key}' must be a whole number of pixels, got {shown!r}")
+    if value < MIN_IMAGE_SIZE_PX:
+        # OpenCV's parser reads YAML's true/false as 1/0, which would load as a 1 px camera.
+        raise TrackmeterError(f"{path}: key '{key}' must be at least {MIN_IMAGE_SIZE_PX} px, got {int(value)} "
+                              "(a YAML true/false reads as 1/0)")
     return int(value)
 
 
