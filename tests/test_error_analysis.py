@@ -63,6 +63,60 @@ def test_mismatches_are_counted_not_pooled():
     assert st.sigma_m[2] == pytest.approx(0.003, rel=0.05)
 
 
+def spread_scene(k_per_m: float = 0.0003, n_frames: int = 30) -> tuple[np.ndarray, np.ndarray]:
+    """A still scene whose points lie 4 to 13 m deep (a real stereo pair's, not one flat
+    target's), each measured with its own eq. 2 noise ``sigma_z = k z^2`` (a tenth of that
+    across); returns measurements and their error-propagation sigmas, (F, P, 3) each."""
+    rng = np.random.default_rng(3)
+    z = np.concatenate([np.full(20, 4.3), np.linspace(6.0, 13.0, 10)])
+    centres = np.column_stack([rng.uniform(-1, 1, len(z)), rng.uniform(-1, 1, len(z)), z])
+    S = np.broadcast_to(np.column_stack([0.1 * k_per_m * z**2, 0.1 * k_per_m * z**2, k_per_m * z**2]),
+                        (n_frames, len(z), 3)).copy()
+    return centres[None] + rng.normal(size=S.shape) * S, S
+
+
+def test_the_mismatch_gate_scales_with_each_measurements_own_sigma():
+    """A scene spread in depth: the far points' larger noise is noise (eq. 2), not mismatches.
+    One robust sigma for all the range's residuals took a quarter of a real pair's samples for
+    mismatches; each residual is now weighed against its own error-propagation sigma."""
+    X, S = spread_scene()
+    X[11, 2, 2] += 0.05  # a wrong match 5 cm off, at a near point (10 of its sigmas... x 20)
+    st = range_statistics(X, S, max_abs_residual_sigmas=8.0)
+    assert st.n_outliers == 1
+    assert st.n_samples == X.shape[0] * X.shape[1] - 1
+
+
+def test_a_range_spread_in_depth_gives_its_disparity_sigma_point_by_point():
+    """eq. 2 inverted per point (``sigma_z,p / z_p^2``), pooled: the range's own k, where the
+    pooled sigma_z over the mean depth squared mixes depths (here about 1.8 times too large)."""
+    k = 0.0003
+    X, S = spread_scene(k, n_frames=400)
+    st = range_statistics(X, S)
+    assert st.depth_k_per_m == pytest.approx(k, rel=0.03)
+    assert st.sigma_m[2] / st.range_m**2 > 1.5 * k
+    flat = range_statistics(exact_stack(3.5, np.array([0.001, 0.001, 0.004])), min_samples=2)
+    assert flat.depth_k_per_m == pytest.approx(0.004 / 3.5**2, rel=1e-12)
+
+
+def test_the_parabola_of_a_range_spread_in_depth_is_fitted_point_by_point():
+    """The headline sub-pixel accuracy (eq. 2 from the fitted k) of one scene spread in depth:
+    its points' own k, not the pooled sigma_z over the mean depth squared."""
+    k = 0.0003
+    X, S = spread_scene(k, n_frames=400)
+    analysis = analyze_ranges([range_statistics(X, S)], F_PX, B_M)
+    assert analysis.fits["z"].k_per_m == pytest.approx(k, rel=0.03)
+    assert analysis.sigma_disparity_px == pytest.approx(k * F_PX * B_M, rel=0.03)
+
+
+def test_frames_identical_to_round_off_are_refused_as_without_scatter():
+    """A noise-free still sequence scatters by 1e-15 m of round-off: no measurement noise to fit,
+    not a sigma of 3e-15 m with round-off 'outliers' and numpy's divide-by-zero warnings."""
+    X = np.array([0.1, 0.0, 3.5]) + np.random.default_rng(1).normal(scale=1e-15, size=(30, 10, 3))
+    st = range_statistics(X, np.full(X.shape, 0.003), max_abs_residual_sigmas=8.0)
+    with pytest.raises(TrackmeterError, match="scatter"):
+        analyze_ranges([st], F_PX, B_M)
+
+
 def test_fit_parabola_recovers_k_exactly_and_eq2_gives_the_subpixel_accuracy():
     sigma_d = 0.07  # the paper's sub-pixel accuracy
     z = np.array(RANGES)
@@ -234,3 +288,19 @@ def test_one_range_gives_a_parabola_but_no_r2_or_standard_error() -> None:
     fit = fit_parabola([3.5], [0.004])
     assert fit.k_per_m == pytest.approx(0.004 / 3.5**2)
     assert math.isnan(fit.r2) and math.isnan(fit.k_std_per_m)
+
+
+def test_the_text_summary_shows_the_mismatches_and_no_nan_for_one_range():
+    """``analyze`` printed ``(± nan), R^2 = nan`` for a single range and never said how many
+    samples it had left out as mismatches."""
+    from trackmeter.data.analysis_report import format_analysis
+
+    X, S = spread_scene()
+    X[11, 2, 2] += 0.05
+    text = format_analysis(analyze_ranges([range_statistics(X, S, max_abs_residual_sigmas=8.0)], F_PX, B_M).to_dict())
+    fit_line = next(line for line in text.splitlines() if line.startswith("fit sigma_z"))
+    assert "nan" not in fit_line and "(± -), R^2 = -" in fit_line
+    header, row = text.splitlines()[:2]
+    assert "mism" in header
+    end = header.index("mism") + len("mism")  # the column is right-aligned
+    assert row[end - 6:end].strip() == "1"

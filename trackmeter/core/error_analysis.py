@@ -62,6 +62,10 @@ class RangeStatistics:
         n_samples: good measurements of those points in all.
         n_outliers: measurements left out as mismatches (beyond the residual limit).
         sigma_m: (3,) pooled standard deviation of a single measurement per camera axis, m.
+        depth_k_per_m: this range's own ``k`` of eq. 2 (``sigma_z = k z^2``), pooled point by
+            point: ``sqrt(sum_p sum_i ((z_pi - mean_p) / mean_p^2)^2 / dof)``, 1/m. Equal to
+            ``sigma_z / range^2`` for points at one depth; right also for a scene spread in
+            depth, where that quotient mixes near and far points.
         predicted_sigma_m: (3,) mean error-propagation sigma of the same measurements, m
             (NaN when not given).
         residuals_m: (n_samples, 3) measurement minus its point's mean, m.
@@ -72,6 +76,7 @@ class RangeStatistics:
     n_samples: int
     n_outliers: int
     sigma_m: FloatArray
+    depth_k_per_m: float
     predicted_sigma_m: FloatArray
     residuals_m: FloatArray
 
@@ -88,7 +93,10 @@ def range_statistics(
     (unbiased) variance ``sum_p sum_i (x_pi - mean_p)^2 / sum_p (n_p - 1)`` — the points'
     true positions differ, their noise is what we want. Residuals beyond
     ``max_abs_residual_sigmas`` robust sigmas (1.4826 MAD, per axis) are counted and dropped
-    first, because a wrong match is not measurement noise.
+    first, because a wrong match is not measurement noise. With ``predicted_sigma_m`` each
+    residual is weighed in units of its own predicted sigma first, so that in a scene spread
+    in depth the far points' larger noise (eq. 2: ``sigma_z`` grows as ``z^2``) is not taken
+    for mismatches.
 
     Args:
         points_cam_m: (F, P, 3) measurements of P points over F frames, left camera frame, m;
@@ -109,13 +117,24 @@ def range_statistics(
         total = np.where(mask[..., None], X, 0.0).sum(axis=0)
         return np.divide(total, n, out=np.full(total.shape, np.nan), where=n > 0)
 
+    S = None
+    if predicted_sigma_m is not None:
+        S = np.asarray(predicted_sigma_m, dtype=float)
+        if S.shape != X.shape:
+            raise TrackmeterError(f"predicted sigma shape {S.shape} differs from the measurements' {X.shape}")
     mean = point_means(good)
     resid = X - mean[None]
     n_outliers = 0
     if np.isfinite(max_abs_residual_sigmas) and np.count_nonzero(good) > 2:
-        r = resid[good]
+        # In units of each measurement's own predicted sigma where it has one.
+        weighed, gate = resid, good
+        if S is not None:
+            usable = good & np.all(np.isfinite(S) & (S > 0), axis=2)
+            if np.count_nonzero(usable) > 2:  # else no usable predicted sigmas: the raw residuals
+                weighed, gate = np.where(usable[..., None], resid / np.where(usable[..., None], S, 1.0), 0.0), usable
+        r = weighed[gate]
         mad = 1.4826 * np.median(np.abs(r - np.median(r, axis=0)), axis=0)
-        bad = good & np.any(np.abs(resid) > max_abs_residual_sigmas * np.maximum(mad, 1e-300), axis=2)
+        bad = gate & np.any(np.abs(weighed) > max_abs_residual_sigmas * np.maximum(mad, 1e-300), axis=2)
         n_outliers = int(np.count_nonzero(bad))
         if n_outliers:
             good &= ~bad
@@ -129,19 +148,15 @@ def range_statistics(
     R = resid[sel]  # (n, 3)
     dof = float(np.sum(counts[use] - 1))
     sigma = np.sqrt(np.sum(R * R, axis=0) / dof)
-    if predicted_sigma_m is None:
-        predicted = np.full(3, np.nan)
-    else:
-        S = np.asarray(predicted_sigma_m, dtype=float)
-        if S.shape != X.shape:
-            raise TrackmeterError(f"predicted sigma shape {S.shape} differs from the measurements' {X.shape}")
-        predicted = np.sqrt(np.mean(S[sel] ** 2, axis=0))  # RMS of the predicted sigmas
+    depth_k = float(np.sqrt(np.sum((resid[..., 2] / mean[None, :, 2] ** 2)[sel] ** 2) / dof))
+    predicted = np.full(3, np.nan) if S is None else np.sqrt(np.mean(S[sel] ** 2, axis=0))  # their RMS
     return RangeStatistics(
         range_m=float(np.mean(X[sel][:, 2])),
         n_points=int(np.count_nonzero(use)),
         n_samples=int(len(R)),
         n_outliers=n_outliers,
         sigma_m=sigma,
+        depth_k_per_m=depth_k,
         predicted_sigma_m=predicted,
         residuals_m=R,
     )
@@ -430,7 +445,7 @@ class ErrorAnalysis:
                     "sigma_m": dict(zip("xyz", map(float, r.sigma_m))),
                     "predicted_sigma_m": dict(zip("xyz", map(float, r.predicted_sigma_m))),
                     # eq. 2 inverted at this range alone: is sigma_d constant over range?
-                    "sigma_disparity_px": subpixel_accuracy_px(float(r.sigma_m[2]) / r.range_m**2, self.focal_px, self.baseline_m),
+                    "sigma_disparity_px": subpixel_accuracy_px(r.depth_k_per_m, self.focal_px, self.baseline_m),
                 }
                 for r in self.ranges
             ],
@@ -460,12 +475,16 @@ def analyze_ranges(
     if not ranges:
         raise TrackmeterError("error analysis needs measurements at one range at least")
     rs = tuple(sorted(ranges, key=lambda r: r.range_m))
-    if not any(r.sigma_m[2] > 0 for r in rs):
+    # Round-off of identical frames scatters by ~1e-15 m: a nanometre is no measurement noise.
+    if not any(r.sigma_m[2] > 1e-9 * r.range_m for r in rs):
         # Identical frames (a still image repeated, a noise-free render): no scatter to fit.
         raise TrackmeterError("error analysis needs measurements that scatter: every range's depth "
                               "spread is zero (are the frames identical copies?)")
     z = np.array([r.range_m for r in rs])
-    fits = {axis: fit_parabola(z, [r.sigma_m[i] for r in rs]) for i, axis in enumerate("xyz")}
+    fits = {axis: fit_parabola(z, [r.sigma_m[i] for r in rs]) for i, axis in enumerate("xy")}
+    # Depth: each range's sigma_z at its mean depth from its own points' k (eq. 2 point by
+    # point): the same for a flat target, and right for a scene spread in depth.
+    fits["z"] = fit_parabola(z, [r.depth_k_per_m * r.range_m**2 for r in rs])
     normalised = np.concatenate([r.residuals_m[:, 2] / r.sigma_m[2] for r in rs if r.sigma_m[2] > 0])
     near = int(np.argmin(np.abs(z - 3.5)))
     return ErrorAnalysis(

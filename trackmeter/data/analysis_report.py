@@ -27,11 +27,17 @@ PAPER_SIGMA_Z_3P5_M = 0.004
 PAPER_SIGMA_DISPARITY_PX = 0.07
 
 
+def _shown(value: float | None, scale: float = 1.0) -> str:
+    """``value * scale`` to 4 decimals; '-' where it is undefined (a fit over one range has no
+    spread: None in the JSON, NaN in the analysis)."""
+    return "-" if value is None or value != value else f"{value * scale:.4f}"
+
+
 def format_analysis(summary: dict) -> str:
     """Human-readable summary (mm, px)."""
     lines = [
         f"{'origin [m]':>10}{'range [m]':>10}{'points':>8}{'samples':>9}{'sx [mm]':>10}{'sy [mm]':>10}{'sz [mm]':>10}"
-        f"{'pred sz [mm]':>14}{'sd [px]':>9}{'true rms z [mm]':>17}{'bias z [mm]':>13}{'gross':>7}"
+        f"{'pred sz [mm]':>14}{'sd [px]':>9}{'mism':>6}{'true rms z [mm]':>17}{'bias z [mm]':>13}{'gross':>7}"
     ]
     for r in summary["ranges"]:
         s, p = r["sigma_m"], r["predicted_sigma_m"]
@@ -44,17 +50,19 @@ def format_analysis(summary: dict) -> str:
         lines.append(
             (f"{origin:>10.3f}" if origin == origin else f"{'-':>10}")
             + f"{r['range_m']:>10.3f}{r['n_points']:>8d}{r['n_samples']:>9d}{s['x'] * 1e3:>10.3f}"
-            f"{s['y'] * 1e3:>10.3f}{s['z'] * 1e3:>10.3f}{p['z'] * 1e3:>14.3f}{r['sigma_disparity_px']:>9.4f}" + truth
+            f"{s['y'] * 1e3:>10.3f}{s['z'] * 1e3:>10.3f}{p['z'] * 1e3:>14.3f}{r['sigma_disparity_px']:>9.4f}"
+            f"{r['n_outliers']:>6d}" + truth
         )
     lines.append(
         "(origin: the target origin's true range, as the skipped ranges are named, '-' without ground truth; "
         "range: the mean measured depth of the range's points;\n sigma: repeated-measurement standard deviation; "
-        "pred: error propagation with the matcher's sigma_d; sd: eq. 2 at that range;\n true rms/bias: against the simulator's surface points, gross mismatches (gross/points) left out)"
+        "pred: error propagation with the matcher's sigma_d; sd: eq. 2 at that range, point by point;\n mism: samples "
+        "left out as mismatches (beyond analyze.max_abs_residual_sigmas of their own predicted sigma); true rms/bias: against the simulator's surface points, gross mismatches (gross/points) left out)"
     )
     fz = summary["fit"]["z"]
     lines.append(
-        f"fit sigma_z = k z^2: k = {fz['k_per_m'] * 1e3:.4f} mm/m^2 (± {fz['k_std_per_m'] * 1e3:.4f}), "
-        f"R^2 = {fz['r2']:.4f}; sigma_z at 3.5 m = {summary['sigma_z_at_3p5_m'] * 1e3:.3f} mm "
+        f"fit sigma_z = k z^2: k = {fz['k_per_m'] * 1e3:.4f} mm/m^2 (± {_shown(fz['k_std_per_m'], 1e3)}), "
+        f"R^2 = {_shown(fz['r2'])}; sigma_z at 3.5 m = {summary['sigma_z_at_3p5_m'] * 1e3:.3f} mm "
         f"(paper: {PAPER_SIGMA_Z_3P5_M * 1e3:.0f} mm)"
     )
     lines.append(
