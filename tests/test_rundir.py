@@ -39,6 +39,28 @@ def test_coasted_poses_are_valid_rows_and_counted_in_the_summary(tmp_path: Path)
     assert len(tum) == 3
 
 
+@pytest.mark.parametrize("how", ["removed", "replaced"])
+def test_a_run_folder_removed_while_writing_is_said_and_not_made_again(tmp_path: Path, how: str) -> None:
+    """``rm -rf RUN`` while ``track`` wrote there: the open files went on into the deleted
+    folder, the closing run.yaml made a new folder holding only itself with "complete", and the
+    run exited 0; every row was lost without a word."""
+    import shutil
+
+    out = tmp_path / "run"
+    writer = RunWriter(out, {}, {"spec": "test"})
+    writer.write_frame(0.00, (), _pose(0.0))
+    shutil.rmtree(out)
+    if how == "replaced":
+        out.mkdir()
+    with pytest.raises(TrackmeterError, match=r"run: the run folder was removed or replaced while the run wrote to it; "
+                                              r"the 1 frame written there is lost"):
+        writer.write_frame(0.04, (), _pose(0.0))
+    assert writer.folder_lost
+    with pytest.raises(TrackmeterError, match="removed or replaced"):
+        writer.close("write failed")
+    assert (not out.exists()) if how == "removed" else (list(out.iterdir()) == [])
+
+
 def test_a_valid_states_row_has_every_field_and_a_pose_without_rates_stays_in_the_trajectory(tmp_path: Path) -> None:
     """states.csv's valid rows read like groundtruth.csv rows (DESIGN 6: "same meanings"): a pose
     whose rates are not estimated yet is valid 0 there, its pose filled in, and still a line of

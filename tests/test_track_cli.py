@@ -716,6 +716,32 @@ def test_a_disk_that_fills_stops_the_run_with_whole_rows_and_says_so(monkeypatch
     assert len(tum) == meta["summary"]["valid_frames"]
 
 
+def test_a_run_folder_removed_mid_run_stops_the_run_and_says_the_rows_are_lost(monkeypatch, tmp_path, estec_rig,
+                                                                              capsys) -> None:
+    """The run went on into the deleted folder, printed "-> RUN" and exited 0 with a new RUN
+    holding only a run.yaml that said "complete"."""
+    import shutil
+
+    import trackmeter.data.rundir as rundir
+
+    fake_source(monkeypatch, estec_rig, n=40)
+    out = tmp_path / "run"
+    write_frame = rundir.RunWriter.write_frame
+
+    def remove_at_frame_10(self, *args, **kwargs):  # type: ignore[no-untyped-def]
+        if self.frames == 10 and out.exists():
+            shutil.rmtree(out)
+        return write_frame(self, *args, **kwargs)
+
+    monkeypatch.setattr(rundir.RunWriter, "write_frame", remove_at_frame_10)
+    assert main(["track", "--source", "fake", "--auto", "8", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1, err
+    assert "the run folder was removed or replaced while the run wrote to it; the 10 frames written there are lost" in err
+    assert "run stopped" in err and "whole in" not in err, err
+    assert not out.exists()
+
+
 def test_auto_that_never_starts_a_target_says_why(monkeypatch, tmp_path, estec_rig, capsys) -> None:
     """A renderer's too-dark sequence ran 'complete' with 0 valid poses and only "0 points
     tracked" as the reason: the candidates' refusals are now named. (The fake source shows the

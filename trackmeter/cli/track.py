@@ -353,10 +353,12 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
             if state.get("write_error"):
                 try:
                     writer.close("write failed", _summary(engine, writer, state))
-                    kept = f"run.yaml says so, and the {counted(writer.frames, 'frame')} before are whole in {args.out}"
+                    kept = f"; run.yaml says so, and the {counted(writer.frames, 'frame')} before are whole in {args.out}"
                 except TrackmeterError:
-                    kept = f"run.yaml could not be updated (it says running); the {counted(writer.frames, 'frame')} before are whole in {args.out}"
-                raise TrackmeterError(f"{state['write_error']}: run stopped; {kept}")
+                    kept = "" if writer.folder_lost else (
+                        f"; run.yaml could not be updated (it says running); the {counted(writer.frames, 'frame')} "
+                        f"before are whole in {args.out}")
+                raise TrackmeterError(f"{state['write_error']}: run stopped{kept}")
             src_status = last.source_status or state["status"]
             summary = _summary(engine, writer, state)
             summary["source_status"] = src_status

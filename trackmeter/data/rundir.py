@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import os
 import platform
 import sys
 import time
@@ -38,7 +39,7 @@ from trackmeter.data.motion_csv import STATES_COLUMNS, MotionCsvWriter
 from trackmeter.data.atomic import AppendFile, FolderLock, SpaceReserve, claim_folder, write_text_atomic
 from trackmeter.data.sequence import check_output_folder
 from trackmeter.data.trajectory import format_tum_line
-from trackmeter.errors import TrackmeterError
+from trackmeter.errors import TrackmeterError, counted
 
 #: Header of ``targets.csv`` (a contract, DESIGN.md section 6).
 TARGETS_COLUMNS: tuple[str, ...] = ("t", "id", "state", "u", "v", "u_right", "v_right", "x", "y", "z", "score")
@@ -103,6 +104,15 @@ def check_run_directory(directory: str | Path, overwrite: bool = False) -> Path:
     return check_output_folder(path, "a run's files", "a run folder")
 
 
+def _folder_identity(folder: Path) -> tuple[int, int] | None:
+    """``(device, inode)`` of ``folder``, None when it is gone."""
+    try:
+        st = os.stat(folder)
+    except OSError:
+        return None
+    return (st.st_dev, st.st_ino)
+
+
 class RunWriter:
     """Writes one run directory incrementally.
 
@@ -138,6 +148,10 @@ class RunWriter:
                     self.directory.rmdir()
             self._release_lock()
             raise
+        # The folder's identity: removed (or replaced) while the run writes, the open files would
+        # go on into the deleted one and the closing run.yaml make a new folder of its own.
+        self._folder_id = _folder_identity(self.directory)
+        self.folder_lost = False
         if overwrite:  # a report of the run replaced would describe the new one wrongly
             from trackmeter.data.evaluation import REPORT_FILES
 
@@ -199,6 +213,7 @@ class RunWriter:
         """
         if self._tum is None or self._targets is None:
             raise TrackmeterError(f"{self.directory}: run writer is closed")
+        self._check_folder()
         # A frame is in all three files or in none: a write that fails (a full disk) takes
         # back what this frame had written to the others.
         sizes = (self._states.size, self._states.rows_written, self._tum.size, self._targets.size)
@@ -253,6 +268,16 @@ class RunWriter:
                 self._reserve.release()
             self._release_lock()
 
+    def _check_folder(self) -> None:
+        """Raises TrackmeterError (and sets ``folder_lost``) when the run folder is gone or is
+        another folder now: what was written went with the old one."""
+        if not self.folder_lost and _folder_identity(self.directory) == self._folder_id:
+            return
+        self.folder_lost = True
+        raise TrackmeterError(f"{self.directory}: the run folder was removed or replaced while the run wrote to it; "
+                              f"the {counted(self.frames, 'frame')} written there "
+                              f"{'is' if self.frames == 1 else 'are'} lost")
+
     def _close(self, status: str, summary: dict[str, Any] | None) -> None:
         assert self._tum is not None
         self._states.close()
@@ -260,6 +285,7 @@ class RunWriter:
         if self._targets is not None:
             self._targets.close()
         self._tum = self._targets = None
+        self._check_folder()  # no run.yaml alone in a folder made anew for it
         self._meta["status"] = status
         self._meta["finished_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
         self._meta["summary"] = {"frames": self.frames, "valid_frames": self.valid_frames,
