@@ -994,3 +994,41 @@ def test_a_writer_that_fails_after_taking_the_folder_leaves_nothing_and_no_lock(
         assert (folder.exists() and not any(folder.iterdir())) if existed else not folder.exists()
         with SequenceWriter(folder) as again:  # not refused: nothing held, nothing left
             again.write(_frames(1)[0])
+
+
+def _spoil_video_frame(path: Path, k: int) -> None:
+    """Zero frame ``k``'s whole JPEG in an MJPG AVI (its bytes from its start-of-image marker
+    to the next frame's chunk): FFmpeg then fails on that frame alone and decodes the rest."""
+    data = bytearray(path.read_bytes())
+    starts = [i for i in range(len(data) - 1) if data[i] == 0xFF and data[i + 1] == 0xD8]
+    end = starts[k + 1] - 8 if k + 1 < len(starts) else len(data)
+    data[starts[k]:end] = bytes(end - starts[k])
+    path.write_bytes(bytes(data))
+
+
+def test_a_video_frame_that_does_not_decode_is_skipped_and_said_not_the_end(tmp_path):
+    """One bad frame ended the whole stream without a word (exit 0, "complete", the rest of
+    the video never tracked); OpenCV itself decodes every frame after it."""
+    left, right = _video(tmp_path / "left.avi", 20), _video(tmp_path / "right.avi", 20)
+    _spoil_video_frame(left, 10)
+    src = open_source(f"video:{left},{right}")
+    frames = list(iter(src.read, None))
+    src.close()
+    assert len(frames) == 19
+    times = [f.t_s for f in frames]
+    assert times[9] == pytest.approx(0.9) and times[10] == pytest.approx(1.1)  # frame 10's time is skipped too
+    assert [f.index for f in frames] == list(range(19))
+    assert src.warning is not None and "1 frame pair skipped: left.avi's frame 10 did not decode" in src.warning
+
+
+def test_a_video_cut_short_says_it_ended_before_its_frame_count(tmp_path):
+    """A file cut in half (its header still counting every frame) ended the stream at the cut,
+    status complete, no warning."""
+    left, right = _video(tmp_path / "left.avi", 20), _video(tmp_path / "right.avi", 20)
+    data = left.read_bytes()
+    left.write_bytes(data[: len(data) // 2])
+    src = open_source(f"video:{left},{right}")
+    frames = list(iter(src.read, None))
+    src.close()
+    assert 5 <= len(frames) < 15
+    assert src.warning is not None and f"the stream ended after {len(frames)} of the 20 frame pairs the files count" in src.warning

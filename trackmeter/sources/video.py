@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from trackmeter.core.stereo import StereoRig
-from trackmeter.errors import TrackmeterError
+from trackmeter.errors import TrackmeterError, counted
 from trackmeter.sources.base import Source, StereoFrame
 from trackmeter.sources.pacing import Pacer
 
@@ -75,7 +75,16 @@ class VideoSource(Source):
             # The longer file's tail is never played.
             problems.append(f"the videos differ in length ({self.paths[0].name}: {counts[0]} frames, "
                             f"{self.paths[1].name}: {counts[1]}): the stream ends with the shorter")
-        #: One line on what does not match between the files (None when nothing found).
+        self._problems = problems
+        # The frames both headers count, 0 when unknown: a read that fails before it is one bad
+        # frame (OpenCV decodes those after it), skipped; one at it is the end.
+        self._expected = min(counts) if min(counts) > 0 else 0
+        self._undecoded: list[tuple[int, str]] = []  # (position, which file) on the first pass
+        self._short_by = 0  # frames the first pass ended before the count (a file cut short)
+        self._delivered = 0  # pairs delivered on this pass
+        self._looped = False
+        #: One line on what does not match between the files and, as playing finds them, the
+        #: frames that did not decode (None when nothing found).
         self.warning: str | None = "; ".join(problems) or None
         if self.warning:
             warnings.warn(self.warning, stacklevel=2)
@@ -116,9 +125,10 @@ class VideoSource(Source):
 
     @staticmethod
     def _open(path: Path) -> cv2.VideoCapture:
-        # FFmpeg prints its own errors (e.g. "moov atom not found") above the one line that
-        # says what failed; only fatal ones stay (8, AV_LOG_FATAL). A user's own setting wins.
-        os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "8")
+        # FFmpeg prints its own errors (e.g. "moov atom not found", "No JPEG data found in
+        # image" at level 8) above the one line that says what failed or was skipped: quiet
+        # (-8, AV_LOG_QUIET). A user's own setting wins.
+        os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
         cap = cv2.VideoCapture(str(path))
         if not cap.isOpened():
             cap.release()
@@ -126,9 +136,19 @@ class VideoSource(Source):
         return cap
 
     def read(self) -> StereoFrame | None:
-        ok_l, left = self._caps[0].read()
-        ok_r, right = self._caps[1].read()
+        while True:
+            ok_l, left = self._caps[0].read()
+            ok_r, right = self._caps[1].read()
+            ok_l, ok_r = ok_l and left is not None, ok_r and right is not None
+            if (ok_l and ok_r) or self._pos >= self._expected:
+                break
+            # Both files step on together, so the pairs stay matched; the frame's time is skipped.
+            if not self._looped:
+                self._undecoded.append((self._pos, "both files" if not (ok_l or ok_r)
+                                        else self.paths[0 if not ok_l else 1].name))
+            self._pos += 1
         if not (ok_l and ok_r):
+            self._end_of_pass()
             if not self.loop or self._pos == 0:
                 return None
             self._t_offset = self._last_t + (1.0 / self.rate_hz if self.rate_hz else 0.04)
@@ -147,13 +167,42 @@ class VideoSource(Source):
             self._pacer.wait(t)
         frame = StereoFrame(index=self._count, t_s=t, left=left, right=right, cut=self._take_cut())
         self._count += 1
+        self._delivered += 1
+        if self._undecoded and not self._looped:
+            self._update_warning()
         return frame
+
+    def _end_of_pass(self) -> None:
+        """At the end of the files: the failed reads that ran on to the end are a file cut
+        short, not bad frames; said once, on the first pass."""
+        if self._looped:
+            return
+        while self._undecoded and self._undecoded[-1][0] == self._expected - 1 - self._short_by:
+            self._undecoded.pop()
+            self._short_by += 1
+        self._update_warning()
+        self._looped = True
+
+    def _update_warning(self) -> None:
+        parts = list(self._problems)
+        if self._undecoded:
+            shown = [f"{name}'s frame {pos} did not decode" if name != "both files"
+                     else f"frame {pos} did not decode in either file" for pos, name in self._undecoded[:3]]
+            more = len(self._undecoded) - len(shown)
+            parts.append(f"{counted(len(self._undecoded), 'frame pair')} skipped: {', '.join(shown)}"
+                         + (f" and {more} more" if more else ""))
+        # A frame or so short is a header's estimate (FFmpeg counts some containers by duration).
+        if self._short_by >= 2:
+            parts.append(f"the stream ended after {self._delivered} of the {self._expected} frame pairs the files count "
+                         f"(a file cut short?)")
+        self.warning = "; ".join(parts) or None
 
     def _rewind(self) -> None:
         for cap in self._caps:
             cap.release()
         self._caps = [self._open(p) for p in self.paths]
         self._pos = 0
+        self._delivered = 0
 
     def restart(self) -> None:
         self._rewind()
