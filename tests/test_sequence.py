@@ -370,6 +370,24 @@ def test_twelve_bit_images_in_sixteen_bit_files_play_scaled_alike_in_every_frame
     assert SequenceSource(_write(tmp_path / "eight", frames)).image_bits == 8
 
 
+def test_a_deeper_image_among_eight_bit_ones_is_read_at_its_own_depth_and_said(tmp_path):
+    """A full-range 16-bit PNG among a sequence's 8-bit ones (whose depth is decided from its
+    first, middle and last pairs) was clipped at 255: 90 % of the frame white, its targets lost,
+    nothing said. It now reads as its own top 8 bits, counted in the source's warning."""
+    frames = _frames(7)
+    d = _write(tmp_path / "s", frames)
+    lefts = sorted((d / "cam0" / "data").glob("*.png"), key=lambda q: int(q.stem))
+    for k in (1, 4):  # not among the pairs the depth is decided from (0, 3, 6)
+        cv2.imwrite(str(lefts[k]), frames[k].left.astype(np.uint16) * 257)
+    src = SequenceSource(d)
+    assert src.image_bits == 8
+    got = list(iter(src.read, None))
+    assert len(got) == 7
+    assert all(np.array_equal(f.left, ref.left) for f, ref in zip(got, frames))
+    assert src.warning is not None
+    assert f"2 image(s) deeper than the sequence's 8 bits read at their own depth ({lefts[4]} is 16-bit)" in src.warning
+
+
 def test_a_sequence_whose_cameras_store_different_sample_depths_is_warned_about(tmp_path):
     # 12-bit left beside full 16-bit right, scaled alike: the left reads black (at most 15 grey
     # levels), and every point is refused as black sky with nothing said.

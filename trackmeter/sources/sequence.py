@@ -5,11 +5,13 @@ from __future__ import annotations
 import warnings as _warnings
 from pathlib import Path
 
+import numpy as np
+from numpy.typing import NDArray
 
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.transforms import transform_from_pose
 from trackmeter.data.model import Model
-from trackmeter.data.images import read_grey
+from trackmeter.data.images import data_bits, decode_image, read_grey, to_grey_u8
 from trackmeter.data.sequence import SequenceIndex, index_sequence, sequence_data_bits
 from trackmeter.errors import TrackmeterError
 from trackmeter.sources.base import GroundTruth, Source, StereoFrame
@@ -69,6 +71,7 @@ class SequenceSource(Source):
         self._skipped_for_size = 0
         self._size_errors: list[str] = []
         self._skipped_positions: set[int] = set()  # counted once across loops and restarts
+        self._deeper: dict[Path, str] = {}  # images deeper than the sequence's depth: why, by path
         self._pacer = Pacer()
         self._pos = 0
         self._loops = 0
@@ -100,6 +103,9 @@ class SequenceSource(Source):
             parts.append(f"{self._skipped_on_read} pair(s) with an unreadable image skipped ({self._read_errors[-1]})")
         if self._skipped_for_size:
             parts.append(f"{self._skipped_for_size} pair(s) of another image size skipped ({self._size_errors[-1]})")
+        if self._deeper:
+            parts.append(f"{len(self._deeper)} image(s) deeper than the sequence's {self.image_bits} bits read at their "
+                         f"own depth ({list(self._deeper.values())[-1]})")
         # Each part counts in its own unit (images, rows, pairs): no total in front of them.
         return "; ".join(parts) if parts else None
 
@@ -152,8 +158,8 @@ class SequenceSource(Source):
             pos = self._pos
             self._pos += 1
             try:
-                left = read_grey(self.index.left_paths[pos], self.image_bits)
-                right = read_grey(self.index.right_paths[pos], self.image_bits)
+                left = self._read_grey(self.index.left_paths[pos])
+                right = self._read_grey(self.index.right_paths[pos])
             except TrackmeterError as exc:
                 if pos not in self._skipped_positions:
                     self._skipped_positions.add(pos)
@@ -179,6 +185,19 @@ class SequenceSource(Source):
             self._count += 1
             return frame
         return None  # a whole pass without one playable pair: a loop would spin for ever
+
+    def _read_grey(self, path: Path) -> NDArray[np.uint8]:
+        """One image as 8-bit grey at the sequence's sample depth; an image deeper than that
+        (a 16-bit file among 8-bit ones) at its own, and noted: at the sequence's it would
+        saturate (a full-range 16-bit frame read as 8-bit is 90 % white)."""
+        image = decode_image(path)
+        bits = self.image_bits
+        if image.dtype != np.uint8:
+            own = data_bits([image])
+            if own > bits:
+                self._deeper[path] = f"{path} is {own}-bit"
+                bits = own
+        return to_grey_u8(image, str(path), bits)
 
     def _size_mismatch(self, pos: int, left_shape: tuple[int, ...], right_shape: tuple[int, ...]) -> str | None:
         """Why the ``pos``-th pair is not of this sequence's image size, or None when it is."""
