@@ -10,6 +10,7 @@ from __future__ import annotations
 import errno
 import logging
 import socket
+import sys
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -121,12 +122,22 @@ def start_console(
     return RunningConsole(server, pipeline, console, f"http://{shown_host}:{port}")
 
 
-def serve_forever(running: RunningConsole, stop: threading.Event | None = None) -> None:
-    """Block until Ctrl-C (or ``stop`` is set), then stop everything cleanly."""
+def serve_forever(running: RunningConsole, stop: threading.Event | None = None, poll_s: float = 0.5) -> None:
+    """Block until Ctrl-C (or ``stop`` is set), then stop everything cleanly. Meanwhile each new
+    source status (ended, failed) and source warning (images skipped) is one line on stderr:
+    whoever started the console sees what the browser's status line shows."""
     stop = stop or threading.Event()
+    said: tuple[str | None, str | None] = (None, None)
     try:
-        while not stop.wait(0.5):
-            pass
+        while not stop.wait(poll_s):
+            snap = running.pipeline.latest()
+            status, warning = snap.source_status, snap.source_warning
+            if warning and warning != said[1]:
+                print(f"trackmeter console: warning: {warning}", file=sys.stderr, flush=True)
+            if status and status != said[0]:
+                said_as = status if status.startswith("source") else f"source {status}"  # "source failed: ..."
+                print(f"trackmeter console: {said_as}", file=sys.stderr, flush=True)
+            said = (status, warning)
     except KeyboardInterrupt:
         pass
     finally:

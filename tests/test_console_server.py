@@ -739,3 +739,36 @@ def test_a_recording_that_lost_frames_ends_the_console_with_exit_code_1(tmp_path
                  "--record", str(tmp_path / "rec")])
     err = capsys.readouterr().err
     assert code == 1 and "NOT recorded" in err, err
+
+
+def test_the_server_loop_says_on_stderr_when_the_source_ends_fails_or_warns(capsys: pytest.CaptureFixture[str]) -> None:
+    """A sequence deleted under a running console: it went idle and printed nothing; only the
+    browser's status line could tell. Each new source status and warning is now one line."""
+    import threading
+    from types import SimpleNamespace
+
+    from console.server import serve_forever
+
+    news = [(None, None), (None, "3 pair(s) with an unreadable image skipped (x.png: no such image file)"),
+            ("ended", "3 pair(s) with an unreadable image skipped (x.png: no such image file)"),
+            ("ended", "3 pair(s) with an unreadable image skipped (x.png: no such image file)"),
+            ("source failed: x: gone", None)]
+    stop = threading.Event()
+    polled: list[int] = []
+
+    def latest() -> Any:
+        k = min(len(polled), len(news) - 1)
+        polled.append(k)
+        if len(polled) > len(news):
+            stop.set()
+        return SimpleNamespace(source_status=news[k][0], source_warning=news[k][1])
+
+    stopped: list[bool] = []
+    running = SimpleNamespace(pipeline=SimpleNamespace(latest=latest), stop=lambda: stopped.append(True))
+    serve_forever(running, stop, poll_s=0.01)  # type: ignore[arg-type]
+    assert stopped == [True]
+    assert capsys.readouterr().err.splitlines() == [
+        "trackmeter console: warning: 3 pair(s) with an unreadable image skipped (x.png: no such image file)",
+        "trackmeter console: source ended",
+        "trackmeter console: source failed: x: gone",
+    ]
