@@ -100,6 +100,18 @@ def test_a_dead_worker_is_reported(short_estec):
     ahead.close()
 
 
+def test_a_killed_worker_is_reported_with_its_exit_code_not_none(short_estec):
+    """The console said "exit code None" for a worker killed with SIGKILL where track said -9:
+    the pipe closes a moment before the kernel reports the exit."""
+    ahead = RenderAhead(short_estec, (726, 512))
+    ahead._proc.kill()
+    ahead._proc.poll = lambda: None  # type: ignore[method-assign]  # the moment before the exit is reported
+    with pytest.raises(TrackmeterError, match=r"render worker stopped \(exit code -9\)"):
+        for k in range(50):
+            ahead.images(k, lambda i: i + 1)
+    ahead.close()
+
+
 def test_the_pipe_holds_a_whole_frame_where_the_system_allows(short_estec):
     fcntl = pytest.importorskip("fcntl")
     if not hasattr(fcntl, "F_GETPIPE_SZ"):

@@ -193,7 +193,14 @@ class RenderAhead:
             raise self._died() from None
 
     def _died(self) -> TrackmeterError:
-        code = self._proc.poll()
+        # A closed pipe comes a moment before the kernel reports the exit: wait for the code
+        # (poll() alone said "exit code None" where track, a little later, said -9).
+        try:
+            code: int | None = self._proc.wait(timeout=2.0)
+        except subprocess.TimeoutExpired:
+            code = None
+        if code is None:
+            return TrackmeterError("simulator render worker stopped answering (its pipe closed)")
         return TrackmeterError(f"simulator render worker stopped (exit code {code})")
 
     def images(self, index: int, next_index: Callable[[int], int | None]) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
