@@ -79,6 +79,8 @@ def test_no_command_is_one_line_naming_the_commands(capsys):
     (["measure", "--rig", "r", "--left", "a", "--right", "b", "--at", "-5,3"], "--at=-5,3"),
     (["measure", "--rig", "r", "--left", "a", "--right", "b", "--at", "4,5", "--at", "-.5,3"], "--at=-.5,3"),
     (["track", "--source", "sim", "--target", "1,2", "-5,3", "--out", "x"], "--target=-5,3"),
+    # A stray value after its option's first one: the hint named --target for measure too.
+    (["measure", "--rig", "r", "--left", "a", "--right", "b", "--at", "10,10", "-0.5,10"], "--at=-0.5,10"),
 ])
 def test_a_negative_pixel_read_as_an_option_is_explained(capsys, argv, hint):
     # argparse reads "--at -5,3" as an option named "-5,3"; the message must say how to write it.

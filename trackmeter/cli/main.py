@@ -213,14 +213,21 @@ def _warning_printer(command: str) -> Callable[..., None]:
     return show
 
 
+def _option_before(argv: list[str], value: str) -> str:
+    """The option a stray ``value`` most likely belongs to: the last ``--option`` before it
+    on the command line (``--at 1,2 -0.5,10``: ``--at``), else ``--OPTION``."""
+    before = argv[: argv.index(value)] if value in argv else argv
+    return next((a.split("=", 1)[0] for a in reversed(before) if a.startswith("--")), "--OPTION")
+
+
 def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
     _Parser.argv = list(sys.argv[1:] if argv is None else argv)
     args, unknown = parser.parse_known_args(argv)
     if unknown:
         negative = [u for u in unknown if re.match(r"-\.?\d", u)]
-        hint = (f" (a value that starts with '-' must be joined to its own option, e.g. --target={negative[0]})"
-                if negative else "")
+        hint = (f" (a value that starts with '-' must be joined to its own option, e.g. "
+                f"{_option_before(_Parser.argv, negative[0])}={negative[0]})" if negative else "")
         parser.commands.get(args.command, parser).error(f"unrecognized arguments: {' '.join(unknown)}{hint}")
     if args.command is None:
         parser.error(f"a command is needed: {', '.join(COMMANDS)}")
