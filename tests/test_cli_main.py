@@ -230,3 +230,16 @@ def test_the_command_line_stays_deaf_to_stop_signals_once_its_command_has_return
             signal.signal(sig, handler)
         sys.unraisablehook = hook
         sys.stdout, sys.stderr = streams
+
+
+def test_a_ctrl_c_while_the_command_line_is_read_is_one_line_not_a_traceback(monkeypatch, capsys):
+    """Ctrl-C in the first moments of `track` (its modules still importing, before the command
+    takes over the stop signals) printed a KeyboardInterrupt traceback."""
+    import trackmeter.cli.main as cli_main
+
+    def interrupted() -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli_main, "build_parser", interrupted)
+    assert main(["track", "--source", "sim", "--out", "x"]) == 130
+    assert capsys.readouterr().err == "trackmeter: interrupted while starting; nothing was done\n"

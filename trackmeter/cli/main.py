@@ -196,6 +196,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BrokenPipeError:
         _silence_stdout()
         return 1  # what the docs' recipe exits with: the output was cut short
+    except KeyboardInterrupt:
+        # A Ctrl-C before the command took over its signals (while the options are parsed and
+        # its modules imported): nothing was begun, so one line, not a traceback.
+        print("trackmeter: interrupted while starting; nothing was done", file=sys.stderr)
+        return 130
 
 
 def _warning_printer(command: str) -> Callable[..., None]:
