@@ -1050,3 +1050,19 @@ def test_a_video_cut_short_says_it_ended_before_its_frame_count(tmp_path):
     src.close()
     assert 5 <= len(frames) < 15
     assert src.warning is not None and f"the stream ended after {len(frames)} of the 20 frame pairs the files count" in src.warning
+
+
+def test_a_recording_killed_before_its_first_frame_is_named_as_such(tmp_path):
+    """A console recording killed after its rig.yaml but before data.csv read as 'not a
+    sequence folder', with its unfinished mark sitting there unmentioned."""
+    from trackmeter.data.sequence import UNFINISHED_MARK, find_sequence_root
+
+    d = tmp_path / "rec"
+    (d / "cam0" / "data").mkdir(parents=True)
+    (d / "rig.yaml").write_text("%YAML:1.0\n")
+    (d / UNFINISHED_MARK).write_text("")
+    with pytest.raises(TrackmeterError, match=r"rec: a recording stopped before its first frame was written"):
+        find_sequence_root(d)
+    (d / UNFINISHED_MARK).unlink()
+    with pytest.raises(TrackmeterError, match=r"rec: not a sequence folder"):
+        find_sequence_root(d)

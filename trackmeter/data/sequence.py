@@ -441,6 +441,9 @@ def find_sequence_root(directory: str | Path) -> Path:
         raise TrackmeterError(f"{d}: no such sequence folder")
     root = _sequence_root(d)
     if root is None:
+        if (d / UNFINISHED_MARK).exists():
+            raise TrackmeterError(f"{d}: a recording stopped before its first frame was written (no data.csv yet; "
+                                  f"{UNFINISHED_MARK} is there: its writer was killed, or is still starting)")
         raise TrackmeterError(f"{d}: not a sequence folder (expected cam0/data.csv and cam1/data.csv, or mav0/...)")
     return root
 
