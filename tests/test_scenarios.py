@@ -265,3 +265,21 @@ def test_estec_depth_sigma_matches_paper():
     assert r.sigma_z_m == pytest.approx(0.004, rel=0.1)
     assert r.sigma_disparity_px == pytest.approx(0.004 * 1152 * 0.28 / 3.5**2, rel=0.1)
     assert r.outlier_fraction < 0.01
+
+
+def test_an_empty_scenario_file_is_warned_about(tmp_path) -> None:
+    """``sim:empty.yaml`` ran the default scenario without a word: most likely the wrong file."""
+    import warnings
+
+    from trackmeter.sources.sim.scenario import Scenario, load_scenario
+
+    empty = tmp_path / "empty.yaml"
+    empty.write_text("# nothing yet\n")
+    with pytest.warns(UserWarning, match=r"empty\.yaml: no settings: every one is the default"):
+        scenario = load_scenario(empty)
+    assert scenario.duration_s == Scenario().duration_s
+    named = tmp_path / "named.yaml"
+    named.write_text("duration_s: 2.0\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_scenario(named)

@@ -19,6 +19,7 @@ those by hand.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -167,6 +168,8 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
     """
     path = resolve_scenario_path(name_or_path)
     data = read_yaml_mapping(path)
+    if not data:
+        warnings.warn(f"{path}: no settings: every one is the default (is it the scenario meant?)", stacklevel=2)
     data.setdefault("name", path.stem)
     scenario: Scenario = build_dataclass(Scenario, data, source=str(path))
     try:
