@@ -1066,3 +1066,18 @@ def test_a_recording_killed_before_its_first_frame_is_named_as_such(tmp_path):
     (d / UNFINISHED_MARK).unlink()
     with pytest.raises(TrackmeterError, match=r"rec: not a sequence folder"):
         find_sequence_root(d)
+
+
+def test_a_bad_video_frame_is_counted_once_when_the_stream_restarts(tmp_path):
+    """The console restarts a stream (its Restart button): a bad frame met again before the
+    first pass ended was counted again."""
+    left, right = _video(tmp_path / "left.avi", 12), _video(tmp_path / "right.avi", 12)
+    _spoil_video_frame(left, 3)
+    src = open_source(f"video:{left},{right}")
+    for _ in range(5):
+        src.read()
+    src.restart()
+    frames = list(iter(src.read, None))
+    src.close()
+    assert len(frames) == 11
+    assert src.warning is not None and src.warning.startswith("1 frame pair skipped: left.avi's frame 3 did not decode")

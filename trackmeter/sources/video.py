@@ -143,7 +143,7 @@ class VideoSource(Source):
             if (ok_l and ok_r) or self._pos >= self._expected:
                 break
             # Both files step on together, so the pairs stay matched; the frame's time is skipped.
-            if not self._looped:
+            if not self._looped and all(pos != self._pos for pos, _ in self._undecoded):  # once, across restarts
                 self._undecoded.append((self._pos, "both files" if not (ok_l or ok_r)
                                         else self.paths[0 if not ok_l else 1].name))
             self._pos += 1
