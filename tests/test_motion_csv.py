@@ -179,3 +179,19 @@ def test_a_field_of_thousands_of_nul_bytes_is_quoted_short(tmp_path) -> None:
     with pytest.raises(TrackmeterError) as err:
         read_tum(tum)
     assert len(str(err.value)) - len(str(tum)) < 150, str(err.value)[:300]
+
+
+def test_tum_poses_repeating_a_timestamp_are_skipped_with_a_warning_whatever_their_order(tmp_path: Path) -> None:
+    # Which of two poses at one time paired with the truth depended on the lines' order, and
+    # the other was counted unmatched without a word.
+    from trackmeter.data.trajectory import read_tum
+
+    lines = ["0 0 0 3 0 0 0 1", "0 0.01 0 3 0 0 0 1", "1 0 0 3 0 0 0 1"]
+    for order, kept_x, line in (((0, 1, 2), 0.0, 3), ((2, 1, 0), 0.01, 4)):
+        path = tmp_path / "dup.tum"
+        path.write_text("# t tx ty tz qx qy qz qw\n" + "\n".join(lines[i] for i in order) + "\n")
+        with pytest.warns(UserWarning, match=r"dup\.tum: 1 pose\(s\) skipped that repeat an earlier line's timestamp "
+                                             rf"\(the first: line {line}, t = 0 s\); the first pose at each time is kept"):
+            got = read_tum(path)
+        assert got.t_s.tolist() == [0.0, 1.0]
+        assert got.position_m[0, 0] == kept_x

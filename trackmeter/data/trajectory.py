@@ -7,6 +7,7 @@ scalar-last place in the project); in memory quaternions are ``wxyz``. Poses are
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -58,6 +59,7 @@ def read_tum(path: str | Path) -> Trajectory:
     if not path.is_file():
         raise TrackmeterError(f"{path}: no such file")
     rows: list[list[float]] = []
+    line_numbers: list[int] = []
     try:
         lines = path.read_text(encoding="utf-8-sig").splitlines()
     except (OSError, UnicodeDecodeError) as exc:
@@ -72,6 +74,7 @@ def read_tum(path: str | Path) -> Trajectory:
             raise TrackmeterError(f"{path}:{number}: expected 8 values 't tx ty tz qx qy qz qw', got {len(fields)}")
         try:
             rows.append([float(x) for x in fields])
+            line_numbers.append(number)
         except ValueError:
             raise TrackmeterError(f"{path}:{number}: not a number in {quoted(text, 80)}") from None
     if not rows:
@@ -79,6 +82,16 @@ def read_tum(path: str | Path) -> Trajectory:
     data = np.array(rows)
     order = np.argsort(data[:, 0], kind="stable")
     data = data[order]
+    repeats = np.flatnonzero(np.diff(data[:, 0]) == 0) + 1
+    if len(repeats):
+        # Two poses at one time: which one pairs with the other trajectory would depend on the
+        # lines' order. The first in the file is kept (the stable sort keeps file order), as a
+        # sequence's data.csv rows repeating a timestamp are skipped.
+        first = int(order[repeats[0]])
+        warnings.warn(f"{path}: {len(repeats)} pose(s) skipped that repeat an earlier line's timestamp (the first: "
+                      f"line {line_numbers[first]}, t = {data[repeats[0], 0]:.9g} s); the first pose at each time is kept",
+                      stacklevel=2)
+        data = np.delete(data, repeats, axis=0)
     quat_wxyz = data[:, [7, 4, 5, 6]]
     try:
         return Trajectory(data[:, 0], data[:, 1:4], quat_wxyz)
