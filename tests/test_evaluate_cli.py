@@ -701,3 +701,21 @@ def test_a_settle_time_longer_than_the_run_says_how_long_the_run_is(capsys, tmp_
                           "--settle", "1000")
     span = truth.t_s[-1] - truth.t_s[0]
     assert code == 2 and f"the paired poses end {span:.3g} s after the start" in err, err
+
+
+def test_valid_rows_some_without_rates_are_warned_about(capsys, sequence_and_run):
+    # README: a states.csv row is valid when every field is a number. A valid row with a rate
+    # edited to nan was read without a word: its pose counted, its rates left out.
+    truth, seq, run = sequence_and_run
+    path = run / "states.csv"
+    lines = path.read_text().splitlines()
+    header = lines[0].split(",")
+    for row in (3, 7):
+        fields = lines[row].split(",")
+        fields[header.index("vx" if row == 3 else "wz")] = "nan" if row == 3 else ""
+        lines[row] = ",".join(fields)
+    path.write_text("\n".join(lines) + "\n")
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
+    assert code == 0
+    assert "warning: 2 of the estimate's 59 valid rows have a rate that is not a number" in err, err
+    assert json.loads(out)["matched"] == 59  # the poses still count
