@@ -719,3 +719,22 @@ def test_valid_rows_some_without_rates_are_warned_about(capsys, sequence_and_run
     assert code == 0
     assert "warning: 2 of the estimate's 59 valid rows have a rate that is not a number" in err, err
     assert json.loads(out)["matched"] == 59  # the poses still count
+
+
+def test_a_report_over_an_earlier_one_leaves_none_of_its_plots(capsys, sequence_and_run, tmp_path):
+    # A run folder's report has velocity plots, a TUM pair's has none: written into the same
+    # --out, the second left the first's velocity plots beside a report that has no velocities.
+    truth, seq, run = sequence_and_run
+    out = tmp_path / "report"
+    assert _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--out", str(out))[0] == 0
+    assert (out / "velocity_error.png").is_file() and (out / "omega_error.png").is_file()
+    (out / "my_notes.txt").write_text("mine")  # not the report's: stays
+    (out / "my_plot.png").write_bytes(b"mine")
+    code, _, err = _run(capsys, "evaluate", "--truth", str(seq / "groundtruth.tum"), "--estimate",
+                        str(run / "states.csv"), "--out", str(out))
+    assert code == 0, err
+    code, _, err = _run(capsys, "evaluate", "--truth", str(seq / "groundtruth.tum"), "--estimate",
+                        str(seq / "groundtruth.tum"), "--out", str(out))
+    assert code == 0, err
+    assert sorted(p.name for p in out.iterdir()) == ["attitude_error.png", "errors.csv", "my_notes.txt", "my_plot.png",
+                                                     "position_error.png", "report.md", "summary.json"]

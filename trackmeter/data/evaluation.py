@@ -283,6 +283,10 @@ _DISPLAY = {  # group -> (title, unit, scale from SI)
 }
 
 
+#: Every plot a report may hold (:func:`render_error_plots`), file names in ``--out``.
+REPORT_PLOTS = tuple(f"{group.split('_')[0]}_error.png" for group in _DISPLAY)
+
+
 def format_summary(summary: dict, truth: str = "", estimate: str = "", align: str = "none") -> str:
     """Human-readable summary in mm and degrees (the display edge)."""
     lines = []
@@ -389,7 +393,7 @@ def render_error_plots(evaluation: Evaluation) -> dict[str, bytes]:
         axes[0].set_title(f"{title} error (estimate - truth); dashed: paper at 3.5 m (z = viewing axis)")
         axes[-1].set_xlabel("time since the first evaluated pose [s]")
         fig.tight_layout()
-        plots[f"{group.split('_')[0]}_error.png"] = figure_png(fig)
+        plots[REPORT_PLOTS[list(_DISPLAY).index(group)]] = figure_png(fig)
         plt.close(fig)
     return plots
 
@@ -472,4 +476,9 @@ below); angular velocity errors are in the body frame (eq. 14).
     files = {out / "summary.json": (json_text({**s, "settings": settings}) + "\n").encode(), out / "errors.csv": error_table_csv(evaluation).encode(),
              **{out / name: png for name, png in plots.items()}, out / "report.md": report.encode()}
     write_files_atomic(files)
+    # An earlier report's plots this one has none of (a run folder's velocity plots, then a TUM
+    # pair's report without velocities) would sit beside a report that does not show them.
+    for name in REPORT_PLOTS:
+        if name not in plots:
+            (out / name).unlink(missing_ok=True)
     return list(files)
