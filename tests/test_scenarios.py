@@ -234,6 +234,8 @@ def test_rig_override_is_reported_not_rendered(sims, estec_rig):
     [
         ("omega0_body_deg_s: [1, 2]", r"'omega0_body_deg_s'"),
         ("omega0_body_deg_s: [1, two, 3]", r"'omega0_body_deg_s\[1\]'"),
+        # A typo's rate (1e8 deg/s) integrated for minutes without a word before a frame came.
+        ("omega0_body_deg_s: [1.0e8, 0, 0]", r"'omega0_body_deg_s\[0\]': expected a value in \[-3600.0, 3600.0\]"),
         ("inertia_kg_m2: [1, 1, 5]", "triangle inequality"),
         ("rate_hz: -25", "'rate_hz'"),
         ("render: {no_such_knob: 1}", r"unknown key 'render.no_such_knob'"),

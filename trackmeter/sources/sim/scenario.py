@@ -72,7 +72,11 @@ class Scenario:
     attitude0_wxyz: tuple[float, float, float, float] = param(
         (1.0, 0.0, 0.0, 0.0), "Initial attitude q_cam_body (scalar first; normalised)."
     )
-    omega0_body_deg_s: tuple[float, float, float] = param((0.0, 0.0, 0.0), "Initial angular velocity, body frame, deg/s.")
+    omega0_body_deg_s: tuple[float, float, float] = param(
+        (0.0, 0.0, 0.0), "Initial angular velocity, body frame, deg/s (at most 10 turns a second about each axis: "
+        "the motion is integrated before the first frame, and a typo's rate would run for minutes).",
+        min=-3600.0, max=3600.0,
+    )
     position0_m: tuple[float, float, float] = param((0.0, 0.0, 3.5), "Body origin at t = 0, camera frame, m.")
     velocity_m_s: tuple[float, float, float] = param((0.0, 0.0, 0.0), "Constant drift of the body origin, camera frame, m/s.")
     approach_to_m: tuple[float, float, float] | None = param(
