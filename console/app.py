@@ -381,6 +381,7 @@ class Console:
         self._pending_lock = threading.Lock()
         # A click named after a model point, until its reply: the choice it used (_click_at).
         self._model_point_clicks: dict[Future[CommandReply], str] = {}
+        self._next_click_owner: int | None = None  # client id of the browser whose choice "Next click is" shows
         self._views: dict[int, list[Any]] = {}  # client id -> [client, preset, aspect framed for]
         self._popups: dict[int, Any] = {}  # client id -> the pop-up it shows last
         self._stop = threading.Event()
@@ -626,6 +627,7 @@ class Console:
                                               else None))
         self.auto_method.on_update(self._cb(lambda e: self._auto_command() if self.auto_checkbox.value else None))
         self.case_dropdown.on_update(self._cb(lambda e: SetCase(self.case_dropdown.value)))  # type: ignore[arg-type]
+        self.model_point_dropdown.on_update(self._own_next_click)
         # The simulated operator: clicks every model point in view at its true projection, and again
         # whenever the pose has been invalid for a while (a source with ground truth only).
         self.select_model_button.on_click(self._cb(lambda e: SelectModelPoints(repeat=True)))
@@ -710,6 +712,14 @@ class Console:
         click is"; the choice is used up when the target is made, and stays for the next click
         when the point is refused (refusals are common on a turning body)."""
         model_point = self.model_point_dropdown.value
+        with self._pending_lock:
+            owner = self._next_click_owner
+        if model_point != NEW_TARGET and None not in (owner, client) and client.client_id != owner:
+            # The widget is every browser's, the choice one operator's: another's click, meant
+            # as a new target, would bind an arbitrary pixel to that model point.
+            return self.submit(SelectPoint(uv[0], uv[1]), client,
+                               f"Target at {_pixel_text(uv)}, not {model_point}: another browser chose that "
+                               "model point for its own next click")
         if model_point == NEW_TARGET:
             return self.submit(SelectPoint(uv[0], uv[1]), client, f"Target at {_pixel_text(uv)}")
         future = self.submit(SelectPoint(uv[0], uv[1], model_point), client,
@@ -770,6 +780,17 @@ class Console:
         with self._pending_lock:
             self._views.pop(client.client_id, None)
             self._popups.pop(client.client_id, None)
+            gone_owner = self._next_click_owner == client.client_id
+        if gone_owner:  # its click will not come: the others' clicks are new targets again
+            self.model_point_dropdown.value = NEW_TARGET
+
+    def _own_next_click(self, event: Any) -> None:
+        """The model point chosen in "Next click is" belongs to the browser that chose it (None:
+        set by the console itself, e.g. used up or reset; any click may use it then)."""
+        client = getattr(event, "client", None)
+        with self._pending_lock:
+            self._next_click_owner = (client.client_id if client is not None
+                                      and self.model_point_dropdown.value != NEW_TARGET else None)
 
     def _frame_clients(self) -> None:
         with self._pending_lock:

@@ -772,3 +772,48 @@ def test_the_server_loop_says_on_stderr_when_the_source_ends_fails_or_warns(caps
         "trackmeter console: source ended",
         "trackmeter console: source failed: x: gone",
     ]
+
+
+def test_a_model_point_chosen_in_one_browser_names_only_that_browser_s_click() -> None:
+    """"Next click is" is one widget for every browser: one operator's choice named another
+    operator's click, meant as a new target, after that model point."""
+    import types
+
+    from console.app import NEW_TARGET
+    from trackmeter.pipeline.snapshot import SelectPoint
+
+    class NamingEngine(RecordingEngine):
+        def __init__(self) -> None:
+            super().__init__()
+            self.named: list[str | None] = []
+
+        def handle(self, command, frame):  # type: ignore[no-untyped-def]
+            if isinstance(command, SelectPoint):
+                self.named.append(command.target_id)
+            return super().handle(command, frame)
+
+    engine = NamingEngine()
+    running = start_console(CountingSource(100_000, delay_s=0.02), engine, port=free_port())  # type: ignore[arg-type]
+    con = running.console
+    tab_a, tab_b = (types.SimpleNamespace(client_id=i, add_notification=lambda *a, **k: None) for i in (1, 2))
+    try:
+        _wait_for_pushes(con, 3)
+        con.model_point_dropdown.options = (NEW_TARGET, "m1")
+        con.model_point_dropdown.value = "m1"
+        con._own_next_click(types.SimpleNamespace(client=tab_a))  # chosen in tab A's panel
+        assert con._click_at((40.0, 10.0), tab_b).result(10).ok  # tab B's click: a new target
+        assert con.model_point_dropdown.value == "m1"
+        assert con._click_at((50.0, 10.0), tab_a).result(10).ok  # tab A's: the model point
+        assert engine.named == [None, "m1"]
+        # Chosen by the console itself (no browser's), any click may use it, as before.
+        con.model_point_dropdown.value = "m1"
+        con._own_next_click(types.SimpleNamespace(client=None))
+        assert con._click_at((60.0, 10.0), tab_b).result(10).ok
+        assert engine.named == [None, "m1", "m1"]
+        # The chooser gone, its click will never come: the choice is dropped.
+        con.model_point_dropdown.value = "m1"
+        con._own_next_click(types.SimpleNamespace(client=tab_a))
+        con._on_disconnect(tab_a)  # type: ignore[arg-type]
+        assert con.model_point_dropdown.value == NEW_TARGET
+    finally:
+        running.stop()
