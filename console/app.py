@@ -36,8 +36,8 @@ import viser.uplot
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from console.overlay import (PORTRAIT_BAND, STATUS_RGB, LostTargets, box_half_px, box_segments, draw_overlays,
-                             image_view, node_rgb_for, pixel_to_plane, ray_to_pixel, to_rgb, view_in_band)
+from console.overlay import (STATUS_RGB, LostTargets, box_half_px, box_segments, draw_overlays,
+                             image_view, node_rgb_for, pixel_to_plane, ray_to_pixel, to_rgb, view_band, view_in_band)
 from console.series import PLOTS, PlotData
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.targets import TargetState
@@ -832,8 +832,8 @@ class Console:
             aspect = float(client.camera.aspect)
         except (AssertionError, ZeroDivisionError):
             aspect = 16 / 9
-        portrait = aspect < 1.0  # a phone held upright: its control sheet covers the view's bottom
-        band = PORTRAIT_BAND if portrait else 1.0
+        band = view_band(aspect)  # on a phone held upright its control sheet covers the view's bottom
+        portrait = band < 1.0
         right_x = float(self.right_image.position[0]) if self.right_image.visible else None
         with client.atomic():
             client.camera.up_direction = up

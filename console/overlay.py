@@ -126,6 +126,21 @@ VIEW_MARGIN = 0.04
 #: bottom of the view, up to 60 % of its height, and an image framed at the bottom lay under it.
 PORTRAIT_BAND = 0.4
 
+#: Views narrower than this (width / height) are taken for a phone held upright, framed in
+#: :data:`PORTRAIT_BAND`. The page does not tell the console its CSS width, only the canvas's
+#: pixels (times a device pixel ratio that viser also varies with the frame rate), so the shape
+#: decides: a phone's view is under 0.56 (a 9:16 screen; 0.46 at 9:19.5, less the browser's
+#: bars), while a desktop window's view beside the docked panel is rarely so narrow (1024x768:
+#: 0.91) and was squeezed into the band, 60 % of it left empty. A small desktop window under
+#: 576 CSS px wide gets viser's sheet with a wider view; the sheet folds away there.
+PHONE_ASPECT = 0.62
+
+
+def view_band(aspect: float) -> float:
+    """The top fraction of a view of ``aspect`` (width / height) to frame in: :data:`PORTRAIT_BAND`
+    on a phone held upright (:data:`PHONE_ASPECT`), else all of it."""
+    return PORTRAIT_BAND if aspect < PHONE_ASPECT else 1.0
+
 
 def image_view(render_size: tuple[float, float], aspect: float, fov_y_rad: float,
                centre: tuple[float, float] = (0.0, 0.0), band: float = 1.0) -> tuple[

@@ -513,3 +513,14 @@ def test_image_view_of_a_rectangle_off_the_origin_is_the_same_view_moved_with_it
     (qx, qy, qz), (mx, my, mz) = image_view(span, 1.2, np.radians(50.0))
     assert (px - qx, py - qy, pz - qz) == pytest.approx((centre[0], centre[1], 0.0))
     assert (lx - mx, ly - my, lz - mz) == pytest.approx((centre[0], centre[1], 0.0))
+
+
+def test_only_a_view_as_narrow_as_a_phone_s_is_framed_in_the_top_band() -> None:
+    # A desktop window taller than the view beside its docked panel is wide (1024x768: 700x768)
+    # got the phone's framing: the image in the top 40 %, 60 % of the view empty below it.
+    from console.overlay import PORTRAIT_BAND, view_band
+
+    for phone_view in (390 / 844, 360 / 740, 1080 / 1920, 412 / 915):
+        assert view_band(phone_view) == PORTRAIT_BAND
+    for desktop_view in (700 / 768, 480 / 600, 700 / 1000, 1024 / 768, 16 / 9):
+        assert view_band(desktop_view) == 1.0

@@ -214,6 +214,23 @@ def test_showing_the_right_image_frames_both_images(page_and_client: Any, runnin
              "the view back on the left image")
 
 
+def test_a_desktop_window_taller_than_its_view_is_wide_fills_the_view_s_width(browser: Any, running_console: Any,
+                                                                                 artifacts: Path) -> None:
+    # 1024x768 with the panel docked right leaves a view of about 700x768: it was framed as a
+    # phone's, the image squeezed into the top 40 % (420 px wide), 60 % of the view empty.
+    page, client = open_page(browser, running_console, viewport={"width": 1024, "height": 768})
+    try:
+        w, h = running_console.console._image_size
+        box = main_canvas_box(page)
+        assert box["width"] / box["height"] > 0.62, box  # a view of a desktop's shape, under 1
+        wait_for(lambda: (pixel_to_screen(running_console, client, page, (w - 1.0, h / 2), box)[0]
+                          - pixel_to_screen(running_console, client, page, (0.0, h / 2), box)[0]) > 0.85 * box["width"],
+                 10, "the image across the view's width")
+        page.screenshot(path=str(artifacts / "10_desktop_1024x768.png"))
+    finally:
+        page.context.close()
+
+
 def test_on_a_phone_held_upright_the_image_is_above_the_control_sheet(browser: Any, running_console: Any,
                                                                       artifacts: Path) -> None:
     # Under 576 CSS px wide viser lays its control panel over the bottom of the view, up to
