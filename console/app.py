@@ -21,6 +21,7 @@ import contextlib
 import ctypes
 import ctypes.util
 import logging
+import re
 import threading
 import time
 from collections import deque
@@ -122,9 +123,14 @@ OPERATOR_MARKS_RESERVED = 4
 OVERLAY_Z = -0.01
 #: Colour of the measured 3D points in the 3D view: tracking, or measured again after a loss.
 POINT_COLOURS = {"tracking": (60, 230, 60), "other": (255, 200, 0)}
-#: The live numbers' fixed height (see Console._status_html): seven status lines, a pose reason
-#: wrapped to three lines, the six-row table and the attitude error, at line-height 1.45.
-STATUS_HEIGHT_EM = 25.5
+#: The live numbers' fixed height (see Console._status_html): six status lines, the source's
+#: line wrapped to two and the pose's to three (:data:`STATUS_CLAMP_LINES`), the six-row table
+#: and the attitude error, at line-height 1.45.
+STATUS_HEIGHT_EM = 27.0
+#: Lines the source's line (its warning) and the pose's line (its reason) may take in the live
+#: numbers before they are cut with an ellipsis (the whole text shows on hover): a long warning
+#: (six images skipped, each named) took the box's height and hid the pose and rates below it.
+STATUS_CLAMP_LINES = {"source": 2, "pose": 3}
 #: How often the publisher hands the C heap's free pages back to the system (see :func:`release_free_heap`).
 TRIM_EVERY_S = 10.0
 
@@ -1105,8 +1111,15 @@ class Console:
             texts = (["–"] * 3 if value is None or not np.all(np.isfinite(value[0]))
                      else [value[1].format(x) for x in value[0]])
             table.append(f"<tr><td>{name}</td>{''.join(f'<td {cell}>{x}</td>' for x in texts)}</tr>")
+        def clamped(html: str, kind: str) -> str:
+            text = re.sub(r"<[^>]+>", "", html)  # the title attribute's plain text (escaped already)
+            return (f'<div style="display:-webkit-box;-webkit-box-orient:vertical;overflow:hidden;'
+                    f'-webkit-line-clamp:{STATUS_CLAMP_LINES[kind]}" title="{text}">{html}</div>')
+
+        blocks = [clamped(line, "source") if i == 1 else clamped(line, "pose") if i == len(lines) - 1
+                  else f"<div>{line}</div>" for i, line in enumerate(lines)]
         return (f'<div style="height:{STATUS_HEIGHT_EM}em;overflow-y:auto;font-size:0.875rem;'
-                f'line-height:1.45;padding:0 0.75rem">' + "<br>".join(lines)
+                f'line-height:1.45;padding:0 0.75rem">' + "".join(blocks)
                 + '<table style="border-collapse:collapse;font-variant-numeric:tabular-nums">'
                 + "".join(table) + f"</table>attitude error: {attitude_error}</div>")
 

@@ -524,3 +524,20 @@ def test_only_a_view_as_narrow_as_a_phone_s_is_framed_in_the_top_band() -> None:
         assert view_band(phone_view) == PORTRAIT_BAND
     for desktop_view in (700 / 768, 480 / 600, 700 / 1000, 1024 / 768, 16 / 9):
         assert view_band(desktop_view) == 1.0
+
+
+def test_a_long_source_warning_is_cut_to_its_lines_and_the_pose_stays_in_view() -> None:
+    # A sequence with six bad images: its warning named each and filled the box, the pose and
+    # rates under it scrolled out of a box whose scroll bar did not show.
+    from console.app import STATUS_CLAMP_LINES, Console
+
+    warning = "; ".join(f"cam0/data/{i:019d}.png unreadable <truncated>, skipped" for i in range(6))
+    snap = Snapshot(None, (), PoseEstimate.invalid("fewer than 3 points"), None, Timings(), source_warning=warning)
+    html = Console._status_html(snap)
+    at = html.index("source delivering")
+    source = html[html.rindex("<div", 0, at):at]
+    assert f"-webkit-line-clamp:{STATUS_CLAMP_LINES['source']}" in source
+    assert 'title="source delivering · ' + warning.replace("<", "&lt;").replace(">", "&gt;") + '"' in html
+    pose = html[:html.index("pose invalid: fewer")]
+    assert pose.rindex(f"-webkit-line-clamp:{STATUS_CLAMP_LINES['pose']}") > pose.rindex("source delivering")
+    assert html.index("p [m]") > html.index("pose invalid")
