@@ -129,6 +129,7 @@ class PlotData:
         # (index, t) of the frame last added: the pipeline publishes a frame again after a
         # command or a status change, and that is not a new sample (nor a gap).
         self._last_frame: tuple[int, float] | None = None
+        self._last_rotvec_deg: NDArray[np.float64] | None = None  # the attitude plot's last row
 
     def add(self, snap: Snapshot) -> None:
         """Append the pose, velocities and errors of ``snap`` (called on the tracking thread);
@@ -148,7 +149,14 @@ class PlotData:
         if pose.valid:
             T = np.asarray(pose.T_cam_body)
             self.windows["position"].append(t, T[:3, 3])
-            self.windows["attitude"].append(t, np.degrees(Rotation.from_matrix(T[:3, :3]).as_rotvec()))
+            rotvec_deg = np.degrees(Rotation.from_matrix(T[:3, :3]).as_rotvec())
+            if self._last_rotvec_deg is not None and np.max(np.abs(rotvec_deg - self._last_rotvec_deg)) > 180.0:
+                # The rotation angle passed 180 deg and the vector flipped to the other side (a
+                # frame's turn is a few degrees): drawn, the wrap is a vertical line, a jump
+                # of the attitude that never happened.
+                self.windows["attitude"].mark_gap()
+            self._last_rotvec_deg = rotvec_deg
+            self.windows["attitude"].append(t, rotvec_deg)
             self.windows["velocity"].append(t, np.asarray(pose.velocity_cam_m_s) * 1e3)
             self.windows["omega"].append(t, np.degrees(pose.omega_body_rad_s))
         else:
@@ -175,5 +183,6 @@ class PlotData:
 
     def clear(self) -> None:
         self._last_frame = None
+        self._last_rotvec_deg = None
         for w in self.windows.values():
             w.clear()

@@ -541,3 +541,22 @@ def test_a_long_source_warning_is_cut_to_its_lines_and_the_pose_stays_in_view() 
     pose = html[:html.index("pose invalid: fewer")]
     assert pose.rindex(f"-webkit-line-clamp:{STATUS_CLAMP_LINES['pose']}") > pose.rindex("source delivering")
     assert html.index("p [m]") > html.index("pose invalid")
+
+
+def test_the_attitude_plot_breaks_where_the_rotation_vector_wraps_and_nowhere_else() -> None:
+    # A body turning through 180 deg about z: its rotation vector goes +178, +179, then -179
+    # deg (scipy's canonical vector, angle at most 180), drawn as a vertical line across the
+    # plot, an attitude jump that never happened.
+    img = np.zeros((4, 4), np.uint8)
+    data = PlotData()
+    for i, angle_deg in enumerate(np.arange(170.0, 190.0, 1.0)):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_euler("z", angle_deg, degrees=True).as_matrix()
+        T[:3, 3] = (0.0, 0.0, 3.5)
+        pose = PoseEstimate(True, None, "a", T, np.eye(6), np.zeros(3), np.zeros(3), 5)
+        data.add(Snapshot(StereoFrame(i, i / 25.0, img, img, None), (), pose, None, Timings()))
+    t, rx, ry, rz = data.windows["attitude"].arrays()
+    gaps = np.flatnonzero(np.isnan(rz)).tolist()
+    assert gaps == [11], rz  # between 180 deg (+180) and 181 (-179)
+    assert np.all(np.abs(np.diff(np.delete(rz, gaps)[:11])) < 1.5) and np.all(np.abs(np.diff(np.delete(rz, gaps)[11:])) < 1.5)
+    assert np.isnan(data.windows["position"].arrays()[1]).sum() == 0  # the other plots are not broken
