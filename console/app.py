@@ -123,6 +123,9 @@ OPERATOR_MARKS_RESERVED = 4
 OVERLAY_Z = -0.01
 #: Colour of the measured 3D points in the 3D view: tracking, or measured again after a loss.
 POINT_COLOURS = {"tracking": (60, 230, 60), "other": (255, 200, 0)}
+#: A plot's padding around its axes, CSS px (top, right, bottom, left): viser's default top of 0
+#: cut the label of a tick at the top of the y range in half.
+PLOT_PADDING_PX = (10, 24, 0, 0)
 #: The live numbers' fixed height (see Console._status_html): six status lines, the source's
 #: line wrapped to two and the pose's to three (:data:`STATUS_CLAMP_LINES`), the six-row table
 #: and the attitude error, at line-height 1.45.
@@ -201,7 +204,7 @@ def add_plot(gui: viser.GuiApi, title: str, labels: tuple[str, ...]) -> viser.Gu
         viser.uplot.Series(label=lab, stroke=SERIES_COLOURS[i % len(SERIES_COLOURS)], width=1.5)
         for i, lab in enumerate(labels))
     data = (np.array([0.0, 1e-3]),) + tuple(np.zeros(2) for _ in labels)
-    handle = gui.add_uplot(data, series, title=title, aspect=1.6,
+    handle = gui.add_uplot(data, series, title=title, aspect=1.6, padding=PLOT_PADDING_PX,
                            scales={"x": viser.uplot.Scale(time=False, auto=True)})
     # viser needs rows to make the plot; no values yet (no pose): null, not a line at 0.
     set_uplot_data(handle, uplot_data((data[0],) + tuple(np.full(2, np.nan) for _ in labels)))
