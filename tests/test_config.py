@@ -227,6 +227,28 @@ def test_malformed_yaml_is_refused(tmp_path: Path) -> None:
         load_config(tmp_path / "absent.yaml")
 
 
+def test_a_key_given_twice_is_refused_with_both_lines(tmp_path: Path) -> None:
+    # PyYAML keeps the last of two equal keys: a second `evaluate:` section wholly replaced the
+    # first, its settle_s lost without a word.
+    path = tmp_path / "twice.yaml"
+    path.write_text("evaluate:\n  settle_s: 2.0\nmeasure:\n  patch_size: 8\nevaluate:\n  tolerance_s: 0.02\n")
+    with pytest.raises(TrackmeterError, match=r"twice\.yaml: key 'evaluate' given twice \(lines 1 and 5\)"):
+        load_config(path)
+    path.write_text("measure:\n  patch_size: 8\n  patch_size: 10\n")  # within a section too
+    with pytest.raises(TrackmeterError, match=r"key 'patch_size' given twice \(lines 2 and 3\)"):
+        load_config(path)
+    # A model's points (their own loader) and YAML's merge key are read as before.
+    from trackmeter.data.model import load_model
+
+    model = tmp_path / "model.yaml"
+    model.write_text("points:\n  - {id: a, xyz: [0, 0, 0]}\n  - {id: b, xyz: [0.1, 0, 0], xyz: [0.2, 0, 0]}\n"
+                     "  - {id: c, xyz: [0, 0.1, 0]}\n")
+    with pytest.raises(TrackmeterError, match="key 'xyz' given twice"):
+        load_model(model)
+    path.write_text("base: &b {settle_s: 2.0}\nevaluate:\n  <<: *b\n  tolerance_s: 0.02\n")
+    assert read_yaml_mapping(path)["evaluate"] == {"settle_s": 2.0, "tolerance_s": 0.02}
+
+
 # --------------------------------------------------------------------------- layering
 
 

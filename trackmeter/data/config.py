@@ -87,10 +87,46 @@ def config_to_dict(config: Any) -> dict[str, Any]:
     return plain(dataclasses.asdict(config))
 
 
-#: libyaml's safe loader where PyYAML was built with it: the same resolvers and constructors as
-#: :class:`yaml.SafeLoader`, scanned in C. The pure-Python scanner took 60 ms over the comments
+#: libyaml's safe loader where PyYAML was built with it (the same resolvers and constructors as
+#: :class:`yaml.SafeLoader`, scanned in C), refusing a key given twice (:class:`UniqueKeys`). The pure-Python scanner took 60 ms over the comments
 #: of ``config/default.yaml``, which every command and every engine built reads.
-FAST_SAFE_LOADER: type[Any] = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+_SAFE_LOADER: type[Any] = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
+
+class DuplicateKeyError(yaml.constructor.ConstructorError):
+    """A mapping that gives one key twice (YAML says keys are unique; PyYAML keeps the last)."""
+
+
+class UniqueKeys:
+    """A SafeLoader mix-in that refuses a key given twice in one mapping: PyYAML keeps the last
+    silently, so a second ``evaluate:`` section in a ``--config`` file wholly replaced the first
+    (its ``settle_s`` lost without a word)."""
+
+    def construct_mapping(self, node: Any, deep: bool = False) -> Any:
+        if isinstance(node, yaml.MappingNode):
+            seen: dict[Any, Any] = {}
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue  # '<<' merges another mapping in: not a key of this one
+                key = self.construct_object(key_node, deep=True)  # type: ignore[attr-defined]
+                try:
+                    first = seen.setdefault(key, key_node)
+                except TypeError:
+                    continue  # an unhashable key: SafeConstructor says so itself
+                if first is not key_node:
+                    lines = f"lines {first.start_mark.line + 1} and {key_node.start_mark.line + 1}"
+                    if first.start_mark.line == key_node.start_mark.line:
+                        lines = f"both on line {key_node.start_mark.line + 1}"
+                    raise DuplicateKeyError(None, None, f"key {str(key)!r} given twice ({lines}): the second would "
+                                            "replace the first", key_node.start_mark)
+        return super().construct_mapping(node, deep)  # type: ignore[misc]
+
+
+class _FastUniqueKeysLoader(UniqueKeys, _SAFE_LOADER):  # type: ignore[misc,valid-type]
+    pass
+
+
+FAST_SAFE_LOADER: type[Any] = _FastUniqueKeysLoader
 
 
 #: Largest YAML file read (settings, scenarios, models: a few kB to a few hundred kB).
@@ -129,6 +165,8 @@ def read_yaml_mapping(path: Path, loader: type[Any] = FAST_SAFE_LOADER) -> dict[
         raise TrackmeterError(f"{path}: cannot read: {exc.strerror or exc}") from None
     try:
         data = yaml.load(text, Loader=loader)  # noqa: S506 (a SafeLoader)
+    except DuplicateKeyError as exc:
+        raise TrackmeterError(f"{path}: {exc.problem}") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""

@@ -26,7 +26,7 @@ import numpy as np
 import yaml
 from numpy.typing import ArrayLike, NDArray
 
-from trackmeter.data.config import build_dataclass, read_yaml_mapping
+from trackmeter.data.config import UniqueKeys, build_dataclass, read_yaml_mapping
 from trackmeter.data.atomic import write_text_atomic
 from trackmeter.errors import TrackmeterError
 
@@ -140,7 +140,7 @@ class _FloatAsWritten(float):
     text: str
 
 
-class _ModelLoader(yaml.SafeLoader):
+class _ModelLoader(UniqueKeys, yaml.SafeLoader):
     """A SafeLoader whose numbers keep their text: a point's id is a name, and YAML 1.1
     would read ``010`` as 8 and ``0x1f`` as 31, which ``--target 010=U,V`` could never name."""
 
