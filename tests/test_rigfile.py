@@ -405,6 +405,30 @@ def test_a_k_whose_last_row_is_not_0_0_1_is_refused(tmp_path: Path) -> None:
         Camera(640, 480, scaled)
 
 
+def test_a_k_that_is_no_camera_matrix_or_of_another_image_is_refused(tmp_path: Path) -> None:
+    # An element below the diagonal (OpenCV ignores it) and a principal point 50 images to the
+    # right were read without a word; `measure` then refused every point as lying in the border
+    # the rectification crops.
+    K = np.array([[800.0, 0.0, 320.0], [0.0, 800.0, 240.0], [0.0, 0.0, 1.0]])
+    lower = K.copy()
+    lower[1, 0] = 5.0
+    with pytest.raises(TrackmeterError, match=r"K\[1\]\[0\] must be 0 .* got 5"):
+        Camera(640, 480, lower)
+    far = K.copy()
+    far[0, 2] = 36250.0
+    with pytest.raises(TrackmeterError, match=r"principal point \(36250, 240\) lies more than an image away from the "
+                                              r"640x480 image"):
+        Camera(640, 480, far)
+    off_centre = K.copy()
+    off_centre[:2, 2] = (-200.0, 700.0)  # an off-centre crop's principal point, outside but near: read
+    assert Camera(640, 480, off_centre).K[0, 2] == -200.0
+    rig = _rig()
+    path = save_rig(rig, tmp_path / "rig.yaml")
+    path.write_text(path.read_text().replace("image_width: 640\n", "image_width: 64\n"))
+    with pytest.raises(TrackmeterError, match=r"rig\.yaml: .*principal point .* 64x480 image"):
+        load_rig(path)
+
+
 def test_an_image_size_written_as_a_whole_float_reads(tmp_path: Path) -> None:
     path = save_rig(_rig(), tmp_path / "rig.yaml")
     path.write_text(path.read_text().replace("image_width: 640\n", "image_width: 640.\n"))

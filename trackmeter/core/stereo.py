@@ -112,6 +112,16 @@ class Camera:
             # A pinhole K's last row is [0 0 1]; OpenCV reads only fx, fy, cx, cy (and the skew)
             # and would ignore any other, e.g. a K scaled as a whole for a resized image.
             raise TrackmeterError(f"K's last row must be [0, 0, 1], got {np.array2string(self.K[2], separator=', ')}")
+        if self.K[1, 0] != 0.0:
+            # Not a camera matrix (upper triangular): OpenCV would ignore the element silently.
+            raise TrackmeterError(f"K[1][0] must be 0 (K is [[fx, skew, cx], [0, fy, cy], [0, 0, 1]]), got {self.K[1, 0]:g}")
+        cx, cy = self.K[0, 2], self.K[1, 2]
+        if not (-self.width <= cx <= 2 * self.width and -self.height <= cy <= 2 * self.height):
+            # A lens's axis meets its sensor inside the image, or near it on an off-centre crop:
+            # a whole image away, K is of another image size or unit, and every point would be
+            # refused as lying in the border the rectification crops.
+            raise TrackmeterError(f"K's principal point ({cx:g}, {cy:g}) lies more than an image away from the "
+                                  f"{self.width}x{self.height} image: K of another image size or unit?")
 
     @property
     def image_size(self) -> tuple[int, int]:
