@@ -738,3 +738,15 @@ def test_a_report_over_an_earlier_one_leaves_none_of_its_plots(capsys, sequence_
     assert code == 0, err
     assert sorted(p.name for p in out.iterdir()) == ["attitude_error.png", "errors.csv", "my_notes.txt", "my_plot.png",
                                                      "position_error.png", "report.md", "summary.json"]
+
+
+def test_a_body_alignment_fitted_to_one_pose_is_warned_about(capsys, tmp_path):
+    # The offset fitted to a single pose makes every error zero: reported as a perfect run.
+    truth, est = tmp_path / "truth.tum", tmp_path / "est.tum"
+    truth.write_text("0 0 0 3 0 0 0 1\n1 0 0 3 0 0 0 1\n")
+    est.write_text("0 0.01 0.02 3.03 0.1 0 0 0.995\n")
+    code, out, err = _run(capsys, "evaluate", "--truth", str(truth), "--estimate", str(est), "--align", "body", "--json")
+    assert code == 0 and json.loads(out)["position_m"]["norm"]["max"] < 1e-9
+    assert "warning: --align body fitted the body-frame offset to 1 pose(s)" in err, err
+    code, _, err = _run(capsys, "evaluate", "--truth", str(truth), "--estimate", str(est), "--json")
+    assert code == 0 and "fitted the body-frame offset" not in err  # no alignment, nothing absorbed

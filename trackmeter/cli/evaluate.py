@@ -169,6 +169,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"trackmeter evaluate: warning: the time spans barely overlap (truth {t_t[0]:.6g}..{t_t[-1]:.6g} s, "
               f"estimate {t_e[0]:.6g}..{t_e[-1]:.6g} s; {assoc.matched} of {len(t_e)} estimated "
               "poses paired): timestamps in other units or from another clock?", file=sys.stderr)
+    if params.align == "body" and 0 < assoc.matched < 3:
+        # The offset's six parameters fitted to one pose make its errors zero by construction.
+        print(f"trackmeter evaluate: warning: --align body fitted the body-frame offset to {assoc.matched} pose(s): it "
+              "absorbs most of their error (all of it with one), so the figures say little", file=sys.stderr)
     cuts, redefined = estimate.restarts
     if params.align == "body" and estimate.case in ("a", "c") and cuts + redefined:
         # Each start defines the body frame anew (case (c) acquires its model again): one
