@@ -750,3 +750,12 @@ def test_a_body_alignment_fitted_to_one_pose_is_warned_about(capsys, tmp_path):
     assert "warning: --align body fitted the body-frame offset to 1 pose(s)" in err, err
     code, _, err = _run(capsys, "evaluate", "--truth", str(truth), "--estimate", str(est), "--json")
     assert code == 0 and "fitted the body-frame offset" not in err  # no alignment, nothing absorbed
+
+
+def test_a_motion_csv_whose_time_column_is_renamed_is_told_so_not_read_as_tum(capsys, sequence_and_run):
+    # The header "time,x,y,..." was read as a TUM line: "expected 8 values 't tx ty tz qx qy qz qw', got 14".
+    truth, seq, run = sequence_and_run
+    path = seq / "groundtruth.csv"
+    path.write_text(path.read_text().replace("t,x,y,z", "time,x,y,z", 1))
+    code, _, err = _run(capsys, "evaluate", "--truth", str(path), "--estimate", str(run))
+    assert code == 2 and "not a motion CSV: header lacks t (expected t,x,y,z" in err and "TUM" not in err, err

@@ -46,13 +46,23 @@ class LoadedMotion:
     status: str | None = None  # a track run's run.yaml status ("complete", "interrupted", "running", ...)
 
 
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def _looks_like_motion_csv(path: Path) -> bool:
     try:
         with open(path, encoding="utf-8") as f:
             for line in f:
                 if line.strip() and not is_comment_line(line):
                     fields = header_fields(line)
-                    return len(fields) > 1 and "t" in fields
+                    # A header of names with commas is a CSV's even without its `t` column (a
+                    # renamed one was read as a TUM line and told "expected 8 values").
+                    return len(fields) > 1 and ("t" in fields or not any(_is_number(f) for f in fields))
     except (OSError, UnicodeDecodeError):
         return False
     return False
