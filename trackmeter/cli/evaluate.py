@@ -145,8 +145,6 @@ def _other_sequence(truth_spec: str, estimate_spec: str) -> str | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import numpy as np
-
     from trackmeter.core.metrics import evaluate, resolve_align
     from trackmeter.data.evaluation import (check_report_directory, format_summary, in_seconds, load_estimate,
                                              write_evaluation)
@@ -189,16 +187,13 @@ def run(args: argparse.Namespace) -> int:
     if other:
         print(f"trackmeter evaluate: warning: the truth may not be of the sequence the run was tracked on ({other}, "
               "its run.yaml): if so, the figures compare two different motions", file=sys.stderr)
-    series = estimate.series
-    rates = np.hstack([series.velocity_cam_m_s, series.omega_body_rad_s])[series.valid]
-    known = np.all(np.isfinite(rates), axis=1)
-    if known.any() and not known.all():
-        # README: a states.csv row is valid when every field is a number (a pose without its
-        # rates is a valid-0 row): a hand edit, or another writer's convention. Its pose counts,
-        # its rates cannot, and the rate figures then rest on fewer frames than the pose's.
-        print(f"trackmeter evaluate: warning: {int((~known).sum())} of the estimate's {len(known)} valid rows have a "
-              "rate that is not a number (valid rows hold numbers in every field): their poses are evaluated, "
-              "their rates left out", file=sys.stderr)
+    if estimate.valid_rows_without_rates and result.summary.get("velocity_m_s") is not None:
+        # README: a states.csv row is valid (1) when every field is a number (a pose whose
+        # rates are pending is a valid-0 row): a hand edit, or another writer's convention. Its
+        # pose counts, its rates cannot, and the rate figures rest on fewer frames than the pose's.
+        print(f"trackmeter evaluate: warning: {estimate.valid_rows_without_rates} valid (1) rows of {estimate.source} "
+              "have a rate that is not a number (a valid row holds numbers in every field): their poses are "
+              "evaluated, their rates left out", file=sys.stderr)
     if estimate.status == "running":
         # The writer never closed it: killed, a disk that filled (track then says run.yaml could
         # not be updated), or still being written; its summary is missing.

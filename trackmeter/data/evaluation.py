@@ -44,6 +44,9 @@ class LoadedMotion:
     # its source, and case (a)'s new frames after a total loss: (stream_cuts, frames_redefined)
     restarts: tuple[int, int] = (0, 0)
     status: str | None = None  # a track run's run.yaml status ("complete", "interrupted", "running", ...)
+    # a states.csv's valid (1) rows with a rate that is not a number: README says a valid row
+    # holds numbers in every field (a pose whose rates are pending is a valid-0 row)
+    valid_rows_without_rates: int = 0
 
 
 def _is_number(text: str) -> bool:
@@ -231,28 +234,38 @@ def _why_no_valid_pose(run_dir: Path) -> str:
 def _load_estimate(path: Path) -> LoadedMotion:
     if path.is_dir():
         if (path / "states.csv").is_file():
-            s = read_motion_csv(path / "states.csv")
-            t_start, frames = float(s.t_s[0]), s.t_s.copy()
-            s = _poses_of_run(s, _declared_pose_times(path))
+            full = read_motion_csv(path / "states.csv")
+            t_start, frames = float(full.t_s[0]), full.t_s.copy()
+            s = _poses_of_run(full, _declared_pose_times(path))
             if len(s) == 0:
                 raise TrackmeterError(f"{path / 'states.csv'}: no valid pose in the run{_why_no_valid_pose(path)}")
             return LoadedMotion(s, str(path / "states.csv"), bool(np.any(_rows_with_rates(s))), t_start,
-                                frame_times_s=frames)
+                                frame_times_s=frames, valid_rows_without_rates=_valid_rows_without_rates(full))
         if (path / "trajectory.tum").is_file():
             s = MotionSeries.from_trajectory(read_tum(path / "trajectory.tum"))
             return LoadedMotion(s, str(path / "trajectory.tum"), False)
         raise TrackmeterError(f"{path}: not a run directory (no states.csv or trajectory.tum)")
     _require_file(path)
     t_start = frames = None
+    without_rates = 0
     if _looks_like_motion_csv(path):
         full = read_motion_csv(path)
         t_start, frames = float(full.t_s[0]), full.t_s.copy()
         s = _poses_of_run(full, _declared_pose_times(path.parent))
+        without_rates = _valid_rows_without_rates(full)
     else:
         s = MotionSeries.from_trajectory(read_tum(path))
     if len(s) == 0:
         raise TrackmeterError(f"{path}: no valid pose")
-    return LoadedMotion(s, str(path), bool(np.any(_rows_with_rates(s))), t_start, frame_times_s=frames)
+    return LoadedMotion(s, str(path), bool(np.any(_rows_with_rates(s))), t_start, frame_times_s=frames,
+                        valid_rows_without_rates=without_rates)
+
+
+def _valid_rows_without_rates(rows: MotionSeries) -> int:
+    """How many of a states.csv's valid (1) rows have a rate that is not a number, when some
+    of its valid rows have all their rates (a file without rates at all is a pose-only one)."""
+    has = _rows_with_rates(rows)[rows.valid]
+    return int((~has).sum()) if has.any() else 0
 
 
 def in_seconds(truth: LoadedMotion, estimate: LoadedMotion, tolerance_s: float) -> tuple[LoadedMotion, LoadedMotion]:
