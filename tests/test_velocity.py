@@ -148,6 +148,24 @@ def test_rates_are_provisional_until_the_window_spans_min_span() -> None:
     assert settled.index(True) == 10  # 10 intervals of 40 ms = 0.4 s
 
 
+def test_epoch_times_settle_on_the_same_pose_as_times_from_zero() -> None:
+    # EuRoC's epoch nanoseconds, read as float seconds (1.7e9 s: steps of 2.4e-7 s), made the
+    # 0.4 s span a hair short: the rates came one frame later than on the same images from 0.
+    t0 = 1_700_000_000.123456789
+    for method in ("screw", "poly"):
+        counts = []
+        for start in (0.0, t0):
+            est = VelocityEstimator(VelocityParams(min_span_s=0.4, method=method))
+            t = np.array([(start * 1e9 + k * 40_000_000) * 1e-9 for k in range(15)])  # as read from ns
+            R, p = constant_rate(t - t[0])
+            settled = []
+            for ti, ri, pi in zip(t, R, p):
+                est.update(ti, ri, pi)
+                settled.append(est.settled)
+            counts.append(settled.index(True))
+        assert counts == [10, 10], (method, counts)
+
+
 # --------------------------------------------------------------------------- screw (SE(3)) fit
 
 

@@ -447,7 +447,9 @@ class VelocityEstimator:
             return len(self._t) >= 2
         if self.params.method in ("screw", "free_body") and self._capped:
             return True
-        return len(self._t) >= 2 and self._t[-1] - self._t[0] >= self.params.min_span_s - 1e-9
+        # 1 us of slack: epoch times (EuRoC's nanoseconds, 1.7e9 s) are 2.4e-7 s apart as
+        # doubles, and a span of exactly min_span_s came out a hair short there.
+        return len(self._t) >= 2 and self._t[-1] - self._t[0] >= self.params.min_span_s - 1e-6
 
     def window(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         """The poses the rates are fitted to: ``(times (N,), R_cam_body (N,3,3), p_cam (N,3),
