@@ -98,8 +98,9 @@ class VelocityParams:
     )
     position_order: int = param(2, "poly: degree of the position polynomial (1 = constant velocity)", min=1, max=4)
     min_span_s: float = param(
-        0.4, "poly: no velocity is reported until the fitted poses span this long (a restart after a "
-        "gap would otherwise report a two-pose difference), s", min=0.0,
+        0.4, "screw, free_body, poly: no velocity is reported until the fitted poses span this long (a "
+        "restart after a gap would otherwise report a two-pose difference; screw and free_body also once "
+        "their window is capped by screw_max_angle_deg), s", min=0.0,
     )
     max_gap_s: float = param(0.5, "a gap between valid poses longer than this restarts the output filter, s", min=0.0)
     bridge_gap_s: float = param(
