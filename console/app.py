@@ -1114,6 +1114,7 @@ class Console:
             texts = (["–"] * 3 if value is None or not np.all(np.isfinite(value[0]))
                      else [value[1].format(x) for x in value[0]])
             table.append(f"<tr><td>{name}</td>{''.join(f'<td {cell}>{x}</td>' for x in texts)}</tr>")
+
         def clamped(html: str, kind: str) -> str:
             text = re.sub(r"<[^>]+>", "", html)  # the title attribute's plain text (escaped already)
             return (f'<div style="display:-webkit-box;-webkit-box-orient:vertical;overflow:hidden;'

@@ -88,7 +88,7 @@ def config_to_dict(config: Any) -> dict[str, Any]:
 
 
 #: libyaml's safe loader where PyYAML was built with it (the same resolvers and constructors as
-#: :class:`yaml.SafeLoader`, scanned in C), refusing a key given twice (:class:`UniqueKeys`). The pure-Python scanner took 60 ms over the comments
+#: :class:`yaml.SafeLoader`, scanned in C): the pure-Python scanner took 60 ms over the comments
 #: of ``config/default.yaml``, which every command and every engine built reads.
 _SAFE_LOADER: type[Any] = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
@@ -126,6 +126,8 @@ class _FastUniqueKeysLoader(UniqueKeys, _SAFE_LOADER):  # type: ignore[misc,vali
     pass
 
 
+#: The loader every YAML file of the project is read with: libyaml's where there is one,
+#: refusing a key given twice (:class:`UniqueKeys`).
 FAST_SAFE_LOADER: type[Any] = _FastUniqueKeysLoader
 
 
