@@ -842,7 +842,9 @@ class Console:
         except (AssertionError, ZeroDivisionError):
             aspect = 16 / 9
         band = view_band(aspect)  # on a phone held upright its control sheet covers the view's bottom
-        portrait = band < 1.0
+        # The 3D and both presets are placed for a wide view; one narrower than tall (a phone, or
+        # a desktop window's view beside the panel) is fitted to them, within the band on a phone.
+        fit = aspect < 1.0
         right_x = float(self.right_image.position[0]) if self.right_image.visible else None
         with client.atomic():
             client.camera.up_direction = up
@@ -850,14 +852,14 @@ class Console:
             if preset == "3D":
                 ox, oy, oz = SCENE3D_OFFSET
                 position, look_at = (ox - 1.2, oy - 1.0, oz - 1.5), (ox, oy, oz + 3.5)
-                if portrait:
+                if fit:
                     position, look_at = view_in_band(position, look_at, up, aspect, fov, band)
             elif preset == "both":
                 # The rig's scene (satellite ~3.5 m ahead, so near z = 0.5 here) left of the image.
                 left = SCENE3D_OFFSET[0] - 1.5
                 mid = (left + rw / 2) / 2
                 position, look_at = (mid, 0.0, -14.5), (mid, 0.0, 0.0)
-                if portrait:  # the scene and the image(s) fitted into the band, as the image preset does
+                if fit:  # the scene and the image(s) fitted into the view (band), as the image preset does
                     right = (right_x if right_x is not None else 0.0) + rw / 2
                     position, look_at = image_view((right - left, rh), aspect, fov, ((left + right) / 2, 0.0), band)
             else:
