@@ -817,3 +817,30 @@ def test_a_model_point_chosen_in_one_browser_names_only_that_browser_s_click() -
         assert con.model_point_dropdown.value == NEW_TARGET
     finally:
         running.stop()
+
+
+@pytest.mark.parametrize("aspect", [700 / 768, 476 / 600, 576 / 900, 390 / 844, 16 / 9])
+def test_the_both_preset_holds_the_scene_and_the_image_in_views_of_every_shape(aspect: float) -> None:
+    """A desktop window's view beside the docked panel, taller than wide (1024x768: 700x768),
+    was given the framing made for a wide view: the image ran under the panel, the scene off
+    the left edge. Seen from the browser's camera, the scene's left edge and the image's right
+    one must lie inside the view."""
+    import contextlib
+    import types
+
+    from console.app import SCENE3D_OFFSET
+
+    running = start_console(CountingSource(100_000, delay_s=0.02), RecordingEngine(), port=free_port())  # type: ignore[arg-type]
+    con = running.console
+    try:
+        camera = types.SimpleNamespace(aspect=aspect)
+        client = types.SimpleNamespace(camera=camera, atomic=contextlib.nullcontext)
+        con._apply_view(client, "both")
+        (px, _, pz), (lx, _, lz) = camera.position, camera.look_at
+        assert px == pytest.approx(lx) and pz < 0.0 == lz  # facing +z onto the image plane z = 0
+        half_width = -pz * np.tan(camera.fov / 2.0) * aspect
+        rw, _ = con.render_size
+        left, right = SCENE3D_OFFSET[0] - 1.5, rw / 2  # the scene's left edge, the left image's right edge
+        assert px - half_width <= left and right <= px + half_width, (aspect, px - half_width, left, right, px + half_width)
+    finally:
+        running.stop()
