@@ -27,14 +27,14 @@ import threading
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation
 
+from trackmeter.core.transforms import matrix_to_quat_wxyz, quat_sign_nearest
 from trackmeter.pipeline.snapshot import Snapshot
 
 #: Plot name → (title with its unit, series labels). The x axis is the frame time, s.
 PLOTS: dict[str, tuple[str, tuple[str, ...]]] = {
     "position": ("Position, camera frame [m]", ("x", "y", "z (depth)")),
-    "attitude": ("Attitude, rotation vector [deg]", ("rx", "ry", "rz")),
+    "attitude": ("Attitude, quaternion wxyz", ("qw", "qx", "qy", "qz")),
     "velocity": ("Linear velocity, camera frame [mm/s]", ("vx", "vy", "vz")),
     "omega": ("Angular velocity, body frame [deg/s]", ("wx", "wy", "wz")),
     "err_position": ("Position error [mm]", ("x", "y", "z (depth)")),
@@ -129,7 +129,7 @@ class PlotData:
         # (index, t) of the frame last added: the pipeline publishes a frame again after a
         # command or a status change, and that is not a new sample (nor a gap).
         self._last_frame: tuple[int, float] | None = None
-        self._last_rotvec_deg: NDArray[np.float64] | None = None  # the attitude plot's last row
+        self._last_quat_wxyz: NDArray[np.float64] | None = None  # the attitude plot's last row
 
     def add(self, snap: Snapshot) -> None:
         """Append the pose, velocities and errors of ``snap`` (called on the tracking thread);
@@ -149,14 +149,12 @@ class PlotData:
         if pose.valid:
             T = np.asarray(pose.T_cam_body)
             self.windows["position"].append(t, T[:3, 3])
-            rotvec_deg = np.degrees(Rotation.from_matrix(T[:3, :3]).as_rotvec())
-            if self._last_rotvec_deg is not None and np.max(np.abs(rotvec_deg - self._last_rotvec_deg)) > 180.0:
-                # The rotation angle passed 180 deg and the vector flipped to the other side (a
-                # frame's turn is a few degrees): drawn, the wrap is a vertical line, a jump
-                # of the attitude that never happened.
-                self.windows["attitude"].mark_gap()
-            self._last_rotvec_deg = rotvec_deg
-            self.windows["attitude"].append(t, rotvec_deg)
+            # q and -q are one rotation: the sign nearest the last row's keeps the line
+            # continuous through any turn. (A rotation vector, angle at most 180 deg, flips to
+            # the other side there, a vertical line that a break in the plot did not hide: uPlot
+            # strokes across a one-frame gap.)
+            self._last_quat_wxyz = quat_sign_nearest(matrix_to_quat_wxyz(T[:3, :3]), self._last_quat_wxyz)
+            self.windows["attitude"].append(t, self._last_quat_wxyz)
             self.windows["velocity"].append(t, np.asarray(pose.velocity_cam_m_s) * 1e3)
             self.windows["omega"].append(t, np.degrees(pose.omega_body_rad_s))
         else:
@@ -183,6 +181,6 @@ class PlotData:
 
     def clear(self) -> None:
         self._last_frame = None
-        self._last_rotvec_deg = None
+        self._last_quat_wxyz = None
         for w in self.windows.values():
             w.clear()

@@ -137,7 +137,8 @@ def test_plot_data_from_a_snapshot_in_display_units() -> None:
     data.add(Snapshot(frame, (), pose, errors, Timings()))  # type: ignore[arg-type]
     data.add(Snapshot(frame, (), PoseEstimate.invalid("x"), None, Timings()))
     assert [a[0] for a in data.windows["position"].arrays()] == pytest.approx([0.12, 0.1, -0.2, 3.5])
-    assert data.windows["attitude"].arrays()[3][0] == pytest.approx(30.0)
+    assert [a[0] for a in data.windows["attitude"].arrays()][1:] == pytest.approx(
+        [np.cos(np.radians(15.0)), 0.0, 0.0, np.sin(np.radians(15.0))])  # 30 deg about z, wxyz
     assert data.windows["velocity"].arrays()[3][0] == pytest.approx(-2.0)
     assert data.windows["omega"].arrays()[2][0] == pytest.approx(2.0)
     assert [a[0] for a in data.windows["err_attitude"].arrays()][1:] == pytest.approx([0.1, 0.2, 0.3, 0.4])
@@ -543,20 +544,29 @@ def test_a_long_source_warning_is_cut_to_its_lines_and_the_pose_stays_in_view() 
     assert html.index("p [m]") > html.index("pose invalid")
 
 
-def test_the_attitude_plot_breaks_where_the_rotation_vector_wraps_and_nowhere_else() -> None:
-    # A body turning through 180 deg about z: its rotation vector goes +178, +179, then -179
-    # deg (scipy's canonical vector, angle at most 180), drawn as a vertical line across the
-    # plot, an attitude jump that never happened.
+def test_the_attitude_plot_is_a_quaternion_without_a_jump_through_any_turn() -> None:
+    # A body turning through 180 deg about z and on, past 360 deg. Plotted as scipy's rotation
+    # vector (angle at most 180 deg) it went +178, +179, then -179 deg, a vertical line across the
+    # plot, and a break in the line did not hide it (uPlot strokes across a one-frame gap). The
+    # quaternion q and -q are one rotation: the plot keeps the sign nearest the last row's.
     img = np.zeros((4, 4), np.uint8)
     data = PlotData()
-    for i, angle_deg in enumerate(np.arange(170.0, 190.0, 1.0)):
+    angles_deg = np.arange(170.0, 380.0, 2.0)
+    for i, angle_deg in enumerate(angles_deg):
         T = np.eye(4)
-        T[:3, :3] = Rotation.from_euler("z", angle_deg, degrees=True).as_matrix()
+        T[:3, :3] = Rotation.from_rotvec(np.radians(angle_deg) * np.array([0.0, 0.6, 0.8])).as_matrix()
         T[:3, 3] = (0.0, 0.0, 3.5)
         pose = PoseEstimate(True, None, "a", T, np.eye(6), np.zeros(3), np.zeros(3), 5)
         data.add(Snapshot(StereoFrame(i, i / 25.0, img, img, None), (), pose, None, Timings()))
-    t, rx, ry, rz = data.windows["attitude"].arrays()
-    gaps = np.flatnonzero(np.isnan(rz)).tolist()
-    assert gaps == [11], rz  # between 180 deg (+180) and 181 (-179)
-    assert np.all(np.abs(np.diff(np.delete(rz, gaps)[:11])) < 1.5) and np.all(np.abs(np.diff(np.delete(rz, gaps)[11:])) < 1.5)
-    assert np.isnan(data.windows["position"].arrays()[1]).sum() == 0  # the other plots are not broken
+    assert PLOTS["attitude"][1] == ("qw", "qx", "qy", "qz")
+    t, *q = data.windows["attitude"].arrays()
+    q_wxyz = np.column_stack(q)
+    assert len(t) == len(angles_deg)  # no gap
+    # Each row is the pose's rotation (either sign), unit length, and one step of 2 deg moves the
+    # quaternion by sin(0.5 deg) * 2, not by a sign flip.
+    truth = Rotation.from_rotvec(np.radians(angles_deg)[:, None] * np.array([0.0, 0.6, 0.8]))
+    plotted = Rotation.from_quat(q_wxyz, scalar_first=True)
+    np.testing.assert_allclose((plotted * truth.inv()).magnitude(), 0.0, atol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(q_wxyz, axis=1), 1.0, atol=1e-12)
+    assert np.max(np.linalg.norm(np.diff(q_wxyz, axis=0), axis=1)) < 2 * np.sin(np.radians(0.5)) + 1e-9
+    assert np.isnan(data.windows["position"].arrays()[1]).sum() == 0
