@@ -674,6 +674,7 @@ class Tracker:
         t.point_cam = np.asarray(meas.xyz_m, float).copy()
         t.cov_cam = np.asarray(meas.cov_m, float).copy()
         t.uv_right = np.asarray(meas.right_uv, float).copy()
+        t.score = float(meas.score)
         # Its first 3D point from the tracker's own stereo match, as every later one: measure's
         # match (a strip sampled otherwise) differs from it by up to 0.2 px of disparity on a
         # sharp image, which the rigid-motion check saw, one frame on, as the point moving.
@@ -684,7 +685,6 @@ class Tracker:
         if self._body is not None:
             R, tvec = self._body
             t.body_point = R.T @ (t.point_cam - tvec)
-        t.score = 1.0
         n2 = self.params.patch_size / 2
         t.search_box = (uvf[0] - n2, uvf[1] - n2, uvf[0] + n2, uvf[1] + n2)
         self._targets[tid] = t
@@ -782,6 +782,7 @@ class Tracker:
             t.point_cam = P[k]
             t.cov_cam = C[k]
             t.uv_right = R[k]
+            t.score = float(m.score[idx[k]])  # the state's score: this stereo match's ZNCC
 
     # ------------------------------------------------------------------ recovery
 
@@ -893,7 +894,6 @@ class Tracker:
         self._set_stereo([t], m, np.array([j]))
         v0, sv = self._velocity_guess(uv, t.point_cam)
         t.kf = kf_mod.make_filter(uv, p.kalman, velocity_px_s=v0, velocity_sigma_px_s=sv)
-        t.score = float(res.score[r])
         t.anchor_lin = res.anchor_lin[r].copy()
         t.current, t.current_raw = self._templates(fc, uv[None])
         t.status = "recovered"
@@ -1036,7 +1036,7 @@ class Tracker:
             uv_all, anchored = res.uv, res.anchored
             w, h = self.rig.image_size
             inner = (uv_all[:, 0] >= n2 + 1) & (uv_all[:, 0] <= w - n2 - 2) & (uv_all[:, 1] >= n2 + 1) & (uv_all[:, 1] <= h - n2 - 2)
-        survivors: list[tuple[_Target, FloatArray, bool, float]] = []
+        survivors: list[tuple[_Target, FloatArray, bool]] = []
         matched: list[int] = []
         for i, t in enumerate(searched):
             if not res.converged[i]:
@@ -1056,7 +1056,7 @@ class Tracker:
                 continue
             if anchored[i]:
                 t.anchor_lin = res.anchor_lin[i].copy()
-            survivors.append((t, uv_all[i], bool(anchored[i]), float(res.score[i])))
+            survivors.append((t, uv_all[i], bool(anchored[i])))
 
         rec_refined = self._recover_refined(res, n_s + np.arange(len(rec_ts)), rec_found, rec_out) if rec_ts else []
 
@@ -1071,12 +1071,11 @@ class Tracker:
             m = self._stereo(fc, uv, lo, spans)
         if survivors:
             good = []
-            for i, (t, uvi, anch, score) in enumerate(survivors):
+            for i, (t, uvi, _) in enumerate(survivors):
                 if m.reason[i] is not None:
                     self._lose(t, m.reason[i])
                     continue
                 t.uv = uvi.copy()
-                t.score = score
                 good.append(i)
             kept = [(survivors[i][0], survivors[i][2]) for i in good]
             prev_P = np.array([t.point_cam for t, _ in kept]).reshape(-1, 3)
