@@ -195,3 +195,22 @@ def test_tum_poses_repeating_a_timestamp_are_skipped_with_a_warning_whatever_the
             got = read_tum(path)
         assert got.t_s.tolist() == [0.0, 1.0]
         assert got.position_m[0, 0] == kept_x
+
+
+def test_a_groundtruth_row_without_a_whole_pose_is_unknown_truth_at_that_time_only(tmp_path: Path) -> None:
+    # "Empty fields are unknown" (README): one blank row of a groundtruth.csv refused the whole
+    # file ("a valid row has a non-finite pose"), and track and evaluate lost all the truth.
+    rows = ["0,0,0,3,1,0,0,0,0,0,0,0,0,0", "0.04,,,,,,,,,,,,,", "0.08,0,0,3,nan,0,0,0,0,0,0,0,0,0",
+            "0.12,0,0,3,1,0,0,0,,,,,,"]
+    path = tmp_path / "groundtruth.csv"
+    path.write_text(",".join(GROUNDTRUTH_COLUMNS) + "\n" + "\n".join(rows) + "\n")
+    with pytest.warns(UserWarning, match=r"groundtruth\.csv:3: 2 row\(s\) without a whole pose \(t, x..qz\) read as "
+                                         r"no ground truth at their time \(the first on this line\)"):
+        got = read_motion_csv(path)
+    assert got.valid.tolist() == [True, False, False, True]
+    assert np.isnan(got.velocity_cam_m_s[3]).all()  # a pose without rates is still a pose
+    # A states.csv says which rows are valid; one that says 1 over an empty pose contradicts it.
+    states = tmp_path / "states.csv"
+    states.write_text("t,valid,x,y,z,qw,qx,qy,qz\n0,1,0,0,3,1,0,0,0\n0.04,1,,,,,,,\n")
+    with pytest.raises(TrackmeterError, match="a valid row has a non-finite pose"):
+        read_motion_csv(states)

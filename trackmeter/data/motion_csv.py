@@ -24,6 +24,7 @@ sequence being rendered), so a reader never sees half a row.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
@@ -195,8 +196,9 @@ def is_comment_line(line: str) -> bool:
 def read_motion_csv(path: str | Path) -> MotionSeries:
     """Read a ``groundtruth.csv`` or ``states.csv`` (any column order; header required).
 
-    Columns ``t,x,y,z,qw,qx,qy,qz`` are required; missing velocity columns read as NaN,
-    a missing ``valid`` column as all valid. Empty fields and ``nan`` read as NaN. Blank lines
+    Columns ``t,x,y,z,qw,qx,qy,qz`` are required; missing velocity columns read as NaN.
+    Without a ``valid`` column (a ``groundtruth.csv``) a row is valid when its pose is whole; a
+    row with an empty or ``nan`` pose field is read as invalid, with a warning. Empty fields and ``nan`` read as NaN. Blank lines
     and ``#`` lines (comments) are skipped. Rows are kept in file order and must not go back in
     time.
 
@@ -255,9 +257,18 @@ def read_motion_csv(path: str | Path) -> MotionSeries:
     def stack(names: Sequence[str]) -> FloatArray:
         return np.column_stack([col.get(c, np.full(n, np.nan)) for c in names])
 
-    valid = col["valid"] if "valid" in col else np.ones(n)
-    if np.any(~np.isin(valid, (0.0, 1.0))):
-        raise TrackmeterError(f"{path}: column 'valid' must hold 0 or 1")
+    if "valid" in col:
+        valid = col["valid"]
+        if np.any(~np.isin(valid, (0.0, 1.0))):
+            raise TrackmeterError(f"{path}: column 'valid' must hold 0 or 1")
+    else:
+        # No column says which rows hold a pose (a groundtruth.csv): a row with an empty or
+        # nan pose field is a time without ground truth, not a broken file.
+        valid = np.all(np.isfinite(stack(POSE_COLUMNS[1:])), axis=1).astype(float)
+        unknown = np.flatnonzero(valid == 0.0)
+        if len(unknown):
+            warnings.warn(f"{path}:{rows[int(unknown[0])][0]}: {len(unknown)} row(s) without a whole pose "
+                          f"(t, x..qz) read as no ground truth at their time (the first on this line)", stacklevel=2)
     extra = {name: a for name, a in col.items() if name not in _KNOWN}
     try:
         return MotionSeries(
