@@ -392,3 +392,26 @@ def test_a_reserve_the_disk_cannot_hold_is_refused_and_leaves_nothing(tmp_path: 
     held = SpaceReserve(tmp_path / ".reserve", 600)
     assert not (tmp_path / ".reserve").exists() and disk.free == 400  # held by a descriptor, not a name
     assert held.release() and not held.release() and disk.free == 1000
+
+
+def test_a_folder_holding_other_files_is_not_a_run_folder(tmp_path: Path) -> None:
+    # track --out / (or --out . in a busy folder) wrote run.yaml and three CSVs among whatever
+    # was there; simulate refuses any folder that is not empty.
+    busy = tmp_path / "busy"
+    (busy / "notes").mkdir(parents=True)
+    (busy / "photo.png").write_bytes(b"x")
+    for overwrite in (False, True):
+        with pytest.raises(TrackmeterError, match=r"busy: holds other files \(notes, photo\.png\); a run folder is "
+                                                  r"new, empty or an earlier run's: choose another --out"):
+            check_run_directory(busy, overwrite)
+    # A folder of run files without run.yaml (a run killed before its first write; an evaluate
+    # report), hidden files, and an earlier run's folder with the user's notes beside the run
+    # are run folders still.
+    run = tmp_path / "run"
+    run.mkdir()
+    for name in ("states.csv", "report.md", "summary.json", "position_error.png", ".DS_Store"):
+        (run / name).write_text("")
+    assert check_run_directory(run, overwrite=True) == run
+    (run / "run.yaml").write_text("")
+    (run / "notes.txt").write_text("mine")
+    assert check_run_directory(run, overwrite=True) == run

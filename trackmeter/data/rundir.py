@@ -88,9 +88,10 @@ def check_run_directory(directory: str | Path, overwrite: bool = False) -> Path:
     Called before a run opens its source, so a bad ``--out`` is the one line the user sees.
 
     Raises:
-        TrackmeterError: it is a file, holds a run already (without ``overwrite``), is a
-            sequence folder, or its nearest existing parent is not a folder this process may
-            write in.
+        TrackmeterError: it is a file, holds a run already (without ``overwrite``), holds
+            no run but files that are not a run's or its report's (even with ``overwrite``),
+            is a sequence folder, or its nearest existing parent is not a folder this process
+            may write in.
     """
     if not str(directory).strip():
         raise TrackmeterError("the run folder's name is empty")
@@ -101,7 +102,20 @@ def check_run_directory(directory: str | Path, overwrite: bool = False) -> Path:
     if others and not overwrite:
         raise TrackmeterError(f"{path}: holds {', '.join(others)} already (not from a run: no run.yaml); "
                               "choose another --out or give --overwrite to replace them")
-    return check_output_folder(path, "a run's files", "a run folder")
+    check_output_folder(path, "a run's files", "a run folder")  # a sequence folder is told as one
+    if path.is_dir() and not (path / "run.yaml").exists():
+        from trackmeter.data.evaluation import REPORT_FILES
+
+        ours = {*_RUN_FILES, *REPORT_FILES, RESERVE_NAME}
+        foreign = sorted(e.name for e in path.iterdir() if e.name not in ours and not e.name.startswith("."))
+        if foreign:
+            # Not even with --overwrite: that replaces a run (whose folder may hold the user's
+            # notes beside it), it does not mix one into a folder of other things (--out / or .
+            # wrote run.yaml and three CSVs among them).
+            shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
+            raise TrackmeterError(f"{path}: holds other files ({shown}); a run folder is new, empty or an "
+                                  "earlier run's: choose another --out")
+    return path
 
 
 def _folder_identity(folder: Path) -> tuple[int, int] | None:
