@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from trackmeter.data.images import (data_bits, expand_globs, pair_stereo_paths, read_grey, read_grey_pair,
-                                    to_grey_u8)
+from trackmeter.data.images import (_opencv_log_level, data_bits, expand_globs, pair_stereo_paths, read_grey,
+                                    read_grey_pair, to_grey_u8)
 from trackmeter.errors import TrackmeterError
 
 
@@ -98,12 +98,13 @@ def test_a_cut_short_png_is_one_error_and_nothing_from_opencv(tmp_path: Path, ca
     ok, buf = cv2.imencode(".png", rng.integers(0, 256, (512, 726), dtype=np.uint8))
     path = tmp_path / "cut.png"
     path.write_bytes(buf.tobytes()[:keep])
-    level = cv2.utils.logging.getLogLevel()
+    get_level = _opencv_log_level()[0]  # type: ignore[index]
+    level = get_level()
     capfd.readouterr()
     with pytest.raises(TrackmeterError, match="not an image"):
         read_grey(path)
     assert capfd.readouterr().err == ""
-    assert cv2.utils.logging.getLogLevel() == level  # OpenCV's own logging is given back
+    assert get_level() == level  # OpenCV's own logging is given back
 
 
 def test_missing_file_raises(tmp_path: Path) -> None:
@@ -197,3 +198,19 @@ def test_a_pair_of_different_sample_depths_is_warned_about(tmp_path: Path) -> No
     cv2.imwrite(str(tmp_path / "r.png"), right)
     with pytest.warns(UserWarning, match="12-bit.*16-bit"):
         read_grey_pair(tmp_path / "l.png", tmp_path / "r.png")
+
+
+def test_opencv_4s_log_level_functions_are_used_where_opencv_5s_module_is_missing(tmp_path: Path,
+                                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    # OpenCV 4 (the project allows >= 4.9) has cv2.setLogLevel / cv2.getLogLevel and no
+    # cv2.utils.logging: every image read raised AttributeError there.
+    import types
+
+    calls: list[int] = []
+    monkeypatch.setattr(cv2, "utils", types.SimpleNamespace())
+    monkeypatch.setattr(cv2, "getLogLevel", lambda: 3, raising=False)
+    monkeypatch.setattr(cv2, "setLogLevel", calls.append, raising=False)
+    ok, buf = cv2.imencode(".png", np.full((8, 8), 7, np.uint8))
+    (tmp_path / "ok.png").write_bytes(buf.tobytes())
+    assert read_grey(tmp_path / "ok.png")[0, 0] == 7
+    assert calls == [0, 3]  # silent (OpenCV 4's LOG_LEVEL_SILENT is 0) while decoding, then as it was

@@ -15,7 +15,7 @@ import re
 import threading
 import warnings
 from pathlib import Path
-from typing import Iterable, Iterator, Sequence
+from typing import Callable, Iterable, Iterator, Sequence
 
 import cv2
 import numpy as np
@@ -29,15 +29,32 @@ _quiet_users = 0
 _quiet_saved_level = 0
 
 
+def _opencv_log_level() -> tuple[Callable[[], int], Callable[[int], object], int] | None:
+    """OpenCV's log level ``(get, set, silent level)``: ``cv2.utils.logging`` in OpenCV 5,
+    ``cv2.getLogLevel`` / ``cv2.setLogLevel`` (silent is 0) in OpenCV 4; None in a build with
+    neither."""
+    logging = getattr(getattr(cv2, "utils", None), "logging", None)
+    if logging is not None:
+        return logging.getLogLevel, logging.setLogLevel, int(logging.LOG_LEVEL_SILENT)
+    if hasattr(cv2, "getLogLevel") and hasattr(cv2, "setLogLevel"):
+        return cv2.getLogLevel, cv2.setLogLevel, 0
+    return None
+
+
 @contextlib.contextmanager
 def _opencv_quiet() -> Iterator[None]:
     """OpenCV's own logging off while the block runs, then as it was. Threads may decode at
     once: the first to enter saves the level, the last to leave restores it."""
     global _quiet_users, _quiet_saved_level
+    api = _opencv_log_level()
+    if api is None:
+        yield
+        return
+    get_level, set_level, silent = api
     with _quiet_lock:
         if _quiet_users == 0:
-            _quiet_saved_level = cv2.utils.logging.getLogLevel()
-            cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+            _quiet_saved_level = get_level()
+            set_level(silent)
         _quiet_users += 1
     try:
         yield
@@ -45,7 +62,7 @@ def _opencv_quiet() -> Iterator[None]:
         with _quiet_lock:
             _quiet_users -= 1
             if _quiet_users == 0:
-                cv2.utils.logging.setLogLevel(_quiet_saved_level)
+                set_level(_quiet_saved_level)
 
 
 def decode_image(path: str | Path) -> NDArray[np.generic]:
