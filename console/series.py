@@ -130,6 +130,7 @@ class PlotData:
         # command or a status change, and that is not a new sample (nor a gap).
         self._last_frame: tuple[int, float] | None = None
         self._last_quat_wxyz: NDArray[np.float64] | None = None  # the attitude plot's last row
+        self._last_body_frame: int | None = None  # PoseEstimate.body_frame of the last valid pose
 
     def add(self, snap: Snapshot) -> None:
         """Append the pose, velocities and errors of ``snap`` (called on the tracking thread);
@@ -147,6 +148,12 @@ class PlotData:
                 w.mark_gap()
         pose = snap.pose
         if pose.valid:
+            if self._last_body_frame is not None and pose.body_frame != self._last_body_frame:
+                # The body frame was defined anew (case switched, model bound or acquired): the
+                # step from the last pose is not a motion, and a line across it would show one.
+                for name in POSE_PLOTS:
+                    self.windows[name].mark_gap()
+            self._last_body_frame = pose.body_frame
             T = np.asarray(pose.T_cam_body)
             self.windows["position"].append(t, T[:3, 3])
             # q and -q are one rotation: the sign nearest the last row's keeps the line
@@ -182,5 +189,6 @@ class PlotData:
     def clear(self) -> None:
         self._last_frame = None
         self._last_quat_wxyz = None
+        self._last_body_frame = None
         for w in self.windows.values():
             w.clear()

@@ -570,3 +570,21 @@ def test_the_attitude_plot_is_a_quaternion_without_a_jump_through_any_turn() -> 
     np.testing.assert_allclose(np.linalg.norm(q_wxyz, axis=1), 1.0, atol=1e-12)
     assert np.max(np.linalg.norm(np.diff(q_wxyz, axis=0), axis=1)) < 2 * np.sin(np.radians(0.5)) + 1e-9
     assert np.isnan(data.windows["position"].arrays()[1]).sum() == 0
+
+
+def test_the_pose_plots_break_where_the_body_frame_is_defined_anew() -> None:
+    # Case (a) -> (b) with the model bound at once: the next valid pose is in the model's frame,
+    # ~100 deg and 10 cm from case (a)'s own, and the plots drew that as a jump of the body.
+    img = np.zeros((4, 4), np.uint8)
+    data = PlotData()
+    for i in range(6):
+        frame_no = 1 if i < 3 else 2
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_euler("z", 10.0 * i + (100.0 if frame_no == 2 else 0.0), degrees=True).as_matrix()
+        T[:3, 3] = (0.1 if frame_no == 1 else 0.0, 0.0, 3.5)
+        pose = PoseEstimate(True, None, "a" if frame_no == 1 else "b", T, np.eye(6), np.zeros(3), np.zeros(3), 5,
+                            body_frame=frame_no)
+        data.add(Snapshot(StereoFrame(i, i / 25.0, img, img, None), (), pose, None, Timings()))
+    for name in ("position", "attitude", "velocity", "omega"):
+        t, first, *_ = data.windows[name].arrays()
+        assert np.flatnonzero(np.isnan(first)).tolist() == [3], name  # one break, between rows 2 and 3

@@ -19,6 +19,7 @@ from trackmeter.pipeline.snapshot import (
     AcquireModel,
     ClearTargets,
     LoadModel,
+    PoseEstimate,
     SelectPoint,
     SetAuto,
     SetCase,
@@ -1008,3 +1009,15 @@ def test_the_strict_anchor_ids_hold_while_the_model_binds_on_the_simulator() -> 
         engine.process(sim.read())
         assert engine.tracker.strict_anchor_ids == frozenset(sim.model.ids)
     assert engine._provisional is not None
+
+
+def test_a_pose_names_its_body_frame_and_a_case_switch_starts_another(estec_rig) -> None:
+    # The console breaks its pose plots where the number changes (a case switch drew a jump of
+    # ~100 deg that was only the new frame); within one frame the number holds.
+    engine, _, _ = make_engine(estec_rig, case="b")
+    poses = [p for _, p, _ in run(engine, range(6)) if p.valid]
+    assert poses and len({p.body_frame for p in poses}) == 1 and poses[0].body_frame >= 1
+    assert engine.handle(SetCase("a"), None).ok
+    after = [p for _, p, _ in run(engine, range(6, 40)) if p.valid]
+    assert after and {p.body_frame for p in after} == {poses[0].body_frame + 1}
+    assert PoseEstimate.invalid("none").body_frame == 0

@@ -257,6 +257,7 @@ class Engine:
         # Model points never forgotten for room (a provisional frame's a-priori points, located
         # one at a time, must all still be there when the model is bound).
         self._keep_ids: frozenset[str] = frozenset()
+        self._body_frame = 0  # counts the body frames defined: each _reset_motion starts one
         self._reset_motion()
 
     # ------------------------------------------------------------------ read-only state
@@ -326,7 +327,9 @@ class Engine:
     # ------------------------------------------------------------------ state resets
 
     def _reset_motion(self) -> None:
-        """Forget the working model, the pose history, the filter (not the targets)."""
+        """Forget the working model, the pose history, the filter (not the targets): the next
+        pose is in a body frame of its own (:attr:`PoseEstimate.body_frame`)."""
+        self._body_frame += 1
         self._model: dict[str, _ModelPoint] = {}
         if self._case == "b" and self._given_model is not None:
             for pid, b in zip(self._given_model.ids, self._given_model.points_body):
@@ -696,7 +699,8 @@ class Engine:
         T = np.eye(4)
         T[:3, :3] = R_f
         T[:3, 3] = t_f
-        pose = PoseEstimate(True, None, self._case, T, cov_out, v_arr, w_arr, n_used, tuple(outliers))
+        pose = PoseEstimate(True, None, self._case, T, cov_out, v_arr, w_arr, n_used, tuple(outliers),
+                            body_frame=self._body_frame)
         self._recovered_any = False
         if self.pose_params.recover_model_points:
             self._recover(frame, R, t, cov, existing)
@@ -1355,7 +1359,7 @@ class Engine:
         T[:3, 3] = pos
         w = self._coast_out[5] if self._coast_out is not None else np.full(3, np.nan)
         return PoseEstimate(True, f"coasting {dt:.2f} s on the motion model ({why})", self._case, T, cov,
-                            v, np.asarray(w, float).copy(), 0, (), coasting_s=float(dt))
+                            v, np.asarray(w, float).copy(), 0, (), coasting_s=float(dt), body_frame=self._body_frame)
 
     def _rejoin_through_coast(self, t_s: float, measured: dict[str, TargetState]) -> bool:
         """No pose: while the coasted pose is within ``coast_rejoin_*``, measured targets that are

@@ -39,6 +39,10 @@ class PoseEstimate:
             long and the pose is the last one carried on the motion model
             (:func:`trackmeter.core.dynamics.coast_pose`), valid only while its covariance is
             within ``pose.coast_valid_*`` (``n_points`` is 0, ``reason`` says so).
+        body_frame: which body frame the pose refers to, counted by the engine from 1: a pose
+            whose number differs from the one before is in a frame defined since (case
+            switched, a model loaded or acquired, case (a)'s frame redefined after a loss), so
+            the step between the two is not a motion. 0 for an invalid pose.
     """
 
     valid: bool
@@ -51,6 +55,7 @@ class PoseEstimate:
     n_points: int = 0
     outlier_ids: tuple[str, ...] = ()
     coasting_s: float = 0.0
+    body_frame: int = 0
 
     @staticmethod
     def invalid(reason: str, case: ModelCase = "a") -> PoseEstimate:
