@@ -43,6 +43,7 @@ from console.series import PLOTS, PlotData
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.targets import TargetState
 from trackmeter.core.tracking import REMOVE_NEAREST_PX
+from trackmeter.core.transforms import invert_transform
 from trackmeter.pipeline.engine import SelectModelPoints
 from trackmeter.pipeline.pipeline import Pipeline, RecordingStats
 from trackmeter.pipeline.snapshot import (
@@ -512,6 +513,11 @@ class Console:
         # The spin arrow; like the point cloud it is created once and updated in place.
         self.omega_arrow = scene.add_arrows("/scene3d/omega", np.zeros((1, 2, 3), np.float32), (255, 0, 200),
                                             shaft_radius=0.01, head_radius=0.03, head_length=0.06, visible=False)
+        # The mock-up at the estimated pose, its mesh in the true body frame: drawn through the
+        # body alignment the live errors use (case (a)'s and (c)'s own frames are not the
+        # mock-up's; drawn at the bare pose it stood turned away from the truth while the
+        # errors read 0.07 deg), hidden while no alignment is known.
+        self.mockup = scene.add_frame("/scene3d/body/mockup", show_axes=False, visible=False)
         if self.mockup_mesh is not None:
             self._add_mesh("/scene3d/body/mockup", opacity=None)
             self._add_mesh("/scene3d/truth/ghost", opacity=0.25)
@@ -551,6 +557,14 @@ class Console:
             self.body.visible = True
         else:
             self.body.visible = False
+        X = (snap.errors or {}).get("T_bodytrue_bodyest")
+        if pose.valid and X is not None:
+            T_bodyest_bodytrue = invert_transform(np.asarray(X, float))
+            self.mockup.wxyz = _wxyz(T_bodyest_bodytrue[:3, :3])
+            self.mockup.position = tuple(T_bodyest_bodytrue[:3, 3])
+            self.mockup.visible = True
+        elif self.mockup.visible:
+            self.mockup.visible = False
         omega_body = np.asarray(pose.omega_body_rad_s)
         if pose.valid and np.all(np.isfinite(omega_body)):
             # The spin axis in the camera frame from the body origin; 1 deg/s is drawn 0.1 m long.

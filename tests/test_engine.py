@@ -1021,3 +1021,23 @@ def test_a_pose_names_its_body_frame_and_a_case_switch_starts_another(estec_rig)
     after = [p for _, p, _ in run(engine, range(6, 40)) if p.valid]
     assert after and {p.body_frame for p in after} == {poses[0].body_frame + 1}
     assert PoseEstimate.invalid("none").body_frame == 0
+
+
+def test_the_errors_carry_the_body_alignment_that_puts_the_estimate_on_the_truth(estec_rig) -> None:
+    # The console draws the mock-up (a mesh in the true body frame) at the estimated pose
+    # through this alignment: case (a)'s own frame is not the mock-up's, and drawn at the bare
+    # pose the mesh stood turned far from the truth while the errors read 0.07 deg.
+    engine, _, _ = make_engine(estec_rig, with_model=False, case="a")
+    out = run(engine, range(40))
+    _, pose, errors = out[-1]
+    assert pose.valid and errors is not None
+    X = errors["T_bodytrue_bodyest"]
+    T_drawn = pose.T_cam_body @ np.linalg.inv(X)  # the mock-up's pose as the estimate puts it
+    T_true = frame_at(39).truth.T_cam_body
+    assert np.degrees(np.arccos(np.clip((np.trace(pose.T_cam_body[:3, :3].T @ T_true[:3, :3]) - 1) / 2, -1, 1))) > 10.0
+    np.testing.assert_allclose(T_drawn[:3, 3] - T_true[:3, 3], errors["position_m"], atol=1e-9)
+    angle = np.arccos(np.clip((np.trace(T_drawn[:3, :3].T @ T_true[:3, :3]) - 1) / 2, -1, 1))
+    assert angle == pytest.approx(errors["attitude_total_rad"], abs=1e-9)
+    # Case (b)'s frame is the model's: no alignment.
+    engine, _, _ = make_engine(estec_rig, case="b")
+    np.testing.assert_array_equal(run(engine, range(3))[-1][2]["T_bodytrue_bodyest"], np.eye(4))

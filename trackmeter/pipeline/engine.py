@@ -72,7 +72,7 @@ from trackmeter.core.pose import (
 )
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.targets import Refusal, TargetState
-from trackmeter.core.transforms import attitude_error_components, matrix_to_quat_wxyz
+from trackmeter.core.transforms import attitude_error_components, make_transform, matrix_to_quat_wxyz
 from trackmeter.core.velocity import VelocityEstimator, VelocityParams, block_weights
 from trackmeter.errors import TrackmeterError
 from trackmeter.pipeline.snapshot import (
@@ -1617,10 +1617,15 @@ class Engine:
             v_e = vel[0] if vel is not None else np.full(3, np.nan)
             w_e = om[0] if om is not None else np.full(3, np.nan)
             q_est = matrix_to_quat_wxyz(R_e)
+            T_bodytrue_bodyest = make_transform(R_X, t_X)
         else:
             q_est, q_true = matrix_to_quat_wxyz(np.stack([R_e, T_true[:3, :3]]))
+            T_bodytrue_bodyest = np.eye(4)
         att = attitude_error_components(q_est, q_true)
         return {
+            # The body alignment the errors were taken after (identity in case (b)): the 3D
+            # view draws the mock-up, whose mesh is in the true body frame, through it.
+            "T_bodytrue_bodyest": T_bodytrue_bodyest,
             "position_m": p_e - T_true[:3, 3],
             "attitude_rad": att,
             "attitude_total_rad": float(np.linalg.norm(att)),

@@ -97,7 +97,9 @@ class Snapshot:
         pose: the motion estimate.
         errors: pose errors against ground truth when known: keys ``position_m`` (3,),
             ``attitude_rad`` (3,) per axis (eq. 17), ``attitude_total_rad`` (eq. 16),
-            ``velocity_m_s`` (3,), ``omega_rad_s`` (3,); None without truth or without a pose.
+            ``velocity_m_s`` (3,), ``omega_rad_s`` (3,), and ``T_bodytrue_bodyest`` (4,4), the
+            body alignment they were taken after (cases a and c; identity in case b); None
+            without truth or without a pose.
         timings: rates and latencies.
         auto_enabled, auto_count, auto_method: automatic feature selection settings.
         filter_cutoff_hz: the output filter's cutoff, Hz (NaN when the engine has none).
