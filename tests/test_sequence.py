@@ -481,6 +481,17 @@ def test_a_pair_of_another_size_mid_sequence_is_skipped_and_named(tmp_path):
     assert len([f for f in iter(src.read, None)]) == 3 and src.skipped == 2
 
 
+def test_a_first_pair_whose_images_differ_in_size_is_skipped_not_taken_for_the_sequences_size(tmp_path):
+    # A 640x480 left image in the first pair (its right one of the sequence's size) set the
+    # sequence's frame size: track then refused the whole run, blaming the rig.
+    d = _write(tmp_path / "s", _frames(4))
+    cv2.imwrite(str(d / "cam0" / "data" / "0.png"), np.zeros((12, 16), np.uint8))
+    src = SequenceSource(d)
+    assert src.frame_size == (32, 24)
+    assert [f.t_s for f in iter(src.read, None)] == [0.04, 0.08, 0.12]
+    assert src.skipped == 1 and "0.png is 16x12 px" in src.warning
+
+
 def test_a_looping_folder_with_no_playable_pair_ends_instead_of_spinning(tmp_path):
     d = _write(tmp_path / "s", _frames(3))
     for path in (d / "cam0" / "data").iterdir():

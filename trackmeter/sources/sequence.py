@@ -114,15 +114,18 @@ class SequenceSource(Source):
 
     @property
     def frame_size(self) -> tuple[int, int] | None:
-        """``(width, height)`` px of the first readable left image (read once), or None when
-        no image of the folder can be read."""
+        """``(width, height)`` px of the first pair whose two images read and agree in size
+        (read once), or None when there is none. (A first pair whose left image alone is of
+        another size was taken for the sequence's size: the rig was then blamed for all.)"""
         if self._frame_size is None:
-            for path in self.index.left_paths:
+            for left_path, right_path in zip(self.index.left_paths, self.index.right_paths):
                 try:
-                    h, w = read_grey(path, self.image_bits).shape[:2]
+                    shape = read_grey(left_path, self.image_bits).shape[:2]
+                    if read_grey(right_path, self.image_bits).shape[:2] != shape:
+                        continue  # read() skips it too
                 except TrackmeterError:
-                    continue  # read() skips it too
-                self._frame_size = (int(w), int(h))
+                    continue
+                self._frame_size = (int(shape[1]), int(shape[0]))
                 break
         return self._frame_size
 
