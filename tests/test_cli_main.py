@@ -243,3 +243,17 @@ def test_a_ctrl_c_while_the_command_line_is_read_is_one_line_not_a_traceback(mon
     monkeypatch.setattr(cli_main, "build_parser", interrupted)
     assert main(["track", "--source", "sim", "--out", "x"]) == 130
     assert capsys.readouterr().err == "trackmeter: interrupted while starting; nothing was done\n"
+
+
+@pytest.mark.parametrize("argv, option", [
+    (["simulate", "--out", ""], "--out"),
+    (["evaluate", "--truth", " ", "--estimate", "run"], "--truth"),
+    (["track", "--source", "sim", "--out", ""], "--out"),
+    (["calibrate", "--left", "a.png", "", "--right", "b.png", "--pattern", "9x6", "--square", "1"], "--left"),
+])
+def test_an_empty_option_value_is_refused_by_name(capsys, argv, option) -> None:
+    # pathlib reads "" as the current folder: simulate --out "" answered ".: exists and is not
+    # an empty folder", evaluate --truth "" that "." held no ground truth.
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"error: argument {option}: empty value" in err and len(err.strip().splitlines()) == 1, err

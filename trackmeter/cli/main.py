@@ -225,6 +225,10 @@ def _option_before(argv: list[str], value: str) -> str:
     return next((a.split("=", 1)[0] for a in reversed(before) if a.startswith("--")), "--OPTION")
 
 
+#: The metavars of options that name a file or folder (or a source, which may be one).
+PATH_METAVARS = frozenset({"DIR", "FILE", "GLOB", "IMG", "MODEL", "RIG", "SPEC", "TUM", "TUM_OR_RUN_DIR"})
+
+
 def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
     _Parser.argv = list(sys.argv[1:] if argv is None else argv)
@@ -236,6 +240,16 @@ def _main(argv: Sequence[str] | None) -> int:
         parser.commands.get(args.command, parser).error(f"unrecognized arguments: {' '.join(unknown)}{hint}")
     if args.command is None:
         parser.error(f"a command is needed: {', '.join(COMMANDS)}")
+    sub = parser.commands.get(args.command, parser)
+    for action in sub._actions:
+        value = getattr(args, action.dest, None)
+        values = value if isinstance(value, list) else [value]
+        if action.metavar in PATH_METAVARS and any(isinstance(v, str) and not v.strip() for v in values):
+            # An empty path is the current folder to pathlib: `simulate --out ""` answered
+            # that "." was not empty, `evaluate --truth ""` that "." held no ground truth.
+            print(f"trackmeter {args.command}: error: argument {action.option_strings[-1]}: empty value "
+                  "(see --help)", file=sys.stderr)
+            return 2
     shown_before = warnings.showwarning
     warnings.showwarning = _warning_printer(args.command)
     # A service manager's stop (SIGTERM) ends a run as Ctrl-C does: threads joined, files
