@@ -150,9 +150,13 @@ class PlotData:
         if pose.valid:
             if self._last_body_frame is not None and pose.body_frame != self._last_body_frame:
                 # The body frame was defined anew (case switched, model bound or acquired): the
-                # step from the last pose is not a motion, and a line across it would show one.
+                # old frame's pose, rates and body axes are not comparable with the new ones, and
+                # the step between them is no motion. A break in the line is not enough: uPlot
+                # joins a one-frame gap (under a pixel at the plots' width) with a vertical line,
+                # a jump of the body that never happened. The pose plots start over.
                 for name in POSE_PLOTS:
-                    self.windows[name].mark_gap()
+                    self.windows[name].clear()
+                self._last_quat_wxyz = None
             self._last_body_frame = pose.body_frame
             T = np.asarray(pose.T_cam_body)
             self.windows["position"].append(t, T[:3, 3])
