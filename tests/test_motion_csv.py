@@ -212,5 +212,5 @@ def test_a_groundtruth_row_without_a_whole_pose_is_unknown_truth_at_that_time_on
     # A states.csv says which rows are valid; one that says 1 over an empty pose contradicts it.
     states = tmp_path / "states.csv"
     states.write_text("t,valid,x,y,z,qw,qx,qy,qz\n0,1,0,0,3,1,0,0,0\n0.04,1,,,,,,,\n")
-    with pytest.raises(TrackmeterError, match="a valid row has a non-finite pose"):
+    with pytest.raises(TrackmeterError, match=r"states\.csv:3: a valid \(1\) row without a whole pose"):
         read_motion_csv(states)

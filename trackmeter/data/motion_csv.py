@@ -261,6 +261,10 @@ def read_motion_csv(path: str | Path) -> MotionSeries:
         valid = col["valid"]
         if np.any(~np.isin(valid, (0.0, 1.0))):
             raise TrackmeterError(f"{path}: column 'valid' must hold 0 or 1")
+        broken = np.flatnonzero((valid == 1.0) & ~np.all(np.isfinite(stack(POSE_COLUMNS[1:])), axis=1))
+        if len(broken):
+            raise TrackmeterError(f"{path}:{rows[int(broken[0])][0]}: a valid (1) row without a whole pose "
+                                  "(an empty or nan field in x..qz)")
     else:
         # No column says which rows hold a pose (a groundtruth.csv): a row with an empty or
         # nan pose field is a time without ground truth, not a broken file.
