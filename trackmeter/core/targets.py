@@ -31,7 +31,8 @@ class TargetState:
         uv_right: (2,) matched right-image pixel, original image, px (NaN when lost).
         point_cam: (3,) triangulated point, left camera frame, m (NaN when lost).
         cov_cam: (3,3) covariance of ``point_cam``, m² (NaN when lost).
-        score: ZNCC in [-1, 1] of the stereo match that gave ``uv_right`` and ``point_cam``, NaN when lost.
+        score: ZNCC in [-1, 1] of the stereo match that gave ``uv_right`` and ``point_cam``
+            (NaN when lost).
         predicted_uv: (2,) Kalman-predicted left pixel for this frame, px.
         search_box: ``(u0, v0, u1, v1)`` search window in the left image, px.
         lost_reason: why it was lost (None while tracking).

@@ -198,13 +198,14 @@ def read_motion_csv(path: str | Path) -> MotionSeries:
 
     Columns ``t,x,y,z,qw,qx,qy,qz`` are required; missing velocity columns read as NaN.
     Without a ``valid`` column (a ``groundtruth.csv``) a row is valid when its pose is whole; a
-    row with an empty or ``nan`` pose field is read as invalid, with a warning. Empty fields and ``nan`` read as NaN. Blank lines
-    and ``#`` lines (comments) are skipped. Rows are kept in file order and must not go back in
-    time.
+    row with an empty or ``nan`` pose field is read as invalid, with a warning. Empty fields
+    and ``nan`` read as NaN. Blank lines and ``#`` lines (comments) are skipped. Rows are kept
+    in file order and must not go back in time.
 
     Raises:
         TrackmeterError: naming the file (and line) when it is missing, empty, has no header
-            with the required columns, a row of the wrong width, or a value that is not a number.
+            with the required columns, a row of the wrong width, a value that is not a number,
+            or a valid (1) row without a whole pose.
     """
     path = Path(path)
     if not path.is_file():
@@ -272,7 +273,7 @@ def read_motion_csv(path: str | Path) -> MotionSeries:
         unknown = np.flatnonzero(valid == 0.0)
         if len(unknown):
             warnings.warn(f"{path}:{rows[int(unknown[0])][0]}: {len(unknown)} row(s) without a whole pose "
-                          f"(t, x..qz) read as no ground truth at their time (the first on this line)", stacklevel=2)
+                          "(t, x..qz) read as no ground truth at their time (the first on this line)", stacklevel=2)
     extra = {name: a for name, a in col.items() if name not in _KNOWN}
     try:
         return MotionSeries(
