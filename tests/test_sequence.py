@@ -460,7 +460,7 @@ def test_unreadable_image_skipped_at_read(tmp_path):
 
 
 def test_a_pair_of_another_size_mid_sequence_is_skipped_and_named(tmp_path):
-    """The rig's calibration holds for one image size (checked against the first frame when
+    """The rig's calibration holds for one image size (checked against the sequence's frames when
     the source opens); a later pair of another size, or whose left and right images differ,
     is no frame of this rig. One such file in a long recording must not end the run (it did:
     the source failed there): it is skipped like an unreadable image, counted and named in
@@ -490,6 +490,18 @@ def test_a_first_pair_whose_images_differ_in_size_is_skipped_not_taken_for_the_s
     assert src.frame_size == (32, 24)
     assert [f.t_s for f in iter(src.read, None)] == [0.04, 0.08, 0.12]
     assert src.skipped == 1 and "0.png is 16x12 px" in src.warning
+
+
+def test_a_first_pair_of_another_size_in_both_cameras_is_skipped_too(tmp_path):
+    # Both images of the first pair 16x12 (a re-exported first frame): they set the sequence's
+    # size, and track refused the run blaming the rig, whose size the other pairs have.
+    d = _write(tmp_path / "s", _frames(5))
+    for cam in ("cam0", "cam1"):
+        cv2.imwrite(str(d / cam / "data" / "0.png"), np.zeros((12, 16), np.uint8))
+    src = SequenceSource(d)
+    assert src.frame_size == (32, 24)
+    assert [f.t_s for f in iter(src.read, None)] == [0.04, 0.08, 0.12, 0.16]
+    assert src.skipped == 1 and "the sequence's 32x24 px" in src.warning
 
 
 def test_a_looping_folder_with_no_playable_pair_ends_instead_of_spinning(tmp_path):

@@ -114,20 +114,33 @@ class SequenceSource(Source):
 
     @property
     def frame_size(self) -> tuple[int, int] | None:
-        """``(width, height)`` px of the first pair whose two images read and agree in size
-        (read once), or None when there is none. (A first pair whose left image alone is of
-        another size was taken for the sequence's size: the rig was then blamed for all.)"""
+        """``(width, height)`` px of the sequence's frames (decided once), or None when no pair
+        reads: the size most of three pairs spread over it have (the first pair whose images
+        read and agree from its start, its middle and its end; a tie goes to the earliest). A
+        first pair of another size, in one camera or both, was taken for the sequence's size,
+        and the rig was blamed for all the others."""
         if self._frame_size is None:
-            for left_path, right_path in zip(self.index.left_paths, self.index.right_paths):
-                try:
-                    shape = read_grey(left_path, self.image_bits).shape[:2]
-                    if read_grey(right_path, self.image_bits).shape[:2] != shape:
-                        continue  # read() skips it too
-                except TrackmeterError:
-                    continue
-                self._frame_size = (int(shape[1]), int(shape[0]))
-                break
+            n = len(self.index)
+            starts = sorted({0, n // 2, n - 1}) if n else []
+            sizes: list[tuple[int, int]] = []
+            for k, start in enumerate(starts):
+                end = starts[k + 1] if k + 1 < len(starts) else n
+                size = next((sz for pos in range(start, end) if (sz := self._pair_size(pos)) is not None), None)
+                if size is not None:
+                    sizes.append(size)
+            if sizes:
+                self._frame_size = max(sizes, key=lambda sz: (sizes.count(sz), -sizes.index(sz)))
         return self._frame_size
+
+    def _pair_size(self, pos: int) -> tuple[int, int] | None:
+        """``(width, height)`` of the ``pos``-th pair when both its images read and agree."""
+        try:
+            shape = read_grey(self.index.left_paths[pos], self.image_bits).shape[:2]
+            if read_grey(self.index.right_paths[pos], self.image_bits).shape[:2] != shape:
+                return None  # read() skips it too
+        except TrackmeterError:
+            return None
+        return int(shape[1]), int(shape[0])
 
     @property
     def has_truth(self) -> bool:
@@ -210,7 +223,7 @@ class SequenceSource(Source):
                     f"{right_shape[1]}x{right_shape[0]} px")
         size = self.frame_size
         if size is not None and (left_shape[1], left_shape[0]) != size:
-            return f"{left_path} is {left_shape[1]}x{left_shape[0]} px, the first frame {size[0]}x{size[1]} px"
+            return f"{left_path} is {left_shape[1]}x{left_shape[0]} px, the sequence's {size[0]}x{size[1]} px"
         return None
 
     def restart(self) -> None:
