@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import collections
 import warnings as _warnings
 from pathlib import Path
 
@@ -129,7 +130,7 @@ class SequenceSource(Source):
                 if size is not None:
                     sizes.append(size)
             if sizes:
-                self._frame_size = max(sizes, key=lambda sz: (sizes.count(sz), -sizes.index(sz)))
+                self._frame_size = collections.Counter(sizes).most_common(1)[0][0]  # ties: the first seen
         return self._frame_size
 
     def _pair_size(self, pos: int) -> tuple[int, int] | None:
