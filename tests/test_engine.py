@@ -735,6 +735,23 @@ def test_repeating_operator_clicks_again_after_a_total_loss(estec_rig, repeat: b
     assert (engine.stats.operator_reselections > 0) == repeat
 
 
+def test_the_repeating_operator_clicks_at_the_first_frame_with_truth(estec_rig) -> None:
+    # A recording whose truth starts after its first frame: the operator waited
+    # operator_reselect_s past frame 0 before its first clicks, with no pose meanwhile.
+    from dataclasses import replace
+
+    from trackmeter.pipeline.engine import NEEDS_TRUTH, SelectModelPoints
+
+    engine, tracker, _ = make_engine(estec_rig)
+    tracker.active.clear()
+    reply = engine.handle(SelectModelPoints(repeat=True), replace(frame_at(0), truth=None))
+    assert not reply.ok and reply.message == NEEDS_TRUTH
+    engine.process(replace(frame_at(1), truth=None))
+    assert not tracker.added
+    engine.process(frame_at(2))  # the first frame with truth, 0.08 s in
+    assert len(tracker.added) == 12 and engine.stats.operator_reselections == 1
+
+
 def test_the_repeating_operator_clicks_at_once_after_a_restart(estec_rig) -> None:
     # A restarted stream's clock starts again at 0: the operator waited for the time of its
     # last clicks (40 s into the old stream) to come round again, with no pose meanwhile.

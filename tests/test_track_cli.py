@@ -186,9 +186,14 @@ def test_select_model_points_alone_is_something_to_track_unless_the_source_has_n
     monkeypatch.setattr(TextureSource, "has_truth", True, raising=False)
     fake_source(monkeypatch, estec_rig, n=20)
     out = tmp_path / "run2"
+    capsys.readouterr()
     main(["track", "--source", "fake", "--model", str(model), "--case", "b", "--select-model-points", "--out", str(out)])
     meta = yaml.safe_load((out / "run.yaml").read_text())
     assert meta["status"] == "complete" and meta["summary"]["frames"] == 20
+    # ... and says so, not that the selection needs what the source has
+    err = capsys.readouterr().err
+    assert "--select-model-points: the first frame has no ground truth: the model points are selected " \
+           "at the first frame that has it" in err and "needs a frame with ground truth" not in err, err
     # run.yaml says how its targets came (it held "targets: []" and nothing else; an outside probe)
     assert meta["source"]["select_model_points"] is True and meta["source"]["targets"] == []
 

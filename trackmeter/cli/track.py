@@ -42,6 +42,9 @@ from trackmeter.errors import TrackmeterError, counted
 #: The summary's reason for an invalid first frame (its targets start on it, tracked from the next).
 FIRST_FRAME_REASON = "the first frame (the targets set on it are tracked from the next frame)"
 
+#: --select-model-points on a source whose truth starts after its first frame.
+TRUTH_LATER = "the first frame has no ground truth: the model points are selected at the first frame that has it"
+
 #: How many invalid-pose reasons the closing summary prints (run.yaml keeps them all).
 SUMMARY_REASONS = 5
 
@@ -312,7 +315,11 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
                 if not reply.ok and reply.message not in (STOPPED, NOT_APPLIED):
                     if tty:
                         sys.stderr.write("\r\033[K")  # over the progress line
-                    print(f"trackmeter track: warning: {_option_of(command)}: {reply.message}", file=sys.stderr)
+                    if reply.message == NEEDS_TRUTH and source.has_truth:
+                        # the engine selects them at the first frame with truth
+                        print(f"trackmeter track: note: {_option_of(command)}: {TRUTH_LATER}", file=sys.stderr)
+                    else:
+                        print(f"trackmeter track: warning: {_option_of(command)}: {reply.message}", file=sys.stderr)
                     said.add(k)
                     # A source with truth from a later frame on may still let the points be selected.
                     if isinstance(command, SelectPoint) or (reply.message == NEEDS_TRUTH and not source.has_truth):

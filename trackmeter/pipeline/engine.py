@@ -461,6 +461,10 @@ class Engine:
             # would start clicks nobody asked for then.
             watch = command.repeat and reply.message != NEEDS_CASE_B
             self._operator_t = (frame.t_s if frame is not None else 0.0) if watch else None
+            if watch and reply.message == NEEDS_TRUTH:
+                # A recording's truth may start after its first frame: click at the first frame
+                # that has it, not operator_reselect_s after this one.
+                self._operator_t = -np.inf
             if watch and not reply.ok and reply.message != NEEDS_TRUTH:
                 # Refused now is not refused for good: say that it goes on.
                 return replace(reply, message=f"{reply.message}; clicked again after each "
