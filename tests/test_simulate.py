@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -218,3 +219,23 @@ def test_a_simulate_refused_by_another_s_partial_leaves_it_whole(tmp_path, capsy
     assert "x.partial" in err and ("already holds a sequence" in err or "is writing there now" in err), err
     assert (tmp_path / "x.partial" / "cam0" / "data.csv").is_file() and not (tmp_path / "x").exists()
     held[0].close()
+
+
+def test_a_camera_within_the_mock_ups_reach_is_warned_of(tmp_path) -> None:
+    # A scenario that put the camera among the mock-up's parts rendered views from inside it
+    # (faces seen from behind left out: a black or half-empty image) without a word (a probe).
+    from trackmeter.sources.sim.simulator import Simulator
+
+    near = tmp_path / "near.yaml"
+    near.write_text("position0_m: [0, 0, 3]\nvelocity_m_s: [0, 0, -0.5]\nduration_s: 5\n")
+    with pytest.warns(UserWarning, match=r"the camera comes within 0\.52 m of the body origin at t = 4\.96 s.*"
+                                         r"reaches 0\.95 m"):
+        Simulator(str(near))
+    held = tmp_path / "held.yaml"
+    held.write_text("position0_m: [0, 0, 2]\nvelocity_m_s: [0, 0, -0.5]\nduration_s: 5\nrelease_s: 2\n")
+    with pytest.warns(UserWarning, match=r"within 0\.52 m of the body origin at t = 4\.96 s"):
+        Simulator(str(held))  # released at 2 s: the motion runs 2.96 s (without the hold: 0 m at 4 s)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for name in ("estec", "approach", "static_ranges"):
+            Simulator(name)  # 2 m and more away: quiet

@@ -37,6 +37,7 @@ import struct
 import subprocess
 import sys
 import threading
+import warnings
 from collections import deque
 from collections.abc import Callable
 from typing import IO, TYPE_CHECKING
@@ -122,7 +123,9 @@ def worker_main(stdin: IO[bytes] | None = None, stdout: IO[bytes] | None = None)
         autogroup_follows_nice()
     try:
         (size,) = _INT.unpack(_read_exact(inp, _INT.size))
-        sim = Simulator(pickle.loads(_read_exact(inp, size)))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the reader's own Simulator has said them
+            sim = Simulator(pickle.loads(_read_exact(inp, size)))
     except EOFError:
         return 0
     while True:

@@ -17,6 +17,8 @@ a locked target from a false lock.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
@@ -105,12 +107,34 @@ class Simulator(Source):
             sc.position0_m, sc.velocity_m_s,
             None if sc.approach_to_m is None else np.asarray(sc.approach_to_m, dtype=float), sc.approach_s,
         )
+        self._warn_if_the_camera_comes_within_reach()
         self._pacer = Pacer()
         self._render_ahead = bool(render_ahead)
         self._ahead: RenderAhead | None = None
         self._pos = 0
         self._count = 0
         self._loops = 0
+
+    def _warn_if_the_camera_comes_within_reach(self) -> None:
+        """Warn when a camera comes nearer the body origin than the mock-up reaches: it may be
+        among the mock-up's parts there, where the renderer, culling faces seen from behind,
+        draws a black or half-empty view (nothing says so otherwise)."""
+        sc = self.scenario
+        if sc.static_ranges_m:
+            direction = np.asarray(sc.position0_m, dtype=float)
+            origins = np.outer(sc.static_ranges_m, direction / np.linalg.norm(direction))
+            times = np.arange(len(origins)) * sc.frames_per_range / self.rate_hz
+        else:
+            times = np.arange(self.n_frames) / self.rate_hz
+            origins = np.atleast_2d(self._translation.at(np.maximum(times - sc.release_s, 0.0))[0])
+        centres = np.stack([np.zeros(3), -self.true_rig.R.T @ np.asarray(self.true_rig.T, dtype=float).reshape(3)])
+        distance_m = np.linalg.norm(origins[:, None, :] - centres[None], axis=2).min(axis=1)
+        k = int(np.argmin(distance_m))
+        if distance_m[k] < self.mockup.radius_m:
+            warnings.warn(f"scenario {sc.name!r}: the camera comes within {distance_m[k]:.2f} m of the body origin at "
+                          f"t = {times[k]:.2f} s, where the mock-up reaches {self.mockup.radius_m:.2f} m: it may be "
+                          "among its parts there, and faces seen from behind are not drawn (black or half-empty "
+                          "images)", stacklevel=3)
 
     # ------------------------------------------------------------------ random access
 
