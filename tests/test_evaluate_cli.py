@@ -555,6 +555,28 @@ def test_out_refuses_a_sequence_folder_and_a_file(capsys, sequence_and_run):
     assert sorted(p.name for p in recording.iterdir()) == ["cam0", "cam1"]
 
 
+def test_out_refuses_a_folder_of_other_files_and_replaces_a_report_or_joins_a_run(capsys, sequence_and_run):
+    # --out . (or a folder of notes) wrote eight report files among the user's (an outside probe).
+    _, seq, run = sequence_and_run
+    busy = run.parent / "busy"
+    busy.mkdir()
+    (busy / "notes.txt").write_text("mine")
+    (busy / ".hidden").write_text("x")
+    code, _, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--out", str(busy))
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "holds other files (notes.txt)" in err, err
+    assert sorted(p.name for p in busy.iterdir()) == [".hidden", "notes.txt"]
+    # an earlier report is replaced (it is made again from the same files), a run's folder joined
+    report = run.parent / "report"
+    for out in (report, report, run):
+        assert _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--out", str(out))[0] == 0
+    assert (run / "report.md").is_file() and (run / "states.csv").is_file()
+    # the user's notes beside a run: welcome where its run.yaml says it is one (track's rule)
+    (run / "notes.txt").write_text("mine")
+    assert _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--out", str(run))[0] == 2
+    (run / "run.yaml").write_text("status: complete\n")
+    assert _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--out", str(run))[0] == 0
+
+
 def test_a_run_replaced_with_overwrite_loses_its_old_evaluation(capsys, tmp_path):
     seq = tmp_path / "seq"
     assert main(["simulate", "--duration", "0.25", "--out", str(seq)]) == 0

@@ -439,11 +439,19 @@ REPORT_FILES = ("summary.json", "errors.csv", "report.md", "position_error.png",
 def check_report_directory(directory: str | Path) -> Path:
     """``directory`` as a Path when a report can be written there; nothing is created.
 
+    An earlier report there is replaced (it is made again from the same files); a run's
+    folder takes its report beside the run.
+
     Raises:
         TrackmeterError: it is a file, a sequence folder (a recording is not mixed with
-            reports), or its nearest existing parent is not a folder this process may write in.
+            reports), a folder holding other files than a run's or a report's, or its nearest
+            existing parent is not a folder this process may write in.
     """
-    return check_output_folder(directory, "reports", "a report folder")
+    from trackmeter.data.rundir import refuse_other_files
+
+    path = check_output_folder(directory, "reports", "a report folder")
+    refuse_other_files(path, "a report folder is new, empty, an earlier report's or a run's")
+    return path
 
 
 def write_evaluation(evaluation: Evaluation, out_dir: str | Path, settings: dict[str, Any]) -> list[Path]:

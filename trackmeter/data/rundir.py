@@ -103,19 +103,30 @@ def check_run_directory(directory: str | Path, overwrite: bool = False) -> Path:
         raise TrackmeterError(f"{path}: holds {', '.join(others)} already (not from a run: no run.yaml); "
                               "choose another --out or give --overwrite to replace them")
     check_output_folder(path, "a run's files", "a run folder")  # a sequence folder is told as one
-    if path.is_dir() and not (path / "run.yaml").exists():
-        from trackmeter.data.evaluation import REPORT_FILES
-
-        ours = {*_RUN_FILES, *REPORT_FILES, RESERVE_NAME}
-        foreign = sorted(e.name for e in path.iterdir() if e.name not in ours and not e.name.startswith("."))
-        if foreign:
-            # Not even with --overwrite: that replaces a run (whose folder may hold the user's
-            # notes beside it), it does not mix one into a folder of other things (--out / or .
-            # wrote run.yaml and three CSVs among them).
-            shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
-            raise TrackmeterError(f"{path}: holds other files ({shown}); a run folder is new, empty or an "
-                                  "earlier run's: choose another --out")
+    # Not even with --overwrite: that replaces a run (whose folder may hold the user's notes
+    # beside it), it does not mix one into a folder of other things (--out / or . wrote
+    # run.yaml and three CSVs among them).
+    refuse_other_files(path, "a run folder is new, empty or an earlier run's")
     return path
+
+
+def refuse_other_files(path: Path, what_is_allowed: str) -> None:
+    """Refuse an existing folder ``path`` that is not a run's (no ``run.yaml``) and holds files
+    other than a run's, an evaluate report's or hidden ones: a command's output is not mixed
+    into a folder of other things (``--out .``, ``--out /``).
+
+    Raises:
+        TrackmeterError: naming up to three of the other files and ``what_is_allowed``.
+    """
+    if not path.is_dir() or (path / "run.yaml").exists():
+        return
+    from trackmeter.data.evaluation import REPORT_FILES
+
+    ours = {*_RUN_FILES, *REPORT_FILES, RESERVE_NAME}
+    foreign = sorted(e.name for e in path.iterdir() if e.name not in ours and not e.name.startswith("."))
+    if foreign:
+        shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
+        raise TrackmeterError(f"{path}: holds other files ({shown}); {what_is_allowed}: choose another --out")
 
 
 def _folder_identity(folder: Path) -> tuple[int, int] | None:
