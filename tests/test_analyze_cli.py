@@ -201,6 +201,28 @@ def test_an_out_that_cannot_hold_the_report_is_refused_before_the_work(still_seq
     assert not any(p.name.endswith((".json", ".md")) for p in still_sequence.iterdir())
 
 
+def test_out_takes_an_earlier_analysis_report_but_no_folder_of_other_files(still_sequence, tmp_path, capsys,
+                                                                            monkeypatch) -> None:
+    import trackmeter.pipeline.analysis as analysis
+
+    def no_work(*args, **kwargs):  # type: ignore[no-untyped-def]
+        raise AssertionError("the analysis ran before --out was checked")
+
+    monkeypatch.setattr(analysis, "run_error_analysis", no_work)
+    busy = tmp_path / "busy"
+    busy.mkdir()
+    (busy / "notes.txt").write_text("x")
+    (busy / "report.md").write_text("x")  # an evaluate report's: not an analysis report's folder
+    code = main(["analyze", "--source", str(still_sequence), "--points", "5", "--out", str(busy)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "holds other files (notes.txt)" in err[0], err
+    assert sorted(p.name for p in busy.iterdir()) == ["notes.txt", "report.md"]
+    # an earlier analysis report's folder, the user's notes beside it: replaced (the notes stay)
+    (busy / "analysis.json").write_text("x")
+    with pytest.raises(AssertionError, match="the analysis ran"):
+        main(["analyze", "--source", str(still_sequence), "--points", "5", "--out", str(busy)])
+
+
 def test_a_report_is_written_whole_or_not_at_all(still_sequence, tmp_path, full_disk, capsys):
     """On a full disk analysis.json and ranges.csv were left in --out without the plots and
     report.md they go with (seen on a full tmpfs)."""

@@ -570,11 +570,10 @@ def test_out_refuses_a_folder_of_other_files_and_replaces_a_report_or_joins_a_ru
     for out in (report, report, run):
         assert _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--out", str(out))[0] == 0
     assert (run / "report.md").is_file() and (run / "states.csv").is_file()
-    # the user's notes beside a run: welcome where its run.yaml says it is one (track's rule)
-    (run / "notes.txt").write_text("mine")
-    assert _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--out", str(run))[0] == 2
-    (run / "run.yaml").write_text("status: complete\n")
-    assert _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--out", str(run))[0] == 0
+    # the user's notes beside an earlier report (or a run: its run.yaml) stay welcome
+    (report / "notes.txt").write_text("mine")
+    assert _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--out", str(report))[0] == 0
+    assert (report / "notes.txt").read_text() == "mine"
 
 
 def test_a_run_replaced_with_overwrite_loses_its_old_evaluation(capsys, tmp_path):

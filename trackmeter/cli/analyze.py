@@ -63,9 +63,9 @@ def run(args: argparse.Namespace) -> int:
         params = replace(params, points_per_range=check_option(AnalyzeParams, "points_per_range", args.points,
                                                                 "--points"))
     if args.out:
-        from trackmeter.data.evaluation import check_report_directory
+        from trackmeter.data.analysis_report import check_analysis_directory
 
-        check_report_directory(args.out)  # before the work, which may take a while
+        check_analysis_directory(args.out)  # before the work, which may take a while
     # --rig is read once the source is open: it may take its size from the source's frames.
     with open_source_with_rig(args.source, args.rig, own_model=False) as source:
         rig = source.rig

@@ -136,15 +136,29 @@ def _plot(analysis: ErrorAnalysis) -> dict[str, bytes]:
     return {"sigma_vs_range.png": sigma_png, "error_density.png": density_png}
 
 
+#: What an analyze report folder holds.
+ANALYSIS_FILES = ("analysis.json", "ranges.csv", "report.md", "sigma_vs_range.png", "error_density.png")
+
+
+def check_analysis_directory(directory: str | Path) -> Path:
+    """``directory`` as a Path when an analysis report can be written there (new, empty, or an
+    earlier analysis report's, which is replaced); nothing is created.
+
+    Raises:
+        TrackmeterError: as :func:`check_report_directory`, or the folder holds other files.
+    """
+    return check_report_directory(directory, ANALYSIS_FILES, "an analysis report")
+
+
 def write_analysis(analysis: ErrorAnalysis, summary: dict, out_dir: str | Path) -> list[Path]:
     """Write ``analysis.json``, ``ranges.csv``, the two plots and ``report.md`` into ``out_dir``,
     as one piece of work: all of them whole, or (a full disk) none, an earlier report kept.
 
     Raises:
-        TrackmeterError: ``out_dir`` cannot hold a report (:func:`check_report_directory`), or
-            a file could not be written.
+        TrackmeterError: ``out_dir`` cannot hold a report (:func:`check_analysis_directory`),
+            or a file could not be written.
     """
-    out = check_report_directory(out_dir)
+    out = check_analysis_directory(out_dir)
     rows = ["range_m,n_points,n_samples,sigma_x_m,sigma_y_m,sigma_z_m,pred_sigma_x_m,pred_sigma_y_m,pred_sigma_z_m"]
     for r in analysis.ranges:
         rows.append(",".join(repr(float(v)) for v in (r.range_m, r.n_points, r.n_samples, *r.sigma_m, *r.predicted_sigma_m)))

@@ -16,7 +16,7 @@ import math
 import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 import yaml
@@ -436,21 +436,27 @@ REPORT_FILES = ("summary.json", "errors.csv", "report.md", "position_error.png",
                 "velocity_error.png", "omega_error.png")
 
 
-def check_report_directory(directory: str | Path) -> Path:
+def check_report_directory(directory: str | Path, report_files: Sequence[str] = REPORT_FILES,
+                           report: str = "a report") -> Path:
     """``directory`` as a Path when a report can be written there; nothing is created.
 
-    An earlier report there is replaced (it is made again from the same files); a run's
-    folder takes its report beside the run.
+    The folder is new, empty, or an earlier report's (``report_files[0]`` there: it is replaced,
+    made again from the same files, with whatever the user keeps beside it); evaluate's report
+    (the default ``report_files``) also goes into a run's folder, or one of a run's files.
 
     Raises:
         TrackmeterError: it is a file, a sequence folder (a recording is not mixed with
-            reports), a folder holding other files than a run's or a report's, or its nearest
-            existing parent is not a folder this process may write in.
+            reports), a folder of other files, or its nearest existing parent is not a folder
+            this process may write in.
     """
-    from trackmeter.data.rundir import refuse_other_files
+    from trackmeter.data.rundir import refuse_other_files, run_folder_files
 
     path = check_output_folder(directory, "reports", "a report folder")
-    refuse_other_files(path, "a report folder is new, empty, an earlier report's or a run's")
+    evaluate = tuple(report_files) == REPORT_FILES
+    if not ((path / report_files[0]).exists() or (evaluate and (path / "run.yaml").exists())):
+        ours = run_folder_files() if evaluate else frozenset(report_files)
+        refuse_other_files(path, ours, f"{report}'s folder is new, empty or an earlier one's"
+                                       + (" or a run's" if evaluate else ""))
     return path
 
 

@@ -28,7 +28,7 @@ import platform
 import sys
 import time
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Collection, Sequence
 
 import numpy as np
 import yaml
@@ -103,26 +103,30 @@ def check_run_directory(directory: str | Path, overwrite: bool = False) -> Path:
         raise TrackmeterError(f"{path}: holds {', '.join(others)} already (not from a run: no run.yaml); "
                               "choose another --out or give --overwrite to replace them")
     check_output_folder(path, "a run's files", "a run folder")  # a sequence folder is told as one
-    # Not even with --overwrite: that replaces a run (whose folder may hold the user's notes
-    # beside it), it does not mix one into a folder of other things (--out / or . wrote
-    # run.yaml and three CSVs among them).
-    refuse_other_files(path, "a run folder is new, empty or an earlier run's")
+    if not (path / "run.yaml").exists():
+        # Not even with --overwrite: that replaces a run (whose folder may hold the user's
+        # notes beside it), it does not mix one into a folder of other things (--out / or .
+        # wrote run.yaml and three CSVs among them).
+        refuse_other_files(path, run_folder_files(), "a run folder is new, empty or an earlier run's")
     return path
 
 
-def refuse_other_files(path: Path, what_is_allowed: str) -> None:
-    """Refuse an existing folder ``path`` that is not a run's (no ``run.yaml``) and holds files
-    other than a run's, an evaluate report's or hidden ones: a command's output is not mixed
-    into a folder of other things (``--out .``, ``--out /``).
+def run_folder_files() -> frozenset[str]:
+    """The names a run folder may hold: a run's files, an evaluate report's, the reserve."""
+    from trackmeter.data.evaluation import REPORT_FILES
+
+    return frozenset({*_RUN_FILES, *REPORT_FILES, RESERVE_NAME})
+
+
+def refuse_other_files(path: Path, ours: Collection[str], what_is_allowed: str) -> None:
+    """Refuse an existing folder ``path`` that holds files other than ``ours`` or hidden ones:
+    a command's output is not mixed into a folder of other things (``--out .``, ``--out /``).
 
     Raises:
         TrackmeterError: naming up to three of the other files and ``what_is_allowed``.
     """
-    if not path.is_dir() or (path / "run.yaml").exists():
+    if not path.is_dir():
         return
-    from trackmeter.data.evaluation import REPORT_FILES
-
-    ours = {*_RUN_FILES, *REPORT_FILES, RESERVE_NAME}
     foreign = sorted(e.name for e in path.iterdir() if e.name not in ours and not e.name.startswith("."))
     if foreign:
         shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
