@@ -320,3 +320,44 @@ def test_an_underexposed_still_target_is_measured_at_the_engines_gain(still_sequ
     assert bright["ranges"][0]["exposure_gain"] == 1.0
     z_dark, z_bright = entry["sigma_m"]["z"], bright["ranges"][0]["sigma_m"]["z"]
     assert 0.3 < z_dark / z_bright < 3.0, (z_dark, z_bright)
+
+
+def test_the_points_asked_for_are_found_past_corners_the_matcher_refuses(still_sequence, monkeypatch) -> None:
+    # Only the 4 N strongest corners were tried: where the matcher refused them (a repetitive
+    # texture, one camera's view) --points 3 measured 1 point, or none, on the simulator's ranges.
+    from dataclasses import replace
+
+    import numpy as np
+
+    import trackmeter.pipeline.analysis as analysis
+    from trackmeter.core.error_analysis import AnalyzeParams
+    from trackmeter.core.matching import MeasureParams
+    from trackmeter.sources import open_source
+
+    params = AnalyzeParams(points_per_range=3)
+    with open_source(f"seq:{still_sequence}") as source:
+        frames = [source.read() for _ in range(3)]
+        rig = source.rig
+    strongest = analysis.select_points(frames[0].left, params, MeasureParams().min_mean_grey, 12)
+    real = analysis.measure_points
+
+    def refusing(rig, left, right, uv, params, *args):  # type: ignore[no-untyped-def]
+        out = real(rig, left, right, uv, params, *args)
+        refused = [any(np.allclose(p, q) for q in strongest) for p in np.asarray(uv).reshape(-1, 2)]
+        return tuple(replace(m, ok=False, reason="refused here") if r else m for m, r in zip(out, refused))
+
+    monkeypatch.setattr(analysis, "measure_points", refusing)
+    m = analysis.measure_range(frames, rig, MeasureParams(), params)
+    assert len(m.uv) == 3 and np.isfinite(m.xyz_m).all()
+    assert not any(np.allclose(p, q) for p in m.uv for q in strongest)
+
+
+def test_a_border_wider_than_the_image_says_no_point_could_be_selected(still_sequence, tmp_path, capsys) -> None:
+    # border_px: 100000 in --config: a traceback (a 40 GB kernel); at 1000: "no point has 5
+    # good measurements", which blamed the measurements for a selection that found nothing.
+    config = tmp_path / "c.yaml"
+    config.write_text("analyze:\n  border_px: 100000\n")
+    code = main(["analyze", "--source", str(still_sequence), "--config", str(config)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    assert "no point selectable on its first frame: no corner 100000 px inside the lit target" in err[0], err

@@ -225,3 +225,23 @@ def test_corners_near_a_click_are_opencv_s_corners_there_nearest_first() -> None
     assert len(ft.corners_near(img, (50.0, 35.0), radius_px=6.0)) == 0  # mid-square: nothing
     assert len(ft.corners_near(img, (-40.0, 300.0), radius_px=6.0)) == 0  # off the image
     assert len(ft.corners_near(img, (32.0, 23.0), radius_px=0.0)) == 0
+
+
+@pytest.mark.parametrize("margin_px", [0, 5, 40, 100_000])
+def test_the_target_mask_is_the_square_erosion_at_any_margin(margin_px: int) -> None:
+    # A margin of 100000 px (a typo in --config) allocated a 200001 x 200001 kernel: a
+    # MemoryError on every frame. A square wider than the image leaves nothing, at no cost.
+    rng = np.random.default_rng(0)
+    image = np.where(rng.random((60, 80)) < 0.97, 200, 0).astype(np.uint8)
+    image[20:50, 10:70] = 200
+    params = FeatureParams(target_margin_px=margin_px, border_px=3)
+    r = params.patch_size // 2 + margin_px
+    expected = np.zeros(image.shape, np.uint8)
+    if 2 * r + 1 <= min(image.shape):
+        for v in range(image.shape[0]):
+            for u in range(image.shape[1]):
+                window = image[max(v - r, 0):v + r + 1, max(u - r, 0):u + r + 1]
+                inside = r <= v < image.shape[0] - r and r <= u < image.shape[1] - r
+                expected[v, u] = 255 if inside and (window > params.black_level).all() else 0
+        expected[:3], expected[-3:], expected[:, :3], expected[:, -3:] = 0, 0, 0, 0
+    np.testing.assert_array_equal(ft.target_mask(image, params), expected)

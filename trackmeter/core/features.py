@@ -355,10 +355,22 @@ def target_mask(image: NDArray, params: FeatureParams) -> NDArray[np.uint8]:
     return mask
 
 
+def erode_square(mask: NDArray[np.uint8], radius_px: int) -> NDArray[np.uint8]:
+    """``mask`` (H,W) eroded by the (2r+1) x (2r+1) square, outside the image counted as 0: a
+    pixel stays only where the whole square around it lies inside the image on non-zero pixels.
+
+    A square wider than the image leaves nothing; that is said without building its kernel
+    (a radius of 100000 px, a typo in a config file, would allocate 40 GB).
+    """
+    r = int(radius_px)
+    if 2 * r + 1 > min(mask.shape[:2]):
+        return np.zeros_like(mask)
+    kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1, 2 * r + 1))
+    return cv2.erode(mask, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+
+
 def _patch_mask(bright: NDArray[np.uint8], params: FeatureParams) -> NDArray[np.uint8]:
-    r = params.patch_size // 2 + params.target_margin_px
-    kernel = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
-    mask = cv2.erode(bright, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    mask = erode_square(bright, params.patch_size // 2 + params.target_margin_px)
     b = params.border_px
     if b > 0:
         mask[:b] = 0

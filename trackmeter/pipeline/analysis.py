@@ -12,6 +12,7 @@ sky); then every frame of that range measures them with the stereo matcher
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass, field, replace
 from typing import Callable, Iterable, Iterator
 
@@ -31,6 +32,7 @@ from trackmeter.core.error_analysis import (
     truth_errors,
 )
 from trackmeter.core.exposure import ExposureParams, apply_gain, exposure_gain
+from trackmeter.core.features import erode_square
 from trackmeter.core.matching import MeasureParams, measure_points
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.transforms import apply_transform
@@ -60,6 +62,7 @@ class RangeMeasurements:
             left frame (:func:`image_motion_px`), px; NaN when it cannot be told.
         exposure_gain: the gain every frame of the range was multiplied by before it was
             measured (:mod:`trackmeter.core.exposure`; 1: normally exposed).
+        candidates: how many corners were found on the target in the range's first frame.
     """
 
     t_s: FloatArray
@@ -73,6 +76,7 @@ class RangeMeasurements:
     noise_sigma_disparity_px: FloatArray | None = None
     image_motion_px: float = float("nan")
     exposure_gain: float = 1.0
+    candidates: int = 0
 
 
 @dataclass(frozen=True, eq=False)
@@ -145,17 +149,11 @@ def select_points(left: NDArray[np.uint8], params: AnalyzeParams, min_grey: floa
 
     The mask keeps pixels brighter than ``min_grey`` (the target against black sky), eroded by
     ``params.border_px`` so that no 8x8 patch straddles the outline or the image border.
+    ``max_points``: at most this many (None: ``params.points_per_range``).
     """
-    mask = (left > min_grey).astype(np.uint8) * 255
-    b = int(params.border_px)
-    if b > 0:
-        mask = cv2.erode(mask, np.ones((2 * b + 1, 2 * b + 1), np.uint8))
-        mask[:b, :] = 0
-        mask[-b:, :] = 0
-        mask[:, :b] = 0
-        mask[:, -b:] = 0
+    mask = erode_square((left > min_grey).astype(np.uint8) * 255, params.border_px)
     corners = cv2.goodFeaturesToTrack(
-        left, maxCorners=int(max_points or params.points_per_range), qualityLevel=float(params.corner_quality),
+        left, maxCorners=int(params.points_per_range if max_points is None else max_points), qualityLevel=float(params.corner_quality),
         minDistance=float(params.corner_min_distance_px), mask=mask,
     )
     if corners is None:
@@ -190,16 +188,26 @@ def measure_range(
 ) -> RangeMeasurements:
     """Select points on the first frame and measure them in every frame of one range.
 
-    Candidates are four times ``params.points_per_range`` corners; the best ones the matcher
-    accepts on the first frame are kept (a corner on a repetitive grid or seen by the left
-    camera only is refused there, and would only add refusals later).
+    The corners are tried best first (at most 20 times ``params.points_per_range``), four times
+    that many at a time, until that many are accepted by the matcher on the first frame (a corner on a repetitive grid or
+    seen by the left camera only is refused there, and would only add refusals later). When
+    none is, ``refusals`` holds the first frame's reasons and ``candidates`` how many were tried.
     """
     first = frames[0]
-    candidates = select_points(first.left, params, measure.min_mean_grey, 4 * params.points_per_range)
-    if len(candidates):
-        ok = [m.ok for m in measure_points(rig, first.left, first.right, candidates, measure)]
-        candidates = candidates[np.asarray(ok, dtype=bool)]
-    uv = candidates[: params.points_per_range]
+    n = params.points_per_range
+    candidates = select_points(first.left, params, measure.min_mean_grey, 20 * n)  # best first
+    accepted: list[FloatArray] = []
+    first_refusals: dict[str, int] = {}
+    for start in range(0, len(candidates), 4 * n):
+        batch = candidates[start:start + 4 * n]
+        for p, m in zip(batch, measure_points(rig, first.left, first.right, batch, measure)):
+            if m.ok:
+                accepted.append(p)
+            else:
+                first_refusals[str(m.reason)] = first_refusals.get(str(m.reason), 0) + 1
+        if len(accepted) >= n:
+            break
+    uv = np.asarray(accepted[:n], dtype=float).reshape(-1, 2)
     F, P = len(frames), len(uv)
     xyz = np.full((F, P, 3), np.nan)
     sig = np.full((F, P, 3), np.nan)
@@ -223,8 +231,8 @@ def measure_range(
         p_body = np.asarray(surface_points(first.index, uv), dtype=float).reshape(-1, 3)
         true_xyz = apply_transform(truth.T_cam_body, p_body)
     motion = image_motion_px(first.left, frames[-1].left, uv) if F >= 2 else float("nan")
-    return RangeMeasurements(np.array([fr.t_s for fr in frames]), uv, xyz, sig, sd, refusals, true_range, true_xyz, noise_sd,
-                             motion)
+    return RangeMeasurements(np.array([fr.t_s for fr in frames]), uv, xyz, sig, sd, refusals if P else first_refusals,
+                             true_range, true_xyz, noise_sd, motion, candidates=len(candidates))
 
 
 def image_motion_px(first: NDArray[np.uint8], last: NDArray[np.uint8], uv: FloatArray) -> float:
@@ -327,6 +335,14 @@ def run_error_analysis(
         n_ranges += 1
         n_frames += len(m.t_s)
         label = f"{m.true_range_m:.2f} m" if np.isfinite(m.true_range_m) else f"frames from t={m.t_s[0]:.3f} s"
+        if len(m.uv) == 0:
+            # Not "no point has N good measurements": none was measured, or even found.
+            why = Counter(m.refusals).most_common(2)
+            skipped.append(f"{label}: no point selectable on its first frame: " + (
+                f"none of {m.candidates} corners accepted by the matcher ("
+                + ", ".join(f"{k} {r}" for r, k in why) + ")" if m.candidates else
+                f"no corner {params.border_px} px inside the lit target and the image"))
+            continue
         try:
             st = range_statistics(m.xyz_m, m.sigma_m, params.min_samples, params.max_abs_residual_sigmas)
         except TrackmeterError as exc:
