@@ -201,3 +201,49 @@ def test_a_second_click_on_a_target_is_refused_not_a_duplicate(estec_sim_frames)
     # Named after a model point, the click binds that name (a model point may sit on a target).
     named = engine.handle(SelectPoint(float(target.uv[0]), float(target.uv[1]), "p_named"), frame)
     assert "already there" not in named.message
+
+
+def test_a_click_at_the_target_limit_takes_the_place_of_a_lost_or_automatic_target(estec_sim_frames) -> None:  # type: ignore[no-untyped-def]
+    # Lost targets stay (the operator's for ever), and automatic ones fill the rest: once 32
+    # were held every click was refused, "target limit reached", while 14 were tracking (an
+    # outside console probe). The click is the operator's: it takes a place, a lost target's
+    # first, else the youngest automatic one's, never another click's.
+    from dataclasses import replace
+
+    from trackmeter.pipeline.engine import click_room
+    from trackmeter.pipeline.snapshot import SelectPoint
+
+    rig, frames = estec_sim_frames
+    config = load_config()
+    engine = Engine(replace(config, tracker=replace(config.tracker, max_targets=4)), rig, None, "a", rate_hz=25)
+    frame = frames[0]
+    engine.handle(SetAuto(True, 4), frame)
+    engine.process(frame)
+    autos = {t.id: t.age_frames for t in engine.targets}
+    assert len(autos) == 4
+    lit = np.argwhere(frame.left[::7, ::7] > 60) * 7
+    clicks = []
+    for v, u in lit:
+        reply = engine.handle(SelectPoint(float(u), float(v)), frame)
+        if reply.ok:
+            clicks.append(reply.target_id)
+            assert "(in place of automatic target a" in reply.message, reply.message
+        else:
+            assert "target limit" not in reply.message, reply.message
+        if len(clicks) == 4:
+            break
+    assert len(clicks) == 4 and {t.id for t in engine.targets} == set(clicks)
+    reply = engine.handle(SelectPoint(float(lit[-1][1]), float(lit[-1][0])), frame)
+    assert not reply.ok and "target limit reached (4 targets, all the operator's or model points" in reply.message
+
+    def state(tid, origin, status, age):  # type: ignore[no-untyped-def]
+        nan2 = np.full(2, np.nan)
+        return TargetState(tid, origin, status, nan2, nan2, np.full(3, np.nan), np.full((3, 3), np.nan), 0.0,
+                           nan2, (0, 0, 0, 0), None, age)
+
+    held = [state("op", "operator", "lost", 50), state("a1", "auto", "tracking", 9), state("a2", "auto", "tracking", 3),
+            state("a3", "auto", "lost", 20), state("m", "model", "lost", 90)]
+    assert [click_room(held[:k]) for k in (1, 3, 4)] == ["op", "op", "a3"]
+    assert click_room(held[1:3]) == "a2"  # none lost: the youngest automatic one
+    assert click_room(held) == "a3"  # a lost automatic target before a lost click or model point
+    assert click_room([state("op", "operator", "tracking", 5)]) is None

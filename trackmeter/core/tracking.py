@@ -631,22 +631,29 @@ class Tracker:
         uv: tuple[float, float],
         target_id: str | None = None,
         origin: TargetOrigin = "operator",
+        in_place_of: str | None = None,
     ) -> TargetState | Refusal:
         """Create a target at left pixel ``uv`` (ORIGINAL image, px) of ``frame``.
 
         Refused (with the reason) when: the target limit is reached, the id exists, the pixel is
         outside the image, the patch is black space or textureless, or it has no strong, unique
         stereo match along its epipolar line — as a measurement of that point would be.
+        ``in_place_of``: at the limit, the target the new one replaces, removed only once the
+        new one is made (a refused click costs no target).
         """
         uvf = np.asarray(uv, dtype=float).reshape(2)
         key = (float(uvf[0]), float(uvf[1]))
-        if len(self._targets) >= self.params.max_targets:
+        full = len(self._targets) >= self.params.max_targets
+        if full and in_place_of not in self._targets:
             return Refusal(key, f"target limit reached ({self.params.max_targets} targets)")
         if target_id is not None and target_id in self._targets:
             return Refusal(key, f"a target named {target_id!r} exists")
         # Refused exactly as a measurement of the point would be (paper 2.A, H2's matcher)...
         meas = measure_points(self.rig, frame.left, frame.right, uvf[None], self.measure)[0]
-        return self._create(frame, uvf, meas, target_id, origin)
+        result = self._create(frame, uvf, meas, target_id, origin)
+        if full and in_place_of is not None and not isinstance(result, Refusal):
+            self.remove_target(in_place_of)
+        return result
 
     def _create(
         self, frame: StereoFrame, uvf: FloatArray, meas, target_id: str | None, origin: TargetOrigin,  # type: ignore[no-untyped-def]

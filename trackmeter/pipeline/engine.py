@@ -45,7 +45,7 @@ import warnings
 from collections import Counter, deque
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -173,6 +173,18 @@ class EngineStats:
     stored_relocks: int = 0  # grown points re-locked on their own stored target (pose.relock_stored)
     frames_gained: int = 0  # underexposed frames brought up by a gain (config section exposure)
     largest_gain: float = 1.0  # the largest such gain
+
+
+def click_room(targets: Sequence[TargetState]) -> str | None:
+    """The target an operator's click takes the place of when the target limit is reached: a
+    lost one (automatic first, then the oldest), else the youngest automatic one (the least
+    invested in: automatic selection makes another); None when every target is tracking and
+    not automatic (the operator's own clicks and model points are not given up for a click)."""
+    lost = [t for t in targets if t.status == "lost"]
+    if lost:
+        return min(lost, key=lambda t: (t.origin != "auto", -t.age_frames)).id
+    auto = [t for t in targets if t.origin == "auto"]
+    return min(auto, key=lambda t: t.age_frames).id if auto else None
 
 
 class Engine:
@@ -407,7 +419,7 @@ class Engine:
         self._exposed_last = (frame, exposed)
         return exposed
 
-    def _snap_click(self, frame: StereoFrame, command: SelectPoint, refusal: Refusal
+    def _snap_click(self, frame: StereoFrame, command: SelectPoint, refusal: Refusal, room: dict[str, Any]
                     ) -> tuple[TargetState | Refusal, float, str]:
         """An unnamed point refused where it is: a target on the nearest trackable corner within
         ``tracker.click_snap_px`` (:func:`trackmeter.core.features.corners_near`), how far it
@@ -417,7 +429,7 @@ class Engine:
         for corner in corners_near(frame.left, (command.u, command.v), self._click_snap_px):
             if self._target_at((float(corner[0]), float(corner[1]))) is not None:
                 continue  # tracked already
-            result = self.tracker.add_target(frame, (float(corner[0]), float(corner[1])), None, "operator")
+            result = self.tracker.add_target(frame, (float(corner[0]), float(corner[1])), None, "operator", **room)
             if not isinstance(result, Refusal):
                 moved = float(np.hypot(corner[0] - command.u, corner[1] - command.v))
                 return result, moved, f", moved {moved:.1f} px to a trackable corner (where asked: {refusal.reason})"
@@ -446,12 +458,24 @@ class Engine:
             if there is not None:
                 return CommandReply(False, f"refused at ({command.u:.1f}, {command.v:.1f}): target {there[0]} is "
                                            f"already there ({there[1]:.1f} px away)")
-            result = self.tracker.add_target(frame, (command.u, command.v), command.target_id, "operator")
+            states = self.tracker.targets
+            # At the limit the click takes a lost or automatic target's place (kept otherwise).
+            room = {"in_place_of": click_room(states)} if len(states) >= self._max_targets else {}
+            if room and room["in_place_of"] is None:
+                return CommandReply(False, f"refused at ({command.u:.1f}, {command.v:.1f}): target limit reached "
+                                           f"({self._max_targets} targets, all the operator's or model points "
+                                           "and tracking): remove one (shift-click it) first")
+            result = self.tracker.add_target(frame, (command.u, command.v), command.target_id, "operator", **room)
             moved_px, note = 0.0, ""
             if isinstance(result, Refusal) and command.target_id is None:
-                result, moved_px, note = self._snap_click(frame, command, result)
+                result, moved_px, note = self._snap_click(frame, command, result, room)
             if isinstance(result, Refusal):
                 return CommandReply(False, f"refused at ({command.u:.1f}, {command.v:.1f}): {result.reason}")
+            if room:
+                gone = next(t for t in states if t.id == room["in_place_of"])
+                note += (f" (in place of {'lost ' if gone.status == 'lost' else ''}"
+                         f"{'automatic' if gone.origin == 'auto' else gone.origin} target {gone.id}: "
+                         f"{self._max_targets} is the limit)")
             if self._case == "b" and command.target_id is not None and command.target_id not in self._model:
                 note = " (not a model point: it joins the model once the pose is known)"
             return CommandReply(True, f"target {result.id} at {result.point_cam[2]:.3f} m{note}", result.id, moved_px)
