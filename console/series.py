@@ -64,15 +64,19 @@ class SeriesWindow:
         self._lock = threading.Lock()
         self.version = 0
 
-    def append(self, t_s: float, values: ArrayLike) -> None:
-        row = np.empty(self.n_values + 1)
-        row[0] = t_s
-        row[1:] = np.asarray(values, dtype=float).reshape(-1)
-        if not np.all(np.isfinite(row)):
-            # The value does not exist at this frame (e.g. a velocity not yet estimated): the
-            # line must not run through it.
+    def append(self, t_s: float, values: ArrayLike | None) -> None:
+        """Add the row at ``t_s``; ``values`` None or not all finite (e.g. no pose, a velocity
+        not yet estimated) make it a blank row: the line breaks there, and the time axis goes
+        on (without a row the plot stood still at the last value while the pose was lost)."""
+        if not np.isfinite(t_s):
             self.mark_gap()
             return
+        row = np.full(self.n_values + 1, np.nan)
+        row[0] = t_s
+        if values is not None:
+            v = np.asarray(values, dtype=float).reshape(-1)
+            if np.all(np.isfinite(v)):
+                row[1:] = v
         with self._lock:
             if self._rows and t_s <= self._rows[-1][0]:
                 # The source restarted: time went back. The old rows are of another run.
@@ -170,25 +174,13 @@ class PlotData:
             self.windows["omega"].append(t, np.degrees(pose.omega_body_rad_s))
         else:
             for name in POSE_PLOTS:
-                self.windows[name].mark_gap()
+                self.windows[name].append(t, None)
         e = snap.errors or {}
-        if "position_m" in e:
-            self.windows["err_position"].append(t, np.asarray(e["position_m"]) * 1e3)
-        else:
-            self.windows["err_position"].mark_gap()
-        if "attitude_rad" in e and "attitude_total_rad" in e:
-            self.windows["err_attitude"].append(
-                t, np.degrees(np.r_[np.asarray(e["attitude_rad"]).reshape(3), float(e["attitude_total_rad"])]))  # type: ignore[arg-type]
-        else:
-            self.windows["err_attitude"].mark_gap()
-        if "velocity_m_s" in e:
-            self.windows["err_velocity"].append(t, np.asarray(e["velocity_m_s"]) * 1e3)
-        else:
-            self.windows["err_velocity"].mark_gap()
-        if "omega_rad_s" in e:
-            self.windows["err_omega"].append(t, np.degrees(e["omega_rad_s"]))
-        else:
-            self.windows["err_omega"].mark_gap()
+        self.windows["err_position"].append(t, np.asarray(e["position_m"]) * 1e3 if "position_m" in e else None)
+        self.windows["err_attitude"].append(t, np.degrees(np.r_[np.asarray(e["attitude_rad"]).reshape(3), float(
+            e["attitude_total_rad"])]) if "attitude_rad" in e and "attitude_total_rad" in e else None)  # type: ignore[arg-type]
+        self.windows["err_velocity"].append(t, np.asarray(e["velocity_m_s"]) * 1e3 if "velocity_m_s" in e else None)
+        self.windows["err_omega"].append(t, np.degrees(e["omega_rad_s"]) if "omega_rad_s" in e else None)
 
     def clear(self) -> None:
         self._last_frame = None
