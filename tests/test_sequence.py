@@ -1104,3 +1104,17 @@ def test_a_bad_video_frame_is_counted_once_when_the_stream_restarts(tmp_path):
     src.close()
     assert len(frames) == 11
     assert src.warning is not None and src.warning.startswith("1 frame pair skipped: left.avi's frame 3 did not decode")
+
+
+def test_the_rate_of_nanosecond_timestamps_is_the_rate_they_say() -> None:
+    # 40 000 000 ns apart gave 24.99999999999998 Hz (seconds' round-off): the console then
+    # refused a filter cutoff of 11.875 Hz, "must be in (0, 11.875] Hz".
+    from trackmeter.data.sequence import SequenceIndex
+
+    for step_ns, rate in ((40_000_000, 25.0), (50_000_000, 20.0), (33_333_333, 1e9 / 33_333_333)):
+        ns = np.arange(0, 300 * step_ns, step_ns)
+        ns = np.delete(ns, [100, 101, 200])  # dropped frames are no interval
+        assert SequenceIndex(Path("."), ns / 1e9, (), ()).rate_hz == rate
+        # EuRoC's absolute timestamps (1.4e18 ns): seconds keep them to 0.2 us, the rate to 1e-7
+        absolute = SequenceIndex(Path("."), (ns + 1_403_636_579_763_555_584) / 1e9, (), ()).rate_hz
+        assert absolute == pytest.approx(rate, rel=1e-7)
