@@ -384,6 +384,7 @@ class Console:
         self.text_every = max(1, int(text_every))
         self.jpeg_quality = int(jpeg_quality)
         self.record_root = Path(record_root)
+        self._record_dir_shown: str | None = None  # the recording's folder last put in the Folder field
         self.patch_px = patch_px
         self.plots = PlotData()
         self._trails: dict[str, deque[tuple[float, float]]] = {}
@@ -700,7 +701,8 @@ class Console:
                 candidate = base.with_name(f"{base.name}-{n}")
         except OSError:
             pass  # a name the file system refuses: the recorder refuses it, with the reason
-        return str(candidate)
+        # Absolute: "runs/recording-2" in the answer said nothing of where the server runs.
+        return str(candidate.absolute())
 
     def _cb(self, make: Any) -> Any:
         """A viser callback that submits ``make(event)`` (if not None) and remembers the reply.
@@ -1008,6 +1010,10 @@ class Console:
                 self.status_html.content = status_text
                 self.targets_md.content = targets_text
             self.record_md.content = self._recording_text(rec)
+            if rec.active and rec.directory != self._record_dir_shown:
+                # The folder of the recording going on (--record's, another browser's): the
+                # field kept its default and read as where the frames went.
+                self._record_dir_shown = self.record_dir.value = rec.directory
             self._sync_widgets(snap)
             self._update_scene3d(snap)
             if plots:

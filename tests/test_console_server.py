@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import socket
+import re
 import time
 import urllib.request
 from concurrent.futures import Future
@@ -844,3 +845,40 @@ def test_the_both_preset_holds_the_scene_and_the_image_in_views_of_every_shape(a
         assert px - half_width <= left and right <= px + half_width, (aspect, px - half_width, left, right, px + half_width)
     finally:
         running.stop()
+
+
+def test_the_exit_lines_name_every_recording_and_the_folder_field_the_one_going_on(
+        tmp_path, monkeypatch, capsys: pytest.CaptureFixture[str]) -> None:
+    # An outside console probe: with --record DIR the panel's Folder field read "runs/recording";
+    # a recording started from the panel then went to runs/recording-2 (relative to wherever the
+    # server was started), and the exit line named only the last of them.
+    import console.server
+    from trackmeter.pipeline.snapshot import SetRecording
+
+    seen: dict[str, Any] = {}
+
+    def serve_two_recordings(running: Any) -> None:
+        con = running.console
+        deadline = time.monotonic() + 30.0
+        while running.pipeline.recording_stats().frames_written < 3 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        _wait_for_pushes(con, 2)
+        seen["field"] = con.record_dir.value
+        assert running.pipeline.call(SetRecording(None)).ok
+        con.record_dir.value = "second"
+        folder = con._fresh_record_dir()
+        seen["second"] = folder
+        assert running.pipeline.call(SetRecording(folder)).ok
+        while running.pipeline.recording_stats().frames_written < 3 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        running.stop()
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(console.server, "serve_forever", serve_two_recordings)
+    first = tmp_path / "rec"
+    code = main(["console", "--source", "sim", "--port", str(free_port()), "--cpu-nice", "0", "--record", str(first)])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert seen["field"] == str(first) and seen["second"] == str(tmp_path / "second")
+    assert re.search(rf"recorded \d+ frames to {re.escape(str(first))}\n", err), err
+    assert re.search(rf"recorded \d+ frames to {re.escape(str(tmp_path / 'second'))}\n", err), err

@@ -846,3 +846,22 @@ def test_in_lossless_mode_no_frame_of_the_new_stream_counts_as_dropped_after_a_r
             t = pipe.timings()
             assert t.counts_at_restart is not None
             assert t.frames_dropped - t.counts_at_restart[1] == 0, (t, source.reads)
+
+
+def test_every_recording_of_a_run_is_kept_for_its_summary(tmp_path: Path) -> None:
+    # The console's exit line named only the last recording (an outside console probe: three
+    # made from the panel and the command line, one named).
+    writers: list[ListWriter] = []
+    pipe = Pipeline(CountingSource(10**6, delay_s=0.002), RecordingEngine(), writer_factory=lambda d: writers.append(ListWriter(d)) or writers[-1])
+    with pipe:
+        for name in ("a", "b"):
+            assert pipe.call(SetRecording(str(tmp_path / name))).ok
+            pipe.wait_snapshot(pipe.latest().sequence + 3, 5)
+            assert pipe.call(SetRecording(None)).ok
+        assert pipe.call(SetRecording(str(tmp_path / "c"))).ok
+        pipe.wait_snapshot(pipe.latest().sequence + 3, 5)
+        made = pipe.recordings()
+        assert [Path(r.directory).name for r in made] == ["a", "b", "c"] and [r.active for r in made] == [False, False, True]
+    made = pipe.recordings()
+    assert [r.frames_written for r in made] == [len(w.indices) for w in writers] and all(r.frames_written for r in made)
+    assert not any(r.active for r in made)

@@ -119,12 +119,11 @@ def _serve(args: argparse.Namespace, config: Any, priority_note: str | None = No
         print(f"trackmeter console: {priority_note}", file=sys.stderr, flush=True)
     print(f"TV-Trackmeter console: {running.url}   (Ctrl-C to stop)", flush=True)
     serve_forever(running)
-    rec = running.pipeline.recording_stats()
     # The totals: the last snapshot may lag a frame read.
     print(stop_line(running.pipeline.timings()), file=sys.stderr)
-    if rec.directory:
+    cut_short = False
+    for rec in running.pipeline.recordings():  # every one, from --record and from the panel
         print(f"trackmeter console: recorded {counted(rec.frames_written, 'frame')} to {rec.directory}"
-              + rec.not_recorded(), file=sys.stderr)
-        if rec.error or rec.frames_dropped or rec.frames_lost:
-            return 1  # a script that records must be able to tell a recording cut short
-    return 0
+              + rec.not_recorded() + (f" ({rec.error})" if rec.error else ""), file=sys.stderr)
+        cut_short = cut_short or bool(rec.error or rec.frames_dropped or rec.frames_lost)
+    return 1 if cut_short else 0  # a script that records must be able to tell a recording cut short

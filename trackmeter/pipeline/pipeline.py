@@ -355,6 +355,7 @@ class Pipeline:
 
         self._recorder: _Recorder | None = None
         self._last_recording = RecordingStats()
+        self._stopped_recordings: list[RecordingStats] = []  # every one of the run, in order
         self._record_lock = threading.Lock()
 
         self._last_frame: StereoFrame | None = None
@@ -468,6 +469,13 @@ class Pipeline:
             if self._recorder is not None:
                 return self._recorder.stats(True)
             return self._last_recording
+
+    def recordings(self) -> tuple[RecordingStats, ...]:
+        """Counters of every recording of the run, in the order they were made (the one going
+        on last)."""
+        with self._record_lock:
+            current = (self._recorder.stats(True),) if self._recorder is not None else ()
+            return (*self._stopped_recordings, *current)
 
     # ------------------------------------------------------------------ commands
     def submit(self, command: Command) -> Future[CommandReply]:
@@ -736,6 +744,7 @@ class Pipeline:
         stats = recorder.stats(False)
         with self._record_lock:
             self._last_recording = stats
+            self._stopped_recordings.append(stats)
         return stats
 
     def _publish(self) -> None:
