@@ -239,3 +239,21 @@ def test_a_camera_within_the_mock_ups_reach_is_warned_of(tmp_path) -> None:
         warnings.simplefilter("error")
         for name in ("estec", "approach", "static_ranges"):
             Simulator(name)  # 2 m and more away: quiet
+
+
+@pytest.mark.parametrize("motion", ["approach_to_m: [0, 0, -2]\napproach_s: 0.5\n", "velocity_m_s: [0, 0, -100]\n"])
+def test_a_motion_that_takes_the_body_behind_the_camera_is_refused(tmp_path, capsys, motion: str) -> None:
+    # A start behind the camera was refused, a motion that went there was not: its truth had
+    # the body at z = -2 m (an outside probe).
+    scenario = tmp_path / "x.yaml"
+    scenario.write_text("duration_s: 1\n" + motion)
+    code = main(["simulate", "--scenario", str(scenario), "--out", str(tmp_path / "seq")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    assert "takes the body origin to z = " in err[0] and "at or behind the camera" in err[0], err
+    assert not (tmp_path / "seq").exists()
+    # --duration carries a motion on: the same check
+    scenario.write_text("duration_s: 1\nvelocity_m_s: [0, 0, -1]\n")
+    assert main(["simulate", "--scenario", str(scenario), "--duration", "0.5", "--out", str(tmp_path / "ok")]) == 0
+    code = main(["simulate", "--scenario", str(scenario), "--duration", "4", "--out", str(tmp_path / "far")])
+    assert code == 2 and "at t = 3.52 s" in capsys.readouterr().err

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from trackmeter.core.dynamics import inertia_tensor
+from trackmeter.core.dynamics import Translation, inertia_tensor
 from trackmeter.core.params import param
 from trackmeter.data.config import build_dataclass, read_yaml_mapping
 from trackmeter.errors import TrackmeterError
@@ -120,6 +120,24 @@ class Scenario:
         for i, occ in enumerate(self.occluders):
             if occ.end_s <= occ.start_s:
                 raise TrackmeterError(f"'occluders[{i}]': end_s must come after start_s")
+        times, origins = self.origin_path_m()
+        behind = np.flatnonzero(~(origins[:, 2] > 0))
+        if behind.size:
+            k = int(behind[0])
+            raise TrackmeterError(f"the motion ('velocity_m_s', 'approach_to_m') takes the body origin to z = "
+                                  f"{origins[k, 2]:.3g} m at t = {times[k]:.2f} s, at or behind the camera (z is the "
+                                  "viewing axis, forward)")
+
+    def origin_path_m(self) -> tuple[FloatArray, FloatArray]:
+        """``(t_s (N,), origin (N,3))``: the body origin in the camera frame, m, at each frame's
+        time (static ranges: at each range's first frame)."""
+        if self.static_ranges_m:
+            direction = np.asarray(self.position0_m, dtype=float)
+            origins = np.outer(self.static_ranges_m, direction / np.linalg.norm(direction))
+            return np.arange(len(origins)) * self.frames_per_range / self.rate_hz, origins
+        times = np.arange(self.n_frames) / self.rate_hz
+        translation = Translation(self.position0_m, self.velocity_m_s, self.approach_to_m, self.approach_s)
+        return times, np.atleast_2d(translation.at(np.maximum(times - self.release_s, 0.0))[0])
 
     @property
     def n_frames(self) -> int:

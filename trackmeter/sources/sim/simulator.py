@@ -120,13 +120,7 @@ class Simulator(Source):
         among the mock-up's parts there, where the renderer, culling faces seen from behind,
         draws a black or half-empty view (nothing says so otherwise)."""
         sc = self.scenario
-        if sc.static_ranges_m:
-            direction = np.asarray(sc.position0_m, dtype=float)
-            origins = np.outer(sc.static_ranges_m, direction / np.linalg.norm(direction))
-            times = np.arange(len(origins)) * sc.frames_per_range / self.rate_hz
-        else:
-            times = np.arange(self.n_frames) / self.rate_hz
-            origins = np.atleast_2d(self._translation.at(np.maximum(times - sc.release_s, 0.0))[0])
+        times, origins = sc.origin_path_m()
         centres = np.stack([np.zeros(3), -self.true_rig.R.T @ np.asarray(self.true_rig.T, dtype=float).reshape(3)])
         distance_m = np.linalg.norm(origins[:, None, :] - centres[None], axis=2).min(axis=1)
         k = int(np.argmin(distance_m))
