@@ -23,7 +23,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario", metavar="FILE", default="estec",
                         help="scenario file, or a name in config/scenarios/ (default: estec)")
     parser.add_argument("--duration", metavar="S", type=float, default=None,
-                        help="render only the first S seconds (static_ranges: fewer frames per range)")
+                        help="render S seconds instead of the scenario's duration_s: its first S, or its motion "
+                             "carried on past its end (static_ranges: S spread over its ranges)")
     parser.add_argument("--out", metavar="DIR", required=True, help="sequence folder to create (must not exist or be empty)")
 
 
