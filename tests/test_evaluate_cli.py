@@ -780,3 +780,16 @@ def test_a_motion_csv_whose_time_column_is_renamed_is_told_so_not_read_as_tum(ca
     path.write_text(path.read_text().replace("t,x,y,z", "time,x,y,z", 1))
     code, _, err = _run(capsys, "evaluate", "--truth", str(path), "--estimate", str(run))
     assert code == 2 and "not a motion CSV: header lacks t (expected t,x,y,z" in err and "TUM" not in err, err
+
+
+def test_a_headerless_comma_file_is_read_as_tum_and_said_so(capsys, tmp_path) -> None:
+    # groundtruth.csv's rows without their header (t,x,y,z,qw,qx,qy,qz) were read as TUM
+    # (qx qy qz qw) without a word: 128 deg of attitude error (an outside probe).
+    truth, est = tmp_path / "truth.txt", tmp_path / "est.tum"
+    truth.write_text("0,0,0,3,0,0,0,1\n1,0,0,3,0,0,0,1\n")
+    est.write_text("0 0 0 3 0 0 0 1\n1 0 0 3 0 0 0 1\n")
+    code, out, err = _run(capsys, "evaluate", "--truth", str(truth), "--estimate", str(est), "--json")
+    assert code == 0 and json.loads(out)["position_m"]["norm"]["max"] == 0.0
+    assert "separated by commas" in err and "read as TUM (t tx ty tz qx qy qz qw" in err, err
+    code, out, err = _run(capsys, "evaluate", "--truth", str(est), "--estimate", str(est), "--json")
+    assert code == 0 and "commas" not in err

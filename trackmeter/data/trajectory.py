@@ -60,6 +60,7 @@ def read_tum(path: str | Path) -> Trajectory:
         raise TrackmeterError(f"{path}: no such file")
     rows: list[list[float]] = []
     line_numbers: list[int] = []
+    comma_line: int | None = None
     try:
         lines = path.read_text(encoding="utf-8-sig").splitlines()
     except (OSError, UnicodeDecodeError) as exc:
@@ -69,6 +70,8 @@ def read_tum(path: str | Path) -> Trajectory:
         text = line.split("#", 1)[0].strip()
         if not text:
             continue
+        if comma_line is None and "," in text:
+            comma_line = number
         fields = text.replace(",", " ").split()
         if len(fields) != 8:
             raise TrackmeterError(f"{path}:{number}: expected 8 values 't tx ty tz qx qy qz qw', got {len(fields)}")
@@ -79,6 +82,12 @@ def read_tum(path: str | Path) -> Trajectory:
             raise TrackmeterError(f"{path}:{number}: not a number in {quoted(text, 80)}") from None
     if not rows:
         raise TrackmeterError(f"{path}: no poses in the file")
+    if comma_line is not None:
+        # TUM separates by spaces: a file with commas may as well be groundtruth.csv's rows
+        # without their header, whose quaternion comes scalar first.
+        warnings.warn(f"{path}:{comma_line}: values separated by commas, read as TUM (t tx ty tz qx qy qz qw, "
+                      "scalar last); rows in groundtruth.csv's order (t,x,y,z,qw,qx,qy,qz) need its header line",
+                      stacklevel=2)
     data = np.array(rows)
     order = np.argsort(data[:, 0], kind="stable")
     data = data[order]
