@@ -793,3 +793,28 @@ def test_a_headerless_comma_file_is_read_as_tum_and_said_so(capsys, tmp_path) ->
     assert "separated by commas" in err and "read as TUM (t tx ty tz qx qy qz qw" in err, err
     code, out, err = _run(capsys, "evaluate", "--truth", str(est), "--estimate", str(est), "--json")
     assert code == 0 and "commas" not in err
+
+
+def test_two_scenarios_of_one_name_are_told_apart_by_their_motion(capsys, tmp_path) -> None:
+    # Two scenario files both called "t", the body at 3.5 m and at 2.5 m: evaluate --truth
+    # sim:the_other gave 1000 mm of error without a word (the names agreed; an outside probe).
+    near, far = tmp_path / "near.yaml", tmp_path / "far.yaml"
+    near.write_text("name: t\nposition0_m: [0, 0, 2.5]\nduration_s: 2\n")
+    far.write_text("name: t\nposition0_m: [0, 0, 3.5]\nduration_s: 2\n")
+    renamed = tmp_path / "renamed.yaml"
+    renamed.write_text("name: other\nposition0_m: [0, 0, 3.5]\nduration_s: 2\ndescription: the same motion\n")
+    run = tmp_path / "run"
+    assert main(["track", "--source", f"sim:{far}", "--auto", "8", "--max-frames", "40", "--out", str(run)]) == 0
+    for truth, warned in ((far, False), (near, True), (renamed, False)):
+        code, _, err = _run(capsys, "evaluate", "--truth", f"sim:{truth}", "--estimate", str(run), "--settle", "0")
+        assert code == 0 and ("may not be of the sequence the run was tracked on" in err) == warned, (truth, err)
+    assert "their motions differ" in _run(capsys, "evaluate", "--truth", f"sim:{near}", "--estimate", str(run),
+                                          "--settle", "0")[2]
+    # a sequence simulated from it (its scenario.yaml as run) is the same motion
+    seq = tmp_path / "seq"
+    assert main(["simulate", "--scenario", str(far), "--out", str(seq)]) == 0
+    run2 = tmp_path / "run2"
+    assert main(["track", "--source", str(seq), "--auto", "8", "--max-frames", "40", "--out", str(run2)]) == 0
+    for truth, warned in ((f"sim:{far}", False), (str(seq), False), (f"sim:{near}", True)):
+        code, _, err = _run(capsys, "evaluate", "--truth", truth, "--estimate", str(run2), "--settle", "0")
+        assert ("may not be of the sequence the run was tracked on" in err) == warned, (truth, err)

@@ -109,7 +109,9 @@ def _other_sequence(truth_spec: str, estimate_spec: str) -> str | None:
     the same motion; a truth file outside any sequence folder says nothing of its sequence)."""
     import yaml
 
-    from trackmeter.data.sequence import is_sequence_folder, sequence_identity
+    import dataclasses
+
+    from trackmeter.data.sequence import is_sequence_folder, motion_digest, sequence_identity, sequence_motion_digest
     from trackmeter.errors import TrackmeterError
     from trackmeter.sources.sim.scenario import load_scenario
 
@@ -117,26 +119,34 @@ def _other_sequence(truth_spec: str, estimate_spec: str) -> str | None:
     run_dir = estimate if estimate.is_dir() else estimate.parent
     try:
         source = yaml.safe_load((run_dir / "run.yaml").read_text(encoding="utf-8"))["source"]
-        run_folder, run_scenario = source.get("folder"), source.get("scenario")
+        run_folder, run_scenario, run_motion = source.get("folder"), source.get("scenario"), source.get("motion")
     except (OSError, UnicodeDecodeError, yaml.YAMLError, KeyError, TypeError, AttributeError):
         return None
     truth_folder: Path | None = None
     truth_scenario: str | None = None
+    truth_motion: str | None = None
     scenario = _sim_scenario(truth_spec)
     if scenario is not None:
         try:
-            truth_scenario = load_scenario(scenario).name  # a file's name: key, as the run recorded it
+            loaded = load_scenario(scenario)
         except TrackmeterError:
             return None
+        truth_scenario = loaded.name  # a file's name: key, as the run recorded it
+        truth_motion = motion_digest(dataclasses.asdict(loaded))
     else:
         path = Path(truth_spec)
         folder = path if path.is_dir() else path.parent
         for candidate in (folder, folder.parent):  # DIR, or DIR/mav0 holding the truth
             if is_sequence_folder(candidate):
                 truth_folder, truth_scenario = sequence_identity(candidate)
+                truth_motion = sequence_motion_digest(candidate)
                 break
     run_said = f"{run_folder or 'the simulator'}" + (f", scenario {run_scenario}" if run_scenario else "")
     truth_said = f"{truth_folder or 'the simulator'}" + (f", scenario {truth_scenario}" if truth_scenario else "")
+    if isinstance(run_motion, str) and truth_motion:
+        # The motion itself, whatever the names: two files called alike, or one renamed.
+        return None if run_motion == truth_motion else (
+            f"{truth_said}; the run: {run_said}" + ("; their motions differ" if run_scenario == truth_scenario else ""))
     if run_scenario and truth_scenario:
         return None if run_scenario == truth_scenario else f"{truth_said}; the run: {run_said}"
     if run_folder and truth_folder and Path(run_folder).resolve() != truth_folder:

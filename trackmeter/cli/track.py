@@ -428,15 +428,24 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
 
 def _source_identity(source: Any) -> dict[str, str]:
     """run.yaml's record of which sequence (folder, scenario) the run saw, for evaluate to tell a
-    truth of another one: a sequence folder's resolved path and scenario, the simulator's scenario."""
-    from trackmeter.data.sequence import sequence_identity
+    truth of another one: a sequence folder's resolved path and scenario, the simulator's scenario,
+    and where known the fingerprint of the scenario's motion (``motion``: two scenario files
+    of one name are told apart by it)."""
+    import dataclasses
+
+    from trackmeter.data.sequence import motion_digest, sequence_identity, sequence_motion_digest
 
     index = getattr(source, "index", None)
     if index is not None and getattr(index, "root", None) is not None:
         folder, scenario = sequence_identity(index.root)
-        return {"folder": str(folder), **({"scenario": scenario} if scenario else {})}
-    scenario = getattr(getattr(source, "scenario", None), "name", None)
-    return {"scenario": scenario} if isinstance(scenario, str) else {}
+        motion = sequence_motion_digest(index.root)
+        return {"folder": str(folder), **({"scenario": scenario} if scenario else {}), **({"motion": motion} if motion else {})}
+    sim_scenario = getattr(source, "scenario", None)
+    scenario = getattr(sim_scenario, "name", None)
+    if not isinstance(scenario, str):
+        return {}
+    motion = motion_digest(dataclasses.asdict(sim_scenario)) if dataclasses.is_dataclass(sim_scenario) else None
+    return {"scenario": scenario, **({"motion": motion} if motion else {})}
 
 
 def _auto_never_started(tracker: Any) -> str | None:

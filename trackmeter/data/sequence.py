@@ -30,7 +30,9 @@ that plays a folder is :class:`trackmeter.sources.sequence.SequenceSource`.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import itertools
+import json
 import math
 import os
 import re
@@ -38,7 +40,7 @@ import shutil
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterable, Sequence
+from typing import TYPE_CHECKING, Any, Iterable, Mapping, Sequence
 
 import cv2
 import numpy as np
@@ -436,6 +438,43 @@ def sequence_identity(directory: str | Path) -> tuple[Path, str | None]:
     except (OSError, UnicodeDecodeError, yaml.YAMLError, AttributeError):
         name = None
     return d, name if isinstance(name, str) else None
+
+
+#: The scenario settings that make its motion (its ground truth): the rest is how it looks,
+#: and its duration, which cuts the same motion shorter or carries it on.
+MOTION_KEYS = ("inertia_kg_m2", "attitude0_wxyz", "omega0_body_deg_s", "position0_m", "velocity_m_s", "approach_to_m",
+               "approach_s", "static_ranges_m", "frames_per_range", "release_s", "rate_hz")
+
+
+def motion_digest(scenario: Mapping[str, Any]) -> str | None:
+    """A fingerprint of a scenario's motion from its settings (``MOTION_KEYS``): equal for two
+    scenarios whose ground truth is the same, whatever their names; None when a key is missing
+    or not numbers (a scenario.yaml of another kind)."""
+    def numbers(value: Any) -> Any:
+        if value is None:
+            return None
+        if isinstance(value, (list, tuple)):
+            return [numbers(v) for v in value]
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise TypeError(value)
+        return float(value)
+
+    try:
+        values = [numbers(scenario[key]) for key in MOTION_KEYS]
+    except (KeyError, TypeError):
+        return None
+    return hashlib.sha256(json.dumps(values).encode()).hexdigest()[:16]
+
+
+def sequence_motion_digest(directory: str | Path) -> str | None:
+    """:func:`motion_digest` of the scenario a sequence folder was simulated from (its
+    scenario.yaml, as :func:`sequence_identity` finds it); None without one."""
+    d, _ = sequence_identity(directory)
+    try:
+        data = yaml.safe_load((d / "scenario.yaml").read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return None
+    return motion_digest(data) if isinstance(data, dict) else None
 
 
 def find_sequence_root(directory: str | Path) -> Path:
