@@ -554,3 +554,27 @@ def test_the_plain_yaml_rig_of_the_presets_readme_reads_and_measures_tsukuba(tmp
     assert m.xyz_m[2] == pytest.approx(615.0 * 0.1 / disparity) == pytest.approx(float(quoted.group(2)), abs=0.005)
     truth = cv2.imread(str(folder / "disp_gt.pgm"), cv2.IMREAD_UNCHANGED)[150, 150] / 16.0
     assert abs(disparity - truth) < 1.0
+
+
+def test_a_block_style_rig_with_a_nan_says_which_key(tmp_path: Path) -> None:
+    # yaml.safe_dump's block lists with a .nan in T: "not an OpenCV FileStorage file", where the
+    # flow style [.nan, 0, 0] said "T has non-finite values" (an outside probe).
+    import yaml
+
+    rig = _rig()
+    data = {"image_width": 640, "image_height": 480, "K1": rig.left.K.tolist(), "D1": [0.0] * 5,
+            "K2": rig.right.K.tolist(), "D2": [0.0] * 5, "R": np.eye(3).tolist(), "T": [float("nan"), 0.0, 0.0]}
+    path = tmp_path / "nan.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(TrackmeterError, match=r"nan\.yaml: .*T has non-finite values"):
+        load_rig(path)
+
+
+def test_a_rig_with_a_baseline_under_a_millimetre_is_warned_about(tmp_path: Path) -> None:
+    # T = [-1e-9, 0, 0] loaded without a word and measured every point at 0.0000 m.
+    import dataclasses
+
+    rig = _rig()
+    tiny = dataclasses.replace(rig, T=rig.T / np.linalg.norm(rig.T) * 1e-9)
+    with pytest.warns(UserWarning, match=r"baseline 1e-09 m \(\|T\|\) is shorter than 1 mm"):
+        load_rig(save_rig(tiny, tmp_path / "tiny.yaml"))

@@ -65,11 +65,25 @@ def _plain_yaml(path: Path) -> cv2.FileStorage | None:
     JSON form OpenCV does read; None when it is not a mapping of plain values."""
     try:
         data = yaml.safe_load(without_directives(path.read_text(encoding="utf-8-sig")))
-        if not isinstance(data, dict):
-            return None
-        return cv2.FileStorage(json.dumps(data, allow_nan=False), cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
-    except (OSError, UnicodeDecodeError, yaml.YAMLError, TypeError, ValueError, cv2.error, SystemError):
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
         return None
+    if not isinstance(data, dict):
+        return None
+    for key, value in data.items():
+        # JSON has no NaN: said here by its key, as OpenCV's own form of the file is.
+        if any(isinstance(x, float) and not math.isfinite(x) for x in _leaves(value)):
+            raise TrackmeterError(f"{path}: {key} has non-finite values")
+    try:
+        return cv2.FileStorage(json.dumps(data, allow_nan=False), cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
+    except (TypeError, ValueError, cv2.error, SystemError):
+        return None
+
+
+def _leaves(value: object) -> list[object]:
+    """The scalars of nested lists (``value`` itself when it is none)."""
+    if isinstance(value, list):
+        return [leaf for v in value for leaf in _leaves(v)]
+    return [value]
 
 
 #: Keys whose matrix is 3x3: a flat list of nine numbers is read row by row.
@@ -169,6 +183,9 @@ def swapped_cameras(rig: StereoRig) -> bool:
 #: A baseline longer than this (m) is taken for one written in millimetres (DESIGN.md: ``T`` in
 #: metres): no stereo rig of this domain is 10 m wide, and any baseline from 1 cm up in mm is.
 MAX_PLAUSIBLE_BASELINE_M = 10.0
+#: ... and one shorter than this (m) measures nothing: 1 px of disparity at 1000 px focal
+#: length is 1 m away.
+MIN_PLAUSIBLE_BASELINE_M = 1e-3
 
 
 def load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> StereoRig:
@@ -186,7 +203,11 @@ def load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> Ste
 
 def baseline_problem(rig: StereoRig) -> str | None:
     """One line when the rig's baseline is longer than :data:`MAX_PLAUSIBLE_BASELINE_M` (its
-    ``T`` most likely in millimetres: calibrated with the square size in mm), else None."""
+    ``T`` most likely in millimetres: calibrated with the square size in mm) or shorter than
+    :data:`MIN_PLAUSIBLE_BASELINE_M`, else None."""
+    if rig.baseline_m < MIN_PLAUSIBLE_BASELINE_M:
+        return (f"baseline {rig.baseline_m:.4g} m (|T|) is shorter than 1 mm: no depth can be measured with it "
+                "(T must be in metres)")
     if rig.baseline_m <= MAX_PLAUSIBLE_BASELINE_M:
         return None
     return (f"baseline {rig.baseline_m:.4g} m (|T|): T must be in metres; if it is in millimetres (calibrated with "
