@@ -643,7 +643,7 @@ def test_frames_of_the_run_without_a_pose_count_as_unmatched_and_say_the_share_c
     assert s["unmatched"] == int(np.count_nonzero(~valid & after))
     assert s["pose_coverage"] == pytest.approx(np.count_nonzero(valid & after) / np.count_nonzero(after))
     code, out, err = _run(capsys, *args)
-    assert f"{100 * s['pose_coverage']:.1f} % of the run's frames after the settle have a pose" in out
+    assert f"{100 * s['pose_coverage']:.1f} % of the run's frames after the settle (in the truth's span) have a pose" in out
 
 
 def test_a_run_of_the_simulator_is_evaluated_against_its_scenario_s_motion(capsys, tmp_path):

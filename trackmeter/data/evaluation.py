@@ -317,7 +317,7 @@ def format_summary(summary: dict, truth: str = "", estimate: str = "", align: st
         lines.append(f"truth:    {truth}\nestimate: {estimate}\nalign:    {align}")
     coverage = summary.get("pose_coverage")
     lines.append(f"matched {counted(summary['matched'], 'pose')}, unmatched {summary['unmatched']}"
-                 + (f"; {100 * coverage:.1f} % of the run's frames after the settle have a pose"
+                 + (f"; {100 * coverage:.1f} % of the run's frames after the settle (in the truth's span) have a pose"
                     if coverage is not None else ""))
     lines.append(f"{'error':<40}{'axis':>6}{'rms':>10}{'p95':>10}{'max':>10}")
     for group, (title, unit, scale) in _DISPLAY.items():
@@ -483,7 +483,7 @@ def write_evaluation(evaluation: Evaluation, out_dir: str | Path, settings: dict
             f"[{t[0] * 1e3:.2f}, {t[1] * 1e3:.2f}, {t[2] * 1e3:.2f}] mm.\n"
         )
     coverage = ("" if s.get("pose_coverage") is None
-                else f"; frames after the settle with a pose: {100 * s['pose_coverage']:.1f} %")
+                else f"; frames after the settle (in the truth's span) with a pose: {100 * s['pose_coverage']:.1f} %")
     report = f"""# Trajectory evaluation
 
 - truth: `{truth}`
