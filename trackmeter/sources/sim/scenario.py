@@ -208,7 +208,7 @@ def _resolve(name: str, base: Path | None, default_dir: Path, key: str) -> Path:
     for c in candidates:
         if c.is_file():
             return c
-    where = ", ".join(str(c.parent) for c in candidates)
+    where = ", ".join(dict.fromkeys(str(c.parent) for c in candidates))  # each folder once
     raise TrackmeterError(f"'{key}': no such file {name!r} (looked in {where})")
 
 
