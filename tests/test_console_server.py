@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import socket
 import re
+import socket
 import time
 import urllib.request
 from concurrent.futures import Future
@@ -882,3 +882,27 @@ def test_the_exit_lines_name_every_recording_and_the_folder_field_the_one_going_
     assert seen["field"] == str(first) and seen["second"] == str(tmp_path / "second")
     assert re.search(rf"recorded \d+ frames to {re.escape(str(first))}\n", err), err
     assert re.search(rf"recorded \d+ frames to {re.escape(str(tmp_path / 'second'))}\n", err), err
+
+
+def test_a_looping_source_s_new_pass_is_said_once_and_counted() -> None:
+    # A sequence of 100 frames played in a loop: every 4 s its targets, model points and pose
+    # went without a word, the status still "source delivering" (an outside console probe).
+    from trackmeter.pipeline.snapshot import PoseEstimate, RestartSource, Snapshot, Timings
+    from trackmeter.sources.base import StereoFrame
+
+    running = start_console(CountingSource(100_000, delay_s=0.02), RecordingEngine(), port=free_port())  # type: ignore[arg-type]
+    con = running.console
+    img = np.zeros((8, 8), np.uint8)
+    try:
+        for k, index in enumerate((100, 200)):
+            con._push(Snapshot(StereoFrame(index, index / 25.0, img, img, cut=True), (), PoseEstimate.invalid("x"), None,
+                               Timings()), plots=False)
+            assert f"pass {k + 2}" in con.status_html.content, con.status_html.content
+        said = [body for title, body in con.notifications if "starts over" in body]
+        assert len(said) == 1 and "loops" in said[0], con.notifications
+        assert con.submit(RestartSource(), None, "RestartSource").result(10).ok
+        con._push(Snapshot(StereoFrame(0, 0.0, img, img, cut=True), (), PoseEstimate.invalid("x"), None, Timings()),
+                  plots=False)
+        assert "pass" not in con.status_html.content  # the operator's Restart is no new pass
+    finally:
+        running.stop()
