@@ -40,6 +40,7 @@ from scipy.spatial.transform import Rotation
 from console.overlay import (STATUS_RGB, LostTargets, box_half_px, box_segments, draw_overlays,
                              image_view, node_rgb_for, pixel_to_plane, ray_to_pixel, to_rgb, view_band, view_in_band)
 from console.series import PLOTS, PlotData
+from trackmeter.core.features import METHODS
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.targets import TargetState
 from trackmeter.core.tracking import REMOVE_NEAREST_PX
@@ -74,9 +75,8 @@ NEW_TARGET = "a new target"
 UNITS_PER_PX = 0.01
 #: Where the 3D view (the left camera frame) sits in the scene, left of the image.
 SCENE3D_OFFSET = (-8.0, 0.0, -3.0)
-#: The automatic selection methods offered (paper 2.B); a configured other one (``features.method``,
-#: e.g. ``shi_tomasi``) is offered too.
-AUTO_METHODS = ("gabor", "centroid")
+#: The automatic selection methods offered: the paper's (2.B) and the Shi-Tomasi baseline.
+AUTO_METHODS = METHODS
 # The operator widget each toggle command comes from (Console._mirror), by command name.
 _WIDGETS_OF_COMMAND = {"SetAuto": ("auto", "auto_count", "auto_method"), "SetRecording": ("record",), "SetCase": ("case",),
                        "SetFilterCutoff": ("cutoff",)}
@@ -612,7 +612,9 @@ class Console:
                                                   "to this many; a lower count removes none")
             method = str(getattr(self.pipeline.engine, "auto_method", AUTO_METHODS[0]))
             methods = AUTO_METHODS if method in AUTO_METHODS else (*AUTO_METHODS, method)
-            self.auto_method = gui.add_dropdown("Method", methods, initial_value=method)
+            self.auto_method = gui.add_dropdown("Method", methods, initial_value=method,
+                                                hint="gabor: a directional Gabor bank (paper 2.B); centroid: one "
+                                                     "point a bright region, its centroid; shi_tomasi: the baseline")
             self.clear_button = gui.add_button("Clear targets")
             gui.add_markdown("Click the left image to add a target; shift-, ctrl- or alt-click removes the nearest "
                              f"within {REMOVE_NEAREST_PX:g} px.")

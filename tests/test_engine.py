@@ -1058,3 +1058,20 @@ def test_the_errors_carry_the_body_alignment_that_puts_the_estimate_on_the_truth
     # Case (b)'s frame is the model's: no alignment.
     engine, _, _ = make_engine(estec_rig, case="b")
     np.testing.assert_array_equal(run(engine, range(3))[-1][2]["T_bodytrue_bodyest"], np.eye(4))
+
+
+def test_the_centroid_method_says_it_selects_a_point_a_bright_region(estec_rig) -> None:
+    # Count 10 with the centroid method gave one target, or none, without a word (a probe).
+    from trackmeter.pipeline.snapshot import SetAuto
+
+    engine, _, _ = make_engine(estec_rig)
+    reply = engine.handle(SetAuto(True, 10, "centroid"), frame_at(0))
+    assert reply.ok and "(10 targets, centroid: one a bright region, its centroid)" in reply.message, reply.message
+    assert "one a bright region" not in engine.handle(SetAuto(True, 10, "gabor"), frame_at(0)).message
+
+
+def test_the_console_offers_every_selection_method() -> None:
+    from console.app import AUTO_METHODS
+    from trackmeter.core.features import METHODS
+
+    assert set(AUTO_METHODS) == set(METHODS)

@@ -518,7 +518,9 @@ class Engine:
         if isinstance(command, SetAuto):
             self.tracker.set_auto(command.enabled, command.count, command.method)
             enabled, count, method = self.tracker.auto
-            return CommandReply(True, f"automatic selection {'on' if enabled else 'off'} ({count} targets, {method})")
+            # The centroid method finds one point a bright region (paper 2.B), whatever the count.
+            how = f"{method}: one a bright region, its centroid" if method == "centroid" else method
+            return CommandReply(True, f"automatic selection {'on' if enabled else 'off'} ({count} targets, {how})")
         if isinstance(command, SetCase):
             if command.case not in ("a", "b", "c"):
                 return CommandReply(False, f"unknown model case {command.case!r} (a, b or c)")
