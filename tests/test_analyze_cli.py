@@ -215,8 +215,14 @@ def test_out_takes_an_earlier_analysis_report_but_no_folder_of_other_files(still
     (busy / "report.md").write_text("x")  # an evaluate report's: not an analysis report's folder
     code = main(["analyze", "--source", str(still_sequence), "--points", "5", "--out", str(busy)])
     err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and len(err) == 1 and "holds other files (notes.txt)" in err[0], err
+    assert code == 2 and len(err) == 1 and "holds other files (notes.txt, report.md)" in err[0], err
     assert sorted(p.name for p in busy.iterdir()) == ["notes.txt", "report.md"]
+    lone = tmp_path / "lone"
+    lone.mkdir()
+    (lone / "report.md").write_text("my own report")  # no analysis.json: the user's, not a report's
+    code = main(["analyze", "--source", str(still_sequence), "--points", "5", "--out", str(lone)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and "holds other files (report.md)" in err[0], err
     # an earlier analysis report's folder, the user's notes beside it: replaced (the notes stay)
     (busy / "analysis.json").write_text("x")
     with pytest.raises(AssertionError, match="the analysis ran"):

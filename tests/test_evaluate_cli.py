@@ -576,6 +576,26 @@ def test_out_refuses_a_folder_of_other_files_and_replaces_a_report_or_joins_a_ru
     assert (report / "notes.txt").read_text() == "mine"
 
 
+def test_out_takes_no_lone_report_file_and_no_other_run_s_folder(capsys, sequence_and_run, tmp_path) -> None:
+    # A folder holding only the user's errors.csv was taken for a report's (names alone), and
+    # another run's folder took this run's report over its own (an outside probe).
+    _, seq, run = sequence_and_run
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "errors.csv").write_text("my own")
+    code, _, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--out", str(mine))
+    assert code == 2 and "holds other files (errors.csv)" in err, err
+    assert (mine / "errors.csv").read_text() == "my own"
+    other = tmp_path / "other_run"
+    other.mkdir()
+    (other / "run.yaml").write_text("status: complete\n")
+    code, _, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--out", str(other))
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "another run's folder" in err, err
+    assert sorted(p.name for p in other.iterdir()) == ["run.yaml"]
+    (run / "run.yaml").write_text("status: complete\n")  # its own run's folder: welcome
+    assert _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run / "states.csv"), "--out", str(run))[0] == 0
+
+
 def test_a_run_replaced_with_overwrite_loses_its_old_evaluation(capsys, tmp_path):
     seq = tmp_path / "seq"
     assert main(["simulate", "--duration", "0.25", "--out", str(seq)]) == 0

@@ -415,3 +415,12 @@ def test_a_folder_holding_other_files_is_not_a_run_folder(tmp_path: Path) -> Non
     (run / "run.yaml").write_text("")
     (run / "notes.txt").write_text("mine")
     assert check_run_directory(run, overwrite=True) == run
+    # An evaluate report's folder, no run in it, is no run folder: track wrote a run beside
+    # the report, and --overwrite deleted the report (an outside probe).
+    report = tmp_path / "report"
+    report.mkdir()
+    for name in ("report.md", "summary.json", "errors.csv"):
+        (report / name).write_text("")
+    for overwrite in (False, True):
+        with pytest.raises(TrackmeterError, match=r"report: holds other files \(errors\.csv, report\.md, summary\.json\)"):
+            check_run_directory(report, overwrite)

@@ -161,7 +161,16 @@ def run(args: argparse.Namespace) -> int:
 
     params = _params(args)
     if args.out:
+        from trackmeter.errors import TrackmeterError
+
         check_report_directory(args.out)  # before the work, which may take a while
+        out, estimate_path = Path(args.out), Path(args.estimate)
+        if (out / "run.yaml").exists() and out.resolve() != (
+                estimate_path if estimate_path.is_dir() else estimate_path.parent).resolve():
+            # Its report is of its own run: another's there would replace it, and describe
+            # a run the folder does not hold.
+            raise TrackmeterError(f"{out}: another run's folder (its run.yaml) than --estimate's; a report goes "
+                                  "into the estimate's own run folder or one of its own: choose another --out")
     truth = _load_truth(args.truth)
     estimate = load_estimate(args.estimate)
     truth, estimate = in_seconds(truth, estimate, params.tolerance_s)

@@ -454,7 +454,9 @@ def check_report_directory(directory: str | Path, report_files: Sequence[str] = 
     path = check_output_folder(directory, "reports", "a report folder")
     evaluate = tuple(report_files) == REPORT_FILES
     if not ((path / report_files[0]).exists() or (evaluate and (path / "run.yaml").exists())):
-        ours = run_folder_files() if evaluate else frozenset(report_files)
+        # Not an earlier report's folder (its first file, not any of its names: a lone
+        # report.md is the user's) nor a run's: only what a run may hold without run.yaml.
+        ours = run_folder_files(path) if evaluate else frozenset()
         refuse_other_files(path, ours, f"{report}'s folder is new, empty or an earlier one's"
                                        + (" or a run's" if evaluate else ""))
     return path

@@ -107,15 +107,18 @@ def check_run_directory(directory: str | Path, overwrite: bool = False) -> Path:
         # Not even with --overwrite: that replaces a run (whose folder may hold the user's
         # notes beside it), it does not mix one into a folder of other things (--out / or .
         # wrote run.yaml and three CSVs among them).
-        refuse_other_files(path, run_folder_files(), "a run folder is new, empty or an earlier run's")
+        refuse_other_files(path, run_folder_files(path), "a run folder is new, empty or an earlier run's")
     return path
 
 
-def run_folder_files() -> frozenset[str]:
-    """The names a run folder may hold: a run's files, an evaluate report's, the reserve."""
+def run_folder_files(path: Path) -> frozenset[str]:
+    """The names a folder without ``run.yaml`` may hold and be a run's: a run's files and the
+    reserve, and an evaluate report's where a run's file is there too (a ``states.csv``
+    evaluated in place); a report alone is no run."""
     from trackmeter.data.evaluation import REPORT_FILES
 
-    return frozenset({*_RUN_FILES, *REPORT_FILES, RESERVE_NAME})
+    has_run = any((path / name).exists() for name in _RUN_FILES)
+    return frozenset({*_RUN_FILES, RESERVE_NAME, *(REPORT_FILES if has_run else ())})
 
 
 def refuse_other_files(path: Path, ours: Collection[str], what_is_allowed: str) -> None:
