@@ -823,9 +823,11 @@ def test_two_scenarios_of_one_name_are_told_apart_by_their_motion(capsys, tmp_pa
     far.write_text("name: t\nposition0_m: [0, 0, 3.5]\nduration_s: 2\n")
     renamed = tmp_path / "renamed.yaml"
     renamed.write_text("name: other\nposition0_m: [0, 0, 3.5]\nduration_s: 2\ndescription: the same motion\n")
+    faster = tmp_path / "faster.yaml"  # the same motion sampled at 50 Hz: its truth is the same
+    faster.write_text("name: t\nposition0_m: [0, 0, 3.5]\nduration_s: 2\nrate_hz: 50\n")
     run = tmp_path / "run"
     assert main(["track", "--source", f"sim:{far}", "--auto", "8", "--max-frames", "40", "--out", str(run)]) == 0
-    for truth, warned in ((far, False), (near, True), (renamed, False)):
+    for truth, warned in ((far, False), (near, True), (renamed, False), (faster, False)):
         code, _, err = _run(capsys, "evaluate", "--truth", f"sim:{truth}", "--estimate", str(run), "--settle", "0")
         assert code == 0 and ("may not be of the sequence the run was tracked on" in err) == warned, (truth, err)
     assert "their motions differ" in _run(capsys, "evaluate", "--truth", f"sim:{near}", "--estimate", str(run),

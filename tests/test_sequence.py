@@ -1111,10 +1111,14 @@ def test_the_rate_of_nanosecond_timestamps_is_the_rate_they_say() -> None:
     # refused a filter cutoff of 11.875 Hz, "must be in (0, 11.875] Hz".
     from trackmeter.data.sequence import SequenceIndex
 
-    for step_ns, rate in ((40_000_000, 25.0), (50_000_000, 20.0), (33_333_333, 1e9 / 33_333_333)):
-        ns = np.arange(0, 300 * step_ns, step_ns)
+    # 15, 30 and 60 Hz read 14.9999999, 30.0000003 and 59.9999988 from whole nanoseconds (a
+    # probe): the filter then warned "7.125 Hz is above the 7.125 Hz" it takes at 15 Hz.
+    for rate in (25.0, 20.0, 15.0, 30.0, 60.0, 12.5, 30000 / 1001):
+        ns = np.round(np.arange(300) * 1e9 / rate).astype(np.int64)
         ns = np.delete(ns, [100, 101, 200])  # dropped frames are no interval
-        assert SequenceIndex(Path("."), ns / 1e9, (), ()).rate_hz == rate
-        # EuRoC's absolute timestamps (1.4e18 ns): seconds keep them to 0.2 us, the rate to 1e-7
+        assert SequenceIndex(Path("."), ns / 1e9, (), ()).rate_hz == pytest.approx(rate, rel=2e-8)
+        if rate == round(rate, 3):
+            assert SequenceIndex(Path("."), ns / 1e9, (), ()).rate_hz == rate
+        # EuRoC's absolute timestamps (1.4e18 ns): seconds keep them to 0.2 us
         absolute = SequenceIndex(Path("."), (ns + 1_403_636_579_763_555_584) / 1e9, (), ()).rate_hz
         assert absolute == pytest.approx(rate, rel=1e-7)

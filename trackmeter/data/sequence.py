@@ -368,9 +368,11 @@ class SequenceIndex:
 
     @property
     def rate_hz(self) -> float | None:
-        """Nominal frame rate, Hz (None with fewer than 2 frames): the mean of the intervals
-        within 10 % of the median one (a dropped frame or a pause left out), to the nanosecond
-        of the files' timestamps, so 40 000 000 ns apart is 25 Hz, not 24.99999999999998."""
+        """Nominal frame rate, Hz (None with fewer than 2 frames): one over the mean of the
+        intervals within 10 % of the median one (a dropped frame or a pause left out), to 7
+        significant digits: timestamps in whole nanoseconds (or seconds as floats, 0.2 us apart
+        for EuRoC's epoch times) are that exact, so 40 000 000 ns apart is 25 Hz, not
+        24.99999999999998, and frames 66 666 667 and 66 666 666 ns apart are 15 Hz."""
         if len(self.t_s) < 2:
             return None
         dt = np.diff(self.t_s)
@@ -378,10 +380,9 @@ class SequenceIndex:
         if not median > 0:
             return None
         regular = dt[np.abs(dt - median) <= 0.1 * median]
-        mean_ns = float(np.mean(regular)) * 1e9 if regular.size else math.nan
-        if not (math.isfinite(mean_ns) and 0.5 <= mean_ns < 2**53):  # nanoseconds as exact integers
-            return 1.0 / median
-        return 1e9 / round(mean_ns)
+        mean = float(np.mean(regular)) if regular.size else math.nan
+        rate = 1.0 / mean if math.isfinite(mean) and mean > 0 else 1.0 / median
+        return float(f"{rate:.7g}")
 
 
 def _sequence_root(directory: Path) -> Path | None:
@@ -441,9 +442,11 @@ def sequence_identity(directory: str | Path) -> tuple[Path, str | None]:
 
 
 #: The scenario settings that make its motion (its ground truth): the rest is how it looks,
-#: and its duration, which cuts the same motion shorter or carries it on.
+#: and its duration, which cuts the same motion shorter or carries it on; its frame rate
+#: samples the same motion, except where static ranges change at a frame count.
 MOTION_KEYS = ("inertia_kg_m2", "attitude0_wxyz", "omega0_body_deg_s", "position0_m", "velocity_m_s", "approach_to_m",
-               "approach_s", "static_ranges_m", "frames_per_range", "release_s", "rate_hz")
+               "approach_s", "static_ranges_m", "release_s")
+STATIC_RANGE_KEYS = ("frames_per_range", "rate_hz")
 
 
 def motion_digest(scenario: Mapping[str, Any]) -> str | None:
@@ -461,6 +464,8 @@ def motion_digest(scenario: Mapping[str, Any]) -> str | None:
 
     try:
         values = [numbers(scenario[key]) for key in MOTION_KEYS]
+        if values[MOTION_KEYS.index("static_ranges_m")]:
+            values += [numbers(scenario[key]) for key in STATIC_RANGE_KEYS]
     except (KeyError, TypeError):
         return None
     return hashlib.sha256(json.dumps(values).encode()).hexdigest()[:16]
