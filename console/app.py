@@ -64,7 +64,6 @@ from trackmeter.pipeline.snapshot import (
     Snapshot,
     StepOnce,
 )
-from trackmeter.sources.base import StereoFrame
 
 log = logging.getLogger(__name__)
 
@@ -411,10 +410,7 @@ class Console:
         # (time.monotonic(), target ids shown) of the recent image pushes (benchmarks/console.py).
         self.image_pushes: deque[tuple[float, tuple[str, ...]]] = deque(maxlen=200)
         self._last_frame_index: int | None = None
-        # A looping source's passes (a cut the operator's Restart did not make), for the status.
-        self._passes = 1
-        self._last_cut_index: int | None = None
-        self._restart_pending = False
+        self._loop_said = False  # the pop-up that the source loops, once (again after a Restart)
         self._lost_targets = LostTargets()  # a lost target's mark is left out after a while
         # Ids of targets not drawn (lost too long): a shift-click does not remove what it cannot
         # see. Set by the publisher, read by the click handler: one reference, replaced whole.
@@ -729,27 +725,20 @@ class Console:
 
     def submit(self, command: Command, client: Any = None, label: str = "") -> Future[CommandReply]:
         """Send ``command`` to the pipeline; its reply becomes a notification for ``client``."""
-        if isinstance(command, RestartSource):
-            self._restart_pending = True  # its cut starts the first pass again, no new one
         future = self.pipeline.submit(command)
         with self._pending_lock:
             self._pending.append((future, client, label or type(command).__name__))
         return future
 
-    def _count_pass(self, frame: StereoFrame) -> None:
-        """A cut in the stream the operator did not ask for is a looping source's new pass:
-        counted for the status, and said once, as every target goes with it."""
-        if not frame.cut or frame.index == self._last_cut_index:
-            return
-        self._last_cut_index = frame.index
-        if self._restart_pending:
-            self._restart_pending, self._passes = False, 1
-            return
-        self._passes += 1
-        if self._passes == 2:
+    def _say_loop(self, source_pass: int) -> None:
+        """Say once that the source loops, as every target goes with each new pass."""
+        if source_pass <= 1:
+            self._loop_said = False
+        elif not self._loop_said:
+            self._loop_said = True
             for client in list(self.server.get_clients().values()) or [None]:
-                self._notify(client, "Source", "the source loops: it starts over (pass 2), and so does tracking: "
-                             "targets, model points and pose", True)
+                self._notify(client, "Source", f"the source loops: it starts over (pass {source_pass}), and so "
+                             "does tracking: targets, model points and pose", True)
 
     def _on_click(self, event: Any) -> None:
         uv = self._event_pixel(event)
@@ -992,8 +981,7 @@ class Console:
 
     def _push(self, snap: Snapshot, plots: bool, text: bool = True) -> None:
         frame = snap.frame
-        if frame is not None:
-            self._count_pass(frame)
+        self._say_loop(snap.source_pass)
         left_rgb = right_rgb = None
         drawn = self._lost_targets.shown(snap.targets, frame.t_s) if frame is not None else list(snap.targets)
         self._hidden_ids = frozenset(t.id for t in snap.targets) - {t.id for t in drawn}
@@ -1019,7 +1007,7 @@ class Console:
                         h = self.patch_px // 2
                         right_rgb[max(v - h, 0):v + h + 1, [max(u - h, 0), min(u + h, right_rgb.shape[1] - 1)]] = (60, 230, 60)
                         right_rgb[[max(v - h, 0), min(v + h, right_rgb.shape[0] - 1)], max(u - h, 0):u + h + 1] = (60, 230, 60)
-        status_text = self._status_html(snap, self._passes) if text else None
+        status_text = self._status_html(snap) if text else None
         targets_text = self._targets_markdown(snap) if text else None
         rec = self.pipeline.recording_stats()
         with self.server.atomic():
@@ -1103,7 +1091,7 @@ class Console:
             widget.value = state
 
     @staticmethod
-    def _status_html(snap: Snapshot, passes: int = 1) -> str:
+    def _status_html(snap: Snapshot) -> str:
         """The live numbers as HTML in a box of fixed height (:data:`STATUS_HEIGHT_EM`).
 
         Its height must not follow the content: a panel that grows when the pose becomes valid
@@ -1125,8 +1113,8 @@ class Console:
             dropped_line += f" since Restart · {t.frames_dropped} in all"
         state = "paused" if snap.paused else "running"
         source = (f"<b>Source: {escape(snap.source_status)}</b>" if snap.source_status
-                  else "source delivering" + (f" · pass {passes} (it loops; tracking starts over each pass)"
-                                              if passes > 1 else ""))
+                  else "source delivering" + (f" · pass {snap.source_pass} (it loops; tracking starts over "
+                                              "each pass)" if snap.source_pass > 1 else ""))
         if snap.source_warning:
             source += f" · <b>{escape(snap.source_warning)}</b>"
         lines = [f"<b>{state}</b> · frame {snap.frame.index if snap.frame else '-'} · auto "

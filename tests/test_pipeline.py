@@ -865,3 +865,38 @@ def test_every_recording_of_a_run_is_kept_for_its_summary(tmp_path: Path) -> Non
     made = pipe.recordings()
     assert [r.frames_written for r in made] == [len(w.indices) for w in writers] and all(r.frames_written for r in made)
     assert not any(r.active for r in made)
+
+
+class LoopingSource(CountingSource):
+    """``CountingSource`` played in passes of ``period`` frames, each new pass's first frame cut."""
+
+    def __init__(self, period: int, **kw) -> None:  # type: ignore[no-untyped-def]
+        super().__init__(10**6, **kw)
+        self.period = period
+
+    def read(self) -> StereoFrame | None:
+        frame = super().read()
+        if frame is not None and frame.index % self.period == 0 and frame.index > 0:
+            frame = dataclasses.replace(frame, cut=True)
+        return frame
+
+
+def test_a_looping_source_s_passes_are_counted_from_every_frame_and_a_restart_starts_over() -> None:
+    # The console counted passes from the frames it happened to publish: at 25 Hz it missed
+    # most loops (pass 11 where it was 20), and took a loop for the Restart's own cut.
+    pipe = Pipeline(LoopingSource(10, delay_s=0.002), RecordingEngine(), drop_frames=True)
+    with pipe:
+        deadline = time.monotonic() + 10
+        while pipe.latest().frame is None or pipe.latest().frame.index < 95:
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        snap = pipe.latest()
+        assert snap.source_pass == snap.frame.index // 10 + 1, (snap.source_pass, snap.frame.index)
+        assert pipe.call(RestartSource()).ok
+        while pipe.latest().frame.index > 50 or pipe.latest().frame.index < 5:
+            assert time.monotonic() < deadline
+            time.sleep(0.005)
+        assert pipe.latest().source_pass == 1  # the restart's first frame is no new pass
+        while pipe.latest().frame.index < 15:
+            time.sleep(0.005)
+        assert pipe.latest().source_pass == 2

@@ -355,6 +355,8 @@ class Pipeline:
 
         self._recorder: _Recorder | None = None
         self._last_recording = RecordingStats()
+        self._source_pass = 1  # a looping source's pass of the frame last tracked (tracking thread)
+        self._tracked_since_restart = 0
         self._stopped_recordings: list[RecordingStats] = []  # every one of the run, in order
         self._record_lock = threading.Lock()
 
@@ -636,6 +638,11 @@ class Pipeline:
             self._last_errors = None
         done = time.monotonic()
         self._last_frame = frame
+        # Counted here, where every cut arrives (a dropped frame's is carried to the next kept
+        # one), not from the snapshots a display happens to see; a restart's own cut is none.
+        if frame.cut and self._tracked_since_restart > 0:
+            self._source_pass += 1
+        self._tracked_since_restart += 1
         self._last_step_ms = (done - start) * 1e3
         self._last_latency_ms = (done - t_read) * 1e3
         with self._cond:
@@ -670,6 +677,7 @@ class Pipeline:
                 self._cond.notify_all()
             return CommandReply(True, "stepping one frame")
         if isinstance(command, RestartSource):
+            self._source_pass, self._tracked_since_restart = 1, 0
             # One step under both locks: no frame of the restarted stream can be read (nor a
             # waiting old one handed over) between the restart and the state it starts from.
             with self._source_lock:
@@ -799,6 +807,7 @@ class Pipeline:
             source_status=status,
             source_warning=self._source_warning(),
             sequence=self._sequence,
+            source_pass=self._source_pass,
             model_ids=tuple(getattr(getattr(engine, "model", None), "ids", ()) or ()),
         )
 

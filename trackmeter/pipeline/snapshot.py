@@ -108,6 +108,8 @@ class Snapshot:
         source_warning: what the source skipped or doubts (``Source.warning``, e.g. unreadable
             images of a sequence folder), None when nothing.
         sequence: increasing number of the snapshot.
+        source_pass: the pass of a looping source the frame is from (1 until it starts over;
+            an operator's Restart starts at 1 again).
         model_ids: the ids of the a-priori model's points (case b), empty without one: an
             operator binds a click to one of them (:class:`SelectPoint` ``target_id``).
     """
@@ -126,6 +128,7 @@ class Snapshot:
     source_status: str | None = None
     source_warning: str | None = None
     sequence: int = 0
+    source_pass: int = 1
     model_ids: tuple[str, ...] = ()
 
 
