@@ -970,7 +970,8 @@ class Console:
                 model_point = self._model_point_clicks.pop(future, None)
             if reply.ok and model_point is not None and self.model_point_dropdown.value == model_point:
                 self.model_point_dropdown.value = NEW_TARGET  # the choice is used up; a refusal keeps it
-            if reply.ok and label.startswith(("SetAuto", "SetFilterCutoff", "SetPaused", "StepOnce")):
+            if reply.ok and not reply.notable and label.startswith(("SetAuto", "SetFilterCutoff", "SetPaused",
+                                                                    "StepOnce")):
                 continue  # the UI shows the new state; no pop-up needed
             if not reply.ok:  # the widget the operator changed shows the tracker's state again
                 for name in _WIDGETS_OF_COMMAND.get(label, ()):

@@ -914,3 +914,25 @@ def test_a_looping_source_s_new_pass_is_said_once_and_counted() -> None:
         assert len(said) == 2 and "loops" in said[0], con.notifications  # once, and once after the Restart
     finally:
         running.stop()
+
+
+def test_a_toggle_s_reply_with_something_to_say_is_shown() -> None:
+    # Choosing the centroid method answered nothing in the browser: a toggle's success is
+    # shown by the widget, and its note (one point a bright region) went with the pop-up.
+    from trackmeter.pipeline.snapshot import CommandReply
+
+    running = start_console(CountingSource(3), RecordingEngine(), port=free_port())  # type: ignore[arg-type]
+    con = running.console
+    try:
+        for reply in (CommandReply(True, "automatic selection on (10 targets, gabor)"),
+                      CommandReply(True, "automatic selection on (10 targets, centroid: one a bright region, its "
+                                         "centroid)", notable=True)):
+            future: Future[CommandReply] = Future()
+            future.set_result(reply)
+            with con._pending_lock:
+                con._pending.append((future, None, "SetAuto"))
+            con._flush_replies()
+        shown = [body for _, body in con.notifications if "automatic selection" in body]
+        assert shown == ["automatic selection on (10 targets, centroid: one a bright region, its centroid)"], shown
+    finally:
+        running.stop()

@@ -520,7 +520,8 @@ class Engine:
             enabled, count, method = self.tracker.auto
             # The centroid method finds one point a bright region (paper 2.B), whatever the count.
             how = f"{method}: one a bright region, its centroid" if method == "centroid" else method
-            return CommandReply(True, f"automatic selection {'on' if enabled else 'off'} ({count} targets, {how})")
+            return CommandReply(True, f"automatic selection {'on' if enabled else 'off'} ({count} targets, {how})",
+                                notable=enabled and method == "centroid")
         if isinstance(command, SetCase):
             if command.case not in ("a", "b", "c"):
                 return CommandReply(False, f"unknown model case {command.case!r} (a, b or c)")
