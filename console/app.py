@@ -695,13 +695,17 @@ class Console:
         return SetAuto(bool(self.auto_checkbox.value), int(self.auto_count.value), str(self.auto_method.value))
 
     def _fresh_record_dir(self) -> str:
-        base = Path(self.record_dir.value.strip() or str(self.record_root / "recording"))
-        # Never mix two recordings in one folder: add a suffix when it already holds one.
-        candidate, n = base, 1
+        base = Path(self.record_dir.value.strip() or str(self.record_root / "recording")).expanduser()
+        # Never mix two recordings in one folder: number it on when it already holds one (from
+        # the number a numbered one has: the field shows the last recording, rec-2, and the
+        # next is rec-3, not rec-2-2).
+        numbered = re.fullmatch(r"(.+)-(\d+)", base.name)
+        stem, n = (numbered.group(1), int(numbered.group(2))) if numbered else (base.name, 1)
+        candidate = base
         try:
             while (candidate / "cam0" / "data.csv").exists():
                 n += 1
-                candidate = base.with_name(f"{base.name}-{n}")
+                candidate = base.with_name(f"{stem}-{n}")
         except OSError:
             pass  # a name the file system refuses: the recorder refuses it, with the reason
         # Absolute: "runs/recording-2" in the answer said nothing of where the server runs.

@@ -936,3 +936,22 @@ def test_a_toggle_s_reply_with_something_to_say_is_shown() -> None:
         assert shown == ["automatic selection on (10 targets, centroid: one a bright region, its centroid)"], shown
     finally:
         running.stop()
+
+
+def test_a_record_folder_expands_home_and_numbers_on_from_a_numbered_one(tmp_path, monkeypatch) -> None:
+    # "~/rec" made a folder named "~" where the server runs; with the Folder field showing the
+    # last recording (rec-2), the next went to rec-2-2 (an outside console probe).
+    monkeypatch.setenv("HOME", str(tmp_path))
+    running = start_console(CountingSource(3), RecordingEngine(), port=free_port())  # type: ignore[arg-type]
+    con = running.console
+    try:
+        con.record_dir.value = "~/rec"
+        assert con._fresh_record_dir() == str(tmp_path / "rec")
+        for name in ("rec", "rec-2"):
+            (tmp_path / name / "cam0").mkdir(parents=True)
+            (tmp_path / name / "cam0" / "data.csv").write_text("#timestamp [ns],filename\n")
+        assert con._fresh_record_dir() == str(tmp_path / "rec-3")
+        con.record_dir.value = str(tmp_path / "rec-2")
+        assert con._fresh_record_dir() == str(tmp_path / "rec-3")
+    finally:
+        running.stop()
