@@ -20,6 +20,18 @@ def test_os_error_is_one_line_with_path_and_reason(monkeypatch, capsys):
     assert capsys.readouterr().err == "trackmeter simulate: error: /data/out/states.csv: No space left on device\n"
 
 
+def test_memory_the_input_asks_for_is_one_line(monkeypatch, capsys):
+    # A rig of 200000 x 100000 px in a scenario: numpy's "Unable to allocate 149. GiB" as a
+    # traceback, exit 1 (an outside probe).
+    def huge(args):
+        raise MemoryError("Unable to allocate 149. GiB for an array with shape (100000, 200000, 2)")
+
+    monkeypatch.setattr(simulate, "run", huge)
+    assert main(["simulate", "--out", "x"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("trackmeter simulate: error: out of memory (Unable to allocate 149. GiB") and err.count("\n") == 1
+
+
 def test_failed_rename_names_both_paths(monkeypatch, capsys):
     def cross_device(args):
         raise OSError(errno.EXDEV, "Invalid cross-device link", "/a/run.partial", None, "/b/run")  # as os.rename

@@ -578,3 +578,11 @@ def test_a_rig_with_a_baseline_under_a_millimetre_is_warned_about(tmp_path: Path
     tiny = dataclasses.replace(rig, T=rig.T / np.linalg.norm(rig.T) * 1e-9)
     with pytest.warns(UserWarning, match=r"baseline 1e-09 m \(\|T\|\) is shorter than 1 mm"):
         load_rig(save_rig(tiny, tmp_path / "tiny.yaml"))
+
+
+def test_an_image_size_past_opencv_s_limit_is_refused(tmp_path: Path) -> None:
+    # image_width 200000 loaded, and the simulator then asked for 149 GiB (a traceback).
+    path = save_rig(_rig(), tmp_path / "rig.yaml")
+    path.write_text(path.read_text().replace("image_width: 640\n", "image_width: 200000\n"))
+    with pytest.raises(TrackmeterError, match=r"rig\.yaml: key 'image_width' must be at most 32767 px .*got 200000"):
+        load_rig(path)

@@ -257,3 +257,16 @@ def test_a_motion_that_takes_the_body_behind_the_camera_is_refused(tmp_path, cap
     assert main(["simulate", "--scenario", str(scenario), "--duration", "0.5", "--out", str(tmp_path / "ok")]) == 0
     code = main(["simulate", "--scenario", str(scenario), "--duration", "4", "--out", str(tmp_path / "far")])
     assert code == 2 and "at t = 3.52 s" in capsys.readouterr().err
+
+
+def test_the_scenario_s_motion_alone_makes_no_renderer() -> None:
+    # evaluate --truth sim:X built the renderer (canvases the size of the rig's images) only to
+    # read the motion: with a huge rig, 149 GiB asked for (an outside probe).
+    from trackmeter.sources.sim.simulator import scenario_truth
+
+    sim = Simulator("estec")
+    sim.truth(10)
+    assert sim._renderer is None
+    assert sim.frame(0).left.shape == (sim.true_rig.image_size[1], sim.true_rig.image_size[0])
+    assert sim._renderer is not None
+    assert len(scenario_truth("estec")) == sim.n_frames

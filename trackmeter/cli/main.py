@@ -271,6 +271,12 @@ def _main(argv: Sequence[str] | None) -> int:
         return 2
     except BrokenPipeError:
         raise  # stdout closed by its reader: not an error to report (see main)
+    except MemoryError as exc:
+        # Input that asks for more memory than the machine has (a huge image size, a border
+        # of a million pixels): one line, as bad input is, not a traceback.
+        print(f"trackmeter {args.command}: error: out of memory{f' ({exc})' if str(exc) else ''}: the input "
+              "asks for more than this machine has", file=sys.stderr)
+        return 2
     except OSError as exc:
         # A path the user named that cannot be written or read (unwritable --out, full disk):
         # their input or their system, not a bug, so one line like any other bad input.

@@ -150,6 +150,9 @@ def _scalar(fs: cv2.FileStorage, key: str) -> float | None:
 
 #: No camera image is narrower than this (px); a smaller size in a rig file is a typo or a boolean.
 MIN_IMAGE_SIZE_PX = 16
+#: ... nor wider than OpenCV can remap (its maps hold coordinates as 16-bit integers): a larger
+#: size is a typo, and would ask for a canvas of hundreds of gigabytes.
+MAX_IMAGE_SIZE_PX = 32767
 
 
 def _image_size_scalar(fs: cv2.FileStorage, key: str, path: Path) -> int | None:
@@ -157,7 +160,7 @@ def _image_size_scalar(fs: cv2.FileStorage, key: str, path: Path) -> int | None:
 
     Raises:
         TrackmeterError: the key holds anything else (NaN, a fraction, a string, a list) or
-            fewer than :data:`MIN_IMAGE_SIZE_PX` pixels.
+            fewer than :data:`MIN_IMAGE_SIZE_PX` or more than :data:`MAX_IMAGE_SIZE_PX` pixels.
     """
     node = fs.getNode(key)
     if node.empty() or node.isNone():
@@ -170,6 +173,9 @@ def _image_size_scalar(fs: cv2.FileStorage, key: str, path: Path) -> int | None:
         # OpenCV's parser reads YAML's true/false as 1/0, which would load as a 1 px camera.
         raise TrackmeterError(f"{path}: key '{key}' must be at least {MIN_IMAGE_SIZE_PX} px, got {int(value)} "
                               "(a YAML true/false reads as 1/0)")
+    if value > MAX_IMAGE_SIZE_PX:
+        raise TrackmeterError(f"{path}: key '{key}' must be at most {MAX_IMAGE_SIZE_PX} px (OpenCV's limit), "
+                              f"got {value:.0f}")
     return int(value)
 
 

@@ -90,7 +90,7 @@ class Simulator(Source):
             self.model: Model | None = Model.from_pairs(self.mockup.salient_points)
         except TrackmeterError:  # fewer than 3 salient points, or collinear ones: no case (b) on it
             self.model = None
-        self.renderer = StereoRenderer(self.true_rig, self.mockup, sc.render)
+        self._renderer: StereoRenderer | None = None  # made at the first frame (the truth alone needs none)
         self.realtime = realtime
         self.loop = loop
         sun = np.asarray(sc.sun_dir_cam, dtype=float)
@@ -114,6 +114,15 @@ class Simulator(Source):
         self._pos = 0
         self._count = 0
         self._loops = 0
+
+    @property
+    def renderer(self) -> StereoRenderer:
+        """The :class:`StereoRenderer`, made when first asked for: its canvases and distortion
+        maps are the size of the rig's images, which the motion alone (``scenario_truth``) and a
+        source rendering in a worker never need."""
+        if self._renderer is None:
+            self._renderer = StereoRenderer(self.true_rig, self.mockup, self.scenario.render)
+        return self._renderer
 
     def _warn_if_the_camera_comes_within_reach(self) -> None:
         """Warn when a camera comes nearer the body origin than the mock-up reaches: it may be
