@@ -367,3 +367,13 @@ def test_a_border_wider_than_the_image_says_no_point_could_be_selected(still_seq
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1, err
     assert "no point selectable on its first frame: no corner 100000 px inside the lit target" in err[0], err
+
+
+def test_a_still_motion_threshold_of_zero_is_refused(still_sequence, tmp_path, capsys) -> None:
+    # 0 warned that points moving 0.0 px made the range's scatter (an outside probe): the
+    # threshold is a motion the LK tracker can tell, not nothing.
+    config = tmp_path / "c.yaml"
+    config.write_text("analyze:\n  max_still_motion_px: 0\n")
+    code = main(["analyze", "--source", str(still_sequence), "--config", str(config)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "max_still_motion_px" in err[0], err

@@ -586,3 +586,17 @@ def test_an_image_size_past_opencv_s_limit_is_refused(tmp_path: Path) -> None:
     path.write_text(path.read_text().replace("image_width: 640\n", "image_width: 200000\n"))
     with pytest.raises(TrackmeterError, match=r"rig\.yaml: key 'image_width' must be at most 32767 px .*got 200000"):
         load_rig(path)
+
+
+def test_a_true_or_false_in_a_rig_matrix_is_refused_by_its_key(tmp_path: Path) -> None:
+    # T: [true, 0, 0] in block style read as a baseline of 1 m (then "the right camera lies
+    # left of the left one", without the file's name).
+    import yaml
+
+    rig = _rig()
+    data = {"image_width": 640, "image_height": 480, "K1": rig.left.K.tolist(), "D1": [0.0] * 5,
+            "K2": rig.right.K.tolist(), "D2": [0.0] * 5, "R": np.eye(3).tolist(), "T": [True, 0.0, 0.0]}
+    path = tmp_path / "bool.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(TrackmeterError, match=r"bool\.yaml: key 'T' holds true/false where numbers go"):
+        load_rig(path)

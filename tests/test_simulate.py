@@ -256,7 +256,8 @@ def test_a_motion_that_takes_the_body_behind_the_camera_is_refused(tmp_path, cap
     scenario.write_text("duration_s: 1\nvelocity_m_s: [0, 0, -1]\n")
     assert main(["simulate", "--scenario", str(scenario), "--duration", "0.5", "--out", str(tmp_path / "ok")]) == 0
     code = main(["simulate", "--scenario", str(scenario), "--duration", "4", "--out", str(tmp_path / "far")])
-    assert code == 2 and "at t = 3.52 s" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert code == 2 and "at t = 3.52 s" in err and f"--duration 4 with scenario '{scenario}'" in err, err
 
 
 def test_the_scenario_s_motion_alone_makes_no_renderer() -> None:

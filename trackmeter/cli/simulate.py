@@ -53,7 +53,11 @@ def run(args: argparse.Namespace) -> int:
         if not (0 < args.duration <= MAX_DURATION_S):
             raise TrackmeterError(f"--duration must be a positive number of seconds, at most {MAX_DURATION_S:g} (an hour), "
                                   f"got {args.duration:g}")
-        scenario = scenario.with_duration(args.duration)
+        try:
+            scenario = scenario.with_duration(args.duration)
+        except TrackmeterError as exc:  # the motion carried on past the scenario's own end
+            raise TrackmeterError(f"--duration {args.duration:g} with scenario {args.scenario!r}: "
+                                  f"{exc}") from None
     partial = out.with_name(out.name + ".partial")
     if partial.exists() or partial.is_symlink():
         # Left over from a run of this command that was killed outright: replaced, but only

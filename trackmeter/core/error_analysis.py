@@ -45,7 +45,7 @@ class AnalyzeParams:
     )
     max_still_motion_px: float = param(
         1.0, "a range whose points move more than this in the left image (median, first to last frame) is "
-        "warned about: its scatter is the target's motion, not measurement noise, px", min=0.0,
+        "warned about: its scatter is the target's motion, not measurement noise, px", min=0.01,
     )
 
 

@@ -70,9 +70,13 @@ def _plain_yaml(path: Path) -> cv2.FileStorage | None:
     if not isinstance(data, dict):
         return None
     for key, value in data.items():
+        leaves = _leaves(value)
         # JSON has no NaN: said here by its key, as OpenCV's own form of the file is.
-        if any(isinstance(x, float) and not math.isfinite(x) for x in _leaves(value)):
+        if any(isinstance(x, float) and not math.isfinite(x) for x in leaves):
             raise TrackmeterError(f"{path}: {key} has non-finite values")
+        # ... and OpenCV reads JSON's true/false as 1/0: a baseline of 1 m from "T: [true, 0, 0]".
+        if isinstance(value, list) and any(isinstance(x, bool) for x in leaves):
+            raise TrackmeterError(f"{path}: key '{key}' holds true/false where numbers go")
     try:
         return cv2.FileStorage(json.dumps(data, allow_nan=False), cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
     except (TypeError, ValueError, cv2.error, SystemError):
