@@ -840,3 +840,20 @@ def test_two_scenarios_of_one_name_are_told_apart_by_their_motion(capsys, tmp_pa
     for truth, warned in ((f"sim:{far}", False), (str(seq), False), (f"sim:{near}", True)):
         code, _, err = _run(capsys, "evaluate", "--truth", truth, "--estimate", str(run2), "--settle", "0")
         assert ("may not be of the sequence the run was tracked on" in err) == warned, (truth, err)
+
+
+def test_a_sim_truth_carries_the_motion_on_over_a_longer_run(capsys, tmp_path) -> None:
+    # A sequence simulated with --duration past its scenario's own: --truth sim:SCENARIO ended
+    # at the scenario's duration and half the run went unevaluated without a word (a probe).
+    short = tmp_path / "short.yaml"
+    short.write_text("name: short\nduration_s: 1.0\n")
+    seq, run = tmp_path / "seq", tmp_path / "run"
+    assert main(["simulate", "--scenario", str(short), "--duration", "2", "--out", str(seq)]) == 0
+    assert main(["track", "--source", str(seq), "--auto", "8", "--out", str(run)]) == 0
+    capsys.readouterr()
+    code, out_sim, err = _run(capsys, "evaluate", "--truth", f"sim:{short}", "--estimate", str(run), "--json")
+    assert code == 0, err
+    code, out_seq, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
+    a, b = json.loads(out_sim), json.loads(out_seq)
+    assert a["matched"] == b["matched"] > 30 and a["unmatched"] == b["unmatched"]
+    assert a["position_m"]["norm"]["max"] == pytest.approx(b["position_m"]["norm"]["max"], abs=1e-9)

@@ -88,18 +88,25 @@ def _sim_scenario(spec: str) -> str | None:
     return name or DEFAULT_SCENARIO
 
 
-def _load_truth(spec: str) -> LoadedMotion:
+def _load_truth(spec: str, until_s: float | None = None) -> LoadedMotion:
     """``--truth``: a file or folder (:func:`trackmeter.data.evaluation.load_truth`), or, where
     no such path exists, ``sim`` / ``sim:SCENARIO``: the scenario's motion (a ``track --source
-    sim`` run keeps no ground truth; this is the one ``trackmeter simulate`` would write)."""
+    sim`` run keeps no ground truth; this is the one ``trackmeter simulate`` would write),
+    carried on to ``until_s`` when the run goes on past the scenario's end (a sequence
+    simulated with a longer ``--duration``)."""
     from trackmeter.data.evaluation import LoadedMotion, load_truth
 
-    scenario = _sim_scenario(spec)
-    if scenario is None:
+    name = _sim_scenario(spec)
+    if name is None:
         return load_truth(spec)
+    from trackmeter.sources.sim.scenario import MAX_DURATION_S, load_scenario
     from trackmeter.sources.sim.simulator import scenario_truth
 
-    return LoadedMotion(scenario_truth(scenario), f"sim:{scenario} (the scenario's motion)", True)
+    scenario = load_scenario(name)
+    # (times past an hour are no run of it: epoch times, paired with no truth, as before)
+    if until_s is not None and scenario.span_s < until_s < MAX_DURATION_S and not scenario.static_ranges_m:
+        scenario = scenario.with_duration(until_s + 1.0 / scenario.rate_hz)
+    return LoadedMotion(scenario_truth(scenario), f"sim:{name} (the scenario's motion)", True)
 
 
 def _other_sequence(truth_spec: str, estimate_spec: str) -> str | None:
@@ -171,8 +178,8 @@ def run(args: argparse.Namespace) -> int:
             # a run the folder does not hold.
             raise TrackmeterError(f"{out}: another run's folder (its run.yaml) than --estimate's; a report goes "
                                   "into the estimate's own run folder or one of its own: choose another --out")
-    truth = _load_truth(args.truth)
     estimate = load_estimate(args.estimate)
+    truth = _load_truth(args.truth, float(estimate.series.t_s[-1]) if len(estimate.series) else None)
     truth, estimate = in_seconds(truth, estimate, params.tolerance_s)
     params = replace(params, align=resolve_align(params.align, estimate.case))
     result = evaluate(truth.series, estimate.series, params, estimate.t_start_s, estimate.frame_times_s)
