@@ -194,6 +194,10 @@ def test_select_model_points_alone_is_something_to_track_unless_the_source_has_n
     err = capsys.readouterr().err
     assert "--select-model-points: the first frame has no ground truth: the model points are selected " \
            "at the first frame that has it" in err and "needs a frame with ground truth" not in err, err
+    # ... and, none of the run's frames having any (its truth starting after them), says that
+    # no model point was selected at all (the run ended on the note alone: a probe)
+    assert "warning: --select-model-points: no frame of the run had ground truth: no model point was selected" \
+           in err, err
     # run.yaml says how its targets came (it held "targets: []" and nothing else; an outside probe)
     assert meta["source"]["select_model_points"] is True and meta["source"]["targets"] == []
 

@@ -387,6 +387,11 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
             for k, (command, reply) in enumerate(zip(commands, replies)):
                 if not reply.ok and k not in said:
                     print(f"trackmeter track: warning: {_option_of(command)}: {reply.message}", file=sys.stderr)
+                if (isinstance(command, SelectModelPoints) and reply.message == NEEDS_TRUTH and source.has_truth
+                        and engine.stats.operator_reselections == 0):
+                    # The note said they would be selected at the first frame with truth: none came.
+                    print("trackmeter track: warning: --select-model-points: no frame of the run had ground truth: "
+                          "no model point was selected", file=sys.stderr)
             if state.get("nothing"):
                 writer.close("nothing to track", summary)
                 why = " and ".join((["every --target was refused on the first frame"] if targets else [])
