@@ -377,3 +377,37 @@ def test_a_still_motion_threshold_of_zero_is_refused(still_sequence, tmp_path, c
     code = main(["analyze", "--source", str(still_sequence), "--config", str(config)])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "max_still_motion_px" in err[0], err
+
+
+def test_points_that_fall_short_of_their_samples_are_made_up_for(still_sequence, monkeypatch) -> None:
+    # --points 3 on a small range: 3 selected, 2 measured often enough, and the range dropped
+    # while the target had more points to measure (a re-check probe).
+    import numpy as np
+
+    import trackmeter.pipeline.analysis as analysis
+    from trackmeter.core.error_analysis import AnalyzeParams
+    from trackmeter.core.matching import MeasureParams
+    from trackmeter.sources import open_source
+
+    params = AnalyzeParams(points_per_range=3)
+    with open_source(f"seq:{still_sequence}") as source:
+        frames = [source.read() for _ in range(8)]
+        rig = source.rig
+    plain = analysis.measure_range(frames, rig, MeasureParams(), params)
+    assert len(plain.uv) == 3  # all three measured often enough: nothing to make up for
+    flaky = plain.uv[1]
+    real = analysis.measure_points
+
+    def refusing_later(rig, left, right, uv, params, *args):  # type: ignore[no-untyped-def]
+        out = real(rig, left, right, uv, params, *args)
+        later = left is not frames[0].left
+        return tuple(replace(m, ok=False, reason="refused later") if later and np.allclose(p, flaky) else m
+                     for m, p in zip(out, np.asarray(uv).reshape(-1, 2)))
+
+    from dataclasses import replace
+
+    monkeypatch.setattr(analysis, "measure_points", refusing_later)
+    m = analysis.measure_range(frames, rig, MeasureParams(), params)
+    good = np.sum(np.isfinite(m.xyz_m[..., 2]), axis=0) >= params.min_samples
+    assert len(m.uv) == 4 and good.sum() == 3 and not good[1], good
+    assert np.allclose(m.uv[:3], plain.uv) and m.refusals.get("refused later") == 7

@@ -188,41 +188,53 @@ def measure_range(
 ) -> RangeMeasurements:
     """Select points on the first frame and measure them in every frame of one range.
 
-    The corners are tried best first (at most 20 times ``params.points_per_range``), four times
-    that many at a time, until that many are accepted by the matcher on the first frame (a corner on a repetitive grid or
-    seen by the left camera only is refused there, and would only add refusals later). When
-    none is, ``refusals`` holds the first frame's reasons and ``candidates`` how many were tried.
+    The corners are tried best first (at most 20 times ``params.points_per_range``, four times
+    that many at a time): the first ``points_per_range`` the matcher accepts on the first frame
+    (a corner on a repetitive grid or seen by the left camera only is refused there, and would
+    only add refusals later), and where some of them then fall short of ``params.min_samples``
+    good measurements over the range, as many more as make up for them, so that the statistics
+    count the points asked for wherever the target has them. When none is accepted,
+    ``refusals`` holds the first frame's reasons and ``candidates`` how many corners were found.
     """
     first = frames[0]
     n = params.points_per_range
     candidates = select_points(first.left, params, measure.min_mean_grey, 20 * n)  # best first
-    accepted: list[FloatArray] = []
     first_refusals: dict[str, int] = {}
-    for start in range(0, len(candidates), 4 * n):
-        batch = candidates[start:start + 4 * n]
-        for p, m in zip(batch, measure_points(rig, first.left, first.right, batch, measure)):
-            if m.ok:
-                accepted.append(p)
-            else:
-                first_refusals[str(m.reason)] = first_refusals.get(str(m.reason), 0) + 1
-        if len(accepted) >= n:
-            break
-    uv = np.asarray(accepted[:n], dtype=float).reshape(-1, 2)
-    F, P = len(frames), len(uv)
-    xyz = np.full((F, P, 3), np.nan)
-    sig = np.full((F, P, 3), np.nan)
-    sd = np.full((F, P), np.nan)
     refusals: dict[str, int] = {}
-    for f, frame in enumerate(frames):
-        if P == 0:
+
+    def accepted_batches() -> Iterator[FloatArray]:
+        for start in range(0, len(candidates), 4 * n):
+            batch = candidates[start:start + 4 * n]
+            results = measure_points(rig, first.left, first.right, batch, measure)
+            for m in results:
+                if not m.ok:
+                    first_refusals[str(m.reason)] = first_refusals.get(str(m.reason), 0) + 1
+            yield batch[np.array([m.ok for m in results], dtype=bool)]
+
+    F = len(frames)
+    uv = np.zeros((0, 2))
+    xyz, sig, sd = np.zeros((F, 0, 3)), np.zeros((F, 0, 3)), np.zeros((F, 0))
+    pool: list[FloatArray] = []
+    batches = accepted_batches()
+    while True:
+        good = int(np.sum(np.sum(np.isfinite(xyz[..., 2]), axis=0) >= params.min_samples))
+        need = n - (good if F >= params.min_samples else len(uv))  # too few frames: no point could make up
+        while len(pool) < need and (batch := next(batches, None)) is not None:
+            pool.extend(batch)
+        if need <= 0 or not pool:
             break
-        for p, m in enumerate(measure_points(rig, frame.left, frame.right, uv, measure)):
-            if m.ok:
-                xyz[f, p] = m.xyz_m
-                sig[f, p] = m.sigma_m
-                sd[f, p] = m.sigma_disparity_px
-            else:
-                refusals[str(m.reason)] = refusals.get(str(m.reason), 0) + 1
+        new, pool = np.asarray(pool[:need], dtype=float).reshape(-1, 2), pool[need:]
+        x_new, s_new = np.full((F, len(new), 3), np.nan), np.full((F, len(new), 3), np.nan)
+        d_new = np.full((F, len(new)), np.nan)
+        for f, frame in enumerate(frames):
+            for p, m in enumerate(measure_points(rig, frame.left, frame.right, new, measure)):
+                if m.ok:
+                    x_new[f, p], s_new[f, p], d_new[f, p] = m.xyz_m, m.sigma_m, m.sigma_disparity_px
+                else:
+                    refusals[str(m.reason)] = refusals.get(str(m.reason), 0) + 1
+        uv = np.vstack([uv, new])
+        xyz, sig, sd = (np.concatenate(pair, axis=1) for pair in ((xyz, x_new), (sig, s_new), (sd, d_new)))
+    P = len(uv)
     noise_sd = _noise_limited_sigmas(frames, uv, xyz, measure.patch_size, rig) if F >= 2 and P > 0 else None
     truth = first.truth
     true_range = float(np.linalg.norm(truth.T_cam_body[:3, 3])) if truth is not None else float("nan")
