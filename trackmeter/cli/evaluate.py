@@ -178,8 +178,11 @@ def run(args: argparse.Namespace) -> int:
             # a run the folder does not hold.
             raise TrackmeterError(f"{out}: another run's folder (its run.yaml) than --estimate's; a report goes "
                                   "into the estimate's own run folder or one of its own: choose another --out")
+    # The truth first (its errors said first), but a scenario's motion once the run's span is known.
+    truth = None if _sim_scenario(args.truth) is not None else _load_truth(args.truth)
     estimate = load_estimate(args.estimate)
-    truth = _load_truth(args.truth, float(estimate.series.t_s[-1]) if len(estimate.series) else None)
+    if truth is None:
+        truth = _load_truth(args.truth, float(estimate.series.t_s[-1]) if len(estimate.series) else None)
     truth, estimate = in_seconds(truth, estimate, params.tolerance_s)
     params = replace(params, align=resolve_align(params.align, estimate.case))
     result = evaluate(truth.series, estimate.series, params, estimate.t_start_s, estimate.frame_times_s)
