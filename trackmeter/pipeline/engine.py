@@ -477,7 +477,7 @@ class Engine:
                          f"{'automatic' if gone.origin == 'auto' else gone.origin} target {gone.id}: "
                          f"{self._max_targets} is the limit)")
             if self._case == "b" and command.target_id is not None and command.target_id not in self._model:
-                note = " (not a model point: it joins the model once the pose is known)"
+                note += " (not a model point: it joins the model once the pose is known)"
             return CommandReply(True, f"target {result.id} at {result.point_cam[2]:.3f} m{note}", result.id, moved_px)
         if isinstance(command, SelectModelPoints):
             reply = self._select_model_points(frame)

@@ -354,7 +354,6 @@ class Pipeline:
         self._trk_rate = _RateMeter()
 
         self._recorder: _Recorder | None = None
-        self._last_recording = RecordingStats()
         self._source_pass = 1  # a looping source's pass of the frame last tracked (tracking thread)
         self._tracked_since_restart = 0
         self._stopped_recordings: list[RecordingStats] = []  # every one of the run, in order
@@ -470,7 +469,7 @@ class Pipeline:
         with self._record_lock:
             if self._recorder is not None:
                 return self._recorder.stats(True)
-            return self._last_recording
+            return self._stopped_recordings[-1] if self._stopped_recordings else RecordingStats()
 
     def recordings(self) -> tuple[RecordingStats, ...]:
         """Counters of every recording of the run, in the order they were made (the one going
@@ -751,7 +750,6 @@ class Pipeline:
         recorder.close()
         stats = recorder.stats(False)
         with self._record_lock:
-            self._last_recording = stats
             self._stopped_recordings.append(stats)
         return stats
 
