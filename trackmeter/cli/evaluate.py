@@ -117,9 +117,7 @@ def _other_sequence(truth_spec: str, estimate_spec: str) -> str | None:
     the same motion; a truth file outside any sequence folder says nothing of its sequence)."""
     import yaml
 
-    import dataclasses
-
-    from trackmeter.data.sequence import is_sequence_folder, motion_digest, sequence_identity, sequence_motion_digest
+    from trackmeter.data.sequence import is_sequence_folder, sequence_identity, sequence_motion_digest
     from trackmeter.errors import TrackmeterError
     from trackmeter.sources.sim.scenario import load_scenario
 
@@ -140,7 +138,7 @@ def _other_sequence(truth_spec: str, estimate_spec: str) -> str | None:
         except TrackmeterError:
             return None
         truth_scenario = loaded.name  # a file's name: key, as the run recorded it
-        truth_motion = motion_digest(dataclasses.asdict(loaded))
+        truth_motion = loaded.motion_digest()
     else:
         path = Path(truth_spec)
         folder = path if path.is_dir() else path.parent

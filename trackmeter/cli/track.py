@@ -436,9 +436,7 @@ def _source_identity(source: Any) -> dict[str, str]:
     truth of another one: a sequence folder's resolved path and scenario, the simulator's scenario,
     and where known the fingerprint of the scenario's motion (``motion``: two scenario files
     of one name are told apart by it)."""
-    import dataclasses
-
-    from trackmeter.data.sequence import motion_digest, sequence_identity, sequence_motion_digest
+    from trackmeter.data.sequence import sequence_identity, sequence_motion_digest
 
     index = getattr(source, "index", None)
     if index is not None and getattr(index, "root", None) is not None:
@@ -449,7 +447,8 @@ def _source_identity(source: Any) -> dict[str, str]:
     scenario = getattr(sim_scenario, "name", None)
     if not isinstance(scenario, str):
         return {}
-    motion = motion_digest(dataclasses.asdict(sim_scenario)) if dataclasses.is_dataclass(sim_scenario) else None
+    digest = getattr(sim_scenario, "motion_digest", None)
+    motion = digest() if callable(digest) else None
     return {"scenario": scenario, **({"motion": motion} if motion else {})}
 
 

@@ -147,7 +147,7 @@ def check_analysis_directory(directory: str | Path) -> Path:
     Raises:
         TrackmeterError: as :func:`check_report_directory`, or the folder holds other files.
     """
-    return check_report_directory(directory, ANALYSIS_FILES, "an analysis report")
+    return check_report_directory(directory, ANALYSIS_FILES, "an analysis report", beside_a_run=False)
 
 
 def write_analysis(analysis: ErrorAnalysis, summary: dict, out_dir: str | Path) -> list[Path]:

@@ -437,12 +437,12 @@ REPORT_FILES = ("summary.json", "errors.csv", "report.md", "position_error.png",
 
 
 def check_report_directory(directory: str | Path, report_files: Sequence[str] = REPORT_FILES,
-                           report: str = "a report") -> Path:
+                           report: str = "a report", beside_a_run: bool = True) -> Path:
     """``directory`` as a Path when a report can be written there; nothing is created.
 
     The folder is new, empty, or an earlier report's (``report_files[0]`` there: it is replaced,
-    made again from the same files, with whatever the user keeps beside it); evaluate's report
-    (the default ``report_files``) also goes into a run's folder, or one of a run's files.
+    made again from the same files, with whatever the user keeps beside it); with ``beside_a_run``
+    (evaluate's report) also a run's folder, or one holding a run's files.
 
     Raises:
         TrackmeterError: it is a file, a sequence folder (a recording is not mixed with
@@ -452,13 +452,12 @@ def check_report_directory(directory: str | Path, report_files: Sequence[str] = 
     from trackmeter.data.rundir import refuse_other_files, run_folder_files
 
     path = check_output_folder(directory, "reports", "a report folder")
-    evaluate = tuple(report_files) == REPORT_FILES
-    if not ((path / report_files[0]).exists() or (evaluate and (path / "run.yaml").exists())):
+    if not ((path / report_files[0]).exists() or (beside_a_run and (path / "run.yaml").exists())):
         # Not an earlier report's folder (its first file, not any of its names: a lone
         # report.md is the user's) nor a run's: only what a run may hold without run.yaml.
-        ours = run_folder_files(path) if evaluate else frozenset()
+        ours = run_folder_files(path) if beside_a_run else frozenset()
         refuse_other_files(path, ours, f"{report}'s folder is new, empty or an earlier one's"
-                                       + (" or a run's" if evaluate else ""))
+                                       + (" or a run's" if beside_a_run else ""))
     return path
 
 

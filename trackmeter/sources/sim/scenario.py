@@ -29,6 +29,7 @@ from numpy.typing import NDArray
 from trackmeter.core.dynamics import Translation, inertia_tensor
 from trackmeter.core.params import param
 from trackmeter.data.config import build_dataclass, read_yaml_mapping
+from trackmeter.data.sequence import motion_digest
 from trackmeter.errors import TrackmeterError
 from trackmeter.paths import MODELS_DIR, RIGS_DIR, SCENARIOS_DIR, preset, preset_names
 from trackmeter.sources.sim.render import RenderParams
@@ -127,6 +128,10 @@ class Scenario:
             raise TrackmeterError(f"the motion ('velocity_m_s', 'approach_to_m') takes the body origin to z = "
                                   f"{origins[k, 2]:.3g} m at t = {times[k]:.2f} s, at or behind the camera (z is the "
                                   "viewing axis, forward)")
+
+    def motion_digest(self) -> str | None:
+        """The fingerprint of this scenario's motion (:func:`trackmeter.data.sequence.motion_digest`)."""
+        return motion_digest(dataclasses.asdict(self))
 
     def origin_path_m(self) -> tuple[FloatArray, FloatArray]:
         """``(t_s (N,), origin (N,3))``: the body origin in the camera frame, m, at each frame's
