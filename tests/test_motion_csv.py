@@ -214,3 +214,25 @@ def test_a_groundtruth_row_without_a_whole_pose_is_unknown_truth_at_that_time_on
     states.write_text("t,valid,x,y,z,qw,qx,qy,qz\n0,1,0,0,3,1,0,0,0\n0.04,1,,,,,,,\n")
     with pytest.raises(TrackmeterError, match=r"states\.csv:3: a valid \(1\) row without a whole pose"):
         read_motion_csv(states)
+
+
+@pytest.mark.parametrize(
+    "bad_line, message",
+    [
+        ("0.08 0 0 3.5 0 0 0 0", "zero quaternion"),
+        ("0.08 0 nan 3.5 0 0 0 1", "not finite"),
+        ("0.08 0 0 3.5 0 0 0 inf", "not finite"),
+        ("inf 0 0 3.5 0 0 0 1", "not finite"),
+    ],
+)
+def test_a_bad_tum_pose_is_named_by_its_line(tmp_path: Path, bad_line: str, message: str) -> None:
+    """'trajectory has a zero quaternion' did not say where, in a file of thousands of poses
+    (an outside probe). The line is named, as for every other bad TUM line."""
+    from trackmeter.data.trajectory import read_tum
+
+    path = tmp_path / "est.tum"
+    path.write_text("# t tx ty tz qx qy qz qw\n0.0 0 0 3.5 0 0 0 1\n0.04 0 0 3.5 0 0 0 1\n"
+                    f"{bad_line}\n0.12 0 0 3.5 0 0 0 1\n")
+    with pytest.raises(TrackmeterError, match=rf"est\.tum:4: .*{message}") as info:
+        read_tum(path)
+    assert "\n" not in str(info.value)

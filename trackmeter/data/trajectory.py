@@ -7,6 +7,7 @@ scalar-last place in the project); in memory quaternions are ``wxyz``. Poses are
 
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -76,10 +77,16 @@ def read_tum(path: str | Path) -> Trajectory:
         if len(fields) != 8:
             raise TrackmeterError(f"{path}:{number}: expected 8 values 't tx ty tz qx qy qz qw', got {len(fields)}")
         try:
-            rows.append([float(x) for x in fields])
-            line_numbers.append(number)
+            row = [float(x) for x in fields]
         except ValueError:
             raise TrackmeterError(f"{path}:{number}: not a number in {quoted(text, 80)}") from None
+        # Checked here, not only by Trajectory, so that the message names the line.
+        if not all(math.isfinite(x) for x in row):
+            raise TrackmeterError(f"{path}:{number}: a value is not finite in {quoted(text, 80)}")
+        if math.hypot(*row[4:8]) < 1e-9:
+            raise TrackmeterError(f"{path}:{number}: zero quaternion (qx qy qz qw all 0)")
+        rows.append(row)
+        line_numbers.append(number)
     if not rows:
         raise TrackmeterError(f"{path}: no poses in the file")
     if comma_line is not None:
