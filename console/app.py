@@ -1118,6 +1118,7 @@ class Console:
             dropped_line += f" since Restart · {t.frames_dropped} in all"
         state = "paused" if snap.paused else "running"
         source = (f"<b>Source: {escape(snap.source_status)}</b>" if snap.source_status
+                  else "source held: no frame is read while paused" if snap.paused
                   else "source delivering" + (f" · pass {snap.source_pass} (it loops; tracking starts over "
                                               "each pass)" if snap.source_pass > 1 else ""))
         if snap.source_warning:

@@ -285,6 +285,9 @@ def test_status_keeps_its_height_whatever_the_state() -> None:
     # Paused, no snapshot comes to lower the last rates: they are not shown as if still true.
     assert "read – · tracking – (paused)" in texts[3] and "Hz" not in texts[3]
     assert "read 0.0 Hz · tracking 0.0 Hz" in texts[0]
+    # Paused, no frame is read: the source is not "delivering" (an outside console probe).
+    paused = parse(Console._status_html(Snapshot(frame, (), valid, None, Timings(), paused=True))).text
+    assert "delivering" not in paused and "source held: no frame is read while paused" in paused
 
 
 def test_dropped_frames_are_counted_from_the_last_restart_with_the_total_beside() -> None:
