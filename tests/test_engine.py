@@ -1075,3 +1075,36 @@ def test_the_console_offers_every_selection_method() -> None:
     from trackmeter.core.features import METHODS
 
     assert set(AUTO_METHODS) == set(METHODS)
+
+
+def test_a_body_moving_out_of_view_is_said_to_have_left_it(estec_rig, monkeypatch) -> None:
+    """A body drifting out of the image lost every point with "only 0 model points measured":
+    the same words as an occlusion, while the operator's remedy differs (move the chaser, not
+    wait). The body carried on from its last pose at its last velocities says which it is."""
+    import tests.test_engine as here
+
+    monkeypatch.setattr(here, "V", np.array([0.6, 0.0, 0.0]))  # m/s across the view
+    engine, tracker, pts = make_engine(estec_rig, noise=False)
+    w, h = estec_rig.image_size
+    reasons = []
+    for k in range(0, 200):
+        T = true_pose(k * DT)
+        uv_l, uv_r = estec_rig.project(pts @ T[:3, :3].T + T[:3, 3])
+        inside = np.all((uv_l >= 0) & (uv_l <= [w - 1, h - 1]) & (uv_r >= 0) & (uv_r <= [w - 1, h - 1]), axis=1)
+        tracker.force_lost = {f"m{i}" for i in np.flatnonzero(~inside)}
+        _, pose, _ = engine.process(frame_at(k))
+        reasons.append((int(inside.sum()), pose.valid and not pose.coasting_s, pose.reason or ""))
+    gone = [r for n, measured, r in reasons if n < 3]
+    assert len(gone) > 20 and any(measured for _, measured, _ in reasons)
+    assert all("last seen moving out of view" in r for r in gone), gone[:3]
+    assert not any("out of view" in r for n, _, r in reasons if n >= 3)
+
+
+def test_points_hidden_in_view_are_not_said_to_be_out_of_view(estec_rig) -> None:
+    engine, tracker, _ = make_engine(estec_rig, noise=False)
+    run(engine, range(60))
+    tracker.force_lost = set(tracker.active)
+    out = run(engine, range(60, 200))
+    assert all(not pose.valid or pose.coasting_s for _, pose, _ in out)
+    assert not any("out of view" in (pose.reason or "") for _, pose, _ in out)
+    assert any("only 0 model points measured" in (pose.reason or "") for _, pose, _ in out)

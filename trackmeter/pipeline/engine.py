@@ -361,6 +361,7 @@ class Engine:
         self._stored: dict[str, tuple[Any, tuple[FloatArray, FloatArray] | None]] = {}
         self._pose_when_seen: dict[str, tuple[FloatArray, FloatArray]] = {}
         self._coast: tuple[float, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray] | None = None
+        self._left_view = False  # the body was last seen moving out of view (_out_of_view)
         # Coasting output: the last output pose with settled rates (t, R, p, cov, v_cam, omega_body),
         # whether the last output was coasted, and the offset being blended out after a coast.
         self._coast_out: tuple[float, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray] | None = None
@@ -720,6 +721,7 @@ class Engine:
         self._move_history()
         v, w = rates if rates is not None else (np.full(3, np.nan), np.full(3, np.nan))
         self._coast = (frame.t_s, R, t, cov, np.asarray(v, float), np.asarray(w, float))
+        self._left_view = False
         R_f, t_f = self._filter.update(frame.t_s, R, t, v if rates else None, w if rates else None)
         if not self._velocity.settled:  # provisional rates steer the filter but are not reported
             v, w = np.full(3, np.nan), np.full(3, np.nan)
@@ -933,7 +935,11 @@ class Engine:
         if len(ids) < self.pose_params.min_points:
             # Case (a)'s "model" is its body frame's tracked points: no model to the operator.
             points = "model points" if self._case != "a" else "of the body frame's points"
-            return None, f"only {len(ids)} {points} measured ({self.pose_params.min_points} needed)"
+            reason = f"only {len(ids)} {points} measured ({self.pose_params.min_points} needed)"
+            if self._out_of_view(frame.t_s):
+                # Not an occlusion to wait out: the chaser must turn or move to see it again.
+                reason += ": the body was last seen moving out of view"
+            return None, reason
         b = np.array([self._model[i].b for i in ids])
         Cb = np.array([self._model_cov(self._model[i], frame.t_s) for i in ids])
         P = np.array([measured[i].point_cam for i in ids])
@@ -1317,6 +1323,36 @@ class Engine:
         grow = np.concatenate([np.full(3, (p.coast_sigma_m_per_s * dt) ** 2), np.full(3, (p.coast_sigma_rad_per_s * dt) ** 2)])
         return R, p0 + v * dt, cov0 + np.diag(grow)
 
+    def _out_of_view(self, t_s: float) -> bool:
+        """Whether the body was last seen moving out of view: carried on from its last measured
+        pose (:meth:`_carried_pose`, within ``coast_max_s``), it had fewer than ``min_points`` of
+        its model points in front of the rig and inside both images, so its points went from
+        view, not hidden or lost by the tracker. Once true it holds until the next measured
+        pose: the carried pose is no evidence of where the body is later. Visibility is not
+        asked (a point on the far side counts as in view), so the answer errs toward "in view"."""
+        if self._left_view:
+            return True
+        carried = self._carried_pose(t_s)
+        if carried is None or not self._model:
+            return False
+        R, t, _ = carried
+        x_cam = np.array([m.b for m in self._model.values()]) @ R.T + t
+        self._left_view = int(np.count_nonzero(self._in_view(x_cam, 0.0))) < self.pose_params.min_points
+        return self._left_view
+
+    def _in_view(self, x_cam: FloatArray, margin_px: float) -> NDArray[np.bool_]:
+        """(N,) whether each camera-frame point (N,3) lies in front of the rig and projects at
+        least ``margin_px`` inside both images."""
+        x_cam = np.asarray(x_cam, float).reshape(-1, 3)
+        front = x_cam[:, 2] > 0
+        inside = np.zeros(len(x_cam), bool)
+        if np.any(front):
+            w, h = self.rig.image_size
+            low, high = np.array([margin_px, margin_px]), np.array([w - 1 - margin_px, h - 1 - margin_px])
+            uv_l, uv_r = self.rig.project(x_cam[front])
+            inside[front] = np.all((uv_l >= low) & (uv_l <= high) & (uv_r >= low) & (uv_r <= high), axis=1)
+        return inside
+
     def _coast_state(self, t_s: float) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, float] | None:
         """The last output pose carried to ``t_s`` on the motion model
         (:func:`trackmeter.core.dynamics.coast_pose`): ``(R, p, v_cam, cov, dt)``, or None
@@ -1524,8 +1560,6 @@ class Engine:
         # The attempts (at most max_recoveries_per_frame, in that order) do not depend on their
         # outcomes: choose them first, then run each stretch of consecutive template re-locks as
         # one batched call (Tracker.relock_many: one search, fit and stereo match for all).
-        w, h = self.rig.image_size
-        margin = p.recovery_margin_px
         chosen: list[tuple[str, bool, FloatArray, tuple[float, float]]] = []
         for pid, is_target in todo:
             if len(chosen) >= p.max_recoveries_per_frame:
@@ -1534,13 +1568,9 @@ class Engine:
             if last is not None and frame.index - last < p.recovery_interval_frames:
                 continue
             x_cam = R @ self._model[pid].b + t
-            if x_cam[2] <= 0:
+            if not self._in_view(x_cam, p.recovery_margin_px)[0]:
                 continue
-            uv_l, uv_r = self.rig.project(x_cam[None])
-            uv_l, uv_r = uv_l[0], uv_r[0]
-            if not (margin <= uv_l[0] <= w - 1 - margin and margin <= uv_l[1] <= h - 1 - margin
-                    and margin <= uv_r[0] <= w - 1 - margin and margin <= uv_r[1] <= h - 1 - margin):
-                continue
+            uv_l = self.rig.project(x_cam[None])[0][0]
             self._last_attempt[pid] = frame.index
             if pid in stale:
                 self.tracker.remove_target(pid)
