@@ -158,3 +158,26 @@ def test_candidates_the_measurement_refuses_are_counted_by_its_reason_not_as_off
     assert tr.stats["auto_added"] == 0
     assert tr.auto_refusals[REASON_UNCERTAIN] > 0, dict(tr.auto_refusals)
     assert tr.auto_refusals[OFF_THE_BODY] == 0, dict(tr.auto_refusals)
+
+
+@pytest.mark.parametrize("margin_px, black_image, reason", [
+    (3, True, "nothing lit"),
+    (400, False, "features.target_margin_px"),
+])
+def test_an_auto_selection_with_no_selectable_pixel_says_why(estec_rig, margin_px: int, black_image: bool,
+                                                             reason: str) -> None:
+    """`--auto` with `features.target_margin_px: 400` (an outside probe) said "no candidate point
+    (black space, no texture, or no unique stereo match)" of a lit, textured target: the margin
+    the patch must keep from black space had left no pixel to select, and nothing named it."""
+    from trackmeter.core.tracking import NO_CANDIDATE
+
+    scene = PlaneScene(estec_rig, pose_translating(3.5, (0.0, 0.0, 0.0)), noise_sigma=1.0)
+    frame = scene.frame(1)
+    if black_image:
+        frame = dataclasses.replace(frame, left=np.zeros_like(frame.left), right=np.zeros_like(frame.right))
+    tr = Tracker(estec_rig, TrackerParams(), FeatureParams(target_margin_px=margin_px), MeasureParams())
+    tr.set_auto(True, count=8, method="gabor")
+    tr.step(frame)
+    assert tr.stats["auto_added"] == 0
+    said = [r for r in tr.auto_refusals if reason in r]
+    assert said and NO_CANDIDATE not in tr.auto_refusals, dict(tr.auto_refusals)

@@ -355,6 +355,24 @@ def target_mask(image: NDArray, params: FeatureParams) -> NDArray[np.uint8]:
     return mask
 
 
+#: Why automatic selection found nothing, where the image itself leaves no pixel selectable
+#: (:func:`nothing_selectable_reason`).
+NOTHING_LIT = "nothing lit: no pixel above features.black_level, nor above the sky's noise by features.black_snr"
+NO_ROOM = ("no room for a patch on the lit target: it is narrower than the patch plus features.target_margin_px "
+           "on each side, away from features.border_px")
+
+
+def nothing_selectable_reason(image: NDArray, params: FeatureParams) -> str | None:
+    """Why no pixel of ``image`` is selectable (:data:`NOTHING_LIT` or :data:`NO_ROOM`), or None
+    where :func:`target_mask` leaves some. Asked only once a selection came back empty, so that
+    a setting that leaves nothing (``target_margin_px: 400``) is named instead of taken for
+    black space or missing texture."""
+    if target_mask(image, params).any():
+        return None
+    lit = bright_pixels(image, params).any() or (params.black_snr > 0 and bright_pixels(image, params, snr=True).any())
+    return NO_ROOM if lit else NOTHING_LIT
+
+
 def erode_square(mask: NDArray[np.uint8], radius_px: int) -> NDArray[np.uint8]:
     """``mask`` (H,W) eroded by the (2r+1) x (2r+1) square, outside the image counted as 0: a
     pixel stays only where the whole square around it lies inside the image on non-zero pixels.

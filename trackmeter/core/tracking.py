@@ -45,7 +45,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.stats import chi2
 
 from trackmeter.core import kalman as kf_mod
-from trackmeter.core.features import FeatureParams, select_features
+from trackmeter.core.features import FeatureParams, nothing_selectable_reason, select_features
 from trackmeter.core.kalman import KalmanParams
 from trackmeter.core.matching import MeasureParams, measure_points
 from trackmeter.core.params import param
@@ -1524,7 +1524,7 @@ class Tracker:
         # Ask for spares: the measurement may still refuse some (e.g. disparity too uncertain).
         pts = select_features(frame.left, frame.right, self.rig, 3 * need, self._auto_method, fp, exclude)
         if len(pts) == 0:
-            self.auto_refusals[NO_CANDIDATE] += 1
+            self.auto_refusals[nothing_selectable_reason(frame.left, fp) or NO_CANDIDATE] += 1
             return
         pts = np.asarray(pts, float).reshape(-1, 2)
         # One batched measurement of all the candidates (most of its cost is per call).
