@@ -131,10 +131,11 @@ PLOT_PADDING_PX = (10, 24, 0, 0)
 #: line wrapped to two and the pose's to three (:data:`STATUS_CLAMP_LINES`), the six-row table
 #: and the attitude error, at line-height 1.45.
 STATUS_HEIGHT_EM = 27.0
-#: Lines the source's line (its warning) and the pose's line (its reason) may take in the live
-#: numbers before they are cut with an ellipsis (the whole text shows on hover): a long warning
-#: (six images skipped, each named) took the box's height and hid the pose and rates below it.
-STATUS_CLAMP_LINES = {"source": 2, "pose": 3}
+#: Lines the source's line (its warning), the targets' line (why automatic selection started
+#: none) and the pose's line (its reason) may take in the live numbers before they are cut with
+#: an ellipsis (the whole text shows on hover): a long warning (six images skipped, each named)
+#: took the box's height and hid the pose and rates below it.
+STATUS_CLAMP_LINES = {"source": 2, "targets": 2, "pose": 3}
 #: How often the publisher hands the C heap's free pages back to the system (see :func:`release_free_heap`).
 TRIM_EVERY_S = 10.0
 
@@ -1131,7 +1132,9 @@ class Console:
                  f"read {t.acquisition_hz:.1f} Hz · tracking {t.tracking_hz:.1f} Hz",
                  f"latency {t.latency_ms:.0f} ms · step {t.step_ms:.0f} ms",
                  dropped_line,
-                 f"targets: <b>{n_track} tracking</b>, {n_lost} lost"]
+                 f"targets: <b>{n_track} tracking</b>, {n_lost} lost" + (
+                     f" · auto started none: {escape(snap.auto_shortfall)}"
+                     if snap.auto_enabled and snap.auto_shortfall else "")]
         pose = snap.pose
         rows: dict[str, Any] = dict.fromkeys(("p [m]", "rotvec [°]", "v [mm/s]", "ω [°/s]", "error [mm]"))
         if pose.valid:
@@ -1163,8 +1166,8 @@ class Console:
             return (f'<div style="display:-webkit-box;-webkit-box-orient:vertical;overflow:hidden;'
                     f'-webkit-line-clamp:{STATUS_CLAMP_LINES[kind]}" title="{text}">{html}</div>')
 
-        blocks = [clamped(line, "source") if i == 1 else clamped(line, "pose") if i == len(lines) - 1
-                  else f"<div>{line}</div>" for i, line in enumerate(lines)]
+        kinds = {1: "source", len(lines) - 2: "targets", len(lines) - 1: "pose"}
+        blocks = [clamped(line, kinds[i]) if i in kinds else f"<div>{line}</div>" for i, line in enumerate(lines)]
         return (f'<div style="height:{STATUS_HEIGHT_EM}em;overflow-y:auto;font-size:0.875rem;'
                 f'line-height:1.45;padding:0 0.75rem">' + "".join(blocks)
                 + '<table style="border-collapse:collapse;font-variant-numeric:tabular-nums">'

@@ -285,6 +285,15 @@ def test_status_keeps_its_height_whatever_the_state() -> None:
     # Paused, no snapshot comes to lower the last rates: they are not shown as if still true.
     assert "read – · tracking – (paused)" in texts[3] and "Hz" not in texts[3]
     assert "read 0.0 Hz · tracking 0.0 Hz" in texts[0]
+    # Automatic selection on and its last top-up started nothing: the targets line says why,
+    # cut to two lines (the whole in its title) so that the box keeps its height.
+    short = Console._status_html(Snapshot(frame, (), valid, None, Timings(), auto_enabled=True,
+                                          auto_shortfall="nothing lit: no pixel above features.black_level"))
+    assert "targets: <b>0 tracking</b>, 0 lost · auto started none: nothing lit: no pixel above" in short
+    assert "-webkit-line-clamp:2" in short[:short.index("auto started none")].rsplit("<div", 1)[1]
+    for off in (Snapshot(frame, (), valid, None, Timings(), auto_shortfall="nothing lit"),
+                Snapshot(frame, (), valid, None, Timings(), auto_enabled=True)):
+        assert "auto started none" not in Console._status_html(off)
     # Paused, no frame is read: the source is not "delivering" (an outside console probe).
     paused = parse(Console._status_html(Snapshot(frame, (), valid, None, Timings(), paused=True))).text
     assert "delivering" not in paused and "source held: no frame is read while paused" in paused

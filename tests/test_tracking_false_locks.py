@@ -181,3 +181,11 @@ def test_an_auto_selection_with_no_selectable_pixel_says_why(estec_rig, margin_p
     assert tr.stats["auto_added"] == 0
     said = [r for r in tr.auto_refusals if reason in r]
     assert said and NO_CANDIDATE not in tr.auto_refusals, dict(tr.auto_refusals)
+    # The last top-up's shortfall is kept for the console (an operator ticking "Automatic
+    # selection" saw nothing happen, and nothing said why) until a top-up starts a target.
+    assert tr.auto_shortfall == said[0]
+    tr.features = FeatureParams()
+    tr.step(scene.frame(1 + tr.params.auto_interval_frames))
+    assert tr.stats["auto_added"] > 0 and tr.auto_shortfall is None
+    tr.set_auto(False)
+    assert tr.auto_shortfall is None

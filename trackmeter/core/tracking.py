@@ -379,6 +379,10 @@ class Tracker:
         # Why automatic selection's candidates did not become targets (reason -> count): when it
         # starts none at all (images too dark, no texture), the run can say why.
         self.auto_refusals: collections.Counter[str] = collections.Counter()
+        # Why the last top-up that wanted targets started none (its most frequent reason), None
+        # once one starts a target or selection is off: an operator's "Automatic selection"
+        # that does nothing says why in the console.
+        self.auto_shortfall: str | None = None
         self._motion_gate = float(chi2.ppf(params.motion_gate_probability, 3))
         # The rigid motion (R (3,3), t (3,)) from the tracker's body frame to the camera at the
         # last step, fitted to the targets' first points (:meth:`_body_drift`); None: unknown.
@@ -413,6 +417,8 @@ class Tracker:
         if count is not None and not 1 <= int(count) <= self.params.max_targets:
             raise TrackmeterError(f"automatic target count must be in [1, {self.params.max_targets}], got {count}")
         self._auto = bool(enabled)
+        if not self._auto:
+            self.auto_shortfall = None
         if count is not None:
             self._auto_count = int(count)
         if method is not None:
@@ -1517,6 +1523,7 @@ class Tracker:
         alive = sum(1 for t in self._targets.values() if t.status != "lost")
         need = min(self._auto_count - alive, p.max_targets - len(self._targets))
         if need <= 0:
+            self.auto_shortfall = None
             return
         exclude = np.array([t.uv for t in self._targets.values()]).reshape(-1, 2)
         fp = self.features
@@ -1524,7 +1531,8 @@ class Tracker:
         # Ask for spares: the measurement may still refuse some (e.g. disparity too uncertain).
         pts = select_features(frame.left, frame.right, self.rig, 3 * need, self._auto_method, fp, exclude)
         if len(pts) == 0:
-            self.auto_refusals[nothing_selectable_reason(frame.left, fp) or NO_CANDIDATE] += 1
+            self.auto_shortfall = nothing_selectable_reason(frame.left, fp) or NO_CANDIDATE
+            self.auto_refusals[self.auto_shortfall] += 1
             return
         pts = np.asarray(pts, float).reshape(-1, 2)
         # One batched measurement of all the candidates (most of its cost is per call).
@@ -1537,19 +1545,22 @@ class Tracker:
                 matched = self._first_matches(fc, pts[rows], np.array([meas[i].disparity_px for i in rows]))
                 firsts = {i: (matched, k) for k, i in enumerate(rows)}
         added = 0
+        refused: collections.Counter[str] = collections.Counter()
         for i, (uv, m) in enumerate(zip(pts, meas)):
             if added >= need or len(self._targets) >= p.max_targets:
                 break
             # A refused measurement has no disparity (NaN, outside any range): _create gives its reason.
             if m.ok and rng is not None and not rng[0] <= m.disparity_px <= rng[1]:
-                self.auto_refusals[OFF_THE_BODY] += 1
+                refused[OFF_THE_BODY] += 1
                 continue  # a false stereo match: not at the body's depth
             made = self._create(frame, uv, m, None, "auto", firsts.get(i) if firsts else None)
             if isinstance(made, TargetState):
                 added += 1
                 self.stats["auto_added"] += 1
             else:
-                self.auto_refusals[made.reason] += 1
+                refused[made.reason] += 1
+        self.auto_refusals.update(refused)
+        self.auto_shortfall = refused.most_common(1)[0][0] if added == 0 and refused else None
 
     def auto_disparity_range(self, candidates_px: Sequence[float] = ()) -> tuple[float, float] | None:
         """Disparities (low, high), rectified px, a new automatic point's measured disparity

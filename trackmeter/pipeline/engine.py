@@ -291,6 +291,12 @@ class Engine:
         return str(self.tracker.auto[2])
 
     @property
+    def auto_shortfall(self) -> str | None:
+        """Why automatic selection's last top-up started no target (``Tracker.auto_shortfall``)."""
+        why = getattr(self.tracker, "auto_shortfall", None)
+        return str(why) if why else None
+
+    @property
     def max_targets(self) -> int:
         """Most targets tracked at once (``tracker.max_targets``): automatic ones included."""
         return self._max_targets

@@ -799,6 +799,7 @@ class Pipeline:
             auto_enabled=bool(getattr(engine, "auto_enabled", False)),
             auto_count=int(getattr(engine, "auto_count", 0)),
             auto_method=str(getattr(engine, "auto_method", "gabor")),
+            auto_shortfall=getattr(engine, "auto_shortfall", None),
             filter_cutoff_hz=float(getattr(engine, "filter_cutoff_hz", float("nan"))),
             paused=paused,
             recording=recording,

@@ -102,6 +102,7 @@ class Snapshot:
             without truth or without a pose.
         timings: rates and latencies.
         auto_enabled, auto_count, auto_method: automatic feature selection settings.
+        auto_shortfall: why its last top-up that wanted targets started none, None otherwise.
         filter_cutoff_hz: the output filter's cutoff, Hz (NaN when the engine has none).
         paused, recording: pipeline state.
         source_status: None while the source delivers; else what went wrong or "ended".
@@ -122,6 +123,7 @@ class Snapshot:
     auto_enabled: bool = False
     auto_count: int = 0
     auto_method: str = "gabor"
+    auto_shortfall: str | None = None
     filter_cutoff_hz: float = float("nan")
     paused: bool = False
     recording: bool = False
