@@ -187,5 +187,11 @@ def test_an_auto_selection_with_no_selectable_pixel_says_why(estec_rig, margin_p
     tr.features = FeatureParams()
     tr.step(scene.frame(1 + tr.params.auto_interval_frames))
     assert tr.stats["auto_added"] > 0 and tr.auto_shortfall is None
+    # A top-up that starts none beside live automatic targets is no news.
+    before = sum(tr.auto_refusals.values())
+    tr.features = FeatureParams(target_margin_px=400)
+    tr.set_auto(True, count=tr.params.max_targets)
+    tr.step(scene.frame(1 + 2 * tr.params.auto_interval_frames))
+    assert sum(tr.auto_refusals.values()) > before and tr.auto_shortfall is None
     tr.set_auto(False)
     assert tr.auto_shortfall is None

@@ -379,9 +379,9 @@ class Tracker:
         # Why automatic selection's candidates did not become targets (reason -> count): when it
         # starts none at all (images too dark, no texture), the run can say why.
         self.auto_refusals: collections.Counter[str] = collections.Counter()
-        # Why the last top-up that wanted targets started none (its most frequent reason), None
-        # once one starts a target or selection is off: an operator's "Automatic selection"
-        # that does nothing says why in the console.
+        # Why the last top-up started no target while no automatic target is alive (its most
+        # frequent reason), else None: an operator's "Automatic selection" that does nothing
+        # says why in the console (a top-up that adds none beside live ones is no news).
         self.auto_shortfall: str | None = None
         self._motion_gate = float(chi2.ppf(params.motion_gate_probability, 3))
         # The rigid motion (R (3,3), t (3,)) from the tracker's body frame to the camera at the
@@ -1531,8 +1531,9 @@ class Tracker:
         # Ask for spares: the measurement may still refuse some (e.g. disparity too uncertain).
         pts = select_features(frame.left, frame.right, self.rig, 3 * need, self._auto_method, fp, exclude)
         if len(pts) == 0:
-            self.auto_shortfall = nothing_selectable_reason(frame.left, fp) or NO_CANDIDATE
-            self.auto_refusals[self.auto_shortfall] += 1
+            why = nothing_selectable_reason(frame.left, fp) or NO_CANDIDATE
+            self.auto_refusals[why] += 1
+            self._note_shortfall(why)
             return
         pts = np.asarray(pts, float).reshape(-1, 2)
         # One batched measurement of all the candidates (most of its cost is per call).
@@ -1560,7 +1561,12 @@ class Tracker:
             else:
                 refused[made.reason] += 1
         self.auto_refusals.update(refused)
-        self.auto_shortfall = refused.most_common(1)[0][0] if added == 0 and refused else None
+        self._note_shortfall(refused.most_common(1)[0][0] if added == 0 and refused else None)
+
+    def _note_shortfall(self, why: str | None) -> None:
+        """Keep ``why`` as :attr:`auto_shortfall` while no automatic target is alive."""
+        alive = any(t.origin == "auto" and t.status != "lost" for t in self._targets.values())
+        self.auto_shortfall = why if not alive else None
 
     def auto_disparity_range(self, candidates_px: Sequence[float] = ()) -> tuple[float, float] | None:
         """Disparities (low, high), rectified px, a new automatic point's measured disparity
