@@ -121,7 +121,7 @@ class Runner:
         elif "not built yet" in proc.stderr:
             step.status, step.reason = "missing", last.strip()
         else:
-            step.status, step.reason = "failed", f"exit {proc.returncode}: {last.strip()[:200]}"
+            step.status, step.reason = "failed", short_reason(f"exit {proc.returncode}: {last.strip()}", name)
         print(f"[reproduce] {step.status:<6} {name} ({step.seconds:.1f} s){': ' + step.reason if step.reason else ''}",
               file=sys.stderr, flush=True)
         return step
@@ -142,6 +142,15 @@ class Runner:
                 pass
         step.status, step.reason = "failed", "printed no JSON"
         return None
+
+
+def short_reason(text: str, step_name: str, limit: int = 200) -> str:
+    """``text`` for a table cell: whole up to ``limit`` characters, else cut at the last word
+    before it and marked, with the log that holds it all (``logs/<step>.log``)."""
+    if len(text) <= limit:
+        return text
+    cut = text[:limit].rsplit(" ", 1)[0].rstrip(" ;:,(")
+    return f"{cut} … (the whole message: logs/{step_name}.log)"
 
 
 def trackmeter(*args: str) -> list[str]:

@@ -147,3 +147,17 @@ def test_benchmark_json_holds_one_number_per_figure(capsys):
     # a figure that was not finite reads as missing in the table, never as a number
     rows = benchmark_rows({"pipeline": {"offline_fps": None}}, Step("b", [], status="ok"), ["pipeline"], [])
     assert any("| track on a recorded sequence, 16 targets | — | — |" in r for r in rows)
+
+
+def test_a_long_failure_is_cut_at_a_word_and_points_to_its_log(tmp_path):
+    """The fast_tumble row's reason stopped mid-word at 200 characters, its parenthesis open
+    (an outside probe): it is cut at a word, marked, and the log that holds it all named."""
+    from benchmarks.reproduce import short_reason
+
+    words = "no valid pose in the run (175 of its 500 frames: case (b): binding the model: 0 of its points "
+    text = "exit 2: trackmeter evaluate: error: " + words * 4 + "located)"
+    cut = short_reason(text, "evaluate_fast_tumble_b", limit=200)
+    assert len(cut) < 260 and cut.endswith("… (the whole message: logs/evaluate_fast_tumble_b.log)")
+    kept = cut.split(" … ")[0]
+    assert text.startswith(kept) and text[len(kept)] == " "
+    assert short_reason("exit 2: short", "x", limit=200) == "exit 2: short"
