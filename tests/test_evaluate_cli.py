@@ -117,6 +117,33 @@ def test_a_run_dir_evaluates_the_poses_of_its_trajectory_tum(capsys, sequence_an
     assert list(from_tum) == list(from_run) == list(from_csv)
 
 
+@pytest.mark.parametrize("damage", ["cut", "removed"])
+def test_a_track_runs_trajectory_that_cannot_be_read_is_said_to_leave_poses_out(capsys, sequence_and_run, tmp_path,
+                                                                               damage: str) -> None:
+    """A run folder whose trajectory.tum was cut short (its last line half written) evaluated
+    without a word, 10 poses fewer and other figures than the intact folder (an outside probe):
+    the poses only that file declares are left out, and now it says so."""
+    truth, seq, _ = sequence_and_run
+    n = len(truth)
+    pending = (np.arange(n) >= 20) & (np.arange(n) < 25)
+    v = np.where(pending[:, None], np.nan, truth.velocity_cam_m_s)
+    est = MotionSeries(truth.t_s, ~pending, truth.position_m, truth.quat_wxyz, v,
+                       np.where(pending[:, None], np.nan, truth.omega_body_rad_s))
+    run = tmp_path / "run"
+    write_states_csv(run / "states.csv", est)
+    tum = write_tum(run / "trajectory.tum", Trajectory(est.t_s, est.position_m, est.quat_wxyz))
+    (run / "run.yaml").write_text("status: complete\n")
+    if damage == "cut":
+        tum.write_bytes(tum.read_bytes()[:-20])
+    else:
+        tum.unlink()
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
+    assert code == 0, err
+    assert json.loads(out)["matched"] == n - 5
+    assert "trajectory.tum" in err and "the 5 poses logged before the rates were known" in err, err
+    assert "left out" in err and len(err.strip().splitlines()) == 1, err
+
+
 def test_a_states_csv_without_a_trajectory_counts_only_its_valid_rows(capsys, sequence_and_run, tmp_path):
     # Another producer may write a held or predicted pose in its valid-0 rows, with the rates
     # empty: without a trajectory.tum that lists those poses as valid, they are not scored.
@@ -131,7 +158,7 @@ def test_a_states_csv_without_a_trajectory_counts_only_its_valid_rows(capsys, se
     write_states_csv(run / "states.csv", est)
     for estimate in (run, run / "states.csv"):
         code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(estimate), "--json")
-        assert code == 0, err
+        assert code == 0 and err == "", err  # not a track run (no run.yaml): nothing is missing
         s = json.loads(out)
         assert s["matched"] == n - 10
         assert s["position_m"]["x"]["max"] == pytest.approx(0.002, abs=TUM_EPS)

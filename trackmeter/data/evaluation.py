@@ -88,7 +88,7 @@ def _rows_with_rates(series: MotionSeries) -> np.ndarray:
     return _finite_rows(series.velocity_cam_m_s) & _finite_rows(series.omega_body_rad_s)
 
 
-def _poses_of_run(states: MotionSeries, declared_t_s: np.ndarray) -> MotionSeries:
+def _poses_of_run(states: MotionSeries, declared_t_s: np.ndarray, undeclared_why: str | None = None) -> MotionSeries:
     """The rows of a run's ``states.csv`` that carry a valid pose, all marked valid.
 
     Those are the valid rows, and the rows a ``track`` run writes with valid 0 while its rates
@@ -96,6 +96,8 @@ def _poses_of_run(states: MotionSeries, declared_t_s: np.ndarray) -> MotionSerie
     valid poses (``declared_t_s``), so the two files evaluate alike. Any other valid-0 row is
     left out, whatever it holds (another producer may write a held or predicted pose there).
     The rates of the pose-only rows stay NaN (left out of the velocity figures).
+    ``undeclared_why``: why a track run's ``trajectory.tum`` could not declare its poses
+    (:func:`_declared_pose_times`); where pose-only rows are then left out, that is warned.
     """
     pose = _finite_rows(states.position_m) & _finite_rows(states.quat_wxyz)
     pose_only = pose & ~states.valid & ~_rows_with_rates(states)
@@ -105,6 +107,9 @@ def _poses_of_run(states: MotionSeries, declared_t_s: np.ndarray) -> MotionSerie
         declared[np.flatnonzero(pose_only)[a.index_est]] = True
         pose_only &= declared
     else:
+        if np.any(pose_only) and undeclared_why:
+            warnings.warn(f"{undeclared_why}: the {int(np.count_nonzero(pose_only))} poses logged before the rates "
+                          "were known (states.csv valid 0, declared poses only there) are left out", stacklevel=2)
         pose_only[:] = False
     keep = states.valid | pose_only
     with_rates = states.valid[keep][:, None]
@@ -114,16 +119,18 @@ def _poses_of_run(states: MotionSeries, declared_t_s: np.ndarray) -> MotionSerie
                         {k: a[keep] for k, a in states.extra.items()})
 
 
-def _declared_pose_times(run_dir: Path) -> np.ndarray:
-    """Times (s) of the valid poses the run's ``trajectory.tum`` lists; none when it has none
-    or it cannot be read."""
+def _declared_pose_times(run_dir: Path) -> tuple[np.ndarray, str | None]:
+    """Times (s) of the valid poses the run's ``trajectory.tum`` lists, and why none could be
+    read where a track run (its ``run.yaml`` beside) should have them: the file is missing or
+    does not read (cut short by a full disk, edited). Another producer's folder without one
+    has nothing missing."""
     tum = run_dir / "trajectory.tum"
     if not tum.is_file():
-        return np.zeros(0)
+        return np.zeros(0), (f"{tum}: missing beside the run's run.yaml" if (run_dir / "run.yaml").is_file() else None)
     try:
-        return read_tum(tum).t_s
-    except TrackmeterError:
-        return np.zeros(0)
+        return read_tum(tum).t_s, None
+    except TrackmeterError as exc:
+        return np.zeros(0), f"{exc} (the file is not read)"
 
 
 def _with_rates_from(series: MotionSeries, csv_path: Path) -> MotionSeries | None:
@@ -236,7 +243,7 @@ def _load_estimate(path: Path) -> LoadedMotion:
         if (path / "states.csv").is_file():
             full = read_motion_csv(path / "states.csv")
             t_start, frames = float(full.t_s[0]), full.t_s.copy()
-            s = _poses_of_run(full, _declared_pose_times(path))
+            s = _poses_of_run(full, *_declared_pose_times(path))
             if len(s) == 0:
                 raise TrackmeterError(f"{path / 'states.csv'}: no valid pose in the run{_why_no_valid_pose(path)}")
             return LoadedMotion(s, str(path / "states.csv"), bool(np.any(_rows_with_rates(s))), t_start,
@@ -251,7 +258,7 @@ def _load_estimate(path: Path) -> LoadedMotion:
     if _looks_like_motion_csv(path):
         full = read_motion_csv(path)
         t_start, frames = float(full.t_s[0]), full.t_s.copy()
-        s = _poses_of_run(full, _declared_pose_times(path.parent))
+        s = _poses_of_run(full, *_declared_pose_times(path.parent))
         without_rates = _valid_rows_without_rates(full)
     else:
         s = MotionSeries.from_trajectory(read_tum(path))
