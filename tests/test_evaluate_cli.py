@@ -132,7 +132,7 @@ def test_a_track_runs_trajectory_that_cannot_be_read_is_said_to_leave_poses_out(
     run = tmp_path / "run"
     write_states_csv(run / "states.csv", est)
     tum = write_tum(run / "trajectory.tum", Trajectory(est.t_s, est.position_m, est.quat_wxyz))
-    (run / "run.yaml").write_text("status: complete\n")
+    (run / "run.yaml").write_text("status: complete\nsource: {case: b}\n")
     if damage == "cut":
         tum.write_bytes(tum.read_bytes()[:-20])
     else:
@@ -470,7 +470,10 @@ def test_a_case_b_run_or_one_of_unknown_case_is_compared_as_it_is_by_default(cap
     # The run's own frame (30 deg off) is not taken for the truth's in silence where the case
     # is unknown (a bare trajectory, a lost run.yaml); a case (b) run's frame is the model's.
     if s["settings"]["case"] is None:
-        assert "off by 31 deg (RMS)" in err and "--align body" in err and err.count("\n") == 1
+        # (and a run.yaml that does not read is named, with why the case is unknown)
+        unreadable = run_yaml is not None
+        assert "off by 31 deg (RMS)" in err and "--align body" in err and err.count("\n") == 1 + unreadable, err
+        assert ("run.yaml: not readable as YAML" in err) == unreadable
     else:
         assert err == "", err
 
@@ -884,3 +887,23 @@ def test_a_sim_truth_carries_the_motion_on_over_a_longer_run(capsys, tmp_path) -
     a, b = json.loads(out_sim), json.loads(out_seq)
     assert a["matched"] == b["matched"] > 30 and a["unmatched"] == b["unmatched"]
     assert a["position_m"]["norm"]["max"] == pytest.approx(b["position_m"]["norm"]["max"], abs=1e-9)
+
+
+@pytest.mark.parametrize("text, said", [
+    ("status: [unclosed\n", "not readable as YAML"),
+    ("", "not a run's record"),
+    ("- a\n", "not a run's record"),
+    ("status: complete\nsource: {case: z}\n", "no pose case"),
+])
+def test_a_run_yaml_that_says_no_case_is_warned_about(capsys, sequence_and_run, text: str, said: str) -> None:
+    """A broken run.yaml was ignored without a word: --align auto then compared a case-(a)
+    run without aligning and reported a 117 deg attitude error (an outside probe)."""
+    truth, seq, run = sequence_and_run
+    (run / "run.yaml").write_text(text)
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
+    assert code == 0, err
+    assert f"{run / 'run.yaml'}: {said}" in err and "--align body" in err, err
+    assert json.loads(out)["settings"]["align"] == "none"
+    (run / "run.yaml").write_text("status: complete\nsource: {case: b}\n")
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
+    assert code == 0 and "run.yaml" not in err, err

@@ -201,8 +201,31 @@ def load_estimate(spec: str | Path) -> LoadedMotion:
     counts = [_run_meta(run_dir, "summary", "engine", key) for key in ("stream_cuts", "frames_redefined")]
     restarts = tuple(c if isinstance(c, int) and not isinstance(c, bool) and c > 0 else 0 for c in counts)
     status = _run_meta(run_dir, "status")
-    return replace(loaded, case=_run_case(run_dir), restarts=(restarts[0], restarts[1]),
+    case = _run_case(run_dir)
+    problem = _run_yaml_problem(run_dir) if case is None else None
+    if problem:
+        warnings.warn(f"{problem}: the run's pose case is unknown, so --align auto compares without aligning "
+                      "(give --align body for a run tracked in case a or c)", stacklevel=2)
+    return replace(loaded, case=case, restarts=(restarts[0], restarts[1]),
                    status=status if isinstance(status, str) else None)
+
+
+def _run_yaml_problem(run_dir: Path) -> str | None:
+    """What is wrong with a ``run.yaml`` beside the estimate that records no pose case (cut
+    short, edited, another program's file), or None where there is none or it is a run's."""
+    path = run_dir / "run.yaml"
+    if not path.is_file():
+        return None
+    try:
+        value = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else exc.__class__.__name__
+        return f"{path}: not readable as YAML ({first})"
+    if not isinstance(value, dict):
+        return f"{path}: not a run's record (a {type(value).__name__ if value is not None else 'empty file'})"
+    source = value.get("source")
+    case = source.get("case") if isinstance(source, dict) else None
+    return f"{path}: no pose case recorded (source.case {case!r})"
 
 
 def _run_meta(run_dir: Path, *keys: str) -> Any:
