@@ -87,7 +87,7 @@ def test_writer_refuses_unknown_column(tmp_path):
         (",".join(GROUNDTRUTH_COLUMNS) + "\n0,1,2,3,1,0,0,0,0,0,0,0,0\n", "expected 14 values"),
         (",".join(GROUNDTRUTH_COLUMNS) + "\n0,1,2,3,1,0,0,zero,0,0,0,0,0,0\n", "not a number"),
         (",".join(GROUNDTRUTH_COLUMNS) + "\n1,1,2,3,1,0,0,0,0,0,0,0,0,0\n0,1,2,3,1,0,0,0,0,0,0,0,0,0\n", "time order"),
-        (",".join(GROUNDTRUTH_COLUMNS) + "\n0,1,2,3,0,0,0,0,0,0,0,0,0,0\n", "zero quaternion"),
+        ("t,valid,x,y,z,qw,qx,qy,qz\n0,1,1,2,3,1,0,0,0\n0.04,1,1,2,3,0,0,0,0\n", "bad.csv:3: a valid .1. row with a zero quaternion"),
         ("1.0 0 0 0 0 0 0 1\n", "header lacks"),  # a TUM file is not a motion CSV
         # TUM's header comment with commas: the file is a TUM trajectory, and the message says so
         ("#,t,tx,ty,tz,qx,qy,qz,qw\n0.04,0,0,3.5,0,0,0,1\n", "TUM trajectory, whose fields are separated by spaces"),
@@ -204,7 +204,7 @@ def test_a_groundtruth_row_without_a_whole_pose_is_unknown_truth_at_that_time_on
             "0.12,0,0,3,1,0,0,0,,,,,,"]
     path = tmp_path / "groundtruth.csv"
     path.write_text(",".join(GROUNDTRUTH_COLUMNS) + "\n" + "\n".join(rows) + "\n")
-    with pytest.warns(UserWarning, match=r"groundtruth\.csv:3: 2 row\(s\) without a whole pose \(t, x..qz\) read as "
+    with pytest.warns(UserWarning, match=r"groundtruth\.csv:3: 2 row\(s\) without a whole pose \(.*\) read as "
                                          r"no ground truth at their time \(the first on this line\)"):
         got = read_motion_csv(path)
     assert got.valid.tolist() == [True, False, False, True]
@@ -236,3 +236,16 @@ def test_a_bad_tum_pose_is_named_by_its_line(tmp_path: Path, bad_line: str, mess
     with pytest.raises(TrackmeterError, match=rf"est\.tum:4: .*{message}") as info:
         read_tum(path)
     assert "\n" not in str(info.value)
+
+
+def test_a_groundtruth_row_with_a_zero_quaternion_is_no_truth_at_its_time_named_by_line(tmp_path: Path) -> None:
+    """One such row threw the whole ground truth away ("motion series: a valid row has a zero
+    quaternion", no line; track then said the recording had no truth): it is a time without
+    truth, like a row with a NaN, and the line is named (an outside probe)."""
+    rows = [f"{t},1,2,3,1,0,0,0,0,0,0,0,0,0" for t in (0.0, 0.04, 0.08, 0.12)]
+    rows[2] = "0.08,1,2,3,0,0,0,0,0,0,0,0,0,0"
+    path = tmp_path / "groundtruth.csv"
+    path.write_text(",".join(GROUNDTRUTH_COLUMNS) + "\n" + "\n".join(rows) + "\n")
+    with pytest.warns(UserWarning, match=r"groundtruth\.csv:4: 1 row\(s\) without a whole pose .*zero quaternion"):
+        s = read_motion_csv(path)
+    assert s.valid.tolist() == [True, True, False, True]

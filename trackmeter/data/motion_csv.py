@@ -258,22 +258,29 @@ def read_motion_csv(path: str | Path) -> MotionSeries:
     def stack(names: Sequence[str]) -> FloatArray:
         return np.column_stack([col.get(c, np.full(n, np.nan)) for c in names])
 
+    finite = np.all(np.isfinite(stack(POSE_COLUMNS[1:])), axis=1)
+    zero_quaternion = finite & (np.linalg.norm(stack(("qw", "qx", "qy", "qz")), axis=1) < 1e-9)
     if "valid" in col:
         valid = col["valid"]
         if np.any(~np.isin(valid, (0.0, 1.0))):
             raise TrackmeterError(f"{path}: column 'valid' must hold 0 or 1")
-        broken = np.flatnonzero((valid == 1.0) & ~np.all(np.isfinite(stack(POSE_COLUMNS[1:])), axis=1))
+        broken = np.flatnonzero((valid == 1.0) & ~finite)
         if len(broken):
             raise TrackmeterError(f"{path}:{rows[int(broken[0])][0]}: a valid (1) row without a whole pose "
                                   "(an empty or nan field in x..qz)")
+        broken = np.flatnonzero((valid == 1.0) & zero_quaternion)
+        if len(broken):
+            raise TrackmeterError(f"{path}:{rows[int(broken[0])][0]}: a valid (1) row with a zero quaternion "
+                                  "(qw..qz all 0)")
     else:
         # No column says which rows hold a pose (a groundtruth.csv): a row with an empty or
-        # nan pose field is a time without ground truth, not a broken file.
-        valid = np.all(np.isfinite(stack(POSE_COLUMNS[1:])), axis=1).astype(float)
+        # nan pose field, or no rotation at all, is a time without ground truth, not a broken file.
+        valid = (finite & ~zero_quaternion).astype(float)
         unknown = np.flatnonzero(valid == 0.0)
         if len(unknown):
             warnings.warn(f"{path}:{rows[int(unknown[0])][0]}: {len(unknown)} row(s) without a whole pose "
-                          "(t, x..qz) read as no ground truth at their time (the first on this line)", stacklevel=2)
+                          "(a field of t, x..qz empty or nan, or a zero quaternion) read as no ground truth at "
+                          "their time (the first on this line)", stacklevel=2)
     extra = {name: a for name, a in col.items() if name not in _KNOWN}
     try:
         return MotionSeries(
@@ -281,7 +288,7 @@ def read_motion_csv(path: str | Path) -> MotionSeries:
             stack(("vx", "vy", "vz")), stack(("wx", "wy", "wz")), extra,
         )
     except TrackmeterError as exc:
-        raise TrackmeterError(f"{path}: {exc}") from None
+        raise TrackmeterError(f"{path}: {str(exc).removeprefix('motion series: ')}") from None
 
 
 # --------------------------------------------------------------------------- writing
