@@ -96,10 +96,15 @@ def test_split_ranges_groups_frames_by_true_pose():
     groups = list(split_ranges([frame(0, 2.0), frame(1, 2.0), frame(2, 3.5), frame(3, 3.5), frame(4, 3.5), frame(5, 2.0)]))
     assert [[f.index for f in g] for g in groups] == [[0, 1], [2, 3, 4], [5]]
     assert [len(g) for g in split_ranges([frame(i, None) for i in range(4)])] == [4]  # no truth: one range
-    from trackmeter.errors import TrackmeterError
-
-    with pytest.raises(TrackmeterError, match="some frames only"):
-        list(split_ranges([frame(0, 2.0), frame(1, None)]))
+    # Frames without truth among frames with it belong to no range: skipped, their times kept
+    # (they refused the whole analysis: 'ground truth present on some frames only').
+    skipped: list[float] = []
+    groups = list(split_ranges([frame(0, None), frame(1, 2.0), frame(2, None), frame(3, 2.0), frame(4, 3.5),
+                                frame(5, None)], skipped=skipped))
+    assert [[f.index for f in g] for g in groups] == [[1, 3], [4]]
+    assert skipped == pytest.approx([0.0, 0.2, 0.5])
+    skipped.clear()
+    assert [len(g) for g in split_ranges([frame(i, None) for i in range(4)], skipped=skipped)] == [4] and not skipped
 
 
 def test_a_moving_source_is_refused_in_one_short_line(estec_rig):
@@ -411,3 +416,49 @@ def test_points_that_fall_short_of_their_samples_are_made_up_for(still_sequence,
     good = np.sum(np.isfinite(m.xyz_m[..., 2]), axis=0) >= params.min_samples
     assert len(m.uv) == 4 and good.sum() == 3 and not good[1], good
     assert np.allclose(m.uv[:3], plain.uv) and m.refusals.get("refused later") == 7
+
+
+def _with_truth(still_sequence, tmp_path, rows: int | None, text: str | None = None):  # type: ignore[no-untyped-def]
+    """A copy of ``still_sequence`` with a groundtruth.csv: the plane still at 3.8 m on its
+    first ``rows`` frames, or ``text``."""
+    import shutil
+
+    from trackmeter.data.motion_csv import GROUNDTRUTH_COLUMNS
+
+    folder = tmp_path / "seq"
+    shutil.copytree(still_sequence, folder)
+    if text is None:
+        lines = [f"{i / 25.0:.6f},0,0,3.8,1,0,0,0,0,0,0,0,0,0" for i in range(rows or 0)]
+        text = ",".join(GROUNDTRUTH_COLUMNS) + "\n" + "\n".join(lines) + "\n"
+    (folder / "groundtruth.csv").write_text(text)
+    return folder
+
+
+def test_frames_without_ground_truth_among_frames_with_it_are_skipped_and_said(still_sequence, tmp_path, capsys):
+    """Truth on 6 of 8 frames refused the whole analysis ('ground truth present on some frames
+    only: cannot split the source into ranges', no file, no time) although its rows warned
+    they would be read as no truth at their time (an outside probe)."""
+    folder = _with_truth(still_sequence, tmp_path, rows=6)
+    code = main(["analyze", "--source", str(folder), "--points", "5", "--json"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    assert "2 frame(s) without ground truth skipped: they belong to no range (the first at t = 0.240 s)" in err, err
+    report = json.loads(out)
+    assert [r["n_frames"] for r in report["ranges"]] == [6]
+
+
+def test_a_ground_truth_file_that_does_not_read_stops_analyze(still_sequence, tmp_path, capsys):
+    """One garbage line made the truth unread ('ground truth not used', a warning) and analyze
+    went on as if the source had none: six ranges taken for one, k 0.19 instead of 0.08 and
+    exit 0 (an outside probe). The ranges come from the truth: analyze stops, naming it."""
+    from trackmeter.data.motion_csv import GROUNDTRUTH_COLUMNS
+
+    text = ",".join(GROUNDTRUTH_COLUMNS) + "\n0,0,0,3.8,1,0,0,0,0,0,0,0,0,0\ngarbage\n"
+    folder = _with_truth(still_sequence, tmp_path, rows=None, text=text)
+    code = main(["analyze", "--source", str(folder), "--points", "5"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 2, err
+    # (the file is named once: the folder's name no longer stands in front of its own file's)
+    assert err[0].startswith(f"trackmeter analyze: warning: {folder / 'groundtruth.csv'}:3: expected 14 values")
+    assert err[1].startswith("trackmeter analyze: error: analyze splits the source into its still ranges by the "
+                             "ground truth, which did not read (said above)")

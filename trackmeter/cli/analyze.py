@@ -91,6 +91,9 @@ def run(args: argparse.Namespace) -> int:
             warnings.warn(skipped, stacklevel=1)
         for line in result.moving_ranges:
             warnings.warn(line, stacklevel=1)
+        if result.frames_without_truth_s:
+            warnings.warn(f"{len(result.frames_without_truth_s)} frame(s) without ground truth skipped: they belong to "
+                          f"no range (the first at t = {result.frames_without_truth_s[0]:.3f} s)", stacklevel=1)
         gained = [g for g in result.exposure_gains if g != 1.0]
         if gained:
             print(f"trackmeter analyze: note: {len(gained)} of {len(result.exposure_gains)} range(s) underexposed "

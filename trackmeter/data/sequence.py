@@ -349,6 +349,8 @@ class SequenceIndex:
             scene jumps there; a recording made across a looping source's new pass).
         warnings: one human-readable line per kind of problem found (empty when clean).
         tolerance_s: the pairing tolerance used, s.
+        truth_problem: why the folder's ground truth file did not read (it is then None and
+            the reason is among ``warnings``), None otherwise.
     """
 
     root: Path
@@ -362,6 +364,7 @@ class SequenceIndex:
     warnings: tuple[str, ...] = field(default_factory=tuple)
     tolerance_s: float = 0.0
     cuts: tuple[int, ...] = ()
+    truth_problem: str | None = None
 
     def __len__(self) -> int:
         return len(self.t_s)
@@ -725,12 +728,13 @@ def index_sequence(
         if not model_optional:
             raise
         warnings.append(f"{exc}; model not used")
+    truth_problem: str | None = None
     try:
         truth = _read_truth(find_sequence_file(directory, "groundtruth.csv", "groundtruth.tum"), t_s, tolerance_s)
     except TrackmeterError as exc:
         # Optional, and most runs (tracking a real sequence) do not need it: told, not fatal,
         # as a broken rig.yaml is not when another rig is given.
-        truth = None
+        truth, truth_problem = None, str(exc)
         warnings.append(f"{exc}; ground truth not used")
     pair_ns = np.array([t_left[i] for i, _ in pairs], dtype=np.int64)
     try:
@@ -750,6 +754,7 @@ def index_sequence(
         skipped=miss_l + miss_r + bad_l + bad_r + repeated + unpaired,
         warnings=tuple(warnings),
         tolerance_s=float(tolerance_s),
+        truth_problem=truth_problem,
     )
 
 

@@ -92,6 +92,7 @@ class AnalysisRun:
     min_samples: int = 5
     moving_ranges: tuple[str, ...] = field(default_factory=tuple)  # one line each: the target moved
     exposure_gains: tuple[float, ...] = field(default_factory=tuple)  # every range read, skipped ones too
+    frames_without_truth_s: tuple[float, ...] = field(default_factory=tuple)  # left out of every range, s
 
     def to_dict(self) -> dict[str, object]:
         d = self.analysis.to_dict()
@@ -161,16 +162,31 @@ def select_points(left: NDArray[np.uint8], params: AnalyzeParams, min_grey: floa
     return corners.reshape(-1, 2).astype(float)
 
 
-def split_ranges(frames: Iterable[StereoFrame], position_tolerance_m: float = 1e-6) -> Iterator[list[StereoFrame]]:
+def split_ranges(frames: Iterable[StereoFrame], position_tolerance_m: float = 1e-6,
+                 skipped: list[float] | None = None) -> Iterator[list[StereoFrame]]:
     """Group consecutive frames with the same true pose (the target held still); without
-    ground truth, all frames form one group."""
+    ground truth, all frames form one group.
+
+    Where some frames have truth, those without (rows missing or NaN in the truth file) belong
+    to no range: they are left out, and their times (s) appended to ``skipped``.
+    """
     group: list[StereoFrame] = []
     key: FloatArray | None = None
+    seen_truth = False
     for frame in frames:
-        T = None if frame.truth is None else np.asarray(frame.truth.T_cam_body, dtype=float)
-        if group and (T is None) != (key is None):
-            raise TrackmeterError("ground truth present on some frames only: cannot split the source into ranges")
-        if group and T is not None and key is not None and np.max(np.abs(T - key)) > position_tolerance_m:
+        if frame.truth is None:
+            if seen_truth:
+                if skipped is not None:
+                    skipped.append(frame.t_s)
+            else:
+                group.append(frame)  # one range, unless truth comes later
+            continue
+        T = np.asarray(frame.truth.T_cam_body, dtype=float)
+        if not seen_truth:
+            if skipped is not None:
+                skipped.extend(f.t_s for f in group)
+            group, seen_truth = [], True
+        if group and key is not None and np.max(np.abs(T - key)) > position_tolerance_m:
             yield group
             group = []
         group.append(frame)
@@ -336,7 +352,12 @@ def run_error_analysis(
     moving: list[str] = []
     n_ranges = n_frames = 0
     gains: list[float] = []
-    for group in split_ranges(stream):
+    problem = getattr(source, "truth_problem", None)
+    if problem:
+        raise TrackmeterError("analyze splits the source into its still ranges by the ground truth, which did not "
+                              "read (said above): mend the file, or move it away to analyze the source as one range")
+    without_truth: list[float] = []
+    for group in split_ranges(stream, skipped=without_truth):
         gain = exposure_gain(group[0].left, exposure) if exposure is not None else 1.0
         gains.append(gain)
         if gain != 1.0:
@@ -393,4 +414,5 @@ def run_error_analysis(
         params.min_samples,
         tuple(moving),
         tuple(gains),
+        tuple(without_truth),
     )

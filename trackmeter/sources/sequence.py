@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import collections
+import os
 import warnings as _warnings
 from pathlib import Path
 
@@ -82,8 +83,11 @@ class SequenceSource(Source):
         self._period_s = float(self.index.t_s[-1] - self.index.t_s[0]) + dt if n else 0.0
         self._frame_size: tuple[int, int] | None = None
         self._image_bits: int | None = None
-        if self.warning:
-            _warnings.warn(f"{directory}: {self.warning}", stacklevel=2)
+        warning = self.warning
+        if warning:
+            # A warning that starts with a file of the folder names the folder already.
+            named = warning.startswith(f"{Path(directory)}{os.sep}")
+            _warnings.warn(warning if named else f"{directory}: {warning}", stacklevel=2)
 
     @property
     def image_bits(self) -> int:
@@ -146,6 +150,11 @@ class SequenceSource(Source):
     @property
     def has_truth(self) -> bool:
         return self.index.truth is not None and bool(self.index.truth.valid.any())
+
+    @property
+    def truth_problem(self) -> str | None:
+        """Why the folder's ground truth file did not read (warned at open), None otherwise."""
+        return self.index.truth_problem
 
     @property
     def n_frames(self) -> int:
