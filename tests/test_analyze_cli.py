@@ -268,7 +268,9 @@ def test_unreadable_frames_are_said(still_sequence, tmp_path, capsys):
     code = main(["analyze", "--source", str(folder), "--points", "5"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1, err
-    assert err[0].startswith("trackmeter analyze: error: no usable range") and "8 pair(s) with an unreadable image" in err[0]
+    # refused at open, before reading every pair for nothing
+    assert err[0].startswith(f"trackmeter analyze: error: source {str(folder)!r}: no stereo pair plays") and (
+        f"the first: {images[0]}: not an image file OpenCV can decode" in err[0]), err
 
 
 def test_a_target_that_moves_without_ground_truth_is_warned_about(still_sequence, tmp_path, capsys):

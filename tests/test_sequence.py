@@ -1122,3 +1122,27 @@ def test_the_rate_of_nanosecond_timestamps_is_the_rate_they_say() -> None:
         # EuRoC's absolute timestamps (1.4e18 ns): seconds keep them to 0.2 us
         absolute = SequenceIndex(Path("."), (ns + 1_403_636_579_763_555_584) / 1e9, (), ()).rate_hz
         assert absolute == pytest.approx(rate, rel=1e-7)
+
+
+@pytest.mark.parametrize("damage, said", [
+    ("right_size", "cam1/data/0.png 16x12 px"),
+    ("left_unreadable", "cam0/data/0.png: "),
+])
+def test_a_sequence_with_no_playable_pair_is_refused_at_open(tmp_path, capsys, damage: str, said: str) -> None:
+    """Every right image of another size (or every left one unreadable) passed the open: track
+    read the whole folder, then said it delivered no frame and left an empty run folder that a
+    re-run must --overwrite; the console listened and showed nothing (an outside probe)."""
+    from trackmeter.cli.main import main
+
+    d = _write(tmp_path / "s", _frames(4))
+    for path in sorted((d / ("cam1" if damage == "right_size" else "cam0") / "data").iterdir()):
+        if damage == "right_size":
+            cv2.imwrite(str(path), np.zeros((12, 16), np.uint8))
+        else:
+            path.write_bytes(b"not a png")
+    out = tmp_path / "run"
+    code = main(["track", "--source", str(d), "--rig", "config/rigs/estec_12mm.yaml", "--auto", "4", "--out", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and not out.exists(), err
+    assert err[-1].startswith(f"trackmeter track: error: source {str(d)!r}: no stereo pair plays"), err
+    assert said in err[-1], err

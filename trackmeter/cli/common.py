@@ -58,6 +58,11 @@ def open_source_with_rig(spec: str, rig_path: str | None, realtime: bool = False
                          model_optional=model_optional)
     try:
         size = source.frame_size
+        problem = getattr(source, "frame_size_problem", None) if size is None else None
+        if problem:
+            # Refused here, not after reading every pair for nothing (and writing an empty run).
+            raise TrackmeterError(f"source {spec!r}: no stereo pair plays (two images that read, of one size); "
+                                  f"the first: {problem}")
         if rig_path:
             source.rig = load_rig(rig_path, image_size=size)
         rig = source.rig

@@ -82,6 +82,8 @@ class SequenceSource(Source):
         dt = 1.0 / self.rate_hz if self.rate_hz else 0.0
         self._period_s = float(self.index.t_s[-1] - self.index.t_s[0]) + dt if n else 0.0
         self._frame_size: tuple[int, int] | None = None
+        self._size_problem: str | None = None
+        self._size_scanned = False
         self._image_bits: int | None = None
         warning = self.warning
         if warning:
@@ -120,11 +122,12 @@ class SequenceSource(Source):
     @property
     def frame_size(self) -> tuple[int, int] | None:
         """``(width, height)`` px of the sequence's frames (decided once), or None when no pair
-        reads: the size most of three pairs spread over it have (the first pair whose images
+        plays: the size most of three pairs spread over it have (the first pair whose images
         read and agree from its start, its middle and its end; a tie goes to the earliest). A
         first pair of another size, in one camera or both, was taken for the sequence's size,
         and the rig was blamed for all the others."""
-        if self._frame_size is None:
+        if self._frame_size is None and not self._size_scanned:
+            self._size_scanned = True  # a folder where no pair plays is not read through twice
             n = len(self.index)
             starts = sorted({0, n // 2, n - 1}) if n else []
             sizes: list[tuple[int, int]] = []
@@ -137,13 +140,25 @@ class SequenceSource(Source):
                 self._frame_size = collections.Counter(sizes).most_common(1)[0][0]  # ties: the first seen
         return self._frame_size
 
+    @property
+    def frame_size_problem(self) -> str | None:
+        """Where :attr:`frame_size` is None because no pair plays: the first pair's problem
+        (an image that does not read, or two images of different sizes); None otherwise."""
+        return self._size_problem if self.frame_size is None else None
+
     def _pair_size(self, pos: int) -> tuple[int, int] | None:
-        """``(width, height)`` of the ``pos``-th pair when both its images read and agree."""
+        """``(width, height)`` of the ``pos``-th pair when both its images read and agree; the
+        first problem met is kept for :attr:`frame_size_problem`."""
+        left, right = self.index.left_paths[pos], self.index.right_paths[pos]
         try:
-            shape = read_grey(self.index.left_paths[pos], self.image_bits).shape[:2]
-            if read_grey(self.index.right_paths[pos], self.image_bits).shape[:2] != shape:
-                return None  # read() skips it too
-        except TrackmeterError:
+            shape = read_grey(left, self.image_bits).shape[:2]
+            other = read_grey(right, self.image_bits).shape[:2]
+        except TrackmeterError as exc:
+            self._size_problem = self._size_problem or str(exc)
+            return None
+        if other != shape:  # read() skips it too
+            self._size_problem = self._size_problem or (f"{left} is {shape[1]}x{shape[0]} px, "
+                                                        f"{right} {other[1]}x{other[0]} px")
             return None
         return int(shape[1]), int(shape[0])
 
