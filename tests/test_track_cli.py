@@ -846,3 +846,24 @@ def test_an_unnamed_target_does_not_take_a_name_given_later(tmp_path, capsys) ->
     assert "exists" not in capsys.readouterr().err
     ids = {row["id"] for row in csv.DictReader((out / "targets.csv").open())}
     assert "p1" in ids and len(ids) == 2
+
+
+def test_targets_on_a_later_first_frame_are_said_to_be_there(tmp_path, capsys) -> None:
+    """The first pair unreadable, --target pixels "of the first frame" went on the second,
+    t = 0.04 s, without a word (an outside probe): a target the pixel was chosen for may not
+    be there then."""
+    from benchmarks.measure import estec_plane
+    from trackmeter.data.sequence import SequenceWriter
+    from trackmeter.sources.base import StereoFrame
+
+    rig, left, right, _ = estec_plane(seed=5)
+    folder = tmp_path / "seq"
+    with SequenceWriter(folder, rig=rig) as writer:
+        for i in range(4):
+            writer.write(StereoFrame(i, i / 25.0, left, right))
+    sorted((folder / "cam0" / "data").iterdir())[0].write_bytes(b"")
+    code = main(["track", "--source", str(folder), "--target", "300,250", "--out", str(tmp_path / "run")])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert ("note: --target: the pixels were placed on the first frame that played, t = 0.040 s; the pair(s) "
+            "before it were skipped") in err, err

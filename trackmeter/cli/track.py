@@ -279,6 +279,7 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
             frame = snap.frame
             if frame is None or state.get("write_error"):
                 return bool(state.get("write_error"))
+            state.setdefault("first_t_s", float(frame.t_s))
             # A frame's row is written once the next frame arrives (or at the end): the
             # commands act on frame 0 after it was processed (--target, --auto), and the
             # snapshot they publish, not the first one, holds frame 0's targets.
@@ -311,6 +312,15 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
 
         def on_replies(replies: list[Any]) -> bool:
             """Each refusal shown as soon as frame 0 gave it, not after the whole run."""
+            first_t, start_t = state.get("first_t_s"), getattr(source, "start_t_s", None)
+            if (targets and not state.get("said_late") and isinstance(first_t, float) and isinstance(start_t, float)
+                    and first_t > start_t + 1e-9):
+                # The pixels were chosen on the source's first frame; it did not play.
+                state["said_late"] = True
+                if tty:
+                    sys.stderr.write("\r\033[K")
+                print(f"trackmeter track: note: --target: the pixels were placed on the first frame that played, "
+                      f"t = {first_t:.3f} s; the pair(s) before it were skipped (said at the end)", file=sys.stderr)
             for k, (command, reply) in enumerate(zip(commands, replies)):
                 if not reply.ok and reply.message not in (STOPPED, NOT_APPLIED):
                     if tty:

@@ -141,6 +141,12 @@ class SequenceSource(Source):
         return self._frame_size
 
     @property
+    def start_t_s(self) -> float | None:
+        """Time of the folder's first stereo pair, s (a pair skipped at read leaves a later
+        first frame), None when it has none."""
+        return float(self.index.t_s[0]) if len(self.index) else None
+
+    @property
     def frame_size_problem(self) -> str | None:
         """Where :attr:`frame_size` is None because no pair plays: the first pair's problem
         (an image that does not read, or two images of different sizes); None otherwise."""
