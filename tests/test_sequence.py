@@ -1146,3 +1146,18 @@ def test_a_sequence_with_no_playable_pair_is_refused_at_open(tmp_path, capsys, d
     assert code == 2 and not out.exists(), err
     assert err[-1].startswith(f"trackmeter track: error: source {str(d)!r}: no stereo pair plays"), err
     assert said in err[-1], err
+
+
+def test_ground_truth_whose_times_meet_no_frame_is_said_so(tmp_path) -> None:
+    """A groundtruth.csv of 0-0.12 s beside frames timed from the epoch paired with none:
+    track then said --select-model-points "needs a frame with ground truth" of a folder that
+    has one (an outside probe). Its times and the frames' are named."""
+    from trackmeter.data.motion_csv import read_motion_csv, write_groundtruth_csv
+
+    d = _write(tmp_path / "s", _frames(4))
+    truth = read_motion_csv(d / "groundtruth.csv")
+    write_groundtruth_csv(d / "groundtruth.csv", replace(truth, t_s=truth.t_s + 1000.0))
+    with pytest.warns(UserWarning, match=r"groundtruth\.csv: its times \(1000\.000-1000\.120 s\) meet none of the "
+                                         r"frames' \(0\.000-0\.120 s\) within .*; ground truth not used"):
+        src = SequenceSource(d)
+    assert not src.has_truth and src.truth_problem
