@@ -195,6 +195,18 @@ def run(args: argparse.Namespace) -> int:
         print(f"trackmeter evaluate: warning: the time spans barely overlap (truth {t_t[0]:.6g}..{t_t[-1]:.6g} s, "
               f"estimate {t_e[0]:.6g}..{t_e[-1]:.6g} s; {assoc.matched} of {len(t_e)} estimated "
               "poses paired): timestamps in other units or from another clock?", file=sys.stderr)
+    elif assoc.matched:
+        # A truth cut short (or started late) leaves the rest of the run unevaluated: the
+        # coverage line counts only frames within the truth's span.
+        tol = params.tolerance_s
+        before = int((t_e < t_t[0] - tol).sum())
+        after = int((t_e > t_t[-1] + tol).sum())
+        if after:
+            print(f"trackmeter evaluate: warning: the truth ends at {t_t[-1]:.3f} s, the estimate at {t_e[-1]:.3f} s: its "
+                  f"{after} pose(s) after the truth's end are not evaluated", file=sys.stderr)
+        if before:
+            print(f"trackmeter evaluate: warning: the truth starts at {t_t[0]:.3f} s, the estimate at {t_e[0]:.3f} s: its "
+                  f"{before} pose(s) before the truth's start are not evaluated", file=sys.stderr)
     if params.align == "body" and 0 < assoc.matched < 3:
         # The offset's six parameters fitted to one pose make its errors zero by construction.
         print(f"trackmeter evaluate: warning: --align body fitted the body-frame offset to {assoc.matched} pose(s): it "
