@@ -197,10 +197,13 @@ def run(args: argparse.Namespace) -> int:
               "poses paired): timestamps in other units or from another clock?", file=sys.stderr)
     elif assoc.matched:
         # A truth cut short (or started late) leaves the rest of the run unevaluated: the
-        # coverage line counts only frames within the truth's span.
+        # coverage line counts only frames within the truth's span. (A truth sampled more
+        # sparsely than the run may end a sample or two before it: nothing to say.)
+        steps = sorted(t_t[1:] - t_t[:-1])
+        reach = max(params.tolerance_s, 2.0 * steps[len(steps) // 2] if steps else 0.0)
         tol = params.tolerance_s
-        before = int((t_e < t_t[0] - tol).sum())
-        after = int((t_e > t_t[-1] + tol).sum())
+        before = int((t_e < t_t[0] - tol).sum()) if t_e[0] < t_t[0] - reach else 0
+        after = int((t_e > t_t[-1] + tol).sum()) if t_e[-1] > t_t[-1] + reach else 0
         if after:
             print(f"trackmeter evaluate: warning: the truth ends at {t_t[-1]:.3f} s, the estimate at {t_e[-1]:.3f} s: its "
                   f"{after} pose(s) after the truth's end are not evaluated", file=sys.stderr)
