@@ -70,6 +70,25 @@ def test_a_warning_is_one_line_naming_the_command(monkeypatch, capsys):
     assert warnings.showwarning is shown_before  # given back when the command ends
 
 
+def test_a_library_log_line_names_the_command_and_its_level(monkeypatch, capsys):
+    """The library's log lines (a console recording's "recording failed: ...: No space left on
+    device") reached stderr bare, through Python's last-resort handler, among lines that all
+    start with the command's name (an outside probe)."""
+    import logging
+
+    def logs(args):
+        logging.getLogger("trackmeter.pipeline.pipeline").error("recording failed: %s", "rec: no space")
+        logging.getLogger("console.app").warning("publishing a frame failed")
+        logging.getLogger("trackmeter.pipeline.pipeline").info("not shown")
+        return 0
+
+    monkeypatch.setattr(simulate, "run", logs)
+    assert main(["simulate", "--out", "x"]) == 0
+    assert capsys.readouterr().err == ("trackmeter simulate: error: recording failed: rec: no space\n"
+                                       "trackmeter simulate: warning: publishing a frame failed\n")
+    assert not any(type(h).__name__ == "_LogPrinter" for h in logging.getLogger("trackmeter").handlers)
+
+
 def test_an_unknown_argument_is_reported_by_its_command(capsys):
     with pytest.raises(SystemExit) as exit_info:
         main(["simulate", "--out", "x", "--bogus", "1"])

@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import importlib
+import logging
 import os
 import re
 import signal
@@ -218,6 +219,30 @@ def _warning_printer(command: str) -> Callable[..., None]:
     return show
 
 
+class _LogPrinter(logging.Handler):
+    """The library's log lines of WARNING and above as the command's own, one line each:
+    ``trackmeter CMD: error: ...`` (a recording that failed, a thread that did not stop).
+    Without it they reached stderr bare, through Python's last-resort handler. A record with
+    an exception keeps its traceback: that is a bug's, worth seeing whole."""
+
+    def __init__(self, command: str) -> None:
+        super().__init__(logging.WARNING)
+        self.command = command
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            text = f"trackmeter {self.command}: {record.levelname.lower()}: {record.getMessage()}"
+            if record.exc_info:
+                text += "\n" + logging.Formatter().formatException(record.exc_info)
+            print(text, file=sys.stderr)  # the stream of the moment (a test's capture, a hang-up's)
+        except Exception:  # stderr gone, a message that does not format: not worth failing over
+            pass
+
+
+#: The loggers of the project's own packages (their modules log under ``__name__``).
+PROJECT_LOGGERS = ("trackmeter", "console")
+
+
 def _option_before(argv: list[str], value: str) -> str:
     """The option a stray ``value`` most likely belongs to: the last ``--option`` before it
     on the command line (``--at 1,2 -0.5,10``: ``--at``), else ``--OPTION``."""
@@ -252,6 +277,9 @@ def _main(argv: Sequence[str] | None) -> int:
             return 2
     shown_before = warnings.showwarning
     warnings.showwarning = _warning_printer(args.command)
+    log_printer = _LogPrinter(args.command)
+    for name in PROJECT_LOGGERS:  # propagating still: a caller's handlers see them too
+        logging.getLogger(name).addHandler(log_printer)
     # A service manager's stop (SIGTERM) ends a run as Ctrl-C does: threads joined, files
     # complete, the console's raised CPU priority given back (killed outright, none of that).
     in_main_thread = threading.current_thread() is threading.main_thread()
@@ -290,6 +318,8 @@ def _main(argv: Sequence[str] | None) -> int:
         return 130
     finally:
         warnings.showwarning = shown_before
+        for name in PROJECT_LOGGERS:
+            logging.getLogger(name).removeHandler(log_printer)
         # The process's own command line (argv None) stays deaf to stop signals once its
         # command returned, until it exits: the command is done (its files complete), and a
         # signal now would kill it in the interpreter's shutdown (-SIGTERM, -SIGINT instead of
