@@ -249,3 +249,33 @@ def test_a_groundtruth_row_with_a_zero_quaternion_is_no_truth_at_its_time_named_
     with pytest.warns(UserWarning, match=r"groundtruth\.csv:4: 1 row\(s\) without a whole pose .*zero quaternion"):
         s = read_motion_csv(path)
     assert s.valid.tolist() == [True, True, False, True]
+
+
+@pytest.mark.parametrize("reader", ["tum", "csv"])
+def test_a_binary_file_is_said_not_to_be_text_with_what_is_expected(tmp_path: Path, reader: str) -> None:
+    """`evaluate --truth cam0/data/0.png` said "cannot read as text: UnicodeDecodeError" (an
+    outside probe): the exception's name, not what the file should have been."""
+    from trackmeter.data.trajectory import read_tum
+
+    path = tmp_path / "0.png"
+    path.write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR\xff\xfe")
+    with pytest.raises(TrackmeterError) as info:
+        (read_tum if reader == "tum" else read_motion_csv)(path)
+    text = str(info.value)
+    assert text.startswith(f"{path}: not a text file") and "UnicodeDecodeError" not in text
+    assert ("TUM trajectory" if reader == "tum" else "CSV") in text
+
+
+def test_a_last_line_cut_short_is_left_out_with_a_warning(tmp_path: Path) -> None:
+    """A states.csv whose last line was cut by a full disk or a kill was refused whole
+    ("expected 18 values, got 15"), while data.csv's cut rows are skipped (an outside probe):
+    the rows before it are whole. A short line elsewhere is still an error."""
+    rows = [f"{t},1,2,3,1,0,0,0,0,0,0,0,0,0" for t in (0.0, 0.04, 0.08)]
+    path = tmp_path / "groundtruth.csv"
+    path.write_text(",".join(GROUNDTRUTH_COLUMNS) + "\n" + "\n".join(rows) + "\n0.12,1,2,3,1,0")
+    with pytest.warns(UserWarning, match=r"groundtruth\.csv:5: the last line is cut short \(6 of 14 values\)"):
+        s = read_motion_csv(path)
+    assert len(s) == 3
+    path.write_text(",".join(GROUNDTRUTH_COLUMNS) + "\n" + rows[0] + "\n0.02,1,2\n" + "\n".join(rows[1:]) + "\n")
+    with pytest.raises(TrackmeterError, match=r"groundtruth\.csv:3: expected 14 values, got 3"):
+        read_motion_csv(path)

@@ -212,8 +212,11 @@ def read_motion_csv(path: str | Path) -> MotionSeries:
         raise TrackmeterError(f"{path}: no such file")
     try:
         lines = path.read_text(encoding="utf-8").splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise TrackmeterError(f"{path}: cannot read as text: {exc.__class__.__name__}") from None
+    except UnicodeDecodeError:
+        raise TrackmeterError(f"{path}: not a text file (a motion CSV is a header line, then rows of numbers: "
+                              f"{','.join(GROUNDTRUTH_COLUMNS)})") from None
+    except OSError as exc:
+        raise TrackmeterError(f"{path}: cannot read: {exc.strerror or exc}") from None
     numbered = [(i, line.strip()) for i, line in enumerate(lines, 1) if line.strip()]
     while numbered and is_comment_line(numbered[0][1]):
         del numbered[0]
@@ -234,6 +237,11 @@ def read_motion_csv(path: str | Path) -> MotionSeries:
     if len(set(header)) != len(header):
         raise TrackmeterError(f"{path}:{header_line}: repeated column in the header")
     rows = [(number, text) for number, text in numbered[1:] if not text.startswith("#")]  # comments, as in data.csv
+    if len(rows) >= 2 and 1 < len(rows[-1][1].split(",")) < len(header):
+        # A writer stopped mid-line (killed, a full disk): the rows before it are whole.
+        number, text = rows.pop()
+        warnings.warn(f"{path}:{number}: the last line is cut short ({len(text.split(','))} of {len(header)} values), "
+                      "left out", stacklevel=2)
     values = np.empty((len(rows), len(header)))
     for r, (number, text) in enumerate(rows):
         fields = text.split(",")

@@ -64,8 +64,10 @@ def read_tum(path: str | Path) -> Trajectory:
     comma_line: int | None = None
     try:
         lines = path.read_text(encoding="utf-8-sig").splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise TrackmeterError(f"{path}: cannot read as text: {exc.__class__.__name__}") from None
+    except UnicodeDecodeError:
+        raise TrackmeterError(f"{path}: not a text file (a TUM trajectory is lines of 't tx ty tz qx qy qz qw')") from None
+    except OSError as exc:
+        raise TrackmeterError(f"{path}: cannot read: {exc.strerror or exc}") from None
     for number, line in enumerate(lines, 1):
         # '#' starts a comment anywhere on a line, as numpy.loadtxt (and so evo) read TUM files.
         text = line.split("#", 1)[0].strip()
