@@ -819,7 +819,7 @@ def test_a_groundtruth_csv_in_integer_nanoseconds_is_read_as_such(tmp_path, t0_s
     rows = [line.split(",") for line in lines[1:]]
     ns = [str(int(round(float(r[0]) * 1e9))) for r in rows]
     (d / "groundtruth.csv").write_text("\n".join([lines[0]] + [",".join([t] + r[1:]) for t, r in zip(ns, rows)]) + "\n")
-    with pytest.warns(UserWarning, match="groundtruth.csv: its times read as integer nanoseconds"):
+    with pytest.warns(UserWarning, match=rf"{d / 'groundtruth.csv'}: its times read as integer nanoseconds"):
         src = SequenceSource(d)
     for f in frames:
         got = src.read()

@@ -851,7 +851,7 @@ def _read_truth(path: Path | None, t_s: FloatArray, tolerance_s: float) -> Motio
         # groundtruth.csv EuRoC-style in integer nanoseconds too.
         t_truth, note = seconds_if_nanoseconds(t_s, series.t_s, tolerance_s, "the frames")
         if note:
-            warnings.warn(f"{path.name}: {note}", stacklevel=2)
+            warnings.warn(f"{path}: {note}", stacklevel=2)
             series = replace(series, t_s=t_truth)
     pairs = pair_by_nearest(t_s, series.t_s, tolerance_s)
     if len(t_s) and series.valid.any() and not any(series.valid[j] for _, j in pairs):
