@@ -138,6 +138,22 @@ def test_unknown_key_is_refused_with_its_dotted_path(tmp_path: Path) -> None:
         load_config(_write(tmp_path, {"no_such_section": {}}))
 
 
+@pytest.mark.parametrize("text, said", [
+    ("tracker: {max_targts: 12}", "unknown key 'tracker.max_targts' "
+                                  "(did you mean 'tracker.max_targets'?)"),
+    ("trackr: {max_targets: 12}", "unknown key 'trackr' (did you mean 'tracker'?)"),
+    ("tracker: {zzzz: 1}", "unknown key 'tracker.zzzz'"),
+])
+def test_a_misspelt_key_is_refused_with_the_key_it_likely_meant(tmp_path: Path, text: str, said: str) -> None:
+    """'unknown key tracker.max_targts' left the user to find the spelling in a 600-line file
+    (an outside probe)."""
+    path = tmp_path / "c.yaml"
+    path.write_text(text + "\n")
+    with pytest.raises(TrackmeterError) as info:
+        load_config(path)
+    assert str(info.value) == f"{path}: {said}"
+
+
 def test_wrong_type_is_refused_with_its_dotted_path(tmp_path: Path) -> None:
     dotted, _, _ = _first_leaf(int)
     with pytest.raises(TrackmeterError, match=rf"'{re.escape(dotted)}'.*expected an integer") as info:

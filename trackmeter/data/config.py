@@ -13,6 +13,7 @@ to ``config/default.yaml`` (a test checks the two agree).
 
 from __future__ import annotations
 
+import difflib
 import dataclasses
 import math
 import os
@@ -22,7 +23,7 @@ import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Mapping, get_args, get_origin, get_type_hints
+from typing import Any, Iterable, Literal, Mapping, get_args, get_origin, get_type_hints
 
 import yaml
 
@@ -180,12 +181,19 @@ def read_yaml_mapping(path: Path, loader: type[Any] = FAST_SAFE_LOADER) -> dict[
     return data
 
 
+def _did_you_mean(key: str, known: Iterable[str], prefix: str) -> str:
+    """`` (did you mean 'PREFIX.KEY'?)`` for the known key closest to a misspelt one
+    (:func:`difflib.get_close_matches`), else ``""``."""
+    close = difflib.get_close_matches(key, [str(k) for k in known], n=1, cutoff=0.75)
+    return f" (did you mean '{prefix}{close[0]}'?)" if close else ""
+
+
 def _merge(base: dict[str, Any], update: Mapping[str, Any], source: str, prefix: str) -> dict[str, Any]:
     out = dict(base)
     for key, value in update.items():
         dotted = f"{prefix}{key}"
         if key not in base:
-            raise TrackmeterError(f"{source}: unknown key '{dotted}'")
+            raise TrackmeterError(f"{source}: unknown key '{dotted}'{_did_you_mean(str(key), base, prefix)}")
         if isinstance(base[key], dict):
             if not isinstance(value, dict):
                 raise TrackmeterError(f"{source}: '{dotted}' must be a mapping of keys, got {value!r}")
@@ -209,7 +217,8 @@ def build_dataclass(cls: type, data: Mapping[str, Any], source: str = "config", 
     for key in data:
         if key not in fields:
             known = ", ".join(sorted(fields))
-            raise TrackmeterError(f"{source}: unknown key '{prefix}{key}' (known here: {known})")
+            raise TrackmeterError(f"{source}: unknown key '{prefix}{key}'{_did_you_mean(str(key), fields, prefix)} "
+                                  f"(known here: {known})")
     kwargs: dict[str, Any] = {}
     for name, f in fields.items():
         if name not in data:
