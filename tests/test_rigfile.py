@@ -600,3 +600,15 @@ def test_a_true_or_false_in_a_rig_matrix_is_refused_by_its_key(tmp_path: Path) -
     path.write_text(yaml.safe_dump(data))
     with pytest.raises(TrackmeterError, match=r"bool\.yaml: key 'T' holds true/false where numbers go"):
         load_rig(path)
+
+
+def test_a_filestorage_file_without_any_rig_key_is_said_not_to_be_a_rig(tmp_path) -> None:
+    """OpenCV's stereo_calib.xml (its list of chessboard images) given as --rig said "missing
+    key 'K1'" (an outside probe), as if one key were missing from a rig."""
+    path = tmp_path / "stereo_calib.xml"
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    fs.write("imagelist", "left01.jpg")
+    fs.release()
+    with pytest.raises(TrackmeterError) as info:
+        load_rig(path)
+    assert str(info.value).startswith(f"{path}: not a stereo rig file: it has none of the keys K1, D1, K2, D2, R, T")

@@ -90,6 +90,9 @@ def _leaves(value: object) -> list[object]:
     return [value]
 
 
+#: The keys of a rig file (rig.yaml) and of OpenCV's intrinsics.yml / extrinsics.yml pair.
+_RIG_KEYS = ("K1", "D1", "K2", "D2", "R", "T", "M1", "M2")
+
 #: Keys whose matrix is 3x3: a flat list of nine numbers is read row by row.
 _SQUARE_KEYS = frozenset({"K1", "K2", "M1", "M2", "R"})
 
@@ -249,6 +252,10 @@ def _load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> St
         return _load_kalibr(camchain, path)
     fs = _open(path)
     try:
+        if all(fs.getNode(key).empty() for key in _RIG_KEYS):
+            # Another FileStorage file (OpenCV's stereo_calib.xml lists images): not one key short.
+            raise TrackmeterError(f"{path}: not a stereo rig file: it has none of the keys K1, D1, K2, D2, R, T "
+                                  "(a rig.yaml) nor M1, D1, M2, D2 and R, T (OpenCV's intrinsics.yml and extrinsics.yml)")
         if fs.getNode("K1").empty() and (not fs.getNode("M1").empty() or not fs.getNode("R").empty()):
             return _load_opencv_pair(path, image_size)
         width = _image_size_scalar(fs, "image_width", path)
