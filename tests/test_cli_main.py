@@ -288,3 +288,25 @@ def test_an_empty_option_value_is_refused_by_name(capsys, argv, option) -> None:
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert f"error: argument {option}: empty value" in err and len(err.strip().splitlines()) == 1, err
+
+
+@pytest.mark.parametrize("command, option, section, key", [
+    ("evaluate", "--settle", "evaluate", "settle_s"),
+    ("evaluate", "--tolerance", "evaluate", "tolerance_s"),
+    ("evaluate", "--align", "evaluate", "align"),
+    ("analyze", "--points", "analyze", "points_per_range"),
+])
+def test_a_default_from_config_in_help_is_the_configs(command, option, section, key) -> None:
+    """`analyze --help` said "(default from config)" without the value where evaluate's
+    options give theirs (an outside probe); each such value must be default.yaml's."""
+    import re
+
+    from trackmeter.cli.main import build_parser
+    from trackmeter.data.config import load_config
+
+    parser = build_parser().commands[command]
+    action = next(a for a in parser._actions if option in a.option_strings)
+    found = re.search(r"default from config: ([^)\s;,]+)", action.help or "")
+    assert found, action.help
+    assert found.group(1) == f"{getattr(getattr(load_config(), section), key):g}" if key != "align" else (
+        found.group(1) == load_config().evaluate.align)

@@ -271,3 +271,24 @@ def test_the_scenario_s_motion_alone_makes_no_renderer() -> None:
     assert sim.frame(0).left.shape == (sim.true_rig.image_size[1], sim.true_rig.image_size[0])
     assert sim._renderer is not None
     assert len(scenario_truth("estec")) == sim.n_frames
+
+
+def test_overwrite_replaces_a_sequence_simulate_wrote_and_nothing_else(tmp_path, capsys) -> None:
+    """`simulate` alone had no --overwrite (track and calibrate do): re-rendering a scenario
+    meant deleting its folder by hand (an outside probe). It replaces only a sequence this
+    command wrote, and only once the new one is complete."""
+    out = tmp_path / "seq"
+    assert main(["simulate", "--scenario", "static_ranges", "--duration", "0.04", "--out", str(out)]) == 0
+    capsys.readouterr()
+    assert main(["simulate", "--duration", "0.04", "--out", str(out)]) == 2
+    assert "--overwrite" in capsys.readouterr().err
+    assert main(["simulate", "--duration", "0.08", "--out", str(out), "--overwrite"]) == 0
+    assert "name: estec" in (out / "scenario.yaml").read_text()
+    assert len(list((out / "cam0" / "data").glob("*.png"))) == 2
+    assert [p.name for p in tmp_path.iterdir()] == ["seq"]  # nothing left beside it
+    other = tmp_path / "mine"
+    other.mkdir()
+    (other / "notes.txt").write_text("keep me")
+    assert main(["simulate", "--duration", "0.04", "--out", str(other), "--overwrite"]) == 2
+    assert "not a sequence simulate wrote" in capsys.readouterr().err
+    assert (other / "notes.txt").read_text() == "keep me"

@@ -48,7 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "extrinsics.yml (the other beside it) takes the size of the source's frames")
     parser.add_argument("--case", choices=("a", "b", "c"), help="model case at start (default: b when the source carries a model, else a; in case b a "
                              "target binds to a model point by id: Model > Next click is, in the page)")
-    parser.add_argument("--publish-hz", type=float, default=12.0, help="browser update rate, Hz (default 12)")
+    parser.add_argument("--publish-hz", type=float, default=12.0, metavar="HZ", help="browser update rate, Hz (default 12)")
     parser.add_argument("--cpu-nice", type=int, default=DEFAULT_CPU_NICE, metavar="N",
                         help=f"run tracking at this CPU priority, -20..19 (default {DEFAULT_CPU_NICE}: leave it alone). "
                              f"A negative N (e.g. -10) puts tracking ahead of other programs: for a tracking machine "

@@ -47,10 +47,10 @@ UNKNOWN_CASE_OFFSET_RAD = math.radians(10.0)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--truth", required=True, metavar="TUM",
+    parser.add_argument("--truth", required=True, metavar="TUM_CSV_OR_SEQ",
                         help="ground truth: TUM file, groundtruth.csv or sequence folder; or sim[:SCENARIO], the "
                         "scenario's motion, for a run of the sim source (which keeps no ground truth)")
-    parser.add_argument("--estimate", required=True, metavar="TUM_OR_RUN_DIR", help="estimate: TUM file, states.csv or run directory")
+    parser.add_argument("--estimate", required=True, metavar="TUM_CSV_OR_RUN_DIR", help="estimate: TUM file, states.csv or run directory")
     parser.add_argument("--align", choices=("none", "body", "auto"),
                         help="none: same body frame; body: fit a constant body-frame offset; auto: body for a run "
                         "tracked in case a or c (its run.yaml says), none otherwise (default from config: auto)")

@@ -251,7 +251,7 @@ def _option_before(argv: list[str], value: str) -> str:
 
 
 #: The metavars of options that name a file or folder (or a source, which may be one).
-PATH_METAVARS = frozenset({"DIR", "FILE", "GLOB", "IMG", "MODEL", "RIG", "SPEC", "TUM", "TUM_OR_RUN_DIR"})
+PATH_METAVARS = frozenset({"DIR", "FILE", "GLOB", "IMG", "MODEL", "RIG", "SPEC", "TUM_CSV_OR_SEQ", "TUM_CSV_OR_RUN_DIR"})
 
 
 def _main(argv: Sequence[str] | None) -> int:

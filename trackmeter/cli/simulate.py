@@ -26,6 +26,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="render S seconds instead of the scenario's duration_s: its first S, or its motion "
                              "carried on past its end (static_ranges: S spread over its ranges)")
     parser.add_argument("--out", metavar="DIR", required=True, help="sequence folder to create (must not exist or be empty)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace --out when it is a sequence this command wrote (once the new one is complete)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -43,8 +45,18 @@ def run(args: argparse.Namespace) -> int:
     # is missing or wrong must fail as it does for every other command, not pass unread.
     load_config_from_args(args)
     out = Path(args.out)
+    ours = {"cam0", "cam1", "groundtruth.csv", "groundtruth.tum", "model.yaml", "rig.yaml", "scenario.yaml"}
+    replace_out = False
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise TrackmeterError(f"{out}: exists and is not an empty folder; choose a new --out")
+        written = (out.is_dir() and not out.is_symlink() and (out / "scenario.yaml").is_file()
+                   and all(p.name in ours or p.name.startswith(".") for p in out.iterdir()))
+        if not args.overwrite:
+            raise TrackmeterError(f"{out}: exists and is not an empty folder; choose a new --out"
+                                  + (" or give --overwrite to replace this sequence" if written else ""))
+        if not written:
+            raise TrackmeterError(f"{out}: not a sequence simulate wrote (it holds other files); --overwrite replaces "
+                                  "only those: move it away or choose a new --out")
+        replace_out = True
     blocked = unwritable_ancestor(out)
     if blocked is not None:
         raise TrackmeterError(f"{out}: cannot create a sequence folder there ({blocked} is not a writable folder)")
@@ -63,7 +75,6 @@ def run(args: argparse.Namespace) -> int:
         # Left over from a run of this command that was killed outright: replaced, but only
         # when it holds nothing a sequence writer would not have written, and no writer holds
         # it (another simulate to the same --out, still running: its lock refuses this one).
-        ours = {"cam0", "cam1", "groundtruth.csv", "groundtruth.tum", "model.yaml", "rig.yaml", "scenario.yaml"}
         if partial.is_symlink() or not partial.is_dir() or any(
                 p.name not in ours and not p.name.startswith(".") for p in partial.iterdir()):
             raise TrackmeterError(f"{partial}: exists and is not a sequence this command left unfinished; "
@@ -89,9 +100,18 @@ def run(args: argparse.Namespace) -> int:
                 if frame is None:
                     raise TrackmeterError(f"scenario {scenario.name} ended before its {sim.n_frames} frames")
                 writer.write(frame)
-        if out.exists():
-            out.rmdir()  # empty, checked above
-        partial.rename(out)
+        if replace_out:
+            # The old sequence goes only now that the new one is whole: moved aside, the new
+            # one put in its place, then the old removed.
+            old = out.with_name(f".{out.name}.replaced")
+            shutil.rmtree(old, ignore_errors=True)
+            out.rename(old)
+            partial.rename(out)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            if out.exists():
+                out.rmdir()  # empty, checked above
+            partial.rename(out)
     except OSError as exc:
         if lock is not None:  # the folder is this run's: take it back
             shutil.rmtree(partial, ignore_errors=True)
