@@ -19,8 +19,8 @@ from trackmeter.sources.sim.simulator import Simulator
 def main() -> None:
     sim = Simulator("estec", render_ahead=False)
     frame = sim.frame(0)  # StereoFrame: left/right uint8 images, t_s, truth
-    # Two textured pixels, one on the repetitive solar-cell grid (refused: ambiguous), one in
-    # black space (refused: too dark).
+    # Two textured pixels, then one on the repetitive solar-cell grid (refused: ambiguous) and
+    # one in black space (refused: too dark).
     pixels = np.array([[280.0, 331.0], [435.0, 87.0], [153.0, 283.0], [30.0, 30.0]])
 
     for m in measure_points(sim.rig, frame.left, frame.right, pixels):

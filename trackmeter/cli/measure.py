@@ -16,9 +16,10 @@ accepted a pixel or more off (measured on the Tsukuba pair, docs/results.md).
 the rectification's offset, so not u - right_u where the images are distorted or converge;
 null where a refused point has no number).
 
-example:
-  trackmeter measure --rig config/rigs/estec_12mm.yaml --left l.png --right r.png \\
-      --at 362,255 --at 400.5,300 --json
+example (two textured points of the simulated estec trial's first frame):
+  trackmeter simulate --scenario estec --duration 1 --out SEQ
+  trackmeter measure --rig config/rigs/estec_12mm.yaml --left SEQ/cam0/data/0.png \\
+      --right SEQ/cam1/data/0.png --at 280,331 --at 435,87 --json
 """
 
 from __future__ import annotations
