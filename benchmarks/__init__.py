@@ -34,6 +34,23 @@ NAMES: tuple[str, ...] = ("measure", "render", "select", "tracker", "operator", 
 CONFIG_ENV = "TRACKMETER_BENCH_CONFIG"
 
 
+#: The benchmarks that run the engine with :func:`bench_config` (the others, speed figures of
+#: the code paths themselves, always run the defaults).
+READS_CONFIG = frozenset({"accuracy", "operator", "looks", "error_budget"})
+
+
+def config_note(names: list[str]) -> str | None:
+    """One line when :data:`CONFIG_ENV` is set and some of ``names`` do not read it, naming
+    them (the variable would otherwise seem to have been applied); None otherwise."""
+    path = os.environ.get(CONFIG_ENV, "")
+    others = [n for n in names if n not in READS_CONFIG]
+    if not path or not others:
+        return None
+    readers = sorted(READS_CONFIG)
+    return (f"{CONFIG_ENV} ({path}) is read by {', '.join(readers[:-1])} and {readers[-1]} only: "
+            f"{', '.join(others[:-1]) + ' and ' if len(others) > 1 else ''}{others[-1]} run config/default.yaml")
+
+
 def bench_config() -> Config:
     """The configuration a benchmark runs the engine with: the defaults, or the file named by
     :data:`CONFIG_ENV` layered over them.

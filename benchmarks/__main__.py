@@ -13,7 +13,7 @@ import sys
 import time
 from pathlib import Path
 
-from benchmarks import NAMES
+from benchmarks import NAMES, config_note
 from trackmeter.errors import TrackmeterError
 
 
@@ -49,6 +49,9 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         print(f"python -m benchmarks: error: unknown benchmark {', '.join(unknown)} (known: {', '.join(NAMES)})", file=sys.stderr)
         return 2
+    note = config_note(names)
+    if note:
+        print(f"[benchmarks] note: {note}", file=sys.stderr, flush=True)
     results: dict[str, dict[str, float]] = {}
     for name in names:
         try:

@@ -61,3 +61,18 @@ def test_the_readme_table_is_always_the_defaults(tmp_path, monkeypatch):
     step = Runner(tmp_path, tmp_path).run("env", [sys.executable, "-c",
                                                   f"import os; print(os.environ.get('{CONFIG_ENV}', 'unset'))"])
     assert step.status == "ok" and step.stdout.strip() == "unset"
+
+
+def test_a_run_of_benchmarks_that_do_not_read_the_file_says_so(monkeypatch, tmp_path) -> None:
+    """`TRACKMETER_BENCH_CONFIG=bad.yaml python -m benchmarks render` ran the defaults, exit 0,
+    without a word (an outside probe): the benchmarks that do not read the file are named."""
+    from benchmarks import READS_CONFIG, config_note
+
+    assert READS_CONFIG == {"accuracy", "operator", "looks", "error_budget"}
+    monkeypatch.setenv(CONFIG_ENV, "smooth.yaml")
+    assert config_note(["render", "accuracy", "pipeline"]) == (
+        f"{CONFIG_ENV} (smooth.yaml) is read by accuracy, error_budget, looks and operator only: render and "
+        "pipeline run config/default.yaml")
+    assert config_note(["accuracy", "looks"]) is None
+    monkeypatch.delenv(CONFIG_ENV)
+    assert config_note(["render"]) is None
