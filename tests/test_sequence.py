@@ -1161,3 +1161,16 @@ def test_ground_truth_whose_times_meet_no_frame_is_said_so(tmp_path) -> None:
                                          r"frames' \(0\.000-0\.120 s\) within .*; ground truth not used"):
         src = SequenceSource(d)
     assert not src.has_truth and src.truth_problem
+
+
+def test_a_gap_in_the_frame_times_is_said(tmp_path) -> None:
+    """A second of frames cut out of both streams (data.csv rows and images) was tracked
+    straight through without a word (an outside probe); the gap is named by where it is."""
+    frames = _frames(12)
+    d = _write(tmp_path / "s", [f for f in frames if not 4 <= f.index <= 8])
+    with pytest.warns(UserWarning, match=r"1 gap\(s\) in the frame times longer than 3 frame intervals \(the "
+                                         r"longest 0\.240 s, after t = 0\.120 s\)"):
+        src = SequenceSource(d)
+    assert len(src) == 7
+    d2 = _write(tmp_path / "whole", frames)
+    assert "gap" not in (SequenceSource(d2).warning or "")

@@ -525,6 +525,9 @@ def find_sequence_file(directory: str | Path, *names: str) -> Path | None:
 #: (microseconds give 25 kHz for a 25 Hz camera, frame numbers 1 GHz), and warned about.
 MAX_PLAUSIBLE_RATE_HZ = 2000.0
 
+#: Frame intervals (the median one) past which a pause in a sequence's frame times is warned of.
+GAP_INTERVALS = 3.0
+
 
 def _read_data_csv(path: Path) -> tuple[list[tuple[int, Path]], int, int, Path | None]:
     """Rows ``(ns, image path)`` of one camera's data.csv, counts of bad rows and missing files,
@@ -710,6 +713,14 @@ def index_sequence(
         warnings.append(f"frames {dt * 1e6:.4g} µs apart ({1.0 / dt:.0f} Hz): data.csv timestamps are "
                         "nanoseconds; are these microseconds or frame numbers? (tracking would take "
                         "the motion between frames as that fast)")
+    if len(t_s) > 2 and (step := float(np.median(np.diff(t_s)))) > 0:
+        dt = np.diff(t_s)
+        gaps = np.flatnonzero(dt > GAP_INTERVALS * step)
+        if len(gaps):
+            # Tracked across as one step: the motion between is predicted, not seen.
+            worst = int(gaps[np.argmax(dt[gaps])])
+            warnings.append(f"{len(gaps)} gap(s) in the frame times longer than {GAP_INTERVALS:g} frame intervals "
+                            f"(the longest {dt[worst]:.3f} s, after t = {t_s[worst]:.3f} s): no frames there")
     rig_file = find_sequence_file(directory, *RIG_FILE_NAMES)
     rig: StereoRig | None = None
     if not read_rig:
