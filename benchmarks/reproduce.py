@@ -543,7 +543,8 @@ def main(argv: list[str] | None = None) -> int:
         f"Machine: {platform.machine()}, {platform.system()} {platform.release()}, Python {platform.python_version()}; "
         f"command: `python -m benchmarks.reproduce{' --quick' if args.quick else ''}`.",
         f"Errors are the largest absolute value over the run after a 2 s settle time, then RMS; axes: x, y lateral, "
-        f"z the viewing axis ({PAPER_VIEW_NOTE}). Paper figures: the original system at 3.5 m.",
+        f"z the viewing axis ({PAPER_VIEW_NOTE}); a lateral row gives the larger of x's and y's figures (each "
+        "in `evaluate`'s output). Paper figures: the original system at 3.5 m.",
         "",
         "| capability | paper | ours | command |",
         "| --- | --- | --- | --- |",
