@@ -412,6 +412,7 @@ class Console:
         self.image_pushes: deque[tuple[float, tuple[str, ...]]] = deque(maxlen=200)
         self._last_frame_index: int | None = None
         self._loop_said = False  # the pop-up that the source loops, once (again after a Restart)
+        self._shortfall_said = False  # why automatic selection started none, popped up once (_say_shortfall)
         self._lost_targets = LostTargets()  # a lost target's mark is left out after a while
         # Ids of targets not drawn (lost too long): a shift-click does not remove what it cannot
         # see. Set by the publisher, read by the click handler: one reference, replaced whole.
@@ -745,6 +746,18 @@ class Console:
                 self._notify(client, "Source", f"the source loops: it starts over (pass {source_pass}), and so "
                              "does tracking: targets, model points and pose", True)
 
+    def _say_shortfall(self, snap: Snapshot) -> None:
+        """Say whole, once, why automatic selection started no target: the targets line cuts
+        it to two lines of the panel, and a phone has no hover for its title. Said again only
+        after selection started a target or was switched off."""
+        why = snap.auto_shortfall if snap.auto_enabled else None
+        if why is None:
+            self._shortfall_said = False
+        elif not self._shortfall_said:
+            self._shortfall_said = True
+            for client in list(self.server.get_clients().values()) or [None]:
+                self._notify(client, "Automatic selection", f"started no target: {why}", False)
+
     def _on_click(self, event: Any) -> None:
         uv = self._event_pixel(event)
         if uv is not None:
@@ -988,6 +1001,7 @@ class Console:
     def _push(self, snap: Snapshot, plots: bool, text: bool = True) -> None:
         frame = snap.frame
         self._say_loop(snap.source_pass)
+        self._say_shortfall(snap)
         left_rgb = right_rgb = None
         drawn = self._lost_targets.shown(snap.targets, frame.t_s) if frame is not None else list(snap.targets)
         self._hidden_ids = frozenset(t.id for t in snap.targets) - {t.id for t in drawn}

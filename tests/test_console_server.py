@@ -916,6 +916,37 @@ def test_a_looping_source_s_new_pass_is_said_once_and_counted() -> None:
         running.stop()
 
 
+def test_why_automatic_selection_started_none_pops_up_once_whole() -> None:
+    # The reason on the targets line is cut to two lines of the panel, its cause (a setting's
+    # name) at the end, and a phone has no hover for the whole (an outside console probe): it
+    # pops up whole, once, until selection starts a target or is switched off and on.
+    from trackmeter.pipeline.snapshot import PoseEstimate, Snapshot, Timings
+    from trackmeter.sources.base import StereoFrame
+
+    running = start_console(CountingSource(3), RecordingEngine(), port=free_port())  # type: ignore[arg-type]
+    con = running.console
+    img = np.zeros((8, 8), np.uint8)
+    deadline = time.monotonic() + 10
+    while running.pipeline.latest().source_status != "ended":
+        assert time.monotonic() < deadline
+        time.sleep(0.02)
+    time.sleep(0.5)
+
+    def push(index: int, auto: bool, why: str | None) -> None:
+        con._push(Snapshot(StereoFrame(index, index / 25.0, img, img), (), PoseEstimate.invalid("x"), None, Timings(),
+                           auto_enabled=auto, auto_shortfall=why), plots=False)
+
+    reason = "no room for a patch: features.target_margin_px or features.border_px leave no pixel of the lit target"
+    try:
+        for index, (auto, why) in enumerate([(True, reason), (True, reason), (True, "another"), (True, None),
+                                             (True, reason), (False, reason), (True, reason)]):
+            push(index, auto, why)
+        said = [(title, body) for title, body in con.notifications if title == "Automatic selection"]
+        assert said == [("Automatic selection", f"started no target: {reason}")] * 3, said
+    finally:
+        running.stop()
+
+
 def test_a_toggle_s_reply_with_something_to_say_is_shown() -> None:
     # Choosing the centroid method answered nothing in the browser: a toggle's success is
     # shown by the widget, and its note (one point a bright region) went with the pop-up.

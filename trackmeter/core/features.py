@@ -26,7 +26,7 @@ optionally over a narrower disparity range the caller knows (``disparity_range_p
 from __future__ import annotations
 
 import weakref
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import cv2
@@ -357,20 +357,21 @@ def target_mask(image: NDArray, params: FeatureParams) -> NDArray[np.uint8]:
 
 #: Why automatic selection found nothing, where the image itself leaves no pixel selectable
 #: (:func:`nothing_selectable_reason`).
-NOTHING_LIT = "nothing lit: no pixel above features.black_level, nor above the sky's noise by features.black_snr"
-NO_ROOM = ("no room for a patch on the lit target: it is narrower than the patch plus features.target_margin_px "
-           "on each side, away from features.border_px")
+NOTHING_LIT = ("nothing lit to select on: no patch-sized area brighter than black space (the target out of "
+               "view, in deep shadow, or underexposed)")
+NO_ROOM = "no room for a patch: features.target_margin_px or features.border_px leave no pixel of the lit target"
 
 
 def nothing_selectable_reason(image: NDArray, params: FeatureParams) -> str | None:
     """Why no pixel of ``image`` is selectable (:data:`NOTHING_LIT` or :data:`NO_ROOM`), or None
     where :func:`target_mask` leaves some. Asked only once a selection came back empty, so that
-    a setting that leaves nothing (``target_margin_px: 400``) is named instead of taken for
-    black space or missing texture."""
+    a setting that leaves nothing (``target_margin_px: 400``) is named, and only then: a lit
+    area a patch fits in without the margin and the border is what the settings took away; a
+    dark image's few lit specks (noise, a sliver in shadow) are not."""
     if target_mask(image, params).any():
         return None
-    lit = bright_pixels(image, params).any() or (params.black_snr > 0 and bright_pixels(image, params, snr=True).any())
-    return NO_ROOM if lit else NOTHING_LIT
+    bare = replace(params, target_margin_px=0, border_px=0)
+    return NO_ROOM if target_mask(image, bare).any() else NOTHING_LIT
 
 
 def erode_square(mask: NDArray[np.uint8], radius_px: int) -> NDArray[np.uint8]:
