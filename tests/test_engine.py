@@ -1100,6 +1100,29 @@ def test_a_body_moving_out_of_view_is_said_to_have_left_it(estec_rig, monkeypatc
     assert not any("out of view" in r for n, _, r in reasons if n >= 3)
 
 
+def test_case_a_waiting_for_a_new_frame_still_says_the_body_left_the_view(estec_rig, monkeypatch) -> None:
+    """Case (a) defines a new frame redefine_after_s after a total loss; its reason then read
+    "waiting for 3 points tracked ... (0 so far)" and the body's leaving was no longer said
+    (an outside console probe). It is, until the body comes back and a frame is defined."""
+    import tests.test_engine as here
+
+    monkeypatch.setattr(here, "V", np.array([0.6, 0.0, 0.0]))
+    engine, tracker, pts = make_engine(estec_rig, noise=False, with_model=False, case="a")
+    w, h = estec_rig.image_size
+    reasons = []
+    for k in range(0, 260):
+        T = true_pose(k * DT)
+        uv_l, uv_r = estec_rig.project(pts @ T[:3, :3].T + T[:3, 3])
+        inside = np.all((uv_l >= 0) & (uv_l <= [w - 1, h - 1]) & (uv_r >= 0) & (uv_r <= [w - 1, h - 1]), axis=1)
+        tracker.force_lost = {f"m{i}" for i in np.flatnonzero(~inside)}
+        _, pose, _ = engine.process(frame_at(k))
+        reasons.append((int(inside.sum()), pose.reason or ""))
+    waiting = [r for n, r in reasons if n == 0 and r.startswith("case (a): waiting")]
+    assert waiting and all(r.endswith("; the body was last seen moving out of view") for r in waiting), waiting[:2]
+    assert engine.stats.frames_redefined >= 1
+    assert not any("out of view" in r for n, r in reasons if n >= 3)
+
+
 def test_points_hidden_in_view_are_not_said_to_be_out_of_view(estec_rig) -> None:
     engine, tracker, _ = make_engine(estec_rig, noise=False)
     run(engine, range(60))

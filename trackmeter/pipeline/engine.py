@@ -368,6 +368,7 @@ class Engine:
         self._pose_when_seen: dict[str, tuple[FloatArray, FloatArray]] = {}
         self._coast: tuple[float, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray] | None = None
         self._left_view = False  # the body was last seen moving out of view (_out_of_view)
+        self._gone_from_view = False  # ... and case (a)'s frame was given up since (_establish_frame)
         # Coasting output: the last output pose with settled rates (t, R, p, cov, v_cam, omega_body),
         # whether the last output was coasted, and the offset being blended out after a coast.
         self._coast_out: tuple[float, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray] | None = None
@@ -710,7 +711,9 @@ class Engine:
                 if self._case == "a" and self._model:
                     # The frame's points are gone for good and the coast has run out: define a
                     # new frame from the points tracked now (a new body frame starts here).
+                    gone = self._out_of_view(frame.t_s)
                     self._reset_motion()
+                    self._gone_from_view = gone  # said while the new frame waits for points
                     self.stats.frames_redefined += 1
             self._operator_watch(frame)
             if coasted is not None:
@@ -858,8 +861,10 @@ class Engine:
         min_age = self.pose_params.frame_min_age_frames
         ids = [i for i, s in measured.items() if s.age_frames >= min_age]
         if len(ids) < 3:
-            return (f"case (a): waiting for 3 points tracked for {min_age} frames to define the frame ({len(ids)} so far)"
-                    if min_age else f"case (a): {len(ids)} measured points, 3 needed to define the frame")
+            return ((f"case (a): waiting for 3 points tracked for {min_age} frames to define the frame ({len(ids)} so far)"
+                     if min_age else f"case (a): {len(ids)} measured points, 3 needed to define the frame")
+                    + ("; the body was last seen moving out of view" if self._gone_from_view else ""))
+        self._gone_from_view = False
         P = np.array([measured[i].point_cam for i in ids])
         triple = choose_frame_points(P, self.pose_params.min_triangle_m)
         if triple is None:
