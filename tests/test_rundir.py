@@ -424,3 +424,30 @@ def test_a_folder_holding_other_files_is_not_a_run_folder(tmp_path: Path) -> Non
     for overwrite in (False, True):
         with pytest.raises(TrackmeterError, match=r"report: holds other files \(errors\.csv, report\.md, summary\.json\)"):
             check_run_directory(report, overwrite)
+
+
+@pytest.mark.parametrize("status, replaced", [("nothing to track", False), ("no frame", False),
+                                              ("complete", True), ("interrupted", True)])
+def test_an_overwrite_refused_on_its_first_frame_keeps_the_earlier_run(tmp_path: Path, status: str,
+                                                                        replaced: bool) -> None:
+    """`track --target 1,1 --out run --overwrite` (the pixel refused: nothing to track, exit 2)
+    replaced a complete earlier run and its report with one frame (an outside probe). A new run
+    that ends without having tracked (nothing to track, no frame) gives the earlier one back,
+    report included; one that tracked replaces it, as --overwrite asked."""
+    first = RunWriter(tmp_path / "run", {}, {"spec": "first"})
+    for k in range(3):
+        first.write_frame(0.04 * k, (), _pose(0.0))
+    first.close("complete")
+    (tmp_path / "run" / "report.md").write_text("the first run's report")
+    (tmp_path / "run" / "notes.txt").write_text("mine")
+    before = {p.name: p.read_bytes() for p in (tmp_path / "run").iterdir()}
+    second = RunWriter(tmp_path / "run", {}, {"spec": "second"}, overwrite=True)
+    second.write_frame(0.0, (), _pose(0.0))
+    second.close(status)
+    after = {p.name: p.read_bytes() for p in (tmp_path / "run").iterdir()}
+    if replaced:
+        assert "report.md" not in after and after["notes.txt"] == b"mine"
+        assert yaml.safe_load(after["run.yaml"])["source"]["spec"] == "second"
+        assert len(read_motion_csv(tmp_path / "run" / "states.csv")) == 1
+    else:
+        assert after == before and second.kept_earlier_run

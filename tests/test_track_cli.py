@@ -867,3 +867,17 @@ def test_targets_on_a_later_first_frame_are_said_to_be_there(tmp_path, capsys) -
     assert code == 0, err
     assert ("note: --target: the pixels were placed on the first frame that played, t = 0.040 s; the pair(s) "
             "before it were skipped") in err, err
+
+
+def test_an_overwrite_with_nothing_to_track_keeps_the_earlier_run(tmp_path, capsys, monkeypatch, estec_rig) -> None:
+    """`--target 1,1 --overwrite` (refused: nothing to track) destroyed a complete earlier run
+    (an outside probe); the earlier run is now kept, and the message says so."""
+    fake_source(monkeypatch, estec_rig, n=12)
+    out = tmp_path / "run"
+    assert main(["track", "--source", "fake", "--auto", "4", "--out", str(out)]) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    capsys.readouterr()
+    assert main(["track", "--source", "fake", "--target", "1,1", "--out", str(out), "--overwrite"]) == 2
+    err = capsys.readouterr().err
+    assert f"the earlier run in {out} is kept" in err, err
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before

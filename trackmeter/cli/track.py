@@ -98,7 +98,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "note on stderr when a model was there)")
     parser.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
     parser.add_argument("--out", required=True, metavar="DIR", help="run folder to write")
-    parser.add_argument("--overwrite", action="store_true", help="replace an earlier run in --out")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace an earlier run in --out (and its report) once the new run has tracked: one "
+                             "that ends with nothing to track or no frame gives the earlier run back")
 
 
 def parse_target(text: str) -> tuple[str | None, tuple[float, float]]:
@@ -390,8 +392,9 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
                 writer.close("no frame", summary)
                 detail = f": {src_status}" if src_status and src_status != "ended" else ""
                 detail += f"; {source_warning}" if source_warning else ""
-                raise TrackmeterError(f"source {args.source!r} delivered no frame{detail} (nothing tracked; "
-                                      f"{args.out} holds an empty run)")
+                kept = (f"the earlier run in {args.out} is kept" if writer.kept_earlier_run
+                        else f"{args.out} holds an empty run")
+                raise TrackmeterError(f"source {args.source!r} delivered no frame{detail} (nothing tracked; {kept})")
             if source_warning and source_warning != warning_at_open:
                 print(f"trackmeter track: warning: {source_warning}", file=sys.stderr)
             for k, (command, reply) in enumerate(zip(commands, replies)):
@@ -407,9 +410,10 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
                 why = " and ".join((["every --target was refused on the first frame"] if targets else [])
                                    + (["the source has no ground truth to select model points with"]
                                       if args.select_model_points else []))
+                kept = (f"the earlier run in {args.out} is kept" if writer.kept_earlier_run
+                        else f"{args.out} holds {'them' if writer.frames != 1 else 'it'}")
                 raise TrackmeterError(f"nothing to track: {why}, and there is no --auto (stopped after "
-                                      f"{counted(writer.frames, 'frame')}; "
-                                      f"{args.out} holds {'them' if writer.frames != 1 else 'it'})")
+                                      f"{counted(writer.frames, 'frame')}; {kept})")
             if src_status and src_status != "ended":
                 status = "source failed"
                 print(f"trackmeter track: source stopped: {src_status}", file=sys.stderr)

@@ -48,6 +48,12 @@ _RUN_FILES = ("trajectory.tum", "states.csv", "targets.csv", "run.yaml")
 # Held while a run is written, released for the final run.yaml when the disk is full; the
 # name is the reserve's only while it is written (then an open descriptor holds its space).
 RESERVE_NAME = ".run.yaml.reserve"
+#: Where ``--overwrite`` keeps the earlier run (its files and report) until the new one has
+#: tracked (:class:`RunWriter`); left there only by a writer killed outright.
+PREVIOUS_RUN = ".previous-run"
+#: Statuses of a run that tracked nothing (refused on its first frame, or given no frame): with
+#: ``--overwrite`` the earlier run is given back.
+UNTRACKED_STATUSES = frozenset({"nothing to track", "no frame"})
 # Bytes held beyond the first run.yaml's size: the final one adds the status, the summary (its
 # invalid reasons, tracker and engine counts: about 2 KB on estec) and the finish time.
 RESERVE_EXTRA_BYTES = 32 * 1024
@@ -153,7 +159,10 @@ class RunWriter:
             unless ``overwrite``.
         config: a plain dict of the configuration (``config_to_dict``).
         source: the source SPEC and what it carried (rig name, model, rate).
-        overwrite: replace an earlier run's files.
+        overwrite: replace an earlier run's files (and its report). They are set aside in
+            :data:`PREVIOUS_RUN` while the new run writes, and given back when it closes with
+            one of :data:`UNTRACKED_STATUSES` (``kept_earlier_run``) or cannot start: bad input
+            found on the first frame does not cost the earlier run.
 
     Raises:
         TrackmeterError: the folder holds a run already, or cannot be written.
@@ -167,14 +176,19 @@ class RunWriter:
         self._lock: FolderLock | None = lock
         self._begun: list[Path] = []  # the files this writer wrote or truncated, in order
         self._reserve: SpaceReserve | None = None
+        self._previous: Path | None = None
+        self.kept_earlier_run = False
         try:
+            if overwrite:
+                self._set_aside()
             self._open(config, source, extra)
         except BaseException:
             # Nothing half-made left behind (e.g. a disk already full): the files this writer
-            # began, not an earlier run's it was to replace (--overwrite), and the folder when it
-            # made it; the lock last.
+            # began, not an earlier run's it was to replace (--overwrite: given back), and the
+            # folder when it made it; the lock last.
             for path in self._begun:
                 path.unlink(missing_ok=True)
+            self._give_back()
             if created:
                 with contextlib.suppress(OSError):
                     self.directory.rmdir()
@@ -184,11 +198,6 @@ class RunWriter:
         # go on into the deleted one and the closing run.yaml make a new folder of its own.
         self._folder_id = _folder_identity(self.directory)
         self.folder_lost = False
-        if overwrite:  # a report of the run replaced would describe the new one wrongly
-            from trackmeter.data.evaluation import REPORT_FILES
-
-            for name in REPORT_FILES:
-                (self.directory / name).unlink(missing_ok=True)
         self.frames = 0
         self.valid_frames = 0
         # Valid poses carried on the motion model with no point measured (the states.csv
@@ -198,6 +207,35 @@ class RunWriter:
         self.rates_pending_frames = 0
         # The quaternion last written: each next one takes the sign nearer it (no flips in the files).
         self._last_quat_wxyz: np.ndarray | None = None
+
+    def _set_aside(self) -> None:
+        """Move the earlier run's files and its report into :data:`PREVIOUS_RUN` (a leftover of
+        a writer killed outright replaced), kept as ``_previous`` from the first move on."""
+        import shutil
+
+        from trackmeter.data.evaluation import REPORT_FILES
+
+        names = [n for n in (*_RUN_FILES, *REPORT_FILES) if (self.directory / n).exists()]
+        if not names:
+            return
+        previous = self.directory / PREVIOUS_RUN
+        if previous.is_dir() and not previous.is_symlink():
+            shutil.rmtree(previous)
+        elif previous.exists() or previous.is_symlink():
+            previous.unlink()
+        previous.mkdir()
+        self._previous = previous
+        for name in names:
+            os.replace(self.directory / name, previous / name)
+
+    def _give_back(self) -> None:
+        """Put the earlier run set aside by :meth:`_set_aside` back (its names freed first)."""
+        if self._previous is None:
+            return
+        for entry in list(self._previous.iterdir()):
+            os.replace(entry, self.directory / entry.name)
+        self._previous.rmdir()
+        self._previous = None
 
     def _open(self, config: dict[str, Any], source: dict[str, Any], extra: dict[str, Any] | None) -> None:
         self._meta: dict[str, Any] = {
@@ -295,10 +333,28 @@ class RunWriter:
             return
         try:
             self._close(status, summary)
+            self._settle_previous(status)
         finally:
             if self._reserve is not None:
                 self._reserve.release()
             self._release_lock()
+
+    def _settle_previous(self, status: str) -> None:
+        """With ``--overwrite``: a run that tracked nothing (:data:`UNTRACKED_STATUSES`) gives
+        the earlier run back, its own files removed; any other replaces it. (A close that
+        failed leaves both, the earlier one in :data:`PREVIOUS_RUN`: nothing is lost.)"""
+        if self._previous is None:
+            return
+        if status in UNTRACKED_STATUSES:
+            for name in _RUN_FILES:
+                (self.directory / name).unlink(missing_ok=True)
+            self._give_back()
+            self.kept_earlier_run = True
+        else:
+            import shutil
+
+            shutil.rmtree(self._previous, ignore_errors=True)
+            self._previous = None
 
     def _check_folder(self) -> None:
         """Raises TrackmeterError (and sets ``folder_lost``) when the run folder is gone or is
