@@ -9,6 +9,7 @@ import json
 import re
 import subprocess
 import sys
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -205,7 +206,13 @@ def test_an_existing_rig_file_is_not_replaced_without_overwrite(calib_dir: Path,
     assert main(_args(calib_dir, out)) == 2
     _one_error_line(capsys, "precious.yaml", "exists", "--overwrite")
     assert out.read_text() == "keep me\n"
+    # --overwrite replaces a rig file only: not the user's notes (nor a run's trajectory.tum,
+    # rewritten as a rig before: an outside probe), before the work.
+    assert main([*_args(calib_dir, out), "--overwrite"]) == 2
+    _one_error_line(capsys, "precious.yaml", "not a rig file")
+    assert out.read_text() == "keep me\n"
     monkeypatch.setattr(calibration, "detect_corners", real)
+    shutil.copy(REPO / "config" / "rigs" / "estec_12mm.yaml", out)
     assert main([*_args(calib_dir, out), "--overwrite"]) == 0
     assert load_rig(out).image_size == (640, 480)
 

@@ -33,7 +33,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pattern", required=True, metavar="COLSxROWS", help="chessboard inner corners, e.g. 9x6")
     parser.add_argument("--square", required=True, type=float, metavar="METRES", help="side of one chessboard square, m")
     parser.add_argument("--out", default="rig.yaml", metavar="RIG", help="rig file to write (default: rig.yaml)")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing rig file at --out")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace an existing rig file at --out (a file that is not a rig is never replaced)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -133,6 +134,14 @@ def _check_out(out: str, overwrite: bool = False) -> None:
         raise TrackmeterError(f"--out {path}: is a folder; give the rig file's name, e.g. {path / 'rig.yaml'}")
     if path.exists() and not overwrite:
         raise TrackmeterError(f"--out {path}: exists (an earlier calibration?); choose another --out or give --overwrite")
+    if path.exists() or path.is_symlink():
+        from trackmeter.data.rigfile import is_rig_file
+
+        if path.is_symlink() or not path.is_file() or not is_rig_file(path):
+            # --overwrite replaces a calibration, not the user's other files (notes.txt, a run's
+            # trajectory.tum were rewritten as rigs).
+            raise TrackmeterError(f"--out {path}: not a rig file; --overwrite replaces only an earlier calibration: "
+                                  "choose another --out")
     blocked = unwritable_ancestor(path.parent)
     if blocked is not None:
         raise TrackmeterError(f"--out {path}: cannot write the rig file there ({blocked} is not a writable folder)")

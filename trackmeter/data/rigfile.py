@@ -276,6 +276,23 @@ def _load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> St
         fs.release()
 
 
+def is_rig_file(path: str | Path) -> bool:
+    """Whether ``path`` is a stereo rig file: one this module reads (a rig.yaml, OpenCV's
+    intrinsics.yml or extrinsics.yml, a Kalibr camchain.yaml), judged by its keys. What a
+    command may replace with ``--overwrite``: not the user's other files."""
+    path = Path(path)
+    if _kalibr_camchain(path) is not None:
+        return True
+    try:
+        fs = _open(path)
+    except TrackmeterError:
+        return False
+    try:
+        return any(not fs.getNode(key).empty() for key in _RIG_KEYS)
+    finally:
+        fs.release()
+
+
 def _kalibr_camchain(path: Path) -> dict | None:
     """The file's contents when it is a Kalibr ``camchain.yaml`` (a mapping with ``cam0``), else
     None (not YAML PyYAML reads, e.g. OpenCV's ``!!opencv-matrix`` tags, or another mapping)."""
