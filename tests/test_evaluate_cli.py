@@ -117,7 +117,7 @@ def test_a_run_dir_evaluates_the_poses_of_its_trajectory_tum(capsys, sequence_an
     assert list(from_tum) == list(from_run) == list(from_csv)
 
 
-@pytest.mark.parametrize("damage", ["cut", "removed"])
+@pytest.mark.parametrize("damage", ["cut", "removed", "cut_at_a_line"])
 def test_a_track_runs_trajectory_that_cannot_be_read_is_said_to_leave_poses_out(capsys, sequence_and_run, tmp_path,
                                                                                damage: str) -> None:
     """A run folder whose trajectory.tum was cut short (its last line half written) evaluated
@@ -135,12 +135,15 @@ def test_a_track_runs_trajectory_that_cannot_be_read_is_said_to_leave_poses_out(
     (run / "run.yaml").write_text("status: complete\nsource: {case: b}\n")
     if damage == "cut":
         tum.write_bytes(tum.read_bytes()[:-20])
+    elif damage == "cut_at_a_line":  # whole lines, the poses up to t[21] (an outside probe: no word)
+        tum.write_text("".join(tum.read_text().splitlines(keepends=True)[:23]))
     else:
         tum.unlink()
     code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
     assert code == 0, err
-    assert json.loads(out)["matched"] == n - 5
-    assert "trajectory.tum" in err and "the 5 poses logged before the rates were known" in err, err
+    left_out = 3 if damage == "cut_at_a_line" else 5
+    assert json.loads(out)["matched"] == n - left_out
+    assert "trajectory.tum" in err and f"the {left_out} poses logged before the rates were known" in err, err
     assert "left out" in err and len(err.strip().splitlines()) == 1, err
 
 

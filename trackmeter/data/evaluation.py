@@ -103,8 +103,16 @@ def _poses_of_run(states: MotionSeries, declared_t_s: np.ndarray, undeclared_why
     pose_only = pose & ~states.valid & ~_rows_with_rates(states)
     if np.any(pose_only) and len(declared_t_s):
         declared = np.zeros(len(states), bool)
-        a = associate(np.sort(np.asarray(declared_t_s, float)), states.t_s[pose_only], 1e-6)
+        listed = np.sort(np.asarray(declared_t_s, float))
+        a = associate(listed, states.t_s[pose_only], 1e-6)
         declared[np.flatnonzero(pose_only)[a.index_est]] = True
+        unlisted = int(np.count_nonzero(pose_only & ~declared))
+        missed = int(np.count_nonzero(states.valid)) - associate(listed, states.t_s[states.valid], 1e-6).matched
+        if unlisted and missed > 0:
+            # A track run lists every valid pose there: this one is cut short (or edited).
+            warnings.warn(f"trajectory.tum beside it lists {len(listed)} poses and misses {missed} of states.csv's "
+                          f"valid ones (cut short?): the {unlisted} poses logged before the rates were known that it "
+                          "does not list are left out", stacklevel=2)
         pose_only &= declared
     else:
         if np.any(pose_only) and undeclared_why:
