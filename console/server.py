@@ -127,7 +127,8 @@ def serve_forever(running: RunningConsole, stop: threading.Event | None = None, 
     source status (ended, failed) and source warning (images skipped) is one line on stderr:
     whoever started the console sees what the browser's status line shows."""
     stop = stop or threading.Event()
-    said: tuple[str | None, str | None] = (None, None)
+    # The source's warning at open was said then, naming its folder (warnings.warn): not again.
+    said: tuple[str | None, str | None] = (None, getattr(running.pipeline.source, "warning", None))
     try:
         while not stop.wait(poll_s):
             snap = running.pipeline.latest()

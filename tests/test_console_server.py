@@ -765,7 +765,8 @@ def test_the_server_loop_says_on_stderr_when_the_source_ends_fails_or_warns(caps
         return SimpleNamespace(source_status=news[k][0], source_warning=news[k][1])
 
     stopped: list[bool] = []
-    running = SimpleNamespace(pipeline=SimpleNamespace(latest=latest), stop=lambda: stopped.append(True))
+    running = SimpleNamespace(pipeline=SimpleNamespace(latest=latest, source=SimpleNamespace(warning=None)),
+                              stop=lambda: stopped.append(True))
     serve_forever(running, stop, poll_s=0.01)  # type: ignore[arg-type]
     assert stopped == [True]
     assert capsys.readouterr().err.splitlines() == [
@@ -773,6 +774,17 @@ def test_the_server_loop_says_on_stderr_when_the_source_ends_fails_or_warns(caps
         "trackmeter console: source ended",
         "trackmeter console: source failed: x: gone",
     ]
+    # The warning the source gave when it opened was said then (naming its folder): not again,
+    # bare (an outside probe saw every sequence warning twice).
+    polled.clear()
+    stop.clear()
+    news = news[1:]  # the snapshots carry the source's warning from the first frame on
+    at_open = news[0][1]
+    running = SimpleNamespace(pipeline=SimpleNamespace(latest=latest, source=SimpleNamespace(warning=at_open)),
+                              stop=lambda: stopped.append(True))
+    serve_forever(running, stop, poll_s=0.01)  # type: ignore[arg-type]
+    assert capsys.readouterr().err.splitlines() == ["trackmeter console: source ended",
+                                                    "trackmeter console: source failed: x: gone"]
 
 
 def test_a_model_point_chosen_in_one_browser_names_only_that_browser_s_click() -> None:
