@@ -463,4 +463,20 @@ def test_a_ground_truth_file_that_does_not_read_stops_analyze(still_sequence, tm
     # (the file is named once: the folder's name no longer stands in front of its own file's)
     assert err[0].startswith(f"trackmeter analyze: warning: {folder / 'groundtruth.csv'}:3: expected 14 values")
     assert err[1].startswith("trackmeter analyze: error: analyze splits the source into its still ranges by the "
-                             "ground truth, which did not read (said above)")
+                             f"ground truth, and {folder / 'groundtruth.csv'}:3: expected 14 values")
+
+
+def test_a_ground_truth_without_a_whole_pose_stops_analyze(still_sequence, tmp_path, capsys):
+    """Every row's x NaN: each warned, then analyze went on as if there were no truth, six
+    ranges taken for one, exit 0 (an outside probe, a variant of the unreadable file)."""
+    from trackmeter.data.motion_csv import GROUNDTRUTH_COLUMNS
+
+    rows = [f"{i / 25.0:.6f},nan,0,3.8,1,0,0,0,0,0,0,0,0,0" for i in range(8)]
+    folder = _with_truth(still_sequence, tmp_path, rows=None,
+                         text=",".join(GROUNDTRUTH_COLUMNS) + "\n" + "\n".join(rows) + "\n")
+    code = main(["analyze", "--source", str(folder), "--points", "5"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2, err
+    assert err[-1].startswith("trackmeter analyze: error: analyze splits the source into its still ranges by the "
+                              "ground truth"), err
+    assert f"{folder / 'groundtruth.csv'}: no row gives a whole pose" in err[-1], err

@@ -740,13 +740,17 @@ def index_sequence(
             raise
         warnings.append(f"{exc}; model not used")
     truth_problem: str | None = None
+    truth_file = find_sequence_file(directory, "groundtruth.csv", "groundtruth.tum")
     try:
-        truth = _read_truth(find_sequence_file(directory, "groundtruth.csv", "groundtruth.tum"), t_s, tolerance_s)
+        truth = _read_truth(truth_file, t_s, tolerance_s)
     except TrackmeterError as exc:
         # Optional, and most runs (tracking a real sequence) do not need it: told, not fatal,
         # as a broken rig.yaml is not when another rig is given.
         truth, truth_problem = None, str(exc)
         warnings.append(f"{exc}; ground truth not used")
+    if truth is not None and len(truth) and not truth.valid.any():
+        # Every row without a whole pose (warned by row): a command that needs truth is told.
+        truth_problem = f"{truth_file}: no row gives a whole pose at the frames' times"
     pair_ns = np.array([t_left[i] for i, _ in pairs], dtype=np.int64)
     try:
         cuts = _read_cuts(find_sequence_file(directory, CUTS_FILE), pair_ns)

@@ -354,8 +354,8 @@ def run_error_analysis(
     gains: list[float] = []
     problem = getattr(source, "truth_problem", None)
     if problem:
-        raise TrackmeterError("analyze splits the source into its still ranges by the ground truth, which did not "
-                              "read (said above): mend the file, or move it away to analyze the source as one range")
+        raise TrackmeterError(f"analyze splits the source into its still ranges by the ground truth, and {problem}: "
+                              "mend the file, or move it away to analyze the source as one range")
     without_truth: list[float] = []
     for group in split_ranges(stream, skipped=without_truth):
         gain = exposure_gain(group[0].left, exposure) if exposure is not None else 1.0
