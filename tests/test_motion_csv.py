@@ -220,8 +220,8 @@ def test_a_groundtruth_row_without_a_whole_pose_is_unknown_truth_at_that_time_on
     "bad_line, message",
     [
         ("0.08 0 0 3.5 0 0 0 0", "zero quaternion"),
-        ("0.08 0 nan 3.5 0 0 0 1", "not finite"),
-        ("0.08 0 0 3.5 0 0 0 inf", "not finite"),
+        ("0.08 0 nan 3.5 0 0 0 1", r"ty is not finite \(nan\)"),
+        ("0.08 0 0 3.5 0 0 0 inf", r"qw is not finite \(inf\)"),
         ("inf 0 0 3.5 0 0 0 1", "not finite"),
     ],
 )
@@ -279,3 +279,17 @@ def test_a_last_line_cut_short_is_left_out_with_a_warning(tmp_path: Path) -> Non
     path.write_text(",".join(GROUNDTRUTH_COLUMNS) + "\n" + rows[0] + "\n0.02,1,2\n" + "\n".join(rows[1:]) + "\n")
     with pytest.raises(TrackmeterError, match=r"groundtruth\.csv:3: expected 14 values, got 3"):
         read_motion_csv(path)
+
+
+def test_a_tum_file_whose_last_line_is_cut_short_is_read_without_it(tmp_path: Path) -> None:
+    """A trajectory.tum cut mid-line (a full disk, a kill) was refused whole, while a motion
+    CSV's cut last line is left out with a warning (an outside probe)."""
+    from trackmeter.data.trajectory import read_tum
+
+    path = tmp_path / "cut.tum"
+    path.write_text("# t tx ty tz qx qy qz qw\n0.0 0 0 3.5 0 0 0 1\n0.04 0 0 3.5 0 0 0 1\n0.08 0 0 3.")
+    with pytest.warns(UserWarning, match=r"cut\.tum:4: the last line is cut short, left out"):
+        assert len(read_tum(path)) == 2
+    path.write_text("# t tx ty tz qx qy qz qw\n0.0 0 0 3.5 0 0 0 1\n0.04 0 0\n0.08 0 0 3.5 0 0 0 1\n")
+    with pytest.raises(TrackmeterError, match=r"cut\.tum:3: expected 8 values"):
+        read_tum(path)

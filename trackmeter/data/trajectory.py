@@ -54,6 +54,10 @@ class Trajectory:
         return len(self.t_s)
 
 
+#: The fields of a TUM line, in order.
+TUM_FIELDS = ("t", "tx", "ty", "tz", "qx", "qy", "qz", "qw")
+
+
 def read_tum(path: str | Path) -> Trajectory:
     """Read a TUM trajectory file; raises TrackmeterError naming the file and line on bad input."""
     path = Path(path)
@@ -68,10 +72,15 @@ def read_tum(path: str | Path) -> Trajectory:
         raise TrackmeterError(f"{path}: not a text file (a TUM trajectory is lines of 't tx ty tz qx qy qz qw')") from None
     except OSError as exc:
         raise TrackmeterError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    data_lines = [n for n, line in enumerate(lines, 1) if line.split("#", 1)[0].strip()]
+    cut_line = None
+    if len(data_lines) >= 2 and 1 < len(lines[data_lines[-1] - 1].split("#", 1)[0].replace(",", " ").split()) < 8:
+        # A writer stopped mid-line (killed, a full disk): the poses before it are whole.
+        cut_line = data_lines[-1]
     for number, line in enumerate(lines, 1):
         # '#' starts a comment anywhere on a line, as numpy.loadtxt (and so evo) read TUM files.
         text = line.split("#", 1)[0].strip()
-        if not text:
+        if not text or number == cut_line:
             continue
         if comma_line is None and "," in text:
             comma_line = number
@@ -84,13 +93,16 @@ def read_tum(path: str | Path) -> Trajectory:
             raise TrackmeterError(f"{path}:{number}: not a number in {quoted(text, 80)}") from None
         # Checked here, not only by Trajectory, so that the message names the line.
         if not all(math.isfinite(x) for x in row):
-            raise TrackmeterError(f"{path}:{number}: a value is not finite in {quoted(text, 80)}")
+            bad = next(k for k, x in enumerate(row) if not math.isfinite(x))
+            raise TrackmeterError(f"{path}:{number}: {TUM_FIELDS[bad]} is not finite ({fields[bad]})")
         if math.hypot(*row[4:8]) < 1e-9:
             raise TrackmeterError(f"{path}:{number}: zero quaternion (qx qy qz qw all 0)")
         rows.append(row)
         line_numbers.append(number)
     if not rows:
         raise TrackmeterError(f"{path}: no poses in the file")
+    if cut_line is not None:
+        warnings.warn(f"{path}:{cut_line}: the last line is cut short, left out", stacklevel=2)
     if comma_line is not None:
         # TUM separates by spaces: a file with commas may as well be groundtruth.csv's rows
         # without their header, whose quaternion comes scalar first.
