@@ -901,19 +901,26 @@ def test_a_sim_truth_carries_the_motion_on_over_a_longer_run(capsys, tmp_path) -
 
 @pytest.mark.parametrize("text, said", [
     ("status: [unclosed\n", "not readable as YAML"),
-    ("", "not a run's record"),
+    ("", "not a run's record (an empty file)"),
     ("- a\n", "not a run's record"),
-    ("status: complete\nsource: {case: z}\n", "no pose case"),
+    ("status: complete\nsource: {case: z}\n", "an unknown pose case 'z' (a, b or c)"),
+    ("status: complete\n", r"no pose case recorded (source.case)"),
+    (None, "not a file"),
 ])
 def test_a_run_yaml_that_says_no_case_is_warned_about(capsys, sequence_and_run, text: str, said: str) -> None:
     """A broken run.yaml was ignored without a word: --align auto then compared a case-(a)
     run without aligning and reported a 117 deg attitude error (an outside probe)."""
     truth, seq, run = sequence_and_run
-    (run / "run.yaml").write_text(text)
+    if text is None:
+        (run / "run.yaml").mkdir()
+    else:
+        (run / "run.yaml").write_text(text)
     code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
     assert code == 0, err
     assert f"{run / 'run.yaml'}: {said}" in err and "--align body" in err, err
     assert json.loads(out)["settings"]["align"] == "none"
+    if text is None:
+        (run / "run.yaml").rmdir()
     (run / "run.yaml").write_text("status: complete\nsource: {case: b}\n")
     code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
     assert code == 0 and "run.yaml" not in err, err

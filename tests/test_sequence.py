@@ -1157,8 +1157,8 @@ def test_ground_truth_whose_times_meet_no_frame_is_said_so(tmp_path) -> None:
     d = _write(tmp_path / "s", _frames(4))
     truth = read_motion_csv(d / "groundtruth.csv")
     write_groundtruth_csv(d / "groundtruth.csv", replace(truth, t_s=truth.t_s + 1000.0))
-    with pytest.warns(UserWarning, match=r"groundtruth\.csv: its times \(1000\.000-1000\.120 s\) meet none of the "
-                                         r"frames' \(0\.000-0\.120 s\) within .*; ground truth not used"):
+    with pytest.warns(UserWarning, match=r"groundtruth\.csv: its times \(from 1000\.000 s to 1000\.120 s\) meet none "
+                                         r"of the frames' \(from 0\.000 s to 0\.120 s\) within .*; ground truth not used"):
         src = SequenceSource(d)
     assert not src.has_truth and src.truth_problem
 

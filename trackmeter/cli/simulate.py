@@ -54,7 +54,8 @@ def run(args: argparse.Namespace) -> int:
             raise TrackmeterError(f"{out}: exists and is not an empty folder; choose a new --out"
                                   + (" or give --overwrite to replace this sequence" if written else ""))
         if not written:
-            raise TrackmeterError(f"{out}: not a sequence simulate wrote (it holds other files); --overwrite replaces "
+            what = ("a link" if out.is_symlink() else "a file" if out.is_file() else "a folder of other files")
+            raise TrackmeterError(f"{out}: not a sequence simulate wrote ({what}); --overwrite replaces "
                                   "only those: move it away or choose a new --out")
         replace_out = True
     blocked = unwritable_ancestor(out)

@@ -222,18 +222,21 @@ def _run_yaml_problem(run_dir: Path) -> str | None:
     """What is wrong with a ``run.yaml`` beside the estimate that records no pose case (cut
     short, edited, another program's file), or None where there is none or it is a run's."""
     path = run_dir / "run.yaml"
-    if not path.is_file():
+    if not path.exists():
         return None
+    if not path.is_file():
+        return f"{path}: not a file"
     try:
         value = yaml.safe_load(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else exc.__class__.__name__
         return f"{path}: not readable as YAML ({first})"
     if not isinstance(value, dict):
-        return f"{path}: not a run's record (a {type(value).__name__ if value is not None else 'empty file'})"
+        return f"{path}: not a run's record ({'an empty file' if value is None else f'a {type(value).__name__}'})"
     source = value.get("source")
     case = source.get("case") if isinstance(source, dict) else None
-    return f"{path}: no pose case recorded (source.case {case!r})"
+    return (f"{path}: no pose case recorded (source.case)" if case is None
+            else f"{path}: an unknown pose case {case!r} (a, b or c)")
 
 
 def _run_meta(run_dir: Path, *keys: str) -> Any:

@@ -872,8 +872,9 @@ def _read_truth(path: Path | None, t_s: FloatArray, tolerance_s: float) -> Motio
     if len(t_s) and series.valid.any() and not any(series.valid[j] for _, j in pairs):
         # Else only "no ground truth" later, of a folder that has some (another time base).
         shown = series.t_s[series.valid]
-        raise TrackmeterError(f"{path}: its times ({shown[0]:.3f}-{shown[-1]:.3f} s) meet none of the frames' "
-                              f"({t_s[0]:.3f}-{t_s[-1]:.3f} s) within {tolerance_s * 1e3:.3g} ms: another time base?")
+        raise TrackmeterError(f"{path}: its times (from {shown[0]:.3f} s to {shown[-1]:.3f} s) meet none of the "
+                              f"frames' (from {t_s[0]:.3f} s to {t_s[-1]:.3f} s) within {tolerance_s * 1e3:.3g} ms: "
+                              "another time base?")
     n = len(t_s)
     p = np.full((n, 3), np.nan)
     q = np.full((n, 4), np.nan)
