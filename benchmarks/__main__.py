@@ -13,7 +13,7 @@ import sys
 import time
 from pathlib import Path
 
-from benchmarks import NAMES, config_note
+from benchmarks import NAMES, READS_CONFIG, bench_config, config_note
 from trackmeter.errors import TrackmeterError
 
 
@@ -52,6 +52,12 @@ def main(argv: list[str] | None = None) -> int:
     note = config_note(names)
     if note:
         print(f"[benchmarks] note: {note}", file=sys.stderr, flush=True)
+    if any(n in READS_CONFIG for n in names):
+        try:
+            bench_config()  # a bad file refused now, not after the benchmarks before its first reader
+        except TrackmeterError as exc:
+            print(f"python -m benchmarks: error: {exc}", file=sys.stderr)
+            return 2
     results: dict[str, dict[str, float]] = {}
     for name in names:
         try:

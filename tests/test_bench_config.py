@@ -76,3 +76,15 @@ def test_a_run_of_benchmarks_that_do_not_read_the_file_says_so(monkeypatch, tmp_
     assert config_note(["accuracy", "looks"]) is None
     monkeypatch.delenv(CONFIG_ENV)
     assert config_note(["render"]) is None
+
+
+def test_a_bad_file_is_refused_before_any_benchmark_runs(monkeypatch, tmp_path, capsys) -> None:
+    """`benchmarks render operator` with a misspelt file ran render's 20 s first, then failed
+    at operator (an outside probe): the file is checked before the first benchmark."""
+    import benchmarks.__main__ as entry
+
+    ran: list[str] = []
+    monkeypatch.setattr(entry.importlib, "import_module", lambda name: ran.append(name))
+    monkeypatch.setenv(CONFIG_ENV, str(tmp_path / "missing.yaml"))
+    assert entry.main(["render", "operator"]) == 2
+    assert ran == [] and CONFIG_ENV in capsys.readouterr().err

@@ -181,23 +181,36 @@ def read_yaml_mapping(path: Path, loader: type[Any] = FAST_SAFE_LOADER) -> dict[
     return data
 
 
-def _did_you_mean(key: str, known: Iterable[str], prefix: str) -> str:
-    """`` (did you mean 'PREFIX.KEY'?)`` for the known key closest to a misspelt one
-    (:func:`difflib.get_close_matches`), else ``""``."""
-    close = difflib.get_close_matches(key, [str(k) for k in known], n=1, cutoff=0.75)
-    return f" (did you mean '{prefix}{close[0]}'?)" if close else ""
+def _did_you_mean(key: str, known: Iterable[str], prefix: str, root: Mapping[str, Any] | None = None) -> str:
+    """`` (did you mean 'PREFIX.KEY'?)`` for the known key a misspelt one likely meant: the same
+    but for case, else the closest (:func:`difflib.get_close_matches`), else, with the whole
+    default tree ``root``, the key under another section (``pose: max_targets`` is
+    ``tracker.max_targets``); ``""`` when none is near."""
+    names = [str(k) for k in known]
+    by_case = {n.lower(): n for n in names}
+    close = ([by_case[key.lower()]] if key.lower() in by_case
+             else [by_case[c] for c in difflib.get_close_matches(key.lower(), list(by_case), n=1, cutoff=0.75)])
+    if close:
+        return f" (did you mean '{prefix}{close[0]}'?)"
+    if root is not None and prefix:
+        homes = [f"{section}.{key}" for section, keys in root.items() if isinstance(keys, dict) and key in keys]
+        if homes:
+            return f" (it is a key of another section: {', '.join(homes)})"
+    return ""
 
 
-def _merge(base: dict[str, Any], update: Mapping[str, Any], source: str, prefix: str) -> dict[str, Any]:
+def _merge(base: dict[str, Any], update: Mapping[str, Any], source: str, prefix: str,
+           root: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    root = base if root is None else root
     out = dict(base)
     for key, value in update.items():
         dotted = f"{prefix}{key}"
         if key not in base:
-            raise TrackmeterError(f"{source}: unknown key '{dotted}'{_did_you_mean(str(key), base, prefix)}")
+            raise TrackmeterError(f"{source}: unknown key '{dotted}'{_did_you_mean(str(key), base, prefix, root)}")
         if isinstance(base[key], dict):
             if not isinstance(value, dict):
                 raise TrackmeterError(f"{source}: '{dotted}' must be a mapping of keys, got {value!r}")
-            out[key] = _merge(base[key], value, source, f"{dotted}.")
+            out[key] = _merge(base[key], value, source, f"{dotted}.", root)
         else:
             out[key] = value
     return out
