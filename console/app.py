@@ -995,7 +995,7 @@ class Console:
                 for name in _WIDGETS_OF_COMMAND.get(label, ()):
                     self._mirrored.pop(name, None)
             title = _COMMAND_TITLES.get(label, label)
-            title = title if reply.ok else f"{title}: refused"
+            title = title if reply.ok else f"{title}: {'partly done' if reply.partial else 'refused'}"
             self._notify(client, title, reply.message or ("ok" if reply.ok else "refused"), reply.ok)
 
     def _push(self, snap: Snapshot, plots: bool, text: bool = True) -> None:

@@ -977,6 +977,17 @@ def test_a_toggle_s_reply_with_something_to_say_is_shown() -> None:
             con._flush_replies()
         shown = [body for _, body in con.notifications if "automatic selection" in body]
         assert shown == ["automatic selection on (10 targets, centroid: one a bright region, its centroid)"], shown
+        # A selection of model points too few for a pose is partly done, not "refused" (one was
+        # made: an outside console probe).
+        for reply in (CommandReply(False, "1 model points selected (m0); 16 refused", partial=True),
+                      CommandReply(False, "0 model points selected; 17 refused")):
+            future = Future()
+            future.set_result(reply)
+            with con._pending_lock:
+                con._pending.append((future, None, "SelectModelPoints"))
+            con._flush_replies()
+        titles = [title for title, _ in con.notifications if title.startswith("Click the model points")]
+        assert titles == ["Click the model points: partly done", "Click the model points: refused"], titles
     finally:
         running.stop()
 

@@ -119,10 +119,12 @@ class FakeTracker:
     def relock_many(self, requests, frame):
         return [self.relock(tid, uv, frame) for tid, uv in requests]
 
-    def add_target(self, frame, uv, target_id=None, origin="operator"):
+    def add_target(self, frame, uv, target_id=None, origin="operator", in_place_of=None):
         self.added.append((target_id, uv, origin))
         if target_id is None or target_id not in self.body:
             return Refusal(uv, "black space")
+        if in_place_of is not None:
+            self.remove_target(in_place_of)
         self.active[target_id] = "tracking"
         s = self._measure(target_id, frame.t_s)
         self._states = self._states + (s,)
@@ -691,6 +693,35 @@ def test_select_model_points_skips_a_hidden_point(estec_rig) -> None:
     assert "m3" not in tracker.active
     tracker.offsets["m3"] = np.array([0.0, 0.0, -0.9 * engine.pose_params.operator_hidden_m])
     assert "1 model points selected (m3)" in engine.handle(SelectModelPoints(), frame_at(1)).message
+
+
+def test_model_points_at_the_target_limit_take_the_place_of_automatic_ones(estec_rig) -> None:
+    """"Click the model points" after a Restart with automatic selection on: 14 of them were
+    refused "target limit reached (32 targets)", lost automatic targets filling the limit, and
+    the one point selected was answered "refused" (an outside console probe). Each takes a lost
+    or automatic target's place, as an operator's click does; a few selected are partly done."""
+    from trackmeter.pipeline.engine import SelectModelPoints
+
+    pts = body_points(12)
+    ids = [f"m{i}" for i in range(12)]
+    tracker = FakeTracker(estec_rig, pts, ids, noise=False)
+    engine = Engine(load_config(), estec_rig, Model(tuple(ids[:6]), pts[:6]), "b", tracker=tracker, rate_hz=1 / DT)
+    for tid in ids[:6]:
+        tracker.active.pop(tid)  # m6..m11 stand for automatic targets, 6 of them
+    engine._max_targets = 6
+    tracker.step(frame_at(0))
+    reply = engine.handle(SelectModelPoints(), frame_at(0))
+    assert reply.ok and "6 model points selected" in reply.message, reply.message
+    assert set(tracker.active) == set(ids[:6])
+    # Too few for a pose: partly done, not refused.
+    tracker.active.clear()
+    tracker.step(frame_at(1))
+    tracker.force_lost = set(ids[1:6])
+    original = tracker.add_target
+    tracker.add_target = lambda frame, uv, tid=None, origin="operator", **kw: (  # type: ignore[method-assign]
+        original(frame, uv, tid, origin, **kw) if tid == "m0" else Refusal(uv, "too dark"))
+    reply = engine.handle(SelectModelPoints(), frame_at(1))
+    assert not reply.ok and reply.partial and "1 model points selected (m0)" in reply.message
 
 
 @pytest.mark.parametrize("repeat", [False, True])

@@ -587,7 +587,12 @@ class Engine:
                 continue
             if pid in states:
                 self.tracker.remove_target(pid)  # clicked again where the lost one should be
-            result = self.tracker.add_target(frame, (float(ul[0]), float(ul[1])), pid, "operator")
+            # At the limit a model point takes a lost or automatic target's place, as a click does.
+            now = self.tracker.targets
+            room = {"in_place_of": click_room(now)} if len(now) >= self._max_targets else {}
+            result = (Refusal((float(ul[0]), float(ul[1])), f"target limit reached ({self._max_targets} targets)")
+                      if room and room["in_place_of"] is None
+                      else self.tracker.add_target(frame, (float(ul[0]), float(ul[1])), pid, "operator", **room))
             if isinstance(result, Refusal):
                 refused.append(result.reason)
             elif not np.linalg.norm(np.asarray(result.point_cam, float) - x) <= self.pose_params.operator_hidden_m:
@@ -597,7 +602,7 @@ class Engine:
                 made.append(pid)
         ok = len(made) >= self.pose_params.min_points
         why = Counter(refused).most_common()
-        return CommandReply(ok, f"{len(made)} model points selected" + (f" ({', '.join(made)})" if made else "")
+        return CommandReply(ok, partial=0 < len(made) < self.pose_params.min_points, message=f"{len(made)} model points selected" + (f" ({', '.join(made)})" if made else "")
                                 + f"; {len(refused)} refused" + (f" ({', '.join(f'{n} {r}' for r, n in why)})" if why else "")
                                 + (f"; {len(hidden)} hidden ({', '.join(hidden)})" if hidden else ""))
 

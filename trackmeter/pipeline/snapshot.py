@@ -139,13 +139,15 @@ class CommandReply:
     """The answer to a command: ``ok`` or not, and a one-line message for the operator;
     ``target_id`` the target a point selection made, ``moved_px`` how far from the pixel asked
     for it was put (``tracker.click_snap_px``: a refused pixel's trackable corner nearby);
-    ``notable``: a success whose message says more than the new state a display shows."""
+    ``notable``: a success whose message says more than the new state a display shows;
+    ``partial``: not done, but part of it was (some model points selected, too few for a pose)."""
 
     ok: bool
     message: str = ""
     target_id: str | None = None
     moved_px: float = 0.0
     notable: bool = False
+    partial: bool = False
 
 
 @dataclass(frozen=True, eq=False)
