@@ -325,6 +325,26 @@ def test_pause_and_step_read_exactly_one_frame() -> None:
         assert snap is not None and not snap.paused
 
 
+def test_the_rates_after_play_are_not_averaged_with_the_pause() -> None:
+    # Ten seconds paused, then Play: the status read "read 0.3 Hz · tracking 0.3 Hz", then 3.3,
+    # the pause inside the window of the last 50 frames (an outside console probe).
+    engine = RecordingEngine()
+    source = CountingSource(10**6, delay_s=0.01)
+    with Pipeline(source, engine) as pipe:
+        while len(engine.processed) < 5:
+            threading.Event().wait(0.01)
+        assert pipe.call(SetPaused(True)).ok
+        threading.Event().wait(0.3)
+        played_at = time.monotonic()
+        assert pipe.call(SetPaused(False)).ok
+        seen = len(engine.processed)
+        while len(engine.processed) < seen + 5:
+            threading.Event().wait(0.01)
+        # The rates count only frames read and tracked since Play.
+        for meter in (pipe._acq_rate, pipe._trk_rate):
+            assert len(meter._times) >= 2 and min(meter._times) >= played_at, (played_at, list(meter._times))
+
+
 def test_every_stepped_frame_is_tracked_even_when_the_steps_come_faster_than_the_tracker() -> None:
     # The operator pressing Step three times asked for three frames: a step's frame waits for the
     # tracker rather than replace one it has not taken (the latest-frame-wins drop is for live play).

@@ -37,6 +37,7 @@ import collections
 import contextlib
 import dataclasses
 import logging
+import math
 import queue
 import signal
 import threading
@@ -269,11 +270,14 @@ class _RateMeter:
 
     def __init__(self, window: int = 50) -> None:
         self._times: collections.deque[float] = collections.deque(maxlen=window)
+        self._since = -math.inf
 
     def tick(self, t: float) -> None:
-        self._times.append(t)
+        if t >= self._since:  # an event of before the reset (a frame read before a pause) is not counted
+            self._times.append(t)
 
     def reset(self) -> None:
+        self._since = time.monotonic()
         self._times.clear()
 
     def rate_hz(self, now: float | None = None) -> float:
@@ -664,6 +668,9 @@ class Pipeline:
                 self._paused = bool(command.paused)
                 if not self._paused:
                     self._steps = 0
+                    # The rates start over: a window holding the pause read 0.3 Hz after Play.
+                    self._acq_rate.reset()
+                    self._trk_rate.reset()
                 self._cond.notify_all()
             return CommandReply(True, "paused" if command.paused else "playing")
         if isinstance(command, StepOnce):
