@@ -325,6 +325,24 @@ def test_pause_and_step_read_exactly_one_frame() -> None:
         assert snap is not None and not snap.paused
 
 
+def test_an_invalid_pose_s_reason_says_it_predates_targets_added_while_paused() -> None:
+    # Paused, the operator bound model points: the target list showed them, while the pose line
+    # went on saying "none is a target yet: target them by id" (an outside console probe).
+    engine = RecordingEngine()
+    with Pipeline(CountingSource(10**6, delay_s=0.002), engine, paused=True) as pipe:
+        assert pipe.call(StepOnce()).ok
+        while not engine.processed:
+            threading.Event().wait(0.01)
+        threading.Event().wait(0.1)
+        assert pipe.call(SelectPoint(10.0, 20.0)).ok
+        assert pipe.call(SelectPoint(30.0, 20.0)).ok  # said once, not once per target
+        snap = pipe.wait_snapshot(0, 5)
+        reason = pipe.latest().pose.reason
+        assert reason == "test double (before the targets changed: Step or Play to update)", reason
+        assert not pipe.call(SelectPoint(-1.0, 0.0)).ok  # a refused click changes nothing
+        assert pipe.latest().pose.reason == reason
+
+
 def test_the_rates_after_play_are_not_averaged_with_the_pause() -> None:
     # Ten seconds paused, then Play: the status read "read 0.3 Hz · tracking 0.3 Hz", then 3.3,
     # the pause inside the window of the last 50 frames (an outside console probe).

@@ -52,6 +52,7 @@ from trackmeter.core.stereo import StereoRig
 from trackmeter.core.targets import TargetState
 from trackmeter.errors import TrackmeterError
 from trackmeter.signals import STOP_SIGNALS
+from trackmeter.pipeline.engine import SelectModelPoints
 from trackmeter.pipeline.snapshot import (
     AcquireModel,
     ClearTargets,
@@ -60,6 +61,7 @@ from trackmeter.pipeline.snapshot import (
     LoadModel,
     PoseEstimate,
     RestartSource,
+    SelectPoint,
     SetCase,
     SetPaused,
     SetRecording,
@@ -720,6 +722,11 @@ class Pipeline:
             # replace it: the console showed a valid pose beside no target).
             self._last_pose = PoseEstimate.invalid("targets cleared", self._last_pose.case)
             self._last_errors = None
+        elif (isinstance(command, _TARGET_COMMANDS) and reply.ok and self._paused and not self._last_pose.valid
+              and self._last_frame is not None and not (self._last_pose.reason or "").endswith(_BEFORE_TARGETS)):
+            # Paused, no frame comes to estimate the pose with the new targets: its reason (e.g.
+            # "none is a target yet") would go on contradicting the target list.
+            self._last_pose = PoseEstimate.invalid(f"{self._last_pose.reason}{_BEFORE_TARGETS}", self._last_pose.case)
         elif isinstance(command, _CASE_COMMANDS) and reply.ok:
             # The engine dropped the motion of the case it left: so goes the pose of that case.
             case = getattr(self.engine, "case", self._last_pose.case)
@@ -861,6 +868,9 @@ class Pipeline:
 _PIPELINE_COMMANDS = (SetPaused, StepOnce, RestartSource, SetRecording)
 #: Engine commands that start the motion estimation over in a model case (paper 2.C).
 _CASE_COMMANDS = (SetCase, AcquireModel, LoadModel)
+#: Commands that add targets, and what an invalid pose's reason says once they did while paused.
+_TARGET_COMMANDS = (SelectPoint, SelectModelPoints)
+_BEFORE_TARGETS = " (before the targets changed: Step or Play to update)"
 
 
 def _is_pipeline_command(command: Command) -> bool:
