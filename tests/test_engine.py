@@ -1108,23 +1108,33 @@ def test_the_console_offers_every_selection_method() -> None:
     assert set(AUTO_METHODS) == set(METHODS)
 
 
+def _drift_out_of_view(rig, monkeypatch, frames: int, case: str | None = None,
+                       engine_out: list | None = None) -> list[tuple[int, bool, str]]:  # type: ignore[type-arg]
+    """Track the body drifting across the view at 0.6 m/s (its points lost as they leave the
+    images); per frame: points in view, pose measured (valid, not coasted), its reason."""
+    import tests.test_engine as here
+
+    monkeypatch.setattr(here, "V", np.array([0.6, 0.0, 0.0]))
+    engine, tracker, pts = make_engine(rig, noise=False, with_model=case is None, case=case)
+    if engine_out is not None:
+        engine_out.append(engine)
+    w, h = rig.image_size
+    out = []
+    for k in range(frames):
+        T = true_pose(k * DT)
+        uv_l, uv_r = rig.project(pts @ T[:3, :3].T + T[:3, 3])
+        inside = np.all((uv_l >= 0) & (uv_l <= [w - 1, h - 1]) & (uv_r >= 0) & (uv_r <= [w - 1, h - 1]), axis=1)
+        tracker.force_lost = {f"m{i}" for i in np.flatnonzero(~inside)}
+        _, pose, _ = engine.process(frame_at(k))
+        out.append((int(inside.sum()), bool(pose.valid and not pose.coasting_s), pose.reason or ""))
+    return out
+
+
 def test_a_body_moving_out_of_view_is_said_to_have_left_it(estec_rig, monkeypatch) -> None:
     """A body drifting out of the image lost every point with "only 0 model points measured":
     the same words as an occlusion, while the operator's remedy differs (move the chaser, not
     wait). The body carried on from its last pose at its last velocities says which it is."""
-    import tests.test_engine as here
-
-    monkeypatch.setattr(here, "V", np.array([0.6, 0.0, 0.0]))  # m/s across the view
-    engine, tracker, pts = make_engine(estec_rig, noise=False)
-    w, h = estec_rig.image_size
-    reasons = []
-    for k in range(0, 200):
-        T = true_pose(k * DT)
-        uv_l, uv_r = estec_rig.project(pts @ T[:3, :3].T + T[:3, 3])
-        inside = np.all((uv_l >= 0) & (uv_l <= [w - 1, h - 1]) & (uv_r >= 0) & (uv_r <= [w - 1, h - 1]), axis=1)
-        tracker.force_lost = {f"m{i}" for i in np.flatnonzero(~inside)}
-        _, pose, _ = engine.process(frame_at(k))
-        reasons.append((int(inside.sum()), pose.valid and not pose.coasting_s, pose.reason or ""))
+    reasons = _drift_out_of_view(estec_rig, monkeypatch, 200)
     gone = [r for n, measured, r in reasons if n < 3]
     assert len(gone) > 20 and any(measured for _, measured, _ in reasons)
     assert all("last seen moving out of view" in r for r in gone), gone[:3]
@@ -1135,23 +1145,12 @@ def test_case_a_waiting_for_a_new_frame_still_says_the_body_left_the_view(estec_
     """Case (a) defines a new frame redefine_after_s after a total loss; its reason then read
     "waiting for 3 points tracked ... (0 so far)" and the body's leaving was no longer said
     (an outside console probe). It is, until the body comes back and a frame is defined."""
-    import tests.test_engine as here
-
-    monkeypatch.setattr(here, "V", np.array([0.6, 0.0, 0.0]))
-    engine, tracker, pts = make_engine(estec_rig, noise=False, with_model=False, case="a")
-    w, h = estec_rig.image_size
-    reasons = []
-    for k in range(0, 260):
-        T = true_pose(k * DT)
-        uv_l, uv_r = estec_rig.project(pts @ T[:3, :3].T + T[:3, 3])
-        inside = np.all((uv_l >= 0) & (uv_l <= [w - 1, h - 1]) & (uv_r >= 0) & (uv_r <= [w - 1, h - 1]), axis=1)
-        tracker.force_lost = {f"m{i}" for i in np.flatnonzero(~inside)}
-        _, pose, _ = engine.process(frame_at(k))
-        reasons.append((int(inside.sum()), pose.reason or ""))
-    waiting = [r for n, r in reasons if n == 0 and r.startswith("case (a): waiting")]
+    engine_out: list = []
+    reasons = _drift_out_of_view(estec_rig, monkeypatch, 260, case="a", engine_out=engine_out)
+    waiting = [r for n, _, r in reasons if n == 0 and r.startswith("case (a): waiting")]
     assert waiting and all(r.endswith("; the body was last seen moving out of view") for r in waiting), waiting[:2]
-    assert engine.stats.frames_redefined >= 1
-    assert not any("out of view" in r for n, r in reasons if n >= 3)
+    assert engine_out[0].stats.frames_redefined >= 1
+    assert not any("out of view" in r for n, _, r in reasons if n >= 3)
 
 
 def test_points_hidden_in_view_are_not_said_to_be_out_of_view(estec_rig) -> None:
