@@ -349,8 +349,9 @@ class SequenceIndex:
             scene jumps there; a recording made across a looping source's new pass).
         warnings: one human-readable line per kind of problem found (empty when clean).
         tolerance_s: the pairing tolerance used, s.
-        truth_problem: why the folder's ground truth file did not read (it is then None and
-            the reason is among ``warnings``), None otherwise.
+        truth_problem: why the folder's ground truth is of no use: its file did not read
+            (``truth`` is then None and the reason is among ``warnings``), or no row gives a
+            whole pose; None otherwise.
     """
 
     root: Path

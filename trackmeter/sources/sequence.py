@@ -174,7 +174,8 @@ class SequenceSource(Source):
 
     @property
     def truth_problem(self) -> str | None:
-        """Why the folder's ground truth file did not read (warned at open), None otherwise."""
+        """Why the folder's ground truth is of no use: its file did not read, or no row gives a
+        whole pose (each warned at open); None otherwise."""
         return self.index.truth_problem
 
     @property
