@@ -293,3 +293,19 @@ def test_a_tum_file_whose_last_line_is_cut_short_is_read_without_it(tmp_path: Pa
     path.write_text("# t tx ty tz qx qy qz qw\n0.0 0 0 3.5 0 0 0 1\n0.04 0 0\n0.08 0 0 3.5 0 0 0 1\n")
     with pytest.raises(TrackmeterError, match=r"cut\.tum:3: expected 8 values"):
         read_tum(path)
+
+
+def test_rows_repeating_a_timestamp_are_skipped_with_a_warning_as_in_a_tum_file(tmp_path: Path) -> None:
+    """A groundtruth.csv row repeating the time before was taken silently (an unmatched pose
+    more in evaluate), where a TUM file's repeat is warned and skipped (an outside probe)."""
+    rows = [f"{t},{x},2,3,1,0,0,0,0,0,0,0,0,0" for t, x in ((0.0, 1), (0.04, 1), (0.04, 9), (0.08, 1))]
+    path = tmp_path / "groundtruth.csv"
+    path.write_text(",".join(GROUNDTRUTH_COLUMNS) + "\n" + "\n".join(rows) + "\n")
+    with pytest.warns(UserWarning, match=r"groundtruth\.csv:4: 1 row\(s\) repeating the timestamp of the row before "
+                                         r"skipped \(the first on this line\); the first row at each time is kept"):
+        s = read_motion_csv(path)
+    assert s.t_s.tolist() == [0.0, 0.04, 0.08] and s.position_m[:, 0].tolist() == [1.0, 1.0, 1.0]
+    # and in a file without the rate columns (the rows' count sizes the missing ones)
+    path.write_text("t,x,y,z,qw,qx,qy,qz\n0,1,2,3,1,0,0,0\n0.04,1,2,3,1,0,0,0\n0.04,9,2,3,1,0,0,0\n")
+    with pytest.warns(UserWarning, match="repeating the timestamp"):
+        assert len(read_motion_csv(path).velocity_cam_m_s) == 2

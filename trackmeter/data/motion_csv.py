@@ -262,6 +262,17 @@ def read_motion_csv(path: str | Path) -> MotionSeries:
         i = int(back[0])
         raise TrackmeterError(f"{path}:{rows[i + 1][0]}: t = {col['t'][i + 1]:.9g} s after {col['t'][i]:.9g} s on "
                               f"the line before: rows must be in time order")
+    repeats = np.flatnonzero(np.diff(col["t"]) == 0) + 1
+    if len(repeats):
+        # Which of two poses at one time pairs with a frame would depend on the association: the
+        # first is kept, as a TUM file's and a sequence's data.csv repeats are.
+        warnings.warn(f"{path}:{rows[int(repeats[0])][0]}: {len(repeats)} row(s) repeating the timestamp of the row "
+                      "before skipped (the first on this line); the first row at each time is kept", stacklevel=2)
+        keep = np.ones(len(values), bool)
+        keep[repeats] = False
+        values, rows = values[keep], [r for r, k in zip(rows, keep) if k]
+        col = {name: values[:, i] for i, name in enumerate(header)}
+        n = len(values)
 
     def stack(names: Sequence[str]) -> FloatArray:
         return np.column_stack([col.get(c, np.full(n, np.nan)) for c in names])
