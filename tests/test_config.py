@@ -145,6 +145,7 @@ def test_unknown_key_is_refused_with_its_dotted_path(tmp_path: Path) -> None:
     ("tracker: {zzzz: 1}", "unknown key 'tracker.zzzz'"),
     ("tracker: {MAX_TARGETS: 12}", "unknown key 'tracker.MAX_TARGETS' (did you mean 'tracker.max_targets'?)"),
     ("pose: {max_targets: 12}", "unknown key 'pose.max_targets' (it is a key of another section: tracker.max_targets)"),
+    ("max_targets: 12", "unknown key 'max_targets' (it is a key of a section: tracker.max_targets)"),
 ])
 def test_a_misspelt_key_is_refused_with_the_key_it_likely_meant(tmp_path: Path, text: str, said: str) -> None:
     """'unknown key tracker.max_targts' left the user to find the spelling in a 600-line file

@@ -293,6 +293,13 @@ def test_a_tum_file_whose_last_line_is_cut_short_is_read_without_it(tmp_path: Pa
     path.write_text("# t tx ty tz qx qy qz qw\n0.0 0 0 3.5 0 0 0 1\n0.04 0 0\n0.08 0 0 3.5 0 0 0 1\n")
     with pytest.raises(TrackmeterError, match=r"cut\.tum:3: expected 8 values"):
         read_tum(path)
+    # cut to its first field, no newline after it (an outside probe: refused whole)
+    path.write_text("# t tx ty tz qx qy qz qw\n0.0 0 0 3.5 0 0 0 1\n0.04 0 0 3.5 0 0 0 1\n1.92")
+    with pytest.warns(UserWarning, match=r"cut\.tum:4: the last line is cut short"):
+        assert len(read_tum(path)) == 2
+    path.write_text("# t tx ty tz qx qy qz qw\n0.0 0 0 3.5 0 0 0 1\n0.04 0 0 3.5 0 0 0 1\n1.92\n")
+    with pytest.raises(TrackmeterError, match=r"cut\.tum:4: expected 8 values .*, got 1"):
+        read_tum(path)  # a whole line of one value is no cut
 
 
 def test_rows_repeating_a_timestamp_are_skipped_with_a_warning_as_in_a_tum_file(tmp_path: Path) -> None:

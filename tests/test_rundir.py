@@ -451,3 +451,26 @@ def test_an_overwrite_refused_on_its_first_frame_keeps_the_earlier_run(tmp_path:
         assert len(read_motion_csv(tmp_path / "run" / "states.csv")) == 1
     else:
         assert after == before and second.kept_earlier_run
+
+
+def test_an_overwrite_stopped_before_its_first_frame_or_killed_keeps_the_earlier_run(tmp_path: Path) -> None:
+    """A Ctrl-C before the first frame replaced a complete run with an empty one, and after a
+    `kill -9` of an --overwrite run the next --overwrite deleted the earlier run it had set
+    aside and gave back the killed, empty one (an outside probe)."""
+    first = RunWriter(tmp_path / "run", {}, {"spec": "first"})
+    for k in range(3):
+        first.write_frame(0.04 * k, (), _pose(0.0))
+    first.close("complete")
+    before = {p.name: p.read_bytes() for p in (tmp_path / "run").iterdir() if p.is_file()}
+    stopped = RunWriter(tmp_path / "run", {}, {"spec": "stopped"}, overwrite=True)
+    stopped.close("interrupted")
+    assert stopped.kept_earlier_run
+    assert {p.name: p.read_bytes() for p in (tmp_path / "run").iterdir() if p.is_file()} == before
+    # killed outright: the earlier run waits in .previous-run, run.yaml says running
+    killed = RunWriter(tmp_path / "run", {}, {"spec": "killed"}, overwrite=True)
+    killed._release_lock()  # its process gone
+    assert (tmp_path / "run" / ".previous-run" / "run.yaml").is_file()
+    nothing = RunWriter(tmp_path / "run", {}, {"spec": "next"}, overwrite=True)
+    nothing.write_frame(0.0, (), _pose(0.0))
+    nothing.close("nothing to track")
+    assert {p.name: p.read_bytes() for p in (tmp_path / "run").iterdir() if p.is_file()} == before

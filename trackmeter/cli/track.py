@@ -349,6 +349,8 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
         status = "complete"
 
         def interrupted() -> str:
+            if writer.kept_earlier_run:
+                return f"interrupted before the first frame was tracked; the earlier run in {args.out} is kept"
             return f"interrupted after {writer.frames} frames; files in {args.out} are complete"
 
         try:

@@ -192,10 +192,11 @@ def _did_you_mean(key: str, known: Iterable[str], prefix: str, root: Mapping[str
              else [by_case[c] for c in difflib.get_close_matches(key.lower(), list(by_case), n=1, cutoff=0.75)])
     if close:
         return f" (did you mean '{prefix}{close[0]}'?)"
-    if root is not None and prefix:
+    if root is not None:
         homes = [f"{section}.{key}" for section, keys in root.items() if isinstance(keys, dict) and key in keys]
         if homes:
-            return f" (it is a key of another section: {', '.join(homes)})"
+            where = "another section" if prefix else "a section"
+            return f" (it is a key of {where}: {', '.join(homes)})"
     return ""
 
 

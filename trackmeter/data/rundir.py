@@ -142,6 +142,15 @@ def refuse_other_files(path: Path, ours: Collection[str], what_is_allowed: str) 
         raise TrackmeterError(f"{path}: holds other files ({shown}); {what_is_allowed}: choose another --out")
 
 
+def _run_status(folder: Path) -> str | None:
+    """The ``status`` of ``folder/run.yaml``, None when there is no readable one."""
+    try:
+        meta = yaml.safe_load((folder / "run.yaml").read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return None
+    return meta.get("status") if isinstance(meta, dict) else None
+
+
 def _folder_identity(folder: Path) -> tuple[int, int] | None:
     """``(device, inode)`` of ``folder``, None when it is gone."""
     try:
@@ -216,9 +225,16 @@ class RunWriter:
         from trackmeter.data.evaluation import REPORT_FILES
 
         names = [n for n in (*_RUN_FILES, *REPORT_FILES) if (self.directory / n).exists()]
+        previous = self.directory / PREVIOUS_RUN
+        if previous.is_dir() and not previous.is_symlink() and _run_status(self.directory) == "running":
+            # A writer killed outright during an --overwrite: its files are of no use, and the
+            # earlier run it had set aside is still the one this run is to replace.
+            for name in names:
+                (self.directory / name).unlink(missing_ok=True)
+            self._previous = previous
+            return
         if not names:
             return
-        previous = self.directory / PREVIOUS_RUN
         if previous.is_dir() and not previous.is_symlink():
             shutil.rmtree(previous)
         elif previous.exists() or previous.is_symlink():
@@ -345,7 +361,7 @@ class RunWriter:
         failed leaves both, the earlier one in :data:`PREVIOUS_RUN`: nothing is lost.)"""
         if self._previous is None:
             return
-        if status in UNTRACKED_STATUSES:
+        if status in UNTRACKED_STATUSES or self.frames == 0:  # interrupted before its first frame too
             for name in _RUN_FILES:
                 (self.directory / name).unlink(missing_ok=True)
             self._give_back()

@@ -67,16 +67,20 @@ def read_tum(path: str | Path) -> Trajectory:
     line_numbers: list[int] = []
     comma_line: int | None = None
     try:
-        lines = path.read_text(encoding="utf-8-sig").splitlines()
+        text_read = path.read_text(encoding="utf-8-sig")
+        lines = text_read.splitlines()
     except UnicodeDecodeError:
         raise TrackmeterError(f"{path}: not a text file (a TUM trajectory is lines of 't tx ty tz qx qy qz qw')") from None
     except OSError as exc:
         raise TrackmeterError(f"{path}: cannot read: {exc.strerror or exc}") from None
     data_lines = [n for n, line in enumerate(lines, 1) if line.split("#", 1)[0].strip()]
     cut_line = None
-    if len(data_lines) >= 2 and 1 < len(lines[data_lines[-1] - 1].split("#", 1)[0].replace(",", " ").split()) < 8:
-        # A writer stopped mid-line (killed, a full disk): the poses before it are whole.
-        cut_line = data_lines[-1]
+    if len(data_lines) >= 2:
+        last_fields = len(lines[data_lines[-1] - 1].split("#", 1)[0].replace(",", " ").split())
+        unended = data_lines[-1] == len(lines) and not text_read.endswith(("\n", "\r"))
+        if last_fields < 8 and (last_fields > 1 or unended):
+            # A writer stopped mid-line (killed, a full disk): the poses before it are whole.
+            cut_line = data_lines[-1]
     for number, line in enumerate(lines, 1):
         # '#' starts a comment anywhere on a line, as numpy.loadtxt (and so evo) read TUM files.
         text = line.split("#", 1)[0].strip()
