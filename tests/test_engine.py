@@ -724,6 +724,18 @@ def test_model_points_at_the_target_limit_take_the_place_of_automatic_ones(estec
     assert not reply.ok and reply.partial and "1 model points selected (m0)" in reply.message
 
 
+def test_model_points_already_targets_are_said_and_count(estec_rig) -> None:
+    """Paused after a Restart, the simulated operator had bound 6 points at the new stream's
+    first frame; the button's reply said "0 model points selected; 9 refused" while the list
+    showed them (an outside console probe): the points already targets are named, and count."""
+    from trackmeter.pipeline.engine import SelectModelPoints
+
+    engine, tracker, _ = make_engine(estec_rig)
+    tracker.step(frame_at(0))  # all 12 tracking
+    reply = engine.handle(SelectModelPoints(), frame_at(0))
+    assert reply.ok and reply.message.startswith("0 model points selected; 12 already targets (m0, m1, "), reply.message
+
+
 @pytest.mark.parametrize("repeat", [False, True])
 def test_the_model_points_refused_say_why_and_whether_they_are_clicked_again(estec_rig, repeat: bool) -> None:
     # "0 model points selected; 17 refused" in red, with no reason, read as the end of it while

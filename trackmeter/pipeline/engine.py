@@ -580,10 +580,13 @@ class Engine:
         w, h = self.rig.image_size
         m = self.pose_params.recovery_margin_px
         states = {s.id: s for s in self.tracker.targets}
-        made, refused, hidden = [], [], []
+        made, refused, hidden, already = [], [], [], []
         for pid, x, ul, ur in zip(self._given_model.ids, X, uv_l, uv_r):
             inside = x[2] > 0 and all(m <= u[0] <= w - 1 - m and m <= u[1] <= h - 1 - m for u in (ul, ur))
-            if not inside or (pid in states and states[pid].status != "lost"):
+            if pid in states and states[pid].status != "lost":
+                already.append(pid)  # said: "0 selected" beside them in the target list read as a contradiction
+                continue
+            if not inside:
                 continue
             if pid in states:
                 self.tracker.remove_target(pid)  # clicked again where the lost one should be
@@ -600,9 +603,12 @@ class Engine:
                 hidden.append(pid)
             else:
                 made.append(pid)
-        ok = len(made) >= self.pose_params.min_points
+        targeted = len(made) + len(already)
+        ok = targeted >= self.pose_params.min_points
         why = Counter(refused).most_common()
-        return CommandReply(ok, partial=0 < len(made) < self.pose_params.min_points, message=f"{len(made)} model points selected" + (f" ({', '.join(made)})" if made else "")
+        return CommandReply(ok, partial=0 < targeted < self.pose_params.min_points,
+                            message=f"{len(made)} model points selected" + (f" ({', '.join(made)})" if made else "")
+                                + (f"; {len(already)} already targets ({', '.join(already)})" if already else "")
                                 + f"; {len(refused)} refused" + (f" ({', '.join(f'{n} {r}' for r, n in why)})" if why else "")
                                 + (f"; {len(hidden)} hidden ({', '.join(hidden)})" if hidden else ""))
 
