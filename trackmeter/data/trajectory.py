@@ -73,22 +73,21 @@ def read_tum(path: str | Path) -> Trajectory:
         raise TrackmeterError(f"{path}: not a text file (a TUM trajectory is lines of 't tx ty tz qx qy qz qw')") from None
     except OSError as exc:
         raise TrackmeterError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    data_lines = [n for n, line in enumerate(lines, 1) if line.split("#", 1)[0].strip()]
+    # The last line with data, found from the end (a cut one is left out, below).
+    last_data = next((n for n in range(len(lines), 0, -1) if lines[n - 1].split("#", 1)[0].strip()), 0)
     cut_line = None
-    if len(data_lines) >= 2:
-        last_fields = len(lines[data_lines[-1] - 1].split("#", 1)[0].replace(",", " ").split())
-        unended = data_lines[-1] == len(lines) and not text_read.endswith(("\n", "\r"))
-        if last_fields < 8 and (last_fields > 1 or unended):
-            # A writer stopped mid-line (killed, a full disk): the poses before it are whole.
-            cut_line = data_lines[-1]
     for number, line in enumerate(lines, 1):
         # '#' starts a comment anywhere on a line, as numpy.loadtxt (and so evo) read TUM files.
         text = line.split("#", 1)[0].strip()
-        if not text or number == cut_line:
+        if not text:
             continue
         if comma_line is None and "," in text:
             comma_line = number
         fields = text.replace(",", " ").split()
+        unended = number == len(lines) and not text_read.endswith(("\n", "\r"))
+        if number == last_data and rows and len(fields) < 8 and (len(fields) > 1 or unended):
+            cut_line = number  # a writer stopped mid-line (killed, a full disk): the poses before are whole
+            break
         if len(fields) != 8:
             raise TrackmeterError(f"{path}:{number}: expected 8 values 't tx ty tz qx qy qz qw', got {len(fields)}")
         try:
