@@ -742,9 +742,8 @@ class Console:
             self._loop_said = False
         elif not self._loop_said:
             self._loop_said = True
-            for client in list(self.server.get_clients().values()) or [None]:
-                self._notify(client, "Source", f"the source loops: it starts over (pass {source_pass}), and so "
-                             "does tracking: targets, model points and pose", True)
+            self._notify_all("Source", f"the source loops: it starts over (pass {source_pass}), and so does "
+                             "tracking: targets, model points and pose", True)
 
     def _say_shortfall(self, snap: Snapshot) -> None:
         """Say whole, once, why automatic selection started no target: the targets line cuts
@@ -755,8 +754,7 @@ class Console:
             self._shortfall_said = False
         elif not self._shortfall_said:
             self._shortfall_said = True
-            for client in list(self.server.get_clients().values()) or [None]:
-                self._notify(client, "Automatic selection", f"started no target: {why}", False)
+            self._notify_all("Automatic selection", f"started no target: {why}", False)
 
     def _on_click(self, event: Any) -> None:
         uv = self._event_pixel(event)
@@ -804,6 +802,11 @@ class Console:
             return None
         return ray_to_pixel(event.ray_origin, event.ray_direction, self.left_image.wxyz, self.left_image.position,
                             self._image_size, self.render_size)
+
+    def _notify_all(self, title: str, body: str, ok: bool) -> None:
+        """:meth:`_notify` every browser connected (kept in :attr:`notifications` with none)."""
+        for client in list(self.server.get_clients().values()) or [None]:
+            self._notify(client, title, body, ok)
 
     def _notify(self, client: Any, title: str, body: str, ok: bool) -> None:
         """Answer ``client`` with a pop-up, which replaces the one it showed before: pop-ups
