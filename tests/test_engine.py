@@ -1173,3 +1173,34 @@ def test_points_hidden_in_view_are_not_said_to_be_out_of_view(estec_rig) -> None
     assert all(not pose.valid or pose.coasting_s for _, pose, _ in out)
     assert not any("out of view" in (pose.reason or "") for _, pose, _ in out)
     assert any("only 0 model points measured" in (pose.reason or "") for _, pose, _ in out)
+
+
+def test_the_repeating_operators_clicks_are_in_the_frame_they_are_made_on(estec_rig) -> None:
+    # Paused after a Restart, the console showed the restarted frame's targets and pose line
+    # as they stood before the simulated operator clicked at that frame: no target, and "none
+    # is a target yet: target them by id" beside the operator's new ones.
+    from dataclasses import replace
+
+    from trackmeter.pipeline.engine import SelectModelPoints
+
+    engine, tracker, _ = make_engine(estec_rig)
+    tracker.active.clear()
+    assert engine.handle(SelectModelPoints(repeat=True), frame_at(100)).ok
+    assert run(engine, range(100, 110))[-1][1].valid
+    tracker.active.clear()
+    targets, pose, _ = engine.process(replace(frame_at(0), cut=True))  # the restart
+    assert engine.stats.operator_reselections == 1
+    assert {t.id for t in targets} == set(tracker.body)
+    assert not pose.valid and "none is a target yet" not in (pose.reason or ""), pose.reason
+    # Bound, then every point lost until the operator clicks again: that frame shows its clicks.
+    from trackmeter.pipeline.engine import CLICKED_NOW
+
+    assert run(engine, range(1, 30))[-1][1].valid
+    tracker.active.clear()
+    k = 30
+    while engine.stats.operator_reselections == 1:
+        targets, pose, _ = engine.process(frame_at(k))
+        k += 1
+        assert k < 30 + 3 * engine.pose_params.operator_reselect_s / DT
+    assert {t.id for t in targets} == set(tracker.body)
+    assert pose.coasting_s and pose.reason.endswith(f"; {CLICKED_NOW}"), pose.reason

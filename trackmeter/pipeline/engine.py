@@ -100,6 +100,9 @@ FloatArray = NDArray[np.float64]
 #: none never will: the command cannot start a target there).
 NEEDS_TRUTH = "selecting model points needs a frame with ground truth (a simulated source, or a recording with its truth)"
 NEEDS_CASE_B = "selecting model points needs case (b) with a model"
+#: Said on the pose line of a frame where the repeating simulated operator clicked: the pose
+#: was computed before, its targets are measured from the next frame on.
+CLICKED_NOW = "the model points in view were clicked again at this frame"
 
 
 @dataclass(frozen=True, eq=False)
@@ -612,16 +615,20 @@ class Engine:
                                 + f"; {len(refused)} refused" + (f" ({', '.join(f'{n} {r}' for r, n in why)})" if why else "")
                                 + (f"; {len(hidden)} hidden ({', '.join(hidden)})" if hidden else ""))
 
-    def _operator_watch(self, frame: StereoFrame) -> None:
+    def _operator_watch(self, frame: StereoFrame) -> bool:
         """The repeating simulated operator (:class:`SelectModelPoints` ``repeat``): clicks the
-        visible model points again once the pose has been invalid for ``operator_reselect_s``."""
+        visible model points again once the pose has been invalid for ``operator_reselect_s``.
+        Returns whether it clicked: the frame's targets and pose line must then show it (paused,
+        that frame stays on screen)."""
         if self._operator_t is None or frame.truth is None:
-            return
+            return False
         last = max(self._operator_t, self._last_valid_t if self._last_valid_t is not None else -np.inf)
-        if frame.t_s - last >= self.pose_params.operator_reselect_s:
-            self._operator_t = frame.t_s
-            self.stats.operator_reselections += 1
-            self._select_model_points(frame)
+        if frame.t_s - last < self.pose_params.operator_reselect_s:
+            return False
+        self._operator_t = frame.t_s
+        self.stats.operator_reselections += 1
+        self._select_model_points(frame)
+        return True
 
     def _fresh_acquisition(self) -> _Acquisition | None:
         """A model acquisition starting now in case (c) (the points held still from here on),
@@ -726,12 +733,16 @@ class Engine:
                     self._reset_motion()
                     self._gone_from_view = gone  # said while the new frame waits for points
                     self.stats.frames_redefined += 1
-            self._operator_watch(frame)
+            clicked = self._operator_watch(frame)
+            if clicked:
+                pose = replace(pose, reason=f"{pose.reason}; {CLICKED_NOW}")
+                coasted = None if coasted is None else replace(coasted, reason=f"{coasted.reason}; {CLICKED_NOW}")
+            now = self.tracker.targets if self._recovered_any or clicked else targets
             if coasted is not None:
                 self._coasting = True
-                return self.tracker.targets if self._recovered_any else targets, coasted, self._errors(frame, coasted)
+                return now, coasted, self._errors(frame, coasted)
             self._coasting = False
-            return self.tracker.targets if self._recovered_any else targets, pose, None
+            return now, pose, None
         R, t, cov, n_used, outliers = fit
         self._bound, self._provisional = True, None
         self.stats.valid_frames += 1
@@ -806,7 +817,10 @@ class Engine:
         if len(located) >= need:
             refused = self._bind(inner, located)
             reason = refused if refused is not None else f"case (b): model bound through {len(located)} of its points"
-        self._operator_watch(frame)
+        if self._operator_watch(frame):
+            out_targets = self.tracker.targets
+            if len(located) < need:  # what the clause above said of the targets is stale beside the clicks
+                reason = reason.split("; ")[0] + f"; {CLICKED_NOW}"
         return out_targets, PoseEstimate.invalid(reason, self._case), None
 
     def _bind(self, inner: "Engine", located: list[str]) -> str | None:
