@@ -661,6 +661,18 @@ def test_a_run_its_writer_never_closed_is_warned_about(capsys, run_in_own_body_f
     assert len(err.strip().splitlines()) == (status == "running")
 
 
+def test_a_killed_overwrite_run_names_the_earlier_run_it_set_aside(capsys, run_in_own_body_frame):
+    # A `track --overwrite` killed outright keeps the run it was replacing in .previous-run, a
+    # hidden folder: nothing told the user the complete earlier run was still there.
+    seq, run = run_in_own_body_frame
+    (run / ".previous-run").mkdir()
+    (run / ".previous-run" / "run.yaml").write_text("status: complete\n")
+    (run / "run.yaml").write_text("status: running\nsource:\n  spec: sim\n  case: a\n")
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
+    assert code == 0 and len(err.strip().splitlines()) == 1, err
+    assert f"the earlier run it was replacing (--overwrite) is kept in {run / '.previous-run'}" in err, err
+
+
 def test_errors_csv_leaves_an_unknown_value_empty_as_the_run_files_do(capsys, tmp_path):
     # errors.csv wrote Python's "nan" where states.csv and targets.csv leave a field empty (an
     # outside evaluator's reading): a frame whose rates were not estimated yet.

@@ -110,6 +110,17 @@ def _load_truth(spec: str, until_s: float | None = None) -> LoadedMotion:
     return LoadedMotion(scenario_truth(scenario), f"sim:{name} (the scenario's motion)", True)
 
 
+def _previous_run_note(estimate: Path) -> str:
+    """Where a run killed during ``track --overwrite`` keeps the run it was replacing (a hidden
+    folder the next ``--overwrite`` of that folder gives back or replaces), or ""."""
+    from trackmeter.data.rundir import PREVIOUS_RUN
+
+    previous = (estimate if estimate.is_dir() else estimate.parent) / PREVIOUS_RUN
+    if not (previous / "run.yaml").is_file():
+        return ""
+    return f"; the earlier run it was replacing (--overwrite) is kept in {previous}"
+
+
 def _other_sequence(truth_spec: str, estimate_spec: str) -> str | None:
     """Why the truth may be of another sequence than the one the run was tracked on (its
     run.yaml's ``source.folder`` and ``source.scenario``), or None: scenarios that differ, or,
@@ -241,7 +252,8 @@ def run(args: argparse.Namespace) -> int:
         # The writer never closed it: killed, a disk that filled (track then says run.yaml could
         # not be updated), or still being written; its summary is missing.
         print("trackmeter evaluate: warning: the run's run.yaml says it is still running: it was killed, its disk "
-              "filled, or it is still being written, so it may end early and its summary is missing", file=sys.stderr)
+              "filled, or it is still being written, so it may end early and its summary is missing"
+              + _previous_run_note(Path(args.estimate)), file=sys.stderr)
     attitude_rms_rad = result.summary.get("attitude_rad", {}).get("total", {}).get("rms", 0.0)
     if params.align == "none" and estimate.case is None and attitude_rms_rad > UNKNOWN_CASE_OFFSET_RAD:
         # A bare trajectory does not say whose body frame it is in: a case (a) or (c) run's
