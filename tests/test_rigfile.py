@@ -612,3 +612,40 @@ def test_a_filestorage_file_without_any_rig_key_is_said_not_to_be_a_rig(tmp_path
     with pytest.raises(TrackmeterError) as info:
         load_rig(path)
     assert str(info.value).startswith(f"{path}: not a stereo rig file: it has none of the keys K1, D1, K2, D2, R, T")
+
+
+def _in_child(code: str) -> "subprocess.CompletedProcess[str]":
+    """Run ``code`` in a fresh interpreter: a crash inside OpenCV (a segmentation fault) fails
+    the test instead of ending the test session."""
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+
+
+def test_a_rig_in_a_folder_whose_name_is_not_utf8_is_read(tmp_path: Path) -> None:
+    # OpenCV's FileStorage, given the name (with Python's surrogate escape for the byte 0xE9),
+    # crashed the process with a segmentation fault (an outside probe: track, analyze, measure).
+    import os
+
+    folder = os.fsdecode(bytes(tmp_path) + b"/bad\xe9dir")
+    os.mkdir(folder)
+    save_rig(_rig(), Path(folder) / "rig.yaml")
+    done = _in_child(f"from trackmeter.data.rigfile import load_rig; print(load_rig({str(Path(folder) / 'rig.yaml')!r}).T)")
+    assert done.returncode == 0, (done.returncode, done.stderr)
+    assert "-0.2801" in done.stdout
+
+
+def test_a_rig_read_in_memory_keeps_what_opencv_read_from_the_file(tmp_path: Path) -> None:
+    # Compressed (FileStorage writes and reads NAME.yaml.gz), and a comment in another encoding
+    # than UTF-8: both read as OpenCV read them from the file.
+    rig = _rig()
+    fs = cv2.FileStorage(str(tmp_path / "rig.yaml.gz"), cv2.FILE_STORAGE_WRITE)
+    for key, value in (("image_width", 640), ("image_height", 480), ("K1", rig.left.K), ("D1", rig.left.dist),
+                       ("K2", rig.right.K), ("D2", rig.right.dist), ("R", rig.R), ("T", rig.T.reshape(3, 1))):
+        fs.write(key, value)
+    fs.release()
+    np.testing.assert_array_equal(load_rig(tmp_path / "rig.yaml.gz").T, rig.T)
+    text = save_rig(rig, tmp_path / "plain.yaml").read_bytes()
+    (tmp_path / "latin1.yaml").write_bytes(text.replace(b"\nimage_width", b"\n# cam\xe9ra gauche\nimage_width", 1))
+    np.testing.assert_array_equal(load_rig(tmp_path / "latin1.yaml").left.K, rig.left.K)

@@ -37,15 +37,15 @@ def _open(path: Path) -> cv2.FileStorage:
         raise TrackmeterError(f"{path}: no such rig file{presets}")
     not_filestorage = TrackmeterError(f"{path}: not an OpenCV FileStorage file (YAML/XML)")
     try:
-        with open(path, "rb") as f:
-            bom = f.read(3) == b"\xef\xbb\xbf"
-        if bom:  # saved by a Windows editor: OpenCV's parser refuses the mark, so read the text after it
-            text = path.read_bytes()[3:].decode("utf-8")
-            fs = cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
-        else:
-            fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except (OSError, UnicodeDecodeError):
+        text = _filestorage_text(path)
+    except OSError:
         raise TrackmeterError(f"{path}: cannot read as a text file") from None
+    if text is None:
+        raise not_filestorage
+    try:
+        # Parsed from memory, never from the name: OpenCV crashes the process (a segmentation
+        # fault) on a name that is not UTF-8 (Python's surrogate escapes of its bytes).
+        fs = cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
     except (cv2.error, SystemError):
         # OpenCV 5's binding wraps the parser's cv2.error in a SystemError.
         fs = _plain_yaml(path)
@@ -57,6 +57,39 @@ def _open(path: Path) -> cv2.FileStorage:
         raise TrackmeterError(f"{path}: not a mapping of keys (image_width, K1, ...): a rig file's top level "
                               "must be key: value pairs")
     return fs
+
+
+#: Far beyond any rig file (a few kB): a video or an image given as --rig is not read whole.
+_MAX_RIG_FILE_BYTES = 16 * 2**20
+
+
+def _filestorage_text(path: Path) -> str | None:
+    """The text of a FileStorage file as OpenCV reads it from disk: gzip-compressed (its
+    ``.gz`` names), a UTF-8 byte-order mark left out (a Windows editor's; OpenCV's parser
+    refuses it), and bytes that are not UTF-8 (a comment in another encoding) kept one
+    character each, as OpenCV keeps them. None when it cannot be one (too large, NUL bytes).
+
+    Raises:
+        OSError: the file cannot be read.
+    """
+    import gzip
+    import zlib
+
+    if path.stat().st_size > _MAX_RIG_FILE_BYTES:
+        return None
+    raw = path.read_bytes()
+    if raw[:2] == b"\x1f\x8b":
+        try:
+            raw = gzip.decompress(raw)
+        except (OSError, EOFError, zlib.error):
+            return None
+    raw = raw.removeprefix(b"\xef\xbb\xbf")
+    if b"\x00" in raw:
+        return None
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError:
+        return raw.decode("latin-1")
 
 
 def _plain_yaml(path: Path) -> cv2.FileStorage | None:
