@@ -957,3 +957,23 @@ def test_a_truth_that_ends_before_the_run_is_said_so(capsys, sequence_and_run, t
             f"{n_after} pose(s) after the truth's end are not evaluated") in err, err
     code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run))
     assert code == 0 and "not evaluated" not in err, err
+
+
+@pytest.mark.parametrize("name", [b"s\xe9q", "s\u00e9q".encode()])
+def test_a_path_that_is_not_utf8_is_written_and_printed_by_its_own_bytes(run_in_own_body_frame, tmp_path, name):
+    # report.md's text was encoded strictly, and so was stdout: a path holding Python's
+    # surrogate escapes (a byte that is not UTF-8, or any non-ASCII name under a C locale, the
+    # second case here) failed with a traceback after the work was done (an outside probe).
+    import shutil
+
+    seq, run = run_in_own_body_frame
+    odd = tmp_path / os.fsdecode(name)
+    shutil.copytree(seq, odd)
+    out = tmp_path / "report"
+    env = dict(os.environ, **({"LC_ALL": "C", "PYTHONUTF8": "0", "PYTHONCOERCECLOCALE": "0"} if name.isascii() is False
+                              and b"\xe9" not in name else {}))
+    done = subprocess.run([sys.executable, "-m", "trackmeter", "evaluate", "--truth", os.fsencode(odd), "--estimate",
+                           str(run), "--align", "body", "--out", str(out)], capture_output=True, env=env, timeout=300)
+    assert done.returncode == 0, done.stderr.decode("utf-8", "replace")
+    assert name in (out / "report.md").read_bytes()
+    assert name in done.stdout

@@ -1174,3 +1174,32 @@ def test_a_gap_in_the_frame_times_is_said(tmp_path) -> None:
     assert len(src) == 7
     d2 = _write(tmp_path / "whole", frames)
     assert "gap" not in (SequenceSource(d2).warning or "")
+
+
+@pytest.mark.parametrize("name", [b"bad\xe9dir", "cam\u00e9ra".encode()])
+def test_a_video_named_outside_utf8_is_refused_or_read_not_a_crash(tmp_path, name):
+    # OpenCV's VideoCapture crashed the process (a segmentation fault) on a name holding
+    # Python's surrogate escapes: a byte that is not UTF-8, or any non-ASCII name under a C
+    # locale without UTF-8 mode (an outside probe). The latter is read; the former refused.
+    import os
+    import shutil
+    import subprocess
+    import sys
+
+    folder = os.fsdecode(bytes(tmp_path) + b"/" + name)
+    os.mkdir(folder)
+    for side in ("l", "r"):
+        shutil.copy(_video(tmp_path / f"{side}.avi", 3), os.path.join(folder, f"{side}.avi"))
+    code = ("from trackmeter.sources import open_source\nfrom trackmeter.errors import TrackmeterError\n"
+            "import os, sys\nf = os.fsdecode(sys.argv[1].encode('utf-8', 'surrogateescape'))\n"
+            "try:\n    print(len(list(iter(open_source(f'video:{f}/l.avi,{f}/r.avi').read, None))))\n"
+            "except TrackmeterError as exc:\n    print('refused:', exc)\n")
+    env = {**os.environ, "LC_ALL": "C", "PYTHONUTF8": "0", "PYTHONCOERCECLOCALE": "0"}
+    arg = bytes(tmp_path).decode("ascii") + "/" + name.decode("utf-8", "surrogateescape")
+    done = subprocess.run([sys.executable, "-c", code, arg], capture_output=True, env=env, timeout=120)
+    assert done.returncode == 0, (done.returncode, done.stderr)
+    out = done.stdout.decode("utf-8", "replace")
+    if b"\xe9" in name:
+        assert out.startswith("refused:") and "not UTF-8" in out, out
+    else:
+        assert out.strip() == "3", out

@@ -11,6 +11,7 @@ traceback.
 from __future__ import annotations
 
 import argparse
+import codecs
 import contextlib
 import importlib
 import logging
@@ -186,10 +187,35 @@ def _silence_stdout() -> None:
         pass
 
 
+def _name_bytes_else_escaped(exc: UnicodeError) -> tuple[str | bytes, int]:
+    """Encoding error handler: Python's surrogate escapes of a file name's bytes are written
+    as those bytes (as ``ls`` shows the name); anything else the stream cannot show is escaped."""
+    if isinstance(exc, UnicodeEncodeError):
+        chunk = exc.object[exc.start:exc.end]
+        if all("\udc80" <= c <= "\udcff" for c in chunk):
+            return bytes(ord(c) - 0xDC00 for c in chunk), exc.end
+    return codecs.backslashreplace_errors(exc)
+
+
+def _tolerant_stdout() -> None:
+    """Let stdout print any path: a name that is not UTF-8 (or any non-ASCII one under a C
+    locale) holds Python's surrogate escapes, which stdout refused with a traceback after the
+    work was done; and under a C locale without UTF-8 mode, so was any non-ASCII text."""
+    reconfigure = getattr(sys.stdout, "reconfigure", None)
+    if reconfigure is None:
+        return
+    codecs.register_error("trackmeter.name_bytes", _name_bytes_else_escaped)
+    try:
+        reconfigure(errors="trackmeter.name_bytes")
+    except (AttributeError, LookupError, OSError, TypeError, ValueError):  # not a plain text stream
+        pass
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     # Output still buffered is flushed here, where a closed pipe can be caught, not at exit
     # (where Python prints "Exception ignored ... BrokenPipeError"); argparse's --help
     # already ignores a closed stdout by itself.
+    _tolerant_stdout()
     try:
         code = _main(argv)
         sys.stdout.flush()

@@ -188,6 +188,6 @@ the measured disparity sigma over that limit has median {s.get('measured_over_no
 ![error density](error_density.png)
 """
     files = {out / "analysis.json": (json_text(summary) + "\n").encode(), out / "ranges.csv": ("\n".join(rows) + "\n").encode(),
-             **{out / name: png for name, png in plots.items()}, out / "report.md": report.encode()}
+             **{out / name: png for name, png in plots.items()}, out / "report.md": report.encode("utf-8", "surrogateescape")}
     write_files_atomic(files)
     return list(files)

@@ -553,7 +553,7 @@ below); angular velocity errors are in the body frame (eq. 14).
 
 """ + "".join(f"![{Path(name).stem}]({name})\n" for name in plots)
     files = {out / "summary.json": (json_text({**s, "settings": settings}) + "\n").encode(), out / "errors.csv": error_table_csv(evaluation).encode(),
-             **{out / name: png for name, png in plots.items()}, out / "report.md": report.encode()}
+             **{out / name: png for name, png in plots.items()}, out / "report.md": report.encode("utf-8", "surrogateescape")}
     write_files_atomic(files)
     # An earlier report's plots this one has none of (a run folder's velocity plots, then a TUM
     # pair's report without velocities) would sit beside a report that does not show them.

@@ -34,6 +34,20 @@ def _grey(image: NDArray[np.uint8]) -> NDArray[np.uint8]:
     return np.ascontiguousarray(image)
 
 
+def _opencv_name(path: Path) -> str:
+    """``path`` as OpenCV's binding must get it: the file name's own bytes read as UTF-8 (the
+    binding passes a string's UTF-8 bytes on), never Python's surrogate escapes, on which
+    OpenCV crashes the process (a name that is not UTF-8, or a non-ASCII one under a C locale).
+
+    Raises:
+        TrackmeterError: the name's bytes are not UTF-8 (OpenCV cannot be given it).
+    """
+    try:
+        return os.fsencode(path).decode("utf-8")
+    except UnicodeDecodeError:
+        raise TrackmeterError(f"{path}: the file's name is not UTF-8, which OpenCV cannot open: rename it") from None
+
+
 class VideoSource(Source):
     """Stereo frames from two video files.
 
@@ -129,7 +143,7 @@ class VideoSource(Source):
         # image" at level 8) above the one line that says what failed or was skipped: quiet
         # (-8, AV_LOG_QUIET). A user's own setting wins.
         os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
-        cap = cv2.VideoCapture(str(path))
+        cap = cv2.VideoCapture(_opencv_name(path))
         if not cap.isOpened():
             cap.release()
             raise TrackmeterError(f"{path}: OpenCV cannot open this video file")
