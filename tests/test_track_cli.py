@@ -881,3 +881,24 @@ def test_an_overwrite_with_nothing_to_track_keeps_the_earlier_run(tmp_path, caps
     err = capsys.readouterr().err
     assert f"the earlier run in {out} is kept" in err, err
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+def test_the_closing_source_warning_says_only_what_is_new(tmp_path) -> None:
+    """A sequence warned at open (an image listed but missing) that then skips an unreadable
+    pair: the closing warning repeated the opening one in front of the new skip (an outside probe)."""
+    import subprocess
+    import sys
+
+    seq = tmp_path / "seq"
+    assert subprocess.run([sys.executable, "-m", "trackmeter", "simulate", "--duration", "0.6", "--out", str(seq)],
+                          capture_output=True, timeout=300).returncode == 0
+    images = {cam: sorted((seq / cam / "data").iterdir(), key=lambda p: int(p.stem)) for cam in ("cam0", "cam1")}
+    images["cam1"][3].unlink()  # listed in data.csv, missing: said at open
+    images["cam0"][10].write_bytes(b"not a png")  # found when read: said at the end
+    done = subprocess.run([sys.executable, "-m", "trackmeter", "track", "--source", str(seq), "--auto", "4",
+                           "--out", str(tmp_path / "run")], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    warned = [line for line in done.stderr.splitlines() if line.startswith("trackmeter track: warning:")]
+    assert len(warned) == 2, done.stderr
+    assert "listed in data.csv are missing" in warned[0] and "unreadable" not in warned[0], warned
+    assert "unreadable image skipped" in warned[1] and "listed in data.csv" not in warned[1], warned

@@ -27,7 +27,7 @@ import sys
 import warnings
 from dataclasses import replace
 
-from trackmeter.cli.common import load_config_from_args, progress
+from trackmeter.cli.common import load_config_from_args, progress, source_warning_since
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -41,13 +41,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "more where some fall short of analyze.min_samples good measurements")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON (SI units)")
     parser.add_argument("--out", metavar="DIR", help="write analysis.json, ranges.csv, plots and report.md here")
-
-
-def _skipped_while_reading(source: object, warning_at_open: str | None) -> str | None:
-    """What the source skipped while it was read (pairs with an unreadable image), when it
-    says more than it did when opened; else None."""
-    warning = getattr(source, "warning", None)
-    return warning if warning and warning != warning_at_open else None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -82,11 +75,11 @@ def run(args: argparse.Namespace) -> int:
                 exposure=config.exposure,
             )
         except TrackmeterError as exc:
-            skipped = _skipped_while_reading(source, warning_at_open)
+            skipped = source_warning_since(source, warning_at_open)
             if skipped:  # e.g. every image unreadable: "the source gave no frames" alone does not say why
                 raise TrackmeterError(f"{exc}; {skipped}") from None
             raise
-        skipped = _skipped_while_reading(source, warning_at_open)
+        skipped = source_warning_since(source, warning_at_open)
         if skipped:
             warnings.warn(skipped, stacklevel=1)
         for line in result.moving_ranges:

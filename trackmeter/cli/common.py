@@ -76,6 +76,18 @@ def open_source_with_rig(spec: str, rig_path: str | None, realtime: bool = False
     return source
 
 
+def source_warning_since(source: object, warning_at_open: str | None) -> str | None:
+    """What the source says now (``Source.warning``) beyond what it said when opened, which
+    was printed then: a pair skipped while reading, not the opening warning again in front of
+    it. None when there is nothing new."""
+    warning = getattr(source, "warning", None)
+    if not warning or warning == warning_at_open:
+        return None
+    if warning_at_open and warning.startswith(f"{warning_at_open}; "):
+        return warning[len(warning_at_open) + 2:]
+    return warning
+
+
 def parse_uv(text: str) -> tuple[float, float]:
     """``"U,V"`` → ``(u, v)`` in px; raises TrackmeterError with the offending text (also for
     ``nan`` or ``inf``, which ``float`` accepts but no pixel is)."""

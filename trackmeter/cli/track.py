@@ -35,7 +35,7 @@ import sys
 import time
 from typing import Any, Callable, Iterator
 
-from trackmeter.cli.common import parse_uv, plain_progress_due
+from trackmeter.cli.common import parse_uv, plain_progress_due, source_warning_since
 from trackmeter.errors import TrackmeterError, counted
 
 
@@ -397,8 +397,9 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
                 kept = (f"the earlier run in {args.out} is kept" if writer.kept_earlier_run
                         else f"{args.out} holds an empty run")
                 raise TrackmeterError(f"source {args.source!r} delivered no frame{detail} (nothing tracked; {kept})")
-            if source_warning and source_warning != warning_at_open:
-                print(f"trackmeter track: warning: {source_warning}", file=sys.stderr)
+            new_warning = source_warning_since(source, warning_at_open)
+            if new_warning:
+                print(f"trackmeter track: warning: {new_warning}", file=sys.stderr)
             for k, (command, reply) in enumerate(zip(commands, replies)):
                 if not reply.ok and k not in said:
                     print(f"trackmeter track: warning: {_option_of(command)}: {reply.message}", file=sys.stderr)
