@@ -1204,3 +1204,16 @@ def test_the_repeating_operators_clicks_are_in_the_frame_they_are_made_on(estec_
         assert k < 30 + 3 * engine.pose_params.operator_reselect_s / DT
     assert {t.id for t in targets} == set(tracker.body)
     assert pose.coasting_s and pose.reason.endswith(f"; {CLICKED_NOW}"), pose.reason
+def test_refusals_are_counted_by_kind_without_their_figures() -> None:
+    # "1 textureless patch in one direction (... eigenvalue 2.2), ..., 1 textureless patch in
+    # one direction (... eigenvalue 6.6)" listed one kind twice (an outside console probe).
+    from trackmeter.core.targets import count_reasons
+
+    aperture = "textureless patch in one direction (aperture problem: min gradient eigenvalue {:.1f})"
+    reasons = ["too dark (black sky or deep shadow)"] * 3 + [aperture.format(2.2), aperture.format(6.6), "low score (0.41)"]
+    assert count_reasons(reasons) == [("too dark (black sky or deep shadow)", 3),
+                                      ("textureless patch in one direction", 2), ("low score (0.41)", 1)]
+    assert count_reasons(reasons, 1) == [("too dark (black sky or deep shadow)", 3)]
+    assert count_reasons([]) == []
+    assert count_reasons({aperture.format(2.2): 4, aperture.format(6.6): 1, "low score (0.41)": 2}) == [
+        ("textureless patch in one direction", 5), ("low score (0.41)", 2)]

@@ -7,6 +7,9 @@ snapshots, the run-directory writers and the console read.
 
 from __future__ import annotations
 
+import re
+from collections import Counter
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Literal
 
@@ -64,3 +67,29 @@ class Refusal:
 
     uv: tuple[float, float]
     reason: str
+
+
+#: A refusal's figures in brackets ("(aperture problem: min gradient eigenvalue 2.2)", "(score
+#: 0.61)"): left out when refusals are counted by kind.
+_FIGURES = re.compile(r" \([^()]*\d[^()]*\)")
+
+
+def count_reasons(reasons: Iterable[str] | Mapping[str, int], most: int | None = None) -> list[tuple[str, int]]:
+    """Refusal reasons counted by kind, most frequent first: two reasons that differ only in a
+    figure in brackets are one kind, said without the figure ("2 textureless patch in one
+    direction"); a kind of one text is said whole, figure and all.
+
+    Args:
+        reasons: each refusal's reason (:attr:`Refusal.reason`), or reason -> count.
+        most: at most this many kinds, or all.
+    Returns:
+        ``(reason, count)`` pairs.
+    """
+    counted = reasons if isinstance(reasons, Mapping) else Counter(reasons)
+    kinds: Counter[str] = Counter()
+    texts: dict[str, set[str]] = {}
+    for reason, n in counted.items():
+        kind = _FIGURES.sub("", reason)
+        kinds[kind] += n
+        texts.setdefault(kind, set()).add(reason)
+    return [(next(iter(texts[kind])) if len(texts[kind]) == 1 else kind, n) for kind, n in kinds.most_common(most)]

@@ -12,7 +12,6 @@ sky); then every frame of that range measures them with the stereo matcher
 
 from __future__ import annotations
 
-from collections import Counter
 from dataclasses import dataclass, field, replace
 from typing import Callable, Iterable, Iterator
 
@@ -35,6 +34,7 @@ from trackmeter.core.exposure import ExposureParams, apply_gain, exposure_gain
 from trackmeter.core.features import erode_square
 from trackmeter.core.matching import MeasureParams, measure_points
 from trackmeter.core.stereo import StereoRig
+from trackmeter.core.targets import count_reasons
 from trackmeter.core.transforms import apply_transform
 from trackmeter.errors import TrackmeterError
 from trackmeter.sources.base import Source, StereoFrame
@@ -370,7 +370,7 @@ def run_error_analysis(
         label = f"{m.true_range_m:.2f} m" if np.isfinite(m.true_range_m) else f"frames from t={m.t_s[0]:.3f} s"
         if len(m.uv) == 0:
             # Not "no point has N good measurements": none was measured, or even found.
-            why = Counter(m.refusals).most_common(2)
+            why = count_reasons(m.refusals, 2)
             skipped.append(f"{label}: no point selectable on its first frame: " + (
                 f"none of {m.candidates} corners accepted by the matcher ("
                 + ", ".join(f"{k} {r}" for r, k in why) + ")" if m.candidates else

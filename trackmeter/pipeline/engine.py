@@ -42,7 +42,7 @@ Per frame (:meth:`Engine.process`):
 from __future__ import annotations
 
 import warnings
-from collections import Counter, deque
+from collections import deque
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Sequence
@@ -71,7 +71,7 @@ from trackmeter.core.pose import (
     to_body,
 )
 from trackmeter.core.stereo import StereoRig
-from trackmeter.core.targets import Refusal, TargetState
+from trackmeter.core.targets import Refusal, TargetState, count_reasons
 from trackmeter.core.transforms import attitude_error_components, make_transform, matrix_to_quat_wxyz
 from trackmeter.core.velocity import VelocityEstimator, VelocityParams, block_weights
 from trackmeter.errors import TrackmeterError
@@ -608,7 +608,7 @@ class Engine:
                 made.append(pid)
         targeted = len(made) + len(already)
         ok = targeted >= self.pose_params.min_points
-        why = Counter(refused).most_common()
+        why = count_reasons(refused)
         return CommandReply(ok, partial=0 < targeted < self.pose_params.min_points,
                             message=f"{len(made)} model points selected" + (f" ({', '.join(made)})" if made else "")
                                 + (f"; {len(already)} already targets ({', '.join(already)})" if already else "")
