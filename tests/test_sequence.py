@@ -709,6 +709,12 @@ def test_model_ids_that_look_like_numbers_are_read_as_written(tmp_path):
         ("points: [{id: a, xyz: [0,0,0]}, {id: b, xyz: [1,0,.inf]}, {id: c, xyz: [0,1,0]}]", r"xyz\[2\]': expected a finite number"),
         ("points: [a, b, c]", r"points\[0\]"),
         ("points: [{id: a, xyz: [0,0,0]", "malformed YAML"),
+        # A stereo rig given as the model said "malformed YAML at line 5" (an outside console probe).
+        ("%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\nK1: !!opencv-matrix\n   rows: 3\n   cols: 3\n"
+         "   dt: d\n   data: [ 800., 0., 320., 0., 800., 240., 0., 0., 1. ]\n",
+         "an OpenCV FileStorage file \\(a stereo rig\\?\\), not a model file"),
+        ("image_width: 640\nimage_height: 480\nK1: [[800, 0, 320], [0, 800, 240], [0, 0, 1]]\nT: [-0.2, 0, 0]\n",
+         "missing key 'points'.*this is a stereo rig, not a model"),
     ],
 )
 def test_bad_model_files_name_the_problem(tmp_path, text, match):

@@ -69,7 +69,7 @@ def load_config(user_file: str | Path | None = None, overrides: Mapping[str, Any
     """
     merged = read_yaml_mapping(DEFAULT_CONFIG)
     if user_file is not None:
-        merged = _merge(merged, read_yaml_mapping(Path(user_file)), str(user_file), "")
+        merged = _merge(merged, read_yaml_mapping(Path(user_file), kind="a configuration file"), str(user_file), "")
     if overrides:
         merged = _merge(merged, dict(overrides), "overrides", "")
     return build_dataclass(Config, merged, source=str(user_file or DEFAULT_CONFIG))
@@ -136,9 +136,11 @@ FAST_SAFE_LOADER: type[Any] = _FastUniqueKeysLoader
 MAX_YAML_BYTES = 16 * 2**20
 
 
-def read_yaml_mapping(path: Path, loader: type[Any] = FAST_SAFE_LOADER) -> dict[str, Any]:
+def read_yaml_mapping(path: Path, loader: type[Any] = FAST_SAFE_LOADER, kind: str = "a plain YAML file") -> dict[str, Any]:
     """Read a YAML file whose top level is a mapping (an empty file is an empty mapping),
     with ``loader`` (:data:`FAST_SAFE_LOADER`, a :class:`yaml.SafeLoader` or a subclass of it).
+    ``kind`` names what the file should be, for the error when it is OpenCV's FileStorage
+    YAML (a rig file), which PyYAML refuses at its first ``!!opencv-matrix``.
 
     Only a regular file of at most :data:`MAX_YAML_BYTES` is read: a pipe with no writer would
     block the reading thread for ever (the console's tracking thread, loading a model) and a
@@ -171,6 +173,8 @@ def read_yaml_mapping(path: Path, loader: type[Any] = FAST_SAFE_LOADER) -> dict[
     except DuplicateKeyError as exc:
         raise TrackmeterError(f"{path}: {exc.problem}") from None
     except yaml.YAMLError as exc:
+        if text.startswith("%YAML:") or "!!opencv-matrix" in text:
+            raise TrackmeterError(f"{path}: an OpenCV FileStorage file (a stereo rig?), not {kind}") from None
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""
         raise TrackmeterError(f"{path}: malformed YAML{where}") from None

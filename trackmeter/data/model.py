@@ -175,6 +175,10 @@ def _check_ids(ids: Sequence[str], path: Path) -> None:
 MAX_PLAUSIBLE_MODEL_SPAN_M = 100.0
 
 
+#: What a model file holds, as the errors say it.
+POINTS_FORM = "a list of {id: NAME, xyz: [x, y, z]}"
+
+
 def load_model(path: str | Path) -> Model:
     """Read a model file.
 
@@ -186,11 +190,12 @@ def load_model(path: str | Path) -> Model:
             ``id`` or ``xyz``, a non-numeric coordinate, fewer than 3 points, a repeated id.
     """
     path = Path(path)
-    data = read_yaml_mapping(path, _ModelLoader)
+    data = read_yaml_mapping(path, _ModelLoader, kind=f"a model file (points: {POINTS_FORM})")
     if "points" not in data:
-        mockup = " (this is a simulator mock-up's geometry, not a model; a simulated sequence folder holds its model.yaml)" \
-            if "parts" in data or "materials" in data else ""
-        raise TrackmeterError(f"{path}: missing key 'points' (a list of {{id: NAME, xyz: [x, y, z]}}){mockup}")
+        other = (" (this is a simulator mock-up's geometry, not a model; a simulated sequence folder holds its model.yaml)"
+                 if "parts" in data or "materials" in data else
+                 " (this is a stereo rig, not a model)" if {"K1", "K2"} & set(data) else "")
+        raise TrackmeterError(f"{path}: missing key 'points' ({POINTS_FORM}){other}")
     data = _drop_unknown_keys(data, path)
     entries = data["points"]
     if isinstance(entries, list):

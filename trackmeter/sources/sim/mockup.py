@@ -258,7 +258,7 @@ def load_mockup(path: str | Path) -> Mockup:
             wrong ``size`` length for the part kind, degenerate sizes — the message names the key.
     """
     path = Path(path)
-    spec: MockupSpec = build_dataclass(MockupSpec, read_yaml_mapping(path), source=str(path))
+    spec: MockupSpec = build_dataclass(MockupSpec, read_yaml_mapping(path, kind="a mock-up file"), source=str(path))
     return build_mockup(spec, source=str(path))
 
 

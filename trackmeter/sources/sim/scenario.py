@@ -194,7 +194,7 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
             the file and the dotted key.
     """
     path = resolve_scenario_path(name_or_path)
-    data = read_yaml_mapping(path)
+    data = read_yaml_mapping(path, kind="a scenario file")
     if not data:
         warnings.warn(f"{path}: no settings: every one is the default (is it the scenario meant?)", stacklevel=2)
     data.setdefault("name", path.stem)
