@@ -649,3 +649,20 @@ def test_a_rig_read_in_memory_keeps_what_opencv_read_from_the_file(tmp_path: Pat
     text = save_rig(rig, tmp_path / "plain.yaml").read_bytes()
     (tmp_path / "latin1.yaml").write_bytes(text.replace(b"\nimage_width", b"\n# cam\xe9ra gauche\nimage_width", 1))
     np.testing.assert_array_equal(load_rig(tmp_path / "latin1.yaml").left.K, rig.left.K)
+
+
+def test_a_skew_in_k_is_warned_about_as_ignored(tmp_path: Path) -> None:
+    # OpenCV's camera model (projection, undistortion, rectification) reads fx, fy, cx, cy
+    # only: a calibration tool's skew was dropped without a word (an outside probe).
+    import dataclasses
+    import warnings
+
+    rig = _rig()
+    K = rig.right.K.copy()
+    K[0, 1] = 0.8
+    skewed = dataclasses.replace(rig, right=dataclasses.replace(rig.right, K=K))
+    with pytest.warns(UserWarning, match=r"K2\[0\]\[1\] \(skew\) 0\.8 px is ignored"):
+        load_rig(save_rig(skewed, tmp_path / "skew.yaml"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_rig(save_rig(rig, tmp_path / "plain.yaml"))

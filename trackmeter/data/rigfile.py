@@ -241,10 +241,21 @@ def load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> Ste
     cameras) loads; measuring and tracking refuse it with the remedy
     (:func:`trackmeter.core.stereo.check_side_by_side`)."""
     rig = _load_rig(resolve_rig_path(path), image_size)
-    implausible = baseline_problem(rig)
-    if implausible:
-        warnings.warn(f"{path}: {implausible}", stacklevel=2)
+    for problem in (baseline_problem(rig), skew_problem(rig)):
+        if problem:
+            warnings.warn(f"{path}: {problem}", stacklevel=2)
     return rig
+
+
+def skew_problem(rig: StereoRig) -> str | None:
+    """One line when a camera matrix has a skew (``K[0][1]``), else None: OpenCV's camera model
+    (projection, undistortion, rectification) reads fx, fy, cx and cy only, so every point
+    is measured as if the skew were 0."""
+    skewed = [f"K{n}[0][1] (skew) {cam.K[0, 1]:.4g} px" for n, cam in ((1, rig.left), (2, rig.right)) if cam.K[0, 1] != 0.0]
+    if not skewed:
+        return None
+    return (f"{' and '.join(skewed)} {'is' if len(skewed) == 1 else 'are'} ignored: OpenCV's camera model has no skew, "
+            "so points are measured as if it were 0 (calibrate with the skew fixed at 0)")
 
 
 def baseline_problem(rig: StereoRig) -> str | None:
