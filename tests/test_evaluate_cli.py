@@ -977,3 +977,24 @@ def test_a_path_that_is_not_utf8_is_written_and_printed_by_its_own_bytes(run_in_
     assert done.returncode == 0, done.stderr.decode("utf-8", "replace")
     assert name in (out / "report.md").read_bytes()
     assert name in done.stdout
+
+
+@pytest.mark.parametrize("with_run_yaml", [True, False])
+def test_a_run_folder_without_its_states_csv_says_the_rates_are_not_evaluated(capsys, sequence_and_run, tmp_path,
+                                                                              with_run_yaml):
+    # A run's folder whose states.csv is gone fell back on trajectory.tum without a word, and
+    # its velocity figures were simply missing (an outside probe). A folder of a TUM file alone
+    # is no run's: nothing to say.
+    truth, seq, _ = sequence_and_run
+    run = tmp_path / "tum_run"
+    run.mkdir()
+    _tum(run / "trajectory.tum", truth)
+    if with_run_yaml:
+        (run / "run.yaml").write_text("status: complete\nsource:\n  spec: sim\n  case: b\n")
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
+    assert code == 0 and json.loads(out)["matched"] == len(truth)
+    said = [line for line in err.splitlines() if "states.csv" in line]
+    assert len(said) == with_run_yaml, err
+    if with_run_yaml:
+        assert said[0] == (f"trackmeter evaluate: warning: {run / 'states.csv'}: missing: the poses of "
+                           f"{run / 'trajectory.tum'} are evaluated, without rates"), err

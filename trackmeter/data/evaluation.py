@@ -283,6 +283,9 @@ def _load_estimate(path: Path) -> LoadedMotion:
             return LoadedMotion(s, str(path / "states.csv"), bool(np.any(_rows_with_rates(s))), t_start,
                                 frame_times_s=frames, valid_rows_without_rates=_valid_rows_without_rates(full))
         if (path / "trajectory.tum").is_file():
+            if (path / "run.yaml").is_file():  # a run's folder: its states.csv was expected
+                warnings.warn(f"{path / 'states.csv'}: missing: the poses of {path / 'trajectory.tum'} are "
+                              "evaluated, without rates", stacklevel=3)
             s = MotionSeries.from_trajectory(read_tum(path / "trajectory.tum"))
             return LoadedMotion(s, str(path / "trajectory.tum"), False)
         raise TrackmeterError(f"{path}: not a run directory (no states.csv or trajectory.tum)")
