@@ -63,6 +63,14 @@ def test_analyze_static_ranges_recovers_the_parabola(tmp_path, capsys):
     # beside the measured depth of its points (the table showed only the latter).
     rows = report[report.index("origin [m]"):].splitlines()[1:4]
     assert [float(row.split()[0]) for row in rows] == [2.5, 3.5, 5.0]
+    # ranges.csv as the table: counts as whole numbers (they read 6.0, 62.0), the origin's true
+    # range too (an outside probe), unknowns empty as in the run files.
+    import csv
+
+    table = list(csv.DictReader((out / "ranges.csv").read_text().splitlines()))
+    assert [float(r["true_range_m"]) for r in table] == [2.5, 3.5, 5.0]
+    assert [int(r["n_points"]) for r in table] == [r["n_points"] for r in ranges]
+    assert [float(r["sigma_z_m"]) for r in table] == sz
     assert [float(row.split()[1]) for row in rows] == pytest.approx([r["range_m"] for r in ranges], abs=1e-3)
 
 

@@ -159,9 +159,13 @@ def write_analysis(analysis: ErrorAnalysis, summary: dict, out_dir: str | Path) 
             or a file could not be written.
     """
     out = check_analysis_directory(out_dir)
-    rows = ["range_m,n_points,n_samples,sigma_x_m,sigma_y_m,sigma_z_m,pred_sigma_x_m,pred_sigma_y_m,pred_sigma_z_m"]
-    for r in analysis.ranges:
-        rows.append(",".join(repr(float(v)) for v in (r.range_m, r.n_points, r.n_samples, *r.sigma_m, *r.predicted_sigma_m)))
+    rows = ["range_m,n_points,n_samples,sigma_x_m,sigma_y_m,sigma_z_m,pred_sigma_x_m,pred_sigma_y_m,pred_sigma_z_m,"
+            "true_range_m"]
+    for r in summary["ranges"]:  # the table's rows, the origin's true range with them (empty: unknown)
+        true_range = r.get("true_range_m")
+        rows.append(",".join([repr(float(r["range_m"])), str(int(r["n_points"])), str(int(r["n_samples"])),
+                              *(repr(float(r[k][axis])) for k in ("sigma_m", "predicted_sigma_m") for axis in "xyz"),
+                              repr(float(true_range)) if true_range is not None and math.isfinite(true_range) else ""]))
     plots = _plot(analysis)
     s = summary
     ok_sigma = s["sigma_z_at_3p5_m"] <= PAPER_SIGMA_Z_3P5_M
