@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -300,6 +301,30 @@ def test_a_tum_file_whose_last_line_is_cut_short_is_read_without_it(tmp_path: Pa
     path.write_text("# t tx ty tz qx qy qz qw\n0.0 0 0 3.5 0 0 0 1\n0.04 0 0 3.5 0 0 0 1\n1.92\n")
     with pytest.raises(TrackmeterError, match=r"cut\.tum:4: expected 8 values .*, got 1"):
         read_tum(path)  # a whole line of one value is no cut
+
+
+def test_a_tum_line_cut_inside_its_last_field_is_left_out(tmp_path: Path) -> None:
+    """A writer killed inside a line's last field (qw) leaves 8 values without a newline:
+    read as a pose, its quaternion was silently another one (qw 0.70710 cut to 0.7, 0.6 deg
+    off, renormalised without a word), or the whole file refused ("not a number" for a cut
+    "-" or "1e"). Such a line is left out with the cut-line warning when every line before
+    holds a unit quaternion; a file whose quaternions are all unnormalised is read as before."""
+    from trackmeter.data.trajectory import read_tum
+
+    whole = "0.0 0 0 3.5 0 0 0.707106781 0.707106781\n0.04 0 0 3.5 0 0 0.707106781 0.707106781\n"
+    path = tmp_path / "cut.tum"
+    for last in ("0.08 0 0 3.5 0 0 0.707106781 0.7", "0.08 0 0 3.5 0 0 0.707106781 -", "0.08 0 0 3.5 0 0 0.7 1e"):
+        path.write_text(whole + last)
+        with pytest.warns(UserWarning, match=r"cut\.tum:3: the last line is cut short, left out"):
+            assert len(read_tum(path)) == 2
+    path.write_text(whole + "0.08 0 0 3.5 0 0 0.707106781 0.707106781")  # whole, only its newline missing
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert len(read_tum(path)) == 3
+    path.write_text("0.0 0 0 3.5 0 0 2 2\n0.04 0 0 3.5 0 0 2 2\n0.08 0 0 3.5 0 0 2 3")  # a producer's unnormalised q
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert len(read_tum(path)) == 3
 
 
 def test_rows_repeating_a_timestamp_are_skipped_with_a_warning_as_in_a_tum_file(tmp_path: Path) -> None:

@@ -93,7 +93,13 @@ def read_tum(path: str | Path) -> Trajectory:
         try:
             row = [float(x) for x in fields]
         except ValueError:
+            if unended and rows:  # cut inside its last field ("-", "1e"): the poses before are whole
+                cut_line = number
+                break
             raise TrackmeterError(f"{path}:{number}: not a number in {quoted(text, 80)}") from None
+        if unended and rows and _cut_in_qw(row, rows):
+            cut_line = number
+            break
         # Checked here, not only by Trajectory, so that the message names the line.
         if not all(math.isfinite(x) for x in row):
             bad = next(k for k, x in enumerate(row) if not math.isfinite(x))
@@ -130,6 +136,20 @@ def read_tum(path: str | Path) -> Trajectory:
         return Trajectory(data[:, 0], data[:, 1:4], quat_wxyz)
     except TrackmeterError as exc:
         raise TrackmeterError(f"{path}: {exc}") from None
+
+
+#: How far from 1 the quaternion norm of a line written with 9 decimals can be (rounding).
+_UNIT_NORM_TOLERANCE = 1e-6
+
+
+def _cut_in_qw(row: list[float], rows: list[list[float]]) -> bool:
+    """Whether an unended last line was cut inside its qw (a writer killed mid-field): its
+    quaternion is not unit while every line before holds a unit one. A cut number still
+    parses ("0.707106781" -> "0.7") and renormalising would silently give another attitude."""
+    def off_unit(r: list[float]) -> bool:
+        return abs(math.hypot(*r[4:8]) - 1.0) > _UNIT_NORM_TOLERANCE
+
+    return off_unit(row) and not any(off_unit(r) for r in rows)
 
 
 def format_tum_line(t_s: float, position_m: FloatArray, quat_wxyz: FloatArray) -> str:
