@@ -322,3 +322,36 @@ def test_a_binary_file_given_as_yaml_is_named_so(tmp_path: Path) -> None:
     with pytest.raises(TrackmeterError) as info:
         read_yaml_mapping(path)
     assert str(info.value) == f"{path}: not a text file (YAML is UTF-8 text)"
+
+
+_RIG_FORMS = {
+    "filestorage.yaml": "%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\nK1: !!opencv-matrix\n   rows: 3\n"
+                        "   cols: 3\n   dt: d\n   data: [ 800., 0., 320., 0., 800., 240., 0., 0., 1. ]\n",
+    "plain.yaml": "image_width: 640\nimage_height: 480\nK1: [[800, 0, 320], [0, 800, 240], [0, 0, 1]]\n"
+                  "K2: [[800, 0, 320], [0, 800, 240], [0, 0, 1]]\nT: [-0.2, 0, 0]\n",
+    "filestorage.xml": '<?xml version="1.0"?>\n<opencv_storage>\n<image_width>640</image_width>\n'
+                       '<K1 type_id="opencv-matrix"><rows>3</rows><cols>3</cols><dt>d</dt>\n'
+                       '  <data>800. 0. 320. 0. 800. 240. 0. 0. 1.</data></K1>\n</opencv_storage>\n',
+    "camchain.yaml": "cam0:\n  camera_model: pinhole\n  intrinsics: [800, 800, 320, 240]\n  resolution: [640, 480]\n"
+                     "cam1:\n  camera_model: pinhole\n  intrinsics: [800, 800, 320, 240]\n  resolution: [640, 480]\n",
+}
+
+
+@pytest.mark.parametrize("form", sorted(_RIG_FORMS))
+@pytest.mark.parametrize("kind", ["config", "scenario", "mockup", "model"])
+def test_a_stereo_rig_given_for_another_file_is_named_as_one(tmp_path: Path, form: str, kind: str) -> None:
+    """A rig file given as --config, a scenario, a mock-up or a model said "unknown key
+    'image_width'", "expected a mapping of keys at the top level, got str" (XML) or "missing
+    key 'points'" (an outside probe), in whichever form the rig reader takes it."""
+    from trackmeter.data.model import load_model
+    from trackmeter.sources.sim.mockup import load_mockup
+    from trackmeter.sources.sim.scenario import load_scenario
+
+    path = tmp_path / form
+    path.write_text(_RIG_FORMS[form])
+    load = {"config": load_config, "scenario": load_scenario, "mockup": load_mockup, "model": load_model}[kind]
+    with pytest.raises(TrackmeterError) as info:
+        load(path)
+    assert str(info.value).startswith(f"{path}: ") and "a stereo rig" in str(info.value), info.value
+    assert {"config": "not a configuration file", "scenario": "not a scenario file", "mockup": "not a mock-up file",
+            "model": "not a model file"}[kind] in str(info.value), info.value

@@ -714,7 +714,7 @@ def test_model_ids_that_look_like_numbers_are_read_as_written(tmp_path):
          "   dt: d\n   data: [ 800., 0., 320., 0., 800., 240., 0., 0., 1. ]\n",
          "an OpenCV FileStorage file \\(a stereo rig\\?\\), not a model file"),
         ("image_width: 640\nimage_height: 480\nK1: [[800, 0, 320], [0, 800, 240], [0, 0, 1]]\nT: [-0.2, 0, 0]\n",
-         "missing key 'points'.*this is a stereo rig, not a model"),
+         "a stereo rig file \\(its camera matrices K1, K2\\), not a model file"),
     ],
 )
 def test_bad_model_files_name_the_problem(tmp_path, text, match):

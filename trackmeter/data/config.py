@@ -136,11 +136,12 @@ FAST_SAFE_LOADER: type[Any] = _FastUniqueKeysLoader
 MAX_YAML_BYTES = 16 * 2**20
 
 
-def read_yaml_mapping(path: Path, loader: type[Any] = FAST_SAFE_LOADER, kind: str = "a plain YAML file") -> dict[str, Any]:
+def read_yaml_mapping(path: Path, loader: type[Any] = FAST_SAFE_LOADER, kind: str | None = None) -> dict[str, Any]:
     """Read a YAML file whose top level is a mapping (an empty file is an empty mapping),
     with ``loader`` (:data:`FAST_SAFE_LOADER`, a :class:`yaml.SafeLoader` or a subclass of it).
-    ``kind`` names what the file should be, for the error when it is OpenCV's FileStorage
-    YAML (a rig file), which PyYAML refuses at its first ``!!opencv-matrix``.
+    ``kind`` names what the file should be ("a model file"): a stereo rig file given in its
+    place, in any form the rig reader takes (:func:`_rig_form`), is then refused as one, not
+    as "malformed YAML" (OpenCV's ``!!opencv-matrix``) or by its first unknown key.
 
     Only a regular file of at most :data:`MAX_YAML_BYTES` is read: a pipe with no writer would
     block the reading thread for ever (the console's tracking thread, loading a model) and a
@@ -173,16 +174,39 @@ def read_yaml_mapping(path: Path, loader: type[Any] = FAST_SAFE_LOADER, kind: st
     except DuplicateKeyError as exc:
         raise TrackmeterError(f"{path}: {exc.problem}") from None
     except yaml.YAMLError as exc:
-        if text.startswith("%YAML:") or "!!opencv-matrix" in text:
-            raise TrackmeterError(f"{path}: an OpenCV FileStorage file (a stereo rig?), not {kind}") from None
+        if kind is not None and _rig_form(text, None):
+            raise TrackmeterError(f"{path}: {_rig_form(text, None)}, not {kind}") from None
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""
         raise TrackmeterError(f"{path}: malformed YAML{where}") from None
+    rig = _rig_form(text, data) if kind is not None else None
+    if rig:
+        raise TrackmeterError(f"{path}: {rig}, not {kind}")
     if data is None:
         return {}
     if not isinstance(data, dict):
         raise TrackmeterError(f"{path}: expected a mapping of keys at the top level, got {type(data).__name__}")
     return data
+
+
+#: A camera matrix's key in a rig file (DESIGN.md's rig.yaml; OpenCV's intrinsics.yml).
+_RIG_CAMERA_KEYS = frozenset({"K1", "K2", "M1", "M2"})
+
+
+def _rig_form(text: str, data: object) -> str | None:
+    """Which form of stereo rig file ``text`` (``data`` as YAML read it, or None) is, said for
+    an error, or None when it is none of those the rig reader takes."""
+    head = text.lstrip()
+    if head.startswith("<?xml") and "<opencv_storage>" in head:
+        return "an OpenCV FileStorage file in XML (a stereo rig?)"
+    if head.startswith("%YAML:") or "!!opencv-matrix" in text:
+        return "an OpenCV FileStorage file (a stereo rig?)"
+    if isinstance(data, dict):
+        if _RIG_CAMERA_KEYS & {str(k) for k in data}:
+            return "a stereo rig file (its camera matrices K1, K2)"
+        if isinstance(data.get("cam0"), dict) and "intrinsics" in data["cam0"]:
+            return "a Kalibr camchain (a stereo rig)"
+    return None
 
 
 def _did_you_mean(key: str, known: Iterable[str], prefix: str, root: Mapping[str, Any] | None = None) -> str:

@@ -193,8 +193,7 @@ def load_model(path: str | Path) -> Model:
     data = read_yaml_mapping(path, _ModelLoader, kind=f"a model file (points: {POINTS_FORM})")
     if "points" not in data:
         other = (" (this is a simulator mock-up's geometry, not a model; a simulated sequence folder holds its model.yaml)"
-                 if "parts" in data or "materials" in data else
-                 " (this is a stereo rig, not a model)" if {"K1", "K2"} & set(data) else "")
+                 if "parts" in data or "materials" in data else "")
         raise TrackmeterError(f"{path}: missing key 'points' ({POINTS_FORM}){other}")
     data = _drop_unknown_keys(data, path)
     entries = data["points"]
