@@ -247,15 +247,28 @@ def load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> Ste
     return rig
 
 
+#: A skew that moves no point by more than this (px, at the image's top and bottom edges) is
+#: rounding noise in a calibration, not worth a warning on every run.
+SKEW_NEGLIGIBLE_PX = 0.01
+
+
 def skew_problem(rig: StereoRig) -> str | None:
-    """One line when a camera matrix has a skew (``K[0][1]``), else None: OpenCV's camera model
-    (projection, undistortion, rectification) reads fx, fy, cx and cy only, so every point
-    is measured as if the skew were 0."""
-    skewed = [f"K{n}[0][1] (skew) {cam.K[0, 1]:.4g} px" for n, cam in ((1, rig.left), (2, rig.right)) if cam.K[0, 1] != 0.0]
+    """One line when a camera matrix has a skew (``K[0][1]``, ``s``) that matters, else None:
+    OpenCV's camera model (projection, undistortion, rectification) reads fx, fy, cx and cy
+    only, so every point is measured as if ``s`` were 0, off by ``s * y / z`` px across the
+    rows, largest at the top and bottom edges (``|y / z| = (height / 2) / fy``)."""
+    skewed = []
+    for side, cam in (("left", rig.left), ("right", rig.right)):
+        edge_px = abs(cam.K[0, 1]) * (cam.height / 2) / abs(cam.K[1, 1])
+        if edge_px > SKEW_NEGLIGIBLE_PX:
+            skewed.append((side, cam.K[0, 1], edge_px))
     if not skewed:
         return None
-    return (f"{' and '.join(skewed)} {'is' if len(skewed) == 1 else 'are'} ignored: OpenCV's camera model has no skew, "
-            "so points are measured as if it were 0 (calibrate with the skew fixed at 0)")
+    who = "the left and right cameras' skews" if len(skewed) == 2 else f"the {skewed[0][0]} camera's skew"
+    values = " and ".join(f"{s:.4g} px" for _, s, _ in skewed)
+    return (f"{who} (K[0][1]) {values} {'are' if len(skewed) == 2 else 'is'} ignored: OpenCV's camera model has no "
+            f"skew, so points are measured as if it were 0, off by up to {max(e for _, _, e in skewed):.2g} px at the "
+            "image's top and bottom (calibrate with the skew fixed at 0)")
 
 
 def baseline_problem(rig: StereoRig) -> str | None:
