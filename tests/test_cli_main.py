@@ -310,3 +310,17 @@ def test_a_default_from_config_in_help_is_the_configs(command, option, section, 
     assert found, action.help
     assert found.group(1) == f"{getattr(getattr(load_config(), section), key):g}" if key != "align" else (
         found.group(1) == load_config().evaluate.align)
+
+
+def test_an_error_names_a_path_that_is_not_utf8_by_its_own_bytes(tmp_path) -> None:
+    """stdout wrote such a name's bytes (as ``ls`` shows it) while stderr, where errors and
+    warnings go, wrote Python's escape ``\\udcff``: one name, two spellings (an outside probe)."""
+    import os
+    import subprocess
+
+    missing = os.fsencode(tmp_path) + b"/seq\xff"
+    done = subprocess.run([sys.executable, "-m", "trackmeter", "evaluate", "--truth", missing, "--estimate", missing],
+                          capture_output=True, timeout=120)
+    assert done.returncode == 2
+    assert done.stderr.startswith(b"trackmeter evaluate: error: " + missing + b": "), done.stderr
+    assert b"\\udc" not in done.stderr

@@ -197,25 +197,27 @@ def _name_bytes_else_escaped(exc: UnicodeError) -> tuple[str | bytes, int]:
     return codecs.backslashreplace_errors(exc)
 
 
-def _tolerant_stdout() -> None:
-    """Let stdout print any path: a name that is not UTF-8 (or any non-ASCII one under a C
-    locale) holds Python's surrogate escapes, which stdout refused with a traceback after the
-    work was done; and under a C locale without UTF-8 mode, so was any non-ASCII text."""
-    reconfigure = getattr(sys.stdout, "reconfigure", None)
-    if reconfigure is None:
-        return
+def _tolerant_output() -> None:
+    """Let stdout and stderr print any path, by its own bytes on both: a name that is not UTF-8
+    (or any non-ASCII one under a C locale) holds Python's surrogate escapes, which stdout
+    refused with a traceback after the work was done and stderr spelt ``\\udcff``; and under
+    a C locale without UTF-8 mode, so was any non-ASCII text."""
     codecs.register_error("trackmeter.name_bytes", _name_bytes_else_escaped)
-    try:
-        reconfigure(errors="trackmeter.name_bytes")
-    except (AttributeError, LookupError, OSError, TypeError, ValueError):  # not a plain text stream
-        pass
+    for stream in (sys.stdout, sys.stderr):
+        reconfigure = getattr(stream, "reconfigure", None)
+        if reconfigure is None:
+            continue
+        try:
+            reconfigure(errors="trackmeter.name_bytes")
+        except (AttributeError, LookupError, OSError, TypeError, ValueError):  # not a plain text stream
+            pass
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     # Output still buffered is flushed here, where a closed pipe can be caught, not at exit
     # (where Python prints "Exception ignored ... BrokenPipeError"); argparse's --help
     # already ignores a closed stdout by itself.
-    _tolerant_stdout()
+    _tolerant_output()
     try:
         code = _main(argv)
         sys.stdout.flush()
