@@ -998,3 +998,6 @@ def test_a_run_folder_without_its_states_csv_says_the_rates_are_not_evaluated(ca
     if with_run_yaml:
         assert said[0] == (f"trackmeter evaluate: warning: {run / 'states.csv'}: missing: the poses of "
                            f"{run / 'trajectory.tum'} are evaluated, without rates"), err
+        (run / "states.csv").mkdir()  # said "missing" of a folder by that name
+        code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
+        assert code == 0 and f"{run / 'states.csv'}: not a file: the poses of" in err, err

@@ -284,7 +284,8 @@ def _load_estimate(path: Path) -> LoadedMotion:
                                 frame_times_s=frames, valid_rows_without_rates=_valid_rows_without_rates(full))
         if (path / "trajectory.tum").is_file():
             if (path / "run.yaml").is_file():  # a run's folder: its states.csv was expected
-                warnings.warn(f"{path / 'states.csv'}: missing: the poses of {path / 'trajectory.tum'} are "
+                what = "not a file" if (path / "states.csv").exists() else "missing"
+                warnings.warn(f"{path / 'states.csv'}: {what}: the poses of {path / 'trajectory.tum'} are "
                               "evaluated, without rates", stacklevel=3)
             s = MotionSeries.from_trajectory(read_tum(path / "trajectory.tum"))
             return LoadedMotion(s, str(path / "trajectory.tum"), False)
