@@ -103,7 +103,7 @@ def test_split_ranges_groups_frames_by_true_pose():
 
     groups = list(split_ranges([frame(0, 2.0), frame(1, 2.0), frame(2, 3.5), frame(3, 3.5), frame(4, 3.5), frame(5, 2.0)]))
     assert [[f.index for f in g] for g in groups] == [[0, 1], [2, 3, 4], [5]]
-    assert [len(g) for g in split_ranges([frame(i, None) for i in range(4)])] == [4]  # no truth: one range
+    assert [len(g) for g in split_ranges([frame(i, None) for i in range(4)])] == [4]  # no truth, one view: one range
     # Frames without truth among frames with it belong to no range: skipped, their times kept
     # (they refused the whole analysis: 'ground truth present on some frames only').
     skipped: list[float] = []
@@ -113,6 +113,54 @@ def test_split_ranges_groups_frames_by_true_pose():
     assert skipped == pytest.approx([0.0, 0.2, 0.5])
     skipped.clear()
     assert [len(g) for g in split_ranges([frame(i, None) for i in range(4)], skipped=skipped)] == [4] and not skipped
+
+
+def test_without_truth_the_ranges_are_where_the_image_jumps():
+    # Without ground truth the whole source was one range: a still target recorded at several
+    # ranges gave one range of all of them, a sub-pixel accuracy of 0.02 px against a noise
+    # limit of 0.48 px and a parabola fitted to one point (an outside probe). The view of a
+    # still target changes by its noise from frame to frame, and at once when it is moved.
+    import numpy as np
+
+    from trackmeter.pipeline.analysis import split_ranges
+    from trackmeter.sources.base import StereoFrame
+
+    rng = np.random.default_rng(3)
+    views = [rng.integers(0, 255, (48, 64)).astype(float) for _ in range(3)]
+
+    def frame(i, view):
+        img = np.clip(views[view] + rng.normal(0, 2.0, views[view].shape), 0, 255).astype(np.uint8)
+        return StereoFrame(i, 0.1 * i, img, img, None)
+
+    which = [0, 0, 0, 0, 1, 1, 1, 2, 2, 2, 2, 2]
+    groups = list(split_ranges([frame(i, v) for i, v in enumerate(which)]))
+    assert [[f.index for f in g] for g in groups] == [[0, 1, 2, 3], [4, 5, 6], [7, 8, 9, 10, 11]]
+
+
+@pytest.mark.slow
+def test_analyze_without_truth_finds_the_ranges_the_truth_gives(tmp_path, capsys):
+    import shutil
+
+    scenario = tmp_path / "static_small.yaml"
+    scenario.write_text(SCENARIO)
+    seq = tmp_path / "seq"
+    assert main(["simulate", "--scenario", str(scenario), "--out", str(seq)]) == 0
+    capsys.readouterr()
+    code = main(["analyze", "--source", f"seq:{seq}", "--json"])
+    with_truth = json.loads(capsys.readouterr().out)
+    assert code == 0
+    bare = tmp_path / "bare"
+    shutil.copytree(seq, bare)
+    (bare / "groundtruth.csv").unlink()
+    (bare / "groundtruth.tum").unlink()
+    code = main(["analyze", "--source", f"seq:{bare}", "--json"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    without = json.loads(captured.out)
+    assert [r["n_samples"] for r in without["ranges"]] == [r["n_samples"] for r in with_truth["ranges"]]
+    assert [r["range_m"] for r in without["ranges"]] == pytest.approx([r["range_m"] for r in with_truth["ranges"]],
+                                                                     abs=0.05)
+    assert without["sigma_disparity_px"] == pytest.approx(with_truth["sigma_disparity_px"], rel=0.3)
 
 
 def test_a_moving_source_is_refused_in_one_short_line(estec_rig):

@@ -2,11 +2,11 @@
 
 The source (the simulator's ``static_ranges`` scenario, or any sequence of a still object) is
 read frame by frame and split into *ranges*: runs of consecutive frames with the same true pose
-when the source has ground truth (the target held still at one range), else one range for the
-whole source. On the first frame of each range, points are selected on the target (Shi-Tomasi
-corners, inside the lit object, away from its outline where a patch would straddle the black
-sky); then every frame of that range measures them with the stereo matcher
-(:func:`trackmeter.core.matching.measure_points`). The pure statistics are
+when the source has ground truth (the target held still at one range), else runs of frames
+between jumps of the view (the target moved to another range). On the first frame of each
+range, points are selected on the target (Shi-Tomasi corners, inside the lit object, away from
+its outline where a patch would straddle the black sky); then every frame of that range
+measures them with the stereo matcher (:func:`trackmeter.core.matching.measure_points`). The pure statistics are
 :mod:`trackmeter.core.error_analysis`.
 """
 
@@ -165,7 +165,7 @@ def select_points(left: NDArray[np.uint8], params: AnalyzeParams, min_grey: floa
 def split_ranges(frames: Iterable[StereoFrame], position_tolerance_m: float = 1e-6,
                  skipped: list[float] | None = None) -> Iterator[list[StereoFrame]]:
     """Group consecutive frames with the same true pose (the target held still); without
-    ground truth, all frames form one group.
+    ground truth, where the view jumps (:func:`split_where_the_view_jumps`).
 
     Where some frames have truth, those without (rows missing or NaN in the truth file) belong
     to no range: they are left out, and their times (s) appended to ``skipped``.
@@ -179,7 +179,7 @@ def split_ranges(frames: Iterable[StereoFrame], position_tolerance_m: float = 1e
                 if skipped is not None:
                     skipped.append(frame.t_s)
             else:
-                group.append(frame)  # one range, unless truth comes later
+                group.append(frame)  # split by the images, unless truth comes later
             continue
         T = np.asarray(frame.truth.T_cam_body, dtype=float)
         if not seen_truth:
@@ -191,8 +191,46 @@ def split_ranges(frames: Iterable[StereoFrame], position_tolerance_m: float = 1e
             group = []
         group.append(frame)
         key = T
-    if group:
+    if group and not seen_truth:
+        yield from split_where_the_view_jumps(group)
+    elif group:
         yield group
+
+
+#: A change of the view larger than this many times the median frame-to-frame change is the
+#: target moved to another range (a still target's view changes by its noise: measured
+#: 0.15-0.32 grey levels at 1/8 scale on static_ranges, against 3-28 where it moves).
+VIEW_JUMP_OVER_MEDIAN = 5.0
+#: ... and larger than this (grey levels, mean absolute difference at 1/8 scale), so that
+#: frames with no noise at all (one image repeated) are not split by a rounding difference.
+VIEW_JUMP_MIN_GREY = 0.5
+
+
+def split_where_the_view_jumps(frames: list[StereoFrame]) -> list[list[StereoFrame]]:
+    """Consecutive frames of a source without ground truth grouped into still ranges: a new
+    range starts where the left image changes from the frame before by more than
+    :data:`VIEW_JUMP_OVER_MEDIAN` times the median change between consecutive frames (and
+    :data:`VIEW_JUMP_MIN_GREY`). The change is the mean absolute difference of the images
+    shrunk to 1/8 (area averaging), where a still view differs by its noise alone.
+
+    A target that moves all the time changes its view by about the median on every frame:
+    it stays one range, which the analysis then reports as moving.
+    """
+    if len(frames) < 3:
+        return [frames] if frames else []
+
+    def shrunk(image: NDArray[np.uint8]) -> NDArray[np.float32]:
+        h, w = image.shape[:2]
+        return cv2.resize(image, (max(1, w // 8), max(1, h // 8)), interpolation=cv2.INTER_AREA).astype(np.float32)
+
+    views = [shrunk(f.left) for f in frames]
+    # Images of another size than the frame before: another view, whatever their content.
+    change = np.array([float(np.mean(np.abs(b - a))) if a.shape == b.shape else np.inf
+                       for a, b in zip(views, views[1:])])
+    finite = change[np.isfinite(change)]
+    jump = max(VIEW_JUMP_OVER_MEDIAN * (float(np.median(finite)) if len(finite) else 0.0), VIEW_JUMP_MIN_GREY)
+    starts = [0, *(int(k) + 1 for k in np.flatnonzero(change > jump)), len(frames)]
+    return [frames[a:b] for a, b in zip(starts, starts[1:])]
 
 
 def measure_range(
