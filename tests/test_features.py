@@ -100,6 +100,38 @@ def test_spread_is_the_greedy_non_maximum_suppression(seed: int) -> None:
         np.testing.assert_array_equal(ft.spread(pts, scores, d, limit), greedy_reference(pts, scores, d, limit))
 
 
+def test_spread_of_a_plateau_holds_no_neighbour_lists_of_every_point() -> None:
+    """Every pixel of a flat image was a candidate (370k at 726x512), and the neighbours of
+    each within min_distance_px (1,250 at 20 px) were listed before the greedy pass: 20 GB
+    and 40 s for one frame (an outside probe). Only the kept points' neighbours are needed."""
+    import tracemalloc
+
+    ys, xs = np.mgrid[0:200, 0:200]
+    pts = np.column_stack([xs.ravel(), ys.ravel()]).astype(float)
+    scores = np.ones(len(pts))
+    tracemalloc.start()
+    try:
+        kept = ft.spread(pts, scores, 10.0, 64)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 20e6, f"{peak / 1e6:.0f} MB"
+    np.testing.assert_array_equal(kept, greedy_reference(pts, scores, 10.0, 64))
+
+
+def test_a_flat_image_has_no_gabor_candidates() -> None:
+    # A saturated or blank frame's score is floating-point residue (1e-4 at grey 255), which
+    # passed "score > 0" and the relative quality test at every pixel; a step of one grey
+    # level scores about 1, the noise of a real sensor about 10.
+    params = FeatureParams()
+    for grey in (0, 128, 255):
+        flat = np.full((120, 160), grey, np.uint8)
+        assert len(ft._candidates_gabor(flat, np.full(flat.shape, 255, np.uint8), params, 64)) == 0
+    step = np.full((120, 160), 128, np.uint8)
+    step[60:, 80:] = 129
+    assert len(ft._candidates_gabor(step, np.full(step.shape, 255, np.uint8), params, 64)) > 0
+
+
 def full_range_reference(rig, frame, uv, params) -> np.ndarray:  # type: ignore[no-untyped-def]
     """match_epipolar over the whole depth range in one pass: what stereo_matchable decides."""
     rect = rig.rectification

@@ -407,13 +407,20 @@ def _exclusion(mask: NDArray[np.uint8], exclude_uv: FloatArray, radius: float) -
     return mask
 
 
+#: Up to this many candidates, :func:`spread` lists every one's neighbours in one query (at
+#: most a few million entries even on a plateau); beyond, only the kept points' are asked.
+SPREAD_BATCH_MAX_POINTS = 2000
+
+
 def spread(points: FloatArray, scores: FloatArray, min_distance_px: float, limit: int) -> FloatArray:
     """Greedy non-maximum suppression: best-scoring points first, each at least
     ``min_distance_px`` from those already kept; at most ``limit`` points (N,2).
 
-    Every point's neighbours closer than ``min_distance_px`` come from one k-d tree query
-    (``scipy.spatial.cKDTree.query_ball_point``), so the greedy pass is a plain loop over
-    booleans instead of a distance computation per pair.
+    Neighbours closer than ``min_distance_px`` come from k-d tree queries
+    (``scipy.spatial.cKDTree.query_ball_point``): every candidate's at once for a frame's few
+    hundred (one query, half the time), the kept points' only beyond
+    :data:`SPREAD_BATCH_MAX_POINTS`, where listing every candidate's neighbours took 20 GB (a
+    plateau of 370k candidates at 20 px).
     """
     pts = np.asarray(points, dtype=float).reshape(-1, 2)
     if len(pts) == 0 or limit <= 0:
@@ -422,17 +429,18 @@ def spread(points: FloatArray, scores: FloatArray, min_distance_px: float, limit
     pts = pts[order]
     if min_distance_px <= 0:
         return pts[:limit]
+    tree = cKDTree(pts)
     # Strictly closer than min_distance_px suppresses (a point exactly at it is kept).
-    neighbours = cKDTree(pts).query_ball_point(pts, np.nextafter(min_distance_px, 0.0))
-    free = [True] * len(pts)
+    radius = np.nextafter(min_distance_px, 0.0)
+    free = np.ones(len(pts), bool)
+    batch = tree.query_ball_point(pts, radius) if len(pts) <= SPREAD_BATCH_MAX_POINTS else None
     kept: list[int] = []
     for i in range(len(pts)):
         if free[i]:
             kept.append(i)
             if len(kept) >= limit:
                 break
-            for j in neighbours[i]:
-                free[j] = False
+            free[batch[i] if batch is not None else tree.query_ball_point(pts[i], radius)] = False
     return pts[kept]
 
 
@@ -451,6 +459,13 @@ def _gabor_region(mask: NDArray[np.uint8], params: FeatureParams) -> tuple[int, 
     return x0, y0, x1, y1
 
 
+#: The Gabor score below which a pixel has no texture: a flat image scores floating-point
+#: residue (1.3e-4 at grey 255, 3e-5 at 128), a step of one grey level about 1, a real
+#: sensor's noise about 10 (sigma 0.5 grey) to 50 (2.5). Without it every pixel of a saturated
+#: or blank frame was a candidate, each a local maximum of a flat score.
+GABOR_MIN_SCORE = 0.01
+
+
 def _candidates_gabor(left: NDArray, mask: NDArray[np.uint8], params: FeatureParams, limit: int) -> FloatArray:
     # Filter only the bounding box of the selectable pixels: every selectable pixel's score is
     # the whole image's.
@@ -462,10 +477,10 @@ def _candidates_gabor(left: NDArray, mask: NDArray[np.uint8], params: FeaturePar
     score = gabor_score(np.asarray(left)[y0:y1, x0:x1], params)
     np.copyto(score, np.float32(0.0), where=m == 0)
     best = float(score.max())
-    if best <= 0:
+    if best <= GABOR_MIN_SCORE:
         return np.zeros((0, 2))
     peak = cv2.dilate(score, np.ones((5, 5), np.uint8))
-    ys, xs = np.nonzero((score >= peak) & (score >= params.quality * best) & (score > 0))
+    ys, xs = np.nonzero((score >= peak) & (score >= params.quality * best) & (score > GABOR_MIN_SCORE))
     pts = np.column_stack([xs + x0, ys + y0]).astype(float)
     return spread(pts, score[ys, xs].astype(float), params.min_distance_px, limit)
 
