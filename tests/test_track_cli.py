@@ -765,6 +765,29 @@ def test_auto_that_never_starts_a_target_says_why(monkeypatch, tmp_path, estec_r
     assert meta["summary"]["tracker"]["auto_added"] == 0
 
 
+def test_auto_that_starts_fewer_targets_than_asked_says_how_many_and_why(monkeypatch, tmp_path, estec_rig,
+                                                                        capsys) -> None:
+    """--auto 16 on small images started 1-3 targets and the run ended "waiting for 3 points"
+    with no word of the shortfall, which was said only when none started (an outside probe).
+    Here a 15 x 12 cm plate at 3.5 m holds room for 3 of the 8 asked."""
+    import trackmeter.sources as sources
+    from trackmeter.sources import plane
+
+    scene = plane.PlaneScene(estec_rig, plane.pose_translating(3.5, (0, 0, 0)), size_m=(0.15, 0.12), n_frames=8)
+    monkeypatch.setattr(sources, "open_source", lambda spec, rig_override=None, realtime=False, loop=False, **_: scene)
+    assert main(["track", "--source", "plate", "--auto", "8", "--out", str(tmp_path / "run")]) == 0
+    err = capsys.readouterr().err
+    said = [line for line in err.splitlines() if "--auto 8" in line]
+    assert len(said) == 1, err
+    assert said[0].startswith("trackmeter track: warning: --auto 8: at most 3 automatic targets at once; its other "
+                              "candidates were refused: "), said
+    # A run that reaches the count says nothing of it.
+    scene = plane.PlaneScene(estec_rig, plane.pose_translating(3.5, (0, 0, 0)), n_frames=4)
+    monkeypatch.setattr(sources, "open_source", lambda spec, rig_override=None, realtime=False, loop=False, **_: scene)
+    assert main(["track", "--source", "plate", "--auto", "8", "--out", str(tmp_path / "run2")]) == 0
+    assert "--auto" not in capsys.readouterr().err
+
+
 def test_a_countdown_is_one_reason_in_the_summary(tmp_path, capsys, monkeypatch) -> None:
     """Case (c)'s "hold still (1.9 s left)" was counted as a reason of its own at every tenth of
     a second (23 entries in run.yaml; the five printed covered 16 of 56 invalid frames)."""

@@ -268,6 +268,8 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
                 return
             state["pending"] = None
             writer.write_frame(snap.frame.t_s, snap.targets, snap.pose, snap.timings.latency_ms)
+            alive_auto = sum(1 for t in snap.targets if t.origin == "auto" and t.measured)
+            state["most_auto"] = max(state.get("most_auto", 0), alive_auto)
             first = state.setdefault("first_index", snap.frame.index) == snap.frame.index
             if not snap.pose.valid:
                 # The first frame's pose was estimated before the commands (--target, --auto,
@@ -440,9 +442,9 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
                 print(f"trackmeter track: note: {counted(gained, 'frame')} underexposed (the left image's brightest "
                       f"pixels below grey {engine.exposure_params.reference_grey:g}), tracked at a gain of up to "
                       f"{engine.stats.largest_gain:.2f} (config section exposure)", file=sys.stderr)
-            never = _auto_never_started(engine.tracker) if args.auto else None
-            if never:
-                print(f"trackmeter track: warning: {never}", file=sys.stderr)
+            short = _auto_shortfall(engine.tracker, args.auto, state.get("most_auto", 0)) if args.auto else None
+            if short:
+                print(f"trackmeter track: warning: {short}", file=sys.stderr)
             return 0 if status == "complete" else 2
     finally:
         source.close()
@@ -469,14 +471,18 @@ def _source_identity(source: Any) -> dict[str, str]:
     return {"scenario": scenario, **({"motion": motion} if motion else {})}
 
 
-def _auto_never_started(tracker: Any) -> str | None:
-    """One line when --auto started no target in the whole run, with its candidates' refusal
-    reasons (e.g. the images too dark for a point to be measured); None otherwise."""
+def _auto_shortfall(tracker: Any, asked: int, most_at_once: int) -> str | None:
+    """One line when --auto started no target in the whole run, or never had as many as
+    ``asked`` measured at once, with its candidates' refusal reasons (the images too dark, too
+    small a target); None otherwise."""
     stats, refusals = getattr(tracker, "stats", None), getattr(tracker, "auto_refusals", None)
-    if not isinstance(stats, dict) or stats.get("auto_added", 1) or not refusals:
+    if not isinstance(stats, dict) or not refusals or most_at_once >= asked:
         return None
     reasons = ", ".join(f"{reason} ({count})" for reason, count in refusals.most_common(3))
-    return f"--auto started no target: its candidates were refused: {reasons}"
+    if not stats.get("auto_added", 1):
+        return f"--auto started no target: its candidates were refused: {reasons}"
+    return (f"--auto {asked}: at most {counted(most_at_once, 'automatic target')} at once; its other candidates "
+            f"were refused: {reasons}")
 
 
 def _finish_writing(writer: Any, flush_pending: Callable[[], None], state: dict[str, Any]) -> None:
