@@ -205,3 +205,14 @@ def test_bad_patch(pair, capsys) -> None:  # type: ignore[no-untyped-def]
     *_, folder = pair
     assert _run(folder, "--at", "1,1", "--patch", "2") == 2
     _one_error_line(capsys, "--patch")
+
+
+def test_a_swapped_pair_is_said_to_look_swapped(pair, capsys) -> None:  # type: ignore[no-untyped-def]
+    # --left and --right exchanged refused every point as "low score" or "too dark" with no
+    # hint of the cause (an outside probe); the pair in order says nothing of it.
+    *_, folder = pair
+    assert _run(folder, "--at", "300.3,250.6", left="right.png", right="left.png") == 0
+    err = capsys.readouterr().err
+    assert err.startswith("trackmeter measure: warning: the left and right images look swapped"), err
+    assert _run(folder, "--at", "300.3,250.6") == 0
+    assert "swapped" not in capsys.readouterr().err

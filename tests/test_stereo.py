@@ -316,3 +316,46 @@ def test_point_sigma_is_a_number_for_rank_one_covariance(estec_rig: StereoRig) -
     # and the same numbers as the covariance wherever its diagonal is positive
     diag = np.diagonal(rect.point_covariance(uv, d, 0.05, 0.0), axis1=1, axis2=2)
     np.testing.assert_array_equal(sigma[diag > 0], np.sqrt(diag[diag > 0]))
+
+
+def test_views_swapped_are_told_by_the_sign_of_their_disparities(estec_sim_frames, shared_data) -> None:
+    """Left and right images exchanged under a rig in order (cam0 and cam1 mixed up) ran with no
+    valid pose, every candidate refused, and one false match at 4.26 m where the body was at
+    3.1-3.4 m (an outside probe): nothing said the views were swapped. The view of a rig in
+    order shifts left from the left image to the right one (every disparity positive)."""
+    import cv2
+
+    from benchmarks.measure import estec_plane
+    from trackmeter.core.stereo import Camera, StereoRig, swapped_views_problem, view_disparities_px
+
+    rig, frames = estec_sim_frames
+    f = frames[0]
+    d = view_disparities_px(rig, f.left, f.right)
+    # The body at about 3.3 m, 0.45 m deep: f b / z with the 12 mm rig's f b (px m).
+    fb = rig.rectification.focal_px * rig.rectification.baseline_m
+    assert len(d) > 50 and fb / 3.6 < np.median(d) < fb / 3.0, (len(d), np.median(d))
+    assert swapped_views_problem(rig, f.left, f.right) is None
+    problem = swapped_views_problem(rig, f.right, f.left)
+    assert problem is not None and "look swapped" in problem, problem
+    # One image twice: the two rectification maps shift it against itself (10 px with this
+    # rig), which is no order of the views.
+    assert swapped_views_problem(rig, f.left, f.left) is None
+    # A tilted plate filling the view (a global phase correlation got it wrong), in order and not.
+    plate_rig, left, right, _ = estec_plane(seed=5)
+    assert swapped_views_problem(plate_rig, left, right) is None
+    assert swapped_views_problem(plate_rig, right, left) is not None
+    # Real images: Middlebury's rectified Tsukuba pair (disparities 5-14 px).
+    left = cv2.imread(str(shared_data / "middlebury_tsukuba" / "img_left.png"), cv2.IMREAD_GRAYSCALE)
+    right = cv2.imread(str(shared_data / "middlebury_tsukuba" / "img_right.png"), cv2.IMREAD_GRAYSCALE)
+    K = np.array([[400.0, 0.0, 192.0], [0.0, 400.0, 144.0], [0.0, 0.0, 1.0]])
+    tsukuba = StereoRig(Camera(384, 288, K, np.zeros(5)), Camera(384, 288, K, np.zeros(5)), np.eye(3),
+                        np.array([-0.1, 0.0, 0.0]))
+    d = view_disparities_px(tsukuba, left, right)
+    assert len(d) > 50 and 5.0 <= np.median(d) <= 14.0, np.median(d)
+    assert swapped_views_problem(tsukuba, left, right) is None
+    assert swapped_views_problem(tsukuba, right, left) is not None
+    # No view at all (black space), or one image twice, says nothing.
+    black = np.zeros_like(left)
+    assert len(view_disparities_px(tsukuba, black, black)) == 0
+    assert swapped_views_problem(tsukuba, black, black) is None
+    assert swapped_views_problem(tsukuba, left, left) is None

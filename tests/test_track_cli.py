@@ -788,6 +788,35 @@ def test_auto_that_starts_fewer_targets_than_asked_says_how_many_and_why(monkeyp
     assert "--auto" not in capsys.readouterr().err
 
 
+def test_track_says_when_the_left_and_right_images_look_swapped(monkeypatch, tmp_path, estec_sim_frames,
+                                                              capsys) -> None:
+    """cam0 and cam1 exchanged under a rig in order ran 'complete' with no valid pose and a
+    false match at a made-up depth, and nothing said why (an outside probe)."""
+    import dataclasses
+
+    import trackmeter.sources as sources
+
+    rig, frames = estec_sim_frames
+
+    class Frames(Source):
+        def __init__(self, swap: bool) -> None:
+            self.rig, self.rate_hz, self.model = rig, 25.0, None
+            self._frames = [dataclasses.replace(f, left=f.right, right=f.left, truth=None) if swap else f
+                            for f in frames[:6]]
+
+        def read(self):  # type: ignore[no-untyped-def]
+            return self._frames.pop(0) if self._frames else None
+
+    for swap in (True, False):
+        monkeypatch.setattr(sources, "open_source", lambda spec, rig_override=None, realtime=False, loop=False, **_:
+                            Frames(swap))
+        assert main(["track", "--source", "frames", "--auto", "8", "--out", str(tmp_path / f"run{swap}")]) == 0
+        said = [line for line in capsys.readouterr().err.splitlines() if "look swapped" in line]
+        assert len(said) == swap, said
+        if swap:
+            assert said[0].startswith("trackmeter track: warning: the left and right images look swapped: "), said
+
+
 def test_a_countdown_is_one_reason_in_the_summary(tmp_path, capsys, monkeypatch) -> None:
     """Case (c)'s "hold still (1.9 s left)" was counted as a reason of its own at every tenth of
     a second (23 entries in run.yaml; the five printed covered 16 of 56 invalid frames)."""

@@ -50,9 +50,12 @@ def run(args: argparse.Namespace) -> int:
     import dataclasses
     import json
 
+    import warnings
+
     from trackmeter.cli.common import parse_uv
     from trackmeter.core.exposure import expose_pair
     from trackmeter.core.matching import measure_points, measurements_to_json
+    from trackmeter.core.stereo import swapped_views_problem
     from trackmeter.data.config import load_config
     from trackmeter.data.images import read_grey_pair
     from trackmeter.data.rigfile import load_rig
@@ -80,6 +83,9 @@ def run(args: argparse.Namespace) -> int:
     # the tracking engine does (config section exposure).
     left, right, _ = expose_pair(images[0], images[1], config.exposure)
     results = measure_points(rig, left, right, uv, params)
+    swapped = swapped_views_problem(rig, images[0], images[1])
+    if swapped:  # every point refused, or matched to a look-alike: the table alone does not say why
+        warnings.warn(swapped, stacklevel=1)
     if args.json:
         print(json.dumps(measurements_to_json(results), allow_nan=False))
         return 0

@@ -295,6 +295,7 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
                     state["write_error"] = str(exc)
                     return True
             state["pending"] = snap
+            _check_views(state, rig, frame, tty)
             now = time.monotonic()
             if now - state["last_draw"] > 0.25 if tty else plain_progress_due(state["last_draw"], now):
                 state["last_draw"] = now
@@ -469,6 +470,30 @@ def _source_identity(source: Any) -> dict[str, str]:
     digest = getattr(sim_scenario, "motion_digest", None)
     motion = digest() if callable(digest) else None
     return {"scenario": scenario, **({"motion": motion} if motion else {})}
+
+
+#: The first frames whose views are checked for a swap (:func:`_check_views`) until one shows
+#: enough distinctive points to tell (the body may come into view late).
+VIEWS_CHECK_FRAMES = 5
+
+
+def _check_views(state: dict[str, Any], rig: Any, frame: Any, tty: bool) -> None:
+    """Warn once when the left and right images look swapped
+    (:func:`~trackmeter.core.stereo.swapped_views_problem`): the run would find no stereo
+    match, or false ones, and end with no pose and no word of why."""
+    from trackmeter.core.stereo import SWAPPED_MIN_MATCHES, swapped_views_problem, view_disparities_px
+
+    checked = state.get("views_checked", 0)
+    if checked >= VIEWS_CHECK_FRAMES:
+        return
+    disparities = view_disparities_px(rig, frame.left, frame.right)
+    told = len(disparities) >= SWAPPED_MIN_MATCHES  # one frame that tells is enough, either way
+    state["views_checked"] = VIEWS_CHECK_FRAMES if told else checked + 1
+    problem = swapped_views_problem(rig, frame.left, frame.right, disparities)
+    if problem:
+        if tty:
+            sys.stderr.write("\r\033[K")
+        print(f"trackmeter track: warning: {problem}", file=sys.stderr)
 
 
 def _auto_shortfall(tracker: Any, asked: int, most_at_once: int) -> str | None:
