@@ -64,6 +64,8 @@ from trackmeter.pipeline.snapshot import (
     Snapshot,
     StepOnce,
 )
+from trackmeter.pipeline.views import SwappedViewsWatch
+from trackmeter.sources.base import StereoFrame
 
 log = logging.getLogger(__name__)
 
@@ -413,6 +415,8 @@ class Console:
         self._last_frame_index: int | None = None
         self._loop_said = False  # the pop-up that the source loops, once (again after a Restart)
         self._shortfall_said = False  # why automatic selection started none, popped up once (_say_shortfall)
+        # left and right images given the wrong way round, popped up once (_say_views)
+        self._views_watch = SwappedViewsWatch(self.rig) if self.rig is not None else None
         self._lost_targets = LostTargets()  # a lost target's mark is left out after a while
         # Ids of targets not drawn (lost too long): a shift-click does not remove what it cannot
         # see. Set by the publisher, read by the click handler: one reference, replaced whole.
@@ -756,6 +760,15 @@ class Console:
             self._shortfall_said = True
             self._notify_all("Automatic selection", f"started no target: {why}", False)
 
+    def _say_views(self, frame: StereoFrame | None) -> None:
+        """Say once, on the first frames that tell, that the left and right images look swapped:
+        every click would be refused, or matched at a made-up depth, with no word of why."""
+        if frame is None or self._views_watch is None:
+            return
+        problem = self._views_watch.check(frame.left, frame.right)
+        if problem:
+            self._notify_all("Stereo pair", problem, False)
+
     def _on_click(self, event: Any) -> None:
         uv = self._event_pixel(event)
         if uv is not None:
@@ -1005,6 +1018,7 @@ class Console:
         frame = snap.frame
         self._say_loop(snap.source_pass)
         self._say_shortfall(snap)
+        self._say_views(frame)
         left_rgb = right_rgb = None
         drawn = self._lost_targets.shown(snap.targets, frame.t_s) if frame is not None else list(snap.targets)
         self._hidden_ids = frozenset(t.id for t in snap.targets) - {t.id for t in drawn}

@@ -959,6 +959,31 @@ def test_why_automatic_selection_started_none_pops_up_once_whole() -> None:
         running.stop()
 
 
+def test_left_and_right_images_that_look_swapped_pop_up_once(estec_sim_frames) -> None:
+    # cam0 and cam1 exchanged: the operator saw every click refused and no word of why (an
+    # outside probe; track and measure say it on stderr).
+    import dataclasses
+
+    from trackmeter.pipeline.snapshot import PoseEstimate, Snapshot, Timings
+
+    rig, frames = estec_sim_frames
+    running = start_console(CountingSource(3), RecordingEngine(), port=free_port(), rig=rig)  # type: ignore[arg-type]
+    con = running.console
+    deadline = time.monotonic() + 10
+    while running.pipeline.latest().source_status != "ended":
+        assert time.monotonic() < deadline
+        time.sleep(0.02)
+    time.sleep(0.5)
+    try:
+        for f in frames[:3]:
+            swapped = dataclasses.replace(f, left=f.right, right=f.left)
+            con._push(Snapshot(swapped, (), PoseEstimate.invalid("x"), None, Timings()), plots=False)
+        said = [(title, body) for title, body in con.notifications if title == "Stereo pair"]
+        assert len(said) == 1 and said[0][1].startswith("the left and right images look swapped"), con.notifications
+    finally:
+        running.stop()
+
+
 def test_a_toggle_s_reply_with_something_to_say_is_shown() -> None:
     # Choosing the centroid method answered nothing in the browser: a toggle's success is
     # shown by the widget, and its note (one point a bright region) went with the pop-up.

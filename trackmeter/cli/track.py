@@ -472,24 +472,13 @@ def _source_identity(source: Any) -> dict[str, str]:
     return {"scenario": scenario, **({"motion": motion} if motion else {})}
 
 
-#: The first frames whose views are checked for a swap (:func:`_check_views`) until one shows
-#: enough distinctive points to tell (the body may come into view late).
-VIEWS_CHECK_FRAMES = 5
-
-
 def _check_views(state: dict[str, Any], rig: Any, frame: Any, tty: bool) -> None:
-    """Warn once when the left and right images look swapped
-    (:func:`~trackmeter.core.stereo.swapped_views_problem`): the run would find no stereo
-    match, or false ones, and end with no pose and no word of why."""
-    from trackmeter.core.stereo import SWAPPED_MIN_MATCHES, swapped_views_problem, view_disparities_px
+    """Warn once when the first frames' left and right images look swapped
+    (:class:`~trackmeter.pipeline.views.SwappedViewsWatch`)."""
+    from trackmeter.pipeline.views import SwappedViewsWatch
 
-    checked = state.get("views_checked", 0)
-    if checked >= VIEWS_CHECK_FRAMES:
-        return
-    disparities = view_disparities_px(rig, frame.left, frame.right)
-    told = len(disparities) >= SWAPPED_MIN_MATCHES  # one frame that tells is enough, either way
-    state["views_checked"] = VIEWS_CHECK_FRAMES if told else checked + 1
-    problem = swapped_views_problem(rig, frame.left, frame.right, disparities)
+    watch = state.setdefault("views", SwappedViewsWatch(rig))
+    problem = watch.check(frame.left, frame.right)
     if problem:
         if tty:
             sys.stderr.write("\r\033[K")
