@@ -218,8 +218,9 @@ def read_motion_csv(path: str | Path) -> MotionSeries:
     except OSError as exc:
         raise TrackmeterError(f"{path}: cannot read: {exc.strerror or exc}") from None
     numbered = [(i, line.strip()) for i, line in enumerate(lines, 1) if line.strip()]
+    comment_before: tuple[int, str] | None = None  # the last comment line above the header
     while numbered and is_comment_line(numbered[0][1]):
-        del numbered[0]
+        comment_before = numbered.pop(0)
     if not numbered:
         raise TrackmeterError(f"{path}: empty file")
     header_line, header_text = numbered[0]
@@ -232,7 +233,10 @@ def read_motion_csv(path: str | Path) -> MotionSeries:
             f"{path}:{header_line}: " + (
                 "reads as a TUM trajectory, whose fields are separated by spaces (t tx ty tz qx qy qz qw), "
                 "but this one uses commas" if tum_names else
-                f"not a motion CSV: header lacks {','.join(missing)} (expected {','.join(GROUNDTRUTH_COLUMNS)})")
+                f"not a motion CSV: header lacks {','.join(missing)} (expected {','.join(GROUNDTRUTH_COLUMNS)})"
+                + (f"; line {comment_before[0]} above it is a comment ({quoted(comment_before[1], 40)}): a header "
+                   "has no '#' and these column names"
+                   if comment_before is not None and "," in comment_before[1] else ""))
         )
     if len(set(header)) != len(header):
         raise TrackmeterError(f"{path}:{header_line}: repeated column in the header")
