@@ -6,8 +6,8 @@ when the source has ground truth (the target held still at one range), else runs
 between jumps of the view (the target moved to another range). On the first frame of each
 range, points are selected on the target (Shi-Tomasi corners, inside the lit object, away from
 its outline where a patch would straddle the black sky); then every frame of that range
-measures them with the stereo matcher (:func:`trackmeter.core.matching.measure_points`). The pure statistics are
-:mod:`trackmeter.core.error_analysis`.
+measures them with the stereo matcher (:func:`trackmeter.core.matching.measure_points`). The
+pure statistics are :mod:`trackmeter.core.error_analysis`.
 """
 
 from __future__ import annotations
