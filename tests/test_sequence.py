@@ -307,6 +307,27 @@ def test_rows_repeated_in_data_csv_are_said_to_be_repeats_not_images_without_a_p
     assert "without a partner" not in src.warning
 
 
+def test_cameras_offset_in_time_are_refused_with_the_offset(tmp_path):
+    # Every right image 25 ms after its left one at 25 Hz was refused as "no stereo pair (left
+    # and right timestamps within 10 ms)", with nothing of how far apart the cameras are or
+    # what to do (an outside probe).
+    d = _write(tmp_path / "s", _frames(6))
+    csv1 = (d / "cam1" / "data.csv").read_text().splitlines()
+    rows = [csv1[0]]
+    for row in csv1[1:]:
+        t, name = row.split(",")
+        late = int(t) + 25_000_000
+        os.replace(d / "cam1" / "data" / name, d / "cam1" / "data" / f"{late}.png")
+        rows.append(f"{late},{late}.png")
+    (d / "cam1" / "data.csv").write_text("\n".join(rows) + "\n")
+    with pytest.raises(TrackmeterError) as info:
+        SequenceSource(d)
+    text = str(info.value)
+    assert text.startswith(f"{d}: no stereo pair (left and right timestamps within 10 ms): "), text
+    assert "each left image's nearest right one is a median 15 ms away (right minus left: -15 ms)" in text, text
+    assert "triggered together" in text, text
+
+
 def test_missing_images_and_unpaired_timestamps_are_skipped_counted_and_reported(tmp_path):
     frames = _frames(8)
     d = _write(tmp_path / "s", frames)

@@ -584,6 +584,21 @@ def _read_data_csv(path: Path) -> tuple[list[tuple[int, Path]], int, int, Path |
     return entries, bad, missing, first_missing
 
 
+def _camera_offset(t_left: FloatArray, t_right: FloatArray) -> str:
+    """``": ..."``: how far each left timestamp is from its nearest right one (median, s), and
+    what that means, for the refusal of a sequence with no pair; "" when a side is empty."""
+    if len(t_left) == 0 or len(t_right) == 0:
+        return ""
+    right = np.sort(np.asarray(t_right, float))
+    k = np.clip(np.searchsorted(right, t_left), 1, len(right) - 1) if len(right) > 1 else np.zeros(len(t_left), int)
+    candidates = np.stack([right[k - 1] if len(right) > 1 else right[k], right[k]]) - np.asarray(t_left, float)
+    nearest = candidates[np.argmin(np.abs(candidates), axis=0), np.arange(len(t_left))]
+    signed = float(np.median(nearest))
+    return (f": each left image's nearest right one is a median {float(np.median(np.abs(nearest))) * 1e3:.3g} ms away "
+            f"(right minus left: {signed * 1e3:+.3g} ms); the cameras were not triggered together, or their clocks "
+            "differ by a constant (shift cam1/data.csv's timestamps by it)")
+
+
 def pair_by_nearest(t_left: ArrayLike, t_right: ArrayLike, tolerance: float) -> list[tuple[int, int]]:
     """Pairs ``(i, j)`` of mutually nearest timestamps with ``|t_left[i] - t_right[j]| <= tolerance``.
 
@@ -708,7 +723,8 @@ def index_sequence(
     if unpaired:
         warnings.append(f"{unpaired} image(s) without a partner within {tolerance_s * 1e3:.3g} ms skipped")
     if not pairs:
-        raise TrackmeterError(f"{directory}: no stereo pair (left and right timestamps within {tolerance_s * 1e3:.3g} ms)")
+        raise TrackmeterError(f"{directory}: no stereo pair (left and right timestamps within {tolerance_s * 1e3:.3g} ms)"
+                              + _camera_offset(ns_to_seconds(t_left), ns_to_seconds(t_right)))
     t_s = ns_to_seconds(np.array([t_left[i] for i, _ in pairs], dtype=np.int64))
     if len(t_s) > 1 and (dt := float(np.median(np.diff(t_s)))) > 0 and 1.0 / dt > MAX_PLAUSIBLE_RATE_HZ:
         warnings.append(f"frames {dt * 1e6:.4g} µs apart ({1.0 / dt:.0f} Hz): data.csv timestamps are "
