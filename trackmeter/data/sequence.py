@@ -584,19 +584,26 @@ def _read_data_csv(path: Path) -> tuple[list[tuple[int, Path]], int, int, Path |
     return entries, bad, missing, first_missing
 
 
+def _nearest(x: FloatArray, y: FloatArray) -> NDArray[np.intp]:
+    """For each of ``x``, the index of the nearest of ``y`` (sorted ascending, not empty); the
+    earlier one on a tie."""
+    if len(y) == 1:
+        return np.zeros(len(x), dtype=np.intp)
+    k = np.clip(np.searchsorted(y, x), 1, len(y) - 1)
+    left_closer = np.abs(x - y[k - 1]) <= np.abs(y[k] - x)
+    return np.where(left_closer, k - 1, k)
+
+
 def _camera_offset(t_left: FloatArray, t_right: FloatArray) -> str:
     """``": ..."``: how far each left timestamp is from its nearest right one (median, s), and
     what that means, for the refusal of a sequence with no pair; "" when a side is empty."""
     if len(t_left) == 0 or len(t_right) == 0:
         return ""
-    right = np.sort(np.asarray(t_right, float))
-    k = np.clip(np.searchsorted(right, t_left), 1, len(right) - 1) if len(right) > 1 else np.zeros(len(t_left), int)
-    candidates = np.stack([right[k - 1] if len(right) > 1 else right[k], right[k]]) - np.asarray(t_left, float)
-    nearest = candidates[np.argmin(np.abs(candidates), axis=0), np.arange(len(t_left))]
-    signed = float(np.median(nearest))
+    left, right = np.asarray(t_left, float), np.sort(np.asarray(t_right, float))
+    nearest = right[_nearest(left, right)] - left
     return (f": each left image's nearest right one is a median {float(np.median(np.abs(nearest))) * 1e3:.3g} ms away "
-            f"(right minus left: {signed * 1e3:+.3g} ms); the cameras were not triggered together, or their clocks "
-            "differ by a constant (shift cam1/data.csv's timestamps by it)")
+            f"(right minus left: {float(np.median(nearest)) * 1e3:+.3g} ms); the cameras were not triggered together, "
+            "or their clocks differ by a constant (shift cam1/data.csv's timestamps by it)")
 
 
 def pair_by_nearest(t_left: ArrayLike, t_right: ArrayLike, tolerance: float) -> list[tuple[int, int]]:
@@ -608,16 +615,8 @@ def pair_by_nearest(t_left: ArrayLike, t_right: ArrayLike, tolerance: float) -> 
     b = np.asarray(t_right, dtype=float)
     if len(a) == 0 or len(b) == 0:
         return []
-
-    def nearest(x: FloatArray, y: FloatArray) -> NDArray[np.intp]:
-        k = np.clip(np.searchsorted(y, x), 1, len(y) - 1) if len(y) > 1 else np.zeros(len(x), dtype=np.intp)
-        if len(y) == 1:
-            return k
-        left_closer = np.abs(x - y[k - 1]) <= np.abs(y[k] - x)
-        return np.where(left_closer, k - 1, k)
-
-    j_of_i = nearest(a, b)
-    i_of_j = nearest(b, a)
+    j_of_i = _nearest(a, b)
+    i_of_j = _nearest(b, a)
     return [(i, int(j)) for i, j in enumerate(j_of_i) if i_of_j[j] == i and abs(a[i] - b[j]) <= tolerance]
 
 
