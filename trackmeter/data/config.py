@@ -174,8 +174,8 @@ def read_yaml_mapping(path: Path, loader: type[Any] = FAST_SAFE_LOADER, kind: st
     except DuplicateKeyError as exc:
         raise TrackmeterError(f"{path}: {exc.problem}") from None
     except yaml.YAMLError as exc:
-        if kind is not None and _rig_form(text, None):
-            raise TrackmeterError(f"{path}: {_rig_form(text, None)}, not {kind}") from None
+        if kind is not None and (rig := _rig_form(text, None)):
+            raise TrackmeterError(f"{path}: {rig}, not {kind}") from None
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""
         raise TrackmeterError(f"{path}: malformed YAML{where}") from None
