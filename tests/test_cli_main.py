@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import signal
 import sys
 
 import pytest
@@ -240,7 +241,6 @@ def test_the_command_line_stays_deaf_to_stop_signals_once_its_command_has_return
     process in the interpreter's shutdown: exit 143, as if it had failed (an outside probe).
     The process's own command line (argv None) ignores stop signals once its command returned;
     a caller passing argv gets its handlers back."""
-    import signal
 
     from tests.test_metrics import tumbling_truth
     from trackmeter.data.trajectory import Trajectory, write_tum
@@ -274,6 +274,40 @@ def test_a_ctrl_c_while_the_command_line_is_read_is_one_line_not_a_traceback(mon
     monkeypatch.setattr(cli_main, "build_parser", interrupted)
     assert main(["track", "--source", "sim", "--out", "x"]) == 130
     assert capsys.readouterr().err == "trackmeter: interrupted while starting; nothing was done\n"
+
+
+def test_a_ctrl_c_that_a_compiled_module_turns_into_an_import_error_is_still_an_interrupt(monkeypatch, capsys) -> None:
+    """Ctrl-C while `evaluate --out` imported its modules ended with "ImportError:
+    initialization failed" and exit 1 (an outside probe): a compiled module's init (cv2,
+    scipy) that the signal's KeyboardInterrupt interrupts replaces it by that ImportError."""
+    from trackmeter.cli import evaluate
+
+    def import_cut_by_ctrl_c(args: object) -> None:  # the command imports its modules in run
+        try:
+            signal.raise_signal(signal.SIGINT)  # the command's own handler is installed by now
+        except KeyboardInterrupt:
+            pass  # what the C init does with it: a NULL return, its own error set instead
+        raise ImportError("initialization failed")
+
+    monkeypatch.setattr(evaluate, "run", import_cut_by_ctrl_c)
+    before = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        assert main(["evaluate", "--truth", "t", "--estimate", "e"]) == 130
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+    assert capsys.readouterr().err == "trackmeter evaluate: interrupted\n"
+
+
+def test_an_import_error_without_a_signal_is_still_a_bug_with_its_traceback(monkeypatch) -> None:
+    from trackmeter.cli import evaluate
+
+    def broken(args: object) -> None:
+        raise ImportError("initialization failed")
+
+    monkeypatch.setattr(evaluate, "run", broken)
+    with pytest.raises(ImportError):
+        main(["evaluate", "--truth", "t", "--estimate", "e"])
 
 
 @pytest.mark.parametrize("argv, option", [

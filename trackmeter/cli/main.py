@@ -82,6 +82,10 @@ def _command_module(name: str):  # type: ignore[no-untyped-def]
     return importlib.import_module(f"trackmeter.cli.{name}")
 
 
+#: The stop signal :func:`_interrupt` took during the running command, or None.
+_stop_signal: int | None = None
+
+
 def _interrupt(signum: int, frame: object) -> None:
     """The first Ctrl-C, SIGTERM or SIGHUP stops the command (KeyboardInterrupt); any later
     one is only noted. A second signal arrives while the command winds down (Ctrl-C pressed
@@ -89,6 +93,8 @@ def _interrupt(signum: int, frame: object) -> None:
     raised again, it would cut the wind-down short (a recording or a run left half-closed)
     or land inside the interpreter's own lock handling (``RuntimeError: release unlocked
     lock``)."""
+    global _stop_signal
+    _stop_signal = signum
     _swap_handlers(_interrupt, _already_stopping)
     if signum == getattr(signal, "SIGHUP", None):
         _outlive_the_terminal()
@@ -283,6 +289,7 @@ PATH_METAVARS = frozenset({"DIR", "FILE", "GLOB", "IMG", "MODEL", "RIG", "SPEC",
 
 
 def _main(argv: Sequence[str] | None) -> int:
+    global _stop_signal
     parser = build_parser()
     _Parser.argv = list(sys.argv[1:] if argv is None else argv)
     args, unknown = parser.parse_known_args(argv)
@@ -320,8 +327,16 @@ def _main(argv: Sequence[str] | None) -> int:
                 previous[sig] = found
                 signal.signal(sig, _interrupt)
         sys.unraisablehook = _without_signal_race_reports(unraisable_hook)
+    _stop_signal = None
     try:
-        return int(_command_module(args.command).run(args) or 0)
+        try:
+            return int(_command_module(args.command).run(args) or 0)
+        except ImportError:
+            # A compiled module's init (cv2, scipy) that the signal's KeyboardInterrupt cuts
+            # short replaces it by its own "ImportError: initialization failed": a Ctrl-C still.
+            if _stop_signal is None:
+                raise
+            raise KeyboardInterrupt from None
     except TrackmeterError as exc:
         print(f"trackmeter {args.command}: error: {exc}", file=sys.stderr)
         return 2
