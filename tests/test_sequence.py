@@ -328,6 +328,32 @@ def test_cameras_offset_in_time_are_refused_with_the_offset(tmp_path):
     assert "triggered together" in text, text
 
 
+@pytest.mark.parametrize("cameras", [("cam0", "cam1"), ("cam1",)])
+def test_timestamps_that_go_back_in_data_csv_are_said_with_their_line(tmp_path, cameras):
+    # A camera clock reset half-way (the second half restarting at 5 ms) played the two halves
+    # interleaved with only a wrong "gaps" warning, and one row stamped early played out of
+    # order with nothing said (an outside probe); groundtruth.csv's rows are refused so.
+    d = _write(tmp_path / "s", _frames(8))
+    for cam in cameras:
+        rows = (d / cam / "data.csv").read_text().splitlines()
+        reset = rows[:6]
+        for row in rows[6:]:
+            t, name = row.split(",")
+            reset.append(f"{int(t) - 195_000_000},{name}")  # 200 ms -> 5 ms
+        (d / cam / "data.csv").write_text("\n".join(reset) + "\n")
+    with pytest.warns(UserWarning, match="back in time"):
+        src = SequenceSource(d)
+    for cam in cameras:
+        assert (f"{cam}/data.csv: 1 row(s) back in time from the row above (the first on line 7, "
+                "0.155 s back): played in time order") in src.warning, src.warning
+    assert len(src) == (8 if len(cameras) == 2 else 5)
+
+
+def test_rows_in_time_order_say_nothing_of_time_going_back(tmp_path):
+    src = SequenceSource(_write(tmp_path / "s", _frames(4)))
+    assert src.warning is None
+
+
 def test_missing_images_and_unpaired_timestamps_are_skipped_counted_and_reported(tmp_path):
     frames = _frames(8)
     d = _write(tmp_path / "s", frames)

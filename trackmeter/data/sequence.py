@@ -530,9 +530,10 @@ MAX_PLAUSIBLE_RATE_HZ = 2000.0
 GAP_INTERVALS = 3.0
 
 
-def _read_data_csv(path: Path) -> tuple[list[tuple[int, Path]], int, int, Path | None]:
-    """Rows ``(ns, image path)`` of one camera's data.csv, counts of bad rows and missing files,
-    and the first missing file's path (None when none is missing).
+def _read_data_csv(path: Path) -> tuple[list[tuple[int, Path]], int, int, Path | None, str | None]:
+    """Rows ``(ns, image path)`` of one camera's data.csv in time order, counts of bad rows and
+    missing files, the first missing file's path (None when none is missing), and what of the
+    file goes back in time (None when nothing does).
 
     A row is ``timestamp_ns,filename``; columns after those two (other tools' extras) are
     ignored. A file with rows but none usable is refused, quoting its first row.
@@ -541,6 +542,12 @@ def _read_data_csv(path: Path) -> tuple[list[tuple[int, Path]], int, int, Path |
     bad = missing = 0
     first_bad: str | None = None
     first_missing: Path | None = None
+    # Rows are played in time order whatever their order in the file, but a row earlier than
+    # the one above is a clock reset or a wrong stamp as often as rows written out of order:
+    # said, with where, not silently interleaved.
+    back = 0
+    first_back = ""
+    previous_ns: int | None = None
     try:
         # A BOM from a spreadsheet is not a timestamp; a stray byte spoils its row, not the file.
         text = path.read_text(encoding="utf-8-sig", errors="replace")
@@ -552,7 +559,7 @@ def _read_data_csv(path: Path) -> tuple[list[tuple[int, Path]], int, int, Path |
     if tail.strip():
         bad += 1
     header_allowed = True
-    for line in complete:
+    for line_number, line in enumerate(complete, start=1):
         s = line.strip()
         if not s or s.startswith("#"):
             continue
@@ -571,6 +578,10 @@ def _read_data_csv(path: Path) -> tuple[list[tuple[int, Path]], int, int, Path |
             bad += 1
             first_bad = first_bad or s
             continue
+        if previous_ns is not None and ns < previous_ns:
+            back += 1
+            first_back = first_back or f"the first on line {line_number}, {(previous_ns - ns) * 1e-9:.3g} s back"
+        previous_ns = ns
         image = path.parent / "data" / parts[1]
         if not image.is_file():
             missing += 1
@@ -581,7 +592,9 @@ def _read_data_csv(path: Path) -> tuple[list[tuple[int, Path]], int, int, Path |
         raise TrackmeterError(f"{path}: no usable row: expected 'timestamp_ns,filename' with an integer "
                               f"timestamp in nanoseconds, got {quoted(first_bad, 80)}")
     entries.sort(key=lambda e: e[0])
-    return entries, bad, missing, first_missing
+    backwards = (f"{back} row(s) back in time from the row above ({first_back}): played in time order, "
+                 "as if listed so (a camera clock reset would mix two runs)") if back else None
+    return entries, bad, missing, first_missing, backwards
 
 
 def _nearest(x: FloatArray, y: FloatArray) -> NDArray[np.intp]:
@@ -686,7 +699,8 @@ def index_sequence(
             ground-truth file that cannot be read (``truth`` None, the reason in ``warnings``).
     """
     root = find_sequence_root(directory)
-    (left, bad_l, miss_l, gone_l), (right, bad_r, miss_r, gone_r) = (_read_data_csv(root / cam / "data.csv") for cam in CAMERAS)
+    (left, bad_l, miss_l, gone_l, back_l), (right, bad_r, miss_r, gone_r, back_r) = (
+        _read_data_csv(root / cam / "data.csv") for cam in CAMERAS)
     t_left = np.array([e[0] for e in left], dtype=np.int64)
     t_right = np.array([e[0] for e in right], dtype=np.int64)
     if tolerance_s is None:
@@ -712,6 +726,7 @@ def index_sequence(
     elif (root / UNFINISHED_MARK).exists():
         # A recording whose writer never closed it: killed, or still being written.
         warnings.append("a recording that was not closed (its writer was killed, or is still writing): it may end early")
+    warnings += [f"{cam}/data.csv: {back}" for cam, back in zip(CAMERAS, (back_l, back_r)) if back]
     if miss_l or miss_r:
         warnings.append(f"{miss_l + miss_r} image(s) listed in data.csv are missing (cam0: {miss_l}, cam1: {miss_r})")
     if bad_l or bad_r:
