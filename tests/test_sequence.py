@@ -354,6 +354,50 @@ def test_rows_in_time_order_say_nothing_of_time_going_back(tmp_path):
     assert src.warning is None
 
 
+def _retime_right(d: Path, shift_ns) -> None:
+    """Give cam1's images the times ``shift_ns(t)`` (renamed to match)."""
+    rows = (d / "cam1" / "data.csv").read_text().splitlines()
+    out = [rows[0]]
+    for row in rows[1:]:
+        t, name = row.split(",")
+        moved = shift_ns(int(t))
+        os.replace(d / "cam1" / "data" / name, d / "cam1" / "data" / f"t{moved}.png")
+        out.append(f"{moved},t{moved}.png")
+    (d / "cam1" / "data.csv").write_text("\n".join(out) + "\n")
+
+
+def test_cameras_paired_a_constant_few_milliseconds_apart_are_said_to_be(tmp_path):
+    # Right images 8 ms after the left ones (within the 10 ms window) were paired with nothing
+    # said, while a moving target is then measured from two instants (an outside probe).
+    d = _write(tmp_path / "s", _frames(6))
+    _retime_right(d, lambda t: t + 8_000_000)
+    with pytest.warns(UserWarning, match="8 ms apart"):
+        src = SequenceSource(d)
+    assert len(src) == 6 and src.skipped == 0
+    assert ("left and right images paired a median 8 ms apart (right minus left: +8 ms): a moving target is seen "
+            "at two instants; if the cameras were triggered together, shift cam1/data.csv's timestamps by -8 ms") in src.warning
+
+
+def test_clocks_that_drift_apart_are_said_to_where_pairs_are_lost(tmp_path):
+    # The right clock 1 % fast: only the first half paired, said as "images without a partner"
+    # alone (an outside probe).
+    d = _write(tmp_path / "s", _frames(50))
+    _retime_right(d, lambda t: int(t * 1.01))
+    with pytest.warns(UserWarning, match="without a partner"):
+        src = SequenceSource(d)
+    assert 20 <= len(src) < 50
+    assert "the cameras' clocks drift apart" in src.warning, src.warning
+    assert "shift cam1" not in src.warning, src.warning  # no one shift mends a drift
+
+
+def test_jittered_but_simultaneous_cameras_say_nothing_of_an_offset(tmp_path):
+    rng = np.random.default_rng(3)
+    d = _write(tmp_path / "s", _frames(20))
+    _retime_right(d, lambda t: t + int(rng.integers(-3_000_000, 3_000_000)))
+    src = SequenceSource(d)
+    assert src.warning is None or "apart" not in src.warning, src.warning
+
+
 def test_missing_images_and_unpaired_timestamps_are_skipped_counted_and_reported(tmp_path):
     frames = _frames(8)
     d = _write(tmp_path / "s", frames)

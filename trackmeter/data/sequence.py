@@ -607,16 +607,48 @@ def _nearest(x: FloatArray, y: FloatArray) -> NDArray[np.intp]:
     return np.where(left_closer, k - 1, k)
 
 
+#: Left and right images paired further apart than this (median, s) are said to be: a target
+#: moving 200 px/s is seen 0.2 px apart by the two cameras per millisecond between them.
+SKEW_WORTH_SAYING_S = 1e-3
+
+
+def _right_minus_left(t_left: FloatArray, t_right: FloatArray) -> FloatArray:
+    """For each left timestamp, its nearest right one minus it, s (both sides not empty)."""
+    left, right = np.asarray(t_left, float), np.sort(np.asarray(t_right, float))
+    return right[_nearest(left, right)] - left
+
+
 def _camera_offset(t_left: FloatArray, t_right: FloatArray) -> str:
     """``": ..."``: how far each left timestamp is from its nearest right one (median, s), and
     what that means, for the refusal of a sequence with no pair; "" when a side is empty."""
     if len(t_left) == 0 or len(t_right) == 0:
         return ""
-    left, right = np.asarray(t_left, float), np.sort(np.asarray(t_right, float))
-    nearest = right[_nearest(left, right)] - left
+    nearest = _right_minus_left(t_left, t_right)
     return (f": each left image's nearest right one is a median {float(np.median(np.abs(nearest))) * 1e3:.3g} ms away "
             f"(right minus left: {float(np.median(nearest)) * 1e3:+.3g} ms); the cameras were not triggered together, "
             "or their clocks differ by a constant (shift cam1/data.csv's timestamps by it)")
+
+
+def _median_and_its_sigma(x: FloatArray) -> tuple[float, float]:
+    """Median of ``x`` (N,) and its standard error, from the median absolute deviation (a
+    normal sample's: 1.2533 * 1.4826 * MAD / sqrt(N))."""
+    median = float(np.median(x))
+    return median, 1.2533 * 1.4826 * float(np.median(np.abs(x - median))) / np.sqrt(len(x))
+
+
+def _clock_drift(t_left: FloatArray, t_right: FloatArray, tolerance_s: float) -> str:
+    """``" (...)"``: how the right camera's nearest image moves away from the left's between
+    the first and the last quarter of the sequence, when by more than half ``tolerance_s``
+    (clocks running at different rates lose their pairs from where they part); else ""."""
+    if len(t_left) < 8 or len(t_right) == 0:
+        return ""
+    nearest = _right_minus_left(t_left, t_right)
+    quarter = len(nearest) // 4
+    start, end = float(np.median(nearest[:quarter])), float(np.median(nearest[-quarter:]))
+    if abs(end - start) <= 0.5 * tolerance_s:
+        return ""
+    return (f" (right minus left, nearest: {start * 1e3:+.3g} ms over the first quarter, {end * 1e3:+.3g} ms over the "
+            "last: the cameras' clocks drift apart)")
 
 
 def pair_by_nearest(t_left: ArrayLike, t_right: ArrayLike, tolerance: float) -> list[tuple[int, int]]:
@@ -734,11 +766,19 @@ def index_sequence(
     if repeated:
         warnings.append(f"{repeated} data.csv row(s) repeating an earlier timestamp skipped (cam0: {repeats_l}, "
                         f"cam1: {repeats_r})")
+    drift = _clock_drift(ns_to_seconds(t_left), ns_to_seconds(t_right), tolerance_s) if unpaired else ""
     if unpaired:
-        warnings.append(f"{unpaired} image(s) without a partner within {tolerance_s * 1e3:.3g} ms skipped")
+        warnings.append(f"{unpaired} image(s) without a partner within {tolerance_s * 1e3:.3g} ms skipped{drift}")
     if not pairs:
         raise TrackmeterError(f"{directory}: no stereo pair (left and right timestamps within {tolerance_s * 1e3:.3g} ms)"
                               + _camera_offset(ns_to_seconds(t_left), ns_to_seconds(t_right)))
+    skew_s, skew_sigma_s = _median_and_its_sigma(np.array([t_right[j] - t_left[i] for i, j in pairs], float) * 1e-9)
+    # Jittered timestamps of cameras triggered together scatter their median too: said only
+    # when it stands out of its own scatter (3 sigma).
+    if abs(skew_s) >= max(SKEW_WORTH_SAYING_S, 3.0 * skew_sigma_s) and not drift:  # no one shift mends a drift
+        warnings.append(f"left and right images paired a median {abs(skew_s) * 1e3:.3g} ms apart (right minus left: "
+                        f"{skew_s * 1e3:+.3g} ms): a moving target is seen at two instants; if the cameras were "
+                        f"triggered together, shift cam1/data.csv's timestamps by {-skew_s * 1e3:+.3g} ms")
     t_s = ns_to_seconds(np.array([t_left[i] for i, _ in pairs], dtype=np.int64))
     if len(t_s) > 1 and (dt := float(np.median(np.diff(t_s)))) > 0 and 1.0 / dt > MAX_PLAUSIBLE_RATE_HZ:
         warnings.append(f"frames {dt * 1e6:.4g} µs apart ({1.0 / dt:.0f} Hz): data.csv timestamps are "
