@@ -73,7 +73,8 @@ def test_twelve_bit_data_in_sixteen_bit_files_reads_like_the_eight_bit_image(tmp
     dark = ((img8 // 8).astype(np.uint16) << 4)
     cv2.imwrite(str(tmp_path / "r.png"), dark)
     np.testing.assert_array_equal(read_grey(tmp_path / "r.png"), (img8 // 8) * 4)  # alone: read as 10-bit data
-    left, right = read_grey_pair(tmp_path / "l.png", tmp_path / "r.png")
+    with pytest.warns(UserWarning, match="4x darker"):  # or a shallower camera: one pair cannot tell
+        left, right = read_grey_pair(tmp_path / "l.png", tmp_path / "r.png")
     np.testing.assert_array_equal(left, img8)
     np.testing.assert_array_equal(right, img8 // 8)
 
@@ -198,6 +199,19 @@ def test_a_pair_of_different_sample_depths_is_warned_about(tmp_path: Path) -> No
     cv2.imwrite(str(tmp_path / "r.png"), right)
     with pytest.warns(UserWarning, match="12-bit.*16-bit"):
         read_grey_pair(tmp_path / "l.png", tmp_path / "r.png")
+
+
+def test_a_pair_two_bits_apart_is_warned_about_with_what_it_was_read_as(tmp_path: Path) -> None:
+    # 10-bit left beside 12-bit right went without a word; one pair cannot tell a darker image
+    # from a shallower camera, so it is read alike, and said.
+    rng = np.random.default_rng(2)
+    img8 = rng.integers(0, 256, (20, 30), dtype=np.uint8)
+    cv2.imwrite(str(tmp_path / "l.png"), img8.astype(np.uint16) << 2)
+    cv2.imwrite(str(tmp_path / "r.png"), img8.astype(np.uint16) << 4)
+    with pytest.warns(UserWarning, match=r"l.png looks 10-bit and .*r.png 12-bit: all are read as 12-bit .*4x dark"):
+        left, right = read_grey_pair(tmp_path / "l.png", tmp_path / "r.png")
+    np.testing.assert_array_equal(left, img8 >> 2)
+    np.testing.assert_array_equal(right, img8)
 
 
 def test_opencv_4s_log_level_functions_are_used_where_opencv_5s_module_is_missing(tmp_path: Path,

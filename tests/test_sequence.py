@@ -453,12 +453,12 @@ def test_twelve_bit_images_in_sixteen_bit_files_play_scaled_alike_in_every_frame
             img8 = getattr(frames[k], side) // (8 if k == 2 else 1)  # frame 2 is dark
             cv2.imwrite(str(path), img8.astype(np.uint16) << 4 | np.uint16(9))
     src = SequenceSource(d)
-    assert src.image_bits == 12
+    assert src.image_bits == (12, 12)
     got = [src.read() for _ in range(5)]
     for k, (f, ref) in enumerate(zip(got, frames)):
         scale = 8 if k == 2 else 1
         assert np.array_equal(f.left, ref.left // scale) and np.array_equal(f.right, ref.right // scale)
-    assert SequenceSource(_write(tmp_path / "eight", frames)).image_bits == 8
+    assert SequenceSource(_write(tmp_path / "eight", frames)).image_bits == (8, 8)
 
 
 def test_a_deeper_image_among_eight_bit_ones_is_read_at_its_own_depth_and_said(tmp_path):
@@ -471,12 +471,12 @@ def test_a_deeper_image_among_eight_bit_ones_is_read_at_its_own_depth_and_said(t
     for k in (1, 4):  # not among the pairs the depth is decided from (0, 3, 6)
         cv2.imwrite(str(lefts[k]), frames[k].left.astype(np.uint16) * 257)
     src = SequenceSource(d)
-    assert src.image_bits == 8
+    assert src.image_bits == (8, 8)
     got = list(iter(src.read, None))
     assert len(got) == 7
     assert all(np.array_equal(f.left, ref.left) for f, ref in zip(got, frames))
     assert src.warning is not None
-    assert f"2 image(s) deeper than the sequence's 8 bits read at their own depth ({lefts[4]} is 16-bit)" in src.warning
+    assert f"2 image(s) deeper than their camera's 8 bits read at their own depth ({lefts[4]} is 16-bit)" in src.warning
 
 
 def test_a_sequence_whose_cameras_store_different_sample_depths_is_warned_about(tmp_path):
@@ -487,8 +487,29 @@ def test_a_sequence_whose_cameras_store_different_sample_depths_is_warned_about(
     for cam, side, shift in (("cam0", "left", 4), ("cam1", "right", 8)):
         for k, path in enumerate(sorted((d / cam / "data").glob("*.png"), key=lambda q: int(q.stem))):
             cv2.imwrite(str(path), getattr(frames[k], side).astype(np.uint16) << shift)
-    with pytest.warns(UserWarning, match="12-bit.*16-bit"):
-        assert SequenceSource(d).image_bits == 16
+    with pytest.warns(UserWarning, match="cam0's images look 12-bit and cam1's 16-bit"):
+        src = SequenceSource(d)
+        assert src.image_bits == (12, 16)
+    f = src.read()
+    assert np.array_equal(f.left, frames[0].left) and np.array_equal(f.right, frames[0].right)
+
+
+@pytest.mark.parametrize("left_bits, right_bits", [(10, 12), (14, 12)])
+def test_cameras_two_bits_apart_are_each_read_at_their_own_depth(tmp_path, left_bits, right_bits):
+    # A 10-bit left camera beside a 12-bit right one: read alike, the left was 4x darker with
+    # 2 bits lost, nothing said, and the run found no valid pose (an outside probe). The depth
+    # is each camera's, decided over the pairs sampled from the sequence, and said.
+    frames = _frames(4)
+    d = _write(tmp_path / "s", frames)
+    for cam, side, bits in (("cam0", "left", left_bits), ("cam1", "right", right_bits)):
+        for k, path in enumerate(sorted((d / cam / "data").glob("*.png"), key=lambda q: int(q.stem))):
+            cv2.imwrite(str(path), getattr(frames[k], side).astype(np.uint16) << (bits - 8))
+    with pytest.warns(UserWarning, match=f"cam0's images look {left_bits}-bit and cam1's {right_bits}-bit"):
+        src = SequenceSource(d)
+        assert src.image_bits == (left_bits, right_bits)
+    got = list(iter(src.read, None))
+    assert len(got) == 4
+    assert all(np.array_equal(f.left, ref.left) and np.array_equal(f.right, ref.right) for f, ref in zip(got, frames))
 
 
 def test_data_csv_with_no_usable_row_says_what_a_row_must_be(tmp_path):

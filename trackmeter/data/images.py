@@ -183,17 +183,19 @@ def read_grey_pair(left: str | Path, right: str | Path) -> tuple[NDArray[np.uint
     return to_grey_u8(images[0], str(left), bits), to_grey_u8(images[1], str(right), bits)
 
 
-def joint_data_bits(named_images: Sequence[tuple[str, NDArray[np.generic]]], why: str) -> int:
-    """:func:`data_bits` of images read alike (a pair, a sequence), from ``(name, image)``
-    pairs; warns, saying ``why`` they are scaled alike, when their own depths differ by 4 bits
-    or more: the joint scaling then blacks the shallower ones out (at most 15 grey levels of
-    256). A smaller difference is one image darker than another."""
+def joint_data_bits(named_images: Sequence[tuple[str, NDArray[np.generic]]], why: str, warn_from_bits: int = 2) -> int:
+    """:func:`data_bits` of images read alike (a pair, a camera's frames), from ``(name,
+    image)`` pairs; warns, saying ``why`` they are scaled alike, when their own depths differ
+    by ``warn_from_bits`` or more: the joint scaling darkens the shallower ones by
+    ``2**difference`` (4 bits: at most 15 grey levels of 256). Over frames of one camera, a
+    smaller difference is a darker frame (``warn_from_bits`` 4); within a pair, a camera that
+    may store fewer bits (2: a 10-bit left, a 12-bit right)."""
     own = [(data_bits([image]), name) for name, image in named_images if image.dtype != np.uint8]
     bits = max((b for b, _ in own), default=8)
-    if own and bits - min(own)[0] >= 4:
+    if own and bits - min(own)[0] >= warn_from_bits:
         (low, low_name), (high, high_name) = min(own), max(own)
         warnings.warn(f"{low_name} looks {low}-bit and {high_name} {high}-bit: all are read as {bits}-bit ({why}), "
-                      f"so the {low}-bit ones are dark", stacklevel=3)
+                      f"so the {low}-bit ones are {2 ** (bits - low)}x darker", stacklevel=3)
     return bits
 
 

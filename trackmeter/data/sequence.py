@@ -959,18 +959,27 @@ def _read_truth(path: Path | None, t_s: FloatArray, tolerance_s: float) -> Motio
     return MotionSeries(t_s, valid, p, q, v, w)
 
 
-def sequence_data_bits(index: SequenceIndex, samples: int = 3) -> int:
-    """The sample depth of a sequence's images (:func:`trackmeter.data.images.data_bits`),
-    decided once for the whole sequence from both images of ``samples`` pairs spread over it
-    (first, middle, last), so every frame is scaled alike; 8 when they are 8-bit, and when
-    none of them can be read (reading them later says why)."""
+def sequence_data_bits(index: SequenceIndex, samples: int = 3) -> tuple[int, int]:
+    """The sample depth of each camera's images, ``(left, right)``
+    (:func:`trackmeter.data.images.data_bits`), decided once for the whole sequence from
+    ``samples`` pairs spread over it (first, middle, last), so every frame of a camera is
+    scaled alike; 8 when they are 8-bit, and when none of them can be read (reading them later
+    says why). Two cameras of different depths (a 10-bit left, a 12-bit right) are each read at
+    their own, and warned about: over several frames that is no one darker frame."""
     n = len(index)
     positions = sorted({round(k * (n - 1) / max(samples - 1, 1)) for k in range(samples)}) if n else []
-    images = []
-    for pos in positions:
-        for path in (index.left_paths[pos], index.right_paths[pos]):
+    depths = []
+    for paths in (index.left_paths, index.right_paths):
+        images = []
+        for pos in positions:
             try:
-                images.append((str(path), decode_image(path)))
+                images.append((str(paths[pos]), decode_image(paths[pos])))
             except TrackmeterError:
                 continue
-    return joint_data_bits(images, "every frame of a sequence is scaled alike")
+        depths.append(joint_data_bits(images, "every frame of a camera is scaled alike", warn_from_bits=4))
+    left, right = depths
+    if left != right:
+        warnings.warn(f"{index.root}: {CAMERAS[0]}'s images look {left}-bit and {CAMERAS[1]}'s {right}-bit (in "
+                       f"{len(positions)} pairs sampled over the sequence): each camera is read at its own depth",
+                       stacklevel=3)
+    return left, right

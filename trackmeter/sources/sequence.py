@@ -84,7 +84,7 @@ class SequenceSource(Source):
         self._frame_size: tuple[int, int] | None = None
         self._size_problem: str | None = None
         self._size_scanned = False
-        self._image_bits: int | None = None
+        self._image_bits: tuple[int, int] | None = None
         warning = self.warning
         if warning:
             # A warning that starts with a file of the folder names the folder already.
@@ -92,9 +92,10 @@ class SequenceSource(Source):
             _warnings.warn(warning if named else f"{directory}: {warning}", stacklevel=2)
 
     @property
-    def image_bits(self) -> int:
-        """The sample depth the folder's images are read with (:func:`sequence_data_bits`,
-        decided on first use): 8 for 8-bit images, 10-16 for 16-bit ones."""
+    def image_bits(self) -> tuple[int, int]:
+        """The sample depths the folder's left and right images are read with
+        (:func:`sequence_data_bits`, decided on first use): 8 for 8-bit images, 10-16 for
+        16-bit ones."""
         if self._image_bits is None:
             self._image_bits = sequence_data_bits(self.index)
         return self._image_bits
@@ -111,7 +112,7 @@ class SequenceSource(Source):
         if self._skipped_for_size:
             parts.append(f"{self._skipped_for_size} pair(s) of another image size skipped ({self._size_errors[-1]})")
         if self._deeper:
-            parts.append(f"{len(self._deeper)} image(s) deeper than the sequence's {self.image_bits} bits read at their "
+            parts.append(f"{len(self._deeper)} image(s) deeper than their camera's {_bits_text(self.image_bits)} read at their "
                          f"own depth ({list(self._deeper.values())[-1]})")
         # Each part counts in its own unit (images, rows, pairs): no total in front of them.
         return "; ".join(parts) if parts else None
@@ -157,8 +158,8 @@ class SequenceSource(Source):
         first problem met is kept for :attr:`frame_size_problem`."""
         left, right = self.index.left_paths[pos], self.index.right_paths[pos]
         try:
-            shape = read_grey(left, self.image_bits).shape[:2]
-            other = read_grey(right, self.image_bits).shape[:2]
+            shape = read_grey(left, self.image_bits[0]).shape[:2]
+            other = read_grey(right, self.image_bits[1]).shape[:2]
         except TrackmeterError as exc:
             self._size_problem = self._size_problem or str(exc)
             return None
@@ -206,8 +207,8 @@ class SequenceSource(Source):
             pos = self._pos
             self._pos += 1
             try:
-                left = self._read_grey(self.index.left_paths[pos])
-                right = self._read_grey(self.index.right_paths[pos])
+                left = self._read_grey(self.index.left_paths[pos], self.image_bits[0])
+                right = self._read_grey(self.index.right_paths[pos], self.image_bits[1])
             except TrackmeterError as exc:
                 if pos not in self._skipped_positions:
                     self._skipped_positions.add(pos)
@@ -234,12 +235,11 @@ class SequenceSource(Source):
             return frame
         return None  # a whole pass without one playable pair: a loop would spin for ever
 
-    def _read_grey(self, path: Path) -> NDArray[np.uint8]:
-        """One image as 8-bit grey at the sequence's sample depth; an image deeper than that
-        (a 16-bit file among 8-bit ones) at its own, and noted: at the sequence's it would
+    def _read_grey(self, path: Path, bits: int) -> NDArray[np.uint8]:
+        """One image as 8-bit grey at its camera's sample depth ``bits``; an image deeper than
+        that (a 16-bit file among 8-bit ones) at its own, and noted: at its camera's it would
         saturate (a full-range 16-bit frame read as 8-bit is 90 % white)."""
         image = decode_image(path)
-        bits = self.image_bits
         if image.dtype != np.uint8:
             own = data_bits([image])
             if own > bits:
@@ -267,3 +267,8 @@ class SequenceSource(Source):
 
 
 __all__ = ["SequenceSource"]
+
+
+def _bits_text(bits: tuple[int, int]) -> str:
+    """``"12 bits"``, or ``"10 / 12 bits"`` (left / right) when the cameras differ."""
+    return f"{bits[0]} bits" if bits[0] == bits[1] else f"{bits[0]} / {bits[1]} bits"
