@@ -72,6 +72,16 @@ log = logging.getLogger(__name__)
 #: The model-point dropdown's first option: the next click makes an ordinary (unnamed) target.
 NEW_TARGET = "a new target"
 
+
+def new_target_option(model_ids: Sequence[str]) -> str:
+    """The "Next click is" option for a click that makes a new target: :data:`NEW_TARGET`,
+    unless a model point has that id (the browser's dropdown refuses duplicate options, and
+    the page goes blank), then one no model point has."""
+    option = NEW_TARGET
+    while option in model_ids:
+        option += " (no model point)"
+    return option
+
 #: Scene units per image pixel of the image planes (726 px → 7.26 units).
 UNITS_PER_PX = 0.01
 #: Where the 3D view (the left camera frame) sits in the scene, left of the image.
@@ -625,6 +635,7 @@ class Console:
             # Case (b) binds targets to the a-priori model by id: the operator names the next
             # click after a model point (the options follow the model loaded).
             self._model_ids: tuple[str, ...] = ()
+            self._new_target = NEW_TARGET  # the "Next click is" option of a new target (new_target_option)
             self.model_point_dropdown = gui.add_dropdown("Next click is", (NEW_TARGET,), initial_value=NEW_TARGET)
             self.select_model_button = gui.add_button("Click the model points (simulator)")
             self.acquire_button = gui.add_button("Acquire model (object still)")
@@ -781,13 +792,13 @@ class Console:
         model_point = self.model_point_dropdown.value
         with self._pending_lock:
             owner = self._next_click_owner
-        if model_point != NEW_TARGET and None not in (owner, client) and client.client_id != owner:
+        if model_point != self._new_target and None not in (owner, client) and client.client_id != owner:
             # The widget is every browser's, the choice one operator's: another's click, meant
             # as a new target, would bind an arbitrary pixel to that model point.
             return self.submit(SelectPoint(uv[0], uv[1]), client,
                                f"Target at {_pixel_text(uv)}, not {model_point}: another browser chose that "
                                "model point for its own next click")
-        if model_point == NEW_TARGET:
+        if model_point == self._new_target:
             return self.submit(SelectPoint(uv[0], uv[1]), client, f"Target at {_pixel_text(uv)}")
         future = self.submit(SelectPoint(uv[0], uv[1], model_point), client,
                              f"Model point {model_point} at {_pixel_text(uv)}")
@@ -854,7 +865,7 @@ class Console:
             self._popups.pop(client.client_id, None)
             gone_owner = self._next_click_owner == client.client_id
         if gone_owner:  # its click will not come: the others' clicks are new targets again
-            self.model_point_dropdown.value = NEW_TARGET
+            self.model_point_dropdown.value = self._new_target
 
     def _own_next_click(self, event: Any) -> None:
         """The model point chosen in "Next click is" belongs to the browser that chose it (None:
@@ -862,7 +873,7 @@ class Console:
         client = getattr(event, "client", None)
         with self._pending_lock:
             self._next_click_owner = (client.client_id if client is not None
-                                      and self.model_point_dropdown.value != NEW_TARGET else None)
+                                      and self.model_point_dropdown.value != self._new_target else None)
 
     def _frame_clients(self) -> None:
         with self._pending_lock:
@@ -1003,7 +1014,7 @@ class Console:
             with self._pending_lock:
                 model_point = self._model_point_clicks.pop(future, None)
             if reply.ok and model_point is not None and self.model_point_dropdown.value == model_point:
-                self.model_point_dropdown.value = NEW_TARGET  # the choice is used up; a refusal keeps it
+                self.model_point_dropdown.value = self._new_target  # the choice is used up; a refusal keeps it
             if reply.ok and not reply.notable and label.startswith(("SetAuto", "SetFilterCutoff", "SetPaused",
                                                                     "StepOnce")):
                 continue  # the UI shows the new state; no pop-up needed
@@ -1093,8 +1104,9 @@ class Console:
     def _sync_widgets(self, snap: Snapshot) -> None:
         if snap.model_ids != self._model_ids:  # a model loaded (or dropped): its points to name clicks by
             self._model_ids = snap.model_ids
-            self.model_point_dropdown.options = (NEW_TARGET, *snap.model_ids)
-            self.model_point_dropdown.value = NEW_TARGET
+            self._new_target = new_target_option(snap.model_ids)
+            self.model_point_dropdown.options = (self._new_target, *snap.model_ids)
+            self.model_point_dropdown.value = self._new_target
         label = "Play" if snap.paused else "Pause"
         if self.pause_button.label != label:
             self.pause_button.label = label

@@ -595,6 +595,47 @@ def test_a_refused_click_keeps_the_model_point_chosen_for_the_next_one() -> None
         running.stop()
 
 
+def test_a_model_point_named_like_the_new_target_choice_leaves_every_option_distinct() -> None:
+    """A model point with the id "a new target" put that option twice in "Next click is":
+    the browser's dropdown refuses duplicate options, and every page went blank until the
+    console was restarted (an outside probe)."""
+    import dataclasses
+    import types
+
+    from console.app import NEW_TARGET
+    from trackmeter.pipeline.snapshot import SelectPoint
+
+    class NamingEngine(RecordingEngine):
+        named: list[str | None] = []
+
+        def handle(self, command, frame):  # type: ignore[no-untyped-def]
+            if isinstance(command, SelectPoint):
+                self.named.append(command.target_id)
+            return super().handle(command, frame)
+
+    engine = NamingEngine()
+    running = start_console(CountingSource(100_000, delay_s=0.02), engine, port=free_port())  # type: ignore[arg-type]
+    con = running.console
+    try:
+        snap = con.pipeline.wait_snapshot(-1, 10)
+        assert snap is not None
+        con._sync_widgets(dataclasses.replace(snap, model_ids=(NEW_TARGET, "m2", "m3")))
+        options = con.model_point_dropdown.options
+        assert len(set(options)) == len(options) == 4, options
+        assert NEW_TARGET in options[1:]  # the model point keeps its id
+        new_target = con.model_point_dropdown.value
+        assert new_target == options[0] and new_target != NEW_TARGET
+        # a click with the (renamed) new-target choice makes an unnamed target, the model
+        # point's choice a named one
+        browser = types.SimpleNamespace(add_notification=lambda *a, **k: None, client_id=1)
+        assert con._click_at((50.0, 10.0), browser).result(10).ok
+        con.model_point_dropdown.value = NEW_TARGET
+        assert con._click_at((60.0, 10.0), browser).result(10).ok
+        assert engine.named == [None, NEW_TARGET]
+    finally:
+        running.stop()
+
+
 def test_what_the_source_skipped_is_shown_while_it_plays() -> None:
     """A sequence folder's unreadable image is skipped while it plays (``Source.warning``):
     the operator sees it in the status box, not only ``track``'s user at the end."""
