@@ -742,6 +742,21 @@ def test_a_recording_folder_name_the_file_system_refuses_is_answered_not_a_trace
         running.stop()
 
 
+def test_a_recording_folder_name_with_a_nul_is_answered_in_words(tmp_path, caplog) -> None:
+    # "rec<NUL>nul" answered "SetRecording failed: ValueError: embedded null byte" with a
+    # traceback on stderr, where every other bad name gets its reason (an outside probe).
+    from trackmeter.pipeline.snapshot import SetRecording
+
+    running = start_console(CountingSource(100_000, delay_s=0.02), RecordingEngine(), port=free_port())  # type: ignore[arg-type]
+    con = running.console
+    try:
+        reply = con.submit(SetRecording(str(tmp_path / "rec\x00nul")), None, "SetRecording").result(10)
+        assert not reply.ok and "NUL" in reply.message and "ValueError" not in reply.message, reply.message
+        assert not any(r.exc_info for r in caplog.records)
+    finally:
+        running.stop()
+
+
 def test_a_click_on_the_right_image_is_answered() -> None:
     # The README: every click that arrives is answered. One on the right image got nothing (an
     # outside console probe); targets are set on the left image, and the answer says so.

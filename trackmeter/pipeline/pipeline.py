@@ -745,6 +745,9 @@ class Pipeline:
             writer = self._writer_factory(directory)  # raises TrackmeterError on a bad folder
         except OSError as exc:  # no such parent, a file in the way, no permission
             raise TrackmeterError(f"cannot record to {directory}: {exc.strerror or exc}") from None
+        except ValueError:  # the OS's calls refuse a NUL character in a path ("embedded null byte")
+            raise TrackmeterError(f"cannot record to {str(directory)!r}: a folder name cannot hold a NUL "
+                                  "character") from None
         with self._record_lock:
             self._recorder = _Recorder(directory, writer, self._record_queue_frames)
 
