@@ -355,3 +355,39 @@ def test_a_stereo_rig_given_for_another_file_is_named_as_one(tmp_path: Path, for
     assert str(info.value).startswith(f"{path}: ") and "a stereo rig" in str(info.value), info.value
     assert {"config": "not a configuration file", "scenario": "not a scenario file", "mockup": "not a mock-up file",
             "model": "not a model file"}[kind] in str(info.value), info.value
+
+
+def test_a_yaml_alias_bomb_is_refused_in_a_short_message_quickly(tmp_path: Path) -> None:
+    """Nine levels of nine aliases (1 KB) as a model's points: the refusal quoted the whole
+    expansion, 312 million characters built in seconds, while the console's tracking thread
+    waited and the browser tab crashed on the message (an outside probe)."""
+    import time
+    import warnings
+
+    from trackmeter.data.model import load_model
+
+    lines = ['a: &a ["lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol"]']
+    for prev, name in zip("abcdefgh", "bcdefghi"):
+        lines.append(f"{name}: &{name} [{', '.join([f'*{prev}'] * 9)}]")
+    lines.append("points: *i")
+    path = tmp_path / "bomb.yaml"
+    path.write_text("\n".join(lines) + "\n")
+    start = time.perf_counter()
+    with warnings.catch_warnings(), pytest.raises(TrackmeterError) as info:
+        warnings.simplefilter("ignore")
+        load_model(path)
+    assert len(str(info.value)) < 300, str(info.value)[:300]
+    assert "'points[0]'" in str(info.value)
+    assert time.perf_counter() - start < 1.0  # was 4-8 s: the expansion's repr, not the parse
+
+
+@pytest.mark.parametrize("value", [list(range(10_000)), "x" * 10_000, {"k": [[[[[[[[1]]]]]]]]}])
+def test_a_refused_value_is_quoted_short(tmp_path: Path, value: object) -> None:
+    from trackmeter.data.model import load_model
+
+    path = tmp_path / "m.yaml"
+    path.write_text(yaml.safe_dump({"points": [{"id": "a", "xyz": value}, {"id": "b", "xyz": [0, 0, 1]},
+                                               {"id": "c", "xyz": [0, 1, 0]}]}))
+    with pytest.raises(TrackmeterError) as info:
+        load_model(path)
+    assert "xyz" in str(info.value) and len(str(info.value)) < 300, str(info.value)[:400]

@@ -8,6 +8,8 @@ long-running process reports it and carries on.
 
 from __future__ import annotations
 
+import reprlib
+
 
 class TrackmeterError(Exception):
     """Bad input or an unusable resource, with a one-line, user-facing message."""
@@ -23,6 +25,18 @@ def quoted(text: str, limit: int = 40) -> str:
     while len(repr(head)) > limit + 2:
         head = head[:-1]
     return f"{head!r}... ({len(text)} characters)"
+
+
+def shown_value(value: object, limit: int = 60) -> str:
+    """``repr(value)`` bounded for a one-line message: lists, mappings and strings cut by
+    :mod:`reprlib` (a few items, a few levels), the whole cut near ``limit`` characters. A
+    refused YAML value may be a list of ten thousand numbers, or an alias bomb whose full repr
+    is hundreds of millions of characters and takes seconds to build."""
+    short = reprlib.Repr()
+    short.maxlevel, short.maxlist, short.maxtuple, short.maxdict, short.maxset = 3, 4, 4, 3, 4
+    short.maxstring = short.maxother = limit
+    text = short.repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def counted(n: int, noun: str, plural: str | None = None) -> str:

@@ -37,7 +37,7 @@ from trackmeter.core.output_filter import FilterParams
 from trackmeter.core.pose import PoseParams
 from trackmeter.core.tracking import TrackerParams
 from trackmeter.core.velocity import VelocityParams
-from trackmeter.errors import TrackmeterError
+from trackmeter.errors import TrackmeterError, shown_value
 from trackmeter.paths import DEFAULT_CONFIG
 
 
@@ -238,7 +238,7 @@ def _merge(base: dict[str, Any], update: Mapping[str, Any], source: str, prefix:
             raise TrackmeterError(f"{source}: unknown key '{dotted}'{_did_you_mean(str(key), base, prefix, root)}")
         if isinstance(base[key], dict):
             if not isinstance(value, dict):
-                raise TrackmeterError(f"{source}: '{dotted}' must be a mapping of keys, got {value!r}")
+                raise TrackmeterError(f"{source}: '{dotted}' must be a mapping of keys, got {shown_value(value)}")
             out[key] = _merge(base[key], value, source, f"{dotted}.", root)
         else:
             out[key] = value
@@ -299,7 +299,7 @@ _EXPONENT_NUMBER = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+")
 
 def _convert(tp: Any, value: Any, meta: Mapping[str, Any], source: str, dotted: str) -> Any:
     def fail(expected: str | None = None) -> typing.NoReturn:
-        raise TrackmeterError(f"{source}: '{dotted}': expected {expected or _describe(tp)}, got {value!r}")
+        raise TrackmeterError(f"{source}: '{dotted}': expected {expected or _describe(tp)}, got {shown_value(value)}")
 
     origin = get_origin(tp)
     if dataclasses.is_dataclass(tp):
@@ -387,7 +387,7 @@ def _check_range(value: float, meta: Mapping[str, Any], source: str, dotted: str
     infinite = finite and isinstance(value, float) and not math.isfinite(value)
     if infinite or lo is not None and value < lo or hi is not None and value > hi:
         bounds = f"[{lo if lo is not None else '-inf'}, {hi if hi is not None else 'inf'}]"
-        raise TrackmeterError(f"{where}: expected a value in {bounds}, got {value!r}")
+        raise TrackmeterError(f"{where}: expected a value in {bounds}, got {shown_value(value)}")
     choices = meta.get("choices")
     if choices is not None and value not in choices:
-        raise TrackmeterError(f"{where}: expected one of {', '.join(map(repr, choices))}, got {value!r}")
+        raise TrackmeterError(f"{where}: expected one of {', '.join(map(repr, choices))}, got {shown_value(value)}")

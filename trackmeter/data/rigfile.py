@@ -22,7 +22,7 @@ import yaml
 
 from trackmeter.core.stereo import Camera, StereoRig
 from trackmeter.data.atomic import write_files_atomic
-from trackmeter.errors import TrackmeterError
+from trackmeter.errors import TrackmeterError, shown_value
 
 
 def _open(path: Path) -> cv2.FileStorage:
@@ -384,7 +384,7 @@ def pinhole_radtan_camera(entry: dict, distortion_key: str) -> Camera:
     fu, fv, cu, cv = (float(x) for x in entry["intrinsics"])
     size = entry["resolution"]
     if not (isinstance(size, (list, tuple)) and len(size) == 2 and all(_whole_pixels(x) for x in size)):
-        raise TrackmeterError(f"'resolution' must be two whole numbers of pixels [width, height], got {size!r}")
+        raise TrackmeterError(f"'resolution' must be two whole numbers of pixels [width, height], got {shown_value(size)}")
     width, height = (int(x) for x in size)
     dist = np.array([float(x) for x in entry.get(distortion_key) or [0.0, 0.0, 0.0, 0.0]])
     return Camera(width, height, np.array([[fu, 0.0, cu], [0.0, fv, cv], [0.0, 0.0, 1.0]]), dist)
