@@ -73,6 +73,13 @@ log = logging.getLogger(__name__)
 NEW_TARGET = "a new target"
 
 
+def shown_text(text: str) -> str:
+    """``text`` as the browser can be sent it: a file name's bytes that are not UTF-8 (held
+    by Python as lone surrogates, PEP 383) written as ``\\xff`` escapes. viser's messages are
+    UTF-8; one such character makes every message fail, and no page connects."""
+    return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+
+
 def new_target_option(model_ids: Sequence[str]) -> str:
     """The "Next click is" option for a click that makes a new target: :data:`NEW_TARGET`,
     unless a model point has that id (the browser's dropdown refuses duplicate options, and
@@ -397,7 +404,10 @@ class Console:
         self.text_every = max(1, int(text_every))
         self.jpeg_quality = int(jpeg_quality)
         self.record_root = Path(record_root)
-        self._record_dir_shown: str | None = None  # the recording's folder last put in the Folder field
+        # The recording's folder last put in the Folder field, as it is shown there (shown_text)
+        # and as it is: the field's escaped text is that folder, not one named with backslashes.
+        self._record_dir_shown: str | None = None
+        self._record_dir_real: str | None = None
         self.patch_px = patch_px
         self.plots = PlotData()
         self._trails: dict[str, deque[tuple[float, float]]] = {}
@@ -650,7 +660,7 @@ class Console:
             start = min(max(float(getattr(engine, "filter_cutoff_hz", 2.0)), low), top)
             self.cutoff = gui.add_number("Filter cutoff (Hz)", initial_value=start, min=low, max=top, step=0.05)
         with gui.add_folder("Recording", expand_by_default=False):
-            self.record_dir = gui.add_text("Folder", initial_value=str(self.record_root / "recording"))
+            self.record_dir = gui.add_text("Folder", initial_value=shown_text(str(self.record_root / "recording")))
             self.record_checkbox = gui.add_checkbox("Record", initial_value=False)
             self.record_md = gui.add_markdown("")
         with gui.add_folder("View"):
@@ -712,7 +722,10 @@ class Console:
         return SetAuto(bool(self.auto_checkbox.value), int(self.auto_count.value), str(self.auto_method.value))
 
     def _fresh_record_dir(self) -> str:
-        base = Path(self.record_dir.value.strip() or str(self.record_root / "recording")).expanduser()
+        typed = self.record_dir.value.strip()
+        if typed and typed == self._record_dir_shown and self._record_dir_real is not None:
+            typed = self._record_dir_real
+        base = Path(typed or str(self.record_root / "recording")).expanduser()
         # Never mix two recordings in one folder: number it on when it already holds one (from
         # the number a numbered one has: the field shows the last recording, rec-2, and the
         # next is rec-3, not rec-2-2).
@@ -840,7 +853,7 @@ class Console:
         if client is None:
             return
         try:
-            shown = client.add_notification(title, body, auto_close_seconds=4.0 if ok else 8.0,
+            shown = client.add_notification(shown_text(title), shown_text(body), auto_close_seconds=4.0 if ok else 8.0,
                                             color="green" if ok else "red")
         except Exception as exc:  # the browser went away
             log.debug("notification not sent: %s", exc)
@@ -1069,13 +1082,14 @@ class Console:
                     self.right_image.image = right_rgb
             self._update_operator_overlay(drawn)
             if status_text is not None and targets_text is not None:
-                self.status_html.content = status_text
-                self.targets_md.content = targets_text
-            self.record_md.content = self._recording_text(rec)
-            if rec.active and rec.directory != self._record_dir_shown:
+                self.status_html.content = shown_text(status_text)
+                self.targets_md.content = shown_text(targets_text)
+            self.record_md.content = shown_text(self._recording_text(rec))
+            if rec.active and rec.directory != self._record_dir_real:
                 # The folder of the recording going on (--record's, another browser's): the
                 # field kept its default and read as where the frames went.
-                self._record_dir_shown = self.record_dir.value = rec.directory
+                self._record_dir_real = rec.directory
+                self._record_dir_shown = self.record_dir.value = shown_text(rec.directory)
             self._sync_widgets(snap)
             self._update_scene3d(snap)
             if plots:

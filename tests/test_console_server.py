@@ -7,9 +7,11 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import os
 import re
 import socket
 import time
+import types
 import urllib.request
 from concurrent.futures import Future
 from typing import Any, Iterator
@@ -1088,5 +1090,37 @@ def test_a_record_folder_expands_home_and_numbers_on_from_a_numbered_one(tmp_pat
         assert con._fresh_record_dir() == str(tmp_path / "rec-3")
         con.record_dir.value = str(tmp_path / "rec-2")
         assert con._fresh_record_dir() == str(tmp_path / "rec-3")
+    finally:
+        running.stop()
+
+
+def test_a_recording_folder_whose_name_is_not_utf8_is_shown_escaped_and_the_page_stays_up(tmp_path) -> None:
+    """`--record` to a folder whose name has the bytes ff fe (or Record in a server folder so
+    named): every message to the browser failed to encode (lone surrogates), 800 tracebacks
+    a minute, and no page could connect (an outside probe). The name is shown with its bytes
+    escaped; the recording still goes to the folder so named, and the next one numbers on
+    from it."""
+    from trackmeter.pipeline.snapshot import SetRecording
+
+    folder = tmp_path / os.fsdecode(b"rec_\xff\xfe")
+    running = start_console(CountingSource(100_000, delay_s=0.02), RecordingEngine(), port=free_port())  # type: ignore[arg-type]
+    con = running.console
+    shown: list[tuple[str, str]] = []
+    browser = types.SimpleNamespace(client_id=1, add_notification=lambda title, body, **k: shown.append((title, body)))
+    try:
+        reply = con.submit(SetRecording(str(folder)), browser, "SetRecording").result(10)
+        assert reply.ok, reply.message
+        _wait_for_pushes(con, 5)
+        before = con.images_pushed
+        _wait_for_pushes(con, 5)  # the publisher goes on
+        assert con.images_pushed > before
+        for text in (con.record_md.content, con.record_dir.value, con.status_html.content, *shown[-1]):
+            text.encode("utf-8")  # what viser's msgpack needs: no lone surrogate
+        assert "rec_\\xff\\xfe" in con.record_dir.value and "rec_\\xff\\xfe" in shown[-1][1]
+        stop = con.submit(SetRecording(None), browser, "SetRecording").result(10)
+        assert stop.ok, stop.message
+        assert (folder / "cam0" / "data.csv").is_file()
+        # the field's escaped text means the folder itself, which holds a recording now
+        assert con._fresh_record_dir() == str(folder.with_name(folder.name + "-2"))
     finally:
         running.stop()
