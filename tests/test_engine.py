@@ -1217,3 +1217,29 @@ def test_refusals_are_counted_by_kind_without_their_figures() -> None:
     assert count_reasons([]) == []
     assert count_reasons({aperture.format(2.2): 4, aperture.format(6.6): 1, "low score (0.41)": 2}) == [
         ("textureless patch in one direction", 5), ("low score (0.41)", 2)]
+
+
+def test_a_model_loaded_by_name_says_where_it_looked_and_what_it_warned(estec_rig, tmp_path, monkeypatch) -> None:
+    """The console's Load model answered "two.yaml: no such file" without saying where the
+    server looked (its own folder, not the browser's), a NUL in the name failed with a
+    ValueError traceback, and a model's warnings (points spanning 1e300 m) reached the
+    server's stderr only, the browser saying "loaded" (an outside probe)."""
+    import warnings
+
+    engine, _, _ = make_engine(estec_rig)
+    monkeypatch.chdir(tmp_path)
+    reply = engine.handle(LoadModel("two.yaml"), None)
+    assert not reply.ok and reply.message == f"{tmp_path / 'two.yaml'}: no such file", reply.message
+    reply = engine.handle(LoadModel("tw\x00o.yaml"), None)
+    assert not reply.ok and "NUL" in reply.message, reply.message
+    (tmp_path / "huge.yaml").write_text("points:\n- {id: a, xyz: [0, 0, 0]}\n- {id: b, xyz: [1e300, 0, 0]}\n"
+                                        "- {id: c, xyz: [0, 1e300, 0]}\n")
+    with pytest.warns(UserWarning, match="span"):  # still said on the server's stderr too
+        reply = engine.handle(LoadModel("huge.yaml"), None)
+    assert reply.ok and "model with 3 points loaded" in reply.message and "the points span 1e+300 m" in reply.message
+    assert reply.notable  # an answer with something to say: shown, not only the widget's state
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        (tmp_path / "m.yaml").write_text("points:\n- {id: a, xyz: [0, 0, 0]}\n- {id: b, xyz: [1, 0, 0]}\n"
+                                         "- {id: c, xyz: [0, 1, 0]}\n")
+        assert engine.handle(LoadModel("m.yaml"), None).message == "model with 3 points loaded: case (b)"

@@ -152,6 +152,8 @@ def read_yaml_mapping(path: Path, loader: type[Any] = FAST_SAFE_LOADER, kind: st
         raise TrackmeterError(f"{path}: no such file") from None
     except OSError as exc:
         raise TrackmeterError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    except ValueError:  # "embedded null byte": typed in the console's Model file field
+        raise TrackmeterError(f"{str(path)!r}: no such file (a file name cannot hold a NUL character)") from None
     if stat.S_ISDIR(info.st_mode):
         raise TrackmeterError(f"{path}: a folder, not a file")
     if not stat.S_ISREG(info.st_mode):

@@ -553,11 +553,20 @@ class Engine:
 
             if not command.path.strip():
                 return CommandReply(False, "no model file given")
-            self._given_model = load_model(Path(command.path.strip()).expanduser())
+            # Absolute: a name is looked for where the server runs, which the operator's
+            # browser does not show; the answer says where.
+            path = Path(command.path.strip()).expanduser().absolute()
+            with warnings.catch_warnings(record=True) as said:
+                warnings.simplefilter("always")
+                model = load_model(path)
+            for w in said:  # on the server's stderr as before, and in the answer
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+            self._given_model = model
             self._case = "b"
             self._acquisition = None
             self._reset_motion()
-            return CommandReply(True, f"model with {len(self._given_model)} points loaded: case (b)")
+            notes = "".join(f"; {str(w.message).removeprefix(f'{path}: ')}" for w in said)
+            return CommandReply(True, f"model with {len(model)} points loaded: case (b){notes}", notable=bool(notes))
         if isinstance(command, SetFilterCutoff):
             if not 0 < command.cutoff_hz <= self.max_filter_cutoff_hz:
                 return CommandReply(False, f"filter cutoff must be in (0, {self.max_filter_cutoff_hz:g}] Hz "
