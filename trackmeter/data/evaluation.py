@@ -22,7 +22,8 @@ import numpy as np
 import yaml
 
 from trackmeter.core.metrics import Evaluation, associate
-from trackmeter.data.motion_csv import MotionSeries, header_fields, is_comment_line, read_motion_csv
+from trackmeter.data.motion_csv import (MotionSeries, header_fields, is_comment_line, names_a_header,
+                                         other_separator_header, read_motion_csv)
 from trackmeter.data.atomic import write_files_atomic
 from trackmeter.data.jsontext import json_text
 from trackmeter.data.sequence import check_output_folder, find_sequence_file, seconds_if_nanoseconds
@@ -49,23 +50,17 @@ class LoadedMotion:
     valid_rows_without_rates: int = 0
 
 
-def _is_number(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
-
-
 def _looks_like_motion_csv(path: Path) -> bool:
     try:
         with open(path, encoding="utf-8") as f:
             for line in f:
                 if line.strip() and not is_comment_line(line):
+                    if other_separator_header(path, 0, line) is not None:
+                        return True  # read_motion_csv says what it is
                     fields = header_fields(line)
                     # A header of names with commas is a CSV's even without its `t` column (a
                     # renamed one was read as a TUM line and told "expected 8 values").
-                    return len(fields) > 1 and ("t" in fields or not any(_is_number(f) for f in fields))
+                    return names_a_header(fields)
     except (OSError, UnicodeDecodeError):
         return False
     return False

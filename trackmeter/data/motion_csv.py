@@ -186,6 +186,38 @@ def header_fields(line: str) -> list[str]:
     return [h.strip().lstrip("#").strip() for h in line.strip().lstrip("\ufeff").split(",")]
 
 
+#: Separators other tools write CSV with, by the name a message gives them.
+_OTHER_SEPARATORS = {"\t": "tabs", ";": "semicolons"}
+
+
+def other_separator_header(path: Path | str, line_number: int, line: str) -> TrackmeterError | None:
+    """The error for a header ``line`` of names separated by tabs or semicolons (a
+    spreadsheet's export), not commas; None when it is not one."""
+    if len(header_fields(line)) > 1:
+        return None
+    for separator, name in _OTHER_SEPARATORS.items():
+        names = [h.strip().lstrip("#").strip() for h in line.strip().lstrip("\ufeff").split(separator)]
+        if names_a_header(names):
+            return TrackmeterError(f"{path}:{line_number}: a header of names separated by {name} "
+                                   f"({quoted(line.strip(), 40)}): a motion CSV's are separated by commas "
+                                   f"({','.join(GROUNDTRUTH_COLUMNS)})")
+    return None
+
+
+def names_a_header(fields: Sequence[str]) -> bool:
+    """Whether a first line's ``fields`` are a motion CSV's header: more than one, with a
+    ``t`` among them or no number (a header whose time column is renamed is still one)."""
+    return len(fields) > 1 and ("t" in fields or not any(_is_number(f) for f in fields))
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def is_comment_line(line: str) -> bool:
     """A ``#`` line that is not a header: one that names no ``t`` column (e.g. a producer's
     note above the header)."""
@@ -226,6 +258,8 @@ def read_motion_csv(path: str | Path) -> MotionSeries:
     header_line, header_text = numbered[0]
     header = header_fields(header_text)
     missing = [c for c in POSE_COLUMNS if c not in header]
+    if missing and (other := other_separator_header(path, header_line, header_text)) is not None:
+        raise other
     if missing:
         # TUM's header comment written with commas: a TUM file, told so rather than a CSV's columns
         tum_names = {"tx", "ty", "tz", "qx", "qy", "qz", "qw"} <= set(header)
