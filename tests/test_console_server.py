@@ -221,6 +221,21 @@ def test_a_bad_source_is_one_line_on_stderr(tmp_path, capsys: pytest.CaptureFixt
     assert code == 2 and len(err) == 1 and err[0].startswith(f"trackmeter console: error: unknown source '{missing}'"), err
 
 
+class _NamingEngine(RecordingEngine):
+    """The test double, plus the model point id each SelectPoint named (None: none)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.named: list[str | None] = []
+
+    def handle(self, command, frame):  # type: ignore[no-untyped-def]
+        from trackmeter.pipeline.snapshot import SelectPoint
+
+        if isinstance(command, SelectPoint):
+            self.named.append(command.target_id)
+        return super().handle(command, frame)
+
+
 def _wait_for_pushes(con, n: int) -> None:  # type: ignore[no-untyped-def]
     """Wait until the console has pushed ``n`` more images to the browser (20 s at most)."""
     target = con.images_pushed + n
@@ -605,17 +620,8 @@ def test_a_model_point_named_like_the_new_target_choice_leaves_every_option_dist
     import types
 
     from console.app import NEW_TARGET
-    from trackmeter.pipeline.snapshot import SelectPoint
 
-    class NamingEngine(RecordingEngine):
-        named: list[str | None] = []
-
-        def handle(self, command, frame):  # type: ignore[no-untyped-def]
-            if isinstance(command, SelectPoint):
-                self.named.append(command.target_id)
-            return super().handle(command, frame)
-
-    engine = NamingEngine()
+    engine = _NamingEngine()
     running = start_console(CountingSource(100_000, delay_s=0.02), engine, port=free_port())  # type: ignore[arg-type]
     con = running.console
     try:
@@ -851,19 +857,8 @@ def test_a_model_point_chosen_in_one_browser_names_only_that_browser_s_click() -
     import types
 
     from console.app import NEW_TARGET
-    from trackmeter.pipeline.snapshot import SelectPoint
 
-    class NamingEngine(RecordingEngine):
-        def __init__(self) -> None:
-            super().__init__()
-            self.named: list[str | None] = []
-
-        def handle(self, command, frame):  # type: ignore[no-untyped-def]
-            if isinstance(command, SelectPoint):
-                self.named.append(command.target_id)
-            return super().handle(command, frame)
-
-    engine = NamingEngine()
+    engine = _NamingEngine()
     running = start_console(CountingSource(100_000, delay_s=0.02), engine, port=free_port())  # type: ignore[arg-type]
     con = running.console
     tab_a, tab_b = (types.SimpleNamespace(client_id=i, add_notification=lambda *a, **k: None) for i in (1, 2))
