@@ -2,7 +2,8 @@
 
 The tracking thread's whole per-frame logic, called in a plain loop: the first 5 s of the
 simulated ESTEC trial (the ``estec`` scenario, the mock-up tumbling at 3.5 m), 16 automatic
-targets (Gabor features, stereo-checked), pose case (a) (no model: the body frame from three
+targets (Gabor features, stereo-checked; lost points looked for again through the pose come on
+top of them, section 2.D, so more may be tracked), pose case (a) (no model: the body frame from three
 tracked points), velocities by a screw fit (paper section 2.E) and the output filter. Every
 second it prints the body origin's position (m), its speed |v| (mm/s) and the angular speed
 |omega| (deg/s) once the rates are known, and the position and attitude errors against the

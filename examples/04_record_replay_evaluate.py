@@ -39,9 +39,10 @@ def main() -> None:
 def record_replay_evaluate(folder: Path) -> None:
     sim = Simulator("estec", render_ahead=False)
     with SequenceWriter(folder, rig=sim.rig) as writer:  # images, data.csv, rig.yaml, groundtruth
-        for _ in range(int(SECONDS * sim.rate_hz) + 1):
+        n_frames = round(SECONDS * sim.rate_hz)  # as `trackmeter simulate --duration 3` writes
+        for _ in range(n_frames):
             writer.write(sim.read())
-    print(f"recorded {int(SECONDS * sim.rate_hz) + 1} frames to {folder}")
+    print(f"recorded {n_frames} frames to {folder}")
 
     source = open_source(f"seq:{folder}")
     engine = Engine(load_config(), source.rig, case="a", rate_hz=source.rate_hz, live_errors=False)

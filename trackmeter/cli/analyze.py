@@ -37,8 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="stereo rig file or a preset's name (config/rigs/) (default: the source's own); OpenCV's intrinsics.yml or extrinsics.yml "
                              "(the other beside it) takes the size of the source's frames")
     parser.add_argument("--points", type=int, metavar="N",
-                        help="points measured per range (default from config: 30): the best corners the matcher accepts, "
-                             "more where some fall short of analyze.min_samples good measurements")
+                        help="points selected per range (default from config: 30): the best corners the matcher accepts, "
+                             "more where some fall short of analyze.min_samples good measurements; a range "
+                             "reports the ones that reach it, which may be fewer")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON (SI units)")
     parser.add_argument("--out", metavar="DIR", help="write analysis.json, ranges.csv, plots and report.md here")
 

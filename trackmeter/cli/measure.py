@@ -18,7 +18,7 @@ null where a refused point has no number).
 
 example (two textured points of the simulated estec trial's first frame):
   trackmeter simulate --scenario estec --duration 1 --out SEQ
-  trackmeter measure --rig config/rigs/estec_12mm.yaml --left SEQ/cam0/data/0.png \\
+  trackmeter measure --rig estec_12mm --left SEQ/cam0/data/0.png \\
       --right SEQ/cam1/data/0.png --at 280,331 --at 435,87 --json
 """
 

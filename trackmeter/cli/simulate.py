@@ -3,7 +3,8 @@
 The folder holds the left and right images (cam0/, cam1/ with data.csv), rig.yaml,
 groundtruth.tum, groundtruth.csv, model.yaml (the mock-up's salient points) and scenario.yaml
 (the scenario as run). It is written into DIR.partial and renamed to DIR only when complete,
-so DIR never holds half a sequence; an existing non-empty DIR is refused.
+so DIR never holds half a sequence; an existing non-empty DIR is refused (--overwrite replaces
+a sequence this command wrote, once the new one is complete).
 
 examples:
   trackmeter simulate --out /tmp/estec                      (the estec scenario, 60 s)

@@ -16,7 +16,7 @@ Model cases (paper section 2.C):
      --select-model-points): without one the pose can never be known, so a model alone runs (a)
   c  model acquired while the object is held still (pose.still_time_s), output in that frame
 
-Examples:
+Examples (the simulator's 60 s; --max-frames 250 tracks its first 10 s):
   trackmeter track --source sim --auto 16 --out runs/estec_a
   trackmeter track --source sim --target bus_pxmypz=329.5,159.8 bus_mxpymz=385.1,348.6 \\
       bus_mxmypz=211.9,87.7 bus_mxmymz=175.4,358.3 wing_north_c3=571.9,233.7 --auto 16 --out runs/b

@@ -171,7 +171,9 @@ def calibrate_read_noise(
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m trackmeter.sources.sim.noise_calibration", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--scenario", default="estec")
+    parser.add_argument("--scenario", default="estec",
+                        help="scenario whose noise is calibrated: a bare name of config/scenarios/ or a file "
+                             "(default: estec)")
     parser.add_argument("--check", action="store_true", help="only measure the scenario's configured noise")
     parser.add_argument("--selection", choices=("grid", "corners"), default="grid",
                         help="which points: a grid of typical textured points (default) or Shi-Tomasi corners")
