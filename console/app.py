@@ -45,7 +45,7 @@ from trackmeter.core.stereo import StereoRig
 from trackmeter.core.targets import TargetState
 from trackmeter.core.tracking import REMOVE_NEAREST_PX
 from trackmeter.core.transforms import invert_transform
-from trackmeter.pipeline.engine import SelectModelPoints
+from trackmeter.pipeline.engine import MODEL_NOT_TARGETED, SelectModelPoints
 from trackmeter.pipeline.pipeline import Pipeline, RecordingStats
 from trackmeter.pipeline.snapshot import (
     AcquireModel,
@@ -1205,7 +1205,13 @@ class Console:
             rows["v [mm/s]"] = (np.asarray(pose.velocity_cam_m_s) * 1e3, "{:+.1f}")
             rows["ω [°/s]"] = (np.degrees(pose.omega_body_rad_s), "{:+.2f}")
         else:
-            lines.append(f"pose invalid: {escape(str(pose.reason))}")
+            reason = str(pose.reason)
+            if reason.endswith(MODEL_NOT_TARGETED):
+                # The controls that do it sit in a folder closed at start: named first, where the
+                # box's three lines show them (the count of points located is 0 here anyway).
+                reason = ("case (b), no model point targeted: under Model, pick one in 'Next click is' and "
+                          "click it, or 'Click the model points (simulator)'")
+            lines.append(f"pose invalid: {escape(reason)}")
         e = snap.errors
         attitude_error = "–"
         if e and "position_m" in e:

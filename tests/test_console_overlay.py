@@ -313,6 +313,22 @@ def test_dropped_frames_are_counted_from_the_last_restart_with_the_total_beside(
     assert "dropped 2 (1.0 %) since Restart · 50 in all" in text
 
 
+def test_a_model_nobody_targeted_yet_names_the_console_s_controls() -> None:
+    """The console opens in case (b) on the simulator with "none is a target yet: target them
+    by id", the controls that do it in the collapsed Model folder, unnamed: a new user saw
+    nothing happen (a walk-through probe)."""
+    import html
+
+    from console.app import Console
+    from trackmeter.pipeline.engine import MODEL_NOT_TARGETED
+
+    reason = f"case (b): binding the model: 0 of its points located in a provisional frame (3 needed); {MODEL_NOT_TARGETED}"
+    text = html.unescape(Console._status_html(Snapshot(None, (), PoseEstimate.invalid(reason, "b"), None, Timings())))
+    assert "under Model, pick one in 'Next click is'" in text and "Click the model points" in text
+    other = Console._status_html(Snapshot(None, (), PoseEstimate.invalid("fewer than 3 points", "b"), None, Timings()))
+    assert "under Model" not in other
+
+
 def test_box_segments_outline_the_pixel_box_in_front_of_the_image() -> None:
     uv = np.array([[100.0, 200.0], [5.5, 7.25]])
     seg = box_segments(uv, 5.0, SIZE, RENDER, -0.01)

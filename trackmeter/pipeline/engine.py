@@ -100,6 +100,9 @@ FloatArray = NDArray[np.float64]
 #: none never will: the command cannot start a target there).
 NEEDS_TRUTH = "selecting model points needs a frame with ground truth (a simulated source, or a recording with its truth)"
 NEEDS_CASE_B = "selecting model points needs case (b) with a model"
+#: The end of case (b)'s pose reason while no target names a model point: nothing binds the
+#: model until one does (the console adds where its controls for it are).
+MODEL_NOT_TARGETED = "none is a target yet: target them by id"
 #: Said on the pose line of a frame where the repeating simulated operator clicked: the pose
 #: was computed before, its targets are measured from the next frame on.
 CLICKED_NOW = "the model points in view were clicked again at this frame"
@@ -814,7 +817,7 @@ class Engine:
         if not located and not any(t.id in inner._keep_ids for t in out_targets):
             # The operator's next step, which the count alone does not say: nothing binds a model
             # whose points nobody has targeted.
-            reason += "; none is a target yet: target them by id"
+            reason += f"; {MODEL_NOT_TARGETED}"
         elif len(located) < need:
             # A model point's target lost before the provisional frame located it (a corner's
             # patch often is, as the faces around it turn) counts for nothing: say which, and
