@@ -337,9 +337,10 @@ def test_a_tum_line_cut_inside_its_last_field_is_left_out(tmp_path: Path) -> Non
         warnings.simplefilter("error")
         assert len(read_tum(path)) == 3
     path.write_text("0.0 0 0 3.5 0 0 2 2\n0.04 0 0 3.5 0 0 2 2\n0.08 0 0 3.5 0 0 2 3")  # a producer's unnormalised q
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        assert len(read_tum(path)) == 3
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        assert len(read_tum(path)) == 3  # not cut: normalised, and said as such
+    assert [str(w.message).split(": ", 1)[1][:45] for w in said] == ["3 line(s) whose quaternion's norm is far from"]
 
 
 def test_rows_repeating_a_timestamp_are_skipped_with_a_warning_as_in_a_tum_file(tmp_path: Path) -> None:
@@ -356,3 +357,26 @@ def test_rows_repeating_a_timestamp_are_skipped_with_a_warning_as_in_a_tum_file(
     path.write_text("t,x,y,z,qw,qx,qy,qz\n0,1,2,3,1,0,0,0\n0.04,1,2,3,1,0,0,0\n0.04,9,2,3,1,0,0,0\n")
     with pytest.warns(UserWarning, match="repeating the timestamp"):
         assert len(read_motion_csv(path).velocity_cam_m_s) == 2
+
+
+def test_quaternions_far_from_unit_norm_are_said_with_their_line(tmp_path) -> None:
+    """A groundtruth.csv whose quaternion columns held norm 2 (or angles: roll, pitch, yaw, 0)
+    was normalised without a word into some attitude (an outside probe). Rounding (six
+    decimals) says nothing."""
+    from trackmeter.data.trajectory import read_tum
+
+    path = tmp_path / "groundtruth.csv"
+    path.write_text("t,x,y,z,qw,qx,qy,qz\n0,0,0,3,0.707107,0,0.707107,0\n0.04,0,0,3,2,0,0,0\n"
+                    "0.08,0,0,3,0.3,0.1,-0.2,0\n")
+    with pytest.warns(UserWarning, match=r"groundtruth.csv:3: 2 row\(s\) whose quaternion's norm is far from 1 "
+                                         r"\(2 on this line\)"):
+        series = read_motion_csv(path)
+    assert np.allclose(np.linalg.norm(series.quat_wxyz, axis=1), 1.0)
+    tum = tmp_path / "t.tum"
+    tum.write_text("0 0 0 3 0 0.707107 0 0.707107\n0.04 0 0 3 0 0 0 2\n")
+    with pytest.warns(UserWarning, match=r"t.tum:2: 1 line\(s\) whose quaternion's norm is far from 1"):
+        read_tum(tum)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        tum.write_text("0 0 0 3 0 0.707107 0 0.707107\n")
+        read_tum(tum)

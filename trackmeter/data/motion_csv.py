@@ -34,7 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from trackmeter.data.atomic import AppendFile, write_text_atomic
-from trackmeter.data.trajectory import Trajectory
+from trackmeter.data.trajectory import Trajectory, warn_far_from_unit_norm
 from trackmeter.errors import TrackmeterError, quoted
 
 FloatArray = NDArray[np.float64]
@@ -339,6 +339,8 @@ def read_motion_csv(path: str | Path) -> MotionSeries:
                           "(a field of t, x..qz empty or nan, or a zero quaternion) read as no ground truth at "
                           "their time (the first on this line)", stacklevel=2)
     extra = {name: a for name, a in col.items() if name not in _KNOWN}
+    posed = np.flatnonzero(valid == 1.0)
+    warn_far_from_unit_norm(path, stack(("qw", "qx", "qy", "qz"))[posed], lambda i: rows[int(posed[i])][0], "row")
     try:
         return MotionSeries(
             col["t"], valid.astype(bool), stack(("x", "y", "z")), stack(("qw", "qx", "qy", "qz")),

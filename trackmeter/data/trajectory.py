@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from trackmeter.data.atomic import write_text_atomic
 from trackmeter.errors import TrackmeterError, quoted
@@ -132,6 +133,8 @@ def read_tum(path: str | Path) -> Trajectory:
                       stacklevel=2)
         data = np.delete(data, repeats, axis=0)
     quat_wxyz = data[:, [7, 4, 5, 6]]
+    file_order = np.delete(order, repeats) if len(repeats) else order
+    warn_far_from_unit_norm(path, quat_wxyz, lambda i: line_numbers[int(file_order[i])], "line")
     try:
         return Trajectory(data[:, 0], data[:, 1:4], quat_wxyz)
     except TrackmeterError as exc:
@@ -140,6 +143,28 @@ def read_tum(path: str | Path) -> Trajectory:
 
 #: How far from 1 the quaternion norm of a line written with 9 decimals can be (rounding).
 _UNIT_NORM_TOLERANCE = 1e-6
+#: A quaternion whose norm is further from 1 than this is not one rounded (four decimals are
+#: within 1e-4): it is normalised all the same, and said.
+FAR_FROM_UNIT_NORM = 0.01
+
+
+def far_from_unit_norm(quat: ArrayLike) -> tuple[NDArray[np.intp], FloatArray]:
+    """Rows of ``quat`` (N, 4) whose norm differs from 1 by more than
+    :data:`FAR_FROM_UNIT_NORM`, and every row's norm (N,): values that are no quaternion
+    (angles in its columns), which normalising turns into some attitude without a word."""
+    norms = np.linalg.norm(np.asarray(quat, dtype=float).reshape(-1, 4), axis=1)
+    return np.flatnonzero(np.abs(norms - 1.0) > FAR_FROM_UNIT_NORM), norms
+
+
+def warn_far_from_unit_norm(path: Path | str, quat: ArrayLike, line_of: Callable[[int], object], rows: str) -> None:
+    """Warn (naming the first ``rows``' line, ``line_of(row index)``) when quaternions of
+    ``quat`` (N, 4) are :func:`far_from_unit_norm`."""
+    far, norms = far_from_unit_norm(quat)
+    if len(far):
+        first = int(far[0])
+        warnings.warn(f"{path}:{line_of(first)}: {len(far)} {rows}(s) whose quaternion's norm is far from 1 "
+                      f"({norms[first]:.4g} on this line): normalised; are these columns a quaternion, not angles?",
+                      stacklevel=3)
 
 
 def _cut_in_qw(row: list[float], rows: list[list[float]]) -> bool:
