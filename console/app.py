@@ -77,7 +77,10 @@ def shown_text(text: str) -> str:
     """``text`` as the browser can be sent it: a file name's bytes that are not UTF-8 (held
     by Python as lone surrogates, PEP 383) written as ``\\xff`` escapes. viser's messages are
     UTF-8; one such character makes every message fail, and no page connects."""
-    return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+    try:
+        return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+    except UnicodeEncodeError:  # a surrogate that stands for no byte (a YAML "\\ud800" escape)
+        return text.encode("utf-8", "backslashreplace").decode("utf-8")
 
 
 def new_target_option(model_ids: Sequence[str]) -> str:
@@ -1119,7 +1122,7 @@ class Console:
         if snap.model_ids != self._model_ids:  # a model loaded (or dropped): its points to name clicks by
             self._model_ids = snap.model_ids
             self._new_target = new_target_option(snap.model_ids)
-            self.model_point_dropdown.options = (self._new_target, *snap.model_ids)
+            self.model_point_dropdown.options = (self._new_target, *snap.model_ids)  # ids are text (load_model)
             self.model_point_dropdown.value = self._new_target
         label = "Play" if snap.paused else "Pause"
         if self.pause_button.label != label:

@@ -391,3 +391,16 @@ def test_a_refused_value_is_quoted_short(tmp_path: Path, value: object) -> None:
     with pytest.raises(TrackmeterError) as info:
         load_model(path)
     assert "xyz" in str(info.value) and len(str(info.value)) < 300, str(info.value)[:400]
+
+
+def test_a_model_point_id_that_is_no_text_is_refused(tmp_path: Path) -> None:
+    """An id written as a YAML escape of a lone surrogate ("p\\udcff") passed: the console's
+    dropdown could not send it (every page went blank) and no run file could write it (an
+    outside probe)."""
+    from trackmeter.data.model import load_model
+
+    path = tmp_path / "m.yaml"
+    path.write_text('points:\n- {id: "p\\udcff", xyz: [0, 0, 0]}\n- {id: b, xyz: [1, 0, 0]}\n'
+                    '- {id: c, xyz: [0, 1, 0]}\n')
+    with pytest.raises(TrackmeterError, match=r"points\[0\]\.id .* is not text"):
+        load_model(path)

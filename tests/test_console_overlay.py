@@ -623,3 +623,11 @@ def test_the_pose_plots_start_over_where_the_body_frame_is_defined_anew() -> Non
         t, first, *_ = data.windows[name].arrays()
         assert t.tolist() == pytest.approx([3 / 25.0, 4 / 25.0, 5 / 25.0]) and not np.isnan(first).any(), name
     assert len(data.windows["err_position"]) == 6  # errors are taken against the truth: comparable across
+
+
+@pytest.mark.parametrize("text", ["rec_\udcff\udcfe", "p\ud800", "\udfff x \udc80"])
+def test_text_for_the_browser_has_no_lone_surrogate(text: str) -> None:
+    from console.app import shown_text
+
+    shown_text(text).encode("utf-8")  # what viser's msgpack needs
+    assert shown_text("plain ü") == "plain ü"

@@ -167,6 +167,10 @@ def _check_ids(ids: Sequence[str], path: Path) -> None:
             raise TrackmeterError(f"{path}: points[{i}].id {name!r} contains '=' (--target ID=U,V could not name it)")
         if name != name.strip():
             raise TrackmeterError(f"{path}: points[{i}].id {name!r} begins or ends with a space")
+        try:
+            name.encode("utf-8")
+        except UnicodeEncodeError:  # a YAML escape of a lone surrogate: no file or browser takes it
+            raise TrackmeterError(f"{path}: points[{i}].id {name!r} is not text (a lone surrogate escape)") from None
 
 
 #: A model whose points span more than this (m) is taken for one written in millimetres
