@@ -390,6 +390,20 @@ def test_clocks_that_drift_apart_are_said_to_where_pairs_are_lost(tmp_path):
     assert "shift cam1" not in src.warning, src.warning  # no one shift mends a drift
 
 
+@pytest.mark.parametrize("late_start", [True, False])
+def test_a_camera_that_starts_late_or_ends_early_is_no_clock_drift(tmp_path, late_start):
+    # cam1 starting 1 s late was said to be "clocks drifting apart" (+520 ms over the first
+    # quarter, +0 over the last): its first quarter's nearest images were far only because it
+    # had none there (an outside re-check).
+    d = _write(tmp_path / "s", _frames(50))
+    rows = (d / "cam1" / "data.csv").read_text().splitlines()
+    kept = rows[1:][25:] if late_start else rows[1:][:25]
+    (d / "cam1" / "data.csv").write_text("\n".join([rows[0], *kept]) + "\n")
+    with pytest.warns(UserWarning, match="25 image\\(s\\) without a partner"):
+        src = SequenceSource(d)
+    assert len(src) == 25 and "drift" not in src.warning, src.warning
+
+
 def test_jittered_but_simultaneous_cameras_say_nothing_of_an_offset(tmp_path):
     rng = np.random.default_rng(3)
     d = _write(tmp_path / "s", _frames(20))

@@ -640,9 +640,12 @@ def _clock_drift(t_left: FloatArray, t_right: FloatArray, tolerance_s: float) ->
     """``" (...)"``: how the right camera's nearest image moves away from the left's between
     the first and the last quarter of the sequence, when by more than half ``tolerance_s``
     (clocks running at different rates lose their pairs from where they part); else ""."""
-    if len(t_left) < 8 or len(t_right) == 0:
+    # Only the time both cameras cover: a camera that starts late or ends early has no image
+    # near the other's first or last ones, which is no drift.
+    both = (t_left >= np.min(t_right)) & (t_left <= np.max(t_right)) if len(t_right) else np.zeros(len(t_left), bool)
+    if np.count_nonzero(both) < 8:
         return ""
-    nearest = _right_minus_left(t_left, t_right)
+    nearest = _right_minus_left(t_left[both], t_right)
     quarter = len(nearest) // 4
     start, end = float(np.median(nearest[:quarter])), float(np.median(nearest[-quarter:]))
     if abs(end - start) <= 0.5 * tolerance_s:
