@@ -299,6 +299,28 @@ def test_a_ctrl_c_that_a_compiled_module_turns_into_an_import_error_is_still_an_
     assert capsys.readouterr().err == "trackmeter evaluate: interrupted\n"
 
 
+def test_a_ctrl_c_that_python_wraps_in_another_error_is_still_an_interrupt(monkeypatch, capsys) -> None:
+    """Ctrl-C inside a class body's __set_name__ (numpy importing platform) came out as
+    "RuntimeError: Error calling __set_name__ ...", caused by the KeyboardInterrupt, exit 1
+    (an outside re-check of `track`)."""
+    from trackmeter.cli import evaluate
+
+    def wrapped_by_python(args: object) -> None:
+        try:
+            signal.raise_signal(signal.SIGINT)
+        except KeyboardInterrupt as exc:
+            raise RuntimeError("Error calling __set_name__ on 'cached_property' instance") from exc
+
+    monkeypatch.setattr(evaluate, "run", wrapped_by_python)
+    before = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        assert main(["evaluate", "--truth", "t", "--estimate", "e"]) == 130
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+    assert capsys.readouterr().err == "trackmeter evaluate: interrupted\n"
+
+
 def test_an_import_error_without_a_signal_is_still_a_bug_with_its_traceback(monkeypatch) -> None:
     from trackmeter.cli import evaluate
 

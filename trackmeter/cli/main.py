@@ -101,6 +101,18 @@ def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
+def _caused_by_an_interrupt(exc: BaseException) -> bool:
+    """Whether a KeyboardInterrupt is in ``exc``'s chain of causes and contexts."""
+    seen: set[int] = set()
+    link: BaseException | None = exc
+    while link is not None and id(link) not in seen:
+        if isinstance(link, KeyboardInterrupt):
+            return True
+        seen.add(id(link))
+        link = link.__cause__ or link.__context__
+    return False
+
+
 def _already_stopping(signum: int, frame: object) -> None:
     _swap_handlers(_already_stopping, signal.SIG_IGN)  # said once is enough
     # os.write, not print: the signal may land while the main thread is inside a print to
@@ -331,10 +343,11 @@ def _main(argv: Sequence[str] | None) -> int:
     try:
         try:
             return int(_command_module(args.command).run(args) or 0)
-        except ImportError:
-            # A compiled module's init (cv2, scipy) that the signal's KeyboardInterrupt cuts
-            # short replaces it by its own "ImportError: initialization failed": a Ctrl-C still.
-            if _stop_signal is None:
+        except Exception as exc:
+            # The signal's KeyboardInterrupt, replaced on its way out: by a compiled module's
+            # init (cv2, scipy) with its own "ImportError: initialization failed", or wrapped by
+            # Python ("RuntimeError: Error calling __set_name__", caused by it). A Ctrl-C still.
+            if _stop_signal is None or not (isinstance(exc, ImportError) or _caused_by_an_interrupt(exc)):
                 raise
             raise KeyboardInterrupt from None
     except TrackmeterError as exc:
