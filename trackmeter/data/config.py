@@ -136,6 +136,48 @@ FAST_SAFE_LOADER: type[Any] = _FastUniqueKeysLoader
 MAX_YAML_BYTES = 16 * 2**20
 
 
+#: The most values (mapping keys and values, list items, scalars) a YAML file may expand to
+#: through its aliases: every file of ours holds hundreds; a 1 KB alias bomb expands to
+#: hundreds of millions, which matrix parsing then takes seconds and gigabytes over.
+MAX_YAML_VALUES = 1_000_000
+
+
+def check_yaml_expansion(data: Any, source: object) -> None:
+    """Refuse YAML ``data`` whose aliases expand it beyond :data:`MAX_YAML_VALUES` values or
+    make a value contain itself (``&a [*a]``). Counted over the shared nodes once each, so
+    the check costs what the file holds, not what it expands to.
+
+    Raises:
+        TrackmeterError: naming ``source`` and what the aliases do.
+    """
+    sizes: dict[int, int] = {}
+    open_nodes: set[int] = set()
+
+    def size(node: Any) -> int:
+        if isinstance(node, dict):
+            children: list[Any] = [*node.keys(), *node.values()]
+        elif isinstance(node, list):
+            children = node
+        else:
+            return 1
+        key = id(node)
+        if key in open_nodes:
+            raise TrackmeterError(f"{source}: a YAML value contains itself (an alias to its own anchor)")
+        if key not in sizes:
+            open_nodes.add(key)
+            sizes[key] = 1 + sum(size(child) for child in children)
+            open_nodes.discard(key)
+        return sizes[key]
+
+    try:
+        total = size(data)
+    except RecursionError:
+        raise TrackmeterError(f"{source}: YAML nested too deeply") from None
+    if total > MAX_YAML_VALUES:
+        raise TrackmeterError(f"{source}: its YAML aliases expand to {total:,} values (at most {MAX_YAML_VALUES:,}): "
+                              "an alias bomb, not a file of ours")
+
+
 def read_yaml_mapping(path: Path, loader: type[Any] = FAST_SAFE_LOADER, kind: str | None = None) -> dict[str, Any]:
     """Read a YAML file whose top level is a mapping (an empty file is an empty mapping),
     with ``loader`` (:data:`FAST_SAFE_LOADER`, a :class:`yaml.SafeLoader` or a subclass of it).
@@ -181,6 +223,7 @@ def read_yaml_mapping(path: Path, loader: type[Any] = FAST_SAFE_LOADER, kind: st
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""
         raise TrackmeterError(f"{path}: malformed YAML{where}") from None
+    check_yaml_expansion(data, path)
     rig = _rig_form(text, data) if kind is not None else None
     if rig:
         raise TrackmeterError(f"{path}: {rig}, not {kind}")

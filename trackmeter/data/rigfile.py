@@ -22,6 +22,7 @@ import yaml
 
 from trackmeter.core.stereo import Camera, StereoRig
 from trackmeter.data.atomic import write_files_atomic
+from trackmeter.data.config import check_yaml_expansion
 from trackmeter.errors import TrackmeterError, shown_value
 
 
@@ -100,6 +101,7 @@ def _plain_yaml(path: Path) -> cv2.FileStorage | None:
         data = yaml.safe_load(without_directives(path.read_text(encoding="utf-8-sig")))
     except (OSError, UnicodeDecodeError, yaml.YAMLError):
         return None
+    check_yaml_expansion(data, path)
     if not isinstance(data, dict):
         return None
     for key, value in data.items():
@@ -359,6 +361,7 @@ def _kalibr_camchain(path: Path) -> dict | None:
         data = yaml.safe_load(without_directives(path.read_text(encoding="utf-8")))
     except (OSError, UnicodeDecodeError, yaml.YAMLError):
         return None
+    check_yaml_expansion(data, path)
     return data if isinstance(data, dict) and isinstance(data.get("cam0"), dict) else None
 
 

@@ -905,6 +905,7 @@ def read_euroc_rig(root: Path) -> tuple[StereoRig | None, str | None]:
     files = [root / cam / "sensor.yaml" for cam in CAMERAS]
     if not all(f.is_file() for f in files):
         return None, None
+    from trackmeter.data.config import check_yaml_expansion
     from trackmeter.data.rigfile import pinhole_radtan_camera, without_directives
 
     cams = []
@@ -912,6 +913,7 @@ def read_euroc_rig(root: Path) -> tuple[StereoRig | None, str | None]:
     for f in files:
         try:
             data = yaml.safe_load(without_directives(f.read_text(encoding="utf-8"))) or {}
+            check_yaml_expansion(data, f)
             cams.append(pinhole_radtan_camera(data, "distortion_coefficients"))
             poses.append(np.array([float(x) for x in data["T_BS"]["data"]]).reshape(4, 4))
         except KeyError as exc:
