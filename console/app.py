@@ -83,6 +83,13 @@ def shown_text(text: str) -> str:
         return text.encode("utf-8", "backslashreplace").decode("utf-8")
 
 
+def typed_text(text: str) -> str:
+    """The inverse of :func:`shown_text` for a file name typed back (or edited) in a field:
+    ``\\x80``-``\\xff`` escapes stand for those bytes (PEP 383's lone surrogates), so the
+    Folder field's shown name means the folder itself, not one named with backslashes."""
+    return re.sub(r"\\x([89a-fA-F][0-9a-fA-F])", lambda m: chr(0xDC00 + int(m.group(1), 16)), text)
+
+
 def new_target_option(model_ids: Sequence[str]) -> str:
     """The "Next click is" option for a click that makes a new target: :data:`NEW_TARGET`,
     unless a model point has that id (the browser's dropdown refuses duplicate options, and
@@ -407,10 +414,7 @@ class Console:
         self.text_every = max(1, int(text_every))
         self.jpeg_quality = int(jpeg_quality)
         self.record_root = Path(record_root)
-        # The recording's folder last put in the Folder field, as it is shown there (shown_text)
-        # and as it is: the field's escaped text is that folder, not one named with backslashes.
-        self._record_dir_shown: str | None = None
-        self._record_dir_real: str | None = None
+        self._record_dir_shown: str | None = None  # the recording's folder last put in the Folder field
         self.patch_px = patch_px
         self.plots = PlotData()
         self._trails: dict[str, deque[tuple[float, float]]] = {}
@@ -725,9 +729,7 @@ class Console:
         return SetAuto(bool(self.auto_checkbox.value), int(self.auto_count.value), str(self.auto_method.value))
 
     def _fresh_record_dir(self) -> str:
-        typed = self.record_dir.value.strip()
-        if typed and typed == self._record_dir_shown and self._record_dir_real is not None:
-            typed = self._record_dir_real
+        typed = typed_text(self.record_dir.value.strip())
         base = Path(typed or str(self.record_root / "recording")).expanduser()
         # Never mix two recordings in one folder: number it on when it already holds one (from
         # the number a numbered one has: the field shows the last recording, rec-2, and the
@@ -1088,11 +1090,11 @@ class Console:
                 self.status_html.content = shown_text(status_text)
                 self.targets_md.content = shown_text(targets_text)
             self.record_md.content = shown_text(self._recording_text(rec))
-            if rec.active and rec.directory != self._record_dir_real:
+            if rec.active and rec.directory != self._record_dir_shown:
                 # The folder of the recording going on (--record's, another browser's): the
                 # field kept its default and read as where the frames went.
-                self._record_dir_real = rec.directory
-                self._record_dir_shown = self.record_dir.value = shown_text(rec.directory)
+                self._record_dir_shown = rec.directory
+                self.record_dir.value = shown_text(rec.directory)
             self._sync_widgets(snap)
             self._update_scene3d(snap)
             if plots:

@@ -631,3 +631,13 @@ def test_text_for_the_browser_has_no_lone_surrogate(text: str) -> None:
 
     shown_text(text).encode("utf-8")  # what viser's msgpack needs
     assert shown_text("plain ü") == "plain ü"
+
+
+def test_typed_text_undoes_shown_text_for_a_file_name_s_bytes() -> None:
+    import os
+
+    from console.app import shown_text, typed_text
+
+    name = os.fsdecode(b"/tmp/rec_\xff\xfe/take \x80")
+    assert typed_text(shown_text(name)) == name
+    assert typed_text(r"C:\x41 stays") == r"C:\x41 stays"  # an ASCII escape is no file-name byte

@@ -1117,5 +1117,8 @@ def test_a_recording_folder_whose_name_is_not_utf8_is_shown_escaped_and_the_page
         assert (folder / "cam0" / "data.csv").is_file()
         # the field's escaped text means the folder itself, which holds a recording now
         assert con._fresh_record_dir() == str(folder.with_name(folder.name + "-2"))
+        # and edited, the escapes still stand for the bytes (not a folder named with backslashes)
+        con.record_dir.value = con.record_dir.value + "/take2"
+        assert con._fresh_record_dir() == str(folder / "take2")
     finally:
         running.stop()
