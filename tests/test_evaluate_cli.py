@@ -854,13 +854,14 @@ def test_a_motion_csv_whose_time_column_is_renamed_is_told_so_not_read_as_tum(ca
     assert code == 2 and "not a motion CSV: header lacks t (expected t,x,y,z" in err and "TUM" not in err, err
 
 
-@pytest.mark.parametrize("separator, named", [("\t", "tabs"), (";", "semicolons")])
-def test_a_motion_csv_separated_by_tabs_is_told_so_not_read_as_tum(capsys, sequence_and_run, separator, named):
+@pytest.mark.parametrize("separator, named, hashed", [("\t", "tabs", False), (";", "semicolons", False),
+                                                      ("\t", "tabs", True)])
+def test_a_motion_csv_separated_by_tabs_is_told_so_not_read_as_tum(capsys, sequence_and_run, separator, named, hashed):
     # A tab-separated groundtruth.csv was refused as a TUM file: "expected 8 values 't tx ty
-    # tz qx qy qz qw', got 14" (an outside probe).
+    # tz qx qy qz qw', got 14" (an outside probe); with its header as a '#' line too.
     truth, seq, run = sequence_and_run
     path = seq / "groundtruth.csv"
-    path.write_text(path.read_text().replace(",", separator))
+    path.write_text(("# a note; not a header\n#" if hashed else "") + path.read_text().replace(",", separator))
     code, _, err = _run(capsys, "evaluate", "--truth", str(path), "--estimate", str(run))
     assert code == 2 and f"a header of names separated by {named}" in err and "commas" in err, err
     assert "expected 8 values" not in err and len(err.strip().splitlines()) == 1, err

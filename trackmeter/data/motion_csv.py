@@ -193,14 +193,25 @@ _OTHER_SEPARATORS = {"\t": "tabs", ";": "semicolons"}
 def other_separator_header(path: Path | str, line_number: int, line: str) -> TrackmeterError | None:
     """The error for a header ``line`` of names separated by tabs or semicolons (a
     spreadsheet's export), not commas; None when it is not one."""
-    if len(header_fields(line)) > 1:
+    name = _other_separator(line)
+    if name is None:
+        return None
+    return TrackmeterError(f"{path}:{line_number}: a header of names separated by {name} "
+                           f"({quoted(line.strip(), 40)}): a motion CSV's are separated by commas "
+                           f"({','.join(GROUNDTRUTH_COLUMNS)})")
+
+
+def _other_separator(line: str) -> str | None:
+    """The name of the separator (tabs, semicolons) a header ``line`` is written with when not
+    commas, else None. A ``#`` line must name a ``t`` column (EuRoC's headers are ``#`` lines,
+    and a note with semicolons is not one)."""
+    text = line.strip().lstrip("\ufeff")
+    if len(header_fields(text)) > 1:
         return None
     for separator, name in _OTHER_SEPARATORS.items():
-        names = [h.strip().lstrip("#").strip() for h in line.strip().lstrip("\ufeff").split(separator)]
-        if names_a_header(names):
-            return TrackmeterError(f"{path}:{line_number}: a header of names separated by {name} "
-                                   f"({quoted(line.strip(), 40)}): a motion CSV's are separated by commas "
-                                   f"({','.join(GROUNDTRUTH_COLUMNS)})")
+        names = [h.strip().lstrip("#").strip() for h in text.split(separator)]
+        if names_a_header(names) and (not text.startswith("#") or "t" in names):
+            return name
     return None
 
 
@@ -222,7 +233,7 @@ def is_comment_line(line: str) -> bool:
     """A ``#`` line that is not a header: one that names no ``t`` column (e.g. a producer's
     note above the header)."""
     text = line.strip().lstrip("\ufeff")
-    return text.startswith("#") and "t" not in header_fields(text)
+    return text.startswith("#") and "t" not in header_fields(text) and _other_separator(text) is None
 
 
 def read_motion_csv(path: str | Path) -> MotionSeries:
