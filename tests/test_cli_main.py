@@ -276,42 +276,30 @@ def test_a_ctrl_c_while_the_command_line_is_read_is_one_line_not_a_traceback(mon
     assert capsys.readouterr().err == "trackmeter: interrupted while starting; nothing was done\n"
 
 
-def test_a_ctrl_c_that_a_compiled_module_turns_into_an_import_error_is_still_an_interrupt(monkeypatch, capsys) -> None:
-    """Ctrl-C while `evaluate --out` imported its modules ended with "ImportError:
-    initialization failed" and exit 1 (an outside probe): a compiled module's init (cv2,
-    scipy) that the signal's KeyboardInterrupt interrupts replaces it by that ImportError."""
-    from trackmeter.cli import evaluate
-
-    def import_cut_by_ctrl_c(args: object) -> None:  # the command imports its modules in run
-        try:
-            signal.raise_signal(signal.SIGINT)  # the command's own handler is installed by now
-        except KeyboardInterrupt:
-            pass  # what the C init does with it: a NULL return, its own error set instead
-        raise ImportError("initialization failed")
-
-    monkeypatch.setattr(evaluate, "run", import_cut_by_ctrl_c)
-    before = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+def _import_cut_by_ctrl_c(args: object) -> None:
     try:
-        assert main(["evaluate", "--truth", "t", "--estimate", "e"]) == 130
-    finally:
-        for sig, handler in before.items():
-            signal.signal(sig, handler)
-    assert capsys.readouterr().err == "trackmeter evaluate: interrupted\n"
+        signal.raise_signal(signal.SIGINT)  # the command's own handler is installed by now
+    except KeyboardInterrupt:
+        pass  # what a compiled module's init does with it: a NULL return, its own error set instead
+    raise ImportError("initialization failed")
 
 
-def test_a_ctrl_c_that_python_wraps_in_another_error_is_still_an_interrupt(monkeypatch, capsys) -> None:
-    """Ctrl-C inside a class body's __set_name__ (numpy importing platform) came out as
-    "RuntimeError: Error calling __set_name__ ...", caused by the KeyboardInterrupt, exit 1
-    (an outside re-check of `track`)."""
+def _ctrl_c_wrapped_by_python(args: object) -> None:
+    try:
+        signal.raise_signal(signal.SIGINT)
+    except KeyboardInterrupt as exc:
+        raise RuntimeError("Error calling __set_name__ on 'cached_property' instance") from exc
+
+
+@pytest.mark.parametrize("run", [_import_cut_by_ctrl_c, _ctrl_c_wrapped_by_python])
+def test_a_ctrl_c_replaced_on_its_way_out_is_still_an_interrupt(monkeypatch, capsys, run) -> None:
+    """Ctrl-C while a command imported its modules ended with exit 1 and a traceback: as
+    "ImportError: initialization failed" (a compiled module's init, cv2 or scipy, in
+    `evaluate --out`; an outside probe) or as "RuntimeError: Error calling __set_name__"
+    caused by the KeyboardInterrupt (numpy importing platform, in `track`; a re-check)."""
     from trackmeter.cli import evaluate
 
-    def wrapped_by_python(args: object) -> None:
-        try:
-            signal.raise_signal(signal.SIGINT)
-        except KeyboardInterrupt as exc:
-            raise RuntimeError("Error calling __set_name__ on 'cached_property' instance") from exc
-
-    monkeypatch.setattr(evaluate, "run", wrapped_by_python)
+    monkeypatch.setattr(evaluate, "run", run)  # the command imports its heavy modules in run
     before = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         assert main(["evaluate", "--truth", "t", "--estimate", "e"]) == 130
