@@ -302,6 +302,10 @@ def test_a_ctrl_c_replaced_on_its_way_out_is_still_an_interrupt(monkeypatch, cap
     monkeypatch.setattr(evaluate, "run", run)  # the command imports its heavy modules in run
     before = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
+        # A process's own Ctrl-C handling at start, whatever an earlier test left: the command
+        # takes over the defaults only.
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
         assert main(["evaluate", "--truth", "t", "--estimate", "e"]) == 130
     finally:
         for sig, handler in before.items():
