@@ -99,6 +99,7 @@ def new_target_option(model_ids: Sequence[str]) -> str:
         option += " (no model point)"
     return option
 
+
 #: Scene units per image pixel of the image planes (726 px → 7.26 units).
 UNITS_PER_PX = 0.01
 #: Where the 3D view (the left camera frame) sits in the scene, left of the image.

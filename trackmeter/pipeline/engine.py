@@ -562,6 +562,8 @@ class Engine:
             with warnings.catch_warnings(record=True) as said:
                 warnings.simplefilter("always")
                 model = load_model(path)
+            # catch_warnings is process-wide: another thread's warning in these milliseconds is
+            # given on as well (and named in the answer), not lost.
             for w in said:  # on the server's stderr as before, and in the answer
                 warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
             self._given_model = model
