@@ -148,18 +148,12 @@ _UNIT_NORM_TOLERANCE = 1e-6
 FAR_FROM_UNIT_NORM = 0.01
 
 
-def far_from_unit_norm(quat: ArrayLike) -> tuple[NDArray[np.intp], FloatArray]:
-    """Rows of ``quat`` (N, 4) whose norm differs from 1 by more than
-    :data:`FAR_FROM_UNIT_NORM`, and every row's norm (N,): values that are no quaternion
-    (angles in its columns), which normalising turns into some attitude without a word."""
-    norms = np.linalg.norm(np.asarray(quat, dtype=float).reshape(-1, 4), axis=1)
-    return np.flatnonzero(np.abs(norms - 1.0) > FAR_FROM_UNIT_NORM), norms
-
-
 def warn_far_from_unit_norm(path: Path | str, quat: ArrayLike, line_of: Callable[[int], object], rows: str) -> None:
     """Warn (naming the first ``rows``' line, ``line_of(row index)``) when quaternions of
-    ``quat`` (N, 4) are :func:`far_from_unit_norm`."""
-    far, norms = far_from_unit_norm(quat)
+    ``quat`` (N, 4) have a norm more than :data:`FAR_FROM_UNIT_NORM` from 1: values that are
+    no quaternion (angles in its columns), which normalising turns into some attitude."""
+    norms = np.linalg.norm(np.asarray(quat, dtype=float).reshape(-1, 4), axis=1)
+    far = np.flatnonzero(np.abs(norms - 1.0) > FAR_FROM_UNIT_NORM)
     if len(far):
         first = int(far[0])
         warnings.warn(f"{path}:{line_of(first)}: {len(far)} {rows}(s) whose quaternion's norm is far from 1 "
