@@ -440,3 +440,14 @@ def test_a_yaml_value_that_contains_itself_is_refused(tmp_path: Path) -> None:
     path.write_text("tracker: &a {patch: *a}\n")
     with pytest.raises(TrackmeterError, match="contains itself"):
         read_yaml_mapping(path)
+
+
+def test_a_name_is_quoted_as_the_command_line_shows_it() -> None:
+    """NUL escaped, a byte that is not UTF-8 as ``\\xfe`` (not Python's ``\\udcfe``), and a name
+    that holds the text ``\\udcfe`` itself left as it is."""
+    from trackmeter.errors import quoted_name
+
+    assert quoted_name("a\udcfe\x00b") == r"'a\xfe\x00b'"
+    assert quoted_name("a\\udcfe") == r"'a\\udcfe'"
+    assert quoted_name("a\\\udc80") == r"'a\\\x80'"
+    assert quoted_name("plain") == repr("plain")

@@ -763,6 +763,10 @@ def test_a_recording_folder_name_with_a_nul_is_answered_in_words(tmp_path, caplo
     try:
         reply = con.submit(SetRecording(str(tmp_path / "rec\x00nul")), None, "SetRecording").result(10)
         assert not reply.ok and "NUL" in reply.message and "ValueError" not in reply.message, reply.message
+        # a byte that is not UTF-8 beside it is quoted as the console shows it elsewhere (\xfe),
+        # not as Python holds it (\udcfe)
+        reply = con.submit(SetRecording(str(tmp_path / "rec\udcfe\x00")), None, "SetRecording").result(10)
+        assert "rec\\xfe\\x00'" in reply.message and "udc" not in reply.message, reply.message
         assert not any(r.exc_info for r in caplog.records)
     finally:
         running.stop()

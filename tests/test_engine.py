@@ -1230,8 +1230,9 @@ def test_a_model_loaded_by_name_says_where_it_looked_and_what_it_warned(estec_ri
     monkeypatch.chdir(tmp_path)
     reply = engine.handle(LoadModel("two.yaml"), None)
     assert not reply.ok and reply.message == f"{tmp_path / 'two.yaml'}: no such file", reply.message
-    reply = engine.handle(LoadModel("tw\x00o.yaml"), None)
+    reply = engine.handle(LoadModel("tw\x00o\udcfe.yaml"), None)
     assert not reply.ok and "NUL" in reply.message, reply.message
+    assert "tw\\x00o\\xfe.yaml'" in reply.message and "udc" not in reply.message, reply.message  # as shown elsewhere
     (tmp_path / "huge.yaml").write_text("points:\n- {id: a, xyz: [0, 0, 0]}\n- {id: b, xyz: [1e300, 0, 0]}\n"
                                         "- {id: c, xyz: [0, 1e300, 0]}\n")
     with pytest.warns(UserWarning, match="span"):  # still said on the server's stderr too

@@ -8,6 +8,7 @@ long-running process reports it and carries on.
 
 from __future__ import annotations
 
+import re
 import reprlib
 
 
@@ -25,6 +26,15 @@ def quoted(text: str, limit: int = 40) -> str:
     while len(repr(head)) > limit + 2:
         head = head[:-1]
     return f"{head!r}... ({len(text)} characters)"
+
+
+def quoted_name(name: str) -> str:
+    """A file name quoted for a message, control characters such as NUL escaped (``repr``) and
+    its bytes that are not UTF-8 written as ``\\xfe``, as the command line and the console
+    show them (Python holds those bytes as the lone surrogates ``\\udcfe``, PEP 383)."""
+    # An escape is preceded by an even number of backslashes: the name's own backslashes are
+    # doubled by repr, and a name may hold the text "\\udcfe" itself.
+    return re.sub(r"(?<!\\)((?:\\\\)*)\\udc([89a-f][0-9a-f])", r"\1\\x\2", repr(name))
 
 
 def shown_value(value: object, limit: int = 60) -> str:

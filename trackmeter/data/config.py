@@ -37,7 +37,7 @@ from trackmeter.core.output_filter import FilterParams
 from trackmeter.core.pose import PoseParams
 from trackmeter.core.tracking import TrackerParams
 from trackmeter.core.velocity import VelocityParams
-from trackmeter.errors import TrackmeterError, shown_value
+from trackmeter.errors import TrackmeterError, quoted_name, shown_value
 from trackmeter.paths import DEFAULT_CONFIG
 
 
@@ -195,7 +195,7 @@ def read_yaml_mapping(path: Path, loader: type[Any] = FAST_SAFE_LOADER, kind: st
     except OSError as exc:
         raise TrackmeterError(f"{path}: cannot read: {exc.strerror or exc}") from None
     except ValueError:  # "embedded null byte": typed in the console's Model file field
-        raise TrackmeterError(f"{str(path)!r}: no such file (a file name cannot hold a NUL character)") from None
+        raise TrackmeterError(f"{quoted_name(str(path))}: no such file (a file name cannot hold a NUL character)") from None
     if stat.S_ISDIR(info.st_mode):
         raise TrackmeterError(f"{path}: a folder, not a file")
     if not stat.S_ISREG(info.st_mode):

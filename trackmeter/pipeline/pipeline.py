@@ -50,7 +50,7 @@ from typing import Any, Callable, Iterable, Iterator, Protocol, Sequence
 from trackmeter.core.patch_tracking import warm_up
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.targets import TargetState
-from trackmeter.errors import TrackmeterError
+from trackmeter.errors import TrackmeterError, quoted_name
 from trackmeter.signals import STOP_SIGNALS
 from trackmeter.pipeline.engine import SelectModelPoints
 from trackmeter.pipeline.snapshot import (
@@ -746,7 +746,7 @@ class Pipeline:
         except OSError as exc:  # no such parent, a file in the way, no permission
             raise TrackmeterError(f"cannot record to {directory}: {exc.strerror or exc}") from None
         except ValueError:  # the OS's calls refuse a NUL character in a path ("embedded null byte")
-            raise TrackmeterError(f"cannot record to {str(directory)!r}: a folder name cannot hold a NUL "
+            raise TrackmeterError(f"cannot record to {quoted_name(str(directory))}: a folder name cannot hold a NUL "
                                   "character") from None
         with self._record_lock:
             self._recorder = _Recorder(directory, writer, self._record_queue_frames)
