@@ -113,6 +113,12 @@ def _poses_of_run(states: MotionSeries, declared_t_s: np.ndarray, undeclared_why
         if np.any(pose_only) and undeclared_why:
             warnings.warn(f"{undeclared_why}: the {int(np.count_nonzero(pose_only))} poses logged before the rates "
                           "were known (states.csv valid 0, declared poses only there) are left out", stacklevel=2)
+        elif np.any(pose_only):
+            # Said, so that a track run's states.csv read without its folder does not score
+            # fewer poses than the folder, silently.
+            warnings.warn(f"{int(np.count_nonzero(pose_only))} rows with a pose but valid 0 left out: no trajectory.tum "
+                          "beside lists them as valid poses (a track run writes its poses before the rates are known "
+                          "so, and lists them there)", stacklevel=2)
         pose_only[:] = False
     keep = states.valid | pose_only
     with_rates = states.valid[keep][:, None]
