@@ -304,14 +304,18 @@ def test_a_tum_file_whose_last_line_is_cut_short_is_read_without_it(tmp_path: Pa
 
 
 def test_a_header_written_as_a_comment_is_pointed_at(tmp_path: Path) -> None:
-    # An EuRoC-style "#timestamp [ns],p_x [m],..." header was skipped as a comment, and the
-    # refusal named line 2, the first row of numbers, as the header (an outside probe).
+    # A "#stamp [ns],x,..." header was skipped as a comment, and the refusal named line 2, the
+    # first row of numbers, as the header (an outside probe).
     path = tmp_path / "groundtruth.csv"
-    path.write_text("#timestamp [ns],p_x [m],p_y [m],p_z [m],q_w [],q_x [],q_y [],q_z []\n0,0,0,3.5,1,0,0,0\n")
+    path.write_text("#stamp [ns],x,y,z,qw,qx,qy,qz\n0,0,0,3.5,1,0,0,0\n")
     with pytest.raises(TrackmeterError) as info:
         read_motion_csv(path)
     assert str(info.value).startswith(f"{path}:2: not a motion CSV: header lacks t,x,y,z,qw,qx,qy,qz")
-    assert "; line 1 above it is a comment ('#timestamp [ns],p_x [m]" in str(info.value), info.value
+    assert "; line 1 above it is a comment ('#stamp [ns],x,y,z" in str(info.value), info.value
+    # EuRoC's names, its frame letters left out, are a header (its ground truth's, read as ours)
+    path.write_text("#timestamp [ns],p_x [m],p_y [m],p_z [m],q_w [],q_x [],q_y [],q_z []\n0,0,0,3.5,1,0,0,0\n")
+    series = read_motion_csv(path)
+    assert series.position_m.tolist() == [[0.0, 0.0, 3.5]] and series.quat_wxyz.tolist() == [[1.0, 0.0, 0.0, 0.0]]
     path.write_text("# written by hand\nt;x;y\n0;0;0\n")  # a comment that is no header is not named
     with pytest.raises(TrackmeterError) as info:
         read_motion_csv(path)

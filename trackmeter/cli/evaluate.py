@@ -48,7 +48,8 @@ UNKNOWN_CASE_OFFSET_RAD = math.radians(10.0)
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--truth", required=True, metavar="TUM_CSV_OR_SEQ",
-                        help="ground truth: TUM file, groundtruth.csv or sequence folder; or sim[:SCENARIO], the "
+                        help="ground truth: TUM file, groundtruth.csv (or EuRoC's ground-truth data.csv, by its "
+                        "header) or sequence folder; or sim[:SCENARIO], the "
                         "scenario's motion, for a run of the sim source (which keeps no ground truth)")
     parser.add_argument("--estimate", required=True, metavar="TUM_CSV_OR_RUN_DIR", help="estimate: TUM file, states.csv or run directory")
     parser.add_argument("--align", choices=("none", "body", "auto"),

@@ -24,6 +24,7 @@ sequence being rendered), so a reader never sees half a row.
 from __future__ import annotations
 
 import math
+import re
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -182,8 +183,32 @@ class MotionSeries:
 
 def header_fields(line: str) -> list[str]:
     """The column names of a motion CSV header line (a leading ``#``, as EuRoC writes its
-    headers, is not part of the first name)."""
-    return [h.strip().lstrip("#").strip() for h in line.strip().lstrip("\ufeff").split(",")]
+    headers, is not part of the first name), EuRoC's ground-truth names read as ours
+    (:func:`_our_name`)."""
+    return [_our_name(h.strip().lstrip("#").strip()) for h in line.strip().lstrip("\ufeff").split(",")]
+
+
+#: EuRoC's ground-truth column names (``state_groundtruth_estimate0/data.csv``, ``leica0``,
+#: ``vicon0``: ``#timestamp [ns], p_RS_R_x [m], ..., q_RS_w [], ..., v_RS_R_x [m s^-1], ...``)
+#: and ours: the pose ``T_R_S`` of frame S in R, scalar first, the velocity of S's origin in R.
+#: Its ``b_w_RS_S_*`` are gyroscope biases, not an angular velocity: kept as extra columns.
+#: The frame letters may be left out (``p_x [m]``, ``q_w []``).
+_EUROC_NAMES = (
+    (re.compile(r"timestamp"), "t"),
+    (re.compile(r"p_(?:[A-Za-z]+_)*([xyz])"), r"\1"),
+    (re.compile(r"q_(?:[A-Za-z]+_)*([wxyz])"), r"q\1"),
+    (re.compile(r"v_(?:[A-Za-z]+_)*([xyz])"), r"v\1"),
+)
+
+
+def _our_name(name: str) -> str:
+    """A header ``name`` as this module's columns name it: EuRoC's (:data:`_EUROC_NAMES`)
+    mapped, with their unit in brackets left off; any other name as it is."""
+    bare = re.sub(r"\s*\[[^\]]*\]$", "", name)
+    for pattern, ours in _EUROC_NAMES:
+        if pattern.fullmatch(bare):
+            return pattern.sub(ours, bare)
+    return name
 
 
 #: Separators other tools write CSV with, by the name a message gives them.
@@ -239,7 +264,8 @@ def is_comment_line(line: str) -> bool:
 def read_motion_csv(path: str | Path) -> MotionSeries:
     """Read a ``groundtruth.csv`` or ``states.csv`` (any column order; header required).
 
-    Columns ``t,x,y,z,qw,qx,qy,qz`` are required; missing velocity columns read as NaN.
+    Columns ``t,x,y,z,qw,qx,qy,qz`` are required (EuRoC's ``#timestamp, p_RS_R_x [m], ...,
+    q_RS_w [], ...`` name them too: :data:`_EUROC_NAMES`); missing velocity columns read as NaN.
     Without a ``valid`` column (a ``groundtruth.csv``) a row is valid when its pose is whole; a
     row with an empty or ``nan`` pose field is read as invalid, with a warning. Empty fields
     and ``nan`` read as NaN. Blank lines and ``#`` lines (comments) are skipped. Rows are kept
