@@ -1050,3 +1050,36 @@ def test_a_euroc_ground_truth_csv_is_read_by_its_header(capsys, sequence_and_run
     assert s["attitude_rad"]["z"]["max"] == pytest.approx(math.radians(0.5), abs=1e-6)
     # the gyro biases are not read as omega; without one, the linear velocity is not scored either
     assert s["omega_rad_s"] is None and s["velocity_m_s"] is None
+
+
+@pytest.mark.parametrize("mixup", ["inverted", "scalar_first", "millimetres", "body_frame"])
+def test_an_estimate_written_in_another_convention_is_named(capsys, tmp_path, mixup):
+    """A TUM estimate of T_body_cam, one written scalar-first, or one in millimetres gave
+    errors of metres and 126 deg with only "compare with --align body" said, or, in mm, nothing
+    at all (an outside probe, checking against evo). Each is now named; a case (a) frame of its
+    own still gets the --align body hint, and only it."""
+    truth = tumbling_truth()
+    R = Rotation.from_quat(truth.quat_wxyz, scalar_first=True)
+    p, q = np.array(truth.position_m), np.array(truth.quat_wxyz)
+    lines = []
+    if mixup == "inverted":
+        p, q = -(R.inv().apply(p)), R.inv().as_quat(scalar_first=True)
+    elif mixup == "millimetres":
+        p = 1000 * p
+    elif mixup == "body_frame":
+        Rb = R * Rotation.from_rotvec([0.3, 2.5, -0.7])
+        p, q = p + R.apply([0.1, -0.02, 0.3]), Rb.as_quat(scalar_first=True)
+    for t, pos, quat in zip(truth.t_s, p, q):
+        order = quat if mixup == "scalar_first" else quat[[1, 2, 3, 0]]
+        lines.append(" ".join(f"{x:.9f}" for x in (t, *pos, *order)))
+    (tmp_path / "e.tum").write_text("\n".join(lines) + "\n")
+    _tum(tmp_path / "t.tum", truth)
+    code, out, err = _run(capsys, "evaluate", "--truth", str(tmp_path / "t.tum"), "--estimate", str(tmp_path / "e.tum"))
+    assert code == 0
+    said = {"inverted": "inverted", "scalar_first": "scalar first", "millimetres": "1000x",
+            "body_frame": "--align body"}
+    assert said[mixup] in err, err
+    assert sum(word in err for word in said.values()) == 1, err  # the one that fits, not every guess
+    # the table keeps its columns apart however large the figures
+    row = next(line for line in out.splitlines() if line.startswith("position [mm]") and " norm " in f" {line} ")
+    assert len(row.split()) == 6, row

@@ -174,8 +174,8 @@ def _other_sequence(truth_spec: str, estimate_spec: str) -> str | None:
 
 def run(args: argparse.Namespace) -> int:
     from trackmeter.core.metrics import evaluate, resolve_align
-    from trackmeter.data.evaluation import (check_report_directory, format_summary, in_seconds, load_estimate,
-                                             write_evaluation)
+    from trackmeter.data.evaluation import (check_report_directory, format_summary, in_seconds, likely_mixups,
+                                             load_estimate, write_evaluation)
 
     params = _params(args)
     if args.out:
@@ -255,8 +255,12 @@ def run(args: argparse.Namespace) -> int:
         print("trackmeter evaluate: warning: the run's run.yaml says it is still running: it was killed, its disk "
               "filled, or it is still being written, so it may end early and its summary is missing"
               + _previous_run_note(Path(args.estimate)), file=sys.stderr)
+    mixups = likely_mixups(truth.series, estimate.series, assoc.index_truth, assoc.index_est) \
+        if params.align == "none" else []
+    for hint in mixups:
+        print(f"trackmeter evaluate: warning: {hint}", file=sys.stderr)
     attitude_rms_rad = result.summary.get("attitude_rad", {}).get("total", {}).get("rms", 0.0)
-    if params.align == "none" and estimate.case is None and attitude_rms_rad > UNKNOWN_CASE_OFFSET_RAD:
+    if params.align == "none" and estimate.case is None and attitude_rms_rad > UNKNOWN_CASE_OFFSET_RAD and not mixups:
         # A bare trajectory does not say whose body frame it is in: a case (a) or (c) run's
         # own frame, compared as it is, reads as errors of tens of degrees and centimetres.
         print(f"trackmeter evaluate: warning: the attitude is off by {math.degrees(attitude_rms_rad):.0f} deg (RMS); if "

@@ -331,6 +331,61 @@ def in_seconds(truth: LoadedMotion, estimate: LoadedMotion, tolerance_s: float) 
     return out[0], out[1]
 
 
+def _pose_rms(R_truth: Any, p_truth: np.ndarray, R_est: Any, p_est: np.ndarray) -> tuple[float, float]:
+    """RMS position error (m) and RMS attitude error (rad) of paired poses (scipy Rotations)."""
+    position = float(np.sqrt(np.mean(np.sum((p_est - p_truth) ** 2, axis=1))))
+    attitude = float(np.sqrt(np.mean((R_est * R_truth.inv()).magnitude() ** 2)))
+    return position, attitude
+
+
+#: A convention a mix-up hint names fits the truth at least this many times better, in both
+#: position and attitude, than the estimate as read.
+MIXUP_GAIN = 10.0
+
+
+def likely_mixups(truth: MotionSeries, estimate: MotionSeries, index_truth: np.ndarray,
+                  index_est: np.ndarray) -> list[str]:
+    """What an estimate far from the truth was likely written as, told apart on the paired
+    poses: the inverse pose (``T_body_cam`` for ``T_cam_body``), a quaternion in the other
+    order (scalar first where scalar last is read, or the reverse), or positions in
+    millimetres. A convention is named only when it fits the truth :data:`MIXUP_GAIN` times
+    better than the estimate as read, and positions only when their sizes differ about a
+    thousandfold; none when the estimate is close already. Compared as they are (no body
+    alignment): a body frame of its own is none of these."""
+    from scipy.spatial.transform import Rotation
+
+    if len(index_truth) == 0:
+        return []
+    p_t, p_e = truth.position_m[index_truth], estimate.position_m[index_est]
+    q_e = estimate.quat_wxyz[index_est]
+    R_t = Rotation.from_quat(truth.quat_wxyz[index_truth], scalar_first=True)
+    R_e = Rotation.from_quat(q_e, scalar_first=True)
+    position, attitude = _pose_rms(R_t, p_t, R_e, p_e)
+    hints = []
+    size_t, size_e = float(np.median(np.linalg.norm(p_t, axis=1))), float(np.median(np.linalg.norm(p_e, axis=1)))
+    if size_t > 0 and size_e > 0 and 300 < max(size_e / size_t, size_t / size_e) < 3000:
+        larger, smaller, ratio = (("estimate", "truth", size_e / size_t) if size_e > size_t else
+                                  ("truth", "estimate", size_t / size_e))
+        hints.append(f"the {larger}'s positions are about {ratio:.0f}x the {smaller}'s (median distance {size_t:.4g} m "
+                     f"in the truth, {size_e:.4g} in the estimate): millimetres where metres are read?")
+    if attitude < math.radians(5.0) and not hints and position < 0.5 * size_t:
+        return hints
+    alternatives = {
+        "inverted (T_body_cam where T_cam_body is read)": (R_e.inv(), -R_e.inv().apply(p_e)),
+        "written scalar first (w x y z) where scalar last is read (TUM: qx qy qz qw)":
+            (Rotation.from_quat(np.roll(q_e, -1, axis=1), scalar_first=True), p_e),
+        "written scalar last (x y z w) where scalar first is read (qw qx qy qz)":
+            (Rotation.from_quat(np.roll(q_e, 1, axis=1), scalar_first=True), p_e),
+    }
+    for what, (R_alt, p_alt) in alternatives.items():
+        position_alt, attitude_alt = _pose_rms(R_t, p_t, R_alt, p_alt)
+        if attitude_alt * MIXUP_GAIN <= attitude and position_alt <= position:
+            hints.append(f"the estimate fits the truth far better {what}: attitude {math.degrees(attitude_alt):.3g} "
+                         f"deg RMS instead of {math.degrees(attitude):.3g}, position {1e3 * position_alt:.4g} mm "
+                         f"instead of {1e3 * position:.4g}")
+    return hints
+
+
 # --------------------------------------------------------------------------- paper figures
 
 #: The paper's trial figures at 3.5 m (section 4), in OUR axes: x, y lateral, z the viewing
@@ -365,15 +420,14 @@ def format_summary(summary: dict, truth: str = "", estimate: str = "", align: st
     lines.append(f"matched {counted(summary['matched'], 'pose')}, unmatched {summary['unmatched']}"
                  + (f"; {100 * coverage:.1f} % of the run's frames after the settle (in the truth's span) have a pose"
                     if coverage is not None else ""))
-    lines.append(f"{'error':<40}{'axis':>6}{'rms':>10}{'p95':>10}{'max':>10}")
-    for group, (title, unit, scale) in _DISPLAY.items():
-        if summary.get(group) is None:
-            continue
-        for axis, st in summary[group].items():
-            lines.append(
-                f"{title + ' [' + unit + ']':<40}{axis:>6}"
-                f"{st['rms'] * scale:>10.3f}{st['p95'] * scale:>10.3f}{st['max'] * scale:>10.3f}"
-            )
+    rows = [(f"{title} [{unit}]", axis, *(f"{st[k] * scale:.3f}" for k in ("rms", "p95", "max")))
+            for group, (title, unit, scale) in _DISPLAY.items() if summary.get(group) is not None
+            for axis, st in summary[group].items()]
+    # Columns as wide as their longest figure: an estimate in the wrong units has errors of
+    # millions, which ran together in fixed columns of 10.
+    width = max([9] + [len(figure) for row in rows for figure in row[2:]]) + 1
+    lines.append(f"{'error':<40}{'axis':>6}{'rms':>{width}}{'p95':>{width}}{'max':>{width}}")
+    lines += [f"{name:<40}{axis:>6}{rms:>{width}}{p95:>{width}}{top:>{width}}" for name, axis, rms, p95, top in rows]
     lines.append(f"SPEED score (mean of angle [rad] + |dt|/|t|): {summary['speed_score']:.6f}")
     if summary.get("velocity_m_s") is None:
         lines.append("(no velocity errors: they need velocities on both sides, paired after the settle time: a "
