@@ -813,7 +813,7 @@ def test_valid_rows_some_without_rates_are_warned_about(capsys, sequence_and_run
     path.write_text("\n".join(lines) + "\n")
     code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
     assert code == 0
-    assert f"warning: 2 valid (1) rows of {path} have a rate that is not a number" in err, err
+    assert f"warning: 2 rows with a pose of {path} have a rate that is not a number" in err, err
     assert json.loads(out)["matched"] == 59  # the poses still count
 
 
@@ -1083,3 +1083,22 @@ def test_an_estimate_written_in_another_convention_is_named(capsys, tmp_path, mi
     # the table keeps its columns apart however large the figures
     row = next(line for line in out.splitlines() if line.startswith("position [mm]") and " norm " in f" {line} ")
     assert len(row.split()) == 6, row
+
+
+def test_warnings_about_an_estimate_without_a_valid_column_call_it_neither_truth_nor_valid(capsys, sequence_and_run,
+                                                                                          tmp_path):
+    # A states.csv without its valid column, given as --estimate, was warned about as "read as
+    # no ground truth at their time" and as having "valid (1) rows" (an outside probe).
+    truth, seq, run = sequence_and_run
+    lines = (run / "states.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    keep = [i for i, name in enumerate(header) if name != "valid"]
+    rows = [",".join(line.split(",")[i] for i in keep) for line in lines]
+    fields = rows[5].split(",")
+    fields[header.index("vx") - 1] = ""  # a pose without its rate
+    rows[5] = ",".join(fields)
+    rows[8] = rows[8].split(",")[0] + "," * (len(keep) - 1)  # a row without a pose
+    (tmp_path / "novalid.csv").write_text("\n".join(rows) + "\n")
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(tmp_path / "novalid.csv"))
+    assert code == 0 and "row(s) without a whole pose" in err and "rate that is not a number" in err, err
+    assert "ground truth" not in err and "valid (1) rows" not in err, err

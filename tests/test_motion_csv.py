@@ -206,7 +206,7 @@ def test_a_groundtruth_row_without_a_whole_pose_is_unknown_truth_at_that_time_on
     path = tmp_path / "groundtruth.csv"
     path.write_text(",".join(GROUNDTRUTH_COLUMNS) + "\n" + "\n".join(rows) + "\n")
     with pytest.warns(UserWarning, match=r"groundtruth\.csv:3: 2 row\(s\) without a whole pose \(.*\) read as "
-                                         r"no ground truth at their time \(the first on this line\)"):
+                                         r"no pose at their time \(the first on this line\)"):
         got = read_motion_csv(path)
     assert got.valid.tolist() == [True, False, False, True]
     assert np.isnan(got.velocity_cam_m_s[3]).all()  # a pose without rates is still a pose

@@ -246,9 +246,9 @@ def run(args: argparse.Namespace) -> int:
         # README: a states.csv row is valid (1) when every field is a number (a pose whose
         # rates are pending is a valid-0 row): a hand edit, or another writer's convention. Its
         # pose counts, its rates cannot, and the rate figures rest on fewer frames than the pose's.
-        print(f"trackmeter evaluate: warning: {estimate.valid_rows_without_rates} valid (1) rows of {estimate.source} "
-              "have a rate that is not a number (a valid row holds numbers in every field): their poses are "
-              "evaluated, their rates left out", file=sys.stderr)
+        print(f"trackmeter evaluate: warning: {estimate.valid_rows_without_rates} rows with a pose of {estimate.source} "
+              "have a rate that is not a number (a states.csv's valid (1) row holds numbers in every field): their "
+              "poses are evaluated, their rates left out", file=sys.stderr)
     if estimate.status == "running":
         # The writer never closed it: killed, a disk that filled (track then says run.yaml could
         # not be updated), or still being written; its summary is missing.

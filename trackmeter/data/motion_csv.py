@@ -373,8 +373,8 @@ def read_motion_csv(path: str | Path) -> MotionSeries:
         unknown = np.flatnonzero(valid == 0.0)
         if len(unknown):
             warnings.warn(f"{path}:{rows[int(unknown[0])][0]}: {len(unknown)} row(s) without a whole pose "
-                          "(a field of t, x..qz empty or nan, or a zero quaternion) read as no ground truth at "
-                          "their time (the first on this line)", stacklevel=2)
+                          "(a field of t, x..qz empty or nan, or a zero quaternion) read as no pose at their "
+                          "time (the first on this line)", stacklevel=2)
     extra = {name: a for name, a in col.items() if name not in _KNOWN}
     posed = np.flatnonzero(valid == 1.0)
     warn_far_from_unit_norm(path, stack(("qw", "qx", "qy", "qz"))[posed], lambda i: rows[int(posed[i])][0], "row")
