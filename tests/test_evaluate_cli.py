@@ -1102,3 +1102,24 @@ def test_warnings_about_an_estimate_without_a_valid_column_call_it_neither_truth
     code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(tmp_path / "novalid.csv"))
     assert code == 0 and "row(s) without a whole pose" in err and "rate that is not a number" in err, err
     assert "ground truth" not in err and "valid (1) rows" not in err, err
+
+
+@pytest.mark.parametrize("shift_m", [0.0, 0.5])
+def test_a_tum_truth_takes_velocities_from_a_groundtruth_csv_beside_only_of_the_same_poses(capsys, sequence_and_run,
+                                                                                           tmp_path, shift_m):
+    """A groundtruth.tum with a groundtruth.csv beside it takes the csv's velocities; they were
+    taken when the two disagreed too (a TUM shifted 0.5 m), unsaid (an outside probe)."""
+    truth, seq, run = sequence_and_run
+    mix = tmp_path / "mix"
+    write_groundtruth_csv(mix / "groundtruth.csv", truth)
+    _tum(mix / "groundtruth.tum", MotionSeries(truth.t_s, truth.valid, truth.position_m + [shift_m, 0, 0],
+                                               truth.quat_wxyz, truth.velocity_cam_m_s, truth.omega_body_rad_s))
+    code, out, err = _run(capsys, "evaluate", "--truth", str(mix / "groundtruth.tum"), "--estimate", str(run),
+                          "--json")
+    assert code == 0
+    s = json.loads(out)
+    if shift_m == 0.0:
+        assert s["velocity_m_s"]["z"]["max"] == pytest.approx(0.001, abs=1e-6) and err == "", err
+    else:
+        assert s["velocity_m_s"] is None
+        assert "groundtruth.csv" in err and "500 mm" in err and "velocities are not used" in err, err

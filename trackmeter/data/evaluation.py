@@ -142,9 +142,18 @@ def _declared_pose_times(run_dir: Path) -> tuple[np.ndarray, str | None]:
         return np.zeros(0), f"{exc} (the file is not read)"
 
 
+#: Poses of a TUM truth and of the groundtruth.csv beside it that differ by more than this
+#: (m; rad) are of other motions: the csv's velocities are not taken. A TUM file keeps 9
+#: decimals; another tool's may round to a tenth of a millimetre.
+SAME_TRUTH_TOLERANCE = (1e-3, 1e-3)
+
+
 def _with_rates_from(series: MotionSeries, csv_path: Path) -> MotionSeries | None:
     """``series`` poses with the velocities of ``csv_path`` when every timestamp agrees
-    (within 1 µs), else None."""
+    (within 1 µs) and so do the poses (:data:`SAME_TRUTH_TOLERANCE`; a warning when they do
+    not), else None."""
+    from scipy.spatial.transform import Rotation
+
     try:
         rates = read_motion_csv(csv_path).valid_only()
     except TrackmeterError:
@@ -154,6 +163,13 @@ def _with_rates_from(series: MotionSeries, csv_path: Path) -> MotionSeries | Non
         return None
     order = np.argsort(a.index_est)
     it = a.index_truth[order]
+    apart_m = float(np.max(np.linalg.norm(rates.position_m[it] - series.position_m, axis=1)))
+    apart_rad = float(np.max((Rotation.from_quat(rates.quat_wxyz[it], scalar_first=True)
+                              * Rotation.from_quat(series.quat_wxyz, scalar_first=True).inv()).magnitude()))
+    if apart_m > SAME_TRUTH_TOLERANCE[0] or apart_rad > SAME_TRUTH_TOLERANCE[1]:
+        warnings.warn(f"{csv_path} beside the truth gives other poses at its times (up to {1e3 * apart_m:.4g} mm and "
+                      f"{math.degrees(apart_rad):.3g} deg apart): its velocities are not used", stacklevel=3)
+        return None
     return MotionSeries(series.t_s, series.valid, series.position_m, series.quat_wxyz,
                         rates.velocity_cam_m_s[it], rates.omega_body_rad_s[it])
 
