@@ -62,7 +62,7 @@ def test_run_dir_against_sequence_json_is_exact(capsys, sequence_and_run, tmp_pa
     assert code == 0, err
     s = json.loads(out)
     assert list(s) == ["matched", "unmatched", "pose_coverage", "position_m", "attitude_rad", "velocity_m_s", "omega_rad_s", "speed_score",
-                       "settings"]
+                       "body_offset", "settings"]
     assert s["settings"]["truth"].startswith(str(seq / "groundtruth.tum")) and s["settings"]["estimate"] == str(run / "states.csv")
     assert s["matched"] == 59 and s["unmatched"] == 1  # the invalid frame
     assert s["position_m"]["x"] == pytest.approx({"rms": 0.002, "max": 0.002, "p95": 0.002}, abs=TUM_EPS)
@@ -270,8 +270,13 @@ def test_align_body_recovers_offset_through_the_cli(capsys, tmp_path):
     assert code == 0
     # TUM keeps 9 decimals, so the recovered offset is exact to ~1e-9.
     assert s["position_m"]["norm"]["max"] < 1e-6 and s["attitude_rad"]["total"]["max"] < 1e-6
+    # and the offset itself is in the JSON (it was in report.md only: an outside probe)
+    offset = s["body_offset"]["T_bodytrue_bodyest"]
+    assert offset["translation_m"] == pytest.approx(t_X, abs=1e-6)
+    assert offset["rotation_vector_rad"] == pytest.approx(R_X.as_rotvec(), abs=1e-6)
     code, out, _ = _run(capsys, "evaluate", "--truth", str(tmp_path / "t.tum"), "--estimate", str(tmp_path / "e.tum"), "--json")
     assert json.loads(out)["attitude_rad"]["total"]["max"] > 1.0
+    assert json.loads(out)["body_offset"] is None  # every key is always there
 
 
 def _write(path, text):

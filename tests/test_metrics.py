@@ -68,7 +68,8 @@ def test_identical_trajectories_have_zero_error_and_json_shape():
     truth = tumbling_truth()
     ev = evaluate(truth, truth)
     s = ev.summary
-    assert list(s) == ["matched", "unmatched", "pose_coverage", "position_m", "attitude_rad", "velocity_m_s", "omega_rad_s", "speed_score"]
+    assert list(s) == ["matched", "unmatched", "pose_coverage", "position_m", "attitude_rad", "velocity_m_s", "omega_rad_s", "speed_score",
+                       "body_offset"]
     assert s["matched"] == 60 and s["unmatched"] == 0
     assert set(s["position_m"]) == {"x", "y", "z", "norm"}
     assert set(s["attitude_rad"]) == {"x", "y", "z", "total"}

@@ -29,7 +29,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from trackmeter.core.params import param
-from trackmeter.core.transforms import attitude_error_components, quat_wxyz_to_matrix, matrix_to_quat_wxyz
+from trackmeter.core.transforms import (attitude_error_components, matrix_to_quat_wxyz, quat_wxyz_to_matrix,
+                                       rotation_from_matrix)
 from trackmeter.errors import TrackmeterError
 
 FloatArray = NDArray[np.float64]
@@ -373,7 +374,8 @@ class Evaluation:
     """Result of :func:`evaluate`.
 
     Attributes:
-        summary: the JSON summary (:func:`summarize`).
+        summary: the JSON summary (:func:`summarize`), plus ``"body_offset"``: with ``--align
+            body`` ``{"T_bodytrue_bodyest": {"rotation_vector_rad", "translation_m"}}``, else None.
         errors: per-frame errors after settling.
         association: the pairs after the settle time, and the poses left without a partner there.
         body_offset: ``(R_bodytrue_bodyest, t_X)`` with ``--align body``, else None.
@@ -472,4 +474,8 @@ def evaluate(
     if v_t is None or w_t is None or v_e is None or w_e is None:
         v_t = w_t = v_e = w_e = None
     errors = motion_errors(truth.t_s[it], q_t, p_t, q_e, p_e, v_t, v_e, w_t, w_e)
-    return Evaluation(summarize(errors, assoc, coverage), errors, assoc, offset)
+    summary = summarize(errors, assoc, coverage)
+    summary["body_offset"] = None if offset is None else {"T_bodytrue_bodyest": {
+        "rotation_vector_rad": rotation_from_matrix(offset[0]).as_rotvec().tolist(),
+        "translation_m": np.asarray(offset[1], float).tolist()}}
+    return Evaluation(summary, errors, assoc, offset)
