@@ -699,7 +699,10 @@ def test_errors_csv_leaves_an_unknown_value_empty_as_the_run_files_do(capsys, tm
     rows = [line.split(",") for line in text.splitlines()[1:]]
     header = text.splitlines()[0].split(",")
     assert all(len(r) == len(header) for r in rows)
-    assert any(r[header.index("evx")] == "" for r in rows) and rows[-1][header.index("evx")] != ""
+    assert any(r[header.index("evx_m_s")] == "" for r in rows) and rows[-1][header.index("evx_m_s")] != ""
+    # each column names its unit (DESIGN.md 3; "ax" could be radians or degrees: an outside probe)
+    assert header == ["t_s", "ex_m", "ey_m", "ez_m", "e_norm_m", "ax_rad", "ay_rad", "az_rad", "a_total_rad",
+                      "evx_m_s", "evy_m_s", "evz_m_s", "ewx_rad_s", "ewy_rad_s", "ewz_rad_s", "speed_score"]
 
 
 def test_frames_of_the_run_without_a_pose_count_as_unmatched_and_say_the_share_covered(capsys, tmp_path):

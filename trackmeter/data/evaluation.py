@@ -481,13 +481,14 @@ def paper_table(summary: dict) -> str:
 
 def error_table_csv(evaluation: Evaluation) -> str:
     """The per-frame error time series as CSV text (SI units, camera frame; omega in the
-    true body frame): ``t,ex,ey,ez,e_norm,ax,ay,az,a_total,[evx..evz,ewx..ewz,]speed_score``."""
+    true body frame), each column named with its unit: ``t_s, ex_m..ez_m, e_norm_m, ax_rad..az_rad,
+    a_total_rad, [evx_m_s..evz_m_s, ewx_rad_s..ewz_rad_s,] speed_score`` (dimensionless)."""
     e = evaluation.errors
-    cols = ["t", "ex", "ey", "ez", "e_norm", "ax", "ay", "az", "a_total"]
+    cols = ["t_s", "ex_m", "ey_m", "ez_m", "e_norm_m", "ax_rad", "ay_rad", "az_rad", "a_total_rad"]
     data = [e.t_s[:, None], e.position_m, np.linalg.norm(e.position_m, axis=1)[:, None],
             e.attitude_rad, e.attitude_total_rad[:, None]]
     if e.velocity_m_s is not None and e.omega_rad_s is not None:
-        cols += ["evx", "evy", "evz", "ewx", "ewy", "ewz"]
+        cols += ["evx_m_s", "evy_m_s", "evz_m_s", "ewx_rad_s", "ewy_rad_s", "ewz_rad_s"]
         data += [e.velocity_m_s, e.omega_rad_s]
     cols.append("speed_score")
     data.append(e.speed_score[:, None])
