@@ -22,6 +22,7 @@ import viser
 from console.app import Console, pin_mmap_threshold
 from trackmeter.core.patch_tracking import warm_up
 from trackmeter.errors import TrackmeterError
+from trackmeter.signals import interrupt_kept
 from trackmeter.pipeline.pipeline import Engine, Pipeline
 from trackmeter.sources.base import Source
 
@@ -106,7 +107,8 @@ def start_console(
     # numba's cache) before the server listens: a page opened during the compile was starved,
     # and viser's client drops an image still loading when the next arrives, so it stayed
     # black; the pipeline's own warm-up then finds them compiled.
-    warm_up()
+    with interrupt_kept():  # a stop signal during a compile is otherwise lost there
+        warm_up()
     server = start_server(host, port)
     pipeline = Pipeline(source, engine, drop_frames=True, record_dir=record_dir)
     try:

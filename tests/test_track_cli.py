@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import signal
 from pathlib import Path
 
 import numpy as np
@@ -954,3 +955,43 @@ def test_the_closing_source_warning_says_only_what_is_new(tmp_path) -> None:
     assert len(warned) == 2, done.stderr
     assert "listed in data.csv are missing" in warned[0] and "unreadable" not in warned[0], warned
     assert "unreadable image skipped" in warned[1] and "listed in data.csv" not in warned[1], warned
+
+
+def _compile_that_swallows_a_stop(fails: bool):  # type: ignore[no-untyped-def]
+    """A warm-up as numba's compile behaves when a stop signal lands in it: the handler's
+    KeyboardInterrupt raised inside a ctypes callback is reported ("Exception ignored") and
+    dropped, and the compile goes on, or fails ("RuntimeError: no compiled object yet")."""
+
+    def warm_up() -> None:
+        try:
+            signal.raise_signal(signal.SIGTERM)
+        except KeyboardInterrupt:
+            pass
+        if fails:
+            raise RuntimeError("no compiled object yet for <Library 'lk_translation'>")
+
+    return warm_up
+
+
+@pytest.mark.parametrize("fails", [True, False])
+def test_a_stop_signal_swallowed_by_the_compile_still_stops_the_run(monkeypatch, tmp_path, capsys, fails) -> None:
+    """SIGTERM while the fits compiled (a cold numba cache) gave a traceback, exit 1 and a run
+    folder saying "running"; once the stop was lost, and the run went on to its end with
+    exit 0 (an outside probe). Either way it is an interrupt now."""
+    import trackmeter.pipeline.pipeline as pipeline_module
+
+    monkeypatch.setattr(pipeline_module, "warm_up", _compile_that_swallows_a_stop(fails))
+    before = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    out = tmp_path / "run"
+    try:
+        signal.signal(signal.SIGINT, signal.default_int_handler)  # a process's own, whatever earlier tests left
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        code = main(["track", "--source", "sim", "--auto", "4", "--max-frames", "50", "--out", str(out)])
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+    err = capsys.readouterr().err
+    assert code == 130 and "Traceback" not in err, err
+    assert err.strip().splitlines()[-1].startswith("trackmeter track: interrupted"), err
+    if out.exists():  # no folder left saying "running"
+        assert yaml.safe_load((out / "run.yaml").read_text())["status"] == "interrupted"

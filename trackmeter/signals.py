@@ -8,7 +8,9 @@ the command line's entry point reads it before any command is loaded.
 
 from __future__ import annotations
 
+import contextlib
 import signal
+from collections.abc import Iterator
 
 STOP_SIGNALS: tuple[signal.Signals, ...] = tuple(
     getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
@@ -22,3 +24,42 @@ def takes_over(signum: int, handler: object) -> bool:
     if signum == signal.SIGINT:
         return handler is signal.default_int_handler
     return handler in (signal.SIG_DFL, None)
+
+
+#: The stop signal the command line took during the running command (:func:`note_taken`),
+#: or None.
+_taken: int | None = None
+
+
+def note_taken(signum: int | None) -> None:
+    """Record that the command line's handler took stop signal ``signum`` (None: a command
+    starts, none taken yet)."""
+    global _taken
+    _taken = signum
+
+
+def taken() -> int | None:
+    """The stop signal taken during the running command, or None."""
+    return _taken
+
+
+@contextlib.contextmanager
+def interrupt_kept() -> Iterator[None]:
+    """Run a block in which the KeyboardInterrupt of a stop signal may be lost, and raise one
+    after it when a stop signal was taken during it.
+
+    A C library that calls back into Python drops an exception raised in its callback: numba's
+    compile (through ctypes) reports the handler's KeyboardInterrupt as "Exception ignored"
+    and goes on, to its end (the stop lost: the run carried on, exit 0) or to an error of its
+    own ("RuntimeError: no compiled object yet", exit 1 and a run folder left "running").
+    Either way the block ends here as the interrupt it was. A signal taken before the block
+    (the command already stopping) is not raised again."""
+    before = _taken
+    try:
+        yield
+    except Exception:
+        if before is None and _taken is not None:
+            raise KeyboardInterrupt from None
+        raise
+    if before is None and _taken is not None:
+        raise KeyboardInterrupt

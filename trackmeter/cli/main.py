@@ -24,6 +24,7 @@ import warnings
 from typing import Any, Callable, NoReturn, Sequence, TextIO
 
 from trackmeter.errors import TrackmeterError
+from trackmeter import signals
 from trackmeter.signals import STOP_SIGNALS, takes_over
 
 #: name -> one-line help. The module ``trackmeter.cli.<name>`` implements it.
@@ -82,10 +83,6 @@ def _command_module(name: str):  # type: ignore[no-untyped-def]
     return importlib.import_module(f"trackmeter.cli.{name}")
 
 
-#: The stop signal :func:`_interrupt` took during the running command, or None.
-_stop_signal: int | None = None
-
-
 def _interrupt(signum: int, frame: object) -> None:
     """The first Ctrl-C, SIGTERM or SIGHUP stops the command (KeyboardInterrupt); any later
     one is only noted. A second signal arrives while the command winds down (Ctrl-C pressed
@@ -93,8 +90,7 @@ def _interrupt(signum: int, frame: object) -> None:
     raised again, it would cut the wind-down short (a recording or a run left half-closed)
     or land inside the interpreter's own lock handling (``RuntimeError: release unlocked
     lock``)."""
-    global _stop_signal
-    _stop_signal = signum
+    signals.note_taken(signum)
     _swap_handlers(_interrupt, _already_stopping)
     if signum == getattr(signal, "SIGHUP", None):
         _outlive_the_terminal()
@@ -301,7 +297,6 @@ PATH_METAVARS = frozenset({"DIR", "FILE", "GLOB", "IMG", "MODEL", "RIG", "SPEC",
 
 
 def _main(argv: Sequence[str] | None) -> int:
-    global _stop_signal
     parser = build_parser()
     _Parser.argv = list(sys.argv[1:] if argv is None else argv)
     args, unknown = parser.parse_known_args(argv)
@@ -339,7 +334,7 @@ def _main(argv: Sequence[str] | None) -> int:
                 previous[sig] = found
                 signal.signal(sig, _interrupt)
         sys.unraisablehook = _without_signal_race_reports(unraisable_hook)
-    _stop_signal = None
+    signals.note_taken(None)
     try:
         try:
             return int(_command_module(args.command).run(args) or 0)
@@ -347,7 +342,7 @@ def _main(argv: Sequence[str] | None) -> int:
             # The signal's KeyboardInterrupt, replaced on its way out: by a compiled module's
             # init (cv2, scipy) with its own "ImportError: initialization failed", or wrapped by
             # Python ("RuntimeError: Error calling __set_name__", caused by it). A Ctrl-C still.
-            if _stop_signal is None or not (isinstance(exc, ImportError) or _caused_by_an_interrupt(exc)):
+            if signals.taken() is None or not (isinstance(exc, ImportError) or _caused_by_an_interrupt(exc)):
                 raise
             raise KeyboardInterrupt from None
     except TrackmeterError as exc:

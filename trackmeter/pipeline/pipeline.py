@@ -51,7 +51,7 @@ from trackmeter.core.patch_tracking import warm_up
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.targets import TargetState
 from trackmeter.errors import TrackmeterError, quoted_name
-from trackmeter.signals import STOP_SIGNALS
+from trackmeter.signals import STOP_SIGNALS, interrupt_kept
 from trackmeter.pipeline.engine import SelectModelPoints
 from trackmeter.pipeline.snapshot import (
     AcquireModel,
@@ -386,7 +386,8 @@ class Pipeline:
         if self._started:
             raise RuntimeError("pipeline already started")
         self._started = True
-        warm_up()  # before the source runs: its first frames are not dropped for a compile
+        with interrupt_kept():  # a stop signal during a compile is otherwise lost there
+            warm_up()  # before the source runs: its first frames are not dropped for a compile
         if self._initial_record_dir is not None:
             self._start_recording(self._initial_record_dir)
         self._trk_thread.start()
