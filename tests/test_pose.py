@@ -333,3 +333,59 @@ def test_random_triples_where_numpy_would_redraw() -> None:
     rng = np.random.default_rng(1056)
     expected = np.array([rng.choice(9000, 3, replace=False) for _ in range(80)])
     np.testing.assert_array_equal(_random_triples(9000, 80, 1056), expected)
+
+
+def _good_problem(n: int = 6) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    b = satellite_points(n)
+    R, t = true_pose()
+    return b, b @ R.T + t, np.broadcast_to(np.eye(3) * 1e-6, (n, 3, 3)).copy()
+
+
+@pytest.mark.parametrize("solver", [solve_pose, robust_pose])
+def test_bad_points_are_refused_by_name_and_row(solver) -> None:
+    """A NaN point gave numpy's 'SVD did not converge'; the wrong shape 'cannot reshape'."""
+    b, p, C = _good_problem()
+    p_nan = p.copy()
+    p_nan[4, 1] = np.nan
+    with pytest.raises(TrackmeterError, match=r"points_cam\[4\] is not finite"):
+        solver(b, p_nan, C)
+    b_inf = b.copy()
+    b_inf[2, 0] = np.inf
+    with pytest.raises(TrackmeterError, match=r"points_body\[2\] is not finite"):
+        solver(b_inf, p, C)
+    with pytest.raises(TrackmeterError, match=r"points_cam must be \(6,3\), got shape \(6,2\)"):
+        solver(b, p[:, :2], C)
+    with pytest.raises(TrackmeterError, match=r"points_cam must be \(6,3\)"):
+        solver(b, p[:5], C)
+
+
+@pytest.mark.parametrize("solver", [solve_pose, robust_pose])
+@pytest.mark.parametrize(
+    "name, make, message",
+    [
+        ("cov_cam", lambda C: np.where(np.arange(6)[:, None, None] == 3, np.nan, C), r"cov_cam\[3\] is not finite"),
+        ("cov_cam", lambda C: C[0], r"cov_cam must be \(6,3,3\), got shape \(3,3\)"),
+        ("cov_cam", lambda C: np.zeros_like(C), r"cov_cam\[0\] must be a symmetric positive-definite"),
+        ("cov_cam", lambda C: -C, r"cov_cam\[0\] must be a symmetric positive-definite"),
+        ("cov_cam", lambda C: C[:, :2, :2], r"cov_cam must be \(6,3,3\), got shape \(6,2,2\)"),
+        ("cov_cam", lambda C: C + np.triu(np.ones((3, 3)), 1) * 1e-6, r"cov_cam\[0\] .*not symmetric"),
+        ("cov_body", lambda C: -C, r"cov_body\[0\] must be a symmetric positive-semi-definite"),
+        ("cov_body", lambda C: C[:, :2, :2], r"cov_body must be \(6,3,3\)"),
+    ],
+)
+def test_bad_covariances_are_refused_by_name(solver, name, make, message) -> None:
+    """Gave 'absolute orientation weights must be (N,) finite and non-negative' or numpy's
+    'cannot reshape array'; a zero model covariance (an exact a-priori point) stays allowed."""
+    b, p, C = _good_problem()
+    kwargs = {"cov_cam": C, "cov_body": np.zeros_like(C)}
+    kwargs[name] = make(C)
+    with pytest.raises(TrackmeterError, match=message):
+        solver(b, p, kwargs["cov_cam"], kwargs["cov_body"])
+
+
+def test_valid_input_is_not_refused_and_unchanged_by_the_checks() -> None:
+    b, p, C = _good_problem()
+    R, t, _ = solve_pose(b, p, C, np.zeros_like(C))
+    R_true, t_true = true_pose()
+    np.testing.assert_allclose(R, R_true, atol=1e-9)
+    np.testing.assert_allclose(t, t_true, atol=1e-9)

@@ -344,3 +344,22 @@ def test_matrix_to_quat_of_a_stack_is_the_single_calls() -> None:
         q2 = tf.matrix_to_quat_wxyz(np.stack([a, b]))
         np.testing.assert_array_equal(q2[0], tf.matrix_to_quat_wxyz(a))
         np.testing.assert_array_equal(q2[1], tf.matrix_to_quat_wxyz(b))
+
+
+def test_absolute_orientation_names_a_non_finite_point() -> None:
+    """A NaN point gave numpy's 'SVD did not converge'."""
+    a = np.random.default_rng(0).normal(size=(5, 3))
+    b = a.copy()
+    b[4, 2] = np.nan
+    with pytest.raises(TrackmeterError, match=r"points_b\[4\] is not finite"):
+        tf.absolute_orientation(a, b)
+    with pytest.raises(TrackmeterError, match=r"weights\[2\] .*-1"):
+        tf.absolute_orientation(a, a, np.array([1, 1, -1, 1, 1.0]))
+
+
+def test_frame_from_three_points_refuses_nan_and_bad_shapes() -> None:
+    """A NaN gave a NaN frame silently; 2-vectors numpy's ValueError."""
+    with pytest.raises(TrackmeterError, match=r"p1\[2\] is not finite"):
+        tf.frame_from_three_points([0, 0, np.nan], [1, 0, 0], [0, 1, 0])
+    with pytest.raises(TrackmeterError, match=r"p2 must be \(3,\), got shape \(2,\)"):
+        tf.frame_from_three_points([0, 0, 0], [1, 0], [0, 1, 0])

@@ -38,6 +38,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
+from trackmeter.core.checks import covariances, finite_rows
 from trackmeter.core.params import param
 from trackmeter.core.transforms import absolute_orientation, frame_from_three_points
 from trackmeter.errors import TrackmeterError
@@ -334,12 +335,45 @@ def solve_pose(
         covariance of (t, rotation vector), camera frame — the inverse normal matrix.
 
     Raises:
-        TrackmeterError: fewer than 3 points or a degenerate (collinear) configuration.
+        TrackmeterError: fewer than 3 points, a degenerate (collinear) configuration, or a
+            malformed argument (wrong shape, a non-finite value, a covariance that is not
+            symmetric positive-definite; :func:`checked_points`).
     """
-    b = np.asarray(points_body, dtype=float).reshape(-1, 3)
-    p = np.asarray(points_cam, dtype=float).reshape(-1, 3)
-    C = np.asarray(cov_cam, dtype=float).reshape(-1, 3, 3)
-    Cb = None if cov_body is None else np.asarray(cov_body, dtype=float).reshape(-1, 3, 3)
+    b, p, C, Cb = checked_points(points_body, points_cam, cov_cam, cov_body)
+    return _solve_pose(b, p, C, Cb, initial, iterations)
+
+
+def checked_points(
+    points_body: ArrayLike, points_cam: ArrayLike, cov_cam: ArrayLike, cov_body: ArrayLike | None = None
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray | None]:
+    """The arguments of :func:`solve_pose` and :func:`robust_pose` as float arrays, checked.
+
+    ``points_body`` and ``points_cam`` must be (N,3) and finite, ``cov_cam`` (N,3,3) symmetric
+    positive-definite (its inverse weighs each point), ``cov_body`` None or (N,3,3) symmetric
+    positive semi-definite (zero: an exact a-priori model point). Checked once at the public
+    entry; the fits inside (robust_pose's refits) take the checked arrays as they are.
+
+    Raises:
+        TrackmeterError: naming the argument, the expected shape and the offending row,
+            e.g. ``"points_cam[4] is not finite: [0.1, nan, 3.5]"``.
+    """
+    b = finite_rows(points_body, "points_body", (None, 3))
+    n = len(b)
+    p = finite_rows(points_cam, "points_cam", (n, 3))
+    C = covariances(cov_cam, "cov_cam", n, definite=True)
+    Cb = None if cov_body is None else covariances(cov_body, "cov_body", n, definite=False)
+    return b, p, C, Cb
+
+
+def _solve_pose(
+    b: FloatArray,
+    p: FloatArray,
+    C: FloatArray,
+    Cb: FloatArray | None,
+    initial: tuple[FloatArray, FloatArray] | None,
+    iterations: int,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """:func:`solve_pose` on arrays already checked by :func:`checked_points`."""
     if len(b) < 3:
         raise TrackmeterError(f"a pose needs at least 3 points, got {len(b)}")
     if initial is None:
@@ -460,12 +494,10 @@ def robust_pose(
         A :class:`PoseFit`; its covariance is scaled by ``scale2``.
 
     Raises:
-        TrackmeterError: fewer than 3 points, or fewer than 3 inliers in a non-degenerate layout.
+        TrackmeterError: fewer than 3 points, fewer than 3 inliers in a non-degenerate layout,
+            or a malformed argument (:func:`checked_points`).
     """
-    b = np.asarray(points_body, dtype=float).reshape(-1, 3)
-    p = np.asarray(points_cam, dtype=float).reshape(-1, 3)
-    C = np.asarray(cov_cam, dtype=float).reshape(-1, 3, 3)
-    Cb = None if cov_body is None else np.asarray(cov_body, dtype=float).reshape(-1, 3, 3)
+    b, p, C, Cb = checked_points(points_body, points_cam, cov_cam, cov_body)
     n = len(b)
     if n < 3:
         raise TrackmeterError(f"a pose needs at least 3 points, got {n}")
@@ -504,7 +536,7 @@ def robust_pose(
             if inliers.sum() < 3:
                 inliers = d2[best] <= np.sort(d2[best])[2]
     scale2 = 1.0
-    R, t, cov = solve_pose(b[inliers], p[inliers], C[inliers], None if Cb is None else Cb[inliers],
+    R, t, cov = _solve_pose(b[inliers], p[inliers], C[inliers], None if Cb is None else Cb[inliers],
                            start, params.refine_iterations)
     for _ in range(6):
         d2 = _gating_d2(R, t, cov, b, p, C, Cb, inliers)
@@ -515,7 +547,7 @@ def robust_pose(
         if new_inliers.sum() < 3 or np.array_equal(new_inliers, inliers):
             break
         inliers = new_inliers
-        R, t, cov = solve_pose(b[inliers], p[inliers], C[inliers], None if Cb is None else Cb[inliers],
+        R, t, cov = _solve_pose(b[inliers], p[inliers], C[inliers], None if Cb is None else Cb[inliers],
                                (R, t), params.refine_iterations)
     else:  # the last refit is not gated yet (a break leaves d2 of the final pose and set)
         d2 = _gating_d2(R, t, cov, b, p, C, Cb, inliers)

@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
+from trackmeter.core.checks import finite_rows
 from trackmeter.errors import TrackmeterError
 
 FloatArray = NDArray[np.float64]
@@ -233,16 +234,16 @@ def absolute_orientation(
         ``(R_a_b, t_a_b)``: (3,3) and (3,).
 
     Raises:
-        TrackmeterError: fewer than 3 points with positive weight, or the points are
-            collinear so the rotation is not determined.
+        TrackmeterError: fewer than 3 points with positive weight, the points are collinear so
+            the rotation is not determined, or an argument of the wrong shape or with a
+            non-finite (or, for ``weights``, negative) element, named with its row.
     """
-    a = np.asarray(points_a, dtype=float)
-    b = np.asarray(points_b, dtype=float)
-    if a.shape != b.shape or a.ndim != 2 or a.shape[1] != 3:
-        raise TrackmeterError(f"absolute orientation needs two (N,3) point sets, got {a.shape} and {b.shape}")
-    w = np.ones(len(a)) if weights is None else np.asarray(weights, dtype=float)
-    if w.shape != (len(a),) or np.any(w < 0) or not np.all(np.isfinite(w)):
-        raise TrackmeterError("absolute orientation weights must be (N,) finite and non-negative")
+    a = finite_rows(points_a, "points_a", (None, 3))
+    b = finite_rows(points_b, "points_b", (len(a), 3))
+    w = np.ones(len(a)) if weights is None else finite_rows(weights, "weights", (len(a),))
+    if np.any(w < 0):
+        k = int(np.flatnonzero(w < 0)[0])
+        raise TrackmeterError(f"weights[{k}] is {w[k]:g}: absolute orientation weights must be non-negative")
     if np.count_nonzero(w > 0) < 3:
         raise TrackmeterError(f"absolute orientation needs at least 3 weighted points, got {np.count_nonzero(w > 0)}")
     w = w / w.sum()
@@ -269,11 +270,12 @@ def frame_from_three_points(p1: ArrayLike, p2: ArrayLike, p3: ArrayLike) -> tupl
     ``R_a_body`` are the body axes expressed in a.
 
     Raises:
-        TrackmeterError: the three points are (nearly) collinear or coincident.
+        TrackmeterError: the three points are (nearly) collinear or coincident, or one is not
+            a finite (3,) vector.
     """
-    p1 = np.asarray(p1, dtype=float)
-    x = np.asarray(p2, dtype=float) - p1
-    v = np.asarray(p3, dtype=float) - p1
+    p1 = finite_rows(p1, "p1", (3,))
+    x = finite_rows(p2, "p2", (3,)) - p1
+    v = finite_rows(p3, "p3", (3,)) - p1
     nx = np.linalg.norm(x)
     z = np.cross(x, v)
     nz = np.linalg.norm(z)

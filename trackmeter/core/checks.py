@@ -1,0 +1,98 @@
+"""Cheap checks of array arguments at the core's public entry points.
+
+A NaN in a point or a covariance of the wrong shape otherwise surfaces deep inside numpy
+("SVD did not converge", "cannot reshape array"), or not at all (a NaN pose). These helpers
+turn it into one :class:`~trackmeter.errors.TrackmeterError` line that names the argument, the
+expected shape and the offending row. They run every frame inside the tracker, so each is a
+handful of vectorised numpy operations (no per-row Python loop unless something is wrong).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from trackmeter.errors import TrackmeterError
+
+FloatArray = NDArray[np.float64]
+
+#: Largest asymmetry ``|C - C^T|`` of a covariance, relative to its largest element, still
+#: taken as rounding (``R^T C R`` and sums of such are symmetric only to ~1e-16).
+SYMMETRY_TOLERANCE = 1e-6
+
+
+def _shape_text(shape: tuple[int | str, ...]) -> str:
+    """``(6,3)``, ``(3,)``: numpy's tuple notation without the spaces, as the docstrings write it."""
+    return "(" + ",".join(str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
+
+
+def finite_rows(value: ArrayLike, name: str, shape: tuple[int | None, ...]) -> FloatArray:
+    """``value`` as a float array of ``shape`` (``None``: any length), every element finite.
+
+    Args:
+        value: the argument as given.
+        name: its name in the message (``points_cam``).
+        shape: expected shape, e.g. ``(None, 3)`` for (N,3) points or ``(3,)`` for one point.
+
+    Raises:
+        TrackmeterError: ``"points_cam must be (N,3), got shape (5, 2)"`` or
+            ``"points_cam[4] is not finite: [nan, 0, 3.5]"``.
+    """
+    try:
+        a = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise TrackmeterError(f"{name} must be a numeric array of shape {_expected(shape)}") from None
+    if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape)):
+        raise TrackmeterError(f"{name} must be {_expected(shape)}, got shape {_shape_text(a.shape)}")
+    if not np.isfinite(a).all():
+        _raise_not_finite(a, name)
+    return a
+
+
+def _expected(shape: tuple[int | None, ...]) -> str:
+    return _shape_text(tuple("N" if s is None else s for s in shape))
+
+
+def _raise_not_finite(a: FloatArray, name: str) -> None:
+    bad = np.argwhere(~np.isfinite(a))[0]
+    if a.ndim <= 1:
+        where = f"{name}[{bad[0]}]" if a.ndim == 1 else name
+        raise TrackmeterError(f"{where} is not finite: {np.array2string(a, separator=', ', threshold=8)}")
+    row = int(bad[0])
+    raise TrackmeterError(f"{name}[{row}] is not finite: "
+                          f"{np.array2string(a[row], separator=', ', threshold=9).replace(chr(10), '')}")
+
+
+def covariances(value: ArrayLike, name: str, n: int, definite: bool = True) -> FloatArray:
+    """``value`` as ``n`` symmetric 3x3 covariances (n,3,3), positive-definite (``definite``) or
+    positive semi-definite (not ``definite``: a zero matrix is an exact point).
+
+    Positive-definiteness is Sylvester's criterion on the leading minors (three products per
+    matrix, no factorisation); semi-definiteness needs the eigenvalues (``eigvalsh``), allowed
+    down to ``-1e-9`` times the matrix's largest element for rounding.
+
+    Raises:
+        TrackmeterError: wrong shape (a single (3,3) given for N points, (N,2,2)), a NaN, an
+            asymmetric or indefinite matrix, naming ``name[i]``.
+    """
+    C = finite_rows(value, name, (n, 3, 3))
+    scale = np.abs(C).max(axis=(1, 2))
+    asym = np.abs(C - np.swapaxes(C, 1, 2)).max(axis=(1, 2))
+    bad = np.flatnonzero(asym > SYMMETRY_TOLERANCE * scale)
+    if bad.size:
+        raise TrackmeterError(f"{name}[{bad[0]}] must be a symmetric positive-{'definite' if definite else 'semi-definite'} "
+                              f"3x3 covariance: it is not symmetric")
+    if definite:
+        a, b, c = C[:, 0, 0], C[:, 0, 1], C[:, 0, 2]
+        d, e, f = C[:, 1, 1], C[:, 1, 2], C[:, 2, 2]
+        m2 = a * d - b * b
+        det = a * (d * f - e * e) - b * (b * f - c * e) + c * (b * e - d * c)
+        bad = np.flatnonzero(~((a > 0) & (m2 > 0) & (det > 0)))
+        kind = "definite"
+    else:
+        bad = np.flatnonzero(np.linalg.eigvalsh(C)[:, 0] < -1e-9 * scale) if n else np.zeros(0, int)
+        kind = "semi-definite (zero for an exact point)"
+    if bad.size:
+        raise TrackmeterError(f"{name}[{bad[0]}] must be a symmetric positive-{kind} 3x3 covariance, got "
+                              f"{np.array2string(C[bad[0]], separator=', ', precision=3).replace(chr(10), '')}")
+    return C
