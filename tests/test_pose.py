@@ -6,6 +6,8 @@ stereo error propagation (sigma_z = 4 mm at 3.5 m, as the paper measured).
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -389,3 +391,34 @@ def test_valid_input_is_not_refused_and_unchanged_by_the_checks() -> None:
     R_true, t_true = true_pose()
     np.testing.assert_allclose(R, R_true, atol=1e-9)
     np.testing.assert_allclose(t, t_true, atol=1e-9)
+
+
+def test_residual_per_dof_shows_a_gross_mismatch_among_three_points(estec_rig) -> None:
+    """With 3 points robust_pose keeps all three (nothing can be singled out) and the mismatch
+    bends the pose; only the inliers' chi-square per degree of freedom (3 of 9 coordinates
+    are redundant) shows it. nan where there is no redundancy."""
+    b = satellite_points(3)
+    R, t = true_pose()
+    p = b @ R.T + t
+    C = covariances(estec_rig, p)
+    honest = robust_pose(b, noisy(p, C, np.random.default_rng(3)), C)
+    assert honest.residual_per_dof < 5.0
+    bad = p.copy()
+    bad[1] += [0.05, 0.0, 0.0]  # a target slid 5 cm onto another surface
+    fit = robust_pose(b, bad, C)
+    assert fit.inliers.all() and fit.scale2 == 1.0  # not rejected, not inflated
+    assert fit.residual_per_dof > PoseParams().max_residual_per_dof
+    assert fit.residual_per_dof == pytest.approx(float(np.sum(fit.d2[fit.inliers])) / 3)
+    no_dof = replace(fit, inliers=np.array([True, True, False]))
+    assert np.isnan(no_dof.residual_per_dof)
+
+
+def test_residual_per_dof_divides_by_the_robust_scale(estec_rig) -> None:
+    b = satellite_points(8)
+    R, t = true_pose()
+    p = b @ R.T + t
+    C = covariances(estec_rig, p)
+    fit = robust_pose(b, noisy(p, 30.0 * C, np.random.default_rng(4)), C)
+    assert fit.scale2 > 1.0
+    k = int(fit.inliers.sum())
+    assert fit.residual_per_dof == pytest.approx(float(np.sum(fit.d2[fit.inliers])) / (3 * k - 6) / fit.scale2)

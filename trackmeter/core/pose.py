@@ -16,10 +16,15 @@ Gauss-Newton normal matrix is the first-order covariance of ``(t, dtheta)`` — 
 covariance, position in m and rotation vector in rad, both in the camera frame; ``dtheta`` is
 the rotation vector of ``R_est R_true^T``, the per-axis error of the paper's eq. 17.
 
-Robustness: a target that slides onto another surface is a gross outlier. With four or more
+Robustness: a target that slides onto another surface is a gross outlier. With five or more
 points a least-median-of-squares consensus over minimal triples (Rousseeuw & Leroy 1987) picks
 a starting pose no single bad point can bend, then points whose Mahalanobis residual exceeds a
-chi-square gate (3 degrees of freedom) are rejected and the fit is repeated on the rest.
+chi-square gate (3 degrees of freedom) are rejected and the fit is repeated on the rest. With
+four points the consensus still runs but cannot single out one bad point (its criterion, the
+4th-smallest residual, is then the largest: every triple's pose leaves one point off), and
+with three nothing can be rejected: a gross mismatch bends the pose. With three it still shows
+in the residual (:attr:`PoseFit.residual_per_dof`), which callers must check; with four the
+robust scale takes it up instead (a large ``scale2``, the covariance inflated by it).
 
 Case (a) builds the body frame from three points with
 :func:`trackmeter.core.transforms.frame_from_three_points` (origin placed at the three points'
@@ -248,6 +253,10 @@ class PoseFit:
         d2: (N,) squared Mahalanobis residual of every point against the final pose (for an
             outlier, against its predictive covariance).
         scale2: factor the point covariances were inflated by (>= 1; 1 when they were honest).
+
+    With 3 or 4 points no outlier can be rejected (module docstring). With 3, check
+    :attr:`residual_per_dof` against a limit (the engine uses ``PoseParams.max_residual_per_dof``)
+    before trusting the pose; with 4 a mismatch inflates ``scale2`` (and ``cov``) instead.
     """
 
     R_cam_body: FloatArray
@@ -256,6 +265,19 @@ class PoseFit:
     inliers: NDArray[np.bool_]
     d2: FloatArray
     scale2: float = 1.0
+
+    @property
+    def residual_per_dof(self) -> float:
+        """Chi-square of the inliers per degree of freedom, after the robust scale:
+        ``sum(d2[inliers]) / (3 k - 6) / max(scale2, 1)`` for ``k`` inliers (3 coordinates a
+        point, 6 pose unknowns). About 1 when the points agree with the model within their
+        covariances; far above it when a point is a gross mismatch that could not be rejected
+        (3 points: 3 of their 9 coordinates are redundant, so a mismatch bends the pose but
+        still shows here, and ``scale2`` stays 1). nan when there is no redundancy (``k < 3``)."""
+        dof = 3 * int(np.count_nonzero(self.inliers)) - 6
+        if dof <= 0:
+            return float("nan")
+        return float(np.sum(self.d2[self.inliers])) / dof / max(self.scale2, 1.0)
 
     @property
     def T_cam_body(self) -> FloatArray:
@@ -476,13 +498,19 @@ def robust_pose(
     1. With N >= 4 points, try up to ``params.ransac_trials`` triples (all of them when there
        are fewer; deterministic for a given ``seed``) plus ``initial`` when given; keep the
        pose whose median squared Mahalanobis residual over all points (at least the 4th
-       smallest: a triple fits itself exactly) is smallest.
+       smallest: a triple fits itself exactly) is smallest. A single bad point is singled
+       out from N >= 5 on: with 4, the 4th-smallest residual is the largest, and every
+       triple's pose leaves one point off.
     2. Robust scale ``s² = median(d²) / median(chi2_3)`` (only ever >= 1: honest covariances are
        kept); points with ``d² > s² chi2_3(outlier_probability)`` are outliers.
     3. :func:`solve_pose` on the inliers; re-gate every point against the refined pose (a
        left-out point by its predictive covariance) and refit until the set is stable.
 
-    With exactly 3 points nothing can be checked: the fit is exact and all are inliers.
+    With exactly 3 points no point can be rejected: all are inliers, and a gross mismatch bends
+    the pose without inflating its covariance (``scale2`` stays 1). The fit is not exact (9
+    coordinates, 6 unknowns), so the mismatch shows in :attr:`PoseFit.residual_per_dof`, which
+    the caller must check. With 4 points a single bad point is not rejected either; the robust
+    scale takes it up (a large ``scale2``, by which the covariance is inflated).
 
     Args:
         points_body, points_cam, cov_cam, cov_body: as :func:`solve_pose`.

@@ -1003,13 +1003,12 @@ class Engine:
             return None, f"only {int(fit.inliers.sum())} consistent model points"
         # With as few points as the pose has unknowns (3), nothing can be singled out as an
         # outlier: a gross mismatch bends the pose instead. The residual still shows it (3 of
-        # the 9 coordinates are redundant): chi-square per degree of freedom of the inliers.
-        dof = 3 * int(fit.inliers.sum()) - 6
-        if dof > 0:
-            per_dof = float(np.sum(fit.d2[fit.inliers])) / dof / max(fit.scale2, 1.0)
-            if per_dof > self.pose_params.max_residual_per_dof:
-                return None, (f"the measured model points disagree with the model (chi-square {per_dof:.0f} per "
-                              f"degree of freedom): a wrong match among too few points to single it out")
+        # the 9 coordinates are redundant): chi-square per degree of freedom of the inliers
+        # (nan, never above the limit, when there is no redundancy).
+        per_dof = fit.residual_per_dof
+        if per_dof > self.pose_params.max_residual_per_dof:
+            return None, (f"the measured model points disagree with the model (chi-square {per_dof:.0f} per "
+                          f"degree of freedom): a wrong match among too few points to single it out")
         if not _sigmas_within(fit.cov, self.pose_params.max_attitude_sigma_deg, self.pose_params.max_position_sigma_m):
             sd = np.sqrt(np.diag(fit.cov))
             return None, (f"{int(fit.inliers.sum())} model points leave the pose undetermined (1-sigma "
