@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from trackmeter.core.output_filter import FilterParams
 from trackmeter.core.targets import Refusal, TargetState
 from trackmeter.data.config import load_config
 from trackmeter.data.model import Model
@@ -1244,3 +1245,12 @@ def test_a_model_loaded_by_name_says_where_it_looked_and_what_it_warned(estec_ri
         (tmp_path / "m.yaml").write_text("points:\n- {id: a, xyz: [0, 0, 0]}\n- {id: b, xyz: [1, 0, 0]}\n"
                                          "- {id: c, xyz: [0, 1, 0]}\n")
         assert engine.handle(LoadModel("m.yaml"), None).message == "model with 3 points loaded: case (b)"
+
+
+def test_a_filter_cutoff_below_the_declared_minimum_is_a_refused_command(estec_rig) -> None:
+    """FilterParams now checks its range when built (cutoff_hz >= 0.01): the command's own check
+    says the same range, in the operator's words, instead of the dataclass's field name."""
+    engine, _, _ = make_engine(estec_rig)
+    reply = engine.handle(SetFilterCutoff(0.005), None)
+    assert not reply.ok and reply.message.startswith("filter cutoff must be in [0.01, ")
+    assert engine.filter_cutoff_hz == FilterParams().cutoff_hz

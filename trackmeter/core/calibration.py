@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from trackmeter.core.params import param
+from trackmeter.core.params import check_params, param
 from trackmeter.core.stereo import Camera, StereoRig
 from trackmeter.errors import TrackmeterError
 
@@ -74,6 +74,9 @@ class CalibrationParams:
 
 
 # --------------------------------------------------------------------------- step 1: corners
+
+    def __post_init__(self) -> None:
+        check_params(self)  # declared ranges and choices, as the config loader checks them
 
 
 def parse_pattern(text: str) -> tuple[int, int]:

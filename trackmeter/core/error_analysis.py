@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import stats
 
-from trackmeter.core.params import param
+from trackmeter.core.params import check_params, param
 from trackmeter.errors import TrackmeterError
 
 FloatArray = NDArray[np.float64]
@@ -50,6 +50,9 @@ class AnalyzeParams:
 
 
 # --------------------------------------------------------------------------- per range
+
+    def __post_init__(self) -> None:
+        check_params(self)  # declared ranges and choices, as the config loader checks them
 
 
 @dataclass(frozen=True, eq=False)

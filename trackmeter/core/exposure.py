@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from trackmeter.core.params import param
+from trackmeter.core.params import check_params, param
 
 
 @dataclass(frozen=True)
@@ -43,6 +43,9 @@ class ExposureParams:
                                   min=50.0, max=100.0)
     saturation_grey: float = param(250.0, "the grey level top_percentile may reach with the gain", min=1.0, max=255.0)
     max_gain: float = param(4.0, "the largest gain applied (noise is raised with the signal)", min=1.0, max=64.0)
+
+    def __post_init__(self) -> None:
+        check_params(self)  # declared ranges and choices, as the config loader checks them
 
 
 def grey_percentiles(image: NDArray[np.uint8], percentiles: tuple[float, ...]) -> tuple[int, ...]:

@@ -34,7 +34,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
-from trackmeter.core.params import param
+from trackmeter.core.params import check_params, param
 from trackmeter.core.stereo import Rectification, StereoRig
 from trackmeter.errors import TrackmeterError
 
@@ -74,6 +74,7 @@ class FeatureParams:
     stereo_min_span_px: float = param(64.0, "a disparity range given to the stereo check is widened to at least this span, px", min=1.0)
 
     def __post_init__(self) -> None:
+        check_params(self)  # declared ranges and choices first (trackmeter.core.params)
         # Refused here, not on every selection of a running tracker, where they would fail far
         # from the cause (an empty bank has no score; a crossed depth range no disparity).
         if not self.gabor_wavelengths_px:

@@ -32,7 +32,7 @@ from filterpy.kalman import KalmanFilter
 from numpy.typing import ArrayLike, NDArray
 from scipy.stats import chi2
 
-from trackmeter.core.params import param
+from trackmeter.core.params import check_params, param
 
 FloatArray = NDArray[np.float64]
 
@@ -55,6 +55,9 @@ class KalmanParams:
         0.9999, "chi-square gate on the innovation: a measurement outside it is a rejected jump", min=0.5, max=0.9999999
     )
     window_sigmas: float = param(4.0, "search window half-size in predicted standard deviations", min=1.0)
+
+    def __post_init__(self) -> None:
+        check_params(self)  # declared ranges and choices, as the config loader checks them
 
 
 @lru_cache(maxsize=64)

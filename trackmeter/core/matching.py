@@ -85,7 +85,7 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from trackmeter.core.params import param
+from trackmeter.core.params import check_params, param
 from trackmeter.core.stereo import Rectification, StereoRig, axis_sigmas, check_side_by_side
 from trackmeter.errors import TrackmeterError
 
@@ -228,6 +228,7 @@ class MeasureParams:
     sigma_uv_px: float = param(0.0, "standard deviation of the left pixel itself, px (0: taken as exact)", min=0.0)
 
     def __post_init__(self) -> None:
+        check_params(self)  # declared ranges and choices first (trackmeter.core.params)
         if not self.min_disparity_px < self.max_disparity_px:
             # An empty search range would refuse every point as "beyond range", far from the cause.
             raise TrackmeterError(f"min_disparity_px ({self.min_disparity_px:g}) must be below "

@@ -28,7 +28,7 @@ from typing import Literal, Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from trackmeter.core.params import param
+from trackmeter.core.params import check_params, param
 from trackmeter.core.transforms import (attitude_error_components, matrix_to_quat_wxyz, quat_wxyz_to_matrix,
                                        rotation_from_matrix)
 from trackmeter.errors import TrackmeterError
@@ -55,6 +55,9 @@ class EvaluateParams:
         "(body for a case (a) or (c) run, whose body frame is its own; none otherwise)",
         choices=("auto", "none", "body"),
     )
+
+    def __post_init__(self) -> None:
+        check_params(self)  # declared ranges and choices, as the config loader checks them
 
 
 def resolve_align(align: str, case: str | None) -> Literal["none", "body"]:

@@ -33,7 +33,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import signal
 from scipy.spatial.transform import Rotation
 
-from trackmeter.core.params import param
+from trackmeter.core.params import check_params, param
 from trackmeter.core.transforms import rotation_from_matrix
 
 FloatArray = NDArray[np.float64]
@@ -49,6 +49,9 @@ class FilterParams:
     velocity_compensated: bool = param(
         True, "filter in a chart moving with the estimated velocity: no group delay on constant-velocity motion"
     )
+
+    def __post_init__(self) -> None:
+        check_params(self)  # declared ranges and choices, as the config loader checks them
 
 
 def design_lowpass(cutoff_hz: float, order: int, rate_hz: float) -> FloatArray:

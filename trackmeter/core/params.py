@@ -5,12 +5,22 @@ Every tunable of the system is a field of a frozen dataclass in the core module 
 configuration loader (:mod:`trackmeter.data.config`) builds those dataclasses from
 ``config/default.yaml`` and a user's file, and checks each value against what is declared
 here, so a bad value is refused with its dotted key and the expected range.
+
+A dataclass built in a script is held to the same ranges: each ``...Params`` class calls
+:func:`check_params` from its ``__post_init__`` (``VelocityParams(method="Screw")`` would
+otherwise run another estimator silently). Both use :func:`range_problem`.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
+from collections.abc import Mapping
 from dataclasses import field
+from numbers import Real
 from typing import Any
+
+from trackmeter.errors import TrackmeterError, shown_value
 
 
 def param(
@@ -35,3 +45,48 @@ def param(
     if isinstance(default, (list, dict)):
         raise TypeError("use a tuple for sequence defaults so the dataclass stays immutable")
     return field(default=default, metadata=metadata)
+
+
+def range_problem(value: Any, meta: Mapping[str, Any], finite: bool = False) -> str | None:
+    """What is wrong with one value against a field's declared range or choices, or None.
+
+    ``meta`` is the field's metadata from :func:`param` (``min``, ``max`` inclusive;
+    ``choices``). NaN is never inside a range; with ``finite`` neither is an infinity (an
+    unbounded side still refuses ``inf`` then: no setting means "unbounded").
+
+    Returns:
+        ``"expected a value in [lo, hi], got V"``, ``"expected one of 'a', 'b', got V"``, or None.
+    """
+    lo, hi = meta.get("min"), meta.get("max")
+    if lo is not None or hi is not None:
+        bounds = f"[{lo if lo is not None else '-inf'}, {hi if hi is not None else 'inf'}]"
+        if isinstance(value, bool) or not isinstance(value, Real):
+            return f"expected a number in {bounds}, got {shown_value(value)}"
+        nan = isinstance(value, float) and math.isnan(value)
+        infinite = finite and isinstance(value, float) and not math.isfinite(value)
+        if nan or infinite or lo is not None and value < lo or hi is not None and value > hi:
+            return f"expected a value in {bounds}, got {shown_value(value)}"
+    choices = meta.get("choices")
+    if choices is not None and value not in choices:
+        return f"expected one of {', '.join(map(repr, choices))}, got {shown_value(value)}"
+    return None
+
+
+def check_params(params: Any) -> None:
+    """Hold every field of a parameter dataclass to its declared range or choices (each element
+    of a tuple), as the config loader holds a YAML value; call it from ``__post_init__``.
+
+    Raises:
+        TrackmeterError: ``"FilterParams.order: expected a value in [1, 8], got 0"``.
+    """
+    for f in dataclasses.fields(params):
+        meta = f.metadata
+        if "min" not in meta and "max" not in meta and "choices" not in meta:
+            continue
+        value = getattr(params, f.name)
+        items = enumerate(value) if isinstance(value, tuple) else ((None, value),)
+        for i, item in items:
+            problem = range_problem(item, meta)
+            if problem is not None:
+                index = "" if i is None else f"[{i}]"
+                raise TrackmeterError(f"{type(params).__name__}.{f.name}{index}: {problem}")

@@ -44,7 +44,7 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from trackmeter.core.checks import covariances, finite_rows
-from trackmeter.core.params import param
+from trackmeter.core.params import check_params, param
 from trackmeter.core.transforms import absolute_orientation, frame_from_three_points
 from trackmeter.errors import TrackmeterError
 
@@ -119,10 +119,10 @@ class PoseParams:
     )
     anchor_prior_m: float = param(
         0.01, "case (b): expected drift of the grown model's frame, position (1 sigma; directions the "
-        "a-priori points do not see stay put), m", min=1e-6,
+        "a-priori points do not see stay put; tiny: the grown model's frame is held), m", min=1e-12,
     )
     anchor_prior_rad: float = param(
-        0.02, "case (b): expected drift of the grown model's frame, attitude (1 sigma), rad", min=1e-6,
+        0.02, "case (b): expected drift of the grown model's frame, attitude (1 sigma), rad", min=1e-12,
     )
     slide_sigma_m_per_sqrt_s: float = param(
         0.0, "how fast a grown model point's target wanders on the surface (random walk: std after t seconds "
@@ -239,6 +239,9 @@ class PoseParams:
     max_recoveries_per_frame: int = param(4, "re-lock attempts per frame at most (bounds the step time)", min=0)
     recovery_margin_px: float = param(8.0, "a projected model point must lie this far inside both images, px",
                                       min=0.0)
+
+    def __post_init__(self) -> None:
+        check_params(self)  # declared ranges and choices, as the config loader checks them
 
 
 @dataclass(frozen=True, eq=False)

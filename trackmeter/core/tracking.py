@@ -48,7 +48,7 @@ from trackmeter.core import kalman as kf_mod
 from trackmeter.core.features import FeatureParams, nothing_selectable_reason, select_features
 from trackmeter.core.kalman import KalmanParams
 from trackmeter.core.matching import MeasureParams, measure_points
-from trackmeter.core.params import param
+from trackmeter.core.params import check_params, param
 from trackmeter.core.patch_tracking import (
     PatchTrack,
     Templates,
@@ -227,6 +227,7 @@ class TrackerParams:
     kalman: KalmanParams = field(default_factory=KalmanParams)
 
     def __post_init__(self) -> None:
+        check_params(self)  # declared ranges and choices first (trackmeter.core.params)
         if not self.min_search_px <= self.max_search_px:
             raise TrackmeterError(f"min_search_px ({self.min_search_px:g}) must not exceed max_search_px ({self.max_search_px:g})")
 

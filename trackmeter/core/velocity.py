@@ -58,7 +58,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from trackmeter.core.params import param
+from trackmeter.core.params import check_params, param
 from trackmeter.core.transforms import omega_body_between, rotation_from_matrix
 
 FloatArray = NDArray[np.float64]
@@ -122,6 +122,9 @@ class VelocityParams:
         True, "weight each pose of the window by its covariance (rotation and position parts "
         "separately): a pose measured from few points counts for little",
     )
+
+    def __post_init__(self) -> None:
+        check_params(self)  # declared ranges and choices, as the config loader checks them
 
 
 def right_jacobian_so3(phi: ArrayLike) -> FloatArray:

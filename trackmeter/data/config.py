@@ -34,6 +34,7 @@ from trackmeter.core.exposure import ExposureParams
 from trackmeter.core.features import FeatureParams
 from trackmeter.core.metrics import EvaluateParams
 from trackmeter.core.output_filter import FilterParams
+from trackmeter.core.params import range_problem
 from trackmeter.core.pose import PoseParams
 from trackmeter.core.tracking import TrackerParams
 from trackmeter.core.velocity import VelocityParams
@@ -428,11 +429,6 @@ def _check_range(value: float, meta: Mapping[str, Any], source: str, dotted: str
     """Raise when ``value`` is outside ``meta``'s bounds or choices (or, with ``finite``, not a
     finite number); the message names ``source: 'dotted'``, or ``source`` alone without a key."""
     where = f"{source}: '{dotted}'" if dotted else source
-    lo, hi = meta.get("min"), meta.get("max")
-    infinite = finite and isinstance(value, float) and not math.isfinite(value)
-    if infinite or lo is not None and value < lo or hi is not None and value > hi:
-        bounds = f"[{lo if lo is not None else '-inf'}, {hi if hi is not None else 'inf'}]"
-        raise TrackmeterError(f"{where}: expected a value in {bounds}, got {shown_value(value)}")
-    choices = meta.get("choices")
-    if choices is not None and value not in choices:
-        raise TrackmeterError(f"{where}: expected one of {', '.join(map(repr, choices))}, got {shown_value(value)}")
+    problem = range_problem(value, meta, finite)  # the same test a Params class's __post_init__ makes
+    if problem is not None:
+        raise TrackmeterError(f"{where}: {problem}")

@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import warnings
 from collections import deque
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -573,8 +573,11 @@ class Engine:
             notes = "".join(f"; {str(w.message).removeprefix(f'{path}: ')}" for w in said)
             return CommandReply(True, f"model with {len(model)} points loaded: case (b){notes}", notable=bool(notes))
         if isinstance(command, SetFilterCutoff):
-            if not 0 < command.cutoff_hz <= self.max_filter_cutoff_hz:
-                return CommandReply(False, f"filter cutoff must be in (0, {self.max_filter_cutoff_hz:g}] Hz "
+            # The low end is FilterParams.cutoff_hz's declared minimum, which building the
+            # params checks too: said here in the operator's words.
+            low = next(f.metadata["min"] for f in fields(FilterParams) if f.name == "cutoff_hz")
+            if not low <= command.cutoff_hz <= self.max_filter_cutoff_hz:
+                return CommandReply(False, f"filter cutoff must be in [{low:g}, {self.max_filter_cutoff_hz:g}] Hz "
                                            f"(0.95 of half the {self.rate_hz:g} Hz frame rate), got {command.cutoff_hz:g}")
             self.filter_params = replace(self.filter_params, cutoff_hz=float(command.cutoff_hz))
             self._filter = PoseFilter(self.filter_params, self.rate_hz)

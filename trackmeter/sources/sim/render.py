@@ -59,7 +59,7 @@ from numpy.typing import NDArray
 from scipy.ndimage import map_coordinates
 from scipy.spatial.transform import Rotation
 
-from trackmeter.core.params import param
+from trackmeter.core.params import check_params, param
 from trackmeter.core.stereo import Camera, StereoRig
 from trackmeter.errors import TrackmeterError
 from trackmeter.sources.sim.mockup import Face, MaterialSpec, Mockup, Surface, TextureLevel, _make_face
@@ -95,6 +95,9 @@ class RenderParams:
     mip_bias: float = param(0.0, "Texture level-of-detail bias, octaves (+: blurrier, less aliasing).", min=-4.0, max=4.0)
     trilinear: bool = param(True, "Blend the two nearest mip levels by the fractional level of detail (GPUs' trilinear "
                             "filtering), so a face's texture does not change at once when its level switches.")
+
+    def __post_init__(self) -> None:
+        check_params(self)  # declared ranges and choices, as the config loader checks them
 
 
 @dataclass(frozen=True, eq=False)
