@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy import signal
 from scipy.spatial.transform import Rotation
 
 from trackmeter.core.output_filter import FilterParams, PoseFilter, dc_group_delay_s, design_lowpass
+from trackmeter.errors import TrackmeterError
 
 RATE = 25.0
 AXIS = np.array([0.3, -0.8, 0.52]) / np.linalg.norm([0.3, -0.8, 0.52])
@@ -108,3 +110,25 @@ def test_dc_group_delay_of_first_order_filter() -> None:
     # single pole p: y = ... ; DC group delay = p/(1-p) - (zero term) computed by scipy
     _, gd = signal.group_delay((b, a), w=[1e-6], fs=RATE)
     assert abs(dc_group_delay_s(sos, RATE) - gd[0] / RATE) < 1e-12
+
+
+@pytest.mark.parametrize("rate_hz", [0.0, float("nan"), -25.0, float("inf")])
+def test_a_rate_that_is_no_frame_rate_is_refused(rate_hz: float) -> None:
+    """0 or nan gave scipy's 'attempt to get argmin of an empty sequence'; -25 was accepted."""
+    with pytest.raises(TrackmeterError, match=r"rate_hz must be a positive, finite frame rate"):
+        PoseFilter(FilterParams(), rate_hz)
+
+
+def test_a_non_finite_pose_is_refused_and_does_not_poison_the_filter() -> None:
+    """One NaN position made every later output NaN (the IIR state kept it)."""
+    f = PoseFilter(FilterParams(velocity_compensated=False), 25.0)
+    for k in range(5):
+        f.update(k / 25, np.eye(3), [0.0, 0.0, 3.5])
+    with pytest.raises(TrackmeterError, match=r"p_cam\[1\] is not finite"):
+        f.update(5 / 25, np.eye(3), [0.0, np.nan, 3.5])
+    R_bad = np.eye(3)
+    R_bad[0, 0] = np.inf
+    with pytest.raises(TrackmeterError, match=r"R_cam_body\[0\] is not finite"):
+        f.update(5 / 25, R_bad, [0.0, 0.0, 3.5])
+    R_out, p_out = f.update(6 / 25, np.eye(3), [0.0, 0.0, 3.5])
+    assert np.all(np.isfinite(R_out)) and np.allclose(p_out, [0.0, 0.0, 3.5])

@@ -19,6 +19,7 @@ from trackmeter.core.velocity import (
     se3_log,
     weighted_polyfit,
 )
+from trackmeter.errors import TrackmeterError
 
 R0 = Rotation.from_rotvec([0.3, -1.1, 0.7]).as_matrix()
 OMEGA = np.array([0.1, -0.05, 0.17])  # rad/s, body frame
@@ -528,3 +529,17 @@ def test_a_moved_body_frame_is_not_read_as_motion(method: str) -> None:
 def _next_new(t_s: float, Rd: np.ndarray, td: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     R, p = constant_rate(np.array([t_s]))
     return R[0] @ Rd, p[0] + R[0] @ td
+
+
+def test_a_non_finite_pose_is_refused_and_does_not_poison_the_window() -> None:
+    """One NaN position made v_cam NaN for the whole window."""
+    est = VelocityEstimator(VelocityParams(method="screw"))
+    for k in range(10):
+        est.update(k * 0.04, np.eye(3), [0.01 * k * 0.04, 0.0, 3.5])
+    with pytest.raises(TrackmeterError, match=r"p_cam\[2\] is not finite"):
+        est.update(0.40, np.eye(3), [0.0, 0.0, np.nan])
+    with pytest.raises(TrackmeterError, match=r"R_cam_body must be \(3,3\)"):
+        est.update(0.40, np.eye(4), [0.0, 0.0, 3.5])
+    v, omega = est.update(0.44, np.eye(3), [0.01 * 0.44, 0.0, 3.5])
+    np.testing.assert_allclose(v, [0.01, 0.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(omega, 0.0, atol=1e-12)

@@ -33,8 +33,10 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import signal
 from scipy.spatial.transform import Rotation
 
+from trackmeter.core.checks import finite_rows
 from trackmeter.core.params import check_params, param
 from trackmeter.core.transforms import rotation_from_matrix
+from trackmeter.errors import TrackmeterError
 
 FloatArray = NDArray[np.float64]
 
@@ -76,12 +78,18 @@ class PoseFilter:
 
     Args:
         params: cutoff, order, compensation.
-        rate_hz: sample rate the filter is designed for (the source's frame rate).
+        rate_hz: sample rate the filter is designed for (the source's frame rate), Hz; positive
+            and finite.
+
+    Raises:
+        TrackmeterError: ``rate_hz`` is not a positive, finite number.
     """
 
     def __init__(self, params: FilterParams = FilterParams(), rate_hz: float = 25.0) -> None:
         self.params = params
         self.rate_hz = float(rate_hz)
+        if not (self.rate_hz > 0 and np.isfinite(self.rate_hz)):  # scipy's butter fails obscurely, or not at all
+            raise TrackmeterError(f"rate_hz must be a positive, finite frame rate, Hz; got {rate_hz!r}")
         self.sos = design_lowpass(params.cutoff_hz, params.order, self.rate_hz)
         self._zi_unit = signal.sosfilt_zi(self.sos)  # (sections, 2) steady state for a unit input
         self.reset()
@@ -106,11 +114,20 @@ class PoseFilter:
     ) -> tuple[FloatArray, FloatArray]:
         """Filter one pose; returns the filtered ``(R_cam_body (3,3), p_cam (3,))``.
 
-        ``v_cam`` (m/s) and ``omega_body`` (rad/s) are the current velocity estimates, used
-        to move the chart when ``velocity_compensated`` is on.
+        Args:
+            t_s: time of the pose, s.
+            R_cam_body: (3,3) attitude, body to camera; finite.
+            p_cam: (3,) body origin in the camera frame, m; finite.
+            v_cam, omega_body: the current velocity estimates (m/s, camera frame; rad/s, body
+                frame), used to move the chart when ``velocity_compensated`` is on; ignored
+                when None or not finite (rates not yet known).
+
+        Raises:
+            TrackmeterError: a pose of the wrong shape or not finite. Refused before it enters
+                the IIR state, where one NaN would stay for ever; the filter is left as it was.
         """
-        R = np.asarray(R_cam_body, dtype=float)
-        p = np.asarray(p_cam, dtype=float)
+        R = finite_rows(R_cam_body, "R_cam_body", (3, 3))
+        p = finite_rows(p_cam, "p_cam", (3,))
         if not self.params.enabled:
             return R, p
         if self._R_base is None or self._p_base is None or self._t_last is None:

@@ -58,6 +58,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
+from trackmeter.core.checks import finite_rows
 from trackmeter.core.params import check_params, param
 from trackmeter.core.transforms import omega_body_between, rotation_from_matrix
 
@@ -505,12 +506,19 @@ class VelocityEstimator:
         weighs the pose in the fits (:func:`block_weights`). Why: the poses just before a loss
         are often measured from 3-4 points (attitude sigma ~1 deg against ~0.05 deg with 16);
         fitted with equal weights they turned the rates at the loss by ~2 deg/s on harsh_light,
-        which a coast then integrates."""
+        which a coast then integrates.
+
+        Raises:
+            TrackmeterError: ``R_cam_body`` not a finite (3,3) or ``p_cam`` not a finite (3,):
+                refused before it joins the window, where one NaN would spoil every fit over
+                the next ``window_s``; the window is left as it was."""
+        R_new = finite_rows(R_cam_body, "R_cam_body", (3, 3))
+        p_new = finite_rows(p_cam, "p_cam", (3,))
         if self._t and (t_s <= self._t[-1] or t_s - self._t[-1] > self.params.bridge_gap_s):
             self.reset()
         self._t.append(float(t_s))
-        self._R.append(np.asarray(R_cam_body, dtype=float))
-        self._p.append(np.asarray(p_cam, dtype=float))
+        self._R.append(R_new)
+        self._p.append(p_new)
         self._w.append(block_weights(cov_pose)[0] if cov_pose is not None else np.full(2, np.nan))
         keep = 2 if self.params.method == "difference" else None
         if self.params.method in ("screw", "free_body"):

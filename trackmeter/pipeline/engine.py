@@ -1002,6 +1002,11 @@ class Engine:
             fit = robust_pose(b, P, C, Cb, self.pose_params, initial=initial, seed=frame.index)
         except (TrackmeterError, np.linalg.LinAlgError) as exc:
             return None, f"pose undetermined: {exc}"
+        if not (np.isfinite(fit.R_cam_body).all() and np.isfinite(fit.t_cam_body).all()):
+            # Never seen (the points and covariances are finite and checked, the normal matrix's
+            # conditioning is), but the velocity estimator and output filter refuse such a pose:
+            # an invalid frame, not an exception out of the tracking thread.
+            return None, "pose undetermined: the fit is not finite"
         if fit.inliers.sum() < self.pose_params.min_points:
             return None, f"only {int(fit.inliers.sum())} consistent model points"
         # With as few points as the pose has unknowns (3), nothing can be singled out as an
