@@ -543,3 +543,17 @@ def test_a_non_finite_pose_is_refused_and_does_not_poison_the_window() -> None:
     v, omega = est.update(0.44, np.eye(3), [0.01 * 0.44, 0.0, 3.5])
     np.testing.assert_allclose(v, [0.01, 0.0, 0.0], atol=1e-9)
     np.testing.assert_allclose(omega, 0.0, atol=1e-12)
+
+
+@pytest.mark.parametrize("fit", [screw_rates, local_polynomial_rates], ids=["screw", "poly"])
+def test_times_that_do_not_increase_strictly_are_refused(fit) -> None:  # type: ignore[no-untyped-def]
+    """Decreasing times gave omega with the wrong sign; all-equal times v = omega = 0."""
+    t = np.arange(6) * 0.04
+    R = np.array([R0 @ Rotation.from_rotvec(OMEGA * tk).as_matrix() for tk in t])
+    p = np.array([[0.0, 0.0, 3.5] + V * tk for tk in t])
+    with pytest.raises(TrackmeterError, match=r"times_s must increase strictly: times_s\[1\] = 0\.16 follows 0\.2"):
+        fit(t[::-1], R[::-1], p[::-1], 1)
+    with pytest.raises(TrackmeterError, match=r"times_s must increase strictly"):
+        fit(np.zeros(6), R, p, 1)
+    with pytest.raises(TrackmeterError, match=r"times_s\[2\] is not finite"):
+        fit(np.where(np.arange(6) == 2, np.nan, t), R, p, 1)

@@ -6,22 +6,24 @@ which on sampled poses is the finite difference on the rotation group
 and ``v_cam = (t_k - t_{k-1}) / dt`` for the body origin. Differencing doubles the noise and
 divides it by ``dt`` (40 ms at 25 Hz): a 1 mm position noise becomes ~35 mm/s.
 
-The default estimator is a causal local polynomial fit (Savitzky-Golay on the rotation group):
-over the poses of the last ``window_s`` seconds, express each attitude in the chart of the
-newest one as a body-frame rotation vector ``phi_k = log(R_ref^T R_k)``, fit a polynomial of
-degree ``order`` in time to ``phi`` and to the position by least squares, and evaluate its
-derivative at the newest time. With ``R(tau) = R_ref exp(phi(tau))`` the body angular velocity
-is ``omega_body = J_r(phi) phi'`` (``J_r``: right Jacobian of SO(3)), which is eq. 14 applied to
-the fitted curve. A motion that is polynomial of degree ``order`` in the chart (constant rate,
-constant angular acceleration about a fixed axis) is differentiated exactly; noise is averaged
-over the window. ``benchmarks/accuracy.py`` compares it with the plain eq. 14 difference.
+The other estimators fit a causal local polynomial instead. ``'poly'`` is a Savitzky-Golay fit
+on the rotation group and R^3 separately: over the poses of the last ``window_s`` seconds,
+express each attitude in the chart of the newest one as a body-frame rotation vector ``phi_k =
+log(R_ref^T R_k)``, fit a polynomial of degree ``order`` in time to ``phi`` and to the position
+by least squares, and evaluate its derivative at the newest time. With ``R(tau) = R_ref
+exp(phi(tau))`` the body angular velocity is ``omega_body = J_r(phi) phi'`` (``J_r``: right
+Jacobian of SO(3)), which is eq. 14 applied to the fitted curve. A motion that is polynomial of
+degree ``order`` in the chart (constant rate, constant angular acceleration about a fixed axis)
+is differentiated exactly; noise is averaged over the window. ``benchmarks/accuracy.py``
+compares it with the plain eq. 14 difference.
 
-The default, ``'screw'``, fits on SE(3) instead: each pose of the window enters as the twist
-coordinates ``x_k = log(T_ref^-1 T_k)`` (6,) in the chart of the newest pose, a polynomial of
-degree ``screw_order`` (default 1) is fitted to them, and the fitted curve
-``T(tau) = T_ref exp(x(tau))`` is differentiated at the newest time. A constant body twist
-(a screw motion: constant ``omega_body`` and constant body-frame velocity of the origin) is a
-straight line in this chart, so order 1 differentiates it exactly *whatever the origin* —
+The default (``VelocityParams.method``), ``'screw'``, fits on SE(3) instead: each pose of the
+window enters as the twist coordinates ``x_k = log(T_ref^-1 T_k)`` (6,) in the chart of the
+newest pose, a polynomial of degree ``screw_order`` (default 1) is fitted to them, and the
+fitted curve ``T(tau) = T_ref exp(x(tau))`` is differentiated at the newest time. A constant
+body twist (a screw motion: constant ``omega_body`` and constant body-frame velocity of the
+origin) is a straight line in this chart, so order 1 differentiates it exactly *whatever the
+origin* —
 whereas the SO(3) x R^3 fit above sees an origin off the rotation axis move on a curve (its
 velocity ``v + omega x r`` turns with the body) and needs order 2, whose end-point slope has
 about 4 times the standard deviation of order 1's over the same window
@@ -61,6 +63,7 @@ from scipy.spatial.transform import Rotation
 from trackmeter.core.checks import finite_rows
 from trackmeter.core.params import check_params, param
 from trackmeter.core.transforms import omega_body_between, rotation_from_matrix
+from trackmeter.errors import TrackmeterError
 
 FloatArray = NDArray[np.float64]
 
@@ -189,6 +192,23 @@ def weighted_polyfit(V: ArrayLike, X: ArrayLike, weights: ArrayLike | None = Non
     return np.linalg.solve(A, b[..., None])[..., 0].T
 
 
+def _increasing_times(times_s: ArrayLike) -> FloatArray:
+    """``times_s`` as a finite (N,) array that increases strictly, s.
+
+    The fits differentiate in ``tau = t - t_newest``: times given newest-first flip the sign of
+    every rate, and equal times leave nothing to differentiate (v = omega = 0, silently).
+
+    Raises:
+        TrackmeterError: naming the first time that does not follow its predecessor.
+    """
+    t = finite_rows(times_s, "times_s", (None,))
+    back = np.flatnonzero(np.diff(t) <= 0)
+    if back.size:
+        k = int(back[0]) + 1
+        raise TrackmeterError(f"times_s must increase strictly: times_s[{k}] = {t[k]:g} follows {t[k - 1]:g}")
+    return t
+
+
 def local_polynomial_rates(
     times_s: ArrayLike, R: ArrayLike, p: ArrayLike, order: int, t_eval_s: float | None = None,
     weights: ArrayLike | None = None,
@@ -196,7 +216,7 @@ def local_polynomial_rates(
     """Fit a polynomial to a window of poses on SE(3) and differentiate it (Savitzky-Golay on the group).
 
     Args:
-        times_s: (N,) increasing times, s.
+        times_s: (N,) strictly increasing times, s (else TrackmeterError).
         R: (N,3,3) attitudes ``R_cam_body``.
         p: (N,3) body-origin positions in the camera frame, m.
         order: polynomial degree; uses ``min(order, N-1)``.
@@ -206,7 +226,7 @@ def local_polynomial_rates(
     Returns:
         ``(p_fit (3,), R_fit (3,3), v_cam (3,) m/s, omega_body (3,) rad/s)`` at ``t_eval_s``.
     """
-    t = np.asarray(times_s, dtype=float)
+    t = _increasing_times(times_s)
     Rm = np.asarray(R, dtype=float).reshape(-1, 3, 3)
     P = np.asarray(p, dtype=float).reshape(-1, 3)
     t_eval = t[-1] if t_eval_s is None else float(t_eval_s)
@@ -278,7 +298,7 @@ def screw_rates(
     between any pose of the window and the newest must stay below pi (the caller's window).
 
     Args:
-        times_s: (N,) increasing times, s.
+        times_s: (N,) strictly increasing times, s (else TrackmeterError).
         R: (N,3,3) attitudes ``R_cam_body``.
         p: (N,3) body-origin positions in the camera frame, m.
         order: polynomial degree.
@@ -295,7 +315,7 @@ def screw_rates(
         ``v_cam`` is the body origin's velocity in the camera frame, ``omega_body`` the angular
         velocity in the body frame (eq. 14 on the fitted curve); and the residual with ``return_rss``.
     """
-    t = np.asarray(times_s, dtype=float)
+    t = _increasing_times(times_s)
     Rm = np.asarray(R, dtype=float).reshape(-1, 3, 3)
     P = np.asarray(p, dtype=float).reshape(-1, 3)
     t_eval = t[-1] if t_eval_s is None else float(t_eval_s)
@@ -501,6 +521,12 @@ class VelocityEstimator:
     def update(self, t_s: float, R_cam_body: ArrayLike, p_cam: ArrayLike, cov_pose: ArrayLike | None = None
                ) -> tuple[FloatArray, FloatArray] | None:
         """Add a pose; return ``(v_cam m/s, omega_body rad/s)``, or None until two poses are known.
+
+        A pose whose ``t_s`` is not after the previous one's (repeated or backward: a source
+        restarted or replayed), or more than ``bridge_gap_s`` after it, starts the estimator
+        over (:meth:`reset`): the window then holds this pose alone and None is returned. A
+        repeated time cannot be differentiated and a backward one would flip every rate's sign,
+        and the poses before it are taken to belong to another run.
 
         ``cov_pose`` (6,6) (position m, rotation vector rad), when given and ``params.weighted``,
         weighs the pose in the fits (:func:`block_weights`). Why: the poses just before a loss
