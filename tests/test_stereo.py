@@ -359,3 +359,27 @@ def test_views_swapped_are_told_by_the_sign_of_their_disparities(estec_sim_frame
     assert len(view_disparities_px(tsukuba, black, black)) == 0
     assert swapped_views_problem(tsukuba, black, black) is None
     assert swapped_views_problem(tsukuba, left, left) is None
+
+
+def test_a_negative_standard_deviation_is_refused(estec_rig: StereoRig) -> None:
+    """sigma_disparity_px=-0.1 gave a covariance as if it were +0.1."""
+    rect = estec_rig.rectification
+    uv, d = rect.project_rectified(np.array([[0.1, 0.0, 3.5], [0.0, 0.2, 4.0]]))
+    with pytest.raises(TrackmeterError, match=r"sigma_disparity_px must be >= 0 px, got -0\.1"):
+        rect.point_covariance(uv, d, -0.1)
+    with pytest.raises(TrackmeterError, match=r"sigma_uv_px must be >= 0 px"):
+        rect.point_covariance(uv, d, 0.1, np.array([0.1, -0.2]))
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        ((-1.0, 1000.0, 0.3, 0.05), r"z_m must be positive \(in front of the camera\), m; got -1"),
+        ((3.5, 1000.0, 0.3, -0.05), r"sigma_disparity_px must be >= 0 px"),
+        ((3.5, 0.0, 0.3, 0.05), r"focal_px must be positive"),
+        ((3.5, 1000.0, -0.3, 0.05), r"baseline_m must be positive"),
+    ],
+)
+def test_depth_sigma_refuses_what_is_no_stereo_geometry(args, message) -> None:  # type: ignore[no-untyped-def]
+    with pytest.raises(TrackmeterError, match=message):
+        depth_sigma(*args)

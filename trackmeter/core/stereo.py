@@ -55,6 +55,14 @@ def _as_matrix(value: ArrayLike, shape: tuple[int, ...], name: str) -> FloatArra
     return array
 
 
+def _non_negative(sigma_px: float | ArrayLike, name: str) -> None:
+    """Refuse a negative standard deviation, px (scalar or array; cheap: runs every frame).
+    NaN passes: a caller's marker of an unmeasured point stays its business."""
+    s = np.asarray(sigma_px, dtype=float)
+    if np.any(s < 0):
+        raise TrackmeterError(f"{name} must be >= 0 px, got {s[s < 0].ravel()[0]:g}")
+
+
 #: How far ``R^T R`` may be from the identity (largest entry) for R to be taken as a rotation
 #: written with too few decimals: 5 decimals leave ~1e-5; a real non-rotation is far beyond.
 ROTATION_TOLERANCE = 1e-3
@@ -134,7 +142,12 @@ class Camera:
         return float(0.5 * (self.K[0, 0] + self.K[1, 1]))
 
     def project(self, points_cam: ArrayLike) -> FloatArray:
-        """Project (N,3) points of this camera's frame (m) to distorted pixels (N,2)."""
+        """Project (N,3) points of this camera's frame (m) to distorted pixels (N,2).
+
+        As OpenCV's ``projectPoints``, a point behind the camera (z <= 0) is projected too,
+        through ``(x/z, y/z)``: it may land on an in-image pixel (mirrored through the centre).
+        Check ``z > 0`` before taking a pixel as seen; :meth:`contains` looks at the pixel only.
+        """
         p = np.asarray(points_cam, dtype=float).reshape(-1, 3)
         if len(p) == 0:
             return np.zeros((0, 2))
@@ -152,7 +165,10 @@ class Camera:
         return _undistort_points(pts, self.K, self.dist)
 
     def contains(self, uv: ArrayLike, margin_px: float = 0.0) -> NDArray[np.bool_]:
-        """Whether pixels (N,2) lie inside the image, at least ``margin_px`` from its border."""
+        """Whether pixels (N,2) lie inside the image, at least ``margin_px`` from its border.
+
+        The pixel alone: a point behind the camera can project inside the image
+        (:meth:`project`), so test its depth as well before calling it visible."""
         uv = np.asarray(uv, dtype=float).reshape(-1, 2)
         return (
             (uv[:, 0] >= -0.5 + margin_px)
@@ -212,7 +228,9 @@ class StereoRig:
         return T
 
     def project(self, points_cam: ArrayLike) -> tuple[FloatArray, FloatArray]:
-        """Project (N,3) left-camera-frame points (m) into both images: ``(uv_left, uv_right)``."""
+        """Project (N,3) left-camera-frame points (m) into both images: ``(uv_left, uv_right)``,
+        each (N,2) distorted pixels. A point behind either camera still gets a pixel, possibly
+        inside the image (:meth:`Camera.project`): check its depth in both camera frames."""
         p = np.asarray(points_cam, dtype=float).reshape(-1, 3)
         return self.left.project(p), self.right.project(p @ self.R.T + self.T)
 
@@ -381,9 +399,15 @@ class Rectification:
         Args:
             uv_rect_left: (N,2) rectified left pixel.
             disparity_px: (N,) disparity.
-            sigma_disparity_px: standard deviation of the disparity (scalar or (N,)), px.
-            sigma_uv_px: standard deviation of the left pixel position per axis, px.
+            sigma_disparity_px: standard deviation of the disparity (scalar or (N,)), px, >= 0.
+            sigma_uv_px: standard deviation of the left pixel position per axis (scalar or
+                (N,)), px, >= 0.
+
+        Raises:
+            TrackmeterError: a negative standard deviation (squared, it would pass as positive).
         """
+        _non_negative(sigma_disparity_px, "sigma_disparity_px")
+        _non_negative(sigma_uv_px, "sigma_uv_px")
         p_rect = self.triangulate(uv_rect_left, disparity_px) @ self.R1.T
         n = len(p_rect)
         f, b = self.focal_px, self.baseline_m
@@ -530,6 +554,23 @@ def depth_sigma(z_m: ArrayLike, focal_px: float, baseline_m: float, sigma_dispar
 
     The parabola of the paper's Fig. 3; inverted, it gives the sub-pixel disparity accuracy
     ``sigma_d = k f b`` from a fitted ``sigma_z = k z²``.
+
+    Args:
+        z_m: depth(s) along the viewing axis, m, positive (in front of the camera).
+        focal_px: focal length, px, positive.
+        baseline_m: stereo baseline, m, positive.
+        sigma_disparity_px: disparity standard deviation, px, >= 0.
+
+    Raises:
+        TrackmeterError: any of them out of its range (a depth behind the camera squared would
+            pass for one in front).
     """
     z = np.asarray(z_m, dtype=float)
+    if not np.all(z > 0):
+        bad = z[~(z > 0)].ravel()[0]
+        raise TrackmeterError(f"z_m must be positive (in front of the camera), m; got {bad:g}")
+    for value, name, unit in ((focal_px, "focal_px", "px"), (baseline_m, "baseline_m", "m")):
+        if not (np.isfinite(value) and value > 0):
+            raise TrackmeterError(f"{name} must be positive, {unit}; got {value:g}")
+    _non_negative(sigma_disparity_px, "sigma_disparity_px")
     return z * z * sigma_disparity_px / (focal_px * baseline_m)
