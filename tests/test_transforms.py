@@ -143,7 +143,7 @@ def test_omega_body_between_constant_rate() -> None:
     np.testing.assert_allclose(tf.omega_body_between(q0, q1, dt), omega, atol=1e-12)
     np.testing.assert_allclose(tf.omega_body_between(-q0, q1, dt), omega, atol=1e-12)
     np.testing.assert_allclose(tf.omega_body_between(q0, -q1, dt), omega, atol=1e-12)
-    with pytest.raises(ValueError):
+    with pytest.raises(TrackmeterError):
         tf.omega_body_between(q0, q1, 0.0)
 
 
@@ -363,3 +363,39 @@ def test_frame_from_three_points_refuses_nan_and_bad_shapes() -> None:
         tf.frame_from_three_points([0, 0, np.nan], [1, 0, 0], [0, 1, 0])
     with pytest.raises(TrackmeterError, match=r"p2 must be \(3,\), got shape \(2,\)"):
         tf.frame_from_three_points([0, 0, 0], [1, 0], [0, 1, 0])
+
+
+def test_transforms_refuse_wrong_shapes_by_name() -> None:
+    """make_transform(np.eye(2), ...) raised numpy's 'could not broadcast', apply_transform of
+    (N,2) points a gufunc matmul error."""
+    with pytest.raises(TrackmeterError, match=r"R_a_b must be \(3,3\), got shape \(2,2\)"):
+        tf.make_transform(np.eye(2), np.zeros(3))
+    with pytest.raises(TrackmeterError, match=r"t_a_b must be \(3,\), got shape \(2,\)"):
+        tf.make_transform(np.eye(3), np.zeros(2))
+    with pytest.raises(TrackmeterError, match=r"points_b must be \(3,\) or \(N,3\), got shape \(4,2\)"):
+        tf.apply_transform(np.eye(4), np.zeros((4, 2)))
+    with pytest.raises(TrackmeterError, match=r"T_a_b must be \(4,4\), got shape \(3,3\)"):
+        tf.apply_transform(np.eye(3), np.zeros((4, 3)))
+
+
+def test_matrix_to_quat_of_a_reflection_is_refused() -> None:
+    """scipy's ValueError ('Non-positive determinant') came through."""
+    with pytest.raises(TrackmeterError, match=r"R must be a rotation matrix \(det \+1\)"):
+        tf.matrix_to_quat_wxyz(np.diag([1.0, 1.0, -1.0]))
+
+
+@pytest.mark.parametrize("dt_s", [0.0, -0.04, float("nan")])
+def test_rates_over_no_time_are_refused(dt_s: float) -> None:
+    """omega_body_between and finite_difference_rates raised a plain ValueError (the latter after
+    numpy's divide-by-zero warning)."""
+    import warnings
+
+    from trackmeter.core.velocity import finite_difference_rates
+
+    q = np.array([1.0, 0, 0, 0])
+    with pytest.raises(TrackmeterError, match=r"dt_s must be positive, s; got"):
+        tf.omega_body_between(q, q, dt_s)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(TrackmeterError, match=r"t1_s must come after t0_s"):
+            finite_difference_rates(1.0, np.eye(3), np.zeros(3), 1.0 + dt_s, np.eye(3), np.zeros(3))

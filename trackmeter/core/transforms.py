@@ -57,8 +57,22 @@ _HAS_ASSUME_VALID = "assume_valid" in inspect.signature(Rotation.from_matrix).pa
 
 
 def matrix_to_quat_wxyz(R: ArrayLike) -> FloatArray:
-    """Unit quaternion(s) ``wxyz`` with non-negative w from rotation matrix (3,3) or (N,3,3)."""
-    q = rotation_from_matrix(R).as_quat(scalar_first=True, canonical=True)
+    """Unit quaternion(s) ``wxyz`` with non-negative w from rotation matrix (3,3) or (N,3,3).
+
+    Raises:
+        TrackmeterError: ``R`` of another shape, not finite, or a reflection (det < 0); a
+            matrix near a rotation is projected onto it (scipy).
+    """
+    try:
+        q = rotation_from_matrix(R).as_quat(scalar_first=True, canonical=True)
+    except (ValueError, np.linalg.LinAlgError):  # scipy's messages span lines and name no argument
+        a = np.asarray(R, dtype=float)
+        if a.shape[-2:] != (3, 3) or a.ndim not in (2, 3):
+            raise TrackmeterError(f"R must be (3,3) or (N,3,3), got shape {a.shape}") from None
+        if not np.isfinite(a).all():
+            raise TrackmeterError("R must be a finite rotation matrix: it holds a NaN or an infinity") from None
+        det = float(np.min(np.linalg.det(a)))
+        raise TrackmeterError(f"R must be a rotation matrix (det +1), got det {det:.3g} (a reflection?)") from None
     return np.asarray(q, dtype=float)
 
 
@@ -140,9 +154,12 @@ def omega_body_between(quat0_wxyz: ArrayLike, quat1_wxyz: ArrayLike, dt_s: float
     The finite-difference form of eq. 14 done exactly on the rotation group:
     ``omega_body = log(q0^-1 ⊗ q1) / dt`` (constant rate about a body-fixed axis).
     Sign-flipped quaternions (q and -q) give the same answer.
+
+    Raises:
+        TrackmeterError: ``dt_s`` not positive (or NaN).
     """
-    if dt_s <= 0:
-        raise ValueError(f"dt_s must be positive, got {dt_s}")
+    if not dt_s > 0:
+        raise TrackmeterError(f"dt_s must be positive, s; got {dt_s:g}")
     r0 = Rotation.from_quat(np.asarray(quat0_wxyz, dtype=float), scalar_first=True)
     r1 = Rotation.from_quat(np.asarray(quat1_wxyz, dtype=float), scalar_first=True)
     return np.asarray((r0.inv() * r1).as_rotvec(), dtype=float) / dt_s
@@ -183,11 +200,28 @@ def attitude_error_components(quat_est_wxyz: ArrayLike, quat_true_wxyz: ArrayLik
 
 
 def make_transform(R_a_b: ArrayLike, t_a_b: ArrayLike) -> FloatArray:
-    """4x4 homogeneous ``T_a_b`` from a rotation (3,3) and a translation (3,)."""
+    """4x4 homogeneous ``T_a_b`` from a rotation (3,3) and a translation (3,), m.
+
+    Raises:
+        TrackmeterError: either of the wrong shape (numpy would broadcast a (3,) rotation row
+            or refuse with "could not broadcast").
+    """
+    R = _shaped(R_a_b, "R_a_b", (3, 3))
+    t = _shaped(t_a_b, "t_a_b", (3,))
     T = np.eye(4)
-    T[:3, :3] = np.asarray(R_a_b, dtype=float)
-    T[:3, 3] = np.asarray(t_a_b, dtype=float)
+    T[:3, :3] = R
+    T[:3, 3] = t
     return T
+
+
+def _shaped(value: ArrayLike, name: str, shape: tuple[int, ...]) -> FloatArray:
+    """``value`` as a float array of exactly ``shape`` (values unchecked: NaN passes, as before)."""
+    a = np.asarray(value, dtype=float)
+    if a.shape != shape:
+        want = "(" + ",".join(map(str, shape)) + ("," if len(shape) == 1 else "") + ")"
+        got = "(" + ",".join(map(str, a.shape)) + ("," if a.ndim == 1 else "") + ")"
+        raise TrackmeterError(f"{name} must be {want}, got shape {got}")
+    return a
 
 
 def transform_from_pose(position: ArrayLike, quat_wxyz: ArrayLike) -> FloatArray:
@@ -203,9 +237,17 @@ def invert_transform(T_a_b: ArrayLike) -> FloatArray:
 
 
 def apply_transform(T_a_b: ArrayLike, points_b: ArrayLike) -> FloatArray:
-    """Map points (N,3) or (3,) from frame b to frame a: ``p_a = R_a_b p_b + t_a_b``."""
-    T = np.asarray(T_a_b, dtype=float)
+    """Map points (N,3) or (3,) from frame b to frame a: ``p_a = R_a_b p_b + t_a_b``; ``T_a_b``
+    (4,4). Returns the same shape as ``points_b``, m.
+
+    Raises:
+        TrackmeterError: ``T_a_b`` not (4,4) or points not (3,)/(N,3).
+    """
+    T = _shaped(T_a_b, "T_a_b", (4, 4))
     p = np.asarray(points_b, dtype=float)
+    if p.ndim not in (1, 2) or p.shape[-1] != 3:
+        got = "(" + ",".join(map(str, p.shape)) + ("," if p.ndim == 1 else "") + ")"
+        raise TrackmeterError(f"points_b must be (3,) or (N,3), got shape {got}")
     return p @ T[:3, :3].T + T[:3, 3]
 
 

@@ -149,8 +149,17 @@ def right_jacobian_so3(phi: ArrayLike) -> FloatArray:
 def finite_difference_rates(
     t0_s: float, R0: ArrayLike, p0: ArrayLike, t1_s: float, R1: ArrayLike, p1: ArrayLike
 ) -> tuple[FloatArray, FloatArray]:
-    """Plain eq. 14 on two poses: ``(v_cam (3,) m/s, omega_body (3,) rad/s)``."""
+    """Plain eq. 14 on two poses: ``(v_cam (3,) m/s, omega_body (3,) rad/s)``.
+
+    ``R0``, ``R1`` (3,3) ``R_cam_body`` and ``p0``, ``p1`` (3,) body origins in the camera frame,
+    m, at ``t0_s`` < ``t1_s``, s.
+
+    Raises:
+        TrackmeterError: ``t1_s`` not after ``t0_s`` (checked before dividing: no warning).
+    """
     dt = t1_s - t0_s
+    if not dt > 0:
+        raise TrackmeterError(f"t1_s must come after t0_s: dt_s must be positive, s; got {dt:g}")
     # one scipy conversion for both (each row is the single call's number)
     q0, q1 = rotation_from_matrix(np.stack([np.asarray(R0, dtype=float), np.asarray(R1, dtype=float)])).as_quat(
         scalar_first=True)
