@@ -31,3 +31,18 @@ def test_example_runs(example: Path, tmp_path: Path) -> None:
     for line in PROMISES[example.name]:
         assert line in done.stdout, done.stdout
     assert list(tmp_path.iterdir()) == []  # nothing left behind where it ran
+
+
+def test_example_03_says_truthfully_how_many_targets_it_tracks(tmp_path: Path) -> None:
+    """Its docstring said '16 automatic targets', but at the seconds it prints 10-11 are tracked:
+    the selection tops up to 16 every few frames as targets are lost, and the docstring must say so."""
+    import ast
+    import re
+
+    example = next(p for p in EXAMPLES if p.name.startswith("03_"))
+    done = subprocess.run([sys.executable, str(example)], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    tracked = [int(n) for n in re.findall(r"^t +[1-4]\.0 s +(\d+) tracked", done.stdout, re.M)]
+    assert len(tracked) == 4 and min(tracked) < 16, done.stdout
+    doc = " ".join((ast.get_docstring(ast.parse(example.read_text())) or "").split())
+    assert "16 automatic targets" not in doc
+    assert "up to 16" in doc and "topped up" in doc, doc
