@@ -1131,3 +1131,15 @@ def test_a_tum_truth_takes_velocities_from_a_groundtruth_csv_beside_only_of_the_
     else:
         assert s["velocity_m_s"] is None
         assert "groundtruth.csv" in err and "500 mm" in err and "velocities are not used" in err, err
+
+
+def test_a_command_started_with_its_stdout_closed_ends_without_a_traceback(sequence_and_run, tmp_path):
+    # `trackmeter track ... >&-`: Python then has no sys.stdout (None), and the flush after the
+    # command's work gave "AttributeError: 'NoneType' object has no attribute 'flush'", exit 1
+    # (an outside probe).
+    truth, seq, run = sequence_and_run
+    command = [sys.executable, "-m", "trackmeter.cli.main", "evaluate", "--truth", str(seq), "--estimate", str(run),
+               "--out", str(tmp_path / "report")]
+    proc = subprocess.run(["sh", "-c", '"$@" >&-', "sh", *command], capture_output=True, text=True)
+    assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
+    assert (tmp_path / "report" / "summary.json").is_file()

@@ -234,7 +234,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     _tolerant_output()
     try:
         code = _main(argv)
-        sys.stdout.flush()
+        if sys.stdout is not None:  # None: started with its stdout closed (`>&-`); print wrote nothing
+            sys.stdout.flush()
         return code
     except BrokenPipeError:
         _silence_stdout()
