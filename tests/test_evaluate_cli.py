@@ -1140,6 +1140,12 @@ def test_a_command_started_with_its_stdout_closed_ends_without_a_traceback(seque
     truth, seq, run = sequence_and_run
     command = [sys.executable, "-m", "trackmeter.cli.main", "evaluate", "--truth", str(seq), "--estimate", str(run),
                "--out", str(tmp_path / "report")]
-    proc = subprocess.run(["sh", "-c", '"$@" >&-', "sh", *command], capture_output=True, text=True)
-    assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
-    assert (tmp_path / "report" / "summary.json").is_file()
+    for closed in (">&-", "2>&-", ">&- 2>&-"):  # stderr too: track asked it isatty()
+        proc = subprocess.run(["sh", "-c", f'"$@" {closed}', "sh", *command], capture_output=True, text=True)
+        assert proc.returncode == 0 and "Traceback" not in proc.stdout + proc.stderr, (closed, proc.stdout, proc.stderr)
+        assert (tmp_path / "report" / "summary.json").is_file()
+    track = [sys.executable, "-m", "trackmeter.cli.main", "track", "--source", "sim", "--auto", "4", "--max-frames", "3",
+             "--out", str(tmp_path / "tracked")]  # its progress asks stderr isatty()
+    proc = subprocess.run(["sh", "-c", '"$@" 2>&-', "sh", *track], capture_output=True, text=True)
+    assert proc.returncode == 0 and "Traceback" not in proc.stdout, proc.stdout
+    assert (tmp_path / "tracked" / "run.yaml").is_file()

@@ -227,15 +227,25 @@ def _tolerant_output() -> None:
             pass
 
 
+def _streams_even_if_closed() -> None:
+    """A process started with its stdout or stderr closed (``>&-``, ``2>&-``) has None there,
+    and every write, flush or ``isatty`` of it raised after the command's work was done
+    ("'NoneType' object has no attribute 'flush'", exit 1). What it would have written goes
+    nowhere, as its caller asked."""
+    for name in ("stdout", "stderr"):
+        if getattr(sys, name) is None:
+            setattr(sys, name, open(os.devnull, "w", encoding="utf-8"))  # noqa: SIM115 - for the process's life
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     # Output still buffered is flushed here, where a closed pipe can be caught, not at exit
     # (where Python prints "Exception ignored ... BrokenPipeError"); argparse's --help
     # already ignores a closed stdout by itself.
+    _streams_even_if_closed()
     _tolerant_output()
     try:
         code = _main(argv)
-        if sys.stdout is not None:  # None: started with its stdout closed (`>&-`); print wrote nothing
-            sys.stdout.flush()
+        sys.stdout.flush()
         return code
     except BrokenPipeError:
         _silence_stdout()
