@@ -1335,3 +1335,30 @@ def test_a_video_named_outside_utf8_is_refused_or_read_not_a_crash(tmp_path, nam
         assert out.startswith("refused:") and "not UTF-8" in out, out
     else:
         assert out.strip() == "3", out
+
+
+def test_a_video_that_lost_frames_inside_warns_that_the_pairs_may_be_out_of_step(tmp_path):
+    """Bytes overwritten in the middle of an MJPG file: OpenCV skips the broken frames without
+    a failed read, so every left frame after them pairs with an earlier right one (6 frames
+    apart in an outside probe's run: ten times the error), and all that was said was that the
+    stream ended early, "a file cut short?". The file that ran out while the other still had
+    frames is named, with what that means for the pairs."""
+    rng = np.random.default_rng(0)
+    paths = []
+    for name in ("left.avi", "right.avi"):
+        vw = cv2.VideoWriter(str(tmp_path / name), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (64, 48), isColor=False)
+        if not vw.isOpened():
+            pytest.skip("this OpenCV build cannot write MJPG")
+        for _ in range(30):
+            vw.write(rng.integers(0, 256, (48, 64), dtype=np.uint8))
+        vw.release()
+        paths.append(tmp_path / name)
+    data = bytearray(paths[0].read_bytes())
+    middle = len(data) * 3 // 10
+    data[middle:middle + 6000] = rng.integers(0, 256, 6000, dtype=np.uint8).tobytes()
+    paths[0].write_bytes(bytes(data))
+    src = open_source(f"video:{paths[0]},{paths[1]}")
+    frames = list(iter(src.read, None))
+    src.close()
+    assert len(frames) < 30
+    assert src.warning is not None and "left.avi ran out" in src.warning and "out of step" in src.warning, src.warning

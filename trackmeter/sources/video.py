@@ -95,6 +95,7 @@ class VideoSource(Source):
         self._expected = min(counts) if min(counts) > 0 else 0
         self._undecoded: list[tuple[int, str]] = []  # (position, which file) on the first pass
         self._short_by = 0  # frames the first pass ended before the count (a file cut short)
+        self._ran_out_first: str | None = None  # the file that ran out while the other still read
         self._delivered = 0  # pairs delivered on this pass
         self._looped = False
         #: One line on what does not match between the files and, as playing finds them, the
@@ -191,9 +192,13 @@ class VideoSource(Source):
         short, not bad frames; said once, on the first pass."""
         if self._looped:
             return
+        ran_out = set()
         while self._undecoded and self._undecoded[-1][0] == self._expected - 1 - self._short_by:
-            self._undecoded.pop()
+            ran_out.add(self._undecoded.pop()[1])
             self._short_by += 1
+        # One file ran out while the other still read: cut short, or frames lost inside it
+        # (a damaged file, whose broken frames the decoder skips without a failed read).
+        self._ran_out_first = next(iter(ran_out)) if len(ran_out) == 1 and "both files" not in ran_out else None
         self._update_warning()
         self._looped = True
 
@@ -206,7 +211,12 @@ class VideoSource(Source):
             parts.append(f"{counted(len(self._undecoded), 'frame pair')} skipped: {', '.join(shown)}"
                          + (f" and {more} more" if more else ""))
         # A frame or so short is a header's estimate (FFmpeg counts some containers by duration).
-        if self._short_by >= 2:
+        if self._short_by >= 2 and self._ran_out_first is not None:
+            other = next(p.name for p in self.paths if p.name != self._ran_out_first)
+            parts.append(f"the stream ended after {self._delivered} of the {self._expected} frame pairs the files count: "
+                         f"{self._ran_out_first} ran out {self._short_by} frames before {other}, cut short or with frames "
+                         "lost inside it (a damaged file), after which every pair is out of step by as many frames")
+        elif self._short_by >= 2:
             parts.append(f"the stream ended after {self._delivered} of the {self._expected} frame pairs the files count "
                          f"(a file cut short?)")
         self.warning = "; ".join(parts) or None
