@@ -474,3 +474,48 @@ def test_an_overwrite_stopped_before_its_first_frame_or_killed_keeps_the_earlier
     nothing.write_frame(0.0, (), _pose(0.0))
     nothing.close("nothing to track")
     assert {p.name: p.read_bytes() for p in (tmp_path / "run").iterdir() if p.is_file()} == before
+
+
+def test_a_run_folder_moved_while_writing_is_followed(tmp_path: Path) -> None:
+    """``mv RUN RUN.moved`` while ``track`` wrote there: its rows went on into the moved folder,
+    and the run stopped saying "the 82 frames written there are lost", the moved folder's
+    run.yaml left saying "running" (an outside probe). The writer follows the folder: the run
+    goes on there, said once, and closes there."""
+    import warnings
+
+    out, moved = tmp_path / "run", tmp_path / "run.moved"
+    writer = RunWriter(out, {}, {"spec": "test"})
+    writer.write_frame(0.00, (), _pose(0.0))
+    out.rename(moved)
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        writer.write_frame(0.04, (), _pose(0.0))
+        writer.write_frame(0.08, (), _pose(0.0))
+    assert [str(w.message) for w in said] == [f"{out}: the run folder was moved to {moved} while the run wrote to it; "
+                                              "the run goes on there"]
+    writer.close("complete")
+    assert writer.directory == moved and not out.exists()
+    meta = yaml.safe_load((moved / "run.yaml").read_text())
+    assert meta["status"] == "complete" and meta["summary"]["frames"] == 3
+    assert len((moved / "states.csv").read_text().splitlines()) == 4
+
+
+def test_an_overwrite_whose_writes_failed_keeps_the_earlier_run_beside_it(tmp_path: Path) -> None:
+    """`track --overwrite` onto a nearly full disk: the new run stopped after 29 frames ("write
+    failed") and the complete earlier run was deleted, unsaid (an outside probe). A run whose
+    writes failed is no replacement asked for: the earlier one stays in PREVIOUS_RUN, and the
+    writer says where."""
+    from trackmeter.data.rundir import PREVIOUS_RUN
+
+    first = RunWriter(tmp_path / "run", {}, {"spec": "first"})
+    for k in range(3):
+        first.write_frame(0.04 * k, (), _pose(0.0))
+    first.close("complete")
+    second = RunWriter(tmp_path / "run", {}, {"spec": "second"}, overwrite=True)
+    second.write_frame(0.0, (), _pose(0.0))
+    second.close("write failed")
+    kept = tmp_path / "run" / PREVIOUS_RUN
+    assert second.earlier_run_kept_in == kept
+    assert yaml.safe_load((kept / "run.yaml").read_text())["status"] == "complete"
+    assert len(read_motion_csv(kept / "states.csv")) == 3
+    assert yaml.safe_load((tmp_path / "run" / "run.yaml").read_text())["status"] == "write failed"

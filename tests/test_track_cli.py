@@ -995,3 +995,48 @@ def test_a_stop_signal_swallowed_by_the_compile_still_stops_the_run(monkeypatch,
     assert err.strip().splitlines()[-1].startswith("trackmeter track: interrupted"), err
     if out.exists():  # no folder left saying "running"
         assert yaml.safe_load((out / "run.yaml").read_text())["status"] == "interrupted"
+
+
+def test_a_run_whose_final_run_yaml_cannot_be_written_says_the_frames_are_whole(monkeypatch, tmp_path, capsys) -> None:
+    """The folder made read-only (chattr +i) mid-run: all frames written, then only
+    "run.yaml: cannot write (Operation not permitted)", no word of the frames (an outside
+    probe). Said as a write failure at the end is elsewhere: what is whole, and where."""
+    import trackmeter.data.rundir as rundir
+
+    write_meta = rundir.RunWriter._write_meta
+
+    def refused_at_the_end(self):  # type: ignore[no-untyped-def]
+        if self._meta.get("status") != "running":
+            raise TrackmeterError(f"{self.directory / 'run.yaml'}: cannot write (Operation not permitted)")
+        return write_meta(self)
+
+    monkeypatch.setattr(rundir.RunWriter, "_write_meta", refused_at_the_end)
+    out = tmp_path / "run"
+    assert main(["track", "--source", "sim", "--auto", "4", "--max-frames", "5", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == (f"trackmeter track: error: {out / 'run.yaml'}: cannot write (Operation not permitted): "
+                       f"run.yaml could not be updated (it says running); the 5 frames are whole in {out}"), err
+
+
+def test_an_overwrite_cut_short_by_a_full_disk_says_where_the_earlier_run_is(monkeypatch, tmp_path, estec_rig, capsys,
+                                                                             full_disk) -> None:
+    """The complete earlier run was deleted when the new one filled the disk, unsaid (an
+    outside probe): it is kept, and the one line says where."""
+    import trackmeter.data.rundir as rundir
+
+    fake_source(monkeypatch, estec_rig, n=40)
+    out = tmp_path / "run"
+    assert main(["track", "--source", "fake", "--auto", "8", "--max-frames", "5", "--out", str(out)]) == 0
+    capsys.readouterr()
+    disk = full_disk(900)
+
+    class HeldOnTheDisk(rundir.SpaceReserve):
+        def __init__(self, path, size: int) -> None:  # type: ignore[no-untyped-def]
+            disk.free += size
+            super().__init__(path, size)
+
+    monkeypatch.setattr(rundir, "SpaceReserve", HeldOnTheDisk)
+    assert main(["track", "--source", "fake", "--auto", "8", "--out", str(out), "--overwrite"]) == 2
+    err = capsys.readouterr().err
+    assert err.strip().endswith(f"; the earlier run it was to replace is kept in {out / rundir.PREVIOUS_RUN}"), err
+    assert yaml.safe_load((out / rundir.PREVIOUS_RUN / "run.yaml").read_text())["summary"]["frames"] == 5

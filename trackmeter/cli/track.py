@@ -353,8 +353,8 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
 
         def interrupted() -> str:
             if writer.kept_earlier_run:
-                return f"interrupted before the first frame was tracked; the earlier run in {args.out} is kept"
-            return f"interrupted after {writer.frames} frames; files in {args.out} are complete"
+                return f"interrupted before the first frame was tracked; the earlier run in {writer.directory} is kept"
+            return f"interrupted after {writer.frames} frames; files in {writer.directory} are complete"
 
         try:
             # A failing source is said once, below, with the run's status (not also by the log).
@@ -377,11 +377,14 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
             if state.get("write_error"):
                 try:
                     writer.close("write failed", _summary(engine, writer, state))
-                    kept = f"; run.yaml says so, and the {counted(writer.frames, 'frame')} before are whole in {args.out}"
+                    kept = (f"; run.yaml says so, and the {counted(writer.frames, 'frame')} before are whole in "
+                            f"{writer.directory}")
+                    if writer.earlier_run_kept_in is not None:
+                        kept += f"; the earlier run it was to replace is kept in {writer.earlier_run_kept_in}"
                 except TrackmeterError:
                     kept = "" if writer.folder_lost else (
                         f"; run.yaml could not be updated (it says running); the {counted(writer.frames, 'frame')} "
-                        f"before are whole in {args.out}")
+                        f"before are whole in {writer.directory}")
                 raise TrackmeterError(f"{state['write_error']}: run stopped{kept}")
             src_status = last.source_status or state["status"]
             summary = _summary(engine, writer, state)
@@ -397,8 +400,8 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
                 writer.close("no frame", summary)
                 detail = f": {src_status}" if src_status and src_status != "ended" else ""
                 detail += f"; {source_warning}" if source_warning else ""
-                kept = (f"the earlier run in {args.out} is kept" if writer.kept_earlier_run
-                        else f"{args.out} holds an empty run")
+                kept = (f"the earlier run in {writer.directory} is kept" if writer.kept_earlier_run
+                        else f"{writer.directory} holds an empty run")
                 raise TrackmeterError(f"source {args.source!r} delivered no frame{detail} (nothing tracked; {kept})")
             new_warning = source_warning_since(source, warning_at_open)
             if new_warning:
@@ -416,21 +419,28 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
                 why = " and ".join((["every --target was refused on the first frame"] if targets else [])
                                    + (["the source has no ground truth to select model points with"]
                                       if args.select_model_points else []))
-                kept = (f"the earlier run in {args.out} is kept" if writer.kept_earlier_run
-                        else f"{args.out} holds {'them' if writer.frames != 1 else 'it'}")
+                kept = (f"the earlier run in {writer.directory} is kept" if writer.kept_earlier_run
+                        else f"{writer.directory} holds {'them' if writer.frames != 1 else 'it'}")
                 raise TrackmeterError(f"nothing to track: {why}, and there is no --auto (stopped after "
                                       f"{counted(writer.frames, 'frame')}; {kept})")
             if src_status and src_status != "ended":
                 status = "source failed"
                 print(f"trackmeter track: source stopped: {src_status}", file=sys.stderr)
-            writer.close(status, summary)
+            try:
+                writer.close(status, summary)
+            except TrackmeterError as exc:
+                if writer.folder_lost:  # said already: the frames went with the folder
+                    raise
+                raise TrackmeterError(f"{exc}: run.yaml could not be updated (it says running); the "
+                                      f"{counted(writer.frames, 'frame')} {'is' if writer.frames == 1 else 'are'} "
+                                      f"whole in {writer.directory}") from None
             elapsed = time.monotonic() - state["t0"]
             print(f"{counted(writer.frames, 'frame')} in {elapsed:.1f} s ({writer.frames / max(elapsed, 1e-9):.1f} fps), "
                   f"{counted(writer.valid_frames, 'valid pose')}"
                   + (f" ({writer.coasted_frames} coasted)" if writer.coasted_frames else "")
                   + (f", {writer.rates_pending_frames} of them before the rates were known (states.csv valid 0)"
                      if writer.rates_pending_frames else "")
-                  + f", case ({case}) -> {args.out}")
+                  + f", case ({case}) -> {writer.directory}")
             ranked = sorted(state["invalid"].items(), key=lambda kv: -kv[1])
             for reason, count in ranked[:SUMMARY_REASONS]:
                 print(f"  invalid in {counted(count, 'frame')}: {reason}")

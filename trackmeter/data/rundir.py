@@ -27,6 +27,7 @@ import os
 import platform
 import sys
 import time
+import warnings
 from pathlib import Path
 from typing import Any, Collection, Sequence
 
@@ -151,6 +152,20 @@ def _run_status(folder: Path) -> str | None:
     return meta.get("status") if isinstance(meta, dict) else None
 
 
+def _where_it_went(lock: FolderLock | None, identity: tuple[int, int] | None) -> Path | None:
+    """Where a run folder moved to, from the descriptor its lock holds open on it (Linux's
+    ``/proc/self/fd``), when that path is the same folder; None when it was removed, or
+    the system cannot tell."""
+    fd = getattr(lock, "_fd", None)
+    if fd is None or identity is None:
+        return None
+    try:
+        path = Path(os.readlink(f"/proc/self/fd/{fd}"))
+    except OSError:
+        return None
+    return path if path.is_absolute() and _folder_identity(path) == identity else None
+
+
 def _folder_identity(folder: Path) -> tuple[int, int] | None:
     """``(device, inode)`` of ``folder``, None when it is gone."""
     try:
@@ -171,7 +186,8 @@ class RunWriter:
         overwrite: replace an earlier run's files (and its report). They are set aside in
             :data:`PREVIOUS_RUN` while the new run writes, and given back when it closes with
             one of :data:`UNTRACKED_STATUSES` (``kept_earlier_run``) or cannot start: bad input
-            found on the first frame does not cost the earlier run.
+            found on the first frame does not cost the earlier run. A run whose writes failed
+            (a full disk) leaves it in :data:`PREVIOUS_RUN` (``earlier_run_kept_in``).
 
     Raises:
         TrackmeterError: the folder holds a run already, or cannot be written.
@@ -187,6 +203,8 @@ class RunWriter:
         self._reserve: SpaceReserve | None = None
         self._previous: Path | None = None
         self.kept_earlier_run = False
+        #: Where the run this one was replacing is kept when this one's writes failed, else None.
+        self.earlier_run_kept_in: Path | None = None
         try:
             if overwrite:
                 self._set_aside()
@@ -366,6 +384,11 @@ class RunWriter:
                 (self.directory / name).unlink(missing_ok=True)
             self._give_back()
             self.kept_earlier_run = True
+        elif status == "write failed":
+            # Cut short by the disk, not a replacement the user would choose: the earlier run
+            # stays beside it (the next --overwrite of the folder replaces it).
+            self.earlier_run_kept_in = self._previous
+            self._previous = None
         else:
             import shutil
 
@@ -373,9 +396,24 @@ class RunWriter:
             self._previous = None
 
     def _check_folder(self) -> None:
-        """Raises TrackmeterError (and sets ``folder_lost``) when the run folder is gone or is
-        another folder now: what was written went with the old one."""
+        """Follows the run folder when it was moved (renamed) while the run writes: the open
+        files went with it, and so do the rest of the run and its closing run.yaml, said once.
+        Raises TrackmeterError (and sets ``folder_lost``) when it is gone or another folder is
+        in its place: what was written went with the old one."""
         if not self.folder_lost and _folder_identity(self.directory) == self._folder_id:
+            return
+        moved = None if self.folder_lost else _where_it_went(self._lock, self._folder_id)
+        if moved is not None:
+            old = self.directory
+            self.directory = moved
+            self._begun = [moved / p.relative_to(old) for p in self._begun]
+            if self._previous is not None:
+                self._previous = moved / self._previous.relative_to(old)
+            for file in (self._states, self._tum, self._targets):
+                if file is not None:
+                    file.path = moved / Path(file.path).relative_to(old)
+            warnings.warn(f"{old}: the run folder was moved to {moved} while the run wrote to it; the run goes on "
+                          "there", stacklevel=3)
             return
         self.folder_lost = True
         raise TrackmeterError(f"{self.directory}: the run folder was removed or replaced while the run wrote to it; "
