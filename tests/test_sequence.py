@@ -1362,3 +1362,56 @@ def test_a_video_that_lost_frames_inside_warns_that_the_pairs_may_be_out_of_step
     src.close()
     assert len(frames) < 30
     assert src.warning is not None and "left.avi ran out" in src.warning and "out of step" in src.warning, src.warning
+
+
+@pytest.mark.parametrize("how", ["moved", "removed"])
+def test_a_recording_folder_moved_or_removed_while_recording_is_followed_or_said(tmp_path, how):
+    """Renamed mid-recording, the writer failed on a hidden temporary file's path ("cam0/data/
+    .760000000.png.tmp: cannot write (No such file or directory)") and left the moved folder
+    marked unfinished; removed, it said the same (an outside probe). A moved folder is followed
+    (said once) and closed whole; a removed one is said to be."""
+    import shutil
+    import warnings
+
+    from trackmeter.data.sequence import UNFINISHED_MARK
+
+    frames = _frames(4)
+    out, moved = tmp_path / "rec", tmp_path / "rec.moved"
+    writer = SequenceWriter(out)
+    writer.write(frames[0])
+    writer.write(frames[1])
+    if how == "moved":
+        out.rename(moved)
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
+            writer.write(frames[2])
+            writer.write(frames[3])
+        writer.close()
+        assert [str(w.message) for w in said] == [
+            f"{out}: the recording folder was moved to {moved} while recording; the recording goes on there"]
+        assert writer.directory == moved and not (moved / UNFINISHED_MARK).exists()
+        assert len(open_source(f"seq:{moved}")) == 4
+    else:
+        shutil.rmtree(out)
+        with pytest.raises(TrackmeterError) as info:
+            writer.write(frames[2])
+        writer.close()
+        assert str(info.value) == (f"{out}: the recording folder was removed while recording; the 2 frames written "
+                                   "there went with it")
+
+
+def test_a_recording_whose_unfinished_mark_cannot_be_removed_says_so_in_words(tmp_path):
+    # An immutable folder (chattr +i) at the close: "[Errno 1] Operation not permitted:
+    # '.../.trackmeter-unfinished'" (an outside probe).
+    from trackmeter.data.sequence import UNFINISHED_MARK
+
+    writer = SequenceWriter(tmp_path / "rec")
+    writer.write(_frames(1)[0])
+    mark = tmp_path / "rec" / UNFINISHED_MARK
+    mark.unlink()
+    mark.mkdir()  # what cannot be unlinked, as a file in an immutable folder cannot
+    (mark / "x").write_text("")
+    with pytest.raises(TrackmeterError) as info:
+        writer.close()
+    assert str(info.value).startswith(f"{mark}: cannot remove (")
+    assert str(info.value).endswith("the 1 frame recorded is whole, but the folder stays marked unfinished")

@@ -104,6 +104,15 @@ def unwritable_ancestor(path: str | Path) -> Path | None:
     return None
 
 
+def folder_identity(folder: Path) -> tuple[int, int] | None:
+    """``(device, inode)`` of ``folder``, None when it is gone."""
+    try:
+        st = os.stat(folder)
+    except OSError:
+        return None
+    return (st.st_dev, st.st_ino)
+
+
 class FolderLock:
     """An exclusive lock on a folder while one writer fills it (``flock`` on the folder itself:
     no lock file is left behind, and the kernel drops the lock with the process).
@@ -142,6 +151,22 @@ class FolderLock:
         if self._fd is not None:
             os.close(self._fd)  # closing the descriptor drops the lock
             self._fd = None
+
+    def moved_to(self) -> Path | None:
+        """Where the locked folder is now when it was moved (renamed) away from :attr:`folder`,
+        read from the descriptor the lock holds open on it (Linux's ``/proc/self/fd``); None
+        when it is still there, was removed, or the system cannot tell. A writer's open files
+        go with a moved folder, so it can follow."""
+        if self._fd is None:
+            return None
+        try:
+            held = os.fstat(self._fd)
+            path = Path(os.readlink(f"/proc/self/fd/{self._fd}"))
+            there = os.stat(path)
+        except OSError:
+            return None
+        same = (there.st_dev, there.st_ino) == (held.st_dev, held.st_ino)
+        return path if same and path.is_absolute() and path != self.folder else None
 
 
 def claim_folder(folder: Path, writer: str, recheck: Callable[[], object], cannot_create: str

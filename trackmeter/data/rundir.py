@@ -37,7 +37,8 @@ import yaml
 from trackmeter.core.targets import TargetState
 from trackmeter.core.transforms import matrix_to_quat_wxyz, quat_sign_nearest
 from trackmeter.data.motion_csv import STATES_COLUMNS, MotionCsvWriter
-from trackmeter.data.atomic import AppendFile, FolderLock, SpaceReserve, claim_folder, write_text_atomic
+from trackmeter.data.atomic import (AppendFile, FolderLock, SpaceReserve, claim_folder, folder_identity,
+                                    write_text_atomic)
 from trackmeter.data.sequence import check_output_folder
 from trackmeter.data.trajectory import format_tum_line
 from trackmeter.errors import TrackmeterError, counted
@@ -152,29 +153,6 @@ def _run_status(folder: Path) -> str | None:
     return meta.get("status") if isinstance(meta, dict) else None
 
 
-def _where_it_went(lock: FolderLock | None, identity: tuple[int, int] | None) -> Path | None:
-    """Where a run folder moved to, from the descriptor its lock holds open on it (Linux's
-    ``/proc/self/fd``), when that path is the same folder; None when it was removed, or
-    the system cannot tell."""
-    fd = getattr(lock, "_fd", None)
-    if fd is None or identity is None:
-        return None
-    try:
-        path = Path(os.readlink(f"/proc/self/fd/{fd}"))
-    except OSError:
-        return None
-    return path if path.is_absolute() and _folder_identity(path) == identity else None
-
-
-def _folder_identity(folder: Path) -> tuple[int, int] | None:
-    """``(device, inode)`` of ``folder``, None when it is gone."""
-    try:
-        st = os.stat(folder)
-    except OSError:
-        return None
-    return (st.st_dev, st.st_ino)
-
-
 class RunWriter:
     """Writes one run directory incrementally.
 
@@ -223,7 +201,7 @@ class RunWriter:
             raise
         # The folder's identity: removed (or replaced) while the run writes, the open files would
         # go on into the deleted one and the closing run.yaml make a new folder of its own.
-        self._folder_id = _folder_identity(self.directory)
+        self._folder_id = folder_identity(self.directory)
         self.folder_lost = False
         self.frames = 0
         self.valid_frames = 0
@@ -400,12 +378,13 @@ class RunWriter:
         files went with it, and so do the rest of the run and its closing run.yaml, said once.
         Raises TrackmeterError (and sets ``folder_lost``) when it is gone or another folder is
         in its place: what was written went with the old one."""
-        if not self.folder_lost and _folder_identity(self.directory) == self._folder_id:
+        if not self.folder_lost and folder_identity(self.directory) == self._folder_id:
             return
-        moved = None if self.folder_lost else _where_it_went(self._lock, self._folder_id)
+        moved = None if self.folder_lost or self._lock is None else self._lock.moved_to()
         if moved is not None:
             old = self.directory
             self.directory = moved
+            self._lock.folder = moved  # type: ignore[union-attr]
             self._begun = [moved / p.relative_to(old) for p in self._begun]
             if self._previous is not None:
                 self._previous = moved / self._previous.relative_to(old)

@@ -49,13 +49,13 @@ from numpy.typing import ArrayLike, NDArray
 
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.transforms import matrix_to_quat_wxyz, quat_sign_nearest
-from trackmeter.data.atomic import AppendFile, FolderLock, claim_folder, unwritable_ancestor
+from trackmeter.data.atomic import AppendFile, FolderLock, claim_folder, folder_identity, unwritable_ancestor
 from trackmeter.data.images import decode_image, joint_data_bits
 from trackmeter.data.model import Model, load_model, save_model
 from trackmeter.data.motion_csv import GROUNDTRUTH_COLUMNS, MotionCsvWriter, MotionSeries, read_motion_csv
 from trackmeter.data.rigfile import load_rig, save_rig
 from trackmeter.data.trajectory import format_tum_line, read_tum
-from trackmeter.errors import TrackmeterError, quoted
+from trackmeter.errors import TrackmeterError, counted, quoted
 
 if TYPE_CHECKING:  # the writer only reads attributes of a frame; data must not import sources
     from trackmeter.sources.base import StereoFrame
@@ -170,6 +170,7 @@ class SequenceWriter:
         lock, created = claim_folder(self.directory, "another recording",
                                      lambda: check_record_directory(self.directory), f"cannot record to {self.directory}")
         self._lock: FolderLock | None = lock
+        self._folder_id = folder_identity(self.directory)
         made: list[Path] = []  # what this writer creates here, each named before it is made
         try:
             self._mark = self.directory / UNFINISHED_MARK
@@ -223,6 +224,7 @@ class SequenceWriter:
         """Append one stereo frame (and its ground truth when it has one)."""
         if not self._csv:
             raise TrackmeterError(f"{self.directory}: sequence writer is closed")
+        self._follow_folder()
         ns = seconds_to_ns(frame.t_s)
         if self._last_ns is not None and ns <= self._last_ns:
             raise TrackmeterError(f"frame at {frame.t_s} s does not come after the previous one")
@@ -256,6 +258,26 @@ class SequenceWriter:
             raise
         self._last_ns = ns
         self.frames_written += 1
+
+    def _follow_folder(self) -> None:
+        """Follow the folder when it was moved (renamed) while recording: its open files went
+        with it, and the frames to come go there too (said once). Raises TrackmeterError when
+        it was removed: every frame's images are written by name, and would fail one by one."""
+        if self._folder_id is None or folder_identity(self.directory) == self._folder_id:
+            return
+        moved = None if self._lock is None else self._lock.moved_to()
+        if moved is None:
+            raise TrackmeterError(f"{self.directory}: the recording folder was removed while recording; the "
+                                  f"{counted(self.frames_written, 'frame')} written there went with it")
+        old, self.directory = self.directory, moved
+        self._lock.folder = moved  # type: ignore[union-attr]
+        if self._mark is not None:
+            self._mark = moved / self._mark.relative_to(old)
+        for file in (*self._csv.values(), self._truth_csv, self._truth_tum, self._cuts):
+            if file is not None:
+                file.path = moved / Path(file.path).relative_to(old)
+        warnings.warn(f"{old}: the recording folder was moved to {moved} while recording; the recording goes on there",
+                      stacklevel=3)
 
     def _write_image(self, path: Path, image: NDArray[np.uint8]) -> None:
         img = np.asarray(image)
@@ -317,8 +339,14 @@ class SequenceWriter:
             self._cuts.close()
             self._cuts = None
         if self._mark is not None:
-            self._mark.unlink(missing_ok=True)  # after every file is closed: the folder is whole
-            self._mark = None
+            mark, self._mark = self._mark, None
+            try:
+                mark.unlink(missing_ok=True)  # after every file is closed: the folder is whole
+            except OSError as exc:
+                raise TrackmeterError(f"{mark}: cannot remove ({exc.strerror or exc}): the "
+                                      f"{counted(self.frames_written, 'frame')} recorded "
+                                      f"{'is' if self.frames_written == 1 else 'are'} whole, but the folder stays "
+                                      "marked unfinished") from None
 
     def __enter__(self) -> SequenceWriter:
         return self

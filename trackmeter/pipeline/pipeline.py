@@ -225,6 +225,8 @@ class _Recorder:
                 self._writer.write(self._carried_on(item))
                 with self._lock:
                     self.frames_written += 1
+                    # where the writer follows a folder moved while recording (SequenceWriter)
+                    self.directory = Path(getattr(self._writer, "directory", self.directory))
             except Exception as exc:  # disk full, permissions: report, keep the pipeline up
                 with self._lock:  # stats() reads the counts and the error together
                     self.frames_lost += 1
