@@ -93,9 +93,9 @@ class VideoSource(Source):
         # The frames both headers count, 0 when unknown: a read that fails before it is one bad
         # frame (OpenCV decodes those after it), skipped; one at it is the end.
         self._expected = min(counts) if min(counts) > 0 else 0
-        self._undecoded: list[tuple[int, str]] = []  # (position, which file) on the first pass
+        self._undecoded: list[tuple[int, int | None]] = []  # (position, file 0/1 or None: both) on the first pass
         self._short_by = 0  # frames the first pass ended before the count (a file cut short)
-        self._ran_out_first: str | None = None  # the file that ran out while the other still read
+        self._ran_out_first: int | None = None  # the file (0 left, 1 right) that ran out while the other read
         self._delivered = 0  # pairs delivered on this pass
         self._looped = False
         #: One line on what does not match between the files and, as playing finds them, the
@@ -159,8 +159,7 @@ class VideoSource(Source):
                 break
             # Both files step on together, so the pairs stay matched; the frame's time is skipped.
             if not self._looped and all(pos != self._pos for pos, _ in self._undecoded):  # once, across restarts
-                self._undecoded.append((self._pos, "both files" if not (ok_l or ok_r)
-                                        else self.paths[0 if not ok_l else 1].name))
+                self._undecoded.append((self._pos, None if not (ok_l or ok_r) else 0 if not ok_l else 1))
             self._pos += 1
         if not (ok_l and ok_r):
             self._end_of_pass()
@@ -198,23 +197,30 @@ class VideoSource(Source):
             self._short_by += 1
         # One file ran out while the other still read: cut short, or frames lost inside it
         # (a damaged file, whose broken frames the decoder skips without a failed read).
-        self._ran_out_first = next(iter(ran_out)) if len(ran_out) == 1 and "both files" not in ran_out else None
+        self._ran_out_first = next(iter(ran_out)) if len(ran_out) == 1 and None not in ran_out else None
         self._update_warning()
         self._looped = True
+
+    def _label(self, which: int) -> str:
+        """File ``which`` (0 left, 1 right) as a message names it: its name, or its path when
+        both files have the same name (``L/cam.avi``, ``R/cam.avi``)."""
+        same = self.paths[0].name == self.paths[1].name
+        return str(self.paths[which]) if same else self.paths[which].name
 
     def _update_warning(self) -> None:
         parts = list(self._problems)
         if self._undecoded:
-            shown = [f"{name}'s frame {pos} did not decode" if name != "both files"
-                     else f"frame {pos} did not decode in either file" for pos, name in self._undecoded[:3]]
+            shown = [f"{self._label(which)}'s frame {pos} did not decode" if which is not None
+                     else f"frame {pos} did not decode in either file" for pos, which in self._undecoded[:3]]
             more = len(self._undecoded) - len(shown)
             parts.append(f"{counted(len(self._undecoded), 'frame pair')} skipped: {', '.join(shown)}"
                          + (f" and {more} more" if more else ""))
-        # A frame or so short is a header's estimate (FFmpeg counts some containers by duration).
-        if self._short_by >= 2 and self._ran_out_first is not None:
-            other = next(p.name for p in self.paths if p.name != self._ran_out_first)
+        # A frame short in both files is a header's estimate (FFmpeg counts some containers by
+        # duration); one file short while the other still read lacks that frame, by one too.
+        if self._short_by >= 1 and self._ran_out_first is not None:
+            short, other = self._label(self._ran_out_first), self._label(1 - self._ran_out_first)
             parts.append(f"the stream ended after {self._delivered} of the {self._expected} frame pairs the files count: "
-                         f"{self._ran_out_first} ran out {self._short_by} frames before {other}, cut short or with frames "
+                         f"{short} ran out {counted(self._short_by, 'frame')} before {other}, cut short or with frames "
                          "lost inside it (a damaged file), after which every pair is out of step by as many frames")
         elif self._short_by >= 2:
             parts.append(f"the stream ended after {self._delivered} of the {self._expected} frame pairs the files count "
