@@ -1027,7 +1027,7 @@ def test_a_run_folder_without_its_states_csv_says_the_rates_are_not_evaluated(ca
         assert code == 0 and f"{run / 'states.csv'}: not a file: the poses of" in err, err
 
 
-@pytest.mark.parametrize("columns", ["pose", "state"])
+@pytest.mark.parametrize("columns", ["pose", "state", "upper case"])
 def test_a_euroc_ground_truth_csv_is_read_by_its_header(capsys, sequence_and_run, tmp_path, columns):
     """EuRoC's ground truth (``#timestamp, p_RS_R_x [m], ..., q_RS_w [], ...``, nanoseconds,
     scalar-first) was taken for a TUM file with commas: its header a comment, the quaternion
@@ -1040,7 +1040,7 @@ def test_a_euroc_ground_truth_csv_is_read_by_its_header(capsys, sequence_and_run
     if columns == "state":
         names += [f"v_RS_R_{a} [m s^-1]" for a in "xyz"] + [f"b_w_RS_S_{a} [rad s^-1]" for a in "xyz"] + \
             [f"b_a_RS_S_{a} [m s^-2]" for a in "xyz"]
-    rows = [",".join(names)]
+    rows = [",".join(names).upper() if columns == "upper case" else ",".join(names)]  # read alike (a re-check)
     for k in range(len(truth)):
         values = [f"{round(truth.t_s[k] * 1e9)}"] + [f"{x:.12g}" for x in truth.position_m[k]] + \
             [f"{x:.12g}" for x in truth.quat_wxyz[k]]

@@ -194,10 +194,10 @@ def header_fields(line: str) -> list[str]:
 #: Its ``b_w_RS_S_*`` are gyroscope biases, not an angular velocity: kept as extra columns.
 #: The frame letters may be left out (``p_x [m]``, ``q_w []``).
 _EUROC_NAMES = (
-    (re.compile(r"timestamp"), "t"),
-    (re.compile(r"p_(?:[A-Za-z]+_)*([xyz])"), r"\1"),
-    (re.compile(r"q_(?:[A-Za-z]+_)*([wxyz])"), r"q\1"),
-    (re.compile(r"v_(?:[A-Za-z]+_)*([xyz])"), r"v\1"),
+    (re.compile(r"timestamp", re.IGNORECASE), "t"),
+    (re.compile(r"p_(?:[A-Za-z]+_)*([xyz])", re.IGNORECASE), r"\1"),
+    (re.compile(r"q_(?:[A-Za-z]+_)*([wxyz])", re.IGNORECASE), r"q\1"),
+    (re.compile(r"v_(?:[A-Za-z]+_)*([xyz])", re.IGNORECASE), r"v\1"),
 )
 
 
@@ -207,7 +207,7 @@ def _our_name(name: str) -> str:
     bare = re.sub(r"\s*\[[^\]]*\]$", "", name)
     for pattern, ours in _EUROC_NAMES:
         if pattern.fullmatch(bare):
-            return pattern.sub(ours, bare)
+            return pattern.sub(ours, bare).lower()
     return name
 
 
