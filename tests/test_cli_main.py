@@ -372,3 +372,28 @@ def test_an_error_names_a_path_that_is_not_utf8_by_its_own_bytes(tmp_path) -> No
     assert done.returncode == 2
     assert done.stderr.startswith(b"trackmeter evaluate: error: " + missing + b": "), done.stderr
     assert b"\\udc" not in done.stderr
+
+
+def test_the_report_of_a_stop_a_c_callback_dropped_is_dropped_too():
+    # Ctrl-C while numba compiled: the KeyboardInterrupt raised in its ctypes callback was
+    # printed as "Exception ignored on calling ctypes callback function ... Traceback ...
+    # KeyboardInterrupt" above the command's own "interrupted" line (a re-check). The command
+    # stops on it all the same (signals.interrupt_kept), so its report is dropped; a
+    # KeyboardInterrupt report with no stop signal taken is not.
+    from types import SimpleNamespace
+
+    from trackmeter import signals as stop_signals
+    from trackmeter.cli.main import _without_signal_race_reports
+
+    seen = []
+    hook = _without_signal_race_reports(seen.append)
+    dropped = SimpleNamespace(exc_value=KeyboardInterrupt())
+    try:
+        stop_signals.note_taken(signal.SIGINT)
+        hook(dropped)
+        assert seen == []
+        stop_signals.note_taken(None)
+        hook(dropped)
+        assert seen == [dropped]
+    finally:
+        stop_signals.note_taken(None)

@@ -118,10 +118,13 @@ def _already_stopping(signum: int, frame: object) -> None:
 
 
 def _without_signal_race_reports(hook: Callable[[Any], object]) -> Callable[[Any], None]:
-    """``sys.unraisablehook`` minus CPython's report of a signal that found SIG_IGN: a signal
-    of a burst, already caught by the interpreter when its handler became SIG_IGN, is then
-    ignored and reported as an unraisable error with a traceback ("Signal 15 ignored due to
-    race condition"). That is the ignoring the command wants. SIG_IGN itself must stay: the
+    """``sys.unraisablehook`` minus the reports of a stop the command handles: the
+    KeyboardInterrupt of a stop signal that a C library's callback dropped (numba's compile,
+    through ctypes; :func:`trackmeter.signals.interrupt_kept` raises it again), and CPython's
+    report of a signal that found SIG_IGN: a signal of a burst, already caught by the
+    interpreter when its handler became SIG_IGN, is then ignored and reported as an
+    unraisable error with a traceback ("Signal 15 ignored due to race condition"). That is
+    the ignoring the command wants. SIG_IGN itself must stay: the
     interpreter's shutdown resets Python handlers to the default, and a late signal would
     then kill the process (exit -2) where an ignored one does not."""
 
@@ -129,6 +132,8 @@ def _without_signal_race_reports(hook: Callable[[Any], object]) -> Callable[[Any
         exc = getattr(unraisable, "exc_value", None)
         if isinstance(exc, OSError) and "ignored due to race condition" in str(exc):
             return
+        if isinstance(exc, KeyboardInterrupt) and signals.taken() is not None:
+            return  # the stop's own, dropped by a C library's callback: it stops the command all the same
         hook(unraisable)
 
     return report
