@@ -132,3 +132,22 @@ def test_a_non_finite_pose_is_refused_and_does_not_poison_the_filter() -> None:
         f.update(5 / 25, R_bad, [0.0, 0.0, 3.5])
     R_out, p_out = f.update(6 / 25, np.eye(3), [0.0, 0.0, 3.5])
     assert np.all(np.isfinite(R_out)) and np.allclose(p_out, [0.0, 0.0, 3.5])
+
+
+@pytest.mark.parametrize("fresh", [True, False])
+def test_a_reflection_or_a_time_that_is_no_number_is_refused_and_does_not_poison_the_filter(fresh: bool) -> None:
+    """A reflection (det -1) given to a fresh filter was taken as its base, and every later
+    pose then failed with scipy's "Non-positive determinant"; mid-stream that ValueError came
+    raw; a NaN time was taken silently (a re-check)."""
+    f = PoseFilter(FilterParams(velocity_compensated=False), 25.0)
+    if not fresh:
+        for k in range(5):
+            f.update(k / 25, np.eye(3), [0.0, 0.0, 3.5])
+    with pytest.raises(TrackmeterError, match=r"R_cam_body must be a rotation"):
+        f.update(5 / 25, np.diag([1.0, 1.0, -1.0]), [0.0, 0.0, 3.5])
+    with pytest.raises(TrackmeterError, match=r"R_cam_body must be a rotation"):
+        f.update(5 / 25, 2 * np.eye(3), [0.0, 0.0, 3.5])
+    with pytest.raises(TrackmeterError, match=r"t_s is not finite"):
+        f.update(np.nan, np.eye(3), [0.0, 0.0, 3.5])
+    R_out, p_out = f.update(6 / 25, np.eye(3), [0.0, 0.0, 3.5])
+    assert np.allclose(R_out, np.eye(3)) and np.allclose(p_out, [0.0, 0.0, 3.5])

@@ -557,3 +557,21 @@ def test_times_that_do_not_increase_strictly_are_refused(fit) -> None:  # type: 
         fit(np.zeros(6), R, p, 1)
     with pytest.raises(TrackmeterError, match=r"times_s\[2\] is not finite"):
         fit(np.where(np.arange(6) == 2, np.nan, t), R, p, 1)
+
+
+def test_a_reflection_or_a_time_that_is_no_number_is_refused_and_does_not_poison_the_window() -> None:
+    """A NaN time joined the window, and every later update raised "times_s[10] is not finite"
+    for good (389 frames on); a reflection raised scipy's ValueError, and the next update too
+    (a re-check)."""
+    from trackmeter.core.velocity import VelocityEstimator, VelocityParams
+    from trackmeter.errors import TrackmeterError
+
+    est = VelocityEstimator(VelocityParams())
+    for k in range(10):
+        est.update(k / 25, np.eye(3), [0.001 * k, 0.0, 3.5])
+    with pytest.raises(TrackmeterError, match=r"t_s is not finite"):
+        est.update(np.nan, np.eye(3), [0.01, 0.0, 3.5])
+    with pytest.raises(TrackmeterError, match=r"R_cam_body must be a rotation"):
+        est.update(10 / 25, np.diag([1.0, 1.0, -1.0]), [0.01, 0.0, 3.5])
+    rates = est.update(11 / 25, np.eye(3), [0.011, 0.0, 3.5])
+    assert rates is not None and np.allclose(rates[0], [0.025, 0.0, 0.0], atol=1e-6)

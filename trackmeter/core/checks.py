@@ -96,3 +96,41 @@ def covariances(value: ArrayLike, name: str, n: int, definite: bool = True) -> F
         raise TrackmeterError(f"{name}[{bad[0]}] must be a symmetric positive-{kind} 3x3 covariance, got "
                               f"{np.array2string(C[bad[0]], separator=', ', precision=3).replace(chr(10), '')}")
     return C
+
+
+#: Largest ``|R^T R - I|`` element of a rotation matrix still taken as rounding (a product of
+#: a few rotations in float64 is orthonormal to ~1e-15).
+ORTHONORMAL_TOLERANCE = 1e-6
+
+
+def rotation_matrix(value: ArrayLike, name: str) -> FloatArray:
+    """``value`` as a finite (3,3) rotation: orthonormal (:data:`ORTHONORMAL_TOLERANCE`) with
+    determinant +1. A reflection or a scaled matrix passed on fails later, and far from its
+    cause, in scipy's "Non-positive determinant" or a filter state that keeps it.
+
+    Raises:
+        TrackmeterError: ``"R_cam_body must be a rotation (orthonormal, determinant +1), got
+            determinant -1"``.
+    """
+    R = finite_rows(value, name, (3, 3))
+    off = float(np.abs(R.T @ R - np.eye(3)).max())
+    det = float(np.linalg.det(R))
+    if off > ORTHONORMAL_TOLERANCE or det <= 0:
+        raise TrackmeterError(f"{name} must be a rotation (orthonormal, determinant +1), got determinant {det:.3g}"
+                              + (f" and R^T R off the identity by {off:.3g}" if off > ORTHONORMAL_TOLERANCE else ""))
+    return R
+
+
+def finite_time(value: float, name: str) -> float:
+    """``value`` as a float time, s, refused when it is not a finite number.
+
+    Raises:
+        TrackmeterError: ``"t_s is not finite: nan"``.
+    """
+    try:
+        t = float(value)
+    except (TypeError, ValueError):
+        raise TrackmeterError(f"{name} must be a number of seconds, got {value!r}") from None
+    if not np.isfinite(t):
+        raise TrackmeterError(f"{name} is not finite: {t}")
+    return t

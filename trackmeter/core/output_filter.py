@@ -33,7 +33,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import signal
 from scipy.spatial.transform import Rotation
 
-from trackmeter.core.checks import finite_rows
+from trackmeter.core.checks import finite_rows, finite_time, rotation_matrix
 from trackmeter.core.params import check_params, param
 from trackmeter.core.transforms import rotation_from_matrix
 from trackmeter.errors import TrackmeterError
@@ -123,10 +123,12 @@ class PoseFilter:
                 when None or not finite (rates not yet known).
 
         Raises:
-            TrackmeterError: a pose of the wrong shape or not finite. Refused before it enters
+            TrackmeterError: a pose of the wrong shape or not finite, an ``R_cam_body`` that is
+                no rotation (a reflection), a time that is not finite. Refused before it enters
                 the IIR state, where one NaN would stay for ever; the filter is left as it was.
         """
-        R = finite_rows(R_cam_body, "R_cam_body", (3, 3))
+        t_s = finite_time(t_s, "t_s")
+        R = rotation_matrix(R_cam_body, "R_cam_body")
         p = finite_rows(p_cam, "p_cam", (3,))
         if not self.params.enabled:
             return R, p

@@ -60,7 +60,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from trackmeter.core.checks import finite_rows
+from trackmeter.core.checks import finite_rows, finite_time, rotation_matrix
 from trackmeter.core.params import check_params, param
 from trackmeter.core.transforms import omega_body_between, rotation_from_matrix
 from trackmeter.errors import TrackmeterError
@@ -544,10 +544,11 @@ class VelocityEstimator:
         which a coast then integrates.
 
         Raises:
-            TrackmeterError: ``R_cam_body`` not a finite (3,3) or ``p_cam`` not a finite (3,):
-                refused before it joins the window, where one NaN would spoil every fit over
-                the next ``window_s``; the window is left as it was."""
-        R_new = finite_rows(R_cam_body, "R_cam_body", (3, 3))
+            TrackmeterError: ``R_cam_body`` not a (3,3) rotation, ``p_cam`` not a finite (3,),
+                ``t_s`` not finite: refused before it joins the window, where one NaN would
+                spoil every fit over the next ``window_s``; the window is left as it was."""
+        t_s = finite_time(t_s, "t_s")
+        R_new = rotation_matrix(R_cam_body, "R_cam_body")
         p_new = finite_rows(p_cam, "p_cam", (3,))
         if self._t and (t_s <= self._t[-1] or t_s - self._t[-1] > self.params.bridge_gap_s):
             self.reset()
