@@ -62,3 +62,27 @@ def test_every_params_class_checks_its_fields_and_its_defaults_pass(cls) -> None
     f = bounded[0]
     with pytest.raises(TrackmeterError, match=rf"^{cls.__name__}\.{f.name}: "):
         cls(**{f.name: f.metadata["min"] - 1})
+
+
+@pytest.mark.parametrize(
+    "build, message",
+    [
+        (lambda: PoseParams(ransac_trials=2.5), r"^PoseParams\.ransac_trials: expected an integer, got 2\.5$"),
+        (lambda: PoseParams(refine_iterations=1.5), r"^PoseParams\.refine_iterations: expected an integer"),
+        (lambda: PoseParams(robust_scale="no"), r"^PoseParams\.robust_scale: expected true or false, got 'no'$"),
+        (lambda: FilterParams(cutoff_hz="2"), r"^FilterParams\.cutoff_hz: expected a number, got '2'$"),
+    ],
+)
+def test_a_value_of_the_wrong_type_is_refused_when_built(build, message) -> None:
+    """`PoseParams(ransac_trials=2.5)` was accepted and robust_pose failed later with "'float'
+    object cannot be interpreted as an integer"; `robust_scale='no'` was taken as true (a
+    re-check)."""
+    with pytest.raises(TrackmeterError, match=message):
+        build()
+
+
+def test_numbers_of_numpy_types_and_ints_for_floats_are_taken() -> None:
+    import numpy as np
+
+    assert PoseParams(ransac_trials=np.int64(50), robust_scale=np.bool_(False)).ransac_trials == 50
+    assert FilterParams(cutoff_hz=2).cutoff_hz == 2

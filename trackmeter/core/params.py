@@ -14,11 +14,15 @@ otherwise run another estimator silently). Both use :func:`range_problem`.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+import typing
 from collections.abc import Mapping
 from dataclasses import field
-from numbers import Real
+from numbers import Integral, Real
 from typing import Any
+
+import numpy as np
 
 from trackmeter.errors import TrackmeterError, shown_value
 
@@ -79,14 +83,45 @@ def check_params(params: Any) -> None:
     Raises:
         TrackmeterError: ``"FilterParams.order: expected a value in [1, 8], got 0"``.
     """
+    kinds = _simple_kinds(type(params))
     for f in dataclasses.fields(params):
         meta = f.metadata
+        value = getattr(params, f.name)
+        kind = kinds.get(f.name)
+        if kind is not None and not _is_kind(value, kind):
+            raise TrackmeterError(f"{type(params).__name__}.{f.name}: expected {_KIND_NAMES[kind]}, "
+                                  f"got {shown_value(value)}")
         if "min" not in meta and "max" not in meta and "choices" not in meta:
             continue
-        value = getattr(params, f.name)
         items = enumerate(value) if isinstance(value, tuple) else ((None, value),)
         for i, item in items:
             problem = range_problem(item, meta)
             if problem is not None:
                 index = "" if i is None else f"[{i}]"
                 raise TrackmeterError(f"{type(params).__name__}.{f.name}{index}: {problem}")
+
+
+#: How a message names each simple field type.
+_KIND_NAMES = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
+
+
+@functools.lru_cache(maxsize=None)
+def _simple_kinds(cls: type) -> dict[str, type]:
+    """The fields of a parameter dataclass annotated ``bool``, ``int``, ``float`` or ``str``,
+    by name (resolved once per class: ``typing.get_type_hints`` is slow)."""
+    hints = typing.get_type_hints(cls)
+    return {f.name: hints[f.name] for f in dataclasses.fields(cls) if hints.get(f.name) in _KIND_NAMES}
+
+
+def _is_kind(value: Any, kind: type) -> bool:
+    """Whether ``value`` is of ``kind`` as a setting is: numpy's numbers too, an integer for a
+    float, never a bool for a number (True is 1 to Python, not to a user)."""
+    if kind is bool:
+        return isinstance(value, (bool, np.bool_))
+    if isinstance(value, (bool, np.bool_)):
+        return False
+    if kind is int:
+        return isinstance(value, Integral)
+    if kind is float:
+        return isinstance(value, Real)
+    return isinstance(value, str)

@@ -51,6 +51,7 @@ centred at ``c`` samples ``c + k - (n-1)/2`` for ``k = 0..n-1`` (as ``cv2.getRec
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, replace
 from functools import lru_cache
@@ -700,9 +701,12 @@ def match_epipolar(
     return EpipolarMatch(cl, lk.uv, disparity, lk.score, second, resid, reasons)
 
 
+@functools.lru_cache(maxsize=8)
 def _any_fit(params: MeasureParams) -> MeasureParams:
     """``params`` with the score and uncertainty limits lifted: a tracked point's match is judged
-    by :func:`match_epipolar`'s own checks, not by ``measure``'s acceptance of a new point."""
+    by :func:`match_epipolar`'s own checks, not by ``measure``'s acceptance of a new point.
+    Cached: building a parameter set checks every field (:func:`~trackmeter.core.params.check_params`),
+    and this runs every frame."""
     return replace(params, min_score=-1.0, max_sigma_disparity_px=math.inf)
 
 
