@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 from dataclasses import replace
 import subprocess
@@ -1407,6 +1408,25 @@ def test_a_recording_folder_moved_or_removed_while_recording_is_followed_or_said
         writer.close()
         assert str(info.value) == (f"{out}: the recording folder was removed while recording; the 2 frames written "
                                    "there went with it")
+
+
+def test_a_recording_whose_files_are_removed_while_its_folder_stays_is_said_so(tmp_path):
+    # `mv` to another file system copies, then removes the files while the folder is still
+    # there: the writer failed on a hidden temporary file's name (a re-check).
+    import shutil
+
+    frames = _frames(3)
+    out = tmp_path / "rec"
+    writer = SequenceWriter(out)
+    writer.write(frames[0])
+    writer.write(frames[1])
+    shutil.rmtree(out / "cam0")
+    with pytest.raises(TrackmeterError) as info:
+        writer.write(frames[2])
+    with contextlib.suppress(TrackmeterError):
+        writer.close()
+    assert str(info.value) == (f"{out}: the recording's files were removed while recording (deleted, or moved to "
+                               "another file system); the 2 frames written there went with them")
 
 
 def test_a_recording_whose_unfinished_mark_cannot_be_removed_says_so_in_words(tmp_path):

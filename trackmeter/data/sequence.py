@@ -34,6 +34,7 @@ import hashlib
 import itertools
 import json
 import math
+import errno
 import os
 import re
 import shutil
@@ -253,6 +254,11 @@ class SequenceWriter:
                 self._cuts.truncate(cuts_size)
             for path in images:
                 path.unlink(missing_ok=True)
+            if isinstance(exc, OSError) and exc.errno == errno.ENOENT:
+                # The folder is there (or followed), its files are not: removed under the writer.
+                raise TrackmeterError(f"{self.directory}: the recording's files were removed while recording (deleted, "
+                                      "or moved to another file system); the "
+                                      f"{counted(self.frames_written, 'frame')} written there went with them") from None
             if isinstance(exc, OSError):
                 raise TrackmeterError(f"{exc.filename or self.directory}: cannot write ({exc.strerror or exc})") from None
             raise
