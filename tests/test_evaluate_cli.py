@@ -657,16 +657,19 @@ def test_a_run_replaced_with_overwrite_loses_its_old_evaluation(capsys, tmp_path
     assert (run / "states.csv").is_file() and (run / "run.yaml").is_file()
 
 
-@pytest.mark.parametrize("status", ["running", "interrupted", "complete"])
+@pytest.mark.parametrize("status", ["running", "interrupted", "complete", "write failed"])
 def test_a_run_its_writer_never_closed_is_warned_about(capsys, run_in_own_body_frame, status):
     # After a kill -9 run.yaml keeps "status: running" and its summary is missing; it was
     # evaluated without a word (an outside CLI probe). An interrupted run's files are complete.
+    # A run whose writes failed (a full disk) ended early: it was evaluated without a word too
+    # (a re-check).
     seq, run = run_in_own_body_frame
     (run / "run.yaml").write_text(f"status: {status}\nsource:\n  spec: sim\n  case: a\n")
     code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
     assert code == 0
     assert ("still running: it was killed, its disk filled" in err) == (status == "running"), err
-    assert len(err.strip().splitlines()) == (status == "running")
+    assert ("its writes failed (a full disk?), so it ended early" in err) == (status == "write failed"), err
+    assert len(err.strip().splitlines()) == (status in ("running", "write failed"))
 
 
 def test_a_killed_overwrite_run_names_the_earlier_run_it_set_aside(capsys, run_in_own_body_frame):

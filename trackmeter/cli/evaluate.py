@@ -249,6 +249,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"trackmeter evaluate: warning: {estimate.valid_rows_without_rates} rows with a pose of {estimate.source} "
               "have a rate that is not a number (a states.csv's valid (1) row holds numbers in every field): their "
               "poses are evaluated, their rates left out", file=sys.stderr)
+    if estimate.status == "write failed":
+        # Stopped at the first frame that did not fit (a full disk): whole up to there.
+        print("trackmeter evaluate: warning: the run's run.yaml says its writes failed (a full disk?), so it ended "
+              "early; its frames up to there are whole" + _previous_run_note(Path(args.estimate)), file=sys.stderr)
     if estimate.status == "running":
         # The writer never closed it: killed, a disk that filled (track then says run.yaml could
         # not be updated), or still being written; its summary is missing.

@@ -167,8 +167,8 @@ def _with_rates_from(series: MotionSeries, csv_path: Path) -> MotionSeries | Non
     apart_rad = float(np.max((Rotation.from_quat(rates.quat_wxyz[it], scalar_first=True)
                               * Rotation.from_quat(series.quat_wxyz, scalar_first=True).inv()).magnitude()))
     if apart_m > SAME_TRUTH_TOLERANCE[0] or apart_rad > SAME_TRUTH_TOLERANCE[1]:
-        warnings.warn(f"{csv_path} beside the truth gives other poses at its times (up to {1e3 * apart_m:.4g} mm and "
-                      f"{math.degrees(apart_rad):.3g} deg apart): its velocities are not used", stacklevel=3)
+        warnings.warn(f"{csv_path} beside the truth gives other poses at its times (up to {1e3 * apart_m:.3f} mm and "
+                      f"{math.degrees(apart_rad):.3f} deg apart): its velocities are not used", stacklevel=3)
         return None
     return MotionSeries(series.t_s, series.valid, series.position_m, series.quat_wxyz,
                         rates.velocity_cam_m_s[it], rates.omega_body_rad_s[it])
