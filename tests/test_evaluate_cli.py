@@ -1133,7 +1133,7 @@ def test_a_tum_truth_takes_velocities_from_a_groundtruth_csv_beside_only_of_the_
         assert s["velocity_m_s"]["z"]["max"] == pytest.approx(0.001, abs=1e-6) and err == "", err
     else:
         assert s["velocity_m_s"] is None
-        assert "groundtruth.csv" in err and "500 mm" in err and "velocities are not used" in err, err
+        assert "groundtruth.csv" in err and "500.000 mm" in err and "velocities are not used" in err, err
 
 
 def test_a_command_started_with_its_stdout_closed_ends_without_a_traceback(sequence_and_run, tmp_path):
