@@ -1063,7 +1063,8 @@ def test_a_euroc_ground_truth_csv_is_read_by_its_header(capsys, sequence_and_run
     assert s["omega_rad_s"] is None and s["velocity_m_s"] is None
 
 
-@pytest.mark.parametrize("mixup", ["inverted", "scalar_first", "millimetres", "body_frame"])
+@pytest.mark.parametrize("mixup", ["inverted", "scalar_first", "millimetres", "body_frame", "conjugated",
+                                   "centimetres"])
 def test_an_estimate_written_in_another_convention_is_named(capsys, tmp_path, mixup):
     """A TUM estimate of T_body_cam, one written scalar-first, or one in millimetres gave
     errors of metres and 126 deg with only "compare with --align body" said, or, in mm, nothing
@@ -1077,6 +1078,10 @@ def test_an_estimate_written_in_another_convention_is_named(capsys, tmp_path, mi
         p, q = -(R.inv().apply(p)), R.inv().as_quat(scalar_first=True)
     elif mixup == "millimetres":
         p = 1000 * p
+    elif mixup == "centimetres":  # and a JPL quaternion, or R_body_cam beside T_cam_body's position (a re-check)
+        p = 100 * p
+    elif mixup == "conjugated":
+        q = R.inv().as_quat(scalar_first=True)
     elif mixup == "body_frame":
         Rb = R * Rotation.from_rotvec([0.3, 2.5, -0.7])
         p, q = p + R.apply([0.1, -0.02, 0.3]), Rb.as_quat(scalar_first=True)
@@ -1087,8 +1092,8 @@ def test_an_estimate_written_in_another_convention_is_named(capsys, tmp_path, mi
     _tum(tmp_path / "t.tum", truth)
     code, out, err = _run(capsys, "evaluate", "--truth", str(tmp_path / "t.tum"), "--estimate", str(tmp_path / "e.tum"))
     assert code == 0
-    said = {"inverted": "inverted", "scalar_first": "scalar first", "millimetres": "1000x",
-            "body_frame": "--align body"}
+    said = {"inverted": "inverted (T_body_cam", "scalar_first": "scalar first", "millimetres": "1000x the",
+            "body_frame": "--align body", "conjugated": "its rotation inverted", "centimetres": "100x the"}
     assert said[mixup] in err, err
     assert sum(word in err for word in said.values()) == 1, err  # the one that fits, not every guess
     # the table keeps its columns apart however large the figures

@@ -365,8 +365,9 @@ def likely_mixups(truth: MotionSeries, estimate: MotionSeries, index_truth: np.n
     poses: the inverse pose (``T_body_cam`` for ``T_cam_body``), a quaternion in the other
     order (scalar first where scalar last is read, or the reverse), or positions in
     millimetres. A convention is named only when it fits the truth :data:`MIXUP_GAIN` times
-    better than the estimate as read, and positions only when their sizes differ about a
-    thousandfold; none when the estimate is close already. Compared as they are (no body
+    better than the estimate as read (a rotation inverted alone too: a JPL quaternion), and
+    positions when their sizes differ about a thousand- or a hundredfold (millimetres,
+    centimetres); none when the estimate is close already. Compared as they are (no body
     alignment): a body frame of its own is none of these."""
     from scipy.spatial.transform import Rotation
 
@@ -379,26 +380,34 @@ def likely_mixups(truth: MotionSeries, estimate: MotionSeries, index_truth: np.n
     position, attitude = _pose_rms(R_t, p_t, R_e, p_e)
     hints = []
     size_t, size_e = float(np.median(np.linalg.norm(p_t, axis=1))), float(np.median(np.linalg.norm(p_e, axis=1)))
-    if size_t > 0 and size_e > 0 and 300 < max(size_e / size_t, size_t / size_e) < 3000:
-        larger, smaller, ratio = (("estimate", "truth", size_e / size_t) if size_e > size_t else
-                                  ("truth", "estimate", size_t / size_e))
+    ratio = max(size_e / size_t, size_t / size_e) if size_t > 0 and size_e > 0 else 1.0
+    unit = next((name for factor, name in ((1000, "millimetres"), (100, "centimetres"))
+                 if factor / 1.5 < ratio < factor * 1.5), None)
+    if unit is not None:
+        larger, smaller = ("estimate", "truth") if size_e > size_t else ("truth", "estimate")
         hints.append(f"the {larger}'s positions are about {ratio:.0f}x the {smaller}'s (median distance {size_t:.4g} m "
-                     f"in the truth, {size_e:.4g} in the estimate): millimetres where metres are read?")
+                     f"in the truth, {size_e:.4g} in the estimate): {unit} where metres are read?")
     if attitude < math.radians(5.0) and not hints and position < 0.5 * size_t:
         return hints
     alternatives = {
         "inverted (T_body_cam where T_cam_body is read)": (R_e.inv(), -R_e.inv().apply(p_e)),
+        "with its rotation inverted (a JPL or conjugated quaternion, or R_body_cam beside T_cam_body's position)":
+            (R_e.inv(), p_e),
         "written scalar first (w x y z) where scalar last is read (TUM: qx qy qz qw)":
             (Rotation.from_quat(np.roll(q_e, -1, axis=1), scalar_first=True), p_e),
         "written scalar last (x y z w) where scalar first is read (qw qx qy qz)":
             (Rotation.from_quat(np.roll(q_e, 1, axis=1), scalar_first=True), p_e),
     }
+    fits = []  # (position, attitude, what) of the conventions that fit far better
     for what, (R_alt, p_alt) in alternatives.items():
         position_alt, attitude_alt = _pose_rms(R_t, p_t, R_alt, p_alt)
         if attitude_alt * MIXUP_GAIN <= attitude and position_alt <= position:
-            hints.append(f"the estimate fits the truth far better {what}: attitude {math.degrees(attitude_alt):.3g} "
-                         f"deg RMS instead of {math.degrees(attitude):.3g}, position {1e3 * position_alt:.4g} mm "
-                         f"instead of {1e3 * position:.4g}")
+            fits.append((position_alt, attitude_alt, what))
+    if fits:  # the one that fits best (the whole pose inverted fits its rotation inverted as well)
+        position_alt, attitude_alt, what = min(fits)
+        hints.append(f"the estimate fits the truth far better {what}: attitude {math.degrees(attitude_alt):.3g} "
+                     f"deg RMS instead of {math.degrees(attitude):.3g}, position {1e3 * position_alt:.4g} mm "
+                     f"instead of {1e3 * position:.4g}")
     return hints
 
 
