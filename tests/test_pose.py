@@ -422,3 +422,19 @@ def test_residual_per_dof_divides_by_the_robust_scale(estec_rig) -> None:
     assert fit.scale2 > 1.0
     k = int(fit.inliers.sum())
     assert fit.residual_per_dof == pytest.approx(float(np.sum(fit.d2[fit.inliers])) / (3 * k - 6) / fit.scale2)
+
+
+def test_an_initial_pose_that_is_no_pose_is_refused_by_name() -> None:
+    """``initial=(full((3,3), nan), zeros(3))`` gave "SVD did not converge", ``(I, zeros(2))``
+    "operands could not be broadcast" (a re-check)."""
+    rng = np.random.default_rng(0)
+    b = rng.normal(size=(6, 3))
+    p = b + [0.0, 0.0, 3.5]
+    C = np.repeat((1e-6 * np.eye(3))[None], 6, axis=0)
+    for fit in (solve_pose, robust_pose):
+        with pytest.raises(TrackmeterError, match=r"^initial R_cam_body\[0\] is not finite"):
+            fit(b, p, C, initial=(np.full((3, 3), np.nan), np.zeros(3)))
+        with pytest.raises(TrackmeterError, match=r"^initial t_cam_body must be \(3,\)"):
+            fit(b, p, C, initial=(np.eye(3), np.zeros(2)))
+        with pytest.raises(TrackmeterError, match=r"^initial R_cam_body must be a rotation"):
+            fit(b, p, C, initial=(np.diag([1.0, 1.0, -1.0]), np.zeros(3)))

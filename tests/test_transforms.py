@@ -399,3 +399,18 @@ def test_rates_over_no_time_are_refused(dt_s: float) -> None:
         warnings.simplefilter("error")
         with pytest.raises(TrackmeterError, match=r"t1_s must come after t0_s"):
             finite_difference_rates(1.0, np.eye(3), np.zeros(3), 1.0 + dt_s, np.eye(3), np.zeros(3))
+
+
+def test_a_quaternion_that_is_no_rotation_and_a_transform_of_the_wrong_shape_are_refused_by_name() -> None:
+    """A zero or NaN quaternion raised scipy's ValueError; invert_transform(np.eye(3)) an
+    IndexError, and a (3,4) matrix was inverted silently (a re-check)."""
+    from trackmeter.core.transforms import invert_transform, quat_wxyz_to_matrix
+    from trackmeter.errors import TrackmeterError
+
+    for q in ([0.0, 0.0, 0.0, 0.0], [np.nan, 0.0, 0.0, 1.0], [[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]]):
+        with pytest.raises(TrackmeterError, match=r"^quat_wxyz must be"):
+            quat_wxyz_to_matrix(q)
+    for T in (np.eye(3), np.eye(4)[:3]):
+        with pytest.raises(TrackmeterError, match=r"^T_a_b must be \(4,4\), got shape"):
+            invert_transform(T)
+    assert np.allclose(quat_wxyz_to_matrix([2.0, 0.0, 0.0, 0.0]), np.eye(3))  # not unit: normalised, as scipy does

@@ -43,7 +43,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-from trackmeter.core.checks import covariances, finite_rows
+from trackmeter.core.checks import covariances, finite_rows, rotation_matrix
 from trackmeter.core.params import check_params, param
 from trackmeter.core.transforms import absolute_orientation, frame_from_three_points
 from trackmeter.errors import TrackmeterError
@@ -365,7 +365,7 @@ def solve_pose(
             symmetric positive-definite; :func:`checked_points`).
     """
     b, p, C, Cb = checked_points(points_body, points_cam, cov_cam, cov_body)
-    return _solve_pose(b, p, C, Cb, initial, iterations)
+    return _solve_pose(b, p, C, Cb, checked_initial(initial), iterations)
 
 
 def checked_points(
@@ -388,6 +388,19 @@ def checked_points(
     C = covariances(cov_cam, "cov_cam", n, definite=True)
     Cb = None if cov_body is None else covariances(cov_body, "cov_body", n, definite=False)
     return b, p, C, Cb
+
+
+def checked_initial(initial: tuple[ArrayLike, ArrayLike] | None) -> tuple[FloatArray, FloatArray] | None:
+    """``initial`` (``(R_cam_body, t_cam_body)`` or None) as float arrays, checked: a (3,3)
+    rotation and a finite (3,) position.
+
+    Raises:
+        TrackmeterError: ``"initial R_cam_body must be a rotation ..."`` and the like.
+    """
+    if initial is None:
+        return None
+    return (rotation_matrix(initial[0], "initial R_cam_body"),
+            finite_rows(initial[1], "initial t_cam_body", (3,)))
 
 
 def _solve_pose(
@@ -529,6 +542,7 @@ def robust_pose(
             or a malformed argument (:func:`checked_points`).
     """
     b, p, C, Cb = checked_points(points_body, points_cam, cov_cam, cov_body)
+    initial = checked_initial(initial)
     n = len(b)
     if n < 3:
         raise TrackmeterError(f"a pose needs at least 3 points, got {n}")

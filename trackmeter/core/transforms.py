@@ -30,8 +30,18 @@ FloatArray = NDArray[np.float64]
 
 
 def quat_wxyz_to_matrix(quat_wxyz: ArrayLike) -> FloatArray:
-    """Rotation matrix (3,3) or (N,3,3) from unit quaternion(s) ``wxyz`` (4,) or (N,4)."""
-    return Rotation.from_quat(np.asarray(quat_wxyz, dtype=float), scalar_first=True).as_matrix()
+    """Rotation matrix (3,3) or (N,3,3) from unit quaternion(s) ``wxyz`` (4,) or (N,4); one
+    that is not of unit norm is normalised (scipy).
+
+    Raises:
+        TrackmeterError: a quaternion of zero norm, not finite, or of another shape.
+    """
+    try:
+        return Rotation.from_quat(np.asarray(quat_wxyz, dtype=float), scalar_first=True).as_matrix()
+    except ValueError:  # scipy's message names no argument
+        raise TrackmeterError("quat_wxyz must be finite quaternions of shape (4,) or (N,4), not of zero norm, got "
+                              f"{np.array2string(np.asarray(quat_wxyz, dtype=float), separator=', ', threshold=8)}"
+                              ) from None
 
 
 def rotation_from_matrix(R: ArrayLike) -> Rotation:
@@ -230,8 +240,14 @@ def transform_from_pose(position: ArrayLike, quat_wxyz: ArrayLike) -> FloatArray
 
 
 def invert_transform(T_a_b: ArrayLike) -> FloatArray:
-    """``T_b_a`` from ``T_a_b`` using the rigid structure (no general matrix inverse)."""
+    """``T_b_a`` from ``T_a_b`` (4,4) using the rigid structure (no general matrix inverse).
+
+    Raises:
+        TrackmeterError: ``T_a_b`` not of shape (4,4).
+    """
     T = np.asarray(T_a_b, dtype=float)
+    if T.shape != (4, 4):
+        raise TrackmeterError(f"T_a_b must be (4,4), got shape {T.shape}")
     R = T[:3, :3]
     return make_transform(R.T, -R.T @ T[:3, 3])
 
