@@ -657,7 +657,7 @@ def test_a_run_replaced_with_overwrite_loses_its_old_evaluation(capsys, tmp_path
     assert (run / "states.csv").is_file() and (run / "run.yaml").is_file()
 
 
-@pytest.mark.parametrize("status", ["running", "interrupted", "complete", "write failed"])
+@pytest.mark.parametrize("status", ["running", "interrupted", "complete", "write failed", "source failed"])
 def test_a_run_its_writer_never_closed_is_warned_about(capsys, run_in_own_body_frame, status):
     # After a kill -9 run.yaml keeps "status: running" and its summary is missing; it was
     # evaluated without a word (an outside CLI probe). An interrupted run's files are complete.
@@ -669,7 +669,8 @@ def test_a_run_its_writer_never_closed_is_warned_about(capsys, run_in_own_body_f
     assert code == 0
     assert ("still running: it was killed, its disk filled" in err) == (status == "running"), err
     assert ("its writes failed (a full disk?), so it ended early" in err) == (status == "write failed"), err
-    assert len(err.strip().splitlines()) == (status in ("running", "write failed"))
+    assert ("its source failed, so it ended early" in err) == (status == "source failed"), err  # a second re-check
+    assert len(err.strip().splitlines()) == (status in ("running", "write failed", "source failed"))
 
 
 def test_a_killed_overwrite_run_names_the_earlier_run_it_set_aside(capsys, run_in_own_body_frame):

@@ -438,3 +438,7 @@ def test_an_initial_pose_that_is_no_pose_is_refused_by_name() -> None:
             fit(b, p, C, initial=(np.eye(3), np.zeros(2)))
         with pytest.raises(TrackmeterError, match=r"^initial R_cam_body must be a rotation"):
             fit(b, p, C, initial=(np.diag([1.0, 1.0, -1.0]), np.zeros(3)))
+        for initial in (np.eye(4), np.eye(3), (np.eye(3),), (np.eye(3), np.zeros(3), 1)):  # a second re-check
+            with pytest.raises(TrackmeterError, match=r"^initial must be a pair \(R_cam_body \(3,3\), "
+                                                      r"t_cam_body \(3,\)\)"):
+                fit(b, p, C, initial=initial)

@@ -1444,3 +1444,14 @@ def test_a_recording_whose_unfinished_mark_cannot_be_removed_says_so_in_words(tm
         writer.close()
     assert str(info.value).startswith(f"{mark}: cannot remove (")
     assert str(info.value).endswith("the 1 frame recorded is whole, but the folder stays marked unfinished")
+
+
+def test_videos_of_one_name_are_told_apart_in_every_message(tmp_path):
+    # "the videos differ in length (cam.avi: 30 frames, cam.avi: 25)" (a second re-check).
+    (tmp_path / "L").mkdir()
+    (tmp_path / "R").mkdir()
+    left, right = _video(tmp_path / "L" / "cam.avi", 6), _video(tmp_path / "R" / "cam.avi", 4)
+    with pytest.warns(UserWarning, match="differ in length"):
+        src = open_source(f"video:{left},{right}")
+    src.close()
+    assert src.warning is not None and f"({left}: 6 frames, {right}: 4)" in src.warning, src.warning

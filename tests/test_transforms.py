@@ -407,9 +407,14 @@ def test_a_quaternion_that_is_no_rotation_and_a_transform_of_the_wrong_shape_are
     from trackmeter.core.transforms import invert_transform, quat_wxyz_to_matrix
     from trackmeter.errors import TrackmeterError
 
-    for q in ([0.0, 0.0, 0.0, 0.0], [np.nan, 0.0, 0.0, 1.0], [[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]]):
-        with pytest.raises(TrackmeterError, match=r"^quat_wxyz must be"):
+    for q in ([0.0, 0.0, 0.0, 0.0], [np.nan, 0.0, 0.0, 1.0], [[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]],
+              [np.inf, 0.0, 0.0, 1.0]):  # an infinity gave a matrix of NaN (a second re-check)
+        with pytest.raises(TrackmeterError, match=r"^quat_wxyz"):
             quat_wxyz_to_matrix(q)
+    # one line, naming the row (a 7-line array with "..." before)
+    with pytest.raises(TrackmeterError, match=r"^quat_wxyz\[20\] must be a finite quaternion of non-zero norm, "
+                                              r"got \[0\.0, 0\.0, 0\.0, 0\.0\]$"):
+        quat_wxyz_to_matrix(np.vstack([[1.0, 0.0, 0.0, 0.0]] * 20 + [[0.0, 0.0, 0.0, 0.0]]))
     for T in (np.eye(3), np.eye(4)[:3]):
         with pytest.raises(TrackmeterError, match=r"^T_a_b must be \(4,4\), got shape"):
             invert_transform(T)

@@ -253,6 +253,9 @@ def run(args: argparse.Namespace) -> int:
         # Stopped at the first frame that did not fit (a full disk): whole up to there.
         print("trackmeter evaluate: warning: the run's run.yaml says its writes failed (a full disk?), so it ended "
               "early; its frames up to there are whole" + _previous_run_note(Path(args.estimate)), file=sys.stderr)
+    if estimate.status == "source failed":
+        print("trackmeter evaluate: warning: the run's run.yaml says its source failed, so it ended early (its "
+              "summary's source_status says how)", file=sys.stderr)
     if estimate.status == "running":
         # The writer never closed it: killed, a disk that filled (track then says run.yaml could
         # not be updated), or still being written; its summary is missing.

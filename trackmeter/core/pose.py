@@ -399,6 +399,10 @@ def checked_initial(initial: tuple[ArrayLike, ArrayLike] | None) -> tuple[FloatA
     """
     if initial is None:
         return None
+    if not (isinstance(initial, (tuple, list)) and len(initial) == 2):
+        raise TrackmeterError(f"initial must be a pair (R_cam_body (3,3), t_cam_body (3,)), got "
+                              f"{type(initial).__name__}" + (f" of {len(initial)}" if isinstance(initial, (tuple, list))
+                                                             else f" of shape {np.shape(initial)}"))
     return (rotation_matrix(initial[0], "initial R_cam_body"),
             finite_rows(initial[1], "initial t_cam_body", (3,)))
 

@@ -36,12 +36,17 @@ def quat_wxyz_to_matrix(quat_wxyz: ArrayLike) -> FloatArray:
     Raises:
         TrackmeterError: a quaternion of zero norm, not finite, or of another shape.
     """
-    try:
-        return Rotation.from_quat(np.asarray(quat_wxyz, dtype=float), scalar_first=True).as_matrix()
-    except ValueError:  # scipy's message names no argument
-        raise TrackmeterError("quat_wxyz must be finite quaternions of shape (4,) or (N,4), not of zero norm, got "
-                              f"{np.array2string(np.asarray(quat_wxyz, dtype=float), separator=', ', threshold=8)}"
-                              ) from None
+    q = np.asarray(quat_wxyz, dtype=float)
+    if q.shape[-1:] != (4,) or q.ndim not in (1, 2):
+        raise TrackmeterError(f"quat_wxyz must be (4,) or (N,4), got shape {q.shape}")
+    rows = q.reshape(-1, 4)
+    bad = ~np.isfinite(rows).all(axis=1) | ~(np.abs(rows).max(axis=1) > 0)  # scipy takes inf for NaN silently
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        where = "quat_wxyz" if q.ndim == 1 else f"quat_wxyz[{i}]"
+        raise TrackmeterError(f"{where} must be a finite quaternion of non-zero norm, got "
+                              f"{[float(x) for x in rows[i]]}")
+    return Rotation.from_quat(q, scalar_first=True).as_matrix()
 
 
 def rotation_from_matrix(R: ArrayLike) -> Rotation:

@@ -83,12 +83,12 @@ class VideoSource(Source):
         problems = []
         # Frames pair by position: files at other rates pair frames of other times.
         if min(rates) > 0 and abs(rates[0] - rates[1]) > 1e-3 * max(rates):
-            problems.append(f"the frame rates differ ({self.paths[0].name}: {rates[0]:.4g} Hz, "
-                            f"{self.paths[1].name}: {rates[1]:.4g} Hz): frames pair by position, not by time")
+            problems.append(f"the frame rates differ ({self._label(0)}: {rates[0]:.4g} Hz, "
+                            f"{self._label(1)}: {rates[1]:.4g} Hz): frames pair by position, not by time")
         if min(counts) > 0 and counts[0] != counts[1]:
             # The longer file's tail is never played.
-            problems.append(f"the videos differ in length ({self.paths[0].name}: {counts[0]} frames, "
-                            f"{self.paths[1].name}: {counts[1]}): the stream ends with the shorter")
+            problems.append(f"the videos differ in length ({self._label(0)}: {counts[0]} frames, "
+                            f"{self._label(1)}: {counts[1]}): the stream ends with the shorter")
         self._problems = problems
         # The frames both headers count, 0 when unknown: a read that fails before it is one bad
         # frame (OpenCV decodes those after it), skipped; one at it is the end.
@@ -135,8 +135,8 @@ class VideoSource(Source):
         return (int(image.shape[1]), int(image.shape[0])) if ok and image is not None else None
 
     def _size_mismatch(self, left: tuple[int, int], right: tuple[int, int]) -> str:
-        return (f"left and right videos differ in frame size: {self.paths[0].name} is {left[0]}x{left[1]} px, "
-                f"{self.paths[1].name} is {right[0]}x{right[1]} px")
+        return (f"left and right videos differ in frame size: {self._label(0)} is {left[0]}x{left[1]} px, "
+                f"{self._label(1)} is {right[0]}x{right[1]} px")
 
     @staticmethod
     def _open(path: Path) -> cv2.VideoCapture:
