@@ -152,11 +152,12 @@ class FolderLock:
             os.close(self._fd)  # closing the descriptor drops the lock
             self._fd = None
 
-    def moved_to(self) -> Path | None:
+    def follow_move(self) -> Path | None:
         """Where the locked folder is now when it was moved (renamed) away from :attr:`folder`,
-        read from the descriptor the lock holds open on it (Linux's ``/proc/self/fd``); None
-        when it is still there, was removed, or the system cannot tell. A writer's open files
-        go with a moved folder, so it can follow."""
+        read from the descriptor the lock holds open on it (Linux's ``/proc/self/fd``), and
+        :attr:`folder` set to it; None when it is still there, was removed, or the system
+        cannot tell. A writer's open files go with a moved folder, so it can follow
+        (:func:`repoint`)."""
         if self._fd is None:
             return None
         try:
@@ -165,8 +166,15 @@ class FolderLock:
             there = os.stat(path)
         except OSError:
             return None
-        same = (there.st_dev, there.st_ino) == (held.st_dev, held.st_ino)
-        return path if same and path.is_absolute() and path != self.folder else None
+        if (there.st_dev, there.st_ino) != (held.st_dev, held.st_ino) or not path.is_absolute() or path == self.folder:
+            return None
+        self.folder = path
+        return path
+
+
+def repoint(path: Path, old: Path, new: Path) -> Path:
+    """``path``, inside folder ``old``, as the same file of that folder moved to ``new``."""
+    return new / Path(path).relative_to(old)
 
 
 def claim_folder(folder: Path, writer: str, recheck: Callable[[], object], cannot_create: str

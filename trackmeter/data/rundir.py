@@ -37,7 +37,7 @@ import yaml
 from trackmeter.core.targets import TargetState
 from trackmeter.core.transforms import matrix_to_quat_wxyz, quat_sign_nearest
 from trackmeter.data.motion_csv import STATES_COLUMNS, MotionCsvWriter
-from trackmeter.data.atomic import (AppendFile, FolderLock, SpaceReserve, claim_folder, folder_identity,
+from trackmeter.data.atomic import (AppendFile, FolderLock, SpaceReserve, claim_folder, folder_identity, repoint,
                                     write_text_atomic)
 from trackmeter.data.sequence import check_output_folder
 from trackmeter.data.trajectory import format_tum_line
@@ -380,17 +380,15 @@ class RunWriter:
         in its place: what was written went with the old one."""
         if not self.folder_lost and folder_identity(self.directory) == self._folder_id:
             return
-        moved = None if self.folder_lost or self._lock is None else self._lock.moved_to()
+        moved = None if self.folder_lost or self._lock is None else self._lock.follow_move()
         if moved is not None:
-            old = self.directory
-            self.directory = moved
-            self._lock.folder = moved  # type: ignore[union-attr]
-            self._begun = [moved / p.relative_to(old) for p in self._begun]
+            old, self.directory = self.directory, moved
+            self._begun = [repoint(p, old, moved) for p in self._begun]
             if self._previous is not None:
-                self._previous = moved / self._previous.relative_to(old)
+                self._previous = repoint(self._previous, old, moved)
             for file in (self._states, self._tum, self._targets):
                 if file is not None:
-                    file.path = moved / Path(file.path).relative_to(old)
+                    file.path = repoint(file.path, old, moved)
             warnings.warn(f"{old}: the run folder was moved to {moved} while the run wrote to it; the run goes on "
                           "there", stacklevel=3)
             return

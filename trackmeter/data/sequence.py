@@ -50,7 +50,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.transforms import matrix_to_quat_wxyz, quat_sign_nearest
-from trackmeter.data.atomic import AppendFile, FolderLock, claim_folder, folder_identity, unwritable_ancestor
+from trackmeter.data.atomic import (AppendFile, FolderLock, claim_folder, folder_identity, repoint,
+                                    unwritable_ancestor)
 from trackmeter.data.images import decode_image, joint_data_bits
 from trackmeter.data.model import Model, load_model, save_model
 from trackmeter.data.motion_csv import GROUNDTRUTH_COLUMNS, MotionCsvWriter, MotionSeries, read_motion_csv
@@ -271,17 +272,16 @@ class SequenceWriter:
         it was removed: every frame's images are written by name, and would fail one by one."""
         if self._folder_id is None or folder_identity(self.directory) == self._folder_id:
             return
-        moved = None if self._lock is None else self._lock.moved_to()
+        moved = None if self._lock is None else self._lock.follow_move()
         if moved is None:
             raise TrackmeterError(f"{self.directory}: the recording folder was removed while recording; the "
                                   f"{counted(self.frames_written, 'frame')} written there went with it")
         old, self.directory = self.directory, moved
-        self._lock.folder = moved  # type: ignore[union-attr]
         if self._mark is not None:
-            self._mark = moved / self._mark.relative_to(old)
+            self._mark = repoint(self._mark, old, moved)
         for file in (*self._csv.values(), self._truth_csv, self._truth_tum, self._cuts):
             if file is not None:
-                file.path = moved / Path(file.path).relative_to(old)
+                file.path = repoint(file.path, old, moved)
         warnings.warn(f"{old}: the recording folder was moved to {moved} while recording; the recording goes on there",
                       stacklevel=3)
 
