@@ -22,6 +22,7 @@ import numpy as np
 import yaml
 
 from trackmeter.core.metrics import Evaluation, associate
+from trackmeter.core.transforms import attitude_error_angle
 from trackmeter.data.motion_csv import (MotionSeries, header_fields, is_comment_line, names_a_header,
                                          other_separator_header, read_motion_csv)
 from trackmeter.data.atomic import write_files_atomic
@@ -152,8 +153,6 @@ def _with_rates_from(series: MotionSeries, csv_path: Path) -> MotionSeries | Non
     """``series`` poses with the velocities of ``csv_path`` when every timestamp agrees
     (within 1 µs) and so do the poses (:data:`SAME_TRUTH_TOLERANCE`; a warning when they do
     not), else None."""
-    from scipy.spatial.transform import Rotation
-
     try:
         rates = read_motion_csv(csv_path).valid_only()
     except TrackmeterError:
@@ -164,8 +163,7 @@ def _with_rates_from(series: MotionSeries, csv_path: Path) -> MotionSeries | Non
     order = np.argsort(a.index_est)
     it = a.index_truth[order]
     apart_m = float(np.max(np.linalg.norm(rates.position_m[it] - series.position_m, axis=1)))
-    apart_rad = float(np.max((Rotation.from_quat(rates.quat_wxyz[it], scalar_first=True)
-                              * Rotation.from_quat(series.quat_wxyz, scalar_first=True).inv()).magnitude()))
+    apart_rad = float(np.max(attitude_error_angle(rates.quat_wxyz[it], series.quat_wxyz)))
     if apart_m > SAME_TRUTH_TOLERANCE[0] or apart_rad > SAME_TRUTH_TOLERANCE[1]:
         warnings.warn(f"{csv_path} beside the truth gives other poses at its times (up to {1e3 * apart_m:.3f} mm and "
                       f"{math.degrees(apart_rad):.3f} deg apart): its velocities are not used", stacklevel=3)
@@ -354,8 +352,8 @@ def _pose_rms(R_truth: Any, p_truth: np.ndarray, R_est: Any, p_est: np.ndarray) 
     return position, attitude
 
 
-#: A convention a mix-up hint names fits the truth at least this many times better, in both
-#: position and attitude, than the estimate as read.
+#: A convention a mix-up hint names fits the truth's attitude at least this many times better
+#: than the estimate as read, and its position no worse.
 MIXUP_GAIN = 10.0
 
 
