@@ -89,7 +89,7 @@ def check_params(params: Any) -> None:
         value = getattr(params, f.name)
         kind = kinds.get(f.name)
         if kind is not None and not _is_kind(value, kind):
-            raise TrackmeterError(f"{type(params).__name__}.{f.name}: expected {_KIND_NAMES[kind]}, "
+            raise TrackmeterError(f"{type(params).__name__}.{f.name}: expected {KIND_NAMES[kind]}, "
                                   f"got {shown_value(value)}")
         if "min" not in meta and "max" not in meta and "choices" not in meta:
             continue
@@ -101,8 +101,8 @@ def check_params(params: Any) -> None:
                 raise TrackmeterError(f"{type(params).__name__}.{f.name}{index}: {problem}")
 
 
-#: How a message names each simple field type.
-_KIND_NAMES = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
+#: How a message names each simple field type (the config loader's messages too).
+KIND_NAMES = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
 
 
 @functools.lru_cache(maxsize=None)
@@ -110,7 +110,7 @@ def _simple_kinds(cls: type) -> dict[str, type]:
     """The fields of a parameter dataclass annotated ``bool``, ``int``, ``float`` or ``str``,
     by name (resolved once per class: ``typing.get_type_hints`` is slow)."""
     hints = typing.get_type_hints(cls)
-    return {f.name: hints[f.name] for f in dataclasses.fields(cls) if hints.get(f.name) in _KIND_NAMES}
+    return {f.name: hints[f.name] for f in dataclasses.fields(cls) if hints.get(f.name) in KIND_NAMES}
 
 
 def _is_kind(value: Any, kind: type) -> bool:

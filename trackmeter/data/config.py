@@ -34,7 +34,7 @@ from trackmeter.core.exposure import ExposureParams
 from trackmeter.core.features import FeatureParams
 from trackmeter.core.metrics import EvaluateParams
 from trackmeter.core.output_filter import FilterParams
-from trackmeter.core.params import range_problem
+from trackmeter.core.params import KIND_NAMES, range_problem
 from trackmeter.core.pose import PoseParams
 from trackmeter.core.tracking import TrackerParams
 from trackmeter.core.velocity import VelocityParams
@@ -336,7 +336,7 @@ def _describe(tp: Any) -> str:
         return "null"
     if dataclasses.is_dataclass(tp):
         return "a mapping of keys"
-    return {float: "a number", int: "an integer", bool: "true or false", str: "a string"}.get(tp, str(tp))
+    return KIND_NAMES.get(tp, str(tp))
 
 
 #: A number in exponent notation without a decimal point (``1e3``, ``-2E-4``).
