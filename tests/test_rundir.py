@@ -61,6 +61,19 @@ def test_a_run_folder_removed_while_writing_is_said_and_not_made_again(tmp_path:
     assert (not out.exists()) if how == "removed" else (list(out.iterdir()) == [])
 
 
+def test_a_run_folder_removed_before_its_first_frame_says_nothing_was_written(tmp_path: Path) -> None:
+    """It said "the 0 frames written there are lost"."""
+    import shutil
+
+    out = tmp_path / "run"
+    writer = RunWriter(out, {}, {"spec": "test"})
+    shutil.rmtree(out)
+    with pytest.raises(TrackmeterError) as info:
+        writer.write_frame(0.00, (), _pose(0.0))
+    assert str(info.value) == (f"{out}: the run folder was removed or replaced while the run wrote to it, before its "
+                               "first frame")
+
+
 def test_a_valid_states_row_has_every_field_and_a_pose_without_rates_stays_in_the_trajectory(tmp_path: Path) -> None:
     """states.csv's valid rows read like groundtruth.csv rows (DESIGN 6: "same meanings"): a pose
     whose rates are not estimated yet is valid 0 there, its pose filled in, and still a line of

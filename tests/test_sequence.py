@@ -1420,13 +1420,48 @@ def test_a_recording_whose_files_are_removed_while_its_folder_stays_is_said_so(t
     writer = SequenceWriter(out)
     writer.write(frames[0])
     writer.write(frames[1])
-    shutil.rmtree(out / "cam0")
+    for cam in ("cam0", "cam1"):
+        shutil.rmtree(out / cam)
     with pytest.raises(TrackmeterError) as info:
         writer.write(frames[2])
     with contextlib.suppress(TrackmeterError):
         writer.close()
     assert str(info.value) == (f"{out}: the recording's files were removed while recording (deleted, or moved to "
                                "another file system); the 2 frames written there went with them")
+
+
+@pytest.mark.parametrize("removed", ["cam0", "cam1"])
+def test_a_recording_that_loses_one_camera_says_which_and_what_is_left(tmp_path, removed):
+    # Only cam1 removed was told that every frame "went with them", though cam0 kept its
+    # images (a probe).
+    import shutil
+
+    frames = _frames(3)
+    out = tmp_path / "rec"
+    writer = SequenceWriter(out)
+    writer.write(frames[0])
+    writer.write(frames[1])
+    shutil.rmtree(out / removed)
+    with pytest.raises(TrackmeterError) as info:
+        writer.write(frames[2])
+    with contextlib.suppress(TrackmeterError):
+        writer.close()
+    kept = "cam1" if removed == "cam0" else "cam0"
+    assert str(info.value) == (f"{out}: {removed}'s files were removed while recording (deleted, or moved to another "
+                               f"file system); the 2 frames written there lost their {removed} images, {kept} keeps "
+                               "its own")
+
+
+def test_a_recording_removed_before_its_first_frame_says_nothing_was_lost(tmp_path):
+    import shutil
+
+    out = tmp_path / "rec"
+    writer = SequenceWriter(out)
+    shutil.rmtree(out)
+    with pytest.raises(TrackmeterError) as info:
+        writer.write(_frames(1)[0])
+    writer.close()
+    assert str(info.value) == f"{out}: the recording folder was removed while recording, before its first frame"
 
 
 def test_a_recording_whose_unfinished_mark_cannot_be_removed_says_so_in_words(tmp_path):

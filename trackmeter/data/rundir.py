@@ -393,9 +393,9 @@ class RunWriter:
                           "there", stacklevel=3)
             return
         self.folder_lost = True
-        raise TrackmeterError(f"{self.directory}: the run folder was removed or replaced while the run wrote to it; "
-                              f"the {counted(self.frames, 'frame')} written there "
-                              f"{'is' if self.frames == 1 else 'are'} lost")
+        lost = (f"; the {counted(self.frames, 'frame')} written there {'is' if self.frames == 1 else 'are'} lost"
+                if self.frames else ", before its first frame")
+        raise TrackmeterError(f"{self.directory}: the run folder was removed or replaced while the run wrote to it{lost}")
 
     def _close(self, status: str, summary: dict[str, Any] | None) -> None:
         assert self._tum is not None

@@ -256,15 +256,28 @@ class SequenceWriter:
             for path in images:
                 path.unlink(missing_ok=True)
             if isinstance(exc, OSError) and exc.errno == errno.ENOENT:
-                # The folder is there (or followed), its files are not: removed under the writer.
-                raise TrackmeterError(f"{self.directory}: the recording's files were removed while recording (deleted, "
-                                      "or moved to another file system); the "
-                                      f"{counted(self.frames_written, 'frame')} written there went with them") from None
+                raise TrackmeterError(self._files_removed_message()) from None
             if isinstance(exc, OSError):
                 raise TrackmeterError(f"{exc.filename or self.directory}: cannot write ({exc.strerror or exc})") from None
             raise
         self._last_ns = ns
         self.frames_written += 1
+
+    def _files_removed_message(self) -> str:
+        """What a write that found its files gone (the folder is there, or followed) lost: one
+        camera's images or the whole recording's (``mv`` to another file system copies, then
+        removes the files while the folder is still there)."""
+        how = "removed while recording (deleted, or moved to another file system)"
+        gone = [cam for cam in CAMERAS if not (self.directory / cam / "data").is_dir()]
+        if len(gone) == 1:
+            (cam,) = gone
+            (kept,) = (other for other in CAMERAS if other != cam)
+            lost = (f"the {counted(self.frames_written, 'frame')} written there lost their {cam} images, {kept} keeps its "
+                    "own" if self.frames_written else "before its first frame")
+            return f"{self.directory}: {cam}'s files were {how}; {lost}"
+        lost = (f"the {counted(self.frames_written, 'frame')} written there went with them" if self.frames_written
+                else "before its first frame")
+        return f"{self.directory}: the recording's files were {how}; {lost}"
 
     def _follow_folder(self) -> None:
         """Follow the folder when it was moved (renamed) while recording: its open files went
@@ -274,6 +287,9 @@ class SequenceWriter:
             return
         moved = None if self._lock is None else self._lock.follow_move()
         if moved is None:
+            if not self.frames_written:
+                raise TrackmeterError(f"{self.directory}: the recording folder was removed while recording, before its "
+                                      "first frame")
             raise TrackmeterError(f"{self.directory}: the recording folder was removed while recording; the "
                                   f"{counted(self.frames_written, 'frame')} written there went with it")
         old, self.directory = self.directory, moved
