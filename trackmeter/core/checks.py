@@ -128,6 +128,8 @@ def finite_time(value: float, name: str) -> float:
         TrackmeterError: ``"t_s is not finite: nan"``.
     """
     try:
+        if isinstance(value, (str, bytes)):  # float() reads "1.0": text is no time
+            raise TypeError
         t = float(value)
     except (TypeError, ValueError):
         raise TrackmeterError(f"{name} must be a number of seconds, got {value!r}") from None
