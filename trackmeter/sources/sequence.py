@@ -15,7 +15,7 @@ from trackmeter.core.transforms import transform_from_pose
 from trackmeter.data.model import Model
 from trackmeter.data.images import data_bits, decode_image, read_grey, to_grey_u8
 from trackmeter.data.sequence import SequenceIndex, index_sequence, sequence_data_bits
-from trackmeter.errors import TrackmeterError
+from trackmeter.errors import TrackmeterError, counted
 from trackmeter.sources.base import GroundTruth, Source, StereoFrame
 from trackmeter.sources.pacing import Pacer
 
@@ -210,6 +210,10 @@ class SequenceSource(Source):
                 left = self._read_grey(self.index.left_paths[pos], self.image_bits[0])
                 right = self._read_grey(self.index.right_paths[pos], self.image_bits[1])
             except TrackmeterError as exc:
+                gone = self._removed_folder(pos)
+                if gone is not None:  # not one bad file: every pair to come would be skipped
+                    raise TrackmeterError(f"{gone}: removed while the sequence played, after "
+                                          f"{counted(self._count, 'pair')}") from None
                 if pos not in self._skipped_positions:
                     self._skipped_positions.add(pos)
                     # The message first: another thread may read ``warning`` in between.
@@ -234,6 +238,17 @@ class SequenceSource(Source):
             self._count += 1
             return frame
         return None  # a whole pass without one playable pair: a loop would spin for ever
+
+    def _removed_folder(self, pos: int) -> Path | None:
+        """The outermost folder of pair ``pos``'s images that is gone, or None when both
+        images' folders are there."""
+        for path in (self.index.left_paths[pos], self.index.right_paths[pos]):
+            folder = path.parent
+            if not folder.is_dir():
+                while not folder.parent.is_dir():
+                    folder = folder.parent
+                return folder
+        return None
 
     def _read_grey(self, path: Path, bits: int) -> NDArray[np.uint8]:
         """One image as 8-bit grey at its camera's sample depth ``bits``; an image deeper than
