@@ -653,6 +653,7 @@ class Console:
             # Case (b) binds targets to the a-priori model by id: the operator names the next
             # click after a model point (the options follow the model loaded).
             self._model_ids: tuple[str, ...] = ()
+            self._shown_case: str | None = None  # the case the last synced snapshot ran
             self._new_target = NEW_TARGET  # the "Next click is" option of a new target (new_target_option)
             self.model_point_dropdown = gui.add_dropdown("Next click is", (NEW_TARGET,), initial_value=NEW_TARGET)
             self.select_model_button = gui.add_button("Click the model points (simulator)")
@@ -1127,6 +1128,12 @@ class Console:
             self._new_target = new_target_option(snap.model_ids)
             self.model_point_dropdown.options = (self._new_target, *snap.model_ids)  # ids are text (load_model)
             self.model_point_dropdown.value = self._new_target
+        if snap.pose.case != self._shown_case:
+            # A choice made for another case's model (or none: case (c) makes its own) would
+            # name the next plain click after it, long after it was meant.
+            if self._shown_case is not None and self.model_point_dropdown.value != self._new_target:
+                self.model_point_dropdown.value = self._new_target
+            self._shown_case = snap.pose.case
         label = "Play" if snap.paused else "Pause"
         if self.pause_button.label != label:
             self.pause_button.label = label

@@ -892,6 +892,56 @@ def test_a_model_point_chosen_in_one_browser_names_only_that_browser_s_click() -
         running.stop()
 
 
+class _CaseEngine(_NamingEngine):
+    """The naming double, plus the model case: SetCase switches the case its poses carry."""
+
+    case = "b"
+
+    def handle(self, command, frame):  # type: ignore[no-untyped-def]
+        from trackmeter.pipeline.snapshot import CommandReply, SetCase
+
+        if isinstance(command, SetCase):
+            self.case = command.case
+            return CommandReply(True, f"case ({command.case})")
+        return super().handle(command, frame)
+
+    def process(self, frame):  # type: ignore[no-untyped-def]
+        from trackmeter.pipeline.snapshot import PoseEstimate
+
+        targets, _, extra = super().process(frame)
+        return targets, PoseEstimate.invalid("test double", self.case), extra  # type: ignore[arg-type]
+
+
+def test_a_case_switch_drops_the_model_point_chosen_for_the_next_click() -> None:
+    """"Next click is" stayed on dish_centre through case (b) -> (c) -> (b) for 15 minutes: a
+    plain click in case (c), and later ones, were taken as that model point (an outside probe)."""
+    import types
+
+    from console.app import NEW_TARGET
+    from trackmeter.pipeline.snapshot import SetCase
+
+    engine = _CaseEngine()
+    running = start_console(CountingSource(100_000, delay_s=0.02), engine, port=free_port())  # type: ignore[arg-type]
+    con = running.console
+    tab = types.SimpleNamespace(client_id=1, add_notification=lambda *a, **k: None)
+    try:
+        _wait_for_pushes(con, 3)
+        con.model_point_dropdown.options = (NEW_TARGET, "m1")
+        con.model_point_dropdown.value = "m1"
+        con._own_next_click(types.SimpleNamespace(client=tab))
+        _wait_for_pushes(con, 3)
+        assert con.model_point_dropdown.value == "m1"  # kept while the case stays
+        assert running.pipeline.call(SetCase("c")).ok
+        deadline = time.monotonic() + 10
+        while con.model_point_dropdown.value != NEW_TARGET:
+            assert time.monotonic() < deadline, "the choice outlived the case switch"
+            time.sleep(0.05)
+        assert con._click_at((50.0, 10.0), tab).result(10).ok
+        assert engine.named == [None]
+    finally:
+        running.stop()
+
+
 @pytest.mark.parametrize("aspect", [700 / 768, 476 / 600, 576 / 900, 390 / 844, 16 / 9])
 def test_the_both_preset_holds_the_scene_and_the_image_in_views_of_every_shape(aspect: float) -> None:
     """A desktop window's view beside the docked panel, taller than wide (1024x768: 700x768),
