@@ -79,6 +79,9 @@ class RunningConsole:
     pipeline: Pipeline
     console: Console
     url: str
+    #: The source's warning when it opened, said then (warnings.warn, naming its folder); what
+    #: the pipeline's reads find later (a first image that does not decode) is news.
+    warning_at_open: str | None = None
 
     def stop(self) -> None:
         """Stop publishing, join the pipeline threads, close the recording and the source, stop the server."""
@@ -109,6 +112,7 @@ def start_console(
     # black; the pipeline's own warm-up then finds them compiled.
     with interrupt_kept():  # a stop signal during a compile is otherwise lost there
         warm_up()
+    warning_at_open = getattr(source, "warning", None)
     server = start_server(host, port)
     pipeline = Pipeline(source, engine, drop_frames=True, record_dir=record_dir)
     try:
@@ -121,7 +125,7 @@ def start_console(
         server.stop()
         raise
     shown_host = "127.0.0.1" if host in ("0.0.0.0", "") else host
-    return RunningConsole(server, pipeline, console, f"http://{shown_host}:{port}")
+    return RunningConsole(server, pipeline, console, f"http://{shown_host}:{port}", warning_at_open)
 
 
 def serve_forever(running: RunningConsole, stop: threading.Event | None = None, poll_s: float = 0.5) -> None:
@@ -130,7 +134,7 @@ def serve_forever(running: RunningConsole, stop: threading.Event | None = None, 
     whoever started the console sees what the browser's status line shows."""
     stop = stop or threading.Event()
     # The source's warning at open was said then, naming its folder (warnings.warn): not again.
-    said: tuple[str | None, str | None] = (None, getattr(running.pipeline.source, "warning", None))
+    said: tuple[str | None, str | None] = (None, running.warning_at_open)
     try:
         while not stop.wait(poll_s):
             snap = running.pipeline.latest()

@@ -10,6 +10,7 @@ import functools
 import os
 import re
 import socket
+import threading
 import time
 import types
 import urllib.request
@@ -836,7 +837,7 @@ def test_the_server_loop_says_on_stderr_when_the_source_ends_fails_or_warns(caps
         return SimpleNamespace(source_status=news[k][0], source_warning=news[k][1])
 
     stopped: list[bool] = []
-    running = SimpleNamespace(pipeline=SimpleNamespace(latest=latest, source=SimpleNamespace(warning=None)),
+    running = SimpleNamespace(pipeline=SimpleNamespace(latest=latest), warning_at_open=None,
                               stop=lambda: stopped.append(True))
     serve_forever(running, stop, poll_s=0.01)  # type: ignore[arg-type]
     assert stopped == [True]
@@ -851,11 +852,31 @@ def test_the_server_loop_says_on_stderr_when_the_source_ends_fails_or_warns(caps
     stop.clear()
     news = news[1:]  # the snapshots carry the source's warning from the first frame on
     at_open = news[0][1]
-    running = SimpleNamespace(pipeline=SimpleNamespace(latest=latest, source=SimpleNamespace(warning=at_open)),
+    running = SimpleNamespace(pipeline=SimpleNamespace(latest=latest), warning_at_open=at_open,
                               stop=lambda: stopped.append(True))
     serve_forever(running, stop, poll_s=0.01)  # type: ignore[arg-type]
     assert capsys.readouterr().err.splitlines() == ["trackmeter console: source ended",
                                                     "trackmeter console: source failed: x: gone"]
+
+
+def test_a_sequence_whose_first_image_does_not_decode_is_said_on_stderr(tmp_path, capsys) -> None:  # type: ignore[no-untyped-def]
+    """The skip was found by the pipeline's first read, before serve_forever looked, and taken
+    for the warning said when the source opened: the console said nothing, where `track` and a
+    later bad image warn (an outside probe)."""
+    from console.server import serve_forever
+    from tests.test_sequence import _frames, _write
+    from trackmeter.sources.sequence import SequenceSource
+
+    folder = _write(tmp_path / "seq", _frames(8))
+    first = sorted((folder / "cam0" / "data").iterdir(), key=lambda p: int(p.stem))[0]
+    first.write_bytes(b"junk")
+    running = start_console(SequenceSource(folder, realtime=True, loop=True), RecordingEngine(), port=free_port())
+    _wait_for_pushes(running.console, 2)
+    stop = threading.Event()
+    threading.Timer(1.0, stop.set).start()
+    serve_forever(running, stop, poll_s=0.05)
+    err = capsys.readouterr().err
+    assert f"trackmeter console: warning: 1 pair(s) with an unreadable image skipped ({first}: " in err, err
 
 
 def test_a_model_point_chosen_in_one_browser_names_only_that_browser_s_click() -> None:
