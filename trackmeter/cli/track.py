@@ -18,7 +18,7 @@ Model cases (paper section 2.C):
 
 Examples (the simulator's 60 s; --max-frames 250 tracks its first 10 s):
   trackmeter track --source sim --auto 16 --out runs/estec_a
-  trackmeter track --source sim --target bus_pxmypz=329.5,159.8 bus_mxpymz=385.1,348.6 \\
+  trackmeter track --source sim --target bus_pxmypz=329.5,159.8 bus_pxmymz=275.4,481.0 \\
       bus_mxmypz=211.9,87.7 bus_mxmymz=175.4,358.3 wing_north_c3=571.9,233.7 --auto 16 --out runs/b
     (five of the mock-up's corners where estec's first frame shows them: case (b) needs three
     measured at once, and a corner's patch is often lost as the faces around it turn)
