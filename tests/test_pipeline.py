@@ -336,7 +336,7 @@ def test_an_invalid_pose_s_reason_says_it_predates_targets_added_while_paused() 
         threading.Event().wait(0.1)
         assert pipe.call(SelectPoint(10.0, 20.0)).ok
         assert pipe.call(SelectPoint(30.0, 20.0)).ok  # said once, not once per target
-        snap = pipe.wait_snapshot(0, 5)
+        pipe.wait_snapshot(0, 5)
         reason = pipe.latest().pose.reason
         assert reason == "test double (before the targets changed: Step or Play to update)", reason
         assert not pipe.call(SelectPoint(-1.0, 0.0)).ok  # a refused click changes nothing
