@@ -419,3 +419,14 @@ def test_a_quaternion_that_is_no_rotation_and_a_transform_of_the_wrong_shape_are
         with pytest.raises(TrackmeterError, match=r"^T_a_b must be \(4,4\), got shape"):
             invert_transform(T)
     assert np.allclose(quat_wxyz_to_matrix([2.0, 0.0, 0.0, 0.0]), np.eye(3))  # not unit: normalised, as scipy does
+
+
+def test_skew_is_the_cross_product_matrix() -> None:
+    from trackmeter.core.transforms import skew
+
+    rng = np.random.default_rng(2)
+    v, w = rng.normal(size=(5, 3)), rng.normal(size=(5, 3))
+    S = skew(v)
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", S, w), np.cross(v, w), atol=1e-15)
+    np.testing.assert_array_equal(S, -np.swapaxes(S, 1, 2))
+    np.testing.assert_allclose(skew(v[0]) @ w[0], np.cross(v[0], w[0]), atol=1e-15)

@@ -45,7 +45,7 @@ from scipy.stats import chi2
 
 from trackmeter.core.checks import covariances, finite_rows, rotation_matrix
 from trackmeter.core.params import check_params, param
-from trackmeter.core.transforms import absolute_orientation, frame_from_three_points
+from trackmeter.core.transforms import absolute_orientation, frame_from_three_points, skew
 from trackmeter.errors import TrackmeterError
 
 FloatArray = NDArray[np.float64]
@@ -298,21 +298,12 @@ def _cond_above(H: FloatArray, limit: float) -> bool:
     return s_min == 0.0 or s_max / s_min > limit
 
 
-def _skew(v: FloatArray) -> FloatArray:
-    """(N,3) -> (N,3,3) cross-product matrices ``[v]x``."""
-    S = np.zeros(v.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
-    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
-    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
-    return S
-
-
 def position_jacobians(points_body: FloatArray, R_cam_body: FloatArray) -> FloatArray:
     """(...,3,6) derivative of body points' camera positions ``R b + t`` (``points_body``
     (...,3)) by the pose error ``(dt, dtheta)``, camera frame, to first order:
     ``d(R b + t) = dt - [R b]x dtheta``, i.e. ``[I | -[R b]x]``."""
     Rb = np.asarray(points_body, dtype=float) @ R_cam_body.T
-    return np.concatenate([np.broadcast_to(np.eye(3), Rb.shape[:-1] + (3, 3)), -_skew(Rb)], axis=-1)
+    return np.concatenate([np.broadcast_to(np.eye(3), Rb.shape[:-1] + (3, 3)), -skew(Rb)], axis=-1)
 
 
 def _weights(R: FloatArray, cov_cam: FloatArray, cov_body: FloatArray | None) -> FloatArray:
@@ -429,7 +420,7 @@ def _solve_pose(
         W = _weights(R, C, Cb)
         Rb = b @ R.T
         r = Rb + t - p
-        J[:, :, 3:] = -_skew(Rb)
+        J[:, :, 3:] = -skew(Rb)
         JtW = np.transpose(J, (0, 2, 1)) @ W
         H = np.einsum("nij,njk->ik", JtW, J)
         g = np.einsum("nij,nj->i", JtW, r)
@@ -442,7 +433,7 @@ def _solve_pose(
             break
     # Normal matrix at the solution, for the covariance.
     W = _weights(R, C, Cb)
-    J[:, :, 3:] = -_skew(b @ R.T)
+    J[:, :, 3:] = -skew(b @ R.T)
     H = np.einsum("nji,njk,nkl->il", J, W, J)
     cov = np.linalg.inv(H)
     return R, t, 0.5 * (cov + cov.T)

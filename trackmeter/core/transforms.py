@@ -214,6 +214,16 @@ def attitude_error_components(quat_est_wxyz: ArrayLike, quat_true_wxyz: ArrayLik
 # --------------------------------------------------------------------------- rigid transforms
 
 
+def skew(v: ArrayLike) -> FloatArray:
+    """``[v]x`` (...,3,3), the cross-product matrix of each ``v`` (...,3): ``[v]x w = v x w``."""
+    v = np.asarray(v, dtype=float)
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
+    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
+    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
+    return S
+
+
 def make_transform(R_a_b: ArrayLike, t_a_b: ArrayLike) -> FloatArray:
     """4x4 homogeneous ``T_a_b`` from a rotation (3,3) and a translation (3,), m.
 
