@@ -371,6 +371,19 @@ class _OperatorMarks:
         return k
 
 
+def _sigma_text(cov_pose: Any) -> str:
+    """``", 1σ 12.3 mm, 0.41°"``: a pose's standard deviation in its worst direction, of the
+    position and of the attitude (from its (6,6) covariance, m and rad), or "" when it has
+    none. A pose valid within its bounds (``pose.max_*_sigma_*``) may still be tens of mm
+    uncertain with a few points: said beside it."""
+    cov = np.asarray(cov_pose, dtype=float)
+    if cov.shape != (6, 6) or not np.all(np.isfinite(cov)):
+        return ""
+    position_m, rotation_rad = (float(np.sqrt(max(np.linalg.eigvalsh(block).max(), 0.0)))
+                                for block in (cov[:3, :3], cov[3:, 3:]))
+    return f", 1σ {position_m * 1e3:.1f} mm, {np.degrees(rotation_rad):.2f}°"
+
+
 class Console:
     """Builds the scene and GUI on ``server`` and keeps them in step with ``pipeline``.
 
@@ -1212,7 +1225,7 @@ class Console:
             if pose.coasting_s > 0.0:
                 lines.append(f"pose valid, <b>COASTING</b> (case {pose.case}): {escape(str(pose.reason))}")
             else:
-                lines.append(f"pose valid (case {pose.case}, {pose.n_points} points)")
+                lines.append(f"pose valid (case {pose.case}, {pose.n_points} points{_sigma_text(pose.cov_pose)})")
             rows["p [m]"] = (T[:3, 3], "{:+.3f}")
             rows["rotvec [°]"] = (np.degrees(Rotation.from_matrix(T[:3, :3]).as_rotvec()), "{:+.1f}")
             rows["v [mm/s]"] = (np.asarray(pose.velocity_cam_m_s) * 1e3, "{:+.1f}")

@@ -294,6 +294,13 @@ def test_status_keeps_its_height_whatever_the_state() -> None:
     for off in (Snapshot(frame, (), valid, None, Timings(), auto_shortfall="nothing lit"),
                 Snapshot(frame, (), valid, None, Timings(), auto_enabled=True)):
         assert "auto started none" not in Console._status_html(off)
+    # A pose's own uncertainty beside it: with 4-6 points the pose is valid within its bounds
+    # (50 mm, 5 deg) while 20-40 mm uncertain, and an operator read 26 mm of error on a pose
+    # that said nothing of it (an outside console probe). The worst direction's 1 sigma.
+    loose = PoseEstimate(True, None, "b", T, np.diag([4e-4, 1e-4, 9e-4, 1e-4, 4e-4, 1e-4]), np.zeros(3),
+                         np.zeros(3), 5)
+    assert "pose valid (case b, 5 points, 1σ 30.0 mm, 1.15°)" in parse(
+        Console._status_html(Snapshot(frame, (), loose, None, Timings()))).text
     # Paused, no frame is read: the source is not "delivering" (an outside console probe).
     paused = parse(Console._status_html(Snapshot(frame, (), valid, None, Timings(), paused=True))).text
     assert "delivering" not in paused and "source held: no frame is read while paused" in paused
