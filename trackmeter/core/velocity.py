@@ -46,8 +46,9 @@ the SO(3) chart of 'poly' wraps (errors of hundreds of deg/s).
 A constant twist is not how a free-floating target moves while it is approached: its centre of
 mass drifts in a straight line across its spin axis, and the screw fit turns that velocity with
 the body (:func:`free_body_velocity`). 'screw' therefore also fits the centre of mass moving in
-a straight line and takes that fit's velocity when the error that fit says the screw makes,
-``tau (omega x v)``, stands clear of its own noise (``free_body_min_bias_sigmas``); 'free_body'
+a straight line and blends that fit's velocity in as the error that fit says the screw makes,
+``tau (omega x v)``, stands clear of its own noise (``free_body_min_bias_sigmas`` to
+``free_body_full_bias_sigmas``, the share smoothed over ``free_body_blend_s``); 'free_body'
 always takes it (noisier over a short turn).
 """
 
@@ -87,15 +88,23 @@ class VelocityParams:
         "(a fast tumble gets a short window, and the chart never wraps)", min=1.0, max=170.0,
     )
     free_body_rss_ratio: float = param(
-        1.0, "screw: take the free-body velocity instead when its fit leaves less than this fraction of the "
+        1.0, "screw: blend in the free-body velocity only when its fit leaves less than this fraction of the "
         "screw fit's position residual per degree of freedom, over a window of min_span_s at least (a body "
         "drifting across its spin axis); 0: never", min=0.0, max=1.0,
     )
     free_body_min_bias_sigmas: float = param(
-        8.0, "screw: ... and when the error the screw fit would make, tau (omega x v), exceeds this many of its "
+        6.0, "screw: ... and when the error the screw fit would make, tau (omega x v), exceeds this many of its "
         "own standard deviations, from the free-body fit's velocity (a slow drift keeps the less noisy screw fit; "
-        "pose errors correlated in time put estec's 3 mm/s drift at up to 7); once taken, kept down to half of it",
+        "pose errors correlated in time put estec's 3 mm/s drift at up to 7, rarely over 6)", min=0.0,
+    )
+    free_body_full_bias_sigmas: float = param(
+        10.0, "screw: ... wholly from this many sigmas on, in proportion between (a switch at one threshold "
+        "flipped the velocity by the screw's error, mm/s, frame to frame, where the drift hovers near it)",
         min=0.0,
+    )
+    free_body_blend_s: float = param(
+        0.5, "screw: time constant of the free-body velocity's share (its changes are smoothed: a share "
+        "stepping with the noise of the test would step the velocity), s", min=0.0,
     )
     window_s: float = param(1.2, "poly: window of the attitude fit (angular velocity), s", min=0.05)
     order: int = param(2, "poly: degree of the attitude polynomial (1 = constant rate, 2 = constant acceleration)",
@@ -478,7 +487,8 @@ class VelocityEstimator:
         self._p: deque[FloatArray] = deque()
         self._w: deque[FloatArray] = deque()  # (w_position, w_rotation) per pose
         self._capped = False  # screw: the last window was cut short by screw_max_angle_deg
-        self._free_taken = False  # screw: the last velocity was the free-body fit's
+        self._free_share = 0.0  # screw: the free-body velocity's share in the last velocity
+        self._free_share_t: float | None = None  # and when it was set, s
 
     @property
     def settled(self) -> bool:
@@ -516,11 +526,30 @@ class VelocityEstimator:
             self._R[k] = R @ Rd
 
     def reset(self) -> None:
-        self._capped = self._free_taken = False
+        self._capped = False
+        self._free_share, self._free_share_t = 0.0, None
         self._t.clear()
         self._R.clear()
         self._p.clear()
         self._w.clear()
+
+    def _free_share_for(self, bias_sigmas: float) -> float:
+        """The free-body velocity's share for a screw error of ``bias_sigmas`` of its own sigmas:
+        0 up to ``free_body_min_bias_sigmas``, 1 from ``free_body_full_bias_sigmas``, linear between."""
+        lo, hi = self.params.free_body_min_bias_sigmas, self.params.free_body_full_bias_sigmas
+        if hi <= lo:
+            return float(bias_sigmas > lo)
+        return float(np.clip((bias_sigmas - lo) / (hi - lo), 0.0, 1.0))
+
+    def _smoothed_share(self, share: float, t_s: float) -> float:
+        """``share`` through a first-order lag of ``free_body_blend_s`` (exact for its time step)."""
+        tau = self.params.free_body_blend_s
+        if self._free_share_t is None or tau <= 0.0 or share == 1.0 and self.params.method == "free_body":
+            self._free_share = share
+        else:
+            self._free_share += (share - self._free_share) * -np.expm1(-max(t_s - self._free_share_t, 0.0) / tau)
+        self._free_share_t = t_s
+        return self._free_share
 
     def _change_cut(self, t: FloatArray, R: FloatArray, Wp: FloatArray | None, start: int) -> int:
         """How many of the window's oldest poses to drop because the spin changed after them
@@ -609,17 +638,14 @@ class VelocityEstimator:
                                           np.ones(n) if Wp is None else Wp[start:, 0], self.lever_m)
                 # A free-floating body that drifts across its spin axis: the constant twist cannot
                 # follow its path (module docstring), and the straight-line centre fits it better.
-                # Once taken, kept down to half the threshold: a drift near it would otherwise
-                # flip the velocity between the two fits, frame to frame, by the screw's error.
-                need = self.params.free_body_min_bias_sigmas * (0.5 if self._free_taken else 1.0)
-                self._free_taken = free is not None and (always or (
-                    free.rss / (3 * n - 9) < self.params.free_body_rss_ratio * rss / (3 * n - 6)
-                    and free.screw_bias_sigmas > need))
-                if self._free_taken:
-                    assert free is not None
-                    v = free.v_origin
+                # Blended in by how clearly the screw's error shows, the share smoothed in time.
+                share = 1.0 if always else 0.0
+                if free is not None and not always and (
+                        free.rss / (3 * n - 9) < self.params.free_body_rss_ratio * rss / (3 * n - 6)):
+                    share = self._free_share_for(free.screw_bias_sigmas)
+                v = v + self._smoothed_share(share, t_s) * (free.v_origin - v) if free is not None else v
             else:
-                self._free_taken = False
+                self._smoothed_share(0.0, t_s)
             return v, omega
         rot = t >= t_s - self.params.window_s - 1e-9
         pos = t >= t_s - self.params.position_window_s - 1e-9
