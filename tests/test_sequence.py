@@ -631,20 +631,25 @@ def test_a_first_pair_of_another_size_in_both_cameras_is_skipped_too(tmp_path):
     assert src.skipped == 1 and "the sequence's 32x24 px" in src.warning
 
 
-@pytest.mark.parametrize("removed", ["folder", "cam1"])
+@pytest.mark.parametrize("removed", ["folder", "cam1", "cam1's images"])
 def test_a_sequence_folder_removed_while_it_plays_fails_the_source_rather_than_ending_it(tmp_path, removed):
     # Every pair after it was skipped as unreadable, and `track` ended "complete", exit 0, with
-    # a warning of the pairs skipped (left from the last stop).
+    # a warning of the pairs skipped (left from the last stop; the images alone, a re-check).
     import shutil
 
     d = _write(tmp_path / "s", _frames(5))
     src = SequenceSource(d)
     assert [src.read().t_s for _ in range(2)] == [0.0, 0.04]
-    shutil.rmtree(d if removed == "folder" else d / "cam1")
+    if removed == "cam1's images":
+        for image in (d / "cam1" / "data").iterdir():
+            image.unlink()
+    else:
+        shutil.rmtree(d if removed == "folder" else d / "cam1")
     with pytest.raises(TrackmeterError) as info:
         src.read()
-    gone = d if removed == "folder" else d / "cam1"
-    assert str(info.value) == f"{gone}: removed while the sequence played, after 2 pairs"
+    gone = {"folder": f"{d}: removed or moved", "cam1": f"{d / 'cam1'}: removed or moved",
+            "cam1's images": f"{d / 'cam1' / 'data'}: emptied of its images"}[removed]
+    assert str(info.value) == f"{gone} while the sequence played, after 2 pairs"
 
 
 def test_a_looping_folder_with_no_playable_pair_ends_instead_of_spinning(tmp_path):

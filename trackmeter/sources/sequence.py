@@ -212,7 +212,7 @@ class SequenceSource(Source):
             except TrackmeterError as exc:
                 gone = self._removed_folder(pos)
                 if gone is not None:  # not one bad file: every pair to come would be skipped
-                    raise TrackmeterError(f"{gone}: removed while the sequence played, after "
+                    raise TrackmeterError(f"{gone[0]}: {gone[1]} while the sequence played, after "
                                           f"{counted(self._count, 'pair')}") from None
                 if pos not in self._skipped_positions:
                     self._skipped_positions.add(pos)
@@ -239,15 +239,18 @@ class SequenceSource(Source):
             return frame
         return None  # a whole pass without one playable pair: a loop would spin for ever
 
-    def _removed_folder(self, pos: int) -> Path | None:
-        """The outermost folder of pair ``pos``'s images that is gone, or None when both
-        images' folders are there."""
+    def _removed_folder(self, pos: int) -> tuple[Path, str] | None:
+        """The outermost folder of pair ``pos``'s images that is gone (removed, or moved) or
+        holds no file any more (its images deleted), and which; None when both are there
+        with files in them."""
         for path in (self.index.left_paths[pos], self.index.right_paths[pos]):
             folder = path.parent
             if not folder.is_dir():
                 while not folder.parent.is_dir():
                     folder = folder.parent
-                return folder
+                return folder, "removed or moved"
+            if not path.exists() and next(os.scandir(folder), None) is None:
+                return folder, "emptied of its images"
         return None
 
     def _read_grey(self, path: Path, bits: int) -> NDArray[np.uint8]:
