@@ -1223,7 +1223,8 @@ class Console:
         if pose.valid:
             T = np.asarray(pose.T_cam_body)
             if pose.coasting_s > 0.0:
-                lines.append(f"pose valid, <b>COASTING</b> (case {pose.case}): {escape(str(pose.reason))}")
+                lines.append(f"pose valid, <b>COASTING</b> (case {pose.case}{_sigma_text(pose.cov_pose)}): "
+                             f"{escape(str(pose.reason))}")
             else:
                 lines.append(f"pose valid (case {pose.case}, {pose.n_points} points{_sigma_text(pose.cov_pose)})")
             rows["p [m]"] = (T[:3, 3], "{:+.3f}")

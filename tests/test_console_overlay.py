@@ -301,6 +301,8 @@ def test_status_keeps_its_height_whatever_the_state() -> None:
                          np.zeros(3), 5)
     assert "pose valid (case b, 5 points, 1σ 30.0 mm, 1.15°)" in parse(
         Console._status_html(Snapshot(frame, (), loose, None, Timings()))).text
+    # Coasting, when it is largest, too (a re-check).
+    assert "pose valid, COASTING (case b, 1σ 1000.0 mm, 57.30°): no model point measured" in texts[2]
     # Paused, no frame is read: the source is not "delivering" (an outside console probe).
     paused = parse(Console._status_html(Snapshot(frame, (), valid, None, Timings(), paused=True))).text
     assert "delivering" not in paused and "source held: no frame is read while paused" in paused

@@ -622,6 +622,10 @@ def test_a_reflection_or_a_time_that_is_no_number_is_refused_and_does_not_poison
         est.update(np.nan, np.eye(3), [0.01, 0.0, 3.5])
     with pytest.raises(TrackmeterError, match=r"t_s must be a number of seconds, got '0.41'"):
         est.update("0.41", np.eye(3), [0.01, 0.0, 3.5])  # type: ignore[arg-type]  # float("0.41") took it
+    for not_a_time in (bytearray(b"0.41"), np.array("0.41"), memoryview(b"1"), True, [0.41]):
+        with pytest.raises(TrackmeterError, match=r"t_s must be a number of seconds"):
+            est.update(not_a_time, np.eye(3), [0.01, 0.0, 3.5])  # type: ignore[arg-type]
+    assert VelocityEstimator(VelocityParams()).update(np.float32(0.41), np.eye(3), [0.0, 0.0, 3.5]) is None  # taken
     with pytest.raises(TrackmeterError, match=r"R_cam_body must be a rotation"):
         est.update(10 / 25, np.diag([1.0, 1.0, -1.0]), [0.01, 0.0, 3.5])
     rates = est.update(11 / 25, np.eye(3), [0.011, 0.0, 3.5])

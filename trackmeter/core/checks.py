@@ -128,7 +128,10 @@ def finite_time(value: float, name: str) -> float:
         TrackmeterError: ``"t_s is not finite: nan"``.
     """
     try:
-        if isinstance(value, (str, bytes)):  # float() reads "1.0": text is no time
+        # float() reads "1.0", b"1", a bytearray and True: a time is a real number, or a 0-d array of one.
+        if isinstance(value, (str, bytes, bytearray, memoryview, bool, np.bool_)):
+            raise TypeError
+        if np.ndim(value) != 0 or np.asarray(value).dtype.kind not in "fiu":
             raise TypeError
         t = float(value)
     except (TypeError, ValueError):
