@@ -292,3 +292,26 @@ def test_overwrite_replaces_a_sequence_simulate_wrote_and_nothing_else(tmp_path,
     assert main(["simulate", "--duration", "0.04", "--out", str(other), "--overwrite"]) == 2
     assert "not a sequence simulate wrote" in capsys.readouterr().err
     assert (other / "notes.txt").read_text() == "keep me"
+
+
+def test_a_render_whose_partial_folder_loses_a_camera_says_nothing_was_kept(tmp_path, monkeypatch, capsys) -> None:
+    """`rm -rf OUT.partial/cam1` mid-render: the writer's message said "cam0 keeps its own",
+    and simulate then removed the whole unfinished folder (a re-check)."""
+    import shutil
+
+    from trackmeter.data.sequence import SequenceWriter
+
+    write = SequenceWriter.write
+
+    def write_then_lose_cam1(self, frame):  # type: ignore[no-untyped-def]
+        if self.frames_written == 2:
+            shutil.rmtree(self.directory / "cam1")
+        return write(self, frame)
+
+    monkeypatch.setattr(SequenceWriter, "write", write_then_lose_cam1)
+    out = tmp_path / "seq"
+    assert main(["simulate", "--duration", "0.2", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "cam1's files were removed while recording" in err and "keeps its own" not in err, err
+    assert f"the unfinished {out}.partial was removed; nothing was written to {out}" in err, err
+    assert not out.exists() and not (tmp_path / "seq.partial").exists()

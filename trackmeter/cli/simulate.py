@@ -31,6 +31,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="replace --out when it is a sequence this command wrote (once the new one is complete)")
 
 
+def _take_back(partial: Path) -> str:
+    """Remove the unfinished folder this run made; what became of it, as a message says it."""
+    shutil.rmtree(partial, ignore_errors=True)
+    return f"the unfinished {partial} could not all be removed" if partial.exists() else f"the unfinished {partial} was removed"
+
+
 def run(args: argparse.Namespace) -> int:
     import yaml
 
@@ -120,11 +126,17 @@ def run(args: argparse.Namespace) -> int:
         if exc.filename2 is None and str(exc.filename) == str(partial):  # OUT is the user's name for it
             raise TrackmeterError(f"{out}: {exc.strerror or exc}") from None
         raise
+    except TrackmeterError as exc:
+        if lock is None:
+            raise
+        # What a failed write says is left in the folder (one camera's images kept) is not:
+        # the unfinished folder goes whole.
+        left = _take_back(partial)
+        raise TrackmeterError(f"{str(exc).split('; ')[0]}; {left}; nothing was written to {out}") from None
     except KeyboardInterrupt:
         if lock is None:
             raise KeyboardInterrupt(f"interrupted; nothing was written to {out}") from None
-        shutil.rmtree(partial, ignore_errors=True)
-        left = f"the unfinished {partial} could not all be removed" if partial.exists() else f"the unfinished {partial} was removed"
+        left = _take_back(partial)
         raise KeyboardInterrupt(f"interrupted: {left}; nothing was written to {out}") from None
     except BaseException:
         if lock is not None:
