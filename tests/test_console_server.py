@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import logging
 import os
 import re
 import socket
@@ -877,6 +878,31 @@ def test_a_sequence_whose_first_image_does_not_decode_is_said_on_stderr(tmp_path
     serve_forever(running, stop, poll_s=0.05)
     err = capsys.readouterr().err
     assert f"trackmeter console: warning: 1 pair(s) with an unreadable image skipped ({first}: " in err, err
+
+
+def test_a_source_failure_is_said_once_on_stderr(capsys) -> None:  # type: ignore[no-untyped-def]
+    """The pipeline's log said "error: source failed: ..." and the server loop "source failed:
+    ...", the same line twice (a re-check). The command serves within source_said_by_caller,
+    as this test does."""
+    from console.server import serve_forever
+    from trackmeter.cli.main import PROJECT_LOGGERS, _LogPrinter
+    from trackmeter.pipeline.pipeline import source_said_by_caller
+
+    printer = _LogPrinter("console")
+    for name in PROJECT_LOGGERS:
+        logging.getLogger(name).addHandler(printer)
+    try:
+        with source_said_by_caller():
+            running = start_console(CountingSource(100_000, fail_at=20, delay_s=0.01), RecordingEngine(),
+                                    port=free_port())
+            stop = threading.Event()
+            threading.Timer(2.0, stop.set).start()
+            serve_forever(running, stop, poll_s=0.05)
+    finally:
+        for name in PROJECT_LOGGERS:
+            logging.getLogger(name).removeHandler(printer)
+    said = [line for line in capsys.readouterr().err.splitlines() if "camera unplugged" in line]
+    assert said == ["trackmeter console: source failed: camera unplugged"], said
 
 
 def test_a_model_point_chosen_in_one_browser_names_only_that_browser_s_click() -> None:

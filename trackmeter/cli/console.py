@@ -92,10 +92,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _serve(args: argparse.Namespace, config: Any, priority_note: str | None = None) -> int:
-    from console.server import serve_forever, start_console
     from trackmeter.cli.common import open_source_with_rig
-    from trackmeter.errors import TrackmeterError
-    from trackmeter.pipeline.engine import Engine
+    from trackmeter.pipeline.pipeline import source_said_by_caller
 
     if sys.stderr.isatty():  # progress while a slow source opens; a bad one is then the only line
         print(f"trackmeter console: opening {args.source} ...", file=sys.stderr, flush=True)
@@ -104,6 +102,15 @@ def _serve(args: argparse.Namespace, config: Any, priority_note: str | None = No
     # Cases (a) and (c) need no model: unless case (b) is asked for, a source's model that
     # cannot be read is warned about and the console runs without it.
     source = open_source_with_rig(args.source, args.rig, realtime=True, loop=True, model_optional=args.case != "b")
+    with source_said_by_caller():  # serve_forever says a failing source, once, as the status line shows it
+        return _serve_source(args, config, source, priority_note)
+
+
+def _serve_source(args: argparse.Namespace, config: Any, source: Any, priority_note: str | None) -> int:
+    from console.server import serve_forever, start_console
+    from trackmeter.errors import TrackmeterError
+    from trackmeter.pipeline.engine import Engine
+
     try:
         if source.rig is None:
             raise TrackmeterError(f"source {args.source} carries no stereo rig: give one with --rig")

@@ -28,12 +28,10 @@ Examples (the simulator's 60 s; --max-frames 250 tracks its first 10 s):
 from __future__ import annotations
 
 import argparse
-import contextlib
-import logging
 import re
 import sys
 import time
-from typing import Any, Callable, Iterator
+from typing import Any, Callable
 
 from trackmeter.cli.common import parse_uv, plain_progress_due, source_warning_since
 from trackmeter.errors import TrackmeterError, counted
@@ -165,7 +163,7 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
     from trackmeter.data.model import load_model
     from trackmeter.data.rundir import RunWriter, check_run_directory
     from trackmeter.pipeline.engine import NEEDS_TRUTH, Engine, SelectModelPoints
-    from trackmeter.pipeline.pipeline import NOT_APPLIED, STOPPED, interrupts_deferred, run_headless, source_log
+    from trackmeter.pipeline.pipeline import NOT_APPLIED, STOPPED, interrupts_deferred, run_headless, source_said_by_caller
     from trackmeter.pipeline.snapshot import SelectPoint, SetAuto, Snapshot
 
     config = load_config_from_args(args)
@@ -358,7 +356,7 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
 
         try:
             # A failing source is said once, below, with the run's status (not also by the log).
-            with _quiet(source_log):
+            with source_said_by_caller():
                 last, replies = run_headless(feed, engine, on_snapshot=on_snapshot, commands=commands,
                                              realtime=args.source.startswith("camera"), rig=rig, on_replies=on_replies)
         except KeyboardInterrupt:
@@ -531,12 +529,3 @@ def _summary(engine: Any, writer: Any, state: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-@contextlib.contextmanager
-def _quiet(logger: logging.Logger) -> Iterator[None]:
-    """``logger`` silent within the block (its level restored after)."""
-    level = logger.level
-    logger.setLevel(logging.CRITICAL + 1)
-    try:
-        yield
-    finally:
-        logger.setLevel(level)

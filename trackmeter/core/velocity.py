@@ -634,14 +634,17 @@ class VelocityEstimator:
             # fitted almost exactly by either), residual per degree of freedom (9 against 6).
             compare = self.params.free_body_rss_ratio > 0 and t[-1] - t[start] >= self.params.min_span_s and n >= 6
             if always or compare:
+                # Without the poses' covariances, their noise as the screw fit's residual shows it
+                # (unit weights would make it 1 m, and the screw's error never stand clear of it).
+                weight = 1.0 if Wp is not None else (3 * n - 6) / max(rss, (3 * n - 6) * 1e-10)
                 free = free_body_velocity(t[start:], R[start:], P[start:], omega,
-                                          np.ones(n) if Wp is None else Wp[start:, 0], self.lever_m)
+                                          np.full(n, weight) if Wp is None else Wp[start:, 0], self.lever_m)
                 # A free-floating body that drifts across its spin axis: the constant twist cannot
                 # follow its path (module docstring), and the straight-line centre fits it better.
                 # Blended in by how clearly the screw's error shows, the share smoothed in time.
                 share = 1.0 if always else 0.0
                 if free is not None and not always and (
-                        free.rss / (3 * n - 9) < self.params.free_body_rss_ratio * rss / (3 * n - 6)):
+                        free.rss / weight / (3 * n - 9) < self.params.free_body_rss_ratio * rss / (3 * n - 6)):
                     share = self._free_share_for(free.screw_bias_sigmas)
                 v = v + self._smoothed_share(share, t_s) * (free.v_origin - v) if free is not None else v
             else:

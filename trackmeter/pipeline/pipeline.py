@@ -76,6 +76,19 @@ log = logging.getLogger(__name__)
 #: snapshot: a consumer that reports it itself (``trackmeter track``) quiets this logger.
 source_log = logging.getLogger(f"{__name__}.source")
 
+@contextlib.contextmanager
+def source_said_by_caller() -> Iterator[None]:
+    """:data:`source_log` silent within the block (its level restored after): for a caller
+    that says the source's failure itself, with what it means there (``track``'s run status,
+    the console's status line), so that it is not said twice."""
+    level = source_log.level
+    source_log.setLevel(logging.CRITICAL + 1)
+    try:
+        yield
+    finally:
+        source_log.setLevel(level)
+
+
 ErrorsDict = dict[str, Any]
 
 
