@@ -634,9 +634,17 @@ class VelocityEstimator:
             # fitted almost exactly by either), residual per degree of freedom (9 against 6).
             compare = self.params.free_body_rss_ratio > 0 and t[-1] - t[start] >= self.params.min_span_s and n >= 6
             if always or compare:
-                # Without the poses' covariances, their noise as the screw fit's residual shows it
-                # (unit weights would make it 1 m, and the screw's error never stand clear of it).
-                weight = 1.0 if Wp is not None else (3 * n - 6) / max(rss, (3 * n - 6) * 1e-10)
+                weight = 1.0
+                if Wp is None:
+                    # Without the poses' covariances, their noise as the free-body fit's residual
+                    # shows it: unit weights made it 1 m, and the screw's own residual holds the
+                    # very error the test looks for (the share never came in; two re-checks).
+                    # A first guess from the screw's residual (the fit's prior on c is weighed
+                    # against the data by it), then the free-body fit's own.
+                    first = (3 * n - 6) / max(rss, (3 * n - 6) * 1e-10)
+                    free = free_body_velocity(t[start:], R[start:], P[start:], omega, np.full(n, first), self.lever_m)
+                    if free is not None and n > 3:
+                        weight = (3 * n - 9) / max(free.rss / first, (3 * n - 9) * 1e-10)
                 free = free_body_velocity(t[start:], R[start:], P[start:], omega,
                                           np.full(n, weight) if Wp is None else Wp[start:, 0], self.lever_m)
                 # A free-floating body that drifts across its spin axis: the constant twist cannot
