@@ -544,7 +544,7 @@ class VelocityEstimator:
     def _smoothed_share(self, share: float, t_s: float) -> float:
         """``share`` through a first-order lag of ``free_body_blend_s`` (exact for its time step)."""
         tau = self.params.free_body_blend_s
-        if self._free_share_t is None or tau <= 0.0 or share == 1.0 and self.params.method == "free_body":
+        if self._free_share_t is None or tau <= 0.0:
             self._free_share = share
         else:
             self._free_share += (share - self._free_share) * -np.expm1(-max(t_s - self._free_share_t, 0.0) / tau)
@@ -650,11 +650,13 @@ class VelocityEstimator:
                 # A free-floating body that drifts across its spin axis: the constant twist cannot
                 # follow its path (module docstring), and the straight-line centre fits it better.
                 # Blended in by how clearly the screw's error shows, the share smoothed in time.
-                share = 1.0 if always else 0.0
-                if free is not None and not always and (
-                        free.rss / weight / (3 * n - 9) < self.params.free_body_rss_ratio * rss / (3 * n - 6)):
-                    share = self._free_share_for(free.screw_bias_sigmas)
-                v = v + self._smoothed_share(share, t_s) * (free.v_origin - v) if free is not None else v
+                if free is not None and always:
+                    v = free.v_origin
+                elif free is not None:
+                    share = 0.0
+                    if free.rss / weight / (3 * n - 9) < self.params.free_body_rss_ratio * rss / (3 * n - 6):
+                        share = self._free_share_for(free.screw_bias_sigmas)
+                    v = v + self._smoothed_share(share, t_s) * (free.v_origin - v)
             else:
                 self._smoothed_share(0.0, t_s)
             return v, omega
