@@ -135,13 +135,31 @@ def _on_event_loop(callback: Callable[[Any], None]) -> Callable[[Any], Coroutine
     return on_loop
 
 
+def decimal_of(text: str) -> float | None:
+    """A number typed by an operator, with a decimal point or a decimal comma ("0.5", "0,5");
+    None for an empty field. ValueError, with the text, for anything else (two marks, a unit,
+    "nan", "inf"): a guess would send a value the operator did not mean."""
+    typed = text.strip()
+    if not typed:
+        return None
+    digits = typed.replace(",", ".", 1) if typed.count(",") == 1 and "." not in typed else typed
+    if re.fullmatch(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?", digits) is None:
+        raise ValueError(f"{typed!r} is not a number: type it as 0.5 or 0,5")
+    return float(digits)
+
+
+def _hz_text(hz: float) -> str:
+    """A frequency as the cutoff field shows it: 2 Hz as "2", 0.55 as "0.55"."""
+    return f"{hz:.4g}"
+
+
 def _pixel_text(uv: tuple[float, float]) -> str:
     """``(u, v)`` to the whole pixel; a click on the border (-0.5) reads 0, not "-0"."""
     return f"({round(uv[0])}, {round(uv[1])})"
 
 
 #: A typed filter cutoff or target count is sent once the field has held it this long, s:
-#: viser sends every keystroke of a number field, and "0.5" passes 0, which the filter refuses
+#: viser sends every keystroke of a field, and "0.5" passes 0, which the filter refuses
 #: (each accepted value also rebuilds the filter), "16" passes 1.
 EDIT_SETTLE_S = 0.8
 SERIES_COLOURS = ("#e6194b", "#3cb44b", "#4363d8", "#111111")
@@ -680,7 +698,11 @@ class Console:
             top = float(getattr(engine, "max_filter_cutoff_hz", 12.5))
             low = min(0.05, top)
             start = min(max(float(getattr(engine, "filter_cutoff_hz", 2.0)), low), top)
-            self.cutoff = gui.add_number("Filter cutoff (Hz)", initial_value=start, min=low, max=top, step=0.05)
+            self.cutoff_range_hz = (low, top)
+            # Text, not viser's number field: that one dropped a pasted comma, and "0,5" (the
+            # decimal point of much of Europe) reached the filter as 5 Hz. Read by decimal_of.
+            self.cutoff = gui.add_text("Filter cutoff (Hz)", initial_value=_hz_text(start),
+                                       hint=f"{low:g} to {top:g} Hz; 0.5 or 0,5")
         with gui.add_folder("Recording", expand_by_default=False):
             self.record_dir = gui.add_text("Folder", initial_value=shown_text(str(self.record_root / "recording")))
             self.record_checkbox = gui.add_checkbox("Record", initial_value=False)
@@ -709,8 +731,7 @@ class Console:
         self.select_model_button.on_click(self._cb(lambda e: SelectModelPoints(repeat=True)))
         self.acquire_button.on_click(self._cb(lambda e: AcquireModel()))
         self.load_model_button.on_click(self._cb(lambda e: LoadModel(self.model_path.value.strip())))
-        self.cutoff.on_update(self._typed("cutoff", lambda: None if self.cutoff.value is None
-                                          else SetFilterCutoff(float(self.cutoff.value))))
+        self.cutoff.on_update(self._typed("cutoff", lambda: self._cutoff_command()))
         self.record_checkbox.on_update(self._cb(lambda e: SetRecording(
             self._fresh_record_dir() if self.record_checkbox.value else None)))
         self.right_checkbox.on_update(lambda e: self._show_right_image(bool(self.right_checkbox.value)))
@@ -735,10 +756,21 @@ class Console:
             settled = [(name, edit) for name, edit in self._edits.items() if now - edit[2] >= EDIT_SETTLE_S]
             for name, _ in settled:
                 del self._edits[name]
-        for _, (make, client, _) in settled:
-            command = make()  # None: an emptied field, or a count with selection off
+        for name, (make, client, _) in settled:
+            try:
+                command = make()  # None: an emptied field, or a count with selection off
+            except ValueError as exc:  # typed text that is no number: say so, show the tracker's
+                self._mirrored.pop(name, None)
+                command_name = next(c for c, widgets in _WIDGETS_OF_COMMAND.items() if name in widgets)
+                self._notify(client, f"{_COMMAND_TITLES[command_name]}: refused", str(exc), False)
+                continue
             if command is not None:
                 self.submit(command, client, type(command).__name__)
+
+    def _cutoff_command(self) -> Command | None:
+        """The cutoff the operator typed; None for an emptied field (ValueError: no number)."""
+        hz = decimal_of(self.cutoff.value)
+        return None if hz is None else SetFilterCutoff(hz)
 
     def _auto_command(self) -> Command:
         return SetAuto(bool(self.auto_checkbox.value), int(self.auto_count.value), str(self.auto_method.value))
@@ -1158,7 +1190,8 @@ class Console:
         if np.isfinite(snap.filter_cutoff_hz) and "cutoff" not in self._edits:
             # As the filter takes it (clipped to its range); not while the operator's value waits
             # to settle (:meth:`_send_settled_edits`): the field keeps what they typed.
-            self._mirror("cutoff", self.cutoff, min(max(snap.filter_cutoff_hz, self.cutoff.min), self.cutoff.max))
+            low, top = self.cutoff_range_hz
+            self._mirror("cutoff", self.cutoff, _hz_text(min(max(snap.filter_cutoff_hz, low), top)))
         self._mirror("record", self.record_checkbox, snap.recording)
         if snap.pose.case in ("a", "b", "c"):
             self._mirror("case", self.case_dropdown, snap.pose.case)

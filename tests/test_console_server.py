@@ -370,22 +370,22 @@ def test_the_count_and_cutoff_widgets_follow_the_tracker_and_its_limits() -> Non
     pushes = functools.partial(_wait_for_pushes, con)
 
     try:
-        assert con.auto_count.max == 20 and con.cutoff.max == pytest.approx(11.875)
+        assert con.auto_count.max == 20 and con.cutoff_range_hz[1] == pytest.approx(11.875)
         pushes(3)
-        assert con.auto_count.value == 6 and con.cutoff.value == pytest.approx(2.0)
+        assert con.auto_count.value == 6 and con.cutoff.value == "2"
         running.pipeline.submit(SetAuto(True, 9)).result(10)  # elsewhere
         pushes(5)
         assert con.auto_count.value == 9
-        con.cutoff.value = 0.0  # typed by the operator, refused by the tracker
+        con.cutoff.value = "0"  # typed by the operator, refused by the tracker
         assert not con.submit(SetFilterCutoff(0.0), None, "SetFilterCutoff").result(10).ok
         pushes(5)
-        assert con.cutoff.value == pytest.approx(2.0)
+        assert con.cutoff.value == "2"
     finally:
         running.stop()
 
 
 def test_a_typed_cutoff_is_sent_once_the_field_holds_it() -> None:
-    """viser sends every keystroke of a number field: typing "0.5" passed 0 (refused, and the
+    """viser sends every keystroke of a field: typing "0.5" passed 0 (refused, and the
     refusal put the old value back while the operator was still typing), and every accepted
     keystroke rebuilt the output filter. The value is sent once the field has held it."""
     import types
@@ -396,7 +396,7 @@ def test_a_typed_cutoff_is_sent_once_the_field_holds_it() -> None:
     browser = types.SimpleNamespace(add_notification=lambda *a, **k: None)
     try:
         _wait_for_pushes(con, 3)
-        for typed in (0.0, 0.0, 0.5):  # "0", "0.", "0.5", a keystroke every 0.1 s
+        for typed in ("0", "0.", "0.5"):  # a keystroke every 0.1 s
             con.cutoff.value = typed
             con.edit_callbacks["cutoff"](types.SimpleNamespace(client=browser))
             time.sleep(0.1)
@@ -407,7 +407,55 @@ def test_a_typed_cutoff_is_sent_once_the_field_holds_it() -> None:
             time.sleep(0.05)
         assert engine.sent == [0.5]
         _wait_for_pushes(con, 5)
-        assert con.cutoff.value == pytest.approx(0.5)
+        assert con.cutoff.value == "0.5"
+    finally:
+        running.stop()
+
+
+@pytest.mark.parametrize(("typed", "sent"), [("0,5", 0.5), (" 0.25 ", 0.25), ("3", 3.0)])
+def test_a_cutoff_typed_with_a_decimal_comma_is_taken_as_its_value(typed: str, sent: float) -> None:
+    """viser's number field dropped a pasted comma: "0,5", the decimal point of much of
+    Europe, reached the filter as 5 Hz, ten times the cutoff meant (an outside console probe).
+    The field is text, read with either decimal mark."""
+    import types
+
+    engine = _SentEngine()
+    running = start_console(CountingSource(100_000, delay_s=0.02), engine, port=free_port())  # type: ignore[arg-type]
+    con = running.console
+    browser = types.SimpleNamespace(add_notification=lambda *a, **k: None)
+    try:
+        _wait_for_pushes(con, 3)
+        con.cutoff.value = typed
+        con.edit_callbacks["cutoff"](types.SimpleNamespace(client=browser))
+        deadline = time.monotonic() + 10
+        while not engine.sent:
+            assert time.monotonic() < deadline, "nothing sent"
+            time.sleep(0.05)
+        assert engine.sent == [pytest.approx(sent)]
+    finally:
+        running.stop()
+
+
+@pytest.mark.parametrize("typed", ["0,5,1", "fast", "nan", "1.5.", "0.5 Hz x"])
+def test_a_cutoff_that_is_no_number_is_refused_with_the_reason_and_the_tracker_s_value_shown(typed: str) -> None:
+    import types
+
+    engine = _SentEngine()
+    running = start_console(CountingSource(100_000, delay_s=0.02), engine, port=free_port())  # type: ignore[arg-type]
+    con = running.console
+    said: list[tuple[str, str]] = []
+    browser = types.SimpleNamespace(add_notification=lambda title, body, **k: said.append((title, body)))
+    try:
+        _wait_for_pushes(con, 3)
+        con.cutoff.value = typed
+        con.edit_callbacks["cutoff"](types.SimpleNamespace(client=browser))
+        deadline = time.monotonic() + 10
+        while not said:
+            assert time.monotonic() < deadline, "nothing said"
+            time.sleep(0.05)
+        assert said[0][0] == "Filter cutoff: refused" and repr(typed.strip()) in said[0][1], said
+        _wait_for_pushes(con, 5)
+        assert engine.sent == [] and con.cutoff.value == "2"
     finally:
         running.stop()
 
@@ -503,8 +551,8 @@ def test_a_value_typed_as_a_refusal_puts_the_old_one_back_is_the_value_sent() ->
     engine = _SentEngine()
     with _console_with_held_pool(engine) as (running, held):
         con = running.console
-        assert con.cutoff.value == pytest.approx(2.0)
-        _browser_sets(running, con.cutoff, 3.3)
+        assert con.cutoff.value == "2"
+        _browser_sets(running, con.cutoff, "3.3")
         con._mirrored.pop("cutoff", None)  # what a refusal of the value before it does
         _wait_for_pushes(con, 5)
         held.release()
@@ -515,7 +563,7 @@ def test_a_value_typed_as_a_refusal_puts_the_old_one_back_is_the_value_sent() ->
         time.sleep(0.3)
         assert engine.sent == [pytest.approx(3.3)]
         _wait_for_pushes(con, 5)
-        assert engine.filter_cutoff_hz == pytest.approx(3.3) and con.cutoff.value == pytest.approx(3.3)
+        assert engine.filter_cutoff_hz == pytest.approx(3.3) and con.cutoff.value == "3.3"
 
 
 def test_a_toggle_is_sent_in_the_order_it_came_without_waiting_for_a_worker_thread() -> None:
@@ -679,7 +727,7 @@ def test_the_console_starts_when_the_filter_cutoff_lies_beyond_the_field_s_range
 
     running = start_console(CountingSource(100_000, delay_s=0.02), SlowSourceEngine(), port=free_port())  # type: ignore[arg-type]
     try:
-        assert running.console.cutoff.max == pytest.approx(1.9) and running.console.cutoff.value == pytest.approx(1.9)
+        assert running.console.cutoff_range_hz[1] == pytest.approx(1.9) and running.console.cutoff.value == "1.9"
     finally:
         running.stop()
 

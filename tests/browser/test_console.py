@@ -168,6 +168,30 @@ def test_malformed_model_file_loaded_from_the_ui_is_refused_and_the_console_goes
     wait_for(lambda: running_console.pipeline.latest().timings.frames_processed > done + 10, 10, "tracking going on")
 
 
+@pytest.mark.parametrize("how", ["pasted", "typed"])
+def test_a_cutoff_with_a_decimal_comma_reaches_the_filter_as_written(page_and_client: Any, running_console: Any,
+                                                                     how: str) -> None:
+    """"0,5" as an operator with a European keyboard writes it: pasted into viser's number
+    field, the comma was dropped and the filter went to 5 Hz (key by key, Mantine took it)."""
+    page, _ = page_and_client
+    page.get_by_text("Output", exact=True).first.click()  # the folder starts collapsed
+    field = page.locator(".mantine-Flex-root", has=page.get_by_text("Filter cutoff (Hz)", exact=True)).locator("input").first
+    field.wait_for(timeout=10_000)
+    engine = running_console.pipeline.engine
+    try:
+        for value in ("0,5", "2"):  # and back, for the tests after
+            if how == "pasted":
+                field.fill(value)
+            else:
+                field.click()
+                field.press("Control+a")
+                field.press_sequentially(value, delay=120)
+            wanted = float(value.replace(",", "."))
+            wait_for(lambda: abs(engine.filter_cutoff_hz - wanted) < 1e-9, 10, f"the filter at {wanted} Hz")
+    finally:
+        page.get_by_text("Output", exact=True).first.click()  # folded again
+
+
 def test_a_click_named_after_a_model_point_binds_that_point(
         page_and_client: Any, running_console: Any, artifacts: Path, tmp_path: Path) -> None:
     """Case (b) binds targets to the model by id: with a model loaded, the operator picks a point
