@@ -7,6 +7,7 @@ import os
 from dataclasses import replace
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import cv2
@@ -1471,6 +1472,48 @@ def test_a_recording_that_loses_one_camera_says_which_and_what_is_left(tmp_path,
     assert str(info.value) == (f"{out}: {removed}'s files were removed while recording (deleted, or moved to another "
                                f"file system); the 2 frames written there lost their {removed} images, {kept} keeps "
                                "its own")
+
+
+@pytest.mark.parametrize("cam", ["cam0", "cam1"])
+def test_a_camera_index_deleted_while_recording_is_written_again_and_said(tmp_path, cam):
+    # data.csv deleted mid-recording: the writer went on appending to the unlinked file, and the
+    # folder played as "no frames" after it closed, every image kept but none listed (a probe).
+    frames = _frames(5)
+    out = tmp_path / "rec"
+    writer = SequenceWriter(out)
+    for frame in frames[:3]:
+        writer.write(frame)
+    (out / cam / "data.csv").unlink()
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        for frame in frames[3:]:
+            writer.write(frame)
+    writer.close()
+    assert [str(w.message) for w in said] == [
+        f"{out / cam / 'data.csv'}: removed while recording; written again from the recorder's own copy "
+        "(the 3 frames before kept)"]
+    index = index_sequence(out)
+    assert len(index) == 5 and not index.warnings
+    np.testing.assert_allclose(index.t_s, [f.t_s for f in frames], atol=1e-9)
+
+
+def test_a_camera_folder_replaced_by_a_file_while_recording_is_refused_in_words(tmp_path):
+    # cam1/data replaced by a file: the frame's clean-up raised NotADirectoryError past the
+    # recorder, where the write's own error was the one to tell (a probe).
+    import shutil
+
+    frames = _frames(3)
+    out = tmp_path / "rec"
+    writer = SequenceWriter(out)
+    writer.write(frames[0])
+    writer.write(frames[1])
+    shutil.rmtree(out / "cam1" / "data")
+    (out / "cam1" / "data").write_text("not a folder\n")
+    with pytest.raises(TrackmeterError, match="Not a directory"):
+        writer.write(frames[2])
+    with contextlib.suppress(TrackmeterError):
+        writer.close()
+    assert (out / "cam0" / "data.csv").read_text().count("\n") == 3  # the header, two frames: whole
 
 
 def test_a_recording_removed_before_its_first_frame_says_nothing_was_lost(tmp_path):

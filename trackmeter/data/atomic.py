@@ -274,7 +274,8 @@ class AppendFile:
     def __init__(self, path: str | Path, header: str = "") -> None:
         self.path = Path(path)
         try:
-            self._fd: int | None = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666)
+            # Readable too: what was written can be written again (:meth:`restore_if_removed`).
+            self._fd: int | None = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o666)
         except OSError as exc:
             raise TrackmeterError(f"{self.path}: cannot create ({exc.strerror or exc})") from None
         self.size = 0
@@ -295,6 +296,46 @@ class AppendFile:
             self.truncate(start)
             raise TrackmeterError(f"{self.path}: cannot write ({exc.strerror or exc})") from None
         self.size = start + len(data)
+
+    def restore_if_removed(self) -> bool:
+        """Write the file again at :attr:`path` when it was deleted or replaced there since it
+        was opened, from what this object wrote (still in the open, unlinked file); True when
+        it did. False when it is in place, or when its folder is gone (the caller's to say).
+
+        Why: the appends would go on into a file no one can open again, and be lost at close.
+        """
+        if self._fd is None:
+            return False
+        try:
+            here = os.stat(self.path)
+        except FileNotFoundError:
+            here = None
+        except OSError:
+            return False  # a folder on the path replaced by a file: the caller's writes say so
+        mine = os.fstat(self._fd)
+        if here is not None and (here.st_ino, here.st_dev) == (mine.st_ino, mine.st_dev):
+            return False
+        if not self.path.parent.is_dir():
+            return False
+        written = os.pread(self._fd, self.size, 0)
+        tmp = self.path.with_name(f".{self.path.name}.tmp")
+        try:
+            fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o666)
+            try:
+                view = memoryview(written)
+                while view:
+                    view = view[os.write(fd, view):]
+                os.replace(tmp, self.path)
+            except BaseException:
+                os.close(fd)
+                raise
+        except OSError as exc:
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+            raise TrackmeterError(f"{self.path}: removed, and cannot be written again ({exc.strerror or exc})") from None
+        os.close(self._fd)
+        self._fd = fd
+        return True
 
     def truncate(self, size: int) -> None:
         """Cut the file back to ``size`` bytes (shrinking needs no free space)."""

@@ -227,6 +227,7 @@ class SequenceWriter:
         if not self._csv:
             raise TrackmeterError(f"{self.directory}: sequence writer is closed")
         self._follow_folder()
+        self._restore_indexes()
         ns = seconds_to_ns(frame.t_s)
         if self._last_ns is not None and ns <= self._last_ns:
             raise TrackmeterError(f"frame at {frame.t_s} s does not come after the previous one")
@@ -254,7 +255,8 @@ class SequenceWriter:
             if self._cuts is not None and cuts_size is not None:
                 self._cuts.truncate(cuts_size)
             for path in images:
-                path.unlink(missing_ok=True)
+                with contextlib.suppress(OSError):  # its folder replaced by a file: the write said so
+                    path.unlink(missing_ok=True)
             if isinstance(exc, OSError) and exc.errno == errno.ENOENT:
                 raise TrackmeterError(self._files_removed_message()) from None
             if isinstance(exc, OSError):
@@ -301,6 +303,14 @@ class SequenceWriter:
         warnings.warn(f"{old}: the recording folder was moved to {moved} while recording; the recording goes on there",
                       stacklevel=3)
 
+    def _restore_indexes(self) -> None:
+        """Write a camera's ``data.csv`` again when it was deleted while recording: the frames
+        would go on into the unlinked file, and the folder play as one without frames."""
+        for index in self._csv.values():
+            if index.restore_if_removed():
+                warnings.warn(f"{index.path}: removed while recording; written again from the recorder's own copy "
+                              f"(the {counted(self.frames_written, 'frame')} before kept)", stacklevel=3)
+
     def _write_image(self, path: Path, image: NDArray[np.uint8]) -> None:
         img = np.asarray(image)
         if img.dtype != np.uint8 or img.ndim != 2:
@@ -314,7 +324,8 @@ class SequenceWriter:
                 f.write(buf.tobytes())
             os.replace(tmp, path)
         except BaseException:
-            tmp.unlink(missing_ok=True)
+            with contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)
             raise
 
     def _write_truth(self, t_s: float, frame: StereoFrame) -> None:
