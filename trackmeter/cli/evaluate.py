@@ -1,8 +1,9 @@
 """Compare an estimated trajectory with the ground truth (the paper's trial evaluation, section 4).
 
-Pairs poses by nearest timestamp (--tolerance), optionally fits the constant offset between the
-estimate's and the truth's body frames (--align body; by default for a run tracked in case a or
-c, as its run.yaml says, whose body frame is its own; the estimate is then referred to the TRUE
+Pairs poses by timestamp, one to one: an estimated and a truth pose that are each other's nearest,
+within --tolerance (a tolerance over half the truth's period leaves ties to rounding), optionally
+fits the constant offset between the estimate's and the truth's body frames (--align body; by
+default for a run tracked in case a or c, as its run.yaml says, whose body frame is its own; the estimate is then referred to the TRUE
 body frame, so its position error is that of the true body origin, lever arm of the attitude
 error included), skips a settle time, and reports position errors (camera frame; z = viewing
 axis), attitude errors (paper eq. 17 per axis, eq. 16 total), linear velocity errors (camera
