@@ -1,16 +1,16 @@
 """Compare an estimated trajectory with the ground truth (the paper's trial evaluation, section 4).
 
-Pairs poses by timestamp, one to one: an estimated and a truth pose that are each other's nearest,
-within --tolerance (a tolerance over half the truth's period leaves ties to rounding), optionally
-fits the constant offset between the estimate's and the truth's body frames (--align body; by
-default for a run tracked in case a or c, as its run.yaml says, whose body frame is its own; the estimate is then referred to the TRUE
-body frame, so its position error is that of the true body origin, lever arm of the attitude
-error included), skips a settle time, and reports position errors (camera frame; z = viewing
-axis), attitude errors (paper eq. 17 per axis, eq. 16 total), linear velocity errors (camera
-frame, of the body origin) and angular velocity errors (body frame, paper eq. 14) - both only
-when the estimate is a run directory or its states.csv and the truth has rates (a
-groundtruth.csv, also one beside a TUM file given, or sim[:SCENARIO]) - as RMS, max and 95th
-percentile, plus the SPEED challenge score.
+Pairs poses by timestamp, one to one: an estimated and a truth pose that are each other's
+nearest, within --tolerance (a tolerance over half the truth's period leaves ties to rounding),
+optionally fits the constant offset between the estimate's and the truth's body frames (--align
+body; by default for a run tracked in case a or c, as its run.yaml says, whose body frame is its
+own; the estimate is then referred to the TRUE body frame, so its position error is that of the
+true body origin, lever arm of the attitude error included), skips a settle time, and reports
+position errors (camera frame; z = viewing axis), attitude errors (paper eq. 17 per axis, eq. 16
+total), linear velocity errors (camera frame, of the body origin) and angular velocity errors
+(body frame, paper eq. 14) - both only when the estimate is a run directory or its states.csv
+and the truth has rates (a groundtruth.csv, also one beside a TUM file given, or sim[:SCENARIO])
+- as RMS, max and 95th percentile, plus the SPEED challenge score.
 
   --truth    TUM file, groundtruth.csv, or a sequence folder; sim[:SCENARIO] for a run of the
              sim source: the scenario's motion (a path of that name, if one exists, comes first)
