@@ -78,14 +78,16 @@ def test_a_square_given_in_millimetres_is_warned_about(calib_dir: Path, tmp_path
         assert load_rig(tmp_path / "rig.yaml").baseline_m == pytest.approx(25 * 3.327, rel=0.003)
 
 
-def test_left_and_right_images_given_the_wrong_way_round_are_warned_about(calib_dir: Path, tmp_path: Path,
-                                                                         capsys: pytest.CaptureFixture[str]) -> None:
+def test_left_and_right_images_given_the_wrong_way_round_are_refused_and_nothing_is_written(
+        calib_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """--left and --right exchanged calibrate fine, but the rig's right camera lies left of its
-    left one, which measure and track refuse: one warning says so at once, and how to fix it."""
-    assert main(_args(calib_dir, tmp_path / "rig.yaml", left="right*.jpg", right="left*.jpg")) == 0
+    left one, which measure and track refuse: it was written with a warning and exit 0, a rig
+    nothing could use (a new user's probe). Refused, with how to fix it."""
+    assert main(_args(calib_dir, tmp_path / "rig.yaml", left="right*.jpg", right="left*.jpg")) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("trackmeter calibrate: warning: the right camera lies left"), err
-    assert "--left and --right" in err[0]
+    assert len(err) == 1 and err[0].startswith("trackmeter calibrate: error: the right camera lies left"), err
+    assert "none was written" in err[0] and "--left and --right" in err[0]
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_the_same_images_as_both_cameras_are_refused_and_nothing_is_written(calib_dir: Path, tmp_path: Path,

@@ -103,16 +103,16 @@ def run(args: argparse.Namespace) -> int:
         "std_baseline": std["baseline"],
         "rectification_vertical_rms_px": result.rectification.rms_px,
     }
+    try:
+        check_side_by_side(rig)
+    except TrackmeterError as exc:  # measure and track refuse such a rig: none is written
+        hint = ": were --left and --right given the wrong way round?" if swapped_cameras(rig) else ""
+        raise TrackmeterError(f"{exc}; measure and track refuse such a rig, so none was written{hint}") from None
     out_path = save_rig(rig, args.out, extra)
     print(format_report(result, pairs, args.square, out_path))
     implausible = baseline_problem(rig)
     if implausible:
         warnings.warn(f"{implausible}: --square is the side of one square in metres (25 mm is 0.025)", stacklevel=1)
-    try:
-        check_side_by_side(rig)
-    except TrackmeterError as exc:  # written as calibrated, but measure and track refuse it
-        hint = "; were --left and --right given the wrong way round?" if swapped_cameras(rig) else ""
-        warnings.warn(f"{exc}; measure and track refuse this rig{hint}", stacklevel=1)
     return 0
 
 
