@@ -213,6 +213,41 @@ def test_a_broken_model_in_the_folder_is_warned_and_left_out_unless_case_b_is_as
     assert code == 2 and len(err) == 1 and "model.yaml" in err[0], err
 
 
+def test_the_console_takes_a_model_file_and_starts_automatic_selection_as_track_does(
+        opencv_sample_sequence, opencv_sample_rig, tmp_path, monkeypatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """``track`` has --model and --auto; the console had neither: case (b) on a folder without a
+    model.yaml was refused with no word of how to give one, and the README's case (c) example
+    sat acquiring "0 measured points" until the operator found the automatic selection (a new
+    user's probe)."""
+    import console.server
+    from trackmeter.data.model import save_model
+
+    model_file = tmp_path / "m.yaml"
+    save_model(model_file, [("p1", [0.0, 0.0, 0.0]), ("p2", [0.1, 0.0, 0.0]), ("p3", [0.0, 0.1, 0.0])])
+    served: list[Any] = []
+
+    def serve_briefly(running: Any) -> None:
+        deadline = time.monotonic() + 20
+        while not running.pipeline.latest().auto_enabled and time.monotonic() < deadline:
+            time.sleep(0.05)
+        snap = running.pipeline.latest()
+        engine = running.pipeline.engine
+        served.append((engine.case, None if engine.model is None else list(engine.model.ids), snap.auto_enabled,
+                       snap.auto_count))
+        running.stop()
+
+    monkeypatch.setattr(console.server, "serve_forever", serve_briefly)
+    rig = ["--rig", str(opencv_sample_rig / "intrinsics.yml")]
+    common = ["--source", str(opencv_sample_sequence), *rig, "--port", str(free_port()), "--cpu-nice", "0"]
+    assert main(["console", *common, "--case", "b", "--model", str(model_file), "--auto", "7"]) == 0
+    assert served == [("b", ["p1", "p2", "p3"], True, 7)], served
+    capsys.readouterr()
+    for bad, said in ((["--auto", "0"], "--auto must be in [1, "), (["--model", str(tmp_path / "none.yaml")], "none.yaml")):
+        assert main(["console", *common, *bad]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and said in err[0], err
+
+
 def test_a_bad_source_is_one_line_on_stderr(tmp_path, capsys: pytest.CaptureFixture[str]) -> None:
     """Bad input is one line on stderr (DESIGN.md section 6): the CPU priority's and the
     "opening" notes came first. "opening" is progress, shown on a terminal only; the priority

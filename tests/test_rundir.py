@@ -39,6 +39,18 @@ def test_coasted_poses_are_valid_rows_and_counted_in_the_summary(tmp_path: Path)
     assert len(tum) == 3
 
 
+def test_the_summary_says_when_the_poses_were_coasted(tmp_path: Path) -> None:
+    # Coasted poses are valid rows like measured ones, and the summary only counted them: a
+    # reader of the files could not tell which were coasted (a new user's probe).
+    writer = RunWriter(tmp_path / "run", {}, {"spec": "test"})
+    for t, coasting in ((0.0, 0.0), (0.04, 0.04), (0.08, 0.08), (0.12, 0.0), (0.16, 0.04), (0.2, -1), (0.24, 0.12)):
+        writer.write_frame(t, (), PoseEstimate.invalid("lost") if coasting < 0 else _pose(coasting))
+    writer.close("complete")
+    summary = yaml.safe_load((tmp_path / "run" / "run.yaml").read_text())["summary"]
+    assert summary["coasted_frames"] == 4
+    assert summary["coasted_spans_s"] == [[0.04, 0.08], [0.16, 0.16], [0.24, 0.24]]
+
+
 @pytest.mark.parametrize("how", ["removed", "replaced"])
 def test_a_run_folder_removed_while_writing_is_said_and_not_made_again(tmp_path: Path, how: str) -> None:
     """``rm -rf RUN`` while ``track`` wrote there: the open files went on into the deleted

@@ -15,6 +15,7 @@ examples:
   trackmeter console
   trackmeter console --source seq:runs/approach --port 8081
   trackmeter console --source sim:harsh_light --record runs/rec1
+  trackmeter console --source runs/rec1 --model model.yaml --case b --auto 16
 """
 
 from __future__ import annotations
@@ -46,8 +47,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rig", metavar="RIG",
                         help="stereo rig file or a preset's name (config/rigs/) to use instead of the source's own; OpenCV's intrinsics.yml or "
                              "extrinsics.yml (the other beside it) takes the size of the source's frames")
+    parser.add_argument("--model", metavar="MODEL",
+                        help="model.yaml for case (b) (default: the source's own model; the page's Model > Load model "
+                             "loads one later)")
     parser.add_argument("--case", choices=("a", "b", "c"), help="model case at start (default: b when the source carries a model, else a; in case b a "
                              "target binds to a model point by id: Model > Next click is, in the page)")
+    parser.add_argument("--auto", type=int, metavar="N",
+                        help="start with automatic selection on, keeping N targets alive (the page's Automatic "
+                             "selection; default: off, the operator clicks targets)")
     parser.add_argument("--publish-hz", type=float, default=12.0, metavar="HZ", help="browser update rate, Hz (default 12)")
     parser.add_argument("--cpu-nice", type=int, default=DEFAULT_CPU_NICE, metavar="N",
                         help=f"run tracking at this CPU priority, -20..19 (default {DEFAULT_CPU_NICE}: leave it alone). "
@@ -69,6 +76,10 @@ def run(args: argparse.Namespace) -> int:
         raise TrackmeterError(f"--publish-hz must be 1-30, got {args.publish_hz}")
     if not -20 <= args.cpu_nice <= 19:
         raise TrackmeterError(f"--cpu-nice must be -20..19, got {args.cpu_nice}")
+    config = load_config_from_args(args)
+    most = config.tracker.max_targets
+    if args.auto is not None and not 1 <= args.auto <= most:
+        raise TrackmeterError(f"--auto must be in [1, {most}] (tracker.max_targets), got {args.auto}")
     # The command line is the one place where the library meets the console (viser).
     from console.server import check_port_free
 
@@ -77,7 +88,6 @@ def run(args: argparse.Namespace) -> int:
         from trackmeter.data.sequence import check_record_directory
 
         check_record_directory(args.record)
-    config = load_config_from_args(args)
     from trackmeter.priority import raise_cpu_priority, restore_cpu_priority
 
     priority = None
@@ -101,20 +111,29 @@ def _serve(args: argparse.Namespace, config: Any, priority_note: str | None = No
     # and frames of another size than the rig's are refused before the console starts.
     # Cases (a) and (c) need no model: unless case (b) is asked for, a source's model that
     # cannot be read is warned about and the console runs without it.
-    source = open_source_with_rig(args.source, args.rig, realtime=True, loop=True, model_optional=args.case != "b")
+    model = None
+    if args.model:
+        from trackmeter.data.model import load_model
+
+        model = load_model(args.model)  # before the (slow) source opens
+    source = open_source_with_rig(args.source, args.rig, realtime=True, loop=True, own_model=model is None,
+                                  model_optional=args.case != "b")
     with source_said_by_caller():  # serve_forever says a failing source, once, as the status line shows it
-        return _serve_source(args, config, source, priority_note)
+        return _serve_source(args, config, source, model, priority_note)
 
 
-def _serve_source(args: argparse.Namespace, config: Any, source: Any, priority_note: str | None) -> int:
+def _serve_source(args: argparse.Namespace, config: Any, source: Any, model: Any, priority_note: str | None) -> int:
     from console.server import serve_forever, start_console
     from trackmeter.errors import TrackmeterError
     from trackmeter.pipeline.engine import Engine
+    from trackmeter.pipeline.snapshot import SetAuto
 
     try:
         if source.rig is None:
             raise TrackmeterError(f"source {args.source} carries no stereo rig: give one with --rig")
-        engine = Engine(config, source.rig, model=source.model, case=args.case,
+        if args.case == "b" and model is None and source.model is None:
+            raise TrackmeterError(f"case (b) needs an a-priori model: give --model (source {args.source} carries none)")
+        engine = Engine(config, source.rig, model=model if model is not None else source.model, case=args.case,
                         rate_hz=source.rate_hz)
         running = start_console(source, engine, host=args.host, port=args.port, record_dir=args.record,
                                 source_label=args.source, publish_hz=args.publish_hz,
@@ -122,6 +141,8 @@ def _serve_source(args: argparse.Namespace, config: Any, source: Any, priority_n
     except BaseException:
         source.close()
         raise
+    if args.auto is not None:
+        running.pipeline.submit(SetAuto(True, args.auto, None))
     if priority_note:
         print(f"trackmeter console: {priority_note}", file=sys.stderr, flush=True)
     print(f"TV-Trackmeter console: {running.url}   (Ctrl-C to stop)", flush=True)

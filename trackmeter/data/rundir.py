@@ -208,6 +208,9 @@ class RunWriter:
         # Valid poses carried on the motion model with no point measured (the states.csv
         # columns are a contract, so the count goes to the summary, not a new column).
         self.coasted_frames = 0
+        # When: each run of consecutive coasted frames as [first, last] frame time, s.
+        self.coasted_spans_s: list[list[float]] = []
+        self._coasting = False
         # Valid poses whose rates were not estimated yet (states.csv valid 0, pose filled in).
         self.rates_pending_frames = 0
         # The quaternion last written: each next one takes the sign nearer it (no flips in the files).
@@ -336,8 +339,15 @@ class RunWriter:
             self._last_quat_wxyz = q
             self.valid_frames += 1
             self.rates_pending_frames += not rates_known
-            if getattr(pose, "coasting_s", 0.0) > 0.0:
-                self.coasted_frames += 1
+        coasting = bool(pose.valid and getattr(pose, "coasting_s", 0.0) > 0.0)
+        if coasting:
+            self.coasted_frames += 1
+            t = round(float(t_s), 9)  # as states.csv writes it
+            if self._coasting:
+                self.coasted_spans_s[-1][1] = t
+            else:
+                self.coasted_spans_s.append([t, t])
+        self._coasting = coasting
 
     def close(self, status: str = "complete", summary: dict[str, Any] | None = None) -> None:
         """Close the files and rewrite ``run.yaml`` with the final status and summary."""
@@ -408,7 +418,7 @@ class RunWriter:
         self._meta["status"] = status
         self._meta["finished_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
         self._meta["summary"] = {"frames": self.frames, "valid_frames": self.valid_frames,
-                                 "coasted_frames": self.coasted_frames,
+                                 "coasted_frames": self.coasted_frames, "coasted_spans_s": self.coasted_spans_s,
                                  "rates_pending_frames": self.rates_pending_frames, **(summary or {})}
         # Keep config last: the summary is what a reader looks for first.
         config = self._meta.pop("config")
