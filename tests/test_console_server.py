@@ -1244,7 +1244,7 @@ def test_a_toggle_s_reply_with_something_to_say_is_shown() -> None:
         assert shown == ["automatic selection on (10 targets, centroid: one a bright region, its centroid)"], shown
         # A selection of model points too few for a pose is partly done, not "refused" (one was
         # made: an outside console probe).
-        for reply in (CommandReply(False, "1 model points selected (m0); 16 refused", partial=True),
+        for reply in (CommandReply(False, "1 model point selected (m0); 16 refused", partial=True),
                       CommandReply(False, "0 model points selected; 17 refused")):
             future = Future()
             future.set_result(reply)

@@ -693,7 +693,7 @@ def test_select_model_points_skips_a_hidden_point(estec_rig) -> None:
     assert reply.ok and "11 model points selected" in reply.message and "1 hidden (m3)" in reply.message
     assert "m3" not in tracker.active
     tracker.offsets["m3"] = np.array([0.0, 0.0, -0.9 * engine.pose_params.operator_hidden_m])
-    assert "1 model points selected (m3)" in engine.handle(SelectModelPoints(), frame_at(1)).message
+    assert "1 model point selected (m3)" in engine.handle(SelectModelPoints(), frame_at(1)).message
 
 
 def test_model_points_at_the_target_limit_take_the_place_of_automatic_ones(estec_rig) -> None:
@@ -722,7 +722,7 @@ def test_model_points_at_the_target_limit_take_the_place_of_automatic_ones(estec
     tracker.add_target = lambda frame, uv, tid=None, origin="operator", **kw: (  # type: ignore[method-assign]
         original(frame, uv, tid, origin, **kw) if tid == "m0" else Refusal(uv, "too dark"))
     reply = engine.handle(SelectModelPoints(), frame_at(1))
-    assert not reply.ok and reply.partial and "1 model points selected (m0)" in reply.message
+    assert not reply.ok and reply.partial and "1 model point selected (m0)" in reply.message
 
 
 def test_model_points_already_targets_are_said_and_count(estec_rig) -> None:
@@ -941,7 +941,7 @@ def test_case_b_binds_a_model_whose_points_are_seen_two_then_one_at_a_time(estec
     out = run(engine, range(40, 80))
     if not progressive:
         assert not any(pose.valid for _, pose, _ in out)
-        assert "only 1 model points measured" in out[-1][1].reason
+        assert "only 1 model point measured" in out[-1][1].reason
         return
     first = next(k for k, (_, pose, _) in enumerate(out) if pose.valid)
     assert first <= 5 and all(pose.valid for _, pose, _ in out[first:])

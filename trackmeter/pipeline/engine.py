@@ -74,7 +74,7 @@ from trackmeter.core.stereo import StereoRig
 from trackmeter.core.targets import Refusal, TargetState, count_reasons
 from trackmeter.core.transforms import attitude_error_components, make_transform, matrix_to_quat_wxyz
 from trackmeter.core.velocity import VelocityEstimator, VelocityParams, block_weights
-from trackmeter.errors import TrackmeterError
+from trackmeter.errors import TrackmeterError, counted
 from trackmeter.pipeline.snapshot import (
     AcquireModel,
     ClearTargets,
@@ -627,7 +627,7 @@ class Engine:
         ok = targeted >= self.pose_params.min_points
         why = count_reasons(refused)
         return CommandReply(ok, partial=0 < targeted < self.pose_params.min_points,
-                            message=f"{len(made)} model points selected" + (f" ({', '.join(made)})" if made else "")
+                            message=f"{counted(len(made), 'model point')} selected" + (f" ({', '.join(made)})" if made else "")
                                 + (f"; {len(already)} already targets ({', '.join(already)})" if already else "")
                                 + f"; {len(refused)} refused" + (f" ({', '.join(f'{n} {r}' for r, n in why)})" if why else "")
                                 + (f"; {len(hidden)} hidden ({', '.join(hidden)})" if hidden else ""))
@@ -904,7 +904,7 @@ class Engine:
         ids = [i for i, s in measured.items() if s.age_frames >= min_age]
         if len(ids) < 3:
             return ((f"case (a): waiting for 3 points tracked for {min_age} frames to define the frame ({len(ids)} so far)"
-                     if min_age else f"case (a): {len(ids)} measured points, 3 needed to define the frame")
+                     if min_age else f"case (a): {counted(len(ids), 'measured point')}, 3 needed to define the frame")
                     + ("; the body was last seen moving out of view" if self._gone_from_view else ""))
         self._gone_from_view = False
         P = np.array([measured[i].point_cam for i in ids])
@@ -928,7 +928,7 @@ class Engine:
         p = self.pose_params
         if len(measured) < 3:
             self._acquisition = _Acquisition()
-            return f"acquiring a model: {len(measured)} measured points, 3 needed"
+            return f"acquiring a model: {counted(len(measured), 'measured point')}, 3 needed"
         if acq.t_start is None:
             acq.t_start = frame.t_s
         acq.frames += 1
@@ -987,8 +987,8 @@ class Engine:
             return None, "no model" if self._case != "a" else "case (a): no frame yet"
         if len(ids) < self.pose_params.min_points:
             # Case (a)'s "model" is its body frame's tracked points: no model to the operator.
-            points = "model points" if self._case != "a" else "of the body frame's points"
-            reason = f"only {len(ids)} {points} measured ({self.pose_params.min_points} needed)"
+            points = counted(len(ids), "model point") if self._case != "a" else f"{len(ids)} of the body frame's points"
+            reason = f"only {points} measured ({self.pose_params.min_points} needed)"
             if self._out_of_view(frame.t_s):
                 # Not an occlusion to wait out: the chaser must turn or move to see it again.
                 reason += ": the body was last seen moving out of view"
