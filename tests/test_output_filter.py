@@ -151,3 +151,28 @@ def test_a_reflection_or_a_time_that_is_no_number_is_refused_and_does_not_poison
         f.update(np.nan, np.eye(3), [0.0, 0.0, 3.5])
     R_out, p_out = f.update(6 / 25, np.eye(3), [0.0, 0.0, 3.5])
     assert np.allclose(R_out, np.eye(3)) and np.allclose(p_out, [0.0, 0.0, 3.5])
+
+
+def test_a_new_cutoff_takes_over_from_the_last_output_without_a_step() -> None:
+    """The console's cutoff field rebuilt the filter, whose first output was the raw pose: a
+    1.6 mm step in a probe's run. Retuned, the filter starts at rest on its last output (the
+    chart's zero state), so the next output is that output moved by the new design's first
+    coefficient times the new sample's offset from it: sos[:, 0]'s product (scipy)."""
+    rng = np.random.default_rng(3)
+    f = PoseFilter(FilterParams(cutoff_hz=2.0, order=2, velocity_compensated=False), RATE)
+    R_true, p_true = rotation_at(0.0), np.array([0.1, -0.2, 3.5])
+    for k in range(50):
+        R_out, p_out = f.update(k / RATE, R_true, p_true + rng.normal(0, 2e-3, 3))
+    retuned = f.retuned(FilterParams(cutoff_hz=0.5, order=2, velocity_compensated=False))
+    assert retuned.params.cutoff_hz == 0.5 and f.params.cutoff_hz == 2.0  # a new filter; the old one as it was
+    p_new = p_true + np.array([4e-3, -3e-3, 5e-3])
+    R_new = R_true @ Rotation.from_rotvec([0.004, -0.002, 0.003]).as_matrix()
+    R_next, p_next = retuned.update(50 / RATE, R_new, p_new)
+    gain = float(np.prod(design_lowpass(0.5, 2, RATE)[:, 0]))
+    np.testing.assert_allclose(p_next - p_out, gain * (p_new - p_out), atol=1e-15)
+    np.testing.assert_allclose(Rotation.from_matrix(R_out.T @ R_next).as_rotvec(),
+                               gain * Rotation.from_matrix(R_out.T @ R_new).as_rotvec(), atol=1e-12)
+    rebuilt = PoseFilter(FilterParams(cutoff_hz=0.5, order=2, velocity_compensated=False), RATE)
+    assert np.allclose(rebuilt.update(50 / RATE, R_new, p_new)[1], p_new)  # what it did: the raw pose
+    fresh = PoseFilter(FilterParams(cutoff_hz=0.5), RATE).retuned(FilterParams(cutoff_hz=1.0))
+    assert np.allclose(fresh.update(0.0, R_new, p_new)[1], p_new)  # nothing to take over: starts as a new one

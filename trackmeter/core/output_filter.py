@@ -100,6 +100,20 @@ class PoseFilter:
         self._t_last: float | None = None
         self._zi = np.zeros(self._zi_unit.shape + (6,))  # states for (rotation vector, position)
 
+    def retuned(self, params: FilterParams) -> PoseFilter:
+        """A filter of ``params`` that goes on from this one's last output without a step.
+
+        The chart is centred on the last output, where a zero IIR state means "at rest there"
+        (every past input and output equal to it), so the new design starts from that state:
+        its first output is the last one moved by the new design's first coefficient times the
+        new sample's offset. A new filter would start from the raw pose instead (the console's
+        cutoff field made a 1.6 mm step). This filter is left as it was.
+        """
+        new = PoseFilter(params, self.rate_hz)
+        if params.enabled and self._R_base is not None and self._p_base is not None:
+            new._R_base, new._p_base, new._t_last = self._R_base.copy(), self._p_base.copy(), self._t_last
+        return new
+
     @property
     def group_delay_s(self) -> float:
         return dc_group_delay_s(self.sos, self.rate_hz)

@@ -580,7 +580,7 @@ class Engine:
                 return CommandReply(False, f"filter cutoff must be in [{low:g}, {self.max_filter_cutoff_hz:g}] Hz "
                                            f"(0.95 of half the {self.rate_hz:g} Hz frame rate), got {command.cutoff_hz:g}")
             self.filter_params = replace(self.filter_params, cutoff_hz=float(command.cutoff_hz))
-            self._filter = PoseFilter(self.filter_params, self.rate_hz)
+            self._filter = self._filter.retuned(self.filter_params)  # on from its last output, no step
             return CommandReply(True, f"output filter cutoff {command.cutoff_hz:g} Hz")
         if isinstance(command, ResetTracking):
             self._start_over()
