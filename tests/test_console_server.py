@@ -419,32 +419,49 @@ def test_the_count_and_cutoff_widgets_follow_the_tracker_and_its_limits() -> Non
         running.stop()
 
 
+@contextlib.contextmanager
+def _sending_console() -> Iterator[tuple[Any, _SentEngine]]:
+    """A console on :class:`_SentEngine`, pushing; yields (console, engine)."""
+    engine = _SentEngine()
+    running = start_console(CountingSource(100_000, delay_s=0.02), engine, port=free_port())  # type: ignore[arg-type]
+    try:
+        _wait_for_pushes(running.console, 3)
+        yield running.console, engine
+    finally:
+        running.stop()
+
+
+def _type_cutoff(con: Any, text: str, said: list[tuple[str, str]] | None = None) -> None:
+    """What viser does with a keystroke in the cutoff field: the value, then the callback, with
+    the browser's pop-ups going to ``said``."""
+    def notify(title: str, body: str, **_: Any) -> None:
+        if said is not None:
+            said.append((title, body))
+
+    con.cutoff.value = text
+    con.edit_callbacks["cutoff"](types.SimpleNamespace(client=types.SimpleNamespace(add_notification=notify)))
+
+
+def _wait_until(condition: Any, what: str, timeout_s: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, what
+        time.sleep(0.05)
+
+
 def test_a_typed_cutoff_is_sent_once_the_field_holds_it() -> None:
     """viser sends every keystroke of a field: typing "0.5" passed 0 (refused, and the
     refusal put the old value back while the operator was still typing), and every accepted
     keystroke rebuilt the output filter. The value is sent once the field has held it."""
-    import types
-
-    engine = _SentEngine()
-    running = start_console(CountingSource(100_000, delay_s=0.02), engine, port=free_port())  # type: ignore[arg-type]
-    con = running.console
-    browser = types.SimpleNamespace(add_notification=lambda *a, **k: None)
-    try:
-        _wait_for_pushes(con, 3)
+    with _sending_console() as (con, engine):
         for typed in ("0", "0.", "0.5"):  # a keystroke every 0.1 s
-            con.cutoff.value = typed
-            con.edit_callbacks["cutoff"](types.SimpleNamespace(client=browser))
+            _type_cutoff(con, typed)
             time.sleep(0.1)
             assert con.cutoff.value == typed  # nothing put back while typing
-        deadline = time.monotonic() + 10
-        while engine.filter_cutoff_hz != 0.5:
-            assert time.monotonic() < deadline, engine.sent
-            time.sleep(0.05)
+        _wait_until(lambda: engine.filter_cutoff_hz == 0.5, f"0.5 Hz set: {engine.sent}")
         assert engine.sent == [0.5]
         _wait_for_pushes(con, 5)
         assert con.cutoff.value == "0.5"
-    finally:
-        running.stop()
 
 
 @pytest.mark.parametrize(("typed", "sent"), [("0,5", 0.5), (" 0.25 ", 0.25), ("3", 3.0)])
@@ -452,47 +469,21 @@ def test_a_cutoff_typed_with_a_decimal_comma_is_taken_as_its_value(typed: str, s
     """viser's number field dropped a pasted comma: "0,5", the decimal point of much of
     Europe, reached the filter as 5 Hz, ten times the cutoff meant (an outside console probe).
     The field is text, read with either decimal mark."""
-    import types
-
-    engine = _SentEngine()
-    running = start_console(CountingSource(100_000, delay_s=0.02), engine, port=free_port())  # type: ignore[arg-type]
-    con = running.console
-    browser = types.SimpleNamespace(add_notification=lambda *a, **k: None)
-    try:
-        _wait_for_pushes(con, 3)
-        con.cutoff.value = typed
-        con.edit_callbacks["cutoff"](types.SimpleNamespace(client=browser))
-        deadline = time.monotonic() + 10
-        while not engine.sent:
-            assert time.monotonic() < deadline, "nothing sent"
-            time.sleep(0.05)
+    with _sending_console() as (con, engine):
+        _type_cutoff(con, typed)
+        _wait_until(lambda: engine.sent, "nothing sent")
         assert engine.sent == [pytest.approx(sent)]
-    finally:
-        running.stop()
 
 
 @pytest.mark.parametrize("typed", ["0,5,1", "fast", "nan", "1.5.", "0.5 Hz x"])
 def test_a_cutoff_that_is_no_number_is_refused_with_the_reason_and_the_tracker_s_value_shown(typed: str) -> None:
-    import types
-
-    engine = _SentEngine()
-    running = start_console(CountingSource(100_000, delay_s=0.02), engine, port=free_port())  # type: ignore[arg-type]
-    con = running.console
     said: list[tuple[str, str]] = []
-    browser = types.SimpleNamespace(add_notification=lambda title, body, **k: said.append((title, body)))
-    try:
-        _wait_for_pushes(con, 3)
-        con.cutoff.value = typed
-        con.edit_callbacks["cutoff"](types.SimpleNamespace(client=browser))
-        deadline = time.monotonic() + 10
-        while not said:
-            assert time.monotonic() < deadline, "nothing said"
-            time.sleep(0.05)
+    with _sending_console() as (con, engine):
+        _type_cutoff(con, typed, said)
+        _wait_until(lambda: said, "nothing said")
         assert said[0][0] == "Filter cutoff: refused" and repr(typed.strip()) in said[0][1], said
         _wait_for_pushes(con, 5)
         assert engine.sent == [] and con.cutoff.value == "2"
-    finally:
-        running.stop()
 
 
 def test_a_typed_count_is_sent_once_the_field_holds_it() -> None:
