@@ -352,6 +352,35 @@ def test_disparity_beyond_the_search_range_is_refused() -> None:
     assert _reason(left, right, (60, 20), MeasureParams(min_disparity_px=0, max_disparity_px=20)) is None
 
 
+def test_the_search_reaches_the_same_nearest_range_on_any_rig(estec_rig) -> None:  # type: ignore[no-untyped-def]
+    """By default the largest disparity searched is a point's at ``min_range_m`` (1 m) on the rig
+    in use, f b / z plus the rectification's offset: a fixed 320 px was 1 m on the ESTEC rig
+    but 1.4 m on an outside tester's 1280 px rig (f 1400 px, b 0.3 m), whose near face at
+    1.1-1.2 m (374-401 px) was refused as "low score" or "ambiguous"."""
+    rect = estec_rig.rectification
+    low, high = MeasureParams().disparity_range_px(rect)
+    assert low == 0.0 and high == pytest.approx(rect.focal_px * rect.baseline_m / 1.0 + rect.disparity_offset_px)
+    assert 320 < high < 330  # near the 320 px of before
+    wide = identity_rig(1280, 960, focal_px=1400.0, baseline_m=0.3).rectification
+    assert MeasureParams().disparity_range_px(wide) == (0.0, pytest.approx(420.0))
+    assert MeasureParams(min_range_m=2.0).disparity_range_px(wide) == (0.0, pytest.approx(210.0))
+    assert MeasureParams(max_disparity_px=100).disparity_range_px(wide) == (0.0, 100.0)  # given: it stands
+    assert MeasureParams(min_range_m=0.05).disparity_range_px(wide)[1] == 1280.0  # never past the image's width
+    with pytest.raises(TrackmeterError, match=r"min_disparity_px \(500\) must be below the largest disparity searched, 420 px"):
+        MeasureParams(min_disparity_px=500).disparity_range_px(wide)
+
+
+def test_a_near_point_on_a_long_baseline_rig_is_measured() -> None:
+    # 400 px of disparity, 1.05 m on this rig: beyond the 320 px that was searched everywhere.
+    rng = np.random.default_rng(5)
+    width, height = 640, 40
+    left, right = shifted_pair(band_limited_texture(rng), width, height, 400.0, 1.0, rng)
+    rig = identity_rig(width, height, focal_px=1400.0, baseline_m=0.3)
+    (m,) = measure_points(rig, left, right, [(500.0, 20.0)], MeasureParams())
+    assert m.reason is None and m.disparity_px == pytest.approx(400.0, abs=0.05), m
+    assert m.xyz_m[2] == pytest.approx(1400.0 * 0.3 / 400.0, rel=1e-3)
+
+
 def test_per_point_disparity_range_narrows_the_search() -> None:
     left, right = _pair(9.3, seed=8)
     uv = [[40.0, 15.0], [60.0, 25.0]]

@@ -143,7 +143,14 @@ class MeasureParams:
 
     patch_size: int = param(8, "side of the square patch matched between the images, px", min=3, max=63)
     min_disparity_px: float = param(0.0, "smallest disparity searched, rectified px", min=0.0)
-    max_disparity_px: float = param(320.0, "largest disparity searched, rectified px", min=1.0, max=2048.0)
+    max_disparity_px: float = param(
+        0.0, "largest disparity searched, rectified px; 0: a point's at min_range_m (disparity_range_px)", min=0.0,
+        max=4096.0,
+    )
+    min_range_m: float = param(
+        1.0, "when max_disparity_px is 0: the nearest range searched, m (a rig's focal length x baseline / it: "
+        "323 px for the 12 mm ESTEC rig, 420 px for f 1400 px and b 0.3 m)", min=0.01,
+    )
     min_score: float = param(0.8, "smallest ZNCC accepted at the refined match", min=-1.0, max=1.0)
     uniqueness_margin: float = param(
         0.05, "refuse when a second ZNCC peak outside the main lobe comes this close to the best", min=0.0, max=2.0
@@ -229,10 +236,31 @@ class MeasureParams:
 
     def __post_init__(self) -> None:
         check_params(self)  # declared ranges and choices first (trackmeter.core.params)
-        if not self.min_disparity_px < self.max_disparity_px:
+        if self.max_disparity_px and not self.min_disparity_px < self.max_disparity_px:
             # An empty search range would refuse every point as "beyond range", far from the cause.
             raise TrackmeterError(f"min_disparity_px ({self.min_disparity_px:g}) must be below "
                                   f"max_disparity_px ({self.max_disparity_px:g})")
+
+    def disparity_range_px(self, rect: Rectification) -> tuple[float, float]:
+        """The disparities searched along a rectified row, ``(low, high)`` px, for the rig ``rect``.
+
+        ``high`` is ``max_disparity_px`` when given, else the disparity of a point at
+        ``min_range_m`` (``f b / z`` plus the rectification's disparity offset), so that the
+        nearest range searched is the same on any rig: a fixed 320 px was 1 m on the ESTEC
+        rig but 1.4 m on a 1280 px wide one (f 1400 px, b 0.3 m), where a near face was refused
+        as "low score" or "ambiguous" without a word of range. Never more than the rectified
+        image's width, the largest disparity a point in both views can have.
+
+        Raises:
+            TrackmeterError: a range that is empty on this rig (``min_disparity_px`` too large).
+        """
+        width = float(rect.rig.image_size[0])
+        high = self.max_disparity_px or rect.focal_px * rect.baseline_m / self.min_range_m + rect.disparity_offset_px
+        high = min(float(high), width)
+        if not self.min_disparity_px < high:
+            raise TrackmeterError(f"min_disparity_px ({self.min_disparity_px:g}) must be below the largest disparity "
+                                  f"searched, {high:.4g} px on this rig (max_disparity_px, or min_range_m's)")
+        return float(self.min_disparity_px), high
 
 
 # --------------------------------------------------------------------------- results
@@ -1112,7 +1140,7 @@ def match_rectified_point(
         ``(reason, disparity_px, sigma_disparity_px, score)``; ``reason`` is None when
         accepted (then the numbers are valid), else one of :data:`REASONS`.
     """
-    rng = (params.min_disparity_px, params.max_disparity_px)
+    rng = params.disparity_range_px(rect)
     m = _match_many(rect, left, right, np.asarray(uv_rect, dtype=float).reshape(1, 2), params, [rng])[0]
     return m.reason, m.disparity_px, m.sigma_px, m.score
 
@@ -1563,7 +1591,7 @@ def measure_points(
         uv_left: (N, 2) pixels of the original left image, px (centre of top-left pixel = 0, 0).
         params: matching tunables (default :class:`MeasureParams`).
         disparity_range_px: optional (N, 2) or (2,) ``[min, max]`` disparity searched per point,
-            px, instead of ``params.min/max_disparity_px`` — e.g. a tracker's predicted
+            px, instead of ``params.disparity_range_px`` — e.g. a tracker's predicted
             disparity ± a margin: a narrower search is faster and less often ambiguous. A
             peak on its edge is refused as beyond range, as with the global range.
 
@@ -1581,7 +1609,7 @@ def measure_points(
     if n == 0:
         return ()
     if disparity_range_px is None:
-        ranges = [(params.min_disparity_px, params.max_disparity_px)] * n
+        ranges = [params.disparity_range_px(rig.rectification)] * n
     else:
         rng_arr = np.broadcast_to(np.asarray(disparity_range_px, dtype=float), (n, 2))
         if not np.all(np.isfinite(rng_arr)) or np.any(rng_arr[:, 1] < rng_arr[:, 0]):

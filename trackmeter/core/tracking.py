@@ -1577,8 +1577,8 @@ class Tracker:
         robust spread of the candidates' own disparities ``candidates_px`` (NaN: refused ones):
         quartiles widened by the interquartile range and the margin. None when neither is known.
 
-        The whole measurement range (``MeasureParams.min/max_disparity_px``: 0-320 px, 1 m to
-        infinity on the ESTEC rig) holds, on a textured surface, false peaks that pass every
+        The whole measurement range (``MeasureParams.disparity_range_px``: by default 1 m to
+        infinity) holds, on a textured surface, false peaks that pass every
         stereo check while the true one is weak (glare on one camera) or leaves the right
         image. On the simulator (500 frames of estec and harsh_light) two of the three false
         locks were such new points: z 9.0 m and 2.2 m measured for surfaces at 3.0 m and 3.4 m.
