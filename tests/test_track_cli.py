@@ -275,6 +275,21 @@ def test_bad_arguments(monkeypatch, tmp_path, estec_rig, capsys) -> None:
     assert "finite" in capsys.readouterr().err
 
 
+def test_a_search_range_empty_on_the_source_s_rig_is_one_line_before_the_run(monkeypatch, tmp_path, estec_rig,
+                                                                            capsys) -> None:
+    # measure.min_disparity_px 400 on a rig whose search reaches 326 px (min_range_m's): the run
+    # went on, every frame "tracking failed", and ended exit 0 with no pose (a re-check).
+    fake_source(monkeypatch, estec_rig)
+    config = tmp_path / "c.yaml"
+    config.write_text("measure:\n  min_disparity_px: 400\n")
+    code = main(["track", "--config", str(config), "--source", "fake", "--auto", "4", "--out", str(tmp_path / "r")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    assert err[0].startswith("trackmeter track: error: min_disparity_px (400) must be below the largest disparity "
+                             "searched, 326.5 px on this rig"), err
+    assert not (tmp_path / "r").exists()
+
+
 def test_a_bad_out_or_auto_is_refused_before_the_source_is_opened(monkeypatch, tmp_path, capsys) -> None:
     # Opening a source can print notes (a model it carries, frames it skipped): a bad --out
     # or --auto must be the one line the user sees, and no folder may be made.

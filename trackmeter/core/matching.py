@@ -149,7 +149,7 @@ class MeasureParams:
     )
     min_range_m: float = param(
         1.0, "when max_disparity_px is 0: the nearest range searched, m (a rig's focal length x baseline / it: "
-        "323 px for the 12 mm ESTEC rig, 420 px for f 1400 px and b 0.3 m)", min=0.01,
+        "326 px for the 12 mm ESTEC rig, 420 px for f 1400 px and b 0.3 m)", min=0.01,
     )
     min_score: float = param(0.8, "smallest ZNCC accepted at the refined match", min=-1.0, max=1.0)
     uniqueness_margin: float = param(

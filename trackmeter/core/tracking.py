@@ -334,6 +334,7 @@ class Tracker:
 
     def __init__(self, rig: StereoRig, params: TrackerParams, features: FeatureParams, measure: MeasureParams) -> None:
         check_side_by_side(rig)
+        measure.disparity_range_px(rig.rectification)  # an empty search range on this rig: refused once, here
         self.rig = rig
         self.params = params
         self.features = features
