@@ -1497,6 +1497,25 @@ def test_a_camera_index_deleted_while_recording_is_written_again_and_said(tmp_pa
     np.testing.assert_allclose(index.t_s, [f.t_s for f in frames], atol=1e-9)
 
 
+@pytest.mark.parametrize("name", ["cam0/data.csv", "cam1/data.csv", "groundtruth.csv", "groundtruth.tum"])
+def test_a_file_deleted_after_the_last_frame_is_written_again_at_the_close(tmp_path, name):
+    # Record, pause, delete cam0/data.csv, stop: "recorded 38 frames", and the folder was no
+    # sequence; the ground truth deleted while recording went without a word (a re-check).
+    frames = _frames(4)
+    out = tmp_path / "rec"
+    writer = SequenceWriter(out)
+    for frame in frames:
+        writer.write(frame)
+    (out / name).unlink()
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        writer.close()
+    assert [str(w.message) for w in said] == [
+        f"{out / name}: removed while recording; written again from the recorder's own copy (the 4 frames before kept)"]
+    index = index_sequence(out)
+    assert len(index) == 4 and not index.warnings and index.truth is not None and bool(np.all(index.truth.valid))
+
+
 def test_a_camera_folder_replaced_by_a_file_while_recording_is_refused_in_words(tmp_path):
     # cam1/data replaced by a file: the frame's clean-up raised NotADirectoryError past the
     # recorder, where the write's own error was the one to tell (a probe).

@@ -499,6 +499,10 @@ class MotionCsvWriter:
         self._file.append(line)  # whole or not at all: readers see whole rows
         self.rows_written += 1
 
+    def restore_if_removed(self) -> bool:
+        """:meth:`trackmeter.data.atomic.AppendFile.restore_if_removed` of the file."""
+        return self._file is not None and self._file.restore_if_removed()
+
     @property
     def size(self) -> int:
         """Bytes written so far (header and whole rows): :meth:`truncate` goes back to it."""

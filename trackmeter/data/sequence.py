@@ -304,11 +304,12 @@ class SequenceWriter:
                       stacklevel=3)
 
     def _restore_indexes(self) -> None:
-        """Write a camera's ``data.csv`` again when it was deleted while recording: the frames
-        would go on into the unlinked file, and the folder play as one without frames."""
-        for index in self._csv.values():
-            if index.restore_if_removed():
-                warnings.warn(f"{index.path}: removed while recording; written again from the recorder's own copy "
+        """Write a file of the recording again when it was deleted while recording (a camera's
+        ``data.csv``, the ground truth, ``cuts.csv``): the rows would go on into the unlinked
+        file and be lost at the close, and without ``data.csv`` the folder plays as no frames."""
+        for file in (*self._csv.values(), self._truth_csv, self._truth_tum, self._cuts):
+            if file is not None and file.restore_if_removed():
+                warnings.warn(f"{file.path}: removed while recording; written again from the recorder's own copy "
                               f"(the {counted(self.frames_written, 'frame')} before kept)", stacklevel=3)
 
     def _write_image(self, path: Path, image: NDArray[np.uint8]) -> None:
@@ -360,6 +361,12 @@ class SequenceWriter:
             self._release_lock()
 
     def _close_files(self) -> None:
+        restored: TrackmeterError | None = None
+        if self._csv:
+            try:  # a file deleted after the last frame, as before any other
+                self._restore_indexes()
+            except TrackmeterError as exc:
+                restored = exc
         for f in self._csv.values():
             f.close()
         self._csv = {}
@@ -371,6 +378,9 @@ class SequenceWriter:
         if self._cuts is not None:
             self._cuts.close()
             self._cuts = None
+        if restored is not None:
+            self._mark = None  # a file of the recording is gone: the folder stays marked unfinished
+            raise restored
         if self._mark is not None:
             mark, self._mark = self._mark, None
             try:
