@@ -149,8 +149,9 @@ def decimal_of(text: str) -> float | None:
 
 
 def _hz_text(hz: float) -> str:
-    """A frequency as the cutoff field shows it: 2 Hz as "2", 0.55 as "0.55"."""
-    return f"{hz:.4g}"
+    """A frequency as the cutoff field shows it: 2 Hz as "2", 0.55 as "0.55", 11.875 whole
+    (typed back as shown, it is the value the tracker holds)."""
+    return f"{hz:.6g}"
 
 
 def _pixel_text(uv: tuple[float, float]) -> str:
@@ -696,13 +697,13 @@ class Console:
             # The field's range is the filter's (a slow source takes less than the 2 Hz default,
             # which the filter clips), and viser refuses a start value outside the range.
             top = float(getattr(engine, "max_filter_cutoff_hz", 12.5))
-            low = min(0.05, top)
+            low = min(float(getattr(engine, "min_filter_cutoff_hz", 0.01)), top)  # the tracker's own range
             start = min(max(float(getattr(engine, "filter_cutoff_hz", 2.0)), low), top)
             self.cutoff_range_hz = (low, top)
             # Text, not viser's number field: that one dropped a pasted comma, and "0,5" (the
             # decimal point of much of Europe) reached the filter as 5 Hz. Read by decimal_of.
             self.cutoff = gui.add_text("Filter cutoff (Hz)", initial_value=_hz_text(start),
-                                       hint=f"{low:g} to {top:g} Hz; 0.5 or 0,5")
+                                       hint=f"{_hz_text(low)} to {_hz_text(top)} Hz; 0.5 or 0,5")
         with gui.add_folder("Recording", expand_by_default=False):
             self.record_dir = gui.add_text("Folder", initial_value=shown_text(str(self.record_root / "recording")))
             self.record_checkbox = gui.add_checkbox("Record", initial_value=False)
@@ -768,9 +769,13 @@ class Console:
                 self.submit(command, client, type(command).__name__)
 
     def _cutoff_command(self) -> Command | None:
-        """The cutoff the operator typed; None for an emptied field (ValueError: no number)."""
+        """The cutoff the operator typed (ValueError: no number); None for an emptied field,
+        which then shows the tracker's cutoff again."""
         hz = decimal_of(self.cutoff.value)
-        return None if hz is None else SetFilterCutoff(hz)
+        if hz is None:
+            self._mirrored.pop("cutoff", None)
+            return None
+        return SetFilterCutoff(hz)
 
     def _auto_command(self) -> Command:
         return SetAuto(bool(self.auto_checkbox.value), int(self.auto_count.value), str(self.auto_method.value))

@@ -475,6 +475,22 @@ def test_a_cutoff_typed_with_a_decimal_comma_is_taken_as_its_value(typed: str, s
         assert engine.sent == [pytest.approx(sent)]
 
 
+def test_the_cutoff_field_shows_what_the_filter_holds_at_both_ends_and_after_it_is_emptied() -> None:
+    """The field's range was 0.05 Hz up, the filter's 0.01: 0.02 typed was taken and shown as
+    0.05; the top, 11.875, was shown as 11.88, which typed back was refused; and an emptied
+    field stayed empty while the filter kept its cutoff (a re-check)."""
+    with _sending_console() as (con, engine):
+        assert con.cutoff_range_hz == (0.01, 11.875)
+        for typed, shown in (("0,02", "0.02"), ("11.875", "11.875")):
+            _type_cutoff(con, typed)
+            _wait_until(lambda: engine.filter_cutoff_hz == float(shown), f"{shown} Hz set: {engine.sent}")
+            _wait_for_pushes(con, 5)
+            assert con.cutoff.value == shown
+        _type_cutoff(con, "  ")
+        _wait_until(lambda: con.cutoff.value == "11.875", f"the field shows the tracker's cutoff, not {con.cutoff.value!r}")
+        assert engine.sent == [0.02, 11.875]
+
+
 @pytest.mark.parametrize("typed", ["0,5,1", "fast", "nan", "1.5.", "0.5 Hz x"])
 def test_a_cutoff_that_is_no_number_is_refused_with_the_reason_and_the_tracker_s_value_shown(typed: str) -> None:
     said: list[tuple[str, str]] = []

@@ -7,6 +7,8 @@ propagation's covariance (sigma_z = 4 mm at 3.5 m) and can lose, corrupt and re-
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -1254,3 +1256,17 @@ def test_a_filter_cutoff_below_the_declared_minimum_is_a_refused_command(estec_r
     reply = engine.handle(SetFilterCutoff(0.005), None)
     assert not reply.ok and reply.message.startswith("filter cutoff must be in [0.01, ")
     assert engine.filter_cutoff_hz == FilterParams().cutoff_hz
+
+
+def test_a_cutoff_set_while_the_filter_is_off_says_the_output_is_unfiltered(estec_rig) -> None:
+    # output_filter.enabled false: the console answered "output filter cutoff 0.5 Hz" with no
+    # sign that no filter runs (a re-check).
+    config = load_config()
+    config = replace(config, output_filter=replace(config.output_filter, enabled=False))
+    engine = Engine(config, estec_rig, None, "a", rate_hz=25.0)
+    reply = engine.handle(SetFilterCutoff(0.5), None)
+    assert reply.ok and reply.notable and "the filter is off (output_filter.enabled: false)" in reply.message
+    assert engine.filter_cutoff_hz == 0.5
+    on = Engine(load_config(), estec_rig, None, "a", rate_hz=25.0).handle(SetFilterCutoff(0.5), None)
+    assert on.ok and not on.notable and on.message == "output filter cutoff 0.5 Hz"
+    assert engine.min_filter_cutoff_hz == 0.01

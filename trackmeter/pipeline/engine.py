@@ -313,6 +313,11 @@ class Engine:
         return float(self.filter_params.cutoff_hz)
 
     @property
+    def min_filter_cutoff_hz(self) -> float:
+        """Lowest cutoff the output filter takes (``FilterParams.cutoff_hz``'s declared minimum), Hz."""
+        return float(next(f.metadata["min"] for f in fields(FilterParams) if f.name == "cutoff_hz"))
+
+    @property
     def max_filter_cutoff_hz(self) -> float:
         """Highest cutoff the output filter takes at this frame rate (0.95 of Nyquist), Hz."""
         return 0.95 * 0.5 * self.rate_hz
@@ -575,12 +580,15 @@ class Engine:
         if isinstance(command, SetFilterCutoff):
             # The low end is FilterParams.cutoff_hz's declared minimum, which building the
             # params checks too: said here in the operator's words.
-            low = next(f.metadata["min"] for f in fields(FilterParams) if f.name == "cutoff_hz")
+            low = self.min_filter_cutoff_hz
             if not low <= command.cutoff_hz <= self.max_filter_cutoff_hz:
                 return CommandReply(False, f"filter cutoff must be in [{low:g}, {self.max_filter_cutoff_hz:g}] Hz "
                                            f"(0.95 of half the {self.rate_hz:g} Hz frame rate), got {command.cutoff_hz:g}")
             self.filter_params = replace(self.filter_params, cutoff_hz=float(command.cutoff_hz))
             self._filter = self._filter.retuned(self.filter_params)  # on from its last output, no step
+            if not self.filter_params.enabled:
+                return CommandReply(True, f"output filter cutoff {command.cutoff_hz:g} Hz, but the filter is off "
+                                          "(output_filter.enabled: false): the output is the unfiltered pose", notable=True)
             return CommandReply(True, f"output filter cutoff {command.cutoff_hz:g} Hz")
         if isinstance(command, ResetTracking):
             self._start_over()
