@@ -1270,3 +1270,12 @@ def test_a_cutoff_set_while_the_filter_is_off_says_the_output_is_unfiltered(este
     on = Engine(load_config(), estec_rig, None, "a", rate_hz=25.0).handle(SetFilterCutoff(0.5), None)
     assert on.ok and not on.notable and on.message == "output filter cutoff 0.5 Hz"
     assert engine.min_filter_cutoff_hz == 0.01
+
+
+def test_one_target_is_said_in_the_singular(estec_rig) -> None:
+    # "automatic selection on (1 targets, ...)" (a re-check)
+    from trackmeter.pipeline.snapshot import SetAuto
+
+    engine = Engine(load_config(), estec_rig, None, "a", rate_hz=25.0)
+    reply = engine.handle(SetAuto(True, 1, "centroid"), None)
+    assert reply.ok and "automatic selection on (1 target, " in reply.message, reply.message

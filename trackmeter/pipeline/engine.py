@@ -539,7 +539,7 @@ class Engine:
             enabled, count, method = self.tracker.auto
             # The centroid method finds one point a bright region (paper 2.B), whatever the count.
             how = f"{method}: one a bright region, its centroid" if method == "centroid" else method
-            return CommandReply(True, f"automatic selection {'on' if enabled else 'off'} ({count} targets, {how})",
+            return CommandReply(True, f"automatic selection {'on' if enabled else 'off'} ({counted(count, 'target')}, {how})",
                                 notable=enabled and method == "centroid")
         if isinstance(command, SetCase):
             if command.case not in ("a", "b", "c"):
@@ -636,7 +636,7 @@ class Engine:
         why = count_reasons(refused)
         return CommandReply(ok, partial=0 < targeted < self.pose_params.min_points,
                             message=f"{counted(len(made), 'model point')} selected" + (f" ({', '.join(made)})" if made else "")
-                                + (f"; {len(already)} already targets ({', '.join(already)})" if already else "")
+                                + (f"; {len(already)} already {'a target' if len(already) == 1 else 'targets'} ({', '.join(already)})" if already else "")
                                 + f"; {len(refused)} refused" + (f" ({', '.join(f'{n} {r}' for r, n in why)})" if why else "")
                                 + (f"; {len(hidden)} hidden ({', '.join(hidden)})" if hidden else ""))
 
@@ -911,7 +911,7 @@ class Engine:
         min_age = self.pose_params.frame_min_age_frames
         ids = [i for i, s in measured.items() if s.age_frames >= min_age]
         if len(ids) < 3:
-            return ((f"case (a): waiting for 3 points tracked for {min_age} frames to define the frame ({len(ids)} so far)"
+            return ((f"case (a): waiting for 3 points tracked for {counted(min_age, 'frame')} to define the frame ({len(ids)} so far)"
                      if min_age else f"case (a): {counted(len(ids), 'measured point')}, 3 needed to define the frame")
                     + ("; the body was last seen moving out of view" if self._gone_from_view else ""))
         self._gone_from_view = False
@@ -1016,7 +1016,7 @@ class Engine:
             # an invalid frame, not an exception out of the tracking thread.
             return None, "pose undetermined: the fit is not finite"
         if fit.inliers.sum() < self.pose_params.min_points:
-            return None, f"only {int(fit.inliers.sum())} consistent model points"
+            return None, f"only {counted(int(fit.inliers.sum()), 'consistent model point')}"
         # With as few points as the pose has unknowns (3), nothing can be singled out as an
         # outlier: a gross mismatch bends the pose instead. The residual still shows it (3 of
         # the 9 coordinates are redundant): chi-square per degree of freedom of the inliers
