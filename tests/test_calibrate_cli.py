@@ -86,7 +86,8 @@ def test_left_and_right_images_given_the_wrong_way_round_are_refused_and_nothing
     assert main(_args(calib_dir, tmp_path / "rig.yaml", left="right*.jpg", right="left*.jpg")) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("trackmeter calibrate: error: the right camera lies left"), err
-    assert "none was written" in err[0] and "--left and --right" in err[0]
+    assert "none was written" in err[0] and "--left and --right were given the wrong way round" in err[0]
+    assert "negate T" not in err[0]  # the advice for a rig file, not for the images given
     assert list(tmp_path.iterdir()) == []
 
 

@@ -106,8 +106,13 @@ def run(args: argparse.Namespace) -> int:
     try:
         check_side_by_side(rig)
     except TrackmeterError as exc:  # measure and track refuse such a rig: none is written
-        hint = ": were --left and --right given the wrong way round?" if swapped_cameras(rig) else ""
-        raise TrackmeterError(f"{exc}; measure and track refuse such a rig, so none was written{hint}") from None
+        if swapped_cameras(rig):  # the rig reader's advice (negate T) is for a file, not for this
+            centre = -rig.R.T @ rig.T
+            raise TrackmeterError(f"the right camera lies left of the left one (its centre "
+                                  f"{np.array2string(centre, precision=3, separator=', ')} m in the left camera's "
+                                  "frame): --left and --right were given the wrong way round; exchange them. "
+                                  "measure and track refuse such a rig, so none was written") from None
+        raise TrackmeterError(f"{exc}; measure and track refuse such a rig, so none was written") from None
     out_path = save_rig(rig, args.out, extra)
     print(format_report(result, pairs, args.square, out_path))
     implausible = baseline_problem(rig)
