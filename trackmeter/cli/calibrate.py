@@ -107,9 +107,9 @@ def run(args: argparse.Namespace) -> int:
         check_side_by_side(rig)
     except TrackmeterError as exc:  # measure and track refuse such a rig: none is written
         if swapped_cameras(rig):  # the rig reader's advice (negate T) is for a file, not for this
-            centre = -rig.R.T @ rig.T
+            centre = np.round(-rig.R.T @ rig.T, 3) + 0.0  # + 0.0: no "-0.000"
             raise TrackmeterError(f"the right camera lies left of the left one (its centre "
-                                  f"{np.array2string(centre, precision=3, separator=', ')} m in the left camera's "
+                                  f"[{', '.join(f'{c:.3f}' for c in centre)}] m in the left camera's "
                                   "frame): --left and --right were given the wrong way round; exchange them. "
                                   "measure and track refuse such a rig, so none was written") from None
         raise TrackmeterError(f"{exc}; measure and track refuse such a rig, so none was written") from None
