@@ -45,6 +45,7 @@ from trackmeter.core.stereo import StereoRig
 from trackmeter.core.targets import TargetState
 from trackmeter.core.tracking import REMOVE_NEAREST_PX
 from trackmeter.core.transforms import invert_transform
+from trackmeter.errors import counted
 from trackmeter.pipeline.engine import MODEL_NOT_TARGETED, SelectModelPoints
 from trackmeter.pipeline.pipeline import Pipeline, RecordingStats
 from trackmeter.pipeline.snapshot import (
@@ -149,9 +150,9 @@ def decimal_of(text: str) -> float | None:
 
 
 def _hz_text(hz: float) -> str:
-    """A frequency as the cutoff field shows it: 2 Hz as "2", 0.55 as "0.55", 11.875 whole
-    (typed back as shown, it is the value the tracker holds)."""
-    return f"{hz:.6g}"
+    """A frequency as the cutoff field shows it: 2 Hz as "2", 0.55 as "0.55", 11.875 and
+    1.2345678 whole (typed back as shown, it is the value the tracker holds)."""
+    return f"{hz:.15g}"
 
 
 def _pixel_text(uv: tuple[float, float]) -> str:
@@ -1306,7 +1307,7 @@ class Console:
         """The Recording folder's line: the recording going on, or that none is and the last one's counts."""
         if not rec.directory:
             return "not recording"
-        counts = (f"{rec.directory}: {rec.frames_written} frames written, {rec.frames_dropped + rec.frames_lost} "
+        counts = (f"{rec.directory}: {counted(rec.frames_written, 'frame')} written, {rec.frames_dropped + rec.frames_lost} "
                   "not recorded" + (f", {rec.error}" if rec.error else ""))
         return counts if rec.active else f"not recording (last: {counts})"
 

@@ -481,14 +481,14 @@ def test_the_cutoff_field_shows_what_the_filter_holds_at_both_ends_and_after_it_
     field stayed empty while the filter kept its cutoff (a re-check)."""
     with _sending_console() as (con, engine):
         assert con.cutoff_range_hz == (0.01, 11.875)
-        for typed, shown in (("0,02", "0.02"), ("11.875", "11.875")):
+        for typed, shown in (("0,02", "0.02"), ("1.2345678", "1.2345678"), ("11.875", "11.875")):
             _type_cutoff(con, typed)
             _wait_until(lambda: engine.filter_cutoff_hz == float(shown), f"{shown} Hz set: {engine.sent}")
             _wait_for_pushes(con, 5)
             assert con.cutoff.value == shown
         _type_cutoff(con, "  ")
         _wait_until(lambda: con.cutoff.value == "11.875", f"the field shows the tracker's cutoff, not {con.cutoff.value!r}")
-        assert engine.sent == [0.02, 11.875]
+        assert engine.sent == [0.02, 1.2345678, 11.875]
 
 
 @pytest.mark.parametrize("typed", ["0,5,1", "fast", "nan", "1.5.", "0.5 Hz x"])

@@ -1516,6 +1516,52 @@ def test_a_file_deleted_after_the_last_frame_is_written_again_at_the_close(tmp_p
     assert len(index) == 4 and not index.warnings and index.truth is not None and bool(np.all(index.truth.valid))
 
 
+def test_at_the_close_every_deleted_file_that_can_be_is_written_again_and_the_rest_said(tmp_path):
+    # One file that could not be written again (a folder where cam0/data.csv was) stopped the
+    # close's restoring there: cam1's index and the ground truth were lost too (a re-check).
+    from trackmeter.data.sequence import UNFINISHED_MARK
+
+    out = tmp_path / "rec"
+    writer = SequenceWriter(out)
+    for frame in _frames(3):
+        writer.write(frame)
+    for name in ("cam0/data.csv", "cam1/data.csv", "groundtruth.csv", "groundtruth.tum"):
+        (out / name).unlink()
+    (out / "cam0" / "data.csv").mkdir()
+    with warnings.catch_warnings(record=True) as said, pytest.raises(TrackmeterError, match="cam0/data.csv: removed, and "
+                                                                                             "cannot be written again"):
+        warnings.simplefilter("always")
+        writer.close()
+    assert sorted(Path(str(w.message).split(":")[0]).name for w in said) == ["data.csv", "groundtruth.csv",
+                                                                             "groundtruth.tum"]
+    assert (out / "cam1" / "data.csv").read_text().count("\n") == 4 and (out / UNFINISHED_MARK).exists()
+
+
+@pytest.mark.parametrize("how", ["cam1 removed", "moved"])
+def test_a_recording_folder_changed_after_the_last_frame_is_said_at_the_close(tmp_path, how):
+    # After the last frame the close said nothing: a camera's folder removed left a folder that
+    # was no sequence, marked whole; a folder moved kept its unfinished mark (a re-check).
+    import shutil
+
+    from trackmeter.data.sequence import UNFINISHED_MARK
+
+    out, moved = tmp_path / "rec", tmp_path / "rec.moved"
+    writer = SequenceWriter(out)
+    for frame in _frames(4):
+        writer.write(frame)
+    if how == "moved":
+        out.rename(moved)
+        with pytest.warns(UserWarning, match="the recording folder was moved to"):
+            writer.close()
+        assert not (moved / UNFINISHED_MARK).exists() and len(index_sequence(moved)) == 4
+    else:
+        shutil.rmtree(out / "cam1")
+        with pytest.raises(TrackmeterError, match="cam1's files were removed while recording .* the 4 frames written "
+                                                  "there lost their cam1 images, cam0 keeps its own"):
+            writer.close()
+        assert (out / UNFINISHED_MARK).exists()
+
+
 def test_a_camera_folder_replaced_by_a_file_while_recording_is_refused_in_words(tmp_path):
     # cam1/data replaced by a file: the frame's clean-up raised NotADirectoryError past the
     # recorder, where the write's own error was the one to tell (a probe).

@@ -167,6 +167,7 @@ class SequenceWriter:
         self._cuts: AppendFile | None = None
         self._last_ns: int | None = None
         self.frames_written = 0
+        self._failed = False  # a write failed and said why: the close does not say it again
         # Two recordings started into one new folder at once would truncate each other's files:
         # the second is refused, and the folder checked again under the lock.
         lock, created = claim_folder(self.directory, "another recording",
@@ -226,8 +227,12 @@ class SequenceWriter:
         """Append one stereo frame (and its ground truth when it has one)."""
         if not self._csv:
             raise TrackmeterError(f"{self.directory}: sequence writer is closed")
-        self._follow_folder()
-        self._restore_indexes()
+        try:
+            self._follow_folder()
+            self._restore_indexes()
+        except TrackmeterError:
+            self._failed = True
+            raise
         ns = seconds_to_ns(frame.t_s)
         if self._last_ns is not None and ns <= self._last_ns:
             raise TrackmeterError(f"frame at {frame.t_s} s does not come after the previous one")
@@ -250,6 +255,7 @@ class SequenceWriter:
             if frame.truth is not None:
                 self._write_truth(ns_to_seconds(ns), frame)
         except (TrackmeterError, OSError) as exc:
+            self._failed = True
             for cam, size in sizes.items():  # (the truth's files take back their own rows)
                 self._csv[cam].truncate(size)
             if self._cuts is not None and cuts_size is not None:
@@ -307,10 +313,18 @@ class SequenceWriter:
         """Write a file of the recording again when it was deleted while recording (a camera's
         ``data.csv``, the ground truth, ``cuts.csv``): the rows would go on into the unlinked
         file and be lost at the close, and without ``data.csv`` the folder plays as no frames."""
+        first_failure: TrackmeterError | None = None
         for file in (*self._csv.values(), self._truth_csv, self._truth_tum, self._cuts):
-            if file is not None and file.restore_if_removed():
+            try:
+                restored = file is not None and file.restore_if_removed()
+            except TrackmeterError as exc:  # the others are still written again
+                first_failure = first_failure or exc
+                continue
+            if restored:
                 warnings.warn(f"{file.path}: removed while recording; written again from the recorder's own copy "
                               f"(the {counted(self.frames_written, 'frame')} before kept)", stacklevel=3)
+        if first_failure is not None:
+            raise first_failure
 
     def _write_image(self, path: Path, image: NDArray[np.uint8]) -> None:
         img = np.asarray(image)
@@ -362,9 +376,14 @@ class SequenceWriter:
 
     def _close_files(self) -> None:
         restored: TrackmeterError | None = None
-        if self._csv:
-            try:  # a file deleted after the last frame, as before any other
+        if self._csv and self.frames_written and not self._failed:
+            # What happened to the folder after the last frame, as a next frame would find it:
+            # moved (followed), removed, a camera's images gone, a file deleted (written again).
+            try:
+                self._follow_folder()
                 self._restore_indexes()
+                if any(not (self.directory / cam / "data").is_dir() for cam in CAMERAS):
+                    raise TrackmeterError(self._files_removed_message())
             except TrackmeterError as exc:
                 restored = exc
         for f in self._csv.values():

@@ -482,7 +482,7 @@ class Engine:
             room = {"in_place_of": click_room(states)} if len(states) >= self._max_targets else {}
             if room and room["in_place_of"] is None:
                 return CommandReply(False, f"refused at ({command.u:.1f}, {command.v:.1f}): target limit reached "
-                                           f"({self._max_targets} targets, all the operator's or model points "
+                                           f"({counted(self._max_targets, 'target')}, all the operator's or model points "
                                            "and tracking): remove one (shift-click it) first")
             result = self.tracker.add_target(frame, (command.u, command.v), command.target_id, "operator", **room)
             moved_px, note = 0.0, ""

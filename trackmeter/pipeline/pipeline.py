@@ -50,7 +50,7 @@ from typing import Any, Callable, Iterable, Iterator, Protocol, Sequence
 from trackmeter.core.patch_tracking import warm_up
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.targets import TargetState
-from trackmeter.errors import TrackmeterError, quoted_name
+from trackmeter.errors import TrackmeterError, counted, quoted_name
 from trackmeter.signals import STOP_SIGNALS, interrupt_kept
 from trackmeter.pipeline.engine import SelectModelPoints
 from trackmeter.pipeline.snapshot import (
@@ -728,7 +728,7 @@ class Pipeline:
                 if stats is None:
                     return CommandReply(False, "not recording")
                 return CommandReply(stats.error is None and stats.frames_dropped == 0,
-                                    f"recorded {stats.frames_written} frames to {stats.directory}"
+                                    f"recorded {counted(stats.frames_written, 'frame')} to {stats.directory}"
                                     + stats.not_recorded() + (f"; {stats.error}" if stats.error else ""))
             self._start_recording(Path(command.directory))
             return CommandReply(True, f"recording to {command.directory}")
