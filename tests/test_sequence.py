@@ -1562,6 +1562,25 @@ def test_a_recording_folder_changed_after_the_last_frame_is_said_at_the_close(tm
         assert (out / UNFINISHED_MARK).exists()
 
 
+def test_the_rig_and_model_deleted_while_recording_are_written_again(tmp_path, estec_rig):
+    # rig.yaml and model.yaml deleted while simulate rendered: "wrote 150 frames", then track
+    # said the folder carries no stereo rig (a re-check).
+    model = Model(("a", "b", "c"), np.array([[0.0, 0, 0], [0.1, 0, 0], [0, 0.1, 0]]))
+    out = tmp_path / "rec"
+    writer = SequenceWriter(out, rig=estec_rig, model_points=model)
+    frames = _frames(3)
+    writer.write(frames[0])
+    (out / "rig.yaml").unlink()
+    with pytest.warns(UserWarning, match="rig.yaml: removed while recording; written again"):
+        writer.write(frames[1])
+    writer.write(frames[2])
+    (out / "model.yaml").unlink()  # after the last frame
+    with pytest.warns(UserWarning, match="model.yaml: removed while recording; written again"):
+        writer.close()
+    index = index_sequence(out)
+    assert index.rig is not None and index.model is not None and index.model.ids == ("a", "b", "c")
+
+
 def test_a_camera_folder_replaced_by_a_file_while_recording_is_refused_in_words(tmp_path):
     # cam1/data replaced by a file: the frame's clean-up raised NotADirectoryError past the
     # recorder, where the write's own error was the one to tell (a probe).

@@ -41,7 +41,7 @@ import shutil
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Iterable, Mapping, Sequence
 
 import cv2
 import numpy as np
@@ -168,6 +168,7 @@ class SequenceWriter:
         self._last_ns: int | None = None
         self.frames_written = 0
         self._failed = False  # a write failed and said why: the close does not say it again
+        self._rig, self._model_points = rig, model_points  # written again if deleted while recording
         # Two recordings started into one new folder at once would truncate each other's files:
         # the second is refused, and the folder checked again under the lock.
         lock, created = claim_folder(self.directory, "another recording",
@@ -323,6 +324,22 @@ class SequenceWriter:
             if restored:
                 warnings.warn(f"{file.path}: removed while recording; written again from the recorder's own copy "
                               f"(the {counted(self.frames_written, 'frame')} before kept)", stacklevel=3)
+        rig, model_points = self._rig, self._model_points
+        described: list[tuple[str, Callable[[Path], object]]] = []
+        if rig is not None:
+            described.append(("rig.yaml", lambda path: save_rig(rig, path)))
+        if model_points is not None:
+            described.append(("model.yaml", lambda path: save_model(path, model_points)))
+        for name, save in described:
+            path = self.directory / name
+            if path.exists() or not self.directory.is_dir():
+                continue
+            try:
+                save(path)
+            except (TrackmeterError, OSError) as exc:
+                first_failure = first_failure or TrackmeterError(f"{path}: removed, and cannot be written again ({exc})")
+                continue
+            warnings.warn(f"{path}: removed while recording; written again", stacklevel=3)
         if first_failure is not None:
             raise first_failure
 
