@@ -8,9 +8,9 @@ own; the estimate is then referred to the TRUE body frame, so its position error
 true body origin, lever arm of the attitude error included), skips a settle time, and reports
 position errors (camera frame; z = viewing axis), attitude errors (paper eq. 17 per axis, eq. 16
 total), linear velocity errors (camera frame, of the body origin) and angular velocity errors
-(body frame, paper eq. 14) - both only when the estimate is a run directory or its states.csv
-and the truth has rates (a groundtruth.csv, also one beside a TUM file given, or sim[:SCENARIO])
-- as RMS, max and 95th percentile, plus the SPEED challenge score.
+(body frame, paper eq. 14; both only when the estimate is a run directory or its states.csv and
+the truth has rates (a groundtruth.csv, also one beside a TUM file given, or sim[:SCENARIO])),
+each as RMS, max and 95th percentile, plus the SPEED challenge score.
 
   --truth    TUM file, groundtruth.csv, or a sequence folder; sim[:SCENARIO] for a run of the
              sim source: the scenario's motion (a path of that name, if one exists, comes first)

@@ -176,7 +176,8 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
     if twice:  # known before the source opens: not a warning after the first frame
         raise TrackmeterError(f"--target id {twice[0]!r} given twice: each target's id names one point")
     if len(targets) > most:
-        raise TrackmeterError(f"{len(targets)} --target points but at most {counted(most, 'target')} {'is' if most == 1 else 'are'} tracked (tracker.max_targets)")
+        raise TrackmeterError(f"{len(targets)} --target points but at most {counted(most, 'target')} "
+                              f"{'is' if most == 1 else 'are'} tracked (tracker.max_targets)")
     if args.max_frames is not None and args.max_frames < 1:
         raise TrackmeterError(f"--max-frames must be at least 1, got {args.max_frames}")
     check_run_directory(args.out, args.overwrite)  # before the source: its notes would come first
