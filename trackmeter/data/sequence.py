@@ -230,7 +230,7 @@ class SequenceWriter:
             raise TrackmeterError(f"{self.directory}: sequence writer is closed")
         try:
             self._follow_folder()
-            self._restore_indexes()
+            self._restore_deleted_files()
         except TrackmeterError:
             self._failed = True
             raise
@@ -310,10 +310,12 @@ class SequenceWriter:
         warnings.warn(f"{old}: the recording folder was moved to {moved} while recording; the recording goes on there",
                       stacklevel=3)
 
-    def _restore_indexes(self) -> None:
+    def _restore_deleted_files(self) -> None:
         """Write a file of the recording again when it was deleted while recording (a camera's
-        ``data.csv``, the ground truth, ``cuts.csv``): the rows would go on into the unlinked
-        file and be lost at the close, and without ``data.csv`` the folder plays as no frames."""
+        ``data.csv``, the ground truth, ``cuts.csv`` from their open files; ``rig.yaml`` and
+        ``model.yaml`` from what they were written from): the rows would go on into the unlinked
+        file and be lost at the close, and without ``data.csv`` the folder plays as no frames.
+        Every file is tried; the first that cannot be written again is raised (TrackmeterError)."""
         first_failure: TrackmeterError | None = None
         for file in (*self._csv.values(), self._truth_csv, self._truth_tum, self._cuts):
             try:
@@ -398,7 +400,7 @@ class SequenceWriter:
             # moved (followed), removed, a camera's images gone, a file deleted (written again).
             try:
                 self._follow_folder()
-                self._restore_indexes()
+                self._restore_deleted_files()
                 if any(not (self.directory / cam / "data").is_dir() for cam in CAMERAS):
                     raise TrackmeterError(self._files_removed_message())
             except TrackmeterError as exc:
