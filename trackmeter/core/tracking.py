@@ -202,7 +202,7 @@ class TrackerParams:
         10.0, "std added to that prediction's median miss on the settled targets, px/s", min=0.0,
     )
     track_blur_sigma_px: float = param(
-        0.0, "std of a Gaussian smoothing of the left image for the frame-to-frame sub-pixel fits and their templates, "
+        0.7, "std of a Gaussian smoothing of the left image for the frame-to-frame sub-pixel fits and their templates, "
         "px (0: none; the integer search and the stereo match always use the image itself; at most 5: wider "
         "smooths an 8x8 patch flat, and 1e6 took minutes a frame)", min=0.0, max=5.0,
     )
