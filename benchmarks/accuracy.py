@@ -35,7 +35,9 @@ case a, whose body frame is its own), as the largest absolute error and the RMS 
 Figures (mm, deg, mm/s, deg/s; z is the viewing axis): ``<prefix>_pos_lateral_max_mm`` (x, y),
 ``pos_depth_max_mm`` (z), ``att_view_max_deg`` (about z), ``att_other_max_deg`` (about x, y),
 ``vel_lateral_max_mm_s``, ``vel_depth_max_mm_s``, ``omega_max_deg_s`` (largest component, body
-frame), each also as ``_rms_``; ``valid_fraction``; ``seconds`` evaluated.
+frame), each also as ``_rms_``; ``valid_fraction``; ``seconds`` evaluated. Case (b), whose body
+frame is the truth's: ``<prefix>_nees_median`` and ``_nees_within_95``, how honest the pose
+covariance is (:func:`nees_figures`: 5.35 and 0.95 when it is).
 
 The engine runs config/default.yaml, or a YAML file over it named by ``TRACKMETER_BENCH_CONFIG``
 (:func:`benchmarks.bench_config`): the opt-in settings of docs/results.md are measured so, e.g.
@@ -286,7 +288,11 @@ def face_points(mockup: Any, per_face: int = 6, seed: int = 3) -> tuple[np.ndarr
 
 
 def run_geometric(case: str, velocity_method: str | None = None, occlusion_s: tuple[float, float] | None = None,
-                  jumps: dict[str, float] | None = None) -> tuple[MotionSeries, MotionSeries]:
+                  jumps: dict[str, float] | None = None, nees: list[float] | None = None,
+                  ) -> tuple[MotionSeries, MotionSeries]:
+    """The motion estimation alone on the estec trajectory (:class:`GeometricTracker`): truth
+    and estimate; ``jumps`` receives the largest jumps in sigmas, ``nees`` each valid pose's
+    :func:`_nees` after the settling time (case b, whose body frame is the truth's)."""
     from trackmeter.data.model import Model
     from trackmeter.pipeline.engine import Engine
     from trackmeter.sources.sim.simulator import Simulator
@@ -317,6 +323,8 @@ def run_geometric(case: str, velocity_method: str | None = None, occlusion_s: tu
             if (prev[2] - ids) or (ids - prev[2]):
                 event.append(z)
         prev = (pose, gt.T_cam_body, ids)
+        if nees is not None and case == "b" and pose.valid and frame.t_s >= SETTLE_S:
+            nees.append(_nees(pose.T_cam_body, pose.cov_pose, gt.T_cam_body))
         truth_rows.append((frame.t_s, True, (gt.T_cam_body, gt.velocity_cam_m_s, gt.omega_body_rad_s)))
         est_rows.append((frame.t_s, pose.valid, (pose.T_cam_body, pose.velocity_cam_m_s, pose.omega_body_rad_s)))
     if jumps is not None:
@@ -337,6 +345,32 @@ def _jump_sigma(prev_T: np.ndarray, T: np.ndarray, cov: np.ndarray, prev_true: n
     pred = true @ np.linalg.inv(prev_true) @ prev_T
     d = np.concatenate([T[:3, 3] - pred[:3, 3], Rotation.from_matrix(T[:3, :3] @ pred[:3, :3].T).as_rotvec()])
     return float(np.max(np.abs(d) / np.sqrt(np.diag(cov))))
+
+
+def _nees(T: np.ndarray, cov: np.ndarray, true: np.ndarray) -> float:
+    """Normalised estimation error squared of a pose: ``e^T P^-1 e`` with ``e`` the position
+    error and the rotation vector of ``R_est R_true^T`` (camera frame, the covariance's own
+    parametrisation: :class:`~trackmeter.pipeline.snapshot.PoseEstimate`) and ``P`` (6,6) the
+    pose covariance. Chi-square with 6 degrees of freedom when the covariance is honest
+    (Bar-Shalom, Li and Kirubarajan 2001, 5.4.2): median 5.35, 95 % below 12.59."""
+    from scipy.spatial.transform import Rotation
+
+    e = np.concatenate([T[:3, 3] - true[:3, 3], Rotation.from_matrix(T[:3, :3] @ true[:3, :3].T).as_rotvec()])
+    return float(e @ np.linalg.solve(cov, e))
+
+
+def nees_figures(values: Sequence[float], prefix: str) -> dict[str, float]:
+    """How honest the pose covariance is over a run, from :func:`_nees` of each pose:
+    ``<prefix>_nees_median`` (5.35 when honest; larger: the covariance is overconfident) and
+    ``<prefix>_nees_within_95`` (the fraction under chi-square(6)'s 95th percentile: 0.95
+    when honest). Nothing when there is no pose."""
+    from scipy.stats import chi2
+
+    v = np.asarray(values, float)
+    if not v.size:
+        return {}
+    return {f"{prefix}_nees_median": float(np.median(v)),
+            f"{prefix}_nees_within_95": float(np.mean(v <= chi2.ppf(0.95, 6)))}
 
 
 def run_chain(case: str, seconds: float, scenario: str = "estec", seed_offset: int = 0,
@@ -368,6 +402,7 @@ def run_chain(case: str, seconds: float, scenario: str = "estec", seed_offset: i
     jumps_event, jumps_all = [0.0], [0.0]
     coast_start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # last measured pose: T_true, T_est, cov
     coast_z, coasted, longest = [0.0], 0, 0.0
+    nees: list[float] = []
     for k in range(n):
         if frames is None:
             frame = sim.read()
@@ -388,6 +423,8 @@ def run_chain(case: str, seconds: float, scenario: str = "estec", seed_offset: i
             if recovered or (prev[2] - measured):  # a loss or a recovery this frame
                 jumps_event.append(z)
         prev = (pose, frame.truth.T_cam_body, measured)
+        if case == "b" and pose.valid and frame.t_s >= SETTLE_S:  # case (a)'s body frame is its own
+            nees.append(_nees(pose.T_cam_body, pose.cov_pose, frame.truth.T_cam_body))
         if pose.valid and pose.coasting_s == 0:
             coast_start = (np.asarray(frame.truth.T_cam_body), np.asarray(pose.T_cam_body), np.asarray(pose.cov_pose))
         elif pose.valid and coast_start is not None:
@@ -424,6 +461,7 @@ def run_chain(case: str, seconds: float, scenario: str = "estec", seed_offset: i
         f"{scenario}_{case}_coasted_frames": float(coasted),
         f"{scenario}_{case}_longest_coast_s": longest,
         f"{scenario}_{case}_coast_drift_max_sigma": float(max(coast_z)),
+        **nees_figures(nees, f"{scenario}_{case}"),
     }
     return _series(truth_rows), _series(est_rows), extra
 
@@ -459,8 +497,10 @@ def run() -> dict[str, Any]:
         _log(f"configuration: config/default.yaml with {os.environ[CONFIG_ENV]} over it ({CONFIG_ENV})")
     out: dict[str, Any] = {}
     for case, align in (("b", "none"), ("a", "body")):
-        truth, est = run_geometric(case)
+        nees: list[float] = []
+        truth, est = run_geometric(case, nees=nees)
         out.update(figures(truth, est, align, f"geom_{case}"))
+        out.update(nees_figures(nees, f"geom_{case}"))
         _log(f"geometric case {case} done")
     for case, align in (("b", "none"), ("a", "body")):
         jumps: dict[str, float] = {}
