@@ -85,6 +85,12 @@ class PoseParams:
         "fitted): a corner's patch measures the faces around it, an error averaging over frames does "
         "not remove, m", min=0.0,
     )
+    apriori_bias_sigma_m: float = param(
+        0.0015, "case (b): isotropic std of an a-priori point's own error (a corner's patch measures the faces "
+        "around it), common to every frame it is seen in: the body frame the a-priori points define keeps it, "
+        "and the REPORTED pose covariance adds that frame error (sigma² (sum J^T J)^-1 over the a-priori "
+        "inliers); the fit and the pose do not change; 0: the points' noise alone, m", min=0.0,
+    )
     frame_min_age_frames: int = param(
         12, "case (a): only points tracked for at least this many frames define the frame and the first model",
         min=0,

@@ -394,6 +394,7 @@ class Engine:
         # binding, or joined through a pose resting on such points), and that error, (6,6).
         self._frame_error_ids: set[str] = set()
         self._frame_cov: FloatArray | None = None
+        self._apriori_frame_cov = np.zeros((6, 6))  # reported on top of the fit's (_note_apriori_frame_error)
         self._velocity = VelocityEstimator(self.velocity_params, self.pose_params.coast_lever_m)
         self._filter = PoseFilter(self.filter_params, self.rate_hz)
         self._align_M = np.zeros((3, 3))
@@ -788,7 +789,9 @@ class Engine:
         T = np.eye(4)
         T[:3, :3] = R_f
         T[:3, 3] = t_f
-        pose = PoseEstimate(True, None, self._case, T, cov_out, v_arr, w_arr, n_used, tuple(outliers),
+        # Reported only: the coast, its gates and the points joining through it work relative to
+        # the model's frame, which every point shares (the frame's own error is common to them).
+        pose = PoseEstimate(True, None, self._case, T, cov_out + self._apriori_frame_cov, v_arr, w_arr, n_used, tuple(outliers),
                             body_frame=self._body_frame)
         self._recovered_any = False
         if self.pose_params.recover_model_points:
@@ -1051,6 +1054,7 @@ class Engine:
             cov = fit.cov + self._frame_cov if resting else fit.cov
         R, t = fit.R_cam_body, fit.t_cam_body
         self._last_fit = (R, t, cov)
+        self._note_apriori_frame_error(R, [i for n, i in enumerate(ids) if fit.inliers[n] and self._model[i].fixed])
         hold = self._case == "a" and self.pose_params.frame_hold
         held = {i: (self._model[i].b.copy(), self._model[i].cov.copy()) for i in ids} if hold else {}
         before = set(self._model)
@@ -1068,6 +1072,24 @@ class Engine:
             self._track_residuals(frame.t_s, R, t, [i for n, i in enumerate(ids) if fit.inliers[n]], measured,
                                   fresh=prev_inliers is None)
         return (R, t, cov, int(fit.inliers.sum()), outliers), None
+
+    def _note_apriori_frame_error(self, R: FloatArray, apriori: list[str]) -> None:
+        """Case (b): the body frame's error the a-priori points' own errors leave (``pose.apriori_bias_sigma_m``,
+        sigma, isotropic and the same in every frame a point is seen in), ``sigma² (sum_i J_i^T J_i)^-1``
+        over the a-priori inliers ``apriori`` of the pose ``R`` (J_i: :func:`position_jacobians`),
+        (6,6). Kept from the last frame that determined it: while fewer corners are measured the
+        grown model carries the frame they left."""
+        sigma = self.pose_params.apriori_bias_sigma_m
+        if sigma <= 0 or len(apriori) < 3:
+            return
+        J = position_jacobians(np.array([self._model[i].b for i in apriori]), R)
+        try:
+            frame_cov = sigma**2 * np.linalg.inv(np.einsum("nij,nik->jk", J, J))
+        except np.linalg.LinAlgError:
+            return
+        if np.all(np.isfinite(frame_cov)) and _sigmas_within(frame_cov, self.pose_params.max_attitude_sigma_deg,
+                                                               self.pose_params.max_position_sigma_m):
+            self._apriori_frame_cov = frame_cov
 
     def _update_model(self, R: FloatArray, t: FloatArray, cov: FloatArray, scale2: float, ids: list[str],
                       inliers: NDArray[np.bool_], measured: dict[str, TargetState]) -> None:
@@ -1505,8 +1527,8 @@ class Engine:
         T[:3, :3] = R
         T[:3, 3] = pos
         w = self._coast_out[5] if self._coast_out is not None else np.full(3, np.nan)
-        return PoseEstimate(True, f"coasting {dt:.2f} s on the motion model ({why})", self._case, T, cov,
-                            v, np.asarray(w, float).copy(), 0, (), coasting_s=float(dt), body_frame=self._body_frame)
+        return PoseEstimate(True, f"coasting {dt:.2f} s on the motion model ({why})", self._case, T,
+                            cov + self._apriori_frame_cov, v, np.asarray(w, float).copy(), 0, (), coasting_s=float(dt), body_frame=self._body_frame)
 
     def _rejoin_through_coast(self, t_s: float, measured: dict[str, TargetState]) -> bool:
         """No pose: while the coasted pose is within ``coast_rejoin_*``, measured targets that are
