@@ -54,12 +54,12 @@ def run(args: argparse.Namespace) -> int:
 
     from trackmeter.cli.common import parse_uv
     from trackmeter.core.exposure import expose_pair
-    from trackmeter.core.matching import measure_points, measurements_to_json
+    from trackmeter.core.matching import REASON_BEYOND_RANGE, measure_points, measurements_to_json
     from trackmeter.core.stereo import swapped_views_problem
     from trackmeter.data.config import load_config
     from trackmeter.data.images import read_grey_pair
     from trackmeter.data.rigfile import load_rig
-    from trackmeter.errors import TrackmeterError
+    from trackmeter.errors import TrackmeterError, counted
 
     config = load_config(args.config)
     params = config.measure
@@ -86,6 +86,14 @@ def run(args: argparse.Namespace) -> int:
     swapped = swapped_views_problem(rig, images[0], images[1])
     if swapped:  # every point refused, or matched to a look-alike: the table alone does not say why
         warnings.warn(swapped, stacklevel=1)
+    beyond = sum(m.reason == REASON_BEYOND_RANGE for m in results)
+    if beyond:  # the table says "beyond disparity range", not which range nor where it is set
+        low, high = params.disparity_range_px(rig.rectification)
+        near = (f"measure.max_disparity_px ({params.max_disparity_px:g} px)" if params.max_disparity_px
+                else f"measure.min_range_m ({params.min_range_m:g} m)")
+        warnings.warn(f"{counted(beyond, 'point')} beyond the disparity range searched, {low:g}-{high:.4g} px on "
+                      f"this rig: nearer than {near} or farther than measure.min_disparity_px allows; another "
+                      f"range goes in a --config file", stacklevel=1)
     if args.json:
         print(json.dumps(measurements_to_json(results), allow_nan=False))
         return 0
