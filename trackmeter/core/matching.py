@@ -1145,30 +1145,6 @@ def match_rectified_point(
     return m.reason, m.disparity_px, m.sigma_px, m.score
 
 
-def _matches_nearer(rect: Rectification, right: NDArray[np.uint8], T: NDArray[np.generic],
-                    geo: tuple[float, float, int, int, float], d_hi: int, best_in_range: float,
-                    params: MeasureParams) -> bool:
-    """Whether a patch refused in the range searched matches at a larger disparity: a point
-    nearer than ``min_range_m`` has no true peak in the range, and its best candidate there is
-    a chance bump, refused as "low score" or "ambiguous", which says nothing of range. Asked
-    only of such refusals (the rest pay nothing): the right row from the image's edge up to
-    the range is searched like the range (bilinear strip, ZNCC), and a peak scoring
-    ``min_score`` and ``uniqueness_margin`` above the range's best says beyond range.
-    ``geo``: the point's ``(x0, y0, bx, by, frac)`` of :func:`_match_many`."""
-    P = T.shape[1]
-    x0, y0, bx, _, frac = geo
-    # A patch starting at rectified column c has disparity bx - c: columns 0 .. bx - d_hi - 1.
-    width = bx - d_hi - 1 + P
-    if width < P + 2:
-        return False
-    ((S, s_ok),) = sample_rectified_blocks(rect, right, 1, [(frac, y0, width, P)], cv2.INTER_LINEAR, exact=False)
-    scores = cv2.matchTemplate(np.asarray(S, np.float32), np.asarray(T, np.float32), cv2.TM_CCOEFF_NORMED).ravel()
-    if s_ok is not None:
-        scores = np.where(_windows_ok(s_ok, P)[: scores.size], scores, -1.0)
-    best = float(scores.max()) if scores.size else -1.0
-    return best >= params.min_score and best > best_in_range + params.uniqueness_margin
-
-
 def _match_many(
     rect: Rectification,
     left: NDArray[np.uint8],
@@ -1239,7 +1215,6 @@ def _match_many(
         T_fine[j] = T
         strips[j] = (d_lo, d_hi, c_first, c_last, l_first, l_last)
 
-    global_range = params.disparity_range_px(rect)
     # Stage 2: the bilinear right strips and left patches, the integer search. The left rows
     # around the patches (for the left-right check) get their maps now but are resampled in
     # stage 4, for the points that get there: the patch is their slice, the same samples.
@@ -1275,11 +1250,7 @@ def _match_many(
             lo, hi = int(valid[0]), int(valid[-1])
         sm = match_strip(T, S, params, lo, hi, refine=False)
         if not sm.ok:
-            reason = sm.reason
-            if (reason in (REASON_LOW_SCORE, REASON_AMBIGUOUS) and tuple(disparity_ranges[j]) == global_range
-                    and _matches_nearer(rect, right, T, geo[j], d_hi, sm.score, params)):
-                reason = REASON_BEYOND_RANGE
-            out[j] = _Match(reason, score=sm.score)
+            out[j] = _Match(sm.reason, score=sm.score)
             continue
         f_first = max(c_first + sm.integer_position - FINE_MARGIN_PX, 0)
         f_last = min(c_first + sm.integer_position + P - 1 + FINE_MARGIN_PX, W - 2)
