@@ -219,17 +219,18 @@ def test_a_swapped_pair_is_said_to_look_swapped(pair, capsys) -> None:  # type: 
 
 
 def test_points_beyond_the_range_searched_name_the_range_and_its_setting(pair, tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
-    # The mock-up's plane at 3.5 m (93 px of disparity) searched only out to 5 m (65 px): the
-    # table's "beyond disparity range" alone does not say which range, nor where to change it.
+    # The mock-up's plane at 3.5 m (94.5 px of disparity) searched only to 93.5 px: the peak
+    # sits on the range's edge. The table's "beyond disparity range" alone does not say which
+    # range, nor where to change it.
     *_, folder = pair
-    config = tmp_path / "far.yaml"
-    config.write_text("measure:\n  min_range_m: 5.0\n")
-    assert _run(folder, "--at", "300.3,250.6", "--config", str(config)) == 0
+    config = tmp_path / "near.yaml"
+    config.write_text("measure:\n  max_disparity_px: 93.5\n")
+    assert _run(folder, "--at", "310,250", "--config", str(config)) == 0
     captured = capsys.readouterr()
     assert "beyond disparity range" in captured.out
     lines = captured.err.strip().splitlines()
     assert len(lines) == 1, captured.err
-    assert lines[0].startswith("trackmeter measure: warning: 1 point beyond the disparity range searched, 0-65"), lines[0]
-    assert "measure.min_range_m (5 m)" in lines[0] and "--config" in lines[0]
-    assert _run(folder, "--at", "300.3,250.6") == 0  # searched to 1 m: measured, nothing said
+    assert lines[0].startswith("trackmeter measure: warning: 1 point beyond the disparity range searched, 0-93.5 px"), lines[0]
+    assert "measure.max_disparity_px (93.5 px)" in lines[0] and "--config" in lines[0]
+    assert _run(folder, "--at", "310,250") == 0  # the default range: measured, nothing said
     assert capsys.readouterr().err == ""
