@@ -395,6 +395,10 @@ class Engine:
         self._frame_error_ids: set[str] = set()
         self._frame_cov: FloatArray | None = None
         self._apriori_frame_cov = np.zeros((6, 6))  # reported on top of the fit's (_note_apriori_frame_error)
+        # The points a progressive binding carried and its error with the corners' own (_bind).
+        self._binding_ids: set[str] = set()
+        self._binding_cov_reported: FloatArray | None = None
+        self._shared_frame_report = np.zeros((6, 6))  # reported on top of the fit's (_note_shared_frame_error)
         self._velocity = VelocityEstimator(self.velocity_params, self.pose_params.coast_lever_m)
         self._filter = PoseFilter(self.filter_params, self.rate_hz)
         self._align_M = np.zeros((3, 3))
@@ -791,7 +795,8 @@ class Engine:
         T[:3, 3] = t_f
         # Reported only: the coast, its gates and the points joining through it work relative to
         # the model's frame, which every point shares (the frame's own error is common to them).
-        pose = PoseEstimate(True, None, self._case, T, cov_out + self._apriori_frame_cov, v_arr, w_arr, n_used, tuple(outliers),
+        pose = PoseEstimate(True, None, self._case, T, cov_out + self._apriori_frame_cov + self._shared_frame_report,
+                            v_arr, w_arr, n_used, tuple(outliers),
                             body_frame=self._body_frame)
         self._recovered_any = False
         if self.pose_params.recover_model_points:
@@ -883,6 +888,13 @@ class Engine:
                     f"{d2 / dof:.0f} per degree of freedom)")
         if not _sigmas_within(cov, p.max_attitude_sigma_deg, p.max_position_sigma_m):
             return "case (b): binding the model: the located points leave the binding undetermined"
+        cov_reported = cov
+        if p.apriori_bias_sigma_m > 0:  # the located corners' own error, which the fit leaves out
+            try:
+                cov_reported = solve_pose(B, P, C + p.apriori_bias_sigma_m**2 * np.eye(3), None, (R, t),
+                                          p.refine_iterations)[2]
+            except (TrackmeterError, np.linalg.LinAlgError):
+                pass
         carried = set()
         for pid, m in inner._model.items():
             if pid in given:
@@ -892,6 +904,7 @@ class Engine:
             self._model[pid] = _ModelPoint(b, cov_b, False, t_s=m.t_s)
             carried.add(pid)
         self._share_frame_error(carried, cov)
+        self._binding_ids, self._binding_cov_reported = set(carried), _isotropic_bound(cov_reported)
         self._seen_t.update(inner._seen_t)
         self._lost_since.update(inner._lost_since)
         if inner._last_fit is not None:
@@ -1055,6 +1068,7 @@ class Engine:
         R, t = fit.R_cam_body, fit.t_cam_body
         self._last_fit = (R, t, cov)
         self._note_apriori_frame_error(R, [i for n, i in enumerate(ids) if fit.inliers[n] and self._model[i].fixed])
+        self._note_shared_frame_error(R, ids, fit.inliers, b, C, Cb, resting)
         hold = self._case == "a" and self.pose_params.frame_hold
         held = {i: (self._model[i].b.copy(), self._model[i].cov.copy()) for i in ids} if hold else {}
         before = set(self._model)
@@ -1090,6 +1104,41 @@ class Engine:
         if np.all(np.isfinite(frame_cov)) and _sigmas_within(frame_cov, self.pose_params.max_attitude_sigma_deg,
                                                                self.pose_params.max_position_sigma_m):
             self._apriori_frame_cov = frame_cov
+
+    def _note_shared_frame_error(self, R: FloatArray, ids: list[str], inliers: NDArray[np.bool_], b: FloatArray,
+                                 C: FloatArray, Cb: FloatArray, resting: bool) -> None:
+        """Case (b) after a progressive binding: the part of the binding's error that this
+        frame's fit keeps, for the reported covariance (``_shared_frame_report``, (6,6)). The
+        points the binding carried share its error, a rigid offset ``d`` of their frame
+        (``_binding_cov_reported``: the binding's covariance with the located corners' own
+        error, ``pose.apriori_bias_sigma_m``, which its fit leaves out); ``d`` moves each of them
+        by ``J_i d`` and the fit by ``K d``, ``K = H^-1 G`` (H: the fit's normal matrix over its
+        inliers, G: that of the carried ones; J_i: :func:`position_jacobians`, weights
+        ``(C_i + R Cb_i R^T)^-1``), so it adds ``K S K^T``. With three corners measured the fit
+        counts itself pinned and adds nothing of it, though the carried points may still carry
+        most of its weight (harsh_light case (b) after its binding: 3-5 mm and 0.5 deg off for
+        4 s against a 1.2 mm 1-sigma); resting on them it adds ``_frame_cov`` (K ~ I), and only
+        what that leaves out is added here."""
+        self._shared_frame_report = np.zeros((6, 6))
+        S = self._binding_cov_reported
+        if S is None:
+            return
+        if resting:
+            if self._frame_cov is not None:
+                self._shared_frame_report = np.maximum(S - self._frame_cov, 0.0)
+            return
+        use = np.flatnonzero(inliers)
+        carried = np.array([ids[n] in self._binding_ids for n in use])
+        if not carried.any():
+            return
+        J = position_jacobians(b[use], R)
+        W = np.linalg.inv(C[use] + R @ Cb[use] @ R.T)
+        JW = np.swapaxes(J, -1, -2) @ W @ J
+        try:
+            K = np.linalg.solve(JW.sum(axis=0), JW[carried].sum(axis=0))
+        except np.linalg.LinAlgError:
+            return
+        self._shared_frame_report = K @ S @ K.T
 
     def _update_model(self, R: FloatArray, t: FloatArray, cov: FloatArray, scale2: float, ids: list[str],
                       inliers: NDArray[np.bool_], measured: dict[str, TargetState]) -> None:
@@ -1528,7 +1577,7 @@ class Engine:
         T[:3, 3] = pos
         w = self._coast_out[5] if self._coast_out is not None else np.full(3, np.nan)
         return PoseEstimate(True, f"coasting {dt:.2f} s on the motion model ({why})", self._case, T,
-                            cov + self._apriori_frame_cov, v, np.asarray(w, float).copy(), 0, (), coasting_s=float(dt), body_frame=self._body_frame)
+                            cov + self._apriori_frame_cov + self._shared_frame_report, v, np.asarray(w, float).copy(), 0, (), coasting_s=float(dt), body_frame=self._body_frame)
 
     def _rejoin_through_coast(self, t_s: float, measured: dict[str, TargetState]) -> bool:
         """No pose: while the coasted pose is within ``coast_rejoin_*``, measured targets that are
@@ -1561,7 +1610,7 @@ class Engine:
         # Forgotten model points leave the set: a long run would grow it, and one that joins
         # again is judged by the pose it joins through.
         self._frame_error_ids = (self._frame_error_ids | ids) & self._model.keys()
-        iso = np.diag([np.diag(cov)[:3].max()] * 3 + [np.diag(cov)[3:].max()] * 3)
+        iso = _isotropic_bound(cov)
         self._frame_cov = iso if self._frame_cov is None else np.maximum(self._frame_cov, iso)
 
     def _rests_on_frame_error(self, ids: list[str], inliers: NDArray[np.bool_]) -> bool:
@@ -1803,6 +1852,14 @@ def _offset_from(R_c: FloatArray, p_c: FloatArray, cov_c: FloatArray, R: FloatAr
     camera frame) and its squared Mahalanobis distance under ``cov_c + cov`` (both (6,6))."""
     e = np.concatenate([p_c - p, Rotation.from_matrix(R_c @ R.T).as_rotvec()])
     return e, float(e @ np.linalg.solve(cov + cov_c, e))
+
+
+def _isotropic_bound(cov_pose: FloatArray) -> FloatArray:
+    """(6,6) diagonal bound of a pose covariance by blocks: its largest position variance on
+    the position axes, its largest rotation variance on the rotation axes (rotation-invariant,
+    so it holds in any later camera pose)."""
+    d = np.diag(cov_pose)
+    return np.diag([d[:3].max()] * 3 + [d[3:].max()] * 3)
 
 
 def _sigmas_within(cov_pose: FloatArray, attitude_sigma_deg: float, position_sigma_m: float) -> bool:
