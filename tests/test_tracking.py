@@ -363,6 +363,22 @@ def test_track_blur_smooths_the_temporal_fits_and_not_the_search(scene, estec_ri
     np.testing.assert_allclose(t.anchor_raw.values, make_templates(f0.left, uv, 8).values)  # for the re-check
 
 
+def test_a_frames_images_are_made_once_and_never_served_for_another_frame(scene, estec_rig) -> None:
+    """A step, its re-locks and its new targets read one frame's images: smoothed once. A new
+    frame object (even with the same index, as after a restart) or a new smoothing is made
+    afresh, never served from the last one."""
+    f0, f1 = scene.frame(0), scene.frame(1)
+    tr = make_tracker(estec_rig, track_blur_sigma_px=1.0)
+    fc = tr._frame(f0)
+    assert tr._frame(f0) is fc
+    same_index = dataclasses.replace(f1, index=f0.index)
+    np.testing.assert_array_equal(tr._frame(same_index).left, f1.left)
+    np.testing.assert_allclose(tr._frame(same_index).track,
+                               cv2.GaussianBlur(f1.left.astype(np.float32), (0, 0), 1.0), atol=1e-4)
+    tr.params = dataclasses.replace(tr.params, track_blur_sigma_px=0.0)
+    assert tr._frame(same_index).track is tr._frame(same_index).left
+
+
 @pytest.mark.parametrize("sigma_px", [0.7, 1.0])
 def test_with_track_blur_a_moving_turning_plate_is_tracked_as_closely(scene, estec_rig, sigma_px: float) -> None:
     f0 = scene.frame(0)

@@ -397,6 +397,10 @@ class Tracker:
         self._last_step_t_s: float | None = None  # time of the last step's frame, s
         self._step_dt_s = 0.0  # interval of this step (the rigid motion's), s
         self._body_gen = 0  # counts the body frames started (:meth:`_body_drift`)
+        # The last frame's images as the fits read them, with the frame and the smoothing they
+        # were made for: a step, its re-locks and its new targets all read the same frame, and
+        # smoothing the whole left image is a millisecond each time.
+        self._frame_cache: tuple[StereoFrame, float, _FrameCache] | None = None
 
     # ------------------------------------------------------------------ public state
 
@@ -564,11 +568,16 @@ class Tracker:
         return fit, raw
 
     def _frame(self, frame: StereoFrame) -> _FrameCache:
+        sig = self.params.track_blur_sigma_px
+        cached = self._frame_cache
+        if cached is not None and cached[0] is frame and cached[1] == sig:
+            return cached[2]
         # uint8 as delivered: the samplers gather from it and convert only what they read.
         left = np.ascontiguousarray(frame.left)
-        sig = self.params.track_blur_sigma_px
         track = cv2.GaussianBlur(left.astype(np.float32), (0, 0), sig) if sig > 0 else left
-        return _FrameCache(frame.index, left, np.ascontiguousarray(frame.right), track)
+        fc = _FrameCache(frame.index, left, np.ascontiguousarray(frame.right), track)
+        self._frame_cache = (frame, sig, fc)
+        return fc
 
     # ------------------------------------------------------------------ adding targets
 
