@@ -37,8 +37,9 @@ import viser.uplot
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from console.overlay import (STATUS_RGB, LostTargets, box_half_px, box_segments, draw_overlays,
-                             image_view, node_rgb_for, pixel_to_plane, ray_to_pixel, to_rgb, view_band, view_in_band)
+from console.overlay import (STATUS_RGB, LostTargets, Trails, box_half_px, box_segments, draw_overlays,
+                             image_view, node_rgb_for, pixel_to_plane, ray_to_pixel, to_rgb, view_band,
+                             view_in_band)
 from console.series import PLOTS, PlotData
 from trackmeter.core.features import METHODS
 from trackmeter.core.stereo import StereoRig
@@ -165,7 +166,6 @@ def _pixel_text(uv: tuple[float, float]) -> str:
 #: (each accepted value also rebuilds the filter), "16" passes 1.
 EDIT_SETTLE_S = 0.8
 SERIES_COLOURS = ("#e6194b", "#3cb44b", "#4363d8", "#111111")
-TRAIL_FRAMES = 12
 #: Line thickness of the operator targets' boxes drawn over the left image, image px.
 OPERATOR_BOX_PX = 2.0
 #: Boxes for the operator's targets built ahead, parked (more are added when needed).
@@ -451,7 +451,7 @@ class Console:
         self._record_dir_shown: str | None = None  # the recording's folder last put in the Folder field
         self.patch_px = patch_px
         self.plots = PlotData()
-        self._trails: dict[str, deque[tuple[float, float]]] = {}
+        self._trails = Trails()
         self._pending: deque[tuple[Future[CommandReply], Any, str]] = deque()
         self._pending_lock = threading.Lock()
         # A click named after a model point, until its reply: the choice it used (_click_at).
@@ -473,7 +473,6 @@ class Console:
         self.push_ms: deque[float] = deque(maxlen=200)  # publisher cost of recent pushes
         # (time.monotonic(), target ids shown) of the recent image pushes (benchmarks/console.py).
         self.image_pushes: deque[tuple[float, tuple[str, ...]]] = deque(maxlen=200)
-        self._last_frame_index: int | None = None
         self._loop_said = False  # the pop-up that the source loops, once (again after a Restart)
         self._shortfall_said = False  # why automatic selection started none, popped up once (_say_shortfall)
         # left and right images given the wrong way round, popped up once (_say_views)
@@ -1105,18 +1104,8 @@ class Console:
         drawn = self._lost_targets.shown(snap.targets, frame.t_s) if frame is not None else list(snap.targets)
         self._hidden_ids = frozenset(t.id for t in snap.targets) - {t.id for t in drawn}
         if frame is not None:
-            for t in snap.targets:
-                if t.status != "lost" and np.all(np.isfinite(t.uv)):
-                    trail = self._trails.setdefault(t.id, deque(maxlen=TRAIL_FRAMES))
-                    if frame.index != self._last_frame_index:
-                        trail.append((float(t.uv[0]), float(t.uv[1])))
-            alive = {t.id for t in snap.targets}
-            for tid in list(self._trails):
-                if tid not in alive:
-                    del self._trails[tid]
-            self._last_frame_index = frame.index
-        if frame is not None:
-            left_rgb = draw_overlays(to_rgb(frame.left), drawn, self._trails, self.patch_px,
+            self._trails.update(snap.targets, frame.index, snap.source_pass, frame.cut)
+            left_rgb = draw_overlays(to_rgb(frame.left), drawn, self._trails.points, self.patch_px,
                                      operator_boxes=False)
             if self.right_image.visible:
                 right_rgb = to_rgb(frame.right)

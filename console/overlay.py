@@ -13,6 +13,7 @@ section 3), a pixel (u, v) of a W x H image sits at local::
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Iterable, Mapping, Sequence
 from functools import lru_cache
 
@@ -61,6 +62,61 @@ class LostTargets:
                 since[t.id] = first if first <= t_s else t_s
         self.since = since
         return [t for t in targets if t.status != "lost" or t_s - since[t.id] <= self.shown_s]
+
+
+#: Pixels a target's trail keeps (the console's frames, newest last).
+TRAIL_FRAMES = 12
+
+
+class Trails:
+    """Each target's last pixels (:data:`TRAIL_FRAMES` published frames), for its trail.
+
+    A trail joins the pixels of one stretch of tracking only. It starts over after the target was
+    seen lost (the trail stays drawn with the lost mark until then) or re-locked ("recovered":
+    the re-lock may land far from the loss), when a target of the same id is younger than its
+    trail (made again: after a Restart the simulator's operator picks the model points again
+    under their ids), and for every target when the stream jumps: a cut, a looping source's next
+    pass, frame numbers going back. One frame published twice adds its pixel once.
+    """
+
+    def __init__(self, length: int = TRAIL_FRAMES) -> None:
+        self.length = length
+        self.points: dict[str, deque[tuple[float, float]]] = {}
+        self._age: dict[str, int] = {}  # target id -> its age_frames when last added to
+        self._broken: set[str] = set()  # seen lost since their last pixel
+        self._frame_index: int | None = None
+        self._source_pass: int | None = None
+
+    def update(self, targets: Sequence[TargetState], frame_index: int, source_pass: int = 1,
+               cut: bool = False) -> None:
+        """Add the pixels of ``targets`` after the step of frame ``frame_index``."""
+        last_index, last_pass = self._frame_index, self._source_pass
+        if cut or (last_pass is not None and source_pass != last_pass) or (
+                last_index is not None and frame_index < last_index):
+            self.points.clear()
+            self._age.clear()
+            self._broken.clear()
+        new_frame = cut or frame_index != last_index or source_pass != last_pass
+        self._frame_index, self._source_pass = frame_index, source_pass
+        alive = {t.id for t in targets}
+        for tid in [tid for tid in self.points if tid not in alive]:
+            del self.points[tid]
+            self._age.pop(tid, None)
+        self._broken &= alive
+        for t in targets:
+            if t.status == "lost" or not np.all(np.isfinite(t.uv)):
+                if t.id in self.points:
+                    self._broken.add(t.id)
+                continue
+            if not new_frame and t.id in self.points:
+                continue
+            if (t.id in self._broken or t.status == "recovered"
+                    or t.age_frames < self._age.get(t.id, t.age_frames)):
+                self.points.pop(t.id, None)
+                self._broken.discard(t.id)
+            trail = self.points.setdefault(t.id, deque(maxlen=self.length))
+            trail.append((float(t.uv[0]), float(t.uv[1])))
+            self._age[t.id] = t.age_frames
 
 
 # three.js's ACES filmic tone mapping (the fit in its shader chunk tonemapping_pars_fragment,

@@ -18,6 +18,7 @@ from console.overlay import (  # noqa: E402
     LOST_SHOWN_S,
     STATUS_RGB,
     LostTargets,
+    Trails,
     box_segments,
     displayed_rgb,
     draw_overlays,
@@ -94,6 +95,52 @@ def test_overlays_mark_each_target_in_its_status_colour_at_its_pixel() -> None:
         assert np.any(np.all(patch == STATUS_RGB[t.status], axis=1)), t.id
         if t.id != "a1":  # (a1's trail ends at its pixel)
             assert not np.any(img[v, u]), "the centre pixel itself stays visible"
+
+
+def _aged(t: TargetState, age: int) -> TargetState:
+    import dataclasses
+
+    return dataclasses.replace(t, age_frames=age)
+
+
+def test_a_trail_joins_only_pixels_of_one_stretch_of_tracking() -> None:
+    """A trail is the target's last pixels while it is tracked without a break: never a line from
+    before a jump of the scene (a Restart, a looping source's next pass: the same ids picked again
+    elsewhere, seen in a real browser as 600 px lines across the image) or from before a loss to
+    where the target was re-locked."""
+    trails = Trails(length=4)
+    for k in range(6):
+        trails.update([_aged(_target("a1", (100.0 + k, 120.0)), k)], frame_index=k)
+    assert list(trails.points["a1"]) == [(102.0, 120.0), (103.0, 120.0), (104.0, 120.0), (105.0, 120.0)]
+    trails.update([_aged(_target("a1", (105.0, 120.0)), 5)], frame_index=5)  # the same frame again
+    assert len(trails.points["a1"]) == 4 and trails.points["a1"][-1] == (105.0, 120.0)
+
+    # Lost: its trail stays drawn with it; re-locked far away, a new trail starts there.
+    trails.update([_aged(_target("a1", (105.0, 120.0), "lost"), 6)], frame_index=6)
+    assert list(trails.points["a1"])[-1] == (105.0, 120.0)
+    trails.update([_aged(_target("a1", (300.0, 50.0), "tracking"), 8)], frame_index=8)
+    assert list(trails.points["a1"]) == [(300.0, 50.0)]
+    # Re-locked between two published frames: its status says so.
+    trails.update([_aged(_target("a1", (301.0, 50.0)), 9)], frame_index=9)
+    trails.update([_aged(_target("a1", (420.0, 90.0), "recovered"), 12)], frame_index=12)
+    assert list(trails.points["a1"]) == [(420.0, 90.0)]
+
+    # The same id made again (younger than its trail): a new target, a new trail.
+    trails.update([_aged(_target("a1", (421.0, 90.0)), 13)], frame_index=13)
+    trails.update([_aged(_target("a1", (50.0, 400.0)), 0)], frame_index=14)
+    assert list(trails.points["a1"]) == [(50.0, 400.0)]
+
+    # The stream jumps: a cut, a new pass, frames going back start every trail over.
+    for jump in ({"cut": True}, {"source_pass": 2}):
+        trails.update([_aged(_target("a1", (51.0, 400.0)), 40)], frame_index=20)
+        trails.update([_aged(_target("a1", (200.0, 10.0)), 41)], frame_index=21, **jump)
+        assert list(trails.points["a1"]) == [(200.0, 10.0)], jump
+    trails.update([_aged(_target("a1", (9.0, 9.0)), 99)], frame_index=3, source_pass=2)
+    assert list(trails.points["a1"]) == [(9.0, 9.0)]
+
+    # A target no longer in the snapshot has no trail.
+    trails.update([_aged(_target("b2", (9.0, 9.0)), 0)], frame_index=4, source_pass=2)
+    assert set(trails.points) == {"b2"}
 
 
 def test_a_lost_target_is_drawn_at_its_last_pixel_for_a_while_then_left_out() -> None:
