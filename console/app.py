@@ -680,7 +680,9 @@ class Console:
             self.clear_button = gui.add_button("Clear targets")
             gui.add_markdown("Click the left image to add a target; shift-, ctrl- or alt-click removes the nearest "
                              f"within {REMOVE_NEAREST_PX:g} px.")
-        with gui.add_folder("Model", expand_by_default=False):
+        # Open where the pose waits on it: case (b)'s status line sends the operator "under
+        # Model" to bind the points (an outside probe looked for the folder first).
+        with gui.add_folder("Model", expand_by_default=getattr(self.pipeline.engine, "case", "a") == "b"):
             self.case_dropdown = gui.add_dropdown("Case", ("a", "b", "c"), initial_value="a")
             # Case (b) binds targets to the a-priori model by id: the operator names the next
             # click after a model point (the options follow the model loaded).

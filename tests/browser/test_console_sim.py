@@ -86,3 +86,25 @@ def test_default_console_shows_the_satellite_in_image_and_3d(browser: Any, sim_c
         assert sum(1 for _ in con.server.scene._handle_from_node_name if _.startswith("/scene3d/body/mockup")) >= 1
     finally:
         page.context.close()
+
+
+def test_in_case_b_the_model_folder_is_open_from_the_start(browser: Any) -> None:
+    """Case (b)'s pose line sends the operator "under Model" to bind the points: the folder is
+    open then (an outside probe looked for it first; in case (a) it starts folded)."""
+    from benchmarks.pipeline import make_engine
+    from console.server import start_console
+    from trackmeter.sources import open_source
+
+    source = open_source("sim", realtime=True, loop=True)
+    running = start_console(source, make_engine(source, case="b"), port=free_port())
+    try:
+        wait_for(lambda: running.console.images_pushed > 0, 60, "the first image")
+        page, _ = open_page(browser, running)
+        try:
+            page.get_by_text("under Model", exact=False).first.wait_for(timeout=30_000)
+            assert page.get_by_text("Next click is", exact=True).first.is_visible()
+            assert page.get_by_role("button", name="Click the model points (simulator)").is_visible()
+        finally:
+            page.close()
+    finally:
+        running.stop()
