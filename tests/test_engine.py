@@ -639,8 +639,13 @@ def test_case_c_acquires_a_model_while_still(estec_rig, monkeypatch) -> None:
     engine, tracker, pts = make_engine(estec_rig, with_model=False)
     monkeypatch.setattr(sys.modules[__name__], "OMEGA", np.zeros(3))
     monkeypatch.setattr(sys.modules[__name__], "V", np.zeros(3))
+    case_before = engine.case
     reply = engine.handle(AcquireModel(), None)
     assert reply.ok and engine.case == "c" and engine.acquiring
+    # The case selector changes under the operator: the answer says so (an outside probe).
+    assert reply.message.endswith(f"(model case ({case_before}) -> (c))") and case_before != "c"
+    again = engine.handle(AcquireModel(), None)
+    assert again.ok and "->" not in again.message
     outs = run(engine, range(0, 70))  # still_time_s = 2 s = 50 frames
     assert not outs[10][1].valid and "hold still" in outs[10][1].reason
     valid = [k for k, o in enumerate(outs) if o[1].valid]

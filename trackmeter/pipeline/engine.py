@@ -557,10 +557,14 @@ class Engine:
             extra = ": hold the object still to acquire the model" if command.case == "c" else ""
             return CommandReply(True, f"model case ({command.case}){extra}")
         if isinstance(command, AcquireModel):
+            # An acquired model is case (c)'s: from another case, say so (the case selector
+            # changes under the operator's eyes, and case (b)'s buttons then refuse).
+            switched = "" if self._case == "c" else f" (model case ({self._case}) -> (c))"
             self._case = "c"
             self._acquisition = _Acquisition()
             self._reset_motion()
-            return CommandReply(True, f"acquiring a model: hold the object still for {self.pose_params.still_time_s:g} s")
+            return CommandReply(True, f"acquiring a model: hold the object still for {self.pose_params.still_time_s:g} s"
+                                      f"{switched}", notable=bool(switched))
         if isinstance(command, LoadModel):
             from trackmeter.data.model import load_model
 
