@@ -399,7 +399,7 @@ def test_a_k_whose_last_row_is_not_0_0_1_is_refused(tmp_path: Path) -> None:
     out.write("K1", scaled)
     src.release()
     out.release()
-    with pytest.raises(TrackmeterError, match=r"scaled\.yaml: K's last row must be \[0, 0, 1\], got \[0\., 0\., 2\.\]"):
+    with pytest.raises(TrackmeterError, match=r"scaled\.yaml: K1's last row must be \[0, 0, 1\], got \[0\., 0\., 2\.\]"):
         load_rig(tmp_path / "scaled.yaml")
     with pytest.raises(TrackmeterError, match="K's last row must be"):
         Camera(640, 480, scaled)
@@ -672,3 +672,25 @@ def test_a_skew_in_k_is_warned_about_as_ignored(tmp_path: Path) -> None:
         # amount: it warned on every run (an outside probe).
         K[0, 1] = 1e-9
         load_rig(save_rig(dataclasses.replace(rig, right=dataclasses.replace(rig.right, K=K)), tmp_path / "tiny.yaml"))
+
+
+@pytest.mark.parametrize(("key", "said"), [("K2", "K2 has non-finite values"),
+                                           ("D2", "D2: distortion has non-finite values"),
+                                           ("D1", "D1: distortion has non-finite values")])
+def test_a_nan_in_a_camera_names_its_key(tmp_path: Path, key: str, said: str) -> None:
+    """A rig file has two cameras: "K has non-finite values" did not say which, and a NaN in D2
+    was "distortion must have 4, 5, 8, 12 or 14 finite coefficients, got 5" (an outside probe)."""
+    path = save_rig(_rig(), tmp_path / "rig.yaml")
+    src = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    out = cv2.FileStorage(str(tmp_path / "nan.yaml"), cv2.FILE_STORAGE_WRITE)
+    out.write("image_width", 640)
+    out.write("image_height", 480)
+    for k in ("K1", "D1", "K2", "D2", "R", "T"):
+        m = src.getNode(k).mat().copy()
+        if k == key:
+            m.flat[1 if k.startswith("K") else 0] = np.nan
+        out.write(k, m)
+    src.release()
+    out.release()
+    with pytest.raises(TrackmeterError, match=rf"nan\.yaml: {said}$"):
+        load_rig(tmp_path / "nan.yaml")

@@ -111,8 +111,10 @@ class Camera:
         object.__setattr__(self, "height", int(self.height))
         object.__setattr__(self, "K", _as_matrix(self.K, (3, 3), "K"))
         dist = np.asarray(self.dist, dtype=float).ravel()
-        if dist.size not in (0, 4, 5, 8, 12, 14) or not np.all(np.isfinite(dist)):
+        if dist.size not in (0, 4, 5, 8, 12, 14):
             raise TrackmeterError(f"distortion must have 4, 5, 8, 12 or 14 finite coefficients, got {dist.size}")
+        if not np.all(np.isfinite(dist)):
+            raise TrackmeterError("distortion has non-finite values")
         object.__setattr__(self, "dist", dist if dist.size else np.zeros(5))
         if self.K[0, 0] <= 0 or self.K[1, 1] <= 0:
             raise TrackmeterError("K must have positive focal lengths")

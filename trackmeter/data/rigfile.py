@@ -162,6 +162,21 @@ def _matrix(fs: cv2.FileStorage, key: str, path: Path, required: bool = True) ->
     return np.asarray(mat, dtype=float)
 
 
+def _camera(width: int, height: int, fs: cv2.FileStorage, k_key: str, d_key: str, path: Path) -> Camera:
+    """The camera of keys ``k_key`` (its matrix) and ``d_key`` (its distortion); a refusal names
+    them: a rig file has two of each, and "K has non-finite values" did not say which."""
+    K, dist = _matrix(fs, k_key, path), _matrix(fs, d_key, path)
+    try:
+        return Camera(width, height, K, dist)
+    except TrackmeterError as exc:
+        said = str(exc)
+        if said.startswith("K"):  # "K has non-finite values", "K's last row ...", "K[1][0] ..."
+            said = k_key + said[1:]
+        elif said.startswith("distortion"):
+            said = f"{d_key}: {said}"
+        raise TrackmeterError(f"{path}: {said}") from None
+
+
 def _rotation(fs: cv2.FileStorage, path: Path) -> np.ndarray:
     """Key ``R``: a 3x3 matrix, or a rotation vector (3 numbers, axis times angle in radians:
     ``cv2.Rodrigues``), the other form OpenCV's own stereo functions take."""
@@ -323,8 +338,8 @@ def _load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> St
             if image_size is None:
                 raise TrackmeterError(f"{path}: missing key 'image_width'/'image_height'")
             width, height = image_size
-        left = Camera(int(width), int(height), _matrix(fs, "K1", path), _matrix(fs, "D1", path))
-        right = Camera(int(width), int(height), _matrix(fs, "K2", path), _matrix(fs, "D2", path))
+        left = _camera(int(width), int(height), fs, "K1", "D1", path)
+        right = _camera(int(width), int(height), fs, "K2", "D2", path)
         rms = _scalar(fs, "rms_px")
         return StereoRig(left, right, _rotation(fs, path), _matrix(fs, "T", path).ravel(), rms_px=rms, name=path.stem)
     except TrackmeterError as exc:
@@ -454,8 +469,8 @@ def _load_opencv_pair(path: Path, image_size: tuple[int, int] | None) -> StereoR
             raise TrackmeterError(f"{path}: OpenCV's intrinsics/extrinsics (M1 D1 M2 D2 R T) have no image size; "
                                   "give it (image_width, image_height)")
         width, height = image_size
-        left = Camera(width, height, _matrix(fi, "M1", intr), _matrix(fi, "D1", intr))
-        right = Camera(width, height, _matrix(fi, "M2", intr), _matrix(fi, "D2", intr))
+        left = _camera(width, height, fi, "M1", "D1", intr)
+        right = _camera(width, height, fi, "M2", "D2", intr)
         for cam in (left, right):
             cx, cy = cam.K[0, 2], cam.K[1, 2]
             if not (0 <= cx <= width and 0 <= cy <= height):  # the size is the frames', not the calibration's
