@@ -352,6 +352,20 @@ def test_disparity_beyond_the_search_range_is_refused() -> None:
     assert _reason(left, right, (60, 20), MeasureParams(min_disparity_px=0, max_disparity_px=20)) is None
 
 
+def test_a_match_cut_off_by_the_right_images_edge_is_not_called_beyond_the_range() -> None:
+    """Near the left image's left edge a point's match can lie left of the right image: the
+    search ends at the image's edge, inside the disparity range, and the peak sits there. It was
+    refused as "beyond disparity range", with the advice to search another range, which cannot
+    find it (an outside probe, on Middlebury's Tsukuba and a converging rig)."""
+    for seed in (1, 2):
+        left, right = _pair(12.4, seed=seed)  # true disparity 12.4 px, searched 0-16
+        assert _reason(left, right, (12.0, 20.0)) == M.REASON_MATCH_OFF_IMAGE  # its match at -0.4 px
+        assert _reason(left, right, (22.0, 20.0)) is None
+    # The range's own end stays "beyond disparity range".
+    left, right = _pair(12.4, seed=4)
+    assert _reason(left, right, (60, 20), MeasureParams(min_disparity_px=0, max_disparity_px=8)) == M.REASON_BEYOND_RANGE
+
+
 def test_the_search_reaches_the_same_nearest_range_on_any_rig(estec_rig) -> None:  # type: ignore[no-untyped-def]
     """By default the largest disparity searched is a point's at ``min_range_m`` (1 m) on the rig
     in use, f b / z plus the rectification's offset: a fixed 320 px was 1 m on the ESTEC rig

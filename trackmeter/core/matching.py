@@ -57,7 +57,8 @@ Checks (a refused point has ``ok=False`` and a reason from :data:`REASONS`, neve
 outside the image, patch not inside the image (or inside it but in the border the
 rectification crops), too dark (black sky or deep shadow), textureless, no texture
 along the epipolar line, search window outside the right image, beyond the disparity range
-(peak at the edge of the search), low score, ambiguous (a second peak outside the main lobe
+(peak at the edge of the search), match may lie beyond the right image's edge (the peak at the
+end of a search the image's edge cut short of the disparity range), low score, ambiguous (a second peak outside the main lobe
 nearly as good), sub-pixel refinement failed (or its refined score low), disparity too
 uncertain (the fit's own standard deviation is large: the aperture problem along the epipolar
 line), repetitive texture (a wider window, allowed to be foreshortened, does not prefer the
@@ -99,6 +100,7 @@ REASON_TEXTURELESS = "textureless"
 REASON_NO_EPIPOLAR_TEXTURE = "no texture along epipolar line"
 REASON_SEARCH_OUTSIDE = "search window outside right image"
 REASON_BEYOND_RANGE = "beyond disparity range"
+REASON_MATCH_OFF_IMAGE = "match may lie beyond the right image's edge"
 REASON_LOW_SCORE = "low score"
 REASON_AMBIGUOUS = "ambiguous (second peak)"
 REASON_REPETITIVE = "ambiguous (repetitive texture)"
@@ -118,6 +120,7 @@ REASONS: tuple[str, ...] = (
     REASON_NO_EPIPOLAR_TEXTURE,
     REASON_SEARCH_OUTSIDE,
     REASON_BEYOND_RANGE,
+    REASON_MATCH_OFF_IMAGE,
     REASON_LOW_SCORE,
     REASON_AMBIGUOUS,
     REASON_SUBPIXEL,
@@ -1250,7 +1253,15 @@ def _match_many(
             lo, hi = int(valid[0]), int(valid[-1])
         sm = match_strip(T, S, params, lo, hi, refine=False)
         if not sm.ok:
-            out[j] = _Match(sm.reason, score=sm.score)
+            reason = sm.reason
+            if reason == REASON_BEYOND_RANGE and (
+                    (sm.integer_position == lo and bx - (c_first + lo) < d_hi)
+                    or (sm.integer_position == hi and bx - (c_first + hi) > d_lo)):
+                # The peak is at an end the image's edge set, not the range: the match may lie
+                # past the edge (a point near the left image's left edge, a near one), and
+                # another range would not find it.
+                reason = REASON_MATCH_OFF_IMAGE
+            out[j] = _Match(reason, score=sm.score)
             continue
         f_first = max(c_first + sm.integer_position - FINE_MARGIN_PX, 0)
         f_last = min(c_first + sm.integer_position + P - 1 + FINE_MARGIN_PX, W - 2)
