@@ -58,10 +58,10 @@ outside the image, patch not inside the image (or inside it but in the border th
 rectification crops), too dark (black sky or deep shadow), textureless, no texture
 along the epipolar line, search window outside the right image, beyond the disparity range
 (peak at the edge of the search), match may lie beyond the right image's edge (the peak at the
-end of a search the image's edge cut short of the disparity range), low score, ambiguous (a second peak outside the main lobe
-nearly as good), sub-pixel refinement failed (or its refined score low), disparity too
-uncertain (the fit's own standard deviation is large: the aperture problem along the epipolar
-line), repetitive texture (a wider window, allowed to be foreshortened, does not prefer the
+end of a search the image's edge cut short of the disparity range), low score, ambiguous (a
+second peak outside the main lobe nearly as good), sub-pixel refinement failed (or its refined
+score low), disparity too uncertain (the fit's own standard deviation is large: the aperture
+problem along the epipolar line), repetitive texture (a wider window, allowed to be foreshortened, does not prefer the
 best peak over the other strong ones: see :func:`_context_decide`), left-right inconsistent
 (matching the right patch back along the left row lands elsewhere), a look-alike where the
 search left the right image (:func:`_rival_unseen`; ``unseen_rival_check``), depth edge inside the

@@ -564,7 +564,7 @@ class Engine:
             self._acquisition = _Acquisition()
             self._reset_motion()
             return CommandReply(True, f"acquiring a model: hold the object still for {self.pose_params.still_time_s:g} s"
-                                      f"{switched}", notable=bool(switched))
+                                      f"{switched}")
         if isinstance(command, LoadModel):
             from trackmeter.data.model import load_model
 
