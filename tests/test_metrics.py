@@ -311,3 +311,17 @@ def test_pose_coverage_counts_the_run_s_frames_whatever_the_truth_s_rate() -> No
     for other in (sparse, gappy):
         ev = evaluate(other, est, params, float(frames[0]), frames)
         assert ev.summary["pose_coverage"] == pytest.approx(has_pose.sum() / len(frames), abs=0.02)
+
+
+def test_a_trajectory_whose_times_go_backwards_is_refused_not_paired_with_nothing() -> None:
+    """An outside review: Trajectory([1, 0, 0], ...) was accepted, and `associate` then paired
+    none of it with a truth sampled at exactly 0 and 1 s (its search assumes sorted times)."""
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (3, 1))
+    with pytest.raises(TrackmeterError, match=r"^trajectory: timestamps go backwards: t = 0 s after 1 s$"):
+        Trajectory(np.array([1.0, 0.0, 0.0]), np.zeros((3, 3)), q)
+    with pytest.raises(TrackmeterError, match=r"^estimate: timestamps go backwards: t = 0 s after 1 s"):
+        associate(np.array([0.0, 1.0]), np.array([1.0, 0.0, 0.0]), 0.01)
+    with pytest.raises(TrackmeterError, match=r"^truth: timestamps go backwards: t = 0\.5 s after 1 s"):
+        associate(np.array([0.0, 1.0, 0.5]), np.array([0.0]), 0.01)
+    # repeated times are not "backwards": the state of a frame read twice is still a sample
+    assert len(Trajectory(np.array([0.0, 1.0, 1.0]), np.zeros((3, 3)), q)) == 3

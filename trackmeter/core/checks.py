@@ -139,3 +139,18 @@ def finite_time(value: float, name: str) -> float:
     if not np.isfinite(t):
         raise TrackmeterError(f"{name} is not finite: {t}")
     return t
+
+
+def time_order(t_s: NDArray[np.float64], name: str) -> None:
+    """Refuse timestamps ``t_s`` (N,) s that go backwards anywhere; repeats are allowed.
+
+    Nearest-time pairing (``searchsorted``) assumes sorted times: unsorted ones pair with
+    nothing, silently.
+
+    Raises:
+        TrackmeterError: ``"trajectory: timestamps go backwards: t = 0 s after 1 s"``.
+    """
+    back = np.flatnonzero(np.diff(t_s) < 0)
+    if len(back):
+        i = int(back[0])
+        raise TrackmeterError(f"{name}: timestamps go backwards: t = {t_s[i + 1]:.9g} s after {t_s[i]:.9g} s")

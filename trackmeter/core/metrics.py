@@ -28,6 +28,7 @@ from typing import Literal, Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from trackmeter.core.checks import time_order
 from trackmeter.core.params import check_params, param
 from trackmeter.core.transforms import (attitude_error_components, matrix_to_quat_wxyz, quat_wxyz_to_matrix,
                                        rotation_from_matrix)
@@ -132,9 +133,14 @@ def associate(t_truth_s: ArrayLike, t_est_s: ArrayLike, tolerance_s: float) -> A
         t_truth_s: (N,) non-decreasing truth timestamps, s.
         t_est_s: (K,) non-decreasing estimate timestamps, s.
         tolerance_s: largest accepted ``|t_est - t_truth|``, s.
+
+    Raises:
+        TrackmeterError: timestamps that go backwards (they would pair with nothing).
     """
     tt = np.asarray(t_truth_s, dtype=float).reshape(-1)
     te = np.asarray(t_est_s, dtype=float).reshape(-1)
+    time_order(tt, "truth")
+    time_order(te, "estimate")
     if len(tt) == 0 or len(te) == 0:
         return Association(np.zeros(0, np.intp), np.zeros(0, np.intp), np.zeros(0), len(te), 0)
     right = np.clip(np.searchsorted(tt, te), 0, len(tt) - 1)

@@ -34,6 +34,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from trackmeter.core.checks import time_order
 from trackmeter.data.atomic import AppendFile, write_text_atomic
 from trackmeter.data.trajectory import Trajectory, warn_far_from_unit_norm
 from trackmeter.errors import TrackmeterError, quoted
@@ -96,9 +97,7 @@ class MotionSeries:
         w = rows(self.omega_body_rad_s, 3, "omega_body_rad_s")
         if not np.all(np.isfinite(t)):
             raise TrackmeterError("motion series: non-finite timestamp")
-        if np.any(np.diff(t) < 0):
-            i = int(np.argmax(np.diff(t) < 0))
-            raise TrackmeterError(f"motion series: timestamps go backwards: t = {t[i + 1]:.9g} s after {t[i]:.9g} s")
+        time_order(t, "motion series")
         if not (np.all(np.isfinite(p[valid])) and np.all(np.isfinite(q[valid]))):
             raise TrackmeterError("motion series: a valid row has a non-finite pose")
         norms = np.linalg.norm(q[valid], axis=1)

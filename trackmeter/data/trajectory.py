@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from trackmeter.core.checks import time_order
 from trackmeter.data.atomic import write_text_atomic
 from trackmeter.errors import TrackmeterError, quoted
 
@@ -27,7 +28,7 @@ class Trajectory:
     """A timed sequence of poses ``T_cam_body``.
 
     Attributes:
-        t_s: (N,) timestamps, s, strictly increasing.
+        t_s: (N,) timestamps, s, non-decreasing (:func:`read_tum` keeps one pose a time).
         position_m: (N,3) body origin in the camera frame, m.
         quat_wxyz: (N,4) unit quaternions of ``R_cam_body``.
     """
@@ -44,6 +45,7 @@ class Trajectory:
             raise TrackmeterError("trajectory arrays differ in length")
         if not (np.all(np.isfinite(t)) and np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
             raise TrackmeterError("trajectory has non-finite values")
+        time_order(t, "trajectory")
         norms = np.linalg.norm(q, axis=1)
         if np.any(norms < 1e-9):
             raise TrackmeterError("trajectory has a zero quaternion")
