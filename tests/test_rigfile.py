@@ -694,3 +694,41 @@ def test_a_nan_in_a_camera_names_its_key(tmp_path: Path, key: str, said: str) ->
     out.release()
     with pytest.raises(TrackmeterError, match=rf"nan\.yaml: {said}$"):
         load_rig(tmp_path / "nan.yaml")
+
+
+@pytest.mark.parametrize("k1", [1e300, 1e6, 50.0])
+def test_a_distortion_no_lens_has_is_refused_at_load_naming_its_key(tmp_path: Path, k1: float) -> None:
+    """An outside review: D1 = [1e300, 0, 0, 0, 0] loaded, and `measure` then leaked a numpy
+    warning and blamed min_disparity_px ("... searched, nan px on this rig"); k1 = 1e6 loaded
+    and refused every point as "in the border the rectification crops", the lens never named."""
+    import dataclasses
+
+    rig = _rig()
+    bad = dataclasses.replace(rig, left=Camera(640, 480, rig.left.K, [k1, 0, 0, 0, 0]))
+    path = save_rig(bad, tmp_path / "rig.yaml")
+    with pytest.raises(TrackmeterError, match=r"rig\.yaml: .*cannot be rectified.*D1 \[.*\]"):
+        load_rig(path)
+    with pytest.raises(TrackmeterError, match="cannot be rectified"):
+        bad.rectification
+    # a strong but real lens (OpenCV's calibration sample fits k1 -0.29 to its camera) loads
+    real = dataclasses.replace(rig, left=Camera(640, 480, rig.left.K, [-0.29, 0.11, 0, 0, 0]))
+    assert load_rig(save_rig(real, tmp_path / "real.yaml")).rectification.focal_px > 0
+
+
+@pytest.mark.parametrize(("key", "value", "message"), [
+    ("D1", "[[0, 0], [0, 0]]", r"D1: distortion must be a row or a column of coefficients, got a 2x2 matrix"),
+    ("rms_px", "-1", r"rms_px must be a finite number >= 0 px, got -1"),
+    ("rms_px", ".nan", r"rms_px must be a finite number >= 0 px, got nan"),
+])
+def test_a_distortion_matrix_and_a_negative_rms_are_refused_by_key(tmp_path: Path, key: str, value: str,
+                                                                   message: str) -> None:
+    """An outside review: D1 [[0, 0], [0, 0]] was flattened into 4 coefficients, and rms_px -1
+    was taken, both without a word."""
+    path = save_rig(_rig(), tmp_path / "rig.yaml")
+    lines = [line for line in path.read_text().splitlines()]
+    start = next(i for i, line in enumerate(lines) if line.startswith(f"{key}:"))
+    end = next((i for i in range(start + 1, len(lines)) if lines[i] and not lines[i].startswith(" ")), len(lines))
+    lines[start:end] = [f"{key}: {value}"]
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(TrackmeterError, match=rf"rig\.yaml: {message}$"):
+        load_rig(path)

@@ -110,7 +110,12 @@ class Camera:
         object.__setattr__(self, "width", int(self.width))
         object.__setattr__(self, "height", int(self.height))
         object.__setattr__(self, "K", _as_matrix(self.K, (3, 3), "K"))
-        dist = np.asarray(self.dist, dtype=float).ravel()
+        dist = np.asarray(self.dist, dtype=float)
+        if dist.ndim > 2 or (dist.ndim == 2 and min(dist.shape) > 1):
+            # OpenCV writes coefficients as a 1xN or Nx1 matrix; a 2x2 flattened would be read as k1 k2 p1 p2.
+            raise TrackmeterError("distortion must be a row or a column of coefficients, got a "
+                                  + "x".join(str(n) for n in dist.shape) + " matrix")
+        dist = dist.ravel()
         if dist.size not in (0, 4, 5, 8, 12, 14):
             raise TrackmeterError(f"distortion must have 4, 5, 8, 12 or 14 finite coefficients, got {dist.size}")
         if not np.all(np.isfinite(dist)):
@@ -206,6 +211,11 @@ class StereoRig:
         if np.linalg.norm(T) <= 0:
             raise TrackmeterError("T must be non-zero (the baseline)")
         object.__setattr__(self, "T", T)
+        if self.rms_px is not None:
+            rms = float(self.rms_px)
+            if not (math.isfinite(rms) and rms >= 0):
+                raise TrackmeterError(f"rms_px must be a finite number >= 0 px, got {rms:g}")
+            object.__setattr__(self, "rms_px", rms)
         if self.left.image_size != self.right.image_size:
             raise TrackmeterError(
                 f"left and right images differ in size: {self.left.image_size} and {self.right.image_size}"
@@ -250,6 +260,36 @@ def axis_sigmas(cov: ArrayLike) -> FloatArray:
     return np.sqrt(np.maximum(np.diagonal(np.asarray(cov, dtype=float), axis1=-2, axis2=-1), 0.0))
 
 
+#: Largest ratio (either way) of the rectified focal length to the cameras' own: a lens's
+#: distortion zooms a rectification that keeps only valid pixels by a few percent (OpenCV's
+#: calibration sample, k1 -0.29: 1.1 times); 4 times keeps a sixteenth of the image.
+MAX_RECTIFICATION_ZOOM = 4.0
+
+
+def _zoom(rig: StereoRig, P1: FloatArray, P2: FloatArray) -> float:
+    """The rectified focal length (of ``P1``, ``P2``) over the cameras' mean; inf when not finite."""
+    if not (np.all(np.isfinite(P1)) and np.all(np.isfinite(P2))):
+        return math.inf
+    return float(P1[0, 0]) / float(np.mean([rig.left.K[0, 0], rig.left.K[1, 1], rig.right.K[0, 0], rig.right.K[1, 1]]))
+
+
+def _sane_focal(rig: StereoRig, P1: FloatArray, P2: FloatArray) -> bool:
+    """Whether the rectified focal length is within :data:`MAX_RECTIFICATION_ZOOM` of the cameras'."""
+    return 1.0 / MAX_RECTIFICATION_ZOOM <= _zoom(rig, P1, P2) <= MAX_RECTIFICATION_ZOOM
+
+
+def _distortion_problem(rig: StereoRig, P1: FloatArray, P2: FloatArray) -> str:
+    """One line on distortion coefficients no lens has (``D1: [1e6, 0, 0, 0, 0]``), which
+    otherwise surface as every point refused, or as NaN disparity ranges blamed on a setting;
+    it names both cameras' coefficients (``D1``, ``D2``)."""
+    zoom = _zoom(rig, P1, P2)
+    said = f"a focal length {zoom:.3g} times the cameras'" if math.isfinite(zoom) else "no finite focal length"
+    coefficients = "; ".join(f"{key} [{', '.join(f'{c:.4g}' for c in cam.dist)}]"
+                             for key, cam in (("D1", rig.left), ("D2", rig.right)))
+    return (f"the rig cannot be rectified: its lens distortion gives the rectified images {said} (a lens's gives "
+            f"about 1, at most {MAX_RECTIFICATION_ZOOM:g} is taken); no lens has such coefficients: {coefficients}")
+
+
 @dataclass(frozen=True, eq=False)
 class Rectification:
     """Rectified stereo geometry of a rig (OpenCV ``stereoRectify`` with ``alpha``).
@@ -273,7 +313,11 @@ class Rectification:
 
     @classmethod
     def of(cls, rig: StereoRig, alpha: float = 0.0) -> Rectification:
-        """Rectify ``rig``; ``alpha`` = 0 keeps only valid pixels, 1 keeps all source pixels."""
+        """Rectify ``rig``; ``alpha`` = 0 keeps only valid pixels, 1 keeps all source pixels.
+
+        Raises:
+            TrackmeterError: lens distortion no lens has (:data:`MAX_RECTIFICATION_ZOOM`).
+        """
         R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(
             rig.left.K,
             rig.left.dist,
@@ -285,6 +329,13 @@ class Rectification:
             flags=cv2.CALIB_ZERO_DISPARITY,
             alpha=alpha,
         )
+        if not _sane_focal(rig, P1, P2):
+            # The lenses' fault only if the same rig without distortion rectifies: a rig whose
+            # cameras are not side by side has its own message where it is used.
+            no_lens = cv2.stereoRectify(rig.left.K, np.zeros(5), rig.right.K, np.zeros(5), rig.image_size, rig.R,
+                                        rig.T.reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY, alpha=alpha)
+            if _sane_focal(rig, no_lens[2], no_lens[3]):
+                raise TrackmeterError(_distortion_problem(rig, P1, P2))
         return cls(rig=rig, R1=R1, R2=R2, P1=P1, P2=P2, Q=Q)
 
     # ----------------------------------------------------------------- rectified parameters

@@ -257,7 +257,12 @@ def load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> Ste
     depth would come out 1000 times too far). A rig that cannot be matched (swapped or vertical
     cameras) loads; measuring and tracking refuse it with the remedy
     (:func:`trackmeter.core.stereo.check_side_by_side`)."""
-    rig = _load_rig(resolve_rig_path(path), image_size)
+    resolved = resolve_rig_path(path)
+    rig = _load_rig(resolved, image_size)
+    try:
+        rig.rectification  # computed once and cached: a lens model that cannot be rectified is the file's fault
+    except TrackmeterError as exc:
+        raise TrackmeterError(f"{resolved}: {exc}") from None
     for problem in (baseline_problem(rig), skew_problem(rig)):
         if problem:
             warnings.warn(f"{path}: {problem}", stacklevel=2)
