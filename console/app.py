@@ -45,7 +45,7 @@ from trackmeter.core.features import METHODS
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.targets import TargetState
 from trackmeter.core.tracking import REMOVE_NEAREST_PX
-from trackmeter.core.transforms import invert_transform
+from trackmeter.core.transforms import invert_transform, matrix_to_quat_wxyz
 from trackmeter.errors import counted
 from trackmeter.pipeline.engine import MODEL_NOT_TARGETED, SelectModelPoints
 from trackmeter.pipeline.pipeline import Pipeline, RecordingStats
@@ -298,8 +298,9 @@ def set_uplot_data(handle: viser.GuiUplotHandle, data: tuple[NDArray[np.float64]
 
 
 def _wxyz(R: np.ndarray) -> tuple[float, float, float, float]:
-    q = Rotation.from_matrix(R).as_quat(scalar_first=True)
-    return tuple(float(x) for x in q)  # type: ignore[return-value]
+    """viser's ``wxyz`` of a rotation matrix (3,3)."""
+    w, x, y, z = (float(c) for c in matrix_to_quat_wxyz(R))
+    return w, x, y, z
 
 
 class _OperatorMarks:

@@ -430,3 +430,24 @@ def test_skew_is_the_cross_product_matrix() -> None:
     np.testing.assert_allclose(np.einsum("nij,nj->ni", S, w), np.cross(v, w), atol=1e-15)
     np.testing.assert_array_equal(S, -np.swapaxes(S, 1, 2))
     np.testing.assert_allclose(skew(v[0]) @ w[0], np.cross(v[0], w[0]), atol=1e-15)
+
+
+def test_procrustes_rotation_is_scipys_best_alignment_and_never_a_reflection() -> None:
+    """R of M = sum_i w_i a_i b_i^T minimises sum_i w_i |a_i - R b_i|^2 (scipy's align_vectors),
+    one matrix or a stack, and a reflection-like M still gives det +1 (Umeyama's fix)."""
+    rng = np.random.default_rng(3)
+    stack = []
+    for k in range(4):
+        a, b, w = rng.normal(size=(6, 3)), rng.normal(size=(6, 3)), rng.uniform(0.5, 2.0, 6)
+        reference, _ = Rotation.align_vectors(a, b, weights=w)
+        M = (a * w[:, None]).T @ b
+        R, S = tf.procrustes_rotation(M)
+        np.testing.assert_allclose(R, reference.as_matrix(), atol=1e-12)
+        np.testing.assert_allclose(S, np.linalg.svd(M, compute_uv=False), rtol=1e-12)
+        stack.append((M, R))
+    R_stack, S_stack = tf.procrustes_rotation(np.stack([M for M, _ in stack]))
+    assert R_stack.shape == (4, 3, 3) and S_stack.shape == (4, 3)
+    np.testing.assert_allclose(R_stack, np.stack([R for _, R in stack]), atol=1e-12)
+    mirror = np.diag([1.0, 1.0, -1.0]) @ Rotation.from_rotvec([0.3, -0.2, 0.1]).as_matrix()
+    R, _ = tf.procrustes_rotation(mirror)
+    assert np.linalg.det(R) == pytest.approx(1.0)

@@ -30,8 +30,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from trackmeter.core.checks import time_order
 from trackmeter.core.params import check_params, param
-from trackmeter.core.transforms import (attitude_error_components, matrix_to_quat_wxyz, quat_wxyz_to_matrix,
-                                       rotation_from_matrix)
+from trackmeter.core.transforms import (attitude_error_components, matrix_to_quat_wxyz, procrustes_rotation,
+                                       quat_wxyz_to_matrix, rotation_from_matrix)
 from trackmeter.errors import TrackmeterError
 
 FloatArray = NDArray[np.float64]
@@ -204,9 +204,7 @@ def estimate_body_offset(
     if len(R_true) == 0:
         raise TrackmeterError("body alignment needs at least one paired pose")
     M = np.einsum("nji,njk->ik", R_true, R_est)
-    U, _, Vt = np.linalg.svd(M)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
-    R_X = U @ D @ Vt
+    R_X, _ = procrustes_rotation(M)
     dp = np.asarray(position_est_m, dtype=float).reshape(-1, 3) - np.asarray(position_true_m, dtype=float).reshape(-1, 3)
     t_X = np.einsum("nji,nj->ni", R_true, dp).mean(axis=0)
     return R_X, t_X

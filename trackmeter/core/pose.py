@@ -45,7 +45,7 @@ from scipy.stats import chi2
 
 from trackmeter.core.checks import covariances, finite_rows, rotation_matrix
 from trackmeter.core.params import check_params, param
-from trackmeter.core.transforms import absolute_orientation, frame_from_three_points, skew
+from trackmeter.core.transforms import absolute_orientation, frame_from_three_points, procrustes_rotation, skew
 from trackmeter.errors import TrackmeterError
 
 FloatArray = NDArray[np.float64]
@@ -450,14 +450,7 @@ def _kabsch_batch(a: FloatArray, b: FloatArray) -> tuple[FloatArray, FloatArray,
     ca = a.mean(axis=1)
     cb = b.mean(axis=1)
     H = np.transpose(a - ca[:, None], (0, 2, 1)) @ (b - cb[:, None])
-    U, S, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
-    d[d == 0] = 1.0
-    D = np.zeros_like(H)
-    D[:, 0, 0] = 1.0
-    D[:, 1, 1] = 1.0
-    D[:, 2, 2] = d
-    R = U @ D @ Vt
+    R, S = procrustes_rotation(H)
     t = ca - np.einsum("kij,kj->ki", R, cb)
     return R, t, S[:, 1]
 

@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from trackmeter.core.transforms import procrustes_rotation
 from trackmeter.errors import TrackmeterError
 
 FloatArray = NDArray[np.float64]
@@ -85,8 +86,7 @@ def _nearest_rotation(R: FloatArray) -> FloatArray:
         )
     if error <= 1e-12:
         return R  # already a rotation: keep it bit for bit (files round-trip unchanged)
-    U, _, Vt = np.linalg.svd(R)
-    return U @ Vt  # det(U V^T) = +1 here since det(R) > 0
+    return procrustes_rotation(R)[0]
 
 
 @dataclass(frozen=True, eq=False)

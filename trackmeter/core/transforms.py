@@ -285,6 +285,31 @@ def apply_transform(T_a_b: ArrayLike, points_b: ArrayLike) -> FloatArray:
 # --------------------------------------------------------------------------- absolute orientation
 
 
+def procrustes_rotation(M: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """The proper rotation R (det +1) maximising ``trace(R^T M)``, and M's singular values.
+
+    The orthogonal Procrustes problem kept off reflections (Kabsch 1976; Umeyama 1991, IEEE
+    PAMI 13(4), eq. 39-41): with ``M = U S V^T``, ``R = U diag(1, 1, s) V^T``,
+    ``s = sign(det U det V)`` (1 where that is 0). With M a cross-covariance
+    ``sum_i w_i a_i b_i^T`` this is R_a_b of the best rigid fit; with M a sum of rotations, their
+    chordal mean; with M itself near a rotation, the nearest rotation (Frobenius norm).
+
+    Args:
+        M: (3,3) or (K,3,3).
+
+    Returns:
+        ``(R, S)``: R of M's shape; S (3,) or (K,3), the singular values, largest first (a
+        small ``S[1]`` means a rank-1 M: collinear points, R undetermined).
+    """
+    U, S, Vt = np.linalg.svd(np.asarray(M, dtype=float))
+    s = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
+    D = np.zeros(U.shape)
+    D[..., 0, 0] = 1.0
+    D[..., 1, 1] = 1.0
+    D[..., 2, 2] = np.where(s == 0, 1.0, s)
+    return U @ D @ Vt, S
+
+
 def absolute_orientation(
     points_a: ArrayLike,
     points_b: ArrayLike,
@@ -325,12 +350,9 @@ def absolute_orientation(
     da = a - centroid_a
     db = b - centroid_b
     cross_cov = (da * w[:, None]).T @ db  # sum_i w_i da_i db_i^T, (3,3)
-    U, S, Vt = np.linalg.svd(cross_cov)
+    R, S = procrustes_rotation(cross_cov)
     if S[1] <= 1e-12 * max(S[0], 1e-300):
         raise TrackmeterError("absolute orientation is undetermined: the points are collinear")
-    D = np.eye(3)
-    D[2, 2] = np.sign(np.linalg.det(U) * np.linalg.det(Vt)) or 1.0
-    R = U @ D @ Vt
     t = centroid_a - R @ centroid_b
     return R, t
 

@@ -72,7 +72,8 @@ from trackmeter.core.pose import (
 )
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.targets import Refusal, TargetState, count_reasons
-from trackmeter.core.transforms import attitude_error_components, make_transform, matrix_to_quat_wxyz
+from trackmeter.core.transforms import (attitude_error_components, make_transform, matrix_to_quat_wxyz,
+                                       procrustes_rotation)
 from trackmeter.core.velocity import VelocityEstimator, VelocityParams, block_weights
 from trackmeter.errors import TrackmeterError, counted
 from trackmeter.pipeline.snapshot import (
@@ -1819,8 +1820,7 @@ class Engine:
             self._align_M += T_true[:3, :3].T @ R_e
             self._align_t += T_true[:3, :3].T @ (p_e - T_true[:3, 3])
             self._align_n += 1
-            U, _, Vt = np.linalg.svd(self._align_M)
-            R_X = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0]) @ Vt
+            R_X, _ = procrustes_rotation(self._align_M)
             t_X = self._align_t / self._align_n
             # one scipy conversion for both (from_matrix costs ~0.25 ms a call, about the same
             # for two matrices; the rows are the single calls' numbers)
