@@ -36,7 +36,7 @@ import copy
 import itertools
 import warnings
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any, Collection, Sequence
+from typing import Any, Collection, Sequence
 
 import cv2
 import numpy as np
@@ -46,6 +46,7 @@ from scipy.stats import chi2
 
 from trackmeter.core import kalman as kf_mod
 from trackmeter.core.features import FeatureParams, nothing_selectable_reason, select_features
+from trackmeter.core.frames import StereoFrame
 from trackmeter.core.kalman import KalmanParams
 from trackmeter.core.matching import MeasureParams, measure_points
 from trackmeter.core.params import check_params, param
@@ -66,9 +67,6 @@ from trackmeter.core.stereo import StereoRig, check_side_by_side
 from trackmeter.core.targets import Refusal, TargetOrigin, TargetState, TargetStatus
 from trackmeter.core.transforms import absolute_orientation
 from trackmeter.errors import TrackmeterError
-
-if TYPE_CHECKING:  # core never imports the sources layer at run time
-    from trackmeter.sources.base import StereoFrame
 
 FloatArray = NDArray[np.float64]
 _NAN2 = np.full(2, np.nan)

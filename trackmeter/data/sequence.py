@@ -41,13 +41,14 @@ import shutil
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Iterable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import cv2
 import numpy as np
 import yaml
 from numpy.typing import ArrayLike, NDArray
 
+from trackmeter.core.frames import StereoFrame
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.transforms import matrix_to_quat_wxyz, quat_sign_nearest
 from trackmeter.data.atomic import (AppendFile, FolderLock, claim_folder, folder_identity, repoint,
@@ -58,9 +59,6 @@ from trackmeter.data.motion_csv import GROUNDTRUTH_COLUMNS, MotionCsvWriter, Mot
 from trackmeter.data.rigfile import load_rig, save_rig
 from trackmeter.data.trajectory import format_tum_line, read_tum
 from trackmeter.errors import TrackmeterError, counted, quoted
-
-if TYPE_CHECKING:  # the writer only reads attributes of a frame; data must not import sources
-    from trackmeter.sources.base import StereoFrame
 
 FloatArray = NDArray[np.float64]
 DATA_CSV_HEADER = "#timestamp [ns],filename"

@@ -8,53 +8,16 @@ turns a SPEC string (DESIGN.md section 6) into a source.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-import numpy as np
-from numpy.typing import NDArray
-
+from trackmeter.core.frames import GroundTruth, StereoFrame
 from trackmeter.core.stereo import StereoRig
 
 if TYPE_CHECKING:
     from trackmeter.data.model import Model
 
-
-@dataclass(frozen=True, eq=False)
-class GroundTruth:
-    """What the frame really showed, when the source knows (simulator, sequences with truth).
-
-    Attributes:
-        T_cam_body: (4,4) pose of the body in the left camera frame.
-        velocity_cam_m_s: (3,) velocity of the body origin, camera frame, m/s.
-        omega_body_rad_s: (3,) angular velocity in the body frame, rad/s (paper eq. 14).
-    """
-
-    T_cam_body: NDArray[np.float64]
-    velocity_cam_m_s: NDArray[np.float64]
-    omega_body_rad_s: NDArray[np.float64]
-
-
-@dataclass(frozen=True, eq=False)
-class StereoFrame:
-    """One stereo pair.
-
-    Attributes:
-        index: frame number from the start of the source (0, 1, ...).
-        t_s: timestamp, s.
-        left, right: (H,W) uint8 grey images, unrectified, as the cameras delivered them.
-        truth: ground truth at ``t_s`` when the source has it.
-        cut: the stream is discontinuous before this frame: the first frame after a
-            ``restart()`` or of a looping source's new pass. The scene jumps here, so nothing
-            tracked may carry over (a tracker would re-find its points on the wrong surfaces).
-    """
-
-    index: int
-    t_s: float
-    left: NDArray[np.uint8]
-    right: NDArray[np.uint8]
-    truth: GroundTruth | None = None
-    cut: bool = False
+#: The frame a source yields is defined in the bottom layer (:mod:`trackmeter.core.frames`).
+__all__ = ["GroundTruth", "Source", "StereoFrame"]
 
 
 class Source(ABC):
