@@ -397,3 +397,14 @@ def test_the_report_of_a_stop_a_c_callback_dropped_is_dropped_too():
         assert seen == [dropped]
     finally:
         stop_signals.note_taken(None)
+
+
+def test_every_commands_description_fits_a_100_column_terminal() -> None:
+    """A description is printed as written (RawDescriptionHelpFormatter): `analyze --help` had
+    a line of 141 characters, folded by the terminal mid-word (an outside review)."""
+    from trackmeter.cli.main import build_parser
+
+    parser = build_parser()
+    long = [f"{name}: {line[:60]}... ({len(line)})" for name, sub in parser.commands.items()
+            for line in (sub.description or "").splitlines() if len(line) > 100]
+    assert not long, "\n".join(long)

@@ -8,13 +8,14 @@ viewing axis) beside the error propagation's prediction; the least-squares parab
 sigma_z = k z^2 (Fig. 3); the sub-pixel disparity accuracy k f b it implies (eq. 2); and the
 error probability density with its best Gaussian fit and normality statistics (Fig. 2).
 Ranges are told apart by the source's ground truth (frames with the same true pose); without
-ground truth, by the view: a new range starts where the left image jumps (the target moved). The true error of each point (its "true rms" and
-"bias" columns) needs the true 3D point at that pixel, which only the simulator source knows
-(its renderer's surface); a sequence folder's ground truth is the pose alone, so those columns
-are left empty there. A range where fewer than 3 points are measured often enough is skipped
-with its reason (static_ranges' 7 and 10 m with the 12 mm rig). An underexposed range is
-measured as `measure` and `track` see it: multiplied by the exposure gain of its first left
-image (config section exposure; one gain per range), said on stderr.
+ground truth, by the view: a new range starts where the left image jumps (the target moved).
+The true error of each point (its "true rms" and "bias" columns) needs the true 3D point at
+that pixel, which only the simulator source knows (its renderer's surface); a sequence
+folder's ground truth is the pose alone, so those columns are left empty there. A range where
+fewer than 3 points are measured often enough is skipped with its reason (static_ranges' 7
+and 10 m with the 12 mm rig). An underexposed range is measured as `measure` and `track` see
+it: multiplied by the exposure gain of its first left image (config section exposure; one
+gain per range), said on stderr.
 
 --json prints the summary (SI units); --out DIR writes analysis.json, ranges.csv,
 sigma_vs_range.png, error_density.png and report.md.

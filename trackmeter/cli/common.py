@@ -6,17 +6,19 @@ import argparse
 import math
 import sys
 import time
-from typing import TYPE_CHECKING, Iterable, Iterator, TypeVar
+from typing import TYPE_CHECKING, Iterable, Iterator, TextIO, TypeVar
 
 from trackmeter.errors import TrackmeterError
 
 if TYPE_CHECKING:
+    from trackmeter.data.config import Config
     from trackmeter.sources.base import Source
 
 T = TypeVar("T")
 
 
-def load_config_from_args(args: argparse.Namespace):  # type: ignore[no-untyped-def]
+def load_config_from_args(args: argparse.Namespace) -> Config:
+    """The configuration: ``config/default.yaml`` with ``--config`` layered over it."""
     from trackmeter.data.config import load_config
 
     return load_config(getattr(args, "config", None))
@@ -114,7 +116,7 @@ def plain_progress_due(last_s: float, now_s: float) -> bool:
     return now_s - last_s >= PLAIN_PROGRESS_S
 
 
-def progress(items: Iterable[T], total: int | None, label: str, stream=None) -> Iterator[T]:  # type: ignore[no-untyped-def]
+def progress(items: Iterable[T], total: int | None, label: str, stream: TextIO | None = None) -> Iterator[T]:
     """Yield ``items`` while drawing a one-line progress bar on a terminal; elsewhere (a log,
     a pipe) a plain line every :data:`PLAIN_PROGRESS_S` seconds.
 

@@ -40,6 +40,7 @@ from typing import TYPE_CHECKING
 from trackmeter.cli.common import load_config_from_args
 
 if TYPE_CHECKING:
+    from trackmeter.core.metrics import EvaluateParams
     from trackmeter.data.evaluation import LoadedMotion
 
 #: An estimate of unknown case whose attitude is off by more than this (RMS) is told about
@@ -65,7 +66,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", metavar="DIR", help="write errors.csv, summary.json, plots and report.md here")
 
 
-def _params(args: argparse.Namespace):  # type: ignore[no-untyped-def]
+def _params(args: argparse.Namespace) -> EvaluateParams:
     from trackmeter.core.metrics import EvaluateParams
     from trackmeter.data.config import check_option
 

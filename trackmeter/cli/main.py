@@ -21,6 +21,7 @@ import signal
 import sys
 import threading
 import warnings
+from types import ModuleType
 from typing import Any, Callable, NoReturn, Sequence, TextIO
 
 from trackmeter.errors import TrackmeterError
@@ -79,7 +80,7 @@ def build_parser() -> _Parser:
     return parser
 
 
-def _command_module(name: str):  # type: ignore[no-untyped-def]
+def _command_module(name: str) -> ModuleType:
     return importlib.import_module(f"trackmeter.cli.{name}")
 
 

@@ -31,10 +31,13 @@ import argparse
 import re
 import sys
 import time
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from trackmeter.cli.common import parse_uv, plain_progress_due, source_warning_since
 from trackmeter.errors import TrackmeterError, counted
+
+if TYPE_CHECKING:
+    from trackmeter.sources.base import StereoFrame
 
 
 #: The summary's reason for an invalid first frame (its targets start on it, tracked from the next).
@@ -122,7 +125,7 @@ class _Limited:
         self.rig = source.rig
         self.rate_hz = source.rate_hz
 
-    def read(self):  # type: ignore[no-untyped-def]
+    def read(self) -> StereoFrame | None:
         if self._left <= 0:
             return None
         self._left -= 1

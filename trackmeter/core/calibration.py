@@ -28,7 +28,7 @@ centre of the top-left pixel is (0, 0) (``findChessboardCorners`` and ``cornerSu
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import cv2
 import numpy as np
@@ -439,7 +439,8 @@ def _free_intrinsics(params: CalibrationParams) -> tuple[list[int], list[str]]:
     return free, names
 
 
-def reprojection_covariance(residual_fn, x0: FloatArray, step: FloatArray) -> tuple[FloatArray, float]:  # type: ignore[no-untyped-def]
+def reprojection_covariance(residual_fn: Callable[[FloatArray], FloatArray], x0: FloatArray,
+                            step: FloatArray) -> tuple[FloatArray, float]:
     """Gauss-Newton covariance ``sigma² (JᵀJ)⁻¹`` of a least-squares solution ``x0``.
 
     ``J`` by central differences of ``residual_fn`` with per-parameter ``step``;

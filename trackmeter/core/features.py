@@ -26,6 +26,7 @@ optionally over a narrower disparity range the caller knows (``disparity_range_p
 from __future__ import annotations
 
 import weakref
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from functools import lru_cache
 
@@ -205,7 +206,8 @@ def _gabor_plan(wavelengths_px: tuple[float, ...], orientations: int, pyramid: b
     return tuple(plan)
 
 
-def _iter_directional_energy(img: NDArray[np.float32], wavelengths_px: tuple[float, ...], orientations: int, pyramid: bool = False):  # type: ignore[no-untyped-def]
+def _iter_directional_energy(img: NDArray[np.float32], wavelengths_px: tuple[float, ...], orientations: int,
+                             pyramid: bool = False) -> Iterator[tuple[int, NDArray[np.float32]]]:
     """Yield ``(orientation, energy (H,W))`` for every orientation, max over wavelengths."""
     levels: dict[int, dict[int, NDArray[np.float32]]] = {}
     images = [img]

@@ -48,9 +48,10 @@ from trackmeter.core import kalman as kf_mod
 from trackmeter.core.features import FeatureParams, nothing_selectable_reason, select_features
 from trackmeter.core.frames import StereoFrame
 from trackmeter.core.kalman import KalmanParams
-from trackmeter.core.matching import MeasureParams, measure_points
+from trackmeter.core.matching import MeasureParams, PointMeasurement, measure_points
 from trackmeter.core.params import check_params, param
 from trackmeter.core.patch_tracking import (
+    EpipolarMatch,
     PatchTrack,
     Templates,
     complex_map,
@@ -671,7 +672,7 @@ class Tracker:
         return result
 
     def _create(
-        self, frame: StereoFrame, uvf: FloatArray, meas, target_id: str | None, origin: TargetOrigin,  # type: ignore[no-untyped-def]
+        self, frame: StereoFrame, uvf: FloatArray, meas: PointMeasurement, target_id: str | None, origin: TargetOrigin,
         first: tuple[Any, int] | None = None,
     ) -> TargetState | Refusal:
         """A new target at ``uvf`` (2,) from its measurement ``meas`` (:func:`measure_points`), or the refusal.
@@ -764,7 +765,7 @@ class Tracker:
 
     # ------------------------------------------------------------------ stereo
 
-    def _stereo(self, fc: _FrameCache, uv: FloatArray, d_low: FloatArray, span: int | NDArray):  # type: ignore[no-untyped-def]
+    def _stereo(self, fc: _FrameCache, uv: FloatArray, d_low: FloatArray, span: int | NDArray) -> EpipolarMatch:
         p = self.params
         cl = self.rect.rectify_points(uv, 0)
         return match_epipolar(
@@ -783,13 +784,13 @@ class Tracker:
             whole_disparity=p.still_camera_fits,
         )
 
-    def _first_matches(self, fc: _FrameCache, uv: FloatArray, disparity_px: FloatArray):  # type: ignore[no-untyped-def]
+    def _first_matches(self, fc: _FrameCache, uv: FloatArray, disparity_px: FloatArray) -> EpipolarMatch:
         """New targets' first stereo matches at left pixels ``uv`` (N,2), one batched
         :meth:`_stereo` around their measured disparities (N,), as a tracked target's next is."""
         ss = self.params.stereo_search_px
         return self._stereo(fc, uv, np.asarray(disparity_px, float) - ss, np.full(len(uv), 2 * ss))
 
-    def _set_stereo(self, ts: list[_Target], m, idx: NDArray) -> None:  # type: ignore[no-untyped-def]
+    def _set_stereo(self, ts: list[_Target], m: EpipolarMatch, idx: NDArray) -> None:
         """Triangulate matches ``idx`` of ``m`` (batched) into targets ``ts``."""
         if len(ts) == 0:
             return
@@ -891,7 +892,8 @@ class Tracker:
         return refined
 
     def _recover_accept(
-        self, fc: _FrameCache, frame: StereoFrame, t: _Target, centre: FloatArray, res: PatchTrack, r: int, m, j: int,  # type: ignore[no-untyped-def]
+        self, fc: _FrameCache, frame: StereoFrame, t: _Target, centre: FloatArray, res: PatchTrack, r: int,
+        m: EpipolarMatch, j: int,
         check_rigid: bool = True,
     ) -> tuple[bool, str | None]:
         """Finish re-finding ``t`` from row ``r`` of the patch fit and row ``j`` of the stereo match."""
@@ -1293,7 +1295,7 @@ class Tracker:
             t.planes.append(m_anchor[i])
             t.plane_m = np.median(np.array(t.planes), axis=0)
 
-    def _rigid_recheck(self, t: _Target, m, j: int = 0) -> str | None:  # type: ignore[no-untyped-def]
+    def _rigid_recheck(self, t: _Target, m: EpipolarMatch, j: int = 0) -> str | None:
         """Why a re-found target's 3D point disagrees with its reference distances to the
         targets measured now (None when it agrees with every one of them, at least ``rigid_min_pairs``)."""
         p = self.params

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -21,6 +22,9 @@ from trackmeter.core.error_analysis import DensityFit, ErrorAnalysis
 from trackmeter.data.atomic import write_files_atomic
 from trackmeter.data.evaluation import check_report_directory, figure_png
 from trackmeter.data.jsontext import json_text
+
+if TYPE_CHECKING:  # matplotlib is imported only where a report is drawn
+    from matplotlib.axes import Axes
 
 #: The paper's figures (sections 2.F-2.G): sigma_z at 3.5 m, sub-pixel accuracy.
 PAPER_SIGMA_Z_3P5_M = 0.004
@@ -114,7 +118,7 @@ def _plot(analysis: ErrorAnalysis) -> dict[str, bytes]:
     sigma_png = figure_png(fig)
     plt.close(fig)
 
-    def panel(ax, d: DensityFit, scale: float, unit: str, title: str) -> None:  # type: ignore[no-untyped-def]
+    def panel(ax: Axes, d: DensityFit, scale: float, unit: str, title: str) -> None:
         edges = d.bin_edges * scale
         ax.stairs(d.density / scale, edges, fill=True, alpha=0.5, label="measured")
         x = np.linspace(edges[0], edges[-1], 300)

@@ -16,7 +16,7 @@ import math
 import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 import yaml
@@ -30,6 +30,9 @@ from trackmeter.data.jsontext import json_text
 from trackmeter.data.sequence import check_output_folder, find_sequence_file, seconds_if_nanoseconds
 from trackmeter.data.trajectory import read_tum
 from trackmeter.errors import TrackmeterError, counted
+
+if TYPE_CHECKING:  # matplotlib is imported only where a report is drawn
+    from matplotlib.figure import Figure
 
 
 @dataclass(frozen=True, eq=False)
@@ -545,7 +548,7 @@ def render_error_plots(evaluation: Evaluation) -> dict[str, bytes]:
     return plots
 
 
-def figure_png(fig) -> bytes:  # type: ignore[no-untyped-def]
+def figure_png(fig: Figure) -> bytes:
     """A matplotlib figure as PNG bytes (written to disk by the caller, with its other files)."""
     import io
 

@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from trackmeter.core.stereo import StereoRig
+from trackmeter.core.stereo import Camera, StereoRig
 from trackmeter.sources.base import GroundTruth, Source, StereoFrame
 
 FloatArray = NDArray[np.float64]
@@ -50,7 +50,7 @@ def plate_texture(shape: tuple[int, int] = (768, 1024), seed: int = 0, brightnes
     return np.clip(brightness + acc, 40, 255).astype(np.uint8)
 
 
-def _rays(cam, size: tuple[int, int]) -> FloatArray:  # type: ignore[no-untyped-def]
+def _rays(cam: Camera, size: tuple[int, int]) -> FloatArray:
     w, h = size
     u, v = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
     xy = cam.undistort(np.column_stack([u.ravel(), v.ravel()]))

@@ -41,6 +41,8 @@ from trackmeter.errors import TrackmeterError
 
 F32 = NDArray[np.float32]
 FloatArray = NDArray[np.float64]
+#: A material's texture: albedo, the bump map's two gradients and the specular weight, each (H,W).
+_Texture = tuple[NDArray[np.floating], NDArray[np.floating], NDArray[np.floating], NDArray[np.floating]]
 
 #: Box face order for ``face_materials``: outward normals +x, -x, +y, -y, +z, -z.
 BOX_FACES: tuple[str, ...] = ("+x", "-x", "+y", "-y", "+z", "-z")
@@ -484,7 +486,7 @@ def _cell_edges(labels: NDArray[np.int32]) -> F32:
     return np.minimum(e, 1.0)
 
 
-def _tex_mli(m: MaterialSpec, shape: tuple[int, int], t: float, rng: np.random.Generator):  # type: ignore[no-untyped-def]
+def _tex_mli(m: MaterialSpec, shape: tuple[int, int], t: float, rng: np.random.Generator) -> _Texture:
     """Crinkled multi-layer insulation: faceted foil (Voronoi facets with random tilts), wrinkles
     along random creases, seams of tape along the edges."""
     nv, nu = shape
@@ -519,7 +521,7 @@ def _tex_mli(m: MaterialSpec, shape: tuple[int, int], t: float, rng: np.random.G
     return albedo, gx, gy, spec
 
 
-def _tex_solar(m: MaterialSpec, shape: tuple[int, int], t: float, rng: np.random.Generator):  # type: ignore[no-untyped-def]
+def _tex_solar(m: MaterialSpec, shape: tuple[int, int], t: float, rng: np.random.Generator) -> _Texture:
     """Solar array: a grid of multicrystalline cells (grain texture, busbars) under cover glass
     (per-cell tilt → cell-wise glints), white gaps, an aluminium frame."""
     nv, nu = shape
@@ -553,7 +555,7 @@ def _tex_solar(m: MaterialSpec, shape: tuple[int, int], t: float, rng: np.random
     return albedo.astype(np.float32), gx, gy, spec
 
 
-def _tex_radiator(m: MaterialSpec, shape: tuple[int, int], t: float, rng: np.random.Generator):  # type: ignore[no-untyped-def]
+def _tex_radiator(m: MaterialSpec, shape: tuple[int, int], t: float, rng: np.random.Generator) -> _Texture:
     """Radiator of optical solar reflector tiles: near-black mirrors (each slightly tilted, so
     they flash one by one), white grout, bolt heads; blotches where the paint is stained."""
     nv, nu = shape
@@ -575,7 +577,7 @@ def _tex_radiator(m: MaterialSpec, shape: tuple[int, int], t: float, rng: np.ran
     return albedo.astype(np.float32), gx.astype(np.float32), gy.astype(np.float32), spec
 
 
-def _tex_paint(m: MaterialSpec, shape: tuple[int, int], t: float, rng: np.random.Generator):  # type: ignore[no-untyped-def]
+def _tex_paint(m: MaterialSpec, shape: tuple[int, int], t: float, rng: np.random.Generator) -> _Texture:
     """Painted surface: mottled, with concentric rings and radial ribs (a dish's reflector)."""
     nv, nu = shape
     y, x = np.mgrid[0:nv, 0:nu].astype(np.float32)
@@ -593,7 +595,7 @@ def _tex_paint(m: MaterialSpec, shape: tuple[int, int], t: float, rng: np.random
     return albedo.astype(np.float32), gx, gy, spec
 
 
-def _tex_metal(m: MaterialSpec, shape: tuple[int, int], t: float, rng: np.random.Generator):  # type: ignore[no-untyped-def]
+def _tex_metal(m: MaterialSpec, shape: tuple[int, int], t: float, rng: np.random.Generator) -> _Texture:
     """Brushed metal: streaks along u, rivets, slight waviness."""
     nv, nu = shape
     streak = rng.standard_normal(shape).astype(np.float32)
@@ -611,7 +613,7 @@ def _tex_metal(m: MaterialSpec, shape: tuple[int, int], t: float, rng: np.random
     return albedo.astype(np.float32), gx, gy, np.full(shape, m.specular, np.float32)
 
 
-def _tex_plain(m: MaterialSpec, shape: tuple[int, int], t: float, rng: np.random.Generator):  # type: ignore[no-untyped-def]
+def _tex_plain(m: MaterialSpec, shape: tuple[int, int], t: float, rng: np.random.Generator) -> _Texture:
     """Uniform albedo with optional fine noise (variation 0: exactly uniform)."""
     albedo = np.full(shape, m.albedo, np.float32)
     if m.albedo_variation > 0:
