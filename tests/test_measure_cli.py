@@ -234,3 +234,18 @@ def test_points_beyond_the_range_searched_name_the_range_and_its_setting(pair, t
     assert "measure.max_disparity_px (93.5 px)" in lines[0] and "--config" in lines[0]
     assert _run(folder, "--at", "310,250") == 0  # the default range: measured, nothing said
     assert capsys.readouterr().err == ""
+
+
+def test_a_rig_with_its_cameras_swapped_is_refused_naming_the_file(pair, tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    """'the right camera lies left of the left one ...: exchange the left and right cameras'
+    did not say which rig file (an outside probe): a command may be given several files."""
+    import dataclasses
+
+    from trackmeter.data.rigfile import save_rig
+
+    rig = pair[0]
+    swapped = save_rig(dataclasses.replace(rig, left=rig.right, right=rig.left, R=rig.R.T, T=-rig.R.T @ rig.T),
+                       tmp_path / "swapped.yaml")
+    assert _run(pair[4], "--at", "300,200", rig=swapped) == 2
+    line = _one_error_line(capsys, "lies left of the left one")
+    assert f"error: {swapped}: " in line

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Iterable, Iterator, TextIO, TypeVar
 from trackmeter.errors import TrackmeterError
 
 if TYPE_CHECKING:
+    from trackmeter.core.stereo import StereoRig
     from trackmeter.data.config import Config
     from trackmeter.sources.base import Source
 
@@ -72,10 +73,24 @@ def open_source_with_rig(spec: str, rig_path: str | None, realtime: bool = False
             where = f"--rig {rig_path}" if rig_path else f"the rig {spec} carries; give the right one with --rig"
             raise TrackmeterError(f"frame {size[0]}x{size[1]} does not match the rig's image size "
                                   f"{rig.image_size[0]}x{rig.image_size[1]} ({where})")
+        if rig is not None:
+            check_rig_side_by_side(rig, rig_path or f"the rig of {spec}")
     except BaseException:
         source.close()
         raise
     return source
+
+
+def check_rig_side_by_side(rig: StereoRig, named: str) -> None:
+    """Refuse a rig whose cameras cannot be matched along rows (swapped, one above the other),
+    the message starting with ``named``, the rig's file: the core says what is wrong with the
+    rig (:func:`trackmeter.core.stereo.check_side_by_side`) but not which file it came from."""
+    from trackmeter.core.stereo import check_side_by_side
+
+    try:
+        check_side_by_side(rig)
+    except TrackmeterError as exc:
+        raise TrackmeterError(f"{named}: {exc}") from None
 
 
 def source_warning_since(source: object, warning_at_open: str | None) -> str | None:

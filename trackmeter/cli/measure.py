@@ -52,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
 
     import warnings
 
-    from trackmeter.cli.common import parse_uv
+    from trackmeter.cli.common import check_rig_side_by_side, parse_uv
     from trackmeter.core.exposure import expose_pair
     from trackmeter.core.matching import REASON_BEYOND_RANGE, measure_points, measurements_to_json
     from trackmeter.core.stereo import swapped_views_problem
@@ -78,6 +78,7 @@ def run(args: argparse.Namespace) -> int:
             raise TrackmeterError(
                 f"{path}: image is {image.shape[1]}x{image.shape[0]} px but the rig {args.rig} is {W}x{H}"
             )
+    check_rig_side_by_side(rig, args.rig)
 
     # An underexposed pair is brought to the grey levels the matcher's gates are set for, as
     # the tracking engine does (config section exposure).
