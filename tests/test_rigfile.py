@@ -706,13 +706,20 @@ def test_a_distortion_no_lens_has_is_refused_at_load_naming_its_key(tmp_path: Pa
     rig = _rig()
     bad = dataclasses.replace(rig, left=Camera(640, 480, rig.left.K, [k1, 0, 0, 0, 0]))
     path = save_rig(bad, tmp_path / "rig.yaml")
-    with pytest.raises(TrackmeterError, match=r"rig\.yaml: .*cannot be rectified.*D1 \[.*\]"):
+    with pytest.raises(TrackmeterError, match=r"rig\.yaml: .*cannot be rectified.*check D1 \[.*\] and D2 \["):
         load_rig(path)
     with pytest.raises(TrackmeterError, match="cannot be rectified"):
         bad.rectification
     # a strong but real lens (OpenCV's calibration sample fits k1 -0.29 to its camera) loads
     real = dataclasses.replace(rig, left=Camera(640, 480, rig.left.K, [-0.29, 0.11, 0, 0, 0]))
     assert load_rig(save_rig(real, tmp_path / "real.yaml")).rectification.focal_px > 0
+    # and so does a real pincushion lens on cameras toed in by 18 deg, whose rectification zooms
+    # 3.2 times without the lens and 4.8 with it: the geometry's zoom, not the coefficients'
+    lens = [0.3, 0, 0, 0, 0]
+    toed_in = StereoRig(Camera(640, 480, [[800, 0, 320], [0, 800, 240], [0, 0, 1]], lens),
+                        Camera(640, 480, [[800, 0, 320], [0, 800, 240], [0, 0, 1]], lens),
+                        Rotation.from_euler("y", -18, degrees=True).as_matrix(), [-0.3, 0, 0])
+    assert toed_in.rectification.focal_px > 4 * 800
 
 
 @pytest.mark.parametrize(("key", "value", "message"), [

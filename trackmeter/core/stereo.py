@@ -264,6 +264,10 @@ def axis_sigmas(cov: ArrayLike) -> FloatArray:
 #: distortion zooms a rectification that keeps only valid pixels by a few percent (OpenCV's
 #: calibration sample, k1 -0.29: 1.1 times); 4 times keeps a sixteenth of the image.
 MAX_RECTIFICATION_ZOOM = 4.0
+#: ... blamed on the distortion only where the same rig without it zooms at most this much
+#: (either way): a converging rig's own zoom (2 at 15 deg of toe-in) grows steeply with any
+#: lens, and is the geometry's, not the coefficients'.
+LENSLESS_ZOOM_FOR_BLAME = 2.0
 
 
 def _zoom(rig: StereoRig, P1: FloatArray, P2: FloatArray) -> float:
@@ -273,21 +277,20 @@ def _zoom(rig: StereoRig, P1: FloatArray, P2: FloatArray) -> float:
     return float(P1[0, 0]) / float(np.mean([rig.left.K[0, 0], rig.left.K[1, 1], rig.right.K[0, 0], rig.right.K[1, 1]]))
 
 
-def _sane_focal(rig: StereoRig, P1: FloatArray, P2: FloatArray) -> bool:
-    """Whether the rectified focal length is within :data:`MAX_RECTIFICATION_ZOOM` of the cameras'."""
-    return 1.0 / MAX_RECTIFICATION_ZOOM <= _zoom(rig, P1, P2) <= MAX_RECTIFICATION_ZOOM
+def _within(zoom: float, limit: float) -> bool:
+    return 1.0 / limit <= zoom <= limit
 
 
-def _distortion_problem(rig: StereoRig, P1: FloatArray, P2: FloatArray) -> str:
+def _distortion_problem(rig: StereoRig, zoom: float, lensless_zoom: float) -> str:
     """One line on distortion coefficients no lens has (``D1: [1e6, 0, 0, 0, 0]``), which
     otherwise surface as every point refused, or as NaN disparity ranges blamed on a setting;
     it names both cameras' coefficients (``D1``, ``D2``)."""
-    zoom = _zoom(rig, P1, P2)
-    said = f"a focal length {zoom:.3g} times the cameras'" if math.isfinite(zoom) else "no finite focal length"
-    coefficients = "; ".join(f"{key} [{', '.join(f'{c:.4g}' for c in cam.dist)}]"
-                             for key, cam in (("D1", rig.left), ("D2", rig.right)))
-    return (f"the rig cannot be rectified: its lens distortion gives the rectified images {said} (a lens's gives "
-            f"about 1, at most {MAX_RECTIFICATION_ZOOM:g} is taken); no lens has such coefficients: {coefficients}")
+    said = f"{zoom:.3g} times the cameras'" if math.isfinite(zoom) else "not finite"
+    coefficients = " and ".join(f"{key} [{', '.join(f'{c:.4g}' for c in cam.dist)}]"
+                                for key, cam in (("D1", rig.left), ("D2", rig.right)))
+    return (f"the rig cannot be rectified: with its lens distortion the rectified focal length is {said} "
+            f"({lensless_zoom:.3g} without distortion; a lens changes it by a few percent, and beyond "
+            f"{MAX_RECTIFICATION_ZOOM:g} times is refused): check {coefficients}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -316,7 +319,8 @@ class Rectification:
         """Rectify ``rig``; ``alpha`` = 0 keeps only valid pixels, 1 keeps all source pixels.
 
         Raises:
-            TrackmeterError: lens distortion no lens has (:data:`MAX_RECTIFICATION_ZOOM`).
+            TrackmeterError: lens distortion no lens has (:data:`MAX_RECTIFICATION_ZOOM`,
+                :data:`LENSLESS_ZOOM_FOR_BLAME`).
         """
         R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(
             rig.left.K,
@@ -329,13 +333,15 @@ class Rectification:
             flags=cv2.CALIB_ZERO_DISPARITY,
             alpha=alpha,
         )
-        if not _sane_focal(rig, P1, P2):
-            # The lenses' fault only if the same rig without distortion rectifies: a rig whose
-            # cameras are not side by side has its own message where it is used.
+        zoom = _zoom(rig, P1, P2)
+        if not _within(zoom, MAX_RECTIFICATION_ZOOM):
+            # The lenses' fault only if the same rig without distortion rectifies well: a rig
+            # whose cameras are not side by side has its own message where it is used.
             no_lens = cv2.stereoRectify(rig.left.K, np.zeros(5), rig.right.K, np.zeros(5), rig.image_size, rig.R,
                                         rig.T.reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY, alpha=alpha)
-            if _sane_focal(rig, no_lens[2], no_lens[3]):
-                raise TrackmeterError(_distortion_problem(rig, P1, P2))
+            lensless_zoom = _zoom(rig, no_lens[2], no_lens[3])
+            if _within(lensless_zoom, LENSLESS_ZOOM_FOR_BLAME):
+                raise TrackmeterError(_distortion_problem(rig, zoom, lensless_zoom))
         return cls(rig=rig, R1=R1, R2=R2, P1=P1, P2=P2, Q=Q)
 
     # ----------------------------------------------------------------- rectified parameters
