@@ -121,3 +121,41 @@ def test_the_check_sees_lazy_relative_and_console_imports() -> None:
     assert upward_imports("from trackmeter.cli import main\n", "trackmeter.__main__") == []
     assert upward_imports("from trackmeter.priority import raise_cpu_priority\n", "trackmeter.core.pose")
     assert upward_imports("from trackmeter.errors import TrackmeterError\n", "trackmeter.core.pose") == []
+
+
+#: Modules outside ``trackmeter.pipeline`` that may start a thread, and why. The simulator's
+#: render worker sends frames larger than a pipe's buffer: a thread drains its stdout so that it
+#: renders ahead instead of stalling after each frame (the thread only copies bytes into a queue).
+THREADS_OUTSIDE_PIPELINE = {"trackmeter.sources.sim.render_ahead"}
+
+
+def thread_starts(source: str) -> list[int]:
+    """Lines of ``source`` that make a thread or a pool of them (``threading.Thread(...)``,
+    ``Thread(...)``, a ``ThreadPoolExecutor``, ``_thread.start_new_thread``)."""
+    names = {"Thread", "ThreadPoolExecutor", "start_new_thread", "Timer"}
+    lines = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Call):
+            f = node.func
+            name = f.attr if isinstance(f, ast.Attribute) else f.id if isinstance(f, ast.Name) else ""
+            if name in names:
+                lines.append(node.lineno)
+    return lines
+
+
+@pytest.mark.parametrize("path", SOURCES, ids=lambda p: str(p.relative_to(PACKAGE.parent)))
+def test_threads_start_only_in_the_pipeline(path: Path) -> None:
+    """The style's rule: threads only in the pipeline (the core and data layers are plain
+    functions and objects a caller may use from any thread)."""
+    module = module_name(path)
+    if module.startswith("trackmeter.pipeline") or module in THREADS_OUTSIDE_PIPELINE:
+        return
+    lines = thread_starts(path.read_text(encoding="utf-8"))
+    assert not lines, f"{path.relative_to(PACKAGE.parent)} starts a thread at line(s) {lines}"
+
+
+def test_the_thread_check_sees_the_usual_spellings() -> None:
+    source = ("import threading\nfrom concurrent.futures import ThreadPoolExecutor\n"
+              "threading.Thread(target=print)\nThreadPoolExecutor(2)\nthreading.Timer(1, print)\n")
+    assert thread_starts(source) == [3, 4, 5]
+    assert thread_starts("import threading\nlock = threading.Lock()\n") == []
