@@ -20,7 +20,8 @@ Position is filtered the same way (a vector space, so exactly).
 A causal low-pass delays a ramp by its group delay at DC (a 2 Hz second-order Butterworth:
 ~0.11 s, i.e. 1.1 degrees behind a 10 deg/s tumble). With ``velocity_compensated`` the chart
 moves with the estimated velocity (``R_base <- R_base exp(omega_body dt)``, ``p_base <- p_base +
-v dt`` before each sample), so the filter only sees the deviation from constant-velocity motion
+(v_prev + v) dt / 2`` before each sample: the trapezoid rule, since a body origin off the spin
+axis turns its velocity within a frame), so the filter only sees the deviation from constant-velocity motion
 and a constant-velocity motion passes with no delay while measurement noise is still filtered.
 """
 
@@ -98,6 +99,7 @@ class PoseFilter:
         self._R_base: FloatArray | None = None
         self._p_base: FloatArray | None = None
         self._t_last: float | None = None
+        self._v_last: FloatArray | None = None  # the last finite v_cam that moved the chart
         self._zi = np.zeros(self._zi_unit.shape + (6,))  # states for (rotation vector, position)
 
     def retuned(self, params: FilterParams) -> PoseFilter:
@@ -112,6 +114,7 @@ class PoseFilter:
         new = PoseFilter(params, self.rate_hz)
         if params.enabled and self._R_base is not None and self._p_base is not None:
             new._R_base, new._p_base, new._t_last = self._R_base.copy(), self._p_base.copy(), self._t_last
+            new._v_last = None if self._v_last is None else self._v_last.copy()
         return new
 
     @property
@@ -155,7 +158,15 @@ class PoseFilter:
             if omega_body is not None and np.all(np.isfinite(omega_body)):
                 self._R_base = self._R_base @ Rotation.from_rotvec(np.asarray(omega_body, dtype=float) * dt).as_matrix()
             if v_cam is not None and np.all(np.isfinite(v_cam)):
-                self._p_base = self._p_base + np.asarray(v_cam, dtype=float) * dt
+                # The trapezoid rule: a body origin off the spin axis turns its velocity by
+                # omega dt within the frame, and the newest velocity alone missed by
+                # |omega| |v| dt^2 / 2 a frame, which the filter passed on as a lag.
+                v = np.asarray(v_cam, dtype=float)
+                mean_v = v if self._v_last is None else 0.5 * (self._v_last + v)
+                self._p_base = self._p_base + mean_v * dt
+                self._v_last = v.copy()
+            else:
+                self._v_last = None  # not averaged with a velocity from before a gap
         x = np.concatenate([rotation_from_matrix(self._R_base.T @ R).as_rotvec(), p - self._p_base])
         y, self._zi = signal.sosfilt(self.sos, x[None, :], axis=0, zi=self._zi)
         y = y[0]
