@@ -430,3 +430,27 @@ def test_case_a_frame_is_not_given_up_while_the_coast_is_valid(estec_rig) -> Non
     outs = [engine.process(frame_at(k))[1] for k in range(60, 60 + gap)]
     assert all(p.valid and p.coasting_s > 0 for p in outs)
     assert engine.stats.frames_redefined == 0 and engine.frame_ids == frame_ids
+
+
+def test_a_lever_of_zero_puts_the_centre_of_mass_at_the_body_origin() -> None:
+    """pose.coast_lever_m: 0 is allowed (the body origin IS the centre of mass), and the prior
+    of zero width divided by zero: the fit returned NaN and the velocity estimator raised
+    numpy's 'Eigenvalues did not converge' (an outside maths review)."""
+    omega = np.radians([3.0, -1.0, 5.0])
+    v = np.array([0.003, -0.002, 0.001])
+    t = np.arange(63) * 0.04
+    R, p = _turning_about(np.zeros(3), v, omega, t)
+    fit = fit_centre_of_mass(t, R, p, np.full(len(t), 1e8), lever_m=0.0)
+    assert fit is not None
+    np.testing.assert_array_equal(fit.c_body, np.zeros(3))
+    np.testing.assert_allclose(fit.v_cam, v, atol=1e-9)
+    assert np.all(np.isfinite(fit.cov)) and np.all(fit.cov[:3, :] == 0.0)
+
+    from trackmeter.core.velocity import VelocityEstimator, VelocityParams
+
+    for method in ("screw", "free_body"):  # the screw's constant twist is near, not exact, here
+        estimator = VelocityEstimator(VelocityParams(method=method), lever_m=0.0)
+        for ti, Ri, pi in zip(t, R, p):
+            out = estimator.update(float(ti), Ri, pi)
+        assert out is not None
+        np.testing.assert_allclose(out[0], v, atol=1e-5)

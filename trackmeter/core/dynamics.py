@@ -353,7 +353,8 @@ def fit_centre_of_mass(
     Args:
         times_s: (N,) increasing, s; R_cam_body: (N,3,3); p_cam: (N,3) origin, m.
         position_weights: (N,) inverse position variances, 1/m² (0 or NaN: pose left out).
-        lever_m: prior 1-sigma of each coordinate of ``c``, m.
+        lever_m: prior 1-sigma of each coordinate of ``c``, m; 0: the origin is the centre of
+            mass (``c`` = 0, its covariance rows 0).
 
     Returns:
         The fit, or None with fewer than 3 weighted poses.
@@ -374,13 +375,19 @@ def fit_centre_of_mass(
     w_n = w / w.max()  # the solution does not depend on the weights' scale; the covariance does
     H = np.einsum("n,nij,nik->jk", w_n, A, A)
     g = np.einsum("n,nij,ni->j", w_n, A, b)
+    # A lever of 0 puts the centre of mass at the origin: c is fixed at 0 and left out of the
+    # unknowns (a prior of zero width would divide by zero).
+    free = slice(0, 9) if lever_m > 0 else slice(3, 9)
     prior = np.zeros((9, 9))
-    prior[:3, :3] = np.eye(3) / (lever_m**2 * w.max())
-    x = np.linalg.solve(H + prior, g)
+    if lever_m > 0:
+        prior[:3, :3] = np.eye(3) / (lever_m**2 * w.max())
+    x = np.zeros(9)
+    x[free] = np.linalg.solve((H + prior)[free, free], g[free])
     r = np.einsum("nij,j->ni", A, x) - b
-    dof = 3 * n - 9
+    dof = 3 * n - (free.stop - free.start)
     scale2 = float(np.einsum("n,ni,ni->", w, r, r)) / dof if dof > 0 else 1.0
-    cov = np.linalg.inv(H + prior) / w.max() * max(1.0, scale2)
+    cov = np.zeros((9, 9))
+    cov[free, free] = np.linalg.inv((H + prior)[free, free]) / w.max() * max(1.0, scale2)
     rss = float(np.einsum("n,ni,ni->", w, r, r))
     return CentreOfMassFit(x[:3], x[3:6], x[6:], 0.5 * (cov + cov.T), rss)
 

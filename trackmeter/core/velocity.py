@@ -3,8 +3,9 @@
 The paper differentiates the measured attitude: ``(0, omega_body) = 2 q* ⊗ q_dot`` (eq. 14),
 which on sampled poses is the finite difference on the rotation group
 ``omega_body = log(R_{k-1}^T R_k) / dt`` (:func:`trackmeter.core.transforms.omega_body_between`)
-and ``v_cam = (t_k - t_{k-1}) / dt`` for the body origin. Differencing doubles the noise and
-divides it by ``dt`` (40 ms at 25 Hz): a 1 mm position noise becomes ~35 mm/s.
+and ``v_cam = (t_k - t_{k-1}) / dt`` for the body origin. Differencing two independent
+samples multiplies the noise by sqrt(2) and divides it by ``dt`` (40 ms at 25 Hz): a 1 mm position
+noise becomes ~35 mm/s.
 
 The other estimators fit a causal local polynomial instead. ``'poly'`` is a Savitzky-Golay fit
 on the rotation group and R^3 separately: over the poses of the last ``window_s`` seconds,
