@@ -30,6 +30,36 @@ def test_bilinear_matches_exact_linear_interpolation() -> None:
     assert not inside.any()
 
 
+def test_compiled_sampling_is_the_numpy_sampling_bit_for_bit() -> None:
+    # bilinear's compiled loops (uint8 and float32 images, stacks, a complex rectification
+    # table in sample_points) must give exactly the numpy code's numbers and flags, at the
+    # border, outside and in between; a NaN coordinate falls back to numpy (which refuses it)
+    rng = np.random.default_rng(4)
+    for trial in range(60):
+        h, w = (int(v) for v in rng.integers(2, 40, 2))
+        img = (rng.integers(0, 256, (h, w), dtype=np.uint8) if trial % 2
+               else (100 * rng.standard_normal((h, w))).astype(np.float32))
+        x = rng.uniform(-3, w + 2, (5, 7)).astype(np.float32)
+        y = rng.uniform(-3, h + 2, (5, 7))
+        x[0, :3] = [0.0, w - 1, np.float32(w - 1.0005)]
+        for got, ref in [(pt.bilinear(img, x, y), pt._bilinear_numpy(img, x, y.astype(np.float32)))]:
+            np.testing.assert_array_equal(got[0], ref[0])
+            np.testing.assert_array_equal(got[1], ref[1])
+        stack = np.stack([img, img[::-1]])
+        xs, ys = rng.uniform(-1, w, (2, 4, 4)).astype(np.float32), rng.uniform(-1, h, (2, 4, 4)).astype(np.float32)
+        got, ref = pt.bilinear(stack, xs, ys), pt._bilinear_numpy(stack, xs, ys)
+        np.testing.assert_array_equal(got[0], ref[0])
+        np.testing.assert_array_equal(got[1], ref[1])
+        table = (rng.uniform(-5, w + 5, (h + 3, w + 2)) + 1j * rng.uniform(-5, h + 5, (h + 3, w + 2))).astype(np.complex64)
+        values, inside = pt.sample_points(img, x, y, table)
+        mxy, inside_m = pt._bilinear_numpy(table, x, y.astype(np.float32))
+        ref = pt._bilinear_numpy(img, mxy.real.copy(), mxy.imag.copy())
+        np.testing.assert_array_equal(values, ref[0])
+        np.testing.assert_array_equal(inside, ref[1] & inside_m)
+    with pytest.raises(IndexError):
+        pt.bilinear(np.ones((4, 4), np.float32), np.array([np.nan, 1.0]), np.array([1.0, 1.0]))
+
+
 @pytest.mark.parametrize("shift", [(0.3, 0.2), (-0.45, 0.7), (1.6, -1.2)])
 def test_lk_recovers_exact_subpixel_shifts_with_gain_and_bias(shift) -> None:
     I0 = smooth_texture()

@@ -370,3 +370,81 @@ def lk_warp(
         score[i] = _zncc_centred(tm[i], I)
         converged[i] = converged[i] and inside and ok[i]
     return warp, score, converged
+
+
+# ---------------------------------------------------------------- point sampling
+# :func:`trackmeter.core.patch_tracking.bilinear` and :func:`~trackmeter.core.patch_tracking.sample_points`
+# run a dozen times per tracker step on a few hundred points each; in numpy that was some
+# twenty-five calls of per-call overhead each (~60 us), about 5 % of the tracking thread. These
+# loops are its arithmetic, element for element (:func:`_sample`), so the values are the same
+# to the bit. Coordinates numpy would not sample the same way (NaN) and tables with a non-finite
+# entry are left to the numpy code: the kernels then return False and the caller falls back.
+
+
+@_jit
+def sample_stack(image: NDArray, x: F32, y: F32, per_image: int, values: F32, inside: Bools) -> bool:
+    """``values[i], inside[i]`` = :func:`_sample` of ``image[i // per_image]`` ((N,H,W), float32
+    or uint8) at ``(x[i], y[i])`` (float32); False (outputs unspecified) on a NaN coordinate."""
+    for i in range(x.shape[0]):
+        xf = x[i]
+        yf = y[i]
+        if math.isnan(xf) or math.isnan(yf):
+            return False
+        v, ins = _sample(image[i // per_image], xf, yf)
+        values[i] = v
+        inside[i] = ins
+    return True
+
+
+@_jit
+def _sample_table(table: NDArray, x: float, y: float) -> tuple[float, float, bool, bool]:
+    """Bilinear value of a complex64 table (H,W) at (x, y) (float32): ``(real, imag, inside,
+    finite)``, as ``bilinear`` computes it: the corner differences in complex64, then float64
+    weights (numpy's ``float64 * complex`` multiplies by ``(w, 0)``, the same numbers for a
+    finite table), rounded to float32 per part. ``finite``: the four corners are."""
+    h, w = table.shape
+    inside = (x >= 0) and (x <= w - 1) and (y >= 0) and (y <= h - 1)
+    xmax = np.float32(w - 1.001)
+    ymax = np.float32(h - 1.001)
+    xc = x if x > 0 else np.float32(0.0)
+    yc = y if y > 0 else np.float32(0.0)
+    if xc > xmax:
+        xc = xmax
+    if yc > ymax:
+        yc = ymax
+    x0 = int(xc)
+    y0 = int(yc)
+    fx = np.float64(xc) - x0
+    fy = np.float64(yc) - y0
+    a = table[y0, x0]
+    b = table[y0, x0 + 1]
+    c = table[y0 + 1, x0]
+    d = table[y0 + 1, x0 + 1]
+    finite = (math.isfinite(a.real) and math.isfinite(a.imag) and math.isfinite(b.real) and math.isfinite(b.imag)
+              and math.isfinite(c.real) and math.isfinite(c.imag) and math.isfinite(d.real) and math.isfinite(d.imag))
+    top_r = np.float64(a.real) + fx * np.float64(np.float32(b.real) - np.float32(a.real))
+    top_i = np.float64(a.imag) + fx * np.float64(np.float32(b.imag) - np.float32(a.imag))
+    bot_r = np.float64(c.real) + fx * np.float64(np.float32(d.real) - np.float32(c.real))
+    bot_i = np.float64(c.imag) + fx * np.float64(np.float32(d.imag) - np.float32(c.imag))
+    return (np.float64(np.float32(top_r + fy * (bot_r - top_r))), np.float64(np.float32(top_i + fy * (bot_i - top_i))),
+            inside, finite)
+
+
+@_jit
+def sample_through_table(image: NDArray, table: NDArray, x: F32, y: F32, values: F32, inside: Bools) -> bool:
+    """``values[i]`` = :func:`_sample` of ``image`` (H,W) at the point the complex64 ``table``
+    (map_x + i map_y, (H',W')) gives for ``(x[i], y[i])`` (float32): numpy's
+    ``bilinear(image, *bilinear(table, x, y))``; ``inside[i]`` both lookups' flags. False
+    (outputs unspecified) on a NaN coordinate or a non-finite table entry."""
+    for i in range(x.shape[0]):
+        xf = x[i]
+        yf = y[i]
+        if math.isnan(xf) or math.isnan(yf):
+            return False
+        mx, my, ins_m, finite = _sample_table(table, xf, yf)
+        if not finite:
+            return False
+        v, ins = _sample(image, np.float32(mx), np.float32(my))
+        values[i] = v
+        inside[i] = ins and ins_m
+    return True

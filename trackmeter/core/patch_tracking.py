@@ -93,13 +93,40 @@ def bilinear(image: F32, x: NDArray, y: NDArray) -> tuple[F32, NDArray[np.bool_]
     ``[i, ...]`` in image ``i``. Returns ``(values, inside)``; points outside
     ``[0, W-1] x [0, H-1]`` are clamped to the border and flagged ``inside = False``.
     """
-    # Called a dozen times per tracker step on a few hundred points, so its cost is numpy's
-    # per-call overhead: the four neighbours come from ONE gather of a (4, M) index array
-    # and the two horizontal interpolations run as one (2, M) operation (same arithmetic,
-    # same dtypes, so the same numbers as four gathers and three interpolations).
-    h, w = image.shape[-2:]
+    # Called a dozen times per tracker step on a few hundred points, so its cost is per-call
+    # overhead: float32 and uint8 images are sampled by a compiled loop of the same arithmetic
+    # (lk_kernels.sample_stack), anything else (a complex table, a NaN coordinate) by numpy.
     x = np.asarray(x, dtype=np.float32)
     y = np.asarray(y, dtype=np.float32)
+    shape = x.shape
+    if _compiled(image, x, y) and (image.ndim == 2 or (x.ndim and shape[0] == image.shape[0])):
+        stack = image[None] if image.ndim == 2 else image
+        values = np.empty(x.size, np.float32)
+        flags = np.empty(x.size, np.bool_)
+        per_image = x.size if image.ndim == 2 else x.size // max(shape[0], 1)
+        if lk_kernels.sample_stack(stack, np.ascontiguousarray(x).reshape(-1), np.ascontiguousarray(y).reshape(-1),
+                                   per_image, values, flags):
+            return values.reshape(shape), flags.reshape(shape)
+    return _bilinear_numpy(image, x, y)
+
+
+_COMPILED_DTYPES = (np.dtype(np.float32), np.dtype(np.uint8))
+
+
+def _compiled(image: NDArray, x: F32, y: F32) -> bool:
+    """Whether the compiled samplers take ``image`` (float32 or uint8, (H,W) or (N,H,W), at
+    least 2x2: a pixel's right and lower neighbours exist) at the float32 points ``x, y``
+    (as many, at least one)."""
+    return (image.dtype in _COMPILED_DTYPES and image.ndim in (2, 3) and image.shape[-1] >= 2 and image.shape[-2] >= 2
+            and x.size > 0 and x.shape == y.shape)
+
+
+def _bilinear_numpy(image: NDArray, x: F32, y: F32) -> tuple[NDArray, NDArray[np.bool_]]:
+    """:func:`bilinear` in numpy, ``x, y`` float32: any image type (a complex64 table too).
+    The four neighbours come from ONE gather of a (4, M) index array and the two horizontal
+    interpolations run as one (2, M) operation (same arithmetic, same dtypes, so the same
+    numbers as four gathers and three interpolations)."""
+    h, w = image.shape[-2:]
     shape = x.shape
     inside = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
     xc = np.minimum(np.maximum(x, 0), np.float32(w - 1.001)).reshape(-1)
@@ -148,6 +175,17 @@ def sample_points(image: F32, x: NDArray, y: NDArray, coord_map: CoordMap | None
         mx, my = coord_map(np.asarray(x), np.asarray(y))
         return bilinear(image, mx, my)
     if isinstance(coord_map, np.ndarray):  # complex table x + iy: one gather for both
+        xs = np.asarray(x, dtype=np.float32)
+        ys = np.asarray(y, dtype=np.float32)
+        img = np.asarray(image)
+        if (coord_map.dtype == np.complex64 and coord_map.ndim == 2 and min(coord_map.shape) >= 2 and img.ndim == 2
+                and _compiled(img, xs, ys)):
+            # Both lookups in one compiled loop (the same numbers as the two bilinear calls below).
+            values = np.empty(xs.size, np.float32)
+            flags = np.empty(xs.size, np.bool_)
+            if lk_kernels.sample_through_table(img, coord_map, np.ascontiguousarray(xs).reshape(-1),
+                                               np.ascontiguousarray(ys).reshape(-1), values, flags):
+                return values.reshape(xs.shape), flags.reshape(xs.shape)
         mxy, inside_m = bilinear(coord_map, x, y)
         values, inside = bilinear(image, mxy.real, mxy.imag)
         return values, inside & inside_m
@@ -915,6 +953,8 @@ def warm_up() -> None:
     frame = rng.integers(0, 256, (24, 24), dtype=np.uint8)  # a camera frame
     centre = np.array([[12.0, 12.0]])
     templates = make_templates(frame, centre, 8)
+    make_templates(frame.astype(np.float32), centre, 8)  # a smoothed frame
+    sample_patches(frame, centre, 8, complex_map(*np.meshgrid(np.arange(24.0), np.arange(24.0))))  # through a rectification table
     for image in (frame, frame.astype(np.float32)[None]):  # and a stack of rectified strips
         refine_lk(image, templates, centre)
         refine_lk_similarity(image, templates, np.array([[[1.0, 0.0, 12.0], [0.0, 1.0, 12.0]]]))
