@@ -245,7 +245,7 @@ class Templates:
     def size(self) -> int:
         return int(self.values.shape[-1])
 
-    def select(self, index: NDArray) -> "Templates":
+    def select(self, index: NDArray | slice) -> "Templates":
         return Templates(self.values[index], self.gx[index], self.gy[index], self.hessian_inv[index], self.ok[index])
 
 

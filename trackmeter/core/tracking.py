@@ -1136,8 +1136,10 @@ class Tracker:
                 for k, (t, anch) in enumerate(final):
                     if not new.ok[k]:
                         continue
-                    one = new.select(np.array([k]))
-                    one_raw = one if raw is new else raw.select(np.array([k]))
+                    # A slice: views of the batch's arrays (templates are never written to),
+                    # not five fancy-indexed copies per target and frame.
+                    one = new.select(slice(k, k + 1))
+                    one_raw = one if raw is new else raw.select(slice(k, k + 1))
                     t.current, t.current_raw = one, one_raw
                     if not anch:
                         self._new_anchor(t, frame.index)
