@@ -419,7 +419,6 @@ def _solve_pose(
         R, t = absolute_orientation(p, b, 1.0 / np.trace(C, axis1=1, axis2=2))
     else:
         R, t = np.array(initial[0], dtype=float), np.array(initial[1], dtype=float)
-    H = np.eye(6)
     J = np.zeros((len(b), 3, 6))  # (N,3,6) d r_i / d(t, rotation vector): [I | -[R b_i]x]
     J[:, :, :3] = np.eye(3)
     for _ in range(max(1, iterations)):
