@@ -21,8 +21,9 @@ A causal low-pass delays a ramp by its group delay at DC (a 2 Hz second-order Bu
 ~0.11 s, i.e. 1.1 degrees behind a 10 deg/s tumble). With ``velocity_compensated`` the chart
 moves with the estimated velocity (``R_base <- R_base exp(omega_body dt)``, ``p_base <- p_base +
 (v_prev + v) dt / 2`` before each sample: the trapezoid rule, since a body origin off the spin
-axis turns its velocity within a frame), so the filter only sees the deviation from constant-velocity motion
-and a constant-velocity motion passes with no delay while measurement noise is still filtered.
+axis turns its velocity within a frame), so the filter only sees the deviation from
+constant-velocity motion, and a constant-velocity motion passes with no delay while
+measurement noise is still filtered.
 """
 
 from __future__ import annotations
