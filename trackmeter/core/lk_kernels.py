@@ -42,6 +42,12 @@ MODEL_DISPARITY_PLANE = 3
 _OPTIONS = dict(nogil=True, fastmath=False, error_model="numpy")
 
 
+def _jit_inline(function: Callable[..., Any]) -> Any:
+    """``numba.njit`` inlined into its callers (a per-sample helper: a call returning a tuple
+    cost the samplers a few percent of the tracking step)."""
+    return numba.njit(inline="always", **_OPTIONS)(function)
+
+
 def _jit(function: Callable[..., Any]) -> Any:
     """``numba.njit`` with its on-disk cache where one can be written (beside this file, else
     the user's cache folder); without one (a read-only install and home), compiled per process."""
@@ -51,14 +57,12 @@ def _jit(function: Callable[..., Any]) -> Any:
         return numba.njit(**_OPTIONS)(function)
 
 
-@_jit
-def _sample(img: Image, x: float, y: float) -> tuple[float, bool]:
-    """Bilinear value of ``img`` (H,W) float32 or uint8 at (x, y), and whether the point
-    lies inside ``[0, W-1] x [0, H-1]``; outside points are clamped to the border (as
-    :func:`~trackmeter.core.patch_tracking.bilinear`)."""
-    h, w = img.shape
-    xf = np.float32(x)
-    yf = np.float32(y)
+@_jit_inline
+def _cell(h: int, w: int, xf: float, yf: float) -> tuple[int, int, float, float, bool]:
+    """The bilinear cell of the float32 point (xf, yf) in an (h, w) grid: its top-left corner
+    ``(x0, y0)``, the float64 offsets ``(fx, fy)`` from it, and whether the point lies inside
+    ``[0, w-1] x [0, h-1]``; outside points are clamped to the border (as
+    :func:`~trackmeter.core.patch_tracking.bilinear`, in its float32 arithmetic)."""
     inside = (xf >= 0) and (xf <= w - 1) and (yf >= 0) and (yf <= h - 1)
     xmax = np.float32(w - 1.001)
     ymax = np.float32(h - 1.001)
@@ -71,8 +75,16 @@ def _sample(img: Image, x: float, y: float) -> tuple[float, bool]:
         yc = ymax
     x0 = int(xc)
     y0 = int(yc)
-    fx = np.float64(xc) - x0
-    fy = np.float64(yc) - y0
+    return x0, y0, np.float64(xc) - x0, np.float64(yc) - y0, inside
+
+
+@_jit
+def _sample(img: Image, x: float, y: float) -> tuple[float, bool]:
+    """Bilinear value of ``img`` (H,W) float32 or uint8 at (x, y), and whether the point
+    lies inside ``[0, W-1] x [0, H-1]``; outside points are clamped to the border (as
+    :func:`~trackmeter.core.patch_tracking.bilinear`)."""
+    h, w = img.shape
+    x0, y0, fx, fy, inside = _cell(h, w, np.float32(x), np.float32(y))
     a = np.float64(img[y0, x0])
     b = np.float64(img[y0, x0 + 1])
     c = np.float64(img[y0 + 1, x0])
@@ -403,19 +415,7 @@ def _sample_table(table: NDArray, x: float, y: float) -> tuple[float, float, boo
     weights (numpy's ``float64 * complex`` multiplies by ``(w, 0)``, the same numbers for a
     finite table), rounded to float32 per part. ``finite``: the four corners are."""
     h, w = table.shape
-    inside = (x >= 0) and (x <= w - 1) and (y >= 0) and (y <= h - 1)
-    xmax = np.float32(w - 1.001)
-    ymax = np.float32(h - 1.001)
-    xc = x if x > 0 else np.float32(0.0)
-    yc = y if y > 0 else np.float32(0.0)
-    if xc > xmax:
-        xc = xmax
-    if yc > ymax:
-        yc = ymax
-    x0 = int(xc)
-    y0 = int(yc)
-    fx = np.float64(xc) - x0
-    fy = np.float64(yc) - y0
+    x0, y0, fx, fy, inside = _cell(h, w, x, y)
     a = table[y0, x0]
     b = table[y0, x0 + 1]
     c = table[y0 + 1, x0]
