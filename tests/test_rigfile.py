@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -617,9 +619,6 @@ def test_a_filestorage_file_without_any_rig_key_is_said_not_to_be_a_rig(tmp_path
 def _in_child(code: str) -> "subprocess.CompletedProcess[str]":
     """Run ``code`` in a fresh interpreter: a crash inside OpenCV (a segmentation fault) fails
     the test instead of ending the test session."""
-    import subprocess
-    import sys
-
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
 
 
