@@ -1079,3 +1079,24 @@ def test_the_help_s_case_b_example_clicks_only_corners_estec_s_first_frame_shows
     for (point_id, _, _), measured in zip(example, got):
         true_cam = apply_transform(frame.truth.T_cam_body, where[point_id])
         assert measured.ok and np.linalg.norm(measured.xyz_m - true_cam) < 0.03, (point_id, measured.xyz_m, true_cam)
+
+
+def test_tracker_auto_in_a_config_starts_automatic_selection_as_in_the_console(tmp_path, capsys) -> None:
+    # `tracker.auto: true` in a --config (default.yaml: "Automatic feature selection on at
+    # start") was refused by track as "nothing to track: give ... --auto N", and beside a
+    # --target the automatic targets ran while run.yaml said auto: null (an outside review).
+    config = tmp_path / "c.yaml"
+    config.write_text("tracker:\n  auto: true\nfeatures:\n  count: 5\n")
+    out = tmp_path / "r"
+    code = main(["track", "--config", str(config), "--source", "sim", "--max-frames", "8", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    meta = yaml.safe_load((out / "run.yaml").read_text())
+    assert meta["source"]["auto"] == 5, meta["source"]
+    with open(out / "targets.csv", newline="") as f:
+        ids = {row["id"] for row in csv.DictReader(f)}
+    assert ids and all(i.startswith("a") for i in ids), ids
+    # --auto N still says how many
+    code = main(["track", "--config", str(config), "--source", "sim", "--max-frames", "2", "--auto", "3", "--out", str(tmp_path / "r3")])
+    assert code == 0, capsys.readouterr().err
+    assert yaml.safe_load((tmp_path / "r3" / "run.yaml").read_text())["source"]["auto"] == 3

@@ -88,7 +88,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="keep N targets alive, topping up with automatically selected ones (the --target and "
                              "model points count among the N: 3 --target points with --auto 16 add up to 13); model "
                              "points re-locked through the pose (paper 2.D) come on top of them (grown ones while fewer "
-                             "than tracker.max_targets less pose.operator_reserve_targets are tracked: 24 by default)")
+                             "than tracker.max_targets less pose.operator_reserve_targets are tracked: 24 by default); without it, "
+                             "tracker.auto: true in a --config keeps features.count")
     parser.add_argument("--select-model-points", action="store_true",
                         help="case (b) on a source with ground truth: simulate the operator clicking every model "
                              "point visible in the first frame (at its true projection), and again whenever the "
@@ -174,6 +175,9 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
     most = config.tracker.max_targets
     if args.auto is not None and not 1 <= args.auto <= most:
         raise TrackmeterError(f"--auto must be in [1, {most}] (tracker.max_targets), got {args.auto}")
+    # `tracker.auto: true` in a --config starts automatic selection as the console does, keeping
+    # features.count targets (at most the tracker's); --auto N says how many either way.
+    auto = args.auto if args.auto is not None else (min(config.features.count, most) if config.tracker.auto else None)
     named = [i for i, _ in targets if i is not None]
     twice = sorted({i for i in named if named.count(i) > 1})
     if twice:  # known before the source opens: not a warning after the first frame
@@ -201,7 +205,7 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
         if rig is None:
             raise TrackmeterError(f"source {args.source!r} carries no stereo rig: give --rig")
         # After the inputs are read: a wrong path is the error to fix first.
-        if not targets and args.auto is None and not args.select_model_points:
+        if not targets and auto is None and not args.select_model_points:
             raise TrackmeterError("nothing to track: give --target [ID=]U,V, --auto N and/or --select-model-points")
         if model is None and args.case in (None, "b"):
             model = source.model
@@ -240,8 +244,8 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
         commands: list[Any] = [SelectPoint(uv[0], uv[1], tid) for tid, uv in sorted(targets, key=lambda x: x[0] is None)]
         if args.select_model_points:
             commands.insert(0, SelectModelPoints(repeat=True))
-        if args.auto is not None:
-            commands.append(SetAuto(True, args.auto, None))
+        if auto is not None:
+            commands.append(SetAuto(True, auto, None))
         total = _total_frames(source, args.max_frames)
         feed = _Limited(source, args.max_frames) if args.max_frames else source
         source_info = {
@@ -254,7 +258,7 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
             "case": case,
             "case_reason": case_reason,
             "targets": [f"{i + '=' if i else ''}{u:g},{v:g}" for i, (u, v) in targets],
-            "auto": args.auto,
+            "auto": auto,
             "select_model_points": bool(args.select_model_points),
             **_source_identity(source),
         }
@@ -348,7 +352,7 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
                     print(f"trackmeter track: note: {_option_of(command)}: {reply.message}", file=sys.stderr)
                     said.add(k)
             starters = [k for k, c in enumerate(commands) if isinstance(c, (SelectPoint, SelectModelPoints))]
-            state["nothing"] = args.auto is None and all(k in for_good for k in starters)
+            state["nothing"] = auto is None and all(k in for_good for k in starters)
             return bool(state["nothing"])
 
         status = "complete"
@@ -455,7 +459,7 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
                 print(f"trackmeter track: note: {counted(gained, 'frame')} underexposed (the left image's brightest "
                       f"pixels below grey {engine.exposure_params.reference_grey:g}), tracked at a gain of up to "
                       f"{engine.stats.largest_gain:.2f} (config section exposure)", file=sys.stderr)
-            short = _auto_shortfall(engine.tracker, args.auto, state.get("most_auto", 0)) if args.auto else None
+            short = _auto_shortfall(engine.tracker, auto, state.get("most_auto", 0)) if auto else None
             if short:
                 print(f"trackmeter track: warning: {short}", file=sys.stderr)
             return 0 if status == "complete" else 2
