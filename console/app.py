@@ -553,8 +553,10 @@ class Console:
         self.left_image.on_click(_on_event_loop(self._on_click))
         for modifier in ("shift", "cmd/ctrl", "alt"):
             self.left_image.on_click(modifier=modifier)(_on_event_loop(self._on_remove_click))
-        # Every click is answered: one on the right image says where targets are set.
+        # Every click is answered: one on the right image says where targets are set, and one
+        # beside both images (the view's blank margin) too.
         self.right_image.on_click(_on_event_loop(self._on_right_click))
+        scene.on_click()(_on_event_loop(self._on_scene_click))
 
         root = scene.add_frame("/scene3d", show_axes=False, position=SCENE3D_OFFSET)
         self.scene3d = root
@@ -883,6 +885,23 @@ class Console:
         self._notify(getattr(event, "client", None), "Click on the right image",
                      "targets are set on the left image: click there (the right image shows each "
                      "target's match)", False)
+
+    def _on_scene_click(self, event: Any) -> None:
+        """A click anywhere in the scene (viser calls this after an image's own handler): in the
+        image view, one that hit neither image fell on the blank margin and would go unanswered.
+        In the 3D view a click on the background is part of looking around: no answer."""
+        client = getattr(event, "client", None)
+        if self._image_size is None or client is None:
+            return
+        with self._pending_lock:
+            view = self._views.get(client.client_id)
+        if view is None or view[1] != "image":
+            return
+        images = [self.left_image] + ([self.right_image] if self.right_image.visible else [])
+        if any(ray_to_pixel(event.ray_origin, event.ray_direction, image.wxyz, image.position, self._image_size,
+                            self.render_size) is not None for image in images):
+            return  # the image's own handler answers
+        self._notify(client, "Click beside the image", "targets are set on the left image: click on it", False)
 
     def _on_remove_click(self, event: Any) -> None:
         uv = self._event_pixel(event)

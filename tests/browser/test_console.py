@@ -83,6 +83,40 @@ def test_click_on_black_space_shows_the_refusal(page_and_client: Any, running_co
     assert len(running_console.pipeline.latest().targets) == n_before
 
 
+def test_a_click_beside_the_image_is_answered(page_and_client: Any, running_console: Any, artifacts: Path) -> None:
+    # A click on the view's blank margin, beside the image, went unanswered (an outside console
+    # probe): the operator could not tell a missed click from a console that hangs.
+    page, client = page_and_client
+    con = running_console.console
+    box = main_canvas_box(page)
+    w, h = con._image_size
+    left_x, mid_y = pixel_to_screen(running_console, client, page, (-0.5, h / 2), box)
+    right_x, _ = pixel_to_screen(running_console, client, page, (w - 0.5, h / 2), box)
+    mid_x, top_y = pixel_to_screen(running_console, client, page, (w / 2, -0.5), box)
+    _, bottom_y = pixel_to_screen(running_console, client, page, (w / 2, h - 0.5), box)
+    margins = [((box["x"] + left_x) / 2, mid_y, left_x - box["x"]),
+               (mid_x, (box["y"] + top_y) / 2, top_y - box["y"]),
+               (mid_x, (bottom_y + box["y"] + box["height"]) / 2, box["y"] + box["height"] - bottom_y),
+               ((right_x + box["x"] + box["width"]) / 2, mid_y, box["x"] + box["width"] - right_x)]
+    x, y, gap = max(margins, key=lambda m: m[2])
+    assert gap > 40, f"the image fills the view: no margin to click ({margins})"
+    n_targets, n_notes = len(running_console.pipeline.latest().targets), len(con.notifications)
+    page.mouse.click(x, y)
+    wait_for(lambda: len(con.notifications) > n_notes, 10, "the console's answer to a click beside the image")
+    assert con.notifications[-1] == ("Click beside the image", "targets are set on the left image: click on it")
+    page.get_by_text("Click beside the image").first.wait_for(timeout=10_000)
+    page.screenshot(path=str(artifacts / "03b_click_beside_the_image.png"))
+    assert len(running_console.pipeline.latest().targets) == n_targets
+    # A click on the image is answered by the image alone, not also as one beside it.
+    n_notes = len(con.notifications)
+    sx, sy = pixel_to_screen(running_console, client, page, BLACK_UV, box)
+    page.mouse.click(sx, sy)
+    wait_for(lambda: len(con.notifications) > n_notes, 10, "the answer to a click on the image")
+    time.sleep(1.0)
+    answers = [title for title, _ in list(con.notifications)[n_notes:]]
+    assert answers and "Click beside the image" not in answers, answers
+
+
 def test_automatic_selection_fills_the_targets_and_makes_the_pose_valid(page_and_client: Any, running_console: Any, artifacts: Path) -> None:
     page, _ = page_and_client
     pipe = running_console.pipeline
