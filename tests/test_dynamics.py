@@ -164,3 +164,33 @@ def test_translation_constant_velocity_and_approach():
     fd = np.gradient(p[:, 2], t)
     assert np.max(np.abs(fd[1:-1] - v[1:-1, 2])) < 1e-4
     assert np.all(np.diff(p[:, 2]) <= 0)
+
+
+@pytest.mark.parametrize("inertia", [(2.0, 1.0, 3.0), "rotated"])
+def test_principal_axes_are_a_proper_rotation_for_unordered_or_rotated_moments(inertia: tuple | str) -> None:
+    """An unordered diagonal (2, 1, 3) sorts its eigenvectors into a permutation of det -1, and
+    eigh's signs make half of all full tensors improper: principal_axes must return a proper
+    rotation (det +1) with ``R diag(m) R^T = J`` (its docstring), and the free-rotation
+    integrator built on it must conserve kinetic energy and the world angular momentum
+    (Goldstein ch. 5) for such a tensor."""
+    if inertia == "rotated":
+        Q = Rotation.random(random_state=5).as_matrix()  # eigh's sign-fixed axes come out improper here
+        J = Q @ np.diag([2.0, 1.0, 2.5]) @ Q.T
+    else:
+        J = np.diag(inertia)
+    moments, R = principal_axes(J)
+    np.testing.assert_allclose(moments, np.sort(np.linalg.eigvalsh(J)), rtol=1e-12)
+    assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-12)
+    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(R @ np.diag(moments) @ R.T, J, atol=1e-12)
+
+    q0 = Rotation.from_rotvec([0.3, -0.2, 0.9]).as_quat(scalar_first=True)
+    motion = integrate_free_rotation(J, q0, np.array([0.2, -0.15, 0.1]), 30.0)
+    q, w = motion.state(np.linspace(0.0, 30.0, 301))
+    E = kinetic_energy(w, J)
+    L = angular_momentum_world(q, w, J)
+    assert np.max(np.abs(E / E[0] - 1.0)) < 1e-9
+    assert np.max(np.linalg.norm(L - L[0], axis=1)) < 1e-9 * np.linalg.norm(L[0])
+    # The attitude comes back through the principal frame unchanged at t = 0 (q and -q alike).
+    np.testing.assert_allclose(Rotation.from_quat(motion.state(0.0)[0], scalar_first=True).as_matrix(),
+                               Rotation.from_quat(q0, scalar_first=True).as_matrix(), atol=1e-12)

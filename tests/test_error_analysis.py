@@ -304,3 +304,26 @@ def test_the_text_summary_shows_the_mismatches_and_no_nan_for_one_range():
     assert "mism" in header
     end = header.index("mism") + len("mism")  # the column is right-aligned
     assert row[end - 6:end].strip() == "1"
+
+
+def test_the_parabola_s_standard_error_is_the_least_squares_one_with_n_minus_1_dof() -> None:
+    """k_std_per_m is the textbook standard error of a least-squares fit through the origin with
+    one regressor x = z²: ``s² (X^T X)^-1`` with ``s² = SSR / (n - 1)`` (n - p, p = 1: the
+    unbiased residual variance). Checked against that formula on lstsq's own fit, and by Monte
+    Carlo: the mean of k_std² is Var(k) = sigma² / sum x² (with n instead of n - 1 it would be
+    (n - 1) / n of it, 0.8 with 5 ranges)."""
+    from trackmeter.core.error_analysis import fit_parabola
+
+    rng = np.random.default_rng(10)
+    z = np.array([2.0, 2.5, 3.0, 3.5, 4.0])
+    X = (z**2)[:, None]
+    k_true, noise = 3e-4, 2e-4
+    sigma = k_true * z**2 + rng.normal(0.0, noise, len(z))
+    (k,), ssr, _, _ = np.linalg.lstsq(X, sigma, rcond=None)
+    fit = fit_parabola(z, sigma)
+    assert fit.k_per_m == pytest.approx(k, rel=1e-12)
+    assert fit.k_std_per_m == pytest.approx(math.sqrt(ssr[0] / (len(z) - 1) * np.linalg.inv(X.T @ X)[0, 0]), rel=1e-10)
+
+    var_k = noise**2 / float(np.sum(z**4))
+    draws = [fit_parabola(z, k_true * z**2 + rng.normal(0.0, noise, len(z))).k_std_per_m ** 2 for _ in range(4000)]
+    assert np.mean(draws) / var_k == pytest.approx(1.0, abs=0.05)  # sd of the ratio ~0.011

@@ -197,3 +197,35 @@ def test_a_new_cutoff_takes_over_from_the_last_output_without_a_step() -> None:
     assert np.allclose(rebuilt.update(50 / RATE, R_new, p_new)[1], p_new)  # what it did: the raw pose
     fresh = PoseFilter(FilterParams(cutoff_hz=0.5), RATE).retuned(FilterParams(cutoff_hz=1.0))
     assert np.allclose(fresh.update(0.0, R_new, p_new)[1], p_new)  # nothing to take over: starts as a new one
+
+
+def test_the_cutoff_is_kept_up_to_095_of_nyquist_and_clipped_there() -> None:
+    """design_lowpass is scipy's Butterworth at the cutoff asked for while it is below 0.95 of
+    Nyquist (10 Hz at 25 Hz: Nyquist 12.5 Hz), and at 0.95 * 12.5 Hz above (its docstring)."""
+    np.testing.assert_allclose(design_lowpass(10.0, 2, RATE), signal.butter(2, 10.0, fs=RATE, output="sos"),
+                               rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(design_lowpass(20.0, 2, RATE), signal.butter(2, 0.95 * 12.5, fs=RATE, output="sos"),
+                               rtol=1e-12, atol=1e-14)
+
+
+def test_a_frame_without_velocity_forgets_the_last_one_so_the_next_moves_the_chart_by_its_own() -> None:
+    """After an update without v_cam (rates unknown, a gap) the next velocity is not averaged with
+    the one before it: the chart moves by v2 dt, not (v1 + v2) dt / 2. Checked by the chart's
+    shift invariance: moving the chart by s with the filter's state unchanged gives the output
+    of an unmoved chart fed the pose shifted by -s, plus s (x = p - p_base enters the IIR)."""
+    v1, v2 = np.array([0.02, -0.01, 0.03]), np.array([-0.03, 0.02, 0.01])
+    dt = 1.0 / RATE
+    rng = np.random.default_rng(5)
+    noise = rng.normal(0.0, 1e-3, (21, 3))
+
+    def history() -> PoseFilter:
+        f = PoseFilter(FilterParams(cutoff_hz=2.0, order=2, velocity_compensated=True), RATE)
+        for k in range(20):
+            f.update(k * dt, R0, v1 * k * dt + noise[k], v1)
+        f.update(20 * dt, R0, v1 * 20 * dt + noise[20], None)  # rates unknown in this frame
+        return f
+
+    p = v1 * 20 * dt + v2 * dt + np.array([1e-3, -2e-3, 0.5e-3])
+    _, p_moved = history().update(21 * dt, R0, p, v2)
+    _, p_still = history().update(21 * dt, R0, p - v2 * dt, None)
+    np.testing.assert_allclose(p_moved, p_still + v2 * dt, rtol=0, atol=1e-12)

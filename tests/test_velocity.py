@@ -636,3 +636,99 @@ def test_a_reflection_or_a_time_that_is_no_number_is_refused_and_does_not_poison
         est.update(10 / 25, np.diag([1.0, 1.0, -1.0]), [0.01, 0.0, 3.5])
     rates = est.update(11 / 25, np.eye(3), [0.011, 0.0, 3.5])
     assert rates is not None and np.allclose(rates[0], [0.025, 0.0, 0.0], atol=1e-6)
+
+
+def test_the_screw_window_reaches_back_only_to_the_cap_angle_in_degrees() -> None:
+    """``screw_max_angle_deg`` is in degrees: at 8 deg a frame (poses 0, 8, 16, 24, 32 deg behind
+    the newest) a 30 deg cap keeps the newest 4 poses. With a twist that is not constant (small
+    pose noise, fixed seed) the window matters, so the estimator's rates must be screw_rates on
+    exactly those 4 poses (30 read as radians would take ~81 deg, 11 poses)."""
+    rng = np.random.default_rng(8)
+    omega = np.radians([100.0, -120.0, 120.0])  # |omega| 198 deg/s: 7.9 deg per frame
+    t = np.arange(30) * 0.04
+    R, p = constant_twist(t, V_BODY, omega)
+    R = np.array([r @ Rotation.from_rotvec(rng.normal(0.0, np.radians(0.05), 3)).as_matrix() for r in R])
+    p = p + rng.normal(0.0, 2e-4, p.shape)
+    est = VelocityEstimator(VelocityParams(method="screw", screw_max_angle_deg=30.0))
+    for ti, ri, pi in zip(t, R, p):
+        rates = est.update(ti, ri, pi)
+    assert rates is not None
+    v, w = rates
+    angles = np.degrees(Rotation.from_matrix(np.einsum("ji,njk->nik", R[-1], R[-6:])).magnitude())
+    assert np.all(angles[:2] > 30.0) and np.all(angles[2:] < 30.0)  # 4 poses within the cap
+    _, _, v_ref, w_ref = screw_rates(t[-4:], R[-4:], p[-4:], 1)
+    np.testing.assert_allclose(w, w_ref, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(v, v_ref, rtol=0, atol=1e-12)
+    _, _, v_long, w_long = screw_rates(t[-5:], R[-5:], p[-5:], 1)
+    assert np.linalg.norm(w_long - w_ref) > 1e-4  # the window's length shows in the rates
+
+
+def test_a_change_of_spin_inside_a_capped_window_cuts_at_the_change() -> None:
+    """Spinning at 20 deg/s the 2.5 s window is capped at 30 deg (~1.5 s: the change test runs
+    on poses from ``start`` > 0 on), and the spin switches to another axis at 3.0 s. Noise-free
+    the Chow F at the true split is ~5e6 and at any other below ~4e3, so with change_f 1e5 the cut
+    falls exactly on the switch once both sides span min_span_s (0.4 s): from that frame on the
+    window holds only the new constant twist and omega equals omega_2 to rounding (screw fit of
+    a constant twist), long before the 30 deg cap alone would have dropped the old spin (4.6 s).
+    A cut counted from the window's start instead of the capped one keeps old-spin poses in
+    that frame's fit."""
+    t = np.arange(120) * 0.04
+    w1, w2, k_switch = np.radians([12.0, -8.0, 14.0]), np.radians([-10.0, 15.0, 6.0]), 75
+    t_switch = t[k_switch]  # 3.0 s
+    R0r = Rotation.from_rotvec([0.3, -1.1, 0.7])
+    R = np.array([(R0r * Rotation.from_rotvec(w1 * min(ti, t_switch))
+                   * Rotation.from_rotvec(w2 * max(ti - t_switch, 0.0))).as_matrix() for ti in t])
+    est = VelocityEstimator(VelocityParams(change_f=1e5))
+    errors = np.full(len(t), np.nan)
+    for k in range(len(t)):
+        rates = est.update(t[k], R[k], np.array([0.1, 0.0, 3.5]))
+        if rates is not None:
+            errors[k] = np.linalg.norm(rates[1] - (w1 if t[k] <= t_switch else w2))
+        if k == k_switch:  # the kept poses reach back further than the cap: it trims (start > 0)
+            _, R_kept, _, _ = est.window()
+            assert Rotation.from_matrix(R_kept[0].T @ R_kept[-1]).magnitude() > np.radians(45.0)
+    assert np.nanmax(errors[t <= t_switch]) < 1e-8  # the old spin, exactly
+    # From 0.44 s after the switch (the first frame whose new side spans 0.4 s: at 0.40 s the
+    # difference of the times rounds a hair short) to 1.54 s: 28 poses, the first the cut's own.
+    late = errors[(t > t_switch + 0.43) & (t < 4.54)]
+    assert len(late) == 28 and np.all(late < 1e-8), late
+
+
+def test_the_screw_bias_sigmas_use_the_camera_frame_angular_velocity() -> None:
+    """free_body_velocity's ``screw_bias_sigmas`` (its docstring): the screw fit's expected error
+    ``tau (omega_cam x v)``, ``tau`` half the window, ``omega_cam = R_newest omega_body``, over its
+    own sigma, the square root of the largest eigenvalue of ``J cov_v J^T``, ``J = tau
+    [omega_cam]x``, with ``v`` and ``cov_v`` from fit_centre_of_mass on the same poses. The newest
+    attitude is far from the identity, so the body-frame omega would give another number."""
+    from trackmeter.core.dynamics import fit_centre_of_mass
+    from trackmeter.core.velocity import free_body_velocity
+
+    rng = np.random.default_rng(12)
+    t = np.arange(60) * 0.04
+    omega = np.radians([6.0, -4.0, 9.0])
+    R, p, _ = free_floating(t, np.array([0.04, 0.0, -0.04]), omega, np.array([0.1, 0.25, -0.2]))
+    p = p + rng.normal(0.0, 3e-4, p.shape)
+    w = np.full(len(t), 1.0 / 3e-4**2)
+    free = free_body_velocity(t, R, p, omega, w, 0.5)
+    fit = fit_centre_of_mass(t, R, p, w, 0.5)
+    tau = 0.5 * (t[-1] - t[0])
+    w_cam = R[-1] @ omega
+    assert np.linalg.norm(w_cam - omega) > 0.5 * np.linalg.norm(omega)
+    J = tau * np.cross(w_cam, np.eye(3)).T  # J x = tau (omega_cam x x)
+    bias = np.linalg.norm(tau * np.cross(w_cam, fit.v_cam))
+    sigma = np.sqrt(np.linalg.eigvalsh(J @ fit.cov[6:, 6:] @ J.T).max())
+    assert free.screw_bias_sigmas == pytest.approx(bias / sigma, rel=1e-9)
+
+
+def test_weighted_polyfit_with_exactly_as_many_positive_weights_as_coefficients_fits_them_exactly() -> None:
+    """Two positive weights determine a line: the weighted fit is the line through those two
+    samples (np.polyfit on them), not the equal-weight fallback over all of them."""
+    rng = np.random.default_rng(9)
+    tau = np.linspace(-1.0, 0.0, 10)
+    V = np.vander(tau, 2, increasing=True)
+    X = rng.normal(size=(10, 2))
+    W = np.zeros((10, 2))
+    W[:2, :] = [1.0, 3.0]
+    coef = weighted_polyfit(V, X, W)
+    for j in range(2):
+        np.testing.assert_allclose(coef[:, j], np.polyfit(tau[:2], X[:2, j], 1)[::-1], rtol=1e-10, atol=1e-12)
