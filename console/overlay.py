@@ -340,6 +340,49 @@ def box_half_px(patch_px: int, operator: bool = False) -> float:
     return max(patch_px / 2.0, 3.0) + (1.0 if operator else 0.0)
 
 
+def label_origins(
+    anchors: Sequence[tuple[int, int]],
+    sizes: Sequence[tuple[int, int, int]],
+    half_px: int,
+    image_size: tuple[int, int],
+) -> list[tuple[int, int]]:
+    """Where to write each target's id beside its box so that no two ids overlap where it can
+    be helped: the first of four corners (right above, left above, right below, left below the
+    box) that stays inside the image and meets no label placed before it, else the corner that
+    overlaps least. Greedy, in the order given.
+
+    Args:
+        anchors: (u, v) box centres in the drawn image, px.
+        sizes: ``(width, height, baseline)`` of each label (``cv2.getTextSize``), px.
+        half_px: half the box's side, px.
+        image_size: (W, H) of the drawn image, px.
+
+    Returns:
+        Each label's text origin (``cv2.putText``'s bottom-left), px.
+    """
+    W, H = image_size
+    placed: list[tuple[int, int, int, int]] = []
+    origins: list[tuple[int, int]] = []
+    for (cu, cv), (w, h, base) in zip(anchors, sizes):
+        right, left = cu + half_px + 3, cu - half_px - 3 - w
+        above, below = cv - half_px, cv + half_px + h
+        best: tuple[float, tuple[int, int], tuple[int, int, int, int]] | None = None
+        for x, y in ((right, above), (left, above), (right, below), (left, below)):
+            x0, y0, x1, y1 = box = (x, y - h, x + w, y + base)
+            cost = 0.0 if 0 <= x0 and x1 <= W and 0 <= y0 and y1 <= H else 1e9  # off the image: only when every corner is
+            for a0, b0, a1, b1 in placed:
+                if a0 < x1 and x0 < a1 and b0 < y1 and y0 < b1:  # (the publisher's time: most pairs are apart)
+                    cost += (min(x1, a1) - max(x0, a0)) * (min(y1, b1) - max(y0, b0))
+            if best is None or cost < best[0]:
+                best = (cost, (x, y), box)
+            if cost == 0.0:
+                break
+        assert best is not None
+        origins.append(best[1])
+        placed.append(best[2])
+    return origins
+
+
 def draw_overlays(
     rgb: NDArray[np.uint8],
     targets: Sequence[TargetState],
@@ -377,6 +420,7 @@ def draw_overlays(
                 drawn = True
         if drawn:
             cv2.addWeighted(layer, 0.4, rgb, 0.6, 0.0, dst=rgb)
+    labelled: list[tuple[TargetState, tuple[int, int]]] = []
     for t in targets:
         if not np.all(np.isfinite(t.uv)):
             continue
@@ -392,6 +436,7 @@ def draw_overlays(
         if t.origin == "operator" and not operator_boxes:
             continue
         c = _pt(t.uv, scale)
+        labelled.append((t, c))
         h = int(round(half * scale))
         if t.origin == "operator":
             cv2.rectangle(rgb, (c[0] - h - 1, c[1] - h - 1), (c[0] + h + 1, c[1] + h + 1), colour, 2, cv2.LINE_8)
@@ -400,6 +445,11 @@ def draw_overlays(
             cv2.polylines(rgb, [diamond.reshape(-1, 1, 2)], True, colour, 1, cv2.LINE_8)
         else:
             cv2.rectangle(rgb, (c[0] - h, c[1] - h), (c[0] + h, c[1] + h), colour, 1, cv2.LINE_8)
-        label = t.id if t.origin != "operator" else f"{t.id}*"
-        cv2.putText(rgb, label, (c[0] + h + 3, c[1] - h), font, 0.38 * max(scale, 1.0), colour, 1, cv2.LINE_AA)
+    # The ids after every box, placed so that targets side by side do not write over each other.
+    font_scale = 0.38 * max(scale, 1.0)
+    texts = [t.id if t.origin != "operator" else f"{t.id}*" for t, _ in labelled]
+    sizes = [(w, h_text, base) for (w, h_text), base in (cv2.getTextSize(x, font, font_scale, 1) for x in texts)]
+    origins = label_origins([c for _, c in labelled], sizes, int(round(half * scale)), (rgb.shape[1], rgb.shape[0]))
+    for (t, _), text, origin in zip(labelled, texts, origins):
+        cv2.putText(rgb, text, origin, font, font_scale, STATUS_RGB.get(t.status, (255, 255, 255)), 1, cv2.LINE_AA)
     return rgb

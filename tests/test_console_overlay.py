@@ -27,6 +27,7 @@ from console.overlay import (  # noqa: E402
     PORTRAIT_BAND,
     VIEW_MARGIN,
     image_view,
+    label_origins,
     ray_to_pixel,
     view_in_band,
 )
@@ -697,3 +698,28 @@ def test_typed_text_undoes_shown_text_for_a_file_name_s_bytes() -> None:
     name = os.fsdecode(b"/tmp/rec_\xff\xfe/take \x80")
     assert typed_text(shown_text(name)) == name
     assert typed_text(r"C:\x41 stays") == r"C:\x41 stays"  # an ASCII escape is no file-name byte
+
+
+def test_labels_of_targets_side_by_side_do_not_overlap() -> None:
+    # An automatic target and a re-locked model point a few pixels apart wrote their ids over
+    # each other, unreadable (an outside console probe). Each label takes the first corner
+    # beside its box (right above, left above, right below, left below) that no label placed
+    # before it covers; a lone target keeps the first.
+    sizes = [(30, 9, 3)] * 4  # (width, height, baseline), px
+    half = 4
+    lone = label_origins([(100, 100)], sizes[:1], half, (726, 512))
+    assert lone == [(100 + half + 3, 100 - half)]
+
+    def rect(origin: tuple[int, int], size: tuple[int, int, int]) -> tuple[int, int, int, int]:
+        (x, y), (w, h, base) = origin, size
+        return x, y - h, x + w, y + base
+
+    anchors = [(200, 200), (206, 201), (203, 196), (209, 204)]
+    placed = [rect(o, z) for o, z in zip(label_origins(anchors, sizes, half, (726, 512)), sizes)]
+    for i in range(len(placed)):
+        for j in range(i):
+            a, b = placed[i], placed[j]
+            assert a[2] <= b[0] or b[2] <= a[0] or a[3] <= b[1] or b[3] <= a[1], (i, j, placed)
+    # At the image's right edge the label goes to the left of its box rather than off the image.
+    (x, _), = label_origins([(720, 100)], sizes[:1], half, (726, 512))
+    assert x + sizes[0][0] <= 726
