@@ -88,8 +88,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="keep N targets alive, topping up with automatically selected ones (the --target and "
                              "model points count among the N: 3 --target points with --auto 16 add up to 13); model "
                              "points re-locked through the pose (paper 2.D) come on top of them (grown ones while fewer "
-                             "than tracker.max_targets less pose.operator_reserve_targets are tracked: 24 by default); without it, "
-                             "tracker.auto: true in a --config keeps features.count")
+                             "than tracker.max_targets less pose.operator_reserve_targets are tracked: 24 by "
+                             "default); without it, tracker.auto: true in a --config keeps features.count")
     parser.add_argument("--select-model-points", action="store_true",
                         help="case (b) on a source with ground truth: simulate the operator clicking every model "
                              "point visible in the first frame (at its true projection), and again whenever the "
