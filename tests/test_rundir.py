@@ -11,7 +11,8 @@ import yaml
 
 from trackmeter.data.atomic import AppendFile
 from trackmeter.data.motion_csv import STATES_COLUMNS, read_motion_csv
-from trackmeter.data.rundir import RESERVE_NAME, RunWriter, check_run_directory
+from trackmeter.data.rundir import (POSE_COVARIANCE_COLUMNS, RESERVE_NAME, RunWriter, check_run_directory,
+                                    read_pose_covariance)
 from trackmeter.data.trajectory import read_tum
 from trackmeter.errors import TrackmeterError
 from trackmeter.pipeline.snapshot import PoseEstimate
@@ -49,6 +50,32 @@ def test_the_summary_says_when_the_poses_were_coasted(tmp_path: Path) -> None:
     summary = yaml.safe_load((tmp_path / "run" / "run.yaml").read_text())["summary"]
     assert summary["coasted_frames"] == 4
     assert summary["coasted_spans_s"] == [[0.04, 0.08], [0.16, 0.16], [0.24, 0.24]]
+
+
+def test_each_valid_pose_s_covariance_is_written_beside_the_trajectory(tmp_path: Path) -> None:
+    # A pose carries its covariance (issue 5), and the console showed it, but a track run
+    # folder held none: states.csv's columns are a contract, so it goes to a file of its own,
+    # one row per line of trajectory.tum, the 6x6 matrix's upper triangle.
+    rng = np.random.default_rng(3)
+    covs = []
+    writer = RunWriter(tmp_path / "run", {}, {"spec": "test"})
+    for k in range(4):
+        A = rng.normal(size=(6, 6)) * np.array([1e-3] * 3 + [1e-2] * 3)
+        cov = A @ A.T
+        pose = _pose(0.0)
+        pose = PoseEstimate(True, None, "b", pose.T_cam_body, cov, np.zeros(3), np.zeros(3), 5)
+        writer.write_frame(0.04 * k, (), pose if k != 2 else PoseEstimate.invalid("fewer than 3 points"))
+        if k != 2:
+            covs.append(cov)
+    writer.close("complete")
+    path = tmp_path / "run" / "pose_covariance.csv"
+    assert path.read_text().splitlines()[0] == ",".join(POSE_COVARIANCE_COLUMNS)
+    assert POSE_COVARIANCE_COLUMNS[:3] == ("t", "x_x", "x_y") and POSE_COVARIANCE_COLUMNS[-1] == "rz_rz"
+    assert len(POSE_COVARIANCE_COLUMNS) == 1 + 21
+    t_s, cov = read_pose_covariance(path)
+    np.testing.assert_array_equal(t_s, read_tum(tmp_path / "run" / "trajectory.tum").t_s)
+    np.testing.assert_allclose(cov, np.array(covs), rtol=1e-8, atol=0)
+    np.testing.assert_array_equal(cov, np.transpose(cov, (0, 2, 1)))
 
 
 @pytest.mark.parametrize("how", ["removed", "replaced"])
@@ -156,9 +183,10 @@ def test_a_frame_that_cannot_be_written_whole_is_taken_back_from_every_file(tmp_
     target = TargetState("t1", "auto", "tracking", np.array([10.0, 20.0]), np.array([5.0, 20.0]),
                          np.array([0.1, 0.2, 3.5]), np.eye(3) * 1e-6, 0.97, np.array([10.0, 20.0]), (0.0, 0.0, 1.0, 1.0))
     writer.write_frame(0.00, (target,), _pose(0.0))
-    before = {name: (tmp_path / "run" / name).read_text() for name in ("states.csv", "trajectory.tum", "targets.csv")}
+    before = {name: (tmp_path / "run" / name).read_text()
+              for name in ("states.csv", "trajectory.tum", "pose_covariance.csv", "targets.csv")}
     disk = full_disk(0)
-    for free in range(0, 400, 7):  # the disk fills at every byte offset of the next frame
+    for free in range(0, 900, 7):  # the disk fills at every byte offset of the next frame
         disk.free = free
         try:
             writer.write_frame(0.04, (target,), _pose(0.0))
@@ -175,6 +203,7 @@ def test_a_frame_that_cannot_be_written_whole_is_taken_back_from_every_file(tmp_
     states = read_motion_csv(tmp_path / "run" / "states.csv")
     assert len(states) == 2 and len(read_tum(tmp_path / "run" / "trajectory.tum").t_s) == 2
     assert len((tmp_path / "run" / "targets.csv").read_text().splitlines()) == 3
+    assert len(read_pose_covariance(tmp_path / "run" / "pose_covariance.csv")[0]) == 2
 
 
 def test_a_run_that_cannot_even_start_leaves_nothing(tmp_path: Path, full_disk) -> None:  # type: ignore[no-untyped-def]
@@ -346,8 +375,8 @@ def test_the_final_run_yaml_is_written_in_the_space_held_for_it(tmp_path: Path, 
     monkeypatch.undo()
     other = RunWriter(tmp_path / "other", {}, {"spec": "test"})
     other.close("complete")
-    assert sorted(p.name for p in (tmp_path / "other").iterdir()) == ["run.yaml", "states.csv", "targets.csv",
-                                                                       "trajectory.tum"]
+    assert sorted(p.name for p in (tmp_path / "other").iterdir()) == ["pose_covariance.csv", "run.yaml", "states.csv",
+                                                                       "targets.csv", "trajectory.tum"]
 
 
 def test_a_run_killed_outright_leaves_only_its_files(tmp_path: Path) -> None:
@@ -372,7 +401,8 @@ def test_a_run_killed_outright_leaves_only_its_files(tmp_path: Path) -> None:
     root = str(Path(__file__).resolve().parents[1])
     proc = subprocess.run([sys.executable, "-c", child, str(out), root], capture_output=True, text=True, timeout=120)
     assert proc.returncode == -signal.SIGKILL, proc.stderr
-    assert sorted(p.name for p in out.iterdir()) == ["run.yaml", "states.csv", "targets.csv", "trajectory.tum"]
+    assert sorted(p.name for p in out.iterdir()) == ["pose_covariance.csv", "run.yaml", "states.csv", "targets.csv",
+                                                     "trajectory.tum"]
     assert yaml.safe_load((out / "run.yaml").read_text())["status"] == "running"
     assert len(read_motion_csv(out / "states.csv")) == 3
 

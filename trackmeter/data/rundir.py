@@ -33,6 +33,7 @@ from typing import Any, Collection, Sequence
 
 import numpy as np
 import yaml
+from numpy.typing import NDArray
 
 from trackmeter.core.targets import TargetState
 from trackmeter.core.transforms import matrix_to_quat_wxyz, quat_sign_nearest
@@ -46,7 +47,16 @@ from trackmeter.errors import TrackmeterError, counted
 #: Header of ``targets.csv`` (a contract, DESIGN.md section 6).
 TARGETS_COLUMNS: tuple[str, ...] = ("t", "id", "state", "u", "v", "u_right", "v_right", "x", "y", "z", "score")
 
-_RUN_FILES = ("trajectory.tum", "states.csv", "targets.csv", "run.yaml")
+#: Axes of a pose's covariance: position x, y, z (m) and the rotation vector's x, y, z (rad),
+#: both in the camera frame (:attr:`trackmeter.pipeline.snapshot.PoseEstimate.cov_pose`).
+POSE_AXES: tuple[str, ...] = ("x", "y", "z", "rx", "ry", "rz")
+#: Header of ``pose_covariance.csv``: the time, then the 6x6 covariance's upper triangle row by
+#: row (``x_x, x_y, ..., x_rz, y_y, ..., rz_rz``; m², m rad, rad²). Not a DESIGN.md contract:
+#: ``states.csv``'s columns are, so the covariance has a file of its own.
+POSE_COVARIANCE_COLUMNS: tuple[str, ...] = ("t", *(f"{POSE_AXES[i]}_{POSE_AXES[j]}" for i in range(6) for j in range(i, 6)))
+_UPPER = np.triu_indices(6)
+
+_RUN_FILES = ("trajectory.tum", "states.csv", "pose_covariance.csv", "targets.csv", "run.yaml")
 # Held while a run is written, released for the final run.yaml when the disk is full; the
 # name is the reserve's only while it is written (then an open descriptor holds its space).
 RESERVE_NAME = ".run.yaml.reserve"
@@ -272,6 +282,8 @@ class RunWriter:
         self._states = MotionCsvWriter(self.directory / "states.csv", STATES_COLUMNS)
         self._begun.append(self.directory / "trajectory.tum")
         self._tum: AppendFile | None = AppendFile(self.directory / "trajectory.tum", "# t tx ty tz qx qy qz qw  (T_cam_body)\n")
+        self._begun.append(self.directory / "pose_covariance.csv")
+        self._cov = AppendFile(self.directory / "pose_covariance.csv", ",".join(POSE_COVARIANCE_COLUMNS) + "\n")
         self._begun.append(self.directory / "targets.csv")
         self._targets: AppendFile | None = AppendFile(self.directory / "targets.csv", ",".join(TARGETS_COLUMNS) + "\n")
 
@@ -301,13 +313,14 @@ class RunWriter:
         self._check_folder()
         # A frame is in all three files or in none: a write that fails (a full disk) takes
         # back what this frame had written to the others.
-        sizes = (self._states.size, self._states.rows_written, self._tum.size, self._targets.size)
+        sizes = (self._states.size, self._states.rows_written, self._tum.size, self._cov.size, self._targets.size)
         try:
             self._write_frame(t_s, targets, pose, latency_ms)
         except TrackmeterError:
             self._states.truncate(sizes[0], sizes[1])
             self._tum.truncate(sizes[2])
-            self._targets.truncate(sizes[3])
+            self._cov.truncate(sizes[3])
+            self._targets.truncate(sizes[4])
             raise
 
     def _write_frame(self, t_s: float, targets: Sequence[TargetState], pose: Any, latency_ms: float) -> None:
@@ -323,6 +336,8 @@ class RunWriter:
                                velocity_cam_m_s=pose.velocity_cam_m_s, omega_body_rad_s=pose.omega_body_rad_s,
                                n_tracked=n_tracked, n_lost=n_lost, latency_ms=latency_ms)
             self._tum.append(format_tum_line(t_s, p, q) + "\n")
+            cov = np.asarray(pose.cov_pose, dtype=float)
+            self._cov.append(",".join([f"{t_s:.9f}", *(_num(c, ".9e") for c in (cov + cov.T)[_UPPER] / 2.0)]) + "\n")
         else:
             self._states.write(t=t_s, valid=0, n_tracked=n_tracked, n_lost=n_lost, latency_ms=latency_ms)
         lines = []
@@ -396,7 +411,7 @@ class RunWriter:
             self._begun = [repoint(p, old, moved) for p in self._begun]
             if self._previous is not None:
                 self._previous = repoint(self._previous, old, moved)
-            for file in (self._states, self._tum, self._targets):
+            for file in (self._states, self._tum, self._cov, self._targets):
                 if file is not None:
                     file.path = repoint(file.path, old, moved)
             warnings.warn(f"{old}: the run folder was moved to {moved} while the run wrote to it; the run goes on "
@@ -411,6 +426,7 @@ class RunWriter:
         assert self._tum is not None
         self._states.close()
         self._tum.close()
+        self._cov.close()
         if self._targets is not None:
             self._targets.close()
         self._tum = self._targets = None
@@ -435,3 +451,32 @@ class RunWriter:
 
     def __exit__(self, exc_type: object, *exc: object) -> None:
         self.close("interrupted" if exc_type is not None else "complete")
+
+
+def read_pose_covariance(path: str | Path) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """A run's ``pose_covariance.csv``: ``(t_s (N,), cov (N,6,6))``, one per valid pose (the
+    lines of its ``trajectory.tum``), axes :data:`POSE_AXES`.
+
+    Raises:
+        TrackmeterError: not such a file (its header), or a row that is not 22 numbers."""
+    path = Path(path)
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise TrackmeterError(f"{path}: cannot read ({getattr(exc, 'strerror', None) or exc})") from None
+    if not lines or lines[0].strip() != ",".join(POSE_COVARIANCE_COLUMNS):
+        raise TrackmeterError(f"{path}: not a pose_covariance.csv (its header must be {','.join(POSE_COVARIANCE_COLUMNS[:4])},...)")
+    rows = [ln for ln in lines[1:] if ln.strip()]
+    values = np.full((len(rows), len(POSE_COVARIANCE_COLUMNS)), np.nan)
+    for k, line in enumerate(rows):
+        fields = line.split(",")
+        try:
+            if len(fields) != len(POSE_COVARIANCE_COLUMNS):
+                raise ValueError
+            values[k] = [float(f) for f in fields]
+        except ValueError:
+            raise TrackmeterError(f"{path}: line {k + 2}: expected {len(POSE_COVARIANCE_COLUMNS)} numbers") from None
+    cov = np.zeros((len(rows), 6, 6))
+    cov[:, _UPPER[0], _UPPER[1]] = values[:, 1:]
+    cov[:, _UPPER[1], _UPPER[0]] = values[:, 1:]
+    return values[:, 0], cov
