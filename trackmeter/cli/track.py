@@ -2,9 +2,10 @@
 
 Runs the pipeline (acquisition and tracking threads) without the console on any source, with
 targets from --target and/or automatic selection (--auto N), and writes the run directory:
-trajectory.tum (valid poses), states.csv (one row per frame), targets.csv, run.yaml. Recorded
-and simulated sources are processed frame by frame as fast as possible (no frame dropped);
-cameras run live. Ends at the end of the source or on Ctrl-C, with complete files either way.
+trajectory.tum (valid poses), states.csv (one row per frame), pose_covariance.csv (each valid
+pose's 6x6 covariance), targets.csv, run.yaml. Recorded and simulated sources are processed
+frame by frame as fast as possible (no frame dropped); cameras run live. Ends at the end of
+the source or on Ctrl-C, with complete files either way.
 
 Model cases (paper section 2.C):
   a  no model: the body frame from three tracked points (x from the first toward the second,
