@@ -364,13 +364,10 @@ def nees_figures(values: Sequence[float], prefix: str) -> dict[str, float]:
     ``<prefix>_nees_median`` (5.35 when honest; larger: the covariance is overconfident) and
     ``<prefix>_nees_within_95`` (the fraction under chi-square(6)'s 95th percentile: 0.95
     when honest). Nothing when there is no pose."""
-    from scipy.stats import chi2
+    from trackmeter.core.metrics import nees_summary
 
-    v = np.asarray(values, float)
-    if not v.size:
-        return {}
-    return {f"{prefix}_nees_median": float(np.median(v)),
-            f"{prefix}_nees_within_95": float(np.mean(v <= chi2.ppf(0.95, 6)))}
+    summary = nees_summary(values)
+    return {f"{prefix}_nees_{k}": v for k, v in summary.items() if k != "poses"}
 
 
 def run_chain(case: str, seconds: float, scenario: str = "estec", seed_offset: int = 0,

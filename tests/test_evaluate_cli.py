@@ -1158,3 +1158,28 @@ def test_a_command_started_with_its_stdout_closed_ends_without_a_traceback(seque
     proc = subprocess.run(["sh", "-c", '"$@" 2>&-', "sh", *track], capture_output=True, text=True)
     assert proc.returncode == 0 and "Traceback" not in proc.stdout, proc.stdout
     assert (tmp_path / "tracked" / "run.yaml").is_file()
+
+
+def test_a_run_s_pose_covariance_is_judged_against_the_truth(capsys, sequence_and_run) -> None:
+    # track writes each pose's covariance (pose_covariance.csv): evaluate says how honest it
+    # is, the normalised estimation error squared (NEES, chi-square with 6 dof when honest:
+    # Bar-Shalom, Li and Kirubarajan 2001, 5.4.2). Errors of 2 mm along x and 0.5 deg about z
+    # against 1-sigmas of 1 mm and 0.5 deg give NEES 2^2 + 1^2 = 5 at every pose.
+    from trackmeter.data.rundir import POSE_COVARIANCE_COLUMNS
+
+    truth, seq, run = sequence_and_run
+    cov = np.diag([1e-3**2] * 3 + [math.radians(0.5) ** 2] * 3)
+    upper = cov[np.triu_indices(6)]
+    rows = [",".join([f"{t:.9f}", *(f"{c:.9e}" for c in upper)]) for k, t in enumerate(truth.t_s) if k != 10]
+    (run / "pose_covariance.csv").write_text(",".join(POSE_COVARIANCE_COLUMNS) + "\n" + "\n".join(rows) + "\n")
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
+    assert code == 0, err
+    s = json.loads(out)
+    assert s["pose_nees"]["poses"] == 59
+    assert s["pose_nees"]["median"] == pytest.approx(5.0, rel=1e-6)
+    assert s["pose_nees"]["within_95"] == 1.0
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run))
+    assert "pose covariance: NEES median 5.00 over 59 poses (5.35 when honest), 100.0 % within" in out, out
+    # Aligned to the truth's body, the errors are no longer the ones the covariance describes.
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--align", "body", "--json")
+    assert code == 0 and "pose_nees" not in json.loads(out)

@@ -199,6 +199,18 @@ def run(args: argparse.Namespace) -> int:
     truth, estimate = in_seconds(truth, estimate, params.tolerance_s)
     params = replace(params, align=resolve_align(params.align, estimate.case))
     result = evaluate(truth.series, estimate.series, params, estimate.t_start_s, estimate.frame_times_s)
+    if params.align == "none" and estimate.cov_pose is not None:
+        # The covariance describes the estimate's own frame: judged only where that is the truth's.
+        import numpy as np
+
+        from trackmeter.core.metrics import MotionErrors, nees_summary, pose_nees
+
+        cov = estimate.cov_pose[result.association.index_est]
+        has = np.all(np.isfinite(cov), axis=(1, 2))
+        e = result.errors
+        if has.any():
+            judged = MotionErrors(e.t_s[has], e.position_m[has], e.attitude_rad[has], None, None, e.position_rel[has])
+            result.summary["pose_nees"] = nees_summary(pose_nees(judged, cov[has]))
     t_t, t_e = truth.series.t_s, estimate.series.t_s
     overlap = min(t_t[-1], t_e[-1]) - max(t_t[0], t_e[0])
     longer = max(t_t[-1] - t_t[0], t_e[-1] - t_e[0])

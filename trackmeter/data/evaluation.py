@@ -52,6 +52,9 @@ class LoadedMotion:
     # a states.csv's valid (1) rows with a rate that is not a number: README says a valid row
     # holds numbers in every field (a pose whose rates are pending is a valid-0 row)
     valid_rows_without_rates: int = 0
+    # a track run's pose covariances (its pose_covariance.csv), (N,6,6) beside the series' rows
+    # (NaN where a row has none), or None without the file
+    cov_pose: np.ndarray | None = None
 
 
 def _looks_like_motion_csv(path: Path) -> bool:
@@ -233,7 +236,31 @@ def load_estimate(spec: str | Path) -> LoadedMotion:
         warnings.warn(f"{problem}: the run's pose case is unknown, so --align auto compares without aligning "
                       "(give --align body for a run tracked in case a or c)", stacklevel=2)
     return replace(loaded, case=case, restarts=(restarts[0], restarts[1]),
-                   status=status if isinstance(status, str) else None)
+                   status=status if isinstance(status, str) else None,
+                   cov_pose=_pose_covariances(run_dir, loaded.series.t_s))
+
+
+def _pose_covariances(run_dir: Path, t_s: np.ndarray) -> np.ndarray | None:
+    """A run folder's pose covariances at the poses ``t_s`` (N,): (N,6,6), NaN for a pose its
+    ``pose_covariance.csv`` has no row for (both files write the times to 9 decimals: the same
+    numbers); None without the file, or with a warning when it cannot be read."""
+    from trackmeter.data.rundir import read_pose_covariance
+
+    path = run_dir / "pose_covariance.csv"
+    if not path.is_file():
+        return None
+    try:
+        t_cov, cov = read_pose_covariance(path)
+    except TrackmeterError as exc:
+        warnings.warn(f"{exc}: the pose covariance is not judged", stacklevel=3)
+        return None
+    at = {round(float(t), 9): k for k, t in enumerate(t_cov)}
+    out = np.full((len(t_s), 6, 6), np.nan)
+    for k, t in enumerate(t_s):
+        j = at.get(round(float(t), 9))
+        if j is not None:
+            out[k] = cov[j]
+    return out
 
 
 def _run_yaml_problem(run_dir: Path) -> str | None:
@@ -455,6 +482,10 @@ def format_summary(summary: dict, truth: str = "", estimate: str = "", align: st
     lines.append(f"{'error':<40}{'axis':>6}{'rms':>{width}}{'p95':>{width}}{'max':>{width}}")
     lines += [f"{name:<40}{axis:>6}{rms:>{width}}{p95:>{width}}{top:>{width}}" for name, axis, rms, p95, top in rows]
     lines.append(f"SPEED score (mean of angle [rad] + |dt|/|t|): {summary['speed_score']:.6f}")
+    nees = summary.get("pose_nees")
+    if nees:
+        lines.append(f"pose covariance: NEES median {nees['median']:.2f} over {counted(nees['poses'], 'pose')} (5.35 when "
+                     f"honest), {100 * nees['within_95']:.1f} % within chi-square(6)'s 95 % bound (95 % when honest)")
     if summary.get("velocity_m_s") is None:
         lines.append("(no velocity errors: they need velocities on both sides, paired after the settle time: a "
                      "run's states.csv, once its rates settled, and a groundtruth.csv)")
