@@ -10,7 +10,10 @@ position errors (camera frame; z = viewing axis), attitude errors (paper eq. 17 
 total), linear velocity errors (camera frame, of the body origin) and angular velocity errors
 (body frame, paper eq. 14; both only when the estimate is a run directory or its states.csv and
 the truth has rates (a groundtruth.csv, also one beside a TUM file given, or sim[:SCENARIO])),
-each as RMS, max and 95th percentile, plus the SPEED challenge score.
+each as RMS, max and 95th percentile, plus the SPEED challenge score. Without alignment, a run
+folder's pose_covariance.csv is judged too: the NEES of each pose (e^T P^-1 e over position and
+attitude errors), its median and share within chi-square(6)'s 95 % bound (5.35 and 95 % when
+the covariance is honest).
 
   --truth    TUM file, groundtruth.csv, or a sequence folder; sim[:SCENARIO] for a run of the
              sim source: the scenario's motion (a path of that name, if one exists, comes first)
