@@ -1091,6 +1091,7 @@ def test_tracker_auto_in_a_config_starts_automatic_selection_as_in_the_console(t
     code = main(["track", "--config", str(config), "--source", "sim", "--max-frames", "8", "--out", str(out)])
     err = capsys.readouterr().err
     assert code == 0, err
+    assert "--auto" not in err, err  # its notes name tracker.auto, not an option the user did not type
     meta = yaml.safe_load((out / "run.yaml").read_text())
     assert meta["source"]["auto"] == 5, meta["source"]
     with open(out / "targets.csv", newline="") as f:
@@ -1100,3 +1101,11 @@ def test_tracker_auto_in_a_config_starts_automatic_selection_as_in_the_console(t
     code = main(["track", "--config", str(config), "--source", "sim", "--max-frames", "2", "--auto", "3", "--out", str(tmp_path / "r3")])
     assert code == 0, capsys.readouterr().err
     assert yaml.safe_load((tmp_path / "r3" / "run.yaml").read_text())["source"]["auto"] == 3
+    # More than the tracker holds: capped, and said (an outside probe found it silent).
+    config.write_text("tracker:\n  auto: true\nfeatures:\n  count: 40\n")
+    code = main(["track", "--config", str(config), "--source", "sim", "--max-frames", "2", "--out", str(tmp_path / "r40")])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert "note: tracker.auto keeps 32 targets: features.count (40) is more than tracker.max_targets holds" in err, err
+    assert "--auto" not in err, err  # no option the user did not type
+    assert yaml.safe_load((tmp_path / "r40" / "run.yaml").read_text())["source"]["auto"] == 32

@@ -59,8 +59,9 @@ def summary_reason(reason: str) -> str:
     return _COUNTDOWN.sub("(counting down)", reason)
 
 
-def _option_of(command: Any) -> str:
-    """The command-line option a command came from, as the user typed it (for its warnings)."""
+def _option_of(command: Any, auto_label: str | None = None) -> str:
+    """The command-line option a command came from, as the user typed it (for its warnings);
+    ``auto_label`` names automatic selection started by the configuration instead."""
     from trackmeter.pipeline.engine import SelectModelPoints
     from trackmeter.pipeline.snapshot import SelectPoint, SetAuto
 
@@ -70,7 +71,7 @@ def _option_of(command: Any) -> str:
     if isinstance(command, SelectModelPoints):
         return "--select-model-points"
     if isinstance(command, SetAuto):
-        return f"--auto {command.count}"
+        return auto_label or f"--auto {command.count}"
     return type(command).__name__
 
 
@@ -179,6 +180,12 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
     # `tracker.auto: true` in a --config starts automatic selection as the console does, keeping
     # features.count targets (at most the tracker's); --auto N says how many either way.
     auto = args.auto if args.auto is not None else (min(config.features.count, most) if config.tracker.auto else None)
+    auto_label = None if args.auto is not None or auto is None else (
+        f"tracker.auto (features.count {config.features.count}"
+        + (f", capped at tracker.max_targets {most})" if config.features.count > most else ")"))
+    if auto_label and config.features.count > most:
+        print(f"trackmeter track: note: tracker.auto keeps {most} targets: features.count ({config.features.count}) "
+              f"is more than tracker.max_targets holds", file=sys.stderr)
     named = [i for i, _ in targets if i is not None]
     twice = sorted({i for i in named if named.count(i) > 1})
     if twice:  # known before the source opens: not a warning after the first frame
@@ -339,9 +346,9 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
                         sys.stderr.write("\r\033[K")  # over the progress line
                     if reply.message == NEEDS_TRUTH and source.has_truth:
                         # the engine selects them at the first frame with truth
-                        print(f"trackmeter track: note: {_option_of(command)}: {TRUTH_LATER}", file=sys.stderr)
+                        print(f"trackmeter track: note: {_option_of(command, auto_label)}: {TRUTH_LATER}", file=sys.stderr)
                     else:
-                        print(f"trackmeter track: warning: {_option_of(command)}: {reply.message}", file=sys.stderr)
+                        print(f"trackmeter track: warning: {_option_of(command, auto_label)}: {reply.message}", file=sys.stderr)
                     said.add(k)
                     # A source with truth from a later frame on may still let the points be selected.
                     if isinstance(command, SelectPoint) or (reply.message == NEEDS_TRUTH and not source.has_truth):
@@ -350,7 +357,7 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
                     # Put on a trackable corner near the pixel given, not on it: say where.
                     if tty:
                         sys.stderr.write("\r\033[K")
-                    print(f"trackmeter track: note: {_option_of(command)}: {reply.message}", file=sys.stderr)
+                    print(f"trackmeter track: note: {_option_of(command, auto_label)}: {reply.message}", file=sys.stderr)
                     said.add(k)
             starters = [k for k, c in enumerate(commands) if isinstance(c, (SelectPoint, SelectModelPoints))]
             state["nothing"] = auto is None and all(k in for_good for k in starters)
@@ -415,7 +422,7 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
                 print(f"trackmeter track: warning: {new_warning}", file=sys.stderr)
             for k, (command, reply) in enumerate(zip(commands, replies)):
                 if not reply.ok and k not in said:
-                    print(f"trackmeter track: warning: {_option_of(command)}: {reply.message}", file=sys.stderr)
+                    print(f"trackmeter track: warning: {_option_of(command, auto_label)}: {reply.message}", file=sys.stderr)
                 if (isinstance(command, SelectModelPoints) and reply.message == NEEDS_TRUTH and source.has_truth
                         and engine.stats.operator_reselections == 0):
                     # The note said they would be selected at the first frame with truth: none came.
@@ -460,7 +467,7 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
                 print(f"trackmeter track: note: {counted(gained, 'frame')} underexposed (the left image's brightest "
                       f"pixels below grey {engine.exposure_params.reference_grey:g}), tracked at a gain of up to "
                       f"{engine.stats.largest_gain:.2f} (config section exposure)", file=sys.stderr)
-            short = _auto_shortfall(engine.tracker, auto, state.get("most_auto", 0)) if auto else None
+            short = _auto_shortfall(engine.tracker, auto, state.get("most_auto", 0), auto_label) if auto else None
             if short:
                 print(f"trackmeter track: warning: {short}", file=sys.stderr)
             return 0 if status == "complete" else 2
@@ -502,18 +509,18 @@ def _check_views(state: dict[str, Any], rig: Any, frame: Any, tty: bool) -> None
         print(f"trackmeter track: warning: {problem}", file=sys.stderr)
 
 
-def _auto_shortfall(tracker: Any, asked: int, most_at_once: int) -> str | None:
-    """One line when --auto started no target in the whole run, or never had as many as
-    ``asked`` measured at once, with its candidates' refusal reasons (the images too dark, too
-    small a target); None otherwise."""
+def _auto_shortfall(tracker: Any, asked: int, most_at_once: int, auto_label: str | None = None) -> str | None:
+    """One line when --auto (or ``auto_label``: the configuration's tracker.auto) started no
+    target in the whole run, or never had as many as ``asked`` measured at once, with its
+    candidates' refusal reasons (the images too dark, too small a target); None otherwise."""
     stats, refusals = getattr(tracker, "stats", None), getattr(tracker, "auto_refusals", None)
     if not isinstance(stats, dict) or not refusals or most_at_once >= asked:
         return None
     reasons = ", ".join(f"{reason} ({count})" for reason, count in refusals.most_common(3))
     if not stats.get("auto_added", 1):
-        return f"--auto started no target: its candidates were refused: {reasons}"
-    return (f"--auto {asked}: at most {counted(most_at_once, 'automatic target')} at once; its other candidates "
-            f"were refused: {reasons}")
+        return f"{auto_label or '--auto'} started no target: its candidates were refused: {reasons}"
+    return (f"{auto_label or f'--auto {asked}'}: at most {counted(most_at_once, 'automatic target')} at once; its "
+            f"other candidates were refused: {reasons}")
 
 
 def _finish_writing(writer: Any, flush_pending: Callable[[], None], state: dict[str, Any]) -> None:
