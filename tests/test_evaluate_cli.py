@@ -1172,6 +1172,7 @@ def test_a_run_s_pose_covariance_is_judged_against_the_truth(capsys, sequence_an
     upper = cov[np.triu_indices(6)]
     rows = [",".join([f"{t:.9f}", *(f"{c:.9e}" for c in upper)]) for k, t in enumerate(truth.t_s) if k != 10]
     (run / "pose_covariance.csv").write_text(",".join(POSE_COVARIANCE_COLUMNS) + "\n" + "\n".join(rows) + "\n")
+    (run / "run.yaml").write_text(yaml.safe_dump({"status": "complete", "source": {"case": "b"}}))  # a track run's
     code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
     assert code == 0, err
     s = json.loads(out)
@@ -1183,3 +1184,62 @@ def test_a_run_s_pose_covariance_is_judged_against_the_truth(capsys, sequence_an
     # Aligned to the truth's body, the errors are no longer the ones the covariance describes.
     code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--align", "body", "--json")
     assert code == 0 and "pose_nees" not in json.loads(out)
+
+
+def _covariance_file(run, truth, rows_cov) -> None:
+    """A pose_covariance.csv for ``run`` at the truth's times but frame 10 (the run's invalid
+    one): ``rows_cov(k)`` gives row k's (6,6) matrix, or None for empty fields (as track writes
+    a non-finite covariance)."""
+    from trackmeter.data.rundir import POSE_COVARIANCE_COLUMNS
+
+    lines = [",".join(POSE_COVARIANCE_COLUMNS)]
+    for k, t in enumerate(truth.t_s):
+        if k == 10:
+            continue
+        cov = rows_cov(k)
+        fields = [""] * 21 if cov is None else [f"{c:.9e}" for c in cov[np.triu_indices(6)]]
+        lines.append(",".join([f"{t:.9f}", *fields]))
+    (run / "pose_covariance.csv").write_text("\n".join(lines) + "\n")
+    (run / "run.yaml").write_text(yaml.safe_dump({"status": "complete", "source": {"case": "b"}}))  # a track run's
+
+
+def test_a_covariance_that_is_no_covariance_is_left_out_and_said(capsys, sequence_and_run) -> None:
+    # An outside probe: a zero (singular) matrix crashed evaluate (LinAlgError), negative
+    # variances gave a NEES median of -6.56 "100 % within the bound", and poses left without a
+    # covariance were dropped without a word.
+    truth, seq, run = sequence_and_run
+    good = np.diag([1e-3**2] * 3 + [math.radians(0.5) ** 2] * 3)
+    bad = {3: np.zeros((6, 6)), 4: -good, 5: None}
+    _covariance_file(run, truth, lambda k: bad.get(k, good))
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
+    assert code == 0 and "Traceback" not in err, err
+    s = json.loads(out)
+    assert s["pose_nees"]["poses"] == 56 and s["pose_nees"]["median"] == pytest.approx(5.0, rel=1e-6)
+    assert ("warning: 3 of the 59 paired poses have no usable covariance in " in err
+            and "(2 not positive definite, 1 not a number): the NEES is over the other 56" in err), err
+    # Every one unusable, or another run's file (no time in common): said, not judged.
+    _covariance_file(run, truth, lambda k: -good)
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
+    assert code == 0 and "pose_nees" not in json.loads(out)
+    assert "warning: none of the 59 paired poses has a usable covariance in " in err, err
+    truth_later = MotionSeries(truth.t_s + 1000.0, truth.valid, truth.position_m, truth.quat_wxyz,
+                               truth.velocity_cam_m_s, truth.omega_body_rad_s)
+    _covariance_file(run, truth_later, lambda k: good)
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
+    assert "pose_nees" not in json.loads(out) and "none of the 59 paired poses" in err, err
+
+
+def test_only_the_run_s_own_poses_are_judged_with_its_covariance(capsys, sequence_and_run, tmp_path) -> None:
+    # Another tracker's trajectory put in a run folder was judged against the run's covariance
+    # (NEES 131), and so was a bare TUM file with a pose_covariance.csv beside it.
+    truth, seq, run = sequence_and_run
+    good = np.diag([1e-3**2] * 3 + [math.radians(0.5) ** 2] * 3)
+    _covariance_file(run, truth, lambda k: good)
+    _tum(run / "other_tracker.tum", truth)
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run / "other_tracker.tum"), "--json")
+    assert code == 0 and "pose_nees" not in json.loads(out), out
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run / "states.csv"), "--json")
+    assert json.loads(out)["pose_nees"]["poses"] == 59
+    (run / "run.yaml").unlink()  # not a track run's folder
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
+    assert code == 0 and "pose_nees" not in json.loads(out), out

@@ -325,3 +325,41 @@ def test_a_trajectory_whose_times_go_backwards_is_refused_not_paired_with_nothin
         associate(np.array([0.0, 1.0, 0.5]), np.array([0.0]), 0.01)
     # repeated times are not "backwards": the state of a frame read twice is still a sample
     assert len(Trajectory(np.array([0.0, 1.0, 1.0]), np.zeros((3, 3)), q)) == 3
+
+
+def test_usable_covariances_are_the_finite_ones_cholesky_accepts() -> None:
+    # Pinned to numpy's Cholesky factorisation, which exists exactly for the symmetric positive
+    # definite matrices (Golub and Van Loan 4.2).
+    from trackmeter.core.metrics import usable_covariances
+
+    rng = np.random.default_rng(21)
+    mats = []
+    for k in range(40):
+        A = rng.normal(size=(6, 6))
+        kind = k % 5
+        if kind == 0:
+            mats.append(A @ A.T + 1e-3 * np.eye(6))  # positive definite
+        elif kind == 1:
+            mats.append(-(A @ A.T))  # negative definite
+        elif kind == 2:
+            M = A @ A.T
+            M[5, :] = M[:, 5] = 0.0
+            mats.append(M)  # rank 5: singular (exactly, so that Cholesky's rounding cannot pass it)
+        elif kind == 3:
+            M = A @ A.T
+            M[0, 0] = np.nan
+            mats.append(M)
+        else:
+            mats.append(A @ A.T + np.diag([0, 0, 0, 0, 0, -50.0]))  # an eigenvalue below zero, mostly
+    finite, definite = usable_covariances(np.array(mats))
+
+    def cholesky_ok(M: np.ndarray) -> bool:
+        try:
+            np.linalg.cholesky(M)
+            return bool(np.all(np.isfinite(M)))
+        except np.linalg.LinAlgError:
+            return False
+
+    expected = np.array([cholesky_ok(M) for M in mats])
+    np.testing.assert_array_equal(finite & definite, expected)
+    np.testing.assert_array_equal(finite, [k % 5 != 3 for k in range(40)])

@@ -574,3 +574,18 @@ def test_an_overwrite_whose_writes_failed_keeps_the_earlier_run_beside_it(tmp_pa
     assert yaml.safe_load((kept / "run.yaml").read_text())["status"] == "complete"
     assert len(read_motion_csv(kept / "states.csv")) == 3
     assert yaml.safe_load((tmp_path / "run" / "run.yaml").read_text())["status"] == "write failed"
+
+
+def test_a_covariance_that_is_no_number_is_written_empty_and_read_as_nan(tmp_path: Path) -> None:
+    # The writer gives a value that is not a number as an empty field (as in states.csv); the
+    # reader refused the whole file for it (an outside probe).
+    writer = RunWriter(tmp_path / "run", {}, {"spec": "test"})
+    cov = np.eye(6) * 1e-6
+    cov[0, 0] = np.nan
+    for k, c in enumerate((np.eye(6) * 1e-6, cov)):
+        pose = _pose(0.0)
+        writer.write_frame(0.04 * k, (), PoseEstimate(True, None, "b", pose.T_cam_body, c, np.zeros(3), np.zeros(3), 5))
+    writer.close("complete")
+    t_s, read = read_pose_covariance(tmp_path / "run" / "pose_covariance.csv")
+    assert len(t_s) == 2 and np.isnan(read[1, 0, 0]) and read[1, 1, 1] == 1e-6
+    np.testing.assert_array_equal(read[0], np.eye(6) * 1e-6)

@@ -204,14 +204,24 @@ def run(args: argparse.Namespace) -> int:
     result = evaluate(truth.series, estimate.series, params, estimate.t_start_s, estimate.frame_times_s)
     if params.align == "none" and estimate.cov_pose is not None:
         # The covariance describes the estimate's own frame: judged only where that is the truth's.
-        import numpy as np
-
-        from trackmeter.core.metrics import MotionErrors, nees_summary, pose_nees
+        from trackmeter.core.metrics import MotionErrors, nees_summary, pose_nees, usable_covariances
 
         cov = estimate.cov_pose[result.association.index_est]
-        has = np.all(np.isfinite(cov), axis=(1, 2))
-        e = result.errors
-        if has.any():
+        finite, definite = usable_covariances(cov)
+        has, e = finite & definite, result.errors
+        where = Path(estimate.source).parent / "pose_covariance.csv"
+        if not has.any():
+            print(f"trackmeter evaluate: warning: none of the {len(has)} paired poses has a usable covariance in {where} "
+                  "(no row at their times, or none a positive definite matrix): the covariance is not judged",
+                  file=sys.stderr)
+        else:
+            if not has.all():
+                why = ", ".join(part for part in (f"{int((finite & ~definite).sum())} not positive definite" if
+                                                  (finite & ~definite).any() else "",
+                                                  f"{int((~finite).sum())} not a number" if (~finite).any() else "")
+                                if part)
+                print(f"trackmeter evaluate: warning: {int((~has).sum())} of the {len(has)} paired poses have no usable "
+                      f"covariance in {where} ({why}): the NEES is over the other {int(has.sum())}", file=sys.stderr)
             judged = MotionErrors(e.t_s[has], e.position_m[has], e.attitude_rad[has], None, None, e.position_rel[has])
             result.summary["pose_nees"] = nees_summary(pose_nees(judged, cov[has]))
     t_t, t_e = truth.series.t_s, estimate.series.t_s

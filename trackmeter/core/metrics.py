@@ -366,6 +366,23 @@ def pose_nees(errors: MotionErrors, cov_pose: ArrayLike) -> FloatArray:
     return np.einsum("ni,ni->n", e, np.linalg.solve(P, e[:, :, None])[:, :, 0])
 
 
+def usable_covariances(cov_pose: ArrayLike) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """Which of ``cov_pose`` (M,6,6) can weigh an error: ``(finite, positive_definite)``, each
+    (M,); a covariance is usable where both hold. Positive definite: symmetric to 1e-9 of its
+    largest entry and every eigenvalue above 1e-12 of the largest (a zero, rank-deficient or
+    negative matrix read from a file would make :func:`pose_nees` fail or go negative)."""
+    P = np.asarray(cov_pose, dtype=float).reshape(-1, 6, 6)
+    finite = np.all(np.isfinite(P), axis=(1, 2))
+    definite = np.zeros(len(P), dtype=bool)
+    if finite.any():
+        Q = P[finite]
+        scale = np.max(np.abs(Q), axis=(1, 2))
+        symmetric = np.max(np.abs(Q - np.transpose(Q, (0, 2, 1))), axis=(1, 2)) <= 1e-9 * scale
+        eig = np.linalg.eigvalsh((Q + np.transpose(Q, (0, 2, 1))) / 2.0)
+        definite[finite] = symmetric & (scale > 0) & (eig[:, 0] > 1e-12 * eig[:, -1]) & (eig[:, -1] > 0)
+    return finite, definite
+
+
 def nees_summary(values: ArrayLike) -> dict[str, float]:
     """How honest a run's pose covariance is from its poses' :func:`pose_nees`: ``median``
     (5.35 when honest; larger: overconfident), ``within_95`` (the fraction under chi-square(6)'s

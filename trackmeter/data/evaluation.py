@@ -237,17 +237,21 @@ def load_estimate(spec: str | Path) -> LoadedMotion:
                       "(give --align body for a run tracked in case a or c)", stacklevel=2)
     return replace(loaded, case=case, restarts=(restarts[0], restarts[1]),
                    status=status if isinstance(status, str) else None,
-                   cov_pose=_pose_covariances(run_dir, loaded.series.t_s))
+                   cov_pose=_pose_covariances(path, loaded.series.t_s))
 
 
-def _pose_covariances(run_dir: Path, t_s: np.ndarray) -> np.ndarray | None:
-    """A run folder's pose covariances at the poses ``t_s`` (N,): (N,6,6), NaN for a pose its
-    ``pose_covariance.csv`` has no row for (both files write the times to 9 decimals: the same
-    numbers); None without the file, or with a warning when it cannot be read."""
+def _pose_covariances(estimate: Path, t_s: np.ndarray) -> np.ndarray | None:
+    """A track run's pose covariances at the poses ``t_s`` (N,) of ``estimate``: (N,6,6), NaN
+    for a pose its ``pose_covariance.csv`` has no row for (both files write the times to 9
+    decimals: the same numbers). Only for the run's own poses: ``estimate`` its folder (with its
+    ``run.yaml``), its ``states.csv`` or its ``trajectory.tum``, not another file put beside
+    them. None otherwise, or with a warning when the file cannot be read."""
     from trackmeter.data.rundir import read_pose_covariance
 
+    run_dir = estimate if estimate.is_dir() else estimate.parent
+    own = estimate.is_dir() or estimate.name in ("states.csv", "trajectory.tum")
     path = run_dir / "pose_covariance.csv"
-    if not path.is_file():
+    if not own or not path.is_file() or not (run_dir / "run.yaml").is_file():
         return None
     try:
         t_cov, cov = read_pose_covariance(path)

@@ -455,10 +455,11 @@ class RunWriter:
 
 def read_pose_covariance(path: str | Path) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """A run's ``pose_covariance.csv``: ``(t_s (N,), cov (N,6,6))``, one per valid pose (the
-    lines of its ``trajectory.tum``), axes :data:`POSE_AXES`.
+    lines of its ``trajectory.tum``), axes :data:`POSE_AXES`; an empty field (how the writer
+    gives a value that is not a number) reads as NaN.
 
     Raises:
-        TrackmeterError: not such a file (its header), or a row that is not 22 numbers."""
+        TrackmeterError: not such a file (its header), or a row that is not a time and 21 values."""
     path = Path(path)
     try:
         lines = path.read_text(encoding="utf-8").splitlines()
@@ -473,7 +474,7 @@ def read_pose_covariance(path: str | Path) -> tuple[NDArray[np.float64], NDArray
         try:
             if len(fields) != len(POSE_COVARIANCE_COLUMNS):
                 raise ValueError
-            values[k] = [float(f) for f in fields]
+            values[k] = [float(f) if f.strip() or i == 0 else np.nan for i, f in enumerate(fields)]
         except ValueError:
             raise TrackmeterError(f"{path}: line {k + 2}: expected {len(POSE_COVARIANCE_COLUMNS)} numbers") from None
     cov = np.zeros((len(rows), 6, 6))
