@@ -1216,7 +1216,8 @@ def test_a_covariance_that_is_no_covariance_is_left_out_and_said(capsys, sequenc
     s = json.loads(out)
     assert s["pose_nees"]["poses"] == 56 and s["pose_nees"]["median"] == pytest.approx(5.0, rel=1e-6)
     assert ("warning: 3 of the 59 paired poses have no usable covariance in " in err
-            and "(2 not positive definite, 1 not a number): the NEES is over the other 56" in err), err
+            and "(1 not finite, 2 not positive definite or beyond what doubles can weigh): the NEES is over the "
+                "other 56" in err), err
     # Every one unusable, or another run's file (no time in common): said, not judged.
     _covariance_file(run, truth, lambda k: -good)
     code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
@@ -1242,4 +1243,43 @@ def test_only_the_run_s_own_poses_are_judged_with_its_covariance(capsys, sequenc
     assert json.loads(out)["pose_nees"]["poses"] == 59
     (run / "run.yaml").unlink()  # not a track run's folder
     code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
+    assert code == 0 and "pose_nees" not in json.loads(out), out
+
+
+def test_covariances_beyond_what_doubles_can_weigh_and_ambiguous_rows_are_left_out(capsys, sequence_and_run) -> None:
+    # A second outside probe: matrices of 1e-310 passed the check and gave negative NEES counted
+    # "within the bound"; a time given twice was resolved silently; a row cut off at the end
+    # (no final newline) threw the whole file away or was read as a shorter number; a gap and
+    # an infinity were both called "not a number".
+    truth, seq, run = sequence_and_run
+    good = np.diag([1e-3**2] * 3 + [math.radians(0.5) ** 2] * 3)
+    rows = {3: good * 1e-307, 4: good * 1e300}
+    _covariance_file(run, truth, lambda k: rows.get(k, good))
+    text = (run / "pose_covariance.csv").read_text().splitlines()
+    inf_row = text[7].split(",")
+    inf_row[5] = "inf"
+    text[7] = ",".join(inf_row)
+    text.insert(9, text[9].replace(f"{good[0, 0]:.9e}", f"{2 * good[0, 0]:.9e}", 1))  # its time twice, unlike
+    del text[12]  # a pose without a row
+    cut = text[-1][:-4]  # cut off inside its last number, no newline after it
+    (run / "pose_covariance.csv").write_text("\ufeff" + "\n".join(text[:-1] + [cut]))  # and a byte order mark
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
+    assert code == 0 and "Traceback" not in err, err
+    s = json.loads(out)
+    assert s["pose_nees"]["median"] == pytest.approx(5.0, rel=1e-6)
+    assert s["pose_nees"]["poses"] == 59 - 6, s["pose_nees"]
+    assert "its last line is cut off (no line end): left out" in err, err
+    assert "1 time given twice with different values: left out" in err, err
+    assert ("6 of the 59 paired poses have no usable covariance in " in err and "3 without a row at their time (" in err
+            and "1 not finite" in err and "2 not positive definite or beyond what doubles can weigh" in err), err
+
+
+def test_no_covariance_is_judged_for_a_run_whose_body_frame_is_its_own(capsys, sequence_and_run) -> None:
+    # Case (a) or (c), compared without alignment: the errors are of the frame's placement, not
+    # what the covariance describes (a NEES of 8e7 was printed beside the warning saying so).
+    truth, seq, run = sequence_and_run
+    good = np.diag([1e-3**2] * 3 + [math.radians(0.5) ** 2] * 3)
+    _covariance_file(run, truth, lambda k: good)
+    (run / "run.yaml").write_text(yaml.safe_dump({"status": "complete", "source": {"case": "a"}}))
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--align", "none", "--json")
     assert code == 0 and "pose_nees" not in json.loads(out), out

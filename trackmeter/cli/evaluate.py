@@ -202,11 +202,16 @@ def run(args: argparse.Namespace) -> int:
     truth, estimate = in_seconds(truth, estimate, params.tolerance_s)
     params = replace(params, align=resolve_align(params.align, estimate.case))
     result = evaluate(truth.series, estimate.series, params, estimate.t_start_s, estimate.frame_times_s)
-    if params.align == "none" and estimate.cov_pose is not None:
-        # The covariance describes the estimate's own frame: judged only where that is the truth's.
+    if params.align == "none" and estimate.cov_pose is not None and estimate.case not in ("a", "c"):
+        # The covariance describes the estimate's own frame: judged only where that is the
+        # truth's (not a case (a) or (c) run's, whose frame is its own, compared unaligned).
+        import numpy as np
+
         from trackmeter.core.metrics import MotionErrors, nees_summary, pose_nees, usable_covariances
 
-        cov = estimate.cov_pose[result.association.index_est]
+        index = result.association.index_est
+        cov = estimate.cov_pose[index]
+        listed = np.ones(len(index), bool) if estimate.cov_pose_rows is None else estimate.cov_pose_rows[index]
         finite, definite = usable_covariances(cov)
         has, e = finite & definite, result.errors
         where = Path(estimate.source).parent / "pose_covariance.csv"
@@ -216,10 +221,10 @@ def run(args: argparse.Namespace) -> int:
                   file=sys.stderr)
         else:
             if not has.all():
-                why = ", ".join(part for part in (f"{int((finite & ~definite).sum())} not positive definite" if
-                                                  (finite & ~definite).any() else "",
-                                                  f"{int((~finite).sum())} not a number" if (~finite).any() else "")
-                                if part)
+                parts = [(int((~listed).sum()), "without a row at their time (another run's file, or cut short?)"),
+                         (int((listed & ~finite).sum()), "not finite"),
+                         (int((finite & ~definite).sum()), "not positive definite or beyond what doubles can weigh")]
+                why = ", ".join(f"{n} {what}" for n, what in parts if n)
                 print(f"trackmeter evaluate: warning: {int((~has).sum())} of the {len(has)} paired poses have no usable "
                       f"covariance in {where} ({why}): the NEES is over the other {int(has.sum())}", file=sys.stderr)
             judged = MotionErrors(e.t_s[has], e.position_m[has], e.attitude_rad[has], None, None, e.position_rel[has])

@@ -370,7 +370,9 @@ def usable_covariances(cov_pose: ArrayLike) -> tuple[NDArray[np.bool_], NDArray[
     """Which of ``cov_pose`` (M,6,6) can weigh an error: ``(finite, positive_definite)``, each
     (M,); a covariance is usable where both hold. Positive definite: symmetric to 1e-9 of its
     largest entry and every eigenvalue above 1e-12 of the largest (a zero, rank-deficient or
-    negative matrix read from a file would make :func:`pose_nees` fail or go negative)."""
+    negative matrix read from a file would make :func:`pose_nees` fail or go negative), with
+    entries between the square roots of the smallest normal double and of the largest (beyond,
+    the solve loses its digits: 1e-310 gave negative NEES)."""
     P = np.asarray(cov_pose, dtype=float).reshape(-1, 6, 6)
     finite = np.all(np.isfinite(P), axis=(1, 2))
     definite = np.zeros(len(P), dtype=bool)
@@ -379,7 +381,9 @@ def usable_covariances(cov_pose: ArrayLike) -> tuple[NDArray[np.bool_], NDArray[
         scale = np.max(np.abs(Q), axis=(1, 2))
         symmetric = np.max(np.abs(Q - np.transpose(Q, (0, 2, 1))), axis=(1, 2)) <= 1e-9 * scale
         eig = np.linalg.eigvalsh((Q + np.transpose(Q, (0, 2, 1))) / 2.0)
-        definite[finite] = symmetric & (scale > 0) & (eig[:, 0] > 1e-12 * eig[:, -1]) & (eig[:, -1] > 0)
+        info = np.finfo(float)
+        in_range = (scale > np.sqrt(info.tiny)) & (scale < np.sqrt(info.max))
+        definite[finite] = symmetric & in_range & (eig[:, 0] > 1e-12 * eig[:, -1]) & (eig[:, -1] > 0)
     return finite, definite
 
 

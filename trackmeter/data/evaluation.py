@@ -53,8 +53,9 @@ class LoadedMotion:
     # holds numbers in every field (a pose whose rates are pending is a valid-0 row)
     valid_rows_without_rates: int = 0
     # a track run's pose covariances (its pose_covariance.csv), (N,6,6) beside the series' rows
-    # (NaN where a row has none), or None without the file
+    # (NaN where a row has none), or None without the file; and which rows the file has (N,)
     cov_pose: np.ndarray | None = None
+    cov_pose_rows: np.ndarray | None = None
 
 
 def _looks_like_motion_csv(path: Path) -> bool:
@@ -237,34 +238,37 @@ def load_estimate(spec: str | Path) -> LoadedMotion:
                       "(give --align body for a run tracked in case a or c)", stacklevel=2)
     return replace(loaded, case=case, restarts=(restarts[0], restarts[1]),
                    status=status if isinstance(status, str) else None,
-                   cov_pose=_pose_covariances(path, loaded.series.t_s))
+                   **_pose_covariances(path, loaded.series.t_s))
 
 
-def _pose_covariances(estimate: Path, t_s: np.ndarray) -> np.ndarray | None:
+def _pose_covariances(estimate: Path, t_s: np.ndarray) -> dict[str, np.ndarray | None]:
     """A track run's pose covariances at the poses ``t_s`` (N,) of ``estimate``: (N,6,6), NaN
     for a pose its ``pose_covariance.csv`` has no row for (both files write the times to 9
     decimals: the same numbers). Only for the run's own poses: ``estimate`` its folder (with its
     ``run.yaml``), its ``states.csv`` or its ``trajectory.tum``, not another file put beside
-    them. None otherwise, or with a warning when the file cannot be read."""
+    them. As :class:`LoadedMotion`'s ``cov_pose`` and ``cov_pose_rows``; None otherwise, or with
+    a warning when the file cannot be read."""
     from trackmeter.data.rundir import read_pose_covariance
 
     run_dir = estimate if estimate.is_dir() else estimate.parent
     own = estimate.is_dir() or estimate.name in ("states.csv", "trajectory.tum")
     path = run_dir / "pose_covariance.csv"
+    none: dict[str, np.ndarray | None] = {"cov_pose": None, "cov_pose_rows": None}
     if not own or not path.is_file() or not (run_dir / "run.yaml").is_file():
-        return None
+        return none
     try:
         t_cov, cov = read_pose_covariance(path)
     except TrackmeterError as exc:
         warnings.warn(f"{exc}: the pose covariance is not judged", stacklevel=3)
-        return None
+        return none
     at = {round(float(t), 9): k for k, t in enumerate(t_cov)}
     out = np.full((len(t_s), 6, 6), np.nan)
+    rows = np.zeros(len(t_s), dtype=bool)
     for k, t in enumerate(t_s):
         j = at.get(round(float(t), 9))
         if j is not None:
-            out[k] = cov[j]
-    return out
+            out[k], rows[k] = cov[j], True
+    return {"cov_pose": out, "cov_pose_rows": rows}
 
 
 def _run_yaml_problem(run_dir: Path) -> str | None:
@@ -488,7 +492,8 @@ def format_summary(summary: dict, truth: str = "", estimate: str = "", align: st
     lines.append(f"SPEED score (mean of angle [rad] + |dt|/|t|): {summary['speed_score']:.6f}")
     nees = summary.get("pose_nees")
     if nees:
-        lines.append(f"pose covariance: NEES median {nees['median']:.2f} over {counted(nees['poses'], 'pose')} (5.35 when "
+        median = f"{nees['median']:.2f}" if abs(nees["median"]) < 1e4 else f"{nees['median']:.3g}"
+        lines.append(f"pose covariance: NEES median {median} over {counted(nees['poses'], 'pose')} (5.35 when "
                      f"honest), {100 * nees['within_95']:.1f} % within chi-square(6)'s 95 % bound (95 % when honest)")
     if summary.get("velocity_m_s") is None:
         lines.append("(no velocity errors: they need velocities on both sides, paired after the settle time: a "

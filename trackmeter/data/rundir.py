@@ -456,17 +456,23 @@ class RunWriter:
 def read_pose_covariance(path: str | Path) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """A run's ``pose_covariance.csv``: ``(t_s (N,), cov (N,6,6))``, one per valid pose (the
     lines of its ``trajectory.tum``), axes :data:`POSE_AXES`; an empty field (how the writer
-    gives a value that is not a number) reads as NaN.
+    gives a value that is not a number) reads as NaN. Left out, with a warning: a last line
+    without its line end (the writer ends every row with one: it was cut off, perhaps inside a
+    number) and the rows of a time given twice with different values (which one holds?).
 
     Raises:
         TrackmeterError: not such a file (its header), or a row that is not a time and 21 values."""
     path = Path(path)
     try:
-        lines = path.read_text(encoding="utf-8").splitlines()
+        text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
         raise TrackmeterError(f"{path}: cannot read ({getattr(exc, 'strerror', None) or exc})") from None
+    lines = text.splitlines()
     if not lines or lines[0].strip() != ",".join(POSE_COVARIANCE_COLUMNS):
         raise TrackmeterError(f"{path}: not a pose_covariance.csv (its header must be {','.join(POSE_COVARIANCE_COLUMNS[:4])},...)")
+    if len(lines) > 1 and not text.endswith(("\n", "\r")):
+        warnings.warn(f"{path}: its last line is cut off (no line end): left out", stacklevel=2)
+        lines = lines[:-1]
     rows = [ln for ln in lines[1:] if ln.strip()]
     values = np.full((len(rows), len(POSE_COVARIANCE_COLUMNS)), np.nan)
     for k, line in enumerate(rows):
@@ -477,7 +483,21 @@ def read_pose_covariance(path: str | Path) -> tuple[NDArray[np.float64], NDArray
             values[k] = [float(f) if f.strip() or i == 0 else np.nan for i, f in enumerate(fields)]
         except ValueError:
             raise TrackmeterError(f"{path}: line {k + 2}: expected {len(POSE_COVARIANCE_COLUMNS)} numbers") from None
-    cov = np.zeros((len(rows), 6, 6))
+    first: dict[float, int] = {}
+    ambiguous: set[float] = set()
+    keep = np.ones(len(values), dtype=bool)
+    for k, row in enumerate(values):
+        j = first.setdefault(float(row[0]), k)
+        if j != k:
+            keep[k] = False  # the same time again: one row is enough when they agree
+            if not np.array_equal(row, values[j], equal_nan=True):
+                ambiguous.add(float(row[0]))
+    if ambiguous:
+        warnings.warn(f"{path}: {counted(len(ambiguous), 'time')} given twice with different values: left out",
+                      stacklevel=2)
+        keep &= ~np.isin(values[:, 0], list(ambiguous))
+    values = values[keep]
+    cov = np.zeros((len(values), 6, 6))
     cov[:, _UPPER[0], _UPPER[1]] = values[:, 1:]
     cov[:, _UPPER[1], _UPPER[0]] = values[:, 1:]
     return values[:, 0], cov
