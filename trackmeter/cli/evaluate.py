@@ -179,8 +179,8 @@ def _other_sequence(truth_spec: str, estimate_spec: str) -> str | None:
 
 def run(args: argparse.Namespace) -> int:
     from trackmeter.core.metrics import evaluate, resolve_align
-    from trackmeter.data.evaluation import (check_report_directory, format_summary, in_seconds, likely_mixups,
-                                             load_estimate, write_evaluation)
+    from trackmeter.data.evaluation import (check_report_directory, format_summary, in_seconds, judge_pose_covariance,
+                                             likely_mixups, load_estimate, write_evaluation)
 
     params = _params(args)
     if args.out:
@@ -202,33 +202,12 @@ def run(args: argparse.Namespace) -> int:
     truth, estimate = in_seconds(truth, estimate, params.tolerance_s)
     params = replace(params, align=resolve_align(params.align, estimate.case))
     result = evaluate(truth.series, estimate.series, params, estimate.t_start_s, estimate.frame_times_s)
-    if params.align == "none" and estimate.cov_pose is not None and estimate.case not in ("a", "c"):
-        # The covariance describes the estimate's own frame: judged only where that is the
-        # truth's (not a case (a) or (c) run's, whose frame is its own, compared unaligned).
-        import numpy as np
-
-        from trackmeter.core.metrics import MotionErrors, nees_summary, pose_nees, usable_covariances
-
-        index = result.association.index_est
-        cov = estimate.cov_pose[index]
-        listed = np.ones(len(index), bool) if estimate.cov_pose_rows is None else estimate.cov_pose_rows[index]
-        finite, definite = usable_covariances(cov)
-        has, e = finite & definite, result.errors
-        where = Path(estimate.source).parent / "pose_covariance.csv"
-        if not has.any():
-            print(f"trackmeter evaluate: warning: none of the {len(has)} paired poses has a usable covariance in {where} "
-                  "(no row at their times, or none a positive definite matrix): the covariance is not judged",
-                  file=sys.stderr)
-        else:
-            if not has.all():
-                parts = [(int((~listed).sum()), "without a row at their time (another run's file, or cut short?)"),
-                         (int((listed & ~finite).sum()), "not finite"),
-                         (int((finite & ~definite).sum()), "not positive definite or beyond what doubles can weigh")]
-                why = ", ".join(f"{n} {what}" for n, what in parts if n)
-                print(f"trackmeter evaluate: warning: {int((~has).sum())} of the {len(has)} paired poses have no usable "
-                      f"covariance in {where} ({why}): the NEES is over the other {int(has.sum())}", file=sys.stderr)
-            judged = MotionErrors(e.t_s[has], e.position_m[has], e.attitude_rad[has], None, None, e.position_rel[has])
-            result.summary["pose_nees"] = nees_summary(pose_nees(judged, cov[has]))
+    if params.align == "none":
+        nees, warning = judge_pose_covariance(estimate, result)
+        if warning:
+            print(f"trackmeter evaluate: warning: {warning}", file=sys.stderr)
+        if nees:
+            result.summary["pose_nees"] = nees
     t_t, t_e = truth.series.t_s, estimate.series.t_s
     overlap = min(t_t[-1], t_e[-1]) - max(t_t[0], t_e[0])
     longer = max(t_t[-1] - t_t[0], t_e[-1] - t_e[0])

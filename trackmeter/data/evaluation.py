@@ -271,6 +271,38 @@ def _pose_covariances(estimate: Path, t_s: np.ndarray) -> dict[str, np.ndarray |
     return {"cov_pose": out, "cov_pose_rows": rows}
 
 
+def judge_pose_covariance(estimate: LoadedMotion, evaluation: Evaluation) -> tuple[dict[str, float] | None, str | None]:
+    """How honest a track run's pose covariance is (its ``pose_covariance.csv``, read by
+    :func:`load_estimate`) on the poses ``evaluation`` paired, compared without alignment:
+    ``(nees, warning)``, :func:`~trackmeter.core.metrics.nees_summary` over the poses with a
+    usable covariance (None when none has one, or there is nothing to judge) and one line on the
+    poses left out (None when none was). Not for a case (a) or (c) run, whose body frame is its
+    own: the covariance describes that frame, not its placement on the truth's."""
+    from trackmeter.core.metrics import MotionErrors, nees_summary, pose_nees, usable_covariances
+
+    if estimate.cov_pose is None or estimate.case in ("a", "c"):
+        return None, None
+    index = evaluation.association.index_est
+    cov = estimate.cov_pose[index]
+    listed = np.ones(len(index), bool) if estimate.cov_pose_rows is None else estimate.cov_pose_rows[index]
+    finite, definite = usable_covariances(cov)
+    has, e = finite & definite, evaluation.errors
+    where = Path(estimate.source).parent / "pose_covariance.csv"
+    if not has.any():
+        return None, (f"none of the {len(has)} paired poses has a usable covariance in {where} (no row at their "
+                      "times, or none a positive definite matrix): the covariance is not judged")
+    warning = None
+    if not has.all():
+        parts = [(int((~listed).sum()), "without a row at their time (another run's file, or cut short?)"),
+                 (int((listed & ~finite).sum()), "not finite"),
+                 (int((finite & ~definite).sum()), "not positive definite or beyond what doubles can weigh")]
+        why = ", ".join(f"{n} {what}" for n, what in parts if n)
+        warning = (f"{int((~has).sum())} of the {len(has)} paired poses have no usable covariance in {where} ({why}): "
+                   f"the NEES is over the other {int(has.sum())}")
+    judged = MotionErrors(e.t_s[has], e.position_m[has], e.attitude_rad[has], None, None, e.position_rel[has])
+    return nees_summary(pose_nees(judged, cov[has])), warning
+
+
 def _run_yaml_problem(run_dir: Path) -> str | None:
     """What is wrong with a ``run.yaml`` beside the estimate that records no pose case (cut
     short, edited, another program's file), or None where there is none or it is a run's."""
