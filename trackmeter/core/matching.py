@@ -1125,29 +1125,6 @@ def _disparity_range(lo_px: float, hi_px: float) -> tuple[int, int]:
     return d_lo, max(d_hi, d_lo)
 
 
-def match_rectified_point(
-    rect: Rectification,
-    left: NDArray[np.uint8],
-    right: NDArray[np.uint8],
-    uv_rect: ArrayLike,
-    params: MeasureParams,
-) -> tuple[str | None, float, float, float]:
-    """Match one rectified left pixel along its rectified right row.
-
-    Samples the P x P left patch centred exactly on ``uv_rect`` and the right strip covering
-    the disparity range (plus :data:`STRIP_MARGIN_PX`), checks texture, matches with
-    :func:`match_strip`, then checks left-right consistency by matching the right patch at the
-    found disparity back along the left row.
-
-    Returns:
-        ``(reason, disparity_px, sigma_disparity_px, score)``; ``reason`` is None when
-        accepted (then the numbers are valid), else one of :data:`REASONS`.
-    """
-    rng = params.disparity_range_px(rect)
-    m = _match_many(rect, left, right, np.asarray(uv_rect, dtype=float).reshape(1, 2), params, [rng])[0]
-    return m.reason, m.disparity_px, m.sigma_px, m.score
-
-
 def _match_many(
     rect: Rectification,
     left: NDArray[np.uint8],
@@ -1590,7 +1567,7 @@ def measure_points(
     """Measure the 3D points at pixels of the left image (paper section 2.A).
 
     For each pixel: rectify it (``rig.rectification``, cached), match its P x P patch along the
-    rectified right row (:func:`match_rectified_point`; all pixels stage by stage together, see
+    rectified right row (:func:`_match_many`; all pixels stage by stage together, see
     the module docstring), triangulate (``Rectification.triangulate``)
     and propagate the disparity's standard deviation (paper eqs. 1-2,
     ``Rectification.point_covariance``) — ``params.sigma_disparity_px``, or when 0 the fit's own
