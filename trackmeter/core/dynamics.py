@@ -321,6 +321,13 @@ class CentreOfMassFit:
             scale when the residuals exceed the pose covariances.
         rss: the weighted residual ``sum_k w_k |p_k + R_k c - a - v tau_k|²`` (the given
             position weights), m² times the weights' unit.
+        residual_dof: the residual's degrees of freedom, ``3N - 2 tr(S) + tr(S²)`` with ``S =
+            (H + prior)^-1 H`` the fit's hat matrix in the unknowns: where the position weights
+            are the poses' inverse variances, ``rss`` averages ``residual_dof``. It is
+            ``3N - 9`` only where every unknown is fixed by the poses; the prior holds ``c``'s
+            component along a fixed spin axis (never seen) and, over a short turn, part of the
+            rest, so it is about ``3N - 8`` for a steady spin and up to ``3N - 6``.
+            (``cov``'s residual scale counts ``3N - 9``, a little pessimistic.)
     """
 
     c_body: FloatArray
@@ -328,6 +335,7 @@ class CentreOfMassFit:
     v_cam: FloatArray
     cov: FloatArray
     rss: float = float("nan")
+    residual_dof: float = float("nan")
 
     @property
     def speed_bound_m_s(self) -> float:
@@ -389,7 +397,9 @@ def fit_centre_of_mass(
     cov = np.zeros((9, 9))
     cov[free, free] = np.linalg.inv((H + prior)[free, free]) / w.max() * max(1.0, scale2)
     rss = float(np.einsum("n,ni,ni->", w, r, r))
-    return CentreOfMassFit(x[:3], x[3:6], x[6:], 0.5 * (cov + cov.T), rss)
+    S = np.linalg.solve((H + prior)[free, free], H[free, free])  # hat matrix in the unknowns
+    residual_dof = 3 * n - 2.0 * float(np.trace(S)) + float(np.trace(S @ S))
+    return CentreOfMassFit(x[:3], x[3:6], x[6:], 0.5 * (cov + cov.T), rss, residual_dof)
 
 
 def coast_pose(

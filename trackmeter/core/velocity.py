@@ -429,6 +429,7 @@ class FreeBodyVelocity(NamedTuple):
     v_origin: FloatArray  #: (3,) the body origin's velocity in the camera frame, m/s
     rss: float  #: the fit's weighted position residual, m² (as :func:`screw_rates`'s)
     screw_bias_sigmas: float  #: the screw fit's expected error over the fitted velocity's sigma
+    residual_dof: float  #: the residual's degrees of freedom (CentreOfMassFit's)
 
 
 def free_body_velocity(times_s: ArrayLike, R: ArrayLike, p: ArrayLike, omega_body: ArrayLike,
@@ -467,7 +468,8 @@ def free_body_velocity(times_s: ArrayLike, R: ArrayLike, p: ArrayLike, omega_bod
     bias = float(np.linalg.norm(J @ fit.v_cam))
     sigma = float(np.sqrt(max(np.linalg.eigvalsh(J @ fit.cov[6:, 6:] @ J.T).max(), 0.0)))
     sigmas = bias / sigma if sigma > 0 else float("inf")
-    return FreeBodyVelocity(fit.v_cam - Rm[-1] @ np.cross(omega, fit.c_body), fit.rss, float(sigmas))
+    return FreeBodyVelocity(fit.v_cam - Rm[-1] @ np.cross(omega, fit.c_body), fit.rss, float(sigmas),
+                            fit.residual_dof)
 
 
 def free_body_noise_weight(times_s: ArrayLike, R: ArrayLike, p: ArrayLike, omega_body: ArrayLike,
@@ -478,14 +480,15 @@ def free_body_noise_weight(times_s: ArrayLike, R: ArrayLike, p: ArrayLike, omega
     The N poses' positions (3N numbers) are fitted by :func:`free_body_velocity` with 9 unknowns
     (the centre of mass ``c`` in the body frame, its place ``a`` and velocity ``v``), so with
     each coordinate's noise of variance ``sigma²`` the unweighted residual's expectation is
-    ``(3N - 9) sigma²`` and ``(3N - 9) / rss`` estimates the weight. The fit weighs its prior on
-    ``c`` (``lever_m``) against the data by the weight, so it is run twice: first with the
-    screw fit's residual ``screw_rss_m2`` over its ``3N - 6`` degrees of freedom (6 unknowns),
-    then with its own. The screw's residual alone would not do: it holds the very error of a
-    body drifting across its spin axis that the free-body fit is there to see. Where the
-    window turns little, ``c`` and ``v`` are told apart only by the prior, which then takes
-    some of the 9 degrees of freedom and the weight comes out low (8 poses turning 2.5 deg:
-    by 11 %, measured; 25 poses turning 9 deg: unbiased, tests/test_velocity.py).
+    the fit's ``residual_dof`` times ``sigma²`` (``3N - 9`` where the poses fix every unknown;
+    more where the prior on ``c`` holds some: its component along a fixed spin axis always,
+    part of the rest over a short turn), and ``residual_dof / rss`` estimates the weight. The
+    fit weighs that prior (``lever_m``) against the data by the weight, so it is run with a
+    first guess: the screw fit's residual ``screw_rss_m2`` over its ``3N - 6`` degrees of
+    freedom (6 unknowns). The screw's residual alone would not do: it holds the very error of a
+    body drifting across its spin axis that the free-body fit is there to see. Counting
+    ``3N - 9`` made the weight 11 % too low over 8 poses turning 2.5 deg and 1 % over 25
+    turning 9 deg (tests/test_velocity.py).
 
     Args:
         times_s: (N,) increasing, s; R: (N,3,3) R_cam_body; p: (N,3) origin in the camera, m.
@@ -494,15 +497,16 @@ def free_body_noise_weight(times_s: ArrayLike, R: ArrayLike, p: ArrayLike, omega
         lever_m: prior 1-sigma of each coordinate of ``c``, m.
 
     Returns:
-        The weight, 1/m²; 1.0 with 3 poses or fewer (no degree of freedom left) or when the fit
-        fails. Residuals are floored at 1e-10 m² per degree of freedom (noise-free poses).
+        The weight, 1/m²; 1.0 with 3 poses or fewer or when the fit fails. Residuals are
+        floored at 1e-10 m² per degree of freedom (noise-free poses).
     """
     n = len(np.asarray(times_s).reshape(-1))
     first = (3 * n - 6) / max(float(screw_rss_m2), (3 * n - 6) * 1e-10)
     free = free_body_velocity(times_s, R, p, omega_body, np.full(n, first), lever_m)
     if free is None or n <= 3:
         return 1.0
-    return (3 * n - 9) / max(free.rss / first, (3 * n - 9) * 1e-10)
+    dof = free.residual_dof
+    return dof / max(free.rss / first, dof * 1e-10)
 
 
 class VelocityEstimator:
