@@ -993,6 +993,12 @@ def test_case_b_binds_a_model_whose_points_are_seen_two_then_one_at_a_time(estec
     tracker.force_lost = {"A0", "A1"}
     tracker.active["A2"] = "tracking"
     out = run(engine, range(40, 80))
+    # The provisional frame's own poses were no output, and its exposure is the outer's (the
+    # fake's blank images take the largest gain): its stats are added only where they count
+    # events of the run (run.yaml's engine section).
+    assert engine.stats.valid_frames == sum(pose.valid for _, pose, _ in out)
+    assert engine.stats.largest_gain == engine.exposure_params.max_gain
+    assert engine.stats.frames_gained == engine.stats.frames == 80
     if not progressive:
         assert not any(pose.valid for _, pose, _ in out)
         assert "only 1 model point measured" in out[-1][1].reason
@@ -1006,6 +1012,27 @@ def test_case_b_binds_a_model_whose_points_are_seen_two_then_one_at_a_time(estec
     # The position as in test_case_b_noise_free_is_exact: the screw fit's lag on this motion.
     np.testing.assert_allclose(errors["position_m"], 0, atol=1e-4)
     np.testing.assert_allclose(errors["attitude_rad"], 0, atol=1e-9)
+
+
+def test_a_provisional_frame_s_events_count_when_the_model_binds_without_it(estec_rig) -> None:
+    """Two a-priori points seen: a provisional frame tracks, and rejects a grown point 50 mm
+    off as an outlier; then three a-priori points at once bind the model directly. The
+    provisional engine's events are the run's (run.yaml's engine section): they were dropped
+    with it on this path, and added on the progressive binding's."""
+    pts = body_points(14)
+    apriori = ["A0", "A1", "A2", "A3"]
+    tracker = FakeTracker(estec_rig, pts, apriori + [f"g{i}" for i in range(10)], noise=False)
+    for tid in ("A2", "A3"):
+        del tracker.active[tid]
+    engine = Engine(load_config(), estec_rig, Model(tuple(apriori), pts[:4]), "b", tracker=tracker, rate_hz=1 / DT)
+    run(engine, range(20))
+    tracker.offsets["g3"] = np.array([0.0, 0.0, 0.05])
+    run(engine, range(20, 40))
+    assert engine._provisional is not None and engine._provisional.stats.outliers_rejected == 1
+    tracker.active["A2"] = tracker.active["A3"] = "tracking"
+    out = run(engine, range(40, 50))
+    assert all(pose.valid for _, pose, _ in out) and engine.stats.models_bound_progressively == 0
+    assert engine.stats.outliers_rejected == 1
 
 
 @pytest.mark.parametrize("offset_m, binds", [(0.015, True), (0.275, False)])

@@ -181,6 +181,16 @@ class EngineStats:
     frames_gained: int = 0  # underexposed frames brought up by a gain (config section exposure)
     largest_gain: float = 1.0  # the largest such gain
 
+    def add_provisional(self, inner: EngineStats) -> None:
+        """Add the events of a progressive binding's provisional engine (case (b)), which
+        tracked on this one's behalf. Not its frames (this engine counted them), its valid
+        frames (poses in its own frame, never output) or its exposure (this engine's, applied
+        before the frames reach it): summed, they made run.yaml's valid frames outnumber the
+        valid poses and the largest gain pass the exposure's max_gain."""
+        for name, value in vars(inner).items():
+            if name not in ("frames", "valid_frames", "frames_gained", "largest_gain"):
+                setattr(self, name, getattr(self, name) + value)
+
 
 def click_room(targets: Sequence[TargetState]) -> str | None:
     """The target an operator's click takes the place of when the target limit is reached: a
@@ -779,6 +789,8 @@ class Engine:
             self._coasting = False
             return now, pose, None
         R, t, cov, n_used, outliers = fit
+        if self._provisional is not None:  # three a-priori points at once: bound without it
+            self.stats.add_provisional(self._provisional.stats)
         self._bound, self._provisional = True, None
         self.stats.valid_frames += 1
         self._last_valid_t = frame.t_s
@@ -915,9 +927,7 @@ class Engine:
         if inner._last_fit is not None:
             R_c, t_c, cov_c = inner._last_fit
             self._last_fit = (R_c @ R, R_c @ t + t_c, cov_c)  # T_cam_model = T_cam_prov T_prov_model
-        for name, value in vars(inner.stats).items():
-            if name != "frames":
-                setattr(self.stats, name, getattr(self.stats, name) + value)
+        self.stats.add_provisional(inner.stats)
         self.stats.models_bound_progressively += 1
         self._bound, self._provisional = True, None
         return None
