@@ -206,8 +206,8 @@ def test_engine_blends_back_onto_the_measured_pose_without_a_jump(estec_rig) -> 
     # out, so the steps are measured against what the points say, as strictly as before it.
     engine, tracker = _engine(estec_rig, coast_omega_sigma_rad_s=0.01, apriori_bias_sigma_m=0.0)
     run(engine, range(60))
-    t0, R0, p0, cov0, v, w = engine._coast_out
-    engine._coast_out = (t0, R0, p0, cov0, v, w + np.array([0.004, -0.003, 0.0]))  # a rate error
+    last = engine._last_output
+    engine._last_output = last._replace(omega=last.omega + np.array([0.004, -0.003, 0.0]))  # a rate error
     tracker.force_lost = set(tracker.active)
     run(engine, range(60, 85))  # 1 s coasting
     tracker.force_lost = set()

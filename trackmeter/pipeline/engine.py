@@ -35,8 +35,8 @@ Per frame (:meth:`Engine.process`):
    re-locked point whose 3D position disagrees with the pose is rejected at once. Without a
    model the tracker itself looks again where a target was lost.
 7. Errors against ``frame.truth`` (cases a and c: after an online body alignment, the chordal
-   mean of ``T_est^-1 T_true`` so far — the same constant offset ``evaluate --align body``
-   fits over the whole run).
+   mean of ``T_true^-1 T_est`` (``T_bodytrue_bodyest``) so far — the same constant offset
+   ``evaluate --align body`` fits over the whole run).
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ import warnings
 from collections import deque
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -148,6 +148,19 @@ class _Candidate:
     count: int = 1
 
 
+class _Motion(NamedTuple):
+    """A pose with its rates, the start of a coast: ``t_s`` s, ``R`` (3,3) R_cam_body, ``p``
+    (3,) m in the camera, ``cov`` (6,6) (position m, rotation vector rad), ``v`` (3,) m/s in the
+    camera, ``omega`` (3,) rad/s in the body frame."""
+
+    t_s: float
+    R: FloatArray
+    p: FloatArray
+    cov: FloatArray
+    v: FloatArray
+    omega: FloatArray
+
+
 @dataclass
 class _Acquisition:
     """Case (c): points collected while the object is held still."""
@@ -209,13 +222,15 @@ class Engine:
 
     Args:
         config: the whole configuration (sections ``tracker``, ``features``, ``measure``,
-            ``pose``, ``velocity``, ``output_filter``; missing sections take their defaults).
+            ``pose``, ``velocity``, ``output_filter``, ``exposure``; missing sections take
+            their defaults).
         rig: the stereo rig of the frames.
         model: an a-priori model (case b), bound to targets by id.
         case: ``"a"``, ``"b"`` or ``"c"``; default ``"b"`` with a model, else ``"a"``.
         tracker: a tracker to use instead of building
             :class:`trackmeter.core.tracking.Tracker` from the config (tests inject doubles).
-        rate_hz: frame rate the output filter is designed for (the source's rate).
+        rate_hz: the source's frame rate, Hz (25 when None): the output filter is designed
+            for it, and ``pose.apriori_remake_after_s`` is counted in frames at it.
         live_errors: compute each pose's errors against the frame's ground truth when it has
             one (the console's error plots); a caller that never reads them (``track``, whose
             run directory holds no errors: ``evaluate`` computes them afterwards) saves the work.
@@ -382,22 +397,25 @@ class Engine:
         self._last_attempt: dict[str, int] = {}
         self._seen_t: dict[str, float] = {}
         self._frame_t_s = 0.0  # time of the frame being processed, s
-        self._lost_since: dict[str, int] = {}
+        self._lost_since: dict[str, int] = {}  # target id -> frame index it was first seen lost
         # pose.relock_stored: the dropped targets of grown model points, whole, with the pose of
         # the last frame each was measured in (id -> (StoredTarget, (R, t) or None)), and that
         # pose for every model point measured (id -> (R, t)).
         self._stored: dict[str, tuple[Any, tuple[FloatArray, FloatArray] | None]] = {}
         self._pose_when_seen: dict[str, tuple[FloatArray, FloatArray]] = {}
-        self._coast: tuple[float, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray] | None = None
+        # The last measured pose and its raw rates, for the constant-twist carry of recovery and
+        # the out-of-view check (_carried_pose).
+        self._last_measured: _Motion | None = None
         self._left_view = False  # the body was last seen moving out of view (_out_of_view)
         self._gone_from_view = False  # ... and case (a)'s frame was given up since (_establish_frame)
-        # Coasting output: the last output pose with settled rates (t, R, p, cov, v_cam, omega_body),
-        # whether the last output was coasted, and the offset being blended out after a coast.
-        self._coast_out: tuple[float, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray] | None = None
+        # The last output (filtered) pose with settled rates, where the reported coast starts
+        # (_coast_state: core.dynamics.coast_pose).
+        self._last_output: _Motion | None = None
         self._com_cache: tuple[float, float | None] | None = None
         # Measured poses (t, R, p, position weight) for the centre-of-mass fit, this body frame.
         self._com_history: deque[tuple[float, FloatArray, FloatArray, float]] = deque()
         self._frame_move: tuple[FloatArray, FloatArray] | None = None  # set by _anchor, see _move_history
+        # Whether the last output was coasted, and the offset being blended out after a coast.
         self._coasting = False
         self._blend: tuple[float, FloatArray, FloatArray] | None = None
         # Model points whose body coordinates share one rigid error of the frame they were
@@ -740,7 +758,6 @@ class Engine:
             t.id: replace(t, cov_cam=np.asarray(t.cov_cam, float) + floor) for t in targets
             if t.measured and np.all(np.isfinite(t.point_cam)) and np.all(np.isfinite(t.cov_cam))
         }
-        existing = {t.id for t in targets}
         self._forget_stale(frame, targets, measured)
         for pid in [p for p in self._candidates if p not in measured]:
             del self._candidates[pid]
@@ -762,7 +779,7 @@ class Engine:
             coast = self._carried_pose(frame.t_s)
             if coast is not None and self.pose_params.recover_model_points:
                 # Paper 2.D through a loss: the model points are where the motion carries them.
-                self._recover(frame, *coast, existing, carried=True)
+                self._recover(frame, *coast, carried=True)
             if since > self.velocity_params.bridge_gap_s:
                 self._velocity.reset()
             if since > self.velocity_params.max_gap_s:
@@ -798,15 +815,15 @@ class Engine:
         self._remember_for_com(frame.t_s, R, t, cov)
         self._move_history()
         v, w = rates if rates is not None else (np.full(3, np.nan), np.full(3, np.nan))
-        self._coast = (frame.t_s, R, t, cov, np.asarray(v, float), np.asarray(w, float))
+        self._last_measured = _Motion(frame.t_s, R, t, cov, np.asarray(v, float), np.asarray(w, float))
         self._left_view = False
         R_f, t_f = self._filter.update(frame.t_s, R, t, v if rates else None, w if rates else None)
         if not self._velocity.settled:  # provisional rates steer the filter but are not reported
             v, w = np.full(3, np.nan), np.full(3, np.nan)
         R_f, t_f, cov_out = self._blend_out(frame.t_s, R_f, t_f, cov)
         v_arr, w_arr = np.asarray(v, float), np.asarray(w, float)
-        self._coast_out = ((frame.t_s, R_f, t_f, cov_out, v_arr, w_arr)
-                           if np.all(np.isfinite(v_arr)) and np.all(np.isfinite(w_arr)) else None)
+        self._last_output = (_Motion(frame.t_s, R_f, t_f, cov_out, v_arr, w_arr)
+                             if np.all(np.isfinite(v_arr)) and np.all(np.isfinite(w_arr)) else None)
         T = np.eye(4)
         T[:3, :3] = R_f
         T[:3, 3] = t_f
@@ -817,7 +834,7 @@ class Engine:
                             body_frame=self._body_frame)
         self._recovered_any = False
         if self.pose_params.recover_model_points:
-            self._recover(frame, R, t, cov, existing)
+            self._recover(frame, R, t, cov)
         errors = self._errors(frame, pose)
         return (self.tracker.targets if self._recovered_any else targets), pose, errors
 
@@ -1161,10 +1178,12 @@ class Engine:
         observation ``b = R^T (p - t)`` carries the point's covariance (inflated by the fit's
         robust scale) plus the pose's, propagated to that point.
 
-        The refinement does not move the body frame: the pose fit has already removed the
-        rigid part of the residuals, so averaging them only sharpens the model's shape. The
-        frame stays where its definition put it (case a: the three-point frame at the moment
-        it was established; case c: the frozen frame), carried by every point afterwards."""
+        Each refinement also carries a rigid part, the pose error of the frame the points were
+        observed through, taken up unequally by young and old points: left in, it moves the
+        body frame a little (a gauge drift, :func:`trackmeter.core.pose.hold_frame`). By default
+        it is left in; ``pose.frame_hold`` (case a) undoes it (:meth:`_hold_frame`), measured
+        better over 60 s and worse over the first 20 s on estec. The a-priori points of case
+        (b) are not refined, and hold their frame."""
         p = self.pose_params
 
         L_pose = np.linalg.cholesky(0.5 * (cov + cov.T) + 1e-18 * np.eye(6)) if p.model_pose_error_correlated else None
@@ -1476,9 +1495,9 @@ class Engine:
         """The last valid pose carried forward to ``t_s`` at its last velocities (constant twist:
         ``R(t) = R0 exp([omega_body dt]x)``, ``p(t) = p0 + v dt``) with its covariance grown by
         ``coast_sigma_*`` per second; None beyond ``coast_max_s`` or before any pose."""
-        if self._coast is None:
+        if self._last_measured is None:
             return None
-        t0, R0, p0, cov0, v, w = self._coast
+        t0, R0, p0, cov0, v, w = self._last_measured
         dt = t_s - t0
         p = self.pose_params
         if not 0.0 < dt <= p.coast_max_s:
@@ -1523,9 +1542,9 @@ class Engine:
         """The last output pose carried to ``t_s`` on the motion model
         (:func:`trackmeter.core.dynamics.coast_pose`): ``(R, p, v_cam, cov, dt)``, or None
         without a pose with settled rates."""
-        if self._coast_out is None:
+        if self._last_output is None:
             return None
-        t0, R0, p0, cov0, v, w = self._coast_out
+        t0, R0, p0, cov0, v, w = self._last_output
         dt = t_s - t0
         if dt <= 0:
             return None
@@ -1590,7 +1609,7 @@ class Engine:
         T = np.eye(4)
         T[:3, :3] = R
         T[:3, 3] = pos
-        w = self._coast_out[5] if self._coast_out is not None else np.full(3, np.nan)
+        w = self._last_output.omega if self._last_output is not None else np.full(3, np.nan)
         return PoseEstimate(True, f"coasting {dt:.2f} s on the motion model ({why})", self._case, T,
                             cov + self._apriori_frame_cov + self._shared_frame_report, v, np.asarray(w, float).copy(), 0, (), coasting_s=float(dt), body_frame=self._body_frame)
 
@@ -1688,8 +1707,7 @@ class Engine:
             return R, pos, cov
         return Rotation.from_rotvec(a * e[3:]).as_matrix() @ R, pos + a * e[:3], cov + a * a * cov_c
 
-    def _recover(self, frame: StereoFrame, R: FloatArray, t: FloatArray, cov: FloatArray, existing: set[str],
-                 carried: bool = False) -> None:
+    def _recover(self, frame: StereoFrame, R: FloatArray, t: FloatArray, cov: FloatArray, carried: bool = False) -> None:
         """Re-lock lost model points at their projection through the pose ``(R, t)`` (paper 2.D).
 
         Lost targets are searched for with their own (anchor) templates; model points without a
@@ -1709,13 +1727,15 @@ class Engine:
             sum(1 for s in states.values() if s.status != "lost") < self._max_targets - p.operator_reserve_targets)
         todo: list[tuple[str, bool]] = []
         # An a-priori point's target lost this long was made in another view: measured afresh.
-        remake_after = p.apriori_remake_after_s * self.rate_hz
+        # In frames, as _lost_since counts (tracker.lost_keep_frames is a frame count): at the
+        # rate the engine was given, 25 Hz when the source told none.
+        remake_after_frames = p.apriori_remake_after_s * self.rate_hz
         stale: set[str] = set()
         for pid, m in self._model.items():
             s = states.get(pid)
             if s is not None and s.status == "lost":
-                if (m.fixed and not carried and remake_after > 0
-                        and frame.index - self._lost_since.get(pid, frame.index) >= remake_after):
+                if (m.fixed and not carried and remake_after_frames > 0
+                        and frame.index - self._lost_since.get(pid, frame.index) >= remake_after_frames):
                     stale.add(pid)
                 todo.append((pid, pid not in stale))
             elif s is None and (m.fixed or room or (room_stored and pid in self._stored)) and (not carried or pid in self._stored):

@@ -13,7 +13,7 @@
   blocked and memory never grows. For offline runs (a recorded sequence read as fast as
   possible), ``drop_frames=False`` makes the acquisition wait for the slot instead, so every
   frame is tracked. A frame read for a step (paused) waits likewise: the operator asked for it.
-- The tracking thread owns the :class:`Engine` (all tracker state). It takes the newest frame,
+- The tracking thread owns the engine (:class:`EngineLike`, all tracker state). It takes the newest frame,
   calls ``engine.process(frame)``, publishes an immutable :class:`Snapshot`, and between frames
   applies the queued :class:`Command` objects in the order they were sent, resolving each
   command's ``reply`` future. Pause, step, restart and recording are handled here; everything
@@ -92,12 +92,15 @@ def source_said_by_caller() -> Iterator[None]:
 ErrorsDict = dict[str, Any]
 
 
-class Engine(Protocol):
+class EngineLike(Protocol):
     """What the tracking thread needs from the tracker (``trackmeter.pipeline.engine.Engine``).
 
     No threads inside: the pipeline calls both methods from the tracking thread only. An engine
     that offers ``targets`` (every target as it stands after the commands) has a command's effect,
-    e.g. a click's new target, published at once on the frame the operator saw.
+    e.g. a click's new target, published at once on the frame the operator saw. The snapshot's
+    tracker settings are read, where offered, from ``case``, ``auto_enabled``, ``auto_count``,
+    ``auto_method``, ``auto_shortfall``, ``filter_cutoff_hz`` and ``model`` (its ``ids``; the
+    recorder writes it with the frames); an engine without them gets defaults.
     """
 
     def handle(self, command: Command, frame: StereoFrame | None) -> CommandReply:
@@ -336,7 +339,7 @@ class Pipeline:
     def __init__(
         self,
         source: Source,
-        engine: Engine,
+        engine: EngineLike,
         *,
         rig: StereoRig | None = None,
         drop_frames: bool = True,
@@ -907,7 +910,7 @@ def _resolve(command: Command, reply: CommandReply) -> None:
 
 def run_headless(
     source: Source,
-    engine: Engine,
+    engine: EngineLike,
     *,
     on_snapshot: Callable[[Snapshot], bool | None] | None = None,
     commands: Iterable[Command] = (),
