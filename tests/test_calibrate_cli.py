@@ -323,3 +323,57 @@ def test_rig_round_trip_of_calibrated_rig_keeps_extras_readable(tmp_path: Path) 
     back = load_rig(path)
     assert back.rms_px == pytest.approx(0.2)
     np.testing.assert_allclose(back.T, rig.T)
+
+
+def _calibration_changed(monkeypatch: pytest.MonkeyPatch, **changes: object) -> None:
+    """Make calibrate_stereo's result have ``changes`` (``left_rms_px`` for the left camera's)."""
+    import dataclasses
+
+    import trackmeter.core.calibration as calibration
+
+    real = calibration.calibrate_stereo
+
+    def changed(*args, **kwargs):  # type: ignore[no-untyped-def]
+        result = real(*args, **kwargs)
+        left_rms = changes.pop("left_rms_px", None)
+        if left_rms is not None:
+            changes["left"] = dataclasses.replace(result.left, rms_px=left_rms)
+        return dataclasses.replace(result, **changes)
+
+    monkeypatch.setattr(calibration, "calibrate_stereo", changed)
+
+
+def test_a_calibration_whose_rms_is_high_is_written_with_a_warning(calib_dir: Path, tmp_path: Path,
+                                                                   capsys: pytest.CaptureFixture[str],
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """A joint RMS of 3.4 px (an outside probe's wide lens, where a fit can stay in a poorer
+    solution) is no calibration to trust, yet it would be written with exit 0 and nothing said:
+    it is still written (the user may know why), with one warning naming the RMS and what to
+    check."""
+    _calibration_changed(monkeypatch, rms_px=3.4)
+    assert main(_args(calib_dir, tmp_path / "rig.yaml")) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("trackmeter calibrate: warning: RMS reprojection error 3.4 px"), err
+    assert "calibrate.distortion_model" in err[0]
+    assert (tmp_path / "rig.yaml").is_file()
+
+
+def test_per_camera_fits_far_above_the_joint_one_are_explained(calib_dir: Path, tmp_path: Path,
+                                                               capsys: pytest.CaptureFixture[str],
+                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """The outside probe's wide lens: each camera's own fit stopped at 1.6 and 1.0 px, the joint
+    refinement from them reached the corners' 0.07 px, and the report printed the three
+    numbers without a word. It says which one is written."""
+    _calibration_changed(monkeypatch, left_rms_px=1.6)
+    assert main(_args(calib_dir, tmp_path / "rig.yaml")) == 0
+    captured = capsys.readouterr()
+    assert captured.err == ""
+    line = next(ln for ln in captured.out.splitlines() if "per camera alone" in ln)
+    assert "left 1.6000 px" in line and "far above the joint" in line and "the joint one is written" in line
+
+
+def test_a_good_calibration_says_nothing_of_its_rms(calib_dir: Path, tmp_path: Path,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(_args(calib_dir, tmp_path / "rig.yaml")) == 0
+    captured = capsys.readouterr()
+    assert captured.err == "" and "far above" not in captured.out

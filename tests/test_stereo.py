@@ -280,8 +280,10 @@ def test_matching_needs_the_right_camera_to_the_right(estec_rig: StereoRig) -> N
         (np.eye(3), [0.193, 0.0, 0.0], "lies left of the left one"),
         # Left of it AND turned round: exchanging alone would give the same rig back (code review).
         (np.diag([-1.0, -1.0, 1.0]), [-0.193, 0.0, 0.0], "turned 180 deg about its viewing axis.*then exchange"),
-        (np.eye(3), [0.0, -0.193, 0.0], "lies below the left one"),
-        (np.eye(3), [0.0, 0.193, 0.0], "lies above the left one"),
+        # Turned 90 deg counter-clockwise, an image's bottom is its right (an outside probe
+        # found the way by trying; the message said "by 90 degrees").
+        (np.eye(3), [0.0, -0.193, 0.0], "lies below the left one.*by 90 degrees counter-clockwise"),
+        (np.eye(3), [0.0, 0.193, 0.0], "lies above the left one.*by 90 degrees clockwise"),
         (np.eye(3), [-0.01, 0.0, -0.193], "lies in front of the left one"),
         (np.eye(3), [-0.01, 0.0, 0.193], "lies behind the left one"),
         (np.diag([-1.0, -1.0, 1.0]), [0.193, 0.0, 0.0], "turned 180 deg about its viewing axis"),

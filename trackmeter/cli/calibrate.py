@@ -115,6 +115,10 @@ def run(args: argparse.Namespace) -> int:
         raise TrackmeterError(f"{exc}; measure and track refuse such a rig, so none was written") from None
     out_path = save_rig(rig, args.out, extra)
     print(format_report(result, pairs, args.square, out_path))
+    if result.rms_px > HIGH_RMS_PX:
+        warnings.warn(f"RMS reprojection error {result.rms_px:.2g} px is high for chessboard corners (0.05-0.5 px "
+                      "is usual): check the --pattern, that the board is flat and the images sharp, and the lens "
+                      "model (--config with calibrate.distortion_model: rational for a wide lens)", stacklevel=1)
     implausible = baseline_problem(rig)
     if implausible:
         warnings.warn(f"{implausible}: --square is the side of one square in metres (25 mm is 0.025)", stacklevel=1)
@@ -155,6 +159,13 @@ def _check_out(out: str, overwrite: bool = False) -> None:
 #: A calibrated baseline shorter than this many squares is no stereo rig: the same views twice.
 MIN_BASELINE_SQUARES = 1e-3
 
+#: A joint RMS reprojection error above this, px, is warned about: sub-pixel chessboard corners
+#: fit to 0.05-0.5 px (OpenCV's sample pairs 0.22 px, rendered boards 0.05-0.07 px).
+HIGH_RMS_PX = 1.0
+
+#: Per-camera RMS this many times the joint one is said in the report (a fit that stopped).
+STALLED_RATIO = 3.0
+
 #: The --square sizes accepted, m (a 0.1 mm square to a 100 m one: anything else is a typo; a
 #: size in millimetres, 25 for 0.025, passes and is warned about by the baseline it gives).
 MIN_SQUARE_M, MAX_SQUARE_M = 1e-4, 100.0
@@ -168,9 +179,13 @@ def format_report(result: StereoCalibration, pairs: Sequence[tuple[Path, Path]],
     lines = []
     lines.append(f"views: {len(result.used_views)} used of {len(pairs)} pairs")
     lines.append(f"RMS reprojection error: {result.rms_px:.4f} px (joint, both images)")
-    lines.append(
-        f"  per camera alone: left {result.left.rms_px:.4f} px, right {result.right.rms_px:.4f} px"
-    )
+    alone = f"  per camera alone: left {result.left.rms_px:.4f} px, right {result.right.rms_px:.4f} px"
+    if max(result.left.rms_px, result.right.rms_px) > STALLED_RATIO * result.rms_px:
+        # A wide lens (an outside probe's k1 -0.3 at f 500 px): OpenCV's start for one camera
+        # is far off, its fit stops in a poorer solution, and the joint one climbs out of it.
+        alone += (" (far above the joint fit: a camera's own fit stopped in a poorer solution, which the joint "
+                  "refinement, held by both cameras, left; the joint one is written)")
+    lines.append(alone)
     b = rig.baseline_m
     lines.append(f"baseline: {b:.6g} ± {std['baseline']:.2g} m ({b / square:.4f} squares)")
     lines.append("T: [" + ", ".join(f"{t:.6g}" for t in rig.T) + f"] m, ± [{std['tx']:.2g}, {std['ty']:.2g}, {std['tz']:.2g}]")

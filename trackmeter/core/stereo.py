@@ -537,7 +537,8 @@ def _not_side_by_side_reason(rig: StereoRig) -> str:
         return (f"the rig is not side by side: the right camera lies {'below' if cy > 0 else 'above'} the "
                 f"left one ({at}); matching searches along rectified rows, so the right camera must lie "
                 "to the right of the left one (T about (-baseline, 0, 0)); turn both images and the rig "
-                "by 90 degrees")
+                f"by 90 degrees {'counter-clockwise' if cy > 0 else 'clockwise'} (the "
+                f"{'bottom' if cy > 0 else 'top'} of an image then lies to its right)")
     if cx < 0 and abs(roll_deg) > 90.0:
         return (f"the right camera lies left of the left one ({at}) and is turned {abs(roll_deg):.0f} deg about "
                 "its viewing axis against it (R): turn the right images to match the left ones and R with them, "
