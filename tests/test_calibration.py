@@ -157,6 +157,11 @@ def test_outlier_rule() -> None:
     # noisy but uniform set: the robust-sigma rule keeps every view
     uniform = np.array([0.2, 0.5, 0.3, 0.6, 0.25, 0.55, 0.45])
     assert cal.find_outlier_view(uniform, params) is None
+    # A sharp set (rendered boards, an outside probe): a view at 0.12 px, twice the median, is
+    # noisier, not wrong, and kept; one at 0.9 px is not.
+    sharp = np.array([0.050, 0.057, 0.060, 0.052, 0.066, 0.057, 0.055])
+    assert cal.find_outlier_view(np.append(sharp, 0.12), params) is None
+    assert cal.find_outlier_view(np.append(sharp, 0.9), params)[0] == 7  # type: ignore[index]
 
 
 # --------------------------------------------------------------------------- uncertainties
