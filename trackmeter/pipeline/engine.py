@@ -73,7 +73,7 @@ from trackmeter.core.pose import (
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.targets import Refusal, TargetState, count_reasons
 from trackmeter.core.transforms import (attitude_error_components, make_transform, matrix_to_quat_wxyz,
-                                       procrustes_rotation)
+                                       procrustes_rotation, skew)
 from trackmeter.core.velocity import VelocityEstimator, VelocityParams, block_weights
 from trackmeter.errors import TrackmeterError, counted
 from trackmeter.pipeline.snapshot import (
@@ -1415,8 +1415,7 @@ class Engine:
             return
         for i in fixed:
             b_f = self._model[i].b
-            S = np.array([[0, -b_f[2], b_f[1]], [b_f[2], 0, -b_f[0]], [-b_f[1], b_f[0], 0]])
-            J = R_g @ np.hstack([np.eye(3), -S])
+            J = R_g @ np.hstack([np.eye(3), -skew(b_f)])
             W = np.linalg.inv(np.asarray(measured[i].cov_cam, float) + _position_cov(cov_g, b_f, R_g))
             r = np.asarray(measured[i].point_cam, float) - (R_g @ b_f + t_g)
             self._anchor_H += J.T @ W @ J
@@ -1657,7 +1656,7 @@ class Engine:
         pinned = sum(1 for n, i in enumerate(ids) if inliers[n] and i not in self._frame_error_ids)
         return pinned < 3
 
-    def _contradicts_coast(self, t_s: float, fit: Any) -> str | None:
+    def _contradicts_coast(self, t_s: float, fit: PoseFit) -> str | None:
         """Why a fit from just ``min_points`` points, the first after a coast, is not trusted (None
         when it is). Three points fix a pose with nothing to spare: three wrong matches whose
         distances happen to fit the model (look-alikes re-found after a loss) give a
