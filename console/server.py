@@ -23,7 +23,7 @@ from console.app import Console, pin_mmap_threshold
 from trackmeter.core.patch_tracking import warm_up
 from trackmeter.errors import TrackmeterError
 from trackmeter.signals import interrupt_kept
-from trackmeter.pipeline.pipeline import Engine, Pipeline
+from trackmeter.pipeline.pipeline import EngineLike, Pipeline
 from trackmeter.sources.base import Source
 
 log = logging.getLogger(__name__)
@@ -92,7 +92,7 @@ class RunningConsole:
 
 def start_console(
     source: Source,
-    engine: Engine,
+    engine: EngineLike,
     *,
     host: str = "127.0.0.1",
     port: int = 8080,
