@@ -150,6 +150,18 @@ def decimal_of(text: str) -> float | None:
     return float(digits)
 
 
+def whole_number_of(text: str, low: int, high: int) -> int | None:
+    """A whole number from ``low`` to ``high`` typed by an operator; None for an empty field.
+    ValueError, with the text and the range, for anything else ("1e9", "2.5", "0,5", "abc"):
+    a guess would send a count the operator did not mean."""
+    typed = text.strip()
+    if not typed:
+        return None
+    if re.fullmatch(r"[+-]?\d+", typed) is None or not low <= int(typed) <= high:
+        raise ValueError(f"{typed!r} is not a whole number from {low} to {high}")
+    return int(typed)
+
+
 def _hz_text(hz: float) -> str:
     """A frequency as the cutoff field shows it: 2 Hz as "2", 0.55 as "0.55", 11.875 and
     1.2345678 whole (typed back as shown, it is the value the tracker holds)."""
@@ -670,11 +682,14 @@ class Console:
             self.restart_button = gui.add_button("Restart")
         with gui.add_folder("Targets"):
             self.auto_checkbox = gui.add_checkbox("Automatic selection", initial_value=False)
-            # Up to the tracker's limit: a larger count would be refused.
+            # Up to the tracker's limit: a larger count would be refused. Text, not viser's
+            # slider and its number field, which took "1e9" as 19 and "0,5" as 5 and left "abc"
+            # blank, none of it said (an outside monkey probe). Read by whole_number_of.
             most = int(getattr(self.pipeline.engine, "max_targets", 64))
-            self.auto_count = gui.add_slider("Count", min=1, max=most, step=1, initial_value=min(16, most),
-                                             hint="Automatic selection tops the tracked targets (all of them) up "
-                                                  "to this many; a lower count removes none")
+            self.auto_count_max = most
+            self.auto_count = gui.add_text("Count", initial_value=str(min(16, most)),
+                                           hint=f"1 to {most}: automatic selection tops the tracked targets (all "
+                                                "of them) up to this many; a lower count removes none")
             method = str(getattr(self.pipeline.engine, "auto_method", AUTO_METHODS[0]))
             methods = AUTO_METHODS if method in AUTO_METHODS else (*AUTO_METHODS, method)
             self.auto_method = gui.add_dropdown("Method", methods, initial_value=method,
@@ -727,8 +742,7 @@ class Console:
         self.restart_button.on_click(self._cb(lambda e: RestartSource()))
         self.clear_button.on_click(self._cb(lambda e: ClearTargets()))
         self.auto_checkbox.on_update(self._cb(lambda e: self._auto_command()))
-        self.auto_count.on_update(self._typed("auto_count", lambda: self._auto_command() if self.auto_checkbox.value
-                                              else None))
+        self.auto_count.on_update(self._typed("auto_count", lambda: self._typed_count_command()))
         self.auto_method.on_update(self._cb(lambda e: self._auto_command() if self.auto_checkbox.value else None))
         self.case_dropdown.on_update(self._cb(lambda e: SetCase(self.case_dropdown.value)))  # type: ignore[arg-type]
         self.model_point_dropdown.on_update(self._own_next_click)
@@ -783,7 +797,25 @@ class Console:
         return SetFilterCutoff(hz)
 
     def _auto_command(self) -> Command:
-        return SetAuto(bool(self.auto_checkbox.value), int(self.auto_count.value), str(self.auto_method.value))
+        """Automatic selection as the widgets show it; a Count that is no count (being typed,
+        or refused) sends the tracker's."""
+        try:
+            count = whole_number_of(self.auto_count.value, 1, self.auto_count_max)
+        except ValueError:
+            count = None
+        if count is None:
+            count = max(int(self.pipeline.latest().auto_count), 1)
+        return SetAuto(bool(self.auto_checkbox.value), count, str(self.auto_method.value))
+
+    def _typed_count_command(self) -> Command | None:
+        """The count the operator typed (ValueError: not a whole number in range); None for an
+        emptied field, which then shows the tracker's count again, or with selection off (the
+        count is sent when it is switched on)."""
+        count = whole_number_of(self.auto_count.value, 1, self.auto_count_max)
+        if count is None:
+            self._mirrored.pop("auto_count", None)
+            return None
+        return self._auto_command() if self.auto_checkbox.value else None
 
     def _fresh_record_dir(self) -> str:
         typed = typed_text(self.record_dir.value.strip())
@@ -1201,7 +1233,7 @@ class Console:
             self.pause_button.label = label
         self._mirror("auto", self.auto_checkbox, snap.auto_enabled)
         if snap.auto_count >= 1 and "auto_count" not in self._edits:
-            self._mirror("auto_count", self.auto_count, snap.auto_count)
+            self._mirror("auto_count", self.auto_count, str(snap.auto_count))
         if snap.auto_method in self.auto_method.options:
             self._mirror("auto_method", self.auto_method, snap.auto_method)
         if np.isfinite(snap.filter_cutoff_hz) and "cutoff" not in self._edits:

@@ -395,8 +395,8 @@ def test_the_method_widget_shows_the_configured_method_and_a_toggle_keeps_it() -
 
 
 def test_the_count_and_cutoff_widgets_follow_the_tracker_and_its_limits() -> None:
-    """The Count slider ends at the tracker's max_targets (a larger value was refused while
-    the slider kept showing it), the cutoff field at the filter's limit, and both show the
+    """The Count field takes up to the tracker's max_targets (a larger value was refused while
+    the field kept showing it), the cutoff field up to the filter's limit, and both show the
     tracker's value again after a refusal or a change made elsewhere."""
     from trackmeter.pipeline.snapshot import SetAuto, SetFilterCutoff
 
@@ -405,12 +405,12 @@ def test_the_count_and_cutoff_widgets_follow_the_tracker_and_its_limits() -> Non
     pushes = functools.partial(_wait_for_pushes, con)
 
     try:
-        assert con.auto_count.max == 20 and con.cutoff_range_hz[1] == pytest.approx(11.875)
+        assert con.auto_count_max == 20 and con.cutoff_range_hz[1] == pytest.approx(11.875)
         pushes(3)
-        assert con.auto_count.value == 6 and con.cutoff.value == "2"
+        assert con.auto_count.value == "6" and con.cutoff.value == "2"
         running.pipeline.submit(SetAuto(True, 9)).result(10)  # elsewhere
         pushes(5)
-        assert con.auto_count.value == 9
+        assert con.auto_count.value == "9"
         con.cutoff.value = "0"  # typed by the operator, refused by the tracker
         assert not con.submit(SetFilterCutoff(0.0), None, "SetFilterCutoff").result(10).ok
         pushes(5)
@@ -502,6 +502,54 @@ def test_a_cutoff_that_is_no_number_is_refused_with_the_reason_and_the_tracker_s
         assert engine.sent == [] and con.cutoff.value == "2"
 
 
+def _type_count(con: Any, text: str, said: list[tuple[str, str]] | None = None) -> None:
+    """A keystroke in the Count field, as :func:`_type_cutoff`."""
+    def notify(title: str, body: str, **_: Any) -> None:
+        if said is not None:
+            said.append((title, body))
+
+    con.auto_count.value = text
+    con.edit_callbacks["auto_count"](types.SimpleNamespace(client=types.SimpleNamespace(add_notification=notify)))
+
+
+@pytest.mark.parametrize("typed", ["1e9", "0,5", "abc", "nan", "0", "21", "2.5", "-3"])
+def test_a_count_that_is_no_whole_number_in_range_is_refused_with_the_reason_and_the_tracker_s_shown(typed: str) -> None:
+    """Count was viser's number field, which mangled what was typed and said nothing (an
+    outside monkey probe): "1e9" became 19 and the tracker topped up to 19 targets, "0,5"
+    became 5, and "abc", "nan" or an emptied field left it blank while the tracker kept its
+    count. Anything but a whole number from 1 to max_targets is refused with the reason and
+    the tracker's count shown again."""
+    from trackmeter.pipeline.snapshot import SetAuto
+
+    said: list[tuple[str, str]] = []
+    with _sending_console() as (con, engine):
+        engine.kind, engine.field = "SetAuto", "count"
+        assert con.submit(SetAuto(True, 6), None, "SetAuto").result(10).ok
+        engine.sent.clear()
+        _wait_for_pushes(con, 5)
+        con.auto_checkbox.value = True
+        _type_count(con, typed, said)
+        _wait_until(lambda: said, "nothing said")
+        assert said[0][0] == "Automatic selection: refused" and repr(typed) in said[0][1], said
+        assert "1 to 20" in said[0][1]
+        _wait_for_pushes(con, 5)
+        assert engine.sent == [] and con.auto_count.value == "6"
+
+
+def test_an_emptied_count_shows_the_tracker_s_again_and_a_padded_one_is_read() -> None:
+    from trackmeter.pipeline.snapshot import SetAuto
+
+    with _sending_console() as (con, engine):
+        engine.kind, engine.field = "SetAuto", "count"
+        assert con.submit(SetAuto(True, 6), None, "SetAuto").result(10).ok
+        engine.sent.clear()
+        con.auto_checkbox.value = True
+        _type_count(con, "  ")
+        _wait_until(lambda: con.auto_count.value == "6", f"the field shows the tracker's count, not {con.auto_count.value!r}")
+        _type_count(con, " 12 ")
+        _wait_until(lambda: engine.sent == [12], f"12 sent: {engine.sent}")
+
+
 def test_a_typed_count_is_sent_once_the_field_holds_it() -> None:
     """Typing 16 into Count sent 1 and then 16 (an outside probe: eleven refusals for one long
     number typed): like the cutoff, the count is sent once the field holds it."""
@@ -518,7 +566,7 @@ def test_a_typed_count_is_sent_once_the_field_holds_it() -> None:
         assert con.submit(SetAuto(True, 6), None, "SetAuto").result(10).ok
         engine.sent.clear()
         con.auto_checkbox.value = True
-        for typed in (1, 16):  # "1", "16"
+        for typed in ("1", "16"):
             con.auto_count.value = typed
             con.edit_callbacks["auto_count"](types.SimpleNamespace(client=browser))
             time.sleep(0.1)

@@ -222,8 +222,28 @@ def test_a_cutoff_with_a_decimal_comma_reaches_the_filter_as_written(page_and_cl
                 field.press_sequentially(value, delay=120)
             wanted = float(value.replace(",", "."))
             wait_for(lambda: abs(engine.filter_cutoff_hz - wanted) < 1e-9, 10, f"the filter at {wanted} Hz")
+            # The field then shows the tracker's value ("0,5" as "0.5"): wait for it, or that
+            # push can land between the next Ctrl+A and its keys and leave "0.52".
+            wait_for(lambda: field.input_value() == f"{wanted:g}", 10, f"the field showing {wanted:g}")
     finally:
         page.get_by_text("Output", exact=True).first.click()  # folded again
+
+
+def test_a_count_typed_as_1e9_is_refused_in_the_page_not_taken_as_19(page_and_client: Any, running_console: Any) -> None:
+    """viser's number field took "1e9" as 19 and the tracker topped up to 19 targets without a
+    word (an outside monkey probe). The Count field is text: refused, said in the page, and the
+    tracker's count shown again."""
+    page, _ = page_and_client
+    con = running_console.console
+    engine = running_console.pipeline.engine
+    field = page.locator(".mantine-Flex-root", has=page.get_by_text("Count", exact=True)).locator("input").first
+    field.wait_for(timeout=10_000)
+    before = engine.auto_count
+    shown = str(running_console.pipeline.latest().auto_count)
+    field.fill("1e9")
+    page.get_by_text("Automatic selection: refused", exact=False).first.wait_for(timeout=10_000)
+    wait_for(lambda: field.input_value() == shown, 10, f"the tracker's count ({shown}) shown again")
+    assert engine.auto_count == before
 
 
 def test_a_click_named_after_a_model_point_binds_that_point(
