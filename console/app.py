@@ -1350,6 +1350,8 @@ class Console:
         """The Recording folder's line: the recording going on, or that none is and the last one's counts."""
         if not rec.directory:
             return "not recording"
+        if rec.discarded:
+            return f"not recording (last: no frame came, nothing kept in {rec.directory})"
         counts = (f"{rec.directory}: {counted(rec.frames_written, 'frame')} written, {rec.frames_dropped + rec.frames_lost} "
                   "not recorded" + (f", {rec.error}" if rec.error else ""))
         return counts if rec.active else f"not recording (last: {counts})"

@@ -6,6 +6,7 @@ No browser here (see ``tests/browser``); viser's server runs in-process on a fre
 from __future__ import annotations
 
 import contextlib
+import errno
 import functools
 import logging
 import os
@@ -936,8 +937,9 @@ def test_a_recording_that_lost_frames_ends_the_console_with_exit_code_1(tmp_path
     import console.server
     from trackmeter.data.sequence import SequenceWriter
 
-    def failing_write(self, frame):  # type: ignore[no-untyped-def]
-        raise TrackmeterError(f"{self.directory}: cannot write (No space left on device)")
+    def full_disk(self, path, image):  # type: ignore[no-untyped-def]
+        # Under write(), as a full disk fails it (a writer that never saw a frame keeps nothing).
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
 
     def serve_until_failed(running: Any) -> None:
         deadline = time.monotonic() + 30.0
@@ -945,7 +947,7 @@ def test_a_recording_that_lost_frames_ends_the_console_with_exit_code_1(tmp_path
             time.sleep(0.05)
         running.stop()
 
-    monkeypatch.setattr(SequenceWriter, "write", failing_write)
+    monkeypatch.setattr(SequenceWriter, "_write_image", full_disk)
     monkeypatch.setattr(console.server, "serve_forever", serve_until_failed)
     code = main(["console", "--source", "sim", "--port", str(free_port()), "--cpu-nice", "0",
                  "--record", str(tmp_path / "rec")])

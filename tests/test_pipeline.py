@@ -573,6 +573,31 @@ def test_recording_with_the_sequence_writer_reads_back_every_frame(tmp_path: Pat
         assert not pipe2.latest().recording
 
 
+def test_a_recording_that_got_no_frame_leaves_no_folder_and_says_so(tmp_path: Path, estec_rig) -> None:  # type: ignore[no-untyped-def]
+    """Recording ticked and unticked while paused wrote a folder with the csv headers only,
+    which track refuses ("lists no image"), after "recording to ..." and "recorded 0 frames"
+    (an outside monkey probe: six such folders). The start says that frames come as the source
+    plays; the stop keeps nothing and says so. (The source here gives no frame at all: a frame
+    read just before the pause may be recorded, and is then kept.)"""
+    for folder, made_by_operator in ((tmp_path / "rec", False), (tmp_path / "mine", True)):
+        if made_by_operator:
+            folder.mkdir()  # empty: what the recording made goes, the folder stays
+        gate = threading.Event()
+        with Pipeline(CountingSource(10, gate=gate), RecordingEngine(), rig=estec_rig) as pipe:
+            assert pipe.call(SetPaused(True)).ok
+            started = pipe.call(SetRecording(str(folder)))
+            assert started.ok and "paused" in started.message, started.message
+            assert (folder / "cam0").is_dir()  # claimed while it records
+            stopped = pipe.call(SetRecording(None))
+            assert stopped.ok and "no frame" in stopped.message and "nothing kept" in stopped.message, stopped.message
+            assert pipe.recording_stats().discarded
+            gate.set()
+        if made_by_operator:
+            assert list(folder.iterdir()) == []
+        else:
+            assert not folder.exists()
+
+
 def test_a_recording_carries_the_model_the_run_uses(tmp_path: Path, estec_rig) -> None:  # type: ignore[no-untyped-def]
     """Replayed with --source DIR, case (b) must find the model the live run had: the recording
     writes the source's model (or the engine's a-priori one) to model.yaml."""

@@ -1638,3 +1638,17 @@ def test_videos_of_one_name_are_told_apart_in_every_message(tmp_path):
         src = open_source(f"video:{left},{right}")
     src.close()
     assert src.warning is not None and f"({left}: 6 frames, {right}: 4)" in src.warning, src.warning
+
+
+def test_a_writer_closed_without_a_frame_keeps_nothing(tmp_path: Path, estec_rig) -> None:  # type: ignore[no-untyped-def]
+    """A folder of csv headers is no sequence (the reader refuses it: "lists no image"): a
+    writer closed before its first frame removes what it made, and the folder where it made it."""
+    from trackmeter.data.sequence import SequenceWriter
+
+    with SequenceWriter(tmp_path / "new", rig=estec_rig) as writer:
+        assert (tmp_path / "new" / "cam0" / "data.csv").is_file()
+    assert writer.discarded and not (tmp_path / "new").exists()
+    (tmp_path / "given").mkdir()
+    with SequenceWriter(tmp_path / "given", rig=estec_rig) as writer:
+        pass
+    assert writer.discarded and list((tmp_path / "given").iterdir()) == []

@@ -234,7 +234,6 @@ def test_a_count_typed_as_1e9_is_refused_in_the_page_not_taken_as_19(page_and_cl
     word (an outside monkey probe). The Count field is text: refused, said in the page, and the
     tracker's count shown again."""
     page, _ = page_and_client
-    con = running_console.console
     engine = running_console.pipeline.engine
     field = page.locator(".mantine-Flex-root", has=page.get_by_text("Count", exact=True)).locator("input").first
     field.wait_for(timeout=10_000)

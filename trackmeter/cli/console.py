@@ -151,7 +151,6 @@ def _serve_source(args: argparse.Namespace, config: Any, source: Any, model: Any
     print(stop_line(running.pipeline.timings()), file=sys.stderr)
     cut_short = False
     for rec in running.pipeline.recordings():  # every one, from --record and from the panel
-        print(f"trackmeter console: recorded {counted(rec.frames_written, 'frame')} to {rec.directory}"
-              + rec.not_recorded() + (f" ({rec.error})" if rec.error else ""), file=sys.stderr)
+        print(f"trackmeter console: {rec.summary()}", file=sys.stderr)
         cut_short = cut_short or bool(rec.error or rec.frames_dropped or rec.frames_lost)
     return 1 if cut_short else 0  # a script that records must be able to tell a recording cut short

@@ -197,19 +197,29 @@ class SequenceWriter:
                 with contextlib.suppress(Exception):
                     f.close()
             self._csv = {}
-            for path in made:
-                if path.is_dir():
-                    shutil.rmtree(path, ignore_errors=True)
-                else:
-                    path.unlink(missing_ok=True)
-            if created:
-                with contextlib.suppress(OSError):
-                    self.directory.rmdir()
+            self._remove_made(made, created)
             self._mark = None
             self._release_lock()
             if isinstance(exc, OSError):
                 raise TrackmeterError(f"cannot record to {self.directory}: {exc.strerror or exc}") from None
             raise
+        self._made, self._created = made, created
+        self._frame_offered = False  # write() was called (a write that failed keeps the folder: it says why)
+        #: Closed without a frame offered: what it made was removed (a folder of csv headers is
+        #: no sequence: track refuses it), the folder too where this writer made it.
+        self.discarded = False
+
+    def _remove_made(self, made: Sequence[Path], created: bool) -> None:
+        """Remove what this writer made in its folder (``made``), and the folder when it made it
+        (``created``; only what it made, should the filesystem not lock)."""
+        for path in made:
+            if path.is_dir():
+                shutil.rmtree(path, ignore_errors=True)
+            else:
+                path.unlink(missing_ok=True)
+        if created:
+            with contextlib.suppress(OSError):
+                self.directory.rmdir()
 
     def _release_lock(self) -> None:
         if self._lock is not None:
@@ -226,6 +236,7 @@ class SequenceWriter:
         """Append one stereo frame (and its ground truth when it has one)."""
         if not self._csv:
             raise TrackmeterError(f"{self.directory}: sequence writer is closed")
+        self._frame_offered = True
         try:
             self._follow_folder()
             self._restore_deleted_files()
@@ -417,6 +428,11 @@ class SequenceWriter:
         if restored is not None:
             self._mark = None  # a file of the recording is gone: the folder stays marked unfinished
             raise restored
+        if not self._frame_offered and self._mark is not None:
+            self._mark = None
+            self._remove_made(self._made, self._created)
+            self.discarded = True
+            return
         if self._mark is not None:
             mark, self._mark = self._mark, None
             try:

@@ -139,6 +139,8 @@ class RecordingStats:
         error: why the recording failed, else None.
         frames_lost: frames not written because the writer had failed (the one it failed on
             included).
+        discarded: it ended without a frame, and nothing of it was kept (a folder of csv
+            headers is no sequence: ``SequenceWriter.discarded``).
     """
 
     directory: str | None = None
@@ -149,6 +151,15 @@ class RecordingStats:
     queue_depth: int = 0
     error: str | None = None
     frames_lost: int = 0
+    discarded: bool = False
+
+    def summary(self) -> str:
+        """What a stopped recording holds, one line: ``recorded N frames to DIR`` and what was
+        not kept, or that no frame came and nothing was kept."""
+        if self.discarded:
+            return f"recorded no frame (none came while recording: paused?): nothing kept in {self.directory}"
+        return (f"recorded {counted(self.frames_written, 'frame')} to {self.directory}" + self.not_recorded()
+                + (f"; {self.error}" if self.error else ""))
 
     def not_recorded(self) -> str:
         """``", N NOT recorded (why)"`` for each kind of frame not kept, else ``""``."""
@@ -194,6 +205,7 @@ class _Recorder:
         self.frames_dropped = 0
         self.frames_lost = 0
         self.error: str | None = None
+        self.discarded = False  # the writer kept nothing (no frame came)
         self._cut_dropped = False  # the last frame not kept started a new pass (offer's thread only)
         self._shift_s = 0.0  # added to the stream's time since its last restart
         self._last_t_s: float | None = None  # last written time and interval, s
@@ -257,6 +269,7 @@ class _Recorder:
             return
         try:
             writer.close()
+            self.discarded = bool(getattr(writer, "discarded", False))
         except Exception as exc:
             with self._lock:
                 self.error = self.error or f"closing the recording failed: {exc}"
@@ -282,7 +295,7 @@ class _Recorder:
         with self._lock:
             return RecordingStats(str(self.directory), active and not self.failed, self.frames_queued,
                                   self.frames_written, self.frames_dropped, self._queue.qsize(), self.error,
-                                  self.frames_lost)
+                                  self.frames_lost, self.discarded)
 
 
 class _RateMeter:
@@ -730,11 +743,10 @@ class Pipeline:
                 stats = self._stop_recording()
                 if stats is None:
                     return CommandReply(False, "not recording")
-                return CommandReply(stats.error is None and stats.frames_dropped == 0,
-                                    f"recorded {counted(stats.frames_written, 'frame')} to {stats.directory}"
-                                    + stats.not_recorded() + (f"; {stats.error}" if stats.error else ""))
+                return CommandReply(stats.error is None and stats.frames_dropped == 0, stats.summary())
             self._start_recording(Path(command.directory))
-            return CommandReply(True, f"recording to {command.directory}")
+            return CommandReply(True, f"recording to {command.directory}"
+                                + ("; paused: frames are recorded as the source plays or steps" if self._paused else ""))
         reply = self.engine.handle(command, self._last_frame)
         if isinstance(command, ClearTargets) and reply.ok:
             # The published pose went with the targets it came from (paused, no step would
