@@ -12,6 +12,7 @@ import logging
 import socket
 import sys
 import threading
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -90,6 +91,14 @@ class RunningConsole:
         self.server.stop()
 
 
+def quiet_dead_client_warnings() -> None:
+    """Leave out viser's warning that a message was queued on a closed connection: the answer
+    (a pop-up) to a browser that reloaded or closed since its command, lost on purpose, reached
+    the operator's terminal as 'warning: Queued a NotificationShowMessage on a closed
+    connection ...' (an outside monkey probe). Other warnings pass."""
+    warnings.filterwarnings("ignore", message=r"Queued a \w+ on a closed connection", category=UserWarning)
+
+
 def start_console(
     source: Source,
     engine: EngineLike,
@@ -106,6 +115,7 @@ def start_console(
         TrackmeterError: the port is taken; a recording folder that cannot be used.
     """
     pin_mmap_threshold()
+    quiet_dead_client_warnings()
     # Compile the tracker's fits (about 15 s the first time after an install, then loaded from
     # numba's cache) before the server listens: a page opened during the compile was starved,
     # and viser's client drops an image still loading when the next arrives, so it stayed

@@ -1366,3 +1366,20 @@ def test_a_recording_folder_whose_name_is_not_utf8_is_shown_escaped_and_the_page
         assert con._fresh_record_dir() == str(folder / "take2")
     finally:
         running.stop()
+
+
+def test_viser_s_warning_of_a_pop_up_for_a_closed_browser_is_left_out_and_no_other() -> None:
+    """A reply's pop-up to a browser that had just reloaded reached the server's terminal as
+    viser's 'Queued a NotificationShowMessage on a closed connection' warning (an outside monkey
+    probe): left out; any other warning still shows."""
+    import warnings
+
+    from console.server import quiet_dead_client_warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        quiet_dead_client_warnings()
+        warnings.warn("Queued a NotificationShowMessage on a closed connection (e.g. via a handle owned by a "
+                      "disconnected client, or after the server stopped); it will never be delivered.", UserWarning)
+        warnings.warn("something else", UserWarning)
+    assert [str(w.message) for w in caught] == ["something else"]
