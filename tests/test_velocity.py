@@ -639,6 +639,35 @@ def test_a_reflection_or_a_time_that_is_no_number_is_refused_and_does_not_poison
     assert rates is not None and np.allclose(rates[0], [0.025, 0.0, 0.0], atol=1e-6)
 
 
+def test_a_covariance_of_the_wrong_shape_is_refused_and_leaves_the_window_as_it_was() -> None:
+    """A (3,3) cov_pose raised numpy's ValueError after the pose had joined the times, rotations
+    and positions but not the weights: the four queues were out of step for good and every
+    later update raised IndexError (an outside code review)."""
+    est = VelocityEstimator(VelocityParams(method="poly"))
+    cov = np.eye(6) * 1e-6
+    for k in range(10):
+        est.update(k * 0.04, np.eye(3), [0.01 * k * 0.04, 0.0, 3.5], cov)
+    with pytest.raises(TrackmeterError, match=r"cov_pose must be \(6,6\).*got \(3, 3\)"):
+        est.update(0.40, np.eye(3), [0.004, 0.0, 3.5], np.eye(3) * 1e-6)
+    assert [len(q) for q in (est._t, est._R, est._p, est._w)] == [10] * 4
+    v, omega = est.update(0.44, np.eye(3), [0.01 * 0.44, 0.0, 3.5], cov)
+    np.testing.assert_allclose(v, [0.01, 0.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(omega, 0.0, atol=1e-12)
+
+
+def test_a_still_body_without_covariances_has_free_body_rates_from_its_second_pose() -> None:
+    """free_body_noise_weight's first guess divided 0 by 0 for two poses that agree exactly (a
+    body held still, as case (c) acquires its model), before its own "1.0 with 3 poses or
+    fewer": ZeroDivisionError at the second pose (an outside code review)."""
+    assert free_body_noise_weight([0.0, 0.04], np.stack([np.eye(3)] * 2), [[0, 0, 3.0]] * 2, np.zeros(3), 0.0, 0.5) == 1.0
+    est = VelocityEstimator(VelocityParams(method="free_body"))
+    assert est.update(0.0, np.eye(3), [0.0, 0.0, 3.0]) is None
+    for k in range(1, 6):
+        v, omega = est.update(0.04 * k, np.eye(3), [0.0, 0.0, 3.0])
+        np.testing.assert_allclose(v, 0.0, atol=1e-12)
+        np.testing.assert_allclose(omega, 0.0, atol=1e-12)
+
+
 def test_the_screw_window_reaches_back_only_to_the_cap_angle_in_degrees() -> None:
     """``screw_max_angle_deg`` is in degrees: at 8 deg a frame (poses 0, 8, 16, 24, 32 deg behind
     the newest) a 30 deg cap keeps the newest 4 poses. With a twist that is not constant (small

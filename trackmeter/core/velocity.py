@@ -501,9 +501,11 @@ def free_body_noise_weight(times_s: ArrayLike, R: ArrayLike, p: ArrayLike, omega
         floored at 1e-10 m² per degree of freedom (noise-free poses).
     """
     n = len(np.asarray(times_s).reshape(-1))
+    if n <= 3:  # before the first guess: with 2 poses it would be 0 / 0
+        return 1.0
     first = (3 * n - 6) / max(float(screw_rss_m2), (3 * n - 6) * 1e-10)
     free = free_body_velocity(times_s, R, p, omega_body, np.full(n, first), lever_m)
-    if free is None or n <= 3:
+    if free is None:
         return 1.0
     dof = free.residual_dof
     return dof / max(free.rss / first, dof * 1e-10)
@@ -623,17 +625,23 @@ class VelocityEstimator:
 
         Raises:
             TrackmeterError: ``R_cam_body`` not a (3,3) rotation, ``p_cam`` not a finite (3,),
-                ``t_s`` not finite: refused before it joins the window, where one NaN would
+                ``t_s`` not finite, ``cov_pose`` not (6,6) (a non-finite one weighs 0): refused before it joins the window, where one NaN would
                 spoil every fit over the next ``window_s``; the window is left as it was."""
         t_s = finite_time(t_s, "t_s")
         R_new = rotation_matrix(R_cam_body, "R_cam_body")
         p_new = finite_rows(p_cam, "p_cam", (3,))
+        w_new = np.full(2, np.nan)
+        if cov_pose is not None:
+            cov = np.asarray(cov_pose, dtype=float)
+            if cov.shape != (6, 6):
+                raise TrackmeterError(f"cov_pose must be (6,6) (position m, rotation vector rad), got {cov.shape}")
+            w_new = block_weights(cov)[0]
         if self._t and (t_s <= self._t[-1] or t_s - self._t[-1] > self.params.bridge_gap_s):
             self.reset()
         self._t.append(float(t_s))
         self._R.append(R_new)
         self._p.append(p_new)
-        self._w.append(block_weights(cov_pose)[0] if cov_pose is not None else np.full(2, np.nan))
+        self._w.append(w_new)
         keep = 2 if self.params.method == "difference" else None
         if self.params.method in ("screw", "free_body"):
             longest = self.params.screw_window_s
