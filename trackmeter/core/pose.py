@@ -637,9 +637,10 @@ def to_body(R_a_body: FloatArray, origin_a: FloatArray, points_a: ArrayLike, cov
 def choose_frame_points(points: ArrayLike, min_offset_m: float) -> tuple[int, int, int] | None:
     """Case (a): indices of the three frame points, in the order given (selection order).
 
-    Point 1 is the first, point 2 the next one at least ``min_offset_m`` away, point 3 the next
-    one at least ``min_offset_m`` off the line through 1 and 2. None when no such triple exists
-    (all points (nearly) collinear or clustered).
+    The first triple in that order (lexicographic in the indices) where point 2 is at least
+    ``min_offset_m`` from point 1 and point 3 at least ``min_offset_m`` off the line through 1
+    and 2: point 1 is the first point given unless no later pair makes a frame with it, and so
+    on. None when no such triple exists (all points (nearly) collinear or clustered).
     """
     p = np.asarray(points, dtype=float).reshape(-1, 3)
     for i in range(len(p)):

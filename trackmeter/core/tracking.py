@@ -393,6 +393,9 @@ class Tracker:
         # The last known one and the steps since it (anchor_warp "plane" carries it over gaps).
         self._last_delta: tuple[FloatArray, FloatArray] | None = None
         self._delta_age = 0
+        # Whether the targets' anchor motions already reach this step's frame (composed after its
+        # fit): the warp predicted for a re-lock after the step is then not moved a frame on.
+        self._anchor_motion_current = False
         self._last_step_t_s: float | None = None  # time of the last step's frame, s
         self._step_dt_s = 0.0  # interval of this step (the rigid motion's), s
         self._body_gen = 0  # counts the body frames started (:meth:`_body_drift`)
@@ -556,6 +559,10 @@ class Tracker:
         self._free_slots = []
         self._body = None
         self._body_gen += 1
+        # The removed targets' motion is no one's now: carried into new targets' anchors it
+        # would give them a motion they did not make.
+        self._delta = self._last_delta = None
+        self._delta_age = 0
 
     # ------------------------------------------------------------------ frames
 
@@ -1007,6 +1014,7 @@ class Tracker:
         self.last_losses = {}
         self._removed = {}
         self._delta = None
+        self._anchor_motion_current = False
         self._step_dt_s = frame.t_s - self._last_step_t_s if self._last_step_t_s is not None else 0.0
         self._last_step_t_s = frame.t_s
         live = [t for t in self._targets.values() if t.status != "lost"]
@@ -1232,6 +1240,7 @@ class Tracker:
                 t.anchor_t = _NAN3.copy()
             else:
                 t.anchor_R, t.anchor_t = d[0] @ t.anchor_R, d[0] @ t.anchor_t + d[1]
+        self._anchor_motion_current = True
 
     def _tilt_ok(self, m: FloatArray, uv: FloatArray) -> NDArray[np.bool_]:
         """Planes ``m`` (N,3) seen from pixels ``uv`` (N,2) within ``plane_max_tilt_deg`` of face-on."""
@@ -1255,8 +1264,11 @@ class Tracker:
         m = np.array([t.plane_m for t in sel])
         R = np.array([motion[i][0] for i in rows])
         tv = np.array([motion[i][1] for i in rows])
-        d = self._step_delta()  # before this step's fit: the last known motion
-        if d is not None:  # one frame ahead: this frame's motion as the last one
+        # In a step, before its fit, the motions reach the last frame: moved on by the last known
+        # motion as this frame's. A re-lock after the step (relock_many, restore_many) is on the
+        # frame they already reach.
+        d = None if self._anchor_motion_current else self._step_delta()
+        if d is not None:
             R, tv = d[0] @ R, tv @ d[0].T + d[1]
         uv_a = np.array([t.anchor_uv for t in sel])
         m_now = transform_plane(m, R, tv)
@@ -1294,7 +1306,7 @@ class Tracker:
         m_anchor = transform_plane(m_cam, Rt, -np.einsum("nij,nj->ni", Rt, tv))  # camera → anchor camera
         for i in np.flatnonzero(ok):
             t = ts[i]
-            t.planes.append(m_anchor[i])
+            t.planes = [*t.planes, m_anchor[i]]  # rebound, not appended: a stored handle shares the list
             t.plane_m = np.median(np.array(t.planes), axis=0)
 
     def _rigid_recheck(self, t: _Target, m: EpipolarMatch, j: int = 0) -> str | None:
