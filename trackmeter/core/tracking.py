@@ -806,7 +806,11 @@ class Tracker:
         d = m.disparity_px[idx]
         P = self.rect.triangulate(cl, d)
         C = self.rect.point_covariance(cl, d, p.sigma_disparity_px, p.sigma_uv_px)
-        R = self.rect.unrectify_points(m.uv_rect_right[idx], 1)
+        # The right pixel the point is measured from: on the left pixel's row at the disparity
+        # (as measure's right_uv), not the 2D fit's, whose vertical offset only checks the match.
+        right_rect = cl.copy()
+        right_rect[:, 0] -= d
+        R = self.rect.unrectify_points(right_rect, 1)
         for k, t in enumerate(ts):
             t.disparity_px = float(d[k])
             t.point_cam = P[k]
