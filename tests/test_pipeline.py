@@ -963,3 +963,21 @@ def test_a_looping_source_s_passes_are_counted_from_every_frame_and_a_restart_st
         while pipe.latest().frame.index < 15:
             time.sleep(0.005)
         assert pipe.latest().source_pass == 2
+
+
+def test_a_recording_of_a_sequence_keeps_its_nanosecond_stamps(tmp_path: Path, estec_rig) -> None:  # type: ignore[no-untyped-def]
+    """EuRoC's stamps (~1.4e18 ns) are 238 ns apart as float seconds: a recording that wrote
+    ``round(t_s * 1e9)`` changed them by up to 128 ns (an outside probe: 1403636579813555584 was
+    recorded as ...712), so its frames no longer joined their ground truth by stamp."""
+    from trackmeter.data.sequence import SequenceWriter, index_sequence
+    from trackmeter.sources import open_source
+
+    stamps = [1403636579813555584 + k * 50_000_000 + k % 3 for k in range(6)]
+    image = np.random.default_rng(0).integers(0, 255, estec_rig.image_size[::-1], dtype=np.uint8)
+    with SequenceWriter(tmp_path / "euroc", estec_rig) as writer:
+        for k, ns in enumerate(stamps):
+            writer.write(StereoFrame(k, ns / 1e9, image, image, stamp_ns=ns))
+    assert [int(line.split(",")[0]) for line in (tmp_path / "euroc" / "cam0" / "data.csv").read_text().splitlines()[1:]] == stamps
+    with Pipeline(open_source(f"seq:{tmp_path / 'euroc'}"), RecordingEngine(), rig=estec_rig, record_dir=tmp_path / "rec") as pipe:
+        pipe.run_until_end(20)
+    assert index_sequence(tmp_path / "rec").t_ns.tolist() == stamps

@@ -39,6 +39,10 @@ class StereoFrame:
         cut: the stream is discontinuous before this frame: the first frame after a
             ``restart()`` or of a looping source's new pass. The scene jumps here, so nothing
             tracked may carry over (a tracker would re-find its points on the wrong surfaces).
+        stamp_ns: the source's own timestamp in integer nanoseconds where it has one (a
+            sequence's file names), ``t_s`` to the nanosecond; None otherwise. A recording
+            keeps it exactly, which ``t_s`` cannot: EuRoC's stamps (~1.4e18 ns) are 238 ns
+            apart as float seconds.
     """
 
     index: int
@@ -47,3 +51,4 @@ class StereoFrame:
     right: NDArray[np.uint8]
     truth: GroundTruth | None = None
     cut: bool = False
+    stamp_ns: int | None = None

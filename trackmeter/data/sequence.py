@@ -243,7 +243,7 @@ class SequenceWriter:
         except TrackmeterError:
             self._failed = True
             raise
-        ns = seconds_to_ns(frame.t_s)
+        ns = frame.stamp_ns if frame.stamp_ns is not None else seconds_to_ns(frame.t_s)
         if self._last_ns is not None and ns <= self._last_ns:
             raise TrackmeterError(f"frame at {frame.t_s} s does not come after the previous one")
         name = f"{ns}.png"
@@ -460,6 +460,8 @@ class SequenceIndex:
     Attributes:
         root: the folder holding ``cam0``/``cam1`` (``DIR`` or ``DIR/mav0``).
         t_s: (N,) timestamps of the stereo pairs (the left image's), s, increasing.
+        t_ns: (N,) the same, as the integer nanoseconds the files give (empty when built
+            without them).
         left_paths, right_paths: (N,) image files of each pair.
         rig: from ``rig.yaml`` when present, else from a real EuRoC folder's two
             ``sensor.yaml`` (:func:`read_euroc_rig`), else None.
@@ -489,6 +491,7 @@ class SequenceIndex:
     tolerance_s: float = 0.0
     cuts: tuple[int, ...] = ()
     truth_problem: str | None = None
+    t_ns: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
     def __len__(self) -> int:
         return len(self.t_s)
@@ -967,6 +970,7 @@ def index_sequence(
         warnings=tuple(warnings),
         tolerance_s=float(tolerance_s),
         truth_problem=truth_problem,
+        t_ns=pair_ns,
     )
 
 

@@ -284,7 +284,7 @@ class _Recorder:
             else:
                 self._last_dt_s = t - self._last_t_s
         self._last_t_s = t
-        return frame if t == frame.t_s else dataclasses.replace(frame, t_s=t)
+        return frame if t == frame.t_s else dataclasses.replace(frame, t_s=t, stamp_ns=None)
 
     def close(self) -> None:
         """Write everything queued, close the folder, join the thread."""

@@ -14,7 +14,7 @@ from trackmeter.core.stereo import StereoRig
 from trackmeter.core.transforms import transform_from_pose
 from trackmeter.data.model import Model
 from trackmeter.data.images import data_bits, decode_image, read_grey, to_grey_u8
-from trackmeter.data.sequence import SequenceIndex, index_sequence, sequence_data_bits
+from trackmeter.data.sequence import SequenceIndex, index_sequence, seconds_to_ns, sequence_data_bits
 from trackmeter.errors import TrackmeterError, counted
 from trackmeter.sources.base import GroundTruth, Source, StereoFrame
 from trackmeter.sources.pacing import Pacer
@@ -234,10 +234,17 @@ class SequenceSource(Source):
             if self.realtime:
                 self._pacer.wait(t)
             frame = StereoFrame(index=self._count, t_s=t, left=left, right=right, truth=self.truth_at(pos),
-                                cut=self._take_cut() or pos in self._cuts)
+                                cut=self._take_cut() or pos in self._cuts, stamp_ns=self._stamp_ns(pos))
             self._count += 1
             return frame
         return None  # a whole pass without one playable pair: a loop would spin for ever
+
+    def _stamp_ns(self, pos: int) -> int | None:
+        """Pair ``pos``'s file timestamp, ns, moved on by the passes played as ``t_s`` is; None
+        where the index holds no integer stamps."""
+        if len(self.index.t_ns) != len(self.index):
+            return None
+        return int(self.index.t_ns[pos]) + self._loops * seconds_to_ns(self._period_s)
 
     def _removed_folder(self, pos: int) -> tuple[Path, str] | None:
         """The outermost folder of pair ``pos``'s images that is gone (removed, or moved) or
