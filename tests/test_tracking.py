@@ -581,3 +581,34 @@ def test_a_targets_right_pixel_is_the_one_its_3d_point_is_measured_from(scene, e
             np.testing.assert_allclose(rect.R1.T @ (X[:3, 0] / X[3, 0]), t.point_cam, atol=1e-6)
             checked += 1
     assert checked >= 30
+
+
+def test_an_automatic_count_that_is_no_whole_number_is_refused(estec_rig) -> None:
+    """``set_auto(True, 2.7)`` kept 2 targets and ``True`` 1, without a word (an outside code
+    review); the console and the command line give whole numbers, a script may not."""
+    from trackmeter.errors import TrackmeterError
+
+    tr = make_tracker(estec_rig)
+    for bad in (2.7, 3.0, True, "4", np.float64(5.0)):
+        with pytest.raises(TrackmeterError, match=r"automatic target count must be a whole number in \[1, 32\], got"):
+            tr.set_auto(True, bad)  # type: ignore[arg-type]
+    tr.set_auto(True, np.int64(5))
+    assert tr._auto_count == 5
+
+
+def test_a_target_asked_for_twice_in_one_relock_batch_is_re_found_once(scene, estec_rig) -> None:
+    """relock_many given one id twice tried the target twice and could count two recoveries of
+    it (an outside code review): the second request is refused, saying why."""
+    f0 = scene.frame(0)
+    tr = make_tracker(estec_rig)
+    ids = add_all(tr, f0, interior_points(f0, 8))
+    for k in range(1, 4):
+        tr.step(scene.frame(k))
+    target = tr._targets[ids[0]]
+    tr._lose(target, "lost for the test")
+    uv = (float(target.uv[0]), float(target.uv[1]))
+    before = tr.stats["recoveries"]
+    first, second = tr.relock_many([(ids[0], uv), (ids[0], uv)], scene.frame(3))  # where it was lost
+    assert isinstance(first, TargetState) and first.status == "recovered", first
+    assert not isinstance(second, TargetState) and "asked for twice" in second.reason
+    assert tr.stats["recoveries"] == before + 1

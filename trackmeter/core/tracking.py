@@ -422,8 +422,12 @@ class Tracker:
 
         if method is not None and method not in METHODS:
             raise TrackmeterError(f"unknown feature selection method {method!r} (known: {', '.join(METHODS)})")
-        if count is not None and not 1 <= int(count) <= self.params.max_targets:
-            raise TrackmeterError(f"automatic target count must be in [1, {self.params.max_targets}], got {count}")
+        if count is not None:
+            # A whole number only: int() took 2.7 as 2 and True as 1 without a word.
+            whole = not isinstance(count, (bool, np.bool_)) and isinstance(count, (int, np.integer))
+            if not whole or not 1 <= int(count) <= self.params.max_targets:
+                raise TrackmeterError(f"automatic target count must be a whole number in [1, {self.params.max_targets}], "
+                                      f"got {count!r}")
         self._auto = bool(enabled)
         if not self._auto:
             self.auto_shortfall = None
@@ -760,6 +764,9 @@ class Tracker:
             t = self._targets.get(target_id)
             if t is None:
                 results[k] = Refusal((float(uvf[0]), float(uvf[1])), f"no target named {target_id!r}")
+                continue
+            if any(s is t for s in targets):  # one target re-found twice would count twice
+                results[k] = Refusal((float(uvf[0]), float(uvf[1])), f"{target_id!r} is asked for twice")
                 continue
             targets.append(t)
             centres.append(uvf)
