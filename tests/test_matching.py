@@ -407,6 +407,10 @@ def test_per_point_disparity_range_narrows_the_search() -> None:
     assert [m.reason for m in off] == [M.REASON_BEYOND_RANGE] * 2
     with pytest.raises(TrackmeterError, match="min <= max"):
         measure_points(rig, left, right, uv, NARROW, disparity_range_px=[6, 1])
+    # Between two whole disparities: searched at the next one up, outside the range, every
+    # point was refused as beyond it (an outside code review). Refused as asked instead.
+    with pytest.raises(TrackmeterError, match=r"disparity_range_px \[9.2, 9.8\] holds no whole number of px"):
+        measure_points(rig, left, right, uv, NARROW, disparity_range_px=[[7, 12], [9.2, 9.8]])
 
 
 def test_repetitive_texture_is_refused_as_ambiguous() -> None:
@@ -563,6 +567,10 @@ def test_json_has_exactly_the_contract_keys_and_no_nan(plane) -> None:  # type: 
     assert back[0]["ok"] and back[0]["reason"] is None and len(back[0]["xyz_m"]) == 3
     assert not back[1]["ok"] and back[1]["reason"] == M.REASON_OUTSIDE_IMAGE
     assert back[1]["xyz_m"] is None and back[1]["disparity_px"] is None and back[1]["score"] is None
+    # A pixel asked for as NaN is refused as outside the image, and written as null, not NaN
+    # (which strict JSON readers refuse; an outside code review).
+    (nan_asked,) = M.measurements_to_json(measure_points(rig, left, right, [[math.nan, 5.0]]))
+    assert json.loads(json.dumps(nan_asked, allow_nan=False))["uv"] == [None, 5.0]
 
 
 def test_results_are_read_only(plane) -> None:  # type: ignore[no-untyped-def]

@@ -148,6 +148,21 @@ def test_triangulate_refuses_non_positive_disparity(estec_rig: StereoRig) -> Non
     assert np.all(np.isnan(xyz))
 
 
+def test_triangulate_refuses_an_infinite_disparity_and_unequal_counts(estec_rig: StereoRig) -> None:
+    """d = inf gave the point (0, 0, 0) with a zero covariance, a certain point at the camera
+    centre; 1 pixel with 3 disparities gave 3 points (an outside code review)."""
+    from trackmeter.errors import TrackmeterError
+
+    rect = estec_rig.rectification
+    assert np.all(np.isnan(rect.triangulate([[300.0, 200.0]], [np.inf])))
+    assert np.all(np.isnan(rect.point_covariance([[300.0, 200.0]], [np.inf], 0.07, 0.2)))
+    with pytest.raises(TrackmeterError, match="1 pixels but 3 disparities"):
+        rect.triangulate([[300.0, 200.0]], [20.0, 30.0, 40.0])
+    with pytest.raises(TrackmeterError, match="3 pixels but 2 disparities"):
+        rect.triangulate([[300.0, 200.0]] * 3, [20.0, 30.0])
+    np.testing.assert_array_equal(rect.triangulate([[300.0, 200.0]] * 2, 25.0), rect.triangulate([[300.0, 200.0]] * 2, [25.0, 25.0]))
+
+
 # --------------------------------------------------------------------------- error propagation
 
 

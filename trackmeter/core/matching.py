@@ -334,7 +334,7 @@ class PointMeasurement:
             return None if not np.all(np.isfinite(a)) else [float(v) for v in a]
 
         return {
-            "uv": [float(self.uv[0]), float(self.uv[1])],
+            "uv": [num(self.uv[0]), num(self.uv[1])],  # a NaN pixel asked for: null, not JSON's NaN
             "ok": bool(self.ok),
             "reason": self.reason,
             "right_uv": vec(self.right_uv),
@@ -406,7 +406,8 @@ def sample_rectified(
     (``x0``, ``y0`` may be fractional), as (height, width) float32, and ``col_ok``: per column
     whether every source pixel lies inside the original image, or None when all do (the
     common case, spared an array). The rectification maps are interpolated bilinearly at the
-    fractional offset (they are smooth), the image with bicubic ``cv2.remap`` over just the
+    fractional offset (they are smooth), the image with ``cv2.remap`` (``interpolation``,
+    Lanczos-4 by default) over just the
     region it needs, converted to float so no grey-level rounding is added.
 
     Args:
@@ -751,7 +752,8 @@ def refine_position(
 class _ShiftFit:
     """Least-squares fit of a template by a shifted strip window, ``T ≈ a R(x) + c R'(x) + b``.
 
-    ``R(x)`` is Keys cubic interpolation, a weighted sum of four integer-shifted windows
+    ``R(x)`` is cubic interpolation (``kernel``: the cubic B-spline or Keys' cubic
+    convolution), a weighted sum of four integer-shifted windows
     ``S_k`` (k = -1..2) with weights ``w(t)``, ``t = x - floor(x)``. All the fit needs are the
     moments of those four windows with each other, with the template and with 1; they are
     computed once per integer position, so each Gauss-Newton step is a few scalar operations.
@@ -1602,6 +1604,13 @@ def measure_points(
         rng_arr = np.broadcast_to(np.asarray(disparity_range_px, dtype=float), (n, 2))
         if not np.all(np.isfinite(rng_arr)) or np.any(rng_arr[:, 1] < rng_arr[:, 0]):
             raise TrackmeterError("disparity_range_px must be finite [min, max] pairs with min <= max")
+        empty = np.flatnonzero(np.ceil(rng_arr[:, 0]) > np.floor(rng_arr[:, 1]))
+        if len(empty):
+            # The search is over whole disparities: a range between two would be searched at
+            # the next one up, outside it, and every point refused as beyond the range.
+            lo, hi = rng_arr[empty[0]]
+            raise TrackmeterError(f"disparity_range_px [{lo:g}, {hi:g}] holds no whole number of px: "
+                                  "the search is over whole disparities")
         ranges = [(float(a), float(b)) for a, b in rng_arr]
     rect = rig.rectification
     W, H = rig.image_size

@@ -124,8 +124,8 @@ class Camera:
         if self.K[0, 0] <= 0 or self.K[1, 1] <= 0:
             raise TrackmeterError("K must have positive focal lengths")
         if not np.array_equal(self.K[2], [0.0, 0.0, 1.0]):
-            # A pinhole K's last row is [0 0 1]; OpenCV reads only fx, fy, cx, cy (and the skew)
-            # and would ignore any other, e.g. a K scaled as a whole for a resized image.
+            # A pinhole K's last row is [0 0 1]; OpenCV reads only fx, fy, cx, cy (not even the
+            # skew) and would ignore any other, e.g. a K scaled as a whole for a resized image.
             raise TrackmeterError(f"K's last row must be [0, 0, 1], got {np.array2string(self.K[2], separator=', ')}")
         if self.K[1, 0] != 0.0:
             # Not a camera matrix (upper triangular): OpenCV would ignore the element silently.
@@ -353,7 +353,10 @@ class Rectification:
 
     @property
     def baseline_m(self) -> float:
-        """Baseline along the rectified x axis, m (positive)."""
+        """Baseline along the rectified x axis, m: positive for a side-by-side rig, the right
+        camera on the right (:func:`check_side_by_side` refuses any other); about 0 for a
+        vertical rig and negative for swapped cameras, whose rectified disparities triangulate
+        to nothing (NaN)."""
         return float(-self.P2[0, 3] / self.P2[0, 0])
 
     @property
@@ -419,13 +422,21 @@ class Rectification:
 
         ``Z_rect = f b / d'``, ``X_rect = (u - cx1) b / d'``, ``Y_rect = (v - cy) b / d'`` with
         ``d' = d - (cx1 - cx2)`` (OpenCV's Q matrix), then ``p_cam = R1^T p_rect``.
-        Non-positive ``d'`` gives NaN rows.
+        Non-positive or infinite ``d'`` gives NaN rows. One disparity for every pixel, or one
+        per pixel.
+
+        Raises:
+            TrackmeterError: as many disparities as neither 1 nor the pixels.
         """
         uv = np.asarray(uv_rect_left, dtype=float).reshape(-1, 2)
         d = np.asarray(disparity_px, dtype=float).reshape(-1) - self.disparity_offset_px
+        if len(d) not in (1, len(uv)):
+            raise TrackmeterError(f"{len(uv)} pixels but {len(d)} disparities")
+        d = np.broadcast_to(d, (len(uv),))
         b, f = self.baseline_m, self.focal_px
         with np.errstate(divide="ignore", invalid="ignore"):
-            scale = np.where(d > 0, b / d, np.nan)
+            # d' = inf would put a point of no uncertainty at the camera centre.
+            scale = np.where(np.isfinite(d) & (d > 0), b / d, np.nan)
         p_rect = np.column_stack([(uv[:, 0] - self.cx_left) * scale, (uv[:, 1] - self.cy) * scale, f * scale])
         return p_rect @ self.R1  # rows: (R1^T p)^T = p^T R1
 
