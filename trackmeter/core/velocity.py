@@ -625,8 +625,9 @@ class VelocityEstimator:
 
         Raises:
             TrackmeterError: ``R_cam_body`` not a (3,3) rotation, ``p_cam`` not a finite (3,),
-                ``t_s`` not finite, ``cov_pose`` not (6,6) (a non-finite one weighs 0): refused before it joins the window, where one NaN would
-                spoil every fit over the next ``window_s``; the window is left as it was."""
+                ``t_s`` not finite, ``cov_pose`` not (6,6) (a non-finite one weighs 0): refused
+                before it joins the window, where one NaN would spoil every fit over the next
+                ``window_s``; the window is left as it was."""
         t_s = finite_time(t_s, "t_s")
         R_new = rotation_matrix(R_cam_body, "R_cam_body")
         p_new = finite_rows(p_cam, "p_cam", (3,))
