@@ -810,3 +810,16 @@ def test_the_free_body_noise_weight_is_the_inverse_noise_variance(n_poses: int, 
         _, _, _, omega_fit, rss = screw_rates(t, R, p, 1, return_rss=True)
         inverse_weights.append(1.0 / free_body_noise_weight(t, R, p, omega_fit, rss, 0.5))
     assert np.mean(inverse_weights) == pytest.approx(sigma_m**2, rel=rel)
+
+
+def test_eq14_on_a_pose_that_is_no_rotation_or_position_is_refused_in_one_line() -> None:
+    """A NaN rotation raised numpy's LinAlgError out of scipy (an outside code review)."""
+    from trackmeter.core.velocity import finite_difference_rates
+
+    R_nan = np.full((3, 3), np.nan)
+    with pytest.raises(TrackmeterError, match=r"R1\[0\] is not finite"):
+        finite_difference_rates(0.0, np.eye(3), [0, 0, 3.5], 0.04, R_nan, [0, 0, 3.5])
+    with pytest.raises(TrackmeterError, match=r"R0 must be a rotation"):
+        finite_difference_rates(0.0, np.diag([1.0, 1.0, -1.0]), [0, 0, 3.5], 0.04, np.eye(3), [0, 0, 3.5])
+    with pytest.raises(TrackmeterError, match=r"p1\[2\] is not finite"):
+        finite_difference_rates(0.0, np.eye(3), [0, 0, 3.5], 0.04, np.eye(3), [0, 0, np.nan])

@@ -168,15 +168,18 @@ def finite_difference_rates(
     m, at ``t0_s`` < ``t1_s``, s.
 
     Raises:
-        TrackmeterError: ``t1_s`` not after ``t0_s`` (checked before dividing: no warning).
+        TrackmeterError: ``t1_s`` not after ``t0_s`` (checked before dividing: no warning);
+            ``R0``/``R1`` not a rotation or ``p0``/``p1`` not a finite (3,) (a NaN rotation
+            raised numpy's LinAlgError from scipy).
     """
     dt = t1_s - t0_s
     if not dt > 0:
         raise TrackmeterError(f"t1_s must come after t0_s: dt_s must be positive, s; got {dt:g}")
+    Rs = np.stack([rotation_matrix(R0, "R0"), rotation_matrix(R1, "R1")])
+    p_start, p_end = finite_rows(p0, "p0", (3,)), finite_rows(p1, "p1", (3,))
     # one scipy conversion for both (each row is the single call's number)
-    q0, q1 = rotation_from_matrix(np.stack([np.asarray(R0, dtype=float), np.asarray(R1, dtype=float)])).as_quat(
-        scalar_first=True)
-    v = (np.asarray(p1, dtype=float) - np.asarray(p0, dtype=float)) / dt
+    q0, q1 = rotation_from_matrix(Rs).as_quat(scalar_first=True)
+    v = (p_end - p_start) / dt
     return v, omega_body_between(q0, q1, dt)
 
 
