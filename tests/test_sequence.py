@@ -1652,3 +1652,84 @@ def test_a_writer_closed_without_a_frame_keeps_nothing(tmp_path: Path, estec_rig
     with SequenceWriter(tmp_path / "given", rig=estec_rig) as writer:
         pass
     assert writer.discarded and list((tmp_path / "given").iterdir()) == []
+
+
+# --------------------------------------------------------------------------- an outside code review (2026-12-07)
+
+
+def test_a_one_pair_sequence_looped_keeps_its_time_increasing(tmp_path):
+    """One pair has no rate: each pass was shifted by 0 s, so every frame had the same time and
+    a recording refused the second ("does not come after the previous one")."""
+    d = _write(tmp_path / "one", _frames(1))
+    src = SequenceSource(d, loop=True)
+    frames = [src.read() for _ in range(4)]
+    assert np.all(np.diff([f.t_s for f in frames]) > 0) and np.all(np.diff([f.stamp_ns for f in frames]) > 0)
+    assert [f.cut for f in frames] == [False, True, True, True]
+    _write(tmp_path / "copy", frames)  # a recording of it takes every frame
+    assert len(index_sequence(tmp_path / "copy")) == 4
+
+
+def test_a_data_csv_appended_to_twice_still_pairs_within_a_quarter_interval(tmp_path):
+    """Every row twice made half the gaps 0: the default tolerance, a quarter of the median gap,
+    was 0, and a right camera 0.1 ms off paired with nothing (the folder was refused)."""
+    d = _write(tmp_path / "s", _frames(6))
+    _retime_right(d, lambda t: t + 100_000)
+    csv = d / "cam0" / "data.csv"
+    lines = csv.read_text().splitlines()
+    csv.write_text("\n".join(lines + lines[1:]) + "\n")
+    index = index_sequence(d)
+    assert len(index) == 6 and index.tolerance_s == pytest.approx(0.25 / 25.0)
+    assert any("repeating an earlier timestamp" in w for w in index.warnings), index.warnings
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="file names are bytes on POSIX only")
+def test_images_named_in_latin_1_are_found(tmp_path):
+    """data.csv was read with errors="replace": caf\\xe9.png became caf\\ufffd.png, "missing"."""
+    d = _write(tmp_path / "s", _frames(2))
+    for cam in ("cam0", "cam1"):
+        rows = (d / cam / "data.csv").read_bytes().splitlines()
+        out = [rows[0]]
+        for k, row in enumerate(rows[1:]):
+            t, name = row.split(b",")
+            new = b"caf\xe9_%d.png" % k
+            os.replace(os.fsencode(d / cam / "data") + b"/" + name, os.fsencode(d / cam / "data") + b"/" + new)
+            out.append(t + b"," + new)
+        (d / cam / "data.csv").write_bytes(b"\n".join(out) + b"\n")
+    src = SequenceSource(d)
+    assert len(src.index) == 2 and src.read() is not None and src.read() is not None
+
+
+def test_a_truth_file_that_cannot_be_made_leaves_no_half_frame_after_it(tmp_path):
+    """groundtruth.csv made and groundtruth.tum not: the next frame with truth failed on an
+    assertion its rollback did not catch, and its images and data.csv rows stayed."""
+    frames = _frames(3)
+    out = tmp_path / "rec"
+    writer = SequenceWriter(out)
+    writer.write(replace(frames[0], truth=None))
+    (out / "groundtruth.tum").mkdir()  # stands in for a file the system will not make
+    for f in frames[1:]:
+        with pytest.raises(TrackmeterError, match="groundtruth.tum: cannot create"):
+            writer.write(f)
+    assert writer.frames_written == 1
+    assert len((out / "cam0" / "data.csv").read_text().splitlines()) == 2
+    assert sorted(p.name for p in (out / "cam0" / "data").iterdir()) == [f"{seconds_to_ns(frames[0].t_s)}.png"]
+    assert not (out / "groundtruth.csv").exists()
+    writer.close()
+
+
+def test_a_cut_on_a_pair_that_cannot_be_read_marks_the_next_frame(tmp_path):
+    """cuts.csv's jump at a pair skipped as unreadable was lost: the frame after it, which
+    follows the jump, was not marked, and the tracker took the jump for motion."""
+    frames = _frames(5)
+    d = _write(tmp_path / "s", frames)
+    (d / "cuts.csv").write_text(f"#timestamp [ns]\n{seconds_to_ns(frames[2].t_s)}\n")
+    assert index_sequence(d).cuts == (2,)
+    (d / "cam0" / "data" / f"{seconds_to_ns(frames[2].t_s)}.png").write_bytes(b"not a png")
+    src = SequenceSource(d)
+    played = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        while (f := src.read()) is not None:
+            played.append(f)
+    assert [round(f.t_s * 25) for f in played] == [0, 1, 3, 4]
+    assert [f.cut for f in played] == [False, False, True, False]

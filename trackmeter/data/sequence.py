@@ -376,10 +376,18 @@ class SequenceWriter:
         assert truth is not None
         T = np.asarray(truth.T_cam_body, dtype=float)
         q = quat_sign_nearest(matrix_to_quat_wxyz(T[:3, :3]), self._last_truth_quat_wxyz)
-        if self._truth_csv is None:
-            self._truth_csv = MotionCsvWriter(self.directory / "groundtruth.csv", GROUNDTRUTH_COLUMNS)
-            self._truth_tum = AppendFile(self.directory / "groundtruth.tum", "# t tx ty tz qx qy qz qw  (T_cam_body)\n")
-        assert self._truth_tum is not None
+        if self._truth_csv is None or self._truth_tum is None:
+            # Both or neither: with the csv kept and the tum not made, the next frame's truth
+            # failed on an assertion that its rollback did not catch, leaving a half frame.
+            csv = MotionCsvWriter(self.directory / "groundtruth.csv", GROUNDTRUTH_COLUMNS)
+            try:
+                tum = AppendFile(self.directory / "groundtruth.tum", "# t tx ty tz qx qy qz qw  (T_cam_body)\n")
+            except BaseException:
+                csv.close()
+                with contextlib.suppress(OSError):
+                    (self.directory / "groundtruth.csv").unlink()
+                raise
+            self._truth_csv, self._truth_tum = csv, tum
         csv_size, tum_size, rows = self._truth_csv.size, self._truth_tum.size, self._truth_csv.rows_written
         try:
             self._write_truth_rows(t_s, T, q, truth)
@@ -676,7 +684,9 @@ def _read_data_csv(path: Path) -> tuple[list[tuple[int, Path]], int, int, Path |
     previous_ns: int | None = None
     try:
         # A BOM from a spreadsheet is not a timestamp; a stray byte spoils its row, not the file.
-        text = path.read_text(encoding="utf-8-sig", errors="replace")
+        # Escaped, not replaced: a file name that is not UTF-8 (Latin-1's caf\xe9.png) still
+        # names its file on disk, where "caf\ufffd.png" named none.
+        text = path.read_text(encoding="utf-8-sig", errors="surrogateescape")
     except OSError as exc:
         raise TrackmeterError(f"{path}: cannot read: {exc.__class__.__name__}") from None
     lines = text.split("\n")
@@ -865,7 +875,10 @@ def index_sequence(
     t_left = np.array([e[0] for e in left], dtype=np.int64)
     t_right = np.array([e[0] for e in right], dtype=np.int64)
     if tolerance_s is None:
-        tolerance_s = 0.25 * float(ns_to_seconds(np.median(np.diff(t_left)))) if len(t_left) > 1 else 1e-3
+        # Distinct stamps: a data.csv appended to twice (skipped and warned below) halves the
+        # median gap to 0, and a tolerance of 0 paired nothing with a camera 0.1 ms off.
+        distinct = np.unique(t_left)
+        tolerance_s = 0.25 * float(ns_to_seconds(np.median(np.diff(distinct)))) if len(distinct) > 1 else 1e-3
     for cam, entries, missing, gone in (("cam0", left, miss_l, gone_l), ("cam1", right, miss_r, gone_r)):
         if not entries:
             path = root / cam / "data.csv"

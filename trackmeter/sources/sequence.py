@@ -19,6 +19,10 @@ from trackmeter.errors import TrackmeterError, counted
 from trackmeter.sources.base import GroundTruth, Source, StereoFrame
 from trackmeter.sources.pacing import Pacer
 
+#: A loop's interval between a pass's last frame and the next pass's first where the sequence
+#: gives no rate (one pair), s: a video without one is played at this interval too.
+NO_RATE_INTERVAL_S = 0.04
+
 
 class SequenceSource(Source):
     """Frames of a sequence folder, paired left/right by nearest timestamp.
@@ -79,8 +83,12 @@ class SequenceSource(Source):
         self._loops = 0
         self._count = 0
         n = len(self.index)
-        dt = 1.0 / self.rate_hz if self.rate_hz else 0.0
+        # One pair has no rate: its passes are NO_RATE_INTERVAL_S apart (0 repeated its time).
+        dt = 1.0 / self.rate_hz if self.rate_hz else NO_RATE_INTERVAL_S
         self._period_s = float(self.index.t_s[-1] - self.index.t_s[0]) + dt if n else 0.0
+        # The same in whole nanoseconds for the stamps (float seconds hold EuRoC's to 238 ns).
+        t_ns = self.index.t_ns
+        self._period_ns = int(t_ns[-1] - t_ns[0]) + seconds_to_ns(dt) if len(t_ns) == n and n else 0
         self._frame_size: tuple[int, int] | None = None
         self._size_problem: str | None = None
         self._size_scanned = False
@@ -219,6 +227,7 @@ class SequenceSource(Source):
                     # The message first: another thread may read ``warning`` in between.
                     self._read_errors.append(str(exc))
                     self._skipped_on_read += 1
+                self._cut = self._cut or pos in self._cuts  # the scene's jump is the next frame's
                 continue
             mismatch = self._size_mismatch(pos, left.shape, right.shape)
             if mismatch is not None:
@@ -229,6 +238,7 @@ class SequenceSource(Source):
                     self._skipped_positions.add(pos)
                     self._size_errors.append(mismatch)
                     self._skipped_for_size += 1
+                self._cut = self._cut or pos in self._cuts
                 continue
             t = float(self.index.t_s[pos]) + self._loops * self._period_s
             if self.realtime:
@@ -244,7 +254,7 @@ class SequenceSource(Source):
         where the index holds no integer stamps."""
         if len(self.index.t_ns) != len(self.index):
             return None
-        return int(self.index.t_ns[pos]) + self._loops * seconds_to_ns(self._period_s)
+        return int(self.index.t_ns[pos]) + self._loops * self._period_ns
 
     def _removed_folder(self, pos: int) -> tuple[Path, str] | None:
         """The outermost folder of pair ``pos``'s images that is gone (removed, or moved) or
