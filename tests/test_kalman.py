@@ -116,3 +116,15 @@ def test_batched_predict_and_update_equal_filterpys() -> None:
         np.testing.assert_allclose(ours[i].x, kf.x, rtol=1e-10)
         np.testing.assert_allclose(ours[i].P, kf.P, rtol=1e-8, atol=1e-12)
     assert not accepted[1]
+
+
+def test_a_measurement_that_is_not_finite_is_rejected_by_both_forms() -> None:
+    """update() let a NaN through its gate (NaN > gate is False) and wrote NaN into the state,
+    where update_many rejected it (an outside code review)."""
+    p = KalmanParams()
+    one = kalman.make_filter((50.0, 50.0), p, velocity_px_s=(0, 0))
+    many = kalman.make_filter((50.0, 50.0), p, velocity_px_s=(0, 0))
+    accepted, _ = kalman.update(one, (np.nan, 50.0), p)
+    accepted_many, _ = kalman.update_many([many], np.array([[np.nan, 50.0]]), p)
+    assert not accepted and not accepted_many[0]
+    assert np.all(np.isfinite(one.x)) and np.array_equal(one.x, many.x)

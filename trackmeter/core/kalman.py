@@ -138,10 +138,11 @@ def update(kf: KalmanFilter, z: ArrayLike, params: KalmanParams) -> tuple[bool, 
     """Gate and fuse a measurement ``z`` (2,) px; returns ``(accepted, d²)``.
 
     A measurement whose squared Mahalanobis distance exceeds the chi-square gate is NOT fused
-    (the filter keeps its prediction) and reported as rejected: the target jumped.
+    (the filter keeps its prediction) and reported as rejected: the target jumped. So is one
+    that is not finite (its distance NaN), as :func:`update_many` rejects it.
     """
     d2 = mahalanobis_sq(kf, z)
-    if d2 > gate_threshold(params.gate_probability):
+    if not d2 <= gate_threshold(params.gate_probability):  # NaN > gate is False: NaN passed
         return False, d2
     kf.update(np.asarray(z, float)[:2])
     return True, d2

@@ -130,7 +130,8 @@ class PoseFilter:
         v_cam: ArrayLike | None = None,
         omega_body: ArrayLike | None = None,
     ) -> tuple[FloatArray, FloatArray]:
-        """Filter one pose; returns the filtered ``(R_cam_body (3,3), p_cam (3,))``.
+        """Filter one pose; returns the filtered ``(R_cam_body (3,3), p_cam (3,))``. A time not
+        after the last one's starts the filter over (:meth:`reset`) from this pose.
 
         Args:
             t_s: time of the pose, s.
@@ -150,6 +151,11 @@ class PoseFilter:
         p = finite_rows(p_cam, "p_cam", (3,))
         if not self.params.enabled:
             return R, p
+        if self._t_last is not None and not float(t_s) > self._t_last:
+            # Repeated or backward (a source restarted or replayed): started over from this
+            # pose, as the velocity estimator does. Kept, the chart was not moved back and the
+            # next frame moved it twice (7.6 mm off after one frame out of order).
+            self.reset()
         if self._R_base is None or self._p_base is None or self._t_last is None:
             self._R_base, self._p_base, self._t_last = R.copy(), p.copy(), float(t_s)
             return R, p
