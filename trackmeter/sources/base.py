@@ -13,6 +13,10 @@ from typing import TYPE_CHECKING
 from trackmeter.core.frames import GroundTruth, StereoFrame
 from trackmeter.core.stereo import StereoRig
 
+#: A looping source's interval from a pass's last frame to the next pass's first where it
+#: knows no frame rate (a video without one, a one-pair sequence), s.
+NO_RATE_INTERVAL_S = 0.04
+
 if TYPE_CHECKING:
     from trackmeter.data.model import Model
 

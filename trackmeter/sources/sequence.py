@@ -16,12 +16,8 @@ from trackmeter.data.model import Model
 from trackmeter.data.images import data_bits, decode_image, read_grey, to_grey_u8
 from trackmeter.data.sequence import SequenceIndex, index_sequence, seconds_to_ns, sequence_data_bits
 from trackmeter.errors import TrackmeterError, counted
-from trackmeter.sources.base import GroundTruth, Source, StereoFrame
+from trackmeter.sources.base import NO_RATE_INTERVAL_S, GroundTruth, Source, StereoFrame
 from trackmeter.sources.pacing import Pacer
-
-#: A loop's interval between a pass's last frame and the next pass's first where the sequence
-#: gives no rate (one pair), s: a video without one is played at this interval too.
-NO_RATE_INTERVAL_S = 0.04
 
 
 class SequenceSource(Source):

@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 
 from trackmeter.core.stereo import StereoRig
 from trackmeter.errors import TrackmeterError, counted
-from trackmeter.sources.base import Source, StereoFrame
+from trackmeter.sources.base import NO_RATE_INTERVAL_S, Source, StereoFrame
 from trackmeter.sources.pacing import Pacer
 
 
@@ -165,7 +165,7 @@ class VideoSource(Source):
             self._end_of_pass()
             if not self.loop or self._pos == 0:
                 return None
-            self._t_offset = self._last_t + (1.0 / self.rate_hz if self.rate_hz else 0.04)
+            self._t_offset = self._last_t + (1.0 / self.rate_hz if self.rate_hz else NO_RATE_INTERVAL_S)
             self._rewind()
             self._pacer.reset()
             self._cut = True
