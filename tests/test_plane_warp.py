@@ -238,11 +238,8 @@ def _plate_tracker(motion_per_s: tuple[float, float, float] = (0.1, 0.05, 0.0),
                    turn_rad_s: tuple[float, float, float] = (0.0, 0.0, 0.2), n: int = 8):  # type: ignore[no-untyped-def]
     """(rig, scene, tracker with ``anchor_warp: plane``, ids): a textured plate at 3.5 m moving
     by ``motion_per_s`` m/s and turning by ``turn_rad_s``, ``n`` automatic targets put on its frame 0."""
-    import cv2
-
-    from trackmeter.core.features import FeatureParams, target_mask
+    from trackmeter.core.features import FeatureParams
     from trackmeter.core.matching import MeasureParams
-    from trackmeter.core.targets import TargetState
     from trackmeter.core.tracking import Tracker, TrackerParams
     from trackmeter.data.rigfile import load_rig
     from trackmeter.paths import DEFAULT_CONFIG
@@ -251,14 +248,16 @@ def _plate_tracker(motion_per_s: tuple[float, float, float] = (0.1, 0.05, 0.0),
     rig = load_rig(DEFAULT_CONFIG.parent / "rigs" / "estec_12mm.yaml")
     scene = PlaneScene(rig, pose_translating(3.5, motion_per_s, turn_rad_s), noise_sigma=1.0)
     tracker = Tracker(rig, TrackerParams(anchor_warp="plane"), FeatureParams(), MeasureParams())
-    frame = scene.frame(0)
-    corners = cv2.goodFeaturesToTrack(frame.left, n, 0.05, 30, mask=target_mask(frame.left, FeatureParams(target_margin_px=30)))
-    ids = []
-    for u, v in corners.reshape(-1, 2):
-        made = tracker.add_target(frame, (float(u), float(v)), origin="auto")
-        if isinstance(made, TargetState):
-            ids.append(made.id)
-    return rig, scene, tracker, ids
+    return rig, scene, tracker, _add_auto(tracker, scene.frame(0), n)
+
+
+def _add_auto(tracker, frame, n: int) -> list[str]:  # type: ignore[no-untyped-def]
+    """Ids of the automatic targets (planes are measured for those) put on ``n`` corners of ``frame``."""
+    from tests.test_tracking import interior_points
+    from trackmeter.core.targets import TargetState
+
+    made = [tracker.add_target(frame, (float(u), float(v)), origin="auto") for u, v in interior_points(frame, n)]
+    return [m.id for m in made if isinstance(m, TargetState)]
 
 
 def test_a_re_found_target_leaves_its_stored_handle_as_it_was() -> None:
@@ -295,15 +294,7 @@ def test_clear_forgets_the_removed_targets_motion() -> None:
     from trackmeter.sources.plane import PlaneScene, pose_translating
 
     still = PlaneScene(rig, pose_translating(3.5, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)), noise_sigma=1.0)
-    frame = still.frame(0)
-    import cv2
-
-    from trackmeter.core.features import FeatureParams, target_mask
-    from trackmeter.core.targets import TargetState
-
-    corners = cv2.goodFeaturesToTrack(frame.left, 2, 0.05, 30, mask=target_mask(frame.left, FeatureParams(target_margin_px=30)))
-    made = [tracker.add_target(frame, (float(u), float(v)), origin="auto") for u, v in corners.reshape(-1, 2)]
-    ids = [m.id for m in made if isinstance(m, TargetState)]
+    ids = _add_auto(tracker, still.frame(0), 2)
     assert ids and len(ids) < tracker.params.motion_min_targets
     tracker.step(still.frame(1))
     R, t = tracker._anchor_motion(tracker._targets[ids[0]])
