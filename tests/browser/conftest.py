@@ -140,6 +140,10 @@ def open_page(browser: Any, running: Any, viewport: dict[str, int] | None = None
     connected; returns (page, viser client handle)."""
     before = set(running.server.get_clients())
     page = browser.new_context(viewport=viewport or VIEWPORT).new_page()
+    # Playwright's 30 s default bounds waits given no timeout, screenshots among them, which wait
+    # for a frame of software WebGL: with the other core running another test worker, a second
+    # browser's screenshot took over 30 s once (the README's parallel test command).
+    page.set_default_timeout(120_000)
     page.goto(running.url)
     (client_id,) = wait_for(lambda: tuple(set(running.server.get_clients()) - before)[:1], 30,
                             "the browser's websocket connection")
