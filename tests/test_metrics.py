@@ -200,6 +200,20 @@ def test_settle_time_skips_the_start():
         evaluate(truth, truth, EvaluateParams(settle_s=100.0))
 
 
+def test_settle_cuts_on_the_runs_clock_when_it_counts_from_the_runs_start():
+    # The settle counts from the run's first frame (t_start_s, the estimate's clock); cut on the
+    # truth's times, an estimate a few ms late (well inside the tolerance) lost its first pose
+    # after the settle, counted neither matched nor unmatched (an outside probe).
+    truth = tumbling_truth(n=20)
+    settle = 5 * DT
+    for offset_s in (0.0, 0.004, -0.004):
+        est = with_pose(truth, t=truth.t_s + offset_s)
+        s = evaluate(truth, est, EvaluateParams(settle_s=settle), t_start_s=float(est.t_s[0]),
+                     frame_times_s=est.t_s).summary
+        after = int(np.count_nonzero(est.t_s >= est.t_s[0] + settle - 1e-9))
+        assert (s["matched"], s["unmatched"], s["pose_coverage"]) == (after, 0, 1.0), offset_s
+
+
 # --------------------------------------------------------------------------- body alignment
 
 

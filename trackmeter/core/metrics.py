@@ -493,7 +493,9 @@ def evaluate(
             f"(truth {truth.t_s[0]:.3f}..{truth.t_s[-1]:.3f} s, estimate {estimate.t_s[0]:.3f}..{estimate.t_s[-1]:.3f} s)"
         )
     it, ie = assoc.index_truth, assoc.index_est
-    t_paired = truth.t_s[it]
+    # The settle is the run's: cut on its clock, which t_start_s is on (the truth's may be a few
+    # ms off it, inside the tolerance, and the first pose after the settle would be lost).
+    t_paired = estimate.t_s[ie]
     t0 = float(t_paired[0]) if t_start_s is None else float(t_start_s)
     keep = t_paired >= t0 + params.settle_s
     if not np.any(keep):
