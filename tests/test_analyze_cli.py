@@ -115,6 +115,59 @@ def test_split_ranges_groups_frames_by_true_pose():
     assert [len(g) for g in split_ranges([frame(i, None) for i in range(4)], skipped=skipped)] == [4] and not skipped
 
 
+def test_a_measured_truth_that_jitters_about_a_still_target_is_one_range():
+    # Ranges were split wherever any entry of the true pose changed by 1e-6: a measured ground
+    # truth (motion capture: hundredths of a millimetre) made every frame its own range and
+    # analyze refused the source (an outside probe). A range now holds the frames within 1 mm
+    # and 0.1 deg of its first; a slow drift still splits, measured from that first pose.
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from trackmeter.pipeline.analysis import split_ranges
+    from trackmeter.sources.base import GroundTruth, StereoFrame
+
+    rng = np.random.default_rng(4)
+    img = np.zeros((4, 4), np.uint8)
+
+    def frame(i, z, jitter_m=5e-5, jitter_rad=1e-4, angle_rad=0.0):
+        T = np.eye(4)
+        T[:3, :3] = (Rotation.from_rotvec([0.0, angle_rad, 0.0])
+                     * Rotation.from_rotvec(rng.normal(0, jitter_rad, 3))).as_matrix()
+        T[:3, 3] = [0.0, 0.0, z] + rng.normal(0, jitter_m, 3)
+        return StereoFrame(i, 0.1 * i, img, img, GroundTruth(T, np.zeros(3), np.zeros(3)))
+
+    frames = [frame(i, 2.0) for i in range(10)] + [frame(10 + i, 3.5) for i in range(10)]
+    assert [len(g) for g in split_ranges(frames)] == [10, 10]
+    turned = [frame(i, 2.0) for i in range(5)] + [frame(5 + i, 2.0, angle_rad=0.01) for i in range(5)]
+    assert [len(g) for g in split_ranges(turned)] == [5, 5]  # turned 0.57 deg, not moved
+    drift = [frame(i, 2.0 + 4e-4 * i, jitter_m=0.0, jitter_rad=0.0) for i in range(8)]
+    assert [len(g) for g in split_ranges(drift)] == [3, 3, 2]  # 1 mm from each range's first
+
+
+def test_range_details_follow_their_range_not_its_depth():
+    # Per-range details were attached by the range's mean depth rounded to 1 um: two ranges
+    # measured at the same depth both showed the last one's true range and frame count.
+    import numpy as np
+
+    from trackmeter.core.error_analysis import analyze_ranges, range_statistics
+    from trackmeter.pipeline.analysis import AnalysisRun, RangeMeasurements
+
+    rng = np.random.default_rng(0)
+    xyz = (np.array([0.1, 0.0, 3.5]) + rng.normal(0, [0.001, 0.001, 0.004], (10, 6, 3))
+           + np.arange(6)[None, :, None] * [0.02, 0.01, 0])
+    sig = np.full_like(xyz, 0.004)
+
+    def measured(x, s, true_range_m):
+        return RangeMeasurements(np.arange(len(x)) * 0.04, np.zeros((x.shape[1], 2)), x, s,
+                                 np.full(x.shape[:2], 0.07), {}, true_range_m)
+
+    ranges = (measured(xyz, sig, 3.5), measured(np.concatenate([xyz, xyz]), np.concatenate([sig, sig]), 3.6))
+    stats = tuple(range_statistics(m.xyz_m, m.sigma_m, 5) for m in ranges)
+    assert stats[0].range_m == stats[1].range_m
+    entries = AnalysisRun(analyze_ranges(stats, 1000.0, 0.2), ranges, stats, 0.07).to_dict()["ranges"]
+    assert [(e["true_range_m"], e["n_frames"]) for e in entries] == [(3.5, 10), (3.6, 20)]
+
+
 def test_without_truth_the_ranges_are_where_the_image_jumps():
     # Without ground truth the whole source was one range: a still target recorded at several
     # ranges gave one range of all of them, a sub-pixel accuracy of 0.02 px against a noise

@@ -7,8 +7,9 @@ Reports, per range, the standard deviation of a single measurement per camera ax
 viewing axis) beside the error propagation's prediction; the least-squares parabola
 sigma_z = k z^2 (Fig. 3); the sub-pixel disparity accuracy k f b it implies (eq. 2); and the
 error probability density with its best Gaussian fit and normality statistics (Fig. 2).
-Ranges are told apart by the source's ground truth (frames with the same true pose); without
-ground truth, by the view: a new range starts where the left image jumps (the target moved).
+Ranges are told apart by the source's ground truth (frames within 1 mm and 0.1 deg of the
+range's first true pose, so that a measured truth's jitter stays one range); without ground
+truth, by the view: a new range starts where the left image jumps (the target moved).
 The true error of each point (its "true rms" and "bias" columns) needs the true 3D point at
 that pixel, which only the simulator source knows (its renderer's surface); a sequence
 folder's ground truth is the pose alone, so those columns are left empty there. A range where

@@ -12,6 +12,7 @@ pure statistics are :mod:`trackmeter.core.error_analysis`.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from typing import Callable, Iterable, Iterator
 
@@ -35,7 +36,7 @@ from trackmeter.core.features import erode_square
 from trackmeter.core.matching import MeasureParams, measure_points
 from trackmeter.core.stereo import StereoRig
 from trackmeter.core.targets import count_reasons
-from trackmeter.core.transforms import apply_transform
+from trackmeter.core.transforms import apply_transform, rotation_from_matrix
 from trackmeter.errors import TrackmeterError
 from trackmeter.sources.base import Source, StereoFrame
 
@@ -119,28 +120,26 @@ class AnalysisRun:
         # ratio per point: does the matcher reach what the noise allows (1 = it does)?
         d["noise_limited_sigma_disparity_px"] = float(np.sqrt(np.mean(lim_all**2))) if len(lim_all) else float("nan")
         d["measured_over_noise_limit_median"] = float(np.median(rat_all)) if len(rat_all) else float("nan")
-        by_range = {round(s.range_m, 6): m for s, m in zip(self.statistics, self.measurements)}
-        for entry in d["ranges"]:  # type: ignore[union-attr]
-            m = by_range.get(round(entry["range_m"], 6))
-            if m is not None:
-                entry["true_range_m"] = m.true_range_m
-                entry["n_frames"] = len(m.t_s)
-                entry["n_selected"] = len(m.uv)
-                entry["refused"] = dict(m.refusals)
-                entry["image_motion_px"] = m.image_motion_px
-                entry["exposure_gain"] = m.exposure_gain
-                pr = per_range[self.measurements.index(m)]
-                if pr is not None:
-                    entry["noise_limited_sigma_disparity_px"], entry["measured_over_noise_limit_median"] = pr
-                if m.true_xyz_m is not None:
-                    te = truth_errors(m.xyz_m, m.true_xyz_m, self.gross_sigmas)
-                    entry["truth_error"] = {
-                        "n_points": te.n_points,
-                        "n_gross": te.n_gross,
-                        "rms_m": dict(zip("xyz", map(float, te.rms_m))),
-                        "bias_rms_m": dict(zip("xyz", map(float, te.bias_rms_m))),
-                        "median_abs_m": dict(zip("xyz", map(float, te.median_abs_m))),
-                    }
+        # The analysis's ranges are this run's statistics in the same (stable) order: paired by
+        # place, not by depth, which two ranges may share to the micrometre.
+        for entry, m, pr in zip(d["ranges"], self.measurements, per_range, strict=True):  # type: ignore[arg-type]
+            entry["true_range_m"] = m.true_range_m
+            entry["n_frames"] = len(m.t_s)
+            entry["n_selected"] = len(m.uv)
+            entry["refused"] = dict(m.refusals)
+            entry["image_motion_px"] = m.image_motion_px
+            entry["exposure_gain"] = m.exposure_gain
+            if pr is not None:
+                entry["noise_limited_sigma_disparity_px"], entry["measured_over_noise_limit_median"] = pr
+            if m.true_xyz_m is not None:
+                te = truth_errors(m.xyz_m, m.true_xyz_m, self.gross_sigmas)
+                entry["truth_error"] = {
+                    "n_points": te.n_points,
+                    "n_gross": te.n_gross,
+                    "rms_m": dict(zip("xyz", map(float, te.rms_m))),
+                    "bias_rms_m": dict(zip("xyz", map(float, te.bias_rms_m))),
+                    "median_abs_m": dict(zip("xyz", map(float, te.median_abs_m))),
+                }
         d["skipped_ranges"] = list(self.skipped_ranges)
         return d
 
@@ -162,9 +161,19 @@ def select_points(left: NDArray[np.uint8], params: AnalyzeParams, min_grey: floa
     return corners.reshape(-1, 2).astype(float)
 
 
-def split_ranges(frames: Iterable[StereoFrame], position_tolerance_m: float = 1e-6,
-                 skipped: list[float] | None = None) -> Iterator[list[StereoFrame]]:
-    """Group consecutive frames with the same true pose (the target held still); without
+#: Frames whose true pose is within this distance of their range's first frame's (and
+#: :data:`STILL_ANGLE_TOLERANCE_RAD`) belong to its range: a measured ground truth (motion
+#: capture, a total station) jitters by a few hundredths of a millimetre about a still target.
+STILL_POSITION_TOLERANCE_M = 1e-3
+#: ... and within this rotation angle of it (0.1 deg: 0.9 mm at half a metre from the origin).
+STILL_ANGLE_TOLERANCE_RAD = math.radians(0.1)
+
+
+def split_ranges(frames: Iterable[StereoFrame], position_tolerance_m: float = STILL_POSITION_TOLERANCE_M,
+                 skipped: list[float] | None = None,
+                 angle_tolerance_rad: float = STILL_ANGLE_TOLERANCE_RAD) -> Iterator[list[StereoFrame]]:
+    """Group consecutive frames with the same true pose (the target held still: within
+    ``position_tolerance_m`` and ``angle_tolerance_rad`` of the range's first frame's); without
     ground truth, where the view jumps (:func:`split_where_the_view_jumps`).
 
     Where some frames have truth, those without (rows missing or NaN in the truth file) belong
@@ -186,15 +195,23 @@ def split_ranges(frames: Iterable[StereoFrame], position_tolerance_m: float = 1e
             if skipped is not None:
                 skipped.extend(f.t_s for f in group)
             group, seen_truth = [], True
-        if group and key is not None and np.max(np.abs(T - key)) > position_tolerance_m:
+        if group and key is not None and _moved(key, T, position_tolerance_m, angle_tolerance_rad):
             yield group
             group = []
+        if not group:
+            key = T  # the range's first pose: a slow drift is not a still target either
         group.append(frame)
-        key = T
     if group and not seen_truth:
         yield from split_where_the_view_jumps(group)
     elif group:
         yield group
+
+
+def _moved(T_a: FloatArray, T_b: FloatArray, position_tolerance_m: float, angle_tolerance_rad: float) -> bool:
+    """Whether two 4x4 poses differ by more than the tolerances (translation, m; rotation angle)."""
+    if np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]) > position_tolerance_m:
+        return True
+    return bool(rotation_from_matrix(T_a[:3, :3].T @ T_b[:3, :3]).magnitude() > angle_tolerance_rad)
 
 
 #: A change of the view larger than this many times the median frame-to-frame change is the
@@ -441,7 +458,7 @@ def run_error_analysis(
     analysis = analyze_ranges(stats, focal, baseline, params.histogram_bins)
     sd_all = np.concatenate([m.sigma_disparity_px.reshape(-1) for m in measured])
     predicted_sd = float(np.nanmedian(sd_all)) if np.any(np.isfinite(sd_all)) else float("nan")
-    order = np.argsort([s.range_m for s in stats])
+    order = sorted(range(len(stats)), key=lambda i: stats[i].range_m)  # stable, as analyze_ranges sorts
     return AnalysisRun(
         analysis,
         tuple(measured[i] for i in order),
