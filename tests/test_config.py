@@ -8,6 +8,7 @@ import re
 from pathlib import Path
 from typing import Any, Iterator
 
+import numpy as np
 import pytest
 import yaml
 
@@ -404,6 +405,26 @@ def test_a_model_point_id_that_is_no_text_is_refused(tmp_path: Path) -> None:
                     '- {id: c, xyz: [0, 1, 0]}\n')
     with pytest.raises(TrackmeterError, match=r"points\[0\]\.id .* is not text"):
         load_model(path)
+
+
+@pytest.mark.parametrize("ids", [("hinge,1", "b", "c"), ("panel,left", "panel,right", "antenna"),
+                                 ("a[1]", "a]2", "b"), ("x}", "{y", "?z"), ("010", "yes", "0x1f")])
+def test_a_saved_model_reads_back_with_the_ids_it_was_given(tmp_path: Path, ids: tuple[str, ...]) -> None:
+    """Ids were quoted for a block, not for the flow mapping each point is written in: "hinge,1"
+    read back as "hinge" (with a warning), "a[1]" as malformed YAML (an outside probe)."""
+    from trackmeter.data.model import Model, load_model, save_model
+
+    points = [[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.2, 0.0]]
+    back = load_model(save_model(tmp_path / "model.yaml", Model(ids, points)))
+    assert back.ids == ids and np.array_equal(back.points_body, points)
+
+
+def test_a_model_that_its_reader_would_refuse_is_not_saved(tmp_path: Path) -> None:
+    from trackmeter.data.model import Model, save_model
+
+    with pytest.raises(TrackmeterError, match="empty"):
+        save_model(tmp_path / "model.yaml", Model(("", "b", "c"), [[0, 0, 0], [1, 0, 0], [0, 1, 0]]))
+    assert not (tmp_path / "model.yaml").exists()
 
 
 def _alias_bomb(key: str, levels: int = 9) -> str:

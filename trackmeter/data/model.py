@@ -17,6 +17,7 @@ with one warning naming them; every check of ``points`` itself stays.
 from __future__ import annotations
 
 import dataclasses
+import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -226,8 +227,10 @@ def load_model(path: str | Path) -> Model:
 def model_to_yaml(model: Model, name: str = "") -> str:
     """The model file text (flow-style point entries, shortest round-trip floats)."""
     head = f"name: {yaml.safe_dump(name, default_style=None).strip().splitlines()[0]}\n" if name else ""
+    # Each id quoted as an item of a flow sequence, the context it is written in: a plain
+    # scalar there ends at a comma or a bracket ("hinge,1" read back as "hinge").
     lines = [
-        f"  - {{id: {yaml.safe_dump(i, default_flow_style=True).strip().splitlines()[0]}, "
+        f"  - {{id: {yaml.safe_dump([i], default_flow_style=True, width=math.inf).strip()[1:-1]}, "
         f"xyz: [{', '.join(repr(float(c)) for c in p)}]}}"
         for i, p in zip(model.ids, model.points_body)
     ]
@@ -239,6 +242,7 @@ def save_model(path: str | Path, model: Model | Sequence[tuple[str, ArrayLike]],
     if not isinstance(model, Model):
         model = Model.from_pairs(model)
     path = Path(path)
+    _check_ids(model.ids, path)  # what load_model would refuse is not written
     path.parent.mkdir(parents=True, exist_ok=True)
     write_text_atomic(path, model_to_yaml(model, name))
     return path
