@@ -604,6 +604,49 @@ def test_a_true_or_false_in_a_rig_matrix_is_refused_by_its_key(tmp_path: Path) -
         load_rig(path)
 
 
+_FLOW_RIG = """image_width: 640
+image_height: 480
+K1: [[500, 0, 320], [0, 500, 240], [0, 0, 1]]
+D1: [0, 0, 0, 0, 0]
+K2: [[500, 0, 320], [0, 500, 240], [0, 0, 1]]
+D2: [0, 0, 0, 0, 0]
+R: [[1, 0, 0], [0, 1, 0], [0, 0, 1]]
+T: [-0.1, 0, 0]
+"""
+
+
+def test_a_true_or_false_in_a_flow_style_rig_matrix_is_refused_too(tmp_path: Path) -> None:
+    # The check ran only where OpenCV's parser had refused the file; where it read it, a
+    # hand-typed "T: [-0.12, true, 0]" was a 1 m baseline, refused later as "not side by side".
+    path = tmp_path / "rig.yaml"
+    path.write_text(_FLOW_RIG.replace("T: [-0.1, 0, 0]", "T: [-0.12, true, 0]"))
+    with pytest.raises(TrackmeterError, match=r"rig\.yaml: key 'T' holds true/false where numbers go"):
+        load_rig(path)
+
+
+@pytest.mark.parametrize("header", ["", "%YAML:1.0\n---\n"])
+def test_a_rig_file_giving_a_key_twice_is_refused(tmp_path: Path, header: str) -> None:
+    # OpenCV's parser keeps the first of two Ts, PyYAML (any other tool) the last: a
+    # recalibration pasted under the old values loaded the old ones without a word.
+    path = tmp_path / "rig.yaml"
+    path.write_text(header + _FLOW_RIG + "T: [-0.25, 0, 0]\n")
+    with pytest.raises(TrackmeterError, match=r"rig\.yaml: key 'T' given twice"):
+        load_rig(path)
+    kalibr = tmp_path / "camchain.yaml"
+    kalibr.write_text("cam0:\n  camera_model: pinhole\ncam0:\n  camera_model: pinhole\n")
+    with pytest.raises(TrackmeterError, match=r"camchain\.yaml: key 'cam0' given twice"):
+        load_rig(kalibr)
+
+
+def test_an_rms_that_is_not_a_number_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "rig.yaml"
+    path.write_text(_FLOW_RIG + "rms_px: abc\n")
+    with pytest.raises(TrackmeterError, match=r"rig\.yaml: key 'rms_px' is not a number"):
+        load_rig(path)
+    path.write_text(_FLOW_RIG + "rms_px: 0.25\n")
+    assert load_rig(path).rms_px == 0.25
+
+
 def test_a_filestorage_file_without_any_rig_key_is_said_not_to_be_a_rig(tmp_path) -> None:
     """OpenCV's stereo_calib.xml (its list of chessboard images) given as --rig said "missing
     key 'K1'" (an outside probe), as if one key were missing from a rig."""

@@ -22,7 +22,7 @@ import yaml
 
 from trackmeter.core.stereo import Camera, StereoRig
 from trackmeter.data.atomic import write_files_atomic
-from trackmeter.data.config import check_yaml_expansion
+from trackmeter.data.config import FAST_SAFE_LOADER, DuplicateKeyError, check_yaml_expansion
 from trackmeter.errors import TrackmeterError, shown_value
 
 
@@ -57,6 +57,15 @@ def _open(path: Path) -> cv2.FileStorage:
     if not fs.root().isMap():  # a list or a scalar: every key lookup would assert inside OpenCV
         raise TrackmeterError(f"{path}: not a mapping of keys (image_width, K1, ...): a rig file's top level "
                               "must be key: value pairs")
+    keys = list(fs.root().keys())
+    repeated = [k for i, k in enumerate(keys) if k in keys[:i]]
+    if repeated:  # OpenCV keeps the first, PyYAML (and so any other tool) the last
+        raise TrackmeterError(f"{path}: key {repeated[0]!r} given twice: one file, two calibrations; keep one")
+    # OpenCV reads true/false as 1/0 ("T: [-0.12, true, 0]" a baseline of 1 m): asked of the
+    # file as plain YAML, which a file of !!opencv-matrix tags is not (nothing to ask there).
+    plain = _plain_yaml_data(text, path)
+    if plain is not None:
+        _check_plain_values(plain, path, finite=False)
     return fs
 
 
@@ -98,24 +107,47 @@ def _plain_yaml(path: Path) -> cv2.FileStorage | None:
     reads (``yaml.safe_dump`` writes nested lists as zero-indented ``- - x`` blocks), via the
     JSON form OpenCV does read; None when it is not a mapping of plain values."""
     try:
-        data = yaml.safe_load(without_directives(path.read_text(encoding="utf-8-sig")))
-    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        text = path.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError):
         return None
-    check_yaml_expansion(data, path)
-    if not isinstance(data, dict):
+    data = _plain_yaml_data(text, path)
+    if data is None:
         return None
-    for key, value in data.items():
-        leaves = _leaves(value)
-        # JSON has no NaN: said here by its key, as OpenCV's own form of the file is.
-        if any(isinstance(x, float) and not math.isfinite(x) for x in leaves):
-            raise TrackmeterError(f"{path}: {key} has non-finite values")
-        # ... and OpenCV reads JSON's true/false as 1/0: a baseline of 1 m from "T: [true, 0, 0]".
-        if isinstance(value, list) and any(isinstance(x, bool) for x in leaves):
-            raise TrackmeterError(f"{path}: key '{key}' holds true/false where numbers go")
+    _check_plain_values(data, path, finite=True)
     try:
         return cv2.FileStorage(json.dumps(data, allow_nan=False), cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
     except (TypeError, ValueError, cv2.error, SystemError):
         return None
+
+
+def _plain_yaml_data(text: str, path: Path) -> dict | None:
+    """``text`` read as plain YAML (PyYAML, a key given twice refused), None when it is not a
+    mapping PyYAML reads (OpenCV's ``!!opencv-matrix`` tags, XML).
+
+    Raises:
+        TrackmeterError: a key given twice; YAML aliases that expand beyond any rig file.
+    """
+    try:
+        data = yaml.load(without_directives(text.removeprefix("\ufeff")), Loader=FAST_SAFE_LOADER)  # noqa: S506
+    except DuplicateKeyError as exc:
+        raise TrackmeterError(f"{path}: {exc.problem}") from None
+    except yaml.YAMLError:
+        return None
+    check_yaml_expansion(data, path)
+    return data if isinstance(data, dict) else None
+
+
+def _check_plain_values(data: dict, path: Path, finite: bool) -> None:
+    """Refuse what OpenCV would read as numbers: true/false in a list (1/0), and, with
+    ``finite``, a non-finite value (the JSON OpenCV is given has none)."""
+    for key, value in data.items():
+        leaves = _leaves(value)
+        # JSON has no NaN: said here by its key, as OpenCV's own form of the file is.
+        if finite and any(isinstance(x, float) and not math.isfinite(x) for x in leaves):
+            raise TrackmeterError(f"{path}: {key} has non-finite values")
+        # ... and OpenCV reads true/false as 1/0: a baseline of 1 m from "T: [true, 0, 0]".
+        if isinstance(value, list) and any(isinstance(x, bool) for x in leaves):
+            raise TrackmeterError(f"{path}: key '{key}' holds true/false where numbers go")
 
 
 def _leaves(value: object) -> list[object]:
@@ -196,12 +228,17 @@ def _numbers(node: cv2.FileNode) -> list | float | str:
     return "not a number"
 
 
-def _scalar(fs: cv2.FileStorage, key: str) -> float | None:
+def _scalar(fs: cv2.FileStorage, key: str, path: Path) -> float | None:
+    """Optional key ``key``'s number; None when it is not given.
+
+    Raises:
+        TrackmeterError: it is given, and not a number ("rms_px: abc" was left out unsaid).
+    """
     node = fs.getNode(key)
     if node.empty() or node.isNone():
         return None
     if not (node.isReal() or node.isInt()):
-        return None
+        raise TrackmeterError(f"{path}: key '{key}' is not a number")
     return float(node.real())
 
 
@@ -345,7 +382,7 @@ def _load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> St
             width, height = image_size
         left = _camera(int(width), int(height), fs, "K1", "D1", path)
         right = _camera(int(width), int(height), fs, "K2", "D2", path)
-        rms = _scalar(fs, "rms_px")
+        rms = _scalar(fs, "rms_px", path)
         return StereoRig(left, right, _rotation(fs, path), _matrix(fs, "T", path).ravel(), rms_px=rms, name=path.stem)
     except TrackmeterError as exc:
         if str(exc).startswith(str(path)):
@@ -378,11 +415,11 @@ def _kalibr_camchain(path: Path) -> dict | None:
     if not path.is_file():
         return None
     try:
-        data = yaml.safe_load(without_directives(path.read_text(encoding="utf-8")))
-    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError):
         return None
-    check_yaml_expansion(data, path)
-    return data if isinstance(data, dict) and isinstance(data.get("cam0"), dict) else None
+    data = _plain_yaml_data(text, path)
+    return data if data is not None and isinstance(data.get("cam0"), dict) else None
 
 
 def without_directives(text: str) -> str:
