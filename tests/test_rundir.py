@@ -589,3 +589,50 @@ def test_a_covariance_that_is_no_number_is_written_empty_and_read_as_nan(tmp_pat
     t_s, read = read_pose_covariance(tmp_path / "run" / "pose_covariance.csv")
     assert len(t_s) == 2 and np.isnan(read[1, 0, 0]) and read[1, 1, 1] == 1e-6
     np.testing.assert_array_equal(read[0], np.eye(6) * 1e-6)
+
+
+def _old_report(folder: Path) -> dict[Path, bytes]:
+    files = {folder / "summary.json": b"old summary\n", folder / "errors.csv": b"old errors\n"}
+    for path, data in files.items():
+        path.write_bytes(data)
+    return files
+
+
+def test_several_files_written_as_one_are_left_as_they_were_when_a_target_is_a_folder(tmp_path: Path) -> None:
+    # A report folder whose report.md had become a folder: the files renamed before it were
+    # replaced, its temporary file was left behind, and os.replace's error escaped (an outside
+    # code review).
+    from trackmeter.data.atomic import write_files_atomic
+
+    old = _old_report(tmp_path)
+    (tmp_path / "report.md").mkdir()
+    new = {path: b"new\n" for path in [*old, tmp_path / "report.md", tmp_path / "z.csv"]}
+    with pytest.raises(TrackmeterError, match=r"report\.md: cannot write: it is a folder"):
+        write_files_atomic(new)
+    assert {p: p.read_bytes() for p in old} == old
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["errors.csv", "report.md", "summary.json"]
+
+
+def test_several_files_written_as_one_are_put_back_when_a_rename_fails(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    import os
+
+    import trackmeter.data.atomic as atomic
+
+    old = _old_report(tmp_path)
+    renames = []
+
+    def replace_failing_third(src, dst):  # type: ignore[no-untyped-def]
+        renames.append(dst)
+        if len(renames) == 3:
+            raise OSError(5, "Input/output error")
+        os.rename(src, dst)
+
+    monkeypatch.setattr(atomic.os, "replace", replace_failing_third)
+    new = {tmp_path / "summary.json": b"new\n", tmp_path / "new.png": b"new\n", tmp_path / "errors.csv": b"new\n"}
+    with pytest.raises(TrackmeterError, match=r"errors\.csv: cannot write: Input/output error"):
+        atomic.write_files_atomic(new)
+    monkeypatch.undo()
+    assert {p: p.read_bytes() for p in old} == old
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["errors.csv", "summary.json"]
+    atomic.write_files_atomic(new)
+    assert all(p.read_bytes() == b"new\n" for p in new) and len(list(tmp_path.iterdir())) == 3

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import secrets
 import tempfile
 from pathlib import Path
 from typing import Callable, Iterator, Mapping
@@ -51,10 +52,15 @@ def write_files_atomic(contents: Mapping[Path, bytes]) -> None:
     are they renamed over their targets. On a failure while writing (a disk that fills) the
     temporaries are removed and every target is left as it was: an earlier report stays
     whole, not mixed with half of the new one; folders made for the files are removed again.
+    A failure while renaming (a target that turned out to be a folder) puts back the targets
+    already replaced, from hard links to them made before the first rename.
 
     Raises:
         TrackmeterError: a file could not be written (naming it and the OS's reason).
     """
+    for target in contents:
+        if Path(target).is_dir():  # os.replace would fail on it after replacing the others
+            raise TrackmeterError(f"{target}: cannot write: it is a folder")
     written: list[tuple[Path, Path]] = []  # (temporary, target)
     made: list[Path] = []  # folders this call created, outermost first
     target = None
@@ -83,8 +89,47 @@ def write_files_atomic(contents: Mapping[Path, bytes]) -> None:
         if isinstance(exc, OSError):
             raise TrackmeterError(f"{target}: cannot write: {exc.strerror or exc}") from None
         raise
-    for tmp, target in written:
-        os.replace(tmp, target)
+    _replace_all(written)
+
+
+def _replace_all(written: list[tuple[Path, Path]]) -> None:
+    """Rename each temporary over its target, all or none: the targets that were there are
+    hard-linked aside first and put back when a later rename fails (on a file system without
+    hard links, a target already replaced keeps its new file)."""
+    kept: dict[Path, Path | None] = {}  # a target there before -> a link to its old file, if one was made
+    done: list[Path] = []
+    target: Path | None = None
+    try:
+        for _, target in written:
+            if os.path.lexists(target):
+                link = target.with_name(f".{target.name}.old.{os.getpid()}.{secrets.token_hex(4)}")
+                try:
+                    os.link(target, link, follow_symlinks=False)
+                except OSError:
+                    link = None
+                kept[target] = link
+        for tmp, target in written:
+            os.replace(tmp, target)
+            done.append(target)
+    except OSError as exc:
+        for put_back in done:
+            with contextlib.suppress(OSError):
+                if put_back not in kept:
+                    put_back.unlink()  # it was not there before
+                elif (link := kept[put_back]) is not None:
+                    os.replace(link, put_back)
+        for tmp, _ in written:
+            tmp.unlink(missing_ok=True)
+        _unlink_links(kept)
+        raise TrackmeterError(f"{target}: cannot write: {exc.strerror or exc}") from None
+    _unlink_links(kept)
+
+
+def _unlink_links(kept: Mapping[Path, Path | None]) -> None:
+    for link in kept.values():
+        if link is not None:
+            with contextlib.suppress(OSError):
+                link.unlink(missing_ok=True)
 
 
 def unwritable_ancestor(path: str | Path) -> Path | None:
