@@ -326,3 +326,23 @@ def test_bad_mockup_file_names_the_key(tmp_path: Path, edit: str, key: str) -> N
     bad.write_text(yaml.safe_dump(data))
     with pytest.raises(TrackmeterError, match=key.replace("[", r"\[").replace("]", r"\]")):
         load_mockup(bad)
+
+
+def test_a_microscopic_part_blurs_its_texture_no_wider_than_the_texture(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    # A tiny part has 2x2 texels and a feature size of hundreds of them (a tenth of a
+    # millimetre: 300 times the texture; a micrometre: a million): the Gaussian kernel was
+    # built that wide, and load_mockup ran for minutes (an outside probe).
+    import trackmeter.sources.sim.mockup as mockup
+
+    widest = []
+    blur = mockup.cv2.GaussianBlur
+
+    def recorded(src, ksize, sigma, **kwargs):  # type: ignore[no-untyped-def]
+        widest.append(sigma / max(src.shape))
+        return blur(src, ksize, sigma, **kwargs)
+
+    monkeypatch.setattr(mockup.cv2, "GaussianBlur", recorded)
+    path = tmp_path / "tiny.yaml"
+    path.write_text("materials: [{name: m}]\nparts: [{name: p, material: m, size: [1.0e-4, 1.0e-4, 1.0e-4]}]\n")
+    assert len(load_mockup(path).faces) == 6  # a box
+    assert widest and max(widest) <= 2.0

@@ -462,6 +462,9 @@ def surface_from_arrays(
 def _noise(rng: np.random.Generator, shape: tuple[int, int], sigma_texels: float) -> F32:
     """Gaussian-filtered white noise with unit standard deviation, feature size ~ sigma."""
     n = rng.standard_normal(shape).astype(np.float32)
+    # A feature wider than the texture (a part of a few texels) leaves it as flat at twice its
+    # size as at any size beyond: the kernel, which grows with sigma, is not built larger.
+    sigma_texels = min(sigma_texels, 2.0 * max(shape))
     if sigma_texels > 0.3:
         n = cv2.GaussianBlur(n, (0, 0), sigma_texels, borderType=cv2.BORDER_REFLECT)
     s = float(n.std())
