@@ -164,6 +164,25 @@ def test_progress_eta_on_a_terminal_leaves_out_the_start_up(monkeypatch):
     assert etas[0] == pytest.approx(9.8) and etas[-1] == pytest.approx(0.0)  # after 2 of 100: 98 more at 0.1 s
 
 
+def test_progress_left_early_on_a_terminal_ends_its_line(monkeypatch):
+    # Ctrl-C or an error mid-run closed the bar's generator without its newline: the message
+    # that followed was glued to the bar ("... eta 18.0s^Ctrackmeter simulate: interrupted").
+    import io
+
+    from trackmeter.cli import common
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    screen = Terminal()
+    with pytest.raises(KeyboardInterrupt):
+        for k in common.progress(range(100), 100, "simulate", stream=screen):
+            if k == 3:
+                raise KeyboardInterrupt
+    assert screen.getvalue().endswith("\n") and screen.getvalue().count("\n") == 1
+
+
 def test_console_refuses_a_recording_folder_that_holds_files_before_the_source_opens(tmp_path, capsys):
     import socket
 

@@ -129,6 +129,30 @@ def test_simulate_into_an_empty_existing_folder(tmp_path):
     assert len(open_source(str(out))) == 6  # one frame per range
 
 
+def test_simulate_into_the_empty_current_folder(tmp_path, monkeypatch):
+    # "--out ." has no name to put ".partial" after: a ValueError's traceback (an outside probe).
+    out = tmp_path / "here"
+    out.mkdir()
+    monkeypatch.chdir(out)
+    assert main(["simulate", "--scenario", "static_ranges", "--duration", "0.04", "--out", "."]) == 0
+    assert len(open_source(str(out))) == 6
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["here"]
+
+
+def test_simulate_refuses_a_link_as_out_before_rendering(tmp_path, capsys, monkeypatch):
+    # A link to an empty folder passed as empty, and the rename at the end of the whole render
+    # failed on the link ("Not a directory"), throwing the render away (an outside probe).
+    import trackmeter.sources.sim.simulator as simulator
+
+    (tmp_path / "target").mkdir()
+    (tmp_path / "lnk").symlink_to(tmp_path / "target")
+    monkeypatch.setattr(simulator, "Simulator", None)  # refused before any rendering
+    assert main(["simulate", "--duration", "0.04", "--out", str(tmp_path / "lnk")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "lnk: is a link; give the folder it leads to" in err[0] and "target" in err[0], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["lnk", "target"]
+
+
 def test_camera_that_cannot_be_opened_exits_2(tmp_path, capsys):
     """A source SPEC naming a missing camera, through a real command that takes --source: one
     clear line on stderr, exit 2, no traceback."""

@@ -153,18 +153,22 @@ def progress(items: Iterable[T], total: int | None, label: str, stream: TextIO |
     start = time.monotonic()
     first_done = start
     count = 0
-    for count, item in enumerate(items, 1):
-        yield item
-        now = time.monotonic()
-        elapsed = now - start
-        if count == 1:
-            first_done = now  # the first item carries the start-up: the rate is taken after it
-        if total:
-            bar = "#" * int(30 * count / total)
-            eta = f"{(now - first_done) / (count - 1) * (total - count):5.1f}s" if count > 1 else "    -"
-            stream.write(f"\r{label} [{bar:<30}] {count}/{total} {elapsed:5.1f}s eta {eta}")
-        else:
-            stream.write(f"\r{label} {count} {elapsed:5.1f}s")
+    try:
+        for count, item in enumerate(items, 1):
+            yield item
+            now = time.monotonic()
+            elapsed = now - start
+            if count == 1:
+                first_done = now  # the first item carries the start-up: the rate is taken after it
+            if total:
+                bar = "#" * int(30 * count / total)
+                eta = f"{(now - first_done) / (count - 1) * (total - count):5.1f}s" if count > 1 else "    -"
+                stream.write(f"\r{label} [{bar:<30}] {count}/{total} {elapsed:5.1f}s eta {eta}")
+            else:
+                stream.write(f"\r{label} {count} {elapsed:5.1f}s")
+            stream.flush()
+    finally:
+        # Also when the loop is left early (Ctrl-C, an error): the message that follows then
+        # starts its own line, not at the end of the bar.
+        stream.write("\n")
         stream.flush()
-    stream.write("\n")
-    stream.flush()

@@ -15,6 +15,7 @@ examples:
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
 import sys
 from pathlib import Path
@@ -52,16 +53,22 @@ def run(args: argparse.Namespace) -> int:
     # is missing or wrong must fail as it does for every other command, not pass unread.
     load_config_from_args(args)
     out = Path(args.out)
+    if out.name in ("", ".."):  # "." or "..": the folder has no name of its own to put ".partial" after
+        out = Path(os.path.abspath(out))
+    if out.is_symlink():
+        # It would pass as empty (or as ours) through the link, and the rename at the end,
+        # after the whole render, fail on the link itself.
+        raise TrackmeterError(f"{out}: is a link; give the folder it leads to ({os.path.realpath(out)}) as --out")
     ours = {"cam0", "cam1", "groundtruth.csv", "groundtruth.tum", "model.yaml", "rig.yaml", "scenario.yaml"}
     replace_out = False
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        written = (out.is_dir() and not out.is_symlink() and (out / "scenario.yaml").is_file()
+        written = (out.is_dir() and (out / "scenario.yaml").is_file()
                    and all(p.name in ours or p.name.startswith(".") for p in out.iterdir()))
         if not args.overwrite:
             raise TrackmeterError(f"{out}: exists and is not an empty folder; choose a new --out"
                                   + (" or give --overwrite to replace this sequence" if written else ""))
         if not written:
-            what = ("a link" if out.is_symlink() else "a file" if out.is_file() else "a folder of other files")
+            what = "a file" if out.is_file() else "a folder of other files"
             raise TrackmeterError(f"{out}: not a sequence simulate wrote ({what}); --overwrite replaces "
                                   "only those: move it away or choose a new --out")
         replace_out = True
