@@ -787,6 +787,43 @@ def test_video_source_reads_two_files(tmp_path):
     assert [f.cut for f in frames] == [False] * 5 + [True, False, False]
 
 
+def test_a_video_without_a_frame_rate_is_stamped_as_the_rest_assumes(tmp_path, monkeypatch):
+    # Without a rate in its metadata a video's frames were a second apart, while its loop,
+    # the engine and track took 0.04 s: speeds 25 times too small (an outside review).
+    import math
+
+    import trackmeter.sources.video as video
+    from trackmeter.sources.base import NO_RATE_INTERVAL_S
+
+    paths = [tmp_path / "left.avi", tmp_path / "right.avi"]
+    for p in paths:
+        vw = cv2.VideoWriter(str(p), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (64, 48), isColor=True)
+        if not vw.isOpened():
+            pytest.skip("this OpenCV build cannot write MJPG")
+        for k in range(3):
+            vw.write(np.full((48, 64, 3), 60 * k, np.uint8))
+        vw.release()
+
+    real_capture = cv2.VideoCapture
+
+    class NoRate:  # a wrapper, not a subclass: OpenCV's binding crashes collecting one
+        def __init__(self, *args):  # type: ignore[no-untyped-def]
+            self._capture = real_capture(*args)
+
+        def get(self, prop):  # type: ignore[no-untyped-def]
+            return math.nan if prop == cv2.CAP_PROP_FPS else self._capture.get(prop)
+
+        def __getattr__(self, name):  # type: ignore[no-untyped-def]
+            return getattr(self._capture, name)
+
+    monkeypatch.setattr(video.cv2, "VideoCapture", NoRate)
+    src = open_source(f"video:{paths[0]},{paths[1]}", loop=True)
+    assert src.rate_hz is None
+    times = [src.read().t_s for _ in range(5)]
+    src.close()
+    assert np.diff(times) == pytest.approx([NO_RATE_INTERVAL_S] * 4)
+
+
 def test_videos_of_different_lengths_are_warned_at_open(tmp_path):
     paths = [tmp_path / "left.avi", tmp_path / "right.avi"]
     img = np.random.default_rng(4).integers(0, 256, (48, 64), dtype=np.uint8)

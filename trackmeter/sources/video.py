@@ -170,7 +170,9 @@ class VideoSource(Source):
             self._pacer.reset()
             self._cut = True
             return self.read()
-        t = self._pos / self.rate_hz if self.rate_hz else float(self._pos)
+        # Without a rate, frames are NO_RATE_INTERVAL_S apart, as between loop passes and as the
+        # engine assumes (they were a second apart: speeds 25 times too small, playback at 1 Hz).
+        t = self._pos * (1.0 / self.rate_hz if self.rate_hz else NO_RATE_INTERVAL_S)
         t += self._t_offset
         self._pos += 1
         self._last_t = t
@@ -233,6 +235,9 @@ class VideoSource(Source):
         self._caps = [self._open(p) for p in self.paths]
         self._pos = 0
         self._delivered = 0
+
+    def resume(self) -> None:
+        self._pacer.reset()
 
     def restart(self) -> None:
         self._rewind()
