@@ -394,6 +394,8 @@ class Pipeline:
         self._source_pass = 1  # a looping source's pass of the frame last tracked (tracking thread)
         self._tracked_since_restart = 0
         self._stopped_recordings: list[RecordingStats] = []  # every one of the run, in order
+        self._closing: list[_Recorder] = []  # stopped by the operator, still writing what they queued
+        self._closing_threads: list[threading.Thread] = []
         self._record_lock = threading.Lock()
 
         self._last_frame: StereoFrame | None = None
@@ -442,6 +444,10 @@ class Pipeline:
                 if thread.is_alive():
                     log.error("%s did not stop within %.1f s", thread.name, timeout_s)
         self._stop_recording()
+        with self._record_lock:
+            closing = list(self._closing_threads)
+        for thread in closing:  # recordings the operator stopped, still writing what they queued
+            thread.join()
         # Commands nobody will apply any more must not leave a caller waiting forever.
         with self._cond:
             pending, self._commands = list(self._commands), collections.deque()
@@ -503,18 +509,22 @@ class Pipeline:
             return self._recorder is not None and not self._recorder.failed
 
     def recording_stats(self) -> RecordingStats:
-        """Counters of the current (or last) recording."""
+        """Counters of the current (or last) recording: one stopped but still writing what it
+        queued shows its queue draining."""
         with self._record_lock:
             if self._recorder is not None:
                 return self._recorder.stats(True)
+            if self._closing:
+                return self._closing[-1].stats(False)
             return self._stopped_recordings[-1] if self._stopped_recordings else RecordingStats()
 
     def recordings(self) -> tuple[RecordingStats, ...]:
-        """Counters of every recording of the run, in the order they were made (the one going
-        on last)."""
+        """Counters of every recording of the run, in the order they were stopped (those still
+        writing what they queued after them, the one going on last)."""
         with self._record_lock:
             current = (self._recorder.stats(True),) if self._recorder is not None else ()
-            return (*self._stopped_recordings, *current)
+            closing = tuple(r.stats(False) for r in self._closing)
+            return (*self._stopped_recordings, *closing, *current)
 
     # ------------------------------------------------------------------ commands
     def submit(self, command: Command) -> Future[CommandReply]:
@@ -565,9 +575,11 @@ class Pipeline:
                 continue
             t_read = time.monotonic()
             with self._record_lock:
-                recorder = self._recorder
-            if recorder is not None:
-                recorder.offer(frame)
+                # Offered under the lock (offer never blocks): a stop taking the recorder
+                # between the two would close it first, and the frame queued behind its end
+                # would be neither written nor counted.
+                if self._recorder is not None:
+                    self._recorder.offer(frame)
             with self._cond:
                 self._frames_read += 1
                 read_after_restart = generation != self._source_generation  # counted after the restart's tally
@@ -689,6 +701,8 @@ class Pipeline:
     def _apply(self, command: Command) -> None:
         try:
             reply = self._apply_unsafe(command)
+            if reply is None:
+                return  # answered later, by the thread that finishes it
         except TrackmeterError as exc:
             reply = CommandReply(False, str(exc))
         except Exception as exc:
@@ -696,8 +710,13 @@ class Pipeline:
             reply = CommandReply(False, f"{type(command).__name__} failed: {type(exc).__name__}: {exc}")
         _resolve(command, reply)
 
-    def _apply_unsafe(self, command: Command) -> CommandReply:
+    def _apply_unsafe(self, command: Command) -> CommandReply | None:
         if isinstance(command, SetPaused):
+            if not command.paused:
+                with self._source_lock:
+                    # A real-time source's pacing starts over: the pause is no lateness to make
+                    # up (it sent the frames "missed" back to back, counted as dropped).
+                    self.source.resume()
             with self._cond:
                 self._paused = bool(command.paused)
                 if not self._paused:
@@ -740,10 +759,7 @@ class Pipeline:
                                 + ("; the recording goes on, its time carried on" if self._recording() else ""))
         if isinstance(command, SetRecording):
             if command.directory is None:
-                stats = self._stop_recording()
-                if stats is None:
-                    return CommandReply(False, "not recording")
-                return CommandReply(stats.error is None and stats.frames_dropped == 0, stats.summary())
+                return self._stop_recording_in_background(command)
             self._start_recording(Path(command.directory))
             return CommandReply(True, f"recording to {command.directory}"
                                 + ("; paused: frames are recorded as the source plays or steps" if self._paused else ""))
@@ -791,15 +807,46 @@ class Pipeline:
             self._counts_at_restart = (frames_read + int(read), frames_dropped + 1)
 
     def _stop_recording(self) -> RecordingStats | None:
+        """Stop the recording and wait until everything queued is written; its stats (None:
+        none was on)."""
         with self._record_lock:
             recorder, self._recorder = self._recorder, None
-        if recorder is None:
-            return None
+        return None if recorder is None else self._finish_recording(recorder)
+
+    def _finish_recording(self, recorder: _Recorder) -> RecordingStats:
         recorder.close()
         stats = recorder.stats(False)
         with self._record_lock:
+            if recorder in self._closing:
+                self._closing.remove(recorder)
             self._stopped_recordings.append(stats)
         return stats
+
+    def _stop_recording_in_background(self, command: SetRecording) -> CommandReply | None:
+        """The operator's stop: the recorder leaves at once, and a thread of its own writes
+        what it queued and answers ``command``. On the tracking thread the wait (a slow disk
+        behind a full queue: seconds) froze tracking, the snapshots and every command.
+        None: the reply comes from that thread."""
+        with self._record_lock:
+            recorder, self._recorder = self._recorder, None
+            if recorder is None:
+                return CommandReply(False, "not recording")
+            self._closing.append(recorder)
+
+        def finish() -> None:
+            try:
+                stats = self._finish_recording(recorder)
+                reply = CommandReply(stats.error is None and stats.frames_dropped == 0, stats.summary())
+            except Exception as exc:  # the reply must come whatever happens
+                log.exception("closing the recording failed")
+                reply = CommandReply(False, f"closing the recording failed: {type(exc).__name__}: {exc}")
+            _resolve(command, reply)
+
+        thread = threading.Thread(target=finish, name="trackmeter-recorder-close", daemon=True)
+        with self._record_lock:
+            self._closing_threads = [t for t in self._closing_threads if t.is_alive()] + [thread]
+        thread.start()
+        return None
 
     def _publish(self) -> None:
         snapshot = self._make_snapshot()

@@ -70,6 +70,10 @@ class Source(ABC):
 
         raise TrackmeterError(f"{type(self).__name__} cannot restart")
 
+    def resume(self) -> None:
+        """Playing again after a pause: a source played in real time paces on from its next
+        frame (the pause is no lateness to make up). Nothing to do for the others."""
+
     def close(self) -> None:
         """Release files and devices."""
 

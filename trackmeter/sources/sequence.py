@@ -289,6 +289,9 @@ class SequenceSource(Source):
             return f"{left_path} is {left_shape[1]}x{left_shape[0]} px, the sequence's {size[0]}x{size[1]} px"
         return None
 
+    def resume(self) -> None:
+        self._pacer.reset()
+
     def restart(self) -> None:
         self._pos = 0
         self._loops = 0

@@ -268,6 +268,9 @@ class Simulator(Source):
             return index + 1
         return 0 if self.loop else None
 
+    def resume(self) -> None:
+        self._pacer.reset()
+
     def restart(self) -> None:
         self._pos = 0
         self._count = 0
