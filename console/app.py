@@ -473,6 +473,10 @@ class Console:
         self._views: dict[int, list[Any]] = {}  # client id -> [client, preset, aspect framed for]
         self._popups: dict[int, Any] = {}  # client id -> the pop-up it shows last
         self._stop = threading.Event()
+        # Set when what the page should show changed on the console's side (a widget to show the
+        # tracker's value again, the right image shown): paused or ended, no new snapshot comes
+        # to push it, so the publisher pushes the latest one again (_publish_loop).
+        self._repush = threading.Event()
         self._thread: threading.Thread | None = None
         self._unsubscribe: Any = None
         self._image_size: tuple[int, int] | None = self.rig.image_size if self.rig is not None else None
@@ -490,6 +494,7 @@ class Console:
         self._shortfall_said = False  # why automatic selection started none, popped up once (_say_shortfall)
         # left and right images given the wrong way round, popped up once (_say_views)
         self._views_watch = SwappedViewsWatch(self.rig) if self.rig is not None else None
+        self._views_seen_sequence = -1  # the snapshot whose frame _say_views looked at last
         self._lost_targets = LostTargets()  # a lost target's mark is left out after a while
         # Ids of targets not drawn (lost too long): a shift-click does not remove what it cannot
         # see. Set by the publisher, read by the click handler: one reference, replaced whole.
@@ -780,7 +785,7 @@ class Console:
             try:
                 command = make()  # None: an emptied field, or a count with selection off
             except ValueError as exc:  # typed text that is no number: say so, show the tracker's
-                self._mirrored.pop(name, None)
+                self._show_tracker_value(name)
                 command_name = next(c for c, widgets in _WIDGETS_OF_COMMAND.items() if name in widgets)
                 self._notify(client, f"{_COMMAND_TITLES[command_name]}: refused", str(exc), False)
                 continue
@@ -792,7 +797,7 @@ class Console:
         which then shows the tracker's cutoff again."""
         hz = decimal_of(self.cutoff.value)
         if hz is None:
-            self._mirrored.pop("cutoff", None)
+            self._show_tracker_value("cutoff")
             return None
         return SetFilterCutoff(hz)
 
@@ -813,7 +818,7 @@ class Console:
         count is sent when it is switched on)."""
         count = whole_number_of(self.auto_count.value, 1, self.auto_count_max)
         if count is None:
-            self._mirrored.pop("auto_count", None)
+            self._show_tracker_value("auto_count")
             return None
         return self._auto_command() if self.auto_checkbox.value else None
 
@@ -1019,6 +1024,7 @@ class Console:
         """Show or hide the right image; the views on the image preset are framed again (by
         the publisher, :meth:`_frame_clients`) to hold it, or the left image alone."""
         self.right_image.visible = shown
+        self._repush.set()  # it is drawn by _push only: paused, it stayed black or stale
         with self._pending_lock:
             for view in self._views.values():
                 if view[1] == "image":
@@ -1091,6 +1097,12 @@ class Console:
                 self._flush_replies()
                 self._send_settled_edits()
                 self._frame_clients()
+                if snap is None and self._repush.is_set() and last_seq >= 0:
+                    # Paused or ended: the page shows again what changed on the console's side
+                    # (_push redraws the same frame; trails and plots add nothing for it).
+                    snap = self.pipeline.latest()
+                if snap is not None:  # this push shows it
+                    self._repush.clear()
                 if snap is None:
                     if last_seq >= 0 and last_text_seq != last_seq:
                         # The stream went quiet (paused, ended, failed) right after a push that
@@ -1144,7 +1156,7 @@ class Console:
                 continue  # the UI shows the new state; no pop-up needed
             if not reply.ok:  # the widget the operator changed shows the tracker's state again
                 for name in _WIDGETS_OF_COMMAND.get(label, ()):
-                    self._mirrored.pop(name, None)
+                    self._show_tracker_value(name)
             title = _COMMAND_TITLES.get(label, label)
             title = title if reply.ok else f"{title}: {'partly done' if reply.partial else 'refused'}"
             self._notify(client, title, reply.message or ("ok" if reply.ok else "refused"), reply.ok)
@@ -1153,7 +1165,9 @@ class Console:
         frame = snap.frame
         self._say_loop(snap.source_pass)
         self._say_shortfall(snap)
-        self._say_views(frame)
+        if snap.sequence != self._views_seen_sequence:  # a snapshot pushed again is no new frame to look at
+            self._views_seen_sequence = snap.sequence
+            self._say_views(frame)
         left_rgb = right_rgb = None
         drawn = self._lost_targets.shown(snap.targets, frame.t_s) if frame is not None else list(snap.targets)
         self._hidden_ids = frozenset(t.id for t in snap.targets) - {t.id for t in drawn}
@@ -1244,6 +1258,14 @@ class Console:
         self._mirror("record", self.record_checkbox, snap.recording)
         if snap.pose.case in ("a", "b", "c"):
             self._mirror("case", self.case_dropdown, snap.pose.case)
+
+    def _show_tracker_value(self, name: str) -> None:
+        """Have widget ``name`` show the tracker's state again at the next push (what the
+        operator typed or ticked was refused, or emptied). Paused, or with the source ended, no
+        new snapshot comes: the latest is pushed again (:attr:`_repush`), or the field kept the
+        refused text."""
+        self._mirrored.pop(name, None)
+        self._repush.set()
 
     def _mirror(self, name: str, widget: Any, state: Any) -> None:
         """Show the tracker's ``state`` on ``widget`` when it changed since last shown here.

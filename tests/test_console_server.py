@@ -440,7 +440,7 @@ def _type_cutoff(con: Any, text: str, said: list[tuple[str, str]] | None = None)
             said.append((title, body))
 
     con.cutoff.value = text
-    con.edit_callbacks["cutoff"](types.SimpleNamespace(client=types.SimpleNamespace(add_notification=notify)))
+    con.edit_callbacks["cutoff"](types.SimpleNamespace(client=types.SimpleNamespace(client_id=0, add_notification=notify)))
 
 
 def _wait_until(condition: Any, what: str, timeout_s: float = 10.0) -> None:
@@ -510,7 +510,7 @@ def _type_count(con: Any, text: str, said: list[tuple[str, str]] | None = None) 
             said.append((title, body))
 
     con.auto_count.value = text
-    con.edit_callbacks["auto_count"](types.SimpleNamespace(client=types.SimpleNamespace(add_notification=notify)))
+    con.edit_callbacks["auto_count"](types.SimpleNamespace(client=types.SimpleNamespace(client_id=0, add_notification=notify)))
 
 
 @pytest.mark.parametrize("typed", ["1e9", "0,5", "abc", "nan", "0", "21", "2.5", "-3"])
@@ -549,6 +549,33 @@ def test_an_emptied_count_shows_the_tracker_s_again_and_a_padded_one_is_read() -
         _wait_until(lambda: con.auto_count.value == "6", f"the field shows the tracker's count, not {con.auto_count.value!r}")
         _type_count(con, " 12 ")
         _wait_until(lambda: engine.sent == [12], f"12 sent: {engine.sent}")
+
+
+def _pause(con: Any) -> None:
+    """Pause the console's source and wait until the page shows the paused snapshot."""
+    from trackmeter.pipeline.snapshot import SetPaused
+
+    assert con.pipeline.call(SetPaused(True)).ok
+    _wait_until(lambda: con.pipeline.latest().paused and con.last_pushed_sequence == con.pipeline.latest().sequence,
+                "the paused snapshot pushed")
+
+
+def test_a_refused_count_or_cutoff_shows_the_tracker_s_value_again_while_paused() -> None:
+    # Paused, "abc" in Count and "fast" in Filter cutoff were refused but stayed in their fields,
+    # as did 0 Hz refused by the filter: the tracker's value was put back only by the push of a
+    # new snapshot, and none comes while paused (an outside code review).
+    said: list[tuple[str, str]] = []
+    with _sending_console() as (con, engine):
+        _pause(con)
+        _type_count(con, "abc", said)
+        _type_cutoff(con, "fast", said)
+        _wait_until(lambda: len(said) == 2, f"two refusals said: {said}")
+        _wait_until(lambda: (con.auto_count.value, con.cutoff.value) == ("6", "2"),
+                    f"the tracker's values shown, not {(con.auto_count.value, con.cutoff.value)}")
+        _type_cutoff(con, "0", said)
+        _wait_until(lambda: engine.sent == [0.0] and len(said) == 3, f"0 Hz sent and refused: {engine.sent}, {said}")
+        assert said[-1][0] == "Filter cutoff: refused", said
+        _wait_until(lambda: con.cutoff.value == "2", f"the tracker's cutoff shown, not {con.cutoff.value!r}")
 
 
 def test_a_typed_count_is_sent_once_the_field_holds_it() -> None:
@@ -926,6 +953,35 @@ def test_a_click_on_the_right_image_is_answered() -> None:
         con._on_right_click(types.SimpleNamespace(client=browser))
         assert shown and "left image" in shown[0][1], shown
         assert con.notifications[-1] == shown[0]
+    finally:
+        running.stop()
+
+
+def test_the_right_image_shown_while_paused_is_the_paused_frame_s_and_nothing_is_added_twice() -> None:
+    # "Show right image" ticked while paused (or with the source ended) showed it black or
+    # stale: it was drawn only on the push of a new snapshot, and none comes while paused (an
+    # outside code review). The paused snapshot is pushed again, once, and the trails and plots
+    # take nothing from it twice.
+    from trackmeter.pipeline.snapshot import SelectPoint
+
+    running = start_console(CountingSource(100_000, delay_s=0.02), RecordingEngine(), port=free_port())  # type: ignore[arg-type]
+    con = running.console
+    try:
+        assert running.pipeline.call(SelectPoint(3.0, 2.0)).ok
+        _wait_for_pushes(con, 5)
+        _pause(con)
+        paused = running.pipeline.latest()
+        assert paused.frame is not None and paused.frame.right[0, 0] != 0  # not black itself
+        pushed, trail = con.images_pushed, list(con._trails.points["t0"])
+        plotted = {name: len(window) for name, window in con.plots.windows.items()}
+        con.right_checkbox.value = True  # viser runs the callback as for a browser's tick
+        _wait_until(lambda: con.right_image.image.shape[:2] == paused.frame.right.shape
+                    and con.right_image.image[0, 0, 0] == paused.frame.right[0, 0],
+                    f"the paused frame's right image shown, not {con.right_image.image[0, 0]}")
+        time.sleep(0.5)  # the publisher's ticks: no push after it
+        assert con.images_pushed == pushed + 1 and con.last_pushed_sequence == paused.sequence
+        assert list(con._trails.points["t0"]) == trail
+        assert {name: len(window) for name, window in con.plots.windows.items()} == plotted
     finally:
         running.stop()
 
