@@ -46,7 +46,7 @@ from trackmeter.core.stereo import StereoRig
 from trackmeter.core.targets import TargetState
 from trackmeter.core.tracking import REMOVE_NEAREST_PX
 from trackmeter.core.transforms import invert_transform, matrix_to_quat_wxyz
-from trackmeter.errors import counted
+from trackmeter.errors import counted, quoted_name
 from trackmeter.pipeline.engine import MODEL_NOT_TARGETED, SelectModelPoints
 from trackmeter.pipeline.pipeline import Pipeline, RecordingStats
 from trackmeter.pipeline.snapshot import (
@@ -757,8 +757,7 @@ class Console:
         self.acquire_button.on_click(self._cb(lambda e: AcquireModel()))
         self.load_model_button.on_click(self._cb(lambda e: LoadModel(self.model_path.value.strip())))
         self.cutoff.on_update(self._typed("cutoff", lambda: self._cutoff_command()))
-        self.record_checkbox.on_update(self._cb(lambda e: SetRecording(
-            self._fresh_record_dir() if self.record_checkbox.value else None)))
+        self.record_checkbox.on_update(self._cb(lambda e: self._record_command(e.client)))
         self.right_checkbox.on_update(lambda e: self._show_right_image(bool(self.right_checkbox.value)))
         self.view_buttons.on_click(lambda e: self._choose_view(e.client, str(self.view_buttons.value)) if e.client else None)
 
@@ -822,9 +821,27 @@ class Console:
             return None
         return self._auto_command() if self.auto_checkbox.value else None
 
+    def _record_command(self, client: Any) -> Command | None:
+        """Record as ticked: start in a fresh folder, or stop. A Folder that names no folder
+        (:meth:`_fresh_record_dir`) is refused here with the reason, and the box unticked."""
+        if not self.record_checkbox.value:
+            return SetRecording(None)
+        try:
+            return SetRecording(self._fresh_record_dir())
+        except ValueError as exc:
+            self._show_tracker_value("record")
+            self._notify(client, f"{_COMMAND_TITLES['SetRecording']}: refused", str(exc), False)
+            return None
+
     def _fresh_record_dir(self) -> str:
+        """The folder to record to, from the Folder field (ValueError: it names none)."""
         typed = typed_text(self.record_dir.value.strip())
-        base = Path(typed or str(self.record_root / "recording")).expanduser()
+        try:
+            base = Path(typed or str(self.record_root / "recording")).expanduser()
+        except RuntimeError:  # "~name/..." of no user here: it escaped the callback, unanswered
+            home = typed.split("/", 1)[0]
+            raise ValueError(f"{quoted_name(typed)}: the server finds no home folder for {quoted_name(home)}"
+                             + (" (no such user there)" if home != "~" else "")) from None
         # Never mix two recordings in one folder: number it on when it already holds one (from
         # the number a numbered one has: the field shows the last recording, rec-2, and the
         # next is rec-3, not rec-2-2).
