@@ -60,6 +60,16 @@ def start_server(host: str = "127.0.0.1", port: int = 8080, label: str = "TV-Tra
     return server
 
 
+def console_url(host: str, port: int) -> str:
+    """The address to open for a console listening on ``host:port``: an address that means
+    every interface as this machine's loopback of its family, and an IPv6 one in brackets
+    (``http://::1:8080`` was printed, which no browser opens)."""
+    shown = {"": "127.0.0.1", "0.0.0.0": "127.0.0.1", "::": "::1"}.get(host, host)
+    if ":" in shown and not shown.startswith("["):
+        shown = "[" + shown.replace("%", "%25") + "]"  # a zone ("fe80::1%eth0") escaped (RFC 6874)
+    return f"http://{shown}:{port}"
+
+
 def mockup_mesh_of(source: Source) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """The mock-up's triangle mesh when the source is the simulator (else None)."""
     for holder in (source, getattr(source, "scenario", None)):
@@ -134,8 +144,7 @@ def start_console(
         pipeline.stop()
         server.stop()
         raise
-    shown_host = "127.0.0.1" if host in ("0.0.0.0", "") else host
-    return RunningConsole(server, pipeline, console, f"http://{shown_host}:{port}", warning_at_open)
+    return RunningConsole(server, pipeline, console, console_url(host, port), warning_at_open)
 
 
 def serve_forever(running: RunningConsole, stop: threading.Event | None = None, poll_s: float = 0.5) -> None:
