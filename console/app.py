@@ -993,7 +993,10 @@ class Console:
             return
         with self._pending_lock:
             before = self._popups.get(client.client_id)
-            self._popups[client.client_id] = shown
+            # Not for a browser gone since (its answer came after it closed): _on_disconnect
+            # dropped its entry already, and one kept now stayed for good, one per such browser.
+            if client.client_id in self._views:
+                self._popups[client.client_id] = shown
         if before is not None:
             with contextlib.suppress(Exception):  # closed already, or the browser went away
                 before.remove()

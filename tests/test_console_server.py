@@ -1474,6 +1474,31 @@ def test_a_recording_folder_whose_name_is_not_utf8_is_shown_escaped_and_the_page
         running.stop()
 
 
+def test_a_pop_up_for_a_browser_gone_before_its_answer_is_not_kept() -> None:
+    # A browser closed while its answer was pending (a refusal settling, a command's reply) left
+    # its pop-up in Console._popups for good, one entry per such browser (an outside code review).
+    removed: list[int] = []
+
+    def browser(client_id: int) -> Any:
+        popup = types.SimpleNamespace(remove=lambda: removed.append(client_id))
+        return types.SimpleNamespace(client_id=client_id, add_notification=lambda *a, **k: popup)
+
+    running = start_console(CountingSource(3), RecordingEngine(), port=free_port())  # type: ignore[arg-type]
+    con = running.console
+    try:
+        staying, gone = browser(1), browser(2)
+        for client in (staying, gone):
+            con._on_connect(client)
+        con._on_disconnect(gone)
+        for _ in range(2):
+            con._notify(staying, "Automatic selection: refused", "'abc' is not a whole number", False)
+            con._notify(gone, "Automatic selection: refused", "'abc' is not a whole number", False)
+        assert list(con._popups) == [1]
+        assert removed == [1]  # the staying browser's first pop-up gave way to its second
+    finally:
+        running.stop()
+
+
 def test_viser_s_warning_of_a_pop_up_for_a_closed_browser_is_left_out_and_no_other() -> None:
     """A reply's pop-up to a browser that had just reloaded reached the server's terminal as
     viser's 'Queued a NotificationShowMessage on a closed connection' warning (an outside monkey
