@@ -37,9 +37,9 @@ import viser.uplot
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from console.overlay import (STATUS_RGB, LostTargets, Trails, box_half_px, box_segments, draw_overlays,
-                             image_view, node_rgb_for, pixel_to_plane, ray_to_pixel, to_rgb, view_band,
-                             view_in_band)
+from console.overlay import (STATUS_RGB, LostTargets, Trails, box_half_px, box_segments, draw_matches,
+                             draw_overlays, image_view, node_rgb_for, pixel_to_plane, ray_to_pixel, to_rgb,
+                             view_band, view_in_band)
 from console.series import PLOTS, PlotData
 from trackmeter.core.features import METHODS
 from trackmeter.core.stereo import StereoRig
@@ -1196,13 +1196,7 @@ class Console:
             left_rgb = draw_overlays(to_rgb(frame.left), drawn, self._trails.points, self.patch_px,
                                      operator_boxes=False)
             if self.right_image.visible:
-                right_rgb = to_rgb(frame.right)
-                for t in snap.targets:
-                    if t.measured and np.all(np.isfinite(t.uv_right)):
-                        u, v = (int(round(x)) for x in t.uv_right)
-                        h = self.patch_px // 2
-                        right_rgb[max(v - h, 0):v + h + 1, [max(u - h, 0), min(u + h, right_rgb.shape[1] - 1)]] = (60, 230, 60)
-                        right_rgb[[max(v - h, 0), min(v + h, right_rgb.shape[0] - 1)], max(u - h, 0):u + h + 1] = (60, 230, 60)
+                right_rgb = draw_matches(to_rgb(frame.right), snap.targets, self.patch_px)
         status_text = self._status_html(snap) if text else None
         targets_text = self._targets_markdown(snap) if text else None
         rec = self.pipeline.recording_stats()

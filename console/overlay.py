@@ -453,3 +453,20 @@ def draw_overlays(
     for (t, _), text, origin in zip(labelled, texts, origins):
         cv2.putText(rgb, text, origin, font, font_scale, STATUS_RGB.get(t.status, (255, 255, 255)), 1, cv2.LINE_AA)
     return rgb
+
+
+def draw_matches(rgb: NDArray[np.uint8], targets: Sequence[TargetState], patch_px: int = 8) -> NDArray[np.uint8]:
+    """Box the right-image match (``uv_right``) of each measured target in ``rgb`` (modified in
+    place and returned), ``patch_px`` wide, in the tracking green; the part of a box off the
+    image is left out. Drawn with numpy slices, a match above or left of the image (``uv_right``
+    is the unrectified pixel of a rectified match) gave negative indices, which wrapped round:
+    a full-height line, and another at the far edge."""
+    height, width = rgb.shape[:2]
+    half = patch_px // 2
+    for t in targets:
+        if t.measured and np.all(np.isfinite(t.uv_right)):
+            # Held just beyond the edges: a far-off box stays off the image, in cv2's int range.
+            u = int(round(min(max(float(t.uv_right[0]), -half - 1.0), width + half)))
+            v = int(round(min(max(float(t.uv_right[1]), -half - 1.0), height + half)))
+            cv2.rectangle(rgb, (u - half, v - half), (u + half, v + half), STATUS_RGB["tracking"], 1, cv2.LINE_8)
+    return rgb

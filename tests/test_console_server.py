@@ -1036,6 +1036,49 @@ def test_the_right_image_shown_while_paused_is_the_paused_frame_s_and_nothing_is
         running.stop()
 
 
+def _boxed_as_before(rgb: np.ndarray, uv: tuple[int, int], half: int) -> None:
+    """The right image's match box as the console drew it before (numpy slices): right for a box
+    inside the image."""
+    u, v = uv
+    rgb[max(v - half, 0):v + half + 1, [max(u - half, 0), min(u + half, rgb.shape[1] - 1)]] = (60, 230, 60)
+    rgb[[max(v - half, 0), min(v + half, rgb.shape[0] - 1)], max(u - half, 0):u + half + 1] = (60, 230, 60)
+
+
+def test_a_match_box_off_the_right_image_is_left_out_and_one_inside_drawn_as_before() -> None:
+    # A match above and left of the right image (uv_right is the unrectified pixel of a
+    # rectified match) was drawn with negative numpy indices, which wrapped round: a full-height
+    # line at the left and a line at the far right (an outside code review); one a few pixels
+    # below or right of it raised IndexError, and no image was pushed while it lasted.
+    from trackmeter.core.targets import TargetState
+    from trackmeter.sources.base import StereoFrame
+
+    class _GreySource(CountingSource):
+        def read(self):  # type: ignore[no-untyped-def]
+            frame = super().read()
+            grey = np.full((120, 160), 40, np.uint8)
+            return None if frame is None else StereoFrame(frame.index, frame.t_s, grey, grey.copy(), cut=frame.cut)
+
+    inside = [(80, 60), (4, 4), (155, 115)]  # the last two touch the edges
+    nan2 = np.full(2, np.nan)
+    engine = RecordingEngine()
+    engine.targets = [TargetState(f"a{i}", "auto", "tracking", np.array([80.0, 60.0]), np.array(uv, float),
+                                  np.array([0.0, 0.0, 3.0]), np.eye(3) * 1e-6, 0.9, nan2, (70, 50, 90, 70))
+                      for i, uv in enumerate([(-7, -7), (-30, 500), (1e12, -1e12), *inside])]
+    running = start_console(_GreySource(100_000, delay_s=0.02), engine, port=free_port())  # type: ignore[arg-type]
+    con = running.console
+    try:
+        con.right_checkbox.value = True
+        _wait_until(lambda: con.right_image.image.shape == (120, 160, 3), "the right image shown")
+        _wait_for_pushes(con, 2)
+        expected = np.full((120, 160, 3), 40, np.uint8)
+        for uv in inside:
+            _boxed_as_before(expected, uv, con.patch_px // 2)
+        shown = con.right_image.image
+        assert np.array_equal(shown, expected), np.argwhere(np.any(shown != expected, axis=2))[:10]
+    finally:
+        running.stop()
+
+
 def test_a_recording_that_lost_frames_ends_the_console_with_exit_code_1(tmp_path, monkeypatch,
                                                                         capsys: pytest.CaptureFixture[str]) -> None:
     """A script that records with the console must be able to tell a cut-short recording: the
