@@ -814,12 +814,14 @@ class Pipeline:
         return None if recorder is None else self._finish_recording(recorder)
 
     def _finish_recording(self, recorder: _Recorder) -> RecordingStats:
-        recorder.close()
-        stats = recorder.stats(False)
-        with self._record_lock:
-            if recorder in self._closing:
-                self._closing.remove(recorder)
-            self._stopped_recordings.append(stats)
+        try:
+            recorder.close()
+        finally:  # its stats are the run's, and it is closing no more, whatever closing raised
+            stats = recorder.stats(False)
+            with self._record_lock:
+                if recorder in self._closing:
+                    self._closing.remove(recorder)
+                self._stopped_recordings.append(stats)
         return stats
 
     def _stop_recording_in_background(self, command: SetRecording) -> CommandReply | None:
