@@ -214,6 +214,18 @@ def test_settle_cuts_on_the_runs_clock_when_it_counts_from_the_runs_start():
         assert (s["matched"], s["unmatched"], s["pose_coverage"]) == (after, 0, 1.0), offset_s
 
 
+def test_a_step_back_in_time_across_a_nan_is_refused_as_the_nan() -> None:
+    # NaN < x is False both ways: [0, 1, 2, nan, 0.5] passed the time-order check, and the
+    # nearest-time pairing then paired nothing, silently (an outside probe).
+    from trackmeter.core.checks import time_order
+
+    with pytest.raises(TrackmeterError, match=r"est: timestamp 3 is not a number"):
+        time_order(np.array([0.0, 1.0, 2.0, np.nan, 0.5]), "est")
+    with pytest.raises(TrackmeterError, match=r"timestamps go backwards: t = 0.5 s after 2 s"):
+        time_order(np.array([0.0, 1.0, 2.0, 0.5]), "est")
+    time_order(np.array([0.0, 1.0, 1.0, 2.0]), "est")  # a repeat is allowed
+
+
 # --------------------------------------------------------------------------- body alignment
 
 

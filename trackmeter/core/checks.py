@@ -150,6 +150,10 @@ def time_order(t_s: NDArray[np.float64], name: str) -> None:
     Raises:
         TrackmeterError: ``"trajectory: timestamps go backwards: t = 0 s after 1 s"``.
     """
+    t_s = np.asarray(t_s, dtype=float)
+    if not np.all(np.isfinite(t_s)):  # a NaN compares as neither order: a step back across it passed
+        i = int(np.flatnonzero(~np.isfinite(t_s))[0])
+        raise TrackmeterError(f"{name}: timestamp {i} is not a number ({t_s[i]})")
     back = np.flatnonzero(np.diff(t_s) < 0)
     if len(back):
         i = int(back[0])
