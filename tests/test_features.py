@@ -194,6 +194,58 @@ def test_centroid_of_a_bright_disc_on_black_space() -> None:
     np.testing.assert_allclose(pts[0], (180, 90), atol=0.5)
 
 
+def test_centroids_are_spread_as_every_method_s_points_are() -> None:
+    # A bright ring round a separate bright disc: both centroids on the disc's centre, the
+    # same point returned twice, though the points are to be min_distance_px apart.
+    img = np.zeros((200, 200), np.uint8)
+    cv2.circle(img, (100, 100), 70, 200, 12)
+    cv2.circle(img, (100, 100), 30, 200, -1)
+    params = FeatureParams(target_margin_px=0, border_px=0)
+    pts = select_features(img, None, None, 5, "centroid", params, ())
+    assert len(pts) == 1
+    np.testing.assert_allclose(pts[0], (100, 100), atol=0.5)
+
+
+def test_centroids_are_found_on_a_dim_target_as_the_other_methods_find_points() -> None:
+    # The centroids were labelled with black_level only, not the signal-to-noise map the
+    # selectable mask falls back to on a target in deep shadow: nothing, and no reason why.
+    rng = np.random.default_rng(2)
+    img = np.clip(rng.normal(4.0, 1.0, (200, 300)), 0, 255)
+    disc = np.zeros((200, 300), np.uint8)
+    cv2.circle(disc, (150, 100), 50, 1, -1)
+    img = np.clip(img + disc * (10.0 + rng.normal(0, 1.0, img.shape)), 0, 255).astype(np.uint8)
+    params = FeatureParams()
+    assert (img[disc > 0] <= params.black_level).mean() > 0.95  # below black_level: in deep shadow
+    assert len(select_features(img, None, None, 4, "shi_tomasi", params, ())) > 0
+    pts = select_features(img, None, None, 4, "centroid", params, ())
+    assert len(pts) == 1
+    np.testing.assert_allclose(pts[0], (150, 100), atol=1.0)
+
+
+@pytest.mark.parametrize("method", ft.METHODS)
+def test_targets_far_outside_the_image_or_an_empty_image_are_no_opencv_error(method: str) -> None:
+    # A diverged target's pixel (3e9) was given to cv2.circle as it was: a bare cv2.error.
+    img = np.zeros((100, 120), np.uint8)
+    cv2.rectangle(img, (30, 30), (90, 70), 150, -1)
+    far = np.array([[3e9, 50.0], [-1e12, -1e12], [60.0, 50.0]])
+    pts = select_features(img, None, None, 3, method, FeatureParams(border_px=0), far)
+    assert np.all(np.hypot(pts[:, 0] - 60.0, pts[:, 1] - 50.0) >= 20.0)
+    assert len(select_features(np.zeros((0, 0), np.uint8), None, None, 3, method, FeatureParams(), ())) == 0
+    assert ft.nothing_selectable_reason(np.zeros((0, 0), np.uint8), FeatureParams()) == ft.NOTHING_LIT
+
+
+def test_a_distance_beyond_any_image_is_refused_not_a_crash_in_opencv() -> None:
+    # features.min_distance_px 3e9 (and analyze.corner_min_distance_px) reached
+    # cv2.goodFeaturesToTrack, which crashed the process (a segmentation fault).
+    from trackmeter.core.error_analysis import AnalyzeParams
+
+    for make in (lambda d: FeatureParams(min_distance_px=d), lambda d: AnalyzeParams(corner_min_distance_px=d)):
+        for distance in (3e9, float("inf")):
+            with pytest.raises(TrackmeterError, match="min_distance_px: expected a value in"):
+                make(distance)
+        make(1e5)
+
+
 @pytest.mark.parametrize(("method", "refine"), [("gabor", True), ("shi_tomasi", True), ("gabor", False)])
 def test_selected_points_are_on_the_target_spread_and_stereo_matchable(plate, estec_rig, method, refine) -> None:
     scene, f = plate

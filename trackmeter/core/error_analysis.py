@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import stats
 
+from trackmeter.core.features import MAX_DISTANCE_PX
 from trackmeter.core.params import check_params, param
 from trackmeter.errors import TrackmeterError
 
@@ -36,7 +37,8 @@ class AnalyzeParams:
 
     points_per_range: int = param(30, "points selected on the target at each range (Shi-Tomasi corners)", min=3, max=1000)
     corner_quality: float = param(0.01, "Shi-Tomasi quality level, relative to the best corner", min=1e-6, max=1.0)
-    corner_min_distance_px: float = param(12.0, "smallest distance between two selected points, px", min=1.0)
+    corner_min_distance_px: float = param(12.0, "smallest distance between two selected points, px", min=1.0,
+                                          max=MAX_DISTANCE_PX)
     border_px: int = param(16, "points closer than this to the image border or the target's outline are skipped, px", min=0)
     min_samples: int = param(5, "a point needs this many good measurements to count in the statistics", min=2)
     histogram_bins: int = param(31, "bins of the error density histogram (Fig. 2)", min=5, max=1000)

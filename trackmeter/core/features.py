@@ -43,6 +43,10 @@ FloatArray = NDArray[np.float64]
 
 METHODS = ("gabor", "centroid", "shi_tomasi")
 
+#: Beyond any image's diagonal, and within what OpenCV's drawing and corner calls take as a C
+#: int: a distance past 2^31 px (a typo in a config file) crashed the process inside OpenCV.
+MAX_DISTANCE_PX = 1e5
+
 
 @dataclass(frozen=True)
 class FeatureParams:
@@ -51,7 +55,8 @@ class FeatureParams:
     method: str = param("gabor", "selection method: gabor, centroid or shi_tomasi", choices=METHODS)
     count: int = param(16, "number of targets automatic selection keeps alive", min=1, max=1024)
     patch_size: int = param(8, "side of the patch a selected point must be trackable with, px", min=3, max=63)
-    min_distance_px: float = param(20.0, "minimum distance between selected points (and from existing targets), px", min=0.0)
+    min_distance_px: float = param(20.0, "minimum distance between selected points (and from existing targets), px",
+                                   min=0.0, max=MAX_DISTANCE_PX)
     border_px: int = param(16, "no selection closer than this to the image border, px", min=0)
     black_level: int = param(16, "grey level at or below which a pixel is black space (black_snr 0)", min=0, max=254)
     black_snr: float = param(
@@ -352,10 +357,21 @@ def target_mask(image: NDArray, params: FeatureParams) -> NDArray[np.uint8]:
     by its signal-to-noise ratio instead (:func:`bright_pixels`): on estec the signal-to-noise
     test everywhere accepted dim parts an 8x8 patch cannot track (false locks 0 -> 30-39 of
     500 frames), so it is the fallback of a dark image, not the rule."""
-    mask = _patch_mask(bright_pixels(image, params), params)
+    return _target_pixels(image, params)[1]
+
+
+def _target_pixels(image: NDArray, params: FeatureParams) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
+    """The bright map :func:`target_mask` chose (:func:`bright_pixels`, 1 on the target) and
+    the mask it made of it (255 where a patch fits)."""
+    if np.asarray(image).size == 0:
+        empty = np.zeros(np.asarray(image).shape[:2], np.uint8)
+        return empty, empty
+    bright = bright_pixels(image, params)
+    mask = _patch_mask(bright, params)
     if params.black_snr > 0 and not mask.any():
-        mask = _patch_mask(bright_pixels(image, params, snr=True), params)
-    return mask
+        bright = bright_pixels(image, params, snr=True)
+        mask = _patch_mask(bright, params)
+    return bright, mask
 
 
 #: Why automatic selection found nothing, where the image itself leaves no pixel selectable
@@ -403,10 +419,17 @@ def _patch_mask(bright: NDArray[np.uint8], params: FeatureParams) -> NDArray[np.
 
 
 def _exclusion(mask: NDArray[np.uint8], exclude_uv: FloatArray, radius: float) -> NDArray[np.uint8]:
+    """``mask`` with a disc of ``radius`` px cleared around each point of ``exclude_uv`` (M,2).
+
+    The radius is held to the image's diagonal, and a point farther than it outside the image
+    is skipped: what OpenCV draws with must fit a C int (a diverged target's pixel, 3e9, was a
+    bare cv2.error)."""
     mask = mask.copy()
+    h, w = mask.shape[:2]
+    r = int(np.ceil(min(radius, float(np.hypot(h, w)) + 1.0)))
     for u, v in exclude_uv:
-        if np.isfinite(u) and np.isfinite(v):
-            cv2.circle(mask, (int(round(u)), int(round(v))), int(np.ceil(radius)), 0, -1)
+        if np.isfinite(u) and np.isfinite(v) and -r <= u <= w + r and -r <= v <= h + r:
+            cv2.circle(mask, (int(round(u)), int(round(v))), r, 0, -1)
     return mask
 
 
@@ -533,10 +556,15 @@ def corners_near(image: NDArray, uv: ArrayLike, radius_px: float, limit: int = 4
 
 
 def _candidates_centroid(left: NDArray, mask: NDArray[np.uint8], params: FeatureParams, limit: int) -> FloatArray:
-    bright = (np.asarray(left) > params.black_level).astype(np.uint8)
+    """The centroids of the bright regions (largest first) that fall on ``mask``, at least
+    ``min_distance_px`` apart. The regions are those of the bright map the mask was made from
+    (:func:`target_mask`: a dim target's signal-to-noise map, not black_level's nothing)."""
+    bright = _target_pixels(left, params)[0]
+    if bright.size == 0:
+        return np.zeros((0, 2))
     n_labels, labels, stats, centroids = cv2.connectedComponentsWithStats(bright, connectivity=8)
     order = np.argsort(-stats[1:, cv2.CC_STAT_AREA]) + 1  # label 0 is black space
-    pts = []
+    pts, areas = [], []
     for label in order:
         if stats[label, cv2.CC_STAT_AREA] < params.patch_size**2:
             break
@@ -544,9 +572,11 @@ def _candidates_centroid(left: NDArray, mask: NDArray[np.uint8], params: Feature
         u, v = int(round(c[0])), int(round(c[1]))
         if 0 <= v < mask.shape[0] and 0 <= u < mask.shape[1] and mask[v, u]:
             pts.append(c)
-        if len(pts) >= limit:
-            break
-    return np.array(pts, dtype=float).reshape(-1, 2)
+            areas.append(float(stats[label, cv2.CC_STAT_AREA]))
+    if not pts:
+        return np.zeros((0, 2))
+    # A ring round a disc has its centroid on the disc's: one point, not the same one twice.
+    return spread(np.array(pts, dtype=float), np.array(areas), params.min_distance_px, limit)
 
 
 def select_features(
