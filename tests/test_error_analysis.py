@@ -75,6 +75,21 @@ def spread_scene(k_per_m: float = 0.0003, n_frames: int = 30) -> tuple[np.ndarra
     return centres[None] + rng.normal(size=S.shape) * S, S
 
 
+def test_points_seen_too_seldom_to_count_do_not_draw_the_mismatch_gate_in():
+    # The gate's robust spread was taken over every sample, those of points seen too seldom to
+    # count included: a point seen once has a residual of exactly 0, and 200 of them made 9
+    # good samples "mismatches" (290 left no point counted at all: an outside probe).
+    rng = np.random.default_rng(0)
+    frames, counted, once = 30, 10, 300
+    X = np.full((frames, counted + once, 3), np.nan)
+    X[:, :counted] = [0.0, 0.0, 3.5] + rng.normal(0, 1e-3, (frames, counted, 3))
+    X[rng.integers(0, frames, once), np.arange(counted, counted + once)] = [0.1, 0.1, 3.5]
+    alone = range_statistics(X[:, :counted], min_samples=5, max_abs_residual_sigmas=8.0)
+    both = range_statistics(X, min_samples=5, max_abs_residual_sigmas=8.0)
+    assert both.n_outliers == alone.n_outliers == 0
+    np.testing.assert_array_equal(both.sigma_m, alone.sigma_m)
+
+
 def test_the_mismatch_gate_scales_with_each_measurements_own_sigma():
     """A scene spread in depth: the far points' larger noise is noise (eq. 2), not mismatches.
     One robust sigma for all the range's residuals took a quarter of a real pair's samples for

@@ -137,7 +137,10 @@ def range_statistics(
             usable = good & np.all(np.isfinite(S) & (S > 0), axis=2)
             if np.count_nonzero(usable) > 2:  # else no usable predicted sigmas: the raw residuals
                 weighed, gate = np.where(usable[..., None], resid / np.where(usable[..., None], S, 1.0), 0.0), usable
-        r = weighed[gate]
+        # The spread from the points the statistics count: a point seen once has a residual of
+        # exactly 0, and many such drew the cut-off down onto the good samples.
+        counted = gate & (good.sum(axis=0) >= max(int(min_samples), 2))[None, :]
+        r = weighed[counted if np.count_nonzero(counted) > 2 else gate]
         mad = 1.4826 * np.median(np.abs(r - np.median(r, axis=0)), axis=0)
         bad = gate & np.any(np.abs(weighed) > max_abs_residual_sigmas * np.maximum(mad, 1e-300), axis=2)
         n_outliers = int(np.count_nonzero(bad))
