@@ -4,9 +4,10 @@ The tracking thread's whole per-frame logic, called in a plain loop: the first 5
 simulated ESTEC trial (the ``estec`` scenario, the mock-up tumbling at 3.5 m), automatic
 selection of up to 16 targets (Gabor features, stereo-checked), topped up to 16 every 5 frames
 (``tracker.auto_interval_frames``) as targets are lost, so between top-ups fewer are measured
-(12-16 at the whole seconds printed); lost points looked for again through the pose come on top
-of them (section 2.D), so at times more are tracked (17 at 2 s). Pose case (a) (no model: the body frame
-from three tracked points), velocities by a screw fit (paper section 2.E) and the output filter. Every
+(12-16 at the whole seconds printed after the first frame, whose line shows none yet); lost
+points looked for again through the pose come on top of them (section 2.D), so at times more
+are tracked (17 at 2 s). Pose case (a) (no model: the body frame from three tracked points),
+velocities by a screw fit (paper section 2.E) and the output filter. Every
 second it prints the body origin's position (m), its speed |v| (mm/s) and the angular speed
 |omega| (deg/s) once the rates are known, and the position and attitude errors against the
 simulator's ground truth (case a's frame is its own, so the errors are taken after an online
