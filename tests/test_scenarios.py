@@ -245,6 +245,8 @@ def test_rig_override_is_reported_not_rendered(sims, estec_rig):
         ("mockup: nothing.yaml", "'mockup': no such file"),
         ("approach_to_m: [0, 0, 2]", "approach_s"),
         ("seed: [1", "malformed YAML"),
+        # An hour at 10 kHz: 36 million frames, integrated before the first (gigabytes).
+        ("rate_hz: 10000\nduration_s: 3600", r"36000000 frames \('duration_s' 3600 s at 'rate_hz' 10000\): at most 360000"),
     ],
 )
 def test_malformed_scenarios_name_the_key(tmp_path, text, match):

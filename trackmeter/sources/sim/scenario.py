@@ -40,6 +40,9 @@ FloatArray = NDArray[np.float64]
 #: The longest scenario, s: its motion is integrated whole before the first frame (an hour
 #: takes ~2 s; 1e300 s ran silently until interrupted).
 MAX_DURATION_S = 3600.0
+#: ... and at most this many frames (an hour at 100 Hz): the whole motion is integrated, frame
+#: by frame, before the first is rendered (an hour at 10 kHz, 36 million frames, was accepted).
+MAX_FRAMES = 360_000
 
 @dataclass(frozen=True)
 class OccluderSpec:
@@ -97,7 +100,7 @@ class Scenario:
     render: RenderParams = field(default_factory=RenderParams)
     rate_hz: float = param(25.0, "Frame rate, Hz.", min=0.1, max=10000.0)
     duration_s: float = param(60.0, "Length of the sequence, s (static_ranges: ranges x frames_per_range frames); at "
-                              "most an hour (90 000 frames at 25 Hz: the whole motion is integrated before the first)",
+                              "most an hour and 360 000 frames (90 000 at 25 Hz: the whole motion is integrated before the first)",
                               min=0.0, max=MAX_DURATION_S)
     seed: int = param(0, "Seed of everything random (noise, glints), combined with the frame index.", min=0)
 
@@ -121,6 +124,10 @@ class Scenario:
         for i, occ in enumerate(self.occluders):
             if occ.end_s <= occ.start_s:
                 raise TrackmeterError(f"'occluders[{i}]': end_s must come after start_s")
+        if self.n_frames > MAX_FRAMES:
+            raise TrackmeterError(f"{self.n_frames} frames ('duration_s' {self.duration_s:g} s at 'rate_hz' "
+                                  f"{self.rate_hz:g}): at most {MAX_FRAMES} (an hour at 100 Hz), the whole motion "
+                                  "being integrated before the first frame")
         times, origins = self.origin_path_m()
         behind = np.flatnonzero(~(origins[:, 2] > 0))
         if behind.size:
