@@ -118,6 +118,14 @@ def test_table_and_patch_option(pair, capsys) -> None:  # type: ignore[no-untype
     assert " no " in text[2] and "patch not inside image" in text[2]
 
 
+def test_a_pixel_far_off_the_image_takes_its_columns_not_300_digits(pair, capsys) -> None:  # type: ignore[no-untyped-def]
+    *_, folder = pair
+    assert _run(folder, "--at", "1e308,1e308", "--at", "300.3,250.6") == 0
+    text = capsys.readouterr().out.splitlines()
+    assert text[1].split()[:3] == ["1e+308", "1e+308", "no"] and len(text[1]) < 200
+    assert text[2].startswith("  300.30   250.60  yes ")
+
+
 def test_help_runs_as_a_console_script() -> None:
     done = subprocess.run(
         [sys.executable, "-m", "trackmeter.cli.main", "measure", "--help"], capture_output=True, text=True, timeout=60

@@ -111,7 +111,7 @@ def format_table(results: Sequence[PointMeasurement]) -> str:
     lines = [header]
     for m in results:
         score = f"{m.score:6.3f}" if m.score == m.score else f"{'-':>6}"
-        head = f"{m.uv[0]:8.2f} {m.uv[1]:8.2f}  {'yes' if m.ok else 'no':<3} "
+        head = f"{_pixel(m.uv[0])} {_pixel(m.uv[1])}  {'yes' if m.ok else 'no':<3} "
         if m.ok:
             body = (
                 f"{m.right_uv[0]:8.2f} {m.right_uv[1]:8.2f} {m.disparity_px:8.3f} "
@@ -122,3 +122,9 @@ def format_table(results: Sequence[PointMeasurement]) -> str:
             body = " ".join(f"{'-':>{w}}" for w in (8, 8, 8, 8, 8, 8, 6, 6, 6)) + f" {score}  {m.reason}"
         lines.append(head + body)
     return "\n".join(lines)
+
+
+def _pixel(x: float) -> str:
+    """A pixel coordinate in the table's 8 columns: one asked for far off any image (1e308,
+    refused) in 3 digits, not its 300."""
+    return f"{x:8.2f}" if abs(x) < 1e6 else f"{x:8.3g}"
