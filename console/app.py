@@ -1390,6 +1390,8 @@ class Console:
             return f"not recording (last: no frame came, nothing kept in {rec.directory})"
         counts = (f"{rec.directory}: {counted(rec.frames_written, 'frame')} written, {rec.frames_dropped + rec.frames_lost} "
                   "not recorded" + (f", {rec.error}" if rec.error else ""))
+        if not rec.active and rec.queue_depth > 0 and rec.error is None:  # stopped: what it queued is written on
+            return f"stopped, writing the {counted(rec.queue_depth, 'frame')} still queued ({counts})"
         return counts if rec.active else f"not recording (last: {counts})"
 
     @staticmethod

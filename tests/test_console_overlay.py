@@ -511,6 +511,9 @@ def test_the_recording_line_says_when_nothing_is_recorded_any_more() -> None:
     assert Console._recording_text(on) == "runs/rec: 120 frames written, 1 not recorded"
     off = RecordingStats("runs/rec", active=False, frames_written=253)
     assert Console._recording_text(off) == "not recording (last: runs/rec: 253 frames written, 0 not recorded)"
+    closing = RecordingStats("runs/rec", active=False, frames_written=200, queue_depth=53)
+    assert Console._recording_text(closing) == ("stopped, writing the 53 frames still queued (runs/rec: 200 frames "
+                                                "written, 0 not recorded)")
 
 
 @pytest.mark.parametrize("viewport, band", [
