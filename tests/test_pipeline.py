@@ -1083,20 +1083,13 @@ def test_play_after_a_pause_lets_the_source_pace_on_from_its_next_frame() -> Non
 
 @pytest.mark.parametrize("spec", ["sim", "video"])
 def test_a_real_time_source_resumed_paces_from_its_next_frame(spec: str, tmp_path: Path) -> None:
-    import cv2
-
     from trackmeter.sources import open_source
     from trackmeter.sources.pacing import Pacer
 
     if spec == "video":
-        paths = [tmp_path / "left.avi", tmp_path / "right.avi"]
-        for path in paths:
-            vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (64, 48))
-            if not vw.isOpened():
-                pytest.skip("this OpenCV build cannot write MJPG")
-            for k in range(6):
-                vw.write(np.full((48, 64, 3), 40 * k, np.uint8))
-            vw.release()
+        from tests.test_sequence import _video
+
+        paths = [_video(tmp_path / "left.avi", 6, fps=25.0), _video(tmp_path / "right.avi", 6, fps=25.0)]
         spec = f"video:{paths[0]},{paths[1]}"
     source = open_source(spec, realtime=True, **({"render_ahead": False} if spec == "sim" else {}))
     now, slept = [0.0], []

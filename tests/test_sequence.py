@@ -795,15 +795,7 @@ def test_a_video_without_a_frame_rate_is_stamped_as_the_rest_assumes(tmp_path, m
     import trackmeter.sources.video as video
     from trackmeter.sources.base import NO_RATE_INTERVAL_S
 
-    paths = [tmp_path / "left.avi", tmp_path / "right.avi"]
-    for p in paths:
-        vw = cv2.VideoWriter(str(p), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (64, 48), isColor=True)
-        if not vw.isOpened():
-            pytest.skip("this OpenCV build cannot write MJPG")
-        for k in range(3):
-            vw.write(np.full((48, 64, 3), 60 * k, np.uint8))
-        vw.release()
-
+    paths = [_video(tmp_path / "left.avi", 3), _video(tmp_path / "right.avi", 3)]
     real_capture = cv2.VideoCapture
 
     class NoRate:  # a wrapper, not a subclass: OpenCV's binding crashes collecting one
