@@ -29,8 +29,10 @@ Figures, medians over the seeds ``SEEDS``:
 from __future__ import annotations
 
 import dataclasses
+import math
 import statistics
 import sys
+from collections.abc import Iterable
 
 import numpy as np
 
@@ -83,7 +85,8 @@ def clicked_run(scenario: str, seed: int, fallback: str | None) -> dict[str, flo
     steps = round(TRACK_S * sim.rate_hz)
     tracked = false = 0
     errors: list[float] = []
-    pose_lateral_m, pose_depth_m = [0.0], [0.0]
+    pose_lateral_m: list[float] = []  # empty: no pose error to tell, NaN, not 0
+    pose_depth_m: list[float] = []
     lost_once: set[str] = set()
     for k in range(warmup + 1, warmup + 1 + steps):
         frame = sim.frame(k)
@@ -109,9 +112,16 @@ def clicked_run(scenario: str, seed: int, fallback: str | None) -> dict[str, flo
         "tracked_fraction": tracked / max(steps * len(body), 1),
         "false_frames": float(false),
         "error_median_px": statistics.median(errors) if errors else float("nan"),
-        "pose_lateral_max_mm": 1e3 * max(pose_lateral_m),
-        "pose_depth_max_mm": 1e3 * max(pose_depth_m),
+        "pose_lateral_max_mm": 1e3 * max(pose_lateral_m) if pose_lateral_m else float("nan"),
+        "pose_depth_max_mm": 1e3 * max(pose_depth_m) if pose_depth_m else float("nan"),
     }
+
+
+def _median_of_finite(values: Iterable[float]) -> float:
+    """The median of the finite ``values`` (statistics.median with a NaN among them depends on
+    the order); NaN when there is none."""
+    finite = [v for v in values if math.isfinite(v)]
+    return statistics.median(finite) if finite else float("nan")
 
 
 def run() -> dict[str, float]:
@@ -125,9 +135,9 @@ def run() -> dict[str, float]:
         for suffix, runs in per.items():
             out[f"operator_tracked_fraction_{name}{suffix}"] = statistics.median(r["tracked_fraction"] for r in runs)
             out[f"operator_false_frames_{name}{suffix}"] = sum(r["false_frames"] for r in runs)
-            out[f"operator_error_median_px_{name}{suffix}"] = statistics.median(r["error_median_px"] for r in runs)
-            out[f"operator_pose_lateral_max_mm_{name}{suffix}"] = statistics.median(r["pose_lateral_max_mm"] for r in runs)
-            out[f"operator_pose_depth_max_mm_{name}{suffix}"] = statistics.median(r["pose_depth_max_mm"] for r in runs)
+            out[f"operator_error_median_px_{name}{suffix}"] = _median_of_finite(r["error_median_px"] for r in runs)
+            out[f"operator_pose_lateral_max_mm_{name}{suffix}"] = _median_of_finite(r["pose_lateral_max_mm"] for r in runs)
+            out[f"operator_pose_depth_max_mm_{name}{suffix}"] = _median_of_finite(r["pose_depth_max_mm"] for r in runs)
             for i, r in enumerate(runs):
                 out[f"operator_pose_lateral_max_mm_{name}{suffix}_seed{i}"] = r["pose_lateral_max_mm"]
         out[f"operator_tracked_ratio_{name}"] = statistics.median(

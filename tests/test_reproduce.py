@@ -128,6 +128,11 @@ def test_goal_rows_judge_each_figure_against_its_limit_and_never_invent_one():
     assert rows[3] == "| offline | ≥ 60.0 fps | 59.9 fps | **no** |"
     assert rows[4] == "| memory | ≤ 5.00 % | — | not measured |"
     assert goal_rows({"pipeline": {"offline_fps": math.nan}}, goals[1:2])[2].endswith("| — | not measured |")
+    # "under 1 %", "under 0.05": the limit itself does not meet them (it did, with <=)
+    under = Goal("soak", "rss_growth_fraction", "memory", 0.05, True, 100.0, "%", 2, strict=True)
+    assert goal_rows({"soak": {"rss_growth_fraction": 0.05}}, (under,))[2] == "| memory | < 5.00 % | 5.00 % | **no** |"
+    assert under.met(0.0499) and not under.met(0.05)
+    assert {g.key for g in ISSUE5_GOALS if g.strict} == {"dropped_fraction", "rss_growth_fraction"}
     # issue 5's list: both estec cases' seven motion figures, harsh_light, rates and memory
     keys = {g.key for g in ISSUE5_GOALS}
     assert {f"estec_{c}_{m}" for c in "ab" for m in ("pos_lateral_max_mm", "pos_depth_max_mm", "att_view_max_deg",
