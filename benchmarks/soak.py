@@ -87,6 +87,7 @@ def soak(duration_s: float, start_live=None) -> dict[str, float]:  # type: ignor
                 next_log = now + 30.0
             time.sleep(SAMPLE_S)
         snap = pipe.latest()
+        snap_s = time.monotonic() - t0  # its frame count over the time it was taken at, not the last sample's
     finally:
         pipe.close()
         for name in ("trackmeter", "console"):
@@ -105,7 +106,7 @@ def soak(duration_s: float, start_live=None) -> dict[str, float]:  # type: ignor
         "slope_mb_per_min": slope,
         "duration_s": float(t[-1]),
         "frames_processed": float(tm.frames_processed),
-        "tracking_rate_hz": tm.frames_processed / float(t[-1]) if t[-1] > 0 else float("nan"),
+        "tracking_rate_hz": tm.frames_processed / snap_s if snap_s > 0 else float("nan"),
         "dropped_fraction": tm.frames_dropped / tm.frames_read if tm.frames_read else float("nan"),
         "targets_measured_at_end": float(sum(1 for x in snap.targets if x.measured)),
         "targets_measured_median": float(np.median(measured)) if measured else float("nan"),
