@@ -29,7 +29,8 @@ Figures:
   tone-mapped on screen (:func:`console.overlay.displayed_rgb`); a probe in the page reads the
   drawn pixels of four bands across the box's edges after every frame the page draws, and the
   box counts as drawn when each band holds ``PROBE_MIN_PX`` more pixels of that colour than in
-  the first frame probed (page clock at both ends). ``click_latency_from_release_ms``: the same
+  the first frame probed (page clock at both ends); a target not on screen within 5 s counts as
+  infinitely late, a refused click not at all. ``click_latency_from_release_ms``: the same
   from the button going up (the click is sent on release). ``click_latency_received_ms``: until
   the browser received the first image pushed with the target; ``click_to_server_ms``: until
   the tracking thread had created the target.
@@ -50,6 +51,7 @@ the README table's run). ``cpu_nice`` is the value asked for and
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import statistics
@@ -487,6 +489,7 @@ def run() -> dict[str, float]:
                 if not pushed:
                     _log(f"click at ({uv[0]:.0f}, {uv[1]:.0f}): target {got.id} made, but not published in 5 s")
                     skipped.append("not published")
+                    latencies.append(math.inf)  # on screen after 5 s or never: in the median, not left out
                     running.pipeline.call(RemoveTarget(got.id), 10)
                     continue
                 got_received = _poll(page, lambda: next((t for t in jpeg_times if t >= pushed), None), 5)
@@ -496,6 +499,7 @@ def run() -> dict[str, float]:
                 if shown_ms is None:
                     _log(f"click at ({uv[0]:.0f}, {uv[1]:.0f}): published, but the page drew no box around it in 5 s")
                     skipped.append("not drawn")
+                    latencies.append(math.inf)
                     running.pipeline.call(RemoveTarget(got.id), 10)
                     continue
                 latencies.append(shown_ms - t_down_ms)
@@ -507,11 +511,14 @@ def run() -> dict[str, float]:
                 to_server.append((t_server - offset_s - t_down_ms / 1e3) * 1e3)
                 running.pipeline.call(RemoveTarget(got.id), 10)
                 page.wait_for_timeout(300)
-            out["click_latency_ms"] = statistics.median(latencies) if latencies else float("nan")
+            # A click drawn late (after 5 s, or never) counts as infinitely late; a median that is
+            # then infinite (most clicks so) is "not measured".
+            median = statistics.median(latencies) if latencies else float("nan")
+            out["click_latency_ms"] = median if math.isfinite(median) else float("nan")
             out["click_latency_from_release_ms"] = statistics.median(from_release) if from_release else float("nan")
             out["click_latency_received_ms"] = statistics.median(received) if received else float("nan")
             out["click_to_server_ms"] = statistics.median(to_server) if to_server else float("nan")
-            out["clicks_measured"] = float(len(latencies))
+            out["clicks_measured"] = float(sum(math.isfinite(x) for x in latencies))
             out["clicks_not_measured"] = float(len(skipped))
             browser.close()
     finally:
