@@ -636,6 +636,9 @@ def test_a_rig_file_giving_a_key_twice_is_refused(tmp_path: Path, header: str) -
     kalibr.write_text("cam0:\n  camera_model: pinhole\ncam0:\n  camera_model: pinhole\n")
     with pytest.raises(TrackmeterError, match=r"camchain\.yaml: key 'cam0' given twice"):
         load_rig(kalibr)
+    from trackmeter.data.rigfile import is_rig_file
+
+    assert is_rig_file(path)  # still a rig file for --overwrite to replace, wrong as it is
 
 
 def test_an_rms_that_is_not_a_number_is_refused(tmp_path: Path) -> None:

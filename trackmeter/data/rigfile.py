@@ -26,7 +26,7 @@ from trackmeter.data.config import FAST_SAFE_LOADER, DuplicateKeyError, check_ya
 from trackmeter.errors import TrackmeterError, shown_value
 
 
-def _open(path: Path) -> cv2.FileStorage:
+def _open(path: Path, strict: bool = True) -> cv2.FileStorage:
     if path.is_dir():
         raise TrackmeterError(f"{path}: a folder, not a rig file")
     if not path.is_file():
@@ -57,6 +57,8 @@ def _open(path: Path) -> cv2.FileStorage:
     if not fs.root().isMap():  # a list or a scalar: every key lookup would assert inside OpenCV
         raise TrackmeterError(f"{path}: not a mapping of keys (image_width, K1, ...): a rig file's top level "
                               "must be key: value pairs")
+    if not strict:  # asked only what the file is (is_rig_file), not whether it is right
+        return fs
     keys = list(fs.root().keys())
     repeated = [k for i, k in enumerate(keys) if k in keys[:i]]
     if repeated:  # OpenCV keeps the first, PyYAML (and so any other tool) the last
@@ -120,15 +122,16 @@ def _plain_yaml(path: Path) -> cv2.FileStorage | None:
         return None
 
 
-def _plain_yaml_data(text: str, path: Path) -> dict | None:
-    """``text`` read as plain YAML (PyYAML, a key given twice refused), None when it is not a
-    mapping PyYAML reads (OpenCV's ``!!opencv-matrix`` tags, XML).
+def _plain_yaml_data(text: str, path: Path, strict: bool = True) -> dict | None:
+    """``text`` read as plain YAML (PyYAML; a key given twice refused, unless not ``strict``),
+    None when it is not a mapping PyYAML reads (OpenCV's ``!!opencv-matrix`` tags, XML).
 
     Raises:
         TrackmeterError: a key given twice; YAML aliases that expand beyond any rig file.
     """
     try:
-        data = yaml.load(without_directives(text.removeprefix("\ufeff")), Loader=FAST_SAFE_LOADER)  # noqa: S506
+        loader = FAST_SAFE_LOADER if strict else yaml.SafeLoader
+        data = yaml.load(without_directives(text.removeprefix("\ufeff")), Loader=loader)  # noqa: S506
     except DuplicateKeyError as exc:
         raise TrackmeterError(f"{path}: {exc.problem}") from None
     except yaml.YAMLError:
@@ -397,10 +400,10 @@ def is_rig_file(path: str | Path) -> bool:
     intrinsics.yml or extrinsics.yml, a Kalibr camchain.yaml), judged by its keys. What a
     command may replace with ``--overwrite``: not the user's other files."""
     path = Path(path)
-    if _kalibr_camchain(path) is not None:
-        return True
-    try:
-        fs = _open(path)
+    try:  # a file of the right keys, right or wrong in what they hold (a key given twice)
+        if _kalibr_camchain(path, strict=False) is not None:
+            return True
+        fs = _open(path, strict=False)
     except TrackmeterError:
         return False
     try:
@@ -409,7 +412,7 @@ def is_rig_file(path: str | Path) -> bool:
         fs.release()
 
 
-def _kalibr_camchain(path: Path) -> dict | None:
+def _kalibr_camchain(path: Path, strict: bool = True) -> dict | None:
     """The file's contents when it is a Kalibr ``camchain.yaml`` (a mapping with ``cam0``), else
     None (not YAML PyYAML reads, e.g. OpenCV's ``!!opencv-matrix`` tags, or another mapping)."""
     if not path.is_file():
@@ -418,7 +421,7 @@ def _kalibr_camchain(path: Path) -> dict | None:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError):
         return None
-    data = _plain_yaml_data(text, path)
+    data = _plain_yaml_data(text, path, strict)
     return data if data is not None and isinstance(data.get("cam0"), dict) else None
 
 
