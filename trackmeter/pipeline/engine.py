@@ -390,6 +390,9 @@ class Engine:
             for pid, b in zip(self._given_model.ids, self._given_model.points_body):
                 self._model[pid] = _ModelPoint(np.array(b, dtype=float), np.zeros((3, 3)), True)
         self._frame_ids: tuple[str, ...] = ()
+        # Model points whose target the operator removed: kept in the model (an a-priori point, a
+        # case (a) frame point) but not looked for again, until a click names them again.
+        self._operator_removed: set[str] = set()
         self._candidates: dict[str, _Candidate] = {}
         self._pending_reject: set[str] = set()
         self._last_fit: tuple[FloatArray, FloatArray, FloatArray] | None = None
@@ -511,6 +514,11 @@ class Engine:
             if there is not None:
                 return CommandReply(False, f"refused at ({command.u:.1f}, {command.v:.1f}): target {there[0]} is "
                                            f"already there ({there[1]:.1f} px away)")
+            if command.target_id is not None and any(t.id == command.target_id and t.status == "lost"
+                                                     for t in self.tracker.targets):
+                # Clicked where the lost one should be: it makes way, as for the model points'
+                # click (its name was refused: "a target named ... exists", where none is drawn).
+                self.tracker.remove_target(command.target_id)
             states = self.tracker.targets
             # At the limit the click takes a lost or automatic target's place (kept otherwise).
             room = {"in_place_of": click_room(states)} if len(states) >= self._max_targets else {}
@@ -531,6 +539,7 @@ class Engine:
                          f"{self._max_targets} is the limit)")
             if self._case == "b" and command.target_id is not None and command.target_id not in self._model:
                 note += " (not a model point: it joins the model once the pose is known)"
+            self._operator_removed.discard(result.id)  # named again: looked for again when lost
             return CommandReply(True, f"target {result.id} at {result.point_cam[2]:.3f} m{note}", result.id, moved_px)
         if isinstance(command, SelectModelPoints):
             reply = self._select_model_points(frame)
@@ -669,6 +678,7 @@ class Engine:
                 hidden.append(pid)
             else:
                 made.append(pid)
+                self._operator_removed.discard(pid)
         targeted = len(made) + len(already)
         ok = targeted >= self.pose_params.min_points
         why = count_reasons(refused)
@@ -714,6 +724,8 @@ class Engine:
         point = self._model.get(target_id)
         if point is not None and not point.fixed and target_id not in self._frame_ids:
             del self._model[target_id]
+        elif point is not None:  # kept in the model, so as not to move the frame: not re-targeted
+            self._operator_removed.add(target_id)
         self._candidates.pop(target_id, None)
         self._stored.pop(target_id, None)
         if self._provisional is not None:
@@ -1737,7 +1749,8 @@ class Engine:
                         and frame.index - self._lost_since.get(pid, frame.index) >= remake_after_frames):
                     stale.add(pid)
                 todo.append((pid, pid not in stale))
-            elif s is None and (m.fixed or room or (room_stored and pid in self._stored)) and (not carried or pid in self._stored):
+            elif (s is None and (m.fixed or room or (room_stored and pid in self._stored)) and (not carried or pid in self._stored)
+                  and pid not in self._operator_removed):  # what the operator removed stays removed
                 todo.append((pid, False))
         if not todo:
             return
