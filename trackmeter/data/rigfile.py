@@ -43,11 +43,13 @@ def _open(path: Path, strict: bool = True) -> cv2.FileStorage:
         raise TrackmeterError(f"{path}: cannot read as a text file") from None
     if text is None:
         raise not_filestorage
+    read_as_plain_yaml = False  # by _plain_yaml, which has checked its values already
     try:
         # Parsed from memory, never from the name: OpenCV crashes the process (a segmentation
         # fault) on a name that is not UTF-8 (Python's surrogate escapes of its bytes).
         fs = cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
     except (cv2.error, SystemError):
+        read_as_plain_yaml = True
         # OpenCV 5's binding wraps the parser's cv2.error in a SystemError.
         fs = _plain_yaml(path)
         if fs is None:
@@ -57,7 +59,7 @@ def _open(path: Path, strict: bool = True) -> cv2.FileStorage:
     if not fs.root().isMap():  # a list or a scalar: every key lookup would assert inside OpenCV
         raise TrackmeterError(f"{path}: not a mapping of keys (image_width, K1, ...): a rig file's top level "
                               "must be key: value pairs")
-    if not strict:  # asked only what the file is (is_rig_file), not whether it is right
+    if not strict or read_as_plain_yaml:  # strict=False: asked only what the file is (is_rig_file)
         return fs
     keys = list(fs.root().keys())
     repeated = [k for i, k in enumerate(keys) if k in keys[:i]]
