@@ -33,10 +33,10 @@ from __future__ import annotations
 
 import collections
 import copy
-import itertools
+import re
 import warnings
 from dataclasses import dataclass, field, replace
-from typing import Any, Collection, Sequence
+from typing import Any, Collection, Iterable, Sequence
 
 import cv2
 import numpy as np
@@ -87,6 +87,8 @@ OFF_THE_BODY = "stereo match off the body's depth range"
 SEARCH_CELL_PX = 0.5
 #: Frames a target must have been tracked before its filter's velocity counts as measured.
 SETTLED_FRAMES = 3
+# The ids the tracker generates (origin operator, auto, model, other; then a number).
+_GENERATED_ID = re.compile(r"[pamt](\d+)")
 
 
 @dataclass(frozen=True)
@@ -362,7 +364,11 @@ class Tracker:
         #: 60 s estec case-(b) run the attitude error about the lateral axes grew from 0.89 to
         #: 1.55 deg (docs/results.md, Tracking).
         self.strict_anchor_ids: frozenset[str] = frozenset()
-        self._counter = itertools.count(1)
+        #: Ids a new target is never given unasked (:meth:`reserve_ids`): the a-priori model's,
+        #: which name their points as freely as the engine names targets (p1, a1, ...); a plain
+        #: click made "p1" was bound to model point p1 by name, wherever it was.
+        self._reserved_ids: set[str] = set()
+        self._next_number = 1  # of the next generated id (p<n>, a<n>, m<n>, t<n>)
         self._auto = bool(params.auto)
         self._auto_count = features.count
         self._auto_method = features.method
@@ -609,11 +615,20 @@ class Tracker:
             return f"textureless patch in one direction (aperture problem: min gradient eigenvalue {lam:.1f})"
         return None
 
+    def reserve_ids(self, ids: Iterable[str]) -> None:
+        """Never generate these ids for a new target (a model's point ids; a name given to a
+        target reserves itself). Only the names a later generated id could take are kept."""
+        for tid in ids:
+            match = _GENERATED_ID.fullmatch(str(tid))
+            if match is not None and int(match.group(1)) >= self._next_number:
+                self._reserved_ids.add(str(tid))
+
     def _new_id(self, origin: str) -> str:
         prefix = {"operator": "p", "auto": "a", "model": "m"}.get(origin, "t")
         while True:
-            tid = f"{prefix}{next(self._counter)}"
-            if tid not in self._targets:
+            tid = f"{prefix}{self._next_number}"
+            self._next_number += 1
+            if tid not in self._targets and tid not in self._reserved_ids:
                 return tid
 
     def _velocity_guess(self, uv: FloatArray | None = None, point_cam: FloatArray | None = None
@@ -698,6 +713,8 @@ class Tracker:
         if reason is not None:
             return Refusal(key, reason)
         tid = target_id or self._new_id(origin)
+        if target_id:
+            self.reserve_ids((target_id,))  # an operator's "a9" is not generated again once lost
         tmpl, search = self._templates(fc, uvf[None])
         v0, sv = self._velocity_guess(uvf, np.asarray(meas.xyz_m, float))
         kf = kf_mod.make_filter(uvf, self.params.kalman, velocity_px_s=v0, velocity_sigma_px_s=sv)

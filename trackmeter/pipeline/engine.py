@@ -292,6 +292,8 @@ class Engine:
         if chosen == "b" and model is None:
             raise TrackmeterError("case (b) needs an a-priori model (a model file, or a source that carries one)")
         self._given_model = model
+        if model is not None:
+            self.tracker.reserve_ids(model.ids)
         self._case: ModelCase = chosen
         self._gate = float(chi2.ppf(self.pose_params.outlier_probability, 3))
         self.stats = EngineStats()
@@ -619,6 +621,7 @@ class Engine:
             for w in said:  # on the server's stderr as before, and in the answer
                 warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
             self._given_model = model
+            self.tracker.reserve_ids(model.ids)
             self._case = "b"
             self._acquisition = None
             self._reset_motion()
