@@ -75,6 +75,12 @@ class FakeTracker:
     def set_auto(self, enabled, count=None, method=None):
         self._auto = (enabled, count or self._auto[1], method or self._auto[2])
 
+    def reserve_ids(self, ids) -> None:  # it makes up no ids (an unnamed add is refused)
+        pass
+
+    def generated_ids(self) -> frozenset[str]:
+        return frozenset()
+
     def _measure(self, tid: str, t_s: float) -> TargetState:
         T = true_pose(t_s)
         p = T[:3, :3] @ self.body[tid] + T[:3, 3]

@@ -114,3 +114,25 @@ def test_generated_target_ids_never_take_a_model_point_s_name(estec_sim_frames) 
         if t.id in names and t.status != "lost":
             off = np.hypot(*(np.asarray(t.uv) - _true_pixel(rig, model, frames[k], t.id)))
             assert off < 3.0, (t.id, t.origin, off)
+
+
+def test_a_model_loaded_later_does_not_take_over_targets_the_engine_named_as_its_points(
+        estec_sim_frames, estec_model, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    # Loaded while automatic targets a1, a2, ... were tracked, a model naming its points a1, a2,
+    # ... would have them as its points by name, wherever they are.
+    from trackmeter.data.model import save_model
+    from trackmeter.pipeline.snapshot import LoadModel
+
+    rig, frames = estec_sim_frames
+    engine = Engine(load_config(), rig, None, "a", rate_hz=25.0)
+    engine.tracker.set_auto(True, 16)
+    for k in range(4):
+        targets, _, _ = engine.process(frames[k])
+    auto = {t.id for t in targets if t.origin == "auto"}
+    names = tuple(f"a{k + 1}" for k in range(len(estec_model.ids)))
+    assert auto & set(names), "no automatic target named as the model's points: the case this test needs"
+    path = save_model(tmp_path / "model.yaml", list(zip(names, estec_model.points_body)))
+    reply = engine.handle(LoadModel(str(path)), frames[3])
+    assert reply.ok, reply.message
+    assert not {t.id for t in engine.targets} & set(names), reply.message
+    assert "removed" in reply.message

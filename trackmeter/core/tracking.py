@@ -246,6 +246,7 @@ class _Target:
     current_raw: Templates
     anchor_raw: Templates  # the anchor from the image itself (``anchor`` when the fits are not smoothed)
     status: TargetStatus = "tracking"
+    generated_id: bool = False  # its id made up by the tracker (p<n>, a<n>, ...), not given
     uv: FloatArray = field(default_factory=lambda: _NAN2.copy())
     uv_right: FloatArray = field(default_factory=lambda: _NAN2.copy())
     point_cam: FloatArray = field(default_factory=lambda: _NAN3.copy())
@@ -441,6 +442,10 @@ class Tracker:
             self._auto_count = int(count)
         if method is not None:
             self._auto_method = method
+
+    def generated_ids(self) -> frozenset[str]:
+        """The ids of the targets whose id the tracker made up (not given by a click or a model)."""
+        return frozenset(t.id for t in self._targets.values() if t.generated_id)
 
     def remove_target(self, target_id: str) -> bool:
         """Forget a target; False when there was none of that id."""
@@ -718,7 +723,8 @@ class Tracker:
         tmpl, search = self._templates(fc, uvf[None])
         v0, sv = self._velocity_guess(uvf, np.asarray(meas.xyz_m, float))
         kf = kf_mod.make_filter(uvf, self.params.kalman, velocity_px_s=v0, velocity_sigma_px_s=sv)
-        t = _Target(tid, origin, kf, tmpl, tmpl, frame.t_s, search, search, uv=uvf.copy(), predicted_uv=uvf.copy())
+        t = _Target(tid, origin, kf, tmpl, tmpl, frame.t_s, search, search, uv=uvf.copy(), predicted_uv=uvf.copy(),
+                    generated_id=not target_id)
         self._new_anchor(t, frame.index)
         t.slot = self._new_slot()
         t.disparity_px = float(meas.disparity_px)

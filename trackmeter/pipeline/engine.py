@@ -626,6 +626,13 @@ class Engine:
             self._acquisition = None
             self._reset_motion()
             notes = "".join(f"; {str(w.message).removeprefix(f'{path}: ')}" for w in said)
+            # A target is bound to the model point of its name: those the engine named as the
+            # model names its points (a1, p2, ...) are elsewhere on the body.
+            clash = sorted(self.tracker.generated_ids() & set(model.ids))
+            for tid in clash:
+                self.tracker.remove_target(tid)
+            if clash:
+                notes += f"; removed {counted(len(clash), 'target')} named as its points ({', '.join(clash)})"
             return CommandReply(True, f"model with {len(model)} points loaded: case (b){notes}", notable=bool(notes))
         if isinstance(command, SetFilterCutoff):
             # The low end is FilterParams.cutoff_hz's declared minimum, which building the
