@@ -223,6 +223,12 @@ class GeometricTracker:
     def set_auto(self, *a: Any, **k: Any) -> None:
         pass
 
+    def reserve_ids(self, ids: Any) -> None:  # its ids are the points' own (g<n>): none made up
+        pass
+
+    def generated_ids(self) -> frozenset[str]:
+        return frozenset()
+
     def _visible(self, T: np.ndarray) -> np.ndarray:
         X = self.points @ T[:3, :3].T + T[:3, 3]
         n = self.normals @ T[:3, :3].T
