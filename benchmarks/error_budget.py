@@ -119,6 +119,12 @@ class Replay:
     def set_auto(self, *args: Any, **kwargs: Any) -> None:
         pass
 
+    def reserve_ids(self, ids: Any) -> None:  # it makes up no ids (it adds no target)
+        pass
+
+    def generated_ids(self) -> frozenset[str]:
+        return frozenset()
+
 
 def record(seconds: float, scenario: str = "estec") -> dict[str, Any]:
     """Run the case (b) chain; per frame the targets the tracker gave, the truth and the pose."""
