@@ -194,3 +194,10 @@ def test_principal_axes_are_a_proper_rotation_for_unordered_or_rotated_moments(i
     # The attitude comes back through the principal frame unchanged at t = 0 (q and -q alike).
     np.testing.assert_allclose(Rotation.from_quat(motion.state(0.0)[0], scalar_first=True).as_matrix(),
                                Rotation.from_quat(q0, scalar_first=True).as_matrix(), atol=1e-12)
+
+
+def test_a_small_body_s_unequal_moments_are_not_a_symmetric_top() -> None:
+    # isclose's absolute tolerance (1e-8 kg m^2) took any two moments of a small body as equal
+    symmetric_precession_rate([2e-9, 2e-9, 6e-9], 10.0)  # equal: a top
+    with pytest.raises(TrackmeterError, match="not a symmetric top"):
+        symmetric_precession_rate([1e-9, 5e-9, 6e-9], 10.0)
