@@ -613,6 +613,8 @@ def test_times_that_do_not_increase_strictly_are_refused(fit) -> None:  # type: 
         fit(np.zeros(6), R, p, 1)
     with pytest.raises(TrackmeterError, match=r"times_s\[2\] is not finite"):
         fit(np.where(np.arange(6) == 2, np.nan, t), R, p, 1)
+    with pytest.raises(TrackmeterError, match=r"rates need at least 2 poses, got 1"):
+        fit(t[:1], R[:1], p[:1], 1)  # one pose holds no motion: it said v = omega = 0
 
 
 def test_a_reflection_or_a_time_that_is_no_number_is_refused_and_does_not_poison_the_window() -> None:

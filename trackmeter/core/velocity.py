@@ -218,7 +218,7 @@ def weighted_polyfit(V: ArrayLike, X: ArrayLike, weights: ArrayLike | None = Non
 
 
 def _increasing_times(times_s: ArrayLike) -> FloatArray:
-    """``times_s`` as a finite (N,) array that increases strictly, s.
+    """``times_s`` as a finite (N,) array, N >= 2, that increases strictly, s.
 
     The fits differentiate in ``tau = t - t_newest``: times given newest-first flip the sign of
     every rate, and equal times leave nothing to differentiate (v = omega = 0, silently).
@@ -227,6 +227,8 @@ def _increasing_times(times_s: ArrayLike) -> FloatArray:
         TrackmeterError: naming the first time that does not follow its predecessor.
     """
     t = finite_rows(times_s, "times_s", (None,))
+    if len(t) < 2:  # one pose holds no motion: its degree-0 fit said v = omega = 0
+        raise TrackmeterError(f"rates need at least 2 poses, got {len(t)}")
     back = np.flatnonzero(np.diff(t) <= 0)
     if back.size:
         k = int(back[0]) + 1
@@ -241,7 +243,7 @@ def local_polynomial_rates(
     """Fit a polynomial to a window of poses on SE(3) and differentiate it (Savitzky-Golay on the group).
 
     Args:
-        times_s: (N,) strictly increasing times, s (else TrackmeterError).
+        times_s: (N,) strictly increasing times, N >= 2, s (else TrackmeterError).
         R: (N,3,3) attitudes ``R_cam_body``.
         p: (N,3) body-origin positions in the camera frame, m.
         order: polynomial degree; uses ``min(order, N-1)``.
@@ -323,7 +325,7 @@ def screw_rates(
     between any pose of the window and the newest must stay below pi (the caller's window).
 
     Args:
-        times_s: (N,) strictly increasing times, s (else TrackmeterError).
+        times_s: (N,) strictly increasing times, N >= 2, s (else TrackmeterError).
         R: (N,3,3) attitudes ``R_cam_body``.
         p: (N,3) body-origin positions in the camera frame, m.
         order: polynomial degree.
