@@ -628,6 +628,12 @@ class Tracker:
             if match is not None and int(match.group(1)) >= self._next_number:
                 self._reserved_ids.add(str(tid))
 
+    def _made_up(self, target_id: str) -> bool:
+        """Whether ``target_id`` is one this tracker generated before: a model point's target
+        re-made under the id of the target it was grown from (``a17``) keeps that id's origin."""
+        match = _GENERATED_ID.fullmatch(target_id)
+        return match is not None and int(match.group(1)) < self._next_number and target_id not in self._reserved_ids
+
     def _new_id(self, origin: str) -> str:
         prefix = {"operator": "p", "auto": "a", "model": "m"}.get(origin, "t")
         while True:
@@ -724,7 +730,7 @@ class Tracker:
         v0, sv = self._velocity_guess(uvf, np.asarray(meas.xyz_m, float))
         kf = kf_mod.make_filter(uvf, self.params.kalman, velocity_px_s=v0, velocity_sigma_px_s=sv)
         t = _Target(tid, origin, kf, tmpl, tmpl, frame.t_s, search, search, uv=uvf.copy(), predicted_uv=uvf.copy(),
-                    generated_id=not target_id)
+                    generated_id=not target_id or (origin == "model" and self._made_up(target_id)))
         self._new_anchor(t, frame.index)
         t.slot = self._new_slot()
         t.disparity_px = float(meas.disparity_px)

@@ -594,6 +594,8 @@ class Engine:
             self._case = command.case
             self._acquisition = self._fresh_acquisition()
             self._reset_motion()
+            if command.case != "b":
+                self._operator_t = None  # it clicks case (b)'s model points: nothing to click now
             extra = ": hold the object still to acquire the model" if command.case == "c" else ""
             return CommandReply(True, f"model case ({command.case}){extra}")
         if isinstance(command, AcquireModel):
@@ -603,6 +605,7 @@ class Engine:
             self._case = "c"
             self._acquisition = _Acquisition()
             self._reset_motion()
+            self._operator_t = None  # it clicks case (b)'s model points: nothing to click now
             return CommandReply(True, f"acquiring a model: hold the object still for {self.pose_params.still_time_s:g} s"
                                       f"{switched}")
         if isinstance(command, LoadModel):
@@ -738,6 +741,7 @@ class Engine:
             self._operator_removed.add(target_id)
         self._candidates.pop(target_id, None)
         self._stored.pop(target_id, None)
+        self._pending_reject.discard(target_id)  # else a new click of that name is lost at the next step
         if self._provisional is not None:
             self._provisional._forget(target_id)
 
@@ -888,7 +892,9 @@ class Engine:
         self._pending_reject |= inner._pending_reject
         inner._pending_reject = set()
         need = self.pose_params.min_points
-        located = [pid for pid in self._given_model.ids if pid in inner._model]
+        # A frame point the operator removed stays in the provisional model (not to move its
+        # frame) at the coordinates it was measured at: perhaps a wrong corner, so not located.
+        located = [pid for pid in self._given_model.ids if pid in inner._model and pid not in inner._operator_removed]
         reason = (f"case (b): binding the model: {len(located)} of its points located in a provisional frame "
                   f"({need} needed)")
         if not located and not any(t.id in inner._keep_ids for t in out_targets):
@@ -1481,14 +1487,17 @@ class Engine:
         removed = self.tracker.take_removed() if keep and hasattr(self.tracker, "take_removed") else {}
         for t in targets:
             m = self._model.get(t.id)
-            if t.status != "lost" or m is None or (t.origin != "model" and not m.fixed):
+            # A target made for a model point the model no longer has (a case change, a binding,
+            # the pruning below): nothing re-makes it, and lost nothing else drops it.
+            orphan = m is None and t.origin == "model"
+            if t.status != "lost" or (m is None and not orphan) or (m is not None and t.origin != "model" and not m.fixed):
                 self._lost_since.pop(t.id, None)
                 continue
             since = self._lost_since.setdefault(t.id, frame.index)
-            if m.fixed:
+            if m is not None and m.fixed:
                 continue  # re-made through a measured pose (_recover), never just dropped
             if frame.index - since >= self._lost_keep_frames:
-                if keep:
+                if keep and not orphan:
                     removed[t.id] = self.tracker.detach(t.id)
                 else:
                     self.tracker.remove_target(t.id)
@@ -1501,6 +1510,8 @@ class Engine:
                 self._stored.setdefault(pid, (stored, self._pose_when_seen.get(pid)))
         for pid in [p for p in self._pose_when_seen if p not in self._model]:
             del self._pose_when_seen[pid]
+        for pid in [p for p in self._last_attempt if p not in self._model]:
+            del self._last_attempt[pid]
         grown = [pid for pid, m in self._model.items()
                  if not m.fixed and pid not in self._frame_ids and pid not in self._keep_ids]
         excess = len(grown) - self.pose_params.max_model_points
