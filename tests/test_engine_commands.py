@@ -292,3 +292,20 @@ def test_a_frame_point_the_operator_removed_does_not_count_as_located(estec_sim_
     for k in range(24, 60):
         _, pose, _ = engine.process(frames[k])
         assert "disagree" not in pose.reason, (k, pose.reason)
+
+
+def test_a_refused_named_click_keeps_the_lost_target_of_that_name(estec_sim_frames, estec_model) -> None:
+    # The lost target made way before the click was judged: refused (outside the image), the
+    # click had cost it, templates and all ("a refused click costs no target" everywhere else).
+    _, frames, engine = _case_b(estec_sim_frames, estec_model)
+    for k in range(1, 60):
+        targets, _, _ = engine.process(frames[k])
+        lost = [t for t in targets if t.status == "lost" and t.id in estec_model.ids]
+        if lost:
+            break
+    assert lost, "no model point's target lost in 60 frames: the case this test needs"
+    order = [t.id for t in engine.targets]
+    reply = engine.handle(SelectPoint(2.0, 2.0, lost[0].id), frames[k])
+    assert not reply.ok
+    assert [t.id for t in engine.targets] == order  # kept, in its place
+    assert next(t for t in engine.targets if t.id == lost[0].id).status == "lost"

@@ -685,6 +685,7 @@ class Tracker:
         target_id: str | None = None,
         origin: TargetOrigin = "operator",
         in_place_of: str | None = None,
+        replace_lost: bool = False,
     ) -> TargetState | Refusal:
         """Create a target at left pixel ``uv`` (ORIGINAL image, px) of ``frame``.
 
@@ -692,18 +693,30 @@ class Tracker:
         outside the image, the patch is black space or textureless, or it has no strong, unique
         stereo match along its epipolar line — as a measurement of that point would be.
         ``in_place_of``: at the limit, the target the new one replaces, removed only once the
-        new one is made (a refused click costs no target).
+        new one is made (a refused click costs no target). ``replace_lost``: a lost target of
+        ``target_id`` is no refusal but replaced, likewise only once the new one is made.
         """
         uvf = np.asarray(uv, dtype=float).reshape(2)
         key = (float(uvf[0]), float(uvf[1]))
-        full = len(self._targets) >= self.params.max_targets
+        old = self._targets.get(target_id) if target_id is not None else None
+        if old is not None and not (replace_lost and old.status == "lost"):
+            return Refusal(key, f"a target named {target_id!r} exists")
+        full = old is None and len(self._targets) >= self.params.max_targets
         if full and in_place_of not in self._targets:
             return Refusal(key, f"target limit reached ({self.params.max_targets} targets)")
-        if target_id is not None and target_id in self._targets:
-            return Refusal(key, f"a target named {target_id!r} exists")
         # Refused exactly as a measurement of the point would be (paper 2.A, H2's matcher)...
         meas = measure_points(self.rig, frame.left, frame.right, uvf[None], self.measure)[0]
+        order = list(self._targets)
+        if old is not None:
+            del self._targets[old.id]  # out of the way of its successor; back in its place if refused
         result = self._create(frame, uvf, meas, target_id, origin)
+        if old is not None:
+            if isinstance(result, Refusal):
+                self._targets[old.id] = old
+                self._targets = {tid: self._targets[tid] for tid in order}
+            else:
+                self._forget_distances(old)
+                self._free_slots.append(old.slot)
         if full and in_place_of is not None and not isinstance(result, Refusal):
             self.remove_target(in_place_of)
         return result

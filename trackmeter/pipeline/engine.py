@@ -516,15 +516,16 @@ class Engine:
             if there is not None:
                 return CommandReply(False, f"refused at ({command.u:.1f}, {command.v:.1f}): target {there[0]} is "
                                            f"already there ({there[1]:.1f} px away)")
-            if command.target_id is not None and any(t.id == command.target_id and t.status == "lost"
-                                                     for t in self.tracker.targets):
-                # Clicked where the lost one should be: it makes way, as for the model points'
-                # click (its name was refused: "a target named ... exists", where none is drawn).
-                self.tracker.remove_target(command.target_id)
             states = self.tracker.targets
+            # Clicked where the lost one of its name should be: it makes way once the new one is
+            # made, as for the model points' click (its name was refused: "a target named ...
+            # exists", where none is drawn), and a refused click costs no target.
+            replacing = command.target_id is not None and any(t.id == command.target_id and t.status == "lost"
+                                                              for t in states)
             # At the limit the click takes a lost or automatic target's place (kept otherwise).
-            room = {"in_place_of": click_room(states)} if len(states) >= self._max_targets else {}
-            if room and room["in_place_of"] is None:
+            room: dict[str, Any] = ({"replace_lost": True} if replacing else
+                                    {"in_place_of": click_room(states)} if len(states) >= self._max_targets else {})
+            if "in_place_of" in room and room["in_place_of"] is None:
                 return CommandReply(False, f"refused at ({command.u:.1f}, {command.v:.1f}): target limit reached "
                                            f"({counted(self._max_targets, 'target')}, all the operator's or model points "
                                            "and tracking): remove one (shift-click it) first")
@@ -534,7 +535,7 @@ class Engine:
                 result, moved_px, note = self._snap_click(frame, command, result, room)
             if isinstance(result, Refusal):
                 return CommandReply(False, f"refused at ({command.u:.1f}, {command.v:.1f}): {result.reason}")
-            if room:
+            if "in_place_of" in room:
                 gone = next(t for t in states if t.id == room["in_place_of"])
                 note += (f" (in place of {'lost ' if gone.status == 'lost' else ''}"
                          f"{'automatic' if gone.origin == 'auto' else gone.origin} target {gone.id}: "
