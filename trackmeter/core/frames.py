@@ -6,10 +6,13 @@ sources layer that makes them; :mod:`trackmeter.sources.base` re-exports both.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+
+from trackmeter.errors import TrackmeterError
 
 
 @dataclass(frozen=True, eq=False)
@@ -52,3 +55,9 @@ class StereoFrame:
     truth: GroundTruth | None = None
     cut: bool = False
     stamp_ns: int | None = None
+
+    def __post_init__(self) -> None:
+        # Every filter downstream steps by differences of it: one NaN turned a target's Kalman
+        # state into NaN for good, without a word. A source delivering it fails here instead.
+        if not math.isfinite(self.t_s):
+            raise TrackmeterError(f"frame {self.index}: its time is not a finite number ({self.t_s})")
