@@ -37,6 +37,16 @@ def _true_pixel(rig, model, frame, point_id: str) -> tuple[float, float]:  # typ
     return float(u), float(v)
 
 
+def _until_a_model_point_is_lost(engine, frames, model) -> tuple[int, str]:  # type: ignore[no-untyped-def]
+    """Steps ``engine`` from frame 1 until a model point's target is lost: (that frame, its id)."""
+    for k in range(1, len(frames)):
+        targets, _, _ = engine.process(frames[k])
+        lost = [t.id for t in targets if t.status == "lost" and t.id in model.ids]
+        if lost:
+            return k, lost[0]
+    raise AssertionError(f"no model point's target lost in {len(frames)} frames: the case the test needs")
+
+
 def test_a_model_point_the_operator_removed_is_not_targeted_again(estec_sim_frames, estec_model) -> None:
     # "removed bus_mxmymz", and eleven frames later it was back: the engine kept the a-priori
     # point in its model (so as not to move the frame) and its recovery made a target of it
@@ -58,13 +68,7 @@ def test_a_named_click_takes_the_place_of_its_lost_target(estec_sim_frames, este
     # named after a lost target was refused ("a target named ... exists"), and the same click
     # unnamed made a plain target, not the model point (an outside review).
     rig, frames, engine = _case_b(estec_sim_frames, estec_model)
-    for k in range(1, 40):
-        targets, _, _ = engine.process(frames[k])
-        lost = [t for t in targets if t.status == "lost" and t.id in estec_model.ids]
-        if lost:
-            break
-    assert lost, "no model point's target was lost in the first 40 frames: the case this test needs"
-    name = lost[0].id
+    k, name = _until_a_model_point_is_lost(engine, frames, estec_model)
     reply = engine.handle(SelectPoint(*_true_pixel(rig, estec_model, frames[k], name), name), frames[k])
     assert reply.ok and reply.target_id == name, reply.message
     mine = [t for t in engine.targets if t.id == name]
@@ -298,14 +302,9 @@ def test_a_refused_named_click_keeps_the_lost_target_of_that_name(estec_sim_fram
     # The lost target made way before the click was judged: refused (outside the image), the
     # click had cost it, templates and all ("a refused click costs no target" everywhere else).
     _, frames, engine = _case_b(estec_sim_frames, estec_model)
-    for k in range(1, 60):
-        targets, _, _ = engine.process(frames[k])
-        lost = [t for t in targets if t.status == "lost" and t.id in estec_model.ids]
-        if lost:
-            break
-    assert lost, "no model point's target lost in 60 frames: the case this test needs"
+    k, name = _until_a_model_point_is_lost(engine, frames, estec_model)
     order = [t.id for t in engine.targets]
-    reply = engine.handle(SelectPoint(2.0, 2.0, lost[0].id), frames[k])
+    reply = engine.handle(SelectPoint(2.0, 2.0, name), frames[k])
     assert not reply.ok
     assert [t.id for t in engine.targets] == order  # kept, in its place
-    assert next(t for t in engine.targets if t.id == lost[0].id).status == "lost"
+    assert next(t for t in engine.targets if t.id == name).status == "lost"
