@@ -308,3 +308,29 @@ def test_a_refused_named_click_keeps_the_lost_target_of_that_name(estec_sim_fram
     assert not reply.ok
     assert [t.id for t in engine.targets] == order  # kept, in its place
     assert next(t for t in engine.targets if t.id == name).status == "lost"
+
+
+def test_a_model_point_s_target_the_engine_re_made_is_not_taken_for_a_made_up_name(
+        estec_sim_frames, estec_model, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    # A model point named "p0" (a number the counter never gives), its target re-made by the
+    # engine under that name, was counted among the names the tracker made up: reloading the
+    # same model file removed the target, rightly placed (an outside review).
+    from trackmeter.data.model import load_model, save_model
+    from trackmeter.pipeline.snapshot import LoadModel, SetAuto
+
+    rig, frames = estec_sim_frames
+    names = ["p0" if i == 7 else f"q{i}" for i in range(len(estec_model.ids))]
+    path = save_model(tmp_path / "model.yaml", list(zip(names, estec_model.points_body)))
+    engine = Engine(load_config(), rig, load_model(path), "b", rate_hz=25.0)
+    engine.process(frames[0])
+    assert engine.handle(SelectModelPoints(repeat=True), frames[0]).ok
+    assert engine.handle(SetAuto(True, 16, "gabor"), frames[0]).ok
+    for k in range(1, 60):
+        targets, _, _ = engine.process(frames[k])
+        if any(t.id == "p0" and t.origin == "model" for t in targets):
+            break
+    else:
+        raise AssertionError("p0's target was not re-made by the engine: the case this test needs")
+    reply = engine.handle(LoadModel(str(path)), frames[k])
+    assert reply.ok and "removed" not in reply.message, reply.message
+    assert "p0" in {t.id for t in engine.targets}

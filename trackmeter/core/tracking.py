@@ -368,8 +368,13 @@ class Tracker:
         #: Ids a new target is never given unasked (:meth:`reserve_ids`): the a-priori model's,
         #: which name their points as freely as the engine names targets (p1, a1, ...); a plain
         #: click made "p1" was bound to model point p1 by name, wherever it was.
-        self._reserved_ids: set[str] = set()
+        self._model_ids: set[str] = set()
+        # Names given to targets that the counter has yet to reach (an operator's "a90").
+        self._named_ahead: set[str] = set()
         self._next_number = 1  # of the next generated id (p<n>, a<n>, m<n>, t<n>)
+        # The prefix each number was handed out with (0: skipped): which ids this tracker made
+        # up (:meth:`_made_up`), one byte a target, where a set of the names would be ~60.
+        self._prefix_of = bytearray()
         self._auto = bool(params.auto)
         self._auto_count = features.count
         self._auto_method = features.method
@@ -621,25 +626,29 @@ class Tracker:
         return None
 
     def reserve_ids(self, ids: Iterable[str]) -> None:
-        """Never generate these ids for a new target (a model's point ids; a name given to a
-        target reserves itself). Only the names a later generated id could take are kept."""
-        for tid in ids:
-            match = _GENERATED_ID.fullmatch(str(tid))
-            if match is not None and int(match.group(1)) >= self._next_number:
-                self._reserved_ids.add(str(tid))
+        """Never generate these ids for a new target: a model's point ids (only those of the
+        generated kind, p<n>, a<n>, m<n>, t<n>, are kept)."""
+        self._model_ids.update(str(tid) for tid in ids if _GENERATED_ID.fullmatch(str(tid)))
 
     def _made_up(self, target_id: str) -> bool:
-        """Whether ``target_id`` is one this tracker generated before: a model point's target
-        re-made under the id of the target it was grown from (``a17``) keeps that id's origin."""
+        """Whether ``target_id`` is one this tracker generated (and no model names since): a
+        model point's target re-made under the id of the target it was grown from (``a17``)
+        keeps that id's origin; an a-priori point named ``p0`` or ``p3`` never had it."""
         match = _GENERATED_ID.fullmatch(target_id)
-        return match is not None and int(match.group(1)) < self._next_number and target_id not in self._reserved_ids
+        if match is None or target_id in self._model_ids:
+            return False
+        n = int(match.group(1))
+        return 1 <= n <= len(self._prefix_of) and self._prefix_of[n - 1] == ord(target_id[0])
 
     def _new_id(self, origin: str) -> str:
         prefix = {"operator": "p", "auto": "a", "model": "m"}.get(origin, "t")
         while True:
-            tid = f"{prefix}{self._next_number}"
+            n = self._next_number
             self._next_number += 1
-            if tid not in self._targets and tid not in self._reserved_ids:
+            tid = f"{prefix}{n}"
+            if tid not in self._targets and tid not in self._model_ids and tid not in self._named_ahead:
+                self._prefix_of.extend(bytes(n - 1 - len(self._prefix_of)))  # the numbers skipped
+                self._prefix_of.append(ord(prefix))
                 return tid
 
     def _velocity_guess(self, uv: FloatArray | None = None, point_cam: FloatArray | None = None
@@ -737,8 +746,9 @@ class Tracker:
         if reason is not None:
             return Refusal(key, reason)
         tid = target_id or self._new_id(origin)
-        if target_id:
-            self.reserve_ids((target_id,))  # an operator's "a9" is not generated again once lost
+        match = _GENERATED_ID.fullmatch(target_id) if target_id else None
+        if match is not None and int(match.group(1)) >= self._next_number:
+            self._named_ahead.add(target_id)  # an operator's "a90" is not generated again once lost
         tmpl, search = self._templates(fc, uvf[None])
         v0, sv = self._velocity_guess(uvf, np.asarray(meas.xyz_m, float))
         kf = kf_mod.make_filter(uvf, self.params.kalman, velocity_px_s=v0, velocity_sigma_px_s=sv)
