@@ -128,12 +128,14 @@ class FakeTracker:
     def relock_many(self, requests, frame):
         return [self.relock(tid, uv, frame) for tid, uv in requests]
 
-    def add_target(self, frame, uv, target_id=None, origin="operator", in_place_of=None):
+    def add_target(self, frame, uv, target_id=None, origin="operator", in_place_of=None, replace_lost=False):
         self.added.append((target_id, uv, origin))
         if target_id is None or target_id not in self.body:
             return Refusal(uv, "black space")
         if in_place_of is not None:
             self.remove_target(in_place_of)
+        if replace_lost:  # the lost one of that name makes way (the click was not refused)
+            self._states = tuple(x for x in self._states if x.id != target_id)
         self.active[target_id] = "tracking"
         s = self._measure(target_id, frame.t_s)
         self._states = self._states + (s,)
