@@ -715,7 +715,7 @@ class Tracker:
             return Refusal(key, f"target limit reached ({self.params.max_targets} targets)")
         # Refused exactly as a measurement of the point would be (paper 2.A, H2's matcher)...
         meas = measure_points(self.rig, frame.left, frame.right, uvf[None], self.measure)[0]
-        order = list(self._targets)
+        order = list(self._targets) if old is not None else []
         if old is not None:
             del self._targets[old.id]  # out of the way of its successor; back in its place if refused
         result = self._create(frame, uvf, meas, target_id, origin)
