@@ -1503,7 +1503,7 @@ class Engine:
             # A target made for a model point the model no longer has (a case change, a binding,
             # the pruning below): nothing re-makes it, and lost nothing else drops it.
             orphan = m is None and t.origin == "model"
-            if t.status != "lost" or (m is None and not orphan) or (m is not None and t.origin != "model" and not m.fixed):
+            if t.status != "lost" or (t.origin != "model" and (m is None or not m.fixed)):
                 self._lost_since.pop(t.id, None)
                 continue
             since = self._lost_since.setdefault(t.id, frame.index)
@@ -1521,10 +1521,9 @@ class Engine:
             # at its projection since (where that was not found) does not replace it.
             if m is not None and not m.fixed and stored is not None:
                 self._stored.setdefault(pid, (stored, self._pose_when_seen.get(pid)))
-        for pid in [p for p in self._pose_when_seen if p not in self._model]:
-            del self._pose_when_seen[pid]
-        for pid in [p for p in self._last_attempt if p not in self._model]:
-            del self._last_attempt[pid]
+        for table in (self._pose_when_seen, self._last_attempt):
+            for pid in [p for p in table if p not in self._model]:
+                del table[pid]
         grown = [pid for pid, m in self._model.items()
                  if not m.fixed and pid not in self._frame_ids and pid not in self._keep_ids]
         excess = len(grown) - self.pose_params.max_model_points
