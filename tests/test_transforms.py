@@ -384,16 +384,16 @@ def test_matrix_to_quat_of_a_reflection_is_refused() -> None:
         tf.matrix_to_quat_wxyz(np.diag([1.0, 1.0, -1.0]))
 
 
-@pytest.mark.parametrize("dt_s", [0.0, -0.04, float("nan")])
+@pytest.mark.parametrize("dt_s", [0.0, -0.04, float("nan"), float("inf")])
 def test_rates_over_no_time_are_refused(dt_s: float) -> None:
     """omega_body_between and finite_difference_rates raised a plain ValueError (the latter after
-    numpy's divide-by-zero warning)."""
+    numpy's divide-by-zero warning); over an infinite interval both returned zero rates."""
     import warnings
 
     from trackmeter.core.velocity import finite_difference_rates
 
     q = np.array([1.0, 0, 0, 0])
-    with pytest.raises(TrackmeterError, match=r"dt_s must be positive, s; got"):
+    with pytest.raises(TrackmeterError, match=r"dt_s must be positive and finite, s; got"):
         tf.omega_body_between(q, q, dt_s)
     with warnings.catch_warnings():
         warnings.simplefilter("error")

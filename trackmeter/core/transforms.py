@@ -15,6 +15,7 @@ section 4: error measures).
 from __future__ import annotations
 
 import inspect
+import math
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -171,10 +172,10 @@ def omega_body_between(quat0_wxyz: ArrayLike, quat1_wxyz: ArrayLike, dt_s: float
     Sign-flipped quaternions (q and -q) give the same answer.
 
     Raises:
-        TrackmeterError: ``dt_s`` not positive (or NaN).
+        TrackmeterError: ``dt_s`` not positive and finite.
     """
-    if not dt_s > 0:
-        raise TrackmeterError(f"dt_s must be positive, s; got {dt_s:g}")
+    if not 0 < dt_s < math.inf:  # an infinite interval would turn any rotation into a zero rate
+        raise TrackmeterError(f"dt_s must be positive and finite, s; got {dt_s:g}")
     r0 = Rotation.from_quat(np.asarray(quat0_wxyz, dtype=float), scalar_first=True)
     r1 = Rotation.from_quat(np.asarray(quat1_wxyz, dtype=float), scalar_first=True)
     return np.asarray((r0.inv() * r1).as_rotvec(), dtype=float) / dt_s

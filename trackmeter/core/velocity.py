@@ -55,6 +55,7 @@ always takes it (noisier over a short turn).
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -168,13 +169,13 @@ def finite_difference_rates(
     m, at ``t0_s`` < ``t1_s``, s.
 
     Raises:
-        TrackmeterError: ``t1_s`` not after ``t0_s`` (checked before dividing: no warning);
+        TrackmeterError: ``t1_s`` not after ``t0_s``, or a time not finite (checked before dividing: no warning);
             ``R0``/``R1`` not a rotation or ``p0``/``p1`` not a finite (3,) (a NaN rotation
             raised numpy's LinAlgError from scipy).
     """
     dt = t1_s - t0_s
-    if not dt > 0:
-        raise TrackmeterError(f"t1_s must come after t0_s: dt_s must be positive, s; got {dt:g}")
+    if not 0 < dt < math.inf:
+        raise TrackmeterError(f"t1_s must come after t0_s: dt_s must be positive and finite, s; got {dt:g}")
     Rs = np.stack([rotation_matrix(R0, "R0"), rotation_matrix(R1, "R1")])
     p_start, p_end = finite_rows(p0, "p0", (3,)), finite_rows(p1, "p1", (3,))
     # one scipy conversion for both (each row is the single call's number)
