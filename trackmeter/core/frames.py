@@ -59,5 +59,9 @@ class StereoFrame:
     def __post_init__(self) -> None:
         # Every filter downstream steps by differences of it: one NaN turned a target's Kalman
         # state into NaN for good, without a word. A source delivering it fails here instead.
-        if not math.isfinite(self.t_s):
-            raise TrackmeterError(f"frame {self.index}: its time is not a finite number ({self.t_s})")
+        try:
+            finite = math.isfinite(self.t_s)
+        except TypeError:  # None, a string: a source's bug, named like a NaN
+            finite = False
+        if not finite:
+            raise TrackmeterError(f"frame {self.index}: its time is not a finite number ({self.t_s!r})")
