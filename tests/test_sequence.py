@@ -1762,3 +1762,25 @@ def test_a_cut_on_a_pair_that_cannot_be_read_marks_the_next_frame(tmp_path):
             played.append(f)
     assert [round(f.t_s * 25) for f in played] == [0, 1, 3, 4]
     assert [f.cut for f in played] == [False, False, True, False]
+
+
+@pytest.mark.parametrize("n_frames", [1, 4])
+def test_a_whole_last_row_without_its_newline_is_played(tmp_path, n_frames):
+    """Another tool's data.csv may end its last row without a newline (RFC 4180 allows it):
+    that frame was dropped as cut short, and a one-frame sequence refused as listing no image.
+    A last row cut short by a crash (its file name unfinished) is still counted, not played."""
+    d = _write(tmp_path / "s", _frames(n_frames))
+    for cam in ("cam0", "cam1"):
+        csv = d / cam / "data.csv"
+        csv.write_text(csv.read_text().rstrip("\n"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        src = SequenceSource(d)
+    assert len(src) == n_frames and src.skipped == 0
+    if n_frames == 1:
+        return
+    cut = d / "cam1" / "data.csv"
+    cut.write_text(cut.read_text()[:-2])  # "...png" -> "...p": a name cut short
+    with pytest.warns(UserWarning, match=r"1 malformed or cut-short data.csv row\(s\) ignored \(cam0: 0, cam1: 1\)"):
+        src = SequenceSource(d)
+    assert len(src) == n_frames - 1

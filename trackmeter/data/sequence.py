@@ -690,14 +690,16 @@ def _read_data_csv(path: Path) -> tuple[list[tuple[int, Path]], int, int, Path |
     except OSError as exc:
         raise TrackmeterError(f"{path}: cannot read: {exc.__class__.__name__}") from None
     lines = text.split("\n")
-    # A last line without its newline may be a row cut short by a crash: count it as bad.
-    complete, tail = lines[:-1], lines[-1]
-    if tail.strip():
-        bad += 1
+    # A last line without its newline is a row another tool wrote so (RFC 4180 allows it), or
+    # one cut short by a crash: kept when it is whole (a number, and a file that is there: a
+    # cut name lacks its extension's end), else counted as cut short, not as a missing file.
     header_allowed = True
-    for line_number, line in enumerate(complete, start=1):
+    for line_number, line in enumerate(lines, start=1):
         s = line.strip()
         if not s or s.startswith("#"):
+            continue
+        if line_number == len(lines) and not _whole_row(s, path):
+            bad += 1
             continue
         parts = [p.strip() for p in s.split(",")]
         if header_allowed:  # the first row may be a header written without EuRoC's '#'
@@ -731,6 +733,14 @@ def _read_data_csv(path: Path) -> tuple[list[tuple[int, Path]], int, int, Path |
     backwards = (f"{back} row(s) back in time from the row above ({first_back}): played in time order, "
                  "as if listed so (a camera clock reset would mix two runs)") if back else None
     return entries, bad, missing, first_missing, backwards
+
+
+def _whole_row(row: str, path: Path) -> bool:
+    """Whether ``row`` (stripped) of the data.csv at ``path`` is a whole ``timestamp_ns,filename``
+    row naming an image that is there."""
+    parts = [p.strip() for p in row.split(",")]
+    return (len(parts) >= 2 and re.fullmatch(r"[+-]?\d+", parts[0]) is not None and bool(parts[1])
+            and (path.parent / "data" / parts[1]).is_file())
 
 
 def _nearest(x: FloatArray, y: FloatArray) -> NDArray[np.intp]:
