@@ -26,11 +26,13 @@ from trackmeter.pipeline.snapshot import (
     CommandReply,
     LoadModel,
     PoseEstimate,
+    RemoveTarget,
     RestartSource,
     SelectPoint,
     SetCase,
     SetPaused,
     SetRecording,
+    Snapshot,
     StepOnce,
 )
 from trackmeter.sources.base import Source, StereoFrame
@@ -719,30 +721,64 @@ def test_a_writer_failing_while_the_queue_is_full_neither_hangs_the_stop_nor_los
     assert "No space left" in (stats.error or "")
 
 
+class _ValidPoseEngine(RecordingEngine):
+    """Publishes a valid case-(b) pose every frame, and removes targets by id."""
+
+    def handle(self, command, frame):  # type: ignore[no-untyped-def]
+        if isinstance(command, RemoveTarget):
+            self.targets = [t for t in self.targets if t.id != command.target_id]
+            return CommandReply(True, f"removed {command.target_id}")
+        return super().handle(command, frame)
+
+    def process(self, frame):  # type: ignore[no-untyped-def]
+        targets, _, errors = super().process(frame)
+        T = np.eye(4)
+        T[2, 3] = 3.5
+        return targets, PoseEstimate(True, None, "b", T, np.eye(6) * 1e-6, np.zeros(3), np.zeros(3), 3), errors
+
+
+def _first_valid_pose(pipe: Pipeline) -> Snapshot:
+    assert pipe.call(StepOnce()).ok  # a first frame for the click
+    snap = pipe.wait_snapshot(0, 5)
+    while snap is not None and not (snap.frame is not None and snap.pose.valid):
+        snap = pipe.wait_snapshot(snap.sequence, 5)
+    assert snap is not None and snap.pose.valid
+    return snap
+
+
+def _await_no_pose(pipe: Pipeline, n_targets: int) -> Snapshot:
+    snap = pipe.latest()
+    deadline = time.monotonic() + 5
+    while len(snap.targets) != n_targets or snap.pose.valid:
+        assert time.monotonic() < deadline, (len(snap.targets), snap.pose)
+        snap = pipe.wait_snapshot(snap.sequence, 1) or pipe.latest()
+    return snap
+
+
+def test_removing_a_target_while_paused_leaves_no_pose_shown() -> None:
+    # Paused, every target shift-clicked away: the page showed "targets: 0 tracking, 0 lost"
+    # beside "pose valid (case a, 4 points)" (an outside probe). A removal with no frame coming
+    # takes the pose it came from, as Clear does; playing, the next frame's pose replaces it.
+    engine = _ValidPoseEngine()
+    with Pipeline(CountingSource(10**6, delay_s=0.002), engine, paused=True) as pipe:
+        _first_valid_pose(pipe)
+        assert pipe.call(SelectPoint(1.0, 2.0)).ok and pipe.call(SelectPoint(3.0, 4.0)).ok
+        assert pipe.latest().pose.valid  # adding targets leaves a valid pose as it is
+        assert pipe.call(RemoveTarget("t0")).ok
+        snap = _await_no_pose(pipe, 1)
+        assert "a target removed" in (snap.pose.reason or "") and snap.pose.case == "b"
+        assert engine.processed == [0]  # no step taken meanwhile: the pose went with the removal
+
+
 def test_clearing_the_targets_while_paused_leaves_no_pose_shown() -> None:
     # The console showed "targets: 0 tracking" beside "pose valid (case b, 14 points)" until
     # the next step: the published pose must not outlive the targets it came from.
-    class ValidPoseEngine(RecordingEngine):
-        def process(self, frame):  # type: ignore[no-untyped-def]
-            targets, _, errors = super().process(frame)
-            T = np.eye(4)
-            T[2, 3] = 3.5
-            return targets, PoseEstimate(True, None, "b", T, np.eye(6) * 1e-6, np.zeros(3), np.zeros(3), 3), errors
-
-    engine = ValidPoseEngine()
+    engine = _ValidPoseEngine()
     with Pipeline(CountingSource(10**6, delay_s=0.002), engine, paused=True) as pipe:
-        assert pipe.call(StepOnce()).ok  # a first frame for the click
-        snap = pipe.wait_snapshot(0, 5)
-        while snap is not None and not (snap.frame is not None and snap.pose.valid):
-            snap = pipe.wait_snapshot(snap.sequence, 5)
-        assert snap is not None and snap.pose.valid
+        _first_valid_pose(pipe)
         assert pipe.call(SelectPoint(1.0, 2.0)).ok
         assert pipe.call(ClearTargets()).ok
-        snap = pipe.latest()
-        deadline = time.monotonic() + 5
-        while snap.targets or snap.pose.valid:
-            assert time.monotonic() < deadline, (len(snap.targets), snap.pose)
-            snap = pipe.wait_snapshot(snap.sequence, 1) or pipe.latest()
+        snap = _await_no_pose(pipe, 0)
         assert "targets cleared" in (snap.pose.reason or "") and snap.pose.case == "b"
         assert engine.processed == [0]  # no step taken meanwhile: the pose went with the clearing
 

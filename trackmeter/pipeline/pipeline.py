@@ -60,6 +60,8 @@ from trackmeter.pipeline.snapshot import (
     CommandReply,
     LoadModel,
     PoseEstimate,
+    RemoveNearest,
+    RemoveTarget,
     RestartSource,
     SelectPoint,
     SetCase,
@@ -769,6 +771,12 @@ class Pipeline:
             # replace it: the console showed a valid pose beside no target).
             self._last_pose = PoseEstimate.invalid("targets cleared", self._last_pose.case)
             self._last_errors = None
+        elif (isinstance(command, _REMOVE_COMMANDS) and reply.ok and self._last_pose.valid
+              and (self._paused or self._source_done)):
+            # The same for a removal when no frame is coming to estimate without it: paused, or
+            # the source ended (all four targets removed, "pose valid (4 points)" stayed).
+            self._last_pose = PoseEstimate.invalid(f"a target removed{_BEFORE_TARGETS}", self._last_pose.case)
+            self._last_errors = None
         elif (isinstance(command, _TARGET_COMMANDS) and reply.ok and self._paused and not self._last_pose.valid
               and self._last_frame is not None and not (self._last_pose.reason or "").endswith(_BEFORE_TARGETS)):
             # Paused, no frame comes to estimate the pose with the new targets: its reason (e.g.
@@ -953,6 +961,8 @@ _PIPELINE_COMMANDS = (SetPaused, StepOnce, RestartSource, SetRecording)
 _CASE_COMMANDS = (SetCase, AcquireModel, LoadModel)
 #: Commands that add targets, and what an invalid pose's reason says once they did while paused.
 _TARGET_COMMANDS = (SelectPoint, SelectModelPoints)
+#: Commands that remove targets one at a time.
+_REMOVE_COMMANDS = (RemoveTarget, RemoveNearest)
 _BEFORE_TARGETS = " (before the targets changed: Step or Play to update)"
 
 
