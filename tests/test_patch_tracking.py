@@ -474,3 +474,25 @@ def test_a_whole_disparity_strip_matches_the_same_whatever_the_last_disparitys_f
     assert both.sum() >= 15
     np.testing.assert_array_equal(disp[True, 3.3][both], disp[True, 3.7][both])
     assert np.nanmax(np.abs(disp[False, 3.3] - disp[False, 3.7])) > 0.01
+
+
+@pytest.mark.parametrize("size", [8, 7])
+def test_grid_patch_is_the_pixel_window_nearest_the_point_and_its_offset(size: int) -> None:
+    # The window's centre (x0 + (size-1)/2) is the nearest such centre to the point, within
+    # half a pixel each axis, and its values are the image's own pixels; off the image: None.
+    rng = np.random.default_rng(3)
+    img = rng.random((40, 50)).astype(np.float32)
+    half = (size - 1) / 2
+    for uv in rng.uniform([size, size], [50 - size, 40 - size], size=(50, 2)):
+        window, offset = pt.grid_patch(img, uv, size)
+        centre = uv - offset
+        assert np.all(np.abs(offset) <= 0.5)
+        x0, y0 = centre - half
+        assert float(x0).is_integer() and float(y0).is_integer()
+        np.testing.assert_array_equal(window, img[int(y0) : int(y0) + size, int(x0) : int(x0) + size])
+        # and the search finds that window again: its centre plus the offset is the point
+        uv_found, best, _ = pt.zncc_search(img, window, uv - offset, np.array([3.0, 3.0]))
+        np.testing.assert_allclose(uv_found + offset, uv, atol=1e-9)
+        assert best > 0.999
+    assert pt.grid_patch(img, np.array([1.0, 20.0]), size) is None
+    assert pt.grid_patch(img, np.array([25.0, 39.0]), size) is None

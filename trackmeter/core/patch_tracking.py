@@ -388,6 +388,27 @@ def refine_lk(
 _KERNEL_3X3 = np.ones((3, 3), np.uint8)
 
 
+def grid_patch(image: NDArray, uv: NDArray, size: int) -> tuple[F32, FloatArray] | None:
+    """The ``size`` x ``size`` window of ``image``'s own pixels whose centre is nearest ``uv``
+    (2,) px, and ``uv`` minus that centre (2,), each within half a pixel; None when the window
+    is not inside the image.
+
+    The integer search (:func:`zncc_search`) compares windows of the image's pixels: a template
+    resampled at a sub-pixel point is compared half a pixel off and blurred by the resampling
+    (an 8x8 template made at a whole pixel, compared against the same image, scored 0.67 on a
+    sharp texture), where a window of pixels scores 1 at its own place. Adding the offset to the
+    search's result puts the point back where the template was made.
+    """
+    half = (size - 1) / 2.0
+    x0 = math.floor(float(uv[0]) - half + 0.5)
+    y0 = math.floor(float(uv[1]) - half + 0.5)
+    h, w = image.shape[:2]
+    if x0 < 0 or y0 < 0 or x0 + size > w or y0 + size > h:
+        return None
+    window = np.asarray(image[y0 : y0 + size, x0 : x0 + size], dtype=np.float32)
+    return window, np.array([float(uv[0]) - (x0 + half), float(uv[1]) - (y0 + half)])
+
+
 def zncc_search(
     image: F32, template: F32, centre: NDArray, half_size: NDArray
 ) -> tuple[FloatArray, float, float] | None:
@@ -395,8 +416,9 @@ def zncc_search(
 
     The window covers centres ``centre ± half_size`` (2,) px, clipped to the image. Returns
     ``(uv (2,), best score, best score of the other local maxima)``
-    or None when the window is smaller than the template. The returned centre is offset from
-    an integer grid by the template's own sub-pixel offset, so LK can start from it.
+    or None when the window is smaller than the template. The returned centre is the centre of
+    the best window of whole pixels (a half-pixel grid for an even ``n``): a template cut on the
+    pixel grid (:func:`grid_patch`) gets its own point back by adding its offset.
     """
     n = template.shape[0]
     h, w = image.shape

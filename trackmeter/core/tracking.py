@@ -56,6 +56,7 @@ from trackmeter.core.patch_tracking import (
     Templates,
     complex_map,
     fit_disparity_plane,
+    grid_patch,
     make_templates,
     match_epipolar,
     track_patches,
@@ -207,6 +208,11 @@ class TrackerParams:
         "px (0: none; the integer search and the stereo match always use the image itself; at most 5: wider "
         "smooths an 8x8 patch flat, and 1e6 took minutes a frame)", min=0.0, max=5.0,
     )
+    search_on_pixel_grid: bool = param(
+        False, "the integer search's template is the window of the image's own pixels nearest the target, its "
+        "offset from the target added back to the search's result, not the template resampled at the target "
+        "(compared half a pixel off: a still target on a sharp texture is lost as a low score)",
+    )
     track_blur_recheck_px: float = param(
         0.25, "with the smoothing, each sub-pixel fit is refined again on the image itself and must land within this "
         "of the smoothed fit, else it failed, px (0: no re-check)", min=0.0,
@@ -260,6 +266,10 @@ class _Target:
     lost_frames: int = 0
     reanchors: int = 0
     slot: int = -1
+    # The integer search's template cut on the image's pixel grid, and the target's offset from
+    # its centre, px (None: the current template's values, resampled at the target: no offset).
+    search_window: NDArray[np.float32] | None = None
+    search_offset: FloatArray = field(default_factory=lambda: np.zeros(2))
     anchor_lin: FloatArray = field(default_factory=lambda: np.eye(2))  # anchor → image linear warp
     anchor_z_m: float = float("nan")  # depth when the anchor was taken (nan: not yet measured)
     # anchor_warp "plane": the anchor's pixel and frame, the rigid motion (anchor camera → camera
@@ -275,8 +285,9 @@ class _Target:
 
     @property
     def search(self) -> NDArray[np.float32]:
-        """(size,size) the integer search's template: the current patch of the image itself."""
-        return self.current_raw.values[0]
+        """(size,size) the integer search's template: the current patch of the image itself
+        (``search_offset`` from the target when cut on the pixel grid)."""
+        return self.current_raw.values[0] if self.search_window is None else self.search_window
 
     def state(self) -> TargetState:
         lost = self.status == "lost"
@@ -586,6 +597,17 @@ class Tracker:
 
     # ------------------------------------------------------------------ frames
 
+    def _set_search(self, fc: _FrameCache, t: _Target) -> None:
+        """Cut ``t``'s integer-search template at its pixel ``t.uv`` (see ``search_on_pixel_grid``)."""
+        cut = grid_patch(fc.left, t.uv, self.params.patch_size) if self.params.search_on_pixel_grid else None
+        t.search_window, t.search_offset = (None, np.zeros(2)) if cut is None else cut
+
+    def _search(self, fc: _FrameCache, t: _Target, centre: FloatArray, half: NDArray) -> tuple[FloatArray, float, float] | None:
+        """:func:`zncc_search` of ``t``'s template for the target near ``centre`` (2,): where the
+        target would be, its template's offset taken into account both ways."""
+        found = zncc_search(fc.left, t.search, np.asarray(centre, dtype=float) - t.search_offset, half)
+        return None if found is None else (found[0] + t.search_offset, found[1], found[2])
+
     def _templates(self, fc: _FrameCache, uv: FloatArray) -> tuple[Templates, Templates]:
         """The templates at ``uv`` (N,2) for the sub-pixel fits (from the possibly smoothed image)
         and those of the image itself (its values: the integer search's templates)."""
@@ -755,6 +777,7 @@ class Tracker:
         t = _Target(tid, origin, kf, tmpl, tmpl, frame.t_s, search, search, uv=uvf.copy(), predicted_uv=uvf.copy(),
                     generated_id=not target_id or (origin == "model" and self._made_up(target_id)))
         self._new_anchor(t, frame.index)
+        self._set_search(fc, t)
         t.slot = self._new_slot()
         t.disparity_px = float(meas.disparity_px)
         t.point_cam = np.asarray(meas.xyz_m, float).copy()
@@ -933,7 +956,7 @@ class Tracker:
         starts: list[FloatArray] = []
         for i, (t, centre) in enumerate(zip(targets, centres)):
             # The current template is the last verified appearance of the target.
-            found = zncc_search(fc.left, t.search, centre, half)
+            found = self._search(fc, t, centre, half)
             if found is None:
                 out[i] = (False, "search window outside the image")
                 continue
@@ -990,6 +1013,7 @@ class Tracker:
         t.kf = kf_mod.make_filter(uv, p.kalman, velocity_px_s=v0, velocity_sigma_px_s=sv)
         t.anchor_lin = res.anchor_lin[r].copy()
         t.current, t.current_raw = self._templates(fc, uv[None])
+        self._set_search(fc, t)
         t.status = "recovered"
         t.lost_reason = None
         t.lost_frames = 0
@@ -1052,7 +1076,7 @@ class Tracker:
         above = p.near_first_settled_above_px if t.age_frames >= SETTLED_FRAMES else p.near_first_new_above_px
         if p.near_first_px <= 0 or max(float(half[0]), float(half[1])) <= above:  # floats: run per target per frame
             return None
-        near = zncc_search(fc.left, t.search, pred, np.minimum(half, p.near_first_px))
+        near = self._search(fc, t, pred, np.minimum(half, p.near_first_px))
         if near is None or np.any(np.abs(near[0] - pred) > p.near_first_px - 1.0):
             return None
         _, best, second = near
@@ -1102,7 +1126,7 @@ class Tracker:
             if not np.all(np.isfinite(pred)):
                 self._lose(t, "prediction diverged")
                 continue
-            found = self._search_near_first(fc, t, pred, half) or zncc_search(fc.left, t.search, pred, half)
+            found = self._search_near_first(fc, t, pred, half) or self._search(fc, t, pred, half)
             if found is None:
                 self._lose(t, "left the image")
                 continue
@@ -1212,6 +1236,7 @@ class Tracker:
                     one = new.select(slice(k, k + 1))
                     one_raw = one if raw is new else raw.select(slice(k, k + 1))
                     t.current, t.current_raw = one, one_raw
+                    self._set_search(fc, t)
                     if not anch:
                         self._new_anchor(t, frame.index)
                         t.anchor, t.anchor_raw = one, one_raw
