@@ -109,6 +109,17 @@ MODEL_NOT_TARGETED = "none is a target yet: target them by id"
 CLICKED_NOW = "the model points in view were clicked again at this frame"
 
 
+def _pixel(u: float, v: float) -> str:
+    """``(u, v)`` to a tenth of a pixel, as replies quote a click; a click on the border
+    (-0.04) reads 0.0, not "-0.0"."""
+
+    def tenth(x: float) -> str:
+        text = f"{x:.1f}"
+        return "0.0" if text == "-0.0" else text
+
+    return f"({tenth(u)}, {tenth(v)})"
+
+
 @dataclass(frozen=True, eq=False)
 class SelectModelPoints(Command):
     """Simulated operator (case b on a source with ground truth): create a target at the TRUE
@@ -514,7 +525,7 @@ class Engine:
                 return CommandReply(False, "no frame yet")
             there = self._target_at((command.u, command.v)) if command.target_id is None else None
             if there is not None:
-                return CommandReply(False, f"refused at ({command.u:.1f}, {command.v:.1f}): target {there[0]} is "
+                return CommandReply(False, f"refused at {_pixel(command.u, command.v)}: target {there[0]} is "
                                            f"already there ({there[1]:.1f} px away)")
             states = self.tracker.targets
             # Clicked where the lost one of its name should be: it makes way once the new one is
@@ -526,7 +537,7 @@ class Engine:
             room: dict[str, Any] = ({"replace_lost": True} if replacing else
                                     {"in_place_of": click_room(states)} if len(states) >= self._max_targets else {})
             if "in_place_of" in room and room["in_place_of"] is None:
-                return CommandReply(False, f"refused at ({command.u:.1f}, {command.v:.1f}): target limit reached "
+                return CommandReply(False, f"refused at {_pixel(command.u, command.v)}: target limit reached "
                                            f"({counted(self._max_targets, 'target')}, all the operator's or model points "
                                            "and tracking): remove one (shift-click it) first")
             result = self.tracker.add_target(frame, (command.u, command.v), command.target_id, "operator", **room)
@@ -534,7 +545,7 @@ class Engine:
             if isinstance(result, Refusal) and command.target_id is None:
                 result, moved_px, note = self._snap_click(frame, command, result, room)
             if isinstance(result, Refusal):
-                return CommandReply(False, f"refused at ({command.u:.1f}, {command.v:.1f}): {result.reason}")
+                return CommandReply(False, f"refused at {_pixel(command.u, command.v)}: {result.reason}")
             if "in_place_of" in room:
                 gone = next(t for t in states if t.id == room["in_place_of"])
                 note += (f" (in place of {'lost ' if gone.status == 'lost' else ''}"
