@@ -42,6 +42,19 @@ def test_groundtruth_round_trip_is_exact(tmp_path):
     assert r.valid.all() and r.has_velocity and dict(r.extra) == {}
 
 
+def test_a_groundtruth_csv_written_with_quotes_reads_as_without(tmp_path):
+    # R's write.csv quotes the header's names, Python's csv.QUOTE_ALL every field: "header lacks
+    # t,x,y,z,..." refused such a file (an outside probe).
+    s = _series()
+    plain = write_groundtruth_csv(tmp_path / "groundtruth.csv", s)
+    lines = plain.read_text().splitlines()
+    quoted = tmp_path / "quoted.csv"
+    quoted.write_text("\n".join(",".join(f'"{f}"' for f in line.split(",")) for line in lines) + "\n")
+    r = read_motion_csv(quoted)
+    for name in ("t_s", "position_m", "quat_wxyz", "velocity_cam_m_s", "omega_body_rad_s"):
+        np.testing.assert_array_equal(getattr(r, name), getattr(read_motion_csv(plain), name))
+
+
 def test_states_writer_streams_whole_rows_and_invalid_rows_read_as_nan(tmp_path):
     path = tmp_path / "run" / "states.csv"
     q = np.array([0.5, 0.5, -0.5, 0.5])

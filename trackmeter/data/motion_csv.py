@@ -183,8 +183,15 @@ class MotionSeries:
 def header_fields(line: str) -> list[str]:
     """The column names of a motion CSV header line (a leading ``#``, as EuRoC writes its
     headers, is not part of the first name), EuRoC's ground-truth names read as ours
-    (:func:`_our_name`)."""
-    return [_our_name(h.strip().lstrip("#").strip()) for h in line.strip().lstrip("\ufeff").split(",")]
+    (:func:`_our_name`). A name in double quotes (R's ``write.csv``, Python's ``csv.QUOTE_ALL``)
+    is read without them."""
+    return [_our_name(_unquoted(h).lstrip("#").strip()) for h in line.strip().lstrip("\ufeff").split(",")]
+
+
+def _unquoted(field: str) -> str:
+    """``field`` stripped of spaces, and of one pair of double quotes around it."""
+    f = field.strip()
+    return f[1:-1].strip() if len(f) >= 2 and f[0] == f[-1] == '"' else f
 
 
 #: EuRoC's ground-truth column names (``state_groundtruth_estimate0/data.csv``, ``leica0``,
@@ -322,7 +329,7 @@ def read_motion_csv(path: str | Path) -> MotionSeries:
         if len(fields) != len(header):
             raise TrackmeterError(f"{path}:{number}: expected {len(header)} values, got {len(fields)}")
         for c, f in enumerate(fields):
-            f = f.strip()
+            f = _unquoted(f)
             try:
                 values[r, c] = float(f) if f else math.nan
             except ValueError:
