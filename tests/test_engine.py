@@ -23,6 +23,7 @@ from trackmeter.pipeline.snapshot import (
     ClearTargets,
     LoadModel,
     PoseEstimate,
+    RemoveNearest,
     SelectPoint,
     SetAuto,
     SetCase,
@@ -700,6 +701,8 @@ def test_commands(estec_rig, tmp_path) -> None:
     # A click on the image's border quoted as it is drawn, not "refused at (-0.0, 0.0)".
     reply = engine.handle(SelectPoint(-0.04, 0.0), frame_at(0))
     assert not reply.ok and reply.message.startswith("refused at (0.0, 0.0): "), reply.message
+    reply = engine.handle(RemoveNearest(-0.04, -0.02), frame_at(0))
+    assert not reply.ok and reply.message.endswith(" px of (0.0, 0.0)"), reply.message
     assert engine.handle(SetAuto(True, 20, None), None).ok and engine.auto_enabled and engine.auto_count == 20
     assert engine.handle(SetFilterCutoff(1.5), None).ok and engine.filter_cutoff_hz == 1.5
     assert not engine.handle(SetFilterCutoff(0.0), None).ok

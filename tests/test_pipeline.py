@@ -727,7 +727,7 @@ class _ValidPoseEngine(RecordingEngine):
     def handle(self, command, frame):  # type: ignore[no-untyped-def]
         if isinstance(command, RemoveTarget):
             self.targets = [t for t in self.targets if t.id != command.target_id]
-            return CommandReply(True, f"removed {command.target_id}")
+            return CommandReply(True, f"removed {command.target_id}", command.target_id)
         return super().handle(command, frame)
 
     def process(self, frame):  # type: ignore[no-untyped-def]
@@ -768,6 +768,27 @@ def test_removing_a_target_while_paused_leaves_no_pose_shown() -> None:
         snap = _await_no_pose(pipe, 1)
         assert "a target removed" in (snap.pose.reason or "") and snap.pose.case == "b"
         assert engine.processed == [0]  # no step taken meanwhile: the pose went with the removal
+
+
+def test_removing_a_lost_target_while_paused_keeps_the_pose_and_after_the_end_says_restart() -> None:
+    # A lost target is in no pose: removing it leaves the pose (an outside review). After the
+    # source's end Step is refused, so the reason does not advise it.
+    engine = _ValidPoseEngine()
+    with Pipeline(CountingSource(10**6, delay_s=0.002), engine, paused=True) as pipe:
+        _first_valid_pose(pipe)
+        assert pipe.call(SelectPoint(1.0, 2.0)).ok
+        engine.targets[0] = dataclasses.replace(engine.targets[0], status="lost")
+        assert pipe.call(SelectPoint(3.0, 4.0)).ok  # the pipeline takes the targets as they stand
+        assert pipe.call(RemoveTarget("t0")).ok
+        assert pipe.latest().pose.valid
+    engine = _ValidPoseEngine()
+    with Pipeline(CountingSource(5), engine) as pipe:
+        pipe.call(SelectPoint(1.0, 2.0))
+        snap = pipe.run_until_end(10)
+        assert snap.source_status == "ended" and snap.pose.valid and snap.targets
+        assert pipe.call(RemoveTarget(snap.targets[0].id)).ok
+        snap = _await_no_pose(pipe, len(snap.targets) - 1)
+        assert snap.pose.reason == "a target removed (the source has ended: Restart to track again)", snap.pose.reason
 
 
 def test_clearing_the_targets_while_paused_leaves_no_pose_shown() -> None:

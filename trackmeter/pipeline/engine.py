@@ -580,7 +580,7 @@ class Engine:
             if tid is None:
                 from trackmeter.core.tracking import REMOVE_NEAREST_PX
 
-                return CommandReply(False, f"no target within {REMOVE_NEAREST_PX:g} px of ({command.u:.0f}, {command.v:.0f})")
+                return CommandReply(False, f"no target within {REMOVE_NEAREST_PX:g} px of {_pixel(command.u, command.v)}")
             self._forget(tid)
             return CommandReply(True, f"removed {tid}", tid)
         if isinstance(command, ClearTargets):

@@ -772,10 +772,14 @@ class Pipeline:
             self._last_pose = PoseEstimate.invalid("targets cleared", self._last_pose.case)
             self._last_errors = None
         elif (isinstance(command, _REMOVE_COMMANDS) and reply.ok and self._last_pose.valid
-              and (self._paused or self._source_done)):
-            # The same for a removal when no frame is coming to estimate without it: paused, or
-            # the source ended (all four targets removed, "pose valid (4 points)" stayed).
-            self._last_pose = PoseEstimate.invalid(f"a target removed{_BEFORE_TARGETS}", self._last_pose.case)
+              and (self._paused or self._source_done)
+              and any(t.id == reply.target_id and t.status != "lost" for t in self._last_targets)):
+            # The same for a removal of a target the pose may have used, when no frame is coming
+            # to estimate without it: paused, or the source ended (all four targets removed,
+            # "pose valid (4 points)" stayed). (A source that ends while its last read blocks
+            # is marked done only after: that pose is left, as a running one would be.)
+            ending = _AFTER_THE_END if self._source_done else _BEFORE_TARGETS
+            self._last_pose = PoseEstimate.invalid(f"a target removed{ending}", self._last_pose.case)
             self._last_errors = None
         elif (isinstance(command, _TARGET_COMMANDS) and reply.ok and self._paused and not self._last_pose.valid
               and self._last_frame is not None and not (self._last_pose.reason or "").endswith(_BEFORE_TARGETS)):
@@ -964,6 +968,7 @@ _TARGET_COMMANDS = (SelectPoint, SelectModelPoints)
 #: Commands that remove targets one at a time.
 _REMOVE_COMMANDS = (RemoveTarget, RemoveNearest)
 _BEFORE_TARGETS = " (before the targets changed: Step or Play to update)"
+_AFTER_THE_END = " (the source has ended: Restart to track again)"
 
 
 def _is_pipeline_command(command: Command) -> bool:
