@@ -27,6 +27,7 @@ from trackmeter.pipeline.snapshot import (
     LoadModel,
     PoseEstimate,
     RemoveTarget,
+    ResetTracking,
     RestartSource,
     SelectPoint,
     SetCase,
@@ -99,7 +100,7 @@ class RecordingEngine:
             self.targets.append(TargetState(tid, "operator", "tracking", np.array([command.u, command.v]), nan2,
                                             np.zeros(3), np.eye(3), 1.0, nan2, (0, 0, 1, 1)))
             return CommandReply(True, "ok", tid)
-        if isinstance(command, ClearTargets):
+        if isinstance(command, (ClearTargets, ResetTracking)):
             self.targets = []
             return CommandReply(True, "cleared")
         return CommandReply(False, "unknown")
@@ -791,16 +792,17 @@ def test_removing_a_lost_target_while_paused_keeps_the_pose_and_after_the_end_sa
         assert snap.pose.reason == "a target removed (the source has ended: Restart to track again)", snap.pose.reason
 
 
-def test_clearing_the_targets_while_paused_leaves_no_pose_shown() -> None:
+@pytest.mark.parametrize("command, reason", [(ClearTargets(), "targets cleared"), (ResetTracking(), "tracking reset")])
+def test_clearing_the_targets_while_paused_leaves_no_pose_shown(command, reason) -> None:  # type: ignore[no-untyped-def]
     # The console showed "targets: 0 tracking" beside "pose valid (case b, 14 points)" until
     # the next step: the published pose must not outlive the targets it came from.
     engine = _ValidPoseEngine()
     with Pipeline(CountingSource(10**6, delay_s=0.002), engine, paused=True) as pipe:
         _first_valid_pose(pipe)
         assert pipe.call(SelectPoint(1.0, 2.0)).ok
-        assert pipe.call(ClearTargets()).ok
+        assert pipe.call(command).ok
         snap = _await_no_pose(pipe, 0)
-        assert "targets cleared" in (snap.pose.reason or "") and snap.pose.case == "b"
+        assert reason in (snap.pose.reason or "") and snap.pose.case == "b"
         assert engine.processed == [0]  # no step taken meanwhile: the pose went with the clearing
 
 

@@ -62,6 +62,7 @@ from trackmeter.pipeline.snapshot import (
     PoseEstimate,
     RemoveNearest,
     RemoveTarget,
+    ResetTracking,
     RestartSource,
     SelectPoint,
     SetCase,
@@ -766,10 +767,11 @@ class Pipeline:
             return CommandReply(True, f"recording to {command.directory}"
                                 + ("; paused: frames are recorded as the source plays or steps" if self._paused else ""))
         reply = self.engine.handle(command, self._last_frame)
-        if isinstance(command, ClearTargets) and reply.ok:
+        if isinstance(command, (ClearTargets, ResetTracking)) and reply.ok:
             # The published pose went with the targets it came from (paused, no step would
             # replace it: the console showed a valid pose beside no target).
-            self._last_pose = PoseEstimate.invalid("targets cleared", self._last_pose.case)
+            what = "targets cleared" if isinstance(command, ClearTargets) else "tracking reset"
+            self._last_pose = PoseEstimate.invalid(what, self._last_pose.case)
             self._last_errors = None
         elif (isinstance(command, _REMOVE_COMMANDS) and reply.ok and self._last_pose.valid
               and (self._paused or self._source_done)
