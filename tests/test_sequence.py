@@ -1777,7 +1777,11 @@ def test_a_whole_last_row_without_its_newline_is_played(tmp_path, n_frames):
         warnings.simplefilter("error")
         src = SequenceSource(d)
     assert len(src) == n_frames and src.skipped == 0
-    if n_frames == 1:
+    if n_frames == 1:  # its one row cut short: said so, not "lists no image" alone
+        csv = d / "cam0" / "data.csv"
+        csv.write_text(csv.read_text()[:-2])
+        with pytest.raises(TrackmeterError, match=r"cam0/data.csv: lists no image but 1 row malformed or cut short$"):
+            SequenceSource(d)
         return
     cut = d / "cam1" / "data.csv"
     cut.write_text(cut.read_text()[:-2])  # "...png" -> "...p": a name cut short

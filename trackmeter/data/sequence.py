@@ -889,12 +889,13 @@ def index_sequence(
         # median gap to 0, and a tolerance of 0 paired nothing with a camera 0.1 ms off.
         distinct = np.unique(t_left)
         tolerance_s = 0.25 * float(ns_to_seconds(np.median(np.diff(distinct)))) if len(distinct) > 1 else 1e-3
-    for cam, entries, missing, gone in (("cam0", left, miss_l, gone_l), ("cam1", right, miss_r, gone_r)):
+    for cam, entries, missing, gone, bad in (("cam0", left, miss_l, gone_l, bad_l), ("cam1", right, miss_r, gone_r, bad_r)):
         if not entries:
             path = root / cam / "data.csv"
             # The path looked for shows a filename column written relative to another folder.
             raise TrackmeterError(f"{path}: none of the {missing} image(s) it lists exists (the first looked for: {gone})"
-                                  if missing else f"{path}: lists no image")
+                                  if missing else f"{path}: lists no image" + (
+                                      f" but {counted(bad, 'row')} malformed or cut short" if bad else ""))
     pairs = pair_by_nearest(ns_to_seconds(t_left), ns_to_seconds(t_right), tolerance_s)
     unpaired = (len(left) - len(pairs)) + (len(right) - len(pairs))
     # A row repeating an earlier timestamp (a data.csv appended to twice) finds no partner of
