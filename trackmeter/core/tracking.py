@@ -599,13 +599,17 @@ class Tracker:
 
     def _set_search(self, fc: _FrameCache, t: _Target) -> None:
         """Cut ``t``'s integer-search template at its pixel ``t.uv`` (see ``search_on_pixel_grid``)."""
-        cut = grid_patch(fc.left, t.uv, self.params.patch_size) if self.params.search_on_pixel_grid else None
+        if not self.params.search_on_pixel_grid:  # per target per frame: nothing to do when off
+            return
+        cut = grid_patch(fc.left, t.uv, self.params.patch_size)
         t.search_window, t.search_offset = (None, np.zeros(2)) if cut is None else cut
 
     def _search(self, fc: _FrameCache, t: _Target, centre: FloatArray, half: NDArray) -> tuple[FloatArray, float, float] | None:
         """:func:`zncc_search` of ``t``'s template for the target near ``centre`` (2,): where the
         target would be, its template's offset taken into account both ways."""
-        found = zncc_search(fc.left, t.search, np.asarray(centre, dtype=float) - t.search_offset, half)
+        if t.search_window is None:  # the resampled template: no offset
+            return zncc_search(fc.left, t.search, centre, half)
+        found = zncc_search(fc.left, t.search_window, np.asarray(centre, dtype=float) - t.search_offset, half)
         return None if found is None else (found[0] + t.search_offset, found[1], found[2])
 
     def _templates(self, fc: _FrameCache, uv: FloatArray) -> tuple[Templates, Templates]:
