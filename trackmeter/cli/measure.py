@@ -14,7 +14,8 @@ accepted a pixel or more off (measured on the Tsukuba pair, docs/results.md).
    "xyz_m": [x, y, z], "sigma_m": [sx, sy, sz], "score": s}
 (right_uv in the original right image; disparity_px in the RECTIFIED images, d = f b / z plus
 the rectification's offset, so not u - right_u where the images are distorted or converge;
-null where a refused point has no number).
+a pair rectified already keeps its principal points and its own disparities, u - right_u,
+with Middlebury's doffs; null where a refused point has no number).
 
 example (two textured points of the simulated estec trial's first frame):
   trackmeter simulate --scenario estec --duration 1 --out SEQ

@@ -145,10 +145,10 @@ class MeasureParams:
     """Tunables of a single 3D point measurement."""
 
     patch_size: int = param(8, "side of the square patch matched between the images, px", min=3, max=63)
-    min_disparity_px: float = param(0.0, "smallest disparity searched, rectified px", min=0.0)
+    min_disparity_px: float = param(0.0, "smallest disparity searched, px past a point at infinity's (0: infinity)", min=0.0)
     max_disparity_px: float = param(
-        0.0, "largest disparity searched, rectified px; 0: a point's at min_range_m (disparity_range_px)", min=0.0,
-        max=4096.0,
+        0.0, "largest disparity searched, px past a point at infinity's; 0: a point's at min_range_m "
+        "(disparity_range_px)", min=0.0, max=4096.0,
     )
     min_range_m: float = param(
         1.0, "when max_disparity_px is 0: the nearest range searched, m (a rig's focal length x baseline / it: "
@@ -247,8 +247,11 @@ class MeasureParams:
     def disparity_range_px(self, rect: Rectification) -> tuple[float, float]:
         """The disparities searched along a rectified row, ``(low, high)`` px, for the rig ``rect``.
 
-        ``high`` is ``max_disparity_px`` when given, else the disparity of a point at
-        ``min_range_m`` (``f b / z`` plus the rectification's disparity offset), so that the
+        ``min_disparity_px`` and ``max_disparity_px`` count from a point at infinity's
+        disparity, the rectification's ``disparity_offset_px`` (0 on a rig rectified to one
+        principal point; ``cx1 - cx2`` on a pair rectified already, e.g. minus Middlebury's
+        ``doffs``), which is added to both. ``high`` is ``max_disparity_px`` when given, else
+        the disparity of a point at ``min_range_m`` (``f b / z``), so that the
         nearest range searched is the same on any rig: a fixed 320 px was 1 m on the ESTEC
         rig but 1.4 m on a 1280 px wide one (f 1400 px, b 0.3 m), where a near face was refused
         as "low score" or "ambiguous" without a word of range. Never more than the rectified
@@ -258,12 +261,13 @@ class MeasureParams:
             TrackmeterError: a range that is empty on this rig (``min_disparity_px`` too large).
         """
         width = float(rect.rig.image_size[0])
-        high = self.max_disparity_px or rect.focal_px * rect.baseline_m / self.min_range_m + rect.disparity_offset_px
-        high = min(float(high), width)
-        if not self.min_disparity_px < high:
+        offset = rect.disparity_offset_px
+        high = min(float(self.max_disparity_px or rect.focal_px * rect.baseline_m / self.min_range_m) + offset, width)
+        low = float(self.min_disparity_px) + offset
+        if not low < high:
             raise TrackmeterError(f"min_disparity_px ({self.min_disparity_px:g}) must be below the largest disparity "
-                                  f"searched, {high:.4g} px on this rig (max_disparity_px, or min_range_m's)")
-        return float(self.min_disparity_px), high
+                                  f"searched, {high - offset:.4g} px on this rig (max_disparity_px, or min_range_m's)")
+        return low, high
 
 
 # --------------------------------------------------------------------------- results

@@ -270,6 +270,22 @@ MAX_RECTIFICATION_ZOOM = 4.0
 LENSLESS_ZOOM_FOR_BLAME = 2.0
 
 
+def _rectified_apart(rig: StereoRig) -> bool:
+    """Whether ``rig`` is a pair rectified already (no rotation, the baseline along x, no lens
+    distortion, the same focal lengths and principal row) whose principal points lie apart."""
+    K1, K2 = rig.left.K, rig.right.K
+    scale = float(np.max(np.abs(K1)))
+    same = np.isclose(np.delete(K1.ravel(), 2), np.delete(K2.ravel(), 2), rtol=0.0, atol=1e-9 * scale)
+    return bool(
+        np.all(same)
+        and abs(K1[0, 2] - K2[0, 2]) > 1e-9 * scale
+        and np.max(np.abs(rig.R - np.eye(3))) <= 1e-9
+        and np.max(np.abs(rig.T[1:])) <= 1e-9 * abs(rig.T[0])
+        and not np.any(rig.left.dist)
+        and not np.any(rig.right.dist)
+    )
+
+
 def _zoom(rig: StereoRig, P1: FloatArray, P2: FloatArray) -> float:
     """The rectified focal length (of ``P1``, ``P2``) over the cameras' mean; inf when not finite."""
     if not (np.all(np.isfinite(P1)) and np.all(np.isfinite(P2))):
@@ -330,7 +346,10 @@ class Rectification:
             rig.image_size,
             rig.R,
             rig.T.reshape(3, 1),
-            flags=cv2.CALIB_ZERO_DISPARITY,
+            # A pair rectified already, its principal points apart (Middlebury 2014's ``doffs``),
+            # keeps them: moved onto one it was zoomed and cropped (5 % on Motorcycle), every
+            # pixel resampled, and its disparities were no longer the pair's own.
+            flags=0 if _rectified_apart(rig) else cv2.CALIB_ZERO_DISPARITY,
             alpha=alpha,
         )
         zoom = _zoom(rig, P1, P2)
