@@ -329,3 +329,26 @@ def test_the_target_mask_is_the_square_erosion_at_any_margin(margin_px: int) -> 
                 expected[v, u] = 255 if inside and (window > params.black_level).all() else 0
         expected[:3], expected[-3:], expected[:, :3], expected[:, -3:] = 0, 0, 0, 0
     np.testing.assert_array_equal(ft.target_mask(image, params), expected)
+
+
+def test_the_stereo_check_searches_from_infinity_on_a_pair_rectified_with_principal_points_apart(shared_data) -> None:  # type: ignore[no-untyped-def]
+    """On a pair rectified already whose principal points lie apart (Middlebury 2014's
+    ``doffs``), a point at infinity has the disparity ``cx1 - cx2``; the stereo check's range
+    was cut at 0, so with Tsukuba's right image moved 12 px right (its principal point with it)
+    hardly a point (5-14 px apart, now -7 to 2) passed."""
+    from trackmeter.core.stereo import Camera, StereoRig
+
+    left = cv2.imread(str(shared_data / "middlebury_tsukuba" / "img_left.png"), cv2.IMREAD_GRAYSCALE)
+    right = cv2.imread(str(shared_data / "middlebury_tsukuba" / "img_right.png"), cv2.IMREAD_GRAYSCALE)
+    shift = 12
+    moved = np.zeros_like(right)
+    moved[:, shift:] = right[:, :-shift]
+    K1 = np.array([[400.0, 0.0, 192.0], [0.0, 400.0, 144.0], [0.0, 0.0, 1.0]])
+    K2 = K1.copy()
+    K2[0, 2] += shift
+    rig = StereoRig(Camera(384, 288, K1), Camera(384, 288, K1), np.eye(3), np.array([-0.1, 0.0, 0.0]))
+    moved_rig = StereoRig(Camera(384, 288, K1), Camera(384, 288, K2), np.eye(3), np.array([-0.1, 0.0, 0.0]))
+    as_given = select_features(left, right, rig, 40, "shi_tomasi", FeatureParams())
+    as_moved = select_features(left, moved, moved_rig, 40, "shi_tomasi", FeatureParams())
+    assert len(as_given) >= 30
+    assert len(as_moved) >= 0.9 * len(as_given), (len(as_moved), len(as_given))

@@ -400,3 +400,25 @@ def test_a_negative_standard_deviation_is_refused(estec_rig: StereoRig) -> None:
 def test_depth_sigma_refuses_what_is_no_stereo_geometry(args, message) -> None:  # type: ignore[no-untyped-def]
     with pytest.raises(TrackmeterError, match=message):
         depth_sigma(*args)
+
+
+def test_views_in_order_on_a_pair_rectified_with_principal_points_apart_are_not_called_swapped(shared_data) -> None:  # type: ignore[no-untyped-def]
+    """On a pair rectified already whose principal points lie apart (Middlebury 2014's
+    ``doffs``), a point at infinity has the disparity ``cx1 - cx2``, not 0: Tsukuba's right
+    image moved 12 px right, its principal point with it, puts most of its points (5-14 px)
+    at negative disparities, and the views in order were called swapped."""
+    import cv2
+
+    from trackmeter.core.stereo import Camera, StereoRig, swapped_views_problem
+
+    left = cv2.imread(str(shared_data / "middlebury_tsukuba" / "img_left.png"), cv2.IMREAD_GRAYSCALE)
+    right = cv2.imread(str(shared_data / "middlebury_tsukuba" / "img_right.png"), cv2.IMREAD_GRAYSCALE)
+    shift = 12
+    moved = np.zeros_like(right)
+    moved[:, shift:] = right[:, :-shift]
+    K1 = np.array([[400.0, 0.0, 192.0], [0.0, 400.0, 144.0], [0.0, 0.0, 1.0]])
+    K2 = K1.copy()
+    K2[0, 2] += shift
+    rig = StereoRig(Camera(384, 288, K1), Camera(384, 288, K2), np.eye(3), np.array([-0.1, 0.0, 0.0]))
+    assert rig.rectification.disparity_offset_px == pytest.approx(-shift, abs=1e-6)
+    assert swapped_views_problem(rig, left, moved) is None

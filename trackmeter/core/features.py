@@ -662,7 +662,7 @@ def search_disparities(rig: StereoRig, params: FeatureParams, disparity_range_px
             c = 0.5 * (lo + hi)
             lo, hi = c - 0.5 * params.stereo_min_span_px, c + 0.5 * params.stereo_min_span_px
         lo, hi = max(lo, full_lo), min(hi, full_hi)
-    return max(0.0, float(np.floor(lo))), min(hi, rig.image_size[0] - 1.0)
+    return float(np.floor(lo)), min(hi, rig.image_size[0] - 1.0)
 
 
 _COMPLEX_MAPS: weakref.WeakKeyDictionary[Rectification, tuple[NDArray[np.complex64], NDArray[np.complex64]]] = weakref.WeakKeyDictionary()

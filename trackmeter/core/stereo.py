@@ -632,6 +632,7 @@ def swapped_views_problem(rig: StereoRig, left: NDArray, right: NDArray,
     if np.array_equal(left, right):  # one image twice: no order to tell (rectified, its two maps shift it)
         return None
     d = view_disparities_px(rig, left, right) if disparities_px is None else np.asarray(disparities_px, float)
+    d = d - rig.rectification.disparity_offset_px  # past a point at infinity's: > 0 in front of the rig
     if len(d) < SWAPPED_MIN_MATCHES or np.mean(d < -SWAPPED_MIN_SHIFT_PX) < SWAPPED_MIN_FRACTION:
         return None
     return (f"the left and right images look swapped: the view lies {-float(np.median(d)):.0f} px further right in "
