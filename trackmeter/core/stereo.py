@@ -314,7 +314,9 @@ class Rectification:
     """Rectified stereo geometry of a rig (OpenCV ``stereoRectify`` with ``alpha``).
 
     In the rectified images, a scene point has the same row in both images and its disparity
-    ``d = u_left - u_right`` gives depth ``z = f b / (d - (cx1 - cx2))``.
+    ``d = u_left - u_right`` gives depth ``z = f b / (d - (cx1 - cx2))``. Rectified to one
+    principal point (``CALIB_ZERO_DISPARITY``), ``cx1 - cx2`` is 0; a pair rectified already
+    whose principal points lie apart keeps them, its maps the identity.
 
     Attributes:
         rig: the rig.
