@@ -238,7 +238,7 @@ def test_points_beyond_the_range_searched_name_the_range_and_its_setting(pair, t
     assert "beyond disparity range" in captured.out
     lines = captured.err.strip().splitlines()
     assert len(lines) == 1, captured.err
-    assert lines[0].startswith("trackmeter measure: warning: 1 point beyond the disparity range searched, 0-93.5 px"), lines[0]
+    assert lines[0].startswith("trackmeter measure: warning: 1 point beyond the disparity range searched, 0 to 93.5 px on this rig"), lines[0]
     assert "measure.max_disparity_px (93.5 px)" in lines[0] and "--config" in lines[0]
     assert _run(folder, "--at", "310,250") == 0  # the default range: measured, nothing said
     assert capsys.readouterr().err == ""
@@ -257,3 +257,33 @@ def test_a_rig_with_its_cameras_swapped_is_refused_naming_the_file(pair, tmp_pat
     assert _run(pair[4], "--at", "300,200", rig=swapped) == 2
     line = _one_error_line(capsys, "lies left of the left one")
     assert f"error: {swapped}: " in line
+
+
+def test_the_range_searched_on_a_pair_with_principal_points_apart_is_counted_as_its_settings_are(
+        tmp_path: Path, shared_data, capsys) -> None:  # type: ignore[no-untyped-def]
+    """On a pair rectified already whose principal points lie apart (Tsukuba's right image moved
+    12 px right, its principal point with it), the warning printed the range as rectified
+    disparities, "-9--2 px", beside the settings that asked for 3 to 10 (an outside probe)."""
+    from trackmeter.core.stereo import Camera, StereoRig
+    from trackmeter.data.rigfile import save_rig
+
+    left = cv2.imread(str(shared_data / "middlebury_tsukuba" / "img_left.png"), cv2.IMREAD_GRAYSCALE)
+    right = cv2.imread(str(shared_data / "middlebury_tsukuba" / "img_right.png"), cv2.IMREAD_GRAYSCALE)
+    moved = np.zeros_like(right)
+    moved[:, 12:] = right[:, :-12]
+    cv2.imwrite(str(tmp_path / "left.png"), left)
+    cv2.imwrite(str(tmp_path / "right.png"), moved)
+    K1 = np.array([[400.0, 0.0, 192.0], [0.0, 400.0, 144.0], [0.0, 0.0, 1.0]])
+    K2 = K1.copy()
+    K2[0, 2] += 12
+    rig = save_rig(StereoRig(Camera(384, 288, K1), Camera(384, 288, K2), np.eye(3), np.array([-0.1, 0.0, 0.0])),
+                   tmp_path / "rig.yaml")
+    config = tmp_path / "narrow.yaml"
+    config.write_text("measure:\n  min_disparity_px: 3\n  max_disparity_px: 4\n")
+    # (100, 100) lies 5 px apart in the pair as given (Middlebury's truth): beyond 3 to 4.
+    assert _run(tmp_path, "--at", "100,100", "--config", str(config), rig=rig) == 0
+    captured = capsys.readouterr()
+    assert "beyond disparity range" in captured.out
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1, captured.err
+    assert "searched, 3 to 4 px past a point at infinity's (-12 px: the principal points apart)" in lines[0], lines[0]

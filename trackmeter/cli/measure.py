@@ -90,11 +90,14 @@ def run(args: argparse.Namespace) -> int:
         warnings.warn(swapped, stacklevel=1)
     beyond = sum(m.reason == REASON_BEYOND_RANGE for m in results)
     if beyond:  # the table says "beyond disparity range", not which range nor where it is set
-        low, high = params.disparity_range_px(rig.rectification)
+        # Counted from a point at infinity's disparity, as the settings named beside it are.
+        offset = rig.rectification.disparity_offset_px
+        low, high = (value - offset for value in params.disparity_range_px(rig.rectification))
         near = (f"measure.max_disparity_px ({params.max_disparity_px:g} px)" if params.max_disparity_px
                 else f"measure.min_range_m ({params.min_range_m:g} m)")
-        warnings.warn(f"{counted(beyond, 'point')} beyond the disparity range searched, {low:g}-{high:.4g} px on "
-                      f"this rig: nearer than {near} or farther than measure.min_disparity_px allows; another "
+        past = f" past a point at infinity's ({offset:.4g} px: the principal points apart)" if offset else ""
+        warnings.warn(f"{counted(beyond, 'point')} beyond the disparity range searched, {low:g} to {high:.4g} px{past} "
+                      f"on this rig: nearer than {near} or farther than measure.min_disparity_px allows; another "
                       f"range goes in a --config file", stacklevel=1)
     if args.json:
         print(json.dumps(measurements_to_json(results), allow_nan=False))

@@ -588,10 +588,15 @@ def _not_side_by_side_reason(rig: StereoRig) -> str:
 SWAPPED_MIN_SHIFT_PX = 2.0
 #: Matches a verdict on the views' order needs (a chessboard's repeated corners give a few).
 SWAPPED_MIN_MATCHES = 10
-#: ... and the share of them at negative disparity that says the views are swapped: measured
-#: 99-100 % on swapped pairs (the simulated mock-up at 726x512 to 2048x1536, a textured plate,
-#: Tsukuba), 0-1 % on the same pairs in order.
-SWAPPED_MIN_FRACTION = 0.8
+#: ... and the share of them at a disparity no point in front of the rig has (below a point at
+#: infinity's) that says the views are swapped, when the views exchanged would leave at most
+#: :data:`SWAPPED_MAX_OTHER_FRACTION` of them there: measured 99-100 % on swapped pairs (the
+#: simulated mock-up at 726x512 to 2048x1536, a textured plate, Tsukuba), 0-1 % on the same
+#: pairs in order. On a pair whose principal points lie apart a swap moves the points by twice
+#: the offset less: Middlebury's Motorcycle (offset -31 px) swapped 69 %, Tsukuba's right image
+#: moved 2 px right, its principal point with it, swapped 55 %, 0 % either way exchanged.
+SWAPPED_MIN_FRACTION = 0.3
+SWAPPED_MAX_OTHER_FRACTION = 0.05
 
 
 def view_disparities_px(rig: StereoRig, left: NDArray, right: NDArray, features: int = 500) -> FloatArray:
@@ -627,19 +632,31 @@ def view_disparities_px(rig: StereoRig, left: NDArray, right: NDArray, features:
 
 def swapped_views_problem(rig: StereoRig, left: NDArray, right: NDArray,
                           disparities_px: FloatArray | None = None) -> str | None:
-    """One line when the views look swapped, else None: most of the view's distinctive points
-    (:func:`view_disparities_px`, or ``disparities_px`` when already found) lie further right
-    in the right image than in the left one, which no point in front of the rig does. The
-    matcher then finds nothing, or look-alikes at made-up depths."""
-    if np.array_equal(left, right):  # one image twice: no order to tell (rectified, its two maps shift it)
-        return None
+    """One line when the views look swapped or are one image twice, else None.
+
+    Swapped: many of the view's distinctive points (:func:`view_disparities_px`, or
+    ``disparities_px`` when already found) lie further right in the right image than a point at
+    infinity would, which no point in front of the rig does, and with the views exchanged
+    almost none would (:data:`SWAPPED_MIN_FRACTION`, :data:`SWAPPED_MAX_OTHER_FRACTION`). The
+    matcher then finds nothing, or look-alikes at made-up depths. One image given twice (with
+    distinctive points: two black frames of empty space are no mistake) is no stereo pair: on
+    a rig rectified to one principal point every point is refused at infinity, and on a pair
+    whose principal points lie apart every point comes out at ``f b / |cx1 - cx2|``.
+    """
     d = view_disparities_px(rig, left, right) if disparities_px is None else np.asarray(disparities_px, float)
-    d = d - rig.rectification.disparity_offset_px  # past a point at infinity's: > 0 in front of the rig
-    if len(d) < SWAPPED_MIN_MATCHES or np.mean(d < -SWAPPED_MIN_SHIFT_PX) < SWAPPED_MIN_FRACTION:
+    if len(d) < SWAPPED_MIN_MATCHES:
         return None
-    return (f"the left and right images look swapped: the view lies {-float(np.median(d)):.0f} px further right in "
-            "the right image than in the left one (rectified), where every point in front of the rig lies further "
-            "left; give the left camera's images as the left ones (a sequence's cam0)")
+    if np.array_equal(left, right):
+        return ("the left and right images are one and the same image: no depth can be measured from one view; "
+                "give the right camera's images as the right ones (a sequence's cam1)")
+    offset = rig.rectification.disparity_offset_px
+    given, exchanged = d - offset, -d - offset  # past a point at infinity's: >= 0 in front of the rig
+    if (np.mean(given < -SWAPPED_MIN_SHIFT_PX) < SWAPPED_MIN_FRACTION
+            or np.mean(exchanged < -SWAPPED_MIN_SHIFT_PX) > SWAPPED_MAX_OTHER_FRACTION):
+        return None
+    return (f"the left and right images look swapped: the view lies {-float(np.median(given)):.0f} px further right in "
+            "the right image than a point at infinity would (rectified), where every point in front of the rig lies "
+            "further left; give the left camera's images as the left ones (a sequence's cam0)")
 
 
 def depth_sigma(z_m: ArrayLike, focal_px: float, baseline_m: float, sigma_disparity_px: float) -> FloatArray:
