@@ -901,8 +901,9 @@ class Console:
             self._notify_all("Automatic selection", f"started no target: {why}", False)
 
     def _say_views(self, frame: StereoFrame | None) -> None:
-        """Say once, on the first frames that tell, that the left and right images look swapped:
-        every click would be refused, or matched at a made-up depth, with no word of why."""
+        """Say once, on the first frames that tell, that the left and right images look swapped
+        (or are one image): every click would be refused, or matched at a made-up depth, with no
+        word of why."""
         if frame is None or self._views_watch is None:
             return
         problem = self._views_watch.check(frame.left, frame.right)

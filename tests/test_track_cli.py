@@ -680,8 +680,11 @@ def test_a_model_without_bound_targets_runs_case_a_and_says_so(monkeypatch, tmp_
     extra = ["--model", str(model_path)] if model_from == "--model" else []
     out = tmp_path / "run"
     assert main(["track", "--source", "fake", *extra, "--auto", "4", "--out", str(out)]) == 0
-    # (the fake source's one image in both cameras gives --auto nothing: that is said too)
-    err = [line for line in _other_lines(capsys.readouterr().err) if "--auto started no target" not in line]
+    # (the fake source's one image in both cameras gives --auto nothing: that is said too, and
+    # the one image, once)
+    captured = capsys.readouterr().err
+    assert captured.count(SAME_IMAGE) == 1, captured
+    err = [line for line in _other_lines(captured) if "--auto started no target" not in line]
     assert len(err) == 1 and "case (a)" in err[0], err
     assert "--target ID=U,V" in err[0] and "--select-model-points" in err[0] and "--case b" in err[0]
     meta = yaml.safe_load((out / "run.yaml").read_text())["source"]

@@ -497,7 +497,7 @@ def _source_identity(source: Any) -> dict[str, str]:
 
 
 def _check_views(state: dict[str, Any], rig: Any, frame: Any, tty: bool) -> None:
-    """Warn once when the first frames' left and right images look swapped
+    """Warn once when the first frames' left and right images look swapped, or are one image
     (:class:`~trackmeter.pipeline.views.SwappedViewsWatch`)."""
     from trackmeter.pipeline.views import SwappedViewsWatch
 

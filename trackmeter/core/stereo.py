@@ -272,12 +272,14 @@ LENSLESS_ZOOM_FOR_BLAME = 2.0
 
 def _rectified_apart(rig: StereoRig) -> bool:
     """Whether ``rig`` is a pair rectified already (no rotation, the baseline along x, no lens
-    distortion, the same focal lengths and principal row) whose principal points lie apart."""
+    distortion, the same square-pixel focal length and principal row) whose principal points
+    lie apart."""
     K1, K2 = rig.left.K, rig.right.K
     scale = float(np.max(np.abs(K1)))
     same = np.isclose(np.delete(K1.ravel(), 2), np.delete(K2.ravel(), 2), rtol=0.0, atol=1e-9 * scale)
     return bool(
         np.all(same)
+        and abs(K1[0, 0] - K1[1, 1]) <= 1e-9 * scale  # square pixels: the maps are then the identity
         and abs(K1[0, 2] - K2[0, 2]) > 1e-9 * scale
         and np.max(np.abs(rig.R - np.eye(3))) <= 1e-9
         and np.max(np.abs(rig.T[1:])) <= 1e-9 * abs(rig.T[0])
@@ -533,8 +535,8 @@ class Rectification:
 def check_side_by_side(rig: StereoRig) -> None:
     """Raise :class:`TrackmeterError` unless ``rig`` can be matched: after rectification its
     right camera must lie to the right of the left one, so that a point's match lies on the
-    same rectified ROW with a positive disparity ``d = u_left - u_right`` (the stereo matcher
-    searches rows, and depth is ``f b / d``).
+    same rectified ROW with a disparity ``d = u_left - u_right`` past a point at infinity's
+    (the stereo matcher searches rows, and depth is ``f b / (d - (cx1 - cx2))``).
 
     A rig whose right camera lies mostly in front of or behind the left one is refused too.
     A vertical rig rectifies to equal columns (``P2[1,3]`` carries the baseline, ``P2[0,3]`` is
@@ -589,13 +591,17 @@ SWAPPED_MIN_SHIFT_PX = 2.0
 #: Matches a verdict on the views' order needs (a chessboard's repeated corners give a few).
 SWAPPED_MIN_MATCHES = 10
 #: ... and the share of them at a disparity no point in front of the rig has (below a point at
-#: infinity's) that says the views are swapped, when the views exchanged would leave at most
-#: :data:`SWAPPED_MAX_OTHER_FRACTION` of them there: measured 99-100 % on swapped pairs (the
+#: infinity's) that says the views are swapped: measured 99-100 % on swapped pairs (the
 #: simulated mock-up at 726x512 to 2048x1536, a textured plate, Tsukuba), 0-1 % on the same
-#: pairs in order. On a pair whose principal points lie apart a swap moves the points by twice
-#: the offset less: Middlebury's Motorcycle (offset -31 px) swapped 69 %, Tsukuba's right image
-#: moved 2 px right, its principal point with it, swapped 55 %, 0 % either way exchanged.
-SWAPPED_MIN_FRACTION = 0.3
+#: pairs in order.
+SWAPPED_MIN_FRACTION = 0.8
+#: On a pair whose principal points lie apart a swap moves the points by twice the offset less:
+#: Middlebury's Motorcycle (offset -31 px) swapped has 69 % of its matches there, Tsukuba's right
+#: image moved 2 px right (its principal point with it) swapped 55 %, and 0 % with the views
+#: exchanged back. There the views are swapped from this share on when, exchanged, at most
+#: :data:`SWAPPED_MAX_OTHER_FRACTION` would be (kept to such pairs: a rig a little off looking
+#: at a far scene puts a third of its points 2 px past infinity, an outside review).
+SWAPPED_MIN_FRACTION_APART = 0.3
 SWAPPED_MAX_OTHER_FRACTION = 0.05
 
 
@@ -634,14 +640,15 @@ def swapped_views_problem(rig: StereoRig, left: NDArray, right: NDArray,
                           disparities_px: FloatArray | None = None) -> str | None:
     """One line when the views look swapped or are one image twice, else None.
 
-    Swapped: many of the view's distinctive points (:func:`view_disparities_px`, or
+    Swapped: most of the view's distinctive points (:func:`view_disparities_px`, or
     ``disparities_px`` when already found) lie further right in the right image than a point at
-    infinity would, which no point in front of the rig does, and with the views exchanged
-    almost none would (:data:`SWAPPED_MIN_FRACTION`, :data:`SWAPPED_MAX_OTHER_FRACTION`). The
-    matcher then finds nothing, or look-alikes at made-up depths. One image given twice (with
-    distinctive points: two black frames of empty space are no mistake) is no stereo pair: on
-    a rig rectified to one principal point every point is refused at infinity, and on a pair
-    whose principal points lie apart every point comes out at ``f b / |cx1 - cx2|``.
+    infinity would, which no point in front of the rig does (:data:`SWAPPED_MIN_FRACTION`; on a
+    pair whose principal points lie apart, fewer when exchanged almost none would:
+    :data:`SWAPPED_MIN_FRACTION_APART`). The matcher then finds nothing, or look-alikes at
+    made-up depths. One image given twice (with distinctive points: two black frames of empty
+    space are no mistake) is no stereo pair: its points are refused, or measured at depths the
+    rectification alone makes (on Middlebury's rigs, ``cx2 > cx1``, a plane at
+    ``f b / (cx2 - cx1)``).
     """
     d = view_disparities_px(rig, left, right) if disparities_px is None else np.asarray(disparities_px, float)
     if len(d) < SWAPPED_MIN_MATCHES:
@@ -651,10 +658,13 @@ def swapped_views_problem(rig: StereoRig, left: NDArray, right: NDArray,
                 "give the right camera's images as the right ones (a sequence's cam1)")
     offset = rig.rectification.disparity_offset_px
     given, exchanged = d - offset, -d - offset  # past a point at infinity's: >= 0 in front of the rig
-    if (np.mean(given < -SWAPPED_MIN_SHIFT_PX) < SWAPPED_MIN_FRACTION
-            or np.mean(exchanged < -SWAPPED_MIN_SHIFT_PX) > SWAPPED_MAX_OTHER_FRACTION):
+    impossible = given < -SWAPPED_MIN_SHIFT_PX
+    share = float(np.mean(impossible))
+    apart = offset != 0 and share >= SWAPPED_MIN_FRACTION_APART and np.mean(exchanged < -SWAPPED_MIN_SHIFT_PX) <= SWAPPED_MAX_OTHER_FRACTION
+    if share < SWAPPED_MIN_FRACTION and not apart:
         return None
-    return (f"the left and right images look swapped: the view lies {-float(np.median(given)):.0f} px further right in "
+    return (f"the left and right images look swapped: {share:.0%} of the view's points lie "
+            f"{-float(np.median(given[impossible])):.0f} px further right in "
             "the right image than a point at infinity would (rectified), where every point in front of the rig lies "
             "further left; give the left camera's images as the left ones (a sequence's cam0)")
 

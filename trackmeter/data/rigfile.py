@@ -280,7 +280,7 @@ def _image_size_scalar(fs: cv2.FileStorage, key: str, path: Path) -> int | None:
 
 def swapped_cameras(rig: StereoRig) -> bool:
     """True when the right camera's centre lies left of the left camera (a horizontal rig whose
-    files or cameras were swapped): every disparity is then negative and nothing matches."""
+    files or cameras were swapped): every disparity then lies below a point at infinity's and nothing matches."""
     centre = -rig.R.T @ rig.T  # the right camera's optical centre in the left camera frame
     return bool(centre[0] < 0 and abs(centre[0]) > max(abs(centre[1]), abs(centre[2])))
 

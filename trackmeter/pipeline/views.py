@@ -1,4 +1,5 @@
-"""Watching the first frames of a run for left and right images given the wrong way round.
+"""Watching the first frames of a run for left and right images given the wrong way round, or
+one image given as both.
 
 A thin stateful wrapper over :func:`trackmeter.core.stereo.swapped_views_problem`, shared by
 ``trackmeter track`` (a warning line) and the console (a pop-up): with cam0 and cam1 exchanged
@@ -27,7 +28,8 @@ class SwappedViewsWatch:
         self._left_to_check = frames
 
     def check(self, left: NDArray, right: NDArray) -> str | None:
-        """The problem's one line the first time a frame tells the views are swapped, else
+        """The problem's one line the first time a frame tells the views are swapped (or one
+        image twice), else
         None (in order, untold, or already looked at enough frames). Costs one ORB match of
         the rectified pair (10-75 ms) while it looks, nothing after."""
         if self._left_to_check <= 0:
