@@ -397,3 +397,17 @@ def test_quaternions_far_from_unit_norm_are_said_with_their_line(tmp_path) -> No
         warnings.simplefilter("error")
         tum.write_text("0 0 0 3 0 0.707107 0 0.707107\n")
         read_tum(tum)
+
+
+def test_a_time_is_the_same_text_in_states_csv_as_in_the_tum_files_and_targets_csv() -> None:
+    """A run's files are joined on their time column: states.csv wrote the shortest round trip
+    (``0.12000000000000001``, an epoch time's 17 digits) where trajectory.tum and targets.csv
+    write nine decimals (``0.120000000``)."""
+    from trackmeter.data.motion_csv import format_csv_value
+    from trackmeter.data.trajectory import format_tum_line
+
+    for t_s in (0.04 * 3, 1733570000.123456789, 0.0, 12.5):
+        tum_text = format_tum_line(t_s, np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0])).split()[0]
+        assert format_csv_value("t", t_s) == tum_text == f"{t_s:.9f}"
+    assert format_csv_value("x", 0.04 * 3) == repr(0.04 * 3)  # other columns keep every digit
+    assert format_csv_value("t", float("nan")) == ""

@@ -397,8 +397,11 @@ def read_motion_csv(path: str | Path) -> MotionSeries:
 
 
 def format_csv_value(name: str, value: Any) -> str:
-    """One CSV field: integers for ``valid``/counts, shortest round-trip text for floats,
-    empty for NaN/None (so an invalid row reads back as NaN)."""
+    """One CSV field: integers for ``valid``/counts, the time ``t`` with nine decimals as the TUM
+    files and targets.csv give it (so a row's time is the same text in every file of a run or
+    a sequence: joined as text, a shortest round-trip ``0.12000000000000001`` met ``0.120000000``),
+    shortest round-trip text for other floats, empty for NaN/None (so an invalid row reads back
+    as NaN)."""
     if value is None:
         return ""
     if isinstance(value, (bool, np.bool_)):
@@ -408,6 +411,8 @@ def format_csv_value(name: str, value: Any) -> str:
         return ""
     if name in _INT_COLUMNS and v.is_integer():
         return str(int(v))
+    if name == "t" and math.isfinite(v):
+        return f"{v:.9f}"
     return repr(v)
 
 
