@@ -110,6 +110,20 @@ def identity_rig(width: int, height: int, focal_px: float = 500.0, baseline_m: f
     return StereoRig(Camera(width, height, K), Camera(width, height, K), np.eye(3), np.array([-baseline_m, 0, 0]))
 
 
+def principal_points_apart(rig, right: np.ndarray, shift_px: int):  # type: ignore[no-untyped-def]
+    """``(rig, right)`` of the same pair with its right image moved ``shift_px`` whole pixels
+    right, the right camera's principal point with it: a pair rectified already whose principal
+    points lie apart (Middlebury 2014's ``doffs``), every right pixel ``shift_px`` further right,
+    the columns moved in black."""
+    import dataclasses
+
+    K2 = rig.right.K.copy()
+    K2[0, 2] += shift_px
+    moved = np.zeros_like(right)
+    moved[:, shift_px:] = right[:, : right.shape[1] - shift_px]
+    return dataclasses.replace(rig, right=dataclasses.replace(rig.right, K=K2)), moved
+
+
 def plane_pair(
     rig,  # type: ignore[no-untyped-def]
     texture: Texture,

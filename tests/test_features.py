@@ -336,18 +336,11 @@ def test_the_stereo_check_searches_from_infinity_on_a_pair_rectified_with_princi
     ``doffs``), a point at infinity has the disparity ``cx1 - cx2``; the stereo check's range
     was cut at 0, so with Tsukuba's right image moved 12 px right (its principal point with it)
     hardly a point (5-14 px apart, now -7 to 2) passed."""
-    from trackmeter.core.stereo import Camera, StereoRig
+    from benchmarks.measure import identity_rig, load_tsukuba, principal_points_apart
 
-    left = cv2.imread(str(shared_data / "middlebury_tsukuba" / "img_left.png"), cv2.IMREAD_GRAYSCALE)
-    right = cv2.imread(str(shared_data / "middlebury_tsukuba" / "img_right.png"), cv2.IMREAD_GRAYSCALE)
-    shift = 12
-    moved = np.zeros_like(right)
-    moved[:, shift:] = right[:, :-shift]
-    K1 = np.array([[400.0, 0.0, 192.0], [0.0, 400.0, 144.0], [0.0, 0.0, 1.0]])
-    K2 = K1.copy()
-    K2[0, 2] += shift
-    rig = StereoRig(Camera(384, 288, K1), Camera(384, 288, K1), np.eye(3), np.array([-0.1, 0.0, 0.0]))
-    moved_rig = StereoRig(Camera(384, 288, K1), Camera(384, 288, K2), np.eye(3), np.array([-0.1, 0.0, 0.0]))
+    left, right, _ = load_tsukuba(shared_data / "middlebury_tsukuba")
+    rig = identity_rig(384, 288, focal_px=400.0)
+    moved_rig, moved = principal_points_apart(rig, right, 12)
     as_given = select_features(left, right, rig, 40, "shi_tomasi", FeatureParams())
     as_moved = select_features(left, moved, moved_rig, 40, "shi_tomasi", FeatureParams())
     assert len(as_given) >= 30

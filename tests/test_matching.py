@@ -22,6 +22,7 @@ from benchmarks.measure import (
     estec_plane,
     identity_rig,
     load_tsukuba,
+    principal_points_apart,
     shifted_pair,
     subpixel_errors,
     to_uint8,
@@ -617,11 +618,7 @@ def test_a_pair_already_rectified_with_principal_points_apart_is_measured_as_it_
     left, right, _ = load_tsukuba(shared_data / "middlebury_tsukuba")
     shift = 10
     rig = identity_rig(left.shape[1], left.shape[0])
-    K2 = rig.right.K.copy()
-    K2[0, 2] += shift
-    moved_rig = StereoRig(rig.left, Camera(rig.right.width, rig.right.height, K2), rig.R, rig.T)
-    moved = np.zeros_like(right)
-    moved[:, shift:] = right[:, :-shift]
+    moved_rig, moved = principal_points_apart(rig, right, shift)
     assert moved_rig.rectification.disparity_offset_px == pytest.approx(-shift, abs=1e-6)
     grid = np.array([(u, v) for v in range(4, left.shape[0] - 4, 8) for u in range(4, left.shape[1] - 4, 8)], float)
     before = measure_points(rig, left, right, grid)

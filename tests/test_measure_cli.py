@@ -264,20 +264,14 @@ def test_the_range_searched_on_a_pair_with_principal_points_apart_is_counted_as_
     """On a pair rectified already whose principal points lie apart (Tsukuba's right image moved
     12 px right, its principal point with it), the warning printed the range as rectified
     disparities, "-9--2 px", beside the settings that asked for 3 to 10 (an outside probe)."""
-    from trackmeter.core.stereo import Camera, StereoRig
+    from benchmarks.measure import identity_rig, load_tsukuba, principal_points_apart
     from trackmeter.data.rigfile import save_rig
 
-    left = cv2.imread(str(shared_data / "middlebury_tsukuba" / "img_left.png"), cv2.IMREAD_GRAYSCALE)
-    right = cv2.imread(str(shared_data / "middlebury_tsukuba" / "img_right.png"), cv2.IMREAD_GRAYSCALE)
-    moved = np.zeros_like(right)
-    moved[:, 12:] = right[:, :-12]
+    left, right, _ = load_tsukuba(shared_data / "middlebury_tsukuba")
+    moved_rig, moved = principal_points_apart(identity_rig(384, 288, focal_px=400.0), right, 12)
     cv2.imwrite(str(tmp_path / "left.png"), left)
     cv2.imwrite(str(tmp_path / "right.png"), moved)
-    K1 = np.array([[400.0, 0.0, 192.0], [0.0, 400.0, 144.0], [0.0, 0.0, 1.0]])
-    K2 = K1.copy()
-    K2[0, 2] += 12
-    rig = save_rig(StereoRig(Camera(384, 288, K1), Camera(384, 288, K2), np.eye(3), np.array([-0.1, 0.0, 0.0])),
-                   tmp_path / "rig.yaml")
+    rig = save_rig(moved_rig, tmp_path / "rig.yaml")
     config = tmp_path / "narrow.yaml"
     config.write_text("measure:\n  min_disparity_px: 3\n  max_disparity_px: 4\n")
     # (100, 100) lies 5 px apart in the pair as given (Middlebury's truth): beyond 3 to 4.

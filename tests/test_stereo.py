@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import cv2
@@ -407,24 +408,17 @@ def test_views_in_order_on_a_pair_rectified_with_principal_points_apart_are_not_
     ``doffs``), a point at infinity has the disparity ``cx1 - cx2``, not 0: Tsukuba's right
     image moved 12 px right, its principal point with it, puts most of its points (5-14 px)
     at negative disparities, and the views in order were called swapped."""
-    import cv2
+    from benchmarks.measure import identity_rig, load_tsukuba, principal_points_apart
+    from trackmeter.core.stereo import swapped_views_problem
 
-    from trackmeter.core.stereo import Camera, StereoRig, swapped_views_problem
-
-    left = cv2.imread(str(shared_data / "middlebury_tsukuba" / "img_left.png"), cv2.IMREAD_GRAYSCALE)
-    right = cv2.imread(str(shared_data / "middlebury_tsukuba" / "img_right.png"), cv2.IMREAD_GRAYSCALE)
-    shift = 12
-    moved = np.zeros_like(right)
-    moved[:, shift:] = right[:, :-shift]
-    K1 = np.array([[400.0, 0.0, 192.0], [0.0, 400.0, 144.0], [0.0, 0.0, 1.0]])
-    K2 = K1.copy()
-    K2[0, 2] += shift
-    rig = StereoRig(Camera(384, 288, K1), Camera(384, 288, K2), np.eye(3), np.array([-0.1, 0.0, 0.0]))
-    assert rig.rectification.disparity_offset_px == pytest.approx(-shift, abs=1e-6)
+    left, right, _ = load_tsukuba(shared_data / "middlebury_tsukuba")
+    rig, moved = principal_points_apart(identity_rig(384, 288, focal_px=400.0), right, 12)
+    assert rig.rectification.disparity_offset_px == pytest.approx(-12, abs=1e-4)
     assert swapped_views_problem(rig, left, moved) is None
     # Pixels not square: OpenCV's maps would not be the identity; rectified to one principal point.
+    K1, K2 = rig.left.K.copy(), rig.right.K.copy()
     K1[1, 1] = K2[1, 1] = 410.0
-    oblong = StereoRig(Camera(384, 288, K1), Camera(384, 288, K2), np.eye(3), np.array([-0.1, 0.0, 0.0]))
+    oblong = dataclasses.replace(rig, left=dataclasses.replace(rig.left, K=K1), right=dataclasses.replace(rig.right, K=K2))
     assert oblong.rectification.disparity_offset_px == 0.0
 
 
@@ -450,18 +444,11 @@ def test_views_swapped_on_a_pair_rectified_with_principal_points_apart_are_told(
     probe: Middlebury's Motorcycle swapped, 69 %, was measured at 10-26 m for 2-4 m, unsaid).
     One image twice, which a pair whose principal points lie apart measures as a plane at
     ``f b / |cx1 - cx2|``, is said too."""
-    import cv2
+    from benchmarks.measure import identity_rig, load_tsukuba, principal_points_apart
+    from trackmeter.core.stereo import swapped_views_problem
 
-    from trackmeter.core.stereo import Camera, StereoRig, swapped_views_problem
-
-    left = cv2.imread(str(shared_data / "middlebury_tsukuba" / "img_left.png"), cv2.IMREAD_GRAYSCALE)
-    right = cv2.imread(str(shared_data / "middlebury_tsukuba" / "img_right.png"), cv2.IMREAD_GRAYSCALE)
-    moved = np.zeros_like(right)
-    moved[:, shift:] = right[:, :-shift]
-    K1 = np.array([[400.0, 0.0, 192.0], [0.0, 400.0, 144.0], [0.0, 0.0, 1.0]])
-    K2 = K1.copy()
-    K2[0, 2] += shift
-    rig = StereoRig(Camera(384, 288, K1), Camera(384, 288, K2), np.eye(3), np.array([-0.1, 0.0, 0.0]))
+    left, right, _ = load_tsukuba(shared_data / "middlebury_tsukuba")
+    rig, moved = principal_points_apart(identity_rig(384, 288, focal_px=400.0), right, shift)
     assert swapped_views_problem(rig, left, moved) is None
     assert "look swapped" in (swapped_views_problem(rig, moved, left) or "")
     assert "one and the same image" in (swapped_views_problem(rig, left, left) or "")
