@@ -683,6 +683,13 @@ def test_a_killed_overwrite_run_names_the_earlier_run_it_set_aside(capsys, run_i
     code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
     assert code == 0 and len(err.strip().splitlines()) == 1, err
     assert f"the earlier run it was replacing (--overwrite) is kept in {run / '.previous-run'}" in err, err
+    # Killed before its first frame: its states.csv is a header alone, refused, and the
+    # earlier run went unnamed (a README walk-through).
+    (run / "states.csv").write_text((run / "states.csv").read_text().splitlines()[0] + "\n")
+    code, out, err = _run(capsys, "evaluate", "--truth", str(seq), "--estimate", str(run), "--json")
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert "no rows after the header" in err, err
+    assert f"the earlier run it was replacing (--overwrite) is kept in {run / '.previous-run'}" in err, err
 
 
 def test_errors_csv_leaves_an_unknown_value_empty_as_the_run_files_do(capsys, tmp_path):

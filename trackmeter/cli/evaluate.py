@@ -182,10 +182,10 @@ def run(args: argparse.Namespace) -> int:
     from trackmeter.data.evaluation import (check_report_directory, format_summary, in_seconds, judge_pose_covariance,
                                              likely_mixups, load_estimate, write_evaluation)
 
+    from trackmeter.errors import TrackmeterError
+
     params = _params(args)
     if args.out:
-        from trackmeter.errors import TrackmeterError
-
         check_report_directory(args.out)  # before the work, which may take a while
         out, estimate_path = Path(args.out), Path(args.estimate)
         if (out / "run.yaml").exists() and out.resolve() != (
@@ -196,7 +196,11 @@ def run(args: argparse.Namespace) -> int:
                                   "into the estimate's own run folder or one of its own: choose another --out")
     # The truth first (its errors said first), but a scenario's motion once the run's span is known.
     truth = None if _sim_scenario(args.truth) is not None else _load_truth(args.truth)
-    estimate = load_estimate(args.estimate)
+    try:
+        estimate = load_estimate(args.estimate)
+    except TrackmeterError as exc:
+        # A run killed before its first frame holds no pose, but may hold the run it replaced.
+        raise TrackmeterError(f"{exc}{_previous_run_note(Path(args.estimate))}") from None
     if truth is None:
         truth = _load_truth(args.truth, float(estimate.series.t_s[-1]) if len(estimate.series) else None)
     truth, estimate = in_seconds(truth, estimate, params.tolerance_s)
