@@ -660,7 +660,8 @@ def swapped_views_problem(rig: StereoRig, left: NDArray, right: NDArray,
     given, exchanged = d - offset, -d - offset  # past a point at infinity's: >= 0 in front of the rig
     impossible = given < -SWAPPED_MIN_SHIFT_PX
     share = float(np.mean(impossible))
-    apart = offset != 0 and share >= SWAPPED_MIN_FRACTION_APART and np.mean(exchanged < -SWAPPED_MIN_SHIFT_PX) <= SWAPPED_MAX_OTHER_FRACTION
+    apart = (offset != 0 and share >= SWAPPED_MIN_FRACTION_APART
+             and np.mean(exchanged < -SWAPPED_MIN_SHIFT_PX) <= SWAPPED_MAX_OTHER_FRACTION)
     if share < SWAPPED_MIN_FRACTION and not apart:
         return None
     return (f"the left and right images look swapped: {share:.0%} of the view's points lie "
