@@ -159,23 +159,41 @@ def test_a_source_that_delivers_no_frame_is_one_line_not_a_hang(monkeypatch, tmp
 
 def test_when_every_target_is_refused_and_nothing_else_can_start_one_the_run_ends_at_once(
         monkeypatch, tmp_path, estec_rig, capsys) -> None:
-    """--target pixels the tracker refuses on frame 0 (here outside the image), without --auto:
-    nothing could ever be tracked, so the run stops there rather than playing the whole
-    source for nothing — each refusal said, one line why it stopped, exit code 2, and the run
-    directory complete for the frames it holds."""
+    """--target pixels the tracker refuses on frame 0 (here too near the border for a patch),
+    without --auto: nothing could ever be tracked, so the run stops there rather than playing
+    the whole source for nothing — each refusal said, one line why it stopped, exit code 2,
+    and the run directory complete for the frames it holds."""
     fake_source(monkeypatch, estec_rig, n=500)
     out = tmp_path / "run"
-    code = main(["track", "--source", "fake", "--target", "100000,5", "--target", "5,-300", "--out", str(out)])
+    code = main(["track", "--source", "fake", "--target", "1,1", "--target", "5,-0.4", "--out", str(out)])
     err = capsys.readouterr().err
     assert code == 2, err
     lines = err.strip().splitlines()
-    assert sum("refused at (100000.0, 5.0): outside image" in line for line in lines) == 1, err
-    assert sum("refused at (5.0, -300.0): outside image" in line for line in lines) == 1, err
+    assert sum("refused at (1.0, 1.0): patch not inside image" in line for line in lines) == 1, err
+    assert sum("refused at (5.0, -0.4): patch not inside image" in line for line in lines) == 1, err
     assert "nothing to track: every --target was refused" in lines[-1], err
     meta = yaml.safe_load((out / "run.yaml").read_text())
     assert meta["status"] == "nothing to track"
     frames = meta["summary"]["frames"]
     assert 1 <= frames < 50 and len(read_motion_csv(out / "states.csv")) == frames
+
+
+@pytest.mark.parametrize("pixel", ["{w},10", "100000,5", "5,-300", "-0.6,3", "p1=5,{h}"])
+def test_a_target_off_the_image_is_one_line_before_the_run(monkeypatch, tmp_path, estec_rig, capsys,
+                                                             pixel) -> None:
+    """A pixel off the image is a slip in typing it: one error line (exit 2) once the rig gives
+    the image's size, no run folder, and not the case's note or a refusal before it (it was
+    refused after the first frame, with two lines before the error; a README walk-through)."""
+    fake_source(monkeypatch, estec_rig, n=50)
+    width, height = estec_rig.image_size
+    pixel = pixel.format(w=width, h=height)  # a pixel's width past the last column or row
+    out = tmp_path / "run"
+    code = main(["track", "--source", "fake", f"--target={pixel}", "--target", "280,331", "--out", str(out)])
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 2, lines
+    assert lines == [f"trackmeter track: error: --target {pixel}: outside the {width}x{height} image "
+                     f"(U from 0 to {width - 1}, V from 0 to {height - 1})"], lines
+    assert not out.exists()
 
 
 def test_select_model_points_alone_is_something_to_track_unless_the_source_has_no_truth(
@@ -216,10 +234,10 @@ def test_select_model_points_alone_is_something_to_track_unless_the_source_has_n
 def test_a_refused_target_is_said_while_the_run_goes_on_with_the_others(tmp_path, capsys) -> None:
     out = tmp_path / "run"
     # 280,331: a textured point of the estec mock-up in its first frame (as above).
-    assert main(["track", "--source", "sim", "--target", "100000,5", "--target", "280,331", "--max-frames", "4",
+    assert main(["track", "--source", "sim", "--target", "1,1", "--target", "280,331", "--max-frames", "4",
                  "--case", "a", "--out", str(out)]) == 0
     err = capsys.readouterr().err
-    assert sum("refused at (100000.0, 5.0): outside image" in line for line in err.splitlines()) == 1, err
+    assert sum("refused at (1.0, 1.0): patch not inside image" in line for line in err.splitlines()) == 1, err
     meta = yaml.safe_load((out / "run.yaml").read_text())
     assert meta["status"] == "complete" and meta["summary"]["frames"] == 4
 
@@ -719,10 +737,10 @@ def test_the_first_frame_is_summarised_as_the_frame_its_targets_start_on(tmp_pat
 
 def test_a_refusal_is_said_with_the_option_it_came_from(tmp_path, capsys) -> None:
     out = tmp_path / "run"
-    assert main(["track", "--source", "sim", "--target", "p1=100000,5", "--target", "280,331", "--max-frames", "2",
+    assert main(["track", "--source", "sim", "--target", "p1=1,1", "--target", "280,331", "--max-frames", "2",
                  "--case", "a", "--out", str(out)]) == 0
     err = capsys.readouterr().err
-    assert "warning: --target p1=100000,5: refused at (100000.0, 5.0)" in err, err
+    assert "warning: --target p1=1,1: refused at (1.0, 1.0)" in err, err
     assert "SelectPoint" not in err
 
 

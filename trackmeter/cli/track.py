@@ -167,6 +167,7 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
     from trackmeter.cli.common import load_config_from_args, open_source_with_rig
     from trackmeter.data.config import config_to_dict
     from trackmeter.data.model import load_model
+    from trackmeter.core.matching import inside_image
     from trackmeter.data.rundir import RunWriter, check_run_directory
     from trackmeter.pipeline.engine import NEEDS_TRUTH, Engine, SelectModelPoints
     from trackmeter.pipeline.pipeline import NOT_APPLIED, STOPPED, interrupts_deferred, run_headless, source_said_by_caller
@@ -212,6 +213,13 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
         rig = source.rig
         if rig is None:
             raise TrackmeterError(f"source {args.source!r} carries no stereo rig: give --rig")
+        # A pixel off the image is a typing slip, known once the rig is: one line before the run,
+        # not a refusal after its first frame (with the case's note before it).
+        width, height = rig.image_size
+        for tid, (u, v) in targets:
+            if not inside_image(u, v, rig.image_size):
+                raise TrackmeterError(f"--target {f'{tid}=' if tid else ''}{u:g},{v:g}: outside the {width}x{height} "
+                                      f"image (U from 0 to {width - 1}, V from 0 to {height - 1})")
         # After the inputs are read: a wrong path is the error to fix first.
         if not targets and auto is None and not args.select_model_points:
             raise TrackmeterError("nothing to track: give --target [ID=]U,V, --auto N and/or --select-model-points")

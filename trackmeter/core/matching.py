@@ -110,6 +110,13 @@ REASON_SUBPIXEL = "sub-pixel refinement failed"
 REASON_UNCERTAIN = "disparity too uncertain"
 REASON_DEPTH_EDGE = "depth edge inside the patch"
 
+def inside_image(u: float, v: float, image_size: tuple[int, int]) -> bool:
+    """Whether pixel ``(u, v)`` lies on a ``(width, height)`` image: pixel centres are whole
+    numbers, so the image spans ``[-0.5, width - 0.5] x [-0.5, height - 0.5]``. NaN is outside."""
+    width, height = image_size
+    return -0.5 <= u <= width - 0.5 and -0.5 <= v <= height - 0.5
+
+
 #: Every reason a point can be refused for, in the order the checks run.
 REASONS: tuple[str, ...] = (
     REASON_OUTSIDE_IMAGE,
@@ -1617,9 +1624,8 @@ def measure_points(
                                   "the search is over whole disparities")
         ranges = [(float(a), float(b)) for a, b in rng_arr]
     rect = rig.rectification
+    inside = [inside_image(u, v, rig.image_size) for u, v in uv.tolist()]
     W, H = rig.image_size
-    # NaN fails every comparison, so it lands outside too
-    inside = [-0.5 <= u <= W - 0.5 and -0.5 <= v <= H - 0.5 for u, v in uv.tolist()]
     if all(inside):
         uv_rect = rect.rectify_points(uv, 0)
     else:
