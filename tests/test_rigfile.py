@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -784,3 +785,107 @@ def test_a_distortion_matrix_and_a_negative_rms_are_refused_by_key(tmp_path: Pat
     path.write_text("\n".join(lines) + "\n")
     with pytest.raises(TrackmeterError, match=rf"rig\.yaml: {message}$"):
         load_rig(path)
+
+
+#: Middlebury 2014's Motorcycle ``calib.txt`` (vision.middlebury.edu/stereo/data/scenes2014), as published.
+MOTORCYCLE_CALIB = """cam0=[3979.911 0 1244.772; 0 3979.911 1019.507; 0 0 1]
+cam1=[3979.911 0 1369.115; 0 3979.911 1019.507; 0 0 1]
+doffs=124.343
+baseline=193.001
+width=2964
+height=1988
+ndisp=270
+isint=0
+vmin=23
+vmax=245
+dyavg=0
+dymax=0
+"""
+
+
+def test_a_middlebury_calib_txt_is_the_rectified_pair_it_describes(tmp_path: Path) -> None:
+    """Middlebury's ``calib.txt``: ``cam0``/``cam1`` the rectified views' camera matrices, the
+    baseline in mm, the principal points ``doffs = cx1 - cx0`` apart. A pixel pair's own
+    disparity ``d`` is at Middlebury's depth ``Z = baseline * f / (d + doffs)``, and the
+    rectification is the identity (the pair is measured as it is)."""
+    from trackmeter.data.rigfile import is_rig_file
+
+    path = tmp_path / "calib.txt"
+    path.write_text(MOTORCYCLE_CALIB)
+    assert is_rig_file(path)
+    rig = load_rig(path)
+    assert rig.image_size == (2964, 1988)
+    np.testing.assert_array_equal(rig.left.K, [[3979.911, 0, 1244.772], [0, 3979.911, 1019.507], [0, 0, 1]])
+    np.testing.assert_array_equal(rig.right.K, [[3979.911, 0, 1369.115], [0, 3979.911, 1019.507], [0, 0, 1]])
+    np.testing.assert_array_equal(rig.R, np.eye(3))
+    np.testing.assert_array_equal(rig.T, [-0.193001, 0.0, 0.0])
+    assert not np.any(rig.left.dist) and not np.any(rig.right.dist)
+    rect = rig.rectification
+    assert rect.disparity_offset_px == pytest.approx(-124.343, abs=1e-3)
+    uv = np.array([[1500.0, 1000.0], [300.0, 1900.0], [2900.0, 40.0]])
+    for side in (0, 1):
+        np.testing.assert_allclose(rect.rectify_points(uv, side), uv, atol=1e-3)
+    d = np.array([200.0, 23.0, 245.0])  # vmin and vmax among them
+    z = rect.triangulate(uv, d)[:, 2]
+    np.testing.assert_allclose(z, 193.001e-3 * 3979.911 / (d + 124.343), rtol=1e-6)
+
+
+@pytest.mark.parametrize("change, message", [
+    (("doffs=124.343", "doffs=120"), r"'doffs' 120 is not cx1 - cx0 = 124\.343"),
+    (("baseline=193.001", "baseline=-193"), r"'baseline' must be positive \(mm\), got -193"),
+    (("baseline=193.001\n", ""), r"missing 'baseline' \(mm\)"),
+    (("baseline=193.001", "baseline=abc"), r"'baseline' must be a number, got 'abc'"),
+    (("cam1=[3979.911 0 1369.115; 0 3979.911 1019.507; 0 0 1]\n", ""), r"missing 'cam1'"),
+    (("0 3979.911 1019.507; 0 0 1]\ndoffs", "0 3979.911 1019.507]\ndoffs"), r"'cam1' must be a camera matrix"),
+    (("width=2964", "width=2964.5"), r"'width' and 'height' must be whole numbers of pixels"),
+])
+def test_a_broken_middlebury_calib_txt_is_one_line_naming_the_file(tmp_path: Path, change: tuple[str, str],
+                                                                    message: str) -> None:
+    path = tmp_path / "calib.txt"
+    assert change[0] in MOTORCYCLE_CALIB
+    path.write_text(MOTORCYCLE_CALIB.replace(change[0], change[1]))
+    with pytest.raises(TrackmeterError, match=rf"^{re.escape(str(path))}: Middlebury calib: {message}"):
+        load_rig(path)
+
+
+def test_a_middlebury_calib_txt_without_a_size_takes_the_frames(tmp_path: Path) -> None:
+    path = tmp_path / "calib.txt"
+    path.write_text(MOTORCYCLE_CALIB.replace("width=2964\nheight=1988\n", ""))
+    with pytest.raises(TrackmeterError, match=r"missing 'width'/'height'"):
+        load_rig(path)
+    assert load_rig(path, image_size=(2964, 1988)).image_size == (2964, 1988)
+
+
+def test_measure_with_a_middlebury_calib_txt_gives_the_pairs_own_disparity(tmp_path: Path, shared_data) -> None:  # type: ignore[no-untyped-def]
+    """End to end on a real pair: Tsukuba with its right image moved 10 px right (its principal
+    point with it, as Middlebury 2014's pairs are), described by a ``calib.txt``: ``measure
+    --rig calib.txt`` gives the points of the same rig built in code, and the pair's own
+    disparities (right pixel = left pixel less the disparity)."""
+    import json
+
+    from benchmarks.measure import identity_rig, load_tsukuba, principal_points_apart
+    from trackmeter.core.matching import measure_points
+
+    left, right, _ = load_tsukuba(shared_data / "middlebury_tsukuba")
+    rig, moved = principal_points_apart(identity_rig(left.shape[1], left.shape[0]), right, 10)
+    (K0, K1), b = (rig.left.K.tolist(), rig.right.K.tolist()), float(-rig.T[0] * 1000)
+    calib = tmp_path / "calib.txt"
+    calib.write_text(f"cam0=[{K0[0][0]} 0 {K0[0][2]}; 0 {K0[1][1]} {K0[1][2]}; 0 0 1]\n"
+                     f"cam1=[{K1[0][0]} 0 {K1[0][2]}; 0 {K1[1][1]} {K1[1][2]}; 0 0 1]\n"
+                     f"doffs={K1[0][2] - K0[0][2]}\nbaseline={b}\nwidth={left.shape[1]}\nheight={left.shape[0]}\n"
+                     "ndisp=16\n")
+    cv2.imwrite(str(tmp_path / "im0.png"), left)
+    cv2.imwrite(str(tmp_path / "im1.png"), moved)
+    pixels = [(float(u), float(v)) for v in range(40, 260, 40) for u in range(40, 360, 40)]
+    run = subprocess.run([sys.executable, "-m", "trackmeter", "measure", "--rig", str(calib), "--left",
+                          str(tmp_path / "im0.png"), "--right", str(tmp_path / "im1.png"), "--json", "--at",
+                          *(f"{u:g},{v:g}" for u, v in pixels)], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    got = json.loads(run.stdout)
+    want = measure_points(rig, left, moved, np.array(pixels))
+    assert sum(m.ok for m in want) >= 10
+    for g, w in zip(got, want):
+        assert g["ok"] == w.ok
+        if w.ok:
+            assert g["xyz_m"] == pytest.approx(list(w.xyz_m), rel=1e-6)
+            assert g["disparity_px"] == pytest.approx(g["uv"][0] - g["right_uv"][0], abs=1e-3)

@@ -238,6 +238,9 @@ def read_yaml_mapping(path: Path, loader: type[Any] = FAST_SAFE_LOADER, kind: st
 #: A camera matrix's key in a rig file (DESIGN.md's rig.yaml; OpenCV's intrinsics.yml).
 _RIG_CAMERA_KEYS = frozenset({"K1", "K2", "M1", "M2"})
 
+#: How a Middlebury ``calib.txt`` (a stereo rig) begins: ``cam0=[f 0 cx; ...]``.
+MIDDLEBURY_CALIB_START = re.compile(r"cam0\s*=\s*\[", re.IGNORECASE)
+
 
 def _rig_form(text: str, data: object) -> str | None:
     """Which form of stereo rig file ``text`` (``data`` as YAML read it, or None) is, said for
@@ -252,6 +255,8 @@ def _rig_form(text: str, data: object) -> str | None:
             return "a stereo rig file (its camera matrices K1, K2)"
         if isinstance(data.get("cam0"), dict) and "intrinsics" in data["cam0"]:
             return "a Kalibr camchain (a stereo rig)"
+    if MIDDLEBURY_CALIB_START.match(head):
+        return "a Middlebury calib.txt (a stereo rig)"
     return None
 
 

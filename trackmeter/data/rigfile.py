@@ -5,8 +5,10 @@ optional ``rms_px``, ``E``, ``F``. OpenCV's stereo sample pair ``intrinsics.yml`
 D2``) + ``extrinsics.yml`` (``R T ...``) is read too: give either file and the other is found
 beside it (or one file holding both halves); that pair carries no image size, so pass
 ``image_size``. So is Kalibr's ``camchain.yaml`` (pinhole, radial-tangential), as real stereo
-data often comes with one. Matrices may be plain YAML lists, in any style PyYAML reads; ``R``
-may be a rotation vector (3 numbers, ``cv2.Rodrigues``), as OpenCV's stereo functions take it.
+data often comes with one, and so is Middlebury's ``calib.txt`` (2014 and 2021 stereo
+datasets: a pair rectified already, ``cam0``/``cam1`` camera matrices, ``baseline`` in mm).
+Matrices may be plain YAML lists, in any style PyYAML reads; ``R`` may be a rotation vector (3
+numbers, ``cv2.Rodrigues``), as OpenCV's stereo functions take it.
 """
 
 from __future__ import annotations
@@ -22,7 +24,12 @@ import yaml
 
 from trackmeter.core.stereo import Camera, StereoRig
 from trackmeter.data.atomic import write_files_atomic
-from trackmeter.data.config import FAST_SAFE_LOADER, DuplicateKeyError, check_yaml_expansion
+from trackmeter.data.config import (
+    FAST_SAFE_LOADER,
+    MIDDLEBURY_CALIB_START,
+    DuplicateKeyError,
+    check_yaml_expansion,
+)
 from trackmeter.errors import TrackmeterError, shown_value
 
 
@@ -371,6 +378,9 @@ def _load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> St
     camchain = _kalibr_camchain(path)
     if camchain is not None:
         return _load_kalibr(camchain, path)
+    middlebury = _middlebury_calib(path)
+    if middlebury is not None:
+        return _load_middlebury(middlebury, path, image_size)
     fs = _open(path)
     try:
         if all(fs.getNode(key).empty() for key in _RIG_KEYS):
@@ -403,7 +413,7 @@ def is_rig_file(path: str | Path) -> bool:
     command may replace with ``--overwrite``: not the user's other files."""
     path = Path(path)
     try:  # a file of the right keys, right or wrong in what they hold (a key given twice)
-        if _kalibr_camchain(path, strict=False) is not None:
+        if _kalibr_camchain(path, strict=False) is not None or _middlebury_calib(path) is not None:
             return True
         fs = _open(path, strict=False)
     except TrackmeterError:
@@ -480,6 +490,94 @@ def _load_kalibr(camchain: dict, path: Path) -> StereoRig:
         raise TrackmeterError(f"{path}: not a usable Kalibr camchain ({exc.__class__.__name__}: {exc})") from None
     except TrackmeterError as exc:
         raise TrackmeterError(f"{path}: {exc}") from None
+
+
+def _middlebury_calib(path: Path) -> dict[str, str] | None:
+    """The file's ``key=value`` lines (keys lower-cased) when it is a Middlebury ``calib.txt``
+    (its first line ``cam0=[...]``), else None."""
+    if not path.is_file():
+        return None
+    try:
+        with path.open("rb") as f:
+            head = f.read(64 * 1024)
+        text = head.decode("utf-8")
+    except (OSError, UnicodeDecodeError):
+        return None
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    if not lines or not MIDDLEBURY_CALIB_START.match(lines[0]):
+        return None
+    entries: dict[str, str] = {}
+    for line in lines:
+        key, sep, value = line.partition("=")
+        if sep:
+            entries[key.strip().lower()] = value.strip()
+    return entries
+
+
+def _middlebury_matrix(entries: dict[str, str], key: str) -> np.ndarray:
+    text = entries.get(key)
+    if text is None:
+        raise TrackmeterError(f"missing '{key}' (a camera matrix [f 0 cx; 0 f cy; 0 0 1])")
+    try:
+        rows = [[float(x) for x in row.split()] for row in text.strip().removeprefix("[").removesuffix("]").split(";")]
+        K = np.array(rows, dtype=float)
+    except ValueError:
+        K = np.empty(0)
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or not np.allclose(K[2], (0.0, 0.0, 1.0)) or K[1, 0] != 0.0:
+        raise TrackmeterError(f"'{key}' must be a camera matrix [f 0 cx; 0 f cy; 0 0 1], got {shown_value(text)}")
+    return K
+
+
+def _middlebury_number(entries: dict[str, str], key: str) -> float | None:
+    text = entries.get(key)
+    if text is None:
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise TrackmeterError(f"'{key}' must be a number, got {shown_value(text)}")
+    return value
+
+
+#: How far ``doffs`` may differ from ``cx1 - cx0`` (px): the files give both to three decimals.
+MIDDLEBURY_DOFFS_TOLERANCE_PX = 0.01
+
+
+def _load_middlebury(entries: dict[str, str], path: Path, image_size: tuple[int, int] | None) -> StereoRig:
+    """A stereo rig from Middlebury's ``calib.txt`` (stereo datasets of 2014 and 2021).
+
+    The views are rectified already: ``cam0``/``cam1`` are their camera matrices, no lens
+    distortion, no rotation between them, the right camera ``baseline`` mm along +x, so OpenCV's
+    ``R = I`` and ``T = (-baseline / 1000, 0, 0)`` m. Their principal points lie ``doffs = cx1 -
+    cx0`` px apart (checked when given), so a pixel pair's own disparity ``d`` has the depth
+    ``Z = baseline * f / (d + doffs)``, Middlebury's formula; the rig keeps the principal points
+    apart (:class:`trackmeter.core.stereo.Rectification`). ``width``/``height`` give the size
+    (else ``image_size``); ``ndisp``, ``vmin``, ``vmax`` and the rest are not needed.
+    """
+    try:
+        K0, K1 = _middlebury_matrix(entries, "cam0"), _middlebury_matrix(entries, "cam1")
+        baseline_mm = _middlebury_number(entries, "baseline")
+        if baseline_mm is None:
+            raise TrackmeterError("missing 'baseline' (mm)")
+        if baseline_mm <= 0.0:
+            raise TrackmeterError(f"'baseline' must be positive (mm), got {baseline_mm:g}")
+        doffs = _middlebury_number(entries, "doffs")
+        if doffs is not None and abs((K1[0, 2] - K0[0, 2]) - doffs) > MIDDLEBURY_DOFFS_TOLERANCE_PX:
+            raise TrackmeterError(f"'doffs' {doffs:g} is not cx1 - cx0 = {K1[0, 2] - K0[0, 2]:g} (the principal "
+                                  "points' columns in cam0 and cam1)")
+        width, height = _middlebury_number(entries, "width"), _middlebury_number(entries, "height")
+        if width is None or height is None:
+            if image_size is None:
+                raise TrackmeterError("missing 'width'/'height' (the images' size, px)")
+            width, height = image_size
+        if not (_whole_pixels(width) and _whole_pixels(height) and width > 0 and height > 0):
+            raise TrackmeterError(f"'width' and 'height' must be whole numbers of pixels, got {width:g} x {height:g}")
+        cams = [Camera(int(width), int(height), K) for K in (K0, K1)]
+        return StereoRig(cams[0], cams[1], np.eye(3), np.array([-baseline_mm / 1000.0, 0.0, 0.0]), name=path.stem)
+    except TrackmeterError as exc:
+        raise TrackmeterError(f"{path}: Middlebury calib: {exc}") from None
 
 
 def _load_opencv_pair(path: Path, image_size: tuple[int, int] | None) -> StereoRig:
