@@ -337,6 +337,7 @@ _RIG_FORMS = {
                      "cam1:\n  camera_model: pinhole\n  intrinsics: [800, 800, 320, 240]\n  resolution: [640, 480]\n",
     "calib.txt": "cam0=[800 0 320; 0 800 240; 0 0 1]\ncam1=[800 0 330; 0 800 240; 0 0 1]\ndoffs=10\nbaseline=200\n"
                  "width=640\nheight=480\n",
+    "calib_bom.txt": "\ufeffcam0=[800 0 320; 0 800 240; 0 0 1]\r\ncam1=[800 0 330; 0 800 240; 0 0 1]\r\nbaseline=200\r\n",
 }
 
 

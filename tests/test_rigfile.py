@@ -787,13 +787,13 @@ def test_a_distortion_matrix_and_a_negative_rms_are_refused_by_key(tmp_path: Pat
         load_rig(path)
 
 
-#: Middlebury 2014's Motorcycle ``calib.txt`` (vision.middlebury.edu/stereo/data/scenes2014), as published.
+#: Middlebury 2014's Motorcycle (perfect) ``calib.txt`` (vision.middlebury.edu/stereo/data/scenes2014), as published.
 MOTORCYCLE_CALIB = """cam0=[3979.911 0 1244.772; 0 3979.911 1019.507; 0 0 1]
 cam1=[3979.911 0 1369.115; 0 3979.911 1019.507; 0 0 1]
 doffs=124.343
 baseline=193.001
 width=2964
-height=1988
+height=2000
 ndisp=270
 isint=0
 vmin=23
@@ -814,7 +814,7 @@ def test_a_middlebury_calib_txt_is_the_rectified_pair_it_describes(tmp_path: Pat
     path.write_text(MOTORCYCLE_CALIB)
     assert is_rig_file(path)
     rig = load_rig(path)
-    assert rig.image_size == (2964, 1988)
+    assert rig.image_size == (2964, 2000)
     np.testing.assert_array_equal(rig.left.K, [[3979.911, 0, 1244.772], [0, 3979.911, 1019.507], [0, 0, 1]])
     np.testing.assert_array_equal(rig.right.K, [[3979.911, 0, 1369.115], [0, 3979.911, 1019.507], [0, 0, 1]])
     np.testing.assert_array_equal(rig.R, np.eye(3))
@@ -837,7 +837,9 @@ def test_a_middlebury_calib_txt_is_the_rectified_pair_it_describes(tmp_path: Pat
     (("baseline=193.001", "baseline=abc"), r"'baseline' must be a number, got 'abc'"),
     (("cam1=[3979.911 0 1369.115; 0 3979.911 1019.507; 0 0 1]\n", ""), r"missing 'cam1'"),
     (("0 3979.911 1019.507; 0 0 1]\ndoffs", "0 3979.911 1019.507]\ndoffs"), r"'cam1' must be a camera matrix"),
-    (("width=2964", "width=2964.5"), r"'width' and 'height' must be whole numbers of pixels"),
+    (("width=2964", "width=2964.5"), r"'width' must be a whole number of pixels from 16 to 32767, got 2964\.5"),
+    (("height=2000", "height=1e12"), r"'height' must be a whole number of pixels from 16 to 32767, got 1e\+12"),
+    (("ndisp=270", "ndisp=270\nbaseline=1"), r"'baseline' given twice \(lines 4 and 8\)"),
 ])
 def test_a_broken_middlebury_calib_txt_is_one_line_naming_the_file(tmp_path: Path, change: tuple[str, str],
                                                                     message: str) -> None:
@@ -850,10 +852,10 @@ def test_a_broken_middlebury_calib_txt_is_one_line_naming_the_file(tmp_path: Pat
 
 def test_a_middlebury_calib_txt_without_a_size_takes_the_frames(tmp_path: Path) -> None:
     path = tmp_path / "calib.txt"
-    path.write_text(MOTORCYCLE_CALIB.replace("width=2964\nheight=1988\n", ""))
+    path.write_text(MOTORCYCLE_CALIB.replace("width=2964\nheight=2000\n", ""))
     with pytest.raises(TrackmeterError, match=r"missing 'width'/'height'"):
         load_rig(path)
-    assert load_rig(path, image_size=(2964, 1988)).image_size == (2964, 1988)
+    assert load_rig(path, image_size=(2964, 2000)).image_size == (2964, 2000)
 
 
 def test_measure_with_a_middlebury_calib_txt_gives_the_pairs_own_disparity(tmp_path: Path, shared_data) -> None:  # type: ignore[no-untyped-def]
@@ -889,3 +891,42 @@ def test_measure_with_a_middlebury_calib_txt_gives_the_pairs_own_disparity(tmp_p
         if w.ok:
             assert g["xyz_m"] == pytest.approx(list(w.xyz_m), rel=1e-6)
             assert g["disparity_px"] == pytest.approx(g["uv"][0] - g["right_uv"][0], abs=1e-3)
+
+
+def test_a_middlebury_calib_txt_written_by_a_windows_editor_reads_the_same(tmp_path: Path) -> None:
+    """A byte-order mark first and CRLF line ends (Notepad, PowerShell's Out-File) hid the file's
+    form: "not an OpenCV FileStorage file" (an outside probe)."""
+    from trackmeter.data.rigfile import is_rig_file
+
+    path = tmp_path / "calib.txt"
+    path.write_bytes(b"\xef\xbb\xbf" + MOTORCYCLE_CALIB.replace("\n", "\r\n").encode())
+    assert is_rig_file(path)
+    got, want = load_rig(path), load_rig(_written(tmp_path / "plain.txt", MOTORCYCLE_CALIB))
+    np.testing.assert_array_equal(got.left.K, want.left.K)
+    np.testing.assert_array_equal(got.right.K, want.right.K)
+    np.testing.assert_array_equal(got.T, want.T)
+
+
+def _written(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
+def test_a_middlebury_calib_txt_that_is_not_a_rectified_pair_or_in_metres_is_warned_about(tmp_path: Path) -> None:
+    """Middlebury's rectified views share f and cy: a typing slip in one is warned about (the
+    pair is then rectified again, its disparities no longer its own), and a baseline written in
+    metres is told in the file's unit, millimetres (it said "T must be in metres")."""
+    path = _written(tmp_path / "calib.txt", MOTORCYCLE_CALIB.replace("0 3979.911 1019.507; 0 0 1]\ndoffs",
+                                                                     "0 3979.911 1019.6; 0 0 1]\ndoffs"))
+    with pytest.warns(UserWarning, match=r"cam0 and cam1 are not the matrices of a rectified pair"):
+        load_rig(path)
+    path = _written(tmp_path / "metres.txt", MOTORCYCLE_CALIB.replace("baseline=193.001", "baseline=0.193"))
+    with pytest.warns(UserWarning, match=r"baseline 0\.193 mm is shorter than 1 mm: .* in millimetres: 0\.193 m "
+                                         r"would be 193\)"):
+        load_rig(path)
+
+
+def test_a_file_named_calib_txt_too_large_to_be_one_is_refused_without_reading_it_all(tmp_path: Path) -> None:
+    path = _written(tmp_path / "calib.txt", MOTORCYCLE_CALIB + "# padding\n" * 20000)
+    with pytest.raises(TrackmeterError, match=r"larger than 64 KiB: a calib\.txt is a dozen short lines"):
+        load_rig(path)

@@ -178,7 +178,8 @@ def test_when_every_target_is_refused_and_nothing_else_can_start_one_the_run_end
     assert 1 <= frames < 50 and len(read_motion_csv(out / "states.csv")) == frames
 
 
-@pytest.mark.parametrize("pixel", ["{w},10", "100000,5", "5,-300", "-0.6,3", "p1=5,{h}"])
+@pytest.mark.parametrize("pixel", ["{w},10", "100000,5", "5,-300", "-0.6,3", "p1=5,{h}", "{w1}.5001,10",
+                                   "p2=3,-0.50001"])
 def test_a_target_off_the_image_is_one_line_before_the_run(monkeypatch, tmp_path, estec_rig, capsys,
                                                              pixel) -> None:
     """A pixel off the image is a slip in typing it: one error line (exit 2) once the rig gives
@@ -186,13 +187,14 @@ def test_a_target_off_the_image_is_one_line_before_the_run(monkeypatch, tmp_path
     refused after the first frame, with two lines before the error; a README walk-through)."""
     fake_source(monkeypatch, estec_rig, n=50)
     width, height = estec_rig.image_size
-    pixel = pixel.format(w=width, h=height)  # a pixel's width past the last column or row
+    pixel = pixel.format(w=width, h=height, w1=width - 1)  # past the last column or row
     out = tmp_path / "run"
     code = main(["track", "--source", "fake", f"--target={pixel}", "--target", "280,331", "--out", str(out)])
     lines = capsys.readouterr().err.strip().splitlines()
     assert code == 2, lines
     assert lines == [f"trackmeter track: error: --target {pixel}: outside the {width}x{height} image "
-                     f"(U from 0 to {width - 1}, V from 0 to {height - 1})"], lines
+                     f"(U from -0.5 to {width - 0.5:g}, V from -0.5 to {height - 0.5:g}: pixel centres are whole "
+                     "numbers, 0 the first)"], lines
     assert not out.exists()
 
 

@@ -29,15 +29,14 @@ import sys
 import warnings
 from dataclasses import replace
 
-from trackmeter.cli.common import load_config_from_args, progress, source_warning_since
+from trackmeter.cli.common import load_config_from_args, progress, rig_help, source_warning_since
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--source", default="sim:static_ranges", metavar="SPEC",
                         help="frames of a still target (default sim:static_ranges; seq:DIR or a folder)")
     parser.add_argument("--rig", metavar="RIG",
-                        help="stereo rig file or a preset's name (config/rigs/) (default: the source's own); OpenCV's intrinsics.yml or extrinsics.yml "
-                             "(the other beside it) takes the size of the source's frames")
+                        help=rig_help("default: the source's own"))
     parser.add_argument("--points", type=int, metavar="N",
                         help="points selected per range (default from config: 30): the best corners the matcher accepts, "
                              "more where some fall short of analyze.min_samples good measurements; a range "

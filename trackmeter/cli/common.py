@@ -18,6 +18,14 @@ if TYPE_CHECKING:
 T = TypeVar("T")
 
 
+def rig_help(default: str, sized_by: str = "the source's frames") -> str:
+    """The ``--rig`` option's help, the same in every command: the files it takes; ``default``
+    what is used without it, ``sized_by`` what gives a file without the image size its size."""
+    return (f"stereo rig file or a preset's name (config/rigs/) ({default}): a rig.yaml (OpenCV FileStorage), "
+            "OpenCV's intrinsics.yml or extrinsics.yml (the other beside it), a Kalibr camchain.yaml or a "
+            f"Middlebury calib.txt; one without the image size is sized by {sized_by}")
+
+
 def load_config_from_args(args: argparse.Namespace) -> Config:
     """The configuration: ``config/default.yaml`` with ``--config`` layered over it."""
     from trackmeter.data.config import load_config

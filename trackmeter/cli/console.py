@@ -24,6 +24,7 @@ import argparse
 import sys
 from typing import TYPE_CHECKING, Any
 
+from trackmeter.cli.common import rig_help
 from trackmeter.errors import counted
 
 if TYPE_CHECKING:
@@ -45,8 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--port", type=int, default=8080, help="port to listen on (default 8080)")
     parser.add_argument("--record", metavar="DIR", help="record the incoming stereo stream to this sequence folder")
     parser.add_argument("--rig", metavar="RIG",
-                        help="stereo rig file or a preset's name (config/rigs/) to use instead of the source's own; OpenCV's intrinsics.yml or "
-                             "extrinsics.yml (the other beside it) takes the size of the source's frames")
+                        help=rig_help("default: the source's own"))
     parser.add_argument("--model", metavar="MODEL",
                         help="model.yaml for case (b) (default: the source's own model; the page's Model > Load model "
                              "loads one later)")

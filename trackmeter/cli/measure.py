@@ -28,14 +28,15 @@ from __future__ import annotations
 import argparse
 from typing import TYPE_CHECKING, Sequence
 
+from trackmeter.cli.common import rig_help
+
 if TYPE_CHECKING:
     from trackmeter.core.matching import PointMeasurement
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rig", required=True, metavar="RIG",
-                        help="stereo rig file or a preset's name (config/rigs/) (OpenCV FileStorage YAML; or OpenCV's intrinsics.yml or extrinsics.yml, "
-                             "the other beside it, sized by the left image)")
+                        help=rig_help("required", "the left image"))
     parser.add_argument("--left", required=True, metavar="IMG", help="left image (read as 8-bit grey)")
     parser.add_argument("--right", required=True, metavar="IMG", help="right image (read as 8-bit grey)")
     parser.add_argument(

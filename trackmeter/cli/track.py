@@ -34,7 +34,7 @@ import sys
 import time
 from typing import TYPE_CHECKING, Any, Callable
 
-from trackmeter.cli.common import parse_uv, plain_progress_due, source_warning_since
+from trackmeter.cli.common import parse_uv, plain_progress_due, rig_help, source_warning_since
 from trackmeter.errors import TrackmeterError, counted
 
 if TYPE_CHECKING:
@@ -79,8 +79,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--source", required=True, metavar="SPEC",
                         help="sim, sim:SCENARIO, seq:DIR or DIR, video:LEFT,RIGHT, camera:I[,J]")
     parser.add_argument("--rig", metavar="RIG",
-                        help="stereo rig file or a preset's name (config/rigs/) (default: the source's own rig); OpenCV's intrinsics.yml or "
-                             "extrinsics.yml (the other beside it) takes the size of the source's frames")
+                        help=rig_help("default: the source's own"))
     parser.add_argument("--model", metavar="MODEL",
                         help="model.yaml for case (b) (default: the source's own model); unused in cases (a) and (c)")
     parser.add_argument("--target", action="extend", nargs="+", default=[], metavar="[ID=]U,V",
@@ -216,10 +215,11 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
         # A pixel off the image is a typing slip, known once the rig is: one line before the run,
         # not a refusal after its first frame (with the case's note before it).
         width, height = rig.image_size
-        for tid, (u, v) in targets:
+        for text, (_, (u, v)) in zip(args.target, targets):
             if not inside_image(u, v, rig.image_size):
-                raise TrackmeterError(f"--target {f'{tid}=' if tid else ''}{u:g},{v:g}: outside the {width}x{height} "
-                                      f"image (U from 0 to {width - 1}, V from 0 to {height - 1})")
+                raise TrackmeterError(f"--target {text}: outside the {width}x{height} image (U from -0.5 to "
+                                      f"{width - 0.5:g}, V from -0.5 to {height - 0.5:g}: pixel centres are whole "
+                                      "numbers, 0 the first)")
         # After the inputs are read: a wrong path is the error to fix first.
         if not targets and auto is None and not args.select_model_points:
             raise TrackmeterError("nothing to track: give --target [ID=]U,V, --auto N and/or --select-model-points")

@@ -245,7 +245,7 @@ MIDDLEBURY_CALIB_START = re.compile(r"cam0\s*=\s*\[", re.IGNORECASE)
 def _rig_form(text: str, data: object) -> str | None:
     """Which form of stereo rig file ``text`` (``data`` as YAML read it, or None) is, said for
     an error, or None when it is none of those the rig reader takes."""
-    head = text.lstrip()
+    head = text.lstrip("\ufeff \t\r\n")  # a byte-order mark too (Windows editors write one)
     if head.startswith("<?xml") and "<opencv_storage>" in head:
         return "an OpenCV FileStorage file in XML (a stereo rig?)"
     if head.startswith("%YAML:") or "!!opencv-matrix" in text:

@@ -312,7 +312,8 @@ def load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> Ste
         rig.rectification  # computed once and cached: a lens model that cannot be rectified is the file's fault
     except TrackmeterError as exc:
         raise TrackmeterError(f"{resolved}: {exc}") from None
-    for problem in (baseline_problem(rig), skew_problem(rig)):
+    unit = "mm" if _middlebury_text(resolved) is not None else "m"
+    for problem in (baseline_problem(rig, unit), skew_problem(rig)):
         if problem:
             warnings.warn(f"{path}: {problem}", stacklevel=2)
     return rig
@@ -342,11 +343,17 @@ def skew_problem(rig: StereoRig) -> str | None:
             "image's top and bottom (calibrate with the skew fixed at 0)")
 
 
-def baseline_problem(rig: StereoRig) -> str | None:
+def baseline_problem(rig: StereoRig, file_unit: str = "m") -> str | None:
     """One line when the rig's baseline is longer than :data:`MAX_PLAUSIBLE_BASELINE_M` (its
     ``T`` most likely in millimetres: calibrated with the square size in mm) or shorter than
-    :data:`MIN_PLAUSIBLE_BASELINE_M`, else None."""
+    :data:`MIN_PLAUSIBLE_BASELINE_M`, else None. ``file_unit`` ``"mm"``: the file gives the
+    baseline in millimetres (Middlebury's ``calib.txt``), and one too short was likely written
+    in metres."""
     if rig.baseline_m < MIN_PLAUSIBLE_BASELINE_M:
+        if file_unit == "mm":
+            return (f"baseline {rig.baseline_m * 1000:.4g} mm is shorter than 1 mm: no depth can be measured with it "
+                    f"(a calib.txt's baseline is in millimetres: {rig.baseline_m * 1000:.4g} m would be "
+                    f"{rig.baseline_m * 1e6:.4g})")
         return (f"baseline {rig.baseline_m:.4g} m (|T|) is shorter than 1 mm: no depth can be measured with it "
                 "(T must be in metres)")
     if rig.baseline_m <= MAX_PLAUSIBLE_BASELINE_M:
@@ -375,12 +382,12 @@ def _load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> St
         TrackmeterError: missing file, not FileStorage, a missing key or a malformed matrix.
     """
     path = Path(path)
+    middlebury = _middlebury_calib(path)  # first: a few bytes read tell it
+    if middlebury is not None:
+        return _load_middlebury(middlebury, path, image_size)
     camchain = _kalibr_camchain(path)
     if camchain is not None:
         return _load_kalibr(camchain, path)
-    middlebury = _middlebury_calib(path)
-    if middlebury is not None:
-        return _load_middlebury(middlebury, path, image_size)
     fs = _open(path)
     try:
         if all(fs.getNode(key).empty() for key in _RIG_KEYS):
@@ -413,7 +420,7 @@ def is_rig_file(path: str | Path) -> bool:
     command may replace with ``--overwrite``: not the user's other files."""
     path = Path(path)
     try:  # a file of the right keys, right or wrong in what they hold (a key given twice)
-        if _kalibr_camchain(path, strict=False) is not None or _middlebury_calib(path) is not None:
+        if _middlebury_text(path) is not None or _kalibr_camchain(path, strict=False) is not None:
             return True
         fs = _open(path, strict=False)
     except TrackmeterError:
@@ -492,25 +499,49 @@ def _load_kalibr(camchain: dict, path: Path) -> StereoRig:
         raise TrackmeterError(f"{path}: {exc}") from None
 
 
-def _middlebury_calib(path: Path) -> dict[str, str] | None:
-    """The file's ``key=value`` lines (keys lower-cased) when it is a Middlebury ``calib.txt``
-    (its first line ``cam0=[...]``), else None."""
+def _middlebury_text(path: Path) -> tuple[str, bool] | None:
+    """``(text, whole)``: the file's text (up to :data:`MIDDLEBURY_CALIB_MAX_BYTES`, a
+    byte-order mark left out; ``whole`` when that is all of it) when it is a Middlebury
+    ``calib.txt`` (its first line ``cam0=[...]``), else None."""
     if not path.is_file():
         return None
     try:
         with path.open("rb") as f:
-            head = f.read(64 * 1024)
-        text = head.decode("utf-8")
+            head = f.read(MIDDLEBURY_CALIB_MAX_BYTES + 1)
+        text = head[:MIDDLEBURY_CALIB_MAX_BYTES].decode("utf-8-sig")  # Windows editors write a byte-order mark
     except (OSError, UnicodeDecodeError):
         return None
-    lines = [line.strip() for line in text.splitlines() if line.strip()]
-    if not lines or not MIDDLEBURY_CALIB_START.match(lines[0]):
+    if not MIDDLEBURY_CALIB_START.match(text.lstrip()):
         return None
+    return text, len(head) <= MIDDLEBURY_CALIB_MAX_BYTES
+
+
+def _middlebury_calib(path: Path) -> dict[str, str] | None:
+    """The file's ``key=value`` lines (keys lower-cased) when it is a Middlebury ``calib.txt``,
+    else None.
+
+    Raises:
+        TrackmeterError: a key given twice, or a file too large to be one.
+    """
+    found = _middlebury_text(path)
+    if found is None:
+        return None
+    text, whole = found
+    lines = [(number, line.strip()) for number, line in enumerate(text.splitlines(), 1) if line.strip()]
+    if not whole:
+        raise TrackmeterError(f"{path}: Middlebury calib: larger than {MIDDLEBURY_CALIB_MAX_BYTES // 1024} KiB: "
+                              "a calib.txt is a dozen short lines")
     entries: dict[str, str] = {}
-    for line in lines:
+    first_line: dict[str, int] = {}
+    for number, line in lines:
         key, sep, value = line.partition("=")
-        if sep:
-            entries[key.strip().lower()] = value.strip()
+        key = key.strip().lower()
+        if not sep:
+            continue
+        if key in entries:
+            raise TrackmeterError(f"{path}: Middlebury calib: '{key}' given twice (lines {first_line[key]} and "
+                                  f"{number})")
+        entries[key], first_line[key] = value.strip(), number
     return entries
 
 
@@ -543,6 +574,8 @@ def _middlebury_number(entries: dict[str, str], key: str) -> float | None:
 
 #: How far ``doffs`` may differ from ``cx1 - cx0`` (px): the files give both to three decimals.
 MIDDLEBURY_DOFFS_TOLERANCE_PX = 0.01
+#: A ``calib.txt`` is a dozen short lines: one larger than this is not read whole.
+MIDDLEBURY_CALIB_MAX_BYTES = 64 * 1024
 
 
 def _load_middlebury(entries: dict[str, str], path: Path, image_size: tuple[int, int] | None) -> StereoRig:
@@ -572,8 +605,16 @@ def _load_middlebury(entries: dict[str, str], path: Path, image_size: tuple[int,
             if image_size is None:
                 raise TrackmeterError("missing 'width'/'height' (the images' size, px)")
             width, height = image_size
-        if not (_whole_pixels(width) and _whole_pixels(height) and width > 0 and height > 0):
-            raise TrackmeterError(f"'width' and 'height' must be whole numbers of pixels, got {width:g} x {height:g}")
+        for key, value in (("width", width), ("height", height)):
+            if not (_whole_pixels(value) and MIN_IMAGE_SIZE_PX <= value <= MAX_IMAGE_SIZE_PX):
+                raise TrackmeterError(f"'{key}' must be a whole number of pixels from {MIN_IMAGE_SIZE_PX} to "
+                                      f"{MAX_IMAGE_SIZE_PX}, got {value:g}")
+        if not (K0[0, 0] == K0[1, 1] == K1[0, 0] == K1[1, 1] and K0[1, 2] == K1[1, 2] and K0[0, 1] == K1[0, 1] == 0.0):
+            # A typing slip: Middlebury's rectified views share f and cy. The rig is then
+            # rectified again (resampled), and disparity_px is no longer the pair's own.
+            warnings.warn(f"{path}: Middlebury calib: cam0 and cam1 are not the matrices of a rectified pair (one "
+                          "focal length f and principal row cy in both, no skew): the images are rectified again, "
+                          "and disparities are the re-rectified images'", stacklevel=3)
         cams = [Camera(int(width), int(height), K) for K in (K0, K1)]
         return StereoRig(cams[0], cams[1], np.eye(3), np.array([-baseline_mm / 1000.0, 0.0, 0.0]), name=path.stem)
     except TrackmeterError as exc:
