@@ -164,9 +164,9 @@ def run(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace, started: list[bool]) -> int:
     from trackmeter.cli.common import load_config_from_args, open_source_with_rig
+    from trackmeter.core.matching import inside_image
     from trackmeter.data.config import config_to_dict
     from trackmeter.data.model import load_model
-    from trackmeter.core.matching import inside_image
     from trackmeter.data.rundir import RunWriter, check_run_directory
     from trackmeter.pipeline.engine import NEEDS_TRUTH, Engine, SelectModelPoints
     from trackmeter.pipeline.pipeline import NOT_APPLIED, STOPPED, interrupts_deferred, run_headless, source_said_by_caller

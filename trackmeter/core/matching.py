@@ -110,13 +110,6 @@ REASON_SUBPIXEL = "sub-pixel refinement failed"
 REASON_UNCERTAIN = "disparity too uncertain"
 REASON_DEPTH_EDGE = "depth edge inside the patch"
 
-def inside_image(u: float, v: float, image_size: tuple[int, int]) -> bool:
-    """Whether pixel ``(u, v)`` lies on a ``(width, height)`` image: pixel centres are whole
-    numbers, so the image spans ``[-0.5, width - 0.5] x [-0.5, height - 0.5]``. NaN is outside."""
-    width, height = image_size
-    return -0.5 <= u <= width - 0.5 and -0.5 <= v <= height - 0.5
-
-
 #: Every reason a point can be refused for, in the order the checks run.
 REASONS: tuple[str, ...] = (
     REASON_OUTSIDE_IMAGE,
@@ -1688,6 +1681,13 @@ def measure_points(
             )
         out.append(pm)
     return tuple(out)
+
+
+def inside_image(u: float, v: float, image_size: tuple[int, int]) -> bool:
+    """Whether pixel ``(u, v)`` lies on a ``(width, height)`` image: pixel centres are whole
+    numbers, so the image spans ``[-0.5, width - 0.5] x [-0.5, height - 0.5]``. NaN is outside."""
+    width, height = image_size
+    return -0.5 <= u <= width - 0.5 and -0.5 <= v <= height - 0.5
 
 
 def _patch_inside(uv: FloatArray, patch_size: int, width: int, height: int) -> bool:

@@ -307,13 +307,13 @@ def load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> Ste
     cameras) loads; measuring and tracking refuse it with the remedy
     (:func:`trackmeter.core.stereo.check_side_by_side`)."""
     resolved = resolve_rig_path(path)
-    rig = _load_rig(resolved, image_size)
+    middlebury = _middlebury_calib(resolved)  # first: a few bytes read tell it
+    rig = _load_middlebury(middlebury, resolved, image_size) if middlebury is not None else _load_rig(resolved, image_size)
     try:
         rig.rectification  # computed once and cached: a lens model that cannot be rectified is the file's fault
     except TrackmeterError as exc:
         raise TrackmeterError(f"{resolved}: {exc}") from None
-    unit = "mm" if _middlebury_text(resolved) is not None else "m"
-    for problem in (baseline_problem(rig, unit), skew_problem(rig)):
+    for problem in (baseline_problem(rig, "mm" if middlebury is not None else "m"), skew_problem(rig)):
         if problem:
             warnings.warn(f"{path}: {problem}", stacklevel=2)
     return rig
@@ -382,9 +382,6 @@ def _load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> St
         TrackmeterError: missing file, not FileStorage, a missing key or a malformed matrix.
     """
     path = Path(path)
-    middlebury = _middlebury_calib(path)  # first: a few bytes read tell it
-    if middlebury is not None:
-        return _load_middlebury(middlebury, path, image_size)
     camchain = _kalibr_camchain(path)
     if camchain is not None:
         return _load_kalibr(camchain, path)
@@ -527,13 +524,12 @@ def _middlebury_calib(path: Path) -> dict[str, str] | None:
     if found is None:
         return None
     text, whole = found
-    lines = [(number, line.strip()) for number, line in enumerate(text.splitlines(), 1) if line.strip()]
     if not whole:
         raise TrackmeterError(f"{path}: Middlebury calib: larger than {MIDDLEBURY_CALIB_MAX_BYTES // 1024} KiB: "
                               "a calib.txt is a dozen short lines")
     entries: dict[str, str] = {}
     first_line: dict[str, int] = {}
-    for number, line in lines:
+    for number, line in enumerate(text.splitlines(), 1):
         key, sep, value = line.partition("=")
         key = key.strip().lower()
         if not sep:
