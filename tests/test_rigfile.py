@@ -930,3 +930,21 @@ def test_a_file_named_calib_txt_too_large_to_be_one_is_refused_without_reading_i
     path = _written(tmp_path / "calib.txt", MOTORCYCLE_CALIB + "# padding\n" * 20000)
     with pytest.raises(TrackmeterError, match=r"larger than 64 KiB: a calib\.txt is a dozen short lines"):
         load_rig(path)
+
+
+def test_a_middlebury_calib_txt_with_comments_added_by_hand_reads_the_same(tmp_path: Path) -> None:
+    """Middlebury's files have no comments, but a copy annotated by hand may: ``#`` lines first
+    (they hid the file's form), and a ``#`` after a value (it became part of the value)."""
+    from trackmeter.data.config import load_config
+    from trackmeter.data.rigfile import is_rig_file
+
+    text = ("# Motorcycle, quarter size\n\n  # f, cx, cy from the published file\n"
+            + MOTORCYCLE_CALIB.replace("baseline=193.001", "baseline=193.001  # mm"))
+    path = _written(tmp_path / "calib.txt", text)
+    assert is_rig_file(path)
+    got, want = load_rig(path), load_rig(_written(tmp_path / "plain.txt", MOTORCYCLE_CALIB))
+    np.testing.assert_array_equal(got.left.K, want.left.K)
+    np.testing.assert_array_equal(got.right.K, want.right.K)
+    np.testing.assert_array_equal(got.T, want.T)
+    with pytest.raises(TrackmeterError, match=r"a Middlebury calib\.txt \(a stereo rig\)"):
+        load_config(path)

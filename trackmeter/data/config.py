@@ -238,8 +238,9 @@ def read_yaml_mapping(path: Path, loader: type[Any] = FAST_SAFE_LOADER, kind: st
 #: A camera matrix's key in a rig file (DESIGN.md's rig.yaml; OpenCV's intrinsics.yml).
 _RIG_CAMERA_KEYS = frozenset({"K1", "K2", "M1", "M2"})
 
-#: How a Middlebury ``calib.txt`` (a stereo rig) begins: ``cam0=[f 0 cx; ...]``.
-MIDDLEBURY_CALIB_START = re.compile(r"cam0\s*=\s*\[", re.IGNORECASE)
+#: How a Middlebury ``calib.txt`` (a stereo rig) begins: ``cam0=[f 0 cx; ...]``, after any blank
+#: or ``#`` comment lines (Middlebury's own files have none; a hand-annotated copy may).
+MIDDLEBURY_CALIB_START = re.compile(r"(?:[ \t]*(?:#[^\n]*)?\r?\n)*[ \t]*cam0\s*=\s*\[", re.IGNORECASE)
 
 
 def _rig_form(text: str, data: object) -> str | None:

@@ -499,7 +499,7 @@ def _load_kalibr(camchain: dict, path: Path) -> StereoRig:
 def _middlebury_text(path: Path) -> tuple[str, bool] | None:
     """``(text, whole)``: the file's text (up to :data:`MIDDLEBURY_CALIB_MAX_BYTES`, a
     byte-order mark left out; ``whole`` when that is all of it) when it is a Middlebury
-    ``calib.txt`` (its first line ``cam0=[...]``), else None."""
+    ``calib.txt`` (its first line ``cam0=[...]``, blank and ``#`` comment lines aside), else None."""
     if not path.is_file():
         return None
     try:
@@ -530,7 +530,7 @@ def _middlebury_calib(path: Path) -> dict[str, str] | None:
     entries: dict[str, str] = {}
     first_line: dict[str, int] = {}
     for number, line in enumerate(text.splitlines(), 1):
-        key, sep, value = line.partition("=")
+        key, sep, value = line.partition("#")[0].partition("=")  # a hand-added comment is not a value
         key = key.strip().lower()
         if not sep:
             continue
