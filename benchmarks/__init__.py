@@ -51,6 +51,22 @@ def config_note(names: list[str]) -> str | None:
             f"{', '.join(others[:-1]) + ' and ' if len(others) > 1 else ''}{others[-1]} run config/default.yaml")
 
 
+def browser_unmet() -> str | None:
+    """What a benchmark that drives the console in a headless browser lacks, said as the fix
+    (Playwright, from the project's test extra, and the Debian package chromium), or None.
+
+    Checked before any benchmark runs (a module's ``unmet()``): the console benchmark comes
+    after 20 minutes of others, and its missing browser cost them all (no JSON was written)."""
+    import importlib.util
+    import shutil
+
+    if importlib.util.find_spec("playwright") is None:
+        return "Playwright (pip install -e '.[test]'; never 'playwright install')"
+    if shutil.which("chromium") is None:
+        return "the Debian package chromium (apt-get install chromium)"
+    return None
+
+
 def bench_config() -> Config:
     """The configuration a benchmark runs the engine with: the defaults, or the file named by
     :data:`CONFIG_ENV` layered over them.

@@ -11,6 +11,7 @@ import math
 import numbers
 import sys
 import time
+import traceback
 from pathlib import Path
 
 from benchmarks import NAMES, READS_CONFIG, bench_config, config_note
@@ -39,8 +40,9 @@ def main(argv: list[str] | None = None) -> int:
         epilog="Run from the repository's root (the benchmarks folder is not installed with the package).\n"
                "Long ones: soak runs 10 minutes of live pipeline by design; accuracy took 3-13 minutes on the\n"
                "project's 2-core machines (172 s on 2026-12-02's), looks about 2; console drives a headless\n"
-               "Chromium (the Debian package chromium) through Playwright. The figures and their goals:\n"
-               "README.md's results table.")
+               "Chromium (the Debian package chromium) through Playwright (the test extra), checked before any runs.\n"
+               "A benchmark that fails costs only its own figures: the others' are printed and written, exit 1;\n"
+               "Ctrl-C keeps those finished before it (exit 130). The figures and their goals: README.md's results table.")
     parser.add_argument("names", nargs="*", metavar="NAME", help=f"benchmarks to run (default: all): {', '.join(NAMES)}")
     parser.add_argument("--out", type=Path, help="also write the JSON to this file")
     args = parser.parse_args(argv)
@@ -58,15 +60,24 @@ def main(argv: list[str] | None = None) -> int:
         except TrackmeterError as exc:
             print(f"python -m benchmarks: error: {exc}", file=sys.stderr)
             return 2
-    results: dict[str, dict[str, float]] = {}
-    for name in names:
+    modules = {}
+    for name in names:  # all before the first runs: a missing one is not found an hour in
         try:
-            module = importlib.import_module(f"benchmarks.{name}")
+            modules[name] = importlib.import_module(f"benchmarks.{name}")
         except ModuleNotFoundError as exc:
             if exc.name == f"benchmarks.{name}":
                 print(f"python -m benchmarks: error: benchmark {name} is not built yet", file=sys.stderr)
                 return 2
             raise
+    unmet = [(name, why) for name, module in modules.items() if (why := getattr(module, "unmet", lambda: None)())]
+    if unmet:
+        print(f"python -m benchmarks: error: {'; '.join(f'{name} needs {why}' for name, why in unmet)} "
+              f"(or name the benchmarks to run without {'it' if len(unmet) == 1 else 'them'})", file=sys.stderr)
+        return 2
+    results: dict[str, dict[str, float]] = {}
+    failed: list[str] = []
+    interrupted = False
+    for name, module in modules.items():
         print(f"[benchmarks] {name} ...", file=sys.stderr, flush=True)
         start = time.perf_counter()
         # stdout carries the JSON alone: whatever a benchmark's libraries print (viser's banner)
@@ -77,6 +88,15 @@ def main(argv: list[str] | None = None) -> int:
         except TrackmeterError as exc:  # bad input (e.g. TRACKMETER_BENCH_CONFIG): one line, no traceback
             print(f"python -m benchmarks: error: {name}: {exc}", file=sys.stderr)
             return 2
+        except KeyboardInterrupt:  # the figures measured so far are kept (below)
+            print(f"[benchmarks] {name} interrupted", file=sys.stderr, flush=True)
+            interrupted = True
+            break
+        except Exception as exc:  # one benchmark's failure must not cost the others' figures
+            traceback.print_exc()
+            print(f"[benchmarks] {name} failed after {time.perf_counter() - start:.1f} s", file=sys.stderr, flush=True)
+            failed.append(f"{name} ({exc.__class__.__name__}: {exc})")
+            continue
         print(f"[benchmarks] {name} done in {time.perf_counter() - start:.1f} s", file=sys.stderr, flush=True)
     text = json.dumps(results, indent=2, sort_keys=True, allow_nan=False)
     print(text)
@@ -85,6 +105,15 @@ def main(argv: list[str] | None = None) -> int:
 
         args.out.parent.mkdir(parents=True, exist_ok=True)
         write_text_atomic(args.out, text + "\n")
+    if interrupted:
+        print(f"python -m benchmarks: interrupted: the figures of {len(results)} benchmark(s) finished before it "
+              "are above", file=sys.stderr)
+        return 130
+    if failed:
+        # The last line: what a caller (benchmarks.reproduce) shows for the missing figures.
+        print(f"python -m benchmarks: error: {len(failed)} of {len(names)} failed: {'; '.join(failed)} "
+              "(the others' figures are in the JSON)", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -363,6 +363,13 @@ def _measure_browser(page: Any, running: Any, window: Any, jpeg_times: list[floa
     }
 
 
+def unmet() -> str | None:
+    """What this benchmark needs and this machine lacks (:func:`benchmarks.browser_unmet`)."""
+    from benchmarks import browser_unmet
+
+    return browser_unmet()
+
+
 def run() -> dict[str, float]:
     from playwright.sync_api import sync_playwright
 
@@ -376,7 +383,7 @@ def run() -> dict[str, float]:
 
     chromium = shutil.which("chromium")
     if chromium is None:
-        raise RuntimeError("Debian chromium is needed (apt-get install chromium)")
+        raise RuntimeError(f"needs {unmet()}")
     nice, priority = console_priority()
     if SOURCE == "plate":  # the browser tests' textured plate: no renderer competing for the cores
         from tests.browser.conftest import plate_source

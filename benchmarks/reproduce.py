@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as _dt
+import importlib.util
 import json
 import math
 import os
@@ -38,7 +39,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from benchmarks import CONFIG_ENV
+from benchmarks import CONFIG_ENV, NAMES, browser_unmet
 
 REPO = Path(__file__).resolve().parent.parent
 PAPER_VIEW_NOTE = "paper's viewing axis was y, ours is z"
@@ -126,7 +127,17 @@ class Runner:
               file=sys.stderr, flush=True)
         return step
 
-    def json_of(self, step: Step) -> dict | None:
+    def json_of(self, step: Step, partial: bool = False) -> dict | None:
+        """The step's JSON (its stdout, else its ``--out`` file), None when it did not succeed.
+        ``partial``: a failed step's ``--out`` file too (``python -m benchmarks`` writes the
+        figures of the benchmarks that finished when another fails; the caller removes the
+        file before the step, so it is never an earlier run's)."""
+        if step.status == "failed" and partial and "--out" in step.argv:
+            out = Path(step.argv[step.argv.index("--out") + 1])
+            try:
+                return json.loads(out.read_text(encoding="utf-8")) if out.is_file() else None
+            except (OSError, json.JSONDecodeError):
+                return None
         if step.status != "ok":
             return None
         try:
@@ -448,6 +459,15 @@ def main(argv: list[str] | None = None) -> int:
                         help="do not write the table into README.md (a full run does, between its reproduce markers)")
     args = parser.parse_args(argv)
 
+    built = [n for n in NAMES if importlib.util.find_spec(f"benchmarks.{n}") is not None]
+    wanted = args.benchmarks if args.benchmarks is not None else (
+        [n for n in ("measure", "tracker", "render") if n in built] if args.quick else built)
+    not_built = [n for n in (args.benchmarks or NAMES) if n not in built]
+    # Before the 15 minutes of simulating and tracking, not after them: the console's rows
+    # (and the console soak's) need a browser.
+    if any(n in wanted for n in ("console", "soak")) and not args.quick and (why := browser_unmet()):
+        parser.error(f"the console benchmarks need {why} (or --benchmarks without console and soak)")
+
     out = args.out.resolve()
     work = out / "work"
     if work.exists():
@@ -519,19 +539,12 @@ def main(argv: list[str] | None = None) -> int:
         table.append(f"| sub-pixel disparity accuracy (eq. 2) | 0.07 px | {miss or '—'} | `{acmd}` |")
 
     # 5. benchmarks
-    sys.path.insert(0, str(REPO))
-    from benchmarks import NAMES
-    import importlib.util
-
-    built = [n for n in NAMES if importlib.util.find_spec(f"benchmarks.{n}") is not None]
-    wanted = args.benchmarks if args.benchmarks is not None else (
-        [n for n in ("measure", "tracker", "render") if n in built] if args.quick else built)
-    not_built = [n for n in (args.benchmarks or NAMES) if n not in built]
     bench_step = None
     results = None
     if wanted:
+        (out / "benchmarks.json").unlink(missing_ok=True)  # a failed run reads what it wrote, never an earlier run's
         bench_step = r.run("benchmarks", [sys.executable, "-m", "benchmarks", *wanted, "--out", str(out / "benchmarks.json")])
-        results = r.json_of(bench_step)
+        results = r.json_of(bench_step, partial=True)
     table += benchmark_rows(results, bench_step, [n for n in NAMES if n in wanted or n in not_built], not_built)
     for n in not_built:
         if not any(b == n for b, _ in BENCHMARK_ROWS):

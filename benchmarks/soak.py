@@ -159,6 +159,13 @@ class _ConsoleRun:
                 restore_cpu_priority(self._priority)
 
 
+def unmet() -> str | None:
+    """What this benchmark needs and this machine lacks: the browsers' for the console soak."""
+    from benchmarks import browser_unmet
+
+    return browser_unmet() if os.environ.get("TRACKMETER_SOAK_CONSOLE") == "1" else None
+
+
 def run() -> dict[str, float]:
     if os.environ.get("TRACKMETER_SOAK_CONSOLE") == "1":
         out = soak(DURATION_S, _ConsoleRun)

@@ -1,0 +1,125 @@
+"""``python -m benchmarks`` keeps what it measured: a benchmark that fails (or a Ctrl-C) does not
+cost the figures of those that finished, and a benchmark whose needs are missing (the console's
+browser) is refused before any runs.
+
+A reproduce run with the project installed without its test extra ran 20 minutes of benchmarks,
+then the console benchmark's ``import playwright`` failed and no JSON was written at all."""
+
+from __future__ import annotations
+
+import json
+import types
+from pathlib import Path
+
+import pytest
+
+import benchmarks.__main__ as entry
+from benchmarks.reproduce import Runner, Step, benchmark_rows
+
+
+def _fake_benchmarks(monkeypatch: pytest.MonkeyPatch, behaviours: dict[str, object]) -> list[str]:
+    """Replace the benchmark modules by ``behaviours[name]``: figures to return, an exception to
+    raise, or ``("unmet", why)``. Returns the names in the order their ``run`` was called."""
+    ran: list[str] = []
+
+    def module(name: str) -> types.SimpleNamespace:
+        short = name.removeprefix("benchmarks.")
+        behaviour = behaviours[short]
+
+        def run() -> object:
+            ran.append(short)
+            if isinstance(behaviour, BaseException):
+                raise behaviour
+            return behaviour
+
+        unmet = (lambda: behaviour[1]) if isinstance(behaviour, tuple) else (lambda: None)
+        return types.SimpleNamespace(run=run, unmet=unmet)
+
+    monkeypatch.setattr(entry.importlib, "import_module", module)
+    return ran
+
+
+def test_a_failing_benchmark_costs_only_its_own_figures(monkeypatch: pytest.MonkeyPatch, tmp_path: Path,
+                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    ran = _fake_benchmarks(monkeypatch, {"measure": {"point_ms_median": 1.5},
+                                         "render": ModuleNotFoundError("No module named 'x'"),
+                                         "select": {"select_ms_median": 40.0}})
+    out = tmp_path / "bench.json"
+    assert entry.main(["measure", "render", "select", "--out", str(out)]) == 1
+    assert ran == ["measure", "render", "select"]
+    captured = capsys.readouterr()
+    want = {"measure": {"point_ms_median": 1.5}, "select": {"select_ms_median": 40.0}}
+    assert json.loads(out.read_text()) == want and json.loads(captured.out) == want
+    last = captured.err.strip().splitlines()[-1]
+    assert last == ("python -m benchmarks: error: 1 of 3 failed: render (ModuleNotFoundError: No module named 'x') "
+                    "(the others' figures are in the JSON)")
+    assert "Traceback" in captured.err  # the failure's own story, for the log
+
+
+def test_a_ctrl_c_keeps_the_figures_finished_before_it(monkeypatch: pytest.MonkeyPatch, tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    ran = _fake_benchmarks(monkeypatch, {"measure": {"point_ms_median": 1.5}, "render": KeyboardInterrupt(),
+                                         "select": {"select_ms_median": 40.0}})
+    out = tmp_path / "bench.json"
+    assert entry.main(["measure", "render", "select", "--out", str(out)]) == 130
+    assert ran == ["measure", "render"]
+    assert json.loads(out.read_text()) == {"measure": {"point_ms_median": 1.5}}
+    assert "interrupted" in capsys.readouterr().err.strip().splitlines()[-1]
+
+
+def test_a_benchmark_whose_needs_are_missing_is_refused_before_any_runs(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    ran = _fake_benchmarks(monkeypatch, {"measure": {"point_ms_median": 1.5},
+                                         "console": ("unmet", "Playwright (pip install -e '.[test]')")})
+    out = tmp_path / "bench.json"
+    assert entry.main(["measure", "console", "--out", str(out)]) == 2
+    assert ran == [] and not out.exists()
+    err = capsys.readouterr().err.strip()
+    assert err == ("python -m benchmarks: error: console needs Playwright (pip install -e '.[test]') "
+                   "(or name the benchmarks to run without it)")
+
+
+def test_the_browser_benchmarks_name_what_they_lack(monkeypatch: pytest.MonkeyPatch) -> None:
+    import importlib.util
+    import shutil
+
+    import benchmarks.console as console_bench
+    import benchmarks.soak as soak_bench
+
+    real_find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name == "playwright" else real_find_spec(name, *a))
+    assert "Playwright" in (console_bench.unmet() or "")
+    monkeypatch.delenv("TRACKMETER_SOAK_CONSOLE", raising=False)
+    assert soak_bench.unmet() is None  # the pipeline's soak needs no browser
+    monkeypatch.setenv("TRACKMETER_SOAK_CONSOLE", "1")
+    assert "Playwright" in (soak_bench.unmet() or "")
+    monkeypatch.setattr(importlib.util, "find_spec", real_find_spec)
+    monkeypatch.setattr(shutil, "which", lambda name, *a, **k: None)
+    assert "apt-get install chromium" in (console_bench.unmet() or "")
+
+
+def test_reproduce_shows_the_figures_of_a_benchmarks_run_that_failed_in_part(tmp_path: Path) -> None:
+    out = tmp_path / "benchmarks.json"
+    out.write_text(json.dumps({"measure": {"point_ms_median": 0.5}}))
+    step = Step("benchmarks", ["python", "-m", "benchmarks", "measure", "tracker", "--out", str(out)],
+                status="failed", reason="exit 1: python -m benchmarks: error: 1 of 2 failed: tracker (boom)")
+    r = Runner(tmp_path, tmp_path)
+    assert r.json_of(step) is None  # a failed step has no JSON unless the caller asks for what it wrote
+    results = r.json_of(step, partial=True)
+    rows = benchmark_rows(results, step, ["measure", "tracker"], [])
+    assert any("| 15 ms | 0.500 ms |" in row for row in rows)
+    tracker_rows = [row for row in rows if "benchmarks tracker" in row]
+    assert tracker_rows and all("_failed: benchmarks — exit 1" in row for row in tracker_rows)
+
+
+def test_reproduce_refuses_before_simulating_when_the_console_rows_cannot_run(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import benchmarks.reproduce as reproduce
+
+    monkeypatch.setattr(reproduce, "browser_unmet", lambda: "Playwright (pip install -e '.[test]')")
+    with pytest.raises(SystemExit) as exc:
+        reproduce.main(["--out", str(tmp_path / "results"), "--no-readme"])
+    assert exc.value.code == 2
+    assert "the console benchmarks need Playwright" in capsys.readouterr().err
+    assert not (tmp_path / "results").exists()  # nothing simulated, nothing written
