@@ -458,9 +458,11 @@ def test_source_failure_is_reported_not_raised_and_restart_recovers() -> None:
         snap = pipe.run_until_end(10)
         assert snap.source_status == "source failed: camera unplugged"
         assert pipe.running and snap.timings.frames_read == 12
-        assert pipe.call(RestartSource()).ok
+        reply = pipe.call(RestartSource())
+        assert reply.ok and reply.message == "source restarted after 'source failed: camera unplugged': it may fail again"
         snap = pipe.run_until_end(10)
         assert snap.source_status == "ended" and snap.timings.frames_read == 12 + 30
+        assert pipe.call(RestartSource()).message == "source restarted"  # it ended, it did not fail
 
 
 def test_tracker_exception_marks_the_pose_invalid_and_tracking_goes_on() -> None:

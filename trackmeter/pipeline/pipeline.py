@@ -745,6 +745,10 @@ class Pipeline:
             with self._source_lock:
                 self.source.restart()
                 with self._cond:
+                    # A failed source (a camera unplugged) may fail again: the reply says from what it
+                    # restarted, not only "restarted" (the operator read that as fixed).
+                    failure = (self._source_status if self._source_done and self._source_status
+                               and self._source_status.startswith("source failed") else None)
                     self._source_generation += 1
                     if self._slot is not None:
                         self._frames_dropped += 1  # a frame of the stream before the restart
@@ -758,7 +762,8 @@ class Pipeline:
                     paused = self._paused
                     self._steps = 1 if paused else 0
                     self._cond.notify_all()
-            return CommandReply(True, "source restarted" + ("; paused at its first frame" if paused else "")
+            return CommandReply(True, "source restarted" + (f" after '{failure}': it may fail again" if failure else "")
+                                + ("; paused at its first frame" if paused else "")
                                 + ("; the recording goes on, its time carried on" if self._recording() else ""))
         if isinstance(command, SetRecording):
             if command.directory is None:
