@@ -948,3 +948,30 @@ def test_a_middlebury_calib_txt_with_comments_added_by_hand_reads_the_same(tmp_p
     np.testing.assert_array_equal(got.T, want.T)
     with pytest.raises(TrackmeterError, match=r"a Middlebury calib\.txt \(a stereo rig\)"):
         load_config(path)
+
+
+def test_a_middlebury_calib_txt_with_rows_apart_is_warned_about(tmp_path: Path, shared_data) -> None:  # type: ignore[no-untyped-def]
+    """Middlebury's "imperfect" calibrations say how far the views' rows are apart (``dyavg``,
+    ``dymax``). The matching searches along one row: on Tsukuba with its right image moved down
+    1 px, fewer than two thirds as many points are accepted, so a ``dymax`` like the imperfect
+    files' (about 1.5 px) is warned about, and Middlebury's perfect files (0) are not."""
+    import warnings
+
+    from benchmarks.measure import identity_rig, load_tsukuba
+    from trackmeter.core.matching import measure_points
+
+    imperfect = _written(tmp_path / "calib.txt", MOTORCYCLE_CALIB.replace("dyavg=0\ndymax=0", "dyavg=0.918\ndymax=1.516"))
+    with pytest.warns(UserWarning, match=r"dymax=1\.516: the views' rows are up to 1\.516 px apart"):
+        load_rig(imperfect)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_rig(_written(tmp_path / "perfect.txt", MOTORCYCLE_CALIB))
+
+    left, right, _ = load_tsukuba(shared_data / "middlebury_tsukuba")
+    rig = identity_rig(left.shape[1], left.shape[0])
+    pixels = np.column_stack([np.random.default_rng(0).uniform(30, 350, 200), np.random.default_rng(1).uniform(30, 255, 200)])
+    down = cv2.warpAffine(right, np.float32([[1, 0, 0], [0, 1, 1.0]]), right.shape[::-1], flags=cv2.INTER_CUBIC,
+                          borderMode=cv2.BORDER_REFLECT)
+    aligned = sum(m.ok for m in measure_points(rig, left, right, pixels))
+    apart = sum(m.ok for m in measure_points(rig, left, down, pixels))
+    assert aligned >= 50 and apart < 2 / 3 * aligned, (aligned, apart)
