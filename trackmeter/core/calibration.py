@@ -28,7 +28,7 @@ centre of the top-left pixel is (0, 0) (``findChessboardCorners`` and ``cornerSu
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import Callable, Sequence, cast
 
 import cv2
 import numpy as np
@@ -178,7 +178,8 @@ def calibrate_camera(
     n_dist, flags = DISTORTION_MODELS[params.distortion_model]
     obj = [np.asarray(p, np.float32).reshape(-1, 1, 3) for p in points_board]
     img = [np.asarray(p, np.float32).reshape(-1, 1, 2) for p in uv]
-    rms, K, dist, rvecs, tvecs, std_in, _std_ex, per_view = cv2.calibrateCameraExtended(
+    # The stubs take no None for an output array (cameraMatrix) that OpenCV allocates.
+    rms, K, dist, rvecs, tvecs, std_in, _std_ex, per_view = cv2.calibrateCameraExtended(  # type: ignore[call-overload]
         obj, img, image_size, None, np.zeros(n_dist), flags=flags, criteria=_criteria(params)
     )
     dist = np.asarray(dist, float).ravel()[:n_dist]
@@ -327,11 +328,12 @@ def _stereo_step(
     uv_right: list[NDArray[np.float32]],
     image_size: tuple[int, int],
     params: CalibrationParams,
-) -> tuple[MonoCalibration, MonoCalibration, tuple]:  # type: ignore[type-arg]
+) -> tuple[MonoCalibration, MonoCalibration, tuple]:
     left = calibrate_camera(obj, uv_left, image_size, params)
     right = calibrate_camera(obj, uv_right, image_size, params)
     _, model_flags = DISTORTION_MODELS[params.distortion_model]
-    out = cv2.stereoCalibrateExtended(
+    # The stubs take no None for the output arrays (R, T) that OpenCV allocates.
+    out = cv2.stereoCalibrateExtended(  # type: ignore[call-overload]
         [o.reshape(-1, 1, 3) for o in obj],
         [u.reshape(-1, 1, 2) for u in uv_left],
         [u.reshape(-1, 1, 2) for u in uv_right],
@@ -464,7 +466,7 @@ def reprojection_covariance(residual_fn: Callable[[FloatArray], FloatArray], x0:
     if dof <= 0:
         raise TrackmeterError("too few corners to estimate parameter uncertainties")
     sigma2 = float(r0 @ r0) / dof
-    return sigma2 * np.linalg.pinv(J.T @ J), sigma2
+    return cast(FloatArray, sigma2 * np.linalg.pinv(J.T @ J)), sigma2  # numpy's stubs: floating[Any]
 
 
 def _camera_vector(cam: Camera, n_dist: int) -> FloatArray:
@@ -577,5 +579,5 @@ def stereo_parameter_std(
     T = rig.T
     g = T / np.linalg.norm(T)
     cov_T = cov[2 * nf + 3 : 2 * nf + 6, 2 * nf + 3 : 2 * nf + 6]
-    std["baseline"] = float(np.sqrt(max(g @ cov_T @ g, 0.0)))
+    std["baseline"] = float(np.sqrt(max(float(g @ cov_T @ g), 0.0)))
     return std

@@ -27,6 +27,7 @@ smooth approach from one position to another (:class:`Translation`).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -162,7 +163,7 @@ class FreeRotation:
     moments: FloatArray
     R_body_principal: FloatArray
     duration_s: float
-    _solution: object = field(repr=False)
+    _solution: Callable[[FloatArray], FloatArray] = field(repr=False)  # solve_ivp's dense output: (N,) times to (7,N)
 
     def state(self, t_s: ArrayLike) -> tuple[FloatArray, FloatArray]:
         """Attitude and body-frame angular velocity at times ``t_s``.
@@ -180,7 +181,7 @@ class FreeRotation:
         tol = 1e-9 * max(1.0, self.duration_s)
         if np.any(t < -tol) or np.any(t > self.duration_s + tol):
             raise TrackmeterError(f"time outside the integrated span [0, {self.duration_s}] s")
-        y = np.asarray(self._solution(np.clip(t, 0.0, self.duration_s)), dtype=float).T  # type: ignore[operator]
+        y = np.asarray(self._solution(np.clip(t, 0.0, self.duration_s)), dtype=float).T
         q_world_principal = y[:, :4] / np.linalg.norm(y[:, :4], axis=1, keepdims=True)
         omega_principal = y[:, 4:]
         # Back to the body frame: q_world_body = q_world_principal ⊗ q_principal_body. A product

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
@@ -79,7 +80,7 @@ def apply_gain(image: NDArray[np.uint8], gain: float) -> NDArray[np.uint8]:
     """``image`` * ``gain``, rounded and saturated to uint8; the image itself when ``gain`` is 1."""
     if gain == 1.0:
         return image
-    return cv2.convertScaleAbs(np.asarray(image), alpha=float(gain))
+    return cast("NDArray[np.uint8]", cv2.convertScaleAbs(np.asarray(image), alpha=float(gain)))  # always uint8
 
 
 def expose_pair(left: NDArray[np.uint8], right: NDArray[np.uint8], params: ExposureParams

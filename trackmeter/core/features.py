@@ -29,6 +29,7 @@ import weakref
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from functools import lru_cache
+from typing import cast
 
 import cv2
 import numpy as np
@@ -219,16 +220,16 @@ def _iter_directional_energy(img: NDArray[np.float32], wavelengths_px: tuple[flo
 
     def f(a: NDArray[np.float32], k: NDArray[np.float32]) -> NDArray[np.float32]:
         # The default border (reflect-101) of the 2D reference, applied per axis: the same.
-        return cv2.filter2D(a, cv2.CV_32F, k)
+        return cast("NDArray[np.float32]", cv2.filter2D(a, cv2.CV_32F, k))
 
     for level, ksize, filters, gains in _gabor_plan(wavelengths_px, orientations, pyramid):
         while len(images) <= level:
-            images.append(cv2.pyrDown(images[-1]))
+            images.append(cast("NDArray[np.float32]", cv2.pyrDown(images[-1])))
         im = images[level]
         energies = levels.setdefault(level, {})
 
         def fold(o: int, even: NDArray[np.float32], odd: NDArray[np.float32] | None) -> None:
-            mag = cv2.magnitude(even, odd) if odd is not None else np.abs(even)
+            mag = cast("NDArray[np.float32]", cv2.magnitude(even, odd)) if odd is not None else np.abs(even)
             if level > 0:
                 mag *= np.float32(gains[o])
             if o in energies:
@@ -247,11 +248,11 @@ def _iter_directional_energy(img: NDArray[np.float32], wavelengths_px: tuple[flo
             # Z = (rr - ii) + i (ri + ir); the mirror (pi - theta): (rr + ii) + i (ri - ir).
             even = rr if ii is None else rr - ii
             odd = ri if ir is None else (ir if ri is None else ri + ir)
-            fold(s.orientation, cv2.scaleAdd(box, -s.even_mean, even), odd)
+            fold(s.orientation, cast("NDArray[np.float32]", cv2.scaleAdd(box, -s.even_mean, even)), odd)
             if s.mirror is not None:
                 even_m = rr if ii is None else rr + ii
                 odd_m = ri if ir is None else (-ir if ri is None else ri - ir)
-                fold(s.mirror, cv2.scaleAdd(box, -s.mirror_even_mean, even_m), odd_m)
+                fold(s.mirror, cast("NDArray[np.float32]", cv2.scaleAdd(box, -s.mirror_even_mean, even_m)), odd_m)
     h, w = img.shape
     for o in range(orientations):
         out: NDArray[np.float32] | None = None
@@ -260,7 +261,7 @@ def _iter_directional_energy(img: NDArray[np.float32], wavelengths_px: tuple[flo
             for _ in range(level):
                 # pyrUp puts level-l pixel i back on pixel 2i, where pyrDown took it from
                 # (cv2.resize would shift it by half a pixel), at 1/4 of warpAffine's cost.
-                e = cv2.pyrUp(e, dstsize=(2 * e.shape[1], 2 * e.shape[0]))
+                e = cast("NDArray[np.float32]", cv2.pyrUp(e, dstsize=(2 * e.shape[1], 2 * e.shape[0])))
             if level > 0:
                 e = e[:h, :w]
             out = e if out is None else np.maximum(out, e, out=out)
@@ -404,7 +405,7 @@ def erode_square(mask: NDArray[np.uint8], radius_px: int) -> NDArray[np.uint8]:
     if 2 * r + 1 > min(mask.shape[:2]):
         return np.zeros_like(mask)
     kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1, 2 * r + 1))
-    return cv2.erode(mask, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    return cast("NDArray[np.uint8]", cv2.erode(mask, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0))
 
 
 def _patch_mask(bright: NDArray[np.uint8], params: FeatureParams) -> NDArray[np.uint8]:
@@ -552,7 +553,7 @@ def corners_near(image: NDArray, uv: ArrayLike, radius_px: float, limit: int = 4
         return np.zeros((0, 2))
     pts = pts.reshape(-1, 2).astype(float) + [x0, y0]
     order = np.argsort(np.hypot(pts[:, 0] - u, pts[:, 1] - v), kind="stable")
-    return pts[order[: int(limit)]]
+    return cast(FloatArray, pts[order[: int(limit)]])
 
 
 def _candidates_centroid(left: NDArray, mask: NDArray[np.uint8], params: FeatureParams, limit: int) -> FloatArray:
@@ -689,7 +690,7 @@ def _remap_points(image: NDArray[np.float32], mapping: tuple[NDArray[np.float32]
     mx = cv2.remap(mapping[0], x, y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=-1.0)
     my = cv2.remap(mapping[1], x, y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=-1.0)
     inside = (x >= 0) & (x <= mw - 1) & (y >= 0) & (y <= mh - 1) & (mx >= 0) & (mx <= w - 1) & (my >= 0) & (my <= h - 1)
-    return cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT), inside
+    return cast("NDArray[np.float32]", cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)), inside
 
 
 def _epipolar_profile(
@@ -717,7 +718,7 @@ def _epipolar_profile(
     sy = np.broadcast_to(cl[:, 1, None, None] + offs[None, :, None], (n, size, width)).reshape(n * size, width).astype(np.float32)
     strips, inside = _remap_points(right, right_map, sx, sy)
     s = strips.reshape(n, size, width).astype(np.float64)
-    t = templates.reshape(n, size * size).astype(np.float64)
+    t: FloatArray = templates.reshape(n, size * size).astype(np.float64)
     t -= t.mean(axis=1, keepdims=True)
     t = t.reshape(n, size, size)
     # ZNCC of every window, in float64 like match_epipolar: the numerator is a sum over the

@@ -39,7 +39,7 @@ MODEL_SIMILARITY = 1
 MODEL_EUCLIDEAN = 2
 MODEL_DISPARITY_PLANE = 3
 
-_OPTIONS = dict(nogil=True, fastmath=False, error_model="numpy")
+_OPTIONS: dict[str, Any] = dict(nogil=True, fastmath=False, error_model="numpy")
 
 
 def _jit_inline(function: Callable[..., Any]) -> Any:

@@ -80,7 +80,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Literal, Sequence, cast, overload
 
 import cv2
 import numpy as np
@@ -365,8 +365,8 @@ def _block_map(
         raise ValueError(f"rectified block at ({x0}, {y0}) size {width}x{height} leaves the {W}x{H} grid")
     # Bilinear interpolation of the (smooth) maps at the block's fractional offset, one call each.
     centre = (x0 + 0.5 * (width - 1), y0 + 0.5 * (height - 1))
-    mx = cv2.getRectSubPix(mx_full, (width, height), centre)
-    my = cv2.getRectSubPix(my_full, (width, height), centre)
+    mx = cast("NDArray[np.float32]", cv2.getRectSubPix(mx_full, (width, height), centre))
+    my = cast("NDArray[np.float32]", cv2.getRectSubPix(my_full, (width, height), centre))
     # The maps are smooth and monotonic, so the block's extent in the original image is that
     # of its corners (the bilinear interpolation stays inside the grid cells around them); the
     # 0.1 px margin covers a lens's curvature of the map along the block's few rows.
@@ -391,6 +391,27 @@ def _source_region(extent: tuple[float, float, float, float], w_img: int, h_img:
     v0 = min(max(int(math.floor(y_lo)) - 4, 0), h_img - 1)
     v1 = max(min(int(math.floor(y_hi)) + 6, h_img), v0 + 1)
     return u0, v0, u1, v1
+
+
+@overload
+def sample_rectified(
+    rect: Rectification, image: NDArray[np.uint8], side: int, x0: float, y0: float, width: int, height: int,
+    interpolation: int = cv2.INTER_LANCZOS4, exact: Literal[True] = True,
+) -> tuple[NDArray[np.float32], NDArray[np.bool_] | None]: ...
+
+
+@overload
+def sample_rectified(
+    rect: Rectification, image: NDArray[np.uint8], side: int, x0: float, y0: float, width: int, height: int,
+    interpolation: int = cv2.INTER_LANCZOS4, *, exact: Literal[False],
+) -> tuple[NDArray[np.uint8], NDArray[np.bool_] | None]: ...
+
+
+@overload
+def sample_rectified(
+    rect: Rectification, image: NDArray[np.uint8], side: int, x0: float, y0: float, width: int, height: int,
+    interpolation: int = cv2.INTER_LANCZOS4, exact: bool = True,
+) -> tuple[NDArray[np.float32] | NDArray[np.uint8], NDArray[np.bool_] | None]: ...
 
 
 def sample_rectified(
@@ -430,20 +451,41 @@ def sample_rectified(
     h_img, w_img = image.shape
     mx, my, col_ok, extent = _block_map(mx_full, my_full, x0, y0, width, height, w_img, h_img)
     if not exact:
-        return cv2.remap(image, mx, my, interpolation, borderMode=cv2.BORDER_REPLICATE), col_ok
+        return cast("NDArray[np.uint8]", cv2.remap(image, mx, my, interpolation, borderMode=cv2.BORDER_REPLICATE)), col_ok
     u0, v0, u1, v1 = _source_region(extent, w_img, h_img)
     roi = image[v0:v1, u0:u1].astype(np.float32)
     if u0:
         mx -= np.float32(u0)
     if v0:
         my -= np.float32(v0)
-    out = cv2.remap(roi, mx, my, interpolation, borderMode=cv2.BORDER_REPLICATE)
+    out = cast("NDArray[np.float32]", cv2.remap(roi, mx, my, interpolation, borderMode=cv2.BORDER_REPLICATE))
     return out, col_ok
 
 
 #: Width of the map rows when many blocks are resampled in one ``cv2.remap`` (OpenCV asks for
 #: maps narrower than 32767 columns).
 _STACK_COLS = 1024
+
+
+@overload
+def sample_rectified_blocks(
+    rect: Rectification, image: NDArray[np.uint8], side: int, blocks: Sequence[tuple[float, float, int, int]],
+    interpolation: int = cv2.INTER_LANCZOS4, exact: Literal[True] = True,
+) -> list[tuple[NDArray[np.float32], NDArray[np.bool_] | None]]: ...
+
+
+@overload
+def sample_rectified_blocks(
+    rect: Rectification, image: NDArray[np.uint8], side: int, blocks: Sequence[tuple[float, float, int, int]],
+    interpolation: int = cv2.INTER_LANCZOS4, *, exact: Literal[False],
+) -> list[tuple[NDArray[np.uint8], NDArray[np.bool_] | None]]: ...
+
+
+@overload
+def sample_rectified_blocks(
+    rect: Rectification, image: NDArray[np.uint8], side: int, blocks: Sequence[tuple[float, float, int, int]],
+    interpolation: int = cv2.INTER_LANCZOS4, exact: bool = True,
+) -> list[tuple[NDArray[np.float32] | NDArray[np.uint8], NDArray[np.bool_] | None]]: ...
 
 
 def sample_rectified_blocks(
@@ -453,7 +495,7 @@ def sample_rectified_blocks(
     blocks: Sequence[tuple[float, float, int, int]],
     interpolation: int = cv2.INTER_LANCZOS4,
     exact: bool = True,
-) -> list[tuple[NDArray[np.float32] | NDArray[np.uint8], NDArray[np.bool_] | None]]:
+) -> list[tuple[NDArray[Any], NDArray[np.bool_] | None]]:  # float32 or uint8 (the overloads say which)
     """:func:`sample_rectified` for many blocks ``(x0, y0, width, height)`` of one image at once.
 
     Each block's maps are interpolated exactly as :func:`sample_rectified` does; the maps of all
@@ -496,13 +538,34 @@ def _block_maps(
     return mxs, mys, oks, ((u0, v0, u1, v1) if exact else None)
 
 
+@overload
+def _remap_stacked(
+    image: NDArray[np.uint8], mxs: Sequence[NDArray[np.float32]], mys: Sequence[NDArray[np.float32]],
+    roi: tuple[int, int, int, int], interpolation: int,
+) -> list[NDArray[np.float32]]: ...
+
+
+@overload
+def _remap_stacked(
+    image: NDArray[np.uint8], mxs: Sequence[NDArray[np.float32]], mys: Sequence[NDArray[np.float32]],
+    roi: None, interpolation: int,
+) -> list[NDArray[np.uint8]]: ...
+
+
+@overload
+def _remap_stacked(
+    image: NDArray[np.uint8], mxs: Sequence[NDArray[np.float32]], mys: Sequence[NDArray[np.float32]],
+    roi: tuple[int, int, int, int] | None, interpolation: int,
+) -> list[NDArray[np.float32] | NDArray[np.uint8]]: ...
+
+
 def _remap_stacked(
     image: NDArray[np.uint8],
     mxs: Sequence[NDArray[np.float32]],
     mys: Sequence[NDArray[np.float32]],
     roi: tuple[int, int, int, int] | None,
     interpolation: int,
-) -> list[NDArray[np.float32] | NDArray[np.uint8]]:
+) -> list[NDArray[Any]]:  # float32 or uint8 (the overloads say which)
     """Resample ``image`` at every block's maps in one ``cv2.remap``: from the float copy of
     ``roi`` (float32 blocks), or from the image itself when ``roi`` is None (uint8 blocks)."""
     sizes = [m.size for m in mxs]
@@ -518,6 +581,7 @@ def _remap_stacked(
         np.concatenate([m.ravel() for m in mxs], out=MX[:total])
         np.concatenate([m.ravel() for m in mys], out=MY[:total])
         MX, MY = MX.reshape(rows, _STACK_COLS), MY.reshape(rows, _STACK_COLS)
+    src: NDArray[np.float32] | NDArray[np.uint8]
     if roi is not None:
         u0, v0, u1, v1 = roi
         src = image[v0:v1, u0:u1].astype(np.float32)
@@ -530,8 +594,8 @@ def _remap_stacked(
             MY -= np.float32(v0)
     else:
         src = image
-    flat = cv2.remap(src, MX, MY, interpolation, borderMode=cv2.BORDER_REPLICATE).ravel()
-    out = []
+    flat = cast("NDArray[np.float32] | NDArray[np.uint8]", cv2.remap(src, MX, MY, interpolation, borderMode=cv2.BORDER_REPLICATE).ravel())
+    out: list[NDArray[np.float32] | NDArray[np.uint8]] = []
     at = 0
     for m, size in zip(mxs, sizes):
         out.append(flat[at : at + size].reshape(m.shape))
@@ -570,8 +634,8 @@ def zncc(a: ArrayLike, b: ArrayLike) -> float:
     """Zero-mean normalised cross-correlation of two equal-shaped patches, in [-1, 1]."""
     a = np.asarray(a, dtype=np.float64).ravel()
     b = np.asarray(b, dtype=np.float64).ravel()
-    a = a - a.mean()
-    b = b - b.mean()
+    a = cast(FloatArray, a - a.mean())  # numpy's stubs: Any, which would leave a as the ArrayLike
+    b = cast(FloatArray, b - b.mean())
     den = math.sqrt(float(a @ a) * float(b @ b))
     return float(a @ b) / den if den > 0 else 0.0
 
@@ -589,8 +653,8 @@ def _main_lobe(scores: NDArray[np.float32], best: int, lo: int, hi: int) -> tupl
 
 
 def match_strip(
-    template: NDArray[np.floating],
-    strip: NDArray[np.floating],
+    template: NDArray[np.floating] | NDArray[np.uint8],
+    strip: NDArray[np.floating] | NDArray[np.uint8],
     params: MeasureParams,
     lo: int | None = None,
     hi: int | None = None,
@@ -629,7 +693,7 @@ def match_strip(
     empty = np.zeros(0, np.float32)
     if S.shape[0] != T.shape[0] or n < 1:
         raise ValueError(f"strip {S.shape} cannot hold template {T.shape}")
-    scores = cv2.matchTemplate(S, T, cv2.TM_CCOEFF_NORMED).ravel()
+    scores = cast("NDArray[np.float32]", cv2.matchTemplate(S, T, cv2.TM_CCOEFF_NORMED).ravel())
     if lo is None:
         lo = STRIP_MARGIN_PX if n > 2 * STRIP_MARGIN_PX else 0
     if hi is None:
@@ -977,7 +1041,7 @@ def _strip_coefficients(
     if interpolation == "bspline":
         for w in np.unique(widths).tolist():
             sel = np.flatnonzero(widths == w)
-            stack = np.concatenate([np.asarray(strips[j], dtype=np.float32) for j in sel])
+            stack = np.concatenate([np.asarray(strips[int(j)], dtype=np.float32) for j in sel])
             f = cv2.filter2D(stack, cv2.CV_32F, _BSPLINE_PREFILTER, borderType=cv2.BORDER_REFLECT_101)
             coef[sel, :, :w] = f.reshape(len(sel), rows, w)
         return coef, widths, _BSPLINE_POLY
@@ -1167,6 +1231,7 @@ def _match_many(
     patches = sample_rectified_blocks(rect, left, 0, [(geo[j][0], geo[j][1], P, P) for j in todo])
     T_fine: dict[int, NDArray[np.float32]] = {}
     strips: dict[int, tuple[int, int, int, int, int, int]] = {}
+    T: NDArray[np.float32] | NDArray[np.uint8]  # a Lanczos patch here, a uint8 one in stage 2
     for j, (T, col_ok) in zip(todo, patches):
         if col_ok is not None and not col_ok.all():
             out[j] = _Match(REASON_PATCH_OUTSIDE)
@@ -1368,7 +1433,7 @@ def _rival_unseen(
     hi_cut = range(searched[1] - d + 1, full[1] - d + 1)
     if not lo_cut and not hi_cut:
         return False
-    scores = cv2.matchTemplate(Lrow, np.ascontiguousarray(Lrow[:, t0 : t0 + P]), cv2.TM_CCOEFF_NORMED).ravel()
+    scores = cast("NDArray[np.float32]", cv2.matchTemplate(Lrow, np.ascontiguousarray(Lrow[:, t0 : t0 + P]), cv2.TM_CCOEFF_NORMED).ravel())
     if l_ok is not None:
         scores = np.where(_windows_ok(l_ok, P)[: scores.size], scores, -np.inf)
     left_end, right_end = _main_lobe(scores, t0, 0, scores.size - 1)

@@ -83,7 +83,8 @@ def check_params(params: Any) -> None:
     Raises:
         TrackmeterError: ``"FilterParams.order: expected a value in [1, 8], got 0"``.
     """
-    kinds = _simple_kinds(type(params))
+    params_class: type = type(params)  # not type[Any]: mypy holds that not Hashable (lru_cache's argument)
+    kinds = _simple_kinds(params_class)
     for f in dataclasses.fields(params):
         meta = f.metadata
         value = getattr(params, f.name)

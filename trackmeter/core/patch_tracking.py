@@ -55,7 +55,7 @@ import functools
 import math
 from dataclasses import dataclass, replace
 from functools import lru_cache
-from typing import Callable
+from typing import Any, Callable, TypeAlias, cast, overload
 
 import cv2
 import numpy as np
@@ -86,7 +86,15 @@ def _patch_grid(size: int) -> tuple[F32, F32, F32, FloatArray, FloatArray]:
     return out
 
 
-def bilinear(image: F32, x: NDArray, y: NDArray) -> tuple[F32, NDArray[np.bool_]]:
+@overload
+def bilinear(image: NDArray[np.complex64], x: NDArray, y: NDArray) -> tuple[NDArray[np.complex64], NDArray[np.bool_]]: ...
+
+
+@overload
+def bilinear(image: lk_kernels.Image, x: NDArray, y: NDArray) -> tuple[F32, NDArray[np.bool_]]: ...
+
+
+def bilinear(image: NDArray, x: NDArray, y: NDArray) -> tuple[NDArray, NDArray[np.bool_]]:
     """Bilinear interpolation of a float32 (or uint8) image at sub-pixel points (any equal shapes).
 
     ``image`` is (H,W), or a stack (N,H,W) sampled with ``x, y`` of shape (N, ...) — point
@@ -161,10 +169,10 @@ class _QuadOffsets(dict):
 _QUAD_OFFSETS = _QuadOffsets()
 
 
-CoordMap = "tuple[F32, F32] | NDArray[np.complex64] | Callable[[NDArray, NDArray], tuple[NDArray, NDArray]]"
+CoordMap: TypeAlias = "tuple[F32, F32] | NDArray[np.complex64] | Callable[[NDArray, NDArray], tuple[NDArray, NDArray]]"
 
 
-def sample_points(image: F32, x: NDArray, y: NDArray, coord_map: CoordMap | None = None) -> tuple[F32, NDArray[np.bool_]]:
+def sample_points(image: lk_kernels.Image, x: NDArray, y: NDArray, coord_map: CoordMap | None = None) -> tuple[F32, NDArray[np.bool_]]:
     """Sample ``image`` at points (x, y); with ``coord_map`` the points are first sent through it:
     a pair of remap tables ``(map_x, map_y)`` (e.g. ``Rectification.maps``, interpolated), the
     same as one complex table ``map_x + 1j map_y`` (:func:`complex_map`, one gather instead of
@@ -213,7 +221,7 @@ def rectified_to_original(rect: Rectification, side: int) -> Callable[[NDArray, 
 
 
 def sample_patches(
-    image: F32, centres: NDArray, size: int, coord_map: CoordMap | None = None
+    image: lk_kernels.Image, centres: NDArray, size: int, coord_map: CoordMap | None = None
 ) -> tuple[F32, NDArray[np.bool_]]:
     """Patches (N,size,size) centred at ``centres`` (N,2) px, and whether each lies fully inside."""
     c = np.asarray(centres, dtype=np.float32).reshape(-1, 2)
@@ -221,7 +229,7 @@ def sample_patches(
     x = c[:, 0, None, None] + gx
     y = c[:, 1, None, None] + gy
     values, inside = sample_points(image, x, y, coord_map)
-    return values, inside.reshape(len(c), size * size).all(axis=1)
+    return values, cast("NDArray[np.bool_]", inside.reshape(len(c), size * size).all(axis=1))  # numpy's stubs: or a bool
 
 
 @dataclass(frozen=True, eq=False)
@@ -249,15 +257,16 @@ class Templates:
         return Templates(self.values[index], self.gx[index], self.gy[index], self.hessian_inv[index], self.ok[index])
 
 
-def make_templates(image: F32, centres: NDArray, size: int, coord_map: CoordMap | None = None) -> Templates:
+def make_templates(image: lk_kernels.Image, centres: NDArray, size: int, coord_map: CoordMap | None = None) -> Templates:
     """Templates (side ``size``) at ``centres`` (N,2): a (size+4)² patch is sampled so the
     gradients are finite differences of real samples."""
     # Five-point derivative (-1, 8, 0, -8, 1)/12: the plain central difference under-estimates
     # the gradient of fine texture, which makes Gauss-Newton overshoot and converge slowly.
     big, inside = sample_patches(image, centres, size + 4, coord_map)
     values = np.ascontiguousarray(big[:, 2:-2, 2:-2])
-    gx = (8.0 * (big[:, 2:-2, 3:-1] - big[:, 2:-2, 1:-3]) - (big[:, 2:-2, 4:] - big[:, 2:-2, :-4])) / 12.0
-    gy = (8.0 * (big[:, 3:-1, 2:-2] - big[:, 1:-3, 2:-2]) - (big[:, 4:, 2:-2] - big[:, :-4, 2:-2])) / 12.0
+    # float32: a Python float keeps an array's type (NEP 50), which numpy's stubs do not say.
+    gx = cast(F32, (8.0 * (big[:, 2:-2, 3:-1] - big[:, 2:-2, 1:-3]) - (big[:, 2:-2, 4:] - big[:, 2:-2, :-4])) / 12.0)
+    gy = cast(F32, (8.0 * (big[:, 3:-1, 2:-2] - big[:, 1:-3, 2:-2]) - (big[:, 4:, 2:-2] - big[:, :-4, 2:-2])) / 12.0)
     return Templates(values, gx, gy, *_hessian(gx, gy, inside))
 
 
@@ -285,7 +294,7 @@ def _project_out(J: FloatArray, t_unit: FloatArray) -> FloatArray:
     return J - np.einsum("nkp,nk->np", J, t_unit)[:, None, :] * t_unit[:, :, None]
 
 
-def zncc(a: F32, b: F32) -> FloatArray:
+def zncc(a: F32 | FloatArray, b: F32) -> FloatArray:
     """Zero-mean normalised cross-correlation (N,) of two stacks of patches (N,n,n), in [-1, 1]."""
     a = a.reshape(len(a), -1).astype(np.float64)
     return _zncc_centred(a - _row_mean(a), b)
@@ -297,7 +306,7 @@ def _row_mean(x: FloatArray) -> FloatArray:
     return x.sum(axis=-1, keepdims=True) / x.shape[-1]
 
 
-def _zncc_centred(a: FloatArray, b: F32) -> FloatArray:
+def _zncc_centred(a: FloatArray, b: F32 | FloatArray) -> FloatArray:
     """:func:`zncc` with ``a`` (N,K) float64 already zero-mean (e.g. an LK fit's templates)."""
     b = b.reshape(len(b), -1).astype(np.float64)
     b = b - _row_mean(b)
@@ -347,7 +356,7 @@ _LK_MODELS = {
 
 
 def refine_lk(
-    image: F32,
+    image: lk_kernels.Image,
     templates: Templates,
     uv0: NDArray,
     *,
@@ -410,7 +419,7 @@ def grid_patch(image: NDArray, uv: NDArray, size: int) -> tuple[F32, FloatArray]
 
 
 def zncc_search(
-    image: F32, template: F32, centre: NDArray, half_size: NDArray
+    image: lk_kernels.Image, template: F32, centre: NDArray, half_size: NDArray
 ) -> tuple[FloatArray, float, float] | None:
     """Best integer ZNCC position of ``template`` (n,n) in a window around ``centre`` (2,).
 
@@ -470,7 +479,7 @@ class PatchTrack:
 
 
 def track_patches(
-    image: F32,
+    image: lk_kernels.Image,
     anchor: Templates,
     anchor_lin: NDArray,
     current: Templates,
@@ -483,7 +492,7 @@ def track_patches(
     expected_scale: NDArray | None = None,
     max_scale_error: float = np.inf,
     predicted_lin: NDArray | None = None,
-    raw_image: F32 | None = None,
+    raw_image: lk_kernels.Image | None = None,
     raw_anchor: Templates | None = None,
     raw_current: Templates | None = None,
     raw_tolerance_px: float = np.inf,
@@ -630,8 +639,8 @@ class EpipolarMatch:
 
 
 def match_epipolar(
-    left: F32,
-    right: F32,
+    left: lk_kernels.Image,
+    right: lk_kernels.Image,
     left_map: CoordMap,
     right_map: CoordMap,
     uv_rect_left: NDArray,
@@ -812,18 +821,18 @@ class AffineLKResult:
         return self.warp[:, :, 2]
 
 
-def sample_warped(image: F32, warp: NDArray, size: int) -> tuple[F32, NDArray[np.bool_]]:
+def sample_warped(image: lk_kernels.Image, warp: NDArray, size: int) -> tuple[F32, NDArray[np.bool_]]:
     """Patches (N,size,size) sampled at ``warp @ (x, y, 1)`` for the template offsets (x, y)."""
     _, _, _, ox, oy = _patch_grid(size)
     W = np.asarray(warp, dtype=np.float64)
     # both rows of the warp at once (N,2,size²): the same products and sums as per row
     xy = W[:, :, 0, None] * ox + W[:, :, 1, None] * oy + W[:, :, 2, None]
     values, inside = bilinear(image, xy[:, 0], xy[:, 1])
-    return values.reshape(len(W), size, size), inside.all(axis=1)
+    return values.reshape(len(W), size, size), cast("NDArray[np.bool_]", inside.all(axis=1))  # numpy's stubs: or a bool
 
 
 def refine_lk_affine(
-    image: F32,
+    image: lk_kernels.Image,
     templates: Templates,
     warp0: NDArray,
     *,
@@ -853,7 +862,7 @@ def refine_lk_affine(
 
 
 def refine_lk_similarity(
-    image: F32,
+    image: lk_kernels.Image,
     templates: Templates,
     warp0: NDArray,
     *,
@@ -884,7 +893,7 @@ def refine_lk_similarity(
 
 
 def refine_lk_euclidean(
-    image: F32,
+    image: lk_kernels.Image,
     templates: Templates,
     warp0: NDArray,
     *,
@@ -936,7 +945,7 @@ def warp_steepest_descent(
 
 
 def _refine_lk_warp(
-    image: F32,
+    image: lk_kernels.Image,
     templates: Templates,
     warp0: NDArray,
     model: str,
@@ -983,7 +992,7 @@ def warm_up() -> None:
 
 
 def refine_lk_translation(
-    image: F32,
+    image: lk_kernels.Image,
     templates: Templates,
     warp0: NDArray,
     *,
@@ -1050,8 +1059,8 @@ class DisparityPlane:
 
 
 def fit_disparity_plane(
-    left: F32,
-    right: F32,
+    left: lk_kernels.Image,
+    right: lk_kernels.Image,
     left_map: CoordMap,
     right_map: CoordMap,
     uv_rect_left: NDArray,
@@ -1127,7 +1136,7 @@ def _with_scale(lin: FloatArray, scale: FloatArray) -> FloatArray:
 
 
 def _scale_held_refit(
-    image: F32,
+    image: lk_kernels.Image,
     anchor: Templates,
     W0: FloatArray,
     la: AffineLKResult,
@@ -1159,12 +1168,12 @@ def _scale_held_refit(
     return AffineLKResult(warp=warp, score=score, converged=converged), took
 
 
-def _fit_anchors(image: F32, anchor: Templates, W0: FloatArray, fits: NDArray, tolerance_px: float) -> AffineLKResult:
+def _fit_anchors(image: lk_kernels.Image, anchor: Templates, W0: FloatArray, fits: NDArray, tolerance_px: float) -> AffineLKResult:
     """The anchor fits of :func:`track_patches` in one batched call (its cost is mostly per
     call). ``fits`` (N,): each row's model, the same :data:`_ANCHOR_FITS` model for every row,
     or "translation" rows among "similarity" ones (``anchor_warp="plane"``): those are
     similarity rows with their linear part held (:func:`refine_lk_translation`)."""
-    kw = dict(max_iterations=8, tolerance_px=tolerance_px, max_shift_px=2.0)
+    kw: dict[str, Any] = dict(max_iterations=8, tolerance_px=tolerance_px, max_shift_px=2.0)
     hold = fits == "translation"
     if hold.any():
         return _refine_lk_warp(image, anchor, W0, "similarity", hold_linear=hold, **kw)

@@ -37,6 +37,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import lru_cache
 from itertools import combinations
+from typing import cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -314,7 +315,7 @@ def position_jacobians(points_body: FloatArray, R_cam_body: FloatArray) -> Float
 
 def _weights(R: FloatArray, cov_cam: FloatArray, cov_body: FloatArray | None) -> FloatArray:
     C = cov_cam if cov_body is None else cov_cam + R @ cov_body @ R.T
-    return np.linalg.inv(C)
+    return cast(FloatArray, np.linalg.inv(C))  # numpy's stubs: floating[Any]
 
 
 def mahalanobis_d2(

@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import cast
 
 import cv2
 import numpy as np
@@ -159,7 +160,7 @@ class Camera:
         if len(p) == 0:
             return np.zeros((0, 2))
         uv, _ = cv2.projectPoints(p, np.zeros(3), np.zeros(3), self.K, self.dist)
-        return uv.reshape(-1, 2)
+        return cast(FloatArray, uv.reshape(-1, 2))
 
     def undistort(self, uv: ArrayLike) -> FloatArray:
         """Normalised image coordinates (N,2) ``(x/z, y/z)`` of distorted pixels (N,2).
@@ -342,7 +343,7 @@ class Rectification:
             TrackmeterError: lens distortion no lens has (:data:`MAX_RECTIFICATION_ZOOM`,
                 :data:`LENSLESS_ZOOM_FOR_BLAME`).
         """
-        R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(
+        R1, R2, P1, P2, Q, _, _ = cast("tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, object, object]", cv2.stereoRectify(
             rig.left.K,
             rig.left.dist,
             rig.right.K,
@@ -355,14 +356,14 @@ class Rectification:
             # pixel resampled, and its disparities were no longer the pair's own.
             flags=0 if _rectified_apart(rig) else cv2.CALIB_ZERO_DISPARITY,
             alpha=alpha,
-        )
+        ))
         zoom = _zoom(rig, P1, P2)
         if not _within(zoom, MAX_RECTIFICATION_ZOOM):
             # The lenses' fault only if the same rig without distortion rectifies well: a rig
             # whose cameras are not side by side has its own message where it is used.
             no_lens = cv2.stereoRectify(rig.left.K, np.zeros(5), rig.right.K, np.zeros(5), rig.image_size, rig.R,
                                         rig.T.reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY, alpha=alpha)
-            lensless_zoom = _zoom(rig, no_lens[2], no_lens[3])
+            lensless_zoom = _zoom(rig, cast(FloatArray, no_lens[2]), cast(FloatArray, no_lens[3]))
             if _within(lensless_zoom, LENSLESS_ZOOM_FOR_BLAME):
                 raise TrackmeterError(_distortion_problem(rig, zoom, lensless_zoom))
         return cls(rig=rig, R1=R1, R2=R2, P1=P1, P2=P2, Q=Q)
@@ -405,16 +406,16 @@ class Rectification:
     def maps(self) -> tuple[tuple[NDArray[np.float32], NDArray[np.float32]], tuple[NDArray[np.float32], NDArray[np.float32]]]:
         """``((map1x, map1y), (map2x, map2y))`` float32 remap tables, rectified → original."""
         size = self.rig.image_size
-        left = cv2.initUndistortRectifyMap(self.rig.left.K, self.rig.left.dist, self.R1, self.P1, size, cv2.CV_32FC1)
-        right = cv2.initUndistortRectifyMap(self.rig.right.K, self.rig.right.dist, self.R2, self.P2, size, cv2.CV_32FC1)
+        left = cast("tuple[NDArray[np.float32], NDArray[np.float32]]", cv2.initUndistortRectifyMap(self.rig.left.K, self.rig.left.dist, self.R1, self.P1, size, cv2.CV_32FC1))
+        right = cast("tuple[NDArray[np.float32], NDArray[np.float32]]", cv2.initUndistortRectifyMap(self.rig.right.K, self.rig.right.dist, self.R2, self.P2, size, cv2.CV_32FC1))
         return (left[0], left[1]), (right[0], right[1])
 
     def rectify_images(self, left: NDArray[np.uint8], right: NDArray[np.uint8]) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
         """Rectify a full stereo pair with bilinear interpolation."""
         (lx, ly), (rx, ry) = self.maps
         return (
-            cv2.remap(left, lx, ly, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT),
-            cv2.remap(right, rx, ry, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT),
+            cast("NDArray[np.uint8]", cv2.remap(left, lx, ly, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)),
+            cast("NDArray[np.uint8]", cv2.remap(right, rx, ry, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)),
         )
 
     # ----------------------------------------------------------------- pixel mappings
@@ -621,7 +622,7 @@ def view_disparities_px(rig: StereoRig, left: NDArray, right: NDArray, features:
         (M,) disparities, px; empty when the views have no distinctive point (black space).
     """
     rect_left, rect_right = rig.rectification.rectify_images(np.asarray(left), np.asarray(right))
-    orb = cv2.ORB_create(nfeatures=features)
+    orb = cv2.ORB_create(nfeatures=features)  # type: ignore[attr-defined]  # the stubs have ORB.create only
     keys_left, desc_left = orb.detectAndCompute(rect_left, None)
     keys_right, desc_right = orb.detectAndCompute(rect_right, None)
     if desc_left is None or desc_right is None:

@@ -36,7 +36,7 @@ import copy
 import re
 import warnings
 from dataclasses import dataclass, field, replace
-from typing import Any, Collection, Iterable, Sequence
+from typing import Any, Collection, Iterable, Sequence, cast
 
 import cv2
 import numpy as np
@@ -532,6 +532,7 @@ class Tracker:
             warp = None if image_warp is None else np.asarray(image_warp, dtype=float).reshape(2, 2)
             given.append(warp is not None and bool(np.all(np.isfinite(warp))))
             if given[-1]:
+                assert warp is not None  # given[-1] says so
                 t.anchor_lin = warp @ t.anchor_lin
             t.slot = self._new_slot()
             self._targets[t.id] = t
@@ -774,6 +775,7 @@ class Tracker:
         tid = target_id or self._new_id(origin)
         match = _GENERATED_ID.fullmatch(target_id) if target_id else None
         if match is not None and int(match.group(1)) >= self._next_number:
+            assert target_id is not None  # it matched
             self._named_ahead.add(target_id)  # an operator's "a90" is not generated again once lost
         tmpl, search = self._templates(fc, uvf[None])
         v0, sv = self._velocity_guess(uvf, np.asarray(meas.xyz_m, float))
@@ -916,6 +918,7 @@ class Tracker:
         (N,): the sub-pixel fit starts at the centre itself, no integer search (a prediction
         good to a pixel, with the anchor's warp predicted too)."""
         centres = np.asarray(centres, dtype=float).reshape(-1, 2)
+        i: int | np.integer  # a row of targets: np.flatnonzero's, then found_i's
         if at_centre is None:
             out, found_i, starts = self._recover_search(fc, targets, centres)
         else:
@@ -1193,10 +1196,11 @@ class Tracker:
             spans = np.concatenate([np.full(len(survivors), 2 * ss), rec_spans]).astype(int)
             m = self._stereo(fc, uv, lo, spans)
         if survivors:
+            assert m is not None  # matched with the survivors above
             good = []
             for i, (t, uvi, _) in enumerate(survivors):
                 if m.reason[i] is not None:
-                    self._lose(t, m.reason[i])
+                    self._lose(t, cast(str, m.reason[i]))  # mypy narrows no item at a variable index
                     continue
                 t.uv = uvi.copy()
                 good.append(i)
@@ -1257,6 +1261,7 @@ class Tracker:
         # Recovery of lost targets where they were lost (no model), after the tracked ones were
         # updated: their fresh 3D points are what a re-found point's distances are checked against.
         for j, k in enumerate(rec_refined):
+            assert m is not None  # matched with rec_refined above
             t = rec_ts[k]
             self._recover_accept(fc, frame, t, t.uv.copy(), res, n_s + k, m, len(survivors) + j)
         for t in lost:
@@ -1564,6 +1569,7 @@ class Tracker:
             t = with_q[keep[worst]]
             bad[t.id] = f"drifted {off[worst]:.1f} px from its first 3D point on the rigid body"
             keep = np.delete(keep, worst)
+        assert self._body is not None  # set by the loop, which runs: _body_drift passes at least motion_min_targets
         R, tvec = self._body
         for t in ts:
             if t.id not in bad and not np.all(np.isfinite(t.body_point)) and np.all(np.isfinite(t.point_cam)):

@@ -375,7 +375,7 @@ def frame_from_three_points(p1: ArrayLike, p2: ArrayLike, p3: ArrayLike) -> tupl
     nx = np.linalg.norm(x)
     z = np.cross(x, v)
     nz = np.linalg.norm(z)
-    if nx < 1e-12 or nz < 1e-9 * nx * max(np.linalg.norm(v), 1e-300):
+    if nx < 1e-12 or nz < 1e-9 * nx * max(float(np.linalg.norm(v)), 1e-300):
         raise TrackmeterError("three-point frame is undetermined: the points are collinear")
     x = x / nx
     z = z / nz

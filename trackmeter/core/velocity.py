@@ -58,7 +58,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Literal, NamedTuple, overload
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -310,6 +310,27 @@ def se3_exp(x: ArrayLike) -> tuple[FloatArray, FloatArray]:
     """Inverse of :func:`se3_log`: ``(R (3,3), t (3,))`` of the twist coordinates ``x = (rho, theta)``."""
     x = np.asarray(x, dtype=float)
     return Rotation.from_rotvec(x[3:]).as_matrix(), right_jacobian_so3(-x[3:]) @ x[:3]
+
+
+@overload
+def screw_rates(
+    times_s: ArrayLike, R: ArrayLike, p: ArrayLike, order: int = 1, t_eval_s: float | None = None,
+    weights: ArrayLike | None = None, return_rss: Literal[False] = False,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]: ...
+
+
+@overload
+def screw_rates(
+    times_s: ArrayLike, R: ArrayLike, p: ArrayLike, order: int = 1, t_eval_s: float | None = None,
+    weights: ArrayLike | None = None, *, return_rss: Literal[True],
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, float]: ...
+
+
+@overload
+def screw_rates(
+    times_s: ArrayLike, R: ArrayLike, p: ArrayLike, order: int = 1, t_eval_s: float | None = None,
+    weights: ArrayLike | None = None, return_rss: bool = False,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray] | tuple[FloatArray, FloatArray, FloatArray, FloatArray, float]: ...
 
 
 def screw_rates(
@@ -663,7 +684,8 @@ class VelocityEstimator:
         t = np.array(self._t)
         R = np.array(self._R)
         P = np.array(self._p)
-        Wp: FloatArray | None = np.array(self._w)
+        Wp: FloatArray | None
+        Wp = np.array(self._w)  # assigned apart from the declaration: mypy narrows it to an array
         if not self.params.weighted or not np.all(np.isfinite(Wp)):
             Wp = None  # equal weights: plain least squares
         if self.params.method in ("screw", "free_body"):
