@@ -91,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
         # The same views twice (copies of one camera's images): no stereo rig to write.
         raise TrackmeterError(f"the two cameras came out {rig.baseline_m / args.square:.2g} squares apart, at the same "
                               "place: are --left and --right copies of the same images? (nothing written)")
-    extra = {
+    extra: dict[str, np.ndarray | float] = {
         "E": result.E,
         "F": result.F,
         "std_K1": np.array([std["fx1"], std["fy1"], std["cx1"], std["cy1"]]),

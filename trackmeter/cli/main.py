@@ -177,8 +177,8 @@ def _outlive_the_terminal() -> None:
     global _streams_before_hangup
     if _streams_before_hangup is None:
         _streams_before_hangup = (sys.stdout, sys.stderr)
-        sys.stdout = _ForgivingStream(sys.stdout)  # type: ignore[assignment]
-        sys.stderr = _ForgivingStream(sys.stderr)  # type: ignore[assignment]
+        sys.stdout = _ForgivingStream(sys.stdout)
+        sys.stderr = _ForgivingStream(sys.stderr)
 
 
 def _restore_streams() -> None:
@@ -342,7 +342,7 @@ def _main(argv: Sequence[str] | None) -> int:
     # A service manager's stop (SIGTERM) ends a run as Ctrl-C does: threads joined, files
     # complete, the console's raised CPU priority given back (killed outright, none of that).
     in_main_thread = threading.current_thread() is threading.main_thread()
-    previous: dict[int, Any] = {}  # the handlers found, of the signals taken over
+    previous: dict[signal.Signals, Any] = {}  # the handlers found, of the signals taken over
     unraisable_hook = sys.unraisablehook
     if in_main_thread:
         for sig in STOP_SIGNALS:
@@ -404,7 +404,7 @@ def _main(argv: Sequence[str] | None) -> int:
                 sys.unraisablehook = unraisable_hook
 
 
-def _ignore_stop_signals(taken_over: dict[int, Any]) -> None:
+def _ignore_stop_signals(taken_over: dict[signal.Signals, Any]) -> None:
     for sig in taken_over:
         signal.signal(sig, signal.SIG_IGN)
 

@@ -32,13 +32,15 @@ import argparse
 import re
 import sys
 import time
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, NotRequired, TypedDict, cast
 
 from trackmeter.cli.common import parse_uv, plain_progress_due, rig_help, source_warning_since
 from trackmeter.errors import TrackmeterError, counted
 
 if TYPE_CHECKING:
-    from trackmeter.sources.base import StereoFrame
+    from trackmeter.pipeline.snapshot import ModelCase, Snapshot
+    from trackmeter.pipeline.views import SwappedViewsWatch
+    from trackmeter.sources.base import Source, StereoFrame
 
 
 #: The summary's reason for an invalid first frame (its targets start on it, tracked from the next).
@@ -140,6 +142,23 @@ class _Limited:
         self._source.close()
 
 
+class _RunState(TypedDict):
+    """What ``_run``'s snapshot and reply callbacks and its closing lines share."""
+
+    pending: Snapshot | None  # the snapshot whose frame is written once the next arrives (never frameless)
+    invalid: dict[str, int]  # frames with an invalid pose, by summary_reason
+    last_draw: float  # time.monotonic() of the last progress line
+    t0: float  # time.monotonic() at the start
+    status: str | None  # the last snapshot's source_status
+    most_auto: NotRequired[int]  # the most automatic targets measured at once
+    first_index: NotRequired[int]
+    first_t_s: NotRequired[float]
+    write_error: NotRequired[str]  # why the files could not be written
+    said_late: NotRequired[bool]
+    nothing: NotRequired[bool]  # nothing will ever be tracked
+    views: NotRequired[SwappedViewsWatch]
+
+
 def _total_frames(source: Any, max_frames: int | None) -> int | None:
     try:
         n = len(source)
@@ -228,7 +247,7 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
         model_label = args.model or ("source" if model is not None else None)
         # Case (b) needs targets bound to model point ids: without one its pose could never be
         # valid, so a model alone does not choose it.
-        case = args.case or ("b" if model is not None and binds else "a")
+        case: ModelCase = args.case or ("b" if model is not None and binds else "a")
         if args.case:
             case_reason = "--case"
         elif case == "b":
@@ -263,7 +282,8 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
         if auto is not None:
             commands.append(SetAuto(True, auto, None))
         total = _total_frames(source, args.max_frames)
-        feed = _Limited(source, args.max_frames) if args.max_frames else source
+        # Not a Source, but it has all run_headless uses of one without recording or pausing.
+        feed = cast("Source", _Limited(source, args.max_frames)) if args.max_frames else source
         source_info = {
             "spec": args.source,
             "rig": args.rig or (f"the source's ({rig.name})" if rig.name and rig.name != "rig" else "the source's"),
@@ -282,13 +302,14 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
         writer = RunWriter(args.out, config_to_dict(config), source_info, overwrite=args.overwrite)
         tty = sys.stderr.isatty()
         t0 = time.monotonic()
-        state = {"pending": None, "invalid": {}, "last_draw": 0.0 if tty else t0, "t0": t0, "status": None}
+        state: _RunState = {"pending": None, "invalid": {}, "last_draw": 0.0 if tty else t0, "t0": t0, "status": None}
 
         def flush_pending() -> None:
             snap = state["pending"]
             if snap is None:
                 return
             state["pending"] = None
+            assert snap.frame is not None  # on_snapshot keeps none without a frame
             writer.write_frame(snap.frame.t_s, snap.targets, snap.pose, snap.timings.latency_ms)
             alive_auto = sum(1 for t in snap.targets if t.origin == "auto" and t.measured)
             state["most_auto"] = max(state.get("most_auto", 0), alive_auto)
@@ -310,7 +331,7 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
             # commands act on frame 0 after it was processed (--target, --auto), and the
             # snapshot they publish, not the first one, holds frame 0's targets.
             pending = state["pending"]
-            if pending is not None and pending.frame.index != frame.index:
+            if pending is not None and cast("StereoFrame", pending.frame).index != frame.index:
                 try:
                     flush_pending()
                 except TrackmeterError as exc:  # a full disk: the frames before are whole
@@ -504,7 +525,7 @@ def _source_identity(source: Any) -> dict[str, str]:
     return {"scenario": scenario, **({"motion": motion} if motion else {})}
 
 
-def _check_views(state: dict[str, Any], rig: Any, frame: Any, tty: bool) -> None:
+def _check_views(state: _RunState, rig: Any, frame: Any, tty: bool) -> None:
     """Warn once when the first frames' left and right images look swapped, or are one image
     (:class:`~trackmeter.pipeline.views.SwappedViewsWatch`)."""
     from trackmeter.pipeline.views import SwappedViewsWatch
@@ -531,7 +552,7 @@ def _auto_shortfall(tracker: Any, asked: int, most_at_once: int, auto_label: str
             f"other candidates were refused: {reasons}")
 
 
-def _finish_writing(writer: Any, flush_pending: Callable[[], None], state: dict[str, Any]) -> None:
+def _finish_writing(writer: Any, flush_pending: Callable[[], None], state: _RunState) -> None:
     """Write the frame still pending, unless the files already failed (then it is dropped)."""
     if state.get("write_error"):
         return
@@ -541,7 +562,7 @@ def _finish_writing(writer: Any, flush_pending: Callable[[], None], state: dict[
         state["write_error"] = str(exc)
 
 
-def _summary(engine: Any, writer: Any, state: dict[str, Any]) -> dict[str, Any]:
+def _summary(engine: Any, writer: Any, state: _RunState) -> dict[str, Any]:
     import dataclasses
 
     out: dict[str, Any] = {"engine": dataclasses.asdict(engine.stats)}

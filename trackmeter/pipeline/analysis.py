@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import Callable, Iterable, Iterator
+from typing import Callable, Iterable, Iterator, cast
 
 import cv2
 import numpy as np
@@ -122,7 +122,8 @@ class AnalysisRun:
         d["measured_over_noise_limit_median"] = float(np.median(rat_all)) if len(rat_all) else float("nan")
         # The analysis's ranges are this run's statistics in the same (stable) order: paired by
         # place, not by depth, which two ranges may share to the micrometre.
-        for entry, m, pr in zip(d["ranges"], self.measurements, per_range, strict=True):  # type: ignore[arg-type]
+        ranges = cast("list[dict[str, object]]", d["ranges"])  # ErrorAnalysis.to_dict's, one dict a range
+        for entry, m, pr in zip(ranges, self.measurements, per_range, strict=True):
             entry["true_range_m"] = m.true_range_m
             entry["n_frames"] = len(m.t_s)
             entry["n_selected"] = len(m.uv)

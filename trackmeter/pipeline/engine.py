@@ -45,7 +45,7 @@ import warnings
 from collections import deque
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any, NamedTuple, Sequence
+from typing import TYPE_CHECKING, Any, NamedTuple, Sequence, TypedDict, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -93,6 +93,9 @@ from trackmeter.pipeline.snapshot import (
     SetFilterCutoff,
 )
 from trackmeter.sources.base import StereoFrame
+
+if TYPE_CHECKING:
+    from trackmeter.core.tracking import StoredTarget
 
 FloatArray = NDArray[np.float64]
 
@@ -226,6 +229,13 @@ def click_room(targets: Sequence[TargetState]) -> str | None:
         return min(lost, key=lambda t: (t.origin != "auto", -t.age_frames)).id
     auto = [t for t in targets if t.origin == "auto"]
     return min(auto, key=lambda t: t.age_frames).id if auto else None
+
+
+class _ClickRoom(TypedDict, total=False):
+    """The keywords of ``Tracker.add_target`` that make room for a target at the limit."""
+
+    in_place_of: str | None  # the target it takes the place of (:func:`click_room`)
+    replace_lost: bool
 
 
 class Engine:
@@ -697,7 +707,7 @@ class Engine:
                 self.tracker.remove_target(pid)
             # At the limit a model point takes a lost or automatic target's place, as a click does.
             now = self.tracker.targets
-            room = {"in_place_of": click_room(now)} if len(now) >= self._max_targets else {}
+            room: _ClickRoom = {"in_place_of": click_room(now)} if len(now) >= self._max_targets else {}
             result = (Refusal((float(ul[0]), float(ul[1])), f"target limit reached ({self._max_targets} targets)")
                       if room and room["in_place_of"] is None
                       else self.tracker.add_target(frame, (float(ul[0]), float(ul[1])), pid, "operator", **room))
@@ -802,6 +812,7 @@ class Engine:
         """Everything after the tracker's step of ``frame`` (:meth:`process`)."""
         self._frame_t_s = frame.t_s
         if self._binding_pending():
+            assert self._given_model is not None  # _binding_pending says so
             located_now = sum(1 for t in targets if t.measured and t.id in self._given_model.ids)
             if located_now < self.pose_params.min_points:
                 return self._process_provisional(frame, targets)
@@ -1130,9 +1141,9 @@ class Engine:
             return None, (f"{int(fit.inliers.sum())} model points leave the pose undetermined (1-sigma "
                           f"{sd[:3].max() * 1e3:.0f} mm, {np.degrees(sd[3:].max()):.1f} deg; nearly collinear?)")
         resting = self._rests_on_frame_error(ids, fit.inliers)
-        cov = fit.cov + self._frame_cov if resting else fit.cov
+        cov = fit.cov + cast("FloatArray", self._frame_cov) if resting else fit.cov  # resting: it is set
         if resting and not _sigmas_within(cov, self.pose_params.max_attitude_sigma_deg, self.pose_params.max_position_sigma_m):
-            sd = np.sqrt(np.diag(self._frame_cov))
+            sd = np.sqrt(np.diag(cast("FloatArray", self._frame_cov)))
             return None, (f"the model points measured share the error of the coast or binding they joined through "
                           f"(1-sigma {sd[:3].max() * 1e3:.0f} mm, {np.degrees(sd[3:].max()):.1f} deg): too uncertain "
                           f"for a pose until points free of it are measured")
@@ -1148,7 +1159,7 @@ class Engine:
         self.stats.outliers_rejected += len(outliers)
         if self.pose_params.handover_hold and prev_inliers is not None:
             fit = self._hold_handover(frame.t_s, ids, fit, prev_inliers, P, C)
-            cov = fit.cov + self._frame_cov if resting else fit.cov
+            cov = fit.cov + cast("FloatArray", self._frame_cov) if resting else fit.cov
         R, t = fit.R_cam_body, fit.t_cam_body
         self._last_fit = (R, t, cov)
         self._note_apriori_frame_error(R, [i for n, i in enumerate(ids) if fit.inliers[n] and self._model[i].fixed])
@@ -1250,7 +1261,7 @@ class Engine:
                 return b_obs, Cm + R.T @ _position_cov(cov, b_obs, R) @ R, np.zeros((len(tgts), 3, 6))
             return b_obs, Cm, R.T @ position_jacobians(b_obs, R) @ L_pose
 
-        def fuse(points: list[_ModelPoint] | list[_Candidate], cm: FloatArray, b_obs: FloatArray,
+        def fuse(points: Sequence[_ModelPoint | _Candidate], cm: FloatArray, b_obs: FloatArray,
                  cm_obs: FloatArray, L_obs: FloatArray) -> None:
             """Fuse each point with its observation (in place)."""
             b, cm, L = fuse_point_correlated(np.array([m.b for m in points]), cm, np.array([m.L for m in points]),
@@ -1508,7 +1519,8 @@ class Engine:
             if pid in self._model:  # only model points compete for a place (the dict stays bounded)
                 self._seen_t[pid] = frame.t_s
         keep = self.pose_params.relock_stored
-        removed = self.tracker.take_removed() if keep and hasattr(self.tracker, "take_removed") else {}
+        # Handed over (take_removed keeps no reference): detach below may add None.
+        removed = cast("dict[str, StoredTarget | None]", self.tracker.take_removed()) if keep and hasattr(self.tracker, "take_removed") else {}
         for t in targets:
             m = self._model.get(t.id)
             # A target made for a model point the model no longer has (a case change, a binding,

@@ -45,7 +45,7 @@ import time
 from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, Protocol, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Iterable, Iterator, Protocol, Sequence
 
 from trackmeter.core.patch_tracking import warm_up
 from trackmeter.core.stereo import StereoRig
@@ -73,6 +73,9 @@ from trackmeter.pipeline.snapshot import (
     Timings,
 )
 from trackmeter.sources.base import Source, StereoFrame
+
+if TYPE_CHECKING:
+    from types import FrameType
 
 log = logging.getLogger(__name__)
 #: A failing source's one line (a console's terminal shows it). The status also reaches every
@@ -1038,7 +1041,11 @@ def run_headless(
         pipe.subscribe(stop_when_asked)
     futures = [pipe.submit(c) for c in commands]
     if on_replies is not None:
-        _when_all_replied(futures, lambda replies: on_replies(replies) and pipe.request_stop())
+        def stop_when_replied(replies: list[CommandReply]) -> None:
+            if on_replies(replies):
+                pipe.request_stop()
+
+        _when_all_replied(futures, stop_when_replied)
     pipe.start()
     try:
         last = pipe.run_until_end(timeout_s)
@@ -1072,7 +1079,9 @@ def interrupts_deferred(message: Callable[[], str] | None = None) -> Iterator[No
     def hold(signum: int, frame: object) -> None:
         caught.append(signum)
 
-    previous = {sig: signal.signal(sig, hold) for sig in STOP_SIGNALS}
+    # Looked up by the plain number hold was given (caught), hence int keys.
+    previous: dict[int, Callable[[int, FrameType | None], Any] | int | None] = {
+        sig: signal.signal(sig, hold) for sig in STOP_SIGNALS}
     try:
         yield
     finally:
