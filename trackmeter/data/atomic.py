@@ -58,6 +58,7 @@ def write_files_atomic(contents: Mapping[Path, bytes]) -> None:
     Raises:
         TrackmeterError: a file could not be written (naming it and the OS's reason).
     """
+    target: Path | None
     for target in contents:
         if Path(target).is_dir():  # os.replace would fail on it after replacing the others
             raise TrackmeterError(f"{target}: cannot write: it is a folder")
@@ -99,6 +100,7 @@ def _replace_all(written: list[tuple[Path, Path]]) -> None:
     kept: dict[Path, Path | None] = {}  # a target there before -> a link to its old file, if one was made
     done: list[Path] = []
     target: Path | None = None
+    link: Path | None
     try:
         for _, target in written:
             if os.path.lexists(target):

@@ -124,7 +124,7 @@ class UniqueKeys:
         return super().construct_mapping(node, deep)  # type: ignore[misc]
 
 
-class _FastUniqueKeysLoader(UniqueKeys, _SAFE_LOADER):  # type: ignore[misc,valid-type]
+class _FastUniqueKeysLoader(UniqueKeys, _SAFE_LOADER):
     pass
 
 

@@ -16,7 +16,7 @@ import math
 import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence, TypedDict, cast
 
 import numpy as np
 import yaml
@@ -241,7 +241,12 @@ def load_estimate(spec: str | Path) -> LoadedMotion:
                    **_pose_covariances(path, loaded.series.t_s))
 
 
-def _pose_covariances(estimate: Path, t_s: np.ndarray) -> dict[str, np.ndarray | None]:
+class _PoseCovariances(TypedDict):
+    cov_pose: np.ndarray | None
+    cov_pose_rows: np.ndarray | None
+
+
+def _pose_covariances(estimate: Path, t_s: np.ndarray) -> _PoseCovariances:
     """A track run's pose covariances at the poses ``t_s`` (N,) of ``estimate``: (N,6,6), NaN
     for a pose its ``pose_covariance.csv`` has no row for (both files write the times to 9
     decimals: the same numbers). Only for the run's own poses: ``estimate`` its folder (with its
@@ -253,7 +258,7 @@ def _pose_covariances(estimate: Path, t_s: np.ndarray) -> dict[str, np.ndarray |
     run_dir = estimate if estimate.is_dir() else estimate.parent
     own = estimate.is_dir() or estimate.name in ("states.csv", "trajectory.tum")
     path = run_dir / "pose_covariance.csv"
-    none: dict[str, np.ndarray | None] = {"cov_pose": None, "cov_pose_rows": None}
+    none: _PoseCovariances = {"cov_pose": None, "cov_pose_rows": None}
     if not own or not path.is_file() or not (run_dir / "run.yaml").is_file():
         return none
     try:
@@ -358,6 +363,8 @@ def _why_no_valid_pose(run_dir: Path) -> str:
 
 
 def _load_estimate(path: Path) -> LoadedMotion:
+    t_start: float | None
+    frames: np.ndarray | None
     if path.is_dir():
         if (path / "states.csv").is_file():
             full = read_motion_csv(path / "states.csv")
@@ -683,7 +690,7 @@ def write_evaluation(evaluation: Evaluation, out_dir: str | Path, settings: dict
             f"[{t[0] * 1e3:.2f}, {t[1] * 1e3:.2f}, {t[2] * 1e3:.2f}] mm.\n"
         )
     coverage = ("" if s.get("pose_coverage") is None
-                else f"; frames after the settle (in the truth's span) with a pose: {100 * s['pose_coverage']:.1f} %")
+                else f"; frames after the settle (in the truth's span) with a pose: {100 * cast(float, s['pose_coverage']):.1f} %")
     report = f"""# Trajectory evaluation
 
 - truth: `{truth}`

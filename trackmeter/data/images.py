@@ -37,7 +37,7 @@ def _opencv_log_level() -> tuple[Callable[[], int], Callable[[int], object], int
     if logging is not None:
         return logging.getLogLevel, logging.setLogLevel, int(logging.LOG_LEVEL_SILENT)
     if hasattr(cv2, "getLogLevel") and hasattr(cv2, "setLogLevel"):
-        return cv2.getLogLevel, cv2.setLogLevel, 0
+        return cv2.getLogLevel, cv2.setLogLevel, 0  # type: ignore[attr-defined]
     return None
 
 

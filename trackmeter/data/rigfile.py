@@ -17,6 +17,7 @@ import json
 import math
 import warnings
 from pathlib import Path
+from typing import Literal, cast, overload
 
 import cv2
 import numpy as np
@@ -51,6 +52,7 @@ def _open(path: Path, strict: bool = True) -> cv2.FileStorage:
     if text is None:
         raise not_filestorage
     read_as_plain_yaml = False  # by _plain_yaml, which has checked its values already
+    fs: cv2.FileStorage | None
     try:
         # Parsed from memory, never from the name: OpenCV crashes the process (a segmentation
         # fault) on a name that is not UTF-8 (Python's surrogate escapes of its bytes).
@@ -176,6 +178,10 @@ _RIG_KEYS = ("K1", "D1", "K2", "D2", "R", "T", "M1", "M2")
 _SQUARE_KEYS = frozenset({"K1", "K2", "M1", "M2", "R"})
 
 
+@overload
+def _matrix(fs: cv2.FileStorage, key: str, path: Path, required: Literal[True] = True) -> np.ndarray: ...
+@overload
+def _matrix(fs: cv2.FileStorage, key: str, path: Path, required: bool) -> np.ndarray | None: ...
 def _matrix(fs: cv2.FileStorage, key: str, path: Path, required: bool = True) -> np.ndarray | None:
     """``key``'s matrix: an ``!!opencv-matrix``, a number, or a plain YAML list (flat, or a list
     of rows) of numbers as a hand-written or another tool's file has it."""
@@ -700,7 +706,7 @@ def save_rig(rig: StereoRig, path: str | Path, extra: dict[str, np.ndarray | flo
         if rig.rms_px is not None:
             fs.write("rms_px", float(rig.rms_px))
         for key, value in (extra or {}).items():
-            fs.write(key, np.asarray(value, dtype=float) if not np.isscalar(value) else float(value))
+            fs.write(key, np.asarray(value, dtype=float) if not np.isscalar(value) else float(cast(float, value)))
     except BaseException:
         fs.release()
         raise

@@ -41,7 +41,7 @@ import shutil
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Iterable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence, overload
 
 import cv2
 import numpy as np
@@ -75,6 +75,10 @@ def seconds_to_ns(t_s: float) -> int:
     return int(round(float(t_s) * 1e9))
 
 
+@overload
+def ns_to_seconds(ns: int) -> float: ...
+@overload
+def ns_to_seconds(ns: NDArray[np.int64]) -> FloatArray: ...
 def ns_to_seconds(ns: int | NDArray[np.int64]) -> float | FloatArray:
     """Seconds from integer nanoseconds, correctly rounded (exactly so below 2**53 ns, 104 days).
 
@@ -333,6 +337,7 @@ class SequenceWriter:
                 first_failure = first_failure or exc
                 continue
             if restored:
+                assert file is not None
                 warnings.warn(f"{file.path}: removed while recording; written again from the recorder's own copy "
                               f"(the {counted(self.frames_written, 'frame')} before kept)", stacklevel=3)
         rig, model_points = self._rig, self._model_points
@@ -933,6 +938,7 @@ def index_sequence(
                         f"{skew_s * 1e3:+.3g} ms): a moving target is seen at two instants; if the cameras were "
                         f"triggered together, shift cam1/data.csv's timestamps by {-skew_s * 1e3:+.3g} ms")
     t_s = ns_to_seconds(np.array([t_left[i] for i, _ in pairs], dtype=np.int64))
+    dt: float | FloatArray
     if len(t_s) > 1 and (dt := float(np.median(np.diff(t_s)))) > 0 and 1.0 / dt > MAX_PLAUSIBLE_RATE_HZ:
         warnings.append(f"frames {dt * 1e6:.4g} µs apart ({1.0 / dt:.0f} Hz): data.csv timestamps are "
                         "nanoseconds; are these microseconds or frame numbers? (tracking would take "

@@ -14,7 +14,7 @@ Texture texel ``(i, j)`` of an ``nu x nv`` texture has its centre at the body po
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Callable
+from typing import Callable, cast
 
 import cv2
 import numpy as np
@@ -85,14 +85,14 @@ class PlaneScene(Source):
         n_frames: int = 100,
         seed: int = 0,
     ) -> None:
-        self.rig = rig
+        self.rig: StereoRig = rig
         self.pose = pose
         if texture is None:
             # About 850 texels per metre (0.4 px per texel at 3.5 m with the 12 mm rig).
             texture = plate_texture((int(round(size_m[1] * 853)), int(round(size_m[0] * 853))), seed=seed)
         self.texture = np.asarray(texture, np.uint8)
         self.size_m = size_m
-        self.rate_hz = rate_hz
+        self.rate_hz: float = rate_hz
         self.noise_sigma = noise_sigma
         self.gain = gain
         self.n_frames = n_frames
@@ -119,7 +119,7 @@ class PlaneScene(Source):
         bad = ~np.isfinite(lam) | (lam <= 0)
         tu[bad] = -10
         tv[bad] = -10
-        img = cv2.remap(self.texture.astype(np.float32), tu, tv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        img = cast(NDArray[np.float32], cv2.remap(self.texture.astype(np.float32), tu, tv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0))
         img *= gain
         if self.noise_sigma > 0:
             img += rng.normal(0, self.noise_sigma, img.shape).astype(np.float32)

@@ -14,6 +14,7 @@ import sys
 import time
 import warnings
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -25,7 +26,7 @@ from trackmeter.sources.base import NO_RATE_INTERVAL_S, Source, StereoFrame
 from trackmeter.sources.pacing import Pacer
 
 
-def _grey(image: NDArray[np.uint8]) -> NDArray[np.uint8]:
+def _grey(image: NDArray[Any]) -> NDArray[np.uint8]:
     if image.ndim == 3:
         code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
         image = cv2.cvtColor(image, code) if image.shape[2] in (3, 4) else image[:, :, 0]

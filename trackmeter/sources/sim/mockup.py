@@ -28,7 +28,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import Literal
+from typing import Literal, cast
 
 import cv2
 import numpy as np
@@ -118,7 +118,7 @@ class TextureLevel:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.alpha.shape  # type: ignore[return-value]
+        return self.alpha.shape
 
 
 @dataclass(frozen=True, eq=False)
@@ -450,7 +450,7 @@ def surface_from_arrays(
         prev = levels[0]
 
         def down(a: F32) -> F32:
-            return cv2.resize(a, (nu, nv), interpolation=cv2.INTER_AREA)
+            return cast(F32, cv2.resize(a, (nu, nv), interpolation=cv2.INTER_AREA))
 
         # normals are averaged then renormalised: a coarse level's glints are broader and dimmer
         n_ = down(normal)
@@ -466,7 +466,7 @@ def _noise(rng: np.random.Generator, shape: tuple[int, int], sigma_texels: float
     # size as at any size beyond: the kernel, which grows with sigma, is not built larger.
     sigma_texels = min(sigma_texels, 2.0 * max(shape))
     if sigma_texels > 0.3:
-        n = cv2.GaussianBlur(n, (0, 0), sigma_texels, borderType=cv2.BORDER_REFLECT)
+        n = cast(F32, cv2.GaussianBlur(n, (0, 0), sigma_texels, borderType=cv2.BORDER_REFLECT))
     s = float(n.std())
     return n / s if s > 0 else n
 
@@ -499,8 +499,8 @@ def _tex_mli(m: MaterialSpec, shape: tuple[int, int], t: float, rng: np.random.G
     gy = rng.normal(0.0, m.slope, k).astype(np.float32)[labels]
     # large soft wrinkles: gradient of a smooth height field
     hgt = _noise(rng, shape, 2.5 * cell) * (m.slope * 2.5 * cell)
-    gx += cv2.Sobel(hgt, cv2.CV_32F, 1, 0, ksize=3) / 8.0
-    gy += cv2.Sobel(hgt, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+    gx += cast(F32, cv2.Sobel(hgt, cv2.CV_32F, 1, 0, ksize=3)) / 8.0
+    gy += cast(F32, cv2.Sobel(hgt, cv2.CV_32F, 0, 1, ksize=3)) / 8.0
     facet = rng.normal(0.0, 1.0, k).astype(np.float32)[labels]
     albedo = m.albedo * (1.0 + m.albedo_variation * facet + 0.25 * m.albedo_variation * _noise(rng, shape, 0.3 * cell))
     albedo *= 1.0 - 0.35 * _cell_edges(labels)  # creases
@@ -592,8 +592,8 @@ def _tex_paint(m: MaterialSpec, shape: tuple[int, int], t: float, rng: np.random
     ribs = np.abs(((ang * 8 / np.pi) % 1.0) - 0.5) * r < 0.7 * t * 8 / np.pi
     albedo = np.where(rings | ribs, 0.6 * m.albedo, albedo)
     hgt = _noise(rng, shape, m.feature_m / t) * m.slope * m.feature_m / t
-    gx = cv2.Sobel(hgt, cv2.CV_32F, 1, 0, ksize=3) / 8.0
-    gy = cv2.Sobel(hgt, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+    gx = cast(F32, cv2.Sobel(hgt, cv2.CV_32F, 1, 0, ksize=3)) / 8.0
+    gy = cast(F32, cv2.Sobel(hgt, cv2.CV_32F, 0, 1, ksize=3)) / 8.0
     spec = np.full(shape, m.specular, np.float32)
     return albedo.astype(np.float32), gx, gy, spec
 
@@ -602,7 +602,7 @@ def _tex_metal(m: MaterialSpec, shape: tuple[int, int], t: float, rng: np.random
     """Brushed metal: streaks along u, rivets, slight waviness."""
     nv, nu = shape
     streak = rng.standard_normal(shape).astype(np.float32)
-    streak = cv2.GaussianBlur(streak, (0, 0), sigmaX=max(1.0, m.feature_m / t), sigmaY=0.5)
+    streak = cast(F32, cv2.GaussianBlur(streak, (0, 0), sigmaX=max(1.0, m.feature_m / t), sigmaY=0.5))
     streak /= float(streak.std()) + 1e-9
     albedo = m.albedo * (1.0 + m.albedo_variation * streak + 0.5 * m.albedo_variation * _noise(rng, shape, m.feature_m / t / 2))
     step = max(4, int(round(0.05 / t)))
@@ -611,8 +611,8 @@ def _tex_metal(m: MaterialSpec, shape: tuple[int, int], t: float, rng: np.random
             if 0 <= i < nu:
                 cv2.circle(albedo, (i, j), max(1, int(0.004 / t)), float(0.4 * m.albedo), -1, cv2.LINE_AA)
     hgt = _noise(rng, shape, m.feature_m / t) * m.slope * m.feature_m / t
-    gx = cv2.Sobel(hgt, cv2.CV_32F, 1, 0, ksize=3) / 8.0
-    gy = cv2.Sobel(hgt, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+    gx = cast(F32, cv2.Sobel(hgt, cv2.CV_32F, 1, 0, ksize=3)) / 8.0
+    gy = cast(F32, cv2.Sobel(hgt, cv2.CV_32F, 0, 1, ksize=3)) / 8.0
     return albedo.astype(np.float32), gx, gy, np.full(shape, m.specular, np.float32)
 
 

@@ -51,7 +51,7 @@ import functools
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Sequence, cast
 
 import cv2
 import numpy as np
@@ -304,7 +304,7 @@ class StereoRenderer:
         boxes: list[list[tuple[int, int, int, int]]] = [[], []]  # canvas boxes drawn into, per side
         cover: NDArray[np.bool_] | None = None
         for k, T in enumerate(poses):
-            shared: dict = {}  # type: ignore[type-arg]
+            shared: dict = {}
             for side in (0, 1):
                 rad, zbuf = self.radiance_canvas(side, T, s_cam, occluders, _shared=shared, _slot=min(k, 1))
                 boxes[side].append(shared[("box", side)])
@@ -347,7 +347,7 @@ class StereoRenderer:
                 sigma = cv2.sqrt(cv2.add(img * np.float32(p.shot_noise_gain), p.read_noise_grey**2)) if p.shot_noise_gain > 0 else None
                 z = np.empty_like(img)
                 cv2.setRNGSeed(int(rng.integers(0, 2**31 - 1)))
-                cv2.randn(z, 0.0, 1.0)
+                cv2.randn(z, 0.0, 1.0)  # type: ignore[call-overload]
                 if sigma is None:
                     z *= np.float32(p.read_noise_grey)
                 else:
@@ -409,7 +409,7 @@ class StereoRenderer:
         T_cam_body: FloatArray,
         sun_dir_cam: FloatArray,
         occluders: Sequence[Occluder] = (),
-        _shared: dict | None = None,  # type: ignore[type-arg]
+        _shared: dict | None = None,
         _slot: int | None = None,
     ) -> tuple[F32, F32]:
         """Noise-free radiance of one camera's undistorted pinhole canvas and its ``1/z`` buffer
@@ -536,13 +536,13 @@ class StereoRenderer:
             if w > 1e-3 and levels[f] + 1 < len(surf.levels):
                 coarse = self._face_radiance(*face_light, levels[f] + 1)
                 up = cv2.resize(coarse, (nu, nv), interpolation=cv2.INTER_LINEAR)
-                rad_pm = cv2.addWeighted(rad_pm, 1.0 - w, up, w, 0.0)
+                rad_pm = cast(F32, cv2.addWeighted(rad_pm, 1.0 - w, up, w, 0.0))
             self._draw(canvas, zbuf, rad_pm, lvl, Hs[f], (int(ix0[f]), int(iy0[f]), int(ix1[f]), int(iy1[f])), gz[f], must_read[f], must_write[f])
         return canvas, zbuf
 
     def _face_radiance(self, geom: _Geom, f: int, surf: Surface, n_side: FloatArray, s_body: FloatArray,
                        s_side_n: float, E: float, amb: float, C: FloatArray, off: float, spread: float,
-                       big_enough: bool, shared: dict, level: int) -> F32:  # type: ignore[type-arg]
+                       big_enough: bool, shared: dict, level: int) -> F32:
         """Premultiplied radiance of face ``f``'s visible side ``surf`` on the texel grid of mip
         ``level``: ambient + diffuse (with the face's cast shadows) + glint."""
         p = self.params
@@ -551,7 +551,7 @@ class StereoRenderer:
         nv, nu = lvl.shape
         if s_side_n <= 0 or E == 0:
             unlit_key = (lvl, amb)
-            rad_pm = self._unlit.get(unlit_key)  # type: ignore[assignment]
+            rad_pm = self._unlit.get(unlit_key)
             if rad_pm is None:
                 rad_pm = self._unlit[unlit_key] = lvl.albedo_pm * np.float32(amb)
         else:
@@ -569,7 +569,7 @@ class StereoRenderer:
                 cached = (diffuse, lit, s_loc)
                 shared[key] = cached
             diffuse, lit, s_loc = cached
-            rad_pm = diffuse
+            rad_pm = cast(F32, diffuse)
             k_spec = p.glint_strength * E
             sharp = surf.sharpness * p.glint_sharpness
             if k_spec * surf.material.specular > 0:
@@ -586,7 +586,7 @@ class StereoRenderer:
                     glint = cv2.multiply(glint, lvl.spec_pm, scale=k_spec)
                     if lit is not None:
                         glint = cv2.multiply(glint, lit)
-                    rad_pm = cv2.add(diffuse, glint)
+                    rad_pm = cast(F32, cv2.add(diffuse, glint))
         return rad_pm
 
     def _draw(
@@ -643,8 +643,9 @@ class StereoRenderer:
         if write:
             if iz is None:
                 iz = ys[:, None] + xs[None, :]
-            cv2.copyTo(iz, cv2.compare(aw, 0.5, cv2.CMP_GE), zb)  # where covered; np.copyto(where=) is far slower
+            cv2.copyTo(iz, cv2.compare(aw, 0.5, cv2.CMP_GE), zb)  # type: ignore[call-overload]  # where covered; np.copyto(where=) is far slower
         if read:
+            assert rw is not None
             cv2.subtract(cv, cv2.multiply(cv, aw), dst=cv)  # premultiplied "over": cv (1 - a) + rad
             cv2.add(cv, rw, dst=cv)
 
@@ -719,7 +720,7 @@ def _subframe_poses(T_prev: FloatArray, T_cur: FloatArray, n: int, shutter: floa
 def _grid(size_m: tuple[float, float], g: int) -> tuple[FloatArray, FloatArray]:
     """Centres of a g x g grid over a face of ``size_m`` (w, h): local x (g,) and y (g,), m."""
     w, h = size_m
-    return (np.arange(g) + 0.5) * (w / g), (np.arange(g) + 0.5) * (h / g)
+    return cast("tuple[FloatArray, FloatArray]", ((np.arange(g) + 0.5) * (w / g), (np.arange(g) + 0.5) * (h / g)))
 
 
 def _half_vectors(face: Face, n_side: FloatArray, C: FloatArray, s_loc: FloatArray, g: int = 7) -> F32:
@@ -766,7 +767,7 @@ def _shadow_mask(geom: _Geom, index: int, n_side: FloatArray, shape: tuple[int, 
         chunk = ij[starts[k] : starts[k] + counts[k]]
         hull = cv2.convexHull(np.round(chunk * 16).astype(np.int32))
         cv2.fillConvexPoly(mask, hull, 255, cv2.LINE_AA, shift=4)
-    return cv2.LUT(mask, _LIT_OF_MASK)
+    return cast(F32, cv2.LUT(mask, _LIT_OF_MASK))
 
 
 # --------------------------------------------------------------------------- preview pictures
@@ -799,7 +800,7 @@ def preview_pairs(out_dir: Path, frames: dict[str, tuple[int, ...]] | None = Non
     for name, indices in (frames or PREVIEW_FRAMES).items():
         sim = Simulator(name)
         pairs = [sim.frame(i) for i in indices]
-        lit = np.zeros(pairs[0].left.shape, bool)
+        lit: NDArray[np.bool_] = np.zeros(pairs[0].left.shape, bool)
         for i in indices:
             clean = sim.renderer.render(sim.truth(i).T_cam_body, sim.sun_dir_cam, np.random.default_rng(0), noise=False,
                                         occluders=sim.occluders_at(i))

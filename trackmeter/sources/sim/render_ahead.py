@@ -84,8 +84,8 @@ def _widen_pipe(fd: int, frame_bytes: int) -> None:
                 size = min(size, int(f.read()))
         except (OSError, ValueError):
             pass
-        if size > fcntl.fcntl(fd, fcntl.F_GETPIPE_SZ):  # type: ignore[attr-defined]
-            fcntl.fcntl(fd, fcntl.F_SETPIPE_SZ, size)  # type: ignore[attr-defined]
+        if size > fcntl.fcntl(fd, fcntl.F_GETPIPE_SZ):
+            fcntl.fcntl(fd, fcntl.F_SETPIPE_SZ, size)
     except (ImportError, AttributeError, OSError):
         pass  # not Linux, or not allowed: the default pipe works, only slower
 

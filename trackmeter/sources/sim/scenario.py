@@ -148,7 +148,10 @@ class Scenario:
             origins = np.outer(self.static_ranges_m, direction / np.linalg.norm(direction))
             return np.arange(len(origins)) * self.frames_per_range / self.rate_hz, origins
         times = np.arange(self.n_frames) / self.rate_hz
-        translation = Translation(self.position0_m, self.velocity_m_s, self.approach_to_m, self.approach_s)
+        translation = Translation(
+            np.asarray(self.position0_m, dtype=float), np.asarray(self.velocity_m_s, dtype=float),
+            None if self.approach_to_m is None else np.asarray(self.approach_to_m, dtype=float), self.approach_s,
+        )
         return times, np.atleast_2d(translation.at(np.maximum(times - self.release_s, 0.0))[0])
 
     @property

@@ -18,6 +18,7 @@ a locked target from a false lock.
 from __future__ import annotations
 
 import warnings
+from typing import cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -84,7 +85,7 @@ class Simulator(Source):
         sc = self.scenario
         self.true_rig = load_rig(rig_path(sc))
         self.rig = rig_override if rig_override is not None else self.true_rig
-        self.rate_hz = float(sc.rate_hz)
+        self.rate_hz: float = float(sc.rate_hz)
         self.mockup = mockup if mockup is not None else load_mockup(mockup_path(sc))
         try:
             self.model: Model | None = Model.from_pairs(self.mockup.salient_points)
@@ -104,7 +105,7 @@ class Simulator(Source):
                 max(sc.span_s - sc.release_s, 1e-6),
             )
         self._translation = Translation(
-            sc.position0_m, sc.velocity_m_s,
+            np.asarray(sc.position0_m, dtype=float), np.asarray(sc.velocity_m_s, dtype=float),
             None if sc.approach_to_m is None else np.asarray(sc.approach_to_m, dtype=float), sc.approach_s,
         )
         self._warn_if_the_camera_comes_within_reach()
@@ -205,7 +206,7 @@ class Simulator(Source):
             if occ.start_s <= t <= occ.end_s:
                 centre = np.asarray(occ.position_m, dtype=float) + (t - occ.start_s) * np.asarray(occ.velocity_m_s, dtype=float)
                 R = Rotation.from_rotvec(np.asarray(occ.rotvec_deg, dtype=float) * DEG).as_matrix()
-                out.append(Occluder(make_transform(R, centre), tuple(occ.size_m)))
+                out.append(Occluder(make_transform(R, centre), cast("tuple[float, float]", tuple(occ.size_m))))
         return tuple(out)
 
     def frame(self, index: int) -> StereoFrame:
