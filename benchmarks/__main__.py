@@ -74,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"python -m benchmarks: error: {'; '.join(f'{name} needs {why}' for name, why in unmet)} "
               f"(or name the benchmarks to run without {'it' if len(unmet) == 1 else 'them'})", file=sys.stderr)
         return 2
-    results: dict[str, dict[str, float]] = {}
+    results: dict[str, dict[str, float | None]] = {}
     failed: list[str] = []
     interrupted = False
     for name, module in modules.items():

@@ -49,18 +49,19 @@ from __future__ import annotations
 import os
 import sys
 import time
-from typing import TYPE_CHECKING, Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence, cast
 
 import numpy as np
 
 from benchmarks import CONFIG_ENV, bench_config
 from trackmeter.core.metrics import EvaluateParams, evaluate
-from trackmeter.core.targets import Refusal, TargetState
+from trackmeter.core.targets import Refusal, TargetState, TargetStatus
 from trackmeter.core.transforms import matrix_to_quat_wxyz
 from trackmeter.data.motion_csv import MotionSeries
 
 if TYPE_CHECKING:
     from trackmeter.data.config import Config
+    from trackmeter.pipeline.snapshot import ModelCase
     from trackmeter.sources.base import StereoFrame
 
 SETTLE_S = 2.0
@@ -238,7 +239,7 @@ class GeometricTracker:
         inside = np.all((uv_l > 10) & (uv_l < [w - 10, h - 10]) & (uv_r > 10) & (uv_r < [w - 10, h - 10]), axis=1)
         return facing & inside
 
-    def _measure(self, i: int, T: np.ndarray, status: str = "tracking") -> TargetState:
+    def _measure(self, i: int, T: np.ndarray, status: TargetStatus = "tracking") -> TargetState:
         x = T[:3, :3] @ self.points[i] + T[:3, 3]
         uv_r, d = self.rect.project_rectified(x[None])
         C = self.rect.point_covariance(uv_r, d, self.sigma_d, SIGMA_UV_PX)[0]
@@ -311,13 +312,14 @@ def run_geometric(case: str, velocity_method: str | None = None, occlusion_s: tu
     from dataclasses import replace
 
     sim = Simulator("estec")
+    assert sim.rig is not None  # a Simulator's rig is always set
     pts, normals = face_points(sim.mockup)
     tracker = GeometricTracker(sim.rig, pts, normals, occlusion_s=occlusion_s)
     config = bench_config()  # config/default.yaml unless TRACKMETER_BENCH_CONFIG names a file over it
     if velocity_method is not None:
         config = replace(config, velocity=replace(config.velocity, method=velocity_method))
     model = Model(tuple(tracker.ids), pts) if case == "b" else None
-    engine = Engine(config, sim.rig, model, case, tracker=tracker, rate_hz=sim.rate_hz or 25.0)
+    engine = Engine(config, sim.rig, model, cast("ModelCase", case), tracker=tracker, rate_hz=sim.rate_hz or 25.0)
     truth_rows, est_rows = [], []
     blank = np.zeros((1, 1), np.uint8)
     from trackmeter.sources.base import StereoFrame
@@ -402,7 +404,9 @@ def run_chain(case: str, seconds: float, scenario: str = "estec", seed_offset: i
 
     spec = load_scenario(scenario)
     sim = Simulator(dataclasses.replace(spec, seed=spec.seed + seed_offset) if seed_offset else spec)
-    engine = Engine(config or bench_config(), sim.rig, sim.model if case == "b" else None, case, rate_hz=sim.rate_hz or 25.0)
+    assert sim.rig is not None  # a Simulator's rig is always set
+    engine = Engine(config or bench_config(), sim.rig, sim.model if case == "b" else None, cast("ModelCase", case),
+                    rate_hz=sim.rate_hz or 25.0)
     n = min(len(sim), int(round(seconds * (sim.rate_hz or 25.0))) + 1)
     truth_rows, est_rows = [], []
     start = time.perf_counter()
@@ -429,6 +433,7 @@ def run_chain(case: str, seconds: float, scenario: str = "estec", seed_offset: i
         targets, pose, _ = engine.process(frame)
         step_s.append(time.perf_counter() - t0)
         measured = {t.id for t in targets if t.measured}
+        assert frame.truth is not None  # the simulator's frames, or ones made of them, carry their truth
         if pose.valid and prev is not None and prev[0].valid:
             z = _jump_sigma(prev[0].T_cam_body, pose.T_cam_body, pose.cov_pose, prev[1], frame.truth.T_cam_body)
             jumps_all.append(z)

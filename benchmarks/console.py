@@ -57,9 +57,12 @@ import shutil
 import statistics
 import sys
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from playwright.sync_api import ViewportSize
 
 WARMUP_S = 10.0
 MEASURE_S = float(os.environ.get("TRACKMETER_BENCH_LIVE_S", "30"))
@@ -306,7 +309,8 @@ def _click_candidates(running: Any) -> tuple[Any, list[tuple[float, float]]]:
         if tracked:
             ij = np.clip(np.rint([t.uv for t in tracked]).astype(int), 0, size)
             depth = inside[ij[:, 1], ij[:, 0]]
-            good = [tuple(map(float, tracked[i].uv)) for i in np.argsort(-depth) if depth[i] >= CLICK_INSIDE_PX]
+            good = cast("list[tuple[float, float]]",
+                        [tuple(map(float, tracked[i].uv)) for i in np.argsort(-depth) if depth[i] >= CLICK_INSIDE_PX])
             if good:
                 return snap, good
         rig = running.pipeline.rig
@@ -322,7 +326,7 @@ def _click_candidates(running: Any) -> tuple[Any, list[tuple[float, float]]]:
             ij = np.clip(np.rint(pts).astype(int), 0, size)
             depth = inside[ij[:, 1], ij[:, 0]]
             keep = ok.reshape(len(pts), len(offsets)).all(axis=1) & (depth >= CLICK_INSIDE_PX)
-            good = [tuple(map(float, pts[i])) for i in np.argsort(-depth) if keep[i]]
+            good = cast("list[tuple[float, float]]", [tuple(map(float, pts[i])) for i in np.argsort(-depth) if keep[i]])
             if good:
                 _log(f"no tracked target inside the body: aiming at {len(good)} selected features")
                 return snap, good
@@ -335,7 +339,8 @@ def _click_candidates(running: Any) -> tuple[Any, list[tuple[float, float]]]:
     w, h = running.console._image_size
     centre = np.array([w / 2, h / 2]) if T is None else running.pipeline.rig.left.project(T[:3, 3][None])[0]
     rng = np.random.default_rng(1)
-    return snap, [tuple(map(float, np.clip(centre + rng.normal(0, 25, 2), 10, [w - 10, h - 10]))) for _ in range(40)]
+    return snap, cast("list[tuple[float, float]]",
+                      [tuple(map(float, np.clip(centre + rng.normal(0, 25, 2), 10, [w - 10, h - 10]))) for _ in range(40)])
 
 
 def _measure_browser(page: Any, running: Any, window: Any, jpeg_times: list[float], seconds: float) -> dict[str, float]:
@@ -413,7 +418,7 @@ def run() -> dict[str, float]:
 
         with sync_playwright() as p:
             browser = p.chromium.launch(executable_path=chromium, args=CHROMIUM_ARGS)
-            context = browser.new_context(viewport=VIEWPORT)
+            context = browser.new_context(viewport=cast("ViewportSize", VIEWPORT))
             context.add_init_script(PAGE_HOOKS)
             page = context.new_page()
             page.on("websocket", on_ws)
@@ -447,6 +452,7 @@ def run() -> dict[str, float]:
             page.wait_for_timeout(3000)
             _log(f"rates: {out}")
 
+            latencies: list[float]
             latencies, from_release, received, to_server = [], [], [], []
             offset_s = _page_offset_s(page)  # monotonic = page clock / 1000 + offset_s
             skipped: list[str] = []

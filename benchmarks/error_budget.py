@@ -67,7 +67,7 @@ import os
 import sys
 import time
 from dataclasses import replace
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -133,6 +133,7 @@ def record(seconds: float, scenario: str = "estec") -> dict[str, Any]:
     from trackmeter.sources.sim.simulator import Simulator
 
     sim = Simulator(scenario)
+    assert sim.rig is not None  # a Simulator's rig is always set
     engine = Engine(bench_config(), sim.rig, sim.model, "b", rate_hz=sim.rate_hz or 25.0)
     step = engine.tracker.step
     seen: list[tuple[TargetState, ...]] = []
@@ -155,6 +156,7 @@ def record(seconds: float, scenario: str = "estec") -> dict[str, Any]:
             engine.handle(SelectModelPoints(repeat=True), frame)  # as the accuracy chain's operator
             engine.handle(SetAuto(True, MAX_POINTS, None), frame)
         gt = frame.truth
+        assert gt is not None  # a simulator frame's truth is always set
         truth.append((frame.t_s, gt.T_cam_body, gt.velocity_cam_m_s, gt.omega_body_rad_s))
         poses.append(pose.T_cam_body if pose.valid else None)
         if k % 100 == 0:
@@ -256,8 +258,9 @@ def joint_fit(frames: list[tuple[TargetState, ...]], apriori: dict[str, np.ndarr
     known = [k for k, T in enumerate(T_init) if T is not None]
     if not known:
         return [None] * len(frames)
-    start = [T_init[k] if T_init[k] is not None else T_init[min(known, key=lambda j: abs(j - k))]
-             for k in range(len(frames))]
+    # None nowhere: a frame without a starting pose takes the nearest known frame's
+    start = cast("list[np.ndarray]", [T_init[k] if T_init[k] is not None else T_init[min(known, key=lambda j: abs(j - k))]
+                                      for k in range(len(frames))])
     rows: list[tuple[int, str, np.ndarray, np.ndarray]] = []  # frame, id, y (3,), L^T (3, 3)
     for k, targets in enumerate(frames):
         for tg in targets:
@@ -403,7 +406,7 @@ def measurement_stats(rec: dict[str, Any]) -> dict[str, float]:
 
 # pose.anchor_time_s / anchor_memory_s of the *_anchored variants: the grown model pulled onto
 # the a-priori points' frame whenever they are seen (off in the default configuration).
-ANCHORED = dict(anchor_time_s=0.5, anchor_memory_s=1.0)
+ANCHORED: dict[str, Any] = dict(anchor_time_s=0.5, anchor_memory_s=1.0)
 
 #: The variants whose measurements are also given to :func:`joint_fit` (``joint_<variant>_*``).
 JOINT = ("recorded", "oracle_apriori", "oracle_auto_pinned", "oracle_all")

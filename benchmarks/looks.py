@@ -30,7 +30,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import sys
-from typing import Callable
+from typing import Any, Callable, cast
 
 import cv2
 import numpy as np
@@ -53,12 +53,12 @@ def _noise(index: int, camera: int, shape: tuple[int, ...], sigma: float) -> NDA
     return np.random.default_rng((54, index, camera)).normal(0.0, sigma, shape)
 
 
-def _to_uint8(values: NDArray[np.float64]) -> Image:
+def _to_uint8(values: NDArray[np.floating[Any]]) -> Image:
     return np.clip(np.rint(values), 0, 255).astype(np.uint8)
 
 
 def _blur(image: Image, index: int, camera: int) -> Image:
-    return cv2.GaussianBlur(image, (0, 0), 1.0)
+    return cast("Image", cv2.GaussianBlur(image, (0, 0), 1.0))
 
 
 def _gamma_vignette(image: Image, index: int, camera: int) -> Image:
@@ -72,7 +72,7 @@ def _gamma_vignette(image: Image, index: int, camera: int) -> Image:
 def _jpeg(image: Image, index: int, camera: int) -> Image:
     ok, data = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 70])
     assert ok
-    return cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
+    return cast("Image", cv2.imdecode(data, cv2.IMREAD_GRAYSCALE))
 
 
 def _underexposed(image: Image, index: int, camera: int) -> Image:

@@ -44,12 +44,16 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import cv2
 import numpy as np
 
 from benchmarks import median_cpu_ms, median_ms
+
+if TYPE_CHECKING:
+    from trackmeter.core.matching import MeasureParams
+    from trackmeter.core.stereo import StereoRig
 
 REPO = Path(__file__).resolve().parent.parent
 TSUKUBA = (REPO / ".." / "shared" / "data" / "middlebury_tsukuba").resolve()
@@ -101,7 +105,7 @@ def shifted_pair(
     return to_uint8(texture(u, v), noise, rng), to_uint8(texture(u + disparity_px, v), noise, rng)
 
 
-def identity_rig(width: int, height: int, focal_px: float = 500.0, baseline_m: float = 0.1):  # type: ignore[no-untyped-def]
+def identity_rig(width: int, height: int, focal_px: float = 500.0, baseline_m: float = 0.1) -> StereoRig:
     """A rectified rig (identity R, T = (-b, 0, 0), no distortion): its rectification is the
     identity, so rectified disparities are image disparities (as for Middlebury pairs)."""
     from trackmeter.core.stereo import Camera, StereoRig
@@ -110,7 +114,7 @@ def identity_rig(width: int, height: int, focal_px: float = 500.0, baseline_m: f
     return StereoRig(Camera(width, height, K), Camera(width, height, K), np.eye(3), np.array([-baseline_m, 0, 0]))
 
 
-def principal_points_apart(rig, right: np.ndarray, shift_px: int):  # type: ignore[no-untyped-def]
+def principal_points_apart(rig: StereoRig, right: np.ndarray, shift_px: int) -> tuple[StereoRig, np.ndarray]:
     """``(rig, right)`` of the same pair with its right image moved ``shift_px`` whole pixels
     right, the right camera's principal point with it: a pair rectified already whose principal
     points lie apart (Middlebury 2014's ``doffs``), every right pixel ``shift_px`` further right,
@@ -125,7 +129,7 @@ def principal_points_apart(rig, right: np.ndarray, shift_px: int):  # type: igno
 
 
 def plane_pair(
-    rig,  # type: ignore[no-untyped-def]
+    rig: StereoRig,
     texture: Texture,
     point_m: np.ndarray,
     normal: np.ndarray,
@@ -168,7 +172,7 @@ def plane_pair(
     return to_uint8(left, noise, rng), to_uint8(right, noise, rng), truth
 
 
-def estec_plane(seed: int = 1):  # type: ignore[no-untyped-def]
+def estec_plane(seed: int = 1) -> tuple[StereoRig, np.ndarray, np.ndarray, Callable[[np.ndarray], np.ndarray]]:
     """The paper's rig and a slanted textured plane at 3.5 m: ``(rig, left, right, truth)``."""
     from trackmeter.data.rigfile import load_rig
 
@@ -238,7 +242,9 @@ def load_tsukuba(folder: Path = TSUKUBA) -> tuple[np.ndarray, np.ndarray, np.nda
     """``(left, right, gt_disparity)``; gt = pgm / 16, 0 where unknown (NaN here)."""
     left = cv2.imread(str(folder / "img_left.png"), cv2.IMREAD_GRAYSCALE)
     right = cv2.imread(str(folder / "img_right.png"), cv2.IMREAD_GRAYSCALE)
-    gt = cv2.imread(str(folder / "disp_gt.pgm"), cv2.IMREAD_UNCHANGED).astype(float) / 16.0
+    gt_pgm = cv2.imread(str(folder / "disp_gt.pgm"), cv2.IMREAD_UNCHANGED)
+    assert left is not None and right is not None and gt_pgm is not None  # cv2.imread's None: a file missing
+    gt = gt_pgm.astype(float) / 16.0
     gt[gt == 0] = np.nan
     return left, right, gt
 
@@ -266,7 +272,7 @@ def sgbm_disparity(left: np.ndarray, right: np.ndarray, num_disparities: int = 1
     """OpenCV StereoSGBM with the usual settings of OpenCV's sample (block 5, P1 = 8·bs²,
     P2 = 32·bs², uniqueness 10, left-right check 1 px, speckle filter); NaN where invalid."""
     bs = 5
-    sgbm = cv2.StereoSGBM_create(
+    sgbm = cv2.StereoSGBM_create(  # type: ignore[attr-defined]  # in cv2 at run time, not in its stubs
         minDisparity=0,
         numDisparities=num_disparities,
         blockSize=bs,
@@ -282,7 +288,7 @@ def sgbm_disparity(left: np.ndarray, right: np.ndarray, num_disparities: int = 1
     return disp
 
 
-def tsukuba_figures(step: int = 6, params=None) -> dict[str, float]:  # type: ignore[no-untyped-def]
+def tsukuba_figures(step: int = 6, params: MeasureParams | None = None) -> dict[str, float]:
     from trackmeter.core.matching import MeasureParams, measure_points
 
     left, right, gt = load_tsukuba()
@@ -309,7 +315,7 @@ def tsukuba_figures(step: int = 6, params=None) -> dict[str, float]:  # type: ig
 
 
 def mockup_figures(
-    frames: tuple[int, ...] = (0, 40, 80), step: int = 8, params=None, suffix: str = ""  # type: ignore[no-untyped-def]
+    frames: tuple[int, ...] = (0, 40, 80), step: int = 8, params: MeasureParams | None = None, suffix: str = ""
 ) -> dict[str, float]:
     """Realistic imagery: the simulated satellite mock-up (``estec`` scenario: 3-4 m, sensor
     noise calibrated to the paper's 4 mm depth sigma at 3.5 m). Every ``step``-th pixel that
@@ -319,6 +325,7 @@ def mockup_figures(
     from trackmeter.sources.sim.simulator import Simulator
 
     sim = Simulator(str(REPO / "config" / "scenarios" / "estec.yaml"))
+    assert sim.rig is not None  # a Simulator's rig is always set
     W, H = sim.rig.image_size
     gu, gv = np.meshgrid(np.arange(20, W - 20, step), np.arange(20, H - 20, step))
     grid = np.column_stack([gu.ravel(), gv.ravel()]).astype(float)
@@ -328,6 +335,7 @@ def mockup_figures(
         frame = sim.frame(index)
         body = sim.surface_points(index, grid)
         on = np.all(np.isfinite(body), axis=1)
+        assert frame.truth is not None  # a simulator frame's truth is always set
         truth = apply_transform(frame.truth.T_cam_body, body[on])
         ms = measure_points(sim.rig, frame.left, frame.right, grid[on], params or MeasureParams())
         ok = np.array([m.ok for m in ms])
@@ -344,7 +352,7 @@ def mockup_figures(
     }
 
 
-def slanted_plane_errors(slant_deg: float, noise: float, params, seeds: int = 4  # type: ignore[no-untyped-def]
+def slanted_plane_errors(slant_deg: float, noise: float, params: MeasureParams, seeds: int = 4
                          ) -> tuple[np.ndarray, np.ndarray]:
     """Disparity errors and sigmas (px) of the accepted points of a 9x7 grid on a plane at 3.5 m
     turned ``slant_deg`` about the vertical axis (the disparity changes along the rows), a
@@ -390,7 +398,7 @@ def slanted_plane_figures() -> dict[str, float]:
 def run() -> dict[str, float]:
     from trackmeter.core.matching import MeasureParams, measure_points
 
-    out: dict[str, float | list[float]] = {}
+    out: dict[str, float] = {}
 
     # Speed and 3D accuracy on the paper's rig.
     rig, left, right, truth = estec_plane()

@@ -63,6 +63,7 @@ def clicked_run(scenario: str, seed: int, fallback: str | None) -> dict[str, flo
     if fallback is not None:
         config = dataclasses.replace(config, tracker=dataclasses.replace(config.tracker, anchor_scale_fallback=fallback))
     sim = Simulator(scenario)
+    assert sim.rig is not None and sim.rate_hz is not None  # a Simulator sets both
     engine = Engine(config, sim.rig, model=None, case="a", rate_hz=sim.rate_hz)
     frame = sim.frame(0)
     engine.process(frame)
@@ -95,6 +96,7 @@ def clicked_run(scenario: str, seed: int, fallback: str | None) -> dict[str, flo
             p = np.abs(np.asarray(pose_errors["position_m"], float))
             pose_lateral_m.append(float(max(p[0], p[1])))
             pose_depth_m.append(float(p[2]))
+        assert frame.truth is not None  # a simulator frame's truth is always set
         T = frame.truth.T_cam_body
         for t in targets:
             if t.id not in body:

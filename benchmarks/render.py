@@ -29,6 +29,7 @@ import os
 import statistics
 import sys
 import time
+from typing import Callable, Iterable
 
 import cv2
 import numpy as np
@@ -90,7 +91,7 @@ def stream(seconds: float = STREAM_S) -> dict[str, float]:
     }
 
 
-def _times(fn, items, clock) -> list[float]:  # type: ignore[no-untyped-def]
+def _times(fn: Callable[[int], object], items: Iterable[int], clock: Callable[[], float]) -> list[float]:
     out = []
     for item in items:
         start = clock()
@@ -99,7 +100,7 @@ def _times(fn, items, clock) -> list[float]:  # type: ignore[no-untyped-def]
     return out
 
 
-def _estec_setup():  # type: ignore[no-untyped-def]
+def _estec_setup() -> tuple[StereoRenderer, StereoRenderer, list[np.ndarray], np.ndarray, str]:
     """(renderer, blur renderer, poses, sun, source) from the ``estec`` scenario (H4's simulator),
     or from the built-in geometry above when the scenario cannot be loaded."""
     try:

@@ -311,7 +311,7 @@ def console_soak_rows(results: dict | None, step: Step) -> list[str]:
 
 def _per_seed(figures: dict, key: str) -> list[float]:
     """The values of ``key`` per noise seed (``<key>_seed0``, ``_seed1``, ...), in seed order."""
-    values = []
+    values: list[float] = []
     while f"{key}_seed{len(values)}" in figures:
         value = figures[f"{key}_seed{len(values)}"]
         values.append(float("nan") if value is None else float(value))  # null: not finite in that run

@@ -33,16 +33,20 @@ from __future__ import annotations
 import dataclasses
 import statistics
 import sys
+from typing import TYPE_CHECKING, Callable
 
 import cv2
 import numpy as np
 
 from benchmarks import median_ms
 
+if TYPE_CHECKING:
+    from trackmeter.core.features import FeatureParams
+
 FRAMES = tuple(range(0, 140, 14))
 
 
-def _gabor_score_2d(image: np.ndarray, params) -> np.ndarray:  # type: ignore[no-untyped-def]
+def _gabor_score_2d(image: np.ndarray, params: FeatureParams) -> np.ndarray:
     """The filter bank as 16 ``cv2.filter2D`` calls with the 2D kernels (the baseline)."""
     from trackmeter.core.features import gabor_bank
 
@@ -69,6 +73,7 @@ def run() -> dict[str, float]:
     refined = dataclasses.replace(params, stereo_refine=True)
     sim = Simulator("estec")
     rig = sim.rig
+    assert rig is not None  # a Simulator's rig is always set
     rect = rig.rectification
     lo, hi = ft.search_disparities(rig, params)
     span = int(np.ceil(hi - lo))
@@ -79,7 +84,7 @@ def run() -> dict[str, float]:
 
     times: dict[str, list[float]] = {}
 
-    def timed(key: str, fn) -> None:  # type: ignore[no-untyped-def]
+    def timed(key: str, fn: Callable[[], object]) -> None:
         times.setdefault(key, []).append(median_ms(fn, repeats=7, warmup=1))
 
     accepted = {"accept_rate_16": [0, 0], "accept_rate_16_pyramid": [0, 0]}

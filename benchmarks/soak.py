@@ -28,8 +28,14 @@ import logging
 import os
 import sys
 import time
+from typing import TYPE_CHECKING, Callable, Protocol, cast
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from playwright.sync_api import ViewportSize
+
+    from trackmeter.pipeline.snapshot import Snapshot
 
 SAMPLE_S = 2.0
 DURATION_S = float(os.environ.get("TRACKMETER_SOAK_S", "600"))
@@ -58,11 +64,20 @@ class _ErrorCounter(logging.Handler):
         print(self.format(record), file=sys.stderr, flush=True)
 
 
-def soak(duration_s: float, start_live=None) -> dict[str, float]:  # type: ignore[no-untyped-def]
+class _Live(Protocol):
+    """What :func:`soak` runs: a started pipeline, or anything with ``latest()`` and ``close()``."""
+
+    def latest(self) -> Snapshot: ...
+
+    def close(self) -> None: ...
+
+
+def soak(duration_s: float, start_live: Callable[[], _Live] | None = None) -> dict[str, float]:
     """Run ``start_live()`` (a started pipeline, or anything with ``latest()`` and ``close()``)
     for ``duration_s`` and sample memory."""
     if start_live is None:
         from benchmarks.pipeline import start_live
+    assert start_live is not None  # benchmarks.pipeline's when not given (mypy does not follow the import)
     settle = min(SETTLE_S, duration_s / 2)
     errors = _ErrorCounter()
     for name in ("trackmeter", "console"):
@@ -140,11 +155,11 @@ class _ConsoleRun:
         self._browser = self._pw.chromium.launch(executable_path=shutil.which("chromium"), args=CHROMIUM_ARGS)
         self.pages = []
         for _ in range(2):
-            page = self._browser.new_context(viewport=VIEWPORT).new_page()
+            page = self._browser.new_context(viewport=cast("ViewportSize", VIEWPORT)).new_page()
             page.goto(self.running.url)
             self.pages.append(page)
 
-    def latest(self):  # type: ignore[no-untyped-def]
+    def latest(self) -> Snapshot:
         return self.running.pipeline.latest()
 
     def close(self) -> None:

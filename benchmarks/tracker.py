@@ -40,6 +40,7 @@ import statistics
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, cast
 
 import cv2
 import numpy as np
@@ -51,6 +52,9 @@ from trackmeter.core.patch_tracking import make_templates, refine_lk, track_patc
 from trackmeter.core.tracking import Tracker, TrackerParams
 from trackmeter.data.rigfile import load_rig
 from trackmeter.sources.plane import PlaneScene, pose_translating
+
+if TYPE_CHECKING:
+    from trackmeter.core.stereo import StereoRig
 
 REPO = Path(__file__).resolve().parent.parent
 DATA = (REPO / ".." / "shared" / "data").resolve()
@@ -77,6 +81,7 @@ def rubberwhale(data_dir: Path = DATA) -> dict[str, float]:
     d = data_dir / "optical_flow_rubberwhale"
     f0 = cv2.imread(str(d / "frame10.png"), cv2.IMREAD_GRAYSCALE)
     f1 = cv2.imread(str(d / "frame11.png"), cv2.IMREAD_GRAYSCALE)
+    assert f0 is not None and f1 is not None  # cv2.imread's None (a file missing) failed in goodFeaturesToTrack anyway
     flow = read_flo(d / "flow10.flo")
     pts = cv2.goodFeaturesToTrack(f0, 500, 0.01, 8).reshape(-1, 2).astype(float)
     gt = flow[np.rint(pts[:, 1]).astype(int), np.rint(pts[:, 0]).astype(int)]
@@ -100,7 +105,7 @@ def interior_points(left: np.ndarray, n: int, margin: int, min_distance: float) 
     return np.zeros((0, 2)) if pts is None else pts.reshape(-1, 2).astype(float)
 
 
-def step_time(rig, n: int, n_frames: int = 60) -> dict[str, float]:  # type: ignore[no-untyped-def]
+def step_time(rig: StereoRig, n: int, n_frames: int = 60) -> dict[str, float]:
     """Median step time with ``n`` targets, and pyramidal LK (left and right images, same
     points) timed on the same frame pair right before it, so both see the same machine load."""
     scene = PlaneScene(rig, pose_translating(3.5, (0.05, 0.025, 0.0), (0.0, 0.0, 0.05)), size_m=(2.2, 1.6))
@@ -133,7 +138,7 @@ def step_time(rig, n: int, n_frames: int = 60) -> dict[str, float]:  # type: ign
     }
 
 
-def locked_fraction(rig, speed_px_s: float, n_targets: int = 12) -> float:  # type: ignore[no-untyped-def]
+def locked_fraction(rig: StereoRig, speed_px_s: float, n_targets: int = 12) -> float:
     """Fraction of in-view target-frames locked while a plate accelerates smoothly (velocity
     ``v (1 - cos(pi t / 0.4 s)) / 2``) to ``speed_px_s`` across the image and keeps it, 25 Hz."""
     z = 3.5
@@ -175,7 +180,7 @@ def locked_fraction(rig, speed_px_s: float, n_targets: int = 12) -> float:  # ty
     return locked / max(total, 1)
 
 
-def max_speed(rig) -> dict[str, float]:  # type: ignore[no-untyped-def]
+def max_speed(rig: StereoRig) -> dict[str, float]:
     out: dict[str, float] = {}
     best = 0.0
     for v in SPEEDS_PX_S:
@@ -190,7 +195,7 @@ def max_speed(rig) -> dict[str, float]:  # type: ignore[no-untyped-def]
     return out
 
 
-def drift(rig) -> dict[str, float]:  # type: ignore[no-untyped-def]
+def drift(rig: StereoRig) -> dict[str, float]:
     scene = PlaneScene(rig, pose_translating(3.5, (0.15, 0.05, 0.0), (0.0, 0.0, 0.3)), noise_sigma=1.0)
     f0 = scene.frame(0)
     uv0 = interior_points(f0.left, 12, 40, 30.0)
@@ -203,7 +208,10 @@ def drift(rig) -> dict[str, float]:  # type: ignore[no-untyped-def]
         uv = uv0.copy()
         for k in range(1, 41):
             img = scene.frame(k).left.astype(np.float32)
-            starts = np.array([zncc_search(img, current.values[i], uv[i], np.array([6.0, 6.0]))[0] for i in range(len(uv))])
+            # (zncc_search's None, a window off the image, is not expected on this plate: it would fail here)
+            starts = np.array([cast("tuple[np.ndarray, float, float]",
+                                    zncc_search(img, current.values[i], uv[i], np.array([6.0, 6.0])))[0]
+                               for i in range(len(uv))])
             if naive:
                 uv = refine_lk(img, current, starts).uv
             else:
@@ -217,7 +225,7 @@ def drift(rig) -> dict[str, float]:  # type: ignore[no-untyped-def]
     return result
 
 
-def off_target(rig, T_cam_body: np.ndarray, b: np.ndarray, uv: np.ndarray, limit_px: float = 2.0) -> bool:  # type: ignore[no-untyped-def]
+def off_target(rig: StereoRig, T_cam_body: np.ndarray, b: np.ndarray, uv: np.ndarray, limit_px: float = 2.0) -> bool:
     """Whether ``uv`` is more than ``limit_px`` from the true image of body point ``b`` (or ``b`` is unknown)."""
     if not np.all(np.isfinite(b)):
         return True
@@ -230,6 +238,7 @@ def scenario(name: str) -> dict[str, float]:
 
     sim = Simulator(name)
     rig = sim.rig
+    assert rig is not None  # a Simulator's rig is always set
     tr = Tracker(rig, TrackerParams(), FeatureParams(), MeasureParams())
     tr.set_auto(True, 16, "gabor")
     body: dict[str, np.ndarray] = {}
@@ -242,6 +251,7 @@ def scenario(name: str) -> dict[str, float]:
         t0 = time.perf_counter()
         states = tr.step(f)
         steps.append((time.perf_counter() - t0) * 1e3)
+        assert f.truth is not None  # a simulator frame's truth is always set
         T = f.truth.T_cam_body
         for t in states:
             if t.id not in body:

@@ -29,7 +29,7 @@ from collections.abc import Callable, Coroutine, Sequence
 from concurrent.futures import Future
 from html import escape
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import viser
@@ -305,7 +305,7 @@ def set_uplot_data(handle: viser.GuiUplotHandle, data: tuple[NDArray[np.float64]
     if all(isinstance(a, np.ndarray) for a in data):
         handle.data = data  # type: ignore[assignment]
         return
-    handle._impl.props.data = data  # type: ignore[assignment]
+    handle._impl.props.data = data  # type: ignore[attr-defined]  # viser 1.1: its props Protocol declares only 'order'
     handle._queue_update("data", data)
 
 
@@ -573,7 +573,8 @@ class Console:
         # Every click is answered: one on the right image says where targets are set, and one
         # beside both images (the view's blank margin) too.
         self.right_image.on_click(_on_event_loop(self._on_right_click))
-        scene.on_click()(_on_event_loop(self._on_scene_click))
+        # viser 1.1 runs a coroutine callback here too (_dispatch_callback), but SceneApi.on_click is hinted for None only
+        scene.on_click()(_on_event_loop(self._on_scene_click))  # type: ignore[arg-type]
 
         root = scene.add_frame("/scene3d", show_axes=False, position=SCENE3D_OFFSET)
         self.scene3d = root
@@ -622,7 +623,8 @@ class Console:
         keys, inverse = np.unique(colours.reshape(-1, 3), axis=0, return_inverse=True)
         for k, rgb in enumerate(keys):
             sel = faces[inverse.reshape(-1) == k]
-            self.server.scene.add_mesh_simple(f"{name}/part{k}", vertices, sel, color=tuple(int(c) for c in rgb),
+            self.server.scene.add_mesh_simple(f"{name}/part{k}", vertices, sel,
+                                              color=cast("tuple[int, int, int]", tuple(int(c) for c in rgb)),
                                               opacity=opacity, side="front", flat_shading=True,
                                               cast_shadow=False, receive_shadow=False)
 
@@ -976,7 +978,8 @@ class Console:
 
     def _notify_all(self, title: str, body: str, ok: bool) -> None:
         """:meth:`_notify` every browser connected (kept in :attr:`notifications` with none)."""
-        for client in list(self.server.get_clients().values()) or [None]:
+        clients: list[viser.ClientHandle | None] = list(self.server.get_clients().values())
+        for client in clients or [None]:
             self._notify(client, title, body, ok)
 
     def _notify(self, client: Any, title: str, body: str, ok: bool) -> None:
@@ -1015,7 +1018,7 @@ class Console:
             self._popups.pop(client.client_id, None)
             gone_owner = self._next_click_owner == client.client_id
         if gone_owner:  # its click will not come: the others' clicks are new targets again
-            self.model_point_dropdown.value = self._new_target
+            self.model_point_dropdown.value = self._new_target  # type: ignore[misc]  # viser 1.1's setter: see _flush_replies
 
     def _own_next_click(self, event: Any) -> None:
         """The model point chosen in "Next click is" belongs to the browser that chose it (None:
@@ -1157,7 +1160,7 @@ class Console:
                 self._stop.wait(period)
 
     def _flush_replies(self) -> None:
-        done = []
+        done: list[tuple[Future[CommandReply], Any, str]] = []
         with self._pending_lock:
             keep: deque[tuple[Future[CommandReply], Any, str]] = deque()
             for item in self._pending:
@@ -1171,7 +1174,8 @@ class Console:
             with self._pending_lock:
                 model_point = self._model_point_clicks.pop(future, None)
             if reply.ok and model_point is not None and self.model_point_dropdown.value == model_point:
-                self.model_point_dropdown.value = self._new_target  # the choice is used up; a refusal keeps it
+                # viser 1.1 defines the value setter apart from its getter, and mypy takes the property as read-only.
+                self.model_point_dropdown.value = self._new_target  # type: ignore[misc]  # the choice is used up; a refusal keeps it
             if reply.ok and not reply.notable and label.startswith(("SetAuto", "SetFilterCutoff", "SetPaused",
                                                                     "StepOnce")):
                 continue  # the UI shows the new state; no pop-up needed
@@ -1219,7 +1223,8 @@ class Console:
                 # The folder of the recording going on (--record's, another browser's): the
                 # field kept its default and read as where the frames went.
                 self._record_dir_shown = rec.directory
-                self.record_dir.value = shown_text(rec.directory)
+                assert rec.directory is not None  # an active recording's folder (RecordingStats)
+                self.record_dir.value = shown_text(rec.directory)  # type: ignore[misc]  # viser 1.1's setter
             self._sync_widgets(snap)
             self._update_scene3d(snap)
             if plots:
@@ -1250,12 +1255,12 @@ class Console:
             self._model_ids = snap.model_ids
             self._new_target = new_target_option(snap.model_ids)
             self.model_point_dropdown.options = (self._new_target, *snap.model_ids)  # ids are text (load_model)
-            self.model_point_dropdown.value = self._new_target
+            self.model_point_dropdown.value = self._new_target  # type: ignore[misc]  # viser 1.1's setter
         if snap.pose.case != self._shown_case:
             # A choice made for another case's model (or none: case (c) makes its own) would
             # name the next plain click after it, long after it was meant.
             if self._shown_case is not None and self.model_point_dropdown.value != self._new_target:
-                self.model_point_dropdown.value = self._new_target
+                self.model_point_dropdown.value = self._new_target  # type: ignore[misc]  # viser 1.1's setter
             self._shown_case = snap.pose.case
         label = "Play" if snap.paused else "Pause"
         if self.pause_button.label != label:
@@ -1362,7 +1367,7 @@ class Console:
         attitude_error = "–"
         if e and "position_m" in e:
             rows["error [mm]"] = (np.asarray(e["position_m"]) * 1e3, "{:+.1f}")
-            attitude_error = f"{np.degrees(float(e.get('attitude_total_rad', np.nan))):.2f}°"  # type: ignore[arg-type]
+            attitude_error = f"{np.degrees(float(e.get('attitude_total_rad', np.nan))):.2f}°"
         cell = 'style="text-align:right;padding:0 0.4em"'
         table = [f"<tr><td></td>{''.join(f'<td {cell}>{a}</td>' for a in 'xyz')}</tr>"]
         for name, value in rows.items():

@@ -16,6 +16,7 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Iterable, Mapping, Sequence
 from functools import lru_cache
+from typing import cast
 
 import cv2
 import numpy as np
@@ -325,7 +326,7 @@ def ray_to_pixel(
 
 def to_rgb(grey: NDArray[np.uint8]) -> NDArray[np.uint8]:
     """(H,W) grey → (H,W,3) RGB (viser refuses 2-D images)."""
-    return cv2.cvtColor(np.ascontiguousarray(grey), cv2.COLOR_GRAY2RGB)
+    return cast("NDArray[np.uint8]", cv2.cvtColor(np.ascontiguousarray(grey), cv2.COLOR_GRAY2RGB))
 
 
 def _pt(uv: ArrayLike, scale: float) -> tuple[int, int]:

@@ -178,7 +178,7 @@ class PlotData:
         e = snap.errors or {}
         self.windows["err_position"].append(t, np.asarray(e["position_m"]) * 1e3 if "position_m" in e else None)
         self.windows["err_attitude"].append(t, np.degrees(np.r_[np.asarray(e["attitude_rad"]).reshape(3), float(
-            e["attitude_total_rad"])]) if "attitude_rad" in e and "attitude_total_rad" in e else None)  # type: ignore[arg-type]
+            e["attitude_total_rad"])]) if "attitude_rad" in e and "attitude_total_rad" in e else None)
         self.windows["err_velocity"].append(t, np.asarray(e["velocity_m_s"]) * 1e3 if "velocity_m_s" in e else None)
         self.windows["err_omega"].append(t, np.degrees(e["omega_rad_s"]) if "omega_rad_s" in e else None)
 
