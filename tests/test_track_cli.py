@@ -262,6 +262,21 @@ def test_max_frames(monkeypatch, tmp_path, estec_rig) -> None:
     assert len(read_motion_csv(out / "states.csv")) == 3
 
 
+def test_max_frames_wrapper_delegates_what_only_some_sources_have(estec_rig) -> None:
+    """``--max-frames`` wraps the source: what the pipeline asks of some sources only (a
+    sequence's model, a camera's warning, resume after a pause) is the wrapped source's."""
+    from trackmeter.cli.track import _Limited
+
+    source = TextureSource(estec_rig, n=10)
+    source.warning = "a camera's note"
+    source.resume = lambda: "resumed"
+    limited = _Limited(source, 2)
+    assert limited.model is None and limited.warning == "a camera's note" and limited.resume() == "resumed"
+    assert [limited.read() is not None for _ in range(3)] == [True, True, False]
+    with pytest.raises(AttributeError):
+        limited.no_such_thing  # noqa: B018 - what the source itself would raise
+
+
 def _model(tmp_path: Path, text: str) -> Path:
     path = tmp_path / "model.yaml"
     path.write_text(text)

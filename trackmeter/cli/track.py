@@ -129,6 +129,11 @@ class _Limited:
         self.rig = source.rig
         self.rate_hz = source.rate_hz
 
+    def __getattr__(self, name: str) -> Any:
+        # What the pipeline asks of some sources only (resume, model, warning, ...): the wrapped
+        # source's, or the AttributeError it would give. Only names not set above reach here.
+        return getattr(self._source, name)
+
     def read(self) -> StereoFrame | None:
         if self._left <= 0:
             return None
@@ -530,7 +535,9 @@ def _check_views(state: _RunState, rig: Any, frame: Any, tty: bool) -> None:
     (:class:`~trackmeter.pipeline.views.SwappedViewsWatch`)."""
     from trackmeter.pipeline.views import SwappedViewsWatch
 
-    watch = state.setdefault("views", SwappedViewsWatch(rig))
+    if "views" not in state:  # setdefault would build a watch on every frame
+        state["views"] = SwappedViewsWatch(rig)
+    watch = state["views"]
     problem = watch.check(frame.left, frame.right)
     if problem:
         if tty:
