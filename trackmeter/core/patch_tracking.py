@@ -680,7 +680,7 @@ def match_epipolar(
     to frame.
 
     Args:
-        left, right: float32 ORIGINAL images.
+        left, right: the ORIGINAL images, uint8 or float32 (sampled alike).
         left_map, right_map: rectified → original coordinate maps (see :func:`sample_points`).
         uv_rect_left: (N,2) rectified left pixels.
         disparity_low_px: (N,) smallest disparity searched, px.
@@ -1089,7 +1089,7 @@ def fit_disparity_plane(
     ``m = n / c``: ``m = (gu / b, gv / b, (d0 - offset - gu (u0 - cx) - gv (v0 - cy)) / (f b))``.
 
     Args:
-        left, right: float32 ORIGINAL images.
+        left, right: the ORIGINAL images, uint8 or float32 (sampled alike).
         left_map, right_map: rectified → original coordinate maps (see :func:`sample_points`).
         uv_rect_left: (N,2) rectified left pixels; ``disparity_px`` (N,) their disparities (start).
         size: side of the fitted patch (larger than the tracking patch: the slope of an 8x8
