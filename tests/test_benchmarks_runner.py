@@ -123,3 +123,16 @@ def test_reproduce_refuses_before_simulating_when_the_console_rows_cannot_run(
     assert exc.value.code == 2
     assert "the console benchmarks need Playwright" in capsys.readouterr().err
     assert not (tmp_path / "results").exists()  # nothing simulated, nothing written
+
+
+def test_the_tracker_benchmark_leaves_out_rubberwhale_without_the_shared_data(monkeypatch: pytest.MonkeyPatch,
+                                                                           tmp_path: Path) -> None:
+    """Without ``../shared/data`` the real-image figures are left out (README), not the whole
+    benchmark lost to cv2.imread's None."""
+    import benchmarks.tracker as tracker
+
+    monkeypatch.setattr(tracker, "DATA", tmp_path)
+    for name in ("step_time", "drift", "max_speed", "scenario"):
+        monkeypatch.setattr(tracker, name, lambda *a, name=name, **k: {f"{name}_figure": 1.0})
+    figures = tracker.run()
+    assert not any(k.startswith("rubberwhale") for k in figures) and figures["drift_figure"] == 1.0
