@@ -28,7 +28,7 @@ def main() -> None:
             print(f"({m.uv[0]:6.1f}, {m.uv[1]:6.1f})  refused: {m.reason}")
             continue
         # The renderer's surface under the pixel, in the left camera frame (m).
-        T = frame.truth.T_cam_body
+        T = sim.truth(0).T_cam_body
         truth = sim.surface_points(0, m.uv[None])[0] @ T[:3, :3].T + T[:3, 3]
         error_mm = 1e3 * (m.xyz_m - truth)
         print(f"({m.uv[0]:6.1f}, {m.uv[1]:6.1f})  xyz {np.round(m.xyz_m, 4)} m  "

@@ -36,6 +36,8 @@ def main() -> None:
     engine = Engine(load_config(), sim.rig, model=None, case="a", rate_hz=sim.rate_hz)
     for k in range(int(SECONDS * sim.rate_hz) + 1):
         frame = sim.read()
+        if frame is None:  # the scenario's end
+            break
         targets, pose, errors = engine.process(frame)
         if k == 0:
             print(engine.handle(SetAuto(True, 16, "gabor"), frame).message)

@@ -40,11 +40,12 @@ def record_replay_evaluate(folder: Path) -> None:
     sim = Simulator("estec", render_ahead=False)
     with SequenceWriter(folder, rig=sim.rig) as writer:  # images, data.csv, rig.yaml, groundtruth
         n_frames = round(SECONDS * sim.rate_hz)  # as `trackmeter simulate --duration 3` writes
-        for _ in range(n_frames):
-            writer.write(sim.read())
+        for k in range(n_frames):
+            writer.write(sim.frame(k))
     print(f"recorded {n_frames} frames to {folder}")
 
     source = open_source(f"seq:{folder}")
+    assert source.rig is not None  # the folder's rig.yaml, written above
     engine = Engine(load_config(), source.rig, case="a", rate_hz=source.rate_hz, live_errors=False)
     rows: list[tuple[float, np.ndarray, np.ndarray, np.ndarray]] = []  # the valid poses
     first_t: list[float] = []

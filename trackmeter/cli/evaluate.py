@@ -38,7 +38,7 @@ import math
 import sys
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING, cast
+from typing import TYPE_CHECKING
 
 from trackmeter.cli.common import load_config_from_args
 
@@ -281,8 +281,7 @@ def run(args: argparse.Namespace) -> int:
         if params.align == "none" else []
     for hint in mixups:
         print(f"trackmeter evaluate: warning: {hint}", file=sys.stderr)
-    attitude = cast("dict[str, dict[str, float]]", result.summary.get("attitude_rad", {}))  # axis -> statistics
-    attitude_rms_rad = attitude.get("total", {}).get("rms", 0.0)
+    attitude_rms_rad = result.summary.get("attitude_rad", {}).get("total", {}).get("rms", 0.0)
     if params.align == "none" and estimate.case is None and attitude_rms_rad > UNKNOWN_CASE_OFFSET_RAD and not mixups:
         # A bare trajectory does not say whose body frame it is in: a case (a) or (c) run's
         # own frame, compared as it is, reads as errors of tens of degrees and centimetres.

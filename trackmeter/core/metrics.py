@@ -23,7 +23,7 @@ axis (the paper's viewing axis was y). Units SI: m, rad, m/s, rad/s.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Literal, Protocol
+from typing import Any, Literal, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -399,7 +399,7 @@ def nees_summary(values: ArrayLike) -> dict[str, float]:
     return {"median": float(np.median(v)), "within_95": float(np.mean(v <= chi2.ppf(0.95, 6))), "poses": int(v.size)}
 
 
-def summarize(errors: MotionErrors, association: Association, pose_coverage: float | None = None) -> dict[str, object]:
+def summarize(errors: MotionErrors, association: Association, pose_coverage: float | None = None) -> dict[str, Any]:
     """The ``trackmeter evaluate --json`` summary (SI units; DESIGN.md section 6):
 
     ``{"matched", "unmatched", "pose_coverage", "position_m": {x,y,z,norm}, "attitude_rad":
@@ -443,7 +443,7 @@ class Evaluation:
         body_offset: ``(R_bodytrue_bodyest, t_X)`` with ``--align body``, else None.
     """
 
-    summary: dict[str, object]
+    summary: dict[str, Any]  # JSON-like: nested dicts of floats (see summarize)
     errors: MotionErrors
     association: Association
     body_offset: tuple[FloatArray, FloatArray] | None

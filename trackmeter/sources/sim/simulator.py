@@ -84,7 +84,7 @@ class Simulator(Source):
         self.scenario = load_scenario(scenario) if isinstance(scenario, str) else scenario
         sc = self.scenario
         self.true_rig = load_rig(rig_path(sc))
-        self.rig = rig_override if rig_override is not None else self.true_rig
+        self.rig: StereoRig = rig_override if rig_override is not None else self.true_rig
         self.rate_hz: float = float(sc.rate_hz)
         self.mockup = mockup if mockup is not None else load_mockup(mockup_path(sc))
         try:
