@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import copy
 import csv
 import signal
 from pathlib import Path
@@ -275,6 +276,7 @@ def test_max_frames_wrapper_delegates_what_only_some_sources_have(estec_rig) -> 
     assert [limited.read() is not None for _ in range(3)] == [True, True, False]
     with pytest.raises(AttributeError):
         limited.no_such_thing  # noqa: B018 - what the source itself would raise
+    assert copy.copy(limited).model is None  # copied before __init__ ran: no recursion on _source
 
 
 def _model(tmp_path: Path, text: str) -> Path:

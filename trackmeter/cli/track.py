@@ -131,7 +131,10 @@ class _Limited:
 
     def __getattr__(self, name: str) -> Any:
         # What the pipeline asks of some sources only (resume, model, warning, ...): the wrapped
-        # source's, or the AttributeError it would give. Only names not set above reach here.
+        # source's, or the AttributeError it would give. Only names not set above reach here;
+        # "_source" itself does before __init__ (copy, pickle), and must not recurse.
+        if name == "_source":
+            raise AttributeError(name)
         return getattr(self._source, name)
 
     def read(self) -> StereoFrame | None:
