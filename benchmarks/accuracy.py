@@ -312,7 +312,6 @@ def run_geometric(case: str, velocity_method: str | None = None, occlusion_s: tu
     from dataclasses import replace
 
     sim = Simulator("estec")
-    assert sim.rig is not None  # a Simulator's rig is always set
     pts, normals = face_points(sim.mockup)
     tracker = GeometricTracker(sim.rig, pts, normals, occlusion_s=occlusion_s)
     config = bench_config()  # config/default.yaml unless TRACKMETER_BENCH_CONFIG names a file over it
@@ -404,7 +403,6 @@ def run_chain(case: str, seconds: float, scenario: str = "estec", seed_offset: i
 
     spec = load_scenario(scenario)
     sim = Simulator(dataclasses.replace(spec, seed=spec.seed + seed_offset) if seed_offset else spec)
-    assert sim.rig is not None  # a Simulator's rig is always set
     engine = Engine(config or bench_config(), sim.rig, sim.model if case == "b" else None, cast("ModelCase", case),
                     rate_hz=sim.rate_hz or 25.0)
     n = min(len(sim), int(round(seconds * (sim.rate_hz or 25.0))) + 1)

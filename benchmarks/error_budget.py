@@ -133,7 +133,6 @@ def record(seconds: float, scenario: str = "estec") -> dict[str, Any]:
     from trackmeter.sources.sim.simulator import Simulator
 
     sim = Simulator(scenario)
-    assert sim.rig is not None  # a Simulator's rig is always set
     engine = Engine(bench_config(), sim.rig, sim.model, "b", rate_hz=sim.rate_hz or 25.0)
     step = engine.tracker.step
     seen: list[tuple[TargetState, ...]] = []

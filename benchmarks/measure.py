@@ -272,7 +272,7 @@ def sgbm_disparity(left: np.ndarray, right: np.ndarray, num_disparities: int = 1
     """OpenCV StereoSGBM with the usual settings of OpenCV's sample (block 5, P1 = 8·bs²,
     P2 = 32·bs², uniqueness 10, left-right check 1 px, speckle filter); NaN where invalid."""
     bs = 5
-    sgbm = cv2.StereoSGBM_create(  # type: ignore[attr-defined]  # in cv2 at run time, not in its stubs
+    sgbm = cv2.StereoSGBM.create(
         minDisparity=0,
         numDisparities=num_disparities,
         blockSize=bs,
@@ -325,7 +325,6 @@ def mockup_figures(
     from trackmeter.sources.sim.simulator import Simulator
 
     sim = Simulator(str(REPO / "config" / "scenarios" / "estec.yaml"))
-    assert sim.rig is not None  # a Simulator's rig is always set
     W, H = sim.rig.image_size
     gu, gv = np.meshgrid(np.arange(20, W - 20, step), np.arange(20, H - 20, step))
     grid = np.column_stack([gu.ravel(), gv.ravel()]).astype(float)

@@ -63,7 +63,6 @@ def clicked_run(scenario: str, seed: int, fallback: str | None) -> dict[str, flo
     if fallback is not None:
         config = dataclasses.replace(config, tracker=dataclasses.replace(config.tracker, anchor_scale_fallback=fallback))
     sim = Simulator(scenario)
-    assert sim.rig is not None and sim.rate_hz is not None  # a Simulator sets both
     engine = Engine(config, sim.rig, model=None, case="a", rate_hz=sim.rate_hz)
     frame = sim.frame(0)
     engine.process(frame)

@@ -73,7 +73,6 @@ def run() -> dict[str, float]:
     refined = dataclasses.replace(params, stereo_refine=True)
     sim = Simulator("estec")
     rig = sim.rig
-    assert rig is not None  # a Simulator's rig is always set
     rect = rig.rectification
     lo, hi = ft.search_disparities(rig, params)
     span = int(np.ceil(hi - lo))

@@ -238,7 +238,6 @@ def scenario(name: str) -> dict[str, float]:
 
     sim = Simulator(name)
     rig = sim.rig
-    assert rig is not None  # a Simulator's rig is always set
     tr = Tracker(rig, TrackerParams(), FeatureParams(), MeasureParams())
     tr.set_auto(True, 16, "gabor")
     body: dict[str, np.ndarray] = {}

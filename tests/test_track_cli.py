@@ -277,6 +277,8 @@ def test_max_frames_wrapper_delegates_what_only_some_sources_have(estec_rig) -> 
     with pytest.raises(AttributeError):
         limited.no_such_thing  # noqa: B018 - what the source itself would raise
     assert copy.copy(limited).model is None  # copied before __init__ ran: no recursion on _source
+    source.__deepcopy__ = lambda memo: source  # dunders are the wrapper's: a deep copy keeps the limit
+    assert isinstance(copy.deepcopy(limited), _Limited)
 
 
 def _model(tmp_path: Path, text: str) -> Path:

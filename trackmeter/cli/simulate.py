@@ -154,7 +154,6 @@ def run(args: argparse.Namespace) -> int:
             lock.release()
         sim.close()
     # A scenario given as a file is named by its name: key; say which file it was.
-    assert sim.rate_hz is not None  # a Simulator's is the scenario's
     named = scenario.name if Path(args.scenario).suffix.lower() not in (".yaml", ".yml") else f"{scenario.name} ({args.scenario})"
     print(f"wrote {counted(sim.n_frames, 'frame')} ({sim.n_frames / sim.rate_hz:.2f} s at {sim.rate_hz:g} Hz) of "
           f"scenario {named} to {out}", file=sys.stdout)

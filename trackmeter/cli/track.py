@@ -132,8 +132,9 @@ class _Limited:
     def __getattr__(self, name: str) -> Any:
         # What the pipeline asks of some sources only (resume, model, warning, ...): the wrapped
         # source's, or the AttributeError it would give. Only names not set above reach here;
-        # "_source" itself does before __init__ (copy, pickle), and must not recurse.
-        if name == "_source":
+        # "_source" itself does before __init__ (copy, pickle), and must not recurse; the
+        # dunders (__deepcopy__, __len__, ...) are the wrapper's, not the source's.
+        if name == "_source" or name.startswith("__"):
             raise AttributeError(name)
         return getattr(self._source, name)
 

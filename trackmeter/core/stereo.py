@@ -609,7 +609,7 @@ SWAPPED_MAX_OTHER_FRACTION = 0.05
 def view_disparities_px(rig: StereoRig, left: NDArray, right: NDArray, features: int = 500) -> FloatArray:
     """Disparities ``d = u_left - u_right`` (px, rectified) of the view's distinctive points.
 
-    ORB keypoints (``cv2.ORB_create``) of the two rectified images, matched by descriptor with
+    ORB keypoints (``cv2.ORB.create``) of the two rectified images, matched by descriptor with
     a cross-check, those on the matches' common row offset (within 3 px of its median: views
     rectified by a rig they do not fit are off by a few rows). A global phase correlation was
     tried first and gave a textured plate's pair, tilted, 37 px where its points lie at 91 px.
@@ -622,7 +622,7 @@ def view_disparities_px(rig: StereoRig, left: NDArray, right: NDArray, features:
         (M,) disparities, px; empty when the views have no distinctive point (black space).
     """
     rect_left, rect_right = rig.rectification.rectify_images(np.asarray(left), np.asarray(right))
-    orb = cv2.ORB_create(nfeatures=features)  # type: ignore[attr-defined]  # the stubs have ORB.create only
+    orb = cv2.ORB.create(nfeatures=features)
     keys_left, desc_left = orb.detectAndCompute(rect_left, None)
     keys_right, desc_right = orb.detectAndCompute(rect_right, None)
     if desc_left is None or desc_right is None:
