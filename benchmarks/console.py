@@ -8,7 +8,10 @@ Playwright and its websocket frames are counted.
 Figures:
 
 - ``tracking_rate_hz``: frames tracked per second over ``MEASURE_S`` s after ``WARMUP_S`` s
-  (target 25), and ``dropped_fraction`` (target < 0.01), ``acquisition_hz`` the source's rate.
+  (target 25), and ``dropped_fraction`` (target < 0.01), ``acquisition_hz`` the source's rate;
+  ``*_window_median`` and the worst window (``tracking_rate_hz_window_min``,
+  ``dropped_fraction_window_max``) over four equal sub-windows of it
+  (:class:`benchmarks.pipeline.LiveWindow`).
 - ``browser_image_updates_per_s``: websocket frames the browser received that carry a JPEG
   image (the left image with its overlays), per second, same window (target >= 10).
 - ``published_images_per_s``: images the console pushed per second (the server side of it),
@@ -349,7 +352,7 @@ def _measure_browser(page: Any, running: Any, window: Any, jpeg_times: list[floa
     window.begin()
     n_jpeg0, pushed0, t0 = len(jpeg_times), running.console.images_pushed, time.monotonic()
     (renders0, shown0), cpu0 = page.evaluate(page_counts), _chromium_cpu_s()
-    page.wait_for_timeout(seconds * 1000)
+    window.wait(seconds, 4, sleep=lambda s: page.wait_for_timeout(s * 1000))
     live = window.end()
     (renders1, shown1), cpu1 = page.evaluate(page_counts), _chromium_cpu_s()
     dt = time.monotonic() - t0
@@ -357,6 +360,10 @@ def _measure_browser(page: Any, running: Any, window: Any, jpeg_times: list[floa
     return {
         "tracking_rate_hz": live["rate_hz"],
         "dropped_fraction": live["dropped_fraction"],
+        "tracking_rate_hz_window_median": live["rate_hz_window_median"],
+        "tracking_rate_hz_window_min": live["rate_hz_window_min"],
+        "dropped_fraction_window_median": live["dropped_fraction_window_median"],
+        "dropped_fraction_window_max": live["dropped_fraction_window_max"],
         "acquisition_hz": live["acquisition_hz"],
         "latency_ms_median": live["latency_ms_median"],
         "browser_image_updates_per_s": (len(jpeg_times) - n_jpeg0) / dt,

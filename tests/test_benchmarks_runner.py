@@ -136,3 +136,37 @@ def test_the_tracker_benchmark_leaves_out_rubberwhale_without_the_shared_data(mo
         monkeypatch.setattr(tracker, name, lambda *a, name=name, **k: {f"{name}_figure": 1.0})
     figures = tracker.run()
     assert not any(k.startswith("rubberwhale") for k in figures) and figures["drift_figure"] == 1.0
+
+
+def test_the_live_window_pools_its_figures_and_gives_each_sub_window_s(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A live rate and dropped fraction are counts over the whole window; its sub-windows'
+    median and worst say how steady they were (a single window said nothing of it)."""
+    import benchmarks.pipeline as pipeline
+
+    clock = [0.0]
+    monkeypatch.setattr(pipeline.time, "monotonic", lambda: clock[0])
+    # 10 s sub-windows: 250 frames read each; 0, 0, 10 and 2 of them dropped.
+    counts = iter([(0, 0), (250, 0), (500, 0), (750, 10), (1000, 12)])
+
+    class Pipe:
+        def subscribe(self, callback: object) -> None:
+            pass
+
+        def latest(self) -> types.SimpleNamespace:
+            read, dropped = next(counts)
+            timings = types.SimpleNamespace(frames_read=read, frames_dropped=dropped, frames_processed=read - dropped)
+            return types.SimpleNamespace(timings=timings)
+
+    def sleep(seconds: float) -> None:
+        clock[0] += seconds
+
+    window = pipeline.LiveWindow(Pipe())
+    window.begin()
+    window.wait(40.0, 4, sleep=sleep)
+    live = window.end()
+    assert live["windows"] == 4
+    assert live["rate_hz"] == pytest.approx(988 / 40) and live["dropped_fraction"] == pytest.approx(12 / 1000)
+    assert live["rate_hz_window_median"] == pytest.approx((24.8 + 25.0) / 2)  # of 25, 25, 24, 24.8 Hz
+    assert live["rate_hz_window_min"] == pytest.approx(24.0)
+    assert live["dropped_fraction_window_median"] == pytest.approx(1 / 250)
+    assert live["dropped_fraction_window_max"] == pytest.approx(10 / 250)
