@@ -291,7 +291,7 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
         if auto is not None:
             commands.append(SetAuto(True, auto, None))
         total = _total_frames(source, args.max_frames)
-        # Not a Source, but it has all run_headless uses of one without recording or pausing.
+        # Not a Source subclass, but it answers as one: what it does not set, the source does.
         feed = cast("Source", _Limited(source, args.max_frames)) if args.max_frames else source
         source_info = {
             "spec": args.source,
