@@ -79,8 +79,9 @@ class LiveWindow:
     shared machine, where one 40 s window alone could not.
     """
 
-    def __init__(self, pipe: Any) -> None:
+    def __init__(self, pipe: Any, clock: Callable[[], float] = time.monotonic) -> None:
         self.pipe = pipe
+        self.clock = clock
         self.latencies: list[float] = []
         self.steps: list[float] = []
         self._last_processed = -1
@@ -96,14 +97,14 @@ class LiveWindow:
         self._last_processed = t.frames_processed
 
     def begin(self) -> None:
-        self.t0 = time.monotonic()
+        self.t0 = self.clock()
         self.s0 = self.pipe.latest().timings
         self._marks = [(self.t0, self.s0)]
         self._on = True
 
     def mark(self) -> None:
         """End one sub-window and start the next."""
-        self._marks.append((time.monotonic(), self.pipe.latest().timings))
+        self._marks.append((self.clock(), self.pipe.latest().timings))
 
     def wait(self, seconds: float, windows: int, sleep: Callable[[float], object] = time.sleep) -> None:
         """Let ``seconds`` pass in ``windows`` equal sub-windows (the last one ends at :meth:`end`)."""
