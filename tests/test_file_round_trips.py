@@ -18,7 +18,7 @@ from pathlib import Path
 from tempfile import TemporaryDirectory
 
 import numpy as np
-from hypothesis import given, settings
+from hypothesis import given, reject, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from scipy.spatial.transform import Rotation
@@ -41,9 +41,7 @@ def _times(draw: st.DrawFn, n: int) -> np.ndarray:
     steps = draw(arrays(np.float64, n, elements=st.floats(1e-3, 100.0)))
     t = t0 + np.concatenate([[0.0], np.cumsum(steps[1:])])
     if np.any(np.diff(t) <= 20 * np.spacing(np.abs(t[1:]))):
-        # A time step below the float's resolution at this clock is no step: draw another.
-        from hypothesis import reject
-        reject()
+        reject()  # a time step below the float's resolution at this clock is no step: draw another
     return t
 
 
