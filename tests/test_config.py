@@ -287,6 +287,42 @@ def test_user_file_layers_over_defaults(tmp_path: Path) -> None:
     assert load_config(tmp_path / "empty.yaml") == Config()
 
 
+def test_several_user_files_layer_in_the_order_given(tmp_path: Path) -> None:
+    """``--config`` given twice kept only the last file (an outside probe): the first was
+    neither layered nor even read, so an unknown key in it went unnoticed."""
+    first = tmp_path / "first.yaml"
+    first.write_text("calibrate:\n  subpix_window_px: 11\n  reject_ratio: 4\n")
+    second = tmp_path / "second.yaml"
+    second.write_text("calibrate:\n  subpix_window_px: 7\nmeasure:\n  min_score: 0.5\n")
+    config = load_config([first, second])
+    assert config.calibrate.subpix_window_px == 7  # the later file wins where both set a key
+    assert config.calibrate.reject_ratio == 4.0  # the earlier file's other keys stay
+    assert config.measure.min_score == 0.5
+    assert config == load_config(second, overrides={"calibrate": {"reject_ratio": 4}})
+    assert load_config([]) == Config() == load_config(None)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("measure:\n  patch_sizee: 9\n")
+    with pytest.raises(TrackmeterError, match=r"bad\.yaml: unknown key 'measure\.patch_sizee'"):
+        load_config([bad, second])
+    wrong = tmp_path / "wrong.yaml"
+    wrong.write_text("calibrate:\n  subpix_window_px: many\n")
+    with pytest.raises(TrackmeterError, match=r"wrong\.yaml.*'calibrate\.subpix_window_px'"):
+        load_config([first, wrong])
+    # Each file is checked as it is layered, so the error names the file that gave the value,
+    # even where a later file sets the key again.
+    with pytest.raises(TrackmeterError, match=r"^[^:]*wrong\.yaml: 'calibrate\.subpix_window_px'"):
+        load_config([wrong, second])
+    # ... and the checks across keys see the layers below: a window set by the first file is
+    # the one the second file's values are judged with.
+    far = tmp_path / "far.yaml"
+    far.write_text("features:\n  max_depth_m: 200\n")
+    beyond = tmp_path / "beyond.yaml"
+    beyond.write_text("features:\n  min_depth_m: 60\n")
+    assert load_config([far, beyond]).features.min_depth_m == 60.0
+    with pytest.raises(TrackmeterError, match=r"beyond\.yaml.*min_depth_m \(60\) must be below max_depth_m \(50\)"):
+        load_config([beyond, far])
+
+
 def test_int_is_accepted_for_float_and_config_is_frozen(tmp_path: Path) -> None:
     config = load_config(_write(tmp_path, {"calibrate": {"reject_ratio": 3}}))
     assert config.calibrate.reject_ratio == 3.0 and isinstance(config.calibrate.reject_ratio, float)

@@ -244,6 +244,33 @@ def test_points_beyond_the_range_searched_name_the_range_and_its_setting(pair, t
     assert capsys.readouterr().err == ""
 
 
+def test_config_given_twice_layers_both_files_in_order(pair, tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    """An outside probe: with ``--config`` twice only the last file was used, the first not even
+    read (an unknown key in it passed, exit 0). DESIGN's ``--config`` layers a YAML over the
+    defaults; given twice, both are layered, in order."""
+    *_, folder = pair
+    parabola = tmp_path / "parabola.yaml"
+    parabola.write_text("measure:\n  subpixel: parabola\n")
+    small = tmp_path / "small.yaml"
+    small.write_text("measure:\n  patch_size: 5\n")
+    both = tmp_path / "both.yaml"
+    both.write_text("measure:\n  subpixel: parabola\n  patch_size: 5\n")
+    ats = ("--at", "310,250", "--at", "300,250", "--at", "200,200", "--json")
+
+    def measured(*configs: Path) -> list:
+        assert _run(folder, *ats, *[a for c in configs for a in ("--config", str(c))]) == 0
+        return json.loads(capsys.readouterr().out)
+
+    layered = measured(parabola, small)
+    assert layered == measured(both)
+    assert layered != measured(small) and layered != measured(parabola)  # each file counted
+    misspelt = tmp_path / "misspelt.yaml"
+    misspelt.write_text("measure:\n  patch_sizee: 9\n")
+    assert _run(folder, "--at", "300,250", "--config", str(misspelt), "--config", str(small)) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "misspelt.yaml: unknown key 'measure.patch_sizee'" in err[0], err
+
+
 def test_a_rig_with_its_cameras_swapped_is_refused_naming_the_file(pair, tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
     """'the right camera lies left of the left one ...: exchange the left and right cameras'
     did not say which rig file (an outside probe): a command may be given several files."""

@@ -74,7 +74,9 @@ def build_parser() -> _Parser:
         module = _command_module(name)
         p = sub.add_parser(name, help=help_text, description=(module.__doc__ or help_text).strip(),
                            formatter_class=argparse.RawDescriptionHelpFormatter)
-        p.add_argument("--config", metavar="FILE", help="YAML file layered over config/default.yaml")
+        p.add_argument("--config", metavar="FILE", action="append",
+                       help="YAML file layered over config/default.yaml; give it again to layer more, in order "
+                            "(a later file's value wins)")
         module.add_arguments(p)
         parser.commands[name] = p
     return parser

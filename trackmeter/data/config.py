@@ -23,7 +23,7 @@ import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Literal, Mapping, get_args, get_origin, get_type_hints
+from typing import Any, Iterable, Literal, Mapping, Sequence, get_args, get_origin, get_type_hints
 
 import yaml
 
@@ -58,22 +58,30 @@ class Config:
     exposure: ExposureParams = field(default_factory=ExposureParams)
 
 
-def load_config(user_file: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> Config:
+def load_config(
+    user_file: str | Path | Sequence[str | Path] | None = None, overrides: Mapping[str, Any] | None = None
+) -> Config:
     """Load ``config/default.yaml``, layer ``user_file`` and then ``overrides`` over it.
 
     Args:
-        user_file: a YAML file with any subset of the default keys.
+        user_file: a YAML file with any subset of the default keys, or several (``--config``
+            given more than once), layered in order: a later file's value wins. Each file is
+            checked as it is layered, over the defaults and the files before it, so an error
+            names the file that gave the value (even one a later file would set again).
         overrides: a nested mapping applied last (e.g. from command-line options).
 
     Raises:
         TrackmeterError: unreadable or malformed YAML, unknown key, wrong type, out of range.
     """
+    files = [] if user_file is None else [user_file] if isinstance(user_file, (str, Path)) else list(user_file)
     merged = read_yaml_mapping(DEFAULT_CONFIG)
-    if user_file is not None:
-        merged = _merge(merged, read_yaml_mapping(Path(user_file), kind="a configuration file"), str(user_file), "")
+    for path in files:
+        merged = _merge(merged, read_yaml_mapping(Path(path), kind="a configuration file"), str(path), "")
+        if len(files) > 1:
+            build_dataclass(Config, merged, source=str(path))
     if overrides:
         merged = _merge(merged, dict(overrides), "overrides", "")
-    return build_dataclass(Config, merged, source=str(user_file or DEFAULT_CONFIG))
+    return build_dataclass(Config, merged, source=str(files[-1] if files else DEFAULT_CONFIG))
 
 
 def config_to_dict(config: Any) -> dict[str, Any]:
