@@ -1408,7 +1408,11 @@ class Console:
         for t in snap.targets[:40]:
             z = f"{t.point_cam[2]:.3f}" if t.measured and np.isfinite(t.point_cam[2]) else "-"
             status = t.status if t.status != "lost" else f"lost ({t.lost_reason or '?'})"
-            rows.append(f"| {t.id} | {t.origin} | {status} | {t.uv[0]:.1f}, {t.uv[1]:.1f} | {z} |")
+            # Re-made through the pose: a point of the a-priori model, or one that joined the
+            # model (grown, acquired, a provisional frame's): "model" for both read, beside "no
+            # model point targeted", as if the a-priori model were bound.
+            by = "grown" if t.origin == "model" and t.id not in snap.model_ids else t.origin
+            rows.append(f"| {t.id} | {by} | {status} | {t.uv[0]:.1f}, {t.uv[1]:.1f} | {z} |")
         if len(snap.targets) > 40:
             rows.append(f"| … {len(snap.targets) - 40} more | | | | |")
         return "\n".join(rows)

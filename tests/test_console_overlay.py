@@ -726,3 +726,20 @@ def test_labels_of_targets_side_by_side_do_not_overlap() -> None:
     # At the image's right edge the label goes to the left of its box rather than off the image.
     (x, _), = label_origins([(720, 100)], sizes[:1], half, (726, 512))
     assert x + sizes[0][0] <= 726
+
+
+def test_the_target_list_tells_a_priori_model_points_from_points_that_joined_the_model() -> None:
+    # An outside console probe: in case (b) before the model was bound, every re-made target
+    # read "by: model" beside the pose's "no model point targeted": they were points grown into
+    # the provisional model, not the a-priori model's, and the list said the same of both.
+    from console.app import Console
+
+    targets = (_target("p1*", (10.0, 10.0)), _target("a4", (20.0, 10.0), origin="auto"),
+               _target("bus_c1", (30.0, 10.0), origin="model"), _target("a2", (40.0, 10.0), origin="model"))
+    rows = Console._targets_markdown(Snapshot(None, targets, PoseEstimate.invalid("x"), None, Timings(),
+                                              model_ids=("bus_c1", "bus_c2", "wing_c3")))
+    by = {line.split("|")[1].strip(): line.split("|")[2].strip() for line in rows.splitlines()[2:]}
+    assert by == {"p1*": "operator", "a4": "auto", "bus_c1": "model", "a2": "grown"}
+    # Without an a-priori model (cases a and c) every re-made point is one that joined the model.
+    rows = Console._targets_markdown(Snapshot(None, targets, PoseEstimate.invalid("x"), None, Timings()))
+    assert [line.split("|")[2].strip() for line in rows.splitlines()[2:]] == ["operator", "auto", "grown", "grown"]
