@@ -380,7 +380,7 @@ def test_transforms_refuse_wrong_shapes_by_name() -> None:
 
 def test_matrix_to_quat_of_a_reflection_is_refused() -> None:
     """scipy's ValueError ('Non-positive determinant') came through."""
-    with pytest.raises(TrackmeterError, match=r"R must be a rotation matrix \(det \+1\)"):
+    with pytest.raises(TrackmeterError, match=r"R must be a rotation matrix \(orthonormal, det \+1\).*det = -1"):
         tf.matrix_to_quat_wxyz(np.diag([1.0, 1.0, -1.0]))
 
 
@@ -451,3 +451,67 @@ def test_procrustes_rotation_is_scipys_best_alignment_and_never_a_reflection() -
     mirror = np.diag([1.0, 1.0, -1.0]) @ Rotation.from_rotvec([0.3, -0.2, 0.1]).as_matrix()
     R, _ = tf.procrustes_rotation(mirror)
     assert np.linalg.det(R) == pytest.approx(1.0)
+
+
+# --------------------------------------------------------------------------- validation at the boundary
+# An outside probe of the library API: matrices that are no rotation came back as a wrong
+# answer (matrix_to_quat_wxyz(2 I) the identity, invert_transform(diag(2, 2, 2, 1)) itself),
+# and a bad quaternion raised scipy's or numpy's own error with another reason.
+
+
+@pytest.mark.parametrize("R", [2 * np.eye(3), np.diag([1.0, 1.0, 1.5]), np.ones((3, 3)), np.zeros((3, 3)),
+                               np.stack([np.eye(3), 2 * np.eye(3)])])
+def test_a_matrix_far_from_any_rotation_is_refused_not_projected(R: np.ndarray) -> None:
+    with pytest.raises(TrackmeterError, match=r"R must be a rotation matrix \(orthonormal, det \+1\)"):
+        tf.matrix_to_quat_wxyz(R)
+
+
+def test_a_rotation_written_with_few_decimals_is_still_projected_as_documented() -> None:
+    R = Rotation.from_rotvec([0.3, -0.2, 0.9]).as_matrix()
+    rounded = np.round(R, 5)  # a file's few decimals: within the tolerance, projected as before
+    q = tf.matrix_to_quat_wxyz(rounded)
+    assert np.allclose(q, Rotation.from_matrix(rounded).as_quat(scalar_first=True, canonical=True), atol=1e-15)
+    assert tf.attitude_error_angle(q, Rotation.from_matrix(R).as_quat(scalar_first=True)) < 1e-4
+    with pytest.raises(TrackmeterError, match="det = -1"):
+        tf.matrix_to_quat_wxyz(np.diag([1.0, 1.0, -1.0]))  # a reflection: orthonormal, det -1
+
+
+@pytest.mark.parametrize("T", [np.diag([2.0, 2.0, 2.0, 1.0]), np.ones((4, 4)),
+                               np.vstack([np.eye(4)[:3], [0.0, 0.0, 1.0, 1.0]])])
+def test_a_matrix_that_is_no_rigid_transform_is_refused(T: np.ndarray) -> None:
+    with pytest.raises(TrackmeterError, match="T_a_b"):
+        tf.invert_transform(T)
+    with pytest.raises(TrackmeterError, match="T_a_b"):
+        tf.apply_transform(T, [1.0, 2.0, 3.0])
+
+
+def test_make_transform_refuses_a_rotation_that_is_none() -> None:
+    with pytest.raises(TrackmeterError, match="R_a_b"):
+        tf.make_transform(np.ones((3, 3)), [0.0, 0.0, 0.0])
+    T = tf.make_transform(Rotation.from_rotvec([0.1, 0.2, 0.3]).as_matrix(), [1.0, 2.0, 3.0])
+    assert np.allclose(tf.invert_transform(T) @ T, np.eye(4), atol=1e-15)
+
+
+@pytest.mark.parametrize("call", [
+    lambda q: tf.attitude_error_angle(q, [1.0, 0.0, 0.0, 0.0]),
+    lambda q: tf.attitude_error_components([1.0, 0.0, 0.0, 0.0], q),
+    lambda q: tf.omega_body_between(q, [1.0, 0.0, 0.0, 0.0], 0.1),
+    lambda q: tf.omega_body_between([1.0, 0.0, 0.0, 0.0], q, 0.1),
+])
+@pytest.mark.parametrize("q, reason", [([0.0, 0.0, 0.0, 0.0], "finite quaternion of non-zero norm"),
+                                       ([np.nan, 0.0, 0.0, 0.0], "finite quaternion of non-zero norm"),
+                                       ([1.0, 0.0, 0.0], r"must be \(4,\) or \(N,4\)")])
+def test_a_bad_attitude_quaternion_is_refused_with_its_reason(call, q, reason) -> None:  # type: ignore[no-untyped-def]
+    with pytest.raises(TrackmeterError, match=reason):
+        call(q)
+
+
+def test_quaternion_algebra_refuses_other_shapes() -> None:
+    with pytest.raises(TrackmeterError, match=r"q1_wxyz must be \(4,\) or \(N,4\)"):
+        tf.quat_multiply([1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0])
+    with pytest.raises(TrackmeterError, match=r"omega_body must be \(3,\) or \(N,3\)"):
+        tf.quat_derivative([1.0, 0.0, 0.0, 0.0], [1.0, 2.0])
+    with pytest.raises(TrackmeterError, match=r"q_wxyz must be \(4,\) or \(N,4\)"):
+        tf.quat_conjugate(np.ones((2, 2, 4)))
+    # Non-unit quaternions (rates) stay the algebra's business: no norm asked of them.
+    assert np.allclose(tf.quat_multiply([2.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]), [0.0, 2.0, 0.0, 0.0])

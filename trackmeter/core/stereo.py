@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from trackmeter.core.transforms import procrustes_rotation
+from trackmeter.core.transforms import ROTATION_TOLERANCE, procrustes_rotation
 from trackmeter.errors import TrackmeterError
 
 FloatArray = NDArray[np.float64]
@@ -63,11 +63,6 @@ def _non_negative(sigma_px: float | ArrayLike, name: str) -> None:
     s = np.asarray(sigma_px, dtype=float)
     if np.any(s < 0):
         raise TrackmeterError(f"{name} must be >= 0 px, got {s[s < 0].ravel()[0]:g}")
-
-
-#: How far ``R^T R`` may be from the identity (largest entry) for R to be taken as a rotation
-#: written with too few decimals: 5 decimals leave ~1e-5; a real non-rotation is far beyond.
-ROTATION_TOLERANCE = 1e-3
 
 
 def _nearest_rotation(R: FloatArray) -> FloatArray:

@@ -37,17 +37,34 @@ def quat_wxyz_to_matrix(quat_wxyz: ArrayLike) -> FloatArray:
     Raises:
         TrackmeterError: a quaternion of zero norm, not finite, or of another shape.
     """
-    q = np.asarray(quat_wxyz, dtype=float)
-    if q.shape[-1:] != (4,) or q.ndim not in (1, 2):
-        raise TrackmeterError(f"quat_wxyz must be (4,) or (N,4), got shape {q.shape}")
+    return _rotation_of_quat(quat_wxyz, "quat_wxyz").as_matrix()
+
+
+def _vectors(value: ArrayLike, name: str, size: int) -> FloatArray:
+    """``value`` as a float array of shape (size,) or (N,size) (values unchecked)."""
+    a = np.asarray(value, dtype=float)
+    if a.ndim not in (1, 2) or a.shape[-1] != size:
+        got = "(" + ",".join(map(str, a.shape)) + ("," if a.ndim == 1 else "") + ")"
+        raise TrackmeterError(f"{name} must be ({size},) or (N,{size}), got shape {got}")
+    return a
+
+
+def _rotation_of_quat(quat_wxyz: ArrayLike, name: str) -> Rotation:
+    """scipy's Rotation of unit quaternion(s) ``wxyz`` (4,) or (N,4) (normalised if not unit).
+
+    Raises:
+        TrackmeterError: of another shape, not finite, or of zero norm: scipy says "zero norm"
+            of a NaN too, and takes an infinity silently.
+    """
+    q = _vectors(quat_wxyz, name, 4)
     rows = q.reshape(-1, 4)
-    bad = ~np.isfinite(rows).all(axis=1) | ~(np.abs(rows).max(axis=1) > 0)  # scipy takes inf for NaN silently
+    bad = ~np.isfinite(rows).all(axis=1) | ~(np.abs(rows).max(axis=1) > 0)
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
-        where = "quat_wxyz" if q.ndim == 1 else f"quat_wxyz[{i}]"
+        where = name if q.ndim == 1 else f"{name}[{i}]"
         raise TrackmeterError(f"{where} must be a finite quaternion of non-zero norm, got "
                               f"{[float(x) for x in rows[i]]}")
-    return Rotation.from_quat(q, scalar_first=True).as_matrix()
+    return Rotation.from_quat(q, scalar_first=True)
 
 
 def rotation_from_matrix(R: ArrayLike) -> Rotation:
@@ -72,24 +89,42 @@ _EYE3 = np.eye(3)
 _HAS_ASSUME_VALID = "assume_valid" in inspect.signature(Rotation.from_matrix).parameters  # not in every scipy the project allows
 
 
+#: How far ``R^T R`` may be from the identity (largest entry) for R to be taken as a rotation
+#: written with too few decimals: 5 decimals leave ~1e-5; a real non-rotation is far beyond.
+ROTATION_TOLERANCE = 1e-3
+
+
+def rotation_problem(R: ArrayLike, name: str = "R") -> str | None:
+    """Why ``R`` (3,3) or (N,3,3) is no rotation matrix, or None when each is one within
+    :data:`ROTATION_TOLERANCE` (``|R^T R - I|``, largest entry) with det > 0."""
+    a = np.asarray(R, dtype=float)
+    if a.shape[-2:] != (3, 3) or a.ndim not in (2, 3):
+        return f"{name} must be (3,3) or (N,3,3), got shape {a.shape}"
+    if not np.isfinite(a).all():
+        return f"{name} must be a finite rotation matrix: it holds a NaN or an infinity"
+    error = float(np.max(np.abs(np.swapaxes(a, -1, -2) @ a - _EYE3)))
+    det = float(np.min(np.linalg.det(a)))
+    if det <= 0 or error > ROTATION_TOLERANCE:
+        return f"{name} must be a rotation matrix (orthonormal, det +1): |R^T R - I| = {error:.2g}, det = {det:.6g}"
+    return None
+
+
 def matrix_to_quat_wxyz(R: ArrayLike) -> FloatArray:
     """Unit quaternion(s) ``wxyz`` with non-negative w from rotation matrix (3,3) or (N,3,3).
 
+    A matrix within :data:`ROTATION_TOLERANCE` of a rotation (one written with few decimals)
+    is projected onto it (scipy).
+
     Raises:
-        TrackmeterError: ``R`` of another shape, not finite, or a reflection (det < 0); a
-            matrix near a rotation is projected onto it (scipy).
+        TrackmeterError: ``R`` of another shape, not finite, a reflection (det < 0), or
+            farther from a rotation: scipy projects any matrix, ``2 I`` onto the identity.
     """
-    try:
-        q = rotation_from_matrix(R).as_quat(scalar_first=True, canonical=True)
-    except (ValueError, np.linalg.LinAlgError):  # scipy's messages span lines and name no argument
-        a = np.asarray(R, dtype=float)
-        if a.shape[-2:] != (3, 3) or a.ndim not in (2, 3):
-            raise TrackmeterError(f"R must be (3,3) or (N,3,3), got shape {a.shape}") from None
-        if not np.isfinite(a).all():
-            raise TrackmeterError("R must be a finite rotation matrix: it holds a NaN or an infinity") from None
-        det = float(np.min(np.linalg.det(a)))
-        raise TrackmeterError(f"R must be a rotation matrix (det +1), got det {det:.3g} (a reflection?)") from None
-    return np.asarray(q, dtype=float)
+    a = np.asarray(R, dtype=float)
+    if not (a.shape == (3, 3) and np.abs(a @ a.T - _EYE3).max() <= 1e-13 and np.linalg.det(a) > 0):
+        problem = rotation_problem(a)  # the working-precision rotation above is asked nothing more
+        if problem is not None:
+            raise TrackmeterError(problem)
+    return np.asarray(rotation_from_matrix(a).as_quat(scalar_first=True, canonical=True), dtype=float)
 
 
 def quat_sign_nearest(quat_wxyz: ArrayLike, reference_wxyz: ArrayLike | None) -> FloatArray:
@@ -112,8 +147,8 @@ def quat_multiply(q1_wxyz: ArrayLike, q2_wxyz: ArrayLike) -> FloatArray:
     Needed for quaternion *rates* (eqs. 14-15), which are not rotations, so scipy's
     :class:`Rotation` cannot hold them.
     """
-    a = np.asarray(q1_wxyz, dtype=float)
-    b = np.asarray(q2_wxyz, dtype=float)
+    a = _vectors(q1_wxyz, "q1_wxyz", 4)
+    b = _vectors(q2_wxyz, "q2_wxyz", 4)
     w1, x1, y1, z1 = np.moveaxis(a, -1, 0)
     w2, x2, y2, z2 = np.moveaxis(b, -1, 0)
     return np.stack(
@@ -129,7 +164,7 @@ def quat_multiply(q1_wxyz: ArrayLike, q2_wxyz: ArrayLike) -> FloatArray:
 
 def quat_conjugate(q_wxyz: ArrayLike) -> FloatArray:
     """Conjugate ``(w, -x, -y, -z)``; the inverse of a unit quaternion."""
-    q = np.array(q_wxyz, dtype=float)
+    q = _vectors(q_wxyz, "q_wxyz", 4).copy()
     q[..., 1:] *= -1.0
     return q
 
@@ -144,7 +179,7 @@ def quat_derivative(quat_wxyz: ArrayLike, omega_body: ArrayLike) -> FloatArray:
     Returns:
         (4,) or (N,4) time derivative of the quaternion, 1/s.
     """
-    w = np.asarray(omega_body, dtype=float)
+    w = _vectors(omega_body, "omega_body", 3)
     omega_quat = np.concatenate([np.zeros(w.shape[:-1] + (1,)), w], axis=-1)
     return 0.5 * quat_multiply(quat_wxyz, omega_quat)
 
@@ -176,8 +211,8 @@ def omega_body_between(quat0_wxyz: ArrayLike, quat1_wxyz: ArrayLike, dt_s: float
     """
     if not 0 < dt_s < math.inf:  # an infinite interval would turn any rotation into a zero rate
         raise TrackmeterError(f"dt_s must be positive and finite, s; got {dt_s:g}")
-    r0 = Rotation.from_quat(np.asarray(quat0_wxyz, dtype=float), scalar_first=True)
-    r1 = Rotation.from_quat(np.asarray(quat1_wxyz, dtype=float), scalar_first=True)
+    r0 = _rotation_of_quat(quat0_wxyz, "quat0_wxyz")
+    r1 = _rotation_of_quat(quat1_wxyz, "quat1_wxyz")
     return np.asarray((r0.inv() * r1).as_rotvec(), dtype=float) / dt_s
 
 
@@ -207,8 +242,8 @@ def attitude_error_components(quat_est_wxyz: ArrayLike, quat_true_wxyz: ArrayLik
     Returns:
         (3,) or (N,3) rotation vector of the error, rad.
     """
-    r_est = Rotation.from_quat(np.asarray(quat_est_wxyz, dtype=float), scalar_first=True)
-    r_true = Rotation.from_quat(np.asarray(quat_true_wxyz, dtype=float), scalar_first=True)
+    r_est = _rotation_of_quat(quat_est_wxyz, "quat_est_wxyz")
+    r_true = _rotation_of_quat(quat_true_wxyz, "quat_true_wxyz")
     return np.asarray((r_est * r_true.inv()).as_rotvec(), dtype=float)
 
 
@@ -232,7 +267,7 @@ def make_transform(R_a_b: ArrayLike, t_a_b: ArrayLike) -> FloatArray:
         TrackmeterError: either of the wrong shape (numpy would broadcast a (3,) rotation row
             or refuse with "could not broadcast").
     """
-    R = _shaped(R_a_b, "R_a_b", (3, 3))
+    R = _rotation(R_a_b, "R_a_b")
     t = _shaped(t_a_b, "t_a_b", (3,))
     T = np.eye(4)
     T[:3, :3] = R
@@ -250,6 +285,32 @@ def _shaped(value: ArrayLike, name: str, shape: tuple[int, ...]) -> FloatArray:
     return a
 
 
+def _rotation(value: ArrayLike, name: str) -> FloatArray:
+    """``value`` as a (3,3) rotation within :data:`ROTATION_TOLERANCE` (NaN passes, as before:
+    a caller's marker of no pose)."""
+    R = _shaped(value, name, (3, 3))
+    if np.isfinite(R).all() and not np.abs(R @ R.T - _EYE3).max() <= 1e-13:
+        problem = rotation_problem(R, name)
+        if problem is not None:
+            raise TrackmeterError(problem)
+    return R
+
+
+def _rigid(value: ArrayLike, name: str) -> FloatArray:
+    """``value`` as a (4,4) rigid transform: a rotation (:func:`_rotation`) and ``[0, 0, 0, 1]``
+    below it. Its inverse and its action are taken from that structure, so another matrix
+    would come back as a wrong answer (``invert_transform(diag(2, 2, 2, 1))`` itself)."""
+    T = _shaped(value, name, (4, 4))
+    _rotation(T[:3, :3], f"{name}[:3, :3]")
+    if np.isfinite(T).all() and not np.array_equal(T[3], _LAST_ROW):
+        raise TrackmeterError(f"{name} must be a rigid transform, its last row [0, 0, 0, 1]; got "
+                              f"{[float(x) for x in T[3]]}")
+    return T
+
+
+_LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
+
+
 def transform_from_pose(position: ArrayLike, quat_wxyz: ArrayLike) -> FloatArray:
     """4x4 ``T_a_b`` from the position of b's origin in a (m) and b's attitude ``q_a_b``."""
     return make_transform(quat_wxyz_to_matrix(quat_wxyz), position)
@@ -259,11 +320,9 @@ def invert_transform(T_a_b: ArrayLike) -> FloatArray:
     """``T_b_a`` from ``T_a_b`` (4,4) using the rigid structure (no general matrix inverse).
 
     Raises:
-        TrackmeterError: ``T_a_b`` not of shape (4,4).
+        TrackmeterError: ``T_a_b`` not of shape (4,4), or no rigid transform.
     """
-    T = np.asarray(T_a_b, dtype=float)
-    if T.shape != (4, 4):
-        raise TrackmeterError(f"T_a_b must be (4,4), got shape {T.shape}")
+    T = _rigid(T_a_b, "T_a_b")
     R = T[:3, :3]
     return make_transform(R.T, -R.T @ T[:3, 3])
 
@@ -273,9 +332,9 @@ def apply_transform(T_a_b: ArrayLike, points_b: ArrayLike) -> FloatArray:
     (4,4). Returns the same shape as ``points_b``, m.
 
     Raises:
-        TrackmeterError: ``T_a_b`` not (4,4) or points not (3,)/(N,3).
+        TrackmeterError: ``T_a_b`` not a (4,4) rigid transform or points not (3,)/(N,3).
     """
-    T = _shaped(T_a_b, "T_a_b", (4, 4))
+    T = _rigid(T_a_b, "T_a_b")
     p = np.asarray(points_b, dtype=float)
     if p.ndim not in (1, 2) or p.shape[-1] != 3:
         got = "(" + ",".join(map(str, p.shape)) + ("," if p.ndim == 1 else "") + ")"
