@@ -632,3 +632,14 @@ def test_a_pair_already_rectified_with_principal_points_apart_is_measured_as_it_
         assert b.right_uv == pytest.approx(a.right_uv + [shift, 0.0], abs=1e-6)
         assert b.disparity_px == pytest.approx(a.disparity_px - shift, abs=1e-6)
         assert b.xyz_m == pytest.approx(a.xyz_m, rel=1e-7)
+
+
+def test_pixels_of_another_shape_are_refused_not_reread() -> None:
+    """An outside probe: two homogeneous pixels [[280, 331, 1], [435, 87, 1]] were measured as
+    three, (280, 331), (1, 435) and (87, 1)."""
+    rig = identity_rig(64, 48)
+    image = np.zeros((48, 64), np.uint8)
+    with pytest.raises(TrackmeterError, match=r"uv_left must be \(2,\) or \(N,2\), got shape \(2,3\)"):
+        measure_points(rig, image, image, [[28.0, 33.0, 1.0], [43.0, 8.0, 1.0]])
+    assert len(measure_points(rig, image, image, [28.0, 33.0])) == 1
+    assert len(measure_points(rig, image, image, np.zeros((0, 2)))) == 0

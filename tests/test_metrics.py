@@ -389,3 +389,15 @@ def test_usable_covariances_are_the_finite_ones_cholesky_accepts() -> None:
     expected = np.array([cholesky_ok(M) for M in mats])
     np.testing.assert_array_equal(finite & definite, expected)
     np.testing.assert_array_equal(finite, [k % 5 != 3 for k in range(40)])
+
+
+def test_a_trajectory_of_positions_or_quaternions_of_another_shape_is_refused() -> None:
+    """An outside probe: Trajectory(t of 2, positions (3,2), ...) was taken as 2 positions, the
+    six numbers re-read three at a time."""
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (2, 1))
+    with pytest.raises(TrackmeterError, match=r"position_m must be \(3,\) or \(N,3\), got shape \(3,2\)"):
+        Trajectory(np.arange(2.0), np.zeros((3, 2)), q)
+    with pytest.raises(TrackmeterError, match=r"quat_wxyz must be \(4,\) or \(N,4\), got shape \(4,2\)"):
+        Trajectory(np.arange(2.0), np.zeros((2, 3)), q.T)
+    assert len(Trajectory(np.arange(2.0), np.zeros((2, 3)), q)) == 2
+    assert len(Trajectory(np.array([0.5]), np.zeros(3), q[0])) == 1  # one pose, unbatched

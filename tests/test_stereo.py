@@ -452,3 +452,58 @@ def test_views_swapped_on_a_pair_rectified_with_principal_points_apart_are_told(
     assert swapped_views_problem(rig, left, moved) is None
     assert "look swapped" in (swapped_views_problem(rig, moved, left) or "")
     assert "one and the same image" in (swapped_views_problem(rig, left, left) or "")
+
+
+# --------------------------------------------------------------------------- shapes at the boundary
+# An outside probe of the library API: points of another shape were reshaped into other points
+# whenever their count of numbers divided evenly (three homogeneous points (3,4) projected as
+# four 3D points, one at -4e8 px), and a camera's image width 640.7 became 640.
+
+
+def _estec() -> StereoRig:
+    return load_rig(RIGS / "estec_12mm.yaml")
+
+
+@pytest.mark.parametrize("call, dim", [
+    (lambda rig, a: rig.left.project(a), 3),
+    (lambda rig, a: rig.project(a), 3),
+    (lambda rig, a: rig.left.undistort(a), 2),
+    (lambda rig, a: rig.left.contains(a), 2),
+    (lambda rig, a: rig.rectification.rectify_points(a), 2),
+    (lambda rig, a: rig.rectification.unrectify_points(a), 2),
+    (lambda rig, a: rig.rectification.triangulate(a, 50.0), 2),
+    (lambda rig, a: rig.rectification.project_rectified(a), 3),
+])
+@pytest.mark.parametrize("shape", [(3, 4), (2, 3), (4, 2), (1, 2), (3, 1), (6,), (2, 2, 3)])
+def test_points_of_another_shape_are_refused_not_reshaped(call, dim: int, shape: tuple[int, ...]) -> None:  # type: ignore[no-untyped-def]
+    if shape[-1] == dim and len(shape) <= 2:
+        return  # the shape the call takes
+    with pytest.raises(TrackmeterError, match=rf"must be \({dim},\) or \(N,{dim}\), got shape"):
+        call(_estec(), np.ones(shape))
+
+
+def test_the_shapes_taken_give_what_they_gave() -> None:
+    rig = _estec()
+    p = np.array([[0.1, 0.2, 3.0], [0.0, 0.0, 4.0]])
+    assert rig.left.project(p).shape == (2, 2)
+    assert np.array_equal(rig.left.project(p[0]), rig.left.project(p)[:1])
+    assert rig.left.project(np.zeros((0, 3))).shape == (0, 2) == rig.left.project([]).shape
+    uv = rig.left.project(p)
+    assert np.array_equal(rig.rectification.rectify_points(uv.reshape(-1, 1, 2)), rig.rectification.rectify_points(uv))
+    assert rig.rectification.triangulate(uv[0], 50.0).shape == (1, 3)
+
+
+@pytest.mark.parametrize("width", [640.7, float("nan"), float("inf"), "640"])
+def test_an_image_size_that_is_no_whole_number_is_refused(width: object) -> None:
+    K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+    with pytest.raises(TrackmeterError, match="image size must be whole numbers of pixels"):
+        Camera(width, 480, K)  # type: ignore[arg-type]
+    assert Camera(np.int64(640), 480.0, K).image_size == (640, 480)  # type: ignore[arg-type]  # whole: taken
+
+
+def test_a_point_in_the_camera_plane_projects_as_the_docstring_says_as_opencv_does() -> None:
+    rig = _estec()
+    uv = rig.left.project([0.1, 0.1, 0.0])
+    assert np.array_equal(uv, rig.left.project([0.1, 0.1, 1.0]))  # through (x, y): 1/z taken as 1
+    ref, _ = cv2.projectPoints(np.array([[0.1, 0.1, 0.0]]), np.zeros(3), np.zeros(3), rig.left.K, rig.left.dist)
+    assert np.array_equal(uv, ref.reshape(-1, 2))

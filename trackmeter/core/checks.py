@@ -121,6 +121,51 @@ def rotation_matrix(value: ArrayLike, name: str) -> FloatArray:
     return R
 
 
+#: How far ``R^T R`` may be from the identity (largest entry) for R to be taken as a rotation
+#: written with too few decimals: 5 decimals leave ~1e-5; a real non-rotation is far beyond.
+ROTATION_TOLERANCE = 1e-3
+
+
+def rotation_problem(value: ArrayLike, name: str = "R") -> str | None:
+    """Why ``value`` (3,3) or (N,3,3) is no rotation matrix, or None when each is one within
+    :data:`ROTATION_TOLERANCE` (``|R^T R - I|``, largest entry) with det > 0: the looser
+    check, of matrices from outside (a file's, a caller's), which are then projected onto the
+    rotation nearest; :func:`rotation_matrix` is the tight one of the core's own."""
+    a = np.asarray(value, dtype=float)
+    if a.shape[-2:] != (3, 3) or a.ndim not in (2, 3):
+        return f"{name} must be (3,3) or (N,3,3), got shape {_shape_text(a.shape)}"
+    if not np.isfinite(a).all():
+        return f"{name} must be a finite rotation matrix: it holds a NaN or an infinity"
+    error = float(np.max(np.abs(np.swapaxes(a, -1, -2) @ a - np.eye(3))))
+    det = float(np.min(np.linalg.det(a)))
+    if det <= 0 or error > ROTATION_TOLERANCE:
+        return f"{name} must be a rotation matrix (orthonormal, det +1): |R^T R - I| = {error:.2g}, det = {det:.6g}"
+    return None
+
+
+def vectors(value: ArrayLike, name: str, size: int) -> FloatArray:
+    """``value`` as a float array of shape (size,) or (N,size), kept so (values unchecked)."""
+    a = np.asarray(value, dtype=float)
+    if a.ndim not in (1, 2) or a.shape[-1] != size:
+        raise TrackmeterError(f"{name} must be ({size},) or (N,{size}), got shape {_shape_text(a.shape)}")
+    return a
+
+
+def as_rows(value: ArrayLike, name: str, size: int) -> FloatArray:
+    """``value`` as (N, size) rows: one (size,), N of them (N, size), OpenCV's (N, 1, size),
+    or none (an empty array of any shape); values unchecked.
+
+    Raises:
+        TrackmeterError: any other shape, which ``reshape(-1, size)`` would turn into other
+            points whenever its count of numbers divides evenly (three homogeneous points (3,4)
+            into four 3D points).
+    """
+    a = np.asarray(value, dtype=float)
+    if a.size == 0 or (a.shape[-1:] == (size,) and (a.ndim <= 2 or (a.ndim == 3 and a.shape[1] == 1))):
+        return a.reshape(-1, size)
+    raise TrackmeterError(f"{name} must be ({size},) or (N,{size}), got shape {_shape_text(a.shape)}")
+
+
 def finite_time(value: float, name: str) -> float:
     """``value`` as a float time, s, refused when it is not a finite number.
 

@@ -86,6 +86,7 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from trackmeter.core.checks import as_rows
 from trackmeter.core.params import check_params, param
 from trackmeter.core.stereo import Rectification, StereoRig, axis_sigmas, check_side_by_side
 from trackmeter.errors import TrackmeterError
@@ -1659,11 +1660,11 @@ def measure_points(
         NaN numbers.
 
     Raises:
-        TrackmeterError: images of the wrong type or size.
+        TrackmeterError: images of the wrong type or size, or pixels not (2,) or (N,2).
     """
     params = params or MeasureParams()
     check_stereo_pair(rig, left, right)
-    uv = np.array(uv_left, dtype=float).reshape(-1, 2)  # a copy: its rows are handed out
+    uv = as_rows(uv_left, "uv_left", 2).copy()  # a copy: its rows are handed out
     n = len(uv)
     if n == 0:
         return ()

@@ -22,7 +22,8 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from trackmeter.core.transforms import ROTATION_TOLERANCE, procrustes_rotation
+from trackmeter.core.checks import as_rows, rotation_problem
+from trackmeter.core.transforms import procrustes_rotation
 from trackmeter.errors import TrackmeterError
 
 FloatArray = NDArray[np.float64]
@@ -47,6 +48,13 @@ def _undistort_points(
     return np.asarray(out, dtype=float).reshape(-1, 2)
 
 
+def whole_pixels(value: object) -> int | None:
+    """``value`` as a whole number of pixels, None when it is none (640.7, NaN, text)."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+        return None
+    return int(value) if math.isfinite(value) and float(value).is_integer() else None
+
+
 def _as_matrix(value: ArrayLike, shape: tuple[int, ...], name: str) -> FloatArray:
     array = np.asarray(value, dtype=float)
     if array.size != int(np.prod(shape)):
@@ -68,19 +76,16 @@ def _non_negative(sigma_px: float | ArrayLike, name: str) -> None:
 def _nearest_rotation(R: FloatArray) -> FloatArray:
     """R itself when orthonormal to working precision, else the nearest rotation (Frobenius
     norm: the polar factor ``U V^T`` of ``R = U S V^T``) when R is within
-    :data:`ROTATION_TOLERANCE` of one; downstream code (rectification, pose) assumes an
+    :data:`~trackmeter.core.checks.ROTATION_TOLERANCE` of one; downstream code (rectification, pose) assumes an
     exact rotation.
 
     Raises:
         TrackmeterError: a reflection (det < 0) or a matrix too far from any rotation.
     """
-    error = float(np.max(np.abs(R.T @ R - np.eye(3))))
-    det = float(np.linalg.det(R))
-    if det <= 0 or error > ROTATION_TOLERANCE:
-        raise TrackmeterError(
-            f"R must be a rotation matrix (orthonormal, det +1): |R^T R - I| = {error:.2g}, det = {det:.6g}"
-        )
-    if error <= 1e-12:
+    problem = rotation_problem(R)
+    if problem is not None:
+        raise TrackmeterError(problem)
+    if np.abs(R.T @ R - np.eye(3)).max() <= 1e-12:
         return R  # already a rotation: keep it bit for bit (files round-trip unchanged)
     return procrustes_rotation(R)[0]
 
@@ -101,10 +106,13 @@ class Camera:
     dist: FloatArray = field(default_factory=lambda: np.zeros(5))
 
     def __post_init__(self) -> None:
-        if int(self.width) <= 0 or int(self.height) <= 0:
-            raise TrackmeterError(f"image size must be positive, got {self.width}x{self.height}")
-        object.__setattr__(self, "width", int(self.width))
-        object.__setattr__(self, "height", int(self.height))
+        width, height = whole_pixels(self.width), whole_pixels(self.height)
+        if width is None or height is None:  # int() took 640.7 as 640, and NaN with numpy's own error
+            raise TrackmeterError(f"image size must be whole numbers of pixels, got {self.width!r}x{self.height!r}")
+        if width <= 0 or height <= 0:
+            raise TrackmeterError(f"image size must be positive, got {width}x{height}")
+        object.__setattr__(self, "width", width)
+        object.__setattr__(self, "height", height)
         object.__setattr__(self, "K", _as_matrix(self.K, (3, 3), "K"))
         dist = np.asarray(self.dist, dtype=float)
         if dist.ndim > 2 or (dist.ndim == 2 and min(dist.shape) > 1):
@@ -147,11 +155,15 @@ class Camera:
     def project(self, points_cam: ArrayLike) -> FloatArray:
         """Project (N,3) points of this camera's frame (m) to distorted pixels (N,2).
 
-        As OpenCV's ``projectPoints``, a point behind the camera (z <= 0) is projected too,
-        through ``(x/z, y/z)``: it may land on an in-image pixel (mirrored through the centre).
+        As OpenCV's ``projectPoints``, a point behind the camera (z < 0) is projected too,
+        through ``(x/z, y/z)``: it may land on an in-image pixel (mirrored through the centre);
+        one at z = 0 through ``(x, y)`` (OpenCV takes 1/z as 1 there), an ordinary-looking pixel.
         Check ``z > 0`` before taking a pixel as seen; :meth:`contains` looks at the pixel only.
+
+        Raises:
+            TrackmeterError: points not (3,) or (N,3).
         """
-        p = np.asarray(points_cam, dtype=float).reshape(-1, 3)
+        p = as_rows(points_cam, "points_cam", 3)
         if len(p) == 0:
             return np.zeros((0, 2))
         uv, _ = cv2.projectPoints(p, np.zeros(3), np.zeros(3), self.K, self.dist)
@@ -162,7 +174,7 @@ class Camera:
 
         Iterated to convergence (see :func:`_undistort_points`).
         """
-        pts = np.asarray(uv, dtype=float).reshape(-1, 1, 2)
+        pts = as_rows(uv, "uv", 2).reshape(-1, 1, 2)
         if len(pts) == 0:
             return np.zeros((0, 2))
         return _undistort_points(pts, self.K, self.dist)
@@ -172,7 +184,7 @@ class Camera:
 
         The pixel alone: a point behind the camera can project inside the image
         (:meth:`project`), so test its depth as well before calling it visible."""
-        uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+        uv = as_rows(uv, "uv", 2)
         return (
             (uv[:, 0] >= -0.5 + margin_px)
             & (uv[:, 0] <= self.width - 0.5 - margin_px)
@@ -239,7 +251,7 @@ class StereoRig:
         """Project (N,3) left-camera-frame points (m) into both images: ``(uv_left, uv_right)``,
         each (N,2) distorted pixels. A point behind either camera still gets a pixel, possibly
         inside the image (:meth:`Camera.project`): check its depth in both camera frames."""
-        p = np.asarray(points_cam, dtype=float).reshape(-1, 3)
+        p = as_rows(points_cam, "points_cam", 3)
         return self.left.project(p), self.right.project(p @ self.R.T + self.T)
 
     @cached_property
@@ -419,7 +431,7 @@ class Rectification:
         """Original (distorted) pixels (N,2) of the left (side 0) or right (1) image → rectified."""
         cam = self.rig.left if side == 0 else self.rig.right
         Rr, P = (self.R1, self.P1) if side == 0 else (self.R2, self.P2)
-        pts = np.asarray(uv, dtype=float).reshape(-1, 1, 2)
+        pts = as_rows(uv, "uv", 2).reshape(-1, 1, 2)
         if len(pts) == 0:
             return np.zeros((0, 2))
         return _undistort_points(pts, cam.K, cam.dist, Rr, P)
@@ -428,7 +440,7 @@ class Rectification:
         """Rectified pixels (N,2) → original (distorted) pixels of the left (0) or right (1) image."""
         cam = self.rig.left if side == 0 else self.rig.right
         Rr, P = (self.R1, self.P1) if side == 0 else (self.R2, self.P2)
-        uv = np.asarray(uv_rect, dtype=float).reshape(-1, 2)
+        uv = as_rows(uv_rect, "uv_rect", 2)
         if len(uv) == 0:
             return np.zeros((0, 2))
         rays_rect = np.column_stack([uv, np.ones(len(uv))]) @ np.linalg.inv(P[:3, :3]).T
@@ -447,7 +459,7 @@ class Rectification:
         Raises:
             TrackmeterError: as many disparities as neither 1 nor the pixels.
         """
-        uv = np.asarray(uv_rect_left, dtype=float).reshape(-1, 2)
+        uv = as_rows(uv_rect_left, "uv_rect_left", 2)
         d = np.asarray(disparity_px, dtype=float).reshape(-1) - self.disparity_offset_px
         if len(d) not in (1, len(uv)):
             raise TrackmeterError(f"{len(uv)} pixels but {len(d)} disparities")
@@ -461,7 +473,7 @@ class Rectification:
 
     def project_rectified(self, points_cam: ArrayLike) -> tuple[FloatArray, FloatArray]:
         """Rectified left pixels (N,2) and disparities (N,) of left-camera-frame points (N,3), m."""
-        p_rect = np.asarray(points_cam, dtype=float).reshape(-1, 3) @ self.R1.T
+        p_rect = as_rows(points_cam, "points_cam", 3) @ self.R1.T
         z = p_rect[:, 2]
         f, b = self.focal_px, self.baseline_m
         uv = np.column_stack([f * p_rect[:, 0] / z + self.cx_left, f * p_rect[:, 1] / z + self.cy])

@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from trackmeter.core.checks import finite_rows
+from trackmeter.core.checks import finite_rows, rotation_problem, vectors
 from trackmeter.errors import TrackmeterError
 
 FloatArray = NDArray[np.float64]
@@ -40,15 +40,6 @@ def quat_wxyz_to_matrix(quat_wxyz: ArrayLike) -> FloatArray:
     return _rotation_of_quat(quat_wxyz, "quat_wxyz").as_matrix()
 
 
-def _vectors(value: ArrayLike, name: str, size: int) -> FloatArray:
-    """``value`` as a float array of shape (size,) or (N,size) (values unchecked)."""
-    a = np.asarray(value, dtype=float)
-    if a.ndim not in (1, 2) or a.shape[-1] != size:
-        got = "(" + ",".join(map(str, a.shape)) + ("," if a.ndim == 1 else "") + ")"
-        raise TrackmeterError(f"{name} must be ({size},) or (N,{size}), got shape {got}")
-    return a
-
-
 def _rotation_of_quat(quat_wxyz: ArrayLike, name: str) -> Rotation:
     """scipy's Rotation of unit quaternion(s) ``wxyz`` (4,) or (N,4) (normalised if not unit).
 
@@ -56,7 +47,7 @@ def _rotation_of_quat(quat_wxyz: ArrayLike, name: str) -> Rotation:
         TrackmeterError: of another shape, not finite, or of zero norm: scipy says "zero norm"
             of a NaN too, and takes an infinity silently.
     """
-    q = _vectors(quat_wxyz, name, 4)
+    q = vectors(quat_wxyz, name, 4)
     rows = q.reshape(-1, 4)
     bad = ~np.isfinite(rows).all(axis=1) | ~(np.abs(rows).max(axis=1) > 0)
     if bad.any():
@@ -89,30 +80,10 @@ _EYE3 = np.eye(3)
 _HAS_ASSUME_VALID = "assume_valid" in inspect.signature(Rotation.from_matrix).parameters  # not in every scipy the project allows
 
 
-#: How far ``R^T R`` may be from the identity (largest entry) for R to be taken as a rotation
-#: written with too few decimals: 5 decimals leave ~1e-5; a real non-rotation is far beyond.
-ROTATION_TOLERANCE = 1e-3
-
-
-def rotation_problem(R: ArrayLike, name: str = "R") -> str | None:
-    """Why ``R`` (3,3) or (N,3,3) is no rotation matrix, or None when each is one within
-    :data:`ROTATION_TOLERANCE` (``|R^T R - I|``, largest entry) with det > 0."""
-    a = np.asarray(R, dtype=float)
-    if a.shape[-2:] != (3, 3) or a.ndim not in (2, 3):
-        return f"{name} must be (3,3) or (N,3,3), got shape {a.shape}"
-    if not np.isfinite(a).all():
-        return f"{name} must be a finite rotation matrix: it holds a NaN or an infinity"
-    error = float(np.max(np.abs(np.swapaxes(a, -1, -2) @ a - _EYE3)))
-    det = float(np.min(np.linalg.det(a)))
-    if det <= 0 or error > ROTATION_TOLERANCE:
-        return f"{name} must be a rotation matrix (orthonormal, det +1): |R^T R - I| = {error:.2g}, det = {det:.6g}"
-    return None
-
-
 def matrix_to_quat_wxyz(R: ArrayLike) -> FloatArray:
     """Unit quaternion(s) ``wxyz`` with non-negative w from rotation matrix (3,3) or (N,3,3).
 
-    A matrix within :data:`ROTATION_TOLERANCE` of a rotation (one written with few decimals)
+    A matrix within :data:`~trackmeter.core.checks.ROTATION_TOLERANCE` of a rotation (one written with few decimals)
     is projected onto it (scipy).
 
     Raises:
@@ -147,8 +118,8 @@ def quat_multiply(q1_wxyz: ArrayLike, q2_wxyz: ArrayLike) -> FloatArray:
     Needed for quaternion *rates* (eqs. 14-15), which are not rotations, so scipy's
     :class:`Rotation` cannot hold them.
     """
-    a = _vectors(q1_wxyz, "q1_wxyz", 4)
-    b = _vectors(q2_wxyz, "q2_wxyz", 4)
+    a = vectors(q1_wxyz, "q1_wxyz", 4)
+    b = vectors(q2_wxyz, "q2_wxyz", 4)
     w1, x1, y1, z1 = np.moveaxis(a, -1, 0)
     w2, x2, y2, z2 = np.moveaxis(b, -1, 0)
     return np.stack(
@@ -164,7 +135,7 @@ def quat_multiply(q1_wxyz: ArrayLike, q2_wxyz: ArrayLike) -> FloatArray:
 
 def quat_conjugate(q_wxyz: ArrayLike) -> FloatArray:
     """Conjugate ``(w, -x, -y, -z)``; the inverse of a unit quaternion."""
-    q = _vectors(q_wxyz, "q_wxyz", 4).copy()
+    q = vectors(q_wxyz, "q_wxyz", 4).copy()
     q[..., 1:] *= -1.0
     return q
 
@@ -179,7 +150,7 @@ def quat_derivative(quat_wxyz: ArrayLike, omega_body: ArrayLike) -> FloatArray:
     Returns:
         (4,) or (N,4) time derivative of the quaternion, 1/s.
     """
-    w = _vectors(omega_body, "omega_body", 3)
+    w = vectors(omega_body, "omega_body", 3)
     omega_quat = np.concatenate([np.zeros(w.shape[:-1] + (1,)), w], axis=-1)
     return 0.5 * quat_multiply(quat_wxyz, omega_quat)
 
@@ -286,7 +257,7 @@ def _shaped(value: ArrayLike, name: str, shape: tuple[int, ...]) -> FloatArray:
 
 
 def _rotation(value: ArrayLike, name: str) -> FloatArray:
-    """``value`` as a (3,3) rotation within :data:`ROTATION_TOLERANCE` (NaN passes, as before:
+    """``value`` as a (3,3) rotation within :data:`~trackmeter.core.checks.ROTATION_TOLERANCE` (NaN passes, as before:
     a caller's marker of no pose)."""
     R = _shaped(value, name, (3, 3))
     if np.isfinite(R).all() and not np.abs(R @ R.T - _EYE3).max() <= 1e-13:

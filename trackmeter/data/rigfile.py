@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 import yaml
 
-from trackmeter.core.stereo import Camera, StereoRig
+from trackmeter.core.stereo import Camera, StereoRig, whole_pixels
 from trackmeter.data.atomic import write_files_atomic
 from trackmeter.data.config import (
     FAST_SAFE_LOADER,
@@ -468,15 +468,11 @@ def pinhole_radtan_camera(entry: dict, distortion_key: str) -> Camera:
                               "radial-tangential distortion is: OpenCV's model)")
     fu, fv, cu, cv = (float(x) for x in entry["intrinsics"])
     size = entry["resolution"]
-    if not (isinstance(size, (list, tuple)) and len(size) == 2 and all(_whole_pixels(x) for x in size)):
+    if not (isinstance(size, (list, tuple)) and len(size) == 2 and all(whole_pixels(x) is not None for x in size)):
         raise TrackmeterError(f"'resolution' must be two whole numbers of pixels [width, height], got {shown_value(size)}")
     width, height = (int(x) for x in size)
     dist = np.array([float(x) for x in entry.get(distortion_key) or [0.0, 0.0, 0.0, 0.0]])
     return Camera(width, height, np.array([[fu, 0.0, cu], [0.0, fv, cv], [0.0, 0.0, 1.0]]), dist)
-
-
-def _whole_pixels(value: object) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value == round(value)
 
 
 def _load_kalibr(camchain: dict, path: Path) -> StereoRig:
@@ -612,7 +608,7 @@ def _load_middlebury(entries: dict[str, str], path: Path, image_size: tuple[int,
                 raise TrackmeterError("missing 'width'/'height' (the images' size, px)")
             width, height = image_size
         for key, value in (("width", width), ("height", height)):
-            if not (_whole_pixels(value) and MIN_IMAGE_SIZE_PX <= value <= MAX_IMAGE_SIZE_PX):
+            if not (whole_pixels(value) is not None and MIN_IMAGE_SIZE_PX <= value <= MAX_IMAGE_SIZE_PX):
                 raise TrackmeterError(f"'{key}' must be a whole number of pixels from {MIN_IMAGE_SIZE_PX} to "
                                       f"{MAX_IMAGE_SIZE_PX}, got {value:g}")
         if not (K0[0, 0] == K0[1, 1] == K1[0, 0] == K1[1, 1] and K0[1, 2] == K1[1, 2] and K0[0, 1] == K1[0, 1] == 0.0):

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from trackmeter.core.checks import time_order
+from trackmeter.core.checks import as_rows, time_order
 from trackmeter.data.atomic import write_text_atomic
 from trackmeter.errors import TrackmeterError, quoted
 
@@ -39,8 +39,8 @@ class Trajectory:
 
     def __post_init__(self) -> None:
         t = np.asarray(self.t_s, dtype=float).reshape(-1)
-        p = np.asarray(self.position_m, dtype=float).reshape(-1, 3)
-        q = np.asarray(self.quat_wxyz, dtype=float).reshape(-1, 4)
+        p = as_rows(self.position_m, "position_m", 3)
+        q = as_rows(self.quat_wxyz, "quat_wxyz", 4)
         if not (len(t) == len(p) == len(q)):
             raise TrackmeterError("trajectory arrays differ in length")
         if not (np.all(np.isfinite(t)) and np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
