@@ -515,3 +515,17 @@ def test_quaternion_algebra_refuses_other_shapes() -> None:
         tf.quat_conjugate(np.ones((2, 2, 4)))
     # Non-unit quaternions (rates) stay the algebra's business: no norm asked of them.
     assert np.allclose(tf.quat_multiply([2.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]), [0.0, 2.0, 0.0, 0.0])
+
+
+def test_continuous_signs_are_quat_sign_nearest_along_the_series() -> None:
+    rng = np.random.default_rng(3)
+    q = Rotation.random(50, rng=rng).as_quat(scalar_first=True) * rng.choice([-1.0, 1.0], size=(50, 1))
+    q[[7, 8, 30]] = np.nan  # rows without a pose: skipped, kept
+    want, last = q.copy(), None
+    for i, row in enumerate(q):
+        if np.isfinite(row).all():
+            want[i] = last = tf.quat_sign_nearest(row if last is not None else row * np.sign(row[0]), last)
+    got = tf.quat_signs_continuous(q)
+    assert np.array_equal(got, want, equal_nan=True)
+    assert np.array_equal(tf.quat_signs_continuous(got), got, equal_nan=True)  # written once, kept
+    assert tf.quat_signs_continuous(np.full((2, 4), np.nan)).shape == (2, 4)

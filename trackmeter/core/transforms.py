@@ -112,6 +112,22 @@ def quat_sign_nearest(quat_wxyz: ArrayLike, reference_wxyz: ArrayLike | None) ->
     return q
 
 
+def quat_signs_continuous(quat_wxyz: ArrayLike) -> FloatArray:
+    """A series of quaternions (N,4) written as docs/conventions.md says: the first with
+    ``w >= 0``, each after it on the side of the one before (:func:`quat_sign_nearest` along
+    the series). Rows that are not finite (no pose) are kept as they are and skipped: the row
+    after them takes the side of the last one with a pose."""
+    q = vectors(quat_wxyz, "quat_wxyz", 4).reshape(-1, 4).copy()
+    rows = np.flatnonzero(np.isfinite(q).all(axis=1))
+    if len(rows) == 0:
+        return q
+    given = q[rows]
+    turns = np.where(np.sum(given[1:] * given[:-1], axis=1) < 0.0, -1.0, 1.0)
+    first = -1.0 if given[0, 0] < 0.0 else 1.0
+    q[rows] = given * (first * np.concatenate([[1.0], np.cumprod(turns)]))[:, None]
+    return q
+
+
 def quat_multiply(q1_wxyz: ArrayLike, q2_wxyz: ArrayLike) -> FloatArray:
     """Hamilton product ``q1 ⊗ q2`` of (possibly non-unit) quaternions, shapes (4,) or (N,4).
 

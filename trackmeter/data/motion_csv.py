@@ -35,6 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from trackmeter.core.checks import time_order
+from trackmeter.core.transforms import quat_signs_continuous
 from trackmeter.data.atomic import AppendFile, write_text_atomic
 from trackmeter.data.trajectory import Trajectory, warn_far_from_unit_norm
 from trackmeter.errors import TrackmeterError, quoted
@@ -417,7 +418,10 @@ def format_csv_value(name: str, value: Any) -> str:
 
 
 def _series_text(series: MotionSeries, columns: Sequence[str]) -> str:
-    data = [series.column(c) for c in columns]
+    # The signs as docs/conventions.md says a written series has them (the commands' writers
+    # choose each against the row before, as they go).
+    quats = quat_signs_continuous(series.quat_wxyz)
+    data = [quats[:, "wxyz".index(c[1])] if c in ("qw", "qx", "qy", "qz") else series.column(c) for c in columns]
     out = [",".join(columns)]
     for r in range(len(series)):
         out.append(",".join(format_csv_value(c, a[r]) for c, a in zip(columns, data)))

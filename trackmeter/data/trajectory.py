@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from trackmeter.core.checks import as_rows, time_order
+from trackmeter.core.transforms import quat_signs_continuous
 from trackmeter.data.atomic import write_text_atomic
 from trackmeter.errors import TrackmeterError, quoted
 
@@ -181,11 +182,11 @@ def format_tum_line(t_s: float, position_m: FloatArray, quat_wxyz: FloatArray) -
 
 
 def write_tum(path: str | Path, trajectory: Trajectory) -> Path:
-    """Write a TUM file atomically (temporary file in the same folder, then rename)."""
+    """Write a TUM file atomically (temporary file in the same folder, then rename), its
+    quaternions' signs continuous as docs/conventions.md says (:func:`quat_signs_continuous`)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    text = "".join(
-        format_tum_line(t, p, q) + "\n" for t, p, q in zip(trajectory.t_s, trajectory.position_m, trajectory.quat_wxyz)
-    )
+    quats = quat_signs_continuous(trajectory.quat_wxyz)
+    text = "".join(format_tum_line(t, p, q) + "\n" for t, p, q in zip(trajectory.t_s, trajectory.position_m, quats))
     write_text_atomic(path, "# t tx ty tz qx qy qz qw  (T_cam_body)\n" + text)
     return path
