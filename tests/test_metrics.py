@@ -14,6 +14,7 @@ from trackmeter.core.metrics import (
     error_statistics,
     estimate_body_offset,
     evaluate,
+    motion_errors,
     refer_to_true_body,
 )
 from trackmeter.data.motion_csv import MotionSeries
@@ -401,3 +402,24 @@ def test_a_trajectory_of_positions_or_quaternions_of_another_shape_is_refused() 
         Trajectory(np.arange(2.0), np.zeros((2, 3)), q.T)
     assert len(Trajectory(np.arange(2.0), np.zeros((2, 3)), q)) == 2
     assert len(Trajectory(np.array([0.5]), np.zeros(3), q[0])) == 1  # one pose, unbatched
+
+
+def test_paired_samples_of_another_shape_or_length_are_refused_not_broadcast() -> None:
+    """An outside probe of the library API: the core re-read arrays of another shape
+    (reshape(-1, 3)); here a single estimated pose was also paired with every true one."""
+    n = 4
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
+    p = np.tile([0.0, 0.0, 3.5], (n, 1))
+    t = np.arange(n) * 0.04
+    with pytest.raises(TrackmeterError, match="paired samples differ in length: t_s 4, position_true_m 4, "
+                                              "position_est_m 1"):
+        motion_errors(t, q, p, q, p[:1])
+    with pytest.raises(TrackmeterError, match=r"velocity_est_cam_m_s 2"):
+        motion_errors(t, q, p, q, p, np.zeros((n, 3)), np.zeros((2, 3)))
+    with pytest.raises(TrackmeterError, match=r"position_est_m must be \(3,\) or \(N,3\), got shape \(3,4\)"):
+        motion_errors(t[:3], q[:3], p[:3], q[:3], np.ones((3, 4)))
+    with pytest.raises(TrackmeterError, match="paired samples differ in length"):
+        estimate_body_offset(q, p, q[:2], p[:2])
+    with pytest.raises(TrackmeterError, match="paired samples differ in length"):
+        refer_to_true_body(q, p[:3], np.eye(3), np.zeros(3))
+    assert np.allclose(motion_errors(t, q, p, q, p).position_m, 0.0)

@@ -28,7 +28,7 @@ from typing import Any, Literal, Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from trackmeter.core.checks import time_order
+from trackmeter.core.checks import as_rows, time_order
 from trackmeter.core.params import check_params, param
 from trackmeter.core.transforms import (attitude_error_components, matrix_to_quat_wxyz, procrustes_rotation,
                                        quat_wxyz_to_matrix, rotation_from_matrix)
@@ -199,13 +199,15 @@ def estimate_body_offset(
         ``(R_X, t_X)``: (3,3) and (3,) — ``R_bodytrue_bodyest`` and the estimated body origin
         in the true body frame, m.
     """
-    R_true = quat_wxyz_to_matrix(np.asarray(quat_true_wxyz, dtype=float).reshape(-1, 4))
-    R_est = quat_wxyz_to_matrix(np.asarray(quat_est_wxyz, dtype=float).reshape(-1, 4))
-    if len(R_true) == 0:
+    q_true, q_est = as_rows(quat_true_wxyz, "quat_true_wxyz", 4), as_rows(quat_est_wxyz, "quat_est_wxyz", 4)
+    p_true, p_est = as_rows(position_true_m, "position_true_m", 3), as_rows(position_est_m, "position_est_m", 3)
+    _check_paired(quat_true_wxyz=q_true, quat_est_wxyz=q_est, position_true_m=p_true, position_est_m=p_est)
+    if len(q_true) == 0:
         raise TrackmeterError("body alignment needs at least one paired pose")
+    R_true, R_est = quat_wxyz_to_matrix(q_true), quat_wxyz_to_matrix(q_est)
     M = np.einsum("nji,njk->ik", R_true, R_est)
     R_X, _ = procrustes_rotation(M)
-    dp = np.asarray(position_est_m, dtype=float).reshape(-1, 3) - np.asarray(position_true_m, dtype=float).reshape(-1, 3)
+    dp = p_est - p_true
     t_X = np.einsum("nji,nj->ni", R_true, dp).mean(axis=0)
     return R_X, t_X
 
@@ -231,17 +233,20 @@ def refer_to_true_body(
     """
     R_X = np.asarray(R_X, dtype=float)
     t_X = np.asarray(t_X, dtype=float)
-    R_est = quat_wxyz_to_matrix(np.asarray(quat_est_wxyz, dtype=float).reshape(-1, 4))
+    q_est, p_est = as_rows(quat_est_wxyz, "quat_est_wxyz", 4), as_rows(position_est_m, "position_est_m", 3)
+    w_est = None if omega_est_body_rad_s is None else as_rows(omega_est_body_rad_s, "omega_est_body_rad_s", 3)
+    v_est = None if velocity_est_cam_m_s is None else as_rows(velocity_est_cam_m_s, "velocity_est_cam_m_s", 3)
+    _check_paired(quat_est_wxyz=q_est, position_est_m=p_est, omega_est_body_rad_s=w_est, velocity_est_cam_m_s=v_est)
+    R_est = quat_wxyz_to_matrix(q_est)
     R_al = R_est @ R_X.T
     lever = -(R_al @ t_X)  # from the estimated to the true body origin, cam frame
-    position = np.asarray(position_est_m, dtype=float).reshape(-1, 3) + lever
+    position = p_est + lever
     velocity = omega = None
-    if omega_est_body_rad_s is not None:
-        w_est = np.asarray(omega_est_body_rad_s, dtype=float).reshape(-1, 3)
+    if w_est is not None:
         omega = w_est @ R_X.T
-        if velocity_est_cam_m_s is not None:
+        if v_est is not None:
             omega_cam = np.einsum("nij,nj->ni", R_est, w_est)
-            velocity = np.asarray(velocity_est_cam_m_s, dtype=float).reshape(-1, 3) + np.cross(omega_cam, lever)
+            velocity = v_est + np.cross(omega_cam, lever)
     return matrix_to_quat_wxyz(R_al).reshape(-1, 4), position, velocity, omega
 
 
@@ -302,30 +307,43 @@ def motion_errors(
 
     Velocity errors are computed when both sides give them (else None).
     """
-    p_true = np.asarray(position_true_m, dtype=float).reshape(-1, 3)
-    p_est = np.asarray(position_est_m, dtype=float).reshape(-1, 3)
+    t = np.asarray(t_s, dtype=float).reshape(-1)
+    p_true = as_rows(position_true_m, "position_true_m", 3)
+    p_est = as_rows(position_est_m, "position_est_m", 3)
+    q_true, q_est = as_rows(quat_true_wxyz, "quat_true_wxyz", 4), as_rows(quat_est_wxyz, "quat_est_wxyz", 4)
+    rates = {name: None if value is None else as_rows(value, name, 3) for name, value in (
+        ("velocity_true_cam_m_s", velocity_true_cam_m_s), ("velocity_est_cam_m_s", velocity_est_cam_m_s),
+        ("omega_true_body_rad_s", omega_true_body_rad_s), ("omega_est_body_rad_s", omega_est_body_rad_s))}
+    _check_paired(t_s=t, position_true_m=p_true, position_est_m=p_est, quat_true_wxyz=q_true, quat_est_wxyz=q_est,
+                  **rates)
     dp = p_est - p_true
     range_m = np.linalg.norm(p_true, axis=1)
     if np.any(range_m == 0):
         # SPEED's relative error is undefined at the camera centre; say so rather than divide.
         raise TrackmeterError("a true position is at the camera centre: relative position error undefined")
-    att = attitude_error_components(
-        np.asarray(quat_est_wxyz, dtype=float).reshape(-1, 4), np.asarray(quat_true_wxyz, dtype=float).reshape(-1, 4)
-    ).reshape(-1, 3)
+    att = attitude_error_components(q_est, q_true).reshape(-1, 3)
 
-    def diff(est: ArrayLike | None, true: ArrayLike | None) -> FloatArray | None:
-        if est is None or true is None:
-            return None
-        return np.asarray(est, dtype=float).reshape(-1, 3) - np.asarray(true, dtype=float).reshape(-1, 3)
+    def diff(est: FloatArray | None, true: FloatArray | None) -> FloatArray | None:
+        return None if est is None or true is None else est - true
 
     return MotionErrors(
-        np.asarray(t_s, dtype=float).reshape(-1),
+        t,
         dp,
         att,
-        diff(velocity_est_cam_m_s, velocity_true_cam_m_s),
-        diff(omega_est_body_rad_s, omega_true_body_rad_s),
+        diff(rates["velocity_est_cam_m_s"], rates["velocity_true_cam_m_s"]),
+        diff(rates["omega_est_body_rad_s"], rates["omega_true_body_rad_s"]),
         np.linalg.norm(dp, axis=1) / range_m,
     )
+
+
+def _check_paired(**rows: FloatArray | None) -> None:
+    """Refuse arrays paired row by row (samples, or times and samples) of different lengths:
+    numpy would pair a single row with every other, or say only "operands could not be
+    broadcast". None (not given) is left out."""
+    lengths = {name: len(a) for name, a in rows.items() if a is not None}
+    if len(set(lengths.values())) > 1:
+        raise TrackmeterError("paired samples differ in length: "
+                              + ", ".join(f"{name} {n}" for name, n in lengths.items()))
 
 
 def error_statistics(values: ArrayLike) -> dict[str, float]:
