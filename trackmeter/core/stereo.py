@@ -76,8 +76,8 @@ def _non_negative(sigma_px: float | ArrayLike, name: str) -> None:
 def _nearest_rotation(R: FloatArray) -> FloatArray:
     """R itself when orthonormal to working precision, else the nearest rotation (Frobenius
     norm: the polar factor ``U V^T`` of ``R = U S V^T``) when R is within
-    :data:`~trackmeter.core.checks.ROTATION_TOLERANCE` of one; downstream code (rectification, pose) assumes an
-    exact rotation.
+    :data:`~trackmeter.core.checks.ROTATION_TOLERANCE` of one; downstream code (rectification,
+    pose) assumes an exact rotation.
 
     Raises:
         TrackmeterError: a reflection (det < 0) or a matrix too far from any rotation.

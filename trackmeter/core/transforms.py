@@ -83,8 +83,8 @@ _HAS_ASSUME_VALID = "assume_valid" in inspect.signature(Rotation.from_matrix).pa
 def matrix_to_quat_wxyz(R: ArrayLike) -> FloatArray:
     """Unit quaternion(s) ``wxyz`` with non-negative w from rotation matrix (3,3) or (N,3,3).
 
-    A matrix within :data:`~trackmeter.core.checks.ROTATION_TOLERANCE` of a rotation (one written with few decimals)
-    is projected onto it (scipy).
+    A matrix within :data:`~trackmeter.core.checks.ROTATION_TOLERANCE` of a rotation (one
+    written with few decimals) is projected onto it (scipy).
 
     Raises:
         TrackmeterError: ``R`` of another shape, not finite, a reflection (det < 0), or
@@ -273,8 +273,8 @@ def _shaped(value: ArrayLike, name: str, shape: tuple[int, ...]) -> FloatArray:
 
 
 def _rotation(value: ArrayLike, name: str) -> FloatArray:
-    """``value`` as a (3,3) rotation within :data:`~trackmeter.core.checks.ROTATION_TOLERANCE` (NaN passes, as before:
-    a caller's marker of no pose)."""
+    """``value`` as a (3,3) rotation within :data:`~trackmeter.core.checks.ROTATION_TOLERANCE`
+    (NaN passes, as before: a caller's marker of no pose)."""
     R = _shaped(value, name, (3, 3))
     if np.isfinite(R).all() and not np.abs(R @ R.T - _EYE3).max() <= 1e-13:
         problem = rotation_problem(R, name)
