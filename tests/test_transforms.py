@@ -529,3 +529,7 @@ def test_continuous_signs_are_quat_sign_nearest_along_the_series() -> None:
     assert np.array_equal(got, want, equal_nan=True)
     assert np.array_equal(tf.quat_signs_continuous(got), got, equal_nan=True)  # written once, kept
     assert tf.quat_signs_continuous(np.full((2, 4), np.nan)).shape == (2, 4)
+
+
+def test_no_matrices_give_no_quaternions() -> None:
+    assert tf.matrix_to_quat_wxyz(np.zeros((0, 3, 3))).shape == (0, 4)

@@ -134,6 +134,8 @@ def rotation_problem(value: ArrayLike, name: str = "R") -> str | None:
     a = np.asarray(value, dtype=float)
     if a.shape[-2:] != (3, 3) or a.ndim not in (2, 3):
         return f"{name} must be (3,3) or (N,3,3), got shape {_shape_text(a.shape)}"
+    if a.size == 0:
+        return None  # no matrix: none of them is wrong
     if not np.isfinite(a).all():
         return f"{name} must be a finite rotation matrix: it holds a NaN or an infinity"
     error = float(np.max(np.abs(np.swapaxes(a, -1, -2) @ a - np.eye(3))))

@@ -58,7 +58,7 @@ def _rotation_of_quat(quat_wxyz: ArrayLike, name: str) -> Rotation:
     return Rotation.from_quat(q, scalar_first=True)
 
 
-def rotation_from_matrix(R: ArrayLike) -> Rotation:
+def rotation_from_matrix(R: ArrayLike, refuse_far: bool = False) -> Rotation:
     """``Rotation.from_matrix(R)`` for (3,3) or (N,3,3), with the same numbers but a cheaper check.
 
     scipy (1.17) first checks each matrix: determinant > 0 (else ValueError) and Gram matrix
@@ -68,11 +68,18 @@ def rotation_from_matrix(R: ArrayLike) -> Rotation:
     (``|R R^T - I| <= 1e-13`` everywhere, det > 0) lets the conversion skip scipy's
     (``assume_valid=True``): whatever passes it passes scipy's, so the result is bit-identical;
     anything else (drifted, reflected, NaN) goes through the full ``Rotation.from_matrix``.
+
+    ``refuse_far``: anything else is first asked
+    :func:`~trackmeter.core.checks.rotation_problem` (TrackmeterError beyond a file's
+    rounding), since scipy projects any matrix, ``2 I`` onto the identity.
     """
     R = np.asarray(R, dtype=float)
-    if _HAS_ASSUME_VALID and R.shape[-2:] == (3, 3) and R.size:
-        if np.abs(R @ np.swapaxes(R, -1, -2) - _EYE3).max() <= 1e-13 and np.linalg.det(R).min() > 0:
-            return Rotation.from_matrix(R, assume_valid=True)
+    exact = bool(R.shape[-2:] == (3, 3) and R.size
+                 and np.abs(R @ np.swapaxes(R, -1, -2) - _EYE3).max() <= 1e-13 and np.linalg.det(R).min() > 0)
+    if exact and _HAS_ASSUME_VALID:
+        return Rotation.from_matrix(R, assume_valid=True)
+    if not exact and refuse_far and (problem := rotation_problem(R)) is not None:
+        raise TrackmeterError(problem)
     return Rotation.from_matrix(R)
 
 
@@ -90,12 +97,7 @@ def matrix_to_quat_wxyz(R: ArrayLike) -> FloatArray:
         TrackmeterError: ``R`` of another shape, not finite, a reflection (det < 0), or
             farther from a rotation: scipy projects any matrix, ``2 I`` onto the identity.
     """
-    a = np.asarray(R, dtype=float)
-    if not (a.shape == (3, 3) and np.abs(a @ a.T - _EYE3).max() <= 1e-13 and np.linalg.det(a) > 0):
-        problem = rotation_problem(a)  # the working-precision rotation above is asked nothing more
-        if problem is not None:
-            raise TrackmeterError(problem)
-    return np.asarray(rotation_from_matrix(a).as_quat(scalar_first=True, canonical=True), dtype=float)
+    return np.asarray(rotation_from_matrix(R, refuse_far=True).as_quat(scalar_first=True, canonical=True), dtype=float)
 
 
 def quat_sign_nearest(quat_wxyz: ArrayLike, reference_wxyz: ArrayLike | None) -> FloatArray:
