@@ -18,7 +18,7 @@ from pathlib import Path
 from tempfile import TemporaryDirectory
 
 import numpy as np
-from hypothesis import given, reject, settings
+from hypothesis import example, given, reject, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from scipy.spatial.transform import Rotation
@@ -28,6 +28,7 @@ from trackmeter.core.transforms import quat_signs_continuous
 from trackmeter.data.motion_csv import MotionSeries, read_motion_csv, write_groundtruth_csv, write_states_csv
 from trackmeter.data.rigfile import load_rig, save_rig
 from trackmeter.data.trajectory import Trajectory, read_tum, write_tum
+from trackmeter.errors import TrackmeterError
 
 
 def _floats(bound: float) -> st.SearchStrategy[float]:
@@ -162,12 +163,30 @@ def _rigs(draw: st.DrawFn) -> StereoRig:
     return StereoRig(left, right, R, T, rms_px=rms)
 
 
+#: The draw that CI's run failed on (2026-12-07): a lens no rectification takes, refused when read.
+_UNRECTIFIABLE = StereoRig(
+    Camera(285, 221, np.array([[1848.0, 0.0, 142.5], [0.0, 1848.0, 110.5], [0.0, 0.0, 1.0]]), np.zeros(8)),
+    Camera(285, 221, np.array([[325.3125, 0.0, 115.78125], [0.0, 347.0, 110.5], [0.0, 0.0, 1.0]]),
+           np.array([0.0, -0.25, 0.0, 0.0, 0.0, 0.25, 0.25, 0.0])),
+    Rotation.from_rotvec([0.125, 0.0625, 0.125]).as_matrix(), np.array([-1.0, 0.0, 0.0]))
+
+
 @settings(max_examples=40, deadline=None)
 @given(rig=_rigs())
+@example(rig=_UNRECTIFIABLE)
 def test_rig_file_round_trip(rig: StereoRig) -> None:
     with TemporaryDirectory() as tmp, warnings.catch_warnings():
         warnings.simplefilter("ignore")  # strong distortion or a long baseline may be warned about
-        back = load_rig(save_rig(rig, Path(tmp) / "rig.yaml"))
+        try:
+            back = load_rig(save_rig(rig, Path(tmp) / "rig.yaml"))
+        except TrackmeterError as exc:
+            # Independent draws of the rational model's coefficients now and then make a lens
+            # that no rectification can take (CI drew k2 -0.25, k4 k5 +0.25: a rectified focal
+            # length 13 times the cameras'). Refused when read by design (test_rigfile), not a
+            # round trip to check.
+            if "cannot be rectified" not in str(exc):
+                raise
+            reject()
     for a, b in ((rig.left, back.left), (rig.right, back.right)):
         assert (a.width, a.height) == (b.width, b.height)
         np.testing.assert_array_equal(a.K, b.K)
