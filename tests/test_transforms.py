@@ -533,3 +533,11 @@ def test_continuous_signs_are_quat_sign_nearest_along_the_series() -> None:
 
 def test_no_matrices_give_no_quaternions() -> None:
     assert tf.matrix_to_quat_wxyz(np.zeros((0, 3, 3))).shape == (0, 4)
+
+
+def test_a_reflection_is_no_rigid_transform() -> None:
+    # The check of 8ca936d skipped any matrix orthonormal to working precision, a reflection too.
+    with pytest.raises(TrackmeterError, match=r"R_a_b must be a rotation matrix.*det = -1"):
+        tf.make_transform(np.diag([1.0, 1.0, -1.0]), [0.0, 0.0, 0.0])
+    with pytest.raises(TrackmeterError, match=r"T_a_b\[:3, :3\] must be a rotation matrix.*det = -1"):
+        tf.invert_transform(np.diag([1.0, 1.0, -1.0, 1.0]))

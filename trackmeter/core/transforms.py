@@ -74,13 +74,20 @@ def rotation_from_matrix(R: ArrayLike, refuse_far: bool = False) -> Rotation:
     rounding), since scipy projects any matrix, ``2 I`` onto the identity.
     """
     R = np.asarray(R, dtype=float)
-    exact = bool(R.shape[-2:] == (3, 3) and R.size
-                 and np.abs(R @ np.swapaxes(R, -1, -2) - _EYE3).max() <= 1e-13 and np.linalg.det(R).min() > 0)
+    exact = _exact_rotation(R)
     if exact and _HAS_ASSUME_VALID:
         return Rotation.from_matrix(R, assume_valid=True)
     if not exact and refuse_far and (problem := rotation_problem(R)) is not None:
         raise TrackmeterError(problem)
     return Rotation.from_matrix(R)
+
+
+def _exact_rotation(R: FloatArray) -> bool:
+    """Whether ``R`` (3,3) or (N,3,3) is a rotation to working precision: ``|R R^T - I| <=
+    1e-13`` everywhere and det > 0 (NaN is not). What passes asks nothing more of scipy or of
+    :func:`~trackmeter.core.checks.rotation_problem`."""
+    return bool(R.shape[-2:] == (3, 3) and R.size
+                and np.abs(R @ np.swapaxes(R, -1, -2) - _EYE3).max() <= 1e-13 and np.linalg.det(R).min() > 0)
 
 
 _EYE3 = np.eye(3)
@@ -278,7 +285,7 @@ def _rotation(value: ArrayLike, name: str) -> FloatArray:
     """``value`` as a (3,3) rotation within :data:`~trackmeter.core.checks.ROTATION_TOLERANCE`
     (NaN passes, as before: a caller's marker of no pose)."""
     R = _shaped(value, name, (3, 3))
-    if np.isfinite(R).all() and not np.abs(R @ R.T - _EYE3).max() <= 1e-13:
+    if np.isfinite(R).all() and not _exact_rotation(R):
         problem = rotation_problem(R, name)
         if problem is not None:
             raise TrackmeterError(problem)
