@@ -26,6 +26,17 @@ def takes_over(signum: int, handler: object) -> bool:
     return handler in (signal.SIG_DFL, None)
 
 
+class StopSignal(KeyboardInterrupt):
+    """The KeyboardInterrupt the command line raises for a stop signal it took (Ctrl-C,
+    SIGTERM, SIGHUP); ``except KeyboardInterrupt`` catches it as any.
+
+    A subclass because CPython marks a plain KeyboardInterrupt that leaves code made from a
+    string (``exec``/``eval``, as dataclasses and namedtuple make their methods, so a signal
+    in an import's first second often lands there) as unhandled, and a ``python -m`` process
+    then kills itself with SIGINT at exit (status -2) whatever the command returned, though
+    it caught the interrupt and completed its files. The mark is for the exact type only."""
+
+
 #: The stop signal the command line took during the running command (:func:`note_taken`),
 #: or None.
 _taken: int | None = None
@@ -59,7 +70,7 @@ def interrupt_kept() -> Iterator[None]:
         yield
     except Exception:
         if before is None and _taken is not None:
-            raise KeyboardInterrupt from None
+            raise StopSignal from None
         raise
     if before is None and _taken is not None:
-        raise KeyboardInterrupt
+        raise StopSignal

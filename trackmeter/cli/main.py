@@ -87,7 +87,7 @@ def _command_module(name: str) -> ModuleType:
 
 
 def _interrupt(signum: int, frame: object) -> None:
-    """The first Ctrl-C, SIGTERM or SIGHUP stops the command (KeyboardInterrupt); any later
+    """The first Ctrl-C, SIGTERM or SIGHUP stops the command (StopSignal, a KeyboardInterrupt); any later
     one is only noted. A second signal arrives while the command winds down (Ctrl-C pressed
     twice; a wrapper such as ``timeout`` passing on the SIGTERM a service manager also sends):
     raised again, it would cut the wind-down short (a recording or a run left half-closed)
@@ -97,7 +97,7 @@ def _interrupt(signum: int, frame: object) -> None:
     _swap_handlers(_interrupt, _already_stopping)
     if signum == getattr(signal, "SIGHUP", None):
         _outlive_the_terminal()
-    raise KeyboardInterrupt
+    raise signals.StopSignal
 
 
 def _caused_by_an_interrupt(exc: BaseException) -> bool:
@@ -363,7 +363,7 @@ def _main(argv: Sequence[str] | None) -> int:
             # Python ("RuntimeError: Error calling __set_name__", caused by it). A Ctrl-C still.
             if signals.taken() is None or not (isinstance(exc, ImportError) or _caused_by_an_interrupt(exc)):
                 raise
-            raise KeyboardInterrupt from None
+            raise signals.StopSignal from None
     except TrackmeterError as exc:
         print(f"trackmeter {args.command}: error: {exc}", file=sys.stderr)
         return 2
