@@ -776,9 +776,9 @@ def test_a_disk_that_fills_stops_the_run_with_whole_rows_and_says_so(monkeypatch
     disk = full_disk(900)  # the headers and about 20 rows
 
     class HeldOnTheDisk(rundir.SpaceReserve):  # the run's reserve for run.yaml comes on top
-        def __init__(self, path, size: int) -> None:  # type: ignore[no-untyped-def]
+        def __init__(self, path, size: int, purpose: str) -> None:  # type: ignore[no-untyped-def]
             disk.free += size
-            super().__init__(path, size)
+            super().__init__(path, size, purpose)
 
     monkeypatch.setattr(rundir, "SpaceReserve", HeldOnTheDisk)
     assert main(["track", "--source", "fake", "--auto", "8", "--out", str(out)]) == 2
@@ -1098,9 +1098,9 @@ def test_an_overwrite_cut_short_by_a_full_disk_says_where_the_earlier_run_is(mon
     disk = full_disk(900)
 
     class HeldOnTheDisk(rundir.SpaceReserve):
-        def __init__(self, path, size: int) -> None:  # type: ignore[no-untyped-def]
+        def __init__(self, path, size: int, purpose: str) -> None:  # type: ignore[no-untyped-def]
             disk.free += size
-            super().__init__(path, size)
+            super().__init__(path, size, purpose)
 
     monkeypatch.setattr(rundir, "SpaceReserve", HeldOnTheDisk)
     assert main(["track", "--source", "fake", "--auto", "8", "--out", str(out), "--overwrite"]) == 2

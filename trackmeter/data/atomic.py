@@ -268,24 +268,36 @@ class SpaceReserve:
     it and writes ``run.yaml`` in the space it held; a process killed outright (SIGKILL, the
     OOM killer) has its descriptors closed by the kernel, so nothing is left in the folder.
 
+    Args:
+        path: where the bytes are written, a hidden name in the folder they are for (only
+            while they are written).
+        size: bytes to hold.
+        purpose: what they are held for, for the error (``"run.yaml's final version"``).
+
     Raises:
-        TrackmeterError: the reserve cannot be written (the disk is full already), with the
-            path and the system's reason; nothing is left behind.
+        TrackmeterError: the reserve cannot be written (the disk is full already), naming the
+            folder, the purpose and the system's reason (not the hidden name, which the user
+            never sees); nothing is left behind.
     """
 
-    def __init__(self, path: str | Path, size: int) -> None:
+    def __init__(self, path: str | Path, size: int, purpose: str = "a last file") -> None:
         self._fd: int | None = None
         path = Path(path)
-        held = AppendFile(path)
+        fd: int | None = None
         try:
-            held.append("\0" * size)
-            self._fd = os.open(path, os.O_RDONLY)
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o600)
+            view = memoryview(bytes(size))
+            while view:  # a full disk may take part of a write before refusing the rest
+                view = view[os.write(fd, view):]
         except OSError as exc:
-            raise TrackmeterError(f"{path}: cannot open ({exc.strerror or exc})") from None
+            if fd is not None:
+                os.close(fd)
+            raise TrackmeterError(f"{path.parent}: cannot set aside {size} bytes for {purpose} "
+                                  f"({exc.strerror or exc})") from None
         finally:
-            held.close()
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(path)
+        self._fd = fd
 
     @property
     def held(self) -> bool:

@@ -276,7 +276,8 @@ class RunWriter:
         self._begun.append(self.directory / "run.yaml")
         # A disk the rows fill would leave run.yaml saying "running": the space its final
         # version needs is held from the start (tests/test_rundir.py fills a real one).
-        self._reserve = SpaceReserve(self.directory / RESERVE_NAME, len(text.encode("utf-8")) + RESERVE_EXTRA_BYTES)
+        self._reserve = SpaceReserve(self.directory / RESERVE_NAME, len(text.encode("utf-8")) + RESERVE_EXTRA_BYTES,
+                                     "run.yaml's final version")
         # Each file counts as begun before it is opened: opening truncates it.
         self._begun.append(self.directory / "states.csv")
         self._states = MotionCsvWriter(self.directory / "states.csv", STATES_COLUMNS)
