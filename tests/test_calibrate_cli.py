@@ -11,6 +11,7 @@ import subprocess
 import sys
 import shutil
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import pytest
@@ -377,3 +378,70 @@ def test_a_good_calibration_says_nothing_of_its_rms(calib_dir: Path, tmp_path: P
     assert main(_args(calib_dir, tmp_path / "rig.yaml")) == 0
     captured = capsys.readouterr()
     assert captured.err == "" and "far above" not in captured.out
+
+
+_NUMBERS = (1, 2, 3, 4, 5, 6, 7, 8, 9, 11, 12, 13, 14)  # OpenCV ships no pair 10
+
+
+def _renumbered(calib_dir: Path, folder: Path, rights: Sequence[int]) -> list[str]:
+    """The sample pairs copied as left01.. / right01.., right k taken from view ``rights[k]``:
+    calibrate's arguments for them."""
+    folder.mkdir()
+    for k, (left, right) in enumerate(zip(_NUMBERS, rights), start=1):
+        shutil.copy(calib_dir / f"left{left:02d}.jpg", folder / f"left{k:02d}.jpg")
+        shutil.copy(calib_dir / f"right{right:02d}.jpg", folder / f"right{k:02d}.jpg")
+    return _args(folder, folder / "rig.yaml")
+
+
+def test_right_images_numbered_one_off_are_refused_and_nothing_is_written(calib_dir: Path, tmp_path: Path,
+                                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """Each left image paired with the next view's right one (the right camera's files
+    numbered one off): each camera alone fits to 0.2 px, the joint fit to 41 px with every
+    view alike, so no view was rejected, and a rig 77 squares wide with k3 -135378 was written
+    with exit 0 and a warning to give --square in metres (an outside probe)."""
+    args = _renumbered(calib_dir, tmp_path / "off", _NUMBERS[1:])
+    assert main(args) == 2
+    line = _one_error_line(capsys, "the pairs disagree on where the right camera is against the left: only 1 of 12",
+                           "were the left and right images of one number taken at the same moment?")
+    assert "0.20 and 0.21 px" in line, line
+    assert not (tmp_path / "off" / "rig.yaml").exists()
+
+
+def test_two_swapped_pairs_among_many_are_rejected_by_name(calib_dir: Path, tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """Views 5 and 6's right images exchanged: no view stood out by its RMS (the joint fit
+    spread the error to 13.9 px over all 13), so all were kept; now those two are rejected as
+    not taken together and the other 11 give the sample's own calibration."""
+    rights = list(_NUMBERS)
+    rights[4], rights[5] = rights[5], rights[4]
+    assert main(_renumbered(calib_dir, tmp_path / "swapped", rights)) == 0
+    captured = capsys.readouterr()
+    assert captured.err == ""
+    report = captured.out
+    assert "views: 11 used of 13 pairs" in report and "rejected views: 2" in report, report
+    for k in (5, 6):
+        line = next(ln for ln in report.splitlines() if f"left{k:02d}.jpg / right{k:02d}.jpg: not taken together" in ln)
+        assert "deg and" in line and "of the baseline off the other pairs'" in line
+    rms = float(re.search(r"RMS reprojection error: ([0-9.]+) px", report).group(1))  # type: ignore[union-attr]
+    assert rms < 0.25  # the 13 true pairs: 0.215 px
+
+
+def test_each_true_pairs_relative_pose_is_the_rigs(calib_dir: Path) -> None:
+    """The right camera's pose against the left from each camera's own board pose
+    (relative_poses) is the jointly calibrated rig's, within the board poses' noise, on every
+    one of OpenCV's sample pairs: the agreement the mismatched-pair check relies on."""
+    from scipy.spatial.transform import Rotation
+
+    from trackmeter.core.calibration import (CalibrationParams, calibrate_stereo, detect_corners, pair_agreement,
+                                             relative_poses)
+    from trackmeter.data.images import read_grey
+
+    corners = [[detect_corners(read_grey(calib_dir / f"{side}{n:02d}.jpg"), (9, 6), CalibrationParams())
+                for n in _NUMBERS] for side in ("left", "right")]
+    result = calibrate_stereo(corners[0], corners[1], (9, 6), 1.0, (640, 480))
+    R, T = relative_poses(result.left, result.right)
+    angle_deg = np.degrees((Rotation.from_matrix(R) * Rotation.from_matrix(result.rig.R).inv()).magnitude())
+    assert angle_deg.max() < 0.5
+    assert np.linalg.norm(T - result.rig.T, axis=1).max() < 0.05 * result.rig.baseline_m
+    agreement = pair_agreement(result.left, result.right)
+    assert agreement.agree.all() and agreement.angle_deg.max() < 0.5 and agreement.shift_fraction.max() < 0.05
