@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import cv2
@@ -146,6 +147,19 @@ def test_an_opencv_pair_for_another_image_size_is_refused_by_its_principal_point
                                               r"calibrated for another image size"):
         load_rig(tmp_path / "intrinsics.yml", image_size=(320, 240))
     assert load_rig(tmp_path / "intrinsics.yml", image_size=(640, 480)).image_size == (640, 480)
+
+
+def test_an_opencv_pair_whose_principal_point_is_near_the_frames_edge_is_warned_about(tmp_path: Path) -> None:
+    """A 640x480 calibration on 384x288 frames (Tsukuba; an outside probe): the principal point
+    (330, 241) lies inside them, so it passed, and `measure` refused every point saying the
+    images looked swapped. The pair carries no size, so the likely cause is said at loading."""
+    _write_opencv_pair(tmp_path, _rig())
+    with pytest.warns(UserWarning, match=r"intrinsics.yml: the principal point \(330\.2, 241\.5\) lies 36% of the "
+                                         r"384x288 px frames from their centre: calibrated for another image size\?"):
+        load_rig(tmp_path / "intrinsics.yml", image_size=(384, 288))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert load_rig(tmp_path / "intrinsics.yml", image_size=(640, 480)).image_size == (640, 480)
 
 
 # --------------------------------------------------------------------------- presets

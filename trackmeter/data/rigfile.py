@@ -631,6 +631,11 @@ def _load_middlebury(entries: dict[str, str], path: Path, image_size: tuple[int,
         raise TrackmeterError(f"{path}: Middlebury calib: {exc}") from None
 
 
+#: A principal point farther than this fraction of the frames' width (height) from their centre
+#: is warned about in a rig file that carries no image size (lenses put it within a few per cent).
+OFF_CENTRE_WARN_FRACTION = 0.3
+
+
 def _load_opencv_pair(path: Path, image_size: tuple[int, int] | None) -> StereoRig:
     folder = path.parent
 
@@ -672,6 +677,14 @@ def _load_opencv_pair(path: Path, image_size: tuple[int, int] | None) -> StereoR
             if not (0 <= cx <= width and 0 <= cy <= height):  # the size is the frames', not the calibration's
                 raise TrackmeterError(f"{path}: the principal point ({cx:.1f}, {cy:.1f}) lies outside the {width}x{height} "
                                       "px frames: calibrated for another image size")
+            off_centre = max(abs(cx - (width - 1) / 2) / width, abs(cy - (height - 1) / 2) / height)
+            if off_centre > OFF_CENTRE_WARN_FRACTION:
+                # Inside the frames, yet near their edge: a 640x480 calibration on 384x288 frames
+                # (cx 340.7 of 384) refused every point as "the images look swapped" (an outside probe).
+                warnings.warn(f"{path}: the principal point ({cx:.1f}, {cy:.1f}) lies {off_centre:.0%} of the "
+                              f"{width}x{height} px frames from their centre: calibrated for another image size? "
+                              "(OpenCV's intrinsics/extrinsics carry none; the frames' is taken)", stacklevel=2)
+                break
         return StereoRig(left, right, _rotation(fe, extr), _matrix(fe, "T", extr).ravel(), name=folder.name)
     finally:
         fi.release()
