@@ -74,6 +74,12 @@ class RangeStatistics:
         predicted_sigma_m: (3,) mean error-propagation sigma of the same measurements, m
             (NaN when not given).
         residuals_m: (n_samples, 3) measurement minus its point's mean, m.
+        depth_studentised: (n_samples,) each depth residual over its point's spread without
+            it (externally studentised: Student's t with ``n_p - 2`` degrees of freedom for
+            Gaussian noise), mapped through the t and normal quantiles: N(0, 1) for Gaussian
+            noise whatever the point's sigma, so that points of different noise (texture,
+            depth) pool into one density without a mixture of scales making heavy tails. NaN
+            for a point measured fewer than 3 times or whose other measurements are all equal.
     """
 
     range_m: float
@@ -84,6 +90,7 @@ class RangeStatistics:
     depth_k_per_m: float
     predicted_sigma_m: FloatArray
     residuals_m: FloatArray
+    depth_studentised: FloatArray
 
 
 def range_statistics(
@@ -158,6 +165,19 @@ def range_statistics(
     sigma = np.sqrt(np.sum(R * R, axis=0) / dof)
     depth_k = float(np.sqrt(np.sum((resid[..., 2] / mean[None, :, 2] ** 2)[sel] ** 2) / dof))
     predicted = np.full(3, np.nan) if S is None else np.sqrt(np.mean(S[sel] ** 2, axis=0))  # their RMS
+    # Each depth residual against its point's other measurements (leave one out: mean and
+    # spread without it), t_i = r_i sqrt(n / (n - 1)) / s_(-i), is Student's t with n - 2
+    # degrees of freedom for Gaussian noise whatever the point's sigma; its t quantile taken
+    # to the normal's makes it exactly N(0, 1). (r_i over the point's own spread with r_i in
+    # it is bounded by sqrt(n - 1), and 9000 such failed the normality test by light tails.)
+    n_p = counts.astype(float)[None, :]
+    r_z = np.where(sel, resid[..., 2], 0.0)
+    ss = (r_z**2).sum(axis=0)[None, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s2_without = (ss - n_p / (n_p - 1) * r_z**2) / (n_p - 2)
+        t_stat = r_z * np.sqrt(n_p / (n_p - 1)) / np.sqrt(s2_without)
+        usable = sel & (n_p >= 3) & (s2_without > 0)
+        studentised = np.where(usable, stats.norm.isf(stats.t.sf(t_stat, np.maximum(n_p - 2, 1))), np.nan)[sel]
     return RangeStatistics(
         range_m=float(np.mean(X[sel][:, 2])),
         n_points=int(np.count_nonzero(use)),
@@ -167,6 +187,7 @@ def range_statistics(
         depth_k_per_m=depth_k,
         predicted_sigma_m=predicted,
         residuals_m=R,
+        depth_studentised=studentised,
     )
 
 
@@ -176,7 +197,10 @@ class TruthErrors:
 
     Attributes:
         rms_m: (3,) RMS of all errors per axis, gross mismatches left out, m.
-        bias_rms_m: (3,) RMS over points of each point's mean error (the systematic part), m.
+        bias_rms_m: (3,) RMS over the measurements of their point's mean error (the systematic
+            part), m: each point weighed by its measurements, as in ``rms_m``, so the part is
+            never larger than the whole (over points alike, a point measured in fewer frames
+            with a larger bias made it so: an outside probe, 9.34 against 8.87 mm at 5 m).
         median_abs_m: (3,) median absolute error per axis (all points), m.
         n_points: points compared (with a known true position and a good measurement).
         n_gross: points whose mean error is a gross outlier (left out of the RMS figures).
@@ -226,7 +250,7 @@ def truth_errors(points_cam_m: ArrayLike, true_points_cam_m: ArrayLike, gross_si
     Ek = E[good & keep[None, :]]
     return TruthErrors(
         np.sqrt(np.mean(Ek**2, axis=0)) if len(Ek) else np.full(3, np.nan),
-        np.sqrt(np.mean(bias[~gross] ** 2, axis=0)) if np.any(~gross) else np.full(3, np.nan),
+        np.sqrt(np.average(bias[~gross] ** 2, axis=0, weights=n[has][~gross])) if np.any(~gross) else np.full(3, np.nan),
         np.median(np.abs(E[good]), axis=0),
         int(np.count_nonzero(has)),
         int(np.count_nonzero(gross)),
@@ -422,8 +446,11 @@ class ErrorAnalysis:
         ranges: per-range statistics, by increasing range.
         fits: ``sigma = k z^2`` per camera axis ``"x"``, ``"y"``, ``"z"``.
         sigma_disparity_px: sub-pixel disparity accuracy from the z fit (eq. 2 inverted).
-        density: error density of the depth residuals normalised by each range's
-            measured sigma_z (dimensionless, so all ranges pool; Fig. 2).
+        density: error density of the depth residuals, each over its own point's standard
+            deviation (:attr:`RangeStatistics.depth_studentised`: dimensionless, so all points
+            and ranges pool; Fig. 2). Over one sigma per range instead, points of different
+            noise (a texture's sigma_d 0.012 to 0.094 px, depths spread) made a mixture whose
+            heavy tails failed the normality tests on Gaussian noise (an outside probe).
         density_range: error density of the depth residuals at the range nearest 3.5 m, m.
         focal_px, baseline_m: the rig used in eq. 2.
     """
@@ -493,7 +520,7 @@ def analyze_ranges(
     # Depth: each range's sigma_z at its mean depth from its own points' k (eq. 2 point by
     # point): the same for a flat target, and right for a scene spread in depth.
     fits["z"] = fit_parabola(z, [r.depth_k_per_m * r.range_m**2 for r in rs])
-    normalised = np.concatenate([r.residuals_m[:, 2] / r.sigma_m[2] for r in rs if r.sigma_m[2] > 0])
+    normalised = np.concatenate([r.depth_studentised for r in rs])
     near = int(np.argmin(np.abs(z - 3.5)))
     return ErrorAnalysis(
         rs,

@@ -5,7 +5,7 @@ Plots (matplotlib, Agg backend, PNG):
 - ``sigma_vs_range.png`` (Fig. 3): measured single-point sigma per axis against range, the
   least-squares parabola ``sigma = k z^2`` and the error propagation's prediction;
 - ``error_density.png`` (Fig. 2): histogram density of the depth residuals at the range nearest
-  3.5 m and of the residuals normalised by each range's sigma, with their best normal fits.
+  3.5 m and of the residuals each over its own point's spread (studentised), with their best normal fits.
 
 Millimetres only at this display edge; the JSON stays in SI units.
 """
@@ -78,7 +78,7 @@ def format_analysis(summary: dict) -> str:
     )
     d = summary["density_normalised"]
     lines.append(
-        f"error density (depth residual / sigma_z, {d['n']} samples): normal fit mu = {d['mu']:.3f}, "
+        f"error density (depth residual over its point's spread without it, studentised, {d['n']} samples): normal fit mu = {d['mu']:.3f}, "
         f"sigma = {d['sigma']:.3f}; KS D = {d['ks_statistic']:.4f} (p = {d['ks_pvalue']:.3g}), "
         f"D'Agostino K^2 = {d['k2_statistic']:.2f} (p = {d['k2_pvalue']:.3g})"
     )
@@ -132,7 +132,7 @@ def _plot(analysis: ErrorAnalysis) -> dict[str, bytes]:
     near = analysis.ranges[int(np.argmin([abs(r.range_m - 3.5) for r in analysis.ranges]))]
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     panel(axes[0], analysis.density_range, 1e3, "depth error [mm]", f"depth residuals at {near.range_m:.2f} m")
-    panel(axes[1], analysis.density, 1.0, "depth error / sigma_z", "all ranges, normalised")
+    panel(axes[1], analysis.density, 1.0, "depth residual, studentised", "all points and ranges")
     fig.suptitle("error probability density (paper Fig. 2)")
     fig.tight_layout()
     density_png = figure_png(fig)
