@@ -364,6 +364,18 @@ def test_the_text_summary_shows_the_mismatches_and_no_nan_for_one_range():
     assert row[end - 6:end].strip() == "1"
 
 
+def test_the_text_summary_says_what_the_z_parabola_is_fitted_to():
+    """On a scene spread in depth the z fit (each range's k z^2, its points' own k of eq. 2)
+    missed the table's pooled sz by 43 % on Tsukuba with nothing said (an outside probe): the
+    summary names the quantity fitted, and the mismatch legend the cut it makes."""
+    from trackmeter.data.analysis_report import format_analysis
+
+    X, S = spread_scene()
+    text = format_analysis(analyze_ranges([range_statistics(X, S, max_abs_residual_sigmas=8.0)], F_PX, B_M).to_dict())
+    assert "fitted to each range's k z^2 from its points' own depths (sd's, eq. 2 point by point), not to sz" in text
+    assert "beyond analyze.max_abs_residual_sigmas robust sigmas, 1.4826 MAD" in text
+
+
 def test_the_parabola_s_standard_error_is_the_least_squares_one_with_n_minus_1_dof() -> None:
     """k_std_per_m is the textbook standard error of a least-squares fit through the origin with
     one regressor x = z²: ``s² (X^T X)^-1`` with ``s² = SSR / (n - 1)`` (n - p, p = 1: the

@@ -61,13 +61,14 @@ def format_analysis(summary: dict) -> str:
         "(origin: the target origin's true range, as the skipped ranges are named, '-' without ground truth; "
         "range: the mean measured depth of the range's points;\n sigma: repeated-measurement standard deviation; "
         "pred: error propagation with the matcher's sigma_d; sd: eq. 2 at that range, point by point;\n mism: samples "
-        "left out as mismatches (beyond analyze.max_abs_residual_sigmas of their own predicted sigma); true rms/bias: against the simulator's surface points, gross mismatches (gross/points) left out)"
+        "left out as mismatches (residuals in units of their own predicted sigma, beyond analyze.max_abs_residual_sigmas robust sigmas, 1.4826 MAD, of them); true rms/bias: against the simulator's surface points, gross mismatches (gross/points) left out)"
     )
     fz = summary["fit"]["z"]
     lines.append(
         f"fit sigma_z = k z^2: k = {fz['k_per_m'] * 1e3:.4f} mm/m^2 (± {_shown(fz['k_std_per_m'], 1e3)}), "
-        f"R^2 = {_shown(fz['r2'])}; sigma_z at 3.5 m = {summary['sigma_z_at_3p5_m'] * 1e3:.3f} mm "
-        f"(paper: {PAPER_SIGMA_Z_3P5_M * 1e3:.0f} mm)"
+        f"R^2 = {_shown(fz['r2'])} (through the origin); sigma_z at 3.5 m = {summary['sigma_z_at_3p5_m'] * 1e3:.3f} mm "
+        f"(paper: {PAPER_SIGMA_Z_3P5_M * 1e3:.0f} mm);\n fitted to each range's k z^2 from its points' own depths "
+        "(sd's, eq. 2 point by point), not to sz, which weighs a range spread in depth toward its far points"
     )
     lines.append(
         f"sub-pixel disparity accuracy from k (eq. 2, sigma_d = k f b): {summary['sigma_disparity_px']:.4f} px "
@@ -102,7 +103,10 @@ def _plot(analysis: ErrorAnalysis) -> dict[str, bytes]:
         sig = np.array([r.sigma_m[i] for r in analysis.ranges]) * 1e3
         pred = np.array([r.predicted_sigma_m[i] for r in analysis.ranges]) * 1e3
         k = analysis.fits[axis].k_per_m
-        ax.plot(z, sig, "o", label="measured")
+        ax.plot(z, sig, "o", label="measured (pooled)")
+        if axis == "z":  # what the z fit is fitted to: eq. 2 point by point (ErrorAnalysis.fits)
+            ax.plot(z, np.array([r.depth_k_per_m * r.range_m**2 for r in analysis.ranges]) * 1e3, "+", ms=9,
+                    label="k z², the points' own depths (fitted)")
         ax.plot(zz, k * zz**2 * 1e3, "-", label=f"fit k z², k = {k * 1e3:.3f} mm/m²")
         if np.any(np.isfinite(pred)):
             ax.plot(z, pred, "x", label="error propagation")
