@@ -1109,6 +1109,26 @@ def test_an_estimate_written_in_another_convention_is_named(capsys, tmp_path, mi
     assert len(row.split()) == 6, row
 
 
+def test_a_tum_estimate_is_never_said_to_be_read_scalar_first(capsys, tmp_path):
+    """A TUM estimate whose quaternions fit the truth far better rolled the other way (each
+    row's qw column holding the truth's qx, ...) was told it had been "written scalar last
+    (x y z w) where scalar first is read": TUM is read scalar last (an outside probe). The
+    hint names only the order that the file's format was not read in; a CSV still gets it."""
+    truth = tumbling_truth()
+    q = np.array(truth.quat_wxyz)
+    lines = [" ".join(f"{x:.9f}" for x in (t, *pos, *np.roll(quat, -1)[[1, 2, 3, 0]]))
+             for t, pos, quat in zip(truth.t_s, truth.position_m, q)]
+    (tmp_path / "e.tum").write_text("\n".join(lines) + "\n")
+    _tum(tmp_path / "t.tum", truth)
+    code, out, err = _run(capsys, "evaluate", "--truth", str(tmp_path / "t.tum"), "--estimate", str(tmp_path / "e.tum"))
+    assert code == 0 and "where scalar first is read" not in err, err
+    rows = ["t,x,y,z,qw,qx,qy,qz"] + [",".join(f"{x:.9f}" for x in (t, *pos, *np.roll(quat, -1)))
+                                      for t, pos, quat in zip(truth.t_s, truth.position_m, q)]
+    (tmp_path / "e.csv").write_text("\n".join(rows) + "\n")
+    code, out, err = _run(capsys, "evaluate", "--truth", str(tmp_path / "t.tum"), "--estimate", str(tmp_path / "e.csv"))
+    assert code == 0 and "written scalar last (x y z w) where scalar first is read" in err, err
+
+
 def test_warnings_about_an_estimate_without_a_valid_column_call_it_neither_truth_nor_valid(capsys, sequence_and_run,
                                                                                           tmp_path):
     # A states.csv without its valid column, given as --estimate, was warned about as "read as

@@ -277,7 +277,8 @@ def run(args: argparse.Namespace) -> int:
         print("trackmeter evaluate: warning: the run's run.yaml says it is still running: it was killed, its disk "
               "filled, or it is still being written, so it may end early and its summary is missing"
               + _previous_run_note(Path(args.estimate)), file=sys.stderr)
-    mixups = likely_mixups(truth.series, estimate.series, assoc.index_truth, assoc.index_est) \
+    mixups = likely_mixups(truth.series, estimate.series, assoc.index_truth, assoc.index_est,
+                           estimate.quat_read_scalar_first) \
         if params.align == "none" else []
     for hint in mixups:
         print(f"trackmeter evaluate: warning: {hint}", file=sys.stderr)

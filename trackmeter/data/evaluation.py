@@ -56,6 +56,9 @@ class LoadedMotion:
     # (NaN where a row has none), or None without the file; and which rows the file has (N,)
     cov_pose: np.ndarray | None = None
     cov_pose_rows: np.ndarray | None = None
+    # how its quaternions were read: scalar first (a CSV: qw qx qy qz), scalar last (TUM:
+    # qx qy qz qw), or None (not said): which other order a mix-up hint may name
+    quat_read_scalar_first: bool | None = None
 
 
 def _looks_like_motion_csv(path: Path) -> bool:
@@ -373,19 +376,21 @@ def _load_estimate(path: Path) -> LoadedMotion:
             if len(s) == 0:
                 raise TrackmeterError(f"{path / 'states.csv'}: no valid pose in the run{_why_no_valid_pose(path)}")
             return LoadedMotion(s, str(path / "states.csv"), bool(np.any(_rows_with_rates(s))), t_start,
-                                frame_times_s=frames, valid_rows_without_rates=_valid_rows_without_rates(full))
+                                frame_times_s=frames, valid_rows_without_rates=_valid_rows_without_rates(full),
+                                quat_read_scalar_first=True)
         if (path / "trajectory.tum").is_file():
             if (path / "run.yaml").is_file():  # a run's folder: its states.csv was expected
                 what = "not a file" if (path / "states.csv").exists() else "missing"
                 warnings.warn(f"{path / 'states.csv'}: {what}: the poses of {path / 'trajectory.tum'} are "
                               "evaluated, without rates", stacklevel=3)
             s = MotionSeries.from_trajectory(read_tum(path / "trajectory.tum"))
-            return LoadedMotion(s, str(path / "trajectory.tum"), False)
+            return LoadedMotion(s, str(path / "trajectory.tum"), False, quat_read_scalar_first=False)
         raise TrackmeterError(f"{path}: not a run directory (no states.csv or trajectory.tum)")
     _require_file(path)
     t_start = frames = None
     without_rates = 0
-    if _looks_like_motion_csv(path):
+    read_scalar_first = _looks_like_motion_csv(path)
+    if read_scalar_first:
         full = read_motion_csv(path)
         t_start, frames = float(full.t_s[0]), full.t_s.copy()
         s = _poses_of_run(full, *_declared_pose_times(path.parent))
@@ -395,7 +400,7 @@ def _load_estimate(path: Path) -> LoadedMotion:
     if len(s) == 0:
         raise TrackmeterError(f"{path}: no valid pose")
     return LoadedMotion(s, str(path), bool(np.any(_rows_with_rates(s))), t_start, frame_times_s=frames,
-                        valid_rows_without_rates=without_rates)
+                        valid_rows_without_rates=without_rates, quat_read_scalar_first=read_scalar_first)
 
 
 def _valid_rows_without_rates(rows: MotionSeries) -> int:
@@ -435,7 +440,7 @@ MIXUP_GAIN = 10.0
 
 
 def likely_mixups(truth: MotionSeries, estimate: MotionSeries, index_truth: np.ndarray,
-                  index_est: np.ndarray) -> list[str]:
+                  index_est: np.ndarray, read_scalar_first: bool | None = None) -> list[str]:
     """What an estimate far from the truth was likely written as, told apart on the paired
     poses: the inverse pose (``T_body_cam`` for ``T_cam_body``), a quaternion in the other
     order (scalar first where scalar last is read, or the reverse), or positions in
@@ -443,7 +448,10 @@ def likely_mixups(truth: MotionSeries, estimate: MotionSeries, index_truth: np.n
     better than the estimate as read (a rotation inverted alone too: a JPL quaternion), and
     positions when their sizes differ about a thousand- or a hundredfold (millimetres,
     centimetres); none when the estimate is close already. Compared as they are (no body
-    alignment): a body frame of its own is none of these."""
+    alignment): a body frame of its own is none of these. ``read_scalar_first``: how the
+    estimate's quaternions were read (True a CSV's qw first, False TUM's qw last), so that only
+    the other order is named (a TUM file was told it had been "written scalar last where
+    scalar first is read"); None names either."""
     from scipy.spatial.transform import Rotation
 
     if len(index_truth) == 0:
@@ -468,11 +476,13 @@ def likely_mixups(truth: MotionSeries, estimate: MotionSeries, index_truth: np.n
         "inverted (T_body_cam where T_cam_body is read)": (R_e.inv(), -R_e.inv().apply(p_e)),
         "with its rotation inverted (a JPL or conjugated quaternion, or R_body_cam beside T_cam_body's position)":
             (R_e.inv(), p_e),
-        "written scalar first (w x y z) where scalar last is read (TUM: qx qy qz qw)":
-            (Rotation.from_quat(np.roll(q_e, -1, axis=1), scalar_first=True), p_e),
-        "written scalar last (x y z w) where scalar first is read (qw qx qy qz)":
-            (Rotation.from_quat(np.roll(q_e, 1, axis=1), scalar_first=True), p_e),
     }
+    if read_scalar_first is not True:
+        alternatives["written scalar first (w x y z) where scalar last is read (TUM: qx qy qz qw)"] = \
+            (Rotation.from_quat(np.roll(q_e, -1, axis=1), scalar_first=True), p_e)
+    if read_scalar_first is not False:
+        alternatives["written scalar last (x y z w) where scalar first is read (qw qx qy qz)"] = \
+            (Rotation.from_quat(np.roll(q_e, 1, axis=1), scalar_first=True), p_e)
     fits = []  # (position, attitude, what) of the conventions that fit far better
     for what, (R_alt, p_alt) in alternatives.items():
         position_alt, attitude_alt = _pose_rms(R_t, p_t, R_alt, p_alt)
