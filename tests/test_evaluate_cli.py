@@ -1109,6 +1109,14 @@ def test_an_estimate_written_in_another_convention_is_named(capsys, tmp_path, mi
     assert len(row.split()) == 6, row
 
 
+def test_the_error_plots_name_the_axes_their_panels_are_in():
+    from trackmeter.data.evaluation import error_plot_title
+
+    assert error_plot_title("omega_rad_s").startswith("angular velocity (body frame) error (estimate - truth), body axes\n")
+    for group in ("position_m", "attitude_rad", "velocity_m_s"):
+        assert "camera axes, z = the viewing axis\n" in error_plot_title(group)
+
+
 def test_a_tum_estimate_is_never_said_to_be_read_scalar_first(capsys, tmp_path):
     """A TUM estimate whose quaternions fit the truth far better rolled the other way (each
     row's qw column holding the truth's qx, ...) was told it had been "written scalar last

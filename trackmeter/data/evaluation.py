@@ -598,6 +598,15 @@ def error_table_csv(evaluation: Evaluation) -> str:
                                            for row in table)
 
 
+def error_plot_title(group: str) -> str:
+    """An error plot's title, on two lines (one was cut at the figure's 880 px), with the axes
+    its panels are in: the angular velocity's are the body's (an outside probe read "z = viewing
+    axis" above the body-frame omega), the others the camera's."""
+    title = _DISPLAY[group][0]
+    axes = "body axes" if group == "omega_rad_s" else "camera axes, z = the viewing axis"
+    return f"{title} error (estimate - truth), {axes}\ndashed: the paper's bounds at 3.5 m"
+
+
 def render_error_plots(evaluation: Evaluation) -> dict[str, bytes]:
     """PNG plots of the errors against time, one panel per axis (the paper's Figs. 6 and 7),
     in mm, deg, mm/s and deg/s, with the paper's ± bounds dashed: file name -> PNG bytes."""
@@ -629,7 +638,7 @@ def render_error_plots(evaluation: Evaluation) -> dict[str, bytes]:
             ax.axhline(-bound, ls="--", c="grey", lw=0.8)
             ax.set_ylabel(f"{axis} [{unit}]")
             ax.grid(alpha=0.3)
-        axes[0].set_title(f"{title} error (estimate - truth); dashed: paper at 3.5 m (z = viewing axis)")
+        axes[0].set_title(error_plot_title(group), fontsize=10)
         axes[-1].set_xlabel("time since the first evaluated pose [s]")
         fig.tight_layout()
         plots[REPORT_PLOTS[list(_DISPLAY).index(group)]] = figure_png(fig)
