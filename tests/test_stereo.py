@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 from pathlib import Path
 
 import cv2
@@ -507,3 +508,14 @@ def test_a_point_in_the_camera_plane_projects_as_the_docstring_says_as_opencv_do
     assert np.array_equal(uv, rig.left.project([0.1, 0.1, 1.0]))  # through (x, y): 1/z taken as 1
     ref, _ = cv2.projectPoints(np.array([[0.1, 0.1, 0.0]]), np.zeros(3), np.zeros(3), rig.left.K, rig.left.dist)
     assert np.array_equal(uv, ref.reshape(-1, 2))
+
+
+@pytest.mark.parametrize("f", [1e300, 1e-300, 3.0, 7e6])
+def test_a_focal_length_no_lens_has_is_refused_as_such(f: float) -> None:
+    """fx 1e300 (or 1e-300) px in a rig file passed and was refused later as the right camera
+    "turned 0 deg about its viewing axis" (an outside probe)."""
+    K = np.array([[f, 0.0, 319.5], [0.0, 500.0, 239.5], [0.0, 0.0, 1.0]])
+    with pytest.raises(TrackmeterError, match=re.escape(f"K's focal length fx = {f:g} px is no lens's for a 640x480 "
+                                                        "image (0.01 to 10000 times its larger side)")):
+        Camera(640, 480, K)
+    Camera(640, 480, np.array([[7.0, 0.0, 319.5], [0.0, 6.4e6, 239.5], [0.0, 0.0, 1.0]]))  # the ends inside

@@ -90,6 +90,11 @@ def _nearest_rotation(R: FloatArray) -> FloatArray:
     return procrustes_rotation(R)[0]
 
 
+#: The focal lengths a camera is accepted with, in px per px of the image's larger side: a
+#: fisheye seeing 180 deg across has about 0.3, a telescope seeing 0.06 deg about 1000.
+MIN_FOCAL_PER_IMAGE, MAX_FOCAL_PER_IMAGE = 0.01, 1e4
+
+
 @dataclass(frozen=True, eq=False)
 class Camera:
     """A pinhole camera with OpenCV lens distortion.
@@ -127,6 +132,14 @@ class Camera:
         object.__setattr__(self, "dist", dist if dist.size else np.zeros(5))
         if self.K[0, 0] <= 0 or self.K[1, 1] <= 0:
             raise TrackmeterError("K must have positive focal lengths")
+        size = max(self.width, self.height)
+        for name, f in (("fx", self.K[0, 0]), ("fy", self.K[1, 1])):
+            if not MIN_FOCAL_PER_IMAGE * size <= f <= MAX_FOCAL_PER_IMAGE * size:
+                # 1e300 px passed and was refused later as the right camera "turned 0 deg about its
+                # viewing axis" (an outside probe): a focal length no lens has, said as such.
+                raise TrackmeterError(f"K's focal length {name} = {f:g} px is no lens's for a {self.width}x{self.height} "
+                                      f"image ({MIN_FOCAL_PER_IMAGE:g} to {MAX_FOCAL_PER_IMAGE:g} times its larger side): "
+                                      "K of another unit or a typo?")
         if not np.array_equal(self.K[2], [0.0, 0.0, 1.0]):
             # A pinhole K's last row is [0 0 1]; OpenCV reads only fx, fy, cx, cy (not even the
             # skew) and would ignore any other, e.g. a K scaled as a whole for a resized image.
