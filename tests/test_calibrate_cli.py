@@ -445,3 +445,14 @@ def test_each_true_pairs_relative_pose_is_the_rigs(calib_dir: Path) -> None:
     assert np.linalg.norm(T - result.rig.T, axis=1).max() < 0.05 * result.rig.baseline_m
     agreement = pair_agreement(result.left, result.right)
     assert agreement.agree.all() and agreement.angle_deg.max() < 0.5 and agreement.shift_fraction.max() < 0.05
+
+    # The check runs only where the joint fit is poor (calibrate.pair_check_rms_px): a camera's
+    # own fit that stopped in a poorer solution (a wide lens) scatters its board poses while the
+    # joint fit is good. Two swapped pairs fit jointly to 13.9 px: checked and dropped by
+    # default, kept (and the fit left poor) when the check's threshold is above that.
+    swapped = list(corners[1])
+    swapped[4], swapped[5] = swapped[5], swapped[4]
+    checked = calibrate_stereo(corners[0], swapped, (9, 6), 1.0, (640, 480))
+    assert [rv.index for rv in checked.rejected] == [4, 5] and checked.rms_px < 0.25
+    unchecked = calibrate_stereo(corners[0], swapped, (9, 6), 1.0, (640, 480), CalibrationParams(pair_check_rms_px=100.0))
+    assert unchecked.rejected == () and unchecked.rms_px > 10.0

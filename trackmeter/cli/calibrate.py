@@ -1,11 +1,12 @@
 """trackmeter calibrate: chessboard stereo calibration, written as a rig file.
 
 Finds the chessboard's inner corners in every left/right pair (sub-pixel), calibrates each
-camera (linear initialisation, then Levenberg-Marquardt), drops pairs whose two images were
-not taken together (the cameras' own board poses put the right camera elsewhere than the other
-pairs do; when most pairs disagree, the images are not paired as taken and nothing is written),
-refines both jointly, drops outlier views (and says which and why), and writes the rig
-(OpenCV FileStorage YAML with rms_px, E, F and the standard deviations of the parameters).
+camera (linear initialisation, then Levenberg-Marquardt), refines both jointly, drops pairs
+whose two images were not taken together where the joint fit is poor (the cameras' own board
+poses put the right camera elsewhere than the other pairs do; when most pairs disagree, the
+images are not paired as taken and nothing is written), drops outlier views (and says which
+and why), and writes the rig (OpenCV FileStorage YAML with rms_px, E, F and the standard
+deviations of the parameters).
 
 Pairs match by the number in the file names (left07.png / right07.png) when every name has
 one, else by sorted order. Give --square in metres so the rig's T is in metres.

@@ -8,14 +8,16 @@ Levenberg-Marquardt"):
 2. :func:`calibrate_camera`: each camera on its own with ``calibrateCameraExtended``: Zhang's
    closed-form (linear) initialisation from the plane homographies, then Levenberg-Marquardt
    on the reprojection error; gives per-view errors and parameter standard deviations.
-   Pairs whose two images did not see the board at one moment (a numbering off by one, a
-   pair swapped) are found here (:func:`pair_agreement`): the two cameras' own board poses
-   put the right camera somewhere against the left, the same place in every true pair.
 3. :func:`calibrate_stereo`: both cameras refined jointly with ``stereoCalibrateExtended``
    starting from step 2 (every intrinsic left free, ``CALIB_USE_INTRINSIC_GUESS``), so the
    extrinsics ``R``, ``T`` and the intrinsics share one least-squares solution. Views whose
    reprojection error is far above the others (:func:`find_outlier_view`) are dropped and the
-   whole calibration repeated without them, one view at a time.
+   whole calibration repeated without them, one view at a time. Before that, where the joint
+   fit is far worse than the corners allow (``pair_check_rms_px``), pairs whose two images did
+   not see the board at one moment (a numbering off by one, two swapped) are found
+   (:func:`pair_agreement`: the two cameras' own board poses put the right camera somewhere
+   against the left, the same place in every true pair) and dropped, or the calibration
+   refused when most disagree.
 4. Standard deviations of the joint solution (:func:`stereo_parameter_std`): OpenCV's stereo
    functions give none, so they come from the Gauss-Newton covariance
    ``sigma² (JᵀJ)⁻¹``, ``sigma² = |r|² / (m - n)`` — the same estimate
@@ -78,6 +80,10 @@ class CalibrationParams:
         "2 px off gives 0.27 px) and is kept, however sharp the others", min=0.0,
     )
     min_views: int = param(5, "never reject views below this many; fewer usable views is an error", min=3)
+    pair_check_rms_px: float = param(
+        1.0, "when the joint fit's RMS exceeds this, px, the pairs are checked for images not taken together "
+        "(pair_max_deg, pair_max_baseline_fraction)", min=0.0,
+    )
     pair_max_deg: float = param(
         3.0, "a pair is mismatched (its images not taken together) when the right camera's orientation against "
         "the left, from each camera's own view of the board, is turned more than this from the other pairs', deg",
@@ -475,11 +481,20 @@ def calibrate_stereo(
         )
     L = {i: np.asarray(uv_left[i], np.float32).reshape(-1, 2) for i in used}
     Rr = {i: match_corner_order(L[i], np.asarray(uv_right[i], np.float32).reshape(-1, 2)) for i in used}
-    used = _drop_mismatched_pairs(used, board, L, Rr, image_size, params, rejected)
 
+    pairs_checked = False
     while True:
         obj = [board] * len(used)
         left, right, out = _stereo_step(obj, [L[i] for i in used], [Rr[i] for i in used], image_size, params)
+        if not pairs_checked and float(out[0]) > params.pair_check_rms_px:
+            # A joint fit far worse than the corners allow: are some pairs' images not taken
+            # together? Asked only then, since a camera's own fit that stopped in a poorer
+            # solution (a wide lens) scatters its board poses while the joint fit is good.
+            pairs_checked = True
+            kept = _without_mismatched_pairs(used, left, right, params, rejected)
+            if len(kept) < len(used):
+                used = kept
+                continue
         per_view = np.asarray(out[11], float).reshape(-1, 2)
         outlier = find_outlier_view(per_view, params) if len(used) > params.min_views else None
         if outlier is None:
@@ -519,19 +534,16 @@ def calibrate_stereo(
     )
 
 
-def _drop_mismatched_pairs(used: list[int], board: NDArray[np.float32], L: dict[int, NDArray[np.float32]],
-                           Rr: dict[int, NDArray[np.float32]], image_size: tuple[int, int],
-                           params: CalibrationParams, rejected: list[RejectedView]) -> list[int]:
-    """``used`` without the views :func:`pair_agreement` finds mismatched, each appended to
-    ``rejected`` with why (its RMS is each camera's own fit's: the joint one is not made yet).
+def _without_mismatched_pairs(used: list[int], left: MonoCalibration, right: MonoCalibration,
+                              params: CalibrationParams, rejected: list[RejectedView]) -> list[int]:
+    """``used`` without the views :func:`pair_agreement` finds mismatched on the two cameras'
+    own calibrations over them (``left``, ``right``), each appended to ``rejected`` with why
+    (its RMS is each camera's own fit's: the joint one spreads a mismatch over every view).
 
     Raises:
         TrackmeterError: fewer than half of the views (or than ``min_views``) agree: the
             images are not paired as taken, and no subset can be trusted to be the rig.
     """
-    obj = [board] * len(used)
-    left = calibrate_camera(obj, [L[i] for i in used], image_size, params)
-    right = calibrate_camera(obj, [Rr[i] for i in used], image_size, params)
     pairs = pair_agreement(left, right, params)
     n_agree = int(pairs.agree.sum())
     if n_agree < max(params.min_views, (len(used) + 1) // 2):
