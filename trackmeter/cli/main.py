@@ -87,12 +87,12 @@ def _command_module(name: str) -> ModuleType:
 
 
 def _interrupt(signum: int, frame: object) -> None:
-    """The first Ctrl-C, SIGTERM or SIGHUP stops the command (StopSignal, a KeyboardInterrupt); any later
-    one is only noted. A second signal arrives while the command winds down (Ctrl-C pressed
-    twice; a wrapper such as ``timeout`` passing on the SIGTERM a service manager also sends):
-    raised again, it would cut the wind-down short (a recording or a run left half-closed)
-    or land inside the interpreter's own lock handling (``RuntimeError: release unlocked
-    lock``)."""
+    """The first Ctrl-C, SIGTERM or SIGHUP stops the command (:class:`StopSignal`, a
+    KeyboardInterrupt); any later one is only noted. A second signal arrives while the
+    command winds down (Ctrl-C pressed twice; a wrapper such as ``timeout`` passing on the
+    SIGTERM a service manager also sends): raised again, it would cut the wind-down short (a
+    recording or a run left half-closed) or land inside the interpreter's own lock handling
+    (``RuntimeError: release unlocked lock``)."""
     signals.note_taken(signum)
     _swap_handlers(_interrupt, _already_stopping)
     if signum == getattr(signal, "SIGHUP", None):
