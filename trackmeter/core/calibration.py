@@ -344,7 +344,8 @@ def pair_agreement(left: MonoCalibration, right: MonoCalibration,
     angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
     # Distances over the baseline; over a thousandth of the board's distance where the
     # "baseline" is none (copies of one camera's images: the same place, refused later as such).
-    baseline = max(float(np.median(np.linalg.norm(T, axis=1))), 1e-3 * float(np.median(np.linalg.norm(left.tvecs, axis=1))))
+    board_distance = float(np.median(np.linalg.norm(left.tvecs, axis=1)))
+    baseline = max(float(np.median(np.linalg.norm(T, axis=1))), 1e-3 * board_distance)
     shift = np.linalg.norm(T[:, None, :] - T[None, :, :], axis=2) / baseline
     near = (angle <= params.pair_max_deg) & (shift <= params.pair_max_baseline_fraction)
     centre = max(range(V), key=lambda i: (int(near[i].sum()), -float(angle[i][near[i]].sum())))

@@ -137,9 +137,9 @@ class Camera:
             if not MIN_FOCAL_PER_IMAGE * size <= f <= MAX_FOCAL_PER_IMAGE * size:
                 # 1e300 px passed and was refused later as the right camera "turned 0 deg about its
                 # viewing axis" (an outside probe): a focal length no lens has, said as such.
-                raise TrackmeterError(f"K's focal length {name} = {f:g} px is no lens's for a {self.width}x{self.height} "
-                                      f"image ({MIN_FOCAL_PER_IMAGE:g} to {MAX_FOCAL_PER_IMAGE:g} times its larger side): "
-                                      "K of another unit or a typo?")
+                raise TrackmeterError(f"K's focal length {name} = {f:g} px is no lens's for a "
+                                      f"{self.width}x{self.height} image ({MIN_FOCAL_PER_IMAGE:g} to "
+                                      f"{MAX_FOCAL_PER_IMAGE:g} times its larger side): K of another unit or a typo?")
         if not np.array_equal(self.K[2], [0.0, 0.0, 1.0]):
             # A pinhole K's last row is [0 0 1]; OpenCV reads only fx, fy, cx, cy (not even the
             # skew) and would ignore any other, e.g. a K scaled as a whole for a resized image.
