@@ -5,6 +5,7 @@ from __future__ import annotations
 import subprocess
 import sys
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -282,6 +283,43 @@ def test_a_motion_that_takes_the_body_behind_the_camera_is_refused(tmp_path, cap
     code = main(["simulate", "--scenario", str(scenario), "--duration", "4", "--out", str(tmp_path / "far")])
     err = capsys.readouterr().err
     assert code == 2 and "at t = 3.52 s" in err and f"--duration 4 with scenario '{scenario}'" in err, err
+
+
+def test_a_rig_that_track_refuses_is_refused_before_rendering(tmp_path, capsys) -> None:
+    """A scenario whose rig has its right camera on the left rendered a sequence with exit 0
+    that track and measure then refused (and track --source sim:SCENARIO refused at once; an
+    outside probe). Refused here too, before anything is rendered."""
+    import dataclasses
+
+    from trackmeter.data.rigfile import save_rig
+
+    rig = load_rig(Path(__file__).resolve().parent.parent / "config" / "rigs" / "estec_12mm.yaml")
+    save_rig(dataclasses.replace(rig, T=-rig.T), tmp_path / "swapped.yaml")
+    scenario = tmp_path / "s.yaml"
+    scenario.write_text(f"rig: {tmp_path / 'swapped.yaml'}\nduration_s: 1\n")
+    code = main(["simulate", "--scenario", str(scenario), "--out", str(tmp_path / "seq")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    assert err[0].startswith(f"trackmeter simulate: error: the rig of scenario '{scenario}' ({tmp_path / 'swapped.yaml'}): "
+                             "the right camera lies left of the left one"), err
+    assert not (tmp_path / "seq").exists() and not (tmp_path / "seq.partial").exists()
+
+
+def test_a_face_seen_edge_on_renders_without_numpy_warnings(tmp_path) -> None:
+    """The body 0.4 m to the side, not turning: a bus face's plane passes through the left
+    camera's centre, and numpy's "divide by zero" warnings (four lines and a source line)
+    reached the stderr of a run that succeeded (an outside probe). The image is the same as a
+    hair beside it."""
+    from trackmeter.sources.sim.simulator import Simulator
+
+    frames = []
+    for x in (0.4, 0.40001):
+        scenario = tmp_path / f"edge{x}.yaml"
+        scenario.write_text(f"position0_m: [{x}, 0, 3.5]\nomega0_body_deg_s: [0, 0, 0]\nduration_s: 0.2\n")
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            frames.append(Simulator(str(scenario)).frame(0).left.astype(int))
+    assert np.abs(frames[0] - frames[1]).max() <= 2
 
 
 def test_the_scenario_s_motion_alone_makes_no_renderer() -> None:

@@ -46,7 +46,9 @@ def run(args: argparse.Namespace) -> int:
     from trackmeter.data.atomic import FolderLock, unwritable_ancestor
     from trackmeter.data.sequence import SequenceWriter
     from trackmeter.errors import TrackmeterError, counted
-    from trackmeter.sources.sim.scenario import MAX_DURATION_S, load_scenario
+    from trackmeter.cli.common import check_rig_side_by_side
+    from trackmeter.data.rigfile import load_rig
+    from trackmeter.sources.sim.scenario import MAX_DURATION_S, load_scenario, rig_path
     from trackmeter.sources.sim.simulator import Simulator
 
     # Nothing the simulator does is configured there (the scenario is), but a --config that
@@ -85,6 +87,9 @@ def run(args: argparse.Namespace) -> int:
         except TrackmeterError as exc:  # the motion carried on past the scenario's own end
             raise TrackmeterError(f"--duration {args.duration:g} with scenario {args.scenario!r}: "
                                   f"{exc}") from None
+    # A rig that track and measure refuse (swapped, one camera above the other) rendered a
+    # sequence nothing could use (an outside probe); track --source sim:SCENARIO refused it.
+    check_rig_side_by_side(load_rig(rig_path(scenario)), f"the rig of scenario {args.scenario!r} ({rig_path(scenario)})")
     partial = out.with_name(out.name + ".partial")
     if partial.exists() or partial.is_symlink():
         # Left over from a run of this command that was killed outright: replaced, but only

@@ -478,7 +478,10 @@ class StereoRenderer:
         Hs[:, 0] -= ix0[:, None] * Hs[:, 2]  # texel centres -> pixels of the face's box
         Hs[:, 1] -= iy0[:, None] * Hs[:, 2]
         n_v = (geom.normal * sgn[:, None]) @ R.T
-        gz = (n_v @ view.K_canvas_inv) / np.einsum("fk,fk->f", n_v, geom.origin @ R.T + t)[:, None]
+        # A face seen edge-on (its plane through the camera centre) covers no pixel: its
+        # inverse-depth gradient, infinite, is never read (numpy's warning said so on stderr).
+        with np.errstate(divide="ignore", invalid="ignore"):
+            gz = (n_v @ view.K_canvas_inv) / np.einsum("fk,fk->f", n_v, geom.origin @ R.T + t)[:, None]
         gz = gz.astype(np.float32)
         big_enough = area >= _MIN_SHADOW_AREA_PX
         # which drawn faces' boxes overlap an earlier one (must read the depth buffer) or a later
