@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 import warnings
@@ -303,6 +304,20 @@ def test_a_rig_that_track_refuses_is_refused_before_rendering(tmp_path, capsys) 
     assert err[0].startswith(f"trackmeter simulate: error: the rig of scenario '{scenario}' ({tmp_path / 'swapped.yaml'}): "
                              "the right camera lies left of the left one"), err
     assert not (tmp_path / "seq").exists() and not (tmp_path / "seq.partial").exists()
+
+
+@pytest.mark.parametrize(("position", "said"), [("[10.0, 0.0, 3.5]", "out of the left camera's view in 5 of 5 frames"),
+                                               ("[0, 0, 3000]", "under 2 px across in 5 of 5 frames")])
+def test_a_mock_up_out_of_view_is_warned_of(tmp_path, position: str, said: str) -> None:
+    """10 m to the side (or 3 km away) rendered black frames with exit 0 and nothing said;
+    only track noticed, afterwards (an outside probe)."""
+    from trackmeter.sources.sim.simulator import Simulator
+
+    scenario = tmp_path / "away.yaml"
+    scenario.write_text(f"position0_m: {position}\nduration_s: 0.2\n")
+    with pytest.warns(UserWarning, match=rf"scenario 'away': the mock-up is {re.escape(said)} \(t = 0\.00 to 0\.16 s\): "
+                                         "those images show no target"):
+        Simulator(str(scenario))
 
 
 def test_a_face_seen_edge_on_renders_without_numpy_warnings(tmp_path) -> None:

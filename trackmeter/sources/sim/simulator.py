@@ -42,6 +42,10 @@ FloatArray = NDArray[np.float64]
 DEG = np.pi / 180.0
 
 
+#: A mock-up that spans fewer pixels than this across is warned about as showing no target.
+MIN_SPAN_PX = 2.0
+
+
 class Simulator(Source):
     """A scenario rendered frame by frame, with ground truth.
 
@@ -109,6 +113,7 @@ class Simulator(Source):
             None if sc.approach_to_m is None else np.asarray(sc.approach_to_m, dtype=float), sc.approach_s,
         )
         self._warn_if_the_camera_comes_within_reach()
+        self._warn_if_the_mock_up_leaves_the_view()
         self._pacer = Pacer()
         self._render_ahead = bool(render_ahead)
         self._ahead: RenderAhead | None = None
@@ -139,6 +144,33 @@ class Simulator(Source):
                           f"t = {times[k]:.2f} s, where the mock-up reaches {self.mockup.radius_m:.2f} m: it may be "
                           "among its parts there, and faces seen from behind are not drawn (black or half-empty "
                           "images)", stacklevel=3)
+
+    def _warn_if_the_mock_up_leaves_the_view(self) -> None:
+        """Warn when the mock-up lies wholly outside the left image, or spans under
+        :data:`MIN_SPAN_PX`, at some frames (static ranges: at some range): those images show
+        no target, and only ``track`` said so, afterwards (an outside probe's 10 m to the side
+        rendered black frames with exit 0). Its bounding sphere through the pinhole, without
+        the lens's distortion: a warning, not a refusal."""
+        sc = self.scenario
+        times, origins = sc.origin_path_m()
+        cam = self.true_rig.left
+        z = origins[:, 2]
+        uv = origins[:, :2] / z[:, None] @ cam.K[:2, :2].T + cam.K[:2, 2]
+        r_px = cam.focal_px * self.mockup.radius_m / z
+        width, height = cam.image_size
+        outside = ((uv[:, 0] + r_px < -0.5) | (uv[:, 0] - r_px > width - 0.5)
+                   | (uv[:, 1] + r_px < -0.5) | (uv[:, 1] - r_px > height - 0.5))
+        tiny = 2.0 * r_px < MIN_SPAN_PX
+        gone = outside | tiny
+        if np.any(gone):
+            k = np.flatnonzero(gone)
+            what = "out of the left camera's view" if np.any(outside) else f"under {MIN_SPAN_PX:g} px across"
+            if np.any(outside) and np.any(tiny):
+                what += f" or under {MIN_SPAN_PX:g} px across"
+            unit = "ranges" if sc.static_ranges_m else "frames"
+            warnings.warn(f"scenario {sc.name!r}: the mock-up is {what} in {len(k)} of {len(gone)} {unit} "
+                          f"(t = {times[k[0]]:.2f} to {times[k[-1]]:.2f} s): those images show no target",
+                          stacklevel=3)
 
     # ------------------------------------------------------------------ random access
 
