@@ -89,7 +89,8 @@ def run(args: argparse.Namespace) -> int:
                                   f"{exc}") from None
     # A rig that track and measure refuse (swapped, one camera above the other) rendered a
     # sequence nothing could use (an outside probe); track --source sim:SCENARIO refused it.
-    check_rig_side_by_side(load_rig(rig_path(scenario)), f"the rig of scenario {args.scenario!r} ({rig_path(scenario)})")
+    rig_file = rig_path(scenario)
+    check_rig_side_by_side(load_rig(rig_file), f"the rig of scenario {args.scenario!r} ({rig_file})")
     partial = out.with_name(out.name + ".partial")
     if partial.exists() or partial.is_symlink():
         # Left over from a run of this command that was killed outright: replaced, but only

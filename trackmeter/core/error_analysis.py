@@ -446,9 +446,9 @@ class ErrorAnalysis:
         ranges: per-range statistics, by increasing range.
         fits: ``sigma = k z^2`` per camera axis ``"x"``, ``"y"``, ``"z"``.
         sigma_disparity_px: sub-pixel disparity accuracy from the z fit (eq. 2 inverted).
-        density: error density of the depth residuals, each over its own point's standard
-            deviation (:attr:`RangeStatistics.depth_studentised`: dimensionless, so all points
-            and ranges pool; Fig. 2). Over one sigma per range instead, points of different
+        density: error density of the depth residuals, each over its point's spread without
+            it (:attr:`RangeStatistics.depth_studentised`: dimensionless, so all points and
+            ranges pool; Fig. 2). Over one sigma per range instead, points of different
             noise (a texture's sigma_d 0.012 to 0.094 px, depths spread) made a mixture whose
             heavy tails failed the normality tests on Gaussian noise (an outside probe).
         density_range: error density of the depth residuals at the range nearest 3.5 m, m.
