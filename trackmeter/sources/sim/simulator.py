@@ -112,8 +112,9 @@ class Simulator(Source):
             np.asarray(sc.position0_m, dtype=float), np.asarray(sc.velocity_m_s, dtype=float),
             None if sc.approach_to_m is None else np.asarray(sc.approach_to_m, dtype=float), sc.approach_s,
         )
-        self._warn_if_the_camera_comes_within_reach()
-        self._warn_if_the_mock_up_leaves_the_view()
+        path = self.scenario.origin_path_m()  # (times, body origins): both checks read it
+        self._warn_if_the_camera_comes_within_reach(*path)
+        self._warn_if_the_mock_up_leaves_the_view(*path)
         self._pacer = Pacer()
         self._render_ahead = bool(render_ahead)
         self._ahead: RenderAhead | None = None
@@ -130,12 +131,11 @@ class Simulator(Source):
             self._renderer = StereoRenderer(self.true_rig, self.mockup, self.scenario.render)
         return self._renderer
 
-    def _warn_if_the_camera_comes_within_reach(self) -> None:
+    def _warn_if_the_camera_comes_within_reach(self, times: FloatArray, origins: FloatArray) -> None:
         """Warn when a camera comes nearer the body origin than the mock-up reaches: it may be
         among the mock-up's parts there, where the renderer, culling faces seen from behind,
         draws a black or half-empty view (nothing says so otherwise)."""
         sc = self.scenario
-        times, origins = sc.origin_path_m()
         centres = np.stack([np.zeros(3), -self.true_rig.R.T @ np.asarray(self.true_rig.T, dtype=float).reshape(3)])
         distance_m = np.linalg.norm(origins[:, None, :] - centres[None], axis=2).min(axis=1)
         k = int(np.argmin(distance_m))
@@ -145,14 +145,13 @@ class Simulator(Source):
                           "among its parts there, and faces seen from behind are not drawn (black or half-empty "
                           "images)", stacklevel=3)
 
-    def _warn_if_the_mock_up_leaves_the_view(self) -> None:
+    def _warn_if_the_mock_up_leaves_the_view(self, times: FloatArray, origins: FloatArray) -> None:
         """Warn when the mock-up lies wholly outside the left image, or spans under
         :data:`MIN_SPAN_PX`, at some frames (static ranges: at some range): those images show
         no target, and only ``track`` said so, afterwards (an outside probe's 10 m to the side
         rendered black frames with exit 0). Its bounding sphere through the pinhole, without
         the lens's distortion: a warning, not a refusal."""
         sc = self.scenario
-        times, origins = sc.origin_path_m()
         cam = self.true_rig.left
         z = origins[:, 2]
         uv = origins[:, :2] / z[:, None] @ cam.K[:2, :2].T + cam.K[:2, 2]
