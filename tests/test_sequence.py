@@ -1788,3 +1788,25 @@ def test_a_whole_last_row_without_its_newline_is_played(tmp_path, n_frames):
     with pytest.warns(UserWarning, match=r"1 malformed or cut-short data.csv row\(s\) ignored \(cam0: 0, cam1: 1\)"):
         src = SequenceSource(d)
     assert len(src) == n_frames - 1
+
+
+def test_a_video_whose_first_frame_does_not_decode_is_still_checked_against_the_rig(tmp_path, estec_rig):
+    """The frame size was read from the left file's first frame only: spoilt, the size was
+    unknown, the rig's size went unchecked, and every frame then failed in the tracker (a
+    traceback a frame, exit 0, run "complete"). The first frame that decodes gives it."""
+    from trackmeter.cli.common import open_source_with_rig
+    from trackmeter.data.rigfile import save_rig
+
+    left, right = _video(tmp_path / "left.avi", 6), _video(tmp_path / "right.avi", 6)
+    _spoil_video_frame(left, 0)
+    src = open_source(f"video:{left},{right}")
+    try:
+        assert src.frame_size == (64, 48)
+    finally:
+        src.close()
+    K = np.array([[30.0, 0.0, 15.5], [0.0, 30.0, 11.5], [0.0, 0.0, 1.0]])
+    rig = replace(estec_rig, left=replace(estec_rig.left, width=32, height=24, K=K),
+                  right=replace(estec_rig.right, width=32, height=24, K=K))
+    path = save_rig(rig, tmp_path / "rig.yaml")
+    with pytest.raises(TrackmeterError, match=r"frame 64x48 does not match the rig's image size 32x24"):
+        open_source_with_rig(f"video:{left},{right}", str(path))

@@ -49,6 +49,11 @@ def _opencv_name(path: Path) -> str:
         raise TrackmeterError(f"{path}: the file's name is not UTF-8, which OpenCV cannot open: rename it") from None
 
 
+#: Reads :attr:`VideoSource.frame_size` makes for a frame that decodes (a file whose first
+#: hundred frames are all spoilt is taken to have none; at its end each read fails at once).
+SIZE_PROBE_FRAMES = 100
+
+
 class VideoSource(Source):
     """Stereo frames from two video files.
 
@@ -113,9 +118,10 @@ class VideoSource(Source):
 
     @property
     def frame_size(self) -> tuple[int, int] | None:
-        """``(width, height)`` px of the left file's first frame, decoded once by a capture of
-        its own (the stream is not disturbed), or None when it has no frame. Decoded rather
-        than taken from ``CAP_PROP_FRAME_WIDTH``: the size of what :meth:`read` delivers.
+        """``(width, height)`` px of the left file's first frame that decodes, decoded once by a
+        capture of its own (the stream is not disturbed), or None when it has no such frame.
+        Decoded rather than taken from ``CAP_PROP_FRAME_WIDTH``: the size of what :meth:`read`
+        delivers.
 
         Raises:
             TrackmeterError: the right file's first frame has another size (no stereo pair).
@@ -128,12 +134,18 @@ class VideoSource(Source):
         return self._frame_size
 
     def _first_frame_size(self, path: Path) -> tuple[int, int] | None:
+        """The size of the first frame of ``path`` that decodes: a spoilt first frame is skipped
+        as :meth:`read` skips it (left unknown, the rig's size went unchecked and every frame
+        failed in the tracker). None after :data:`SIZE_PROBE_FRAMES` reads."""
         cap = self._open(path)
         try:
-            ok, image = cap.read()
+            for _ in range(SIZE_PROBE_FRAMES):
+                ok, image = cap.read()
+                if ok and image is not None:
+                    return int(image.shape[1]), int(image.shape[0])
         finally:
             cap.release()
-        return (int(image.shape[1]), int(image.shape[0])) if ok and image is not None else None
+        return None
 
     def _size_mismatch(self, left: tuple[int, int], right: tuple[int, int]) -> str:
         return (f"left and right videos differ in frame size: {self._label(0)} is {left[0]}x{left[1]} px, "
