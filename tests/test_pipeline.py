@@ -9,6 +9,7 @@ count or order, made deterministic with events rather than sleeps where order ma
 from __future__ import annotations
 
 import dataclasses
+import logging
 import threading
 import time
 from pathlib import Path
@@ -80,7 +81,9 @@ class CountingSource(Source):
 class RecordingEngine:
     """Test double of the tracker: remembers frames and commands; one target per SelectPoint."""
 
-    def __init__(self, block_first: threading.Event | None = None, fail_on: int | None = None) -> None:
+    def __init__(self, block_first: threading.Event | None = None, fail_on: int | None = None,
+                 failure: Exception | None = None) -> None:
+        self.failure = failure or RuntimeError("boom")
         self.processed: list[int] = []
         self.commands: list[tuple[str, int | None]] = []
         self.block_first = block_first
@@ -111,7 +114,7 @@ class RecordingEngine:
         if self.block_first is not None and not self.processed:
             self.block_first.wait(5)
         if self.fail_on is not None and frame.index == self.fail_on:
-            raise RuntimeError("boom")
+            raise self.failure
         self.processed.append(frame.index)
         return list(self.targets), PoseEstimate.invalid("test double"), None
 
@@ -473,6 +476,25 @@ def test_tracker_exception_marks_the_pose_invalid_and_tracking_goes_on() -> None
     assert failed and "tracking failed: RuntimeError: boom" in (failed[0].pose.reason or "")
     assert engine.processed == [i for i in range(20) if i != 5]
     assert last.timings.frames_processed == 20
+
+
+def test_input_the_tracker_refuses_is_said_in_one_line_not_a_traceback(caplog: pytest.LogCaptureFixture) -> None:
+    """A frame the engine refuses as bad input (TrackmeterError: a video frame of another size
+    than the rig's) printed a whole traceback, once per frame; its message says what is wrong.
+    Another exception is a bug and keeps its traceback."""
+    caplog.set_level(logging.ERROR, logger="trackmeter.pipeline.pipeline")
+    engine = RecordingEngine(fail_on=3, failure=TrackmeterError("left image is 726x512 px but the rig expects 640x480"))
+    snaps: list[Snapshot] = []
+    run_headless(CountingSource(6), engine, on_snapshot=snaps.append)
+    failed = [s for s in snaps if s.frame is not None and s.frame.index == 3]
+    assert failed and failed[0].pose.reason == "tracking failed: left image is 726x512 px but the rig expects 640x480"
+    records = [r for r in caplog.records if "tracking failed" in r.getMessage()]
+    assert [r.getMessage() for r in records] == [
+        "tracking failed on frame 3: left image is 726x512 px but the rig expects 640x480"]
+    assert records[0].exc_info is None
+    caplog.clear()
+    run_headless(CountingSource(6), RecordingEngine(fail_on=3), on_snapshot=None)
+    assert [r.exc_info is not None for r in caplog.records if "tracking failed" in r.getMessage()] == [True]
 
 
 @pytest.mark.parametrize("drop_frames", [True, False])

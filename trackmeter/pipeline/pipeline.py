@@ -687,9 +687,13 @@ class Pipeline:
             self._last_errors = errors
         except Exception as exc:  # a tracker bug must not stop the console: report and go on
             self.engine_errors += 1
-            log.exception("tracking failed on frame %d", frame.index)
-            self._last_pose = PoseEstimate.invalid(f"tracking failed: {type(exc).__name__}: {exc}",
-                                                   self._last_pose.case)
+            if isinstance(exc, TrackmeterError):  # input the engine refuses: its message says what
+                log.error("tracking failed on frame %d: %s", frame.index, exc)
+                reason = f"tracking failed: {exc}"
+            else:
+                log.exception("tracking failed on frame %d", frame.index)
+                reason = f"tracking failed: {type(exc).__name__}: {exc}"
+            self._last_pose = PoseEstimate.invalid(reason, self._last_pose.case)
             self._last_errors = None
         done = time.monotonic()
         self._last_frame = frame
