@@ -162,6 +162,27 @@ def test_an_opencv_pair_whose_principal_point_is_near_the_frames_edge_is_warned_
         assert load_rig(tmp_path / "intrinsics.yml", image_size=(640, 480)).image_size == (640, 480)
 
 
+def test_a_rig_yaml_without_its_size_is_checked_against_the_frames_as_opencv_s_pair_is(tmp_path: Path) -> None:
+    """A rig.yaml without image_width/image_height takes the frames' size, as OpenCV's pair
+    does, but its principal point was never checked: on frames half its size `track` said
+    only that --auto found no candidate, while the same rig as intrinsics.yml was refused."""
+    path = save_rig(_rig(), tmp_path / "rig.yaml")
+    text = "\n".join(line for line in path.read_text().splitlines() if not line.startswith("image_"))
+    path.write_text(text + "\n")
+    with pytest.raises(TrackmeterError, match=r"rig.yaml: the principal point \(330\.2, 241\.5\) lies outside the "
+                                              r"320x240 px frames: calibrated for another image size"):
+        load_rig(path, image_size=(320, 240))
+    with pytest.warns(UserWarning, match=r"rig.yaml: the principal point \(330\.2, 241\.5\) lies 36% of the 384x288 "
+                                         r"px frames from their centre: calibrated for another image size\? \(the file "
+                                         r"has no image_width/image_height; the frames' is taken\)"):
+        load_rig(path, image_size=(384, 288))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert load_rig(path, image_size=(640, 480)).image_size == (640, 480)
+        # A file that gives its size is its own word: its frames are compared with it elsewhere.
+        assert load_rig(save_rig(_rig(), tmp_path / "sized.yaml"), image_size=(320, 240)).image_size == (640, 480)
+
+
 # --------------------------------------------------------------------------- presets
 
 

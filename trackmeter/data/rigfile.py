@@ -401,12 +401,17 @@ def _load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> St
             return _load_opencv_pair(path, image_size)
         width = _image_size_scalar(fs, "image_width", path)
         height = _image_size_scalar(fs, "image_height", path)
+        size_from_frames = width is None or height is None
         if width is None or height is None:
             if image_size is None:
                 raise TrackmeterError(f"{path}: missing key 'image_width'/'image_height'")
             width, height = image_size
         left = _camera(int(width), int(height), fs, "K1", "D1", path)
         right = _camera(int(width), int(height), fs, "K2", "D2", path)
+        if size_from_frames:
+            # Checked as OpenCV's pair is: a rig.yaml without its size on other frames said
+            # nothing, and every candidate point was refused as having no match.
+            _check_size_taken_from_frames(left, right, path, "the file has no image_width/image_height")
         rms = _scalar(fs, "rms_px", path)
         return StereoRig(left, right, _rotation(fs, path), _matrix(fs, "T", path).ravel(), rms_px=rms, name=path.stem)
     except TrackmeterError as exc:
@@ -636,6 +641,28 @@ def _load_middlebury(entries: dict[str, str], path: Path, image_size: tuple[int,
 OFF_CENTRE_WARN_FRACTION = 0.3
 
 
+def _check_size_taken_from_frames(left: Camera, right: Camera, path: Path, why_taken: str) -> None:
+    """For a rig file that carries no image size, whose cameras were given the frames': refuse
+    a principal point outside the frames, and warn of one more than
+    :data:`OFF_CENTRE_WARN_FRACTION` of them from their centre (``why_taken`` says why the
+    frames' size was taken). Both mean a calibration made at another image size, which nothing
+    else would tell: every point is then refused for reasons that do not name the rig."""
+    width, height = left.width, left.height
+    for cam in (left, right):
+        cx, cy = cam.K[0, 2], cam.K[1, 2]
+        if not (0 <= cx <= width and 0 <= cy <= height):
+            raise TrackmeterError(f"{path}: the principal point ({cx:.1f}, {cy:.1f}) lies outside the {width}x{height} "
+                                  "px frames: calibrated for another image size")
+        off_centre = max(abs(cx - (width - 1) / 2) / width, abs(cy - (height - 1) / 2) / height)
+        if off_centre > OFF_CENTRE_WARN_FRACTION:
+            # Inside the frames, yet near their edge: a 640x480 calibration on 384x288 frames
+            # (cx 340.7 of 384) refused every point as "the images look swapped" (an outside probe).
+            warnings.warn(f"{path}: the principal point ({cx:.1f}, {cy:.1f}) lies {off_centre:.0%} of the "
+                          f"{width}x{height} px frames from their centre: calibrated for another image size? "
+                          f"({why_taken}; the frames' is taken)", stacklevel=3)
+            return
+
+
 def _load_opencv_pair(path: Path, image_size: tuple[int, int] | None) -> StereoRig:
     folder = path.parent
 
@@ -672,19 +699,7 @@ def _load_opencv_pair(path: Path, image_size: tuple[int, int] | None) -> StereoR
         width, height = image_size
         left = _camera(width, height, fi, "M1", "D1", intr)
         right = _camera(width, height, fi, "M2", "D2", intr)
-        for cam in (left, right):
-            cx, cy = cam.K[0, 2], cam.K[1, 2]
-            if not (0 <= cx <= width and 0 <= cy <= height):  # the size is the frames', not the calibration's
-                raise TrackmeterError(f"{path}: the principal point ({cx:.1f}, {cy:.1f}) lies outside the {width}x{height} "
-                                      "px frames: calibrated for another image size")
-            off_centre = max(abs(cx - (width - 1) / 2) / width, abs(cy - (height - 1) / 2) / height)
-            if off_centre > OFF_CENTRE_WARN_FRACTION:
-                # Inside the frames, yet near their edge: a 640x480 calibration on 384x288 frames
-                # (cx 340.7 of 384) refused every point as "the images look swapped" (an outside probe).
-                warnings.warn(f"{path}: the principal point ({cx:.1f}, {cy:.1f}) lies {off_centre:.0%} of the "
-                              f"{width}x{height} px frames from their centre: calibrated for another image size? "
-                              "(OpenCV's intrinsics/extrinsics carry none; the frames' is taken)", stacklevel=2)
-                break
+        _check_size_taken_from_frames(left, right, path, "OpenCV's intrinsics/extrinsics carry none")
         return StereoRig(left, right, _rotation(fe, extr), _matrix(fe, "T", extr).ravel(), name=folder.name)
     finally:
         fi.release()
