@@ -1132,6 +1132,9 @@ def test_a_video_pair_that_cannot_be_a_stereo_pair_is_told(tmp_path):
     left = _video(tmp_path / "left.avi", 3)
     with pytest.raises(TrackmeterError, match=r"video: LEFT and RIGHT are the same file"):
         open_source(f"video:{left},{left}")
+    os.link(left, tmp_path / "linked.avi")  # one file under two names: it was read as both views
+    with pytest.raises(TrackmeterError, match=r"video: LEFT and RIGHT are the same file"):
+        open_source(f"video:{left},{tmp_path / 'linked.avi'}")
     (tmp_path / "folder").mkdir()
     with pytest.raises(TrackmeterError, match=r"folder: a folder, not a video file"):
         open_source(f"video:{left},{tmp_path / 'folder'}")

@@ -77,7 +77,7 @@ class VideoSource(Source):
                 raise TrackmeterError(f"{p}: a folder, not a video file (a sequence folder plays as seq:DIR)")
             if not p.is_file():
                 raise TrackmeterError(f"{p}: no such video file")
-        if self.paths[0].resolve() == self.paths[1].resolve():
+        if os.path.samefile(*self.paths):  # a hard link too, which resolve() leaves apart
             raise TrackmeterError(f"video: LEFT and RIGHT are the same file ({self.paths[0]}): a stereo pair needs both cameras' videos")
         self.rig = rig
         self.realtime = realtime
