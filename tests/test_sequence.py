@@ -1813,3 +1813,17 @@ def test_a_video_whose_first_frame_does_not_decode_is_still_checked_against_the_
     path = save_rig(rig, tmp_path / "rig.yaml")
     with pytest.raises(TrackmeterError, match=r"frame 64x48 does not match the rig's image size 32x24"):
         open_source_with_rig(f"video:{left},{right}", str(path))
+
+
+def test_a_video_file_name_holding_a_comma_is_read_where_one_split_names_two_files(tmp_path):
+    """video:LEFT,RIGHT split at every comma: a file named "left,1.avi" could not be given, and
+    the message did not say why."""
+    left, right = _video(tmp_path / "left,1.avi", 3), _video(tmp_path / "right,1.avi", 3)
+    src = open_source(f"video:{left},{right}")
+    try:
+        assert src.paths == (left, right) and len(list(iter(src.read, None))) == 3
+    finally:
+        src.close()
+    with pytest.raises(TrackmeterError, match=r"video: needs two files, as video:LEFT,RIGHT, got .*; a file name "
+                                              r"holding a comma is read where exactly one of the splits"):
+        open_source(f"video:{left},{tmp_path / 'gone,2.avi'}")

@@ -29,6 +29,18 @@ __all__ = ["GroundTruth", "Source", "StereoFrame", "open_source", "DEFAULT_SCENA
 DEFAULT_SCENARIO = "estec"
 
 
+def _video_pair(arg: str) -> list[str] | None:
+    """``video:``'s LEFT and RIGHT: split at its one comma; with more (a file name holding one),
+    at the one comma whose two sides both name existing files. None when no split gives two
+    names, or several do."""
+    parts = [p.strip() for p in arg.split(",")]
+    if len(parts) == 2:
+        return parts if all(parts) else None
+    splits = [[",".join(parts[:k]).strip(), ",".join(parts[k:]).strip()] for k in range(1, len(parts))]
+    existing = [pair for pair in splits if all(os.path.isfile(p) for p in pair)]
+    return existing[0] if len(existing) == 1 else None
+
+
 def open_source(spec: str, rig_override: StereoRig | None = None, realtime: bool = False, loop: bool = False,
                 render_ahead: bool = True, *, own_rig: bool = True, own_model: bool = True,
                 model_optional: bool = False) -> Source:
@@ -74,9 +86,11 @@ def open_source(spec: str, rig_override: StereoRig | None = None, realtime: bool
             raise TrackmeterError(f"seq: needs a folder, as seq:DIR{folder_hint}")
         return _open_sequence(arg, rig_override, realtime, loop, own_rig, own_model, model_optional)
     if kind == "video":
-        parts = [p.strip() for p in arg.split(",")]
-        if len(parts) != 2 or not all(parts):
-            raise TrackmeterError(f"video: needs two files, as video:LEFT,RIGHT, got {spec!r}{folder_hint}")
+        parts = _video_pair(arg)
+        if parts is None:
+            commas = ("; a file name holding a comma is read where exactly one of the splits at its commas "
+                      "names two existing files") if arg.count(",") > 1 else ""
+            raise TrackmeterError(f"video: needs two files, as video:LEFT,RIGHT, got {spec!r}{commas}{folder_hint}")
         from trackmeter.sources.video import VideoSource
 
         return VideoSource(parts[0], parts[1], rig=rig_override, realtime=realtime, loop=loop)
