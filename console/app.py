@@ -1324,8 +1324,13 @@ class Console:
         dropped_line = f"dropped {dropped} ({dropped_pct:.1f} %)"
         if counts_from is not None:
             dropped_line += f" since Restart · {t.frames_dropped} in all"
-        state = "paused" if snap.paused else "running"
-        source = (f"<b>Source: {escape(snap.source_status)}</b>" if snap.source_status
+        # Ended or failed, no frame comes and no snapshot lowers the last rates: they are not
+        # shown as if still true, nor the state as "running" (an outside console probe).
+        stopped = snap.source_status is not None and not snap.paused
+        ended = snap.source_status == "ended"
+        state = "paused" if snap.paused else ("ended" if ended else "source stopped") if stopped else "running"
+        status = snap.source_status or ""
+        source = (f"<b>{escape(status if status.startswith('source') else f'source {status}')}</b>" if status
                   else "source held: no frame is read while paused" if snap.paused
                   else "source delivering" + (f" · pass {snap.source_pass} (it loops; tracking starts over "
                                               "each pass)" if snap.source_pass > 1 else ""))
@@ -1336,6 +1341,7 @@ class Console:
                  source,
                  # paused, no frame moves and no snapshot comes to lower the last rates
                  "read – · tracking – (paused)" if snap.paused else
+                 f"read – · tracking – ({'ended' if ended else 'source stopped'})" if stopped else
                  f"read {t.acquisition_hz:.1f} Hz · tracking {t.tracking_hz:.1f} Hz",
                  f"latency {t.latency_ms:.0f} ms · step {t.step_ms:.0f} ms",
                  dropped_line,

@@ -354,6 +354,16 @@ def test_status_keeps_its_height_whatever_the_state() -> None:
     # Paused, no frame is read: the source is not "delivering" (an outside console probe).
     paused = parse(Console._status_html(Snapshot(frame, (), valid, None, Timings(), paused=True))).text
     assert "delivering" not in paused and "source held: no frame is read while paused" in paused
+    # Failed or ended, the last rates stayed ("read 17.1 Hz") under "running", and the status
+    # said "Source: source failed" (an outside console probe).
+    live = Timings(acquisition_hz=17.1, tracking_hz=17.1)
+    failed = parse(Console._status_html(Snapshot(frame, (), valid, None, live,
+                                                  source_status="source failed: cam0/data: removed"))).text
+    assert failed.startswith("source stopped · frame 3") and "running" not in failed and "Hz" not in failed
+    assert "read – · tracking – (source stopped)" in failed
+    assert "source failed: cam0/data: removed" in failed and "Source: source" not in failed
+    ended = parse(Console._status_html(Snapshot(frame, (), valid, None, live, source_status="ended"))).text
+    assert ended.startswith("ended · frame 3") and "source ended" in ended and "read – · tracking – (ended)" in ended
 
 
 def test_dropped_frames_are_counted_from_the_last_restart_with_the_total_beside() -> None:
