@@ -173,6 +173,13 @@ def _pixel_text(uv: tuple[float, float]) -> str:
     return f"({round(uv[0])}, {round(uv[1])})"
 
 
+#: How long a pop-up answering a command stays up, s: a confirmation, a refusal (read longer).
+POPUP_OK_S = 4.0
+POPUP_REFUSED_S = 8.0
+#: ... after which the console closes it itself, this much later (the browser's own timer
+#: stops while the pointer rests on it).
+POPUP_GRACE_S = 0.5
+
 #: A typed filter cutoff or target count is sent once the field has held it this long, s:
 #: viser sends every keystroke of a field, and "0.5" passes 0, which the filter refuses
 #: (each accepted value also rebuilds the filter), "16" passes 1.
@@ -472,6 +479,7 @@ class Console:
         self._next_click_owner: int | None = None  # client id of the browser whose choice "Next click is" shows
         self._views: dict[int, list[Any]] = {}  # client id -> [client, preset, aspect framed for]
         self._popups: dict[int, Any] = {}  # client id -> the pop-up it shows last
+        self._popup_close_at: dict[int, float] = {}  # client id -> when its pop-up is closed (monotonic s)
         self._stop = threading.Event()
         # Set when what the page should show changed on the console's side (a widget to show the
         # tracker's value again, the right image shown): paused or ended, no new snapshot comes
@@ -989,8 +997,9 @@ class Console:
         self.notifications.append((title, body))
         if client is None:
             return
+        seconds = POPUP_OK_S if ok else POPUP_REFUSED_S
         try:
-            shown = client.add_notification(shown_text(title), shown_text(body), auto_close_seconds=4.0 if ok else 8.0,
+            shown = client.add_notification(shown_text(title), shown_text(body), auto_close_seconds=seconds,
                                             color="green" if ok else "red")
         except Exception as exc:  # the browser went away
             log.debug("notification not sent: %s", exc)
@@ -1001,9 +1010,26 @@ class Console:
             # dropped its entry already, and one kept now stayed for good, one per such browser.
             if client.client_id in self._views:
                 self._popups[client.client_id] = shown
+                self._popup_close_at[client.client_id] = time.monotonic() + seconds + POPUP_GRACE_S
         if before is not None:
             with contextlib.suppress(Exception):  # closed already, or the browser went away
                 before.remove()
+
+    def _close_stale_popups(self) -> None:
+        """Close the pop-ups past their time from here: the browser's own timer stops while the
+        pointer rests on one (Mantine's notifications), and a pointer at the image's top-left,
+        where they stack, kept a refusal over the image, catching the clicks meant for it, for
+        as long as it stayed (an outside console probe)."""
+        now = time.monotonic()
+        with self._pending_lock:
+            stale = [cid for cid, at in self._popup_close_at.items() if at <= now]
+            closing = [self._popups.pop(cid, None) for cid in stale]
+            for cid in stale:
+                del self._popup_close_at[cid]
+        for popup in closing:
+            if popup is not None:
+                with contextlib.suppress(Exception):  # closed already, or the browser went away
+                    popup.remove()
 
     # ------------------------------------------------------------------ clients and views
     def _on_connect(self, client: viser.ClientHandle) -> None:
@@ -1016,6 +1042,7 @@ class Console:
         with self._pending_lock:
             self._views.pop(client.client_id, None)
             self._popups.pop(client.client_id, None)
+            self._popup_close_at.pop(client.client_id, None)
             gone_owner = self._next_click_owner == client.client_id
         if gone_owner:  # its click will not come: the others' clicks are new targets again
             self.model_point_dropdown.value = self._new_target  # type: ignore[misc]  # viser 1.1's setter: see _flush_replies
@@ -1119,6 +1146,7 @@ class Console:
             try:
                 snap = self.pipeline.wait_snapshot(last_seq, min(period, 0.1))
                 self._flush_replies()
+                self._close_stale_popups()
                 self._send_settled_edits()
                 self._frame_clients()
                 if snap is None and self._repush.is_set() and last_seq >= 0:

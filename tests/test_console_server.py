@@ -1561,3 +1561,37 @@ def test_viser_s_warning_of_a_pop_up_for_a_closed_browser_is_left_out_and_no_oth
                       "disconnected client, or after the server stopped); it will never be delivered.", UserWarning)
         warnings.warn("something else", UserWarning)
     assert [str(w.message) for w in caught] == ["something else"]
+
+
+def test_a_pop_up_is_closed_by_the_console_when_its_time_is_up(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The browser's own timer stops while the pointer rests on a pop-up, and they stack at the
+    image's top-left, where the operator clicks: a refusal stayed over the image 30 s, catching
+    those clicks (an outside console probe). The console closes each itself once its time is
+    up; one still in its time stays."""
+    import console.app
+
+    removed: list[str] = []
+
+    def browser(client_id: int) -> Any:
+        def add(title: str, body: str, **kwargs: Any) -> Any:
+            return types.SimpleNamespace(remove=lambda: removed.append(title))
+        return types.SimpleNamespace(client_id=client_id, add_notification=add)
+
+    running = start_console(CountingSource(3), RecordingEngine(), port=free_port())  # type: ignore[arg-type]
+    con = running.console
+    try:
+        quick, slow = browser(1), browser(2)
+        for client in (quick, slow):
+            con._on_connect(client)
+        monkeypatch.setattr(console.app, "POPUP_REFUSED_S", 0.0)
+        monkeypatch.setattr(console.app, "POPUP_GRACE_S", 0.0)
+        con._notify(quick, "Remove target near (40, 40): refused", "no target within 20 px", False)
+        monkeypatch.setattr(console.app, "POPUP_OK_S", 60.0)
+        con._notify(slow, "Target a1", "measured", True)
+        deadline = time.monotonic() + 5.0
+        while not removed and time.monotonic() < deadline:  # the publisher closes it within 0.1 s
+            time.sleep(0.02)
+        assert removed == ["Remove target near (40, 40): refused"]
+        assert list(con._popups) == [2] and list(con._popup_close_at) == [2]
+    finally:
+        running.stop()
