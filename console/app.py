@@ -205,6 +205,8 @@ STATUS_HEIGHT_EM = 27.0
 #: an ellipsis (the whole text shows on hover): a long warning (six images skipped, each named)
 #: took the box's height and hid the pose and rates below it.
 STATUS_CLAMP_LINES = {"source": 2, "targets": 2, "pose": 3}
+#: Rows of the target list (the rest counted in one more).
+TARGET_LIST_ROWS = 40
 #: How often the publisher hands the C heap's free pages back to the system (see :func:`release_free_heap`).
 TRIM_EVERY_S = 10.0
 
@@ -751,7 +753,7 @@ class Console:
         # Last in the panel: its height follows the number of targets, which changes every few
         # frames, and nothing below it can move.
         with gui.add_folder("Target list"):
-            self.targets_md = gui.add_markdown("")
+            self.targets_html = gui.add_html("")
         self.pause_button.on_click(self._cb(lambda e: SetPaused(not self.pipeline.latest().paused)))
         self.step_button.on_click(self._cb(lambda e: StepOnce()))
         self.restart_button.on_click(self._cb(lambda e: RestartSource()))
@@ -1231,7 +1233,7 @@ class Console:
             if self.right_image.visible:
                 right_rgb = draw_matches(to_rgb(frame.right), snap.targets, self.patch_px)
         status_text = self._status_html(snap) if text else None
-        targets_text = self._targets_markdown(snap) if text else None
+        targets_text = self._targets_html(snap) if text else None
         rec = self.pipeline.recording_stats()
         with self.server.atomic():
             if left_rgb is not None:
@@ -1245,7 +1247,7 @@ class Console:
             self._update_operator_overlay(drawn)
             if status_text is not None and targets_text is not None:
                 self.status_html.content = shown_text(status_text)
-                self.targets_md.content = shown_text(targets_text)
+                self.targets_html.content = shown_text(targets_text)
             self.record_md.content = shown_text(self._recording_text(rec))
             if rec.active and rec.directory != self._record_dir_shown:
                 # The folder of the recording going on (--record's, another browser's): the
@@ -1435,19 +1437,30 @@ class Console:
         return counts if rec.active else f"not recording (last: {counts})"
 
     @staticmethod
-    def _targets_markdown(snap: Snapshot) -> str:
+    def _targets_html(snap: Snapshot) -> str:
+        """The target list as an HTML table of fixed column widths, each cell one line cut with
+        an ellipsis (its whole text on hover). Why not markdown: viser's markdown table has no
+        cell padding, so columns ran together ("wing_south_c2operator"), its z column crossed
+        the folder's border, and a lost target's reason wrapped to five lines a row, making 30
+        targets several screens long (an outside console probe)."""
         if not snap.targets:
-            return "_no targets_"
-        rows = ["| id | by | status | u, v | z [m] |", "|---|---|---|---|---|"]
-        for t in snap.targets[:40]:
+            return '<div style="padding:0 0.75rem"><i>no targets</i></div>'
+        cell = "padding:1px 4px;overflow:hidden;text-overflow:ellipsis;white-space:nowrap"
+        widths = {"id": 22, "by": 14, "status": 24, "u, v": 27, "z [m]": 13}
+        head = "".join(f'<th style="{cell};width:{w}%;text-align:left">{name}</th>' for name, w in widths.items())
+        rows = [f"<tr>{head}</tr>"]
+        for t in snap.targets[:TARGET_LIST_ROWS]:
             z = f"{t.point_cam[2]:.3f}" if t.measured and np.isfinite(t.point_cam[2]) else "-"
             status = t.status if t.status != "lost" else f"lost ({t.lost_reason or '?'})"
             # Re-made through the pose: a point of the a-priori model, or one that joined the
             # model (grown, acquired, a provisional frame's): "model" for both read, beside "no
             # model point targeted", as if the a-priori model were bound.
             by = "grown" if t.origin == "model" and t.id not in snap.model_ids else t.origin
-            rows.append(f"| {t.id} | {by} | {status} | {t.uv[0]:.1f}, {t.uv[1]:.1f} | {z} |")
-        if len(snap.targets) > 40:
-            rows.append(f"| … {len(snap.targets) - 40} more | | | | |")
-        return "\n".join(rows)
+            texts = (t.id, by, status, f"{t.uv[0]:.1f}, {t.uv[1]:.1f}", z)
+            rows.append("<tr>" + "".join(f'<td style="{cell}" title="{escape(x)}">{escape(x)}</td>' for x in texts)
+                        + "</tr>")
+        if len(snap.targets) > TARGET_LIST_ROWS:
+            rows.append(f'<tr><td colspan="5" style="{cell}">… {len(snap.targets) - TARGET_LIST_ROWS} more</td></tr>')
+        return ('<table style="table-layout:fixed;width:100%;border-collapse:collapse;font-size:0.8rem;'
+                'font-variant-numeric:tabular-nums">' + "".join(rows) + "</table>")
 

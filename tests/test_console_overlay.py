@@ -746,10 +746,42 @@ def test_the_target_list_tells_a_priori_model_points_from_points_that_joined_the
 
     targets = (_target("p1*", (10.0, 10.0)), _target("a4", (20.0, 10.0), origin="auto"),
                _target("bus_c1", (30.0, 10.0), origin="model"), _target("a2", (40.0, 10.0), origin="model"))
-    rows = Console._targets_markdown(Snapshot(None, targets, PoseEstimate.invalid("x"), None, Timings(),
-                                              model_ids=("bus_c1", "bus_c2", "wing_c3")))
-    by = {line.split("|")[1].strip(): line.split("|")[2].strip() for line in rows.splitlines()[2:]}
-    assert by == {"p1*": "operator", "a4": "auto", "bus_c1": "model", "a2": "grown"}
+    rows = _target_rows(Console._targets_html(Snapshot(None, targets, PoseEstimate.invalid("x"), None, Timings(),
+                                                       model_ids=("bus_c1", "bus_c2", "wing_c3"))))
+    assert {row[0]: row[1] for row in rows} == {"p1*": "operator", "a4": "auto", "bus_c1": "model", "a2": "grown"}
     # Without an a-priori model (cases a and c) every re-made point is one that joined the model.
-    rows = Console._targets_markdown(Snapshot(None, targets, PoseEstimate.invalid("x"), None, Timings()))
-    assert [line.split("|")[2].strip() for line in rows.splitlines()[2:]] == ["operator", "auto", "grown", "grown"]
+    rows = _target_rows(Console._targets_html(Snapshot(None, targets, PoseEstimate.invalid("x"), None, Timings())))
+    assert [row[1] for row in rows] == ["operator", "auto", "grown", "grown"]
+
+
+def _target_rows(table: str) -> list[list[str]]:
+    """The target list's body cells, row by row, unescaped."""
+    import html
+    import re
+
+    return [[html.unescape(c) for c in re.findall(r"<td[^>]*>(.*?)</td>", row)]
+            for row in re.findall(r"<tr>(.*?)</tr>", table)[1:]]
+
+
+def test_the_target_list_keeps_its_columns_apart_and_a_row_to_one_line() -> None:
+    # An outside console probe: viser's markdown table ran its columns together
+    # ("wing_south_c2operator"), crossed the folder's border, and a lost reason wrapped to five
+    # lines a row. Fixed widths, padded cells, one line each with the whole text on hover.
+    from console.app import TARGET_LIST_ROWS, Console
+
+    import html
+    import re
+    from dataclasses import replace
+
+    reason = "ambiguous in the search window (scores 0.91, 0.91)"
+    lost = replace(_target("wing_south_c2", (10.0, 10.0), "lost", origin="model"), lost_reason=reason)
+    table = Console._targets_html(Snapshot(None, (lost,), PoseEstimate.invalid("x"), None, Timings()))
+    assert "table-layout:fixed" in table and "width:100%" in table
+    cells = re.findall(r'<td style="([^"]*)" title="([^"]*)">', table)
+    assert len(cells) == 5 and all("padding" in style and "white-space:nowrap" in style and "ellipsis" in style
+                                    for style, _ in cells)
+    assert html.unescape(cells[2][1]) == f"lost ({reason})"
+    many = tuple(_target(f"a{k}", (float(k), 5.0), origin="auto") for k in range(TARGET_LIST_ROWS + 3))
+    rows = _target_rows(Console._targets_html(Snapshot(None, many, PoseEstimate.invalid("x"), None, Timings())))
+    assert len(rows) == TARGET_LIST_ROWS + 1 and rows[-1] == ["… 3 more"]
+    assert "no targets" in Console._targets_html(Snapshot(None, (), PoseEstimate.invalid("x"), None, Timings()))
