@@ -553,7 +553,9 @@ def test_a_data_csv_without_rows_says_so(tmp_path):
         index_sequence(d)
 
 
-@pytest.mark.parametrize("unit_ns, what", [(1000, "microseconds"), (40_000_000, "frame numbers")])
+@pytest.mark.parametrize("unit_ns, what", [(1000, "are these microseconds (25 Hz then)?"),
+                                           (1_000_000, "are these milliseconds (25 Hz then)?"),
+                                           (40_000_000, "are these frame numbers?")])
 def test_timestamps_in_another_unit_than_nanoseconds_are_warned(tmp_path, unit_ns, what):
     # microseconds (25 kHz read as ns) or frame numbers (1 GHz): the motion model would be
     # given intervals a thousand times too short and tracking fails without saying why.
@@ -565,7 +567,7 @@ def test_timestamps_in_another_unit_than_nanoseconds_are_warned(tmp_path, unit_n
     index = index_sequence(d)
     assert len(index) == 4
     (warning,) = [w for w in index.warnings if "nanoseconds" in w]
-    assert "Hz" in warning
+    assert what in warning  # milliseconds were asked about as "microseconds or frame numbers" (an outside probe)
     assert index_sequence(_write(tmp_path / "ns", _frames(4))).warnings == ()
 
 

@@ -665,6 +665,18 @@ def find_sequence_file(directory: str | Path, *names: str) -> Path | None:
 #: (microseconds give 25 kHz for a 25 Hz camera, frame numbers 1 GHz), and warned about.
 MAX_PLAUSIBLE_RATE_HZ = 2000.0
 
+
+def _timestamp_unit_guess(interval_s: float) -> str:
+    """The question to ask of timestamps ``interval_s`` apart read as nanoseconds: the unit that
+    would give a camera's rate (1 to 1000 Hz), else frame numbers or another unit."""
+    if abs(interval_s - 1e-9) < 1e-12:  # one apart
+        return "are these frame numbers?"
+    for unit, ns in (("microseconds", 1e3), ("milliseconds", 1e6), ("seconds", 1e9)):
+        rate_hz = 1.0 / (interval_s * ns)
+        if 1.0 <= rate_hz <= 1000.0:
+            return f"are these {unit} ({rate_hz:.4g} Hz then)?"
+    return "are these in another unit, or frame numbers?"
+
 #: Frame intervals (the median one) past which a pause in a sequence's frame times is warned of.
 GAP_INTERVALS = 3.0
 
@@ -941,8 +953,8 @@ def index_sequence(
     dt: float | FloatArray
     if len(t_s) > 1 and (dt := float(np.median(np.diff(t_s)))) > 0 and 1.0 / dt > MAX_PLAUSIBLE_RATE_HZ:
         warnings.append(f"frames {dt * 1e6:.4g} µs apart ({1.0 / dt:.0f} Hz): data.csv timestamps are "
-                        "nanoseconds; are these microseconds or frame numbers? (tracking would take "
-                        "the motion between frames as that fast)")
+                        f"nanoseconds; {_timestamp_unit_guess(dt)} (tracking would take the motion between "
+                        "frames as that fast)")
     if len(t_s) > 2 and (step := float(np.median(np.diff(t_s)))) > 0:
         dt = np.diff(t_s)
         gaps = np.flatnonzero(dt > GAP_INTERVALS * step)
