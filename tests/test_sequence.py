@@ -285,11 +285,13 @@ def test_euroc_sensor_yaml_gives_the_rig(tmp_path):
     assert np.allclose(rig.R, T_c0_c1[:3, :3].T, atol=1e-12)
     assert np.allclose(rig.T, -T_c0_c1[:3, :3].T @ [0.11, 0, 0], atol=1e-12)
     assert rig.baseline_m == pytest.approx(0.11)
+    assert src.index.rig_file == tmp_path / "seq" / "mav0" / "cam0" / "sensor.yaml"  # what run.yaml names
     # An unsupported model: played, rig unknown, and said so.
     (tmp_path / "seq" / "mav0" / "cam1" / "sensor.yaml").write_text(cam1.replace("radial-tangential", "equidistant"))
     with pytest.warns(UserWarning, match="not supported"):
         src = open_source(f"seq:{tmp_path / 'seq'}")
     assert src.rig is None and "not supported" in src.warning and src.skipped == 0
+    assert src.index.rig_file is None
 
 
 # --------------------------------------------------------------------------- bad input

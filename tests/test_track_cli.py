@@ -543,7 +543,9 @@ def test_run_yaml_says_the_rig_came_with_the_source(opencv_sample_rig, opencv_sa
     out = tmp_path / "run"
     code = main(["track", "--source", f"seq:{folder}", "--auto", "4", "--out", str(out)])
     assert code == 0, capsys.readouterr().err
-    assert yaml.safe_load((out / "run.yaml").read_text())["source"]["rig"] == "the source's (seq)"  # its name
+    # its file: a folder with both DIR/rig.yaml and DIR/mav0/rig.yaml said only which was not
+    # used by its silence (an outside probe)
+    assert yaml.safe_load((out / "run.yaml").read_text())["source"]["rig"] == f"the source's ({folder / 'intrinsics.yml'})"
 
 
 def test_a_rate_from_nanosecond_timestamps_is_written_as_the_rate_it_is(opencv_sample_rig, shared_data, tmp_path,

@@ -295,7 +295,7 @@ def _run(args: argparse.Namespace, started: list[bool]) -> int:
         feed = cast("Source", _Limited(source, args.max_frames)) if args.max_frames else source
         source_info = {
             "spec": args.source,
-            "rig": args.rig or (f"the source's ({rig.name})" if rig.name and rig.name != "rig" else "the source's"),
+            "rig": args.rig or _source_rig_label(source, rig),
             # from the frames' median interval: 24.99999999999998 says no more than 25 does
             "rate_hz": None if source.rate_hz is None else float(f"{source.rate_hz:.9g}"),
             "model": model_label if case == "b" else None,  # the model used, None when none was
@@ -532,6 +532,17 @@ def _source_identity(source: Any) -> dict[str, str]:
     digest = getattr(sim_scenario, "motion_digest", None)
     motion = digest() if callable(digest) else None
     return {"scenario": scenario, **({"motion": motion} if motion else {})}
+
+
+def _source_rig_label(source: Any, rig: Any) -> str:
+    """run.yaml's word for the rig a source carries: its file where the source read one (a
+    sequence folder's: one with both DIR/rig.yaml and DIR/mav0/rig.yaml said only "the
+    source's", an outside probe), else its name (a scenario's preset)."""
+    index = getattr(source, "index", None)
+    rig_file = getattr(index, "rig_file", None)
+    if rig_file is not None:
+        return f"the source's ({rig_file})"
+    return f"the source's ({rig.name})" if rig.name and rig.name != "rig" else "the source's"
 
 
 def _check_views(state: _RunState, rig: Any, frame: Any, tty: bool) -> None:

@@ -478,6 +478,8 @@ class SequenceIndex:
         left_paths, right_paths: (N,) image files of each pair.
         rig: from ``rig.yaml`` when present, else from a real EuRoC folder's two
             ``sensor.yaml`` (:func:`read_euroc_rig`), else None.
+        rig_file: the file ``rig`` was read from (the left camera's ``sensor.yaml`` for
+            EuRoC's pair), None when there is no rig or it was not read.
         model: from ``model.yaml`` when present, else None.
         truth: ground truth per pair (N rows, NaN rows where a pair has no truth within
             the tolerance), from ``groundtruth.csv`` or else ``groundtruth.tum``; None when
@@ -505,6 +507,7 @@ class SequenceIndex:
     cuts: tuple[int, ...] = ()
     truth_problem: str | None = None
     t_ns: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    rig_file: Path | None = None
 
     def __len__(self) -> int:
         return len(self.t_s)
@@ -953,7 +956,7 @@ def index_sequence(
     dt: float | FloatArray
     if len(t_s) > 1 and (dt := float(np.median(np.diff(t_s)))) > 0 and 1.0 / dt > MAX_PLAUSIBLE_RATE_HZ:
         warnings.append(f"frames {dt * 1e6:.4g} µs apart ({1.0 / dt:.0f} Hz): data.csv timestamps are "
-                        f"nanoseconds; {_timestamp_unit_guess(dt)} (tracking would take the motion between "
+                        f"nanoseconds; {_timestamp_unit_guess(float(dt))} (tracking would take the motion between "
                         "frames as that fast)")
     if len(t_s) > 2 and (step := float(np.median(np.diff(t_s)))) > 0:
         dt = np.diff(t_s)
@@ -966,13 +969,14 @@ def index_sequence(
     rig_file = find_sequence_file(directory, *RIG_FILE_NAMES)
     rig: StereoRig | None = None
     if not read_rig:
-        pass
+        rig_file = None
     elif rig_file is not None:
         rig = load_rig(rig_file, image_size=_first_frame_size(left[i][1] for i, _ in pairs))
     else:
         rig, problem = read_euroc_rig(root)
         if problem:
             warnings.append(problem)
+        rig_file = root / "cam0" / "sensor.yaml" if rig is not None else None
     model_file = find_sequence_file(directory, "model.yaml") if read_model else None
     model: Model | None = None
     try:
@@ -1013,6 +1017,7 @@ def index_sequence(
         tolerance_s=float(tolerance_s),
         truth_problem=truth_problem,
         t_ns=pair_ns,
+        rig_file=rig_file,
     )
 
 
