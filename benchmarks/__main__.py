@@ -9,10 +9,12 @@ import importlib.util
 import json
 import math
 import numbers
+import os
 import sys
 import time
 import traceback
 from pathlib import Path
+from typing import NoReturn
 
 from benchmarks import NAMES, READS_CONFIG, bench_config, config_note
 from trackmeter.errors import TrackmeterError
@@ -34,8 +36,32 @@ def figures_for_json(name: str, figures: dict) -> dict[str, float | None]:
     return out
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse that reports a usage error as one line and exit code 2, as the trackmeter
+    commands do (it printed the usage line above it)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+
+
+def out_problem(path: Path) -> str | None:
+    """Why the JSON could not be written to ``path`` (``--out``), else None: said before any
+    benchmark runs, not after a run of up to 40 minutes, whose file was then lost to a
+    traceback (a folder given, or a file where a folder must be)."""
+    if path.is_dir():
+        return f"--out {path}: is a folder; give the JSON file's name, e.g. {path / 'benchmarks.json'}"
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:  # the folders --out makes
+        parent = parent.parent
+    if not parent.is_dir():
+        return f"--out {path}: {parent} is a file, not a folder"
+    if not os.access(parent, os.W_OK | os.X_OK):
+        return f"--out {path}: {parent} is not writable"
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="python -m benchmarks", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="Run from the repository's root (the benchmarks folder is not installed with the package).\n"
                "Long ones: soak runs 10 minutes of live pipeline by design; accuracy took 3-13 minutes on the\n"
@@ -46,6 +72,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("names", nargs="*", metavar="NAME", help=f"benchmarks to run (default: all): {', '.join(NAMES)}")
     parser.add_argument("--out", type=Path, help="also write the JSON to this file")
     args = parser.parse_args(argv)
+    if args.out is not None and (problem := out_problem(args.out)):
+        print(f"python -m benchmarks: error: {problem}", file=sys.stderr)
+        return 2
     names = args.names or [n for n in NAMES if importlib.util.find_spec(f"benchmarks.{n}") is not None]
     unknown = [n for n in names if n not in NAMES]
     if unknown:
@@ -103,8 +132,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.out:
         from trackmeter.data.atomic import write_text_atomic
 
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        write_text_atomic(args.out, text + "\n")
+        try:
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+            write_text_atomic(args.out, text + "\n")
+        except OSError as exc:  # checked before the run; changed since (a full disk, a folder removed)
+            print(f"python -m benchmarks: error: --out {args.out}: cannot write ({exc.strerror or exc}); "
+                  "the figures are above", file=sys.stderr)
+            return 2
     if interrupted:
         print(f"python -m benchmarks: interrupted: the figures of {len(results)} benchmark(s) finished before it "
               "are above", file=sys.stderr)

@@ -79,6 +79,33 @@ def test_a_benchmark_whose_needs_are_missing_is_refused_before_any_runs(
                    "(or name the benchmarks to run without it)")
 
 
+def test_an_out_that_cannot_be_written_is_refused_before_any_runs(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # An outside probe: --out a folder (or under a file) ran the whole benchmark, printed its
+    # figures, then lost the file to a traceback, exit 1.
+    ran = _fake_benchmarks(monkeypatch, {"measure": {"point_ms_median": 1.5}})
+    (tmp_path / "afile").write_text("x")
+    for out, said in ((tmp_path, f"--out {tmp_path}: is a folder; give the JSON file's name, e.g. "
+                                 f"{tmp_path / 'benchmarks.json'}"),
+                      (tmp_path / "afile" / "new" / "b.json", f"{tmp_path / 'afile'} is a file, not a folder")):
+        assert entry.main(["measure", "--out", str(out)]) == 2
+        assert ran == []
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("python -m benchmarks: error: --out ") and err.endswith(said) and "\n" not in err
+    # A folder still to be made is made, as before.
+    assert entry.main(["measure", "--out", str(tmp_path / "new" / "b.json")]) == 0
+    assert json.loads((tmp_path / "new" / "b.json").read_text()) == {"measure": {"point_ms_median": 1.5}}
+
+
+def test_a_usage_error_is_one_line_as_the_commands_give_it(capsys: pytest.CaptureFixture[str]) -> None:
+    for argv in (["measure", "--bogus"], ["--out"]):
+        with pytest.raises(SystemExit) as info:
+            entry.main(argv)
+        assert info.value.code == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("python -m benchmarks: error: ") and err.endswith("(see --help)") and "\n" not in err
+
+
 def test_the_browser_benchmarks_name_what_they_lack(monkeypatch: pytest.MonkeyPatch) -> None:
     import importlib.util
     import shutil
