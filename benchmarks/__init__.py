@@ -48,7 +48,8 @@ def config_note(names: list[str]) -> str | None:
         return None
     readers = sorted(READS_CONFIG)
     return (f"{CONFIG_ENV} ({path}) is read by {', '.join(readers[:-1])} and {readers[-1]} only: "
-            f"{', '.join(others[:-1]) + ' and ' if len(others) > 1 else ''}{others[-1]} run config/default.yaml")
+            f"{', '.join(others[:-1]) + ' and ' if len(others) > 1 else ''}{others[-1]} "
+            f"{'run' if len(others) > 1 else 'runs'} config/default.yaml")
 
 
 def browser_unmet() -> str | None:

@@ -73,6 +73,7 @@ def test_a_run_of_benchmarks_that_do_not_read_the_file_says_so(monkeypatch, tmp_
     assert config_note(["render", "accuracy", "pipeline"]) == (
         f"{CONFIG_ENV} (smooth.yaml) is read by accuracy, error_budget, looks and operator only: render and "
         "pipeline run config/default.yaml")
+    assert config_note(["measure"]).endswith(": measure runs config/default.yaml")  # one: "runs" (a probe)
     assert config_note(["accuracy", "looks"]) is None
     monkeypatch.delenv(CONFIG_ENV)
     assert config_note(["render"]) is None
