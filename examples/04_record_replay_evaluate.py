@@ -5,6 +5,8 @@ library: 3 s of the simulated ESTEC trial are written to a sequence folder (EuRo
 its rig and ground truth), played back through the pipeline's two threads (acquisition and
 tracking, no frame dropped off-line) with 16 automatic targets, and the estimated motion is
 compared with the truth after a 2 s settling time, aligning the case-(a) body frame first.
+The sequence folder is a temporary one, removed when the example ends (``trackmeter simulate
+--duration 3 --out DIR`` writes one to keep).
 
     python examples/04_record_replay_evaluate.py
 """
@@ -42,7 +44,7 @@ def record_replay_evaluate(folder: Path) -> None:
         n_frames = round(SECONDS * sim.rate_hz)  # as `trackmeter simulate --duration 3` writes
         for k in range(n_frames):
             writer.write(sim.frame(k))
-    print(f"recorded {n_frames} frames to {folder}")
+    print(f"recorded {n_frames} frames to {folder} (removed at the end)")
 
     source = open_source(f"seq:{folder}")
     assert source.rig is not None  # the folder's rig.yaml, written above
