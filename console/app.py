@@ -1430,8 +1430,10 @@ class Console:
             return "not recording"
         if rec.discarded:
             return f"not recording (last: no frame came, nothing kept in {rec.directory})"
-        counts = (f"{rec.directory}: {counted(rec.frames_written, 'frame')} written, {rec.frames_dropped + rec.frames_lost} "
-                  "not recorded" + (f", {rec.error}" if rec.error else ""))
+        n = rec.image_bytes_written
+        size = "" if not n else f" ({n / 1e6:.0f} MB)" if n < 1e9 else f" ({n / 1e9:.1f} GB)"
+        counts = (f"{rec.directory}: {counted(rec.frames_written, 'frame')} written{size}, "
+                  f"{rec.frames_dropped + rec.frames_lost} not recorded" + (f", {rec.error}" if rec.error else ""))
         if not rec.active and rec.queue_depth > 0 and rec.error is None:  # stopped: what it queued is written on
             return f"stopped, writing the {counted(rec.queue_depth, 'frame')} still queued ({counts})"
         return counts if rec.active else f"not recording (last: {counts})"

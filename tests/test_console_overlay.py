@@ -524,6 +524,12 @@ def test_the_recording_line_says_when_nothing_is_recorded_any_more() -> None:
     closing = RecordingStats("runs/rec", active=False, frames_written=200, queue_depth=53)
     assert Console._recording_text(closing) == ("stopped, writing the 53 frames still queued (runs/rec: 200 frames "
                                                 "written, 0 not recorded)")
+    # How big it has grown: a looping source recorded for 12 minutes made 7.3 GB, and nothing
+    # in the panel said so (an outside console probe).
+    big = RecordingStats("runs/rec", active=True, frames_written=18143, image_bytes_written=7_300_000_000)
+    assert Console._recording_text(big) == "runs/rec: 18143 frames written (7.3 GB), 0 not recorded"
+    small = RecordingStats("runs/rec", active=True, frames_written=10, image_bytes_written=4_020_000)
+    assert Console._recording_text(small) == "runs/rec: 10 frames written (4 MB), 0 not recorded"
 
 
 @pytest.mark.parametrize("viewport, band", [

@@ -1334,6 +1334,7 @@ def test_the_exit_lines_name_every_recording_and_the_folder_field_the_one_going_
         while running.pipeline.recording_stats().frames_written < 3 and time.monotonic() < deadline:
             time.sleep(0.05)
         running.stop()
+        seen["image_bytes"] = running.pipeline.recording_stats().image_bytes_written
 
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(console.server, "serve_forever", serve_two_recordings)
@@ -1342,6 +1343,8 @@ def test_the_exit_lines_name_every_recording_and_the_folder_field_the_one_going_
     err = capsys.readouterr().err
     assert code == 0, err
     assert seen["field"] == str(first) and seen["second"] == str(tmp_path / "second")
+    # what the panel's recording line shows as the recording's size: its image files
+    assert seen["image_bytes"] == sum(p.stat().st_size for p in (tmp_path / "second").glob("cam*/data/*.png")) > 0
     assert re.search(rf"recorded \d+ frames to {re.escape(str(first))}\n", err), err
     assert re.search(rf"recorded \d+ frames to {re.escape(str(tmp_path / 'second'))}\n", err), err
 

@@ -169,6 +169,9 @@ class SequenceWriter:
         self._cuts: AppendFile | None = None
         self._last_ns: int | None = None
         self.frames_written = 0
+        #: bytes of the image files written (PNG), the bulk of the folder: a recording of a
+        #: looping source grows without end, and the operator is shown how far.
+        self.image_bytes_written = 0
         self._failed = False  # a write failed and said why: the close does not say it again
         self._rig, self._model_points = rig, model_points  # written again if deleted while recording
         # Two recordings started into one new folder at once would truncate each other's files:
@@ -371,6 +374,7 @@ class SequenceWriter:
             with open(tmp, "wb") as f:
                 f.write(buf.tobytes())
             os.replace(tmp, path)
+            self.image_bytes_written += buf.size
         except BaseException:
             with contextlib.suppress(OSError):
                 tmp.unlink(missing_ok=True)

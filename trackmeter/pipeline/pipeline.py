@@ -147,6 +147,8 @@ class RecordingStats:
             included).
         discarded: it ended without a frame, and nothing of it was kept (a folder of csv
             headers is no sequence: ``SequenceWriter.discarded``).
+        image_bytes_written: bytes of the image files written (the writer's
+            ``image_bytes_written``; 0 for one that does not count them).
     """
 
     directory: str | None = None
@@ -158,6 +160,7 @@ class RecordingStats:
     error: str | None = None
     frames_lost: int = 0
     discarded: bool = False
+    image_bytes_written: int = 0
 
     def summary(self) -> str:
         """What a stopped recording holds, one line: ``recorded N frames to DIR`` and what was
@@ -210,6 +213,7 @@ class _Recorder:
         self.frames_written = 0
         self.frames_dropped = 0
         self.frames_lost = 0
+        self.image_bytes_written = 0
         self.error: str | None = None
         self.discarded = False  # the writer kept nothing (no frame came)
         self._cut_dropped = False  # the last frame not kept started a new pass (offer's thread only)
@@ -259,6 +263,7 @@ class _Recorder:
                 self._writer.write(self._carried_on(item))
                 with self._lock:
                     self.frames_written += 1
+                    self.image_bytes_written = int(getattr(self._writer, "image_bytes_written", 0))
                     # where the writer follows a folder moved while recording (SequenceWriter)
                     self.directory = Path(getattr(self._writer, "directory", self.directory))
             except Exception as exc:  # disk full, permissions: report, keep the pipeline up
@@ -301,7 +306,7 @@ class _Recorder:
         with self._lock:
             return RecordingStats(str(self.directory), active and not self.failed, self.frames_queued,
                                   self.frames_written, self.frames_dropped, self._queue.qsize(), self.error,
-                                  self.frames_lost, self.discarded)
+                                  self.frames_lost, self.discarded, self.image_bytes_written)
 
 
 class _RateMeter:
