@@ -1828,6 +1828,16 @@ def test_a_video_file_name_holding_a_comma_is_read_where_one_split_names_two_fil
         assert src.paths == (left, right) and len(list(iter(src.read, None))) == 3
     finally:
         src.close()
+    # A space beside the comma, as commas in file names mostly have (a code review): kept.
+    spaced = [_video(tmp_path / "Take 1, left.avi", 3), _video(tmp_path / "Take 1, right.avi", 3)]
+    src = open_source(f"video:{spaced[0]}, {spaced[1]}")
+    try:
+        assert src.paths == tuple(spaced)
+    finally:
+        src.close()
+    # One side found: the other is named as missing, not the split rule.
+    with pytest.raises(TrackmeterError, match=rf"^{tmp_path / 'gone,2.avi'}: no such video file$"):
+        open_source(f"video:{left},{tmp_path / 'gone,2.avi'}")
     with pytest.raises(TrackmeterError, match=r"video: needs two files, as video:LEFT,RIGHT, got .*; a file name "
                                               r"holding a comma is read where exactly one of the splits"):
-        open_source(f"video:{left},{tmp_path / 'gone,2.avi'}")
+        open_source(f"video:{tmp_path / 'a,b.avi'},{tmp_path / 'c,d.avi'}")

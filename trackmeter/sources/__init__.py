@@ -30,15 +30,20 @@ DEFAULT_SCENARIO = "estec"
 
 
 def _video_pair(arg: str) -> list[str] | None:
-    """``video:``'s LEFT and RIGHT: split at its one comma; with more (a file name holding one),
-    at the one comma whose two sides both name existing files. None when no split gives two
-    names, or several do."""
-    parts = [p.strip() for p in arg.split(",")]
-    if len(parts) == 2:
-        return parts if all(parts) else None
-    splits = [[",".join(parts[:k]).strip(), ",".join(parts[k:]).strip()] for k in range(1, len(parts))]
-    existing = [pair for pair in splits if all(os.path.isfile(p) for p in pair)]
-    return existing[0] if len(existing) == 1 else None
+    """``video:``'s LEFT and RIGHT, each stripped of spaces at its ends and its ``~`` expanded:
+    split at its one comma; with more (a file name holding one, "Take 1, left.avi"), at the one
+    comma whose two sides both name existing files, or else whose one side alone does (so that
+    the missing one is named). None when no comma gives two names, or several do alike."""
+    commas = [i for i, c in enumerate(arg) if c == ","]
+    splits = [[os.path.expanduser(side.strip()) for side in (arg[:i], arg[i + 1:])] for i in commas]
+    splits = [pair for pair in splits if all(pair)]
+    if len(commas) == 1:
+        return splits[0] if splits else None
+    for found in (2, 1):  # both sides name files; else one does (the other is said missing)
+        matches = [pair for pair in splits if sum(os.path.isfile(side) for side in pair) == found]
+        if matches:
+            return matches[0] if len(matches) == 1 else None
+    return None
 
 
 def open_source(spec: str, rig_override: StereoRig | None = None, realtime: bool = False, loop: bool = False,
@@ -69,7 +74,8 @@ def open_source(spec: str, rig_override: StereoRig | None = None, realtime: bool
         raise TrackmeterError("empty source SPEC (expected sim, sim:SCENARIO, seq:DIR, video:LEFT,RIGHT, camera:I[,J])")
     kind, _, arg = text.partition(":")
     # The shell expands a leading '~' only at the start of a word, not after "seq:".
-    arg = ",".join(os.path.expanduser(part.strip()) for part in arg.split(",")) if kind == "video" else os.path.expanduser(arg)
+    # (video:'s two files each, where its commas are read: _video_pair)
+    arg = arg if kind == "video" else os.path.expanduser(arg)
     # A folder named after a kind ("sim", "seq", ...) is still that kind: say how to play it.
     folder_hint = f" (the folder {text!r} here: give ./{text})" if kind == text and Path(text).is_dir() else ""
     if kind == "sim":
@@ -89,7 +95,7 @@ def open_source(spec: str, rig_override: StereoRig | None = None, realtime: bool
         parts = _video_pair(arg)
         if parts is None:
             commas = ("; a file name holding a comma is read where exactly one of the splits at its commas "
-                      "names two existing files") if arg.count(",") > 1 else ""
+                      "names two existing files, or one") if arg.count(",") > 1 else ""
             raise TrackmeterError(f"video: needs two files, as video:LEFT,RIGHT, got {spec!r}{commas}{folder_hint}")
         from trackmeter.sources.video import VideoSource
 
