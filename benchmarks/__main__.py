@@ -129,6 +129,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"[benchmarks] {name} done in {time.perf_counter() - start:.1f} s", file=sys.stderr, flush=True)
     text = json.dumps(results, indent=2, sort_keys=True, allow_nan=False)
     print(text)
+    unwritten = False
     if args.out:
         from trackmeter.data.atomic import write_text_atomic
 
@@ -136,9 +137,10 @@ def main(argv: list[str] | None = None) -> int:
             args.out.parent.mkdir(parents=True, exist_ok=True)
             write_text_atomic(args.out, text + "\n")
         except OSError as exc:  # checked before the run; changed since (a full disk, a folder removed)
+            # Said before the lines below, which stay last: a caller reads the last one.
             print(f"python -m benchmarks: error: --out {args.out}: cannot write ({exc.strerror or exc}); "
                   "the figures are above", file=sys.stderr)
-            return 2
+            unwritten = True
     if interrupted:
         print(f"python -m benchmarks: interrupted: the figures of {len(results)} benchmark(s) finished before it "
               "are above", file=sys.stderr)
@@ -147,8 +149,7 @@ def main(argv: list[str] | None = None) -> int:
         # The last line: what a caller (benchmarks.reproduce) shows for the missing figures.
         print(f"python -m benchmarks: error: {len(failed)} of {len(names)} failed: {'; '.join(failed)} "
               "(the others' figures are in the JSON)", file=sys.stderr)
-        return 1
-    return 0
+    return 2 if unwritten else 1 if failed else 0
 
 
 if __name__ == "__main__":

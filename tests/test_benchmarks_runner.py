@@ -97,6 +97,23 @@ def test_an_out_that_cannot_be_written_is_refused_before_any_runs(
     assert json.loads((tmp_path / "new" / "b.json").read_text()) == {"measure": {"point_ms_median": 1.5}}
 
 
+def test_a_write_that_fails_at_the_end_keeps_the_failures_line_last(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # A code review: the write's error returned before the line that names the failed
+    # benchmarks, which benchmarks.reproduce reads as the last one.
+    import trackmeter.data.atomic
+
+    def full(path: object, text: str) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(trackmeter.data.atomic, "write_text_atomic", full)
+    _fake_benchmarks(monkeypatch, {"measure": {"point_ms_median": 1.5}, "render": RuntimeError("boom")})
+    assert entry.main(["measure", "render", "--out", str(tmp_path / "b.json")]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert "cannot write (No space left on device); the figures are above" in lines[-2]
+    assert lines[-1].startswith("python -m benchmarks: error: 1 of 2 failed: render (RuntimeError: boom)")
+
+
 def test_a_usage_error_is_one_line_as_the_commands_give_it(capsys: pytest.CaptureFixture[str]) -> None:
     for argv in (["measure", "--bogus"], ["--out"]):
         with pytest.raises(SystemExit) as info:
