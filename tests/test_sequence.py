@@ -1811,6 +1811,15 @@ def test_a_video_whose_first_frame_does_not_decode_is_still_checked_against_the_
         assert src.frame_size == (64, 48)
     finally:
         src.close()
+    # A left file none of whose frames decodes: the right's size (a code review).
+    dead = _video(tmp_path / "dead.avi", 6)
+    for k in (5, 4, 3, 2, 1, 0):  # from the last: a spoilt frame's start is gone from the next count
+        _spoil_video_frame(dead, k)
+    src = open_source(f"video:{dead},{right}")
+    try:
+        assert src.frame_size == (64, 48)
+    finally:
+        src.close()
     K = np.array([[30.0, 0.0, 15.5], [0.0, 30.0, 11.5], [0.0, 0.0, 1.0]])
     rig = replace(estec_rig, left=replace(estec_rig.left, width=32, height=24, K=K),
                   right=replace(estec_rig.right, width=32, height=24, K=K))

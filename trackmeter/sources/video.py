@@ -115,22 +115,25 @@ class VideoSource(Source):
         self._t_offset = 0.0
         self._last_t = -np.inf
         self._frame_size: tuple[int, int] | None = None
+        self._frame_size_read = False  # None is an answer too: the files are not read again
 
     @property
     def frame_size(self) -> tuple[int, int] | None:
-        """``(width, height)`` px of the left file's first frame that decodes, decoded once by a
-        capture of its own (the stream is not disturbed), or None when it has no such frame.
-        Decoded rather than taken from ``CAP_PROP_FRAME_WIDTH``: the size of what :meth:`read`
-        delivers.
+        """``(width, height)`` px of the left file's first frame that decodes (the right file's
+        when the left has none: :meth:`read` delivers pairs of one size only), decoded once by
+        a capture of its own (the stream is not disturbed), or None when neither has such a
+        frame. Decoded rather than taken from ``CAP_PROP_FRAME_WIDTH``: the size of what
+        :meth:`read` delivers.
 
         Raises:
             TrackmeterError: the right file's first frame has another size (no stereo pair).
         """
-        if self._frame_size is None:
+        if not self._frame_size_read:
             sizes = [self._first_frame_size(path) for path in self.paths]
             if None not in sizes and sizes[0] != sizes[1]:
                 raise TrackmeterError(self._size_mismatch(*sizes))  # type: ignore[arg-type]
-            self._frame_size = sizes[0]
+            self._frame_size = sizes[0] or sizes[1]
+            self._frame_size_read = True
         return self._frame_size
 
     def _first_frame_size(self, path: Path) -> tuple[int, int] | None:
@@ -293,6 +296,7 @@ class CameraSource(Source):
         self._count = 0
         self._t0: float | None = None
         self._frame_size: tuple[int, int] | None = None
+        self._frame_size_read = False  # None is an answer too: the files are not read again
 
     @property
     def frame_size(self) -> tuple[int, int]:
