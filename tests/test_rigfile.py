@@ -155,8 +155,9 @@ def test_an_opencv_pair_whose_principal_point_is_near_the_frames_edge_is_warned_
     images looked swapped. The pair carries no size, so the likely cause is said at loading."""
     _write_opencv_pair(tmp_path, _rig())
     with pytest.warns(UserWarning, match=r"intrinsics.yml: the principal point \(330\.2, 241\.5\) lies 36% of the "
-                                         r"384x288 px frames from their centre: calibrated for another image size\?"):
+                                         r"384x288 px frames from their centre: calibrated for another image size\?") as said:
         load_rig(tmp_path / "intrinsics.yml", image_size=(384, 288))
+    assert said[0].filename == __file__
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert load_rig(tmp_path / "intrinsics.yml", image_size=(640, 480)).image_size == (640, 480)
@@ -174,8 +175,9 @@ def test_a_rig_yaml_without_its_size_is_checked_against_the_frames_as_opencv_s_p
         load_rig(path, image_size=(320, 240))
     with pytest.warns(UserWarning, match=r"rig.yaml: the principal point \(330\.2, 241\.5\) lies 36% of the 384x288 "
                                          r"px frames from their centre: calibrated for another image size\? \(the file "
-                                         r"has no image_width/image_height; the frames' is taken\)"):
+                                         r"has no image_width/image_height; the frames' is taken\)") as said:
         load_rig(path, image_size=(384, 288))
+    assert said[0].filename == __file__  # where load_rig was called, not inside it (a code review)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert load_rig(path, image_size=(640, 480)).image_size == (640, 480)

@@ -411,7 +411,8 @@ def _load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> St
         if size_from_frames:
             # Checked as OpenCV's pair is: a rig.yaml without its size on other frames said
             # nothing, and every candidate point was refused as having no match.
-            _check_size_taken_from_frames(left, right, path, "the file has no image_width/image_height")
+            _check_size_taken_from_frames(left, right, path, "the file has no image_width/image_height",
+                                          stacklevel=4)  # load_rig -> here -> the check
         rms = _scalar(fs, "rms_px", path)
         return StereoRig(left, right, _rotation(fs, path), _matrix(fs, "T", path).ravel(), rms_px=rms, name=path.stem)
     except TrackmeterError as exc:
@@ -641,12 +642,13 @@ def _load_middlebury(entries: dict[str, str], path: Path, image_size: tuple[int,
 OFF_CENTRE_WARN_FRACTION = 0.3
 
 
-def _check_size_taken_from_frames(left: Camera, right: Camera, path: Path, why_taken: str) -> None:
+def _check_size_taken_from_frames(left: Camera, right: Camera, path: Path, why_taken: str, stacklevel: int) -> None:
     """For a rig file that carries no image size, whose cameras were given the frames': refuse
     a principal point outside the frames, and warn of one more than
     :data:`OFF_CENTRE_WARN_FRACTION` of them from their centre (``why_taken`` says why the
     frames' size was taken). Both mean a calibration made at another image size, which nothing
-    else would tell: every point is then refused for reasons that do not name the rig."""
+    else would tell: every point is then refused for reasons that do not name the rig.
+    ``stacklevel``: the warning's, from here to :func:`load_rig`'s caller."""
     width, height = left.width, left.height
     for cam in (left, right):
         cx, cy = cam.K[0, 2], cam.K[1, 2]
@@ -659,7 +661,7 @@ def _check_size_taken_from_frames(left: Camera, right: Camera, path: Path, why_t
             # (cx 340.7 of 384) refused every point as "the images look swapped" (an outside probe).
             warnings.warn(f"{path}: the principal point ({cx:.1f}, {cy:.1f}) lies {off_centre:.0%} of the "
                           f"{width}x{height} px frames from their centre: calibrated for another image size? "
-                          f"({why_taken}; the frames' is taken)", stacklevel=3)
+                          f"({why_taken}; the frames' is taken)", stacklevel=stacklevel)
             return
 
 
@@ -699,7 +701,8 @@ def _load_opencv_pair(path: Path, image_size: tuple[int, int] | None) -> StereoR
         width, height = image_size
         left = _camera(width, height, fi, "M1", "D1", intr)
         right = _camera(width, height, fi, "M2", "D2", intr)
-        _check_size_taken_from_frames(left, right, path, "OpenCV's intrinsics/extrinsics carry none")
+        # load_rig -> _load_rig -> here -> the check
+        _check_size_taken_from_frames(left, right, path, "OpenCV's intrinsics/extrinsics carry none", stacklevel=5)
         return StereoRig(left, right, _rotation(fe, extr), _matrix(fe, "T", extr).ravel(), name=folder.name)
     finally:
         fi.release()
