@@ -1359,8 +1359,8 @@ class Console:
         stopped = snap.source_status is not None and not snap.paused
         ended = snap.source_status == "ended"
         state = "paused" if snap.paused else ("ended" if ended else "source stopped") if stopped else "running"
-        status = snap.source_status or ""
-        source = (f"<b>{escape(status if status.startswith('source') else f'source {status}')}</b>" if status
+        status = snap.source_status_text
+        source = (f"<b>{escape(status)}</b>" if status
                   else "source held: no frame is read while paused" if snap.paused
                   else "source delivering" + (f" · pass {snap.source_pass} (it loops; tracking starts over "
                                               "each pass)" if snap.source_pass > 1 else ""))

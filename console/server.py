@@ -161,8 +161,7 @@ def serve_forever(running: RunningConsole, stop: threading.Event | None = None, 
             if warning and warning != said[1]:
                 print(f"trackmeter console: warning: {warning}", file=sys.stderr, flush=True)
             if status and status != said[0]:
-                said_as = status if status.startswith("source") else f"source {status}"  # "source failed: ..."
-                print(f"trackmeter console: {said_as}", file=sys.stderr, flush=True)
+                print(f"trackmeter console: {snap.source_status_text}", file=sys.stderr, flush=True)
             said = (status, warning)
     except KeyboardInterrupt:
         pass

@@ -1115,6 +1115,7 @@ def test_the_server_loop_says_on_stderr_when_the_source_ends_fails_or_warns(caps
     from types import SimpleNamespace
 
     from console.server import serve_forever
+    from trackmeter.pipeline.snapshot import PoseEstimate, Snapshot, Timings
 
     news = [(None, None), (None, "3 pair(s) with an unreadable image skipped (x.png: no such image file)"),
             ("ended", "3 pair(s) with an unreadable image skipped (x.png: no such image file)"),
@@ -1128,7 +1129,8 @@ def test_the_server_loop_says_on_stderr_when_the_source_ends_fails_or_warns(caps
         polled.append(k)
         if len(polled) > len(news):
             stop.set()
-        return SimpleNamespace(source_status=news[k][0], source_warning=news[k][1])
+        return Snapshot(None, (), PoseEstimate.invalid("x"), None, Timings(), source_status=news[k][0],
+                        source_warning=news[k][1])
 
     stopped: list[bool] = []
     running = SimpleNamespace(pipeline=SimpleNamespace(latest=latest), warning_at_open=None,

@@ -135,6 +135,15 @@ class Snapshot:
     source_pass: int = 1
     model_ids: tuple[str, ...] = ()
 
+    @property
+    def source_status_text(self) -> str | None:
+        """``source_status`` as a line says it: "source ended", "source failed: ...", None
+        while the source delivers (the terminal and the console's status box say the same)."""
+        status = self.source_status
+        if not status:
+            return None
+        return status if status.startswith("source") else f"source {status}"
+
 
 @dataclass(frozen=True)
 class CommandReply:
