@@ -1526,27 +1526,35 @@ def test_a_recording_folder_whose_name_is_not_utf8_is_shown_escaped_and_the_page
         running.stop()
 
 
+def _popup_browser(client_id: int, removed: list[tuple[int, str]]) -> Any:
+    """A browser double whose pop-ups, when removed, append ``(client_id, title)`` to ``removed``."""
+    def add(title: str, body: str, **kwargs: Any) -> Any:
+        return types.SimpleNamespace(remove=lambda: removed.append((client_id, title)))
+    return types.SimpleNamespace(client_id=client_id, add_notification=add)
+
+
+def _console_with_two_browsers(removed: list[tuple[int, str]]) -> tuple[Any, Any, Any]:
+    """A running console (stop it) and two browser doubles connected to it (:func:`_popup_browser`)."""
+    running = start_console(CountingSource(3), RecordingEngine(), port=free_port())  # type: ignore[arg-type]
+    browsers = _popup_browser(1, removed), _popup_browser(2, removed)
+    for client in browsers:
+        running.console._on_connect(client)
+    return running, *browsers
+
+
 def test_a_pop_up_for_a_browser_gone_before_its_answer_is_not_kept() -> None:
     # A browser closed while its answer was pending (a refusal settling, a command's reply) left
     # its pop-up in Console._popups for good, one entry per such browser (an outside code review).
-    removed: list[int] = []
-
-    def browser(client_id: int) -> Any:
-        popup = types.SimpleNamespace(remove=lambda: removed.append(client_id))
-        return types.SimpleNamespace(client_id=client_id, add_notification=lambda *a, **k: popup)
-
-    running = start_console(CountingSource(3), RecordingEngine(), port=free_port())  # type: ignore[arg-type]
+    removed: list[tuple[int, str]] = []
+    running, staying, gone = _console_with_two_browsers(removed)
     con = running.console
     try:
-        staying, gone = browser(1), browser(2)
-        for client in (staying, gone):
-            con._on_connect(client)
         con._on_disconnect(gone)
         for _ in range(2):
             con._notify(staying, "Automatic selection: refused", "'abc' is not a whole number", False)
             con._notify(gone, "Automatic selection: refused", "'abc' is not a whole number", False)
         assert list(con._popups) == [1]
-        assert removed == [1]  # the staying browser's first pop-up gave way to its second
+        assert [cid for cid, _ in removed] == [1]  # the staying browser's first pop-up gave way to its second
     finally:
         running.stop()
 
@@ -1575,19 +1583,10 @@ def test_a_pop_up_is_closed_by_the_console_when_its_time_is_up(monkeypatch: pyte
     up; one still in its time stays."""
     import console.app
 
-    removed: list[str] = []
-
-    def browser(client_id: int) -> Any:
-        def add(title: str, body: str, **kwargs: Any) -> Any:
-            return types.SimpleNamespace(remove=lambda: removed.append(title))
-        return types.SimpleNamespace(client_id=client_id, add_notification=add)
-
-    running = start_console(CountingSource(3), RecordingEngine(), port=free_port())  # type: ignore[arg-type]
+    removed: list[tuple[int, str]] = []
+    running, quick, slow = _console_with_two_browsers(removed)
     con = running.console
     try:
-        quick, slow = browser(1), browser(2)
-        for client in (quick, slow):
-            con._on_connect(client)
         monkeypatch.setattr(console.app, "POPUP_REFUSED_S", 0.0)
         monkeypatch.setattr(console.app, "POPUP_GRACE_S", 0.0)
         con._notify(quick, "Remove target near (40, 40): refused", "no target within 20 px", False)
@@ -1596,7 +1595,7 @@ def test_a_pop_up_is_closed_by_the_console_when_its_time_is_up(monkeypatch: pyte
         deadline = time.monotonic() + 5.0
         while not removed and time.monotonic() < deadline:  # the publisher closes it within 0.1 s
             time.sleep(0.02)
-        assert removed == ["Remove target near (40, 40): refused"]
+        assert removed == [(1, "Remove target near (40, 40): refused")]
         assert list(con._popups) == [2] and list(con._popup_close_at) == [2]
     finally:
         running.stop()
