@@ -402,7 +402,7 @@ def _load_rig(path: str | Path, image_size: tuple[int, int] | None = None) -> St
         width = _image_size_scalar(fs, "image_width", path)
         height = _image_size_scalar(fs, "image_height", path)
         size_from_frames = width is None or height is None
-        if width is None or height is None:
+        if width is None or height is None:  # (as size_from_frames, spelt out for mypy's narrowing)
             if image_size is None:
                 raise TrackmeterError(f"{path}: missing key 'image_width'/'image_height'")
             width, height = image_size

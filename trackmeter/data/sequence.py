@@ -684,6 +684,7 @@ def _timestamp_unit_guess(interval_s: float) -> str:
             return f"are these {unit} ({rate_hz:.4g} Hz then)?"
     return "are these in another unit, or frame numbers?"
 
+
 #: Frame intervals (the median one) past which a pause in a sequence's frame times is warned of.
 GAP_INTERVALS = 3.0
 

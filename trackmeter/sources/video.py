@@ -296,7 +296,6 @@ class CameraSource(Source):
         self._count = 0
         self._t0: float | None = None
         self._frame_size: tuple[int, int] | None = None
-        self._frame_size_read = False  # None is an answer too: the files are not read again
 
     @property
     def frame_size(self) -> tuple[int, int]:
