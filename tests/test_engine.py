@@ -68,6 +68,7 @@ class FakeTracker:
         self._auto = (False, 16, "gabor")
         self._states: tuple[TargetState, ...] = ()
         self.ages: dict[str, int] = {}  # frames since each target appeared
+        self.origins: dict[str, str] = {}  # who made each target (default "auto")
 
     @property
     def auto(self):
@@ -90,8 +91,8 @@ class FakeTracker:
         C = rect.point_covariance(uv_r, d, SIGMA_D_PX, 0.07)[0]
         q = p + (np.linalg.cholesky(C) @ self.rng.standard_normal(3) if self.noise else 0) + self.offsets.get(tid, 0)
         uvl, uvr = self.rig.project(p[None])
-        return TargetState(tid, "auto", "tracking", uvl[0], uvr[0], q, C, 0.99, uvl[0], (0, 0, 1, 1),
-                           age_frames=self.ages.get(tid, 0))
+        return TargetState(tid, self.origins.get(tid, "auto"), "tracking", uvl[0], uvr[0], q, C, 0.99, uvl[0],
+                           (0, 0, 1, 1), age_frames=self.ages.get(tid, 0))
 
     def _lost(self, tid: str) -> TargetState:
         nan2, nan3 = np.full(2, np.nan), np.full(3, np.nan)
@@ -414,6 +415,62 @@ def test_reported_covariance_adds_the_frame_error_the_corners_bias_leaves(estec_
     np.testing.assert_allclose(pose.cov_pose, expected, rtol=1e-9, atol=1e-15)
     if bias_m:  # the frame error dominates what 6 corners' and 8 grown points' noise leave
         assert np.sqrt(pose.cov_pose[3, 3]) > 3 * np.sqrt(cov_fit[3, 3])
+
+
+def test_frame_term_counts_only_the_a_priori_points_located_independently(estec_rig) -> None:
+    """A target the engine made at a model point's projection through the pose (origin
+    "model") measures the surface point the pose's error put it on: across the line of sight
+    it repeats that error, so the frame term (pose.apriori_bias_sigma_m) is over the other
+    a-priori inliers only, ``sigma² (sum_i J_i^T J_i)^-1`` over m0-m2, not over all six."""
+    from dataclasses import replace
+
+    from trackmeter.core.pose import position_jacobians
+
+    config = load_config()
+    config = replace(config, pose=replace(config.pose, apriori_bias_sigma_m=0.003))
+    pts = body_points(14)
+    ids = [f"m{i}" for i in range(6)] + [f"a{i}" for i in range(8)]
+    tracker = FakeTracker(estec_rig, pts, ids, noise=True)
+    tracker.origins.update({"m3": "model", "m4": "model", "m5": "model"})
+    engine = Engine(config, estec_rig, Model(tuple(ids[:6]), pts[:6]), tracker=tracker, rate_hz=25)
+    _, pose, _ = run(engine, range(30))[-1]
+    R, _, cov_fit = engine._last_fit
+    J = position_jacobians(pts[:3], R)
+    expected = cov_fit + 0.003**2 * np.linalg.inv(np.einsum("nij,nik->jk", J, J))
+    np.testing.assert_allclose(pose.cov_pose, expected, rtol=1e-9, atol=1e-15)
+
+
+def test_frame_term_turns_with_the_body_and_drifts_from_its_last_determination(estec_rig) -> None:
+    """With fewer than three a-priori points located independently, the frame error of the
+    last frame that had three is kept in the body frame (turned by ``diag(R, R)`` into each
+    later pose's camera frame) and the model located through the pose drifts from it, a random
+    walk of rate q (pose.model_drift_m_per_sqrt_s): ``q² dt`` per position axis, ``(q / r)² dt``
+    per rotation axis, r the a-priori points' rms distance from their centroid."""
+    from dataclasses import replace
+
+    from trackmeter.core.pose import position_jacobians
+
+    q = 0.001
+    config = load_config()
+    config = replace(config, pose=replace(config.pose, apriori_bias_sigma_m=0.003, model_drift_m_per_sqrt_s=q))
+    pts = body_points(14)
+    ids = [f"m{i}" for i in range(6)] + [f"a{i}" for i in range(8)]
+    tracker = FakeTracker(estec_rig, pts, ids, noise=True)
+    engine = Engine(config, estec_rig, Model(tuple(ids[:6]), pts[:6]), tracker=tracker, rate_hz=25)
+    run(engine, range(30))
+    R_then = engine._last_fit[0]
+    J = position_jacobians(pts[:6], R_then)
+    B_then = np.kron(np.eye(2), R_then)
+    frame_body = B_then.T @ (0.003**2 * np.linalg.inv(np.einsum("nij,nik->jk", J, J))) @ B_then
+    tracker.origins.update({f"m{i}": "model" for i in range(4)})  # two independent ones left
+    _, pose, _ = run(engine, range(30, 80))[-1]
+    R, _, cov_fit = engine._last_fit
+    assert np.degrees(Rotation.from_matrix(R @ R_then.T).magnitude()) > 5  # the body has turned
+    B = np.kron(np.eye(2), R)
+    dt = frame_at(79).t_s - frame_at(29).t_s
+    r = np.sqrt(np.mean(np.sum((pts[:6] - pts[:6].mean(axis=0)) ** 2, axis=1)))
+    drift = np.diag([q**2 * dt] * 3 + [(q / r) ** 2 * dt] * 3)
+    np.testing.assert_allclose(pose.cov_pose, cov_fit + B @ frame_body @ B.T + drift, rtol=1e-9, atol=1e-15)
 
 
 @pytest.mark.parametrize("correlated", [False, True])

@@ -409,9 +409,13 @@ class Engine:
         pose is in a body frame of its own (:attr:`PoseEstimate.body_frame`)."""
         self._body_frame += 1
         self._model: dict[str, _ModelPoint] = {}
+        self._apriori_radius_m = 0.0  # rms distance of the a-priori points from their centroid
         if self._case == "b" and self._given_model is not None:
             for pid, b in zip(self._given_model.ids, self._given_model.points_body):
                 self._model[pid] = _ModelPoint(np.array(b, dtype=float), np.zeros((3, 3)), True)
+            B0 = np.asarray(self._given_model.points_body, float)
+            with np.errstate(over="ignore"):  # a model spanning 1e300 m is warned about where it is loaded
+                self._apriori_radius_m = float(np.sqrt(np.mean(np.sum((B0 - B0.mean(axis=0)) ** 2, axis=1))))
         self._frame_ids: tuple[str, ...] = ()
         # Model points whose target the operator removed: kept in the model (an a-priori point, a
         # case (a) frame point) but not looked for again, until a click names them again.
@@ -449,7 +453,9 @@ class Engine:
         # binding, or joined through a pose resting on such points), and that error, (6,6).
         self._frame_error_ids: set[str] = set()
         self._frame_cov: FloatArray | None = None
-        self._apriori_frame_cov = np.zeros((6, 6))  # reported on top of the fit's (_note_apriori_frame_error)
+        # The last frame error independently located a-priori points determined: (time s, (6,6)
+        # in the body frame), reported with the drift since (_apriori_frame_report).
+        self._apriori_frame_anchor: tuple[float, FloatArray] | None = None
         # The points a progressive binding carried and its error with the corners' own (_bind).
         self._binding_ids: set[str] = set()
         self._binding_cov_reported: FloatArray | None = None
@@ -892,7 +898,7 @@ class Engine:
         T[:3, 3] = t_f
         # Reported only: the coast, its gates and the points joining through it work relative to
         # the model's frame, which every point shares (the frame's own error is common to them).
-        pose = PoseEstimate(True, None, self._case, T, cov_out + self._apriori_frame_cov + self._shared_frame_report,
+        pose = PoseEstimate(True, None, self._case, T, cov_out + self._apriori_frame_report(frame.t_s, R) + self._shared_frame_report,
                             v_arr, w_arr, n_used, tuple(outliers),
                             body_frame=self._body_frame)
         self._recovered_any = False
@@ -1162,7 +1168,8 @@ class Engine:
             cov = fit.cov + cast("FloatArray", self._frame_cov) if resting else fit.cov
         R, t = fit.R_cam_body, fit.t_cam_body
         self._last_fit = (R, t, cov)
-        self._note_apriori_frame_error(R, [i for n, i in enumerate(ids) if fit.inliers[n] and self._model[i].fixed])
+        self._note_apriori_frame_error(frame.t_s, R, [i for n, i in enumerate(ids)
+                                                      if fit.inliers[n] and self._model[i].fixed and measured[i].origin != "model"])
         self._note_shared_frame_error(R, ids, fit.inliers, b, C, Cb, resting)
         hold = self._case == "a" and self.pose_params.frame_hold
         held = {i: (self._model[i].b.copy(), self._model[i].cov.copy()) for i in ids} if hold else {}
@@ -1182,12 +1189,18 @@ class Engine:
                                   fresh=prev_inliers is None)
         return (R, t, cov, int(fit.inliers.sum()), outliers), None
 
-    def _note_apriori_frame_error(self, R: FloatArray, apriori: list[str]) -> None:
+    def _note_apriori_frame_error(self, t_s: float, R: FloatArray, apriori: list[str]) -> None:
         """Case (b): the body frame's error the a-priori points' own errors leave (``pose.apriori_bias_sigma_m``,
         sigma, isotropic and the same in every frame a point is seen in), ``sigma² (sum_i J_i^T J_i)^-1``
         over the a-priori inliers ``apriori`` of the pose ``R`` (J_i: :func:`position_jacobians`),
-        (6,6). Kept from the last frame that determined it: while fewer corners are measured the
-        grown model carries the frame they left."""
+        (6,6), kept in the body frame with its time ``t_s`` (:meth:`_apriori_frame_report`). Only
+        points located independently of the pose count (the caller's choice): a target the engine
+        made at a model point's projection through the pose (origin ``"model"``, :meth:`_recover`)
+        measures whatever surface point the pose's error put it on, so across the line of sight it
+        repeats that error (estec case (b), 40-60 s: the corners' mean offset follows the pose's
+        error, correlation 0.95; docs/results.md) and pins nothing. Kept from the last frame that
+        determined it: while fewer such points are measured the grown model carries the frame
+        they left."""
         sigma = self.pose_params.apriori_bias_sigma_m
         if sigma <= 0 or len(apriori) < 3:
             return
@@ -1198,7 +1211,28 @@ class Engine:
             return
         if np.all(np.isfinite(frame_cov)) and _sigmas_within(frame_cov, self.pose_params.max_attitude_sigma_deg,
                                                                self.pose_params.max_position_sigma_m):
-            self._apriori_frame_cov = frame_cov
+            B = _pose_block_rotation(R)
+            self._apriori_frame_anchor = (t_s, B.T @ frame_cov @ B)
+
+    def _apriori_frame_report(self, t_s: float, R: FloatArray) -> FloatArray:
+        """Case (b): the body frame's error reported on top of the fit's covariance for a pose of
+        attitude ``R`` at ``t_s``, (6,6), camera frame (zero before a-priori points determined
+        it). The anchor's frame error (:meth:`_note_apriori_frame_error`) turned with the body
+        (an error of the body frame: position and rotation vector both turn by ``R``), plus the
+        drift since of a model located through the pose it gives (its grown points and the
+        targets remade through it), a random walk: ``q² dt`` on each position axis and
+        ``(q / r)² dt`` on each rotation axis (q: ``pose.model_drift_m_per_sqrt_s``, r: the rms
+        distance of the a-priori points from their centroid, the lever a point's drift turns
+        the frame by)."""
+        if self._apriori_frame_anchor is None:
+            return np.zeros((6, 6))
+        t0, frame_body = self._apriori_frame_anchor
+        B = _pose_block_rotation(R)
+        report = B @ frame_body @ B.T
+        q, dt = self.pose_params.model_drift_m_per_sqrt_s, max(t_s - t0, 0.0)
+        if q > 0 and dt > 0 and self._apriori_radius_m > 0:
+            report = report + np.diag([q**2 * dt] * 3 + [(q / self._apriori_radius_m) ** 2 * dt] * 3)
+        return report
 
     def _note_shared_frame_error(self, R: FloatArray, ids: list[str], inliers: NDArray[np.bool_], b: FloatArray,
                                  C: FloatArray, Cb: FloatArray, resting: bool) -> None:
@@ -1678,7 +1712,7 @@ class Engine:
         T[:3, 3] = pos
         w = self._last_output.omega if self._last_output is not None else np.full(3, np.nan)
         return PoseEstimate(True, f"coasting {dt:.2f} s on the motion model ({why})", self._case, T,
-                            cov + self._apriori_frame_cov + self._shared_frame_report, v, np.asarray(w, float).copy(), 0, (), coasting_s=float(dt), body_frame=self._body_frame)
+                            cov + self._apriori_frame_report(t_s, R) + self._shared_frame_report, v, np.asarray(w, float).copy(), 0, (), coasting_s=float(dt), body_frame=self._body_frame)
 
     def _rejoin_through_coast(self, t_s: float, measured: dict[str, TargetState]) -> bool:
         """No pose: while the coasted pose is within ``coast_rejoin_*``, measured targets that are
@@ -1954,6 +1988,15 @@ def _offset_from(R_c: FloatArray, p_c: FloatArray, cov_c: FloatArray, R: FloatAr
     camera frame) and its squared Mahalanobis distance under ``cov_c + cov`` (both (6,6))."""
     e = np.concatenate([p_c - p, Rotation.from_matrix(R_c @ R.T).as_rotvec()])
     return e, float(e @ np.linalg.solve(cov + cov_c, e))
+
+
+def _pose_block_rotation(R: FloatArray) -> FloatArray:
+    """(6,6) ``diag(R, R)``: takes a body-frame error of a pose (position, rotation vector) to
+    the camera frame of a pose of attitude ``R`` (``B cov B^T``; ``B^T cov B`` back)."""
+    B = np.zeros((6, 6))
+    B[:3, :3] = R
+    B[3:, 3:] = R
+    return B
 
 
 def _isotropic_bound(cov_pose: FloatArray) -> FloatArray:
