@@ -6,7 +6,7 @@ import argparse
 import math
 import sys
 import time
-from typing import TYPE_CHECKING, Iterable, Iterator, TextIO, TypeVar
+from typing import TYPE_CHECKING, Any, Iterable, Iterator, TextIO, TypeVar
 
 from trackmeter.errors import TrackmeterError
 
@@ -76,6 +76,7 @@ def open_source_with_rig(spec: str, rig_path: str | None, realtime: bool = False
                                   f"the first: {problem}")
         if rig_path:
             source.rig = load_rig(rig_path, image_size=size)
+            _warn_rig_not_rendered_through(source, rig_path, spec)
         rig = source.rig
         if rig is not None and size is not None and tuple(size) != rig.image_size:
             where = f"--rig {rig_path}" if rig_path else f"the rig {spec} carries; give the right one with --rig"
@@ -87,6 +88,34 @@ def open_source_with_rig(spec: str, rig_path: str | None, realtime: bool = False
         source.close()
         raise
     return source
+
+
+def _warn_rig_not_rendered_through(source: Source, rig_path: str, spec: str) -> None:
+    """Warn when ``--rig`` is not the rig a simulator renders through (its ``true_rig``): the
+    simulator reports the rig it is given, for a miscalibration on purpose, and its images
+    stay those of the scenario's own (measured as the other's, depths a metre off)."""
+    import warnings
+
+    import numpy as np
+
+    true_rig = getattr(source, "true_rig", None)
+    rig = source.rig
+    if true_rig is None or rig is None:
+        return
+    def close(a: Any, b: Any) -> bool:
+        a, b = np.ravel(a), np.ravel(b)
+        return a.shape == b.shape and bool(np.allclose(a, b, rtol=1e-9, atol=1e-12))
+
+    pairs = ((rig.left.K, true_rig.left.K), (rig.right.K, true_rig.right.K), (rig.left.dist, true_rig.left.dist),
+             (rig.right.dist, true_rig.right.dist), (rig.R, true_rig.R), (rig.T, true_rig.T))
+    if all(close(a, b) for a, b in pairs):
+        return
+    scenario_rig = getattr(getattr(source, "scenario", None), "rig", "its own")
+    warnings.warn(f"source {spec!r} renders through its scenario's rig ({scenario_rig}); --rig {rig_path} is only "
+                  f"what it reports (focal length {rig.left.K[0, 0]:.0f} px where the images' is "
+                  f"{true_rig.left.K[0, 0]:.0f} px, baseline {np.linalg.norm(rig.T) * 1e3:.1f} mm where theirs is "
+                  f"{np.linalg.norm(true_rig.T) * 1e3:.1f} mm): a miscalibration on purpose; to render through it, "
+                  "name it as rig: in a scenario file (sim:FILE)", stacklevel=3)
 
 
 def check_rig_side_by_side(rig: StereoRig, named: str) -> None:
