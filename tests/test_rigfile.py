@@ -48,6 +48,24 @@ def test_save_load_round_trip(tmp_path: Path, n_dist: int) -> None:
     assert sorted(p.name for p in path.parent.iterdir()) == ["rig.yaml"]  # no temp file left
 
 
+@pytest.mark.parametrize("name, head", [("rig.xml", "<?xml"), ("rig.json", "{"), ("rig.yml", "%YAML"),
+                                        ("rig.XML", "<?xml"), ("rig.txt", "%YAML")])
+def test_a_rig_file_is_written_in_the_format_its_name_says(tmp_path: Path, name: str, head: str) -> None:
+    """`calibrate --out rig.xml` (or .json) wrote YAML under that name, which OpenCV reads
+    (it looks at the text) but no XML or JSON tool does (an outside probe). OpenCV FileStorage
+    writes each by its extension; a name without one of them stays YAML."""
+    rig = _rig()
+    path = save_rig(rig, tmp_path / name, {"std_baseline": 0.001})
+    assert path.read_text().lstrip().startswith(head)
+    back = load_rig(path)
+    np.testing.assert_array_equal(back.left.K, rig.left.K)
+    np.testing.assert_array_equal(back.T, rig.T)
+    if name.lower().endswith(".json"):
+        import json
+
+        assert json.loads(path.read_text())["std_baseline"] == 0.001
+
+
 def test_round_trip_without_rms_and_with_extras(tmp_path: Path) -> None:
     rig = _rig(rms=None)
     path = save_rig(rig, tmp_path / "rig.yaml", {"E": np.eye(3), "std_baseline": 0.001})

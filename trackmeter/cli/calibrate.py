@@ -35,7 +35,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--right", nargs="+", required=True, metavar="GLOB", help="right images: a glob (quoted) or files")
     parser.add_argument("--pattern", required=True, metavar="COLSxROWS", help="chessboard inner corners, e.g. 9x6")
     parser.add_argument("--square", required=True, type=float, metavar="METRES", help="side of one chessboard square, m")
-    parser.add_argument("--out", default="rig.yaml", metavar="RIG", help="rig file to write (default: rig.yaml)")
+    parser.add_argument("--out", default="rig.yaml", metavar="RIG",
+                        help="rig file to write, OpenCV FileStorage YAML (XML or JSON for a .xml or .json name) "
+                        "(default: rig.yaml)")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace an existing rig file at --out (a file that is not a rig is never replaced)")
 

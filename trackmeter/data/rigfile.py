@@ -710,7 +710,8 @@ def _load_opencv_pair(path: Path, image_size: tuple[int, int] | None) -> StereoR
 
 
 def save_rig(rig: StereoRig, path: str | Path, extra: dict[str, np.ndarray | float] | None = None) -> Path:
-    """Write ``rig`` as OpenCV FileStorage YAML, atomically (temp file, then rename).
+    """Write ``rig`` as OpenCV FileStorage YAML (XML or JSON for a ``.xml`` or ``.json`` name),
+    atomically (temp file, then rename).
 
     ``extra`` adds keys such as ``E``, ``F`` or per-parameter standard deviations. The text is
     made in memory and written by :func:`write_files_atomic`: ``cv2.FileStorage`` writing a
@@ -720,7 +721,10 @@ def save_rig(rig: StereoRig, path: str | Path, extra: dict[str, np.ndarray | flo
         TrackmeterError: the file could not be written (a full disk), the old one left as it was.
     """
     path = Path(path)
-    fs = cv2.FileStorage(".yaml", cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)  # YAML by the extension
+    # FileStorage writes the format its name's extension says: XML or JSON asked for by name
+    # (`calibrate --out rig.xml`), YAML otherwise.
+    kind = path.suffix.lower() if path.suffix.lower() in (".xml", ".json") else ".yaml"
+    fs = cv2.FileStorage(kind, cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
     try:
         fs.write("image_width", int(rig.left.width))
         fs.write("image_height", int(rig.left.height))
