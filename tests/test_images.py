@@ -142,8 +142,29 @@ def test_pairing_by_number_and_by_order(tmp_path: Path) -> None:
     assert [(a.name, b.name) for a, b in pair_stereo_paths(left, right)] == [("a.png", "c.png"), ("b.png", "d.png")]
     with pytest.raises(TrackmeterError, match="1 left and 2 right"):
         pair_stereo_paths(left[:1], right)
-    with pytest.raises(TrackmeterError, match="share a frame number"):
+    with pytest.raises(TrackmeterError, match=r"share a frame number to pair by \(left 1, right 2\)"):
         pair_stereo_paths(_touch(tmp_path, "l1.png"), _touch(tmp_path, "r2.png"))
+
+
+def test_pairing_refused_says_which_name_stops_it(tmp_path: Path) -> None:
+    """A glob that also matched one file without a number (``left_extra.png`` beside
+    ``left01..03``) was refused as "their names carry no frame numbers", though all others do;
+    camera time stamps a few units apart shared no number and the message gave no way out
+    (an outside probe)."""
+    left = _touch(tmp_path, "left01.png", "left02.png", "left03.png", "left_extra.png")
+    right = _touch(tmp_path, "right01.png", "right02.png", "right03.png")
+    with pytest.raises(TrackmeterError, match=r"^4 left and 3 right images, .* to pair by \(left_extra.png has none\)$"):
+        pair_stereo_paths(left, right)
+    twice = _touch(tmp_path, "a_1.png", "b_1.png", "a_2.png")
+    with pytest.raises(TrackmeterError, match=r"\(left: a_1.png and b_1.png carry the same number, 1\)$"):
+        pair_stereo_paths(twice, right[:2])
+    with pytest.raises(TrackmeterError, match=r"to pair by$"):
+        pair_stereo_paths(_touch(tmp_path, "x.png", "y.png"), _touch(tmp_path, "z.png"))
+    stamps_l = _touch(tmp_path, "L_1000.png", "L_1040.png")
+    stamps_r = _touch(tmp_path, "R_1003.png", "R_1043.png")
+    with pytest.raises(TrackmeterError, match=r"\(left 1000-1040, right 1003-1043\): rename them so that a pair's "
+                                              r"names carry one number$"):
+        pair_stereo_paths(stamps_l, stamps_r)
 
 
 @pytest.mark.parametrize("full_scale", [255.0, 65535.0])

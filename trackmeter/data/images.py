@@ -269,6 +269,30 @@ def _frame_number(path: Path) -> int | None:
     return int(digits[-1]) if digits else None
 
 
+def _number_span(numbers: Sequence[int | None]) -> str:
+    """``"1000-1013"``: the range of a side's frame numbers (all there: the caller pairs by them)."""
+    known = [n for n in numbers if n is not None]
+    return f"{min(known)}-{max(known)}" if len(set(known)) > 1 else str(known[0])
+
+
+def _why_not_numbered(left: Sequence[Path], nl: Sequence[int | None], right: Sequence[Path],
+                      nr: Sequence[int | None]) -> str:
+    """What stops pairing by number when most names carry one: the names without a number, or
+    a number two names on one side share; empty when no name has one."""
+    if all(n is None for n in (*nl, *nr)):
+        return ""
+    without = [p.name for p, n in (*zip(left, nl), *zip(right, nr)) if n is None]
+    if without:
+        return f" ({', '.join(without[:3])}{', ...' if len(without) > 3 else ''} {'has' if len(without) == 1 else 'have'} none)"
+    for side, paths, numbers in (("left", left, nl), ("right", right, nr)):
+        seen: dict[int | None, str] = {}
+        for p, n in zip(paths, numbers):
+            if n in seen:
+                return f" ({side}: {seen[n]} and {p.name} carry the same number, {n})"
+            seen[n] = p.name
+    return ""
+
+
 def pair_stereo_paths(left: Sequence[Path], right: Sequence[Path]) -> list[tuple[Path, Path]]:
     """Pair left and right image files.
 
@@ -289,7 +313,8 @@ def pair_stereo_paths(left: Sequence[Path], right: Sequence[Path]) -> list[tuple
         by_number = dict(zip(nr, right))
         pairs = [(lp, by_number[n]) for lp, n in zip(left, nl) if n in by_number]
         if not pairs:
-            raise TrackmeterError("no left and right image share a frame number to pair by")
+            raise TrackmeterError(f"no left and right image share a frame number to pair by (left {_number_span(nl)}, "
+                                  f"right {_number_span(nr)}): rename them so that a pair's names carry one number")
         paired = {n for n in nl if n in by_number}
         alone = [p.name for p, n in (*zip(left, nl), *zip(right, nr)) if n not in paired]
         if alone:
@@ -297,9 +322,8 @@ def pair_stereo_paths(left: Sequence[Path], right: Sequence[Path]) -> list[tuple
                           f"{', '.join(alone[:4])}{', ...' if len(alone) > 4 else ''}", stacklevel=2)
         return pairs
     if len(left) != len(right):
-        raise TrackmeterError(
-            f"{len(left)} left and {len(right)} right images, and their names carry no frame numbers to pair by"
-        )
+        raise TrackmeterError(f"{len(left)} left and {len(right)} right images, and their names carry no frame numbers "
+                              f"to pair by{_why_not_numbered(left, nl, right, nr)}")
     if not left:
         raise TrackmeterError("no image pairs")
     return list(zip(left, right))
