@@ -232,6 +232,26 @@ def test_a_groundtruth_row_without_a_whole_pose_is_unknown_truth_at_that_time_on
         read_motion_csv(states)
 
 
+def test_a_header_with_some_of_the_rates_is_warned_about(tmp_path: Path) -> None:
+    """A states.csv without its wx,wy,wz columns read without a word, and evaluate then
+    compared no velocity at all, the linear one there included (an outside probe). A
+    pose-only file (no rate column) is a file of poses, not warned about."""
+    path = tmp_path / "states.csv"
+    path.write_text("t,valid,x,y,z,qw,qx,qy,qz,vx,vy,vz,n_tracked\n0,1,0,0,3,1,0,0,0,0.1,0,0,5\n")
+    with pytest.warns(UserWarning, match=r"states\.csv:1: the header has vx,vy,vz but not wx,wy,wz: those read as "
+                                         r"unknown, and no velocity is compared without both"):
+        got = read_motion_csv(path)
+    assert got.velocity_cam_m_s[0].tolist() == [0.1, 0.0, 0.0] and np.isnan(got.omega_body_rad_s).all()
+    path.write_text("t,valid,x,y,z,qw,qx,qy,qz\n0,1,0,0,3,1,0,0,0\n")
+    truth = tmp_path / "data.csv"  # EuRoC's ground truth: a linear velocity, no angular one
+    truth.write_text("#timestamp,p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z [],"
+                     "v_RS_R_x [m s^-1],v_RS_R_y [m s^-1],v_RS_R_z [m s^-1]\n0,0,0,3,1,0,0,0,0.1,0,0\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read_motion_csv(path)
+        assert read_motion_csv(truth).velocity_cam_m_s[0].tolist() == [0.1, 0.0, 0.0]
+
+
 @pytest.mark.parametrize(
     "bad_line, message",
     [

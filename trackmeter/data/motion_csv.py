@@ -318,6 +318,13 @@ def read_motion_csv(path: str | Path) -> MotionSeries:
         )
     if len(set(header)) != len(header):
         raise TrackmeterError(f"{path}:{header_line}: repeated column in the header")
+    rates_missing = [c for c in RATE_COLUMNS if c not in header]
+    if "valid" in header and 0 < len(rates_missing) < len(RATE_COLUMNS):
+        # A run's states.csv (its "valid" column) with some of the rates was meant to have all; a
+        # pose-only file says nothing of rates, and a ground truth may have only some (EuRoC's v).
+        warnings.warn(f"{path}:{header_line}: the header has {','.join(c for c in RATE_COLUMNS if c in header)} but "
+                      f"not {','.join(rates_missing)}: those read as unknown, and no velocity is compared without "
+                      f"both the linear and the angular one", stacklevel=2)
     rows = [(number, text) for number, text in numbered[1:] if not text.startswith("#")]  # comments, as in data.csv
     if len(rows) >= 2 and 1 < len(rows[-1][1].split(",")) < len(header):
         # A writer stopped mid-line (killed, a full disk): the rows before it are whole.
