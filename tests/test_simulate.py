@@ -392,3 +392,18 @@ def test_a_render_whose_partial_folder_loses_a_camera_says_nothing_was_kept(tmp_
     assert "cam1's files were removed while recording" in err and "keeps its own" not in err, err
     assert f"the unfinished {out}.partial was removed; nothing was written to {out}" in err, err
     assert not out.exists() and not (tmp_path / "seq.partial").exists()
+
+
+def test_a_warning_about_the_scenarios_rig_is_said_once(tmp_path, capsys, estec_rig):
+    """The rig was read twice (checked, then by the simulator), and its warnings (a baseline
+    in millimetres) printed twice (an outside probe)."""
+    from dataclasses import replace
+
+    from trackmeter.data.rigfile import save_rig
+
+    save_rig(replace(estec_rig, T=estec_rig.T * 1000.0), tmp_path / "rig_mm.yaml")
+    scenario = tmp_path / "mm.yaml"
+    scenario.write_text("rig: rig_mm.yaml\nduration_s: 0.08\n")
+    assert main(["simulate", "--scenario", str(scenario), "--out", str(tmp_path / "out")]) == 0
+    err = capsys.readouterr().err
+    assert err.count("T must be in metres") == 1, err

@@ -18,6 +18,7 @@ import argparse
 import os
 import shutil
 import sys
+import warnings
 from pathlib import Path
 
 
@@ -90,7 +91,10 @@ def run(args: argparse.Namespace) -> int:
     # A rig that track and measure refuse (swapped, one camera above the other) rendered a
     # sequence nothing could use (an outside probe); track --source sim:SCENARIO refused it.
     rig_file = rig_path(scenario)
-    check_rig_side_by_side(load_rig(rig_file), f"the rig of scenario {args.scenario!r} ({rig_file})")
+    with warnings.catch_warnings():  # the simulator reads it again below, and says what it warns of
+        warnings.simplefilter("ignore")
+        rig = load_rig(rig_file)
+    check_rig_side_by_side(rig, f"the rig of scenario {args.scenario!r} ({rig_file})")
     partial = out.with_name(out.name + ".partial")
     if partial.exists() or partial.is_symlink():
         # Left over from a run of this command that was killed outright: replaced, but only
