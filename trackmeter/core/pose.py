@@ -90,7 +90,7 @@ class PoseParams:
         0.0015, "case (b): isotropic std of an a-priori point's own error (a corner's patch measures the faces "
         "around it), common to every frame it is seen in: the body frame the a-priori points define keeps it, "
         "and the REPORTED pose covariance adds that frame error (sigma² (sum J^T J)^-1 over the a-priori "
-        "inliers); the fit and the pose do not change; 0: the points' noise alone, m", min=0.0,
+        "inliers not made at a projection through the pose); the fit and the pose do not change; 0: the points' noise alone, m", min=0.0,
     )
     model_drift_m_per_sqrt_s: float = param(
         0.00035, "case (b): rate of the random walk of a model located through the pose it gives (grown points, "

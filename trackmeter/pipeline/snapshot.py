@@ -32,7 +32,8 @@ class PoseEstimate:
         T_cam_body: (4,4) filtered pose of the body in the left camera frame.
         cov_pose: (6,6) covariance of (position m, rotation vector rad) in the camera frame: the
             fit's, from the points' uncertainties, and in case (b) the body frame's error the
-            a-priori points' own error leaves (``pose.apriori_bias_sigma_m``).
+            a-priori points' own error leaves (``pose.apriori_bias_sigma_m``) with the drift
+            of the model since they last fixed it (``pose.model_drift_m_per_sqrt_s``).
         velocity_cam_m_s: (3,) velocity of the body origin in the camera frame, m/s.
         omega_body_rad_s: (3,) angular velocity in the body frame, rad/s.
         n_points: number of points used.
