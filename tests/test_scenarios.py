@@ -247,6 +247,9 @@ def test_rig_override_is_reported_not_rendered(sims, estec_rig):
         ("seed: [1", "malformed YAML"),
         # An hour at 10 kHz: 36 million frames, integrated before the first (gigabytes).
         ("rate_hz: 10000\nduration_s: 3600", r"36000000 frames \('duration_s' 3600 s at 'rate_hz' 10000\): at most 360000"),
+        # Said as the range -2 is said in (an outside probe: "must be positive" against "[0.0, 3600.0]").
+        ("duration_s: 0", r"'duration_s': expected a value in \(0, 3600\] \(0 only with 'static_ranges_m', which "
+                          r"sets the frames\), got 0"),
     ],
 )
 def test_malformed_scenarios_name_the_key(tmp_path, text, match):

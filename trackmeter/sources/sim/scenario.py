@@ -120,7 +120,8 @@ class Scenario:
         if any(r <= 0 for r in self.static_ranges_m):
             raise TrackmeterError("'static_ranges_m' must all be positive")
         if not self.static_ranges_m and self.duration_s <= 0:
-            raise TrackmeterError("'duration_s' must be positive")
+            raise TrackmeterError(f"'duration_s': expected a value in (0, {MAX_DURATION_S:g}] (0 only with "
+                                  f"'static_ranges_m', which sets the frames), got {self.duration_s:g}")
         for i, occ in enumerate(self.occluders):
             if occ.end_s <= occ.start_s:
                 raise TrackmeterError(f"'occluders[{i}]': end_s must come after start_s")
