@@ -183,6 +183,23 @@ def test_unmatched_counts_the_same_span_as_matched_after_the_settle():
     assert evaluate(truth, est).summary["unmatched"] == 3  # no settle: every gap
 
 
+def test_truth_between_the_runs_frames_is_not_unmatched():
+    """A truth sampled faster than the run (30 Hz truth, a 15 Hz run; motion capture at 200 Hz)
+    counted every truth pose between two frames as "unmatched": a run of 15 Hz read "matched 44,
+    unmatched 45" with a pose at every frame (an outside probe). With the run's frames known,
+    a truth pose is unmatched only where the run had a frame and no pose."""
+    truth = tumbling_truth()  # 12.5 Hz; the run at every second truth time
+    frames = truth.t_s[::2]
+    valid = np.ones(len(frames), bool)
+    valid[10] = False  # one frame without a pose
+    est = MotionSeries(frames[valid], np.ones(int(valid.sum()), bool), truth.position_m[::2][valid],
+                       truth.quat_wxyz[::2][valid], truth.velocity_cam_m_s[::2][valid],
+                       truth.omega_body_rad_s[::2][valid])
+    s = evaluate(truth, est, frame_times_s=frames).summary
+    assert s["matched"] == len(frames) - 1 and s["unmatched"] == 1
+    assert evaluate(truth, est).summary["unmatched"] == 30  # no frames known: every truth pose in the span without one
+
+
 def test_estimates_outside_truth_and_duplicates_stay_unmatched():
     a = associate([0.0, 1.0, 2.0], [-0.5, 0.999, 1.0, 1.002, 2.0, 3.0], tolerance_s=0.01)
     assert a.index_truth.tolist() == [1, 2] and a.index_est.tolist() == [2, 4]

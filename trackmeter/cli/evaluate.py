@@ -20,9 +20,10 @@ the covariance is honest).
   --estimate TUM file, states.csv, or a `trackmeter track` run directory
 
 "matched" counts the evaluated pairs; "unmatched" the estimated poses with no truth pose within
-the tolerance plus the truth poses inside the run's time span (a run directory or states.csv:
-all its rows; a TUM file: its poses) with no estimate, both after the settle time, as the pairs
-are; the run's frames after the settle (in the truth's span) that have a pose are given as a
+the tolerance plus the truth poses with no estimate where the run had a frame (a run directory
+or states.csv: its rows, within the tolerance, so a truth sampled faster than the run is not
+counted between its frames; a TUM file: every truth pose inside its poses' span), both after
+the settle time, as the pairs are; the run's frames after the settle (in the truth's span) that have a pose are given as a
 percentage (not for a TUM estimate, which does not list its frames). A warning says when the
 run's run.yaml names another sequence or scenario than the truth's (by the scenario's motion,
 where both are known). --json prints the summary in SI units, with the settings it was made

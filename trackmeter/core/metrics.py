@@ -479,6 +479,14 @@ def _rates(track: PoseTrack, index: IntArray) -> tuple[FloatArray | None, FloatA
     return out[0], out[1]
 
 
+def _near_any(t_s: FloatArray, times_s: FloatArray, tolerance_s: float) -> NDArray[np.bool_]:
+    """(N,) whether each of ``t_s`` is within ``tolerance_s`` of one of ``times_s``."""
+    times = np.sort(times_s)
+    i = np.clip(np.searchsorted(times, t_s), 1, len(times) - 1) if len(times) > 1 else np.zeros(len(t_s), int)
+    nearest = np.minimum(np.abs(times[i] - t_s), np.abs(times[np.maximum(i - 1, 0)] - t_s))
+    return nearest <= tolerance_s + 1e-9
+
+
 def evaluate(
     truth: PoseTrack,
     estimate: PoseTrack,
@@ -493,8 +501,8 @@ def evaluate(
     The settle time counts from ``t_start_s`` (the start of the run, e.g. the first row of a
     ``states.csv`` whether or not it had a pose) or, when None, from the first paired pose.
     ``frame_times_s`` (the run's frames, a ``states.csv``'s rows with a pose or not) gives the
-    run's span, over which truth poses without an estimate are counted (``unmatched``; else over
-    the estimate's own span), and ``pose_coverage``: the share of those frames after the settle
+    run's span, over which truth poses at a frame without an estimate are counted (``unmatched``;
+    else every truth pose without one over the estimate's own span), and ``pose_coverage``: the share of those frames after the settle
     (inside the truth's span) that have a pose.
 
     Velocity metrics need finite ``velocity_cam_m_s`` and ``omega_body_rad_s`` on both
@@ -541,6 +549,10 @@ def evaluate(
         # (mocap), must not read as frames without a pose.
         coverage = min(in_window(estimate.t_s) / counted_frames, 1.0) if counted_frames else None
     in_span = (truth.t_s >= span_from - params.tolerance_s) & (truth.t_s <= span_to + params.tolerance_s)
+    if frames is not None and len(frames):
+        # Only where the run had a frame: a truth sampled faster than the run (motion capture)
+        # is not a pose missing between two frames.
+        in_span &= _near_any(truth.t_s, frames, params.tolerance_s)
     assoc = replace(assoc, index_truth=it, index_est=ie, dt_s=assoc.dt_s[keep],
                     unmatched_est=int(np.count_nonzero(~paired_est & (estimate.t_s >= t_from))),
                     unmatched_truth=int(np.count_nonzero(in_span & ~paired_truth & (truth.t_s >= t_from))))
