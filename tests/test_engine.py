@@ -473,6 +473,58 @@ def test_frame_term_turns_with_the_body_and_drifts_from_its_last_determination(e
     np.testing.assert_allclose(pose.cov_pose, cov_fit + B @ frame_body @ B.T + drift, rtol=1e-9, atol=1e-15)
 
 
+@pytest.mark.parametrize("independent_at_first, bias_m", [(True, 0.0), (False, 0.003)])
+def test_the_drift_runs_without_a_frame_term_of_its_own(estec_rig, independent_at_first: bool, bias_m: float) -> None:
+    """The drift ran only from a frame term of three independently located a-priori points:
+    with ``pose.apriori_bias_sigma_m`` 0, or a run that never had three of them at once (a
+    progressive binding's), no drift was reported at all (a maths review). With sigma 0 it runs
+    from the last frame that had three; without such a frame, from the first pose."""
+    from dataclasses import replace
+
+    q = 0.001
+    config = load_config()
+    config = replace(config, pose=replace(config.pose, apriori_bias_sigma_m=bias_m, model_drift_m_per_sqrt_s=q))
+    pts = body_points(14)
+    ids = [f"m{i}" for i in range(6)] + [f"a{i}" for i in range(8)]
+    tracker = FakeTracker(estec_rig, pts, ids, noise=True)
+    engine = Engine(config, estec_rig, Model(tuple(ids[:6]), pts[:6]), tracker=tracker, rate_hz=25)
+    if not independent_at_first:
+        tracker.origins.update({i: "model" for i in ids[:6]})
+    first = run(engine, range(30))
+    t_from = frame_at(29).t_s if independent_at_first else frame_at(next(k for k, (_, p, _) in enumerate(first) if p.valid)).t_s
+    tracker.origins.update({f"m{i}": "model" for i in range(4)})
+    _, pose, _ = run(engine, range(30, 80))[-1]
+    _, _, cov_fit = engine._last_fit
+    dt = frame_at(79).t_s - t_from
+    r = np.sqrt(np.mean(np.sum((pts[:6] - pts[:6].mean(axis=0)) ** 2, axis=1)))
+    np.testing.assert_allclose(pose.cov_pose, cov_fit + np.diag([q**2 * dt] * 3 + [(q / r) ** 2 * dt] * 3),
+                               rtol=1e-9, atol=1e-15)
+
+
+def test_a_coasted_pose_reports_the_drift_to_its_own_time(estec_rig) -> None:
+    """The coasted pose adds the frame term and the drift at its own time and attitude: two
+    engines alike but for the drift rate report coasted covariances that differ by the drift
+    from the last anchored frame to the coast's frame."""
+    from dataclasses import replace
+
+    q = 0.002
+    outs = []
+    for rate in (0.0, q):
+        engine, tracker, pts = make_engine(estec_rig, noise=False)
+        engine.pose_params = replace(engine.pose_params, model_drift_m_per_sqrt_s=rate)
+        run(engine, range(60))
+        tracker.force_lost = set(tracker.active)
+        outs.append(run(engine, range(60, 70)))
+    coasted = [(k, a[1], b[1]) for k, a, b in zip(range(60, 70), *outs) if a[1].valid and a[1].coasting_s > 0]
+    assert len(coasted) >= 5
+    B0 = np.asarray(engine._given_model.points_body)
+    r = np.sqrt(np.mean(np.sum((B0 - B0.mean(axis=0)) ** 2, axis=1)))
+    for k, without, with_drift in coasted:
+        dt = frame_at(k).t_s - frame_at(59).t_s
+        np.testing.assert_allclose(with_drift.cov_pose - without.cov_pose,
+                                   np.diag([q**2 * dt] * 3 + [(q / r) ** 2 * dt] * 3), rtol=1e-7, atol=1e-15)
+
+
 @pytest.mark.parametrize("correlated", [False, True])
 def test_grown_point_keeps_its_share_of_the_pose_error(estec_rig, correlated: bool) -> None:
     """pose.model_pose_error_correlated: a grown point observed over 50 frames through poses

@@ -95,9 +95,10 @@ class PoseParams:
     model_drift_m_per_sqrt_s: float = param(
         0.00035, "case (b): rate of the random walk of a model located through the pose it gives (grown points, "
         "targets remade through the pose), added to the REPORTED pose covariance from the last frame that "
-        "independently located a-priori points determined the frame: q² dt per position axis, (q / r)² dt per "
-        "rotation axis (r: the a-priori points' rms distance from their centroid); the automatic targets' "
-        "slide, a median 1.10 mm after 10 s; 0: none, m/sqrt(s)", min=0.0,
+        "independently located a-priori points determined the frame (or the first pose): q² dt per position "
+        "axis, (q / r)² dt per rotation axis (r: the a-priori points' rms distance from their centroid); the "
+        "automatic targets' median slide, 1.10 mm after 10 s, over sqrt(10 s) (1.2-1.5 times the per-axis rate "
+        "of a random walk with that median: on the safe side); 0: none, m/sqrt(s)", min=0.0,
     )
     frame_min_age_frames: int = param(
         12, "case (a): only points tracked for at least this many frames define the frame and the first model",

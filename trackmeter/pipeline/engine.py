@@ -1193,31 +1193,45 @@ class Engine:
         """Case (b): the body frame's error the a-priori points' own errors leave (``pose.apriori_bias_sigma_m``,
         sigma, isotropic and the same in every frame a point is seen in), ``sigma² (sum_i J_i^T J_i)^-1``
         over the a-priori inliers ``apriori`` of the pose ``R`` (J_i: :func:`position_jacobians`),
-        (6,6), kept in the body frame with its time ``t_s`` (:meth:`_apriori_frame_report`). Only
-        points located independently of the pose count (the caller's choice): a target the engine
-        made at a model point's projection through the pose (origin ``"model"``, :meth:`_recover`)
-        measures whatever surface point the pose's error put it on, so across the line of sight it
-        repeats that error (estec case (b), 40-60 s: the corners' mean offset follows the pose's
-        error, correlation 0.95; docs/results.md) and pins nothing. Kept from the last frame that
-        determined it: while fewer such points are measured the grown model carries the frame
-        they left."""
+        (6,6), kept in the body frame with its time ``t_s``, from which the model's drift runs
+        (:meth:`_apriori_frame_report`). Only points located independently of the pose count (the
+        caller's choice): a target the engine made at a model point's projection through the pose
+        (origin ``"model"``, :meth:`_recover`) measures whatever surface point the pose's error put
+        it on, so across the line of sight it repeats that error (estec case (b), 40-60 s: the
+        corners' mean offset follows the pose's error, correlation 0.40 and 0.95 on the two axes
+        across it; docs/results.md) and pins nothing. Kept from the last frame that determined it:
+        while fewer such points are measured the grown model carries the frame they left. Before
+        any frame has three (a progressive binding's poses), the drift runs from the first pose,
+        with no frame term of its own; so it does with ``sigma`` 0."""
+        if self._case != "b":
+            return
+        anchor = self._apriori_frame_anchor
+        if anchor is not None and t_s < anchor[0]:  # the clock went back without a cut: the drift starts again
+            self._apriori_frame_anchor = anchor = (t_s, anchor[1])
+        frame_body: FloatArray | None = None
         sigma = self.pose_params.apriori_bias_sigma_m
-        if sigma <= 0 or len(apriori) < 3:
-            return
-        J = position_jacobians(np.array([self._model[i].b for i in apriori]), R)
-        try:
-            frame_cov = sigma**2 * np.linalg.inv(np.einsum("nij,nik->jk", J, J))
-        except np.linalg.LinAlgError:
-            return
-        if np.all(np.isfinite(frame_cov)) and _sigmas_within(frame_cov, self.pose_params.max_attitude_sigma_deg,
-                                                               self.pose_params.max_position_sigma_m):
-            B = _pose_block_rotation(R)
-            self._apriori_frame_anchor = (t_s, B.T @ frame_cov @ B)
+        if len(apriori) >= 3 and sigma <= 0:
+            frame_body = np.zeros((6, 6))
+        elif len(apriori) >= 3:
+            J = position_jacobians(np.array([self._model[i].b for i in apriori]), R)
+            try:
+                frame_cov = sigma**2 * np.linalg.inv(np.einsum("nij,nik->jk", J, J))
+            except np.linalg.LinAlgError:
+                frame_cov = np.full((6, 6), np.nan)
+            if np.all(np.isfinite(frame_cov)) and _sigmas_within(frame_cov, self.pose_params.max_attitude_sigma_deg,
+                                                                   self.pose_params.max_position_sigma_m):
+                B = _pose_block_rotation(R)
+                frame_body = B.T @ frame_cov @ B
+        if frame_body is not None:
+            self._apriori_frame_anchor = (t_s, frame_body)
+        elif anchor is None:
+            self._apriori_frame_anchor = (t_s, np.zeros((6, 6)))
 
     def _apriori_frame_report(self, t_s: float, R: FloatArray) -> FloatArray:
         """Case (b): the body frame's error reported on top of the fit's covariance for a pose of
-        attitude ``R`` at ``t_s``, (6,6), camera frame (zero before a-priori points determined
-        it). The anchor's frame error (:meth:`_note_apriori_frame_error`) turned with the body
+        attitude ``R`` at ``t_s``, (6,6), camera frame (zero before the first pose). ``R`` is the
+        fit's (or the coast's) attitude, whose frame error this is; the filtered pose reported
+        beside it lags it by a fraction of a degree. The anchor's frame error (:meth:`_note_apriori_frame_error`) turned with the body
         (an error of the body frame: position and rotation vector both turn by ``R``), plus the
         drift since of a model located through the pose it gives (its grown points and the
         targets remade through it), a random walk: ``q² dt`` on each position axis and
@@ -1230,8 +1244,9 @@ class Engine:
         B = _pose_block_rotation(R)
         report = B @ frame_body @ B.T
         q, dt = self.pose_params.model_drift_m_per_sqrt_s, max(t_s - t0, 0.0)
-        if q > 0 and dt > 0 and self._apriori_radius_m > 0:
-            report = report + np.diag([q**2 * dt] * 3 + [(q / self._apriori_radius_m) ** 2 * dt] * 3)
+        if q > 0 and dt > 0:
+            turn = (q / self._apriori_radius_m) ** 2 * dt if self._apriori_radius_m > 0 else 0.0
+            report = report + np.diag([q**2 * dt] * 3 + [turn] * 3)
         return report
 
     def _note_shared_frame_error(self, R: FloatArray, ids: list[str], inliers: NDArray[np.bool_], b: FloatArray,
