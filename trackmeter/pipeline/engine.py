@@ -898,8 +898,8 @@ class Engine:
         T[:3, 3] = t_f
         # Reported only: the coast, its gates and the points joining through it work relative to
         # the model's frame, which every point shares (the frame's own error is common to them).
-        pose = PoseEstimate(True, None, self._case, T, cov_out + self._apriori_frame_report(frame.t_s, R) + self._shared_frame_report,
-                            v_arr, w_arr, n_used, tuple(outliers),
+        cov_reported = cov_out + self._apriori_frame_report(frame.t_s, R) + self._shared_frame_report
+        pose = PoseEstimate(True, None, self._case, T, cov_reported, v_arr, w_arr, n_used, tuple(outliers),
                             body_frame=self._body_frame)
         self._recovered_any = False
         if self.pose_params.recover_model_points:
@@ -1231,10 +1231,11 @@ class Engine:
         """Case (b): the body frame's error reported on top of the fit's covariance for a pose of
         attitude ``R`` at ``t_s``, (6,6), camera frame (zero before the first pose). ``R`` is the
         fit's (or the coast's) attitude, whose frame error this is; the filtered pose reported
-        beside it lags it by a fraction of a degree. The anchor's frame error (:meth:`_note_apriori_frame_error`) turned with the body
-        (an error of the body frame: position and rotation vector both turn by ``R``), plus the
-        drift since of a model located through the pose it gives (its grown points and the
-        targets remade through it), a random walk: ``q² dt`` on each position axis and
+        beside it lags it by a fraction of a degree. The anchor's frame error
+        (:meth:`_note_apriori_frame_error`) turned with the body (an error of the body frame:
+        position and rotation vector both turn by ``R``), plus the drift since of a model located
+        through the pose it gives (its grown points and the targets remade through it), a random
+        walk: ``q² dt`` on each position axis and
         ``(q / r)² dt`` on each rotation axis (q: ``pose.model_drift_m_per_sqrt_s``, r: the rms
         distance of the a-priori points from their centroid, the lever a point's drift turns
         the frame by)."""
