@@ -417,6 +417,33 @@ def test_reported_covariance_adds_the_frame_error_the_corners_bias_leaves(estec_
         assert np.sqrt(pose.cov_pose[3, 3]) > 3 * np.sqrt(cov_fit[3, 3])
 
 
+def _cross_matrix(c: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]], [-c[1], c[0], 0.0]])
+
+
+def drift_cov(q: float, dt: float, apriori_body: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """The model's drift reported after ``dt`` s at attitude ``R`` (pose.model_drift_m_per_sqrt_s
+    ``q``): a random walk of the a-priori points' centroid c (``q² dt`` per axis) and of the
+    frame's turn about it (``(q / r)² dt``, r their rms distance from c), the origin moved by the
+    turn too, ``[c]x dtheta``; taken to the camera frame by ``diag(R, R)``."""
+    c = apriori_body.mean(axis=0)
+    r = np.sqrt(np.mean(np.sum((apriori_body - c) ** 2, axis=1)))
+    A = np.eye(6)
+    A[:3, 3:] = _cross_matrix(c)
+    B = np.kron(np.eye(2), R)
+    return B @ A @ np.diag([q**2 * dt] * 3 + [(q / r) ** 2 * dt] * 3) @ A.T @ B.T
+
+
+def test_a_turn_about_the_centroid_moves_the_origin_by_the_cross_matrix() -> None:
+    """The drift's ``A = [[I, [c]x], [0, I]]``: a frame turned by a small ``dtheta`` about a
+    centroid c and moved by ``dp`` there takes the body origin to ``dp + [c]x dtheta`` to first
+    order (the exact rigid motion against it): the sign the reported drift's cross terms take."""
+    c = np.array([0.4, -0.7, 1.2])
+    dp, dtheta = np.array([1e-4, -2e-4, 5e-5]), np.array([2e-5, 1e-5, -3e-5])
+    origin_moved = c + Rotation.from_rotvec(dtheta).apply(-c) + dp
+    np.testing.assert_allclose(origin_moved, dp + _cross_matrix(c) @ dtheta, atol=1e-9)
+
+
 def test_frame_term_counts_only_the_a_priori_points_located_independently(estec_rig) -> None:
     """A target the engine made at a model point's projection through the pose (origin
     "model") measures the surface point the pose's error put it on: across the line of sight
@@ -468,8 +495,7 @@ def test_frame_term_turns_with_the_body_and_drifts_from_its_last_determination(e
     assert np.degrees(Rotation.from_matrix(R @ R_then.T).magnitude()) > 5  # the body has turned
     B = np.kron(np.eye(2), R)
     dt = frame_at(79).t_s - frame_at(29).t_s
-    r = np.sqrt(np.mean(np.sum((pts[:6] - pts[:6].mean(axis=0)) ** 2, axis=1)))
-    drift = np.diag([q**2 * dt] * 3 + [(q / r) ** 2 * dt] * 3)
+    drift = drift_cov(q, dt, pts[:6], R)
     np.testing.assert_allclose(pose.cov_pose, cov_fit + B @ frame_body @ B.T + drift, rtol=1e-9, atol=1e-15)
 
 
@@ -494,11 +520,9 @@ def test_the_drift_runs_without_a_frame_term_of_its_own(estec_rig, independent_a
     t_from = frame_at(29).t_s if independent_at_first else frame_at(next(k for k, (_, p, _) in enumerate(first) if p.valid)).t_s
     tracker.origins.update({f"m{i}": "model" for i in range(4)})
     _, pose, _ = run(engine, range(30, 80))[-1]
-    _, _, cov_fit = engine._last_fit
+    R, _, cov_fit = engine._last_fit
     dt = frame_at(79).t_s - t_from
-    r = np.sqrt(np.mean(np.sum((pts[:6] - pts[:6].mean(axis=0)) ** 2, axis=1)))
-    np.testing.assert_allclose(pose.cov_pose, cov_fit + np.diag([q**2 * dt] * 3 + [(q / r) ** 2 * dt] * 3),
-                               rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(pose.cov_pose, cov_fit + drift_cov(q, dt, pts[:6], R), rtol=1e-9, atol=1e-15)
 
 
 def test_a_coasted_pose_reports_the_drift_to_its_own_time(estec_rig) -> None:
@@ -517,12 +541,11 @@ def test_a_coasted_pose_reports_the_drift_to_its_own_time(estec_rig) -> None:
         outs.append(run(engine, range(60, 70)))
     coasted = [(k, a[1], b[1]) for k, a, b in zip(range(60, 70), *outs) if a[1].valid and a[1].coasting_s > 0]
     assert len(coasted) >= 5
-    B0 = np.asarray(engine._given_model.points_body)
-    r = np.sqrt(np.mean(np.sum((B0 - B0.mean(axis=0)) ** 2, axis=1)))
+    apriori = np.asarray(engine._given_model.points_body)
     for k, without, with_drift in coasted:
         dt = frame_at(k).t_s - frame_at(59).t_s
         np.testing.assert_allclose(with_drift.cov_pose - without.cov_pose,
-                                   np.diag([q**2 * dt] * 3 + [(q / r) ** 2 * dt] * 3), rtol=1e-7, atol=1e-15)
+                                   drift_cov(q, dt, apriori, with_drift.T_cam_body[:3, :3]), rtol=1e-7, atol=1e-15)
 
 
 @pytest.mark.parametrize("correlated", [False, True])

@@ -409,13 +409,17 @@ class Engine:
         pose is in a body frame of its own (:attr:`PoseEstimate.body_frame`)."""
         self._body_frame += 1
         self._model: dict[str, _ModelPoint] = {}
-        self._apriori_radius_m = 0.0  # rms distance of the a-priori points from their centroid
+        # The a-priori points' centroid (body frame, m) and rms distance from it: what the model's
+        # drift turns the frame about, and by how much (_apriori_frame_report).
+        self._apriori_centroid_m = np.zeros(3)
+        self._apriori_radius_m = 0.0
         if self._case == "b" and self._given_model is not None:
             for pid, b in zip(self._given_model.ids, self._given_model.points_body):
                 self._model[pid] = _ModelPoint(np.array(b, dtype=float), np.zeros((3, 3)), True)
             B0 = np.asarray(self._given_model.points_body, float)
-            with np.errstate(over="ignore"):  # a model spanning 1e300 m is warned about where it is loaded
-                self._apriori_radius_m = float(np.sqrt(np.mean(np.sum((B0 - B0.mean(axis=0)) ** 2, axis=1))))
+            with np.errstate(over="ignore", invalid="ignore"):  # a model spanning 1e300 m is warned about where it is loaded
+                self._apriori_centroid_m = B0.mean(axis=0)
+                self._apriori_radius_m = float(np.sqrt(np.mean(np.sum((B0 - self._apriori_centroid_m) ** 2, axis=1))))
         self._frame_ids: tuple[str, ...] = ()
         # Model points whose target the operator removed: kept in the model (an a-priori point, a
         # case (a) frame point) but not looked for again, until a click names them again.
@@ -1235,20 +1239,25 @@ class Engine:
         (:meth:`_note_apriori_frame_error`) turned with the body (an error of the body frame:
         position and rotation vector both turn by ``R``), plus the drift since of a model located
         through the pose it gives (its grown points and the targets remade through it), a random
-        walk: ``q² dt`` on each position axis and
-        ``(q / r)² dt`` on each rotation axis (q: ``pose.model_drift_m_per_sqrt_s``, r: the rms
-        distance of the a-priori points from their centroid, the lever a point's drift turns
-        the frame by)."""
+        walk: ``q² dt`` on each position axis of the a-priori points' centroid c and
+        ``(q / r)² dt`` on each rotation axis (q: ``pose.model_drift_m_per_sqrt_s``, r: their rms
+        distance from c, the lever a point's drift turns the frame by), the turn moving the body
+        origin by ``[c]x dtheta`` too (body frame: ``A diag(q² dt I, (q / r)² dt I) A^T``,
+        ``A = [[I, [c]x], [0, I]]``)."""
         if self._apriori_frame_anchor is None:
             return np.zeros((6, 6))
         t0, frame_body = self._apriori_frame_anchor
-        B = _pose_block_rotation(R)
-        report = B @ frame_body @ B.T
         q, dt = self.pose_params.model_drift_m_per_sqrt_s, max(t_s - t0, 0.0)
         if q > 0 and dt > 0:
             turn = (q / self._apriori_radius_m) ** 2 * dt if self._apriori_radius_m > 0 else 0.0
-            report = report + np.diag([q**2 * dt] * 3 + [turn] * 3)
-        return report
+            # The frame turns about the points' centroid c: the body origin moves by
+            # dtheta x (0 - c) = [c]x dtheta on top of the centroid's own walk.
+            A = np.eye(6)
+            if np.all(np.isfinite(self._apriori_centroid_m)):
+                A[:3, 3:] = skew(self._apriori_centroid_m)
+            frame_body = frame_body + A @ np.diag([q**2 * dt] * 3 + [turn] * 3) @ A.T
+        B = _pose_block_rotation(R)
+        return B @ frame_body @ B.T
 
     def _note_shared_frame_error(self, R: FloatArray, ids: list[str], inliers: NDArray[np.bool_], b: FloatArray,
                                  C: FloatArray, Cb: FloatArray, resting: bool) -> None:
