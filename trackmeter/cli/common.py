@@ -102,6 +102,7 @@ def _warn_rig_not_rendered_through(source: Source, rig_path: str, spec: str) -> 
     rig = source.rig
     if true_rig is None or rig is None:
         return
+
     def close(a: Any, b: Any) -> bool:
         a, b = np.ravel(a), np.ravel(b)
         return a.shape == b.shape and bool(np.allclose(a, b, rtol=1e-9, atol=1e-12))

@@ -25,12 +25,11 @@ or states.csv: its rows, within the tolerance, so a truth sampled faster than th
 counted between its frames; a TUM file: every truth pose inside its poses' span), both after
 the settle time, as the pairs are; the run's frames after the settle (in the truth's span)
 that have a pose are given as a percentage (not for a TUM estimate, which does not list its
-frames). A warning says when the
-run's run.yaml names another sequence or scenario than the truth's (by the scenario's motion,
-where both are known). --json prints the summary in SI units, with the settings it was made
-with ("settings": truth, estimate, align, settle_s, tolerance_s, the run's case); --out DIR
-also writes errors.csv, summary.json (the same), PNG plots of the errors against time and
-report.md beside the paper's figures.
+frames). A warning says when the run's run.yaml names another sequence or scenario than the
+truth's (by the scenario's motion, where both are known). --json prints the summary in SI
+units, with the settings it was made with ("settings": truth, estimate, align, settle_s,
+tolerance_s, the run's case); --out DIR also writes errors.csv, summary.json (the same), PNG
+plots of the errors against time and report.md beside the paper's figures.
 """
 
 from __future__ import annotations

@@ -502,8 +502,8 @@ def evaluate(
     ``states.csv`` whether or not it had a pose) or, when None, from the first paired pose.
     ``frame_times_s`` (the run's frames, a ``states.csv``'s rows with a pose or not) gives the
     run's span, over which truth poses at a frame without an estimate are counted (``unmatched``;
-    else every truth pose without one over the estimate's own span), and ``pose_coverage``: the share of those frames after the settle
-    (inside the truth's span) that have a pose.
+    else every truth pose without one over the estimate's own span), and ``pose_coverage``: the
+    share of those frames after the settle (inside the truth's span) that have a pose.
 
     Velocity metrics need finite ``velocity_cam_m_s`` and ``omega_body_rad_s`` on both
     sides (for the paired samples); otherwise only pose metrics are computed.

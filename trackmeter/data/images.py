@@ -283,7 +283,8 @@ def _why_not_numbered(left: Sequence[Path], nl: Sequence[int | None], right: Seq
         return ""
     without = [p.name for p, n in (*zip(left, nl), *zip(right, nr)) if n is None]
     if without:
-        return f" ({', '.join(without[:3])}{', ...' if len(without) > 3 else ''} {'has' if len(without) == 1 else 'have'} none)"
+        more = ", ..." if len(without) > 3 else ""
+        return f" ({', '.join(without[:3])}{more} {'has' if len(without) == 1 else 'have'} none)"
     for side, paths, numbers in (("left", left, nl), ("right", right, nr)):
         seen: dict[int | None, str] = {}
         for p, n in zip(paths, numbers):
@@ -322,8 +323,9 @@ def pair_stereo_paths(left: Sequence[Path], right: Sequence[Path]) -> list[tuple
                           f"{', '.join(alone[:4])}{', ...' if len(alone) > 4 else ''}", stacklevel=2)
         return pairs
     if len(left) != len(right):
-        raise TrackmeterError(f"{len(left)} left and {len(right)} right images, and their names carry no frame numbers "
-                              f"to pair by{_why_not_numbered(left, nl, right, nr)}")
+        why = _why_not_numbered(left, nl, right, nr)
+        names = "not every name carries a frame number of its own" if why else "their names carry no frame numbers"
+        raise TrackmeterError(f"{len(left)} left and {len(right)} right images, and {names} to pair by{why}")
     if not left:
         raise TrackmeterError("no image pairs")
     return list(zip(left, right))
