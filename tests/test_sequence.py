@@ -1864,6 +1864,9 @@ def test_a_rig_the_simulator_does_not_render_through_is_warned_about(recwarn):
     src = open_source_with_rig("sim", str(RIGS_DIR / "estec_8mm.yaml"))
     try:
         assert src.rig.left.K[0, 0] == 768.0
+        # The source's standing warning too: the console's status box shows it (a console probe).
+        assert src.warning.startswith("measured as --rig ") and "focal length 768 px where the images' is 1152 px" \
+            in src.warning, src.warning
     finally:
         src.close()
     said = [str(w.message) for w in recwarn]

@@ -112,11 +112,16 @@ def _warn_rig_not_rendered_through(source: Source, rig_path: str, spec: str) -> 
     if all(close(a, b) for a, b in pairs):
         return
     scenario_rig = getattr(getattr(source, "scenario", None), "rig", "its own")
+    differ = (f"focal length {rig.left.K[0, 0]:.0f} px where the images' is {true_rig.left.K[0, 0]:.0f} px, baseline "
+              f"{np.linalg.norm(rig.T) * 1e3:.1f} mm where theirs is {np.linalg.norm(true_rig.T) * 1e3:.1f} mm")
     warnings.warn(f"source {spec!r} renders through its scenario's rig ({scenario_rig}); --rig {rig_path} is only "
-                  f"what it reports (focal length {rig.left.K[0, 0]:.0f} px where the images' is "
-                  f"{true_rig.left.K[0, 0]:.0f} px, baseline {np.linalg.norm(rig.T) * 1e3:.1f} mm where theirs is "
-                  f"{np.linalg.norm(true_rig.T) * 1e3:.1f} mm): a miscalibration on purpose; to render through it, "
-                  "name it as rig: in a scenario file (sim:FILE)", stacklevel=3)
+                  f"what it reports ({differ}): a miscalibration on purpose; to render through it, name it as rig: "
+                  "in a scenario file (sim:FILE)", stacklevel=3)
+    # Also the source's standing warning, which the console's status box shows (the operator
+    # sees no terminal); said once here, so a command does not repeat it as news.
+    said = f"measured as --rig {rig_path}, rendered through the scenario's rig ({differ})"
+    before = getattr(source, "warning", None)
+    source.warning = f"{before}; {said}" if before else said  # type: ignore[attr-defined]
 
 
 def check_rig_side_by_side(rig: StereoRig, named: str) -> None:
