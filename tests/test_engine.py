@@ -130,7 +130,8 @@ class FakeTracker:
     def relock_many(self, requests, frame):
         return [self.relock(tid, uv, frame) for tid, uv in requests]
 
-    def add_target(self, frame, uv, target_id=None, origin="operator", in_place_of=None, replace_lost=False):
+    def add_target(self, frame, uv, target_id=None, origin="operator", in_place_of=None, replace_lost=False,
+                   replace_remade=False):
         self.added.append((target_id, uv, origin))
         if target_id is None or target_id not in self.body:
             return Refusal(uv, "black space")

@@ -8,6 +8,7 @@ import pytest
 
 from trackmeter.data.config import load_config
 from trackmeter.pipeline.engine import Engine, SelectModelPoints
+from trackmeter.core.targets import Refusal
 from trackmeter.pipeline.snapshot import RemoveTarget, SelectPoint
 
 
@@ -73,6 +74,30 @@ def test_a_named_click_takes_the_place_of_its_lost_target(estec_sim_frames, este
     assert reply.ok and reply.target_id == name, reply.message
     mine = [t for t in engine.targets if t.id == name]
     assert len(mine) == 1 and mine[0].status != "lost"
+
+
+def test_a_named_click_takes_the_place_of_a_target_made_through_the_pose(estec_sim_frames, estec_model) -> None:
+    """A model point's target the engine made at its projection through the pose (origin
+    "model") repeats the pose's error across the line of sight; the operator naming the point
+    with a click locates it on its own, but the click was refused ("a target named ... exists":
+    a console probe re-clicking corners to pin the frame again). It takes that target's place,
+    and the answer says so; the target is the operator's after it."""
+    rig, frames, engine = _case_b(estec_sim_frames, estec_model)
+    for k in range(1, 4):
+        engine.process(frames[k])
+    name = sorted(t.id for t in engine.targets if t.status != "lost" and t.id in estec_model.ids)[0]
+    uv = _true_pixel(rig, estec_model, frames[3], name)
+    engine.tracker.remove_target(name)
+    made = engine.tracker.add_target(frames[3], uv, name, "model")  # as _remake makes one
+    assert not isinstance(made, Refusal), made
+    reply = engine.handle(SelectPoint(*uv, name), frames[3])
+    assert reply.ok and reply.target_id == name, reply.message
+    assert "in place of the target made at its projection through the pose" in reply.message
+    mine = [t for t in engine.targets if t.id == name]
+    assert len(mine) == 1 and mine[0].origin == "operator"
+    # A target of that name the operator made is still no place to click into.
+    again = engine.handle(SelectPoint(*uv, name), frames[3])
+    assert not again.ok and "exists" in again.message
 
 
 def test_generated_target_ids_never_take_a_model_point_s_name(estec_sim_frames) -> None:

@@ -722,6 +722,7 @@ class Tracker:
         origin: TargetOrigin = "operator",
         in_place_of: str | None = None,
         replace_lost: bool = False,
+        replace_remade: bool = False,
     ) -> TargetState | Refusal:
         """Create a target at left pixel ``uv`` (ORIGINAL image, px) of ``frame``.
 
@@ -730,12 +731,15 @@ class Tracker:
         stereo match along its epipolar line — as a measurement of that point would be.
         ``in_place_of``: at the limit, the target the new one replaces, removed only once the
         new one is made (a refused click costs no target). ``replace_lost``: a lost target of
-        ``target_id`` is no refusal but replaced, likewise only once the new one is made.
+        ``target_id`` is no refusal but replaced, likewise only once the new one is made;
+        ``replace_remade``: so is one made at a model point's projection (origin ``"model"``).
         """
         uvf = np.asarray(uv, dtype=float).reshape(2)
         key = (float(uvf[0]), float(uvf[1]))
         old = self._targets.get(target_id) if target_id is not None else None
-        if old is not None and not (replace_lost and old.status == "lost"):
+        replaceable = old is not None and ((replace_lost and old.status == "lost")
+                                           or (replace_remade and old.origin == "model"))
+        if old is not None and not replaceable:
             return Refusal(key, f"a target named {target_id!r} exists")
         full = old is None and len(self._targets) >= self.params.max_targets
         if full and in_place_of not in self._targets:

@@ -551,10 +551,14 @@ class Engine:
             # Clicked where the lost one of its name should be: it makes way once the new one is
             # made, as for the model points' click (its name was refused: "a target named ...
             # exists", where none is drawn), and a refused click costs no target.
-            replacing = command.target_id is not None and any(t.id == command.target_id and t.status == "lost"
-                                                              for t in states)
+            named = next((t for t in states if t.id == command.target_id), None) if command.target_id else None
+            replacing = named is not None and named.status == "lost"
+            # So does one the engine made at the point's projection through the pose (_remake): it
+            # repeats the pose's error across the line of sight, which the operator's click does
+            # not (docs/results.md, "How honest the pose covariance is").
+            remade = named is not None and not replacing and named.origin == "model"
             # At the limit the click takes a lost or automatic target's place (kept otherwise).
-            room: dict[str, Any] = ({"replace_lost": True} if replacing else
+            room: dict[str, Any] = ({"replace_lost": True} if replacing else {"replace_remade": True} if remade else
                                     {"in_place_of": click_room(states)} if len(states) >= self._max_targets else {})
             if "in_place_of" in room and room["in_place_of"] is None:
                 return CommandReply(False, f"refused at {_pixel(command.u, command.v)}: target limit reached "
@@ -571,6 +575,8 @@ class Engine:
                 note += (f" (in place of {'lost ' if gone.status == 'lost' else ''}"
                          f"{'automatic' if gone.origin == 'auto' else gone.origin} target {gone.id}: "
                          f"{self._max_targets} is the limit)")
+            if remade:
+                note += " (in place of the target made at its projection through the pose)"
             if self._case == "b" and command.target_id is not None and command.target_id not in self._model:
                 note += " (not a model point: it joins the model once the pose is known)"
             self._operator_removed.discard(result.id)  # named again: looked for again when lost
