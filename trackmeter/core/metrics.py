@@ -23,7 +23,7 @@ axis (the paper's viewing axis was y). Units SI: m, rad, m/s, rad/s.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Any, Literal, Protocol
+from typing import Any, Literal, Protocol, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -122,6 +122,14 @@ class Association:
         return self.unmatched_est + self.unmatched_truth
 
 
+def _nearest(times_s: FloatArray, t_s: FloatArray) -> IntArray:
+    """(N,) index into the sorted ``times_s`` (K >= 1) of the time nearest each of ``t_s`` (the
+    earlier of two as near)."""
+    right = np.clip(np.searchsorted(times_s, t_s), 0, len(times_s) - 1)
+    left = np.clip(right - 1, 0, len(times_s) - 1)
+    return cast(IntArray, np.where(np.abs(t_s - times_s[left]) <= np.abs(t_s - times_s[right]), left, right))
+
+
 def associate(t_truth_s: ArrayLike, t_est_s: ArrayLike, tolerance_s: float) -> Association:
     """Pair samples by nearest timestamp within ``tolerance_s``, each sample used at most once.
 
@@ -143,9 +151,7 @@ def associate(t_truth_s: ArrayLike, t_est_s: ArrayLike, tolerance_s: float) -> A
     time_order(te, "estimate")
     if len(tt) == 0 or len(te) == 0:
         return Association(np.zeros(0, np.intp), np.zeros(0, np.intp), np.zeros(0), len(te), 0)
-    right = np.clip(np.searchsorted(tt, te), 0, len(tt) - 1)
-    left = np.clip(right - 1, 0, len(tt) - 1)
-    nearest = np.where(np.abs(te - tt[left]) <= np.abs(te - tt[right]), left, right)
+    nearest = _nearest(tt, te)
     gap = np.abs(te - tt[nearest])
     used = np.zeros(len(tt), dtype=bool)
     pairs: list[tuple[int, int]] = []
@@ -480,11 +486,9 @@ def _rates(track: PoseTrack, index: IntArray) -> tuple[FloatArray | None, FloatA
 
 
 def _near_any(t_s: FloatArray, times_s: FloatArray, tolerance_s: float) -> NDArray[np.bool_]:
-    """(N,) whether each of ``t_s`` is within ``tolerance_s`` of one of ``times_s``."""
+    """(N,) whether each of ``t_s`` is within ``tolerance_s`` of one of ``times_s`` (K >= 1)."""
     times = np.sort(times_s)
-    i = np.clip(np.searchsorted(times, t_s), 1, len(times) - 1) if len(times) > 1 else np.zeros(len(t_s), int)
-    nearest = np.minimum(np.abs(times[i] - t_s), np.abs(times[np.maximum(i - 1, 0)] - t_s))
-    return nearest <= tolerance_s + 1e-9
+    return np.abs(times[_nearest(times, t_s)] - t_s) <= tolerance_s + 1e-9
 
 
 def evaluate(
